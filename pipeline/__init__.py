@@ -1,0 +1,1 @@
+"""imupipe pipeline: order, config, sinks and the command line."""

@@ -1,0 +1,252 @@
+"""The TOML config (SPEC "Config file"), parsed and validated into dataclasses.
+
+Every problem is a :class:`ConfigError` naming the file and the key: broken TOML, unknown keys
+(never ignored), wrong types, missing files, unknown inputs or stage types. Paths are relative to
+the config file's folder.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import tomllib
+import types
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from imupipe.pipeline.errors import ConfigError
+from imupipe.readers.spec import (
+    ACCEL_UNITS,
+    GYRO_UNITS,
+    MAG_UNITS,
+    TIME_UNITS,
+    CsvMapping,
+    InputSpec,
+)
+from imupipe.stages.registry import STAGE_TYPES, stage_class
+
+INPUT_KEYS = {"path", "imu_topic", "mag_topic", "temperature_topic", "time", "csv"}
+CSV_KEYS = {f.name for f in dataclasses.fields(CsvMapping)} - {"required"}
+OUTPUT_KEYS = {"dir", "apply_to", "rerun", "rerun_max_points"}
+TOP_KEYS = {"inputs", "stages", "output"}
+
+
+@dataclass
+class StageConfig:
+    type: str
+    name: str
+    input: str
+    options: Any
+    index: int
+
+
+@dataclass
+class OutputConfig:
+    dir: Path
+    apply_to: list[str]
+    rerun: bool = True
+    rerun_max_points: int = 200_000
+    """Signals longer than this are block-averaged before they go to Rerun (the file stays small)."""
+
+
+@dataclass
+class Config:
+    path: Path
+    inputs: dict[str, InputSpec]
+    stages: list[StageConfig]
+    output: OutputConfig
+    raw: dict[str, Any] = field(default_factory=dict)
+
+
+def _check_keys(where: str, table: dict[str, Any], allowed: set[str]) -> None:
+    for key in table:
+        if key not in allowed:
+            raise ConfigError(
+                f"{where}: unknown key '{key}' (allowed: {', '.join(sorted(allowed))})"
+            )
+
+
+def _type_ok(value: Any, hint: Any) -> bool:
+    """Whether a TOML value fits a type hint (int accepted for float)."""
+    if hint is Any:
+        return True
+    origin = typing.get_origin(hint)
+    if origin in (typing.Union, types.UnionType):
+        return any(_type_ok(value, h) for h in typing.get_args(hint))
+    if hint is type(None):
+        return value is None
+    if origin is list:
+        (inner,) = typing.get_args(hint) or (Any,)
+        return isinstance(value, list) and all(_type_ok(v, inner) for v in value)
+    if origin is dict:
+        return isinstance(value, dict)
+    if origin is typing.Literal:
+        return value in typing.get_args(hint)
+    if hint is float:
+        return isinstance(value, int | float) and not isinstance(value, bool)
+    if hint is int:
+        return isinstance(value, int) and not isinstance(value, bool)
+    if isinstance(hint, type):
+        return isinstance(value, hint)
+    return True
+
+
+def _describe(hint: Any) -> str:
+    origin = typing.get_origin(hint)
+    if origin is typing.Literal:
+        return " | ".join(repr(a) for a in typing.get_args(hint))
+    return getattr(hint, "__name__", None) or str(hint).replace("typing.", "")
+
+
+def build_options(cls: type, values: dict[str, Any], where: str) -> Any:
+    """Instantiate the options dataclass ``cls`` from TOML values, checking names and types."""
+    hints = typing.get_type_hints(cls)
+    names = {f.name for f in dataclasses.fields(cls)}
+    _check_keys(where, values, names)
+    for key, value in values.items():
+        if not _type_ok(value, hints[key]):
+            raise ConfigError(f"{where}.{key}: {value!r} is not of type {_describe(hints[key])}")
+        if typing.get_origin(hints[key]) is float or hints[key] is float:
+            values[key] = float(value)
+    return cls(**values)
+
+
+def _csv_mapping(where: str, raw: dict[str, Any]) -> CsvMapping:
+    if not isinstance(raw, dict):
+        raise ConfigError(f"{where}: must be a table")
+    mapping = build_options(CsvMapping, dict(raw), where)
+    for key, units in (
+        ("time_unit", TIME_UNITS),
+        ("gyro_unit", GYRO_UNITS),
+        ("accel_unit", ACCEL_UNITS),
+        ("mag_unit", MAG_UNITS),
+    ):
+        if getattr(mapping, key) not in units:
+            raise ConfigError(
+                f"{where}.{key}: '{getattr(mapping, key)}' is not one of {', '.join(units)}"
+            )
+    for key in ("gyro", "accel", "mag"):
+        value = getattr(mapping, key)
+        if value is not None and len(value) != 3:
+            raise ConfigError(f"{where}.{key}: must name 3 columns, got {len(value)}")
+    mapping.required = tuple(k for k in ("gyro", "accel", "mag", "temperature") if k in raw)
+    if "time" not in raw and "rate_hz" in raw:
+        mapping.time = None
+    return mapping
+
+
+def parse_input(name: str, raw: Any, base: Path, where: str) -> InputSpec:
+    """One ``[inputs.NAME]`` table into an :class:`InputSpec`."""
+    if not isinstance(raw, dict):
+        raise ConfigError(f"{where}: must be a table")
+    _check_keys(where, raw, INPUT_KEYS)
+    if "path" not in raw:
+        raise ConfigError(f"{where}: missing key 'path'")
+    for key in ("path", "imu_topic", "mag_topic", "temperature_topic", "time"):
+        if key in raw and not isinstance(raw[key], str):
+            raise ConfigError(f"{where}.{key}: must be a string")
+    path = Path(raw["path"])
+    if not path.is_absolute():
+        path = base / path
+    if not path.exists():
+        raise ConfigError(f"{where}.path: no such file or folder: {path}")
+    time = raw.get("time", "header")
+    if time not in ("header", "log"):
+        raise ConfigError(f"{where}.time: '{time}' is not one of header, log")
+    return InputSpec(
+        path=path,
+        name=name,
+        imu_topic=raw.get("imu_topic"),
+        mag_topic=raw.get("mag_topic"),
+        temperature_topic=raw.get("temperature_topic"),
+        time=time,
+        csv=_csv_mapping(f"{where}.csv", raw.get("csv", {})),
+    )
+
+
+def load_config(path: str | Path) -> Config:
+    """Read and validate a config file."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise ConfigError(f"{path}: no such config file") from None
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read: {exc.strerror}") from None
+    try:
+        raw = tomllib.loads(text)
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{path}: not valid TOML: {exc}") from None
+    base = path.resolve().parent
+    _check_keys(str(path), raw, TOP_KEYS)
+
+    inputs_raw = raw.get("inputs")
+    if not isinstance(inputs_raw, dict) or not inputs_raw:
+        raise ConfigError(f"{path}: no [inputs.NAME] table")
+    inputs = {
+        name: parse_input(name, value, base, f"{path}: [inputs.{name}]")
+        for name, value in inputs_raw.items()
+    }
+
+    stages_raw = raw.get("stages", [])
+    if not isinstance(stages_raw, list):
+        raise ConfigError(f"{path}: 'stages' must be an array of tables ([[stages]])")
+    stages: list[StageConfig] = []
+    seen: set[str] = set()
+    for i, entry in enumerate(stages_raw):
+        where = f"{path}: stages[{i}]"
+        if not isinstance(entry, dict):
+            raise ConfigError(f"{where}: must be a table")
+        entry = dict(entry)
+        type_name = entry.pop("type", None)
+        if type_name is None:
+            raise ConfigError(f"{where}: missing key 'type'")
+        if type_name not in STAGE_TYPES:
+            raise ConfigError(
+                f"{where}.type: unknown stage type '{type_name}' (known: {', '.join(STAGE_TYPES)})"
+            )
+        name = entry.pop("name", type_name)
+        if not isinstance(name, str) or not name.replace("_", "").replace("-", "").isalnum():
+            raise ConfigError(f"{where}.name: must be a word (letters, digits, _ or -)")
+        if name in seen:
+            raise ConfigError(
+                f"{where}: a second stage named '{name}'; give each a distinct 'name'"
+            )
+        seen.add(name)
+        input_name = entry.pop("input", None)
+        if input_name is None:
+            if len(inputs) != 1:
+                raise ConfigError(
+                    f"{where}: missing key 'input' (there are {len(inputs)} inputs: {', '.join(inputs)})"
+                )
+            input_name = next(iter(inputs))
+        if input_name not in inputs:
+            raise ConfigError(
+                f"{where}.input: unknown input '{input_name}' (inputs: {', '.join(inputs)})"
+            )
+        cls = stage_class(type_name)
+        options = build_options(cls.Options, entry, f"{where} ({type_name})")
+        stages.append(StageConfig(type_name, name, input_name, options, i))
+
+    out_raw = raw.get("output", {})
+    if not isinstance(out_raw, dict):
+        raise ConfigError(f"{path}: [output] must be a table")
+    _check_keys(f"{path}: [output]", out_raw, OUTPUT_KEYS)
+    out_dir = Path(out_raw.get("dir", "out"))
+    if not out_dir.is_absolute():
+        out_dir = base / out_dir
+    apply_to = out_raw.get("apply_to", list(inputs))
+    if not isinstance(apply_to, list) or not all(isinstance(a, str) for a in apply_to):
+        raise ConfigError(f"{path}: [output].apply_to must be a list of input names")
+    for name in apply_to:
+        if name not in inputs:
+            raise ConfigError(f"{path}: [output].apply_to: unknown input '{name}'")
+    rerun = out_raw.get("rerun", True)
+    if not isinstance(rerun, bool):
+        raise ConfigError(f"{path}: [output].rerun must be true or false")
+    max_points = out_raw.get("rerun_max_points", 200_000)
+    if not isinstance(max_points, int) or isinstance(max_points, bool) or max_points < 100:
+        raise ConfigError(f"{path}: [output].rerun_max_points must be an integer >= 100")
+    output = OutputConfig(dir=out_dir, apply_to=apply_to, rerun=rerun, rerun_max_points=max_points)
+    return Config(path=path, inputs=inputs, stages=stages, output=output, raw=raw)

@@ -1,0 +1,140 @@
+"""The Rerun sink: every stage's signals in one ``recording.rrd``.
+
+Signals are sent in bulk with ``rr.send_columns`` (never one ``rr.log`` per sample) on the
+``time`` timeline (the samples' own timestamps). Each signal is one entity with one named series
+per axis. Signals longer than ``max_points`` are block-averaged to at most that many points before
+they are sent (the full-rate data stays in the MCAP output). A default blueprint has one tab per
+stage, holding the views the stage asked for (a time-series view of ``/<stage>`` by default).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import rerun as rr
+import rerun.blueprint as rrb
+
+from imupipe.stages.blocks import block_means
+
+TIMELINE = "time"
+AXIS_COLORS = [(230, 60, 60), (60, 180, 75), (60, 100, 230), (200, 140, 20)]
+
+
+class Recorder:
+    """Writes a Rerun recording to ``path`` (and to a viewer with ``spawn``)."""
+
+    enabled = True
+
+    def __init__(
+        self,
+        path: Path,
+        *,
+        spawn: bool = False,
+        max_points: int = 200_000,
+        application_id: str = "imupipe",
+    ) -> None:
+        self.max_points = max_points
+        self.rec = rr.RecordingStream(application_id)
+        if spawn:
+            rr.spawn(connect=False)
+            self.rec.set_sinks(rr.FileSink(str(path)), rr.GrpcSink())
+        else:
+            self.rec.save(str(path))
+        self._views: dict[str, list[Any]] = {}
+        self._styled: set[str] = set()
+
+    # -- signals -----------------------------------------------------------------------------
+    def series(
+        self,
+        entity: str,
+        t_ns: np.ndarray,
+        values: np.ndarray,
+        names: Sequence[str] = ("x", "y", "z"),
+        *,
+        colors: Sequence[Any] | None = None,
+    ) -> None:
+        """One signal: ``values`` (n,) or (n, k) at ``t_ns`` (int64 ns), one named series per column."""
+        t_ns = np.asarray(t_ns, dtype=np.int64)
+        values = np.asarray(values, dtype=np.float64).reshape(len(t_ns), -1)
+        if len(t_ns) == 0:
+            return
+        if len(t_ns) > self.max_points:
+            blocks = block_means(t_ns, values, window=math.ceil(len(t_ns) / self.max_points))
+            t_ns, values = blocks.t_ns, blocks.means
+        self._style(entity, names, colors)
+        rr.send_columns(
+            entity,
+            indexes=[rr.TimeColumn(TIMELINE, timestamp=t_ns.astype("datetime64[ns]"))],
+            columns=rr.Scalars.columns(scalars=values),
+            recording=self.rec,
+        )
+
+    def curve(
+        self,
+        entity: str,
+        x: np.ndarray,
+        values: np.ndarray,
+        names: Sequence[str],
+        *,
+        timeline: str,
+        colors: Sequence[Any] | None = None,
+    ) -> None:
+        """A curve over something other than time (``x`` becomes a ``sequence`` timeline of ints,
+        e.g. round(1000 * log10(tau)) for Allan curves)."""
+        x = np.asarray(x, dtype=np.int64)
+        values = np.asarray(values, dtype=np.float64).reshape(len(x), -1)
+        if len(x) == 0:
+            return
+        self._style(entity, names, colors)
+        rr.send_columns(
+            entity,
+            indexes=[rr.TimeColumn(timeline, sequence=x)],
+            columns=rr.Scalars.columns(scalars=values),
+            recording=self.rec,
+        )
+
+    def _style(self, entity: str, names: Sequence[str], colors: Sequence[Any] | None) -> None:
+        if entity in self._styled:
+            return
+        self._styled.add(entity)
+        colors = list(colors) if colors is not None else AXIS_COLORS[: len(names)]
+        if len(colors) < len(names):
+            colors = [AXIS_COLORS[i % len(AXIS_COLORS)] for i in range(len(names))]
+        rr.log(
+            entity,
+            rr.SeriesLines(names=list(names), colors=colors),
+            static=True,
+            recording=self.rec,
+        )
+
+    def log(self, entity: str, archetype: Any, *, static: bool = True) -> None:
+        """Anything else (3D points, ellipsoids, meshes, text): one ``rr.log`` call."""
+        rr.log(entity, archetype, static=static, recording=self.rec)
+
+    # -- blueprint ---------------------------------------------------------------------------
+    def add_view(self, stage: str, view: Any) -> None:
+        """Add a blueprint view (``rrb.TimeSeriesView``, ``rrb.Spatial3DView``...) to a stage's tab."""
+        self._views.setdefault(stage, []).append(view)
+
+    def ensure_stage(self, stage: str) -> None:
+        """Give a stage a tab with a time-series view of ``/<stage>`` unless it asked for views."""
+        if stage not in self._views:
+            self._views[stage] = [rrb.TimeSeriesView(origin=f"/{stage}", name=stage)]
+
+    def blueprint(self) -> rrb.Blueprint:
+        tabs = []
+        for stage, views in self._views.items():
+            tabs.append(views[0] if len(views) == 1 else rrb.Vertical(*views, name=stage))
+        return rrb.Blueprint(
+            rrb.Tabs(*tabs) if tabs else rrb.TimeSeriesView(origin="/"), collapse_panels=False
+        )
+
+    def close(self) -> None:
+        """Send the blueprint and flush everything to the sinks."""
+        self.rec.send_blueprint(self.blueprint(), make_active=True, make_default=True)
+        self.rec.flush()
+        self.rec.disconnect()

@@ -1,0 +1,253 @@
+"""The common table: the one Arrow schema every reader fills and every stage reads.
+
+One row per *sample event*, rows in time order (stable: equal stamps keep their input order).
+
+| column | type | unit | meaning |
+|---|---|---|---|
+| ``t_ns`` | int64 | ns | sample time (header stamp by default; log time with ``time = "log"``) |
+| ``gyro_x``, ``gyro_y``, ``gyro_z`` | float64 | rad/s | angular rate; null where the row has no IMU sample |
+| ``accel_x``, ``accel_y``, ``accel_z`` | float64 | m/s^2 | specific force; null where the row has no IMU sample |
+| ``mag_x``, ``mag_y``, ``mag_z`` | float64 | T | magnetic field; null where the row has no magnetometer sample |
+| ``temperature`` | float64 | degC | temperature; null where the row has no temperature sample |
+
+Optional columns, filled by the binary readers so that a log can be written back message for
+message (absent or null: the writer uses ROS defaults):
+
+| column | type | meaning |
+|---|---|---|
+| ``log_time_ns`` | int64 | the log (receive) time of the message, ns |
+| ``frame_id`` | string | the message header's frame_id |
+| ``orientation_x/y/z/w`` | float64 | sensor_msgs/Imu orientation quaternion |
+| ``orientation_cov``, ``gyro_cov``, ``accel_cov``, ``mag_cov`` | fixed_size_list<float64, 9> | covariances |
+| ``temperature_var`` | float64 | sensor_msgs/Temperature variance |
+
+**Streams.** A row belongs to the ``imu`` stream where ``gyro_x`` is valid (an Imu message always
+carries both gyro and accel), to the ``mag`` stream where ``mag_x`` is valid, and to the
+``temperature`` stream where ``temperature`` is valid. A CSV row may belong to all three; a
+message from a bag belongs to exactly one. Streams at different rates keep their own timestamps:
+nothing is resampled silently; a stage that needs one stream at another's timestamps calls
+:func:`interpolate` explicitly.
+
+**Metadata** (schema metadata key ``imupipe``, JSON): ``source`` (file), ``format``, ``topics``
+(stream -> topic name), ``types`` (stream -> message type) and ``frame_id`` (stream -> frame).
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.compute as pc
+
+SENSOR_COLUMNS: dict[str, tuple[str, ...]] = {
+    "gyro": ("gyro_x", "gyro_y", "gyro_z"),
+    "accel": ("accel_x", "accel_y", "accel_z"),
+    "mag": ("mag_x", "mag_y", "mag_z"),
+    "temperature": ("temperature",),
+}
+"""Each sensor's value columns, in SI units."""
+
+SENSOR_UNITS: dict[str, str] = {
+    "gyro": "rad/s",
+    "accel": "m/s^2",
+    "mag": "T",
+    "temperature": "degC",
+}
+
+STREAM_OF_SENSOR: dict[str, str] = {
+    "gyro": "imu",
+    "accel": "imu",
+    "mag": "mag",
+    "temperature": "temperature",
+}
+"""The stream (message) each sensor travels in."""
+
+STREAM_KEY_COLUMN: dict[str, str] = {"imu": "gyro_x", "mag": "mag_x", "temperature": "temperature"}
+"""The column whose validity marks membership of a stream."""
+
+STREAMS: tuple[str, ...] = ("imu", "mag", "temperature")
+
+COV = pa.list_(pa.float64(), 9)
+
+SCHEMA = pa.schema(
+    [pa.field("t_ns", pa.int64(), nullable=False)]
+    + [pa.field(c, pa.float64()) for cols in SENSOR_COLUMNS.values() for c in cols]
+)
+"""The required columns (value columns are nullable: null means "no sample of that stream")."""
+
+OPTIONAL_FIELDS = pa.schema(
+    [
+        pa.field("log_time_ns", pa.int64()),
+        pa.field("frame_id", pa.string()),
+        pa.field("orientation_x", pa.float64()),
+        pa.field("orientation_y", pa.float64()),
+        pa.field("orientation_z", pa.float64()),
+        pa.field("orientation_w", pa.float64()),
+        pa.field("orientation_cov", COV),
+        pa.field("gyro_cov", COV),
+        pa.field("accel_cov", COV),
+        pa.field("mag_cov", COV),
+        pa.field("temperature_var", pa.float64()),
+    ]
+)
+
+META_KEY = b"imupipe"
+
+
+def make_table(
+    t_ns: np.ndarray,
+    *,
+    gyro: np.ndarray | None = None,
+    accel: np.ndarray | None = None,
+    mag: np.ndarray | None = None,
+    temperature: np.ndarray | None = None,
+    valid: Mapping[str, np.ndarray] | None = None,
+    extra: Mapping[str, pa.Array | np.ndarray] | None = None,
+    metadata: Mapping[str, Any] | None = None,
+) -> pa.Table:
+    """Build a common table from numpy arrays (SI units, ``t_ns`` int64 ns).
+
+    ``gyro``, ``accel``, ``mag`` are (n, 3), ``temperature`` is (n,). A sensor left out is all
+    null. ``valid`` maps a stream name (``imu``, ``mag``, ``temperature``) to a boolean mask of the
+    rows that hold a sample of it (default: every row, for the sensors given). ``extra`` adds
+    optional columns (see :data:`OPTIONAL_FIELDS`). Rows are kept in the order given.
+    """
+    t_ns = np.asarray(t_ns, dtype=np.int64)
+    n = t_ns.shape[0]
+    valid = dict(valid or {})
+    given = {"gyro": gyro, "accel": accel, "mag": mag, "temperature": temperature}
+    arrays: list[pa.Array] = [pa.array(t_ns, pa.int64())]
+    for sensor, cols in SENSOR_COLUMNS.items():
+        values = given[sensor]
+        stream = STREAM_OF_SENSOR[sensor]
+        if values is None:
+            arrays += [pa.nulls(n, pa.float64()) for _ in cols]
+            continue
+        values = np.asarray(values, dtype=np.float64).reshape(n, len(cols))
+        mask = valid.get(stream)
+        null_mask = None if mask is None else ~np.asarray(mask, dtype=bool)
+        arrays += [pa.array(values[:, i], pa.float64(), mask=null_mask) for i in range(len(cols))]
+    table = pa.Table.from_arrays(arrays, schema=SCHEMA)
+    for name, column in (extra or {}).items():
+        field = OPTIONAL_FIELDS.field(name)
+        table = table.append_column(field, _as_arrow(column, field.type))
+    return with_metadata(table, metadata or {})
+
+
+def _as_arrow(column: pa.Array | np.ndarray, typ: pa.DataType) -> pa.Array:
+    if isinstance(column, pa.Array | pa.ChunkedArray):
+        return column.cast(typ)
+    column = np.asarray(column)
+    if isinstance(typ, pa.FixedSizeListType):
+        flat = np.ascontiguousarray(column, dtype=np.float64).reshape(-1)
+        return pa.FixedSizeListArray.from_arrays(pa.array(flat), typ.list_size)
+    return pa.array(column, typ)
+
+
+def metadata(table: pa.Table) -> dict[str, Any]:
+    """The table's imupipe metadata (source, format, topics, types, frame_id)."""
+    raw = (table.schema.metadata or {}).get(META_KEY)
+    return json.loads(raw) if raw else {}
+
+
+def with_metadata(table: pa.Table, meta: Mapping[str, Any]) -> pa.Table:
+    """A copy of ``table`` whose imupipe metadata is ``meta``."""
+    old = dict(table.schema.metadata or {})
+    old[META_KEY] = json.dumps(dict(meta), sort_keys=True).encode()
+    return table.replace_schema_metadata(old)
+
+
+def stream_mask(table: pa.Table, stream: str) -> np.ndarray:
+    """Boolean mask of the rows that hold a sample of ``stream`` (imu, mag, temperature)."""
+    column = table.column(STREAM_KEY_COLUMN[stream])
+    if column.null_count == 0:
+        return np.ones(len(table), dtype=bool)
+    return pc.is_valid(column).to_numpy(zero_copy_only=False)
+
+
+def has_stream(table: pa.Table, stream: str) -> bool:
+    return table.column(STREAM_KEY_COLUMN[stream]).null_count < len(table)
+
+
+def _column_f64(table: pa.Table, name: str, rows: np.ndarray | None) -> np.ndarray:
+    column = table.column(name)
+    values = column.to_numpy() if column.null_count == 0 else (column.fill_null(np.nan).to_numpy())
+    return values if rows is None else values[rows]
+
+
+@dataclass(frozen=True)
+class SensorData:
+    """One sensor's samples as numpy: ``t_ns`` (n,) int64, ``values`` (n, k) float64 SI, and
+    ``rows``, the indices of those samples in the table (for writing corrected values back)."""
+
+    t_ns: np.ndarray
+    values: np.ndarray
+    rows: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.t_ns.shape[0])
+
+    @property
+    def t_s(self) -> np.ndarray:
+        """Seconds since the first sample (float64), for fitting and plotting."""
+        if len(self) == 0:
+            return np.zeros(0)
+        return (self.t_ns - self.t_ns[0]).astype(np.float64) * 1e-9
+
+
+def sensor(table: pa.Table, name: str) -> SensorData:
+    """The samples of sensor ``name`` (gyro, accel, mag, temperature) as :class:`SensorData`."""
+    mask = stream_mask(table, STREAM_OF_SENSOR[name])
+    rows = None if mask.all() else np.flatnonzero(mask)
+    t_ns = table.column("t_ns").to_numpy()
+    values = np.column_stack([_column_f64(table, c, rows) for c in SENSOR_COLUMNS[name]])
+    idx = np.arange(len(table)) if rows is None else rows
+    return SensorData(t_ns=t_ns if rows is None else t_ns[rows], values=values, rows=idx)
+
+
+def replace_sensor(table: pa.Table, name: str, rows: np.ndarray, values: np.ndarray) -> pa.Table:
+    """A copy of ``table`` with sensor ``name`` set to ``values`` (n, k) at ``rows``.
+
+    Rows not listed keep their values; validity (which rows hold a sample) never changes.
+    """
+    values = np.asarray(values, dtype=np.float64).reshape(len(rows), -1)
+    for i, col in enumerate(SENSOR_COLUMNS[name]):
+        column = table.column(col)
+        full = _column_f64(table, col, None).copy()
+        full[rows] = values[:, i]
+        null_mask = None if column.null_count == 0 else ~stream_mask(table, STREAM_OF_SENSOR[name])
+        idx = table.schema.get_field_index(col)
+        table = table.set_column(idx, table.schema.field(idx), pa.array(full, mask=null_mask))
+    return table
+
+
+def counts(table: pa.Table) -> dict[str, int]:
+    """Samples per stream: what a writer must emit, message for message."""
+    return {s: int(stream_mask(table, s).sum()) for s in STREAMS if has_stream(table, s)}
+
+
+def interpolate(t_src_ns: np.ndarray, values: np.ndarray, t_dst_ns: np.ndarray) -> np.ndarray:
+    """Linear interpolation of ``values`` (n,) or (n, k) sampled at ``t_src_ns`` onto
+    ``t_dst_ns``; held constant beyond the ends. The explicit way to put one stream on
+    another's timestamps."""
+    t0 = t_src_ns[0] if len(t_src_ns) else 0
+    xs = (t_src_ns - t0).astype(np.float64)
+    xd = (t_dst_ns - t0).astype(np.float64)
+    values = np.asarray(values, dtype=np.float64)
+    if values.ndim == 1:
+        return np.interp(xd, xs, values)
+    return np.column_stack([np.interp(xd, xs, values[:, i]) for i in range(values.shape[1])])
+
+
+def sort_by_time(table: pa.Table) -> tuple[pa.Table, int]:
+    """Stable sort by ``t_ns``; returns the table and how many rows were out of order."""
+    t = table.column("t_ns").to_numpy()
+    if len(t) < 2 or bool(np.all(t[1:] >= t[:-1])):
+        return table, 0
+    order = np.argsort(t, kind="stable")
+    moved = int(np.count_nonzero(order != np.arange(len(t))))
+    return table.take(pa.array(order)), moved

@@ -1,0 +1,1 @@
+"""imupipe readers: log formats into the common table."""

@@ -1,0 +1,76 @@
+"""What to read: an input's path, topics, time source and (for CSV) column mapping."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from pathlib import Path
+
+TIME_UNITS = {"s": 1e9, "ms": 1e6, "us": 1e3, "ns": 1.0}
+GYRO_UNITS = {"rad/s": 1.0, "deg/s": 0.017453292519943295, "raw": 1.0}
+G0 = 9.80665
+ACCEL_UNITS = {"m/s^2": 1.0, "g": G0, "mg": G0 * 1e-3, "raw": 1.0}
+MAG_UNITS = {
+    "T": 1.0,
+    "mT": 1e-3,
+    "uT": 1e-6,
+    "nT": 1e-9,
+    "gauss": 1e-4,
+    "mgauss": 1e-7,
+    "raw": 1.0,
+}
+TEMPERATURE_UNITS = {"degC": 1.0}
+
+
+@dataclass
+class CsvMapping:
+    """Which CSV columns hold what, in which unit (converted to SI on reading).
+
+    Columns are named by header name, or by 0-based index (int) for files without a header.
+    The defaults are imupipe's own CSV (what ``imupipe simulate`` writes): ``t_ns`` and SI columns.
+    """
+
+    time: str | int | None = "t_ns"
+    time_unit: str = "ns"
+    gyro: list[str | int] | None = field(default_factory=lambda: ["gyro_x", "gyro_y", "gyro_z"])
+    gyro_unit: str = "rad/s"
+    accel: list[str | int] | None = field(default_factory=lambda: ["accel_x", "accel_y", "accel_z"])
+    accel_unit: str = "m/s^2"
+    mag: list[str | int] | None = field(default_factory=lambda: ["mag_x", "mag_y", "mag_z"])
+    mag_unit: str = "T"
+    temperature: str | int | None = "temperature"
+    rate_hz: float | None = None
+    delimiter: str = "auto"
+    """``,`` ``;`` ``\\t`` ``whitespace`` or ``auto`` (sniffed from the first line)."""
+    header: bool | None = None
+    """Whether the first line names the columns; None: sniffed (a non-numeric first line)."""
+    required: tuple[str, ...] = ()
+    """Sensors the user mapped explicitly: a missing column is then an error, not an absent sensor."""
+
+
+@dataclass
+class InputSpec:
+    """One named input of the config (or one log given to ``convert``)."""
+
+    path: Path
+    name: str = "input"
+    imu_topic: str | None = None
+    mag_topic: str | None = None
+    temperature_topic: str | None = None
+    time: str = "header"
+    """``header``: message header stamps; ``log``: the log (receive) time of each message."""
+    csv: CsvMapping = field(default_factory=CsvMapping)
+
+
+@dataclass
+class RawMessage:
+    """A message of a topic the pipeline does not correct, carried over to the output unchanged
+    (ROS 1 payloads already converted to ROS 2 CDR): topic, schema, encodings, payload, times."""
+
+    topic: str
+    schema_name: str
+    schema_encoding: str
+    schema_data: bytes
+    message_encoding: str
+    data: bytes
+    log_time: int
+    publish_time: int

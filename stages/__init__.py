@@ -1,0 +1,1 @@
+"""imupipe stages: the calibration math."""

@@ -1,0 +1,106 @@
+"""The stage protocol.
+
+A stage knows math, not files. The pipeline hands it the common table of its input, *as corrected
+by the correction stages before it*, and a :class:`StageContext`; the stage returns a
+:class:`StageOutput`: JSON-ready results (with a ``metrics`` dict), and, for a correction stage, a
+:class:`~imupipe.stages.steps.Step` that applies vectorised to any common table.
+
+Options: each stage declares a dataclass ``Options``; the config's keys for the stage are checked
+against its fields (unknown keys and wrong types are errors naming the key).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import sys
+from abc import ABC, abstractmethod
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from typing import Any, ClassVar
+
+import pyarrow as pa
+
+from imupipe.pipeline.errors import FitError
+from imupipe.stages.steps import Step
+
+
+class NullRecorder:
+    """Stand-in for the Rerun recorder when recording is off: every call does nothing."""
+
+    enabled = False
+
+    def __getattr__(self, name: str) -> Callable[..., None]:
+        return lambda *args, **kwargs: None
+
+
+@dataclass
+class StageContext:
+    """What a stage gets besides its input table.
+
+    - ``name``: the stage's name (its ``name`` key, else its type); Rerun paths go under ``/<name>``.
+    - ``input_name``: the config input the stage fits on.
+    - ``recorder``: a :class:`imupipe.pipeline.recording.Recorder` (or a no-op stand-in).
+    - ``tables``: every input's table, corrected by the chain so far (for ``validate`` inputs).
+    - ``warnings``: collected warnings; :meth:`warn` also prints them on stderr.
+    """
+
+    name: str
+    input_name: str
+    recorder: Any = field(default_factory=NullRecorder)
+    tables: Mapping[str, pa.Table] = field(default_factory=dict)
+    warnings: list[str] = field(default_factory=list)
+    quiet: bool = False
+
+    def warn(self, message: str) -> None:
+        message = " ".join(message.split())
+        self.warnings.append(message)
+        if not self.quiet:
+            print(f"imupipe: warning: [{self.name}] {message}", file=sys.stderr)
+
+    def fail(self, message: str) -> FitError:
+        """An error to raise: ``raise ctx.fail("...")``; names the stage and its input."""
+        return FitError(f"stage '{self.name}' on input '{self.input_name}': {message}")
+
+
+@dataclass
+class StageOutput:
+    """A stage's result.
+
+    - ``results``: JSON-serialisable; goes to ``calibration.json`` under ``results.<name>``.
+      Put quality figures under ``results["metrics"]``.
+    - ``step``: the correction this stage adds to the chain (None for analysis stages).
+    - ``artifacts``: extra output files, file name -> text, written atomically in the output dir.
+    """
+
+    results: dict[str, Any]
+    step: Step | None = None
+    artifacts: dict[str, str] = field(default_factory=dict)
+
+
+class Stage(ABC):
+    """Base class of every stage. Subclasses set ``type``, ``Options``, ``sensors``, ``corrects``."""
+
+    type: ClassVar[str]
+    sensors: ClassVar[tuple[str, ...]] = ()
+    """The sensors the stage works on; the pipeline records them before and after the stage."""
+    corrects: ClassVar[bool] = False
+
+    @dataclass
+    class Options:
+        pass
+
+    def __init__(self, options: Any) -> None:
+        self.options = options
+
+    @abstractmethod
+    def fit(self, table: pa.Table, ctx: StageContext) -> StageOutput:
+        """Fit on ``table`` (the input as corrected so far)."""
+
+    @classmethod
+    def option_names(cls) -> list[str]:
+        return [f.name for f in dataclasses.fields(cls.Options)]
+
+    @classmethod
+    def sensors_for(cls, options: Any) -> tuple[str, ...]:
+        """The sensors this configured stage works on (override when an option picks them)."""
+        return cls.sensors

@@ -1,0 +1,65 @@
+"""Block averaging (seed 000's ``ImuDataSum``).
+
+The samples are cut into consecutive blocks of ``window`` samples (or of ``window_s`` seconds of
+timestamps); each block is replaced by its mean. The trailing partial block is averaged too (as
+``ImuDataSum`` does), so no sample is dropped. Block times are the mean of the block's sample
+times, i.e. the block centre for evenly spaced samples.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Blocks:
+    """Block means: ``t_ns`` (m,) block centres, ``means`` (m, k), ``counts`` (m,) samples per
+    block, ``starts`` (m,) index of each block's first sample."""
+
+    t_ns: np.ndarray
+    means: np.ndarray
+    counts: np.ndarray
+    starts: np.ndarray
+
+
+def block_starts(
+    t_ns: np.ndarray, window: int | None = None, window_s: float | None = None
+) -> np.ndarray:
+    """Start index of each block: every ``window`` samples, or every ``window_s`` seconds."""
+    n = len(t_ns)
+    if (window is None) == (window_s is None):
+        raise ValueError("give exactly one of window and window_s")
+    if n == 0:
+        return np.zeros(0, dtype=np.int64)
+    if window is not None:
+        if window < 1:
+            raise ValueError("window must be >= 1 sample")
+        return np.arange(0, n, int(window), dtype=np.int64)
+    if not window_s or window_s <= 0:
+        raise ValueError("window_s must be > 0")
+    width = int(round(window_s * 1e9))
+    index = (t_ns - t_ns[0]) // width
+    return np.flatnonzero(np.r_[True, index[1:] != index[:-1]]).astype(np.int64)
+
+
+def block_means(
+    t_ns: np.ndarray,
+    values: np.ndarray,
+    window: int | None = None,
+    window_s: float | None = None,
+) -> Blocks:
+    """Means of consecutive blocks of ``values`` (n,) or (n, k); see the module docstring."""
+    t_ns = np.asarray(t_ns, dtype=np.int64)
+    values = np.asarray(values, dtype=np.float64)
+    squeeze = values.ndim == 1
+    values2 = values.reshape(len(t_ns), -1)
+    starts = block_starts(t_ns, window, window_s)
+    if len(starts) == 0:
+        return Blocks(t_ns, values2[:0], np.zeros(0, np.int64), starts)
+    counts = np.diff(np.r_[starts, len(t_ns)])
+    means = np.add.reduceat(values2, starts, axis=0) / counts[:, None]
+    rel = (t_ns - t_ns[0]).astype(np.float64)
+    centres = t_ns[0] + np.round(np.add.reduceat(rel, starts) / counts).astype(np.int64)
+    return Blocks(centres, means[:, 0] if squeeze else means, counts, starts)

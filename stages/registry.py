@@ -1,0 +1,23 @@
+"""Stage type -> implementing class. A new stage registers here (lazy imports keep start-up fast)."""
+
+from __future__ import annotations
+
+import importlib
+
+from imupipe.stages.base import Stage
+
+STAGE_TYPES: dict[str, str] = {
+    "average": "imupipe.stages.average:AverageStage",
+    "gyro_bias": "imupipe.stages.gyro_bias:GyroBiasStage",
+    "allan": "imupipe.stages.allan:AllanStage",
+    "accel_calibration": "imupipe.stages.accel_calibration:AccelCalibrationStage",
+    "gyro_calibration": "imupipe.stages.gyro_calibration:GyroCalibrationStage",
+    "mag_calibration": "imupipe.stages.mag_calibration:MagCalibrationStage",
+    "temperature": "imupipe.stages.temperature:TemperatureStage",
+}
+
+
+def stage_class(type_name: str) -> type[Stage]:
+    """The class of stage ``type_name`` (KeyError when unknown)."""
+    module, name = STAGE_TYPES[type_name].split(":")
+    return getattr(importlib.import_module(module), name)

@@ -1,0 +1,50 @@
+"""Test helpers: decode an MCAP with the mcap library's ROS 2 decoder; count Rerun rows."""
+
+from __future__ import annotations
+
+import collections
+from pathlib import Path
+
+import numpy as np
+from mcap.reader import make_reader
+from mcap_ros2.decoder import DecoderFactory
+
+
+def decode_mcap(path: str | Path) -> dict[str, list]:
+    """topic -> list of (log_time, decoded message), with the mcap library's ROS 2 decoder."""
+    out: dict[str, list] = collections.defaultdict(list)
+    with open(path, "rb") as fh:
+        reader = make_reader(fh, decoder_factories=[DecoderFactory()])
+        for _schema, channel, message, decoded in reader.iter_decoded_messages(
+            log_time_order=False
+        ):
+            out[channel.topic].append((message.log_time, decoded))
+    return dict(out)
+
+
+def mcap_attachments(path: str | Path) -> dict[str, bytes]:
+    with open(path, "rb") as fh:
+        return {a.name: a.data for a in make_reader(fh).iter_attachments()}
+
+
+def stamps_ns(messages: list) -> np.ndarray:
+    return np.array(
+        [m.header.stamp.sec * 1_000_000_000 + m.header.stamp.nanosec for _, m in messages]
+    )
+
+
+def vec(messages: list, field: str) -> np.ndarray:
+    return np.array(
+        [[getattr(m, field).x, getattr(m, field).y, getattr(m, field).z] for _, m in messages]
+    )
+
+
+def rrd_rows(path: str | Path) -> dict[str, int]:
+    """Entity path -> number of (non-static) rows in a recording, read with rerun.chunk.RrdReader."""
+    import rerun.chunk as rc
+
+    rows: collections.Counter = collections.Counter()
+    for chunk in rc.RrdReader(str(path)).stream().to_chunks():
+        if not chunk.is_static:
+            rows[chunk.entity_path] += chunk.num_rows
+    return dict(rows)
