@@ -68,13 +68,21 @@ class StageOutput:
 
     - ``results``: JSON-serialisable; goes to ``calibration.json`` under ``results.<name>``.
       Put quality figures under ``results["metrics"]``.
-    - ``step``: the correction this stage adds to the chain (None for analysis stages).
+    - ``step``: the correction this stage adds to the chain (None for analysis stages), or a list
+      of steps when one fit corrects several sensors (e.g. accel and gyro together).
     - ``artifacts``: extra output files, file name -> text, written atomically in the output dir.
     """
 
     results: dict[str, Any]
-    step: Step | None = None
+    step: Step | list[Step] | None = None
     artifacts: dict[str, str] = field(default_factory=dict)
+
+
+    @property
+    def steps(self) -> list[Step]:
+        if self.step is None:
+            return []
+        return list(self.step) if isinstance(self.step, list) else [self.step]
 
 
 class Stage(ABC):
