@@ -25,11 +25,14 @@ class StagedOutputs:
 
     def __init__(self) -> None:
         self._pending: list[tuple[Path, Path]] = []
+        self._created_dirs: list[Path] = []
 
     def path(self, final: str | os.PathLike[str]) -> Path:
         """A temporary path next to ``final``; it becomes ``final`` on commit."""
         final = Path(final)
+        missing = [p for p in [final.parent, *final.parent.parents] if not p.exists()]
         final.parent.mkdir(parents=True, exist_ok=True)
+        self._created_dirs.extend(missing)
         fd, tmp = tempfile.mkstemp(prefix=f".{final.name}.", suffix=".tmp", dir=final.parent)
         os.close(fd)
         os.chmod(tmp, 0o666 & ~_umask())
@@ -49,6 +52,10 @@ class StagedOutputs:
             with contextlib.suppress(FileNotFoundError):
                 tmp.unlink()
         self._pending.clear()
+        for folder in self._created_dirs:  # deepest first: folders this run made, if left empty
+            with contextlib.suppress(OSError):
+                folder.rmdir()
+        self._created_dirs.clear()
 
 
 @contextlib.contextmanager

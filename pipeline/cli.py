@@ -28,7 +28,7 @@ def build_parser() -> argparse.ArgumentParser:
         description="Calibrate IMUs from CSV, MCAP and ROS bags; inspect every stage in Rerun.",
     )
     parser.add_argument("--version", action="version", version=f"imupipe {VERSION}")
-    parser.add_argument("--debug", action="store_true", help="show tracebacks on errors")
+    parser.add_argument("--debug", action="store_true", help="show tracebacks on errors (anywhere on the line)")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for module in COMMANDS.values():
         try:
@@ -42,6 +42,7 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     debug = "--debug" in argv
+    argv = [a for a in argv if a != "--debug"]  # accepted anywhere on the line
     try:
         args = build_parser().parse_args(argv)
         return int(args.func(args) or 0)
