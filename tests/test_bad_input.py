@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
+
 from conftest import run_cli
 
 GOOD_CSV = "t_ns,gyro_x,gyro_y,gyro_z,accel_x,accel_y,accel_z\n" + "".join(
