@@ -73,3 +73,27 @@ def test_recording_has_stage_entities(static_run):
     assert rows["/gyro_bias/output/gyro"] == n
     assert rows["/average/input/accel"] == n
     assert rows["/average/gyro"] == int(np.ceil(n / 500))
+
+
+def test_calibration_json_reapplies_the_same_chain(static_run):
+    from imupipe.pipeline.table import sensor
+    from imupipe.readers.csv_reader import read_csv
+    from imupipe.readers.spec import InputSpec
+    from imupipe.stages.steps import apply_chain, steps_from_json
+
+    d, _, _ = static_run
+    cal = json.loads((d / "out" / "calibration.json").read_text())
+    steps = steps_from_json(cal["chain"])
+    table, _ = read_csv(InputSpec(path=d / "static.csv"))
+    corrected = sensor(apply_chain(table, steps), "gyro").values
+    written = vec(decode_mcap(d / "out" / "static.mcap")["/imu/data"], "angular_velocity")
+    np.testing.assert_array_equal(corrected, written)
+
+
+def test_recording_has_a_blueprint(static_run):
+    import rerun.chunk as rc
+
+    d, _, _ = static_run
+    reader = rc.RrdReader(str(d / "out" / "recording.rrd"))
+    assert len(reader.recordings()) == 1
+    assert len(reader.blueprints()) == 1
