@@ -462,7 +462,8 @@ def plan(
     cal_sha, set_sha = chain_sha256(calibration), settings_sha256(settings)
     tasks: list[LogTask] = []
     owners: dict[Path, Path] = {}
-    found = find_logs(logs, out_dir, csv=csv)
+    out_dir = out_dir.absolute()  # workers (Ray nodes) may run in another folder
+    found = [(p.absolute(), rel) for p, rel in find_logs(logs, out_dir, csv=csv)]
     inputs = {p.resolve() for p, _ in found}
     for path, rel in found:
         output = out_dir / rel.with_name(rel.name + ".mcap")

@@ -119,20 +119,31 @@ def run_local(
     jobs: int | None = None,
     retries: int = 2,
 ) -> None:
-    """Run every task in a pool of ``jobs`` worker processes (``forkserver`` start)."""
+    """Run every task in a pool of ``jobs`` worker processes (``forkserver`` start).
+
+    When a worker dies the pool breaks and every task in flight fails with it. If only one task
+    was in flight it is to blame and is charged an attempt; otherwise the tasks in flight become
+    suspects, uncharged, and are run again one at a time until the culprit is found.
+    """
     tracker = _Tracker(tasks, retries, on_done)
     jobs = max(1, min(jobs or default_jobs(), len(tasks) or 1))
     ctx = mp.get_context("forkserver")
     ctx.set_forkserver_preload(["imupipe.pipeline.convert"])
-    while tracker.queue:
-        broken = False
+    suspects: deque[int] = deque()
+    while tracker.queue or suspects:
+        crashed: list[int] = []
         with cf.ProcessPoolExecutor(jobs, mp_context=ctx, initializer=_worker_init) as pool:
             running: dict[cf.Future, int] = {}
-            while tracker.queue or running:
-                while tracker.queue and not broken:
-                    i = tracker.queue.popleft()
-                    tracker.start(i)
-                    running[pool.submit(guarded, fn, tasks[i])] = i
+            while True:
+                if not crashed:
+                    if suspects and not running:
+                        i = suspects.popleft()
+                        tracker.start(i)
+                        running[pool.submit(guarded, fn, tasks[i])] = i
+                    while tracker.queue and not suspects:
+                        i = tracker.queue.popleft()
+                        tracker.start(i)
+                        running[pool.submit(guarded, fn, tasks[i])] = i
                 if not running:
                     break
                 done, _ = cf.wait(running, return_when=cf.FIRST_COMPLETED)
@@ -141,10 +152,13 @@ def run_local(
                     try:
                         tracker.finish(i, future.result())
                     except cf.process.BrokenProcessPool:
-                        broken = True
-                        tracker.failed(i, "the worker process died (killed or out of memory)", True)
-                if broken and not running:
-                    break
+                        crashed.append(i)
+        if len(crashed) == 1:
+            tracker.failed(crashed[0], "the worker process died (killed or out of memory)", True)
+        else:
+            for i in crashed:
+                tracker.attempts[i] -= 1
+                suspects.append(i)
 
 
 def run_ray(

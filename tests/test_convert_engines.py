@@ -1,0 +1,70 @@
+"""Issue 8: the engines' failure model (pipeline/engines.py) with a local process pool.
+
+Retried: an unexpected exception and a worker process that dies; not retried: bad input
+(ImupipeError); one task's failure never stops the others.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+from imupipe.pipeline.engines import run_tasks
+from imupipe.pipeline.errors import ReadError
+
+
+def _first_attempt(marker: Path) -> bool:
+    """True on the first call for ``marker`` (the marker file then exists)."""
+    try:
+        fd = os.open(marker, os.O_CREAT | os.O_EXCL | os.O_WRONLY)
+    except FileExistsError:
+        return False
+    os.close(fd)
+    return True
+
+
+def work(task: tuple[str, Path]) -> str:
+    """Module-level so the pool's workers can import it."""
+    kind, marker = task
+    if kind == "flaky" and _first_attempt(marker):
+        raise OSError("disk hiccup")
+    if kind == "dies" and _first_attempt(marker):
+        os._exit(3)
+    if kind == "killer":
+        os._exit(9)
+    if kind == "bad":
+        raise ReadError(f"{marker}: not a log")
+    if kind == "broken":
+        raise RuntimeError("always fails")
+    return f"{kind} ok in {os.getpid()}"
+
+
+def _run(tasks, **kw):
+    outcomes = {}
+    run_tasks(work, tasks, lambda o: outcomes.__setitem__(o.task[0], o), **kw)
+    return outcomes
+
+
+def test_failures_are_isolated_and_retried(tmp_path):
+    tasks = [(k, tmp_path / k) for k in ("ok", "flaky", "dies", "killer", "bad", "broken")]
+    out = _run(tasks, engine="local", jobs=2, retries=2)
+    assert set(out) == {"ok", "flaky", "dies", "killer", "bad", "broken"}
+    assert out["ok"].error is None and out["ok"].attempts == 1
+    # an exception other than bad input is retried, and succeeds the second time
+    assert out["flaky"].error is None and out["flaky"].attempts == 2
+    # a worker process that dies is replaced and its task run again (tasks that were in flight
+    # beside it are not charged an attempt: they are rerun one by one to find the culprit)
+    assert out["dies"].error is None and (tmp_path / "dies").exists()
+    # a task that kills its worker every time is charged each time, then reported
+    assert out["killer"].attempts == 3
+    assert out["killer"].error == "the worker process died (killed or out of memory)"
+    # bad input is final at once, and says what and where
+    assert out["bad"].attempts == 1 and out["bad"].error == f"{tmp_path / 'bad'}: not a log"
+    # a persistent failure is tried 1 + retries times, then reported with its cause
+    assert out["broken"].attempts == 3
+    assert out["broken"].error.startswith("RuntimeError: always fails")
+
+
+def test_no_retries(tmp_path):
+    out = _run([("flaky", tmp_path / "f")], engine="local", jobs=1, retries=0)
+    assert out["flaky"].attempts == 1 and "OSError: disk hiccup" in out["flaky"].error
