@@ -1,19 +1,29 @@
-"""Corrected logs as MCAP (SPEC "Corrected MCAP").
+"""Corrected logs as MCAP (SPEC "Corrected MCAP"), written chunk by chunk with numpy.
 
 Profile ``ros2``, message encoding ``cdr``, schemas ``ros2msg`` (the message definitions rosbags
 generates), so the ``mcap`` library's ROS 2 decoder, rosbags, Foxglove and ``ros2 bag`` read it.
 The IMU stream is written as ``sensor_msgs/msg/Imu``, the magnetometer as
 ``sensor_msgs/msg/MagneticField`` (tesla), the temperature as ``sensor_msgs/msg/Temperature``
 (degC), each row of the table exactly once, with the table's timestamps (header stamp = ``t_ns``,
-log time = ``log_time_ns`` when the reader kept it, else ``t_ns``). The calibration that was
-applied travels as the attachment ``calibration.json``. Messages of other topics given as
-``carry_over`` are written unchanged.
+log and publish time = ``log_time_ns`` when the reader kept it, else ``t_ns``). The calibration
+that was applied travels as the attachment ``calibration.json``. Messages of other topics given
+as ``carry_over`` are written unchanged.
+
+:class:`McapTableWriter` streams: each ``write_table`` batch is encoded with
+:func:`imupipe.readers.cdr.encode` (one structured array per frame_id), its message records
+are built as one numpy array (``opcode, length, channel, sequence, log_time, publish_time,
+payload``), cut into ~1 MiB chunks, zstd-compressed, and each chunk is followed by its
+``MessageIndex`` records; the summary (schemas, channels, statistics, chunk and attachment
+indexes) is written at :meth:`~McapTableWriter.close`. No Python loop runs per message except
+for carried-over messages, which arrive as Python objects anyway.
 """
 
 from __future__ import annotations
 
 import json
+import struct
 import time
+import zlib
 from collections.abc import Iterable, Mapping
 from functools import cache
 from pathlib import Path
@@ -22,7 +32,21 @@ from typing import Any
 import numpy as np
 import pyarrow as pa
 import pyarrow.compute as pc
-from mcap.writer import CompressionType, Writer
+import zstandard
+from mcap.data_stream import RecordBuilder
+from mcap.opcode import Opcode
+from mcap.records import (
+    Attachment,
+    AttachmentIndex,
+    Channel,
+    ChunkIndex,
+    DataEnd,
+    Footer,
+    Header,
+    Schema,
+    Statistics,
+    SummaryOffset,
+)
 
 from imupipe.pipeline.table import metadata, sensor, stream_mask
 from imupipe.readers import cdr
@@ -35,6 +59,10 @@ STREAM_TYPES = {
     "temperature": "sensor_msgs/msg/Temperature",
 }
 DEFAULT_FRAME = "imu"
+MAGIC = b"\x89MCAP0\r\n"
+CHUNK_BYTES = 1 << 20
+RECORD_HEADER = 31
+"""Bytes of a message record before its payload (opcode, length, channel, seq, 2 times)."""
 
 
 @cache
@@ -62,18 +90,17 @@ def _column_or(table: pa.Table, name: str, rows: np.ndarray, default: np.ndarray
     return values
 
 
-def encode_stream(table: pa.Table, stream: str) -> tuple[np.ndarray, list[bytes]]:
-    """Encode every row of ``stream`` as CDR. Returns (rows, payloads) in row order."""
-    mask = stream_mask(table, stream)
-    rows = np.flatnonzero(mask)
+def encode_stream(
+    table: pa.Table, stream: str
+) -> tuple[np.ndarray, list[tuple[np.ndarray, np.ndarray]]]:
+    """Encode every row of ``stream`` as CDR.
+
+    Returns ``(rows, groups)``: the table rows of the stream, and per frame_id a pair
+    ``(positions into rows, payloads (m, L) uint8)``."""
+    rows = np.flatnonzero(stream_mask(table, stream))
     n = len(rows)
     t_ns = table.column("t_ns").to_numpy()[rows]
     meta_frame = metadata(table).get("frame_id", {}).get(stream, DEFAULT_FRAME)
-    if "frame_id" in table.column_names:
-        frames = table.column("frame_id").take(pa.array(rows)).fill_null(meta_frame)
-        frames = frames.to_numpy(zero_copy_only=False)
-    else:
-        frames = np.full(n, meta_frame, dtype=object)
     fields: dict[str, np.ndarray] = {}
     if stream == "imu":
         fields["angular_velocity"] = sensor(table, "gyro").values
@@ -98,19 +125,363 @@ def encode_stream(table: pa.Table, stream: str) -> tuple[np.ndarray, list[bytes]
     else:
         fields["temperature"] = sensor(table, "temperature").values[:, 0]
         fields["variance"] = _column_or(table, "temperature_var", rows, np.zeros(n))
-    payloads: list[bytes] = [b""] * n
-    for frame in np.unique(frames) if n else []:
-        sel = np.flatnonzero(frames == frame)
-        frame_bytes = str(frame).encode()
-        enc = cdr.encode(
-            STREAM_TYPES[stream],
-            t_ns[sel],
-            frame_bytes,
-            {k: v[sel] for k, v in fields.items()},
+    if n == 0:
+        return rows, []
+    if "frame_id" in table.column_names:
+        frames = pc.fill_null(table.column("frame_id").take(pa.array(rows)), meta_frame)
+        encoded = pc.dictionary_encode(frames.combine_chunks())
+        names = [str(x) for x in encoded.dictionary.to_pylist()]
+        codes = encoded.indices.to_numpy(zero_copy_only=False)
+    else:
+        names, codes = [meta_frame], np.zeros(n, dtype=np.int64)
+    groups = []
+    for code, name in enumerate(names):
+        sel = np.arange(n) if len(names) == 1 else np.flatnonzero(codes == code)
+        if len(sel) == 0:
+            continue
+        payloads = cdr.encode(
+            STREAM_TYPES[stream], t_ns[sel], name.encode(), {k: v[sel] for k, v in fields.items()}
         )
-        for j, i in enumerate(sel):
-            payloads[i] = enc[j].tobytes()
-    return rows, payloads
+        groups.append((sel, payloads))
+    return rows, groups
+
+
+def _message_records(
+    channel: int, seq: np.ndarray, log: np.ndarray, payloads: np.ndarray
+) -> np.ndarray:
+    """Message records (m, 31 + L) uint8 for payloads (m, L) of one channel."""
+    m, size = payloads.shape
+    dt = np.dtype(
+        {
+            "names": ["op", "len", "ch", "seq", "log", "pub", "data"],
+            "formats": ["u1", "<u8", "<u2", "<u4", "<u8", "<u8", ("u1", size)],
+            "offsets": [0, 1, 9, 11, 15, 23, 31],
+            "itemsize": RECORD_HEADER + size,
+        }
+    )
+    rec = np.empty(m, dtype=dt)
+    rec["op"] = Opcode.MESSAGE
+    rec["len"] = size + RECORD_HEADER - 9
+    rec["ch"] = channel
+    rec["seq"] = seq
+    rec["log"] = log
+    rec["pub"] = log
+    rec["data"] = payloads
+    return rec.view(np.uint8).reshape(m, dt.itemsize)
+
+
+class McapTableWriter:
+    """Stream common-table batches and carried-over messages into one MCAP file.
+
+    ``McapTableWriter(path, calibration=None, topics=None)``; :meth:`write_table` (a batch of the
+    common table), :meth:`write_raw` (RawMessage s), :meth:`close` -> messages per topic. As a
+    context manager it closes on success and leaves the (unfinished) file for the caller's
+    staging to discard on error. ``topics`` overrides stream -> topic names (default: the
+    table's metadata, else ``/imu/data``, ``/imu/mag``, ``/imu/temperature``).
+    """
+
+    def __init__(
+        self,
+        path: str | Path,
+        calibration: Mapping[str, Any] | None = None,
+        topics: Mapping[str, str] | None = None,
+        *,
+        library: str = "imupipe",
+        chunk_bytes: int = CHUNK_BYTES,
+    ) -> None:
+        self.path = Path(path)
+        self.calibration = calibration
+        self.topics = dict(topics or {})
+        self.chunk_bytes = chunk_bytes
+        self._fh = open(self.path, "wb")  # noqa: SIM115 - closed in close()
+        self._compressor = zstandard.ZstdCompressor(level=3)
+        self._schemas: dict[tuple[str, str, bytes], Schema] = {}
+        self._channels: dict[tuple[str, str, int], Channel] = {}
+        self._topic_of: dict[int, str] = {}
+        self._seq: dict[int, int] = {}
+        self._counts: dict[int, int] = {}
+        self._chunk_indexes: list[ChunkIndex] = []
+        self._attachment_indexes: list[AttachmentIndex] = []
+        self._start = -1
+        self._end = 0
+        self._closed = False
+        self._fh.write(MAGIC)
+        self._write_record(Header(profile="ros2", library=library))
+
+    # -- plumbing --------------------------------------------------------------------------
+    def _write_record(self, record: Any) -> int:
+        builder = RecordBuilder()
+        record.write(builder)
+        data = builder.end()
+        self._fh.write(data)
+        return len(data)
+
+    def _channel(self, topic: str, encoding: str, schema: tuple[str, str, bytes]) -> int:
+        if schema not in self._schemas:
+            s = Schema(
+                id=len(self._schemas) + 1, name=schema[0], encoding=schema[1], data=schema[2]
+            )
+            self._schemas[schema] = s
+            self._write_record(s)
+        sid = self._schemas[schema].id
+        key = (topic, encoding, sid)
+        if key not in self._channels:
+            c = Channel(
+                id=len(self._channels) + 1,
+                topic=topic,
+                message_encoding=encoding,
+                schema_id=sid,
+                metadata={},
+            )
+            self._channels[key] = c
+            self._topic_of[c.id] = topic
+            self._seq[c.id] = 0
+            self._counts[c.id] = 0
+            self._write_record(c)
+        return self._channels[key].id
+
+    def _sequence(self, channel: int, m: int) -> np.ndarray:
+        start = self._seq[channel]
+        self._seq[channel] = start + m
+        self._counts[channel] += m
+        return (np.arange(start, start + m) & 0xFFFFFFFF).astype(np.uint32)
+
+    def _write_messages(
+        self, buf: np.ndarray, starts: np.ndarray, channels: np.ndarray, log: np.ndarray
+    ) -> None:
+        """Write message records laid end to end in ``buf`` (record i at ``starts[i]``) as
+        chunks of about ``chunk_bytes``, each with its message indexes."""
+        n = len(starts)
+        if n == 0:
+            return
+        lo, hi = int(log.min()), int(log.max())
+        self._start = lo if self._start < 0 else min(self._start, lo)
+        self._end = max(self._end, hi)
+        ends = np.append(starts[1:], len(buf))
+        cuts = np.searchsorted(ends, np.arange(self.chunk_bytes, int(ends[-1]), self.chunk_bytes))
+        bounds = np.unique(np.concatenate([[0], cuts + 1, [n]]).clip(0, n))
+        for a, b in zip(bounds[:-1].tolist(), bounds[1:].tolist(), strict=True):
+            if b > a:
+                self._write_chunk(buf, starts[a:b], int(ends[b - 1]), channels[a:b], log[a:b])
+
+    def _write_chunk(
+        self, buf: np.ndarray, starts: np.ndarray, stop: int, channels: np.ndarray, log: np.ndarray
+    ) -> None:
+        base = int(starts[0])
+        raw = buf[base:stop].tobytes()
+        compressed = self._compressor.compress(raw)
+        start_t, end_t = int(log.min()), int(log.max())
+        head = struct.pack("<QQQI", start_t, end_t, len(raw), zlib.crc32(raw))
+        head += struct.pack("<I", 4) + b"zstd" + struct.pack("<Q", len(compressed))
+        chunk_start = self._fh.tell()
+        self._fh.write(struct.pack("<BQ", Opcode.CHUNK, len(head) + len(compressed)))
+        self._fh.write(head)
+        self._fh.write(compressed)
+        chunk_length = self._fh.tell() - chunk_start
+        index = ChunkIndex(
+            message_start_time=start_t,
+            message_end_time=end_t,
+            chunk_start_offset=chunk_start,
+            chunk_length=chunk_length,
+            message_index_offsets={},
+            message_index_length=0,
+            compression="zstd",
+            compressed_size=len(compressed),
+            uncompressed_size=len(raw),
+        )
+        index_start = self._fh.tell()
+        for cid in np.unique(channels).tolist():
+            sel = channels == cid
+            pairs = np.empty((int(sel.sum()), 2), dtype="<u8")
+            pairs[:, 0] = log[sel]
+            pairs[:, 1] = starts[sel] - base
+            index.message_index_offsets[cid] = self._fh.tell()
+            self._fh.write(
+                struct.pack("<BQHI", Opcode.MESSAGE_INDEX, 6 + pairs.nbytes, cid, pairs.nbytes)
+            )
+            self._fh.write(pairs.tobytes())
+        index.message_index_length = self._fh.tell() - index_start
+        self._chunk_indexes.append(index)
+
+    # -- public ----------------------------------------------------------------------------
+    def write_table(self, table: pa.Table) -> None:
+        """Write every sample of a common-table batch, in log-time order within the batch."""
+        if table.num_rows == 0:
+            return
+        topics = {**DEFAULT_TOPICS, **metadata(table).get("topics", {}), **self.topics}
+        if "log_time_ns" in table.column_names:
+            log_all = pc.fill_null(table.column("log_time_ns"), table.column("t_ns")).to_numpy()
+        else:
+            log_all = table.column("t_ns").to_numpy()
+        parts = []  # (rows into table, channel, records (m, S))
+        for stream in ("imu", "mag", "temperature"):
+            rows, groups = encode_stream(table, stream)
+            if not len(rows):
+                continue
+            msgtype = STREAM_TYPES[stream]
+            cid = self._channel(
+                topics[stream], "cdr", (msgtype, "ros2msg", msgdef(msgtype).encode())
+            )
+            seq = self._sequence(cid, len(rows))
+            for sel, payloads in groups:
+                recs = _message_records(cid, seq[sel], log_all[rows[sel]], payloads)
+                parts.append((rows[sel], cid, recs))
+        if not parts:
+            return
+        if len(parts) == 1:
+            row_idx, cid, recs = parts[0]
+            buf = recs.reshape(-1)
+            starts = np.arange(len(row_idx), dtype=np.int64) * recs.shape[1]
+            channels = np.full(len(row_idx), cid, dtype=np.int64)
+            log = log_all[row_idx]
+            if np.all(log[1:] >= log[:-1]):
+                self._write_messages(buf, starts, channels, log)
+                return
+        row_idx = np.concatenate([p[0] for p in parts])
+        sizes = np.concatenate([np.full(len(p[0]), p[2].shape[1], np.int64) for p in parts])
+        channels = np.concatenate([np.full(len(p[0]), p[1], np.int64) for p in parts])
+        log = log_all[row_idx]
+        order = np.lexsort((row_idx, log))  # log time, then table order
+        rank = np.empty_like(order)
+        rank[order] = np.arange(len(order))
+        starts_sorted = np.concatenate([[0], np.cumsum(sizes[order])[:-1]]).astype(np.int64)
+        buf = np.empty(int(sizes.sum()), np.uint8)
+        k = 0
+        for _rows, _cid, recs in parts:
+            m, size = recs.shape
+            dest = starts_sorted[rank[k : k + m]]
+            buf[dest[:, None] + np.arange(size)] = recs
+            k += m
+        self._write_messages(buf, starts_sorted, channels[order], log[order])
+
+    def write_raw(self, messages: Iterable[RawMessage]) -> None:
+        """Write messages of other topics unchanged (one record each)."""
+        pieces: list[bytes] = []
+        starts: list[int] = []
+        channels: list[int] = []
+        logs: list[int] = []
+        pos = 0
+        for msg in messages:
+            cid = self._channel(
+                msg.topic,
+                msg.message_encoding,
+                (msg.schema_name, msg.schema_encoding, bytes(msg.schema_data)),
+            )
+            seq = self._seq[cid] & 0xFFFFFFFF
+            self._seq[cid] += 1
+            self._counts[cid] += 1
+            head = struct.pack(
+                "<BQHIQQ",
+                Opcode.MESSAGE,
+                22 + len(msg.data),
+                cid,
+                seq,
+                msg.log_time,
+                msg.publish_time,
+            )
+            pieces += [head, msg.data]
+            starts.append(pos)
+            channels.append(cid)
+            logs.append(msg.log_time)
+            pos += len(head) + len(msg.data)
+            if pos >= self.chunk_bytes:
+                self._flush_raw(pieces, starts, channels, logs)
+                pieces, starts, channels, logs, pos = [], [], [], [], 0
+        self._flush_raw(pieces, starts, channels, logs)
+
+    def _flush_raw(
+        self, pieces: list[bytes], starts: list[int], channels: list[int], logs: list[int]
+    ) -> None:
+        if starts:
+            self._write_messages(
+                np.frombuffer(b"".join(pieces), np.uint8),
+                np.asarray(starts, np.int64),
+                np.asarray(channels, np.int64),
+                np.asarray(logs, np.int64),
+            )
+
+    def close(self) -> dict[str, int]:
+        """Attach the calibration, write the summary and footer; returns messages per topic."""
+        if self._closed:
+            return self.counts()
+        self._closed = True
+        if self.calibration is not None:
+            now = time.time_ns()
+            att = Attachment(
+                create_time=now,
+                log_time=now,
+                name="calibration.json",
+                media_type="application/json",
+                data=json.dumps(self.calibration, indent=2).encode(),
+            )
+            offset = self._fh.tell()
+            length = self._write_record(att)
+            self._attachment_indexes.append(
+                AttachmentIndex(
+                    offset=offset,
+                    length=length,
+                    create_time=now,
+                    log_time=now,
+                    data_size=len(att.data),
+                    name=att.name,
+                    media_type=att.media_type,
+                )
+            )
+        self._write_record(DataEnd(0))
+        summary_start = self._fh.tell()
+        builder = RecordBuilder()
+        offsets: list[SummaryOffset] = []
+
+        def group(opcode: Opcode, records: Iterable[Any]) -> None:
+            begin = builder.count
+            for r in records:
+                r.write(builder)
+            if builder.count > begin:
+                offsets.append(SummaryOffset(opcode, summary_start + begin, builder.count - begin))
+
+        stats = Statistics(
+            message_count=sum(self._counts.values()),
+            schema_count=len(self._schemas),
+            channel_count=len(self._channels),
+            attachment_count=len(self._attachment_indexes),
+            metadata_count=0,
+            chunk_count=len(self._chunk_indexes),
+            message_start_time=max(self._start, 0),
+            message_end_time=self._end,
+            channel_message_counts=dict(self._counts),
+        )
+        group(Opcode.SCHEMA, self._schemas.values())
+        group(Opcode.CHANNEL, self._channels.values())
+        group(Opcode.STATISTICS, [stats])
+        group(Opcode.CHUNK_INDEX, self._chunk_indexes)
+        group(Opcode.ATTACHMENT_INDEX, self._attachment_indexes)
+        offset_start = summary_start + builder.count
+        for o in offsets:
+            o.write(builder)
+        summary = builder.end()
+        crc = zlib.crc32(summary)
+        crc = zlib.crc32(struct.pack("<BQQQ", Opcode.FOOTER, 20, summary_start, offset_start), crc)
+        self._fh.write(summary)
+        self._write_record(Footer(summary_start, offset_start, crc))
+        self._fh.write(MAGIC)
+        self._fh.close()
+        return self.counts()
+
+    def counts(self) -> dict[str, int]:
+        """Messages written so far, per topic."""
+        out: dict[str, int] = {}
+        for cid, n in self._counts.items():
+            out[self._topic_of[cid]] = out.get(self._topic_of[cid], 0) + n
+        return out
+
+    def __enter__(self) -> McapTableWriter:
+        return self
+
+    def __exit__(self, exc_type: object, *_: object) -> None:
+        if exc_type is None:
+            self.close()
+        elif not self._fh.closed:
+            self._fh.close()
 
 
 def write_mcap(
@@ -123,55 +494,7 @@ def write_mcap(
     library: str = "imupipe",
 ) -> dict[str, int]:
     """Write ``table`` (and ``carry_over`` messages) to ``path``; returns messages per topic."""
-    topics = {**DEFAULT_TOPICS, **metadata(table).get("topics", {}), **(topics or {})}
-    log_col = "log_time_ns" if "log_time_ns" in table.column_names else "t_ns"
-    log_all = (
-        table.column(log_col).fill_null(table.column("t_ns")).to_numpy()
-        if log_col != "t_ns"
-        else table.column("t_ns").to_numpy()
-    )
-    counts: dict[str, int] = {}
-    with open(path, "wb") as fh:
-        writer = Writer(fh, compression=CompressionType.ZSTD)
-        writer.start(profile="ros2", library=library)
-        for stream in ("imu", "mag", "temperature"):
-            rows, payloads = encode_stream(table, stream)
-            if not len(rows):
-                continue
-            schema_id = writer.register_schema(
-                name=STREAM_TYPES[stream],
-                encoding="ros2msg",
-                data=msgdef(STREAM_TYPES[stream]).encode(),
-            )
-            channel_id = writer.register_channel(
-                topic=topics[stream], message_encoding="cdr", schema_id=schema_id
-            )
-            log_times = log_all[rows]
-            for seq, (lt, payload) in enumerate(zip(log_times.tolist(), payloads, strict=True)):
-                writer.add_message(
-                    channel_id, log_time=lt, data=payload, publish_time=lt, sequence=seq
-                )
-            counts[topics[stream]] = len(rows)
-        channels: dict[str, int] = {}
-        for msg in carry_over:
-            if msg.topic not in channels:
-                sid = writer.register_schema(msg.schema_name, msg.schema_encoding, msg.schema_data)
-                channels[msg.topic] = writer.register_channel(msg.topic, msg.message_encoding, sid)
-            writer.add_message(
-                channels[msg.topic],
-                log_time=msg.log_time,
-                data=msg.data,
-                publish_time=msg.publish_time,
-            )
-            counts[msg.topic] = counts.get(msg.topic, 0) + 1
-        if calibration is not None:
-            now = time.time_ns()
-            writer.add_attachment(
-                now,
-                now,
-                "calibration.json",
-                "application/json",
-                json.dumps(calibration, indent=2).encode(),
-            )
-        writer.finish()
-    return counts
+    with McapTableWriter(path, calibration, topics, library=library) as writer:
+        writer.write_table(table)
+        writer.write_raw(carry_over)
+    return writer.counts()

@@ -15,6 +15,7 @@ All messages of one frame_id length share one layout, so a batch is one numpy st
 from __future__ import annotations
 
 import numpy as np
+import pyarrow as pa
 
 ENCAPSULATION = b"\x00\x01\x00\x00"
 
@@ -81,3 +82,158 @@ def encode(
         if name in fields:
             out[name] = fields[name]
     return out.view(np.uint8).reshape(n, dt.itemsize)
+
+
+# --- decoding -------------------------------------------------------------------------------
+#
+# The decoders below read many messages at once out of one byte buffer (a decompressed MCAP or
+# bag chunk), given each message's payload start and length. Every field is gathered with one
+# numpy fancy index over an unaligned view of the buffer, so a chunk costs a few numpy calls
+# whatever its message count, and messages whose frame_ids differ in length need no grouping.
+#
+# Wire formats (``encoding``):
+#
+# - ``cdr`` (ROS 2, little-endian): encapsulation (4), ``int32 sec``, ``uint32 nanosec``,
+#   ``uint32`` string length n including the NUL, n bytes, padding so that the float64 fields
+#   start at a multiple of 8 counted from the end of the encapsulation header.
+# - ``ros1``: ``uint32 seq``, ``uint32 secs``, ``uint32 nsecs``, ``uint32`` string length n
+#   (no NUL), n bytes, then the float64 fields packed without padding.
+
+
+class PayloadError(ValueError):
+    """A payload does not hold the message type it claims (too short, bad encapsulation).
+
+    ``index`` is the position of the first bad payload in the batch."""
+
+    def __init__(self, index: int, reason: str) -> None:
+        super().__init__(reason)
+        self.index = index
+        self.reason = reason
+
+
+class NotFastPath(ValueError):
+    """The batch is valid but not in a layout the numpy path decodes (e.g. big-endian CDR)."""
+
+
+def field_count(msgtype: str) -> int:
+    """Number of float64 values after the header of ``msgtype``."""
+    return sum(count for _, count in FIELDS[msgtype])
+
+
+def unaligned(buf: np.ndarray, dtype: str | np.dtype) -> np.ndarray:
+    """A view of ``buf`` (uint8) in which element ``i`` is the ``dtype`` value starting at byte
+    ``i``: fancy-indexing it with byte offsets gathers (possibly unaligned) scalars."""
+    dt = np.dtype(dtype)
+    n = max(buf.shape[0] - dt.itemsize + 1, 0)
+    return np.ndarray((n,), dtype=dt, buffer=buf, offset=0, strides=(1,)) if n else np.empty(0, dt)
+
+
+def gather_strings(buf: np.ndarray, starts: np.ndarray, lengths: np.ndarray) -> pa.Array:
+    """The byte ranges ``buf[starts[i] : starts[i] + lengths[i]]`` as an Arrow string array
+    (UTF-8 validated), built with one ragged gather."""
+    lengths = lengths.astype(np.int64)
+    ends = np.cumsum(lengths)
+    total = int(ends[-1]) if len(ends) else 0
+    if total:
+        idx = np.repeat(starts.astype(np.int64) - (ends - lengths), lengths)
+        idx += np.arange(total, dtype=np.int64)
+        data = buf[idx]
+    else:
+        data = np.zeros(0, np.uint8)
+    offsets = np.concatenate([[0], ends]).astype(np.int32)
+    array = pa.StringArray.from_buffers(
+        len(lengths), pa.py_buffer(offsets.tobytes()), pa.py_buffer(data.tobytes())
+    )
+    try:
+        array.validate(full=True)
+    except pa.ArrowInvalid:
+        raise PayloadError(0, "frame_id is not valid UTF-8") from None
+    return array
+
+
+def decode(
+    buf: np.ndarray, starts: np.ndarray, lengths: np.ndarray, msgtype: str, encoding: str
+) -> tuple[np.ndarray, pa.Array, np.ndarray]:
+    """Decode ``len(starts)`` messages of ``msgtype`` whose payloads lie in ``buf`` (uint8).
+
+    Returns ``(stamp_ns int64 (n,), frame_id string array (n,), values float64 (n, k))`` where
+    ``values`` holds the float fields of :data:`FIELDS` in order. Raises :class:`PayloadError`
+    for a payload that cannot hold the type, :class:`NotFastPath` for a valid layout this
+    function does not handle (big-endian CDR).
+    """
+    k = field_count(msgtype)
+    starts = np.asarray(starts, dtype=np.int64)
+    ends = starts + np.asarray(lengths, dtype=np.int64)
+    n = len(starts)
+    if n == 0:
+        return np.zeros(0, np.int64), pa.array([], pa.string()), np.zeros((0, k))
+    short = np.flatnonzero(ends - starts < 16)
+    if len(short):
+        raise PayloadError(
+            int(short[0]), f"payload of {int(ends[short[0]] - starts[short[0]])} bytes"
+        )
+    u4 = unaligned(buf, "<u4")
+    strlen = u4[starts + 12].astype(np.int64)
+    if encoding == "cdr":
+        encap = buf[starts + 1]
+        if np.any(buf[starts] != 0) or np.any((encap != 1) & (encap != 0)):
+            bad = int(np.flatnonzero((buf[starts] != 0) | ((encap != 1) & (encap != 0)))[0])
+            raise PayloadError(bad, "not a CDR payload (bad encapsulation header)")
+        if np.any(encap == 0):
+            raise NotFastPath("big-endian CDR")
+        sec = unaligned(buf, "<i4")[starts + 4].astype(np.int64)
+        bad = np.flatnonzero(strlen < 1)
+        if len(bad):
+            raise PayloadError(int(bad[0]), "string length 0 (CDR strings end with a NUL)")
+        frame_len = strlen - 1
+        body = 12 + strlen
+        fstart = starts + 4 + body + (-body) % 8
+    elif encoding == "ros1":
+        sec = u4[starts + 4].astype(np.int64)
+        frame_len = strlen
+        fstart = starts + 16 + strlen
+    else:
+        raise NotFastPath(f"message encoding {encoding!r}")
+    bad = np.flatnonzero(fstart + 8 * k > ends)
+    if len(bad):
+        i = int(bad[0])
+        raise PayloadError(
+            i, f"payload of {int(ends[i] - starts[i])} bytes is too short for {msgtype}"
+        )
+    stamp = sec * 1_000_000_000 + u4[starts + 8].astype(np.int64)
+    frames = gather_strings(buf, starts + 16, frame_len)
+    values = unaligned(buf, "<f8")[fstart[:, None] + 8 * np.arange(k)]
+    return stamp, frames, values
+
+
+def decode_with_rosbags(
+    payloads: list[bytes], msgtype: str, encoding: str
+) -> tuple[np.ndarray, pa.Array, np.ndarray]:
+    """The same result as :func:`decode`, one message at a time with rosbags' deserializers:
+    the fallback for layouts the numpy path does not take (big-endian CDR)."""
+    from rosbags.typesys import Stores, get_typestore
+
+    store = get_typestore(Stores.ROS2_HUMBLE if encoding == "cdr" else Stores.ROS1_NOETIC)
+    deserialize = store.deserialize_cdr if encoding == "cdr" else store.deserialize_ros1
+    k = field_count(msgtype)
+    stamps = np.zeros(len(payloads), np.int64)
+    values = np.zeros((len(payloads), k))
+    frames = []
+    for i, data in enumerate(payloads):
+        try:
+            msg = deserialize(data, msgtype)
+        except Exception as exc:  # noqa: BLE001 - any deserializer failure is a bad payload
+            raise PayloadError(i, f"cannot be decoded as {msgtype} ({exc})") from None
+        stamps[i] = msg.header.stamp.sec * 1_000_000_000 + msg.header.stamp.nanosec
+        frames.append(msg.header.frame_id)
+        row = []
+        for name, count in FIELDS[msgtype]:
+            value = getattr(msg, name)
+            if count == 1:
+                row.append([value])
+            elif count == 9:
+                row.append(np.asarray(value, dtype=np.float64))
+            else:
+                row.append([getattr(value, a) for a in "xyzw"[:count]])
+        values[i] = np.concatenate(row)
+    return stamps, pa.array(frames, pa.string()), values

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import importlib
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 
 import pyarrow as pa
@@ -21,9 +21,21 @@ READERS: dict[str, str] = {
 }
 """Format -> "module:function(spec) -> (table, warnings)"."""
 
-CARRY_OVER: dict[str, str] = {}
+CARRY_OVER: dict[str, str] = {
+    "mcap": "imupipe.readers.mcap_reader:carry_over_mcap",
+    "ros1": "imupipe.readers.ros1_reader:carry_over_ros1",
+    "ros2": "imupipe.readers.ros2_reader:carry_over_ros2",
+}
 """Format -> "module:function(spec) -> Iterable[RawMessage]": the messages of every topic the
 table does not hold, in log-time order (formats without other topics are absent)."""
+
+ITERATORS: dict[str, str] = {
+    "mcap": "imupipe.readers.mcap_reader:iter_mcap",
+    "ros1": "imupipe.readers.ros1_reader:iter_ros1",
+    "ros2": "imupipe.readers.ros2_reader:iter_ros2",
+}
+"""Format -> "module:function(spec, batch_rows) -> Iterator[(table, [RawMessage])]": bounded
+memory batches (formats absent here are read whole and yielded as one batch)."""
 
 
 def detect_format(path: Path) -> str:
@@ -33,7 +45,12 @@ def detect_format(path: Path) -> str:
     if path.is_dir():
         if (path / "metadata.yaml").exists() or any(path.glob("*.db3")) or any(path.glob("*.mcap")):
             return "ros2"
-        raise ReadError(f"{path}: a folder, but not a ROS 2 bag (no metadata.yaml, .db3 or .mcap)")
+        if any(path.glob("*.bag")):
+            return "ros1"
+        raise ReadError(
+            f"{path}: a folder, but not a ROS 2 bag or a folder of ROS 1 bags "
+            "(no metadata.yaml, .db3, .mcap or .bag)"
+        )
     suffix = path.suffix.lower()
     if suffix in CSV_SUFFIXES:
         return "csv"
@@ -48,15 +65,41 @@ def detect_format(path: Path) -> str:
     )
 
 
+def _load(spec: InputSpec, fmt: str, target: str) -> Callable:
+    module, name = target.split(":")
+    try:
+        return getattr(importlib.import_module(module), name)
+    except ModuleNotFoundError as exc:
+        if exc.name != module:
+            raise
+        raise ReadError(f"{spec.path}: reading {fmt} logs is not supported yet") from None
+
+
 def read_input(spec: InputSpec) -> tuple[pa.Table, list[str]]:
     """Read one input into the common table; returns (table, warnings)."""
     fmt = detect_format(Path(spec.path))
-    module, name = READERS[fmt].split(":")
-    try:
-        reader = getattr(importlib.import_module(module), name)
-    except ModuleNotFoundError:
-        raise ReadError(f"{spec.path}: reading {fmt} logs is not supported yet") from None
-    return reader(spec)
+    return _load(spec, fmt, READERS[fmt])(spec)
+
+
+def iter_input(
+    spec: InputSpec, batch_rows: int = 200_000
+) -> Iterator[tuple[pa.Table, list[RawMessage]]]:
+    """The input as ``(table batch, carried-over messages)`` pairs in log order, with memory
+    bounded by ``batch_rows`` rows (plus one chunk) for MCAP and ROS bags.
+
+    Each batch holds the sensor messages of a run of consecutive chunks (about ``batch_rows``
+    rows, sorted by time within the batch; batches are not sorted against each other, so a
+    stamp that goes back across a batch boundary stays where the log put it) and the other
+    topics' messages of the same chunks, in log-time order. Out-of-order warnings are not
+    reported here (use :func:`read_input` for the globally sorted table). Other formats (CSV)
+    are read whole and yielded as one batch.
+    """
+    fmt = detect_format(Path(spec.path))
+    if fmt in ITERATORS:
+        yield from _load(spec, fmt, ITERATORS[fmt])(spec, batch_rows)
+        return
+    table, _warnings = read_input(spec)
+    yield table, list(carry_over(spec))
 
 
 def carry_over(spec: InputSpec) -> Iterable[RawMessage]:
@@ -64,5 +107,4 @@ def carry_over(spec: InputSpec) -> Iterable[RawMessage]:
     fmt = detect_format(Path(spec.path))
     if fmt not in CARRY_OVER:
         return ()
-    module, name = CARRY_OVER[fmt].split(":")
-    return getattr(importlib.import_module(module), name)(spec)
+    return _load(spec, fmt, CARRY_OVER[fmt])(spec)

@@ -1,0 +1,267 @@
+"""From decoded sensor messages to the common table, shared by the MCAP and bag readers.
+
+A reader decodes each chunk of a log into :class:`Piece` s (one per stream: header stamps, log
+times, frame_ids and the message's float fields, see :data:`imupipe.readers.cdr.FIELDS`), and
+this module chooses the topics (:func:`select_topics`) and joins pieces into one table
+(:func:`assemble`): per stream, messages in log order, then sorted stably by the chosen time
+(out-of-order and duplicate stamps are counted and warned about, none dropped), then the streams
+merged in time order (at equal stamps: imu, mag, temperature).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pyarrow as pa
+
+from imupipe.pipeline.errors import ReadError
+from imupipe.pipeline.table import COV, SCHEMA, with_metadata
+from imupipe.readers.spec import InputSpec
+
+STREAM_TYPES: dict[str, str] = {
+    "imu": "sensor_msgs/msg/Imu",
+    "mag": "sensor_msgs/msg/MagneticField",
+    "temperature": "sensor_msgs/msg/Temperature",
+}
+TYPE_STREAMS = {v: k for k, v in STREAM_TYPES.items()}
+TOPIC_KEYS = {"imu": "imu_topic", "mag": "mag_topic", "temperature": "temperature_topic"}
+
+# Column slices of each stream's float fields (order of imupipe.readers.cdr.FIELDS).
+IMU_SLICES = {
+    "orientation": slice(0, 4),
+    "orientation_cov": slice(4, 13),
+    "gyro": slice(13, 16),
+    "gyro_cov": slice(16, 25),
+    "accel": slice(25, 28),
+    "accel_cov": slice(28, 37),
+}
+
+
+def normalize_type(name: str) -> str:
+    """``sensor_msgs/Imu`` (ROS 1, MCAP ros1msg) -> ``sensor_msgs/msg/Imu``."""
+    parts = name.split("/")
+    if len(parts) == 2:
+        return f"{parts[0]}/msg/{parts[1]}"
+    return name
+
+
+@dataclass
+class Piece:
+    """Decoded messages of one stream: header ``stamp`` and ``log`` time (int64 ns), ``frame``
+    (Arrow strings) and ``values`` (n, k) float64 in the message's field order."""
+
+    stamp: np.ndarray
+    log: np.ndarray
+    frame: pa.Array
+    values: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.stamp.shape[0])
+
+
+def select_topics(path: Path | str, spec: InputSpec, types: Mapping[str, str]) -> dict[str, str]:
+    """Stream -> topic, from the spec's topic settings and the log's ``topic -> type``.
+
+    A setting that names a missing topic or one of another type is an error; an omitted setting
+    takes the only topic of the stream's type (several: an error listing them; none: the stream
+    is absent). At least one stream must be found.
+    """
+    chosen: dict[str, str] = {}
+    for stream, msgtype in STREAM_TYPES.items():
+        key = TOPIC_KEYS[stream]
+        wanted = getattr(spec, key)
+        candidates = sorted(t for t, ty in types.items() if normalize_type(ty) == msgtype)
+        if wanted is not None:
+            if wanted not in types:
+                have = ", ".join(f"{t} ({normalize_type(ty)})" for t, ty in sorted(types.items()))
+                raise ReadError(f"{path}: {key} '{wanted}' is not in the log; topics: {have}")
+            if normalize_type(types[wanted]) != msgtype:
+                raise ReadError(
+                    f"{path}: topic '{wanted}' ({key}) has type {normalize_type(types[wanted])}, "
+                    f"expected {msgtype}"
+                )
+            chosen[stream] = wanted
+        elif len(candidates) == 1:
+            chosen[stream] = candidates[0]
+        elif len(candidates) > 1:
+            raise ReadError(
+                f"{path}: several {msgtype} topics ({', '.join(candidates)}); "
+                f"set {key} in [inputs.{spec.name}]"
+            )
+    if not chosen:
+        have = ", ".join(f"{t} ({normalize_type(ty)})" for t, ty in sorted(types.items()))
+        raise ReadError(
+            f"{path}: no sensor_msgs/Imu, MagneticField or Temperature topic; topics: "
+            f"{have or 'none'}"
+        )
+    return chosen
+
+
+def _order_stream(
+    piece: Piece, time: str, where: str, warnings: list[str]
+) -> tuple[np.ndarray, Piece]:
+    """Log order, then a stable sort by the chosen time; returns (t_ns, reordered piece)."""
+    if len(piece) > 1 and np.any(piece.log[1:] < piece.log[:-1]):
+        order = np.argsort(piece.log, kind="stable")
+        piece = _take(piece, order)
+    t = piece.stamp if time == "header" else piece.log
+    if len(t) > 1:
+        step = t[1:] - t[:-1]
+        if np.any(step < 0):
+            order = np.argsort(t, kind="stable")
+            moved = int(np.count_nonzero(order != np.arange(len(t))))
+            piece = _take(piece, order)
+            t = t[order]
+            warnings.append(
+                f"{where}: {moved} messages out of {time} time order; sorted stably (none dropped)"
+            )
+            step = t[1:] - t[:-1]
+        dups = int(np.count_nonzero(step == 0))
+        if dups:
+            warnings.append(f"{where}: {dups} messages repeat the previous {time} stamp (kept)")
+    return t, piece
+
+
+def _take(piece: Piece, order: np.ndarray) -> Piece:
+    return Piece(
+        piece.stamp[order], piece.log[order], piece.frame.take(pa.array(order)), piece.values[order]
+    )
+
+
+def concat(pieces: Sequence[Piece], k: int) -> Piece:
+    """Join pieces of one stream in the order given."""
+    pieces = [p for p in pieces if len(p)]
+    if not pieces:
+        return Piece(
+            np.zeros(0, np.int64),
+            np.zeros(0, np.int64),
+            pa.array([], pa.string()),
+            np.zeros((0, k)),
+        )
+    if len(pieces) == 1:
+        return pieces[0]
+    return Piece(
+        np.concatenate([p.stamp for p in pieces]),
+        np.concatenate([p.log for p in pieces]),
+        pa.concat_arrays([p.frame for p in pieces]),
+        np.concatenate([p.values for p in pieces]),
+    )
+
+
+def _column(n: int, rows: np.ndarray | None, values: np.ndarray) -> pa.Array:
+    """A float64 (n,) or fixed-size-list (n, 9) column holding ``values`` at ``rows``, null elsewhere."""
+    if rows is None:
+        if values.ndim == 1:
+            return pa.array(values, pa.float64())
+        flat = pa.array(np.ascontiguousarray(values).reshape(-1), pa.float64())
+        return pa.FixedSizeListArray.from_arrays(flat, values.shape[1])
+    mask = np.ones(n, dtype=bool)
+    mask[rows] = False
+    full = np.zeros((n,) + values.shape[1:], dtype=np.float64)
+    full[rows] = values
+    if values.ndim == 1:
+        return pa.array(full, pa.float64(), mask=mask)
+    flat = pa.array(full.reshape(-1), pa.float64())
+    return pa.FixedSizeListArray.from_arrays(flat, values.shape[1], mask=pa.array(mask))
+
+
+def assemble(
+    pieces: Mapping[str, Piece],
+    *,
+    time: str,
+    source: str,
+    fmt: str,
+    topics: Mapping[str, str],
+    where: str,
+    warnings: list[str],
+    sort: bool = True,
+) -> pa.Table:
+    """The common table of the decoded ``pieces`` (stream -> Piece).
+
+    ``time`` is ``header`` or ``log``; ``where`` prefixes warnings (file); ``sort=False`` keeps
+    each stream in log order without the stamp sort (the streaming path, which sorts per batch
+    and reports nothing)."""
+    ordered: dict[str, tuple[np.ndarray, Piece]] = {}
+    for stream, piece in pieces.items():
+        if sort:
+            ordered[stream] = _order_stream(
+                piece, time, f"{where} topic {topics[stream]}", warnings
+            )
+        else:
+            ordered[stream] = (piece.stamp if time == "header" else piece.log, piece)
+    streams = [s for s in STREAM_TYPES if s in ordered and len(ordered[s][1])]
+    t_all = np.concatenate([ordered[s][0] for s in streams]) if streams else np.zeros(0, np.int64)
+    n = len(t_all)
+    merge = None
+    if len(streams) > 1 or (not sort and n > 1 and np.any(t_all[1:] < t_all[:-1])):
+        merge = np.argsort(t_all, kind="stable")
+        t_all = t_all[merge]
+    rank = None if merge is None else np.argsort(merge)  # position of each input row
+    rows: dict[str, np.ndarray | None] = {}
+    start = 0
+    for s in streams:
+        m = len(ordered[s][1])
+        rows[s] = None if rank is None else rank[start : start + m]
+        start += m
+
+    columns: dict[str, pa.Array] = {"t_ns": pa.array(t_all, pa.int64())}
+    extra: dict[str, pa.Array] = {}
+    nulls = pa.nulls(n, pa.float64())
+
+    def put(target: dict[str, pa.Array], name: str, stream: str, values: np.ndarray) -> None:
+        target[name] = _column(n, rows[stream], values)
+
+    for name in ("gyro", "accel", "mag"):
+        for axis in "xyz":
+            columns[f"{name}_{axis}"] = nulls
+    columns["temperature"] = nulls
+    if "imu" in rows:
+        v = ordered["imu"][1].values
+        for name in ("gyro", "accel"):
+            for i, axis in enumerate("xyz"):
+                put(columns, f"{name}_{axis}", "imu", v[:, IMU_SLICES[name]][:, i])
+        for i, axis in enumerate("xyzw"):
+            put(extra, f"orientation_{axis}", "imu", v[:, i])
+        for name in ("orientation_cov", "gyro_cov", "accel_cov"):
+            put(extra, name, "imu", v[:, IMU_SLICES[name]])
+    if "mag" in rows:
+        v = ordered["mag"][1].values
+        for i, axis in enumerate("xyz"):
+            put(columns, f"mag_{axis}", "mag", v[:, i])
+        put(extra, "mag_cov", "mag", v[:, 3:12])
+    if "temperature" in rows:
+        v = ordered["temperature"][1].values
+        put(columns, "temperature", "temperature", v[:, 0])
+        put(extra, "temperature_var", "temperature", v[:, 1])
+
+    logs = [ordered[s][1].log for s in streams]
+    log_all = np.concatenate(logs) if logs else np.zeros(0, np.int64)
+    frames = [ordered[s][1].frame for s in streams]
+    frame_all = pa.concat_arrays(frames) if frames else pa.array([], pa.string())
+    if merge is not None:
+        log_all = log_all[merge]
+        frame_all = frame_all.take(pa.array(merge))
+    fields = list(SCHEMA) + [
+        pa.field("log_time_ns", pa.int64()),
+        pa.field("frame_id", pa.string()),
+    ]
+    arrays = [columns[f.name] for f in SCHEMA] + [pa.array(log_all, pa.int64()), frame_all]
+    for name, array in extra.items():
+        fields.append(
+            pa.field(name, COV if isinstance(array.type, pa.FixedSizeListType) else pa.float64())
+        )
+        arrays.append(array)
+    table = pa.Table.from_arrays(arrays, schema=pa.schema(fields))
+    meta = {
+        "source": source,
+        "format": fmt,
+        "topics": {s: topics[s] for s in streams},
+        "types": {s: STREAM_TYPES[s] for s in streams},
+        "frame_id": {
+            s: ordered[s][1].frame[0].as_py() for s in streams if len(ordered[s][1].frame)
+        },
+    }
+    return with_metadata(table, meta)

@@ -1,0 +1,332 @@
+"""MCAP at the chunk level: records, channels, and each chunk's messages as numpy offsets.
+
+The file is read sequentially, one top-level record at a time (a few per chunk, never one per
+message). A chunk is decompressed (zstd, lz4 or none; its CRC checked when set) and the
+``MessageIndex`` records that follow it give, per channel, the offset of every message record in
+the decompressed chunk; a message record is ``opcode 0x05, uint64 length, uint16 channel,
+uint32 sequence, uint64 log_time, uint64 publish_time, payload`` so the payload of message ``i``
+starts at ``offset + 31`` and is ``length - 22`` bytes long. All of that is gathered with numpy.
+
+Fallbacks: a chunk without message indexes (writers that omit them; foxglove/mcap#1735) is
+scanned record by record; messages outside chunks are gathered into pseudo-chunks; channels are
+taken from the summary section, or from a first pass over the file when it has none.
+
+Every inconsistency (bad magic, a record running past the end of the file, a failed
+decompression or CRC, an index pointing outside its chunk) is a :class:`ReadError` naming the
+file and the byte offset.
+"""
+
+from __future__ import annotations
+
+import io
+import struct
+import zlib
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from mcap.data_stream import ReadDataStream
+from mcap.records import Channel, Schema, Statistics
+
+from imupipe.pipeline.errors import ReadError
+from imupipe.readers.cdr import unaligned
+
+MAGIC = b"\x89MCAP0\r\n"
+OP_HEADER, OP_FOOTER, OP_SCHEMA, OP_CHANNEL, OP_MESSAGE = 0x01, 0x02, 0x03, 0x04, 0x05
+OP_CHUNK, OP_MESSAGE_INDEX, OP_STATISTICS, OP_DATA_END = 0x06, 0x07, 0x0B, 0x0F
+MESSAGE_HEADER = 31
+"""Bytes from a message record's opcode to its payload."""
+PSEUDO_CHUNK_BYTES = 1 << 20
+
+
+@dataclass(frozen=True)
+class ChannelInfo:
+    """A channel with its schema: topic, message encoding, schema name/encoding/data."""
+
+    id: int
+    topic: str
+    message_encoding: str
+    schema_name: str
+    schema_encoding: str
+    schema_data: bytes
+
+
+@dataclass
+class ChunkMessages:
+    """One decompressed chunk: ``buf`` (uint8) and, per channel id, the sorted byte offsets of
+    its message records in ``buf``."""
+
+    buf: np.ndarray
+    offsets: dict[int, np.ndarray]
+    where: str
+
+    def records(self, channel_id: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(log_time, publish_time, payload start, payload length) of a channel's messages,
+        validated against the buffer."""
+        off = self.offsets.get(channel_id)
+        if off is None or len(off) == 0:
+            z = np.zeros(0, np.int64)
+            return z, z, z, z
+        buf = self.buf
+        if off[0] < 0 or off[-1] + MESSAGE_HEADER > len(buf):
+            raise ReadError(f"{self.where}: message index points outside its chunk")
+        reclen = unaligned(buf, "<u8")[off + 1].astype(np.int64)
+        bad = (buf[off] != OP_MESSAGE) | (unaligned(buf, "<u2")[off + 9] != channel_id)
+        bad |= (reclen < MESSAGE_HEADER - 9) | (off + 9 + reclen > len(buf))
+        if np.any(bad):
+            raise ReadError(
+                f"{self.where}: message index does not point at channel {channel_id}'s messages"
+            )
+        u8 = unaligned(buf, "<u8")
+        log = u8[off + 15].astype(np.int64)
+        pub = u8[off + 23].astype(np.int64)
+        return log, pub, off + MESSAGE_HEADER, reclen - (MESSAGE_HEADER - 9)
+
+
+@dataclass
+class McapFile:
+    """An MCAP file opened for chunk-level reading."""
+
+    path: Path
+    channels: dict[int, ChannelInfo] = field(default_factory=dict)
+    counts: dict[int, int] | None = None
+    """Messages per channel id from the Statistics record (None when the file has none)."""
+    profile: str = ""
+
+    def __post_init__(self) -> None:
+        self.path = Path(self.path)
+        try:
+            self.size = self.path.stat().st_size
+            with open(self.path, "rb") as fh:
+                head = fh.read(8)
+        except OSError as exc:
+            raise ReadError(f"{self.path}: cannot read: {exc.strerror or exc}") from None
+        if head != MAGIC:
+            raise ReadError(f"{self.path}: not an MCAP file (bad magic bytes)")
+        if not self._read_summary():
+            self._first_pass()
+
+    # -- records ---------------------------------------------------------------------------
+    def _records(
+        self, fh: io.BufferedReader, start: int, end: int
+    ) -> Iterator[tuple[int, int, bytes]]:
+        """Top-level records between ``start`` and ``end``: (opcode, offset, body)."""
+        pos = start
+        fh.seek(pos)
+        while pos < end:
+            head = fh.read(9)
+            if len(head) < 9:
+                if pos + len(head) >= self.size and pos >= end - 8:
+                    return  # the trailing magic
+                raise ReadError(
+                    f"{self.path}: truncated MCAP (record header at byte {pos} cut off)"
+                )
+            opcode, length = head[0], int.from_bytes(head[1:9], "little")
+            if pos + 9 + length > self.size:
+                if head[:8] == MAGIC[:8] and pos + 8 == self.size:
+                    return
+                raise ReadError(
+                    f"{self.path}: truncated MCAP (record at byte {pos} runs past the end of the file)"
+                )
+            body = fh.read(length)
+            yield opcode, pos, body
+            pos += 9 + length
+
+    def _read_summary(self) -> bool:
+        """Channels and statistics from the summary section; False when there is none."""
+        if self.size < 8 + 9 + 20 + 8:
+            raise ReadError(f"{self.path}: truncated MCAP ({self.size} bytes)")
+        with open(self.path, "rb") as fh:
+            fh.seek(self.size - 37)
+            tail = fh.read(37)
+            if tail[-8:] != MAGIC or tail[0] != OP_FOOTER:
+                return False
+            summary_start = int.from_bytes(tail[9:17], "little")
+            if summary_start == 0 or summary_start > self.size - 37:
+                return False
+            schemas: dict[int, Schema] = {}
+            channels: dict[int, Channel] = {}
+            for opcode, _pos, body in self._records(fh, summary_start, self.size - 37):
+                self._collect(opcode, body, schemas, channels)
+            self.channels = self._join(schemas, channels)
+            return bool(self.channels) or self.counts is not None
+
+    def _collect(
+        self, opcode: int, body: bytes, schemas: dict[int, Schema], channels: dict[int, Channel]
+    ) -> None:
+        try:
+            stream = ReadDataStream(io.BytesIO(body))
+            if opcode == OP_SCHEMA:
+                s = Schema.read(stream)
+                schemas[s.id] = s
+            elif opcode == OP_CHANNEL:
+                c = Channel.read(stream)
+                channels[c.id] = c
+            elif opcode == OP_STATISTICS:
+                self.counts = dict(Statistics.read(stream).channel_message_counts)
+            elif opcode == OP_HEADER:
+                self.profile = stream.read_prefixed_string()
+        except (struct.error, UnicodeDecodeError, Exception) as exc:  # noqa: BLE001
+            raise ReadError(
+                f"{self.path}: corrupt MCAP record (opcode {opcode:#x}): {exc}"
+            ) from None
+
+    def _join(
+        self, schemas: dict[int, Schema], channels: dict[int, Channel]
+    ) -> dict[int, ChannelInfo]:
+        out = {}
+        for c in channels.values():
+            s = schemas.get(c.schema_id)
+            out[c.id] = ChannelInfo(
+                c.id,
+                c.topic,
+                c.message_encoding,
+                s.name if s else "",
+                s.encoding if s else "",
+                bytes(s.data) if s else b"",
+            )
+        return out
+
+    def _first_pass(self) -> None:
+        """No summary: collect schemas and channels from the whole data section."""
+        schemas: dict[int, Schema] = {}
+        channels: dict[int, Channel] = {}
+        counts: dict[int, int] = {}
+        with open(self.path, "rb") as fh:
+            for opcode, pos, body in self._records(fh, 8, self.size):
+                if opcode == OP_CHUNK:
+                    buf = self._decompress(body, pos)
+                    for op, start, end in scan_records(buf, f"{self.path}: chunk at byte {pos}"):
+                        if op in (OP_SCHEMA, OP_CHANNEL):
+                            self._collect(op, bytes(buf[start:end]), schemas, channels)
+                        elif op == OP_MESSAGE:
+                            cid = int.from_bytes(bytes(buf[start : start + 2]), "little")
+                            counts[cid] = counts.get(cid, 0) + 1
+                elif opcode in (OP_SCHEMA, OP_CHANNEL, OP_HEADER):
+                    self._collect(opcode, body, schemas, channels)
+                elif opcode == OP_MESSAGE and len(body) >= 2:
+                    cid = int.from_bytes(body[:2], "little")
+                    counts[cid] = counts.get(cid, 0) + 1
+                elif opcode == OP_DATA_END:
+                    break
+        self.channels = self._join(schemas, channels)
+        self.counts = counts
+
+    def _decompress(self, body: bytes, pos: int) -> np.ndarray:
+        where = f"{self.path}: chunk at byte {pos}"
+        try:
+            usize, crc = struct.unpack_from("<QI", body, 16)
+            (clen,) = struct.unpack_from("<I", body, 28)
+            compression = body[32 : 32 + clen].decode()
+            (dlen,) = struct.unpack_from("<Q", body, 32 + clen)
+        except (struct.error, UnicodeDecodeError):
+            raise ReadError(f"{where}: corrupt chunk header") from None
+        data = memoryview(body)[40 + clen : 40 + clen + dlen]
+        if len(data) != dlen:
+            raise ReadError(f"{where}: corrupt chunk (data length {dlen} past the record)")
+        try:
+            if compression == "zstd":
+                import zstandard
+
+                raw = zstandard.ZstdDecompressor().decompress(data, max_output_size=usize)
+            elif compression == "lz4":
+                import lz4.frame
+
+                raw = lz4.frame.decompress(data)
+            elif compression == "":
+                raw = bytes(data)
+            else:
+                raise ReadError(f"{where}: unsupported chunk compression '{compression}'")
+        except ReadError:
+            raise
+        except Exception as exc:  # noqa: BLE001 - any decompressor failure is a corrupt chunk
+            raise ReadError(f"{where}: corrupt {compression} chunk ({exc})") from None
+        if len(raw) != usize:
+            raise ReadError(f"{where}: chunk decompressed to {len(raw)} bytes, expected {usize}")
+        if crc and zlib.crc32(raw) != crc:
+            raise ReadError(f"{where}: chunk CRC mismatch (corrupt data)")
+        return np.frombuffer(raw, dtype=np.uint8)
+
+    # -- chunks ----------------------------------------------------------------------------
+    def chunks(self) -> Iterator[ChunkMessages]:
+        """Every chunk (and every run of un-chunked messages) in file order."""
+        pending: ChunkMessages | None = None
+        loose = bytearray()
+        loose_off: dict[int, list[int]] = {}
+        with open(self.path, "rb") as fh:
+            for opcode, pos, body in self._records(fh, 8, self.size):
+                if opcode == OP_MESSAGE_INDEX and pending is not None:
+                    if len(body) < 6:
+                        raise ReadError(f"{pending.where}: corrupt message index")
+                    cid, rlen = struct.unpack_from("<HI", body, 0)
+                    if 6 + rlen > len(body) or rlen % 16:
+                        raise ReadError(f"{pending.where}: corrupt message index")
+                    pairs = np.frombuffer(body, "<u8", count=rlen // 8, offset=6).reshape(-1, 2)
+                    pending.offsets[cid] = np.sort(pairs[:, 1].astype(np.int64))
+                    continue
+                if pending is not None:
+                    yield _indexed_or_scanned(pending)
+                    pending = None
+                if opcode == OP_MESSAGE:
+                    if len(body) < 22:
+                        raise ReadError(f"{self.path}: corrupt message record at byte {pos}")
+                    cid = int.from_bytes(body[:2], "little")
+                    loose_off.setdefault(cid, []).append(len(loose))
+                    loose += bytes([OP_MESSAGE]) + len(body).to_bytes(8, "little") + body
+                    if len(loose) >= PSEUDO_CHUNK_BYTES:
+                        yield _loose_chunk(
+                            loose, loose_off, f"{self.path}: messages before byte {pos}"
+                        )
+                        loose, loose_off = bytearray(), {}
+                    continue
+                if loose:
+                    yield _loose_chunk(loose, loose_off, f"{self.path}: messages before byte {pos}")
+                    loose, loose_off = bytearray(), {}
+                if opcode == OP_CHUNK:
+                    pending = ChunkMessages(
+                        self._decompress(body, pos), {}, f"{self.path}: chunk at byte {pos}"
+                    )
+                elif opcode == OP_DATA_END:
+                    break
+            if pending is not None:
+                yield _indexed_or_scanned(pending)
+            if loose:
+                yield _loose_chunk(loose, loose_off, f"{self.path}: messages at the end")
+
+
+def _loose_chunk(buf: bytearray, offsets: dict[int, list[int]], where: str) -> ChunkMessages:
+    return ChunkMessages(
+        np.frombuffer(bytes(buf), np.uint8),
+        {cid: np.asarray(o, np.int64) for cid, o in offsets.items()},
+        where,
+    )
+
+
+def _indexed_or_scanned(chunk: ChunkMessages) -> ChunkMessages:
+    """The chunk with per-channel offsets, scanning its records when it came without indexes."""
+    if chunk.offsets or len(chunk.buf) == 0:
+        return chunk
+    found: dict[int, list[int]] = {}
+    for opcode, start, _end in scan_records(chunk.buf, chunk.where):
+        if opcode == OP_MESSAGE and _end - start >= 22:
+            cid = int(chunk.buf[start]) | (int(chunk.buf[start + 1]) << 8)
+            found.setdefault(cid, []).append(start - 9)
+    chunk.offsets = {cid: np.asarray(o, np.int64) for cid, o in found.items()}
+    return chunk
+
+
+def scan_records(buf: np.ndarray, where: str) -> Iterator[tuple[int, int, int]]:
+    """Records inside a decompressed chunk: (opcode, body start, body end). One Python step per
+    record: the fallback for chunks without message indexes."""
+    raw = buf.tobytes() if isinstance(buf, np.ndarray) else bytes(buf)
+    pos, n = 0, len(raw)
+    while pos < n:
+        if pos + 9 > n:
+            raise ReadError(f"{where}: record header cut off inside the chunk")
+        length = int.from_bytes(raw[pos + 1 : pos + 9], "little")
+        end = pos + 9 + length
+        if end > n:
+            raise ReadError(f"{where}: record runs past the end of its chunk")
+        yield raw[pos], pos + 9, end
+        pos = end

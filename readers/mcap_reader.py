@@ -1,0 +1,172 @@
+"""MCAP logs (ROS 2 CDR or ROS 1 encoded) into the common table, chunk by chunk with numpy.
+
+``sensor_msgs/Imu``, ``MagneticField`` and ``Temperature`` messages are decoded straight from
+the decompressed chunks (:mod:`imupipe.readers.fast_mcap`, :func:`imupipe.readers.cdr.decode`);
+big-endian CDR falls back to rosbags' deserializer. Messages of every other channel are carried
+over as they are (ROS 1 encoded ones converted to ROS 2 CDR the way ``rosbags-convert`` does).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from pathlib import Path
+
+import pyarrow as pa
+
+from imupipe.pipeline.errors import ReadError
+from imupipe.readers.cdr import (
+    NotFastPath,
+    PayloadError,
+    decode,
+    decode_with_rosbags,
+    field_count,
+)
+from imupipe.readers.decoded import STREAM_TYPES, Piece, concat, normalize_type
+from imupipe.readers.fast_mcap import ChunkMessages, McapFile
+from imupipe.readers.sources import carry_sources, iter_sources, read_sources
+from imupipe.readers.spec import InputSpec, RawMessage
+
+
+class McapSource:
+    """One MCAP file as a :class:`~imupipe.readers.sources.LogSource`."""
+
+    format = "mcap"
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        self.file = McapFile(self.path)
+        self._first: int | None = None
+
+    def topic_types(self) -> dict[str, str]:
+        return {c.topic: c.schema_name for c in self.file.channels.values()}
+
+    def topic_counts(self) -> dict[str, int] | None:
+        if self.file.counts is None:
+            return None
+        out: dict[str, int] = {}
+        for cid, n in self.file.counts.items():
+            if cid in self.file.channels:
+                topic = self.file.channels[cid].topic
+                out[topic] = out.get(topic, 0) + n
+        return out
+
+    def first_time(self) -> int:
+        if self._first is None:
+            self._first = 0
+            for chunk in self.file.chunks():
+                times = [chunk.records(cid)[0] for cid in chunk.offsets]
+                times = [t for t in times if len(t)]
+                if times:
+                    self._first = int(min(t.min() for t in times))
+                    break
+        return self._first
+
+    def chunks(
+        self, streams: dict[str, str], carry: bool, decode: bool = True
+    ) -> Iterator[tuple[dict[str, Piece], list[RawMessage]]]:
+        by_topic = {topic: stream for stream, topic in streams.items()}
+        chosen = {
+            cid: by_topic[c.topic] for cid, c in self.file.channels.items() if c.topic in by_topic
+        }
+        converters: dict[int, object] = {}
+        for chunk in self.file.chunks():
+            pieces: dict[str, list[Piece]] = {}
+            if decode:
+                for cid, stream in chosen.items():
+                    if cid in chunk.offsets:
+                        pieces.setdefault(stream, []).append(self._decode(chunk, cid, stream))
+            raw: list[RawMessage] = []
+            if carry:
+                for cid in sorted(chunk.offsets):
+                    if cid not in chosen:
+                        raw.extend(self._raw(chunk, cid, converters))
+                raw.sort(key=lambda m: m.log_time)
+            yield {s: concat(p, field_count(STREAM_TYPES[s])) for s, p in pieces.items()}, raw
+
+    def _decode(self, chunk: ChunkMessages, cid: int, stream: str) -> Piece:
+        channel = self.file.channels[cid]
+        msgtype = STREAM_TYPES[stream]
+        log, _pub, starts, lengths = chunk.records(cid)
+        encoding = channel.message_encoding
+        if encoding not in ("cdr", "ros1"):
+            raise ReadError(
+                f"{self.path}: topic '{channel.topic}': message encoding '{encoding}' is not "
+                "supported (cdr or ros1)"
+            )
+        try:
+            try:
+                stamp, frame, values = decode(chunk.buf, starts, lengths, msgtype, encoding)
+            except NotFastPath:
+                payloads = [
+                    chunk.buf[s : s + n].tobytes() for s, n in zip(starts, lengths, strict=True)
+                ]
+                stamp, frame, values = decode_with_rosbags(payloads, msgtype, encoding)
+        except PayloadError as exc:
+            raise ReadError(
+                f"{self.path}: topic '{channel.topic}': message at log time {int(log[exc.index])} "
+                f"is not a valid {msgtype}: {exc.reason}"
+            ) from None
+        return Piece(stamp, log, frame, values)
+
+    def _raw(
+        self, chunk: ChunkMessages, cid: int, converters: dict[int, object]
+    ) -> list[RawMessage]:
+        channel = self.file.channels.get(cid)
+        if channel is None:
+            raise ReadError(
+                f"{chunk.where}: message on channel {cid}, which the file never defines"
+            )
+        log, pub, starts, lengths = chunk.records(cid)
+        schema_name, schema_encoding, schema_data = (
+            channel.schema_name,
+            channel.schema_encoding,
+            channel.schema_data,
+        )
+        encoding = channel.message_encoding
+        convert = None
+        if encoding == "ros1":
+            from imupipe.readers.ros1_reader import ros2_converter
+
+            if cid not in converters:
+                converters[cid] = ros2_converter(
+                    normalize_type(schema_name),
+                    schema_data.decode(),
+                    f"{self.path}: topic '{channel.topic}'",
+                )
+            schema_name, schema_data, convert = converters[cid]  # type: ignore[misc]
+            schema_encoding, encoding = "ros2msg", "cdr"
+        buf = chunk.buf
+        out = []
+        for lt, pt, s, n in zip(
+            log.tolist(), pub.tolist(), starts.tolist(), lengths.tolist(), strict=True
+        ):
+            data = buf[s : s + n].tobytes()
+            if convert is not None:
+                try:
+                    data = bytes(convert(data))
+                except Exception as exc:  # noqa: BLE001
+                    raise ReadError(
+                        f"{self.path}: topic '{channel.topic}': message at log time {lt} cannot "
+                        f"be converted to ROS 2 ({exc})"
+                    ) from None
+            out.append(
+                RawMessage(
+                    channel.topic, schema_name, schema_encoding, schema_data, encoding, data, lt, pt
+                )
+            )
+        return out
+
+
+def read_mcap(spec: InputSpec) -> tuple[pa.Table, list[str]]:
+    """Read an MCAP input into the common table; returns (table, warnings)."""
+    return read_sources(spec, [McapSource(spec.path)])
+
+
+def iter_mcap(spec: InputSpec, batch_rows: int) -> Iterator[tuple[pa.Table, list[RawMessage]]]:
+    """Bounded-memory batches (see :func:`imupipe.readers.sources.iter_sources`)."""
+    return iter_sources(spec, [McapSource(spec.path)], batch_rows)
+
+
+def carry_over_mcap(spec: InputSpec) -> list[RawMessage]:
+    """Messages of the topics the table does not hold, in log-time order."""
+    return carry_sources(spec, [McapSource(spec.path)])
