@@ -1,0 +1,312 @@
+"""``mag_calibration`` stage: hard and soft iron from a tumbling recording (seed 002, Magneto).
+
+Model (tesla): ``corrected = matrix @ (raw - offset)`` with ``offset`` the hard iron (the centre
+of the fitted ellipsoid) and ``matrix = F * W``, ``W`` the ellipsoid's symmetric shape matrix
+(:mod:`imupipe.stages.ellipsoid`) and ``F`` the local field magnitude (``field_ut``; default the
+ellipsoid's equal-volume radius, i.e. the data's own scale). ``model`` picks ``W``:
+
+- ``general``: symmetric (hard iron + soft iron with rotated axes; no rotation added), Li &
+  Griffiths' ellipsoid-specific fit refined by Levenberg-Marquardt;
+- ``axis_aligned``: diagonal (seed 002's least squares, refined);
+- ``sphere``: ``w I`` (hard iron only).
+
+Procedure: a sphere fit gives the field directions; the coverage check refuses the data when the
+smallest eigenvalue of their covariance is below ``min_spread`` (planar or narrow data); the
+directions are thinned (at most a capped number of samples per equal-area direction cell); the
+model is fitted, samples whose residual is beyond ``outlier_k`` robust sigmas are rejected and
+the fit repeated; the coverage is checked again on the corrected directions; the acceptance
+bounds (offset size, soft-iron diagonal, norm std) are checked. Results and quality figures go to
+``calibration.json``; Rerun gets the raw and corrected points, the fitted ellipsoid, the target
+sphere and the norm over time before and after.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+import numpy as np
+import pyarrow as pa
+import rerun as rr
+import rerun.blueprint as rrb
+from scipy.spatial.transform import Rotation
+
+from imupipe.pipeline.table import has_stream, sensor
+from imupipe.stages import ellipsoid as ell
+from imupipe.stages.base import Stage, StageContext, StageOutput
+from imupipe.stages.steps import LinearStep
+
+MAX_3D_POINTS = 20_000
+"""Points sent to Rerun per 3D cloud (evenly strided beyond this)."""
+
+
+@dataclass
+class FitReport:
+    """What the robust fit used: the ellipsoid and the sample masks."""
+
+    ellipsoid: ell.Ellipsoid
+    thinned: np.ndarray
+    used: np.ndarray
+    iterations: int
+    cap: int
+
+
+def norm_std_pct(values: np.ndarray) -> float:
+    """Std of the vector norms in % of their mean."""
+    norms = np.linalg.norm(values, axis=1)
+    return float(100.0 * norms.std() / norms.mean())
+
+
+class MagCalibrationStage(Stage):
+    type = "mag_calibration"
+    sensors = ("mag",)
+    corrects = True
+
+    @dataclass
+    class Options:
+        model: Literal["general", "axis_aligned", "sphere"] = "general"
+        """``general`` (symmetric soft iron), ``axis_aligned`` (seed 002) or ``sphere``."""
+        field_ut: float | None = None
+        """Local field magnitude, uT (the corrected norm); default: the fitted mean radius."""
+        geometric: bool = True
+        """Refine the algebraic fit by Levenberg-Marquardt on the calibrated-space residual."""
+        thinning: bool = True
+        """Cap the samples per direction cell so over-sampled orientations do not pull the fit."""
+        thinning_cells: int = 200
+        """Equal-area direction cells for thinning."""
+        thinning_max_per_cell: int | None = None
+        """Cap per cell; default twice the median count of the occupied cells (at least 2)."""
+        outlier_k: float | None = 3.0
+        """Reject samples whose residual is beyond k robust sigmas (1.4826 MAD); None: keep all."""
+        outlier_iterations: int = 3
+        """Fit-reject rounds at most."""
+        min_samples: int = 20
+        """Fewer magnetometer samples than this are refused."""
+        min_spread: float = 0.02
+        """Smallest eigenvalue of the covariance of the field directions (1/3: all orientations;
+        ~0: planar); below it the data is refused."""
+        max_offset: float = 5.0
+        """Largest accepted hard iron, in multiples of the field radius."""
+        soft_iron_range: list[float] = field(default_factory=lambda: [0.5, 2.0])
+        """Accepted range of the diagonal of the soft-iron correction normalised to det 1."""
+        max_norm_std_pct: float | None = 5.0
+        """Largest accepted std of the corrected norm, % of the field; None: no limit."""
+
+    # -- fit ---------------------------------------------------------------------------------
+    def fit(self, table: pa.Table, ctx: StageContext) -> StageOutput:
+        o = self.options
+        self._check_options(ctx)
+        if not has_stream(table, "mag"):
+            raise ctx.fail(
+                "the input has no magnetometer samples (map csv.mag, or set mag_topic for a log)"
+            )
+        data = sensor(table, "mag")
+        values = data.values
+        finite = np.isfinite(values).all(axis=1)
+        if not finite.all():
+            bad = int(np.flatnonzero(~finite)[0])
+            raise ctx.fail(f"non-finite magnetometer sample at table row {int(data.rows[bad])}")
+        if len(values) < o.min_samples:
+            raise ctx.fail(
+                f"{len(values)} magnetometer samples; the fit needs at least {o.min_samples}"
+            )
+
+        try:
+            sphere = ell.fit_sphere(values)
+        except ell.EllipsoidFitError as exc:
+            raise ctx.fail(f"magnetometer data is degenerate: {exc}") from None
+        directions = ell.unit(values - sphere.centre)
+        spread_raw = ell.direction_spread(directions)
+        self._check_spread(ctx, spread_raw, "raw")
+
+        try:
+            report = self._robust_fit(values, directions)
+        except ell.EllipsoidFitError as exc:
+            raise ctx.fail(f"{o.model} fit failed: {exc}") from None
+        e = report.ellipsoid
+        unit_corrected = e.to_unit(values)
+        spread = ell.direction_spread(ell.unit(unit_corrected[report.used]))
+        self._check_spread(ctx, spread, "corrected")
+
+        radius = e.mean_radius
+        target = o.field_ut * 1e-6 if o.field_ut is not None else radius
+        if o.field_ut is None and radius > 1e-2:
+            ctx.warn(
+                f"the fitted field radius is {radius:.4g} 'T': the data looks like raw counts; "
+                "set field_ut to get the corrected field in tesla"
+            )
+        matrix = target * e.shape
+        corrected = target * unit_corrected
+        residual = target * e.residuals(values[report.used])
+        shape_unit = e.shape / np.linalg.det(e.shape) ** (1.0 / 3.0)
+        radii, axes = e.axes
+        metrics = {
+            "samples": len(values),
+            "samples_after_thinning": int(report.thinned.sum()),
+            "samples_used": int(report.used.sum()),
+            "outliers": int(report.thinned.sum() - report.used.sum()),
+            "thinning_cap_per_cell": report.cap,
+            "fit_iterations": report.iterations,
+            "rms_residual": float(np.sqrt(np.mean(residual**2))),
+            "rms_residual_pct": float(100 * np.sqrt(np.mean(residual**2)) / target),
+            "norm_std_pct": norm_std_pct(corrected),
+            "norm_std_pct_used": norm_std_pct(corrected[report.used]),
+            "raw_norm_std_pct": norm_std_pct(values),
+            "corrected_norm_mean": float(np.linalg.norm(corrected, axis=1).mean()),
+            "fitted_radius": radius,
+            "direction_spread": spread.tolist(),
+            "direction_spread_raw": spread_raw.tolist(),
+            "coverage_fraction": ell.coverage_fraction(ell.unit(unit_corrected[report.used])),
+            "offset_over_radius": float(np.linalg.norm(e.centre) / radius),
+            "soft_iron_diagonal": np.diag(shape_unit).tolist(),
+        }
+        self._check_bounds(ctx, metrics)
+        self._record(ctx, data.t_ns, values, corrected, e, target, report)
+
+        params = {
+            "model": o.model,
+            "centre": e.centre.tolist(),
+            "radii": radii.tolist(),
+            "axes": axes.tolist(),
+            "soft_iron": shape_unit.tolist(),
+            "field": target,
+        }
+        step = LinearStep(
+            type=self.type, sensor="mag", matrix=matrix, offset=e.centre, params=params
+        )
+        results = {"model": o.model, **params, "metrics": metrics}
+        return StageOutput(results=results, step=step)
+
+    def _robust_fit(self, values: np.ndarray, directions: np.ndarray) -> FitReport:
+        o = self.options
+        thinned = np.ones(len(values), dtype=bool)
+        cap = 0
+        if o.thinning:
+            thin = ell.thin_by_direction(directions, o.thinning_cells, o.thinning_max_per_cell)
+            thinned, cap = thin.keep, thin.cap
+        used = thinned
+        e = ell.fit(values[used], o.model, geometric=o.geometric)
+        iterations = 1
+        while o.outlier_k is not None and iterations < o.outlier_iterations + 1:
+            candidates = np.flatnonzero(thinned)
+            keep = ell.inliers(e.residuals(values[candidates]), o.outlier_k)
+            new_used = np.zeros(len(values), dtype=bool)
+            new_used[candidates[keep]] = True
+            if np.array_equal(new_used, used):
+                break
+            used = new_used
+            e = ell.fit(values[used], o.model, geometric=o.geometric)
+            iterations += 1
+        return FitReport(e, thinned, used, iterations, cap)
+
+    # -- checks ------------------------------------------------------------------------------
+    def _check_options(self, ctx: StageContext) -> None:
+        o = self.options
+        if o.field_ut is not None and o.field_ut <= 0:
+            raise ctx.fail(f"field_ut must be > 0 (uT), got {o.field_ut}")
+        if o.thinning_cells < 6:
+            raise ctx.fail(f"thinning_cells must be >= 6, got {o.thinning_cells}")
+        if o.outlier_k is not None and o.outlier_k <= 0:
+            raise ctx.fail(f"outlier_k must be > 0, got {o.outlier_k}")
+        lo_hi = o.soft_iron_range
+        if len(lo_hi) != 2 or not 0 < lo_hi[0] < 1 < lo_hi[1]:
+            raise ctx.fail(f"soft_iron_range must be [low < 1, high > 1], got {lo_hi}")
+
+    def _check_spread(self, ctx: StageContext, spread: np.ndarray, where: str) -> None:
+        if spread[0] < self.options.min_spread:
+            raise ctx.fail(
+                f"the magnetometer data covers too few orientations: the smallest spread of the "
+                f"{where} field directions is {spread[0]:.3g} (min_spread {self.options.min_spread}"
+                f"; 0.333 = all orientations, ~0 = planar); tumble the sensor through all "
+                "orientations"
+            )
+
+    def _check_bounds(self, ctx: StageContext, m: dict[str, Any]) -> None:
+        o = self.options
+        if m["offset_over_radius"] > o.max_offset:
+            raise ctx.fail(
+                f"hard iron {m['offset_over_radius']:.3g} times the field radius exceeds "
+                f"max_offset = {o.max_offset}"
+            )
+        lo, hi = o.soft_iron_range
+        diag = np.array(m["soft_iron_diagonal"])
+        if diag.min() < lo or diag.max() > hi:
+            raise ctx.fail(
+                f"soft-iron diagonal {np.round(diag, 3).tolist()} is outside soft_iron_range "
+                f"{o.soft_iron_range}"
+            )
+        if o.max_norm_std_pct is not None and m["norm_std_pct"] > o.max_norm_std_pct:
+            raise ctx.fail(
+                f"the corrected field norm varies by {m['norm_std_pct']:.3g}% (std) > "
+                f"max_norm_std_pct = {o.max_norm_std_pct}: the data is not a clean ellipsoid"
+            )
+
+    # -- Rerun -------------------------------------------------------------------------------
+    def _record(
+        self,
+        ctx: StageContext,
+        t_ns: np.ndarray,
+        raw: np.ndarray,
+        corrected: np.ndarray,
+        e: ell.Ellipsoid,
+        target: float,
+        report: FitReport,
+    ) -> None:
+        rec = ctx.recorder
+        if not getattr(rec, "enabled", False):
+            return
+        name = ctx.name
+        scale, unit = (1e6, "uT") if target < 1e-2 else (1.0, "raw units")
+        stride = max(1, int(np.ceil(len(raw) / MAX_3D_POINTS)))
+        colors = np.where(
+            report.used[:, None],
+            np.array([[60, 100, 230]]),
+            np.where(report.thinned[:, None], np.array([[230, 60, 60]]), np.array([[150] * 3])),
+        ).astype(np.uint8)[::stride]
+        size = 0.01 * target * scale
+        rec.log(
+            f"/{name}/raw/points",
+            rr.Points3D(raw[::stride] * scale, colors=colors, radii=size),
+        )
+        radii, axes = e.axes
+        quat = Rotation.from_matrix(axes).as_quat()
+        rec.log(
+            f"/{name}/raw/ellipsoid",
+            rr.Ellipsoids3D(
+                centers=[e.centre * scale],
+                half_sizes=[radii * scale],
+                quaternions=[rr.Quaternion(xyzw=quat)],
+                colors=[(240, 180, 40)],
+                labels=[f"fitted ellipsoid ({unit})"],
+            ),
+        )
+        rec.log(
+            f"/{name}/corrected/points",
+            rr.Points3D(corrected[::stride] * scale, colors=colors, radii=size),
+        )
+        rec.log(
+            f"/{name}/corrected/sphere",
+            rr.Ellipsoids3D(
+                half_sizes=[[target * scale] * 3],
+                colors=[(60, 180, 75)],
+                labels=[f"field sphere {target * scale:.4g} {unit}"],
+            ),
+        )
+        norms = np.column_stack(
+            [
+                np.linalg.norm(raw, axis=1),
+                np.linalg.norm(corrected, axis=1),
+                np.full(len(raw), target),
+            ]
+        )
+        rec.series(f"/{name}/norm", t_ns, norms * scale, ("before", "after", "field"))
+        rec.add_view(
+            name, rrb.Spatial3DView(origin=f"/{name}/raw", name=f"{name}: raw + fitted ellipsoid")
+        )
+        rec.add_view(
+            name,
+            rrb.Spatial3DView(origin=f"/{name}/corrected", name=f"{name}: corrected + field"),
+        )
+        rec.add_view(
+            name, rrb.TimeSeriesView(origin=f"/{name}/norm", name=f"{name}: |h| ({unit})")
+        )
