@@ -130,7 +130,9 @@ def _csv_mapping(where: str, raw: dict[str, Any]) -> CsvMapping:
         value = getattr(mapping, key)
         if value is not None and len(value) != 3:
             raise ConfigError(f"{where}.{key}: must name 3 columns, got {len(value)}")
-    mapping.required = tuple(k for k in ("gyro", "accel", "mag", "temperature") if k in raw)
+    mapping.required = tuple(
+        k for k in ("gyro", "accel", "mag", "temperature", "ambient_temperature") if k in raw
+    )
     if "time" not in raw and "rate_hz" in raw:
         mapping.time = None
     return mapping
@@ -154,6 +156,13 @@ def parse_input(name: str, raw: Any, base: Path, where: str) -> InputSpec:
     time = raw.get("time", "header")
     if time not in ("header", "log"):
         raise ConfigError(f"{where}.time: '{time}' is not one of header, log")
+    csv = _csv_mapping(f"{where}.csv", raw.get("csv", {}))
+    if csv.gyro_file is not None:
+        gyro_file = Path(csv.gyro_file)
+        gyro_file = gyro_file if gyro_file.is_absolute() else base / gyro_file
+        if not gyro_file.is_file():
+            raise ConfigError(f"{where}.csv.gyro_file: no such file: {gyro_file}")
+        csv.gyro_file = str(gyro_file)
     return InputSpec(
         path=path,
         name=name,
@@ -161,7 +170,7 @@ def parse_input(name: str, raw: Any, base: Path, where: str) -> InputSpec:
         mag_topic=raw.get("mag_topic"),
         temperature_topic=raw.get("temperature_topic"),
         time=time,
-        csv=_csv_mapping(f"{where}.csv", raw.get("csv", {})),
+        csv=csv,
     )
 
 

@@ -114,10 +114,10 @@ def run(config: Config | str | Path, *, spawn: bool = False, quiet: bool = False
                 sensors = stage.sensors_for(st.options)
                 record_sensors(recorder, f"/{st.name}/input", table, sensors)
                 output = stage.fit(table, ctx)
-                if output.step is not None:
-                    chain.append(output.step)
+                if output.steps:
+                    chain.extend(output.steps)
                     record_sensors(
-                        recorder, f"/{st.name}/output", output.step.apply(table), sensors
+                        recorder, f"/{st.name}/output", apply_chain(table, output.steps), sensors
                     )
                 recorder.ensure_stage(st.name)
                 results[st.name] = {

@@ -20,6 +20,8 @@ message (absent or null: the writer uses ROS defaults):
 | ``orientation_x/y/z/w`` | float64 | sensor_msgs/Imu orientation quaternion |
 | ``orientation_cov``, ``gyro_cov``, ``accel_cov``, ``mag_cov`` | fixed_size_list<float64, 9> | covariances |
 | ``temperature_var`` | float64 | sensor_msgs/Temperature variance |
+| ``label`` | string | a CSV's segment label (csv ``label`` key), e.g. a calibration pose name |
+| ``ambient_temperature`` | float64 | degC, the air (chamber) temperature around the IMU (csv ``ambient_temperature`` key); null where absent |
 
 **Streams.** A row belongs to the ``imu`` stream where ``gyro_x`` is valid (an Imu message always
 carries both gyro and accel), to the ``mag`` stream where ``mag_x`` is valid, and to the
@@ -92,6 +94,8 @@ OPTIONAL_FIELDS = pa.schema(
         pa.field("accel_cov", COV),
         pa.field("mag_cov", COV),
         pa.field("temperature_var", pa.float64()),
+        pa.field("label", pa.string()),
+        pa.field("ambient_temperature", pa.float64()),
     ]
 )
 

@@ -95,6 +95,31 @@ def _column(table: pa.Table, path: Path, key: str, name: str | int, header: bool
     return pc.cast(pc.utf8_trim_whitespace(strings), pa.float64())
 
 
+def _column_text(table: pa.Table, path: Path, name: str | int, header: bool) -> pa.Array:
+    """A column as text (the ``label`` key): numbers are kept as their text."""
+    col = str(name)
+    if col not in table.column_names:
+        what = f"column '{col}'" if header else f"column index {col}"
+        raise ReadError(
+            f"{path}: {what} (csv.label) not found; the file has: {', '.join(table.column_names[:20])}"
+        )
+    return table.column(col).cast(pa.string())
+
+
+def _gyro_from_file(path: Path, m: CsvMapping, rows: int) -> tuple[np.ndarray, np.ndarray]:
+    """The gyro columns of ``csv.gyro_file``, which must have as many rows as the main file."""
+    raw, header = _raw_table(path, m)
+    if raw.num_rows != rows:
+        raise ReadError(
+            f"{path}: csv.gyro_file has {raw.num_rows} rows, the main file {rows}; "
+            "they must match row for row"
+        )
+    if m.gyro is None or len(m.gyro) != 3:
+        raise ReadError(f"{path}: csv.gyro must name 3 columns of csv.gyro_file")
+    cols = [_column(raw, path, "gyro", n, header) for n in m.gyro]
+    return _scaled(cols, _unit(path, "gyro_unit", m.gyro_unit, GYRO_UNITS))
+
+
 def _scaled(columns: list[pa.Array], factor: float) -> tuple[np.ndarray, np.ndarray]:
     values = np.column_stack([c.to_numpy(zero_copy_only=False) for c in columns]).astype(np.float64)
     valid = np.column_stack([pc.is_valid(c).to_numpy(zero_copy_only=False) for c in columns]).all(
@@ -133,6 +158,8 @@ def read_csv(spec: InputSpec) -> tuple[pa.Table, list[str]]:
         return _scaled(cols, _unit(path, unit_key, getattr(m, unit_key), units))
 
     gyro = vector("gyro", "gyro_unit", GYRO_UNITS)
+    if m.gyro_file is not None:
+        gyro = _gyro_from_file(Path(m.gyro_file), m, raw.num_rows)
     accel = vector("accel", "accel_unit", ACCEL_UNITS)
     mag = vector("mag", "mag_unit", MAG_UNITS)
     temperature = None
@@ -147,6 +174,16 @@ def read_csv(spec: InputSpec) -> tuple[pa.Table, list[str]]:
         )
 
     n = raw.num_rows
+    labels = None
+    if m.label is not None:
+        labels = _column_text(raw, path, m.label, header)
+    extra: dict[str, pa.Array] = {} if labels is None else {"label": labels}
+    if m.ambient_temperature is not None and (
+        str(m.ambient_temperature) in raw.column_names or "ambient_temperature" in m.required
+    ):
+        extra["ambient_temperature"] = _column(
+            raw, path, "ambient_temperature", m.ambient_temperature, header
+        )
     if m.rate_hz is not None:
         if m.rate_hz <= 0:
             raise ReadError(f"{path}: csv.rate_hz must be > 0")
@@ -193,6 +230,7 @@ def read_csv(spec: InputSpec) -> tuple[pa.Table, list[str]]:
             "mag": mag[1] if mag is not None else np.zeros(n, bool),
             "temperature": temperature[1] if temperature is not None else np.zeros(n, bool),
         },
+        extra=extra or None,
         metadata={"source": str(path), "format": "csv", "topics": {}, "types": {}, "frame_id": {}},
     )
     table, moved = sort_by_time(table)

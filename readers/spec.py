@@ -43,6 +43,16 @@ class CsvMapping:
     """``,`` ``;`` ``\\t`` ``whitespace`` or ``auto`` (sniffed from the first line)."""
     header: bool | None = None
     """Whether the first line names the columns; None: sniffed (a non-numeric first line)."""
+    gyro_file: str | None = None
+    """A second file holding the gyro columns, row for row with the main file (imu_tk ships
+    ``*_acc.mat`` and ``*_gyro.mat`` with the same timestamps); relative to the config like
+    ``path``. Same delimiter and header rules; ``gyro`` names its columns."""
+    label: str | int | None = None
+    """A text column labelling segments of the log (e.g. imucal's ``part``: x_p, x_rot...);
+    goes to the common table's optional ``label`` column."""
+    ambient_temperature: str | int | None = "ambient_temperature"
+    """The ambient (chamber air) temperature column, degC (optional; used by the ``temperature``
+    stage's stepwise model); goes to the common table's optional ``ambient_temperature`` column."""
     required: tuple[str, ...] = ()
     """Sensors the user mapped explicitly: a missing column is then an error, not an absent sensor."""
 
