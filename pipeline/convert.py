@@ -49,12 +49,12 @@ from typing import Any
 
 import pyarrow as pa
 
-from imupipe.pipeline import mcap_writer
 from imupipe.pipeline.atomic import staged_outputs
 from imupipe.pipeline.config import parse_input
 from imupipe.pipeline.engines import ENGINES, Outcome, default_jobs, run_tasks
 from imupipe.pipeline.errors import ConfigError, ImupipeError, ReadError
 from imupipe.pipeline.manifest import Manifest
+from imupipe.pipeline.mcap_writer import DEFAULT_TOPICS, McapTableWriter
 from imupipe.pipeline.progress import progress_bar
 from imupipe.pipeline.table import OPTIONAL_FIELDS, SCHEMA, counts, metadata
 from imupipe.readers import dispatch
@@ -288,50 +288,14 @@ def existing_output(task: LogTask, input_size: int) -> dict[str, int] | None:
 def _batches(
     spec: InputSpec, streamed: bool, batch_rows: int, warnings: list[str]
 ) -> Iterator[tuple[pa.Table, Iterable[RawMessage]]]:
-    """(table batch, carry-over messages) in log order: batches of ``batch_rows`` rows when
-    ``streamed``, else the whole table once (then the carry-over follows as a stream)."""
-    iter_input = getattr(dispatch, "iter_input", None)
-    if streamed and iter_input is not None:
-        yield from iter_input(spec, batch_rows=batch_rows)
+    """(table batch, carry-over messages) in log order: batches of about ``batch_rows`` rows when
+    ``streamed``, else the whole table (sorted by time) once, then the carry-over as a stream."""
+    if streamed:
+        yield from dispatch.iter_input(spec, batch_rows=batch_rows)
         return
     table, read_warnings = dispatch.read_input(spec)
     warnings.extend(read_warnings)
     yield table, dispatch.carry_over(spec)
-
-
-class _WholeLogWriter:
-    """Fallback while :class:`McapTableWriter` is not available: gathers and writes at close."""
-
-    def __init__(self, path: Path, calibration: dict[str, Any]) -> None:
-        self.path, self.calibration = path, calibration
-        self.tables: list[pa.Table] = []
-        self.raw: list[RawMessage] = []
-
-    def write_table(self, table: pa.Table) -> None:
-        self.tables.append(table)
-
-    def write_raw(self, messages: Iterable[RawMessage]) -> None:
-        self.raw.extend(messages)
-
-    def close(self) -> dict[str, int]:
-        table = pa.concat_tables(self.tables)
-        return mcap_writer.write_mcap(
-            self.path, table, calibration=self.calibration, carry_over=self.raw
-        )
-
-    def __enter__(self) -> _WholeLogWriter:
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        if exc[0] is None:
-            self.close()
-
-
-def _open_writer(path: Path, calibration: dict[str, Any]) -> Any:
-    cls = getattr(mcap_writer, "McapTableWriter", None)
-    if cls is None:
-        return _WholeLogWriter(path, calibration)
-    return cls(path, calibration=calibration)
 
 
 def dataset_table(table: pa.Table) -> pa.Table:
@@ -346,7 +310,7 @@ def dataset_table(table: pa.Table) -> pa.Table:
 
 
 def _counts_by_topic(table: pa.Table) -> collections.Counter[str]:
-    topics = {**mcap_writer.DEFAULT_TOPICS, **metadata(table).get("topics", {})}
+    topics = {**DEFAULT_TOPICS, **metadata(table).get("topics", {})}
     return collections.Counter({topics[s]: n for s, n in counts(table).items() if n})
 
 
@@ -396,7 +360,7 @@ def convert_log(task: LogTask) -> LogStats:
                     out.path(task.parquet), DATASET_SCHEMA, compression="zstd"
                 )
             try:
-                with _open_writer(mcap_tmp, doc) as writer:
+                with McapTableWriter(mcap_tmp, calibration=doc) as writer:
                     for batch, raw in _batches(spec, streamed, task.batch_rows, warnings):
                         corrected = apply_chain(batch, steps)
                         writer.write_table(corrected)

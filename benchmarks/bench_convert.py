@@ -1,0 +1,148 @@
+"""Issue 8 performance goals for ``imupipe convert``, measured against peers in the same run.
+
+1. One MCAP of N (default 1,000,000) ``sensor_msgs/msg/Imu`` messages: ``imupipe convert``
+   (read + correct + write, one worker, process start included) against a rosbags ``AnyReader``
+   loop that only reads and deserialises the same file. Goal: >= 5x faster.
+2. 20 logs with 2 workers against 1 worker. Goal: >= 1.6x faster.
+3. Peak memory of a worker (max RSS) converting the big log streamed in batches, a log a quarter
+   of its size, and the big log read whole (one batch): streamed peak must not grow with the log.
+
+Usage: ``python benchmarks/bench_convert.py [--messages 1000000] [--logs 20] [--log-messages 50000]``
+(prints each ratio; the machine is shared and noisy, so ratios, not absolute times, count).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import tempfile
+import time
+from pathlib import Path
+
+from imupipe.pipeline.convert import convert
+from imupipe.pipeline.mcap_writer import write_mcap
+from imupipe.pipeline.simulate import simulate
+
+CALIBRATION = {
+    "imupipe_version": "bench",
+    "chain": [
+        {
+            "type": "accel_calibration",
+            "sensor": "accel",
+            "kind": "linear",
+            "matrix": [[1.01, 0.002, -0.001], [0.0, 0.99, 0.003], [0.001, 0.0, 1.02]],
+            "offset": [0.05, -0.03, 0.08],
+        },
+        {
+            "type": "gyro_calibration",
+            "sensor": "gyro",
+            "kind": "linear",
+            "matrix": [[1.0, 0.001, 0.0], [0.0, 1.0, 0.0], [0.0, 0.002, 0.998]],
+            "offset": [0.01, -0.02, 0.005],
+        },
+    ],
+    "results": {},
+}
+
+
+def make_log(path: Path, messages: int, seed: int = 0) -> None:
+    """An MCAP of ``messages`` Imu messages at 1 kHz (no other topic)."""
+    table, _ = simulate(
+        "static", {"rate_hz": 1000.0, "duration_s": messages / 1000.0, "temperature": None}, seed
+    )
+    write_mcap(path, table)
+
+
+def rosbags_read(path: Path) -> tuple[float, int]:
+    """The peer: read and deserialise every message with rosbags' AnyReader."""
+    from rosbags.highlevel import AnyReader
+    from rosbags.typesys import Stores, get_typestore
+
+    start = time.perf_counter()
+    n = 0
+    with AnyReader([path], default_typestore=get_typestore(Stores.ROS2_HUMBLE)) as reader:
+        for conn, _, raw in reader.messages(connections=reader.connections):
+            reader.deserialize(raw, conn.msgtype)
+            n += 1
+    return time.perf_counter() - start, n
+
+
+def timed_convert(logs: list[Path], cal: Path, out: Path, **kw) -> tuple[float, object]:
+    shutil.rmtree(out, ignore_errors=True)
+    start = time.perf_counter()
+    summary = convert(logs, cal, out, **kw)
+    seconds = time.perf_counter() - start
+    if summary.failed:
+        raise SystemExit(f"conversion failed: {summary.failed}")
+    return seconds, summary
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--messages", type=int, default=1_000_000)
+    ap.add_argument("--logs", type=int, default=20)
+    ap.add_argument("--log-messages", type=int, default=50_000)
+    ap.add_argument("--keep", action="store_true", help="keep the temporary folder")
+    args = ap.parse_args()
+    tmp = Path(tempfile.mkdtemp(prefix="bench_convert_"))
+    cal = tmp / "calibration.json"
+    cal.write_text(json.dumps(CALIBRATION))
+    results: dict[str, float] = {}
+    try:
+        big = tmp / "big" / "imu.mcap"
+        big.parent.mkdir()
+        make_log(big, args.messages)
+        quarter = tmp / "quarter" / "imu.mcap"
+        quarter.parent.mkdir()
+        make_log(quarter, args.messages // 4, seed=1)
+
+        # 1. one big log against the rosbags read-and-deserialise loop
+        t_peer, n_peer = rosbags_read(big)
+        t_ours, summary = timed_convert([big], cal, tmp / "out_big", jobs=1)
+        (stats,) = summary.converted
+        assert stats.messages == n_peer == args.messages, (stats.messages, n_peer)
+        results["convert_1log_s"] = t_ours
+        results["rosbags_read_deserialize_s"] = t_peer
+        results["speedup_vs_rosbags"] = t_peer / t_ours
+        print(
+            f"[1] {args.messages:,} Imu messages: imupipe convert (read+correct+write, 1 worker) "
+            f"{t_ours:.2f} s ({args.messages / t_ours / 1e6:.2f} M msg/s); rosbags AnyReader "
+            f"read+deserialise {t_peer:.2f} s -> {t_peer / t_ours:.1f}x faster (goal >= 5x)"
+        )
+
+        # 3. peak memory: streamed big, streamed quarter, big read whole
+        results["peak_rss_streamed_mb"] = stats.peak_rss_mb
+        _, s_quarter = timed_convert([quarter], cal, tmp / "out_quarter", jobs=1)
+        results["peak_rss_streamed_quarter_mb"] = s_quarter.converted[0].peak_rss_mb
+        _, s_whole = timed_convert([big], cal, tmp / "out_whole", jobs=1, batch_rows=10**12)
+        results["peak_rss_whole_mb"] = s_whole.converted[0].peak_rss_mb
+        print(
+            f"[3] worker peak RSS: streamed {args.messages:,} msgs "
+            f"{results['peak_rss_streamed_mb']:.0f} MB, streamed {args.messages // 4:,} msgs "
+            f"{results['peak_rss_streamed_quarter_mb']:.0f} MB, whole log in one batch "
+            f"{results['peak_rss_whole_mb']:.0f} MB"
+        )
+
+        # 2. 20 logs, 1 worker against 2
+        fleet = tmp / "fleet"
+        fleet.mkdir()
+        for i in range(args.logs):
+            make_log(fleet / f"log{i:02d}.mcap", args.log_messages, seed=10 + i)
+        t1, _ = timed_convert([fleet], cal, tmp / "out_j1", jobs=1)
+        t2, _ = timed_convert([fleet], cal, tmp / "out_j2", jobs=2)
+        results.update(fleet_1_worker_s=t1, fleet_2_workers_s=t2, fleet_speedup=t1 / t2)
+        print(
+            f"[2] {args.logs} logs x {args.log_messages:,} msgs: 1 worker {t1:.2f} s, "
+            f"2 workers {t2:.2f} s -> {t1 / t2:.2f}x (goal >= 1.6x)"
+        )
+        print(json.dumps({k: round(v, 3) for k, v in results.items()}))
+    finally:
+        if args.keep:
+            print(f"kept {tmp}")
+        else:
+            shutil.rmtree(tmp, ignore_errors=True)
+
+
+if __name__ == "__main__":
+    main()
