@@ -307,6 +307,4 @@ class MagCalibrationStage(Stage):
             name,
             rrb.Spatial3DView(origin=f"/{name}/corrected", name=f"{name}: corrected + field"),
         )
-        rec.add_view(
-            name, rrb.TimeSeriesView(origin=f"/{name}/norm", name=f"{name}: |h| ({unit})")
-        )
+        rec.add_view(name, rrb.TimeSeriesView(origin=f"/{name}/norm", name=f"{name}: |h| ({unit})"))
