@@ -1,0 +1,277 @@
+"""Accelerometer models fitted on static poses: six-position (seed 002) and the 9-parameter model
+of seed 003 solved by Levenberg-Marquardt (scipy) or by Frank-Wolfe (the patent's method).
+
+9-parameter model (units of the raw input, e.g. m/s^2 or ADC counts, to m/s^2)::
+
+    a = S K (a_t - b),   S = diag(s_x, s_y, s_z),
+    K = [[1, -a_yz, a_zy], [0, 1, -a_zx], [0, 0, 1]]   (non-orthogonality, three small angles, rad)
+
+fitted so that |a| = g at rest: minimise ``sum_i (|S K (a_t,i - b)| - g)^2`` over the static
+samples (or static-interval means). Seed 003 writes ``S K (a_t + B)``: its ``B`` is ``-b`` here.
+The correction exported to the chain is ``matrix = S K``, ``offset = b``.
+
+Both solvers work on the same normalised unknowns ``x`` (9,) around a data-derived start
+(:func:`initial_guess`): ``s = s0 (1 + x[0:3])``, angles ``= x[3:6]``, ``b = b0 + r0 x[6:9]``
+(``r0`` the median raw radius of the poses), so every unknown is O(1e-2) whatever the raw unit.
+Residuals are ``(|a| - g) / g`` (dimensionless).
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from scipy.optimize import least_squares
+
+from imupipe.pipeline.errors import FitError
+
+MG = 9.80665e-3
+"""One milli-g in m/s^2 (the unit of the accelerometer metrics)."""
+
+
+def misalignment_matrix(angles: np.ndarray) -> np.ndarray:
+    """K from the three non-orthogonality angles ``(a_yz, a_zy, a_zx)`` (rad)."""
+    yz, zy, zx = angles
+    return np.array([[1.0, -yz, zy], [0.0, 1.0, -zx], [0.0, 0.0, 1.0]])
+
+
+@dataclass(frozen=True)
+class NineParams:
+    """``scale`` s (3) [(m/s^2)/raw unit], ``angles`` (a_yz, a_zy, a_zx) rad, ``bias`` b (3) raw."""
+
+    scale: np.ndarray
+    angles: np.ndarray
+    bias: np.ndarray
+
+    @property
+    def matrix(self) -> np.ndarray:
+        return np.diag(self.scale) @ misalignment_matrix(self.angles)
+
+    def apply(self, raw: np.ndarray) -> np.ndarray:
+        return (raw - self.bias) @ self.matrix.T
+
+
+def sphere_centre(points: np.ndarray) -> np.ndarray:
+    """Centre of the sphere through ``points`` (m, 3) by linear least squares:
+    ``|p|^2 = 2 c.p + (r^2 - |c|^2)``."""
+    a = np.column_stack([2 * points, np.ones(len(points))])
+    sol, *_ = np.linalg.lstsq(a, (points**2).sum(axis=1), rcond=None)
+    return sol[:3]
+
+
+def initial_guess(means: np.ndarray, g: float) -> NineParams:
+    """Data-derived start: bias = centre of the static means (sphere fit), scale = g / median
+    distance of the means from that centre, no misalignment. Works on any raw unit."""
+    centre = sphere_centre(means)
+    radius = float(np.median(np.linalg.norm(means - centre, axis=1)))
+    if not np.isfinite(radius) or radius <= 0:
+        raise FitError("cannot derive a start from the static means (they do not span a sphere)")
+    return NineParams(np.full(3, g / radius), np.zeros(3), centre)
+
+
+@dataclass
+class NormProblem:
+    """``(|S K (a_t - b)| - g) / g`` over ``samples`` (m, 3), unknowns normalised around ``start``."""
+
+    samples: np.ndarray
+    g: float
+    start: NineParams
+    radius: float = field(init=False)
+
+    def __post_init__(self) -> None:
+        self.samples = np.asarray(self.samples, dtype=np.float64)
+        self.radius = self.g / float(np.mean(self.start.scale))
+
+    def params(self, x: np.ndarray) -> NineParams:
+        return NineParams(
+            self.start.scale * (1 + x[0:3]),
+            np.array(x[3:6]),
+            self.start.bias + self.radius * x[6:9],
+        )
+
+    def _parts(self, x: np.ndarray) -> tuple[NineParams, np.ndarray, np.ndarray, np.ndarray]:
+        p = self.params(x)
+        v = self.samples - p.bias
+        u = v @ misalignment_matrix(p.angles).T
+        a = u * p.scale
+        return p, v, u, a
+
+    def residual(self, x: np.ndarray) -> np.ndarray:
+        a = self._parts(x)[3]
+        return (np.linalg.norm(a, axis=1) - self.g) / self.g
+
+    def jacobian(self, x: np.ndarray) -> np.ndarray:
+        """Analytic (m, 9) Jacobian of :meth:`residual`."""
+        p, v, u, a = self._parts(x)
+        n = np.linalg.norm(a, axis=1)[:, None]
+        dn_du = a * p.scale / n  # d|a|/du
+        jac = np.empty((len(v), 9))
+        jac[:, 0:3] = (a * u / n) * self.start.scale
+        jac[:, 3] = -dn_du[:, 0] * v[:, 1]
+        jac[:, 4] = dn_du[:, 0] * v[:, 2]
+        jac[:, 5] = -dn_du[:, 1] * v[:, 2]
+        jac[:, 6:9] = -(dn_du @ misalignment_matrix(p.angles)) * self.radius
+        return jac / self.g
+
+    def cost(self, x: np.ndarray) -> float:
+        r = self.residual(x)
+        return 0.5 * float(r @ r)
+
+
+@dataclass
+class Solution:
+    params: NineParams
+    x: np.ndarray
+    info: dict[str, Any]
+
+
+def solve_lm(problem: NormProblem, *, xtol: float = 1e-12, max_nfev: int = 200) -> Solution:
+    """Levenberg-Marquardt (``scipy.optimize.least_squares(method="lm")``, analytic Jacobian)."""
+    t0 = time.perf_counter()
+    res = least_squares(
+        problem.residual,
+        np.zeros(9),
+        jac=problem.jacobian,
+        method="lm",
+        xtol=xtol,
+        ftol=1e-15,
+        gtol=1e-15,
+        max_nfev=max_nfev,
+    )
+    info = {
+        "solver": "scipy.optimize.least_squares(method='lm')",
+        "iterations": int(res.njev if res.njev is not None else res.nfev),
+        "function_evaluations": int(res.nfev),
+        "time_s": time.perf_counter() - t0,
+        "cost": float(res.cost),
+        "stop": res.message,
+    }
+    return Solution(problem.params(res.x), res.x, info)
+
+
+def solve_frank_wolfe(
+    problem: NormProblem,
+    *,
+    box: np.ndarray | None = None,
+    max_iter: int = 20000,
+    gap_rtol: float = 1e-2,
+) -> Solution:
+    """Frank-Wolfe (conditional gradient) over the box ``|x_j| <= box_j`` (seed 003).
+
+    Objective ``f(x) = 0.5 sum r_i(x)^2``, gradient ``J^T r``. Each iteration: the linear
+    minimisation oracle over the box gives the vertex ``s = -box * sign(grad)``; direction
+    ``d = s - x``; step ``gamma`` in [0, 1] from the Gauss-Newton model along ``d``
+    (``-(r . J d) / |J d|^2``), halved until ``f`` decreases (Armijo, up to 30 times).
+    Stopping rule: the Frank-Wolfe duality gap ``-grad . d`` (an upper bound of ``f - f*`` where
+    the objective is convex) falls below ``gap_rtol * f``, i.e. the cost is within a fraction
+    ``gap_rtol`` of the best in the box; or ``max_iter`` iterations.
+    The default box is +-5 % on scale and bias (bias relative to g) and +-0.05 rad on the angles
+    around the data-derived start; the result reports ``at_box_bound`` when it ends on the box.
+    """
+    t0 = time.perf_counter()
+    if box is None:
+        box = np.full(9, 0.05)
+    x = np.zeros(9)
+    r = problem.residual(x)
+    f = 0.5 * float(r @ r)
+    n_eval = 1
+    stop = f"max_iter ({max_iter}) reached"
+    gap = np.inf
+    it = 0
+    for it in range(1, max_iter + 1):  # noqa: B007 (it is reported)
+        jac = problem.jacobian(x)
+        grad = jac.T @ r
+        d = np.where(grad > 0, -box, box) - x
+        gap = float(-grad @ d)
+        if gap <= gap_rtol * f:
+            stop = f"duality gap {gap:.3g} <= gap_rtol * cost"
+            break
+        jd = jac @ d
+        denom = float(jd @ jd)
+        gamma = min(max(-float(r @ jd) / denom, 0.0), 1.0) if denom > 0 else 1.0
+        for _ in range(30):
+            r_new = problem.residual(x + gamma * d)
+            n_eval += 1
+            f_new = 0.5 * float(r_new @ r_new)
+            if f_new <= f - 1e-4 * gamma * gap:
+                break
+            gamma *= 0.5
+        else:
+            stop = "line search found no decrease"
+            break
+        x = x + gamma * d
+        r, f = r_new, f_new
+    info = {
+        "solver": "frank_wolfe",
+        "iterations": it,
+        "function_evaluations": n_eval,
+        "time_s": time.perf_counter() - t0,
+        "cost": f,
+        "duality_gap": gap,
+        "stop": stop,
+        "box": box.tolist(),
+        "at_box_bound": bool(np.any(np.abs(x) >= 0.999 * box)),
+    }
+    return Solution(problem.params(x), x, info)
+
+
+def uncertainty(problem: NormProblem, x: np.ndarray) -> dict[str, Any]:
+    """Parameter standard deviations from ``sigma^2 (J^T J)^-1`` (sigma^2 = residual variance per
+    degree of freedom) and the condition number of the column-normalised Jacobian."""
+    jac = problem.jacobian(x)
+    r = problem.residual(x)
+    dof = len(r) - 9
+    norms = np.linalg.norm(jac, axis=0)
+    norms[norms == 0] = 1.0
+    sv = np.linalg.svd(jac / norms, compute_uv=False)
+    cond = float(sv[0] / sv[-1]) if sv[-1] > 0 else float("inf")
+    out: dict[str, Any] = {"condition_number": cond, "degrees_of_freedom": dof}
+    if dof <= 0 or not np.isfinite(cond):
+        return out
+    sigma2 = float(r @ r) / dof
+    cov = np.linalg.pinv(jac.T @ jac) * sigma2
+    std = np.sqrt(np.maximum(np.diag(cov), 0))
+    out["scale_std"] = (std[0:3] * problem.start.scale).tolist()
+    out["misalignment_std_rad"] = std[3:6].tolist()
+    out["bias_std"] = (std[6:9] * problem.radius).tolist()
+    return out
+
+
+def six_position(means: np.ndarray, g: float, max_angle_deg: float = 30.0) -> NineParams:
+    """Seed 002: per axis ``b = (max + min) / 2``, ``k = 2 g / (max - min)`` over the static
+    means; the max (min) must come from a pose with that axis up (down) within ``max_angle_deg``
+    (directions taken about the sphere centre of the means, so raw counts work).
+    ``FitError`` naming the missing face otherwise."""
+    centred = means - sphere_centre(means)
+    unit = centred / np.linalg.norm(centred, axis=1)[:, None]
+    cos_max = np.cos(np.radians(max_angle_deg))
+    hi = np.empty(3)
+    lo = np.empty(3)
+    for axis, name in enumerate("xyz"):
+        i_hi = int(np.argmax(means[:, axis]))
+        i_lo = int(np.argmin(means[:, axis]))
+        for sign, i in (("+", i_hi), ("-", i_lo)):
+            along = unit[i, axis] if sign == "+" else -unit[i, axis]
+            if along < cos_max:
+                raise FitError(
+                    f"six_position: no static pose with {sign}{name} along gravity (the best is "
+                    f"{np.degrees(np.arccos(np.clip(along, -1, 1))):.0f} deg off; "
+                    f"need <= {max_angle_deg:g}); record all six faces"
+                )
+        hi[axis], lo[axis] = means[i_hi, axis], means[i_lo, axis]
+    return NineParams(2 * g / (hi - lo), np.zeros(3), (hi + lo) / 2)
+
+
+def distinct_poses(means: np.ndarray, min_angle_deg: float = 10.0) -> int:
+    """How many interval means point in directions at least ``min_angle_deg`` apart (greedy),
+    about the sphere centre of the means."""
+    centred = means - sphere_centre(means)
+    unit = centred / np.linalg.norm(centred, axis=1)[:, None]
+    cos_min = np.cos(np.radians(min_angle_deg))
+    kept: list[np.ndarray] = []
+    for u in unit:  # m intervals (tens), not samples
+        if all(float(u @ k) < cos_min for k in kept):
+            kept.append(u)
+    return len(kept)

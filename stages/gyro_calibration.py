@@ -1,0 +1,210 @@
+"""``gyro_calibration`` stage: gyroscope scale and misalignment (and bias) by ``method``:
+
+- ``static_poses`` (imu_tk, Tedaldi et al. 2014): bias = mean gyro over the initial static period
+  (``init_static_s``); nine parameters (three scales, six misalignment angles) such that the
+  integrated gyro carries the gravity direction of each static interval onto the next's
+  (:mod:`imupipe.stages.gyro_models`). Put it *after* ``accel_calibration``: the gravity
+  directions come from the accelerometer as corrected so far.
+- ``turntable`` (seed 004): ``runs = [{axis = "z", rate_dps = 100.0, plus = SEG, minus = SEG}]``
+  where SEG is a label (``csv.label``) or ``[start_s, end_s]``; each run gives the column
+  ``(out(+r) - out(-r)) / 2r`` of the sensitivity matrix M (least squares over an axis's rates);
+  bias = mean of the runs' midpoints; ``matrix = M^-1``. Axes without runs keep unit sensitivity.
+- ``rotations`` (imucal / Ferraris): ``segments = {x = SEG, y = SEG, z = SEG}`` are turns of
+  ``expected_angle_deg`` about each axis; bias from ``bias_segment`` (default: the first
+  ``init_static_s`` seconds); the bias-free gyro summed over each turn and divided by the rate
+  gives the columns of ``W``; ``M = W / angle``, ``matrix = M^-1``.
+
+Correction: ``w [rad/s] = matrix @ (raw - offset)`` (``offset`` = bias, raw units).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+import numpy as np
+import pyarrow as pa
+
+from imupipe.pipeline.errors import FitError
+from imupipe.pipeline.table import SensorData, has_stream, sensor
+from imupipe.stages import gyro_models as gm
+from imupipe.stages.accel_calibration import StaticSetup, detect_intervals, rms
+from imupipe.stages.base import Stage, StageContext, StageOutput
+from imupipe.stages.static_detector import sample_rate, segment_mask
+from imupipe.stages.steps import LinearStep
+
+DEG = np.pi / 180
+
+
+class GyroCalibrationStage(Stage):
+    type = "gyro_calibration"
+    sensors = ("gyro",)
+    corrects = True
+
+    @dataclass
+    class Options(StaticSetup):
+        method: Literal["static_poses", "turntable", "rotations"] = "static_poses"
+        gravity: float = 9.80665
+        """static_poses: local g, m/s^2 (only used to choose the static threshold)."""
+        runs: list[dict] = field(default_factory=list)
+        """turntable: [{axis, rate_dps, plus, minus}]; plus/minus a label or [start_s, end_s]."""
+        segments: dict[str, Any] = field(default_factory=dict)
+        """rotations: axis (x, y, z) -> a label or [start_s, end_s] of one turn about it."""
+        expected_angle_deg: float = 360.0
+        """rotations: the signed angle of each turn (imucal's clockwise convention: -360)."""
+        bias_segment: str | list[float] | None = None
+        """rotations: the static segment giving the bias (default the first init_static_s s)."""
+
+    def fit(self, table: pa.Table, ctx: StageContext) -> StageOutput:
+        if not has_stream(table, "imu"):
+            raise ctx.fail("the input has no gyroscope samples")
+        gyro = sensor(table, "gyro")
+        if not np.isfinite(gyro.values).all():
+            bad = int(np.flatnonzero(~np.isfinite(gyro.values).all(axis=1))[0])
+            raise ctx.fail(f"non-finite gyroscope sample at sample {bad}")
+        labels = (
+            table.column("label").take(pa.array(gyro.rows))
+            if "label" in table.column_names
+            else None
+        )
+        method = {
+            "static_poses": self._static_poses,
+            "turntable": self._turntable,
+            "rotations": self._rotations,
+        }[self.options.method]
+        try:
+            matrix, bias, results = method(table, gyro, labels, ctx)
+        except FitError as exc:
+            raise ctx.fail(str(exc)) from None
+        if not np.isfinite(matrix).all() or abs(np.linalg.det(matrix)) < 1e-300:
+            raise ctx.fail("the fitted gyro matrix is singular or not finite")
+        step = LinearStep(
+            type=self.type,
+            sensor="gyro",
+            matrix=matrix,
+            offset=bias,
+            params={"method": self.options.method},
+        )
+        return StageOutput(results={"method": self.options.method, **results}, step=step)
+
+    # -- methods -----------------------------------------------------------------------------
+    def _static_poses(
+        self, table: pa.Table, gyro: SensorData, labels: Any, ctx: StageContext
+    ) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
+        o = self.options
+        acc = sensor(table, "accel")
+        norm = float(np.median(np.linalg.norm(acc.values, axis=1)))
+        if abs(norm - o.gravity) > 0.05 * o.gravity:
+            ctx.warn(
+                f"the accelerometer norm is {norm:.4g}, not about g = {o.gravity}: is it "
+                "calibrated? (put accel_calibration before gyro_calibration)"
+            )
+        intervals, detection = detect_intervals(acc.t_ns, acc.values, o, o.gravity, "lm")
+        bias = gyro.values[gyro.t_s <= o.init_static_s].mean(axis=0)
+        moves = gm.PoseTransitions.build(gyro.t_ns, gyro.values, acc.values, intervals)
+        fit = gm.fit_static_poses(moves, bias)
+        after, before = fit["residual_deg"], fit["residual_deg_start"]
+        self._record_transitions(ctx, before, after)
+        results = {
+            "scale": fit["scale"],
+            "misalignment_rad": dict(
+                zip(("yz", "zy", "zx", "xz", "xy", "yx"), fit["misalignment_rad"], strict=True)
+            ),
+            "bias": bias.tolist(),
+            "metrics": {
+                "intervals": len(intervals),
+                "transitions": len(after),
+                **detection,
+                "gravity_direction_residual_deg": {
+                    "rms": rms(after),
+                    "max": float(after.max()),
+                    "start_rms": rms(before),
+                },
+                "start_scale": fit["start_scale"],
+                "condition_number": fit["condition_number"],
+                "function_evaluations": fit["function_evaluations"],
+                "time_s": fit["time_s"],
+            },
+        }
+        if fit["condition_number"] > 1e4:
+            ctx.warn(
+                f"gyro misalignment is poorly observable (condition number "
+                f"{fit['condition_number']:.3g}): rotate about every axis between poses"
+            )
+        return fit["matrix"], bias, results
+
+    def _turntable(
+        self, table: pa.Table, gyro: SensorData, labels: Any, ctx: StageContext
+    ) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
+        if not self.options.runs:
+            raise FitError("method 'turntable' needs runs = [{axis, rate_dps, plus, minus}, ...]")
+        runs = []
+        for i, run in enumerate(self.options.runs):
+            where = f"runs[{i}]"
+            if set(run) != {"axis", "rate_dps", "plus", "minus"}:
+                raise FitError(f"{where}: needs exactly the keys axis, rate_dps, plus, minus")
+            if run["axis"] not in ("x", "y", "z"):
+                raise FitError(f"{where}.axis: '{run['axis']}' is not x, y or z")
+            rate = run["rate_dps"]
+            if isinstance(rate, bool) or not isinstance(rate, int | float) or rate <= 0:
+                raise FitError(f"{where}.rate_dps: must be a number > 0")
+            plus = gyro.values[segment_mask(gyro.t_s, labels, f"{where}.plus", run["plus"])]
+            minus = gyro.values[segment_mask(gyro.t_s, labels, f"{where}.minus", run["minus"])]
+            runs.append(("xyz".index(run["axis"]), rate * DEG, plus.mean(0), minus.mean(0)))
+        sensitivity, bias, per_run = gm.turntable_columns(runs)
+        results = {
+            "sensitivity": sensitivity.tolist(),
+            "bias": bias.tolist(),
+            "runs": per_run,
+            "metrics": {"condition_number": float(np.linalg.cond(sensitivity))},
+        }
+        return np.linalg.inv(sensitivity), bias, results
+
+    def _rotations(
+        self, table: pa.Table, gyro: SensorData, labels: Any, ctx: StageContext
+    ) -> tuple[np.ndarray, np.ndarray, dict[str, Any]]:
+        o = self.options
+        if set(o.segments) != {"x", "y", "z"}:
+            raise FitError("method 'rotations' needs segments = {x = SEG, y = SEG, z = SEG}")
+        if o.expected_angle_deg == 0:
+            raise FitError("expected_angle_deg must not be 0")
+        if o.bias_segment is None:
+            bias_mask = gyro.t_s <= o.init_static_s
+        else:
+            bias_mask = segment_mask(gyro.t_s, labels, "bias_segment", o.bias_segment)
+        bias = gyro.values[bias_mask].mean(axis=0)
+        fs = sample_rate(gyro.t_ns)
+        w = np.column_stack(
+            [
+                (
+                    gyro.values[segment_mask(gyro.t_s, labels, f"segments.{a}", o.segments[a])]
+                    - bias
+                ).sum(axis=0)
+                / fs
+                for a in "xyz"
+            ]
+        )
+        sensitivity = w / (o.expected_angle_deg * DEG)
+        scale = np.linalg.norm(sensitivity, axis=1)
+        results = {
+            "sensitivity": sensitivity.tolist(),
+            "scale": scale.tolist(),
+            "rotation": (sensitivity / scale[:, None]).tolist(),
+            "bias": bias.tolist(),
+            "metrics": {
+                "sample_rate_hz": fs,
+                "bias_samples": int(bias_mask.sum()),
+                "condition_number": float(np.linalg.cond(sensitivity)),
+            },
+        }
+        return np.linalg.inv(sensitivity), bias, results
+
+    def _record_transitions(self, ctx: StageContext, before: np.ndarray, after: np.ndarray) -> None:
+        if ctx.recorder.enabled:
+            ctx.recorder.curve(
+                f"/{ctx.name}/gravity_direction_residual_deg",
+                np.arange(len(after)),
+                np.column_stack([before, after]),
+                ("start", "calibrated"),
+                timeline="transition",
+            )
