@@ -91,9 +91,9 @@ def _column_or(table: pa.Table, name: str, rows: np.ndarray, default: np.ndarray
 
 
 def encode_stream(
-    table: pa.Table, stream: str
+    table: pa.Table, stream: str, encoding: str = "cdr"
 ) -> tuple[np.ndarray, list[tuple[np.ndarray, np.ndarray]]]:
-    """Encode every row of ``stream`` as CDR.
+    """Encode every row of ``stream`` as CDR (or ROS 1 with ``encoding="ros1"``).
 
     Returns ``(rows, groups)``: the table rows of the stream, and per frame_id a pair
     ``(positions into rows, payloads (m, L) uint8)``."""
@@ -140,7 +140,11 @@ def encode_stream(
         if len(sel) == 0:
             continue
         payloads = cdr.encode(
-            STREAM_TYPES[stream], t_ns[sel], name.encode(), {k: v[sel] for k, v in fields.items()}
+            STREAM_TYPES[stream],
+            t_ns[sel],
+            name.encode(),
+            {k: v[sel] for k, v in fields.items()},
+            encoding,
         )
         groups.append((sel, payloads))
     return rows, groups

@@ -33,20 +33,27 @@ FIELDS: dict[str, list[tuple[str, int]]] = {
 }
 
 
-def layout(msgtype: str, frame_id_len: int) -> np.dtype:
+def layout(msgtype: str, frame_id_len: int, encoding: str = "cdr") -> np.dtype:
     """Structured dtype of a whole message (encapsulation included) for a frame_id of
-    ``frame_id_len`` bytes (without the NUL)."""
-    strlen = frame_id_len + 1
-    body = 12 + strlen
-    body += (-body) % 8
-    names = ["encap", "sec", "nanosec", "strlen"]
-    formats: list = [("u1", 4), "<i4", "<u4", "<u4"]
-    offsets = [0, 4, 8, 12]
+    ``frame_id_len`` bytes (without the NUL). ``encoding="ros1"``: the ROS 1 layout
+    (``seq, secs, nsecs``, string length without NUL, frame_id, float64 fields unpadded)."""
+    if encoding == "ros1":
+        names = ["seq", "sec", "nanosec", "strlen"]
+        formats: list = ["<u4", "<u4", "<u4", "<u4"]
+        offsets = [0, 4, 8, 12]
+        pos = 16 + frame_id_len
+    else:
+        strlen = frame_id_len + 1
+        body = 12 + strlen
+        body += (-body) % 8
+        names = ["encap", "sec", "nanosec", "strlen"]
+        formats = [("u1", 4), "<i4", "<u4", "<u4"]
+        offsets = [0, 4, 8, 12]
+        pos = 4 + body
     if frame_id_len:
         names.append("frame_id")
         formats.append((np.bytes_, frame_id_len))
         offsets.append(16)
-    pos = 4 + body
     for name, count in FIELDS[msgtype]:
         names.append(name)
         formats.append(("<f8", count) if count > 1 else "<f8")
@@ -63,19 +70,26 @@ def split_stamp(t_ns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def encode(
-    msgtype: str, t_ns: np.ndarray, frame_id: bytes, fields: dict[str, np.ndarray]
+    msgtype: str,
+    t_ns: np.ndarray,
+    frame_id: bytes,
+    fields: dict[str, np.ndarray],
+    encoding: str = "cdr",
 ) -> np.ndarray:
     """Encode ``n`` messages with one frame_id into an (n, itemsize) uint8 array.
 
     ``fields`` maps each float field name of :data:`FIELDS` to an (n,) or (n, count) array; a
-    missing field is zeros.
+    missing field is zeros. ``encoding``: ``cdr`` (ROS 2) or ``ros1`` (header ``seq`` 0).
     """
-    dt = layout(msgtype, len(frame_id))
+    dt = layout(msgtype, len(frame_id), encoding)
     n = len(t_ns)
     out = np.zeros(n, dtype=dt)
-    out["encap"] = np.frombuffer(ENCAPSULATION, dtype=np.uint8)
     out["sec"], out["nanosec"] = split_stamp(t_ns)
-    out["strlen"] = len(frame_id) + 1
+    if encoding == "ros1":
+        out["strlen"] = len(frame_id)
+    else:
+        out["encap"] = np.frombuffer(ENCAPSULATION, dtype=np.uint8)
+        out["strlen"] = len(frame_id) + 1
     if frame_id:
         out["frame_id"] = frame_id
     for name, _ in FIELDS[msgtype]:

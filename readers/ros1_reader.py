@@ -1,0 +1,360 @@
+"""ROS 1 bags (v2.0; uncompressed, bz2 or lz4 chunks) into the common table, chunk by chunk.
+
+A bag record is ``uint32 header_len, header (uint32-length-prefixed name=value fields), uint32
+data_len, data``. The reader takes the connections and chunk infos from the index section at
+``index_pos`` (an unindexed bag, e.g. an interrupted recording, is an error: ``rosbag reindex``
+repairs it), then reads each chunk, decompresses it, and takes the ``IndexData`` records that
+follow it: per connection, ``(uint32 sec, uint32 nsec, uint32 offset)`` of every message data
+record in the decompressed chunk. The message payloads are then located and decoded with numpy
+(:func:`imupipe.readers.cdr.decode` with the ``ros1`` wire format).
+
+Messages of every other topic are carried over converted to ROS 2 CDR the way
+``rosbags-convert`` does it (:func:`ros2_converter`).
+"""
+
+from __future__ import annotations
+
+import bz2
+import io
+import struct
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pyarrow as pa
+
+from imupipe.pipeline.errors import ReadError
+from imupipe.readers.cdr import PayloadError, decode, field_count, unaligned
+from imupipe.readers.decoded import STREAM_TYPES, Piece, concat, normalize_type
+from imupipe.readers.sources import carry_sources, iter_sources, read_sources
+from imupipe.readers.spec import InputSpec, RawMessage
+
+VERSION_LINE = b"#ROSBAG V2.0\n"
+OP_MSG, OP_BAG_HEADER, OP_INDEX, OP_CHUNK, OP_CHUNK_INFO, OP_CONNECTION = 2, 3, 4, 5, 6, 7
+
+
+def ros2_converter(
+    typename: str, msgdef: str, where: str, store: object | None = None
+) -> tuple[str, bytes, Callable[[bytes], memoryview]]:
+    """(ROS 2 type name, ros2msg schema, ROS 1 -> CDR converter) for a ROS 1 message type, as
+    ``rosbags-convert`` builds them: the bag's own definitions with the ROS 2 ``Header``."""
+    from rosbags.convert.converter import STATIC_MSGTYPE_RENAMES
+    from rosbags.typesys import get_types_from_msg
+
+    try:
+        if store is None:
+            store = ros2_typestore({typename: msgdef})
+        dst = STATIC_MSGTYPE_RENAMES.get(typename, typename)
+        if dst not in store.fielddefs:  # type: ignore[attr-defined]
+            types = get_types_from_msg(store.generate_msgdef(typename, ros_version=2)[0], dst)  # type: ignore[attr-defined]
+            types.pop("std_msgs/msg/Header", None)
+            store.register(types)  # type: ignore[attr-defined]
+        schema = store.generate_msgdef(dst, ros_version=2)[0]  # type: ignore[attr-defined]
+    except Exception as exc:  # noqa: BLE001 - a definition rosbags cannot parse
+        raise ReadError(
+            f"{where}: cannot use the message definition of {typename} ({exc})"
+        ) from None
+    return dst, schema.encode(), lambda raw: store.ros1_to_cdr(raw, dst)  # type: ignore[attr-defined]
+
+
+def ros2_typestore(definitions: dict[str, str]) -> object:
+    """A rosbags typestore of ROS 1 definitions (type -> msgdef text) with ROS 2's Header,
+    like ``rosbags.convert`` creates for a ROS 1 -> ROS 2 conversion."""
+    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+
+    types: dict = {}
+    for typename, text in definitions.items():
+        types.update(get_types_from_msg(text, typename))
+    header = get_typestore(Stores.ROS2_FOXY).fielddefs["std_msgs/msg/Header"]
+    store = get_typestore(Stores.EMPTY)
+    store.register({**types, "std_msgs/msg/Header": header})
+    return store
+
+
+def _fields(header: bytes, where: str) -> dict[str, bytes]:
+    out: dict[str, bytes] = {}
+    pos = 0
+    while pos < len(header):
+        if pos + 4 > len(header):
+            raise ReadError(f"{where}: corrupt record header")
+        (n,) = struct.unpack_from("<I", header, pos)
+        field = header[pos + 4 : pos + 4 + n]
+        if len(field) != n or b"=" not in field:
+            raise ReadError(f"{where}: corrupt record header")
+        name, _, value = field.partition(b"=")
+        out[name.decode(errors="replace")] = value
+        pos += 4 + n
+    return out
+
+
+def _u32(fields: dict[str, bytes], key: str, where: str) -> int:
+    value = fields.get(key)
+    if value is None or len(value) < 4:
+        raise ReadError(f"{where}: record lacks field '{key}'")
+    return int.from_bytes(value[:4], "little")
+
+
+@dataclass
+class Connection:
+    id: int
+    topic: str
+    msgtype: str
+    msgdef: str
+
+
+@dataclass
+class BagChunk:
+    buf: np.ndarray
+    index: dict[int, tuple[np.ndarray, np.ndarray]]
+    """connection id -> (log time ns, record offsets) in index order."""
+    where: str
+
+    def payloads(self, conn: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(log ns, payload start, payload length) of a connection's messages."""
+        log, off = self.index[conn]
+        buf = self.buf
+        if len(off) == 0:
+            return log, off, off
+        u4 = unaligned(buf, "<u4")
+        if off.max() + 8 > len(buf):
+            raise ReadError(f"{self.where}: index points outside its chunk")
+        hl = u4[off].astype(np.int64)
+        dl_pos = off + 4 + hl
+        if np.any(dl_pos + 4 > len(buf)):
+            raise ReadError(f"{self.where}: message record header runs past its chunk")
+        dl = u4[dl_pos].astype(np.int64)
+        start = dl_pos + 4
+        if np.any(start + dl > len(buf)):
+            raise ReadError(f"{self.where}: message runs past the end of its chunk")
+        return log, start, dl
+
+
+class Ros1Bag:
+    """One ROS 1 bag as a :class:`~imupipe.readers.sources.LogSource`."""
+
+    format = "ros1"
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        try:
+            self.size = self.path.stat().st_size
+            with open(self.path, "rb") as fh:
+                if fh.read(len(VERSION_LINE)) != VERSION_LINE:
+                    raise ReadError(f"{self.path}: not a ROS 1 bag v2.0 (bad version line)")
+                op, fields, _ = self._record(fh)
+                if op != OP_BAG_HEADER:
+                    raise ReadError(f"{self.path}: corrupt bag (no bag header record)")
+                index_pos = int.from_bytes(fields.get("index_pos", b"\0" * 8)[:8], "little")
+                if index_pos == 0:
+                    raise ReadError(
+                        f"{self.path}: the bag is not indexed (interrupted recording?); "
+                        "run `rosbag reindex` first"
+                    )
+                if index_pos >= self.size:
+                    raise ReadError(
+                        f"{self.path}: truncated bag (index at byte {index_pos} is past the end)"
+                    )
+                self.connections: dict[int, Connection] = {}
+                self.chunk_infos: list[tuple[int, int, dict[int, int]]] = []
+                fh.seek(index_pos)
+                while fh.tell() < self.size:
+                    op, fields, data = self._record(fh)
+                    if op == OP_CONNECTION:
+                        where = f"{self.path}: connection record"
+                        conn = _u32(fields, "conn", where)
+                        info = _fields(data, where)
+                        self.connections[conn] = Connection(
+                            conn,
+                            fields.get("topic", b"").decode(errors="replace"),
+                            normalize_type(info.get("type", b"").decode(errors="replace")),
+                            info.get("message_definition", b"").decode(errors="replace"),
+                        )
+                    elif op == OP_CHUNK_INFO:
+                        where = f"{self.path}: chunk info record"
+                        pos = int.from_bytes(fields.get("chunk_pos", b"")[:8], "little")
+                        start = fields.get("start_time", b"\0" * 8)
+                        t0 = int.from_bytes(start[:4], "little") * 10**9 + int.from_bytes(
+                            start[4:8], "little"
+                        )
+                        pairs = np.frombuffer(data[: len(data) // 8 * 8], "<u4").reshape(-1, 2)
+                        self.chunk_infos.append((pos, t0, {int(c): int(n) for c, n in pairs}))
+        except OSError as exc:
+            raise ReadError(f"{self.path}: cannot read: {exc.strerror or exc}") from None
+        self.chunk_infos.sort()
+
+    def _record(self, fh: io.BufferedReader) -> tuple[int, dict[str, bytes], bytes]:
+        pos = fh.tell()
+        where = f"{self.path}: record at byte {pos}"
+        head = fh.read(4)
+        if len(head) < 4:
+            raise ReadError(f"{self.path}: truncated bag (record at byte {pos} cut off)")
+        (hl,) = struct.unpack("<I", head)
+        if pos + 8 + hl > self.size:
+            raise ReadError(f"{self.path}: truncated bag (record at byte {pos} runs past the end)")
+        fields = _fields(fh.read(hl), where)
+        (dl,) = struct.unpack("<I", fh.read(4))
+        if fh.tell() + dl > self.size:
+            raise ReadError(f"{self.path}: truncated bag (record at byte {pos} runs past the end)")
+        data = fh.read(dl)
+        op = fields.get("op", b"\xff")[0]
+        return op, fields, data
+
+    def topic_types(self) -> dict[str, str]:
+        return {c.topic: c.msgtype for c in self.connections.values()}
+
+    def topic_counts(self) -> dict[str, int]:
+        out: dict[str, int] = {}
+        for _, _, counts in self.chunk_infos:
+            for conn, n in counts.items():
+                if conn in self.connections:
+                    topic = self.connections[conn].topic
+                    out[topic] = out.get(topic, 0) + n
+        return out
+
+    def first_time(self) -> int:
+        return min((t for _, t, _ in self.chunk_infos), default=0)
+
+    def bag_chunks(self) -> Iterator[BagChunk]:
+        """Every chunk, decompressed, with its index, in file order."""
+        with open(self.path, "rb") as fh:
+            for pos, _, counts in self.chunk_infos:
+                fh.seek(pos)
+                where = f"{self.path}: chunk at byte {pos}"
+                op, fields, data = self._record(fh)
+                if op != OP_CHUNK:
+                    raise ReadError(f"{where}: the index points at a record that is not a chunk")
+                buf = self._decompress(fields, data, where)
+                index: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+                for _ in range(len(counts)):
+                    op, fields, data = self._record(fh)
+                    if op != OP_INDEX:
+                        raise ReadError(f"{where}: index data missing after the chunk")
+                    conn = _u32(fields, "conn", where)
+                    count = _u32(fields, "count", where)
+                    if len(data) < 12 * count:
+                        raise ReadError(f"{where}: index data of connection {conn} is cut off")
+                    entries = np.frombuffer(data, "<u4", count=3 * count).reshape(-1, 3)
+                    log = entries[:, 0].astype(np.int64) * 1_000_000_000 + entries[:, 1]
+                    index[conn] = (log, entries[:, 2].astype(np.int64))
+                yield BagChunk(buf, index, where)
+
+    def _decompress(self, fields: dict[str, bytes], data: bytes, where: str) -> np.ndarray:
+        compression = fields.get("compression", b"none").decode(errors="replace")
+        size = _u32(fields, "size", where)
+        try:
+            if compression == "none":
+                raw = data
+            elif compression == "bz2":
+                raw = bz2.decompress(data)
+            elif compression == "lz4":
+                import lz4.frame
+
+                raw = lz4.frame.decompress(data)
+            else:
+                raise ReadError(f"{where}: unsupported chunk compression '{compression}'")
+        except ReadError:
+            raise
+        except Exception as exc:  # noqa: BLE001 - any decompressor failure is a corrupt chunk
+            raise ReadError(f"{where}: corrupt {compression} chunk ({exc})") from None
+        if len(raw) != size:
+            raise ReadError(f"{where}: chunk decompressed to {len(raw)} bytes, expected {size}")
+        return np.frombuffer(raw, np.uint8)
+
+    def chunks(
+        self, streams: dict[str, str], carry: bool, decode: bool = True
+    ) -> Iterator[tuple[dict[str, Piece], list[RawMessage]]]:
+        by_topic = {topic: stream for stream, topic in streams.items()}
+        chosen = {
+            cid: by_topic[c.topic] for cid, c in self.connections.items() if c.topic in by_topic
+        }
+        converters: dict[int, tuple[str, bytes, Callable]] = {}
+        store = None
+        for chunk in self.bag_chunks():
+            pieces: dict[str, list[Piece]] = {}
+            if decode:
+                for cid, stream in chosen.items():
+                    if cid in chunk.index:
+                        pieces.setdefault(stream, []).append(self._decode(chunk, cid, stream))
+            raw: list[RawMessage] = []
+            if carry:
+                for cid in sorted(chunk.index):
+                    if cid in chosen:
+                        continue
+                    conn = self.connections.get(cid)
+                    if conn is None:
+                        raise ReadError(
+                            f"{chunk.where}: messages of connection {cid}, which the bag never defines"
+                        )
+                    if cid not in converters:
+                        if store is None:
+                            store = self._typestore()
+                        converters[cid] = ros2_converter(
+                            conn.msgtype, conn.msgdef, f"{self.path}: topic '{conn.topic}'", store
+                        )
+                    raw.extend(self._raw(chunk, conn, converters[cid]))
+                raw.sort(key=lambda m: m.log_time)
+            yield {s: concat(p, field_count(STREAM_TYPES[s])) for s, p in pieces.items()}, raw
+
+    def _typestore(self) -> object:
+        try:
+            return ros2_typestore({c.msgtype: c.msgdef for c in self.connections.values()})
+        except Exception as exc:  # noqa: BLE001
+            raise ReadError(
+                f"{self.path}: cannot parse the bag's message definitions ({exc})"
+            ) from None
+
+    def _decode(self, chunk: BagChunk, cid: int, stream: str) -> Piece:
+        conn = self.connections[cid]
+        msgtype = STREAM_TYPES[stream]
+        log, start, length = chunk.payloads(cid)
+        try:
+            stamp, frame, values = decode(chunk.buf, start, length, msgtype, "ros1")
+        except PayloadError as exc:
+            raise ReadError(
+                f"{self.path}: topic '{conn.topic}': message at log time {int(log[exc.index])} is "
+                f"not a valid {msgtype}: {exc.reason}"
+            ) from None
+        return Piece(stamp, log, frame, values)
+
+    def _raw(self, chunk: BagChunk, conn: Connection, converter: tuple) -> list[RawMessage]:
+        name, schema, convert = converter
+        log, start, length = chunk.payloads(conn.id)
+        out = []
+        buf = chunk.buf
+        for lt, s, n in zip(log.tolist(), start.tolist(), length.tolist(), strict=True):
+            try:
+                data = bytes(convert(buf[s : s + n].tobytes()))
+            except Exception as exc:  # noqa: BLE001
+                raise ReadError(
+                    f"{self.path}: topic '{conn.topic}': message at log time {lt} cannot be "
+                    f"converted to ROS 2 ({exc})"
+                ) from None
+            out.append(RawMessage(conn.topic, name, "ros2msg", schema, "cdr", data, lt, lt))
+        return out
+
+
+def bag_sources(path: Path) -> list[Ros1Bag]:
+    """A bag, or every ``*.bag`` of a folder (split bags), as sources."""
+    path = Path(path)
+    if path.is_dir():
+        files = sorted(path.glob("*.bag"))
+        if not files:
+            raise ReadError(f"{path}: no .bag files in the folder")
+        return [Ros1Bag(f) for f in files]
+    return [Ros1Bag(path)]
+
+
+def read_ros1(spec: InputSpec) -> tuple[pa.Table, list[str]]:
+    """Read a ROS 1 bag (or a folder of split bags) into the common table."""
+    return read_sources(spec, bag_sources(spec.path))
+
+
+def iter_ros1(spec: InputSpec, batch_rows: int) -> Iterator[tuple[pa.Table, list[RawMessage]]]:
+    """Bounded-memory batches (see :func:`imupipe.readers.sources.iter_sources`)."""
+    return iter_sources(spec, bag_sources(spec.path), batch_rows)
+
+
+def carry_over_ros1(spec: InputSpec) -> list[RawMessage]:
+    """Messages of the other topics, converted to ROS 2 CDR, in log-time order."""
+    return carry_sources(spec, bag_sources(spec.path))

@@ -1,0 +1,184 @@
+"""ROS 2 bags into the common table: a bag folder (sqlite3 or mcap storage) or a bare ``.db3``.
+
+- mcap storage: each ``.mcap`` file is read by :class:`imupipe.readers.mcap_reader.McapSource`.
+- sqlite3 storage: ``SELECT topic_id, timestamp, data FROM messages ORDER BY timestamp, id``,
+  fetched in blocks; each block's payloads are joined into one buffer and the sensor messages
+  decoded with numpy (:func:`imupipe.readers.cdr.decode`), like an MCAP chunk. The log time is
+  the ``timestamp`` column. Other topics are carried over unchanged (CDR) with the schema text
+  from the bag's ``message_definitions`` table, else rosbags' ROS 2 Humble definition.
+
+A folder's storage files (``*.db3``, ``*.mcap``) are joined in the order of their first message.
+"""
+
+from __future__ import annotations
+
+import sqlite3
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pyarrow as pa
+
+from imupipe.pipeline.errors import ReadError
+from imupipe.readers.cdr import NotFastPath, PayloadError, decode, decode_with_rosbags
+from imupipe.readers.decoded import STREAM_TYPES, Piece, normalize_type
+from imupipe.readers.mcap_reader import McapSource
+from imupipe.readers.sources import LogSource, carry_sources, iter_sources, read_sources
+from imupipe.readers.spec import InputSpec, RawMessage
+
+BLOCK_ROWS = 50_000
+
+
+def _schema_text(msgtype: str) -> bytes:
+    from rosbags.typesys import Stores, get_typestore
+
+    try:
+        return get_typestore(Stores.ROS2_HUMBLE).generate_msgdef(msgtype, ros_version=2)[0].encode()
+    except Exception:  # noqa: BLE001 - a type rosbags does not know: no schema text
+        return b""
+
+
+class Sqlite3Bag:
+    """One rosbag2 sqlite3 storage file as a :class:`~imupipe.readers.sources.LogSource`."""
+
+    format = "ros2"
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        try:
+            with open(self.path, "rb") as fh:
+                if not fh.read(16).startswith(b"SQLite format 3"):
+                    raise ReadError(f"{self.path}: not a ROS 2 sqlite3 bag (not an SQLite file)")
+            self._db = sqlite3.connect(f"file:{self.path}?mode=ro&immutable=1", uri=True)
+            rows = self._db.execute(
+                "SELECT id, name, type, serialization_format FROM topics"
+            ).fetchall()
+            self.defs: dict[str, bytes] = {}
+            tables = {
+                r[0] for r in self._db.execute("SELECT name FROM sqlite_master WHERE type='table'")
+            }
+            if "message_definitions" in tables:
+                for typ, enc, text in self._db.execute(
+                    "SELECT topic_type, encoding, encoded_message_definition FROM message_definitions"
+                ):
+                    if enc == "ros2msg" and text:
+                        self.defs[typ] = text.encode()
+        except sqlite3.DatabaseError as exc:
+            raise ReadError(f"{self.path}: not a readable ROS 2 sqlite3 bag ({exc})") from None
+        self.topics = {int(tid): (name, normalize_type(typ), fmt) for tid, name, typ, fmt in rows}
+
+    def topic_types(self) -> dict[str, str]:
+        return {name: typ for name, typ, _ in self.topics.values()}
+
+    def topic_counts(self) -> dict[str, int]:
+        try:
+            rows = self._db.execute("SELECT topic_id, COUNT(*) FROM messages GROUP BY topic_id")
+            return {self.topics[t][0]: n for t, n in rows if t in self.topics}
+        except sqlite3.DatabaseError as exc:
+            raise ReadError(f"{self.path}: corrupt ROS 2 sqlite3 bag ({exc})") from None
+
+    def first_time(self) -> int:
+        row = self._db.execute("SELECT MIN(timestamp) FROM messages").fetchone()
+        return int(row[0] or 0)
+
+    def chunks(
+        self, streams: dict[str, str], carry: bool, decode: bool = True
+    ) -> Iterator[tuple[dict[str, Piece], list[RawMessage]]]:
+        by_topic = {topic: stream for stream, topic in streams.items()}
+        chosen = {tid: by_topic[t[0]] for tid, t in self.topics.items() if t[0] in by_topic}
+        for tid, (name, _, fmt) in self.topics.items():
+            if tid in chosen and fmt != "cdr":
+                raise ReadError(f"{self.path}: topic '{name}': serialization '{fmt}' is not cdr")
+        try:
+            cursor = self._db.execute(
+                "SELECT topic_id, timestamp, data FROM messages ORDER BY timestamp, id"
+            )
+            while True:
+                rows = cursor.fetchmany(BLOCK_ROWS)
+                if not rows:
+                    break
+                yield self._block(rows, chosen, carry, decode)
+        except sqlite3.DatabaseError as exc:
+            raise ReadError(f"{self.path}: corrupt ROS 2 sqlite3 bag ({exc})") from None
+
+    def _block(
+        self, rows: list, chosen: dict[int, str], carry: bool, decode_: bool
+    ) -> tuple[dict[str, Piece], list[RawMessage]]:
+        tids, stamps, datas = zip(*rows, strict=True)
+        tid = np.asarray(tids, np.int64)
+        log = np.asarray(stamps, np.int64)
+        pieces: dict[str, Piece] = {}
+        if decode_:
+            for t, stream in chosen.items():
+                sel = np.flatnonzero(tid == t)
+                if len(sel):
+                    pieces[stream] = self._decode(
+                        [datas[i] for i in sel.tolist()], log[sel], t, stream
+                    )
+        raw: list[RawMessage] = []
+        if carry:
+            for i in np.flatnonzero(~np.isin(tid, list(chosen))).tolist():
+                t = int(tid[i])
+                if t not in self.topics:
+                    raise ReadError(
+                        f"{self.path}: message of topic id {t}, which the bag never defines"
+                    )
+                name, typ, fmt = self.topics[t]
+                schema = self.defs.get(typ)
+                if schema is None:
+                    schema = self.defs[typ] = _schema_text(typ)
+                lt = int(log[i])
+                raw.append(RawMessage(name, typ, "ros2msg", schema, fmt, bytes(datas[i]), lt, lt))
+        return pieces, raw
+
+    def _decode(self, datas: list[bytes], log: np.ndarray, tid: int, stream: str) -> Piece:
+        msgtype = STREAM_TYPES[stream]
+        lengths = np.fromiter(map(len, datas), np.int64, len(datas))
+        starts = np.concatenate([[0], np.cumsum(lengths)[:-1]]).astype(np.int64)
+        buf = np.frombuffer(b"".join(datas), np.uint8)
+        try:
+            try:
+                stamp, frame, values = decode(buf, starts, lengths, msgtype, "cdr")
+            except NotFastPath:
+                stamp, frame, values = decode_with_rosbags(list(datas), msgtype, "cdr")
+        except PayloadError as exc:
+            raise ReadError(
+                f"{self.path}: topic '{self.topics[tid][0]}': message at log time "
+                f"{int(log[exc.index])} is not a valid {msgtype}: {exc.reason}"
+            ) from None
+        return Piece(stamp, log, frame, values)
+
+
+def bag2_sources(path: Path) -> list[LogSource]:
+    """The storage files of a ROS 2 bag folder, or a bare ``.db3`` / ``.mcap``."""
+    path = Path(path)
+    if path.is_dir():
+        files = sorted(path.glob("*.db3")) + sorted(path.glob("*.mcap"))
+        if not files:
+            raise ReadError(f"{path}: the ROS 2 bag folder holds no .db3 or .mcap file")
+    else:
+        files = [path]
+    sources: list[LogSource] = []
+    for f in files:
+        if f.suffix == ".mcap":
+            src = McapSource(f)
+            src.format = "ros2"
+            sources.append(src)
+        else:
+            sources.append(Sqlite3Bag(f))
+    return sources
+
+
+def read_ros2(spec: InputSpec) -> tuple[pa.Table, list[str]]:
+    """Read a ROS 2 bag (folder or bare .db3) into the common table."""
+    return read_sources(spec, bag2_sources(spec.path))
+
+
+def iter_ros2(spec: InputSpec, batch_rows: int) -> Iterator[tuple[pa.Table, list[RawMessage]]]:
+    """Bounded-memory batches (see :func:`imupipe.readers.sources.iter_sources`)."""
+    return iter_sources(spec, bag2_sources(spec.path), batch_rows)
+
+
+def carry_over_ros2(spec: InputSpec) -> list[RawMessage]:
+    """Messages of the other topics, unchanged, in log-time order."""
+    return carry_sources(spec, bag2_sources(spec.path))
