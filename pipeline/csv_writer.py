@@ -1,5 +1,6 @@
 """imupipe's own CSV: ``t_ns`` and the SI value columns of the streams present (empty cell = no
-sample of that stream in the row), written by pyarrow (shortest round-trip float formatting)."""
+sample of that stream in the row), plus ``ambient_temperature`` when present, written by pyarrow
+(shortest round-trip float formatting)."""
 
 from __future__ import annotations
 
@@ -18,6 +19,7 @@ def write_csv(path: str | Path, table: pa.Table) -> None:
         if has_stream(table, STREAM_OF_SENSOR[s])
         for c in cols
     ]
+    columns += [c for c in ("ambient_temperature",) if c in table.column_names]
     pacsv.write_csv(
         table.select(columns).replace_schema_metadata(None),
         str(path),

@@ -82,14 +82,16 @@ class Recorder:
         *,
         timeline: str,
         colors: Sequence[Any] | None = None,
+        points: bool = False,
     ) -> None:
         """A curve over something other than time (``x`` becomes a ``sequence`` timeline of ints,
-        e.g. round(1000 * log10(tau)) for Allan curves)."""
+        e.g. round(1000 * log10(tau)) for Allan curves); ``points``: draw markers, not lines
+        (for scatter data such as bias against temperature)."""
         x = np.asarray(x, dtype=np.int64)
         values = np.asarray(values, dtype=np.float64).reshape(len(x), -1)
         if len(x) == 0:
             return
-        self._style(entity, names, colors)
+        self._style(entity, names, colors, points=points)
         rr.send_columns(
             entity,
             indexes=[rr.TimeColumn(timeline, sequence=x)],
@@ -97,16 +99,23 @@ class Recorder:
             recording=self.rec,
         )
 
-    def _style(self, entity: str, names: Sequence[str], colors: Sequence[Any] | None) -> None:
+    def _style(
+        self,
+        entity: str,
+        names: Sequence[str],
+        colors: Sequence[Any] | None,
+        points: bool = False,
+    ) -> None:
         if entity in self._styled:
             return
         self._styled.add(entity)
         colors = list(colors) if colors is not None else AXIS_COLORS[: len(names)]
         if len(colors) < len(names):
             colors = [AXIS_COLORS[i % len(AXIS_COLORS)] for i in range(len(names))]
+        style = rr.SeriesPoints if points else rr.SeriesLines
         rr.log(
             entity,
-            rr.SeriesLines(names=list(names), colors=colors),
+            style(names=list(names), colors=colors),
             static=True,
             recording=self.rec,
         )

@@ -1,0 +1,513 @@
+"""``temperature`` stage: bias of the gyro or accel against temperature (seeds 000 and 004).
+
+Model, per axis: ``bias = f(T, dT [, Ta, dTa])`` with T the device temperature (degC), dT its
+rate dT/dt (degC/s), Ta/dTa the ambient temperature and its rate when the log has an
+``ambient_temperature`` column; f is linear in named terms (:mod:`imupipe.stages.thermal_models`).
+``corrected = raw - f(T, dT)`` in the sensor's SI unit (rad/s or m/s^2).
+
+Preprocessing: the temperature stream is interpolated onto the IMU timestamps
+(:func:`imupipe.pipeline.table.interpolate`); sensor and temperature are block-averaged
+(seed 000's ``ImuDataSum``: :func:`imupipe.stages.blocks.block_means`, ``window`` samples or
+``window_s`` seconds, default 10 s); dT is the gradient of the block-mean temperature over the
+block centres. The bias of a block is its mean minus the ``reference`` (the true output: zero for
+a gyro; for an accelerometer, by default gravity, 9.80665 m/s^2 along the mean specific force).
+Blocks are weighted by temperature bin (``bin_width`` degC, heating, cooling and soak apart) so
+that slow parts of a ramp and long soaks do not outweigh fast ones (PX4 resamples by temperature
+for the same reason).
+
+The correction (:class:`TemperatureStep`) recomputes T and dT the same way on any log, clamps
+T (and Ta) to the fitted range and warns when a sample lies more than 0.5 degC outside it; rates
+outside the fitted range are extrapolated, with a warning. A fitted span under 10 degC is
+refused, under 24 degC warned about (ArduPilot asks for 10 degC at least).
+"""
+
+from __future__ import annotations
+
+import sys
+from dataclasses import dataclass, field
+from typing import Any, ClassVar, Literal
+
+import numpy as np
+import pyarrow as pa
+
+from imupipe.pipeline.errors import ReadError
+from imupipe.pipeline.table import (
+    SENSOR_UNITS,
+    has_stream,
+    interpolate,
+    metadata,
+    replace_sensor,
+    sensor,
+)
+from imupipe.stages import thermal_models as tm
+from imupipe.stages.base import Stage, StageContext, StageOutput
+from imupipe.stages.blocks import block_means
+from imupipe.stages.steps import Step
+from imupipe.stages.stepwise import candidate_terms, stepwise
+
+G0 = 9.80665
+MIN_SPAN = 10.0
+"""degC: a narrower fitted temperature span is refused."""
+WARN_SPAN = 24.0
+"""degC: a narrower span is warned about."""
+WARN_MARGIN = 0.5
+"""degC: temperatures further than this outside the fitted range are warned about (all are
+clamped); rates more than 10 % of their fitted span outside it are warned about (not clamped:
+a rate term extrapolates linearly)."""
+SOAK_RATE = 0.05 / 60.0
+"""degC/s: blocks with |dT| below this count as soak (neither heating nor cooling)."""
+AXES = ("x", "y", "z")
+
+
+# -- preprocessing shared by the fit and the correction --------------------------------------
+
+
+def _temperature_at(table: pa.Table, t_ns: np.ndarray, column: str = "temperature") -> np.ndarray:
+    """The temperature (``temperature`` or ``ambient_temperature``) at ``t_ns``, interpolated."""
+    if column == "temperature":
+        data = sensor(table, "temperature")
+        return interpolate(data.t_ns, data.values[:, 0], t_ns)
+    values = table.column(column).to_numpy(zero_copy_only=False).astype(np.float64)
+    ok = np.isfinite(values)
+    return interpolate(table.column("t_ns").to_numpy()[ok], values[ok], t_ns)
+
+
+def block_rate(
+    t_ns: np.ndarray, temp: np.ndarray, window: int | None, window_s: float | None
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Block centres (ns), block-mean temperature (degC) and its rate (degC/s, gradient over
+    the block centres; zero with a single block)."""
+    blocks = block_means(t_ns, temp, window, window_s)
+    if len(blocks.t_ns) < 2:
+        return blocks.t_ns, blocks.means, np.zeros(len(blocks.t_ns))
+    t_s = (blocks.t_ns - blocks.t_ns[0]).astype(np.float64) * 1e-9
+    return blocks.t_ns, blocks.means, np.gradient(blocks.means, t_s)
+
+
+def rate_at(
+    t_ns: np.ndarray, temp: np.ndarray, window: int | None, window_s: float | None
+) -> np.ndarray:
+    """dT/dt at every ``t_ns``: the block rate of :func:`block_rate`, interpolated."""
+    bt, _, rate = block_rate(t_ns, temp, window, window_s)
+    return interpolate(bt, rate, t_ns)
+
+
+# -- the correction step ---------------------------------------------------------------------
+
+
+@dataclass
+class TemperatureStep(Step):
+    """``corrected = raw - f(T, dT [, Ta, dTa])`` per axis; see the module docstring.
+
+    ``axes`` holds, per axis x, y, z, ``{"terms": [...], "coefficients": [...]}``; ``ranges``
+    the fitted range of each variable (absolute degC for T and Ta, degC/s for the rates), used to
+    clamp; ``knots`` (absolute degC) the piecewise model's segment ends.
+    """
+
+    kind: ClassVar[str] = "temperature"
+    type: str
+    sensor: str
+    model: str
+    tref: float
+    window: int | None
+    window_s: float | None
+    axes: list[dict[str, Any]]
+    ranges: dict[str, list[float]]
+    knots: list[float] | None = None
+    params: dict[str, Any] = field(default_factory=dict)
+    warnings: list[str] = field(default_factory=list)
+
+    def variables(self, table: pa.Table, t_ns: np.ndarray) -> dict[str, Any]:
+        """T, dT (and Ta, dTa when a term uses them) at ``t_ns``: T and Ta clamped to the fitted
+        range and made relative to Tref; warns about samples outside the fitted ranges."""
+        needed = tm.term_variables([t for ax in self.axes for t in ax["terms"]])
+        out: dict[str, np.ndarray] = {}
+        temp = _temperature_at(table, t_ns)
+        out["T"], out["dT"] = temp, rate_at(t_ns, temp, self.window, self.window_s)
+        if needed & {"Ta", "dTa"}:
+            amb = _temperature_at(table, t_ns, "ambient_temperature")
+            out["Ta"], out["dTa"] = amb, rate_at(t_ns, amb, self.window, self.window_s)
+        notes = []
+        for name, values in out.items():
+            lo, hi = self.ranges[name]
+            if name in ("T", "Ta"):
+                far = int(
+                    np.count_nonzero((values < lo - WARN_MARGIN) | (values > hi + WARN_MARGIN))
+                )
+                out[name] = np.clip(values, lo, hi)
+                what = "clamped to"
+            else:
+                pad = 0.1 * (hi - lo)
+                far = int(np.count_nonzero((values < lo - pad) | (values > hi + pad)))
+                what = "extrapolated beyond"
+            if far:
+                notes.append(
+                    f"{name} {what} the fitted range [{lo:.4g}, {hi:.4g}] at {far} of "
+                    f"{len(values)} samples (seen {values.min():.4g}..{values.max():.4g})"
+                )
+        if notes:
+            self._warn("; ".join(notes))
+        out["T"] = out["T"] - self.tref
+        if "Ta" in out:
+            out["Ta"] = out["Ta"] - self.tref
+        return out
+
+    def _warn(self, message: str) -> None:
+        """Print a warning once per step (the chain is applied to the same log several times)."""
+        if message not in self.warnings:
+            self.warnings.append(message)
+            print(f"imupipe: warning: [{self.type} {self.sensor}] {message}", file=sys.stderr)
+
+    def bias(self, variables: dict[str, np.ndarray]) -> np.ndarray:
+        """(n, 3) modelled bias at the given variables."""
+        knots = None if self.knots is None else np.asarray(self.knots) - self.tref
+        return np.column_stack(
+            [tm.evaluate(ax["terms"], ax["coefficients"], variables, knots) for ax in self.axes]
+        )
+
+    def apply(self, table: pa.Table) -> pa.Table:
+        if not has_stream(table, "imu"):
+            return table
+        source = metadata(table).get("source", "the log")
+        if not has_stream(table, "temperature"):
+            raise ReadError(
+                f"{source}: no temperature samples; the {self.sensor} temperature correction "
+                "needs the temperature stream"
+            )
+        needs_ambient = bool(
+            tm.term_variables([t for ax in self.axes for t in ax["terms"]]) & {"Ta", "dTa"}
+        )
+        if needs_ambient and (
+            "ambient_temperature" not in table.column_names
+            or table.column("ambient_temperature").null_count == len(table)
+        ):
+            raise ReadError(
+                f"{source}: no ambient_temperature column; the {self.sensor} temperature "
+                "correction was fitted with ambient terms"
+            )
+        data = sensor(table, self.sensor)
+        corrected = data.values - self.bias(self.variables(table, data.t_ns))
+        return replace_sensor(table, self.sensor, data.rows, corrected)
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "type": self.type,
+            "sensor": self.sensor,
+            "kind": self.kind,
+            "model": self.model,
+            "tref": self.tref,
+            "window": self.window,
+            "window_s": self.window_s,
+            "ranges": self.ranges,
+            "knots": self.knots,
+            "axes": [
+                {"terms": list(ax["terms"]), "coefficients": [float(c) for c in ax["coefficients"]]}
+                for ax in self.axes
+            ],
+            **self.params,
+        }
+
+    @classmethod
+    def from_json(cls, entry: dict[str, Any]) -> TemperatureStep:
+        known = {"type", "sensor", "kind", "model", "tref", "window", "window_s", "ranges"}
+        known |= {"knots", "axes"}
+        axes = entry["axes"]
+        if len(axes) != 3:
+            raise ValueError("'axes' must hold 3 entries (x, y, z)")
+        for ax in axes:
+            for term in ax["terms"]:
+                tm.parse_term(term)
+            if len(ax["terms"]) != len(ax["coefficients"]):
+                raise ValueError("terms and coefficients differ in length")
+        return cls(
+            type=entry["type"],
+            sensor=entry["sensor"],
+            model=entry["model"],
+            tref=float(entry["tref"]),
+            window=entry.get("window"),
+            window_s=entry.get("window_s"),
+            axes=[
+                {"terms": list(ax["terms"]), "coefficients": np.asarray(ax["coefficients"], float)}
+                for ax in axes
+            ],
+            ranges={k: [float(v[0]), float(v[1])] for k, v in entry["ranges"].items()},
+            knots=entry.get("knots"),
+            params={k: v for k, v in entry.items() if k not in known},
+        )
+
+
+# -- the stage -------------------------------------------------------------------------------
+
+
+@dataclass
+class Prepared:
+    """Block means of one input: centres ``t_ns``, ``bias`` (m, 3) = means - reference, the
+    absolute temperatures and rates (``T``, ``dT``, maybe ``Ta``, ``dTa``), and ``direction``
+    (+1 heating, -1 cooling, 0 soak)."""
+
+    t_ns: np.ndarray
+    bias: np.ndarray
+    variables: dict[str, np.ndarray]
+    direction: np.ndarray
+    reference: np.ndarray
+
+
+def bin_weights(temp: np.ndarray, direction: np.ndarray, width: float) -> np.ndarray:
+    """1 / (blocks in the same temperature bin and direction), normalised to mean 1."""
+    if width <= 0:
+        return np.ones(len(temp))
+    cell = np.floor(temp / width).astype(np.int64) * 3 + direction + 1
+    _, inverse, count = np.unique(cell, return_inverse=True, return_counts=True)
+    w = 1.0 / count[inverse]
+    return w * (len(w) / w.sum())
+
+
+class TemperatureStage(Stage):
+    type = "temperature"
+    corrects = True
+
+    @dataclass
+    class Options:
+        sensor: Literal["gyro", "accel"] = "gyro"
+        """Which sensor to compensate (every axis)."""
+        model: Literal["poly", "seed000", "piecewise", "stepwise"] = "poly"
+        order: int = 3
+        """poly: polynomial order in T - Tref (0..5); stepwise: highest power of T offered."""
+        rate_terms: list[str] = field(default_factory=lambda: ["dT"])
+        """poly: rate terms among dT, dT^2, T*dT (empty: a plain polynomial in T)."""
+        tref: float | None = None
+        """degC; default the middle of the fitted range (seed000: 0, the formula as written)."""
+        window: int | None = None
+        """Samples per block (seed 000 uses 500)."""
+        window_s: float | None = None
+        """Seconds per block (default 10 s when neither is given)."""
+        bin_width: float = 1.0
+        """degC; temperature bins for weighting (0: every block weighs the same)."""
+        segment_width: float = 10.0
+        """piecewise: degC between knots."""
+        criterion: Literal["f_test", "adj_r2"] = "f_test"
+        """stepwise: how terms are chosen."""
+        alpha_in: float = 0.05
+        alpha_out: float = 0.10
+        reference: list[float] | None = None
+        """The true sensor output during the recording (3 values, SI); default zero for a gyro,
+        gravity along the mean specific force for an accelerometer."""
+        validate: str | None = None
+        """An input to evaluate the fitted correction on (held out from the fit)."""
+        write_blocks: bool = False
+        """Also write the block means used by the fit as ``<name>_blocks.csv``."""
+
+    @classmethod
+    def sensors_for(cls, options: Any) -> tuple[str, ...]:
+        return (options.sensor, "temperature")
+
+    # -- helpers -------------------------------------------------------------------------------
+    def _window(self) -> tuple[int | None, float | None]:
+        o = self.options
+        if o.window is None and o.window_s is None:
+            return None, 10.0
+        return o.window, o.window_s
+
+    def prepare(self, table: pa.Table, ctx: StageContext, input_name: str) -> Prepared:
+        """Block means and rates of ``table`` (see the module docstring)."""
+        o = self.options
+        if not has_stream(table, "imu"):
+            raise ctx.fail(f"input '{input_name}' has no IMU samples")
+        if not has_stream(table, "temperature"):
+            raise ctx.fail(
+                f"input '{input_name}' has no temperature samples (map csv.temperature or set "
+                "temperature_topic)"
+            )
+        data = sensor(table, o.sensor)
+        if not np.isfinite(data.values).all():
+            bad = int(np.flatnonzero(~np.isfinite(data.values).all(axis=1))[0])
+            raise ctx.fail(f"input '{input_name}': non-finite {o.sensor} sample at sample {bad}")
+        window, window_s = self._window()
+        temp = _temperature_at(table, data.t_ns)
+        columns = [data.values, temp[:, None]]
+        has_ambient = "ambient_temperature" in table.column_names and table.column(
+            "ambient_temperature"
+        ).null_count < len(table)
+        if has_ambient:
+            columns.append(_temperature_at(table, data.t_ns, "ambient_temperature")[:, None])
+        blocks = block_means(data.t_ns, np.hstack(columns), window, window_s)
+        if len(blocks.t_ns) < 2:
+            raise ctx.fail(f"input '{input_name}': fewer than 2 blocks of {window or window_s}")
+        t_s = (blocks.t_ns - blocks.t_ns[0]).astype(np.float64) * 1e-9
+        means = blocks.means[:, :3]
+        variables = {"T": blocks.means[:, 3], "dT": np.gradient(blocks.means[:, 3], t_s)}
+        if has_ambient:
+            variables["Ta"] = blocks.means[:, 4]
+            variables["dTa"] = np.gradient(blocks.means[:, 4], t_s)
+        direction = np.where(
+            variables["dT"] > SOAK_RATE, 1, np.where(variables["dT"] < -SOAK_RATE, -1, 0)
+        )
+        reference = self._reference(means)
+        return Prepared(blocks.t_ns, means - reference, variables, direction, reference)
+
+    def _reference(self, means: np.ndarray) -> np.ndarray:
+        if self.options.reference is not None:
+            return np.asarray(self.options.reference, dtype=np.float64)
+        if self.options.sensor == "gyro":
+            return np.zeros(3)
+        mean = means.mean(axis=0)
+        return G0 * mean / np.linalg.norm(mean)
+
+    # -- fit -----------------------------------------------------------------------------------
+    def fit(self, table: pa.Table, ctx: StageContext) -> StageOutput:
+        o = self.options
+        if o.reference is not None and len(o.reference) != 3:
+            raise ctx.fail("'reference' must hold 3 values (the true output per axis, SI)")
+        if o.validate is not None and o.validate not in ctx.tables:
+            raise ctx.fail(
+                f"validate: unknown input '{o.validate}' (inputs: {', '.join(ctx.tables)})"
+            )
+        try:
+            base_terms = tm.poly_terms(o.order, o.rate_terms) if o.model == "poly" else []
+        except ValueError as exc:
+            raise ctx.fail(str(exc)) from None
+        if o.window is not None and o.window_s is not None:
+            raise ctx.fail("give 'window' or 'window_s', not both")
+        prep = self.prepare(table, ctx, ctx.input_name)
+        temp = prep.variables["T"]
+        lo, hi = float(temp.min()), float(temp.max())
+        if hi - lo < MIN_SPAN:
+            raise ctx.fail(
+                f"the temperature spans only {hi - lo:.3g} degC ({lo:.4g}..{hi:.4g}); a temperature "
+                f"fit needs at least {MIN_SPAN:g} degC (heat or cool the IMU while recording)"
+            )
+        if hi - lo < WARN_SPAN:
+            ctx.warn(
+                f"the temperature spans only {hi - lo:.3g} degC; the correction is clamped outside "
+                f"{lo:.4g}..{hi:.4g} degC"
+            )
+        tref = o.tref if o.tref is not None else (0.0 if o.model == "seed000" else (lo + hi) / 2)
+        weights = bin_weights(temp, prep.direction, o.bin_width)
+        rel = self._relative(prep.variables, tref)
+        knots = None
+        if o.model == "piecewise":
+            knots = tm.segment_knots(lo, hi, o.segment_width)
+        axes, selection_log = [], {}
+        for i, axis in enumerate(AXES):
+            y = prep.bias[:, i]
+            if o.model == "piecewise":
+                terms, coef = tm.fit_piecewise(rel, y, weights, knots - tref)
+            elif o.model == "stepwise":
+                names = candidate_terms([v for v in tm.VARIABLES if v in rel], max(o.order, 2))
+                sel = stepwise(
+                    tm.design(names, rel),
+                    y,
+                    names,
+                    weights,
+                    criterion=o.criterion,
+                    alpha_in=o.alpha_in,
+                    alpha_out=o.alpha_out,
+                )
+                terms, coef = sel.terms, sel.coef
+                selection_log[axis] = {"adj_r2": sel.adj_r2, "steps": sel.history}
+            else:
+                terms = list(tm.SEED000_TERMS) if o.model == "seed000" else base_terms
+                coef = tm.weighted_lstsq(tm.design(terms, rel), y, weights)
+            axes.append({"terms": terms, "coefficients": np.asarray(coef)})
+        ranges = {k: [float(v.min()), float(v.max())] for k, v in prep.variables.items()}
+        step = TemperatureStep(
+            type=self.type,
+            sensor=o.sensor,
+            model=o.model,
+            tref=float(tref),
+            window=self._window()[0],
+            window_s=self._window()[1],
+            axes=axes,
+            ranges=ranges,
+            knots=None if knots is None else knots.tolist(),
+            params={"reference": prep.reference.tolist()},
+        )
+        fitted = step.bias(rel)
+        metrics = self._metrics(prep.bias, fitted)
+        results: dict[str, Any] = {
+            "sensor": o.sensor,
+            "unit": SENSOR_UNITS[o.sensor],
+            "model": o.model,
+            "tref": float(tref),
+            "temperature_range": [lo, hi],
+            "rate_range": ranges["dT"],
+            "blocks": len(prep.t_ns),
+            "terms": {ax: step.axes[i]["terms"] for i, ax in enumerate(AXES)},
+            "coefficients": {
+                ax: [float(c) for c in step.axes[i]["coefficients"]] for i, ax in enumerate(AXES)
+            },
+            "metrics": metrics,
+        }
+        if selection_log:
+            results["selection"] = selection_log
+        if o.validate is not None:
+            results["metrics"]["validate"] = self._validate(step, ctx)
+        artifacts = {}
+        if o.write_blocks:
+            artifacts[f"{ctx.name}_blocks.csv"] = self._blocks_csv(prep)
+        self._record(ctx, prep, step, rel, fitted)
+        return StageOutput(results=results, step=step, artifacts=artifacts)
+
+    @staticmethod
+    def _relative(variables: dict[str, np.ndarray], tref: float) -> dict[str, np.ndarray]:
+        rel = dict(variables)
+        rel["T"] = variables["T"] - tref
+        if "Ta" in rel:
+            rel["Ta"] = variables["Ta"] - tref
+        return rel
+
+    @staticmethod
+    def _metrics(bias: np.ndarray, fitted: np.ndarray | None) -> dict[str, Any]:
+        """Per axis: RMS and peak-to-peak of the block bias before and after; RMSE and R^2."""
+        out: dict[str, Any] = {}
+        after = bias - fitted if fitted is not None else None
+        for i, axis in enumerate(AXES):
+            b = bias[:, i]
+            m = {"rms_before": float(np.sqrt(np.mean(b * b))), "p2p_before": float(np.ptp(b))}
+            if after is not None:
+                r = after[:, i]
+                ss = float(np.sum((b - b.mean()) ** 2)) or 1.0
+                m |= {
+                    "rms_after": float(np.sqrt(np.mean(r * r))),
+                    "p2p_after": float(np.ptp(r)),
+                    "rmse": float(np.sqrt(np.mean(r * r))),
+                    "r2": 1.0 - float(np.sum(r * r)) / ss,
+                }
+                m["reduction"] = m["rms_before"] / max(m["rms_after"], 1e-300)
+            out[axis] = m
+        return out
+
+    def _validate(self, step: TemperatureStep, ctx: StageContext) -> dict[str, Any]:
+        """The same metrics on the ``validate`` input: blocks before and after the step."""
+        name = self.options.validate
+        table = ctx.tables[name]
+        before = self.prepare(table, ctx, name)
+        after = self.prepare(step.apply(table), ctx, name)
+        metrics = self._metrics(before.bias, before.bias - after.bias)
+        metrics["input"] = name
+        metrics["blocks"] = len(before.t_ns)
+        return metrics
+
+    @staticmethod
+    def _blocks_csv(prep: Prepared) -> str:
+        names = ["t_ns", "bias_x", "bias_y", "bias_z", *prep.variables]
+        cols = [prep.t_ns.astype(np.float64), *prep.bias.T, *prep.variables.values()]
+        rows = np.column_stack(cols)
+        lines = [",".join(names)]
+        lines += [f"{int(r[0])}," + ",".join(f"{v:.17g}" for v in r[1:]) for r in rows]
+        return "\n".join(lines) + "\n"
+
+    # -- Rerun -------------------------------------------------------------------------------
+    def _record(
+        self,
+        ctx: StageContext,
+        prep: Prepared,
+        step: TemperatureStep,
+        rel: dict[str, np.ndarray],
+        fitted: np.ndarray,
+    ) -> None:
+        if not getattr(ctx.recorder, "enabled", False):
+            return
+        from imupipe.stages.temperature_rerun import record_fit
+
+        record_fit(ctx, prep, step, rel, fitted)

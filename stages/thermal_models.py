@@ -1,0 +1,141 @@
+"""Temperature error models: every model is linear in named terms, ``bias = sum_j c_j term_j``.
+
+Variables (degC, degC/s): ``T`` = device temperature - Tref, ``dT`` = its rate dT/dt,
+``Ta`` = ambient temperature - Tref, ``dTa`` = its rate. A term is ``1``, a variable, or a
+product of powers of variables written ``T^2``, ``T*dT``, ``Ta^2*dT`` ...; ``hat<i>`` is the
+i-th piecewise-linear "hat" function of ``T`` on the knots of the piecewise model (1 at knot i,
+0 at its neighbours), so a sum of hats is a continuous function linear between knots.
+
+Models (the ``temperature`` stage's ``model`` option):
+
+- ``poly``: ``1, T, ..., T^order`` (order <= 5) plus optional rate terms ``dT``, ``dT^2``,
+  ``T*dT`` (PX4's cubic about a reference temperature when order = 3 and no rate term);
+- ``seed000``: seed 000's six-term model ``a1 T^2 + a2 T + a3 dT^2 + a4 dT + a5 T dT + a6``;
+- ``piecewise``: seed 004: hats on knots every ``segment_width`` degC across the fitted range
+  (bias linear in T within each temperature segment, continuous at the knots), fitted first;
+  then the hysteresis term ``k_dt * dT + constant`` fitted on the residual
+  (seed 004's ``k_dt = polyfit(gy_dt, gy_shift, 1)``, with dT as a rate in degC/s);
+- ``stepwise``: see :mod:`imupipe.stages.stepwise`.
+
+Least squares is weighted (the temperature-bin weights of the stage) and column-scaled so that
+terms of very different sizes (T^3 ~ 1e5, dT ~ 1e-2) are solved to full precision.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+
+import numpy as np
+
+VARIABLES: tuple[str, ...] = ("T", "dT", "Ta", "dTa")
+SEED000_TERMS: tuple[str, ...] = ("T^2", "T", "dT^2", "dT", "T*dT", "1")
+"""Seed 000's ``tFun``: a(1) T^2 + a(2) T + a(3) dT^2 + a(4) dT + a(5) dT T + a(6)."""
+RATE_TERMS: tuple[str, ...] = ("dT", "dT^2", "T*dT")
+MAX_ORDER = 5
+
+
+def parse_term(term: str) -> tuple[tuple[str, int], ...]:
+    """``"T^2*dT"`` -> (("T", 2), ("dT", 1)); ``"1"`` -> (); ``"hat3"`` -> (("hat3", 1),)."""
+    if term == "1":
+        return ()
+    factors = []
+    for factor in term.split("*"):
+        name, _, power = factor.partition("^")
+        if not (name in VARIABLES or (name.startswith("hat") and name[3:].isdigit())):
+            raise ValueError(f"unknown variable '{name}' in term '{term}'")
+        p = int(power) if power else 1
+        if p < 1:
+            raise ValueError(f"bad power in term '{term}'")
+        factors.append((name, p))
+    return tuple(factors)
+
+
+def term_variables(terms: Sequence[str]) -> set[str]:
+    """The variables (not hats) the terms use."""
+    return {name for t in terms for name, _ in parse_term(t) if not name.startswith("hat")}
+
+
+def hat_basis(x: np.ndarray, knots: np.ndarray) -> np.ndarray:
+    """(n, len(knots)) hat functions of ``x`` on increasing ``knots`` (x clamped to the knots)."""
+    x = np.clip(np.asarray(x, dtype=np.float64), knots[0], knots[-1])
+    k = len(knots)
+    seg = np.clip(np.searchsorted(knots, x, side="right") - 1, 0, k - 2)
+    frac = (x - knots[seg]) / (knots[seg + 1] - knots[seg])
+    out = np.zeros((len(x), k))
+    rows = np.arange(len(x))
+    out[rows, seg] = 1.0 - frac
+    out[rows, seg + 1] += frac
+    return out
+
+
+def design(
+    terms: Sequence[str], variables: Mapping[str, np.ndarray], knots: np.ndarray | None = None
+) -> np.ndarray:
+    """(n, len(terms)) design matrix; ``variables`` maps T, dT (Ta, dTa) to (n,) arrays,
+    ``knots`` (relative to Tref, like T) is needed by hat terms."""
+    n = len(variables["T"])
+    hats = None
+    cols = []
+    for term in terms:
+        col = np.ones(n)
+        for name, power in parse_term(term):
+            if name.startswith("hat"):
+                if knots is None:
+                    raise ValueError(f"term '{term}' needs the piecewise model's knots")
+                if hats is None:
+                    hats = hat_basis(variables["T"], knots)
+                col = col * hats[:, int(name[3:])]
+            else:
+                col = col * variables[name] ** power
+        cols.append(col)
+    return np.column_stack(cols) if cols else np.zeros((n, 0))
+
+
+def weighted_lstsq(x: np.ndarray, y: np.ndarray, w: np.ndarray | None = None) -> np.ndarray:
+    """argmin sum w (y - x c)^2, with columns scaled to unit norm for conditioning."""
+    sw = np.ones(len(y)) if w is None else np.sqrt(np.asarray(w, dtype=np.float64))
+    xw = x * sw[:, None]
+    scale = np.linalg.norm(xw, axis=0)
+    scale[scale == 0] = 1.0
+    coef, *_ = np.linalg.lstsq(xw / scale, y * sw, rcond=None)
+    return coef / scale
+
+
+def poly_terms(order: int, rate_terms: Sequence[str] = ()) -> list[str]:
+    """``1, T, ..., T^order`` followed by the chosen rate terms."""
+    if not 0 <= order <= MAX_ORDER:
+        raise ValueError(f"order must be 0..{MAX_ORDER}")
+    bad = [t for t in rate_terms if t not in RATE_TERMS]
+    if bad:
+        raise ValueError(f"unknown rate term(s) {bad} (known: {', '.join(RATE_TERMS)})")
+    return ["1"] + [("T" if p == 1 else f"T^{p}") for p in range(1, order + 1)] + list(rate_terms)
+
+
+def segment_knots(lo: float, hi: float, width: float) -> np.ndarray:
+    """Knots from ``lo`` to ``hi`` (inclusive), about ``width`` apart (at least one segment)."""
+    count = max(1, int(np.ceil((hi - lo) / width - 1e-9)))
+    return np.linspace(lo, hi, count + 1)
+
+
+def fit_piecewise(
+    variables: Mapping[str, np.ndarray], y: np.ndarray, w: np.ndarray, knots: np.ndarray
+) -> tuple[list[str], np.ndarray]:
+    """Seed 004: bias linear in T per segment (hats on ``knots``), then ``k_dt * dT + c`` fitted
+    on the residual. Returns the terms (hats, ``dT``, ``1``) and their coefficients."""
+    hats = [f"hat{i}" for i in range(len(knots))]
+    h = design(hats, variables, knots)
+    c_hat = weighted_lstsq(h, y, w)
+    residual = y - h @ c_hat
+    rate = variables["dT"]
+    k_dt, const = weighted_lstsq(np.column_stack([rate, np.ones_like(rate)]), residual, w)
+    return hats + ["dT", "1"], np.r_[c_hat, k_dt, const]
+
+
+def evaluate(
+    terms: Sequence[str],
+    coef: np.ndarray,
+    variables: Mapping[str, np.ndarray],
+    knots: np.ndarray | None = None,
+) -> np.ndarray:
+    """The model's bias at the given variables."""
+    return design(terms, variables, knots) @ np.asarray(coef, dtype=np.float64)
