@@ -1,0 +1,250 @@
+"""Issue 8, done-when: ``imupipe convert`` over a folder of logs plus a corrupt one.
+
+Every good log's output holds all its messages with ``matrix @ (raw - offset)`` applied (checked
+to 1e-9 against numpy on the simulated raw data, decoded with the ``mcap`` library's ROS 2
+decoder), other topics carried over byte for byte; the corrupt log is named and has no output;
+the exit status is non-zero; a second run rewrites nothing; the Ray engine (a local
+``ray.init(num_cpus=2)``) writes the same messages as the local process pool.
+"""
+
+from __future__ import annotations
+
+import collections
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pyarrow.parquet as pq
+import pytest
+from mcap.reader import make_reader
+
+from imupipe.pipeline.convert import chain_sha256, convert, find_logs
+from imupipe.pipeline.manifest import read_manifest
+from imupipe.pipeline.mcap_writer import msgdef, write_mcap
+from imupipe.pipeline.simulate import simulate, write_log
+from imupipe.readers.spec import RawMessage
+
+from conftest import run_cli
+from helpers import decode_mcap, mcap_attachments, stamps_ns, vec
+
+M_ACCEL = [[1.01, 0.002, -0.001], [0.0, 0.99, 0.003], [0.001, 0.0, 1.02]]
+M_GYRO = [[1.0, 0.001, 0.0], [-0.002, 1.0, 0.0], [0.0, 0.002, 0.998]]
+M_MAG = [[0.9, 0.01, 0.0], [0.01, 1.1, 0.02], [0.0, 0.02, 0.95]]
+CHAIN = [
+    {"type": "accel_calibration", "sensor": "accel", "kind": "linear", "matrix": M_ACCEL,
+     "offset": [0.05, -0.03, 0.08]},
+    {"type": "gyro_calibration", "sensor": "gyro", "kind": "linear", "matrix": M_GYRO,
+     "offset": [0.01, -0.02, 0.005]},
+    {"type": "mag_calibration", "sensor": "mag", "kind": "linear", "matrix": M_MAG,
+     "offset": [1.2e-5, -8.0e-6, 2.1e-5]},
+]  # fmt: skip
+SENSORS = {"gyro": ("angular_velocity", 1), "accel": ("linear_acceleration", 0)}
+
+
+def _status_messages(n: int, t0: int) -> list[RawMessage]:
+    """``/status`` std_msgs/String messages: a topic convert must carry over unchanged."""
+    from rosbags.typesys import Stores, get_typestore
+
+    ts = get_typestore(Stores.ROS2_HUMBLE)
+    string = ts.types["std_msgs/msg/String"]
+    schema = msgdef("std_msgs/msg/String").encode()
+    return [
+        RawMessage(
+            "/status", "std_msgs/msg/String", "ros2msg", schema, "cdr",
+            bytes(ts.serialize_cdr(string(data=f"ok {i}"), "std_msgs/msg/String")),
+            t0 + i * 100_000_000, t0 + i * 100_000_000,
+        )
+        for i in range(n)
+    ]  # fmt: skip
+
+
+def expected(table, sensor: str) -> np.ndarray:
+    """numpy's ``matrix @ (raw - offset)`` on the simulated raw samples of ``sensor``."""
+    step = next(s for s in CHAIN if s["sensor"] == sensor)
+    cols = [f"{sensor}_{a}" for a in "xyz"]
+    raw = np.column_stack([table.column(c).to_numpy(zero_copy_only=False) for c in cols])
+    raw = raw[~np.isnan(raw).any(axis=1)]
+    return (np.array(step["matrix"]) @ (raw - np.array(step["offset"])).T).T
+
+
+def raw_messages(path: Path) -> dict[str, list[tuple[int, int, bytes]]]:
+    """topic -> (log_time, publish_time, payload) in file order, undecoded."""
+    out = collections.defaultdict(list)
+    with open(path, "rb") as fh:
+        for _, channel, msg in make_reader(fh).iter_messages(log_time_order=False):
+            out[channel.topic].append((msg.log_time, msg.publish_time, bytes(msg.data)))
+    return dict(out)
+
+
+@pytest.fixture(scope="module")
+def fleet(tmp_path_factory):
+    d = tmp_path_factory.mktemp("fleet")
+    logs = d / "logs" / "good"
+    (logs / "site1").mkdir(parents=True)
+    static, _ = simulate("static", {"duration_s": 2.0, "rate_hz": 200.0}, seed=1)
+    status = _status_messages(7, int(static.column("t_ns")[0].as_py()))
+    write_mcap(logs / "a.mcap", static, carry_over=status)
+    mag, _ = simulate("mag", {"duration_s": 3.0, "rate_hz": 50.0}, seed=2)
+    write_log(logs / "site1" / "m.mcap", mag)
+    # a truncated copy: the footer, summary and the last chunk are gone
+    data = (logs / "a.mcap").read_bytes()
+    corrupt = d / "logs" / "corrupt.mcap"
+    corrupt.write_bytes(data[: len(data) // 2])
+    cal = d / "calibration.json"
+    cal.write_text(json.dumps({"imupipe_version": "test", "chain": CHAIN, "results": {}}))
+    proc = run_cli(
+        "convert",
+        "--calibration",
+        cal,
+        "--out",
+        d / "out",
+        "--jobs",
+        "2",
+        "--parquet",
+        logs,
+        corrupt,
+    )
+    tables = {"a": static, "site1/m": mag}
+    return d, cal, tables, status, proc
+
+
+def test_corrupt_log_is_named_and_has_no_output(fleet):
+    d, _, _, _, proc = fleet
+    assert proc.returncode == 1, proc.stderr
+    errors = [line for line in proc.stderr.splitlines() if line.startswith("imupipe: error:")]
+    assert len(errors) == 1 and "corrupt.mcap" in errors[0], proc.stderr
+    assert "Traceback" not in proc.stderr
+    assert "2 converted, 0 skipped (already done), 1 failed of 3 logs" in proc.stdout
+    out = d / "out"
+    assert not (out / "corrupt.mcap").exists() and not (out / "corrupt.parquet").exists()
+    assert [p.name for p in out.rglob("*.tmp")] == []
+    lines = list(read_manifest(out))
+    status = {Path(r["input"]).name: r["status"] for r in lines}
+    assert status == {"a.mcap": "converted", "m.mcap": "converted", "corrupt.mcap": "failed"}
+
+
+def test_every_message_corrected(fleet):
+    d, _, tables, status, _ = fleet
+    for name, table in tables.items():
+        out = d / "out" / f"{name}.mcap"
+        topics = decode_mcap(out)
+        imu = topics["/imu/data"]
+        n_imu = int(np.count_nonzero(~np.isnan(table.column("gyro_x").to_numpy(False))))
+        assert len(imu) == n_imu
+        t_imu = table.filter(table.column("gyro_x").is_valid()).column("t_ns").to_numpy()
+        np.testing.assert_array_equal(stamps_ns(imu), t_imu)
+        for sensor, (field, _) in SENSORS.items():
+            np.testing.assert_allclose(vec(imu, field), expected(table, sensor), rtol=0, atol=1e-9)
+        if name == "site1/m":
+            mag = topics["/imu/mag"]
+            np.testing.assert_allclose(
+                vec(mag, "magnetic_field"), expected(table, "mag"), rtol=0, atol=1e-9
+            )
+        else:
+            assert len(topics["/imu/temperature"]) == table.num_rows
+            # the carried-over topic: every message, byte for byte, at its times
+            got = raw_messages(out)["/status"]
+            assert got == [(m.log_time, m.publish_time, m.data) for m in status]
+        attached = json.loads(mcap_attachments(out)["calibration.json"])
+        assert attached["chain"] == CHAIN
+        assert attached["conversion"]["calibration_sha256"] == chain_sha256({"chain": CHAIN})
+
+
+def test_manifest_and_parquet(fleet):
+    d, _, tables, _, _ = fleet
+    lines = {Path(r["input"]).stem: r for r in read_manifest(d / "out")}
+    a = lines["a"]
+    assert a["counts"] == {"/imu/data": 400, "/imu/temperature": 400, "/status": 7}
+    assert a["calibration_sha256"] == chain_sha256({"chain": CHAIN})
+    assert a["output"] == str(d / "out" / "a.mcap") and a["seconds"] > 0
+    assert "corrupt.mcap" in lines["corrupt"]["error"]
+    dataset = pq.read_table(d / "out" / "a.parquet")
+    # one row per message of the log: 400 Imu and 400 Temperature messages
+    assert dataset.num_rows == 800
+    imu = dataset.filter(dataset.column("gyro_x").is_valid())
+    np.testing.assert_array_equal(imu.column("t_ns"), tables["a"].column("t_ns"))
+    np.testing.assert_allclose(
+        np.column_stack([imu.column(f"accel_{a}").to_numpy() for a in "xyz"]),
+        expected(tables["a"], "accel"),
+        rtol=0,
+        atol=1e-9,
+    )
+    # every file has the same schema (one pyarrow dataset)
+    assert pq.read_schema(d / "out" / "site1" / "m.parquet").names == dataset.schema.names
+
+
+def test_second_run_rewrites_nothing(fleet):
+    d, cal, _, _, _ = fleet
+    outputs = sorted((d / "out").rglob("*.mcap")) + sorted((d / "out").rglob("*.parquet"))
+    before = {p: (p.stat().st_ino, p.stat().st_mtime_ns) for p in outputs}
+    good = d / "logs" / "good"
+    proc = run_cli("convert", "--calibration", cal, "--out", d / "out", "--parquet", good)
+    assert proc.returncode == 0, proc.stderr
+    assert "0 converted, 2 skipped (already done), 0 failed of 2 logs" in proc.stdout
+    assert {p: (p.stat().st_ino, p.stat().st_mtime_ns) for p in outputs} == before
+    lines = list(read_manifest(d / "out"))[-2:]
+    assert [r["status"] for r in lines] == ["skipped", "skipped"]
+
+
+def test_new_calibration_or_force_converts_again(fleet, tmp_path):
+    d, _, tables, _, _ = fleet
+    out = tmp_path / "out"
+    src = d / "logs" / "good" / "a.mcap"
+    cal2 = tmp_path / "cal2.json"
+    chain2 = [dict(CHAIN[0], offset=[0.0, 0.0, 0.0])]
+    cal2.write_text(json.dumps({"chain": CHAIN}))
+    first = convert([src], cal2, out, jobs=1)
+    assert len(first.converted) == 1
+    assert len(convert([src], cal2, out, jobs=1).skipped) == 1
+    assert len(convert([src], cal2, out, jobs=1, force=True).converted) == 1
+    cal2.write_text(json.dumps({"chain": chain2}))
+    again = convert([src], cal2, out, jobs=1)
+    assert len(again.converted) == 1
+    imu = decode_mcap(out / "a.mcap")["/imu/data"]
+    raw = np.column_stack([tables["a"].column(f"accel_{a}").to_numpy() for a in "xyz"])
+    np.testing.assert_allclose(
+        vec(imu, "linear_acceleration"), raw @ np.array(M_ACCEL).T, atol=1e-9
+    )
+
+
+def test_discovery_and_refusals(fleet, tmp_path):
+    d, cal, _, _, _ = fleet
+    logs = tmp_path / "logs"
+    shutil.copytree(d / "logs", logs)
+    (logs / "ros2bag").mkdir()
+    (logs / "ros2bag" / "metadata.yaml").write_text("rosbag2_bagfile_information: {}\n")
+    (logs / "ros2bag" / "ros2bag_0.mcap").write_bytes(b"")
+    (logs / "r.bag").write_bytes(b"")
+    (logs / "notes.csv").write_text("x\n1\n")
+    (logs / ".hidden.mcap").write_bytes(b"")
+    (logs / "out").mkdir()
+    (logs / "out" / "old.mcap").write_bytes(b"")
+    found = {str(rel) for _, rel in find_logs([logs], logs / "out")}
+    assert found == {"corrupt", "good/a", "good/site1/m", "r", "ros2bag"}
+    assert "notes" in {str(rel) for _, rel in find_logs([logs], logs / "out", csv=True)}
+    # an output that would replace its input is refused before anything is written
+    proc = run_cli("convert", "--calibration", cal, "--out", logs, logs / "corrupt.mcap")
+    assert proc.returncode == 2 and "would overwrite an input" in proc.stderr
+    proc = run_cli("convert", "--calibration", tmp_path / "nope.json", "--out", logs / "o", logs)
+    assert proc.returncode == 2
+    assert proc.stderr.strip().count("\n") == 0 and "nope.json: no such file" in proc.stderr
+
+
+def test_ray_engine_matches_local(fleet, tmp_path):
+    ray = pytest.importorskip("ray")
+    d, cal, _, _, _ = fleet
+    logs = [d / "logs" / "good", d / "logs" / "corrupt.mcap"]
+    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+    try:
+        summary = convert(logs, cal, tmp_path / "out", engine="ray", parquet=True)
+    finally:
+        ray.shutdown()
+    assert [Path(p).name for p, _ in summary.failed] == ["corrupt.mcap"]
+    assert len(summary.converted) == 2
+    for name in ("a", "site1/m"):
+        ours, theirs = tmp_path / "out" / f"{name}.mcap", d / "out" / f"{name}.mcap"
+        assert raw_messages(ours) == raw_messages(theirs)
+        assert pq.read_table(ours.with_suffix(".parquet")).equals(
+            pq.read_table(theirs.with_suffix(".parquet"))
+        )
