@@ -85,7 +85,7 @@ class MagCalibrationStage(Stage):
         min_spread: float = 0.02
         """Smallest eigenvalue of the covariance of the field directions (1/3: all orientations;
         ~0: planar); below it the data is refused."""
-        max_offset: float = 5.0
+        max_offset: float = 10.0
         """Largest accepted hard iron, in multiples of the field radius."""
         soft_iron_range: list[float] = field(default_factory=lambda: [0.5, 2.0])
         """Accepted range of the diagonal of the soft-iron correction normalised to det 1."""

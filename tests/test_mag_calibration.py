@@ -17,6 +17,7 @@ from imupipe.stages.base import StageContext
 from imupipe.stages.mag_calibration import MagCalibrationStage
 
 from conftest import run_cli, shared_path
+from helpers import decode_mcap, vec
 
 
 def fit(table, **options):
@@ -179,7 +180,10 @@ def test_icm20948_through_cli_against_magneto(tmp_path):
     assert np.linalg.norm(np.array(step["offset"]) - MAGNETO_B) < 0.005 * radius
     metrics = cal["results"]["mag_calibration"]["metrics"]
     assert metrics["norm_std_pct"] == pytest.approx(ours, rel=1e-9)
-    assert (tmp_path / "out" / "icm.mcap").exists()
+    # the corrected MCAP carries every sample, corrected by the fitted matrix and offset
+    mag = vec(decode_mcap(tmp_path / "out" / "icm.mcap")["/imu/mag"], "magnetic_field")
+    expected = (h - step["offset"]) @ np.asarray(step["matrix"]).T
+    np.testing.assert_allclose(mag, expected, rtol=1e-12, atol=1e-9)
 
     import rerun.chunk as rc
 
