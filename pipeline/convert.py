@@ -259,8 +259,9 @@ def input_counts(path: Path, fmt: str) -> dict[str, int] | None:
     except ImupipeError:
         raise
     except Exception as exc:  # noqa: BLE001 - any failure to open the index is a bad log
+        what = "truncated or corrupt" if fmt == "mcap" else "unreadable"
         raise ReadError(
-            f"{path}: cannot read the log's index: {' '.join(str(exc).split())}"
+            f"{path}: {what} {fmt} log (its index cannot be read: {' '.join(str(exc).split())})"
         ) from None
     return None
 

@@ -59,6 +59,49 @@ def _status_messages(n: int, t0: int) -> list[RawMessage]:
     ]  # fmt: skip
 
 
+def write_bag_with_rosbags(path: Path, table, ros: int, status: int) -> None:
+    """A ROS ``ros`` (1 or 2, sqlite3) bag of the table's IMU samples plus ``status``
+    std_msgs/String messages on ``/status``, written message by message with rosbags (a peer)."""
+    from rosbags.typesys import Stores, get_typestore
+
+    ts = get_typestore(Stores.ROS1_NOETIC if ros == 1 else Stores.ROS2_HUMBLE)
+    t = ts.types
+    if ros == 1:
+        from rosbags.rosbag1 import Writer
+
+        writer, serialize = Writer(path), ts.serialize_ros1
+    else:
+        from rosbags.rosbag2 import Writer
+
+        writer, serialize = Writer(path, version=9), ts.serialize_cdr
+    t_ns = table.column("t_ns").to_numpy()
+    g = np.column_stack([table.column(f"gyro_{a}").to_numpy() for a in "xyz"])
+    a = np.column_stack([table.column(f"accel_{a}").to_numpy() for a in "xyz"])
+    imu_type, str_type = "sensor_msgs/msg/Imu", "std_msgs/msg/String"
+    with writer:
+        imu = writer.add_connection("/imu/data", imu_type, typestore=ts)
+        txt = writer.add_connection("/status", str_type, typestore=ts)
+        cov = np.zeros(9)
+        for i, stamp in enumerate(t_ns.tolist()):
+            time_ = t["builtin_interfaces/msg/Time"](sec=stamp // 10**9, nanosec=stamp % 10**9)
+            header = t["std_msgs/msg/Header"](
+                **({"seq": i} if ros == 1 else {}), stamp=time_, frame_id="imu_link"
+            )
+            msg = t[imu_type](
+                header=header,
+                orientation=t["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=0.0, w=1.0),
+                orientation_covariance=cov,
+                angular_velocity=t["geometry_msgs/msg/Vector3"](*g[i]),
+                angular_velocity_covariance=cov,
+                linear_acceleration=t["geometry_msgs/msg/Vector3"](*a[i]),
+                linear_acceleration_covariance=cov,
+            )
+            writer.write(imu, stamp, serialize(msg, imu_type))
+        for i in range(status):
+            msg = t[str_type](data=f"ok {i}")
+            writer.write(txt, int(t_ns[0]) + i * 10**8, serialize(msg, str_type))
+
+
 def expected(table, sensor: str) -> np.ndarray:
     """numpy's ``matrix @ (raw - offset)`` on the simulated raw samples of ``sensor``."""
     step = next(s for s in CHAIN if s["sensor"] == sensor)
@@ -82,11 +125,15 @@ def fleet(tmp_path_factory):
     d = tmp_path_factory.mktemp("fleet")
     logs = d / "logs" / "good"
     (logs / "site1").mkdir(parents=True)
+    (logs / "site2").mkdir()
     static, _ = simulate("static", {"duration_s": 2.0, "rate_hz": 200.0}, seed=1)
     status = _status_messages(7, int(static.column("t_ns")[0].as_py()))
     write_mcap(logs / "a.mcap", static, carry_over=status)
     mag, _ = simulate("mag", {"duration_s": 3.0, "rate_hz": 50.0}, seed=2)
     write_log(logs / "site1" / "m.mcap", mag)
+    ros, _ = simulate("static", {"duration_s": 1.0, "rate_hz": 100.0, "temperature": None}, seed=3)
+    write_bag_with_rosbags(logs / "site2" / "r1.bag", ros, 1, status=5)
+    write_bag_with_rosbags(logs / "site2" / "r2", ros, 2, status=4)
     # a truncated copy: the footer, summary and the last chunk are gone
     data = (logs / "a.mcap").read_bytes()
     corrupt = d / "logs" / "corrupt.mcap"
@@ -105,7 +152,7 @@ def fleet(tmp_path_factory):
         logs,
         corrupt,
     )
-    tables = {"a": static, "site1/m": mag}
+    tables = {"a": static, "site1/m": mag, "site2/r1": ros, "site2/r2": ros}
     return d, cal, tables, status, proc
 
 
@@ -115,13 +162,19 @@ def test_corrupt_log_is_named_and_has_no_output(fleet):
     errors = [line for line in proc.stderr.splitlines() if line.startswith("imupipe: error:")]
     assert len(errors) == 1 and "corrupt.mcap" in errors[0], proc.stderr
     assert "Traceback" not in proc.stderr
-    assert "2 converted, 0 skipped (already done), 1 failed of 3 logs" in proc.stdout
+    assert "4 converted, 0 skipped (already done), 1 failed of 5 logs" in proc.stdout
     out = d / "out"
     assert not (out / "corrupt.mcap").exists() and not (out / "corrupt.parquet").exists()
     assert [p.name for p in out.rglob("*.tmp")] == []
     lines = list(read_manifest(out))
     status = {Path(r["input"]).name: r["status"] for r in lines}
-    assert status == {"a.mcap": "converted", "m.mcap": "converted", "corrupt.mcap": "failed"}
+    assert status == {
+        "a.mcap": "converted",
+        "m.mcap": "converted",
+        "r1.bag": "converted",
+        "r2": "converted",
+        "corrupt.mcap": "failed",
+    }
 
 
 def test_every_message_corrected(fleet):
@@ -141,6 +194,11 @@ def test_every_message_corrected(fleet):
             np.testing.assert_allclose(
                 vec(mag, "magnetic_field"), expected(table, "mag"), rtol=0, atol=1e-9
             )
+        elif name.startswith("site2"):
+            # ROS 1 and ROS 2 carry-over, decoded from the output (ROS 1 converted to CDR)
+            n = 5 if name.endswith("r1") else 4
+            assert [m.data for _, m in topics["/status"]] == [f"ok {i}" for i in range(n)]
+            assert {m.header.frame_id for _, m in imu} == {"imu_link"}
         else:
             assert len(topics["/imu/temperature"]) == table.num_rows
             # the carried-over topic: every message, byte for byte, at its times
@@ -181,10 +239,10 @@ def test_second_run_rewrites_nothing(fleet):
     good = d / "logs" / "good"
     proc = run_cli("convert", "--calibration", cal, "--out", d / "out", "--parquet", good)
     assert proc.returncode == 0, proc.stderr
-    assert "0 converted, 2 skipped (already done), 0 failed of 2 logs" in proc.stdout
+    assert "0 converted, 4 skipped (already done), 0 failed of 4 logs" in proc.stdout
     assert {p: (p.stat().st_ino, p.stat().st_mtime_ns) for p in outputs} == before
-    lines = list(read_manifest(d / "out"))[-2:]
-    assert [r["status"] for r in lines] == ["skipped", "skipped"]
+    lines = list(read_manifest(d / "out"))[-4:]
+    assert [r["status"] for r in lines] == ["skipped"] * 4
 
 
 def test_new_calibration_or_force_converts_again(fleet, tmp_path):
@@ -221,7 +279,9 @@ def test_discovery_and_refusals(fleet, tmp_path):
     (logs / "out").mkdir()
     (logs / "out" / "old.mcap").write_bytes(b"")
     found = {str(rel) for _, rel in find_logs([logs], logs / "out")}
-    assert found == {"corrupt", "good/a", "good/site1/m", "r", "ros2bag"}
+    assert found == {
+        "corrupt", "good/a", "good/site1/m", "good/site2/r1", "good/site2/r2", "r", "ros2bag"
+    }  # fmt: skip
     assert "notes" in {str(rel) for _, rel in find_logs([logs], logs / "out", csv=True)}
     # an output that would replace its input is refused before anything is written
     proc = run_cli("convert", "--calibration", cal, "--out", logs, logs / "corrupt.mcap")
@@ -241,8 +301,8 @@ def test_ray_engine_matches_local(fleet, tmp_path):
     finally:
         ray.shutdown()
     assert [Path(p).name for p, _ in summary.failed] == ["corrupt.mcap"]
-    assert len(summary.converted) == 2
-    for name in ("a", "site1/m"):
+    assert len(summary.converted) == 4
+    for name in ("a", "site1/m", "site2/r1", "site2/r2"):
         ours, theirs = tmp_path / "out" / f"{name}.mcap", d / "out" / f"{name}.mcap"
         assert raw_messages(ours) == raw_messages(theirs)
         assert pq.read_table(ours.with_suffix(".parquet")).equals(
