@@ -57,7 +57,8 @@ class Ellipsoid:
 
     @property
     def axes(self) -> tuple[np.ndarray, np.ndarray]:
-        """``(radii, rotation)``: the columns of ``rotation`` are the semi-axis directions."""
+        """``(radii, rotation)``: radii largest first; column i of ``rotation`` (a proper
+        rotation) is the direction of semi-axis i."""
         values, vectors = np.linalg.eigh(self.shape)
         if np.linalg.det(vectors) < 0:
             vectors[:, 2] *= -1

@@ -206,6 +206,10 @@ class MagCalibrationStage(Stage):
             raise ctx.fail(f"field_ut must be > 0 (uT), got {o.field_ut}")
         if o.thinning_cells < 6:
             raise ctx.fail(f"thinning_cells must be >= 6, got {o.thinning_cells}")
+        if o.thinning_max_per_cell is not None and o.thinning_max_per_cell < 1:
+            raise ctx.fail(f"thinning_max_per_cell must be >= 1, got {o.thinning_max_per_cell}")
+        if o.outlier_iterations < 0:
+            raise ctx.fail(f"outlier_iterations must be >= 0, got {o.outlier_iterations}")
         if o.outlier_k is not None and o.outlier_k <= 0:
             raise ctx.fail(f"outlier_k must be > 0, got {o.outlier_k}")
         lo_hi = o.soft_iron_range

@@ -12,6 +12,7 @@ from test_mag_ellipsoid import MAGNETO_AINV, MAGNETO_B
 from imupipe.pipeline.config import build_options
 from imupipe.pipeline.errors import FitError
 from imupipe.pipeline.simulate import simulate, write_log
+from imupipe.pipeline.simulate.mag import DEFAULTS as MAG_DEFAULTS
 from imupipe.pipeline.table import make_table, sensor
 from imupipe.stages.base import StageContext
 from imupipe.stages.mag_calibration import MagCalibrationStage
@@ -47,6 +48,12 @@ def test_general_recovers_hard_and_soft_iron(tumbles):
     assert np.linalg.norm(step.offset - truth["hard_iron"]) < 0.3e-6
     np.testing.assert_allclose(step.matrix, truth["matrix"], atol=2e-3)
     np.testing.assert_allclose(step.matrix, step.matrix.T)  # no rotation added
+    # native parameters: the raw ellipsoid's semi-axes are the field times the soft-iron scales
+    scales = np.sort(MAG_DEFAULTS["soft_iron_scale"])[::-1]
+    np.testing.assert_allclose(step.params["radii"], truth["field_norm"] * scales, rtol=2e-3)
+    axes, radii = np.array(step.params["axes"]), np.array(step.params["radii"])
+    ellipsoid = axes @ np.diag(radii) @ axes.T / truth["field_norm"]
+    np.testing.assert_allclose(ellipsoid, truth["soft_iron"], atol=2e-3)
     m = out.results["metrics"]
     assert m["norm_std_pct"] < 0.45 and m["direction_spread"][0] > 0.2
     # the corrected norm is the local field, not the data's radius
