@@ -444,7 +444,7 @@ class TemperatureStage(Stage):
             results["metrics"]["validate"] = self._validate(step, ctx)
         artifacts = {}
         if o.write_blocks:
-            artifacts[f"{ctx.name}_blocks.csv"] = self._blocks_csv(prep)
+            artifacts[f"{ctx.name}_blocks.csv"] = self._blocks_csv(prep, weights)
         self._record(ctx, prep, step, rel, fitted)
         return StageOutput(results=results, step=step, artifacts=artifacts)
 
@@ -489,9 +489,11 @@ class TemperatureStage(Stage):
         return metrics
 
     @staticmethod
-    def _blocks_csv(prep: Prepared) -> str:
-        names = ["t_ns", "bias_x", "bias_y", "bias_z", *prep.variables]
-        cols = [prep.t_ns.astype(np.float64), *prep.bias.T, *prep.variables.values()]
+    def _blocks_csv(prep: Prepared, weights: np.ndarray) -> str:
+        """The fit's data: block centre, bias per axis (SI), T (degC), dT (degC/s) [, Ta, dTa],
+        the block's weight."""
+        names = ["t_ns", "bias_x", "bias_y", "bias_z", *prep.variables, "weight"]
+        cols = [prep.t_ns.astype(np.float64), *prep.bias.T, *prep.variables.values(), weights]
         rows = np.column_stack(cols)
         lines = [",".join(names)]
         lines += [f"{int(r[0])}," + ",".join(f"{v:.17g}" for v in r[1:]) for r in rows]
