@@ -91,12 +91,12 @@ def _column_or(table: pa.Table, name: str, rows: np.ndarray, default: np.ndarray
 
 
 def encode_stream(
-    table: pa.Table, stream: str, encoding: str = "cdr"
+    table: pa.Table, stream: str, encoding: str = "cdr", prefix: int = 0
 ) -> tuple[np.ndarray, list[tuple[np.ndarray, np.ndarray]]]:
     """Encode every row of ``stream`` as CDR (or ROS 1 with ``encoding="ros1"``).
 
     Returns ``(rows, groups)``: the table rows of the stream, and per frame_id a pair
-    ``(positions into rows, payloads (m, L) uint8)``."""
+    ``(positions into rows, payloads (m, prefix + L) uint8)`` (see :func:`cdr.encode`)."""
     rows = np.flatnonzero(stream_mask(table, stream))
     n = len(rows)
     t_ns = table.column("t_ns").to_numpy()[rows]
@@ -139,39 +139,39 @@ def encode_stream(
         sel = np.arange(n) if len(names) == 1 else np.flatnonzero(codes == code)
         if len(sel) == 0:
             continue
+        whole = len(sel) == n
         payloads = cdr.encode(
             STREAM_TYPES[stream],
-            t_ns[sel],
+            t_ns if whole else t_ns[sel],
             name.encode(),
-            {k: v[sel] for k, v in fields.items()},
+            fields if whole else {k: v[sel] for k, v in fields.items()},
             encoding,
+            prefix,
         )
         groups.append((sel, payloads))
     return rows, groups
 
 
-def _message_records(
-    channel: int, seq: np.ndarray, log: np.ndarray, payloads: np.ndarray
-) -> np.ndarray:
-    """Message records (m, 31 + L) uint8 for payloads (m, L) of one channel."""
-    m, size = payloads.shape
+def _fill_record_headers(
+    records: np.ndarray, channel: int, seq: np.ndarray, log: np.ndarray
+) -> None:
+    """Fill the 31-byte message record headers in front of the payloads of ``records`` (m, S)."""
+    m, size = records.shape
     dt = np.dtype(
         {
-            "names": ["op", "len", "ch", "seq", "log", "pub", "data"],
-            "formats": ["u1", "<u8", "<u2", "<u4", "<u8", "<u8", ("u1", size)],
-            "offsets": [0, 1, 9, 11, 15, 23, 31],
-            "itemsize": RECORD_HEADER + size,
+            "names": ["op", "len", "ch", "seq", "log", "pub"],
+            "formats": ["u1", "<u8", "<u2", "<u4", "<u8", "<u8"],
+            "offsets": [0, 1, 9, 11, 15, 23],
+            "itemsize": size,
         }
     )
-    rec = np.empty(m, dtype=dt)
-    rec["op"] = Opcode.MESSAGE
-    rec["len"] = size + RECORD_HEADER - 9
-    rec["ch"] = channel
-    rec["seq"] = seq
-    rec["log"] = log
-    rec["pub"] = log
-    rec["data"] = payloads
-    return rec.view(np.uint8).reshape(m, dt.itemsize)
+    head = records.reshape(-1).view(dt)
+    head["op"] = Opcode.MESSAGE
+    head["len"] = size - 9
+    head["ch"] = channel
+    head["seq"] = seq
+    head["log"] = log
+    head["pub"] = log
 
 
 class McapTableWriter:
@@ -198,7 +198,7 @@ class McapTableWriter:
         self.topics = dict(topics or {})
         self.chunk_bytes = chunk_bytes
         self._fh = open(self.path, "wb")  # noqa: SIM115 - closed in close()
-        self._compressor = zstandard.ZstdCompressor(level=3)
+        self._compressor = zstandard.ZstdCompressor(level=1)
         self._schemas: dict[tuple[str, str, bytes], Schema] = {}
         self._channels: dict[tuple[str, str, int], Channel] = {}
         self._topic_of: dict[int, str] = {}
@@ -258,9 +258,6 @@ class McapTableWriter:
         n = len(starts)
         if n == 0:
             return
-        lo, hi = int(log.min()), int(log.max())
-        self._start = lo if self._start < 0 else min(self._start, lo)
-        self._end = max(self._end, hi)
         ends = np.append(starts[1:], len(buf))
         cuts = np.searchsorted(ends, np.arange(self.chunk_bytes, int(ends[-1]), self.chunk_bytes))
         bounds = np.unique(np.concatenate([[0], cuts + 1, [n]]).clip(0, n))
@@ -275,6 +272,8 @@ class McapTableWriter:
         raw = buf[base:stop].tobytes()
         compressed = self._compressor.compress(raw)
         start_t, end_t = int(log.min()), int(log.max())
+        self._start = start_t if self._start < 0 else min(self._start, start_t)
+        self._end = max(self._end, end_t)
         head = struct.pack("<QQQI", start_t, end_t, len(raw), zlib.crc32(raw))
         head += struct.pack("<I", 4) + b"zstd" + struct.pack("<Q", len(compressed))
         chunk_start = self._fh.tell()
@@ -309,7 +308,11 @@ class McapTableWriter:
 
     # -- public ----------------------------------------------------------------------------
     def write_table(self, table: pa.Table) -> None:
-        """Write every sample of a common-table batch, in log-time order within the batch."""
+        """Write every sample of a common-table batch.
+
+        Each (topic, frame_id) group of messages goes into its own chunks, in log-time order
+        within the group; chunks are written in the order of their first log time (MCAP
+        readers merge overlapping chunks by log time)."""
         if table.num_rows == 0:
             return
         topics = {**DEFAULT_TOPICS, **metadata(table).get("topics", {}), **self.topics}
@@ -317,9 +320,9 @@ class McapTableWriter:
             log_all = pc.fill_null(table.column("log_time_ns"), table.column("t_ns")).to_numpy()
         else:
             log_all = table.column("t_ns").to_numpy()
-        parts = []  # (rows into table, channel, records (m, S))
+        pending = []  # (first log time, order, channel, records, log times)
         for stream in ("imu", "mag", "temperature"):
-            rows, groups = encode_stream(table, stream)
+            rows, groups = encode_stream(table, stream, prefix=RECORD_HEADER)
             if not len(rows):
                 continue
             msgtype = STREAM_TYPES[stream]
@@ -327,36 +330,26 @@ class McapTableWriter:
                 topics[stream], "cdr", (msgtype, "ros2msg", msgdef(msgtype).encode())
             )
             seq = self._sequence(cid, len(rows))
-            for sel, payloads in groups:
-                recs = _message_records(cid, seq[sel], log_all[rows[sel]], payloads)
-                parts.append((rows[sel], cid, recs))
-        if not parts:
-            return
-        if len(parts) == 1:
-            row_idx, cid, recs = parts[0]
-            buf = recs.reshape(-1)
-            starts = np.arange(len(row_idx), dtype=np.int64) * recs.shape[1]
-            channels = np.full(len(row_idx), cid, dtype=np.int64)
-            log = log_all[row_idx]
-            if np.all(log[1:] >= log[:-1]):
-                self._write_messages(buf, starts, channels, log)
-                return
-        row_idx = np.concatenate([p[0] for p in parts])
-        sizes = np.concatenate([np.full(len(p[0]), p[2].shape[1], np.int64) for p in parts])
-        channels = np.concatenate([np.full(len(p[0]), p[1], np.int64) for p in parts])
-        log = log_all[row_idx]
-        order = np.lexsort((row_idx, log))  # log time, then table order
-        rank = np.empty_like(order)
-        rank[order] = np.arange(len(order))
-        starts_sorted = np.concatenate([[0], np.cumsum(sizes[order])[:-1]]).astype(np.int64)
-        buf = np.empty(int(sizes.sum()), np.uint8)
-        k = 0
-        for _rows, _cid, recs in parts:
+            for sel, recs in groups:
+                log = log_all[rows[sel]]
+                _fill_record_headers(recs, cid, seq[sel], log)
+                if np.any(log[1:] < log[:-1]):
+                    order = np.argsort(log, kind="stable")
+                    recs, log = recs[order], log[order]
+                per_chunk = max(1, self.chunk_bytes // recs.shape[1])
+                for a in range(0, len(log), per_chunk):
+                    b = min(a + per_chunk, len(log))
+                    pending.append((int(log[a]), len(pending), cid, recs[a:b], log[a:b]))
+        pending.sort(key=lambda p: (p[0], p[1]))
+        for _, _, cid, recs, log in pending:
             m, size = recs.shape
-            dest = starts_sorted[rank[k : k + m]]
-            buf[dest[:, None] + np.arange(size)] = recs
-            k += m
-        self._write_messages(buf, starts_sorted, channels[order], log[order])
+            self._write_chunk(
+                recs.reshape(-1),
+                np.arange(m, dtype=np.int64) * size,
+                m * size,
+                np.full(m, cid, dtype=np.int64),
+                log,
+            )
 
     def write_raw(self, messages: Iterable[RawMessage]) -> None:
         """Write messages of other topics unchanged (one record each)."""

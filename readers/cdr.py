@@ -33,10 +33,11 @@ FIELDS: dict[str, list[tuple[str, int]]] = {
 }
 
 
-def layout(msgtype: str, frame_id_len: int, encoding: str = "cdr") -> np.dtype:
+def layout(msgtype: str, frame_id_len: int, encoding: str = "cdr", prefix: int = 0) -> np.dtype:
     """Structured dtype of a whole message (encapsulation included) for a frame_id of
     ``frame_id_len`` bytes (without the NUL). ``encoding="ros1"``: the ROS 1 layout
-    (``seq, secs, nsecs``, string length without NUL, frame_id, float64 fields unpadded)."""
+    (``seq, secs, nsecs``, string length without NUL, frame_id, float64 fields unpadded).
+    ``prefix`` leaves that many bytes in front of the message (e.g. for a record header)."""
     if encoding == "ros1":
         names = ["seq", "sec", "nanosec", "strlen"]
         formats: list = ["<u4", "<u4", "<u4", "<u4"]
@@ -59,7 +60,10 @@ def layout(msgtype: str, frame_id_len: int, encoding: str = "cdr") -> np.dtype:
         formats.append(("<f8", count) if count > 1 else "<f8")
         offsets.append(pos)
         pos += 8 * count
-    return np.dtype({"names": names, "formats": formats, "offsets": offsets, "itemsize": pos})
+    offsets = [o + prefix for o in offsets]
+    return np.dtype(
+        {"names": names, "formats": formats, "offsets": offsets, "itemsize": pos + prefix}
+    )
 
 
 def split_stamp(t_ns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -75,13 +79,15 @@ def encode(
     frame_id: bytes,
     fields: dict[str, np.ndarray],
     encoding: str = "cdr",
+    prefix: int = 0,
 ) -> np.ndarray:
-    """Encode ``n`` messages with one frame_id into an (n, itemsize) uint8 array.
+    """Encode ``n`` messages with one frame_id into an (n, prefix + itemsize) uint8 array.
 
     ``fields`` maps each float field name of :data:`FIELDS` to an (n,) or (n, count) array; a
     missing field is zeros. ``encoding``: ``cdr`` (ROS 2) or ``ros1`` (header ``seq`` 0).
+    ``prefix`` bytes (zeros) precede each message, for the caller to fill (a record header).
     """
-    dt = layout(msgtype, len(frame_id), encoding)
+    dt = layout(msgtype, len(frame_id), encoding, prefix)
     n = len(t_ns)
     out = np.zeros(n, dtype=dt)
     out["sec"], out["nanosec"] = split_stamp(t_ns)
@@ -148,7 +154,19 @@ def gather_strings(buf: np.ndarray, starts: np.ndarray, lengths: np.ndarray) -> 
     lengths = lengths.astype(np.int64)
     ends = np.cumsum(lengths)
     total = int(ends[-1]) if len(ends) else 0
-    if total:
+    n = len(lengths)
+    step = int(starts[1] - starts[0]) if n > 1 else 0
+    if (
+        total
+        and n > 1
+        and step > 0
+        and np.all(lengths == lengths[0])
+        and np.all(starts[1:] - starts[:-1] == step)
+    ):
+        size = int(lengths[0])
+        data = np.ndarray((n, size), np.uint8, buffer=buf, offset=int(starts[0]), strides=(step, 1))
+        data = data.reshape(-1) if step == size else data.copy().reshape(-1)
+    elif total:
         idx = np.repeat(starts.astype(np.int64) - (ends - lengths), lengths)
         idx += np.arange(total, dtype=np.int64)
         data = buf[idx]
@@ -166,21 +184,31 @@ def gather_strings(buf: np.ndarray, starts: np.ndarray, lengths: np.ndarray) -> 
 
 
 def decode(
-    buf: np.ndarray, starts: np.ndarray, lengths: np.ndarray, msgtype: str, encoding: str
-) -> tuple[np.ndarray, pa.Array, np.ndarray]:
+    buf: np.ndarray,
+    starts: np.ndarray,
+    lengths: np.ndarray,
+    msgtype: str,
+    encoding: str,
+    slots: list[tuple[int, int]] | None = None,
+) -> tuple[np.ndarray, pa.Array, np.ndarray | list[np.ndarray]]:
     """Decode ``len(starts)`` messages of ``msgtype`` whose payloads lie in ``buf`` (uint8).
 
-    Returns ``(stamp_ns int64 (n,), frame_id string array (n,), values float64 (n, k))`` where
-    ``values`` holds the float fields of :data:`FIELDS` in order. Raises :class:`PayloadError`
-    for a payload that cannot hold the type, :class:`NotFastPath` for a valid layout this
-    function does not handle (big-endian CDR).
+    Returns ``(stamp_ns int64 (n,), frame_id string array (n,), values)`` where ``values`` is
+    float64 (n, k), the float fields of :data:`FIELDS` in order, or with ``slots`` (a list of
+    ``(first float, count)``) one contiguous array per slot, (n,) for count 1 else (n, count).
+    Raises :class:`PayloadError` for a payload that cannot hold the type, :class:`NotFastPath`
+    for a valid layout this function does not handle (big-endian CDR).
     """
     k = field_count(msgtype)
     starts = np.asarray(starts, dtype=np.int64)
     ends = starts + np.asarray(lengths, dtype=np.int64)
     n = len(starts)
     if n == 0:
-        return np.zeros(0, np.int64), pa.array([], pa.string()), np.zeros((0, k))
+        empty = np.zeros((0, k))
+        out = (
+            empty if slots is None else [empty[:, 0] if c == 1 else empty[:, :c] for _, c in slots]
+        )
+        return np.zeros(0, np.int64), pa.array([], pa.string()), out
     short = np.flatnonzero(ends - starts < 16)
     if len(short):
         raise PayloadError(
@@ -216,8 +244,28 @@ def decode(
         )
     stamp = sec * 1_000_000_000 + u4[starts + 8].astype(np.int64)
     frames = gather_strings(buf, starts + 16, frame_len)
-    values = unaligned(buf, "<f8")[fstart[:, None] + 8 * np.arange(k)]
-    return stamp, frames, values
+    step = int(fstart[1] - fstart[0]) if n > 1 else 8 * k
+    if step >= 8 * k and np.all(fstart[1:] - fstart[:-1] == step):
+        # evenly spaced messages (one frame_id length, one channel per run): a strided view
+        # replaces the gather
+        rows = np.ndarray((n, k), "<f8", buffer=buf, offset=int(fstart[0]), strides=(step, 8))
+        if slots is None:
+            return stamp, frames, rows.copy()
+        return (
+            stamp,
+            frames,
+            [rows[:, f].copy() if c == 1 else rows[:, f : f + c].copy() for f, c in slots],
+        )
+    f8 = unaligned(buf, "<f8")
+    if slots is None:
+        return stamp, frames, f8[fstart[:, None] + 8 * np.arange(k)]
+    columns = [
+        f8[fstart + 8 * first]
+        if count == 1
+        else f8[fstart[:, None] + 8 * (first + np.arange(count))]
+        for first, count in slots
+    ]
+    return stamp, frames, columns
 
 
 def decode_with_rosbags(

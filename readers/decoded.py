@@ -10,7 +10,7 @@ merged in time order (at equal stamps: imu, mag, temperature).
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -19,6 +19,7 @@ import pyarrow as pa
 
 from imupipe.pipeline.errors import ReadError
 from imupipe.pipeline.table import COV, SCHEMA, with_metadata
+from imupipe.readers.cdr import NotFastPath, PayloadError, decode, decode_with_rosbags
 from imupipe.readers.spec import InputSpec
 
 STREAM_TYPES: dict[str, str] = {
@@ -29,15 +30,27 @@ STREAM_TYPES: dict[str, str] = {
 TYPE_STREAMS = {v: k for k, v in STREAM_TYPES.items()}
 TOPIC_KEYS = {"imu": "imu_topic", "mag": "mag_topic", "temperature": "temperature_topic"}
 
-# Column slices of each stream's float fields (order of imupipe.readers.cdr.FIELDS).
-IMU_SLICES = {
-    "orientation": slice(0, 4),
-    "orientation_cov": slice(4, 13),
-    "gyro": slice(13, 16),
-    "gyro_cov": slice(16, 25),
-    "accel": slice(25, 28),
-    "accel_cov": slice(28, 37),
+COLUMNS: dict[str, list[tuple[str, int, int]]] = {
+    "imu": [
+        ("orientation_x", 0, 1),
+        ("orientation_y", 1, 1),
+        ("orientation_z", 2, 1),
+        ("orientation_w", 3, 1),
+        ("orientation_cov", 4, 9),
+        ("gyro_x", 13, 1),
+        ("gyro_y", 14, 1),
+        ("gyro_z", 15, 1),
+        ("gyro_cov", 16, 9),
+        ("accel_x", 25, 1),
+        ("accel_y", 26, 1),
+        ("accel_z", 27, 1),
+        ("accel_cov", 28, 9),
+    ],
+    "mag": [("mag_x", 0, 1), ("mag_y", 1, 1), ("mag_z", 2, 1), ("mag_cov", 3, 9)],
+    "temperature": [("temperature", 0, 1), ("temperature_var", 1, 1)],
 }
+"""Per stream: the table columns its message fills, as (column, first float field, count) over
+the float fields of :data:`imupipe.readers.cdr.FIELDS`."""
 
 
 def normalize_type(name: str) -> str:
@@ -51,15 +64,49 @@ def normalize_type(name: str) -> str:
 @dataclass
 class Piece:
     """Decoded messages of one stream: header ``stamp`` and ``log`` time (int64 ns), ``frame``
-    (Arrow strings) and ``values`` (n, k) float64 in the message's field order."""
+    (Arrow strings) and ``columns`` (table column -> (n,) or (n, 9) float64, see
+    :data:`COLUMNS`)."""
 
     stamp: np.ndarray
     log: np.ndarray
     frame: pa.Array
-    values: np.ndarray
+    columns: dict[str, np.ndarray]
 
     def __len__(self) -> int:
         return int(self.stamp.shape[0])
+
+
+def decode_piece(
+    buf: np.ndarray,
+    starts: np.ndarray,
+    lengths: np.ndarray,
+    log: np.ndarray,
+    stream: str,
+    encoding: str,
+    where: str,
+) -> Piece:
+    """Decode one chunk's messages of ``stream`` (payloads in ``buf``) into a :class:`Piece`;
+    numpy path first, rosbags' deserializer for layouts it does not take. A bad payload is a
+    ReadError prefixed with ``where`` (file and topic)."""
+    msgtype = STREAM_TYPES[stream]
+    slots = [(first, count) for _, first, count in COLUMNS[stream]]
+    try:
+        try:
+            stamp, frame, cols = decode(buf, starts, lengths, msgtype, encoding, slots)
+        except NotFastPath:
+            payloads = [buf[s : s + n].tobytes() for s, n in zip(starts, lengths, strict=True)]
+            stamp, frame, values = decode_with_rosbags(payloads, msgtype, encoding)
+            cols = [
+                values[:, f].copy() if c == 1 else np.ascontiguousarray(values[:, f : f + c])
+                for f, c in slots
+            ]
+    except PayloadError as exc:
+        raise ReadError(
+            f"{where}: message at log time {int(log[exc.index])} is not a valid {msgtype}: "
+            f"{exc.reason}"
+        ) from None
+    names = [name for name, _, _ in COLUMNS[stream]]
+    return Piece(stamp, log, frame, dict(zip(names, cols, strict=True)))
 
 
 def select_topics(path: Path | str, spec: InputSpec, types: Mapping[str, str]) -> dict[str, str]:
@@ -126,29 +173,36 @@ def _order_stream(
 
 
 def _take(piece: Piece, order: np.ndarray) -> Piece:
+    """``piece`` reordered; its columns are replaced one at a time (memory: one column extra)."""
+    for name in list(piece.columns):
+        piece.columns[name] = piece.columns.pop(name)[order]
     return Piece(
-        piece.stamp[order], piece.log[order], piece.frame.take(pa.array(order)), piece.values[order]
+        piece.stamp[order], piece.log[order], piece.frame.take(pa.array(order)), piece.columns
     )
 
 
-def concat(pieces: Sequence[Piece], k: int) -> Piece:
-    """Join pieces of one stream in the order given."""
-    pieces = [p for p in pieces if len(p)]
-    if not pieces:
-        return Piece(
-            np.zeros(0, np.int64),
-            np.zeros(0, np.int64),
-            pa.array([], pa.string()),
-            np.zeros((0, k)),
-        )
+def concat(pieces: list[Piece], stream: str) -> Piece:
+    """Join pieces of one stream in the order given, emptying ``pieces`` as it goes (so the
+    memory peak is one column above the decoded size)."""
     if len(pieces) == 1:
-        return pieces[0]
-    return Piece(
+        return pieces.pop()
+    if not pieces:
+        cols = {
+            name: np.zeros(0) if count == 1 else np.zeros((0, count))
+            for name, _, count in COLUMNS[stream]
+        }
+        return Piece(np.zeros(0, np.int64), np.zeros(0, np.int64), pa.array([], pa.string()), cols)
+    columns = {}
+    for name, _, _ in COLUMNS[stream]:
+        columns[name] = np.concatenate([p.columns.pop(name) for p in pieces])
+    joined = Piece(
         np.concatenate([p.stamp for p in pieces]),
         np.concatenate([p.log for p in pieces]),
         pa.concat_arrays([p.frame for p in pieces]),
-        np.concatenate([p.values for p in pieces]),
+        columns,
     )
+    pieces.clear()
+    return joined
 
 
 def _column(n: int, rows: np.ndarray | None, values: np.ndarray) -> pa.Array:
@@ -211,31 +265,15 @@ def assemble(
     extra: dict[str, pa.Array] = {}
     nulls = pa.nulls(n, pa.float64())
 
-    def put(target: dict[str, pa.Array], name: str, stream: str, values: np.ndarray) -> None:
-        target[name] = _column(n, rows[stream], values)
-
     for name in ("gyro", "accel", "mag"):
         for axis in "xyz":
             columns[f"{name}_{axis}"] = nulls
     columns["temperature"] = nulls
-    if "imu" in rows:
-        v = ordered["imu"][1].values
-        for name in ("gyro", "accel"):
-            for i, axis in enumerate("xyz"):
-                put(columns, f"{name}_{axis}", "imu", v[:, IMU_SLICES[name]][:, i])
-        for i, axis in enumerate("xyzw"):
-            put(extra, f"orientation_{axis}", "imu", v[:, i])
-        for name in ("orientation_cov", "gyro_cov", "accel_cov"):
-            put(extra, name, "imu", v[:, IMU_SLICES[name]])
-    if "mag" in rows:
-        v = ordered["mag"][1].values
-        for i, axis in enumerate("xyz"):
-            put(columns, f"mag_{axis}", "mag", v[:, i])
-        put(extra, "mag_cov", "mag", v[:, 3:12])
-    if "temperature" in rows:
-        v = ordered["temperature"][1].values
-        put(columns, "temperature", "temperature", v[:, 0])
-        put(extra, "temperature_var", "temperature", v[:, 1])
+    for s in streams:
+        piece = ordered[s][1]
+        for name, _, _ in COLUMNS[s]:
+            target = columns if name in columns else extra
+            target[name] = _column(n, rows[s], piece.columns.pop(name))
 
     logs = [ordered[s][1].log for s in streams]
     log_all = np.concatenate(logs) if logs else np.zeros(0, np.int64)

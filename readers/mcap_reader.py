@@ -14,14 +14,7 @@ from pathlib import Path
 import pyarrow as pa
 
 from imupipe.pipeline.errors import ReadError
-from imupipe.readers.cdr import (
-    NotFastPath,
-    PayloadError,
-    decode,
-    decode_with_rosbags,
-    field_count,
-)
-from imupipe.readers.decoded import STREAM_TYPES, Piece, concat, normalize_type
+from imupipe.readers.decoded import Piece, concat, decode_piece, normalize_type
 from imupipe.readers.fast_mcap import ChunkMessages, McapFile
 from imupipe.readers.sources import carry_sources, iter_sources, read_sources
 from imupipe.readers.spec import InputSpec, RawMessage
@@ -81,32 +74,20 @@ class McapSource:
                     if cid not in chosen:
                         raw.extend(self._raw(chunk, cid, converters))
                 raw.sort(key=lambda m: m.log_time)
-            yield {s: concat(p, field_count(STREAM_TYPES[s])) for s, p in pieces.items()}, raw
+            yield {s: concat(p, s) for s, p in pieces.items()}, raw
 
     def _decode(self, chunk: ChunkMessages, cid: int, stream: str) -> Piece:
         channel = self.file.channels[cid]
-        msgtype = STREAM_TYPES[stream]
-        log, _pub, starts, lengths = chunk.records(cid)
-        encoding = channel.message_encoding
-        if encoding not in ("cdr", "ros1"):
+        where = f"{self.path}: topic '{channel.topic}'"
+        if channel.message_encoding not in ("cdr", "ros1"):
             raise ReadError(
-                f"{self.path}: topic '{channel.topic}': message encoding '{encoding}' is not "
-                "supported (cdr or ros1)"
+                f"{where}: message encoding '{channel.message_encoding}' is not supported "
+                "(cdr or ros1)"
             )
-        try:
-            try:
-                stamp, frame, values = decode(chunk.buf, starts, lengths, msgtype, encoding)
-            except NotFastPath:
-                payloads = [
-                    chunk.buf[s : s + n].tobytes() for s, n in zip(starts, lengths, strict=True)
-                ]
-                stamp, frame, values = decode_with_rosbags(payloads, msgtype, encoding)
-        except PayloadError as exc:
-            raise ReadError(
-                f"{self.path}: topic '{channel.topic}': message at log time {int(log[exc.index])} "
-                f"is not a valid {msgtype}: {exc.reason}"
-            ) from None
-        return Piece(stamp, log, frame, values)
+        log, _pub, starts, lengths = chunk.records(cid)
+        return decode_piece(
+            chunk.buf, starts, lengths, log, stream, channel.message_encoding, where
+        )
 
     def _raw(
         self, chunk: ChunkMessages, cid: int, converters: dict[int, object]

@@ -25,8 +25,8 @@ import numpy as np
 import pyarrow as pa
 
 from imupipe.pipeline.errors import ReadError
-from imupipe.readers.cdr import PayloadError, decode, field_count, unaligned
-from imupipe.readers.decoded import STREAM_TYPES, Piece, concat, normalize_type
+from imupipe.readers.cdr import unaligned
+from imupipe.readers.decoded import Piece, concat, decode_piece, normalize_type
 from imupipe.readers.sources import carry_sources, iter_sources, read_sources
 from imupipe.readers.spec import InputSpec, RawMessage
 
@@ -294,7 +294,7 @@ class Ros1Bag:
                         )
                     raw.extend(self._raw(chunk, conn, converters[cid]))
                 raw.sort(key=lambda m: m.log_time)
-            yield {s: concat(p, field_count(STREAM_TYPES[s])) for s, p in pieces.items()}, raw
+            yield {s: concat(p, s) for s, p in pieces.items()}, raw
 
     def _typestore(self) -> object:
         try:
@@ -305,17 +305,9 @@ class Ros1Bag:
             ) from None
 
     def _decode(self, chunk: BagChunk, cid: int, stream: str) -> Piece:
-        conn = self.connections[cid]
-        msgtype = STREAM_TYPES[stream]
         log, start, length = chunk.payloads(cid)
-        try:
-            stamp, frame, values = decode(chunk.buf, start, length, msgtype, "ros1")
-        except PayloadError as exc:
-            raise ReadError(
-                f"{self.path}: topic '{conn.topic}': message at log time {int(log[exc.index])} is "
-                f"not a valid {msgtype}: {exc.reason}"
-            ) from None
-        return Piece(stamp, log, frame, values)
+        where = f"{self.path}: topic '{self.connections[cid].topic}'"
+        return decode_piece(chunk.buf, start, length, log, stream, "ros1", where)
 
     def _raw(self, chunk: BagChunk, conn: Connection, converter: tuple) -> list[RawMessage]:
         name, schema, convert = converter

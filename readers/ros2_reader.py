@@ -20,8 +20,7 @@ import numpy as np
 import pyarrow as pa
 
 from imupipe.pipeline.errors import ReadError
-from imupipe.readers.cdr import NotFastPath, PayloadError, decode, decode_with_rosbags
-from imupipe.readers.decoded import STREAM_TYPES, Piece, normalize_type
+from imupipe.readers.decoded import Piece, decode_piece, normalize_type
 from imupipe.readers.mcap_reader import McapSource
 from imupipe.readers.sources import LogSource, carry_sources, iter_sources, read_sources
 from imupipe.readers.spec import InputSpec, RawMessage
@@ -132,21 +131,11 @@ class Sqlite3Bag:
         return pieces, raw
 
     def _decode(self, datas: list[bytes], log: np.ndarray, tid: int, stream: str) -> Piece:
-        msgtype = STREAM_TYPES[stream]
         lengths = np.fromiter(map(len, datas), np.int64, len(datas))
         starts = np.concatenate([[0], np.cumsum(lengths)[:-1]]).astype(np.int64)
         buf = np.frombuffer(b"".join(datas), np.uint8)
-        try:
-            try:
-                stamp, frame, values = decode(buf, starts, lengths, msgtype, "cdr")
-            except NotFastPath:
-                stamp, frame, values = decode_with_rosbags(list(datas), msgtype, "cdr")
-        except PayloadError as exc:
-            raise ReadError(
-                f"{self.path}: topic '{self.topics[tid][0]}': message at log time "
-                f"{int(log[exc.index])} is not a valid {msgtype}: {exc.reason}"
-            ) from None
-        return Piece(stamp, log, frame, values)
+        where = f"{self.path}: topic '{self.topics[tid][0]}'"
+        return decode_piece(buf, starts, lengths, log, stream, "cdr", where)
 
 
 def bag2_sources(path: Path) -> list[LogSource]:

@@ -21,8 +21,7 @@ from typing import Protocol
 import pyarrow as pa
 
 from imupipe.pipeline.errors import ReadError
-from imupipe.readers.cdr import field_count
-from imupipe.readers.decoded import STREAM_TYPES, Piece, assemble, concat, select_topics
+from imupipe.readers.decoded import Piece, assemble, concat, select_topics
 from imupipe.readers.spec import InputSpec, RawMessage
 
 
@@ -72,7 +71,7 @@ def read_sources(spec: InputSpec, sources: Sequence[LogSource]) -> tuple[pa.Tabl
         for pieces, _ in src.chunks(streams, carry=False):
             for stream, piece in pieces.items():
                 parts[stream].append(piece)
-    joined = {s: concat(p, field_count(STREAM_TYPES[s])) for s, p in parts.items()}
+    joined = {s: concat(p, s) for s, p in parts.items()}
     _check_empty(spec, streams, {s: len(p) for s, p in joined.items()})
     parts.clear()
     warnings: list[str] = []
@@ -100,7 +99,7 @@ def iter_sources(
     total = {s: 0 for s in streams}
 
     def flush() -> tuple[pa.Table, list[RawMessage]]:
-        joined = {s: concat(p, field_count(STREAM_TYPES[s])) for s, p in parts.items()}
+        joined = {s: concat(p, s) for s, p in parts.items()}
         table = assemble(
             joined,
             time=spec.time,

@@ -1,0 +1,173 @@
+"""Benchmark (issue 3): read and write 1,000,000 sensor_msgs/Imu messages in one MCAP.
+
+Measured in one run, on the same file, against the peers the issue names:
+
+- read to table: ``imupipe.readers.mcap_reader.read_mcap`` vs rosbags ``AnyReader`` +
+  ``deserialize`` of every message (goal: >= 10x);
+- corrected-MCAP write: ``imupipe.pipeline.mcap_writer.write_mcap`` vs ``mcap_ros2.writer.Writer``
+  ``write_message`` per message (goal: >= 5x);
+- peak memory growth of a fresh process reading the file, over its size after imports, against
+  the size of the decoded table (goal: < 3x).
+
+Prints wall times, the ratios and the memory figure. Not part of the CI test run (minutes of CPU);
+``tests/test_readers_bench.py`` runs a small smoke version.
+
+    python benchmarks/bench_read_write.py [--n 1000000] [--peer-n N] [--keep DIR]
+
+``--peer-n`` times the peers on the first N messages only and scales linearly (default: all).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+
+def make_table(n: int):
+    """n Imu messages at 1 kHz with random values, one frame_id (as a real driver publishes)."""
+    import pyarrow as pa
+
+    from imupipe.pipeline.table import make_table as mk
+
+    rng = np.random.default_rng(0)
+    t = 1_700_000_000_000_000_000 + np.arange(n, dtype=np.int64) * 1_000_000
+    frames = np.full(n, "imu_link")
+    return mk(
+        t,
+        gyro=rng.normal(0, 0.01, (n, 3)),
+        accel=rng.normal(0, 0.1, (n, 3)) + [0, 0, 9.81],
+        extra={"frame_id": pa.array(frames)},
+        metadata={"topics": {"imu": "/imu/data"}, "frame_id": {"imu": "imu"}},
+    )
+
+
+def timed(fn, *args, **kw):
+    start = time.perf_counter()
+    out = fn(*args, **kw)
+    return time.perf_counter() - start, out
+
+
+def peer_write(path: Path, table, n: int) -> None:
+    """mcap_ros2's writer, one write_message per message."""
+    from mcap_ros2.writer import Writer
+
+    from imupipe.pipeline.mcap_writer import msgdef
+    from imupipe.pipeline.table import sensor
+
+    g = sensor(table, "gyro").values[:n]
+    a = sensor(table, "accel").values[:n]
+    t = table.column("t_ns").to_numpy()[:n]
+    frames = table.column("frame_id").to_pylist()[:n]
+    with open(path, "wb") as fh:
+        writer = Writer(fh)
+        schema = writer.register_msgdef("sensor_msgs/msg/Imu", msgdef("sensor_msgs/msg/Imu"))
+        for i in range(n):
+            ti = int(t[i])
+            msg = {
+                "header": {
+                    "stamp": {"sec": ti // 1_000_000_000, "nanosec": ti % 1_000_000_000},
+                    "frame_id": frames[i],
+                },
+                "orientation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0},
+                "orientation_covariance": [-1.0] + [0.0] * 8,
+                "angular_velocity": {"x": g[i, 0], "y": g[i, 1], "z": g[i, 2]},
+                "angular_velocity_covariance": [0.0] * 9,
+                "linear_acceleration": {"x": a[i, 0], "y": a[i, 1], "z": a[i, 2]},
+                "linear_acceleration_covariance": [0.0] * 9,
+            }
+            writer.write_message("/imu/data", schema, msg, log_time=ti, publish_time=ti)
+        writer.finish()
+
+
+def peer_read(path: Path, n: int) -> int:
+    """rosbags AnyReader + deserialize of the first n messages."""
+    from rosbags.highlevel import AnyReader
+
+    count = 0
+    with AnyReader([path]) as reader:
+        for conn, _t, data in reader.messages():
+            reader.deserialize(data, conn.msgtype)
+            count += 1
+            if count >= n:
+                break
+    return count
+
+
+MEMORY_PROBE = """
+import json, resource, sys
+from imupipe.readers.mcap_reader import read_mcap
+from imupipe.readers.spec import InputSpec
+import pyarrow, numpy, zstandard  # noqa
+def rss():
+    with open('/proc/self/status') as fh:
+        for line in fh:
+            if line.startswith('VmRSS:'):
+                return int(line.split()[1]) * 1024
+base = rss()
+table, _ = read_mcap(InputSpec(path=sys.argv[1]))
+peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+print(json.dumps({"base": base, "peak": peak, "table": table.nbytes, "rows": table.num_rows}))
+"""
+
+
+def memory(path: Path) -> dict:
+    out = subprocess.run(
+        [sys.executable, "-c", MEMORY_PROBE, str(path)], capture_output=True, text=True, check=True
+    )
+    return json.loads(out.stdout)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--n", type=int, default=1_000_000)
+    parser.add_argument("--peer-n", type=int, default=None)
+    parser.add_argument("--keep", type=Path, default=None)
+    args = parser.parse_args()
+    n = args.n
+    peer_n = min(args.peer_n or n, n)
+
+    from imupipe.pipeline.mcap_writer import write_mcap
+    from imupipe.readers.mcap_reader import read_mcap
+    from imupipe.readers.spec import InputSpec
+
+    work = args.keep or Path(tempfile.mkdtemp(prefix="imupipe-bench-"))
+    work.mkdir(parents=True, exist_ok=True)
+    table = make_table(n)
+    ours_path = work / "ours.mcap"
+    peer_path = work / "peer.mcap"
+
+    t_write, _ = timed(write_mcap, ours_path, table)
+    t_peer_write, _ = timed(peer_write, peer_path, table, peer_n)
+    t_peer_write *= n / peer_n
+    t_read, (read, _) = timed(read_mcap, InputSpec(path=ours_path))
+    assert read.num_rows == n
+    t_peer_read, count = timed(peer_read, ours_path, peer_n)
+    t_peer_read *= n / count
+    mem = memory(ours_path)
+    growth = (mem["peak"] - mem["base"]) / mem["table"]
+
+    scaled = "" if peer_n == n else f" (peer timed on {peer_n} messages, scaled)"
+    print(f"messages: {n}; file {ours_path.stat().st_size / 1e6:.1f} MB{scaled}")
+    print(
+        f"read : imupipe {t_read:.2f} s ({n / t_read / 1e6:.2f} M msg/s), "
+        f"rosbags AnyReader+deserialize {t_peer_read:.2f} s -> {t_peer_read / t_read:.1f}x"
+    )
+    print(
+        f"write: imupipe {t_write:.2f} s ({n / t_write / 1e6:.2f} M msg/s), "
+        f"mcap_ros2 write_message {t_peer_write:.2f} s -> {t_peer_write / t_write:.1f}x"
+    )
+    print(
+        f"memory: table {mem['table'] / 1e6:.0f} MB, peak growth "
+        f"{(mem['peak'] - mem['base']) / 1e6:.0f} MB -> {growth:.2f}x the table"
+    )
+
+
+if __name__ == "__main__":
+    main()
