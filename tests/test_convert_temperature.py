@@ -1,0 +1,49 @@
+"""Issue 8: a temperature step (it needs the temperature stream and its rate, i.e. context beyond
+one sample) applies through ``imupipe convert`` exactly as ``imupipe run`` applies it.
+
+Convert reads such a log whole (mode ``whole`` in the manifest) instead of in batches, so the
+corrected messages are byte for byte those of ``run``'s corrected MCAP.
+"""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pyarrow.csv as pacsv
+from test_convert import raw_messages
+
+from imupipe.pipeline.manifest import read_manifest
+
+from conftest import run_cli
+from helpers import decode_mcap, vec
+
+
+def test_temperature_step_converts_like_run(tmp_path):
+    log = tmp_path / "therm.csv"
+    proc = run_cli(
+        "simulate", "thermal", "--out", log, "--rate", "1", "--set", "heating_rates=[2.0]",
+        "--set", "hold_s=300",
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    (tmp_path / "cfg.toml").write_text(
+        '[inputs.therm]\npath = "therm.csv"\n\n[[stages]]\ntype = "temperature"\nsensor = "gyro"\n'
+        '\n[output]\ndir = "run"\nrerun = false\n'
+    )
+    proc = run_cli("run", tmp_path / "cfg.toml", "--quiet")
+    assert proc.returncode == 0, proc.stderr
+    cal = tmp_path / "run" / "calibration.json"
+    assert [s["kind"] for s in json.loads(cal.read_text())["chain"]] == ["temperature"]
+
+    proc = run_cli("convert", "--calibration", cal, "--out", tmp_path / "conv", log)
+    assert proc.returncode == 0, proc.stderr
+    (line,) = read_manifest(tmp_path / "conv")
+    assert line["mode"] == "whole" and line["status"] == "converted"
+    ours = raw_messages(tmp_path / "conv" / "therm.mcap")
+    assert ours == raw_messages(tmp_path / "run" / "therm.mcap")
+    # and the step did correct: the compensated gyro is much closer to the true rate (zero)
+    raw = pacsv.read_csv(log)
+    before = np.column_stack([raw.column(f"gyro_{a}").to_numpy() for a in "xyz"])
+    after = vec(decode_mcap(tmp_path / "conv" / "therm.mcap")["/imu/data"], "angular_velocity")
+    rms = [float(np.sqrt(np.mean(x**2))) for x in (before, after)]
+    assert rms[1] < 0.2 * rms[0], rms
