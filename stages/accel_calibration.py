@@ -113,6 +113,9 @@ class AccelCalibrationStage(Stage):
         method: Literal["six_position", "lm", "frank_wolfe", "ferraris"] = "lm"
         gravity: float = 9.80665
         """Local gravity g, m/s^2."""
+        misalignment: bool = True
+        """lm / frank_wolfe: fit the three non-orthogonality angles (false: 6 parameters, for
+        sessions whose poses are only the six faces, where misalignment is unobservable)."""
         fit_on: Literal["means", "samples"] = "means"
         """Fit on the static-interval means, or on up to ``samples_per_interval`` samples from the
         middle of each interval (imu_tk's acc_use_means = false)."""
@@ -221,15 +224,22 @@ class AccelCalibrationStage(Stage):
                 "(use lm or frank_wolfe on nine or more distinct poses)"
             )
             return params, None
-        if metrics["distinct_poses"] < 9:
+        free = np.ones(9, dtype=bool)
+        free[3:6] = o.misalignment
+        if metrics["distinct_poses"] < free.sum():
             raise FitError(
                 f"{metrics['distinct_poses']} distinct poses (>= 10 deg apart) in "
-                f"{len(intervals)} static intervals: the 9-parameter model needs at least 9 "
-                "(with six axis-aligned poses the misalignment is unobservable; use six_position "
-                "or record more poses)"
+                f"{len(intervals)} static intervals: the {free.sum()}-parameter model needs at "
+                f"least {free.sum()}"
+                + (
+                    " (with only the six faces the misalignment is unobservable: set "
+                    "misalignment = false, or record more poses)"
+                    if o.misalignment
+                    else ""
+                )
             )
         data = means if o.fit_on == "means" else _middle_samples(samples, intervals, o)
-        problem = am.NormProblem(data, o.gravity, start)
+        problem = am.NormProblem(data, o.gravity, start, free)
         if o.method == "lm":
             sol = am.solve_lm(problem)
         else:
@@ -249,7 +259,7 @@ class AccelCalibrationStage(Stage):
         unc = am.uncertainty(problem, sol.x)
         metrics["uncertainty"] = unc
         worst = max(unc.get("misalignment_std_rad", [np.inf]))
-        if worst > 1e-3 or unc["condition_number"] > 1e4:
+        if o.misalignment and (worst > 1e-3 or unc["condition_number"] > 1e4):
             ctx.warn(
                 f"misalignment is poorly observable (angle std up to {worst:.2g} rad, condition "
                 f"number {unc['condition_number']:.3g}): record more, better spread poses"

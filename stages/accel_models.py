@@ -78,6 +78,9 @@ class NormProblem:
     samples: np.ndarray
     g: float
     start: NineParams
+    free: np.ndarray = field(default_factory=lambda: np.ones(9, dtype=bool))
+    """Which unknowns are fitted (the others stay at the start; e.g. the angles when the poses
+    cannot observe misalignment)."""
     radius: float = field(init=False)
 
     def __post_init__(self) -> None:
@@ -130,10 +133,17 @@ class Solution:
 def solve_lm(problem: NormProblem, *, xtol: float = 1e-12, max_nfev: int = 200) -> Solution:
     """Levenberg-Marquardt (``scipy.optimize.least_squares(method="lm")``, analytic Jacobian)."""
     t0 = time.perf_counter()
+    free = problem.free
+
+    def full(z: np.ndarray) -> np.ndarray:
+        x = np.zeros(9)
+        x[free] = z
+        return x
+
     res = least_squares(
-        problem.residual,
-        np.zeros(9),
-        jac=problem.jacobian,
+        lambda z: problem.residual(full(z)),
+        np.zeros(int(free.sum())),
+        jac=lambda z: problem.jacobian(full(z))[:, free],
         method="lm",
         xtol=xtol,
         ftol=1e-15,
@@ -148,7 +158,7 @@ def solve_lm(problem: NormProblem, *, xtol: float = 1e-12, max_nfev: int = 200) 
         "cost": float(res.cost),
         "stop": res.message,
     }
-    return Solution(problem.params(res.x), res.x, info)
+    return Solution(problem.params(full(res.x)), full(res.x), info)
 
 
 def solve_frank_wolfe(
@@ -157,6 +167,7 @@ def solve_frank_wolfe(
     box: np.ndarray | None = None,
     max_iter: int = 20000,
     gap_rtol: float = 1e-2,
+    rms_tol: float = 1e-5,
 ) -> Solution:
     """Frank-Wolfe (conditional gradient) over the box ``|x_j| <= box_j`` (seed 003).
 
@@ -165,14 +176,16 @@ def solve_frank_wolfe(
     ``d = s - x``; step ``gamma`` in [0, 1] from the Gauss-Newton model along ``d``
     (``-(r . J d) / |J d|^2``), halved until ``f`` decreases (Armijo, up to 30 times).
     Stopping rule: the Frank-Wolfe duality gap ``-grad . d`` (an upper bound of ``f - f*`` where
-    the objective is convex) falls below ``gap_rtol * f``, i.e. the cost is within a fraction
-    ``gap_rtol`` of the best in the box; or ``max_iter`` iterations.
+    the objective is convex) falls below ``max(gap_rtol * f, m rms_tol^2 / 2)``: the cost is
+    within a fraction ``gap_rtol`` of the best in the box, or the RMS residual (fraction of g) is
+    within ``sqrt(rms^2 - rms*^2) <= rms_tol`` of it (1e-5 g ~ 0.01 mg); or ``max_iter``.
     The default box is +-5 % on scale and bias (bias relative to g) and +-0.05 rad on the angles
     around the data-derived start; the result reports ``at_box_bound`` when it ends on the box.
     """
     t0 = time.perf_counter()
     if box is None:
         box = np.full(9, 0.05)
+    box = np.where(problem.free, box, 0.0)
     x = np.zeros(9)
     r = problem.residual(x)
     f = 0.5 * float(r @ r)
@@ -185,8 +198,8 @@ def solve_frank_wolfe(
         grad = jac.T @ r
         d = np.where(grad > 0, -box, box) - x
         gap = float(-grad @ d)
-        if gap <= gap_rtol * f:
-            stop = f"duality gap {gap:.3g} <= gap_rtol * cost"
+        if gap <= max(gap_rtol * f, 0.5 * len(r) * rms_tol**2):
+            stop = f"duality gap {gap:.3g} <= max(gap_rtol * cost, m * rms_tol^2 / 2)"
             break
         jd = jac @ d
         denom = float(jd @ jd)
@@ -212,7 +225,7 @@ def solve_frank_wolfe(
         "duality_gap": gap,
         "stop": stop,
         "box": box.tolist(),
-        "at_box_bound": bool(np.any(np.abs(x) >= 0.999 * box)),
+        "at_box_bound": bool(np.any((box > 0) & (np.abs(x) >= 0.999 * box))),
     }
     return Solution(problem.params(x), x, info)
 
@@ -220,9 +233,10 @@ def solve_frank_wolfe(
 def uncertainty(problem: NormProblem, x: np.ndarray) -> dict[str, Any]:
     """Parameter standard deviations from ``sigma^2 (J^T J)^-1`` (sigma^2 = residual variance per
     degree of freedom) and the condition number of the column-normalised Jacobian."""
-    jac = problem.jacobian(x)
+    free = problem.free
+    jac = problem.jacobian(x)[:, free]
     r = problem.residual(x)
-    dof = len(r) - 9
+    dof = len(r) - int(free.sum())
     norms = np.linalg.norm(jac, axis=0)
     norms[norms == 0] = 1.0
     sv = np.linalg.svd(jac / norms, compute_uv=False)
@@ -232,7 +246,8 @@ def uncertainty(problem: NormProblem, x: np.ndarray) -> dict[str, Any]:
         return out
     sigma2 = float(r @ r) / dof
     cov = np.linalg.pinv(jac.T @ jac) * sigma2
-    std = np.sqrt(np.maximum(np.diag(cov), 0))
+    std = np.zeros(9)
+    std[free] = np.sqrt(np.maximum(np.diag(cov), 0))
     out["scale_std"] = (std[0:3] * problem.start.scale).tolist()
     out["misalignment_std_rad"] = std[3:6].tolist()
     out["bias_std"] = (std[6:9] * problem.radius).tolist()
