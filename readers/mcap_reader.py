@@ -11,6 +11,7 @@ from __future__ import annotations
 from collections.abc import Iterator
 from pathlib import Path
 
+import numpy as np
 import pyarrow as pa
 
 from imupipe.pipeline.errors import ReadError
@@ -53,6 +54,15 @@ class McapSource:
                     self._first = int(min(t.min() for t in times))
                     break
         return self._first
+
+    def topic_times(self) -> dict[str, np.ndarray]:
+        times: dict[str, list[np.ndarray]] = {}
+        for chunk in self.file.chunks():
+            for cid in chunk.offsets:
+                channel = self.file.channels.get(cid)
+                if channel is not None:
+                    times.setdefault(channel.topic, []).append(chunk.records(cid)[0])
+        return {t: np.concatenate(v) for t, v in times.items()}
 
     def chunks(
         self, streams: dict[str, str], carry: bool, decode: bool = True

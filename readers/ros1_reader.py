@@ -215,6 +215,14 @@ class Ros1Bag:
     def first_time(self) -> int:
         return min((t for _, t, _ in self.chunk_infos), default=0)
 
+    def topic_times(self) -> dict[str, np.ndarray]:
+        times: dict[str, list[np.ndarray]] = {}
+        for chunk in self.bag_chunks():
+            for cid, (log, _) in chunk.index.items():
+                if cid in self.connections:
+                    times.setdefault(self.connections[cid].topic, []).append(log)
+        return {t: np.concatenate(v) for t, v in times.items()}
+
     def bag_chunks(self) -> Iterator[BagChunk]:
         """Every chunk, decompressed, with its index, in file order."""
         with open(self.path, "rb") as fh:

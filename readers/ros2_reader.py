@@ -80,6 +80,20 @@ class Sqlite3Bag:
         row = self._db.execute("SELECT MIN(timestamp) FROM messages").fetchone()
         return int(row[0] or 0)
 
+    def topic_times(self) -> dict[str, np.ndarray]:
+        try:
+            rows = self._db.execute("SELECT topic_id, timestamp FROM messages").fetchall()
+        except sqlite3.DatabaseError as exc:
+            raise ReadError(f"{self.path}: corrupt ROS 2 sqlite3 bag ({exc})") from None
+        if not rows:
+            return {}
+        tid, stamp = (np.asarray(c, np.int64) for c in zip(*rows, strict=True))
+        return {
+            name: np.sort(stamp[tid == t])
+            for t, (name, _, _) in self.topics.items()
+            if np.any(tid == t)
+        }
+
     def chunks(
         self, streams: dict[str, str], carry: bool, decode: bool = True
     ) -> Iterator[tuple[dict[str, Piece], list[RawMessage]]]:

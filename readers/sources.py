@@ -18,6 +18,7 @@ from collections.abc import Iterator, Sequence
 from pathlib import Path
 from typing import Protocol
 
+import numpy as np
 import pyarrow as pa
 
 from imupipe.pipeline.errors import ReadError
@@ -37,6 +38,9 @@ class LogSource(Protocol):
 
     def first_time(self) -> int:
         """Log time of the first message (ns), for ordering split files."""
+
+    def topic_times(self) -> dict[str, np.ndarray]:
+        """Topic -> log times (int64 ns) of its messages, without decoding payloads."""
 
     def chunks(
         self, streams: dict[str, str], carry: bool, decode: bool = True
@@ -137,3 +141,23 @@ def carry_sources(spec: InputSpec, sources: Sequence[LogSource]) -> list[RawMess
             out.extend(messages)
     out.sort(key=lambda m: m.log_time)
     return out
+
+
+def log_sources(spec: InputSpec) -> list[LogSource]:
+    """The sources of a binary input (MCAP, ROS 1 bag(s), ROS 2 bag)."""
+    from imupipe.readers.dispatch import detect_format
+
+    fmt = detect_format(Path(spec.path))
+    if fmt == "mcap":
+        from imupipe.readers.mcap_reader import McapSource
+
+        return [McapSource(spec.path)]
+    if fmt == "ros1":
+        from imupipe.readers.ros1_reader import bag_sources
+
+        return list(bag_sources(Path(spec.path)))
+    if fmt == "ros2":
+        from imupipe.readers.ros2_reader import bag2_sources
+
+        return bag2_sources(Path(spec.path))
+    raise ReadError(f"{spec.path}: not a binary log (MCAP or ROS bag)")

@@ -1,0 +1,152 @@
+"""``imupipe inspect LOG``: what a log holds and what imupipe would read from it.
+
+For MCAP and ROS bags: every topic with its message type, message count, mean rate (from the log
+times: ``(count - 1) / span``) and time span, without decoding payloads; then the topic each
+stream would be read from (the same choice ``imupipe run`` makes, so an ambiguous choice is shown
+with its candidates) and the common-table columns that would be filled. For CSV: the columns
+mapped with the default mapping, samples per stream, rate and span.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from imupipe.pipeline.errors import ImupipeError
+from imupipe.pipeline.table import SENSOR_COLUMNS, STREAM_OF_SENSOR, counts, sensor
+from imupipe.readers.decoded import COLUMNS, STREAM_TYPES, normalize_type, select_topics
+from imupipe.readers.dispatch import detect_format, read_input
+from imupipe.readers.sources import log_sources
+from imupipe.readers.spec import InputSpec
+
+BASE_COLUMNS = ["t_ns", "log_time_ns", "frame_id"]
+
+
+def _span(t: np.ndarray) -> dict[str, Any]:
+    n = len(t)
+    if n == 0:
+        return {"count": 0, "start_ns": None, "end_ns": None, "duration_s": 0.0, "rate_hz": None}
+    lo, hi = int(t.min()), int(t.max())
+    duration = (hi - lo) * 1e-9
+    return {
+        "count": n,
+        "start_ns": lo,
+        "end_ns": hi,
+        "duration_s": duration,
+        "rate_hz": (n - 1) / duration if n > 1 and duration > 0 else None,
+    }
+
+
+def inspect(spec: InputSpec) -> dict[str, Any]:
+    """A description of the log (see the module docstring) as a JSON-able dict."""
+    path = Path(spec.path)
+    fmt = detect_format(path)
+    if fmt == "csv":
+        table, warnings = read_input(spec)
+        streams = {}
+        filled = ["t_ns"]
+        present = counts(table)
+        for stream, first in (("imu", "gyro"), ("mag", "mag"), ("temperature", "temperature")):
+            if stream in present:
+                streams[stream] = {"source": "csv columns", **_span(sensor(table, first).t_ns)}
+                filled += [
+                    c
+                    for s, cols in SENSOR_COLUMNS.items()
+                    if STREAM_OF_SENSOR[s] == stream
+                    for c in cols
+                ]
+        return {
+            "path": str(path),
+            "format": fmt,
+            "topics": {},
+            "streams": streams,
+            "columns": filled,
+            "warnings": warnings,
+        }
+
+    sources = log_sources(spec)
+    types: dict[str, str] = {}
+    times: dict[str, list[np.ndarray]] = {}
+    for src in sources:
+        types.update(src.topic_types())
+        for topic, t in src.topic_times().items():
+            times.setdefault(topic, []).append(t)
+    topics = {}
+    for topic in sorted(types):
+        t = np.concatenate(times[topic]) if topic in times else np.zeros(0, np.int64)
+        topics[topic] = {"type": normalize_type(types[topic]), **_span(t)}
+    out: dict[str, Any] = {"path": str(path), "format": fmt, "topics": topics, "streams": {}}
+    try:
+        chosen = select_topics(path, spec, types)
+    except ImupipeError as exc:
+        out["columns"] = []
+        out["selection_error"] = str(exc)
+        return out
+    columns = list(BASE_COLUMNS)
+    for stream, topic in chosen.items():
+        out["streams"][stream] = {
+            "topic": topic,
+            "type": STREAM_TYPES[stream],
+            "count": topics[topic]["count"],
+        }
+        columns += [name for name, _, _ in COLUMNS[stream]]
+    out["columns"] = columns
+    return out
+
+
+def _fmt_time(ns: int | None) -> str:
+    return "-" if ns is None else f"{ns * 1e-9:.3f}"
+
+
+def render(info: dict[str, Any]) -> str:
+    """The inspect result as text."""
+    lines = [f"{info['path']}  ({info['format']})"]
+    if info["topics"]:
+        width = max(len(t) for t in info["topics"])
+        tw = max(len(v["type"]) for v in info["topics"].values())
+        lines.append(
+            f"  {'topic':<{width}}  {'type':<{tw}}  {'count':>9}  {'rate Hz':>9}  {'start s':>16}  {'span s':>9}"
+        )
+        for topic, v in info["topics"].items():
+            rate = "-" if v["rate_hz"] is None else f"{v['rate_hz']:.2f}"
+            lines.append(
+                f"  {topic:<{width}}  {v['type']:<{tw}}  {v['count']:>9}  {rate:>9}  "
+                f"{_fmt_time(v['start_ns']):>16}  {v['duration_s']:>9.3f}"
+            )
+    if "selection_error" in info:
+        lines.append(f"streams: not chosen: {info['selection_error']}")
+    for stream, v in info["streams"].items():
+        source = v.get("topic", v.get("source"))
+        extra = "" if "rate_hz" not in v or v["rate_hz"] is None else f", {v['rate_hz']:.2f} Hz"
+        lines.append(f"stream {stream}: {source} ({v['count']} samples{extra})")
+    if info["columns"]:
+        lines.append("columns filled: " + ", ".join(info["columns"]))
+    for w in info.get("warnings", []):
+        lines.append(f"warning: {w}")
+    return "\n".join(lines)
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("inspect", help="topics, types, counts, rates and the columns a log fills")
+    p.add_argument("log", type=Path, help="a .csv, .mcap, ROS 1 .bag, ROS 2 bag folder or .db3")
+    p.add_argument("--imu-topic", help="as imu_topic in the config")
+    p.add_argument("--mag-topic", help="as mag_topic in the config")
+    p.add_argument("--temperature-topic", help="as temperature_topic in the config")
+    p.add_argument("--json", action="store_true", help="print JSON instead of text")
+    p.set_defaults(func=main)
+
+
+def main(args: argparse.Namespace) -> int:
+    spec = InputSpec(
+        path=args.log,
+        imu_topic=args.imu_topic,
+        mag_topic=args.mag_topic,
+        temperature_topic=args.temperature_topic,
+    )
+    info = inspect(spec)
+    print(json.dumps(info, indent=2) if args.json else render(info))
+    return 0
