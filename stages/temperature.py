@@ -114,6 +114,9 @@ class TemperatureStep(Step):
     axes: list[dict[str, Any]]
     ranges: dict[str, list[float]]
     knots: list[float] | None = None
+    scale: dict[str, dict[str, Any]] | None = None
+    """Gyro scale factor against temperature per axis that was turned (seed 004): axis ->
+    ``{"terms", "coefficients"}`` of ``sf(T)``; ``corrected = (raw - f) / sf(T)`` there."""
     params: dict[str, Any] = field(default_factory=dict)
     warnings: list[str] = field(default_factory=list)
 
@@ -186,8 +189,17 @@ class TemperatureStep(Step):
                 "correction was fitted with ambient terms"
             )
         data = sensor(table, self.sensor)
-        corrected = data.values - self.bias(self.variables(table, data.t_ns))
+        variables = self.variables(table, data.t_ns)
+        corrected = data.values - self.bias(variables)
+        for axis, model in (self.scale or {}).items():
+            i = AXES.index(axis)
+            corrected[:, i] /= self.scale_factor(model, variables)
         return replace_sensor(table, self.sensor, data.rows, corrected)
+
+    def scale_factor(self, model: dict[str, Any], variables: dict[str, np.ndarray]) -> np.ndarray:
+        """sf(T) of one axis at the given variables."""
+        knots = None if self.knots is None else np.asarray(self.knots) - self.tref
+        return tm.evaluate(model["terms"], model["coefficients"], variables, knots)
 
     def to_json(self) -> dict[str, Any]:
         return {
@@ -200,6 +212,15 @@ class TemperatureStep(Step):
             "window_s": self.window_s,
             "ranges": self.ranges,
             "knots": self.knots,
+            "scale": None
+            if self.scale is None
+            else {
+                axis: {
+                    "terms": list(m["terms"]),
+                    "coefficients": [float(c) for c in m["coefficients"]],
+                }
+                for axis, m in self.scale.items()
+            },
             "axes": [
                 {"terms": list(ax["terms"]), "coefficients": [float(c) for c in ax["coefficients"]]}
                 for ax in self.axes
@@ -210,7 +231,7 @@ class TemperatureStep(Step):
     @classmethod
     def from_json(cls, entry: dict[str, Any]) -> TemperatureStep:
         known = {"type", "sensor", "kind", "model", "tref", "window", "window_s", "ranges"}
-        known |= {"knots", "axes"}
+        known |= {"knots", "axes", "scale"}
         axes = entry["axes"]
         if len(axes) != 3:
             raise ValueError("'axes' must hold 3 entries (x, y, z)")
@@ -232,6 +253,15 @@ class TemperatureStep(Step):
             ],
             ranges={k: [float(v[0]), float(v[1])] for k, v in entry["ranges"].items()},
             knots=entry.get("knots"),
+            scale=None
+            if entry.get("scale") is None
+            else {
+                axis: {
+                    "terms": list(m["terms"]),
+                    "coefficients": np.asarray(m["coefficients"], float),
+                }
+                for axis, m in entry["scale"].items()
+            },
             params={k: v for k, v in entry.items() if k not in known},
         )
 
@@ -250,6 +280,8 @@ class Prepared:
     variables: dict[str, np.ndarray]
     direction: np.ndarray
     reference: np.ndarray
+    pairs: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
+    """Turntable runs per turned axis: (temperature degC, scale factor) of each +/-rate pair."""
 
 
 def bin_weights(temp: np.ndarray, direction: np.ndarray, width: float) -> np.ndarray:
@@ -296,6 +328,12 @@ class TemperatureStage(Stage):
         """An input to evaluate the fitted correction on (held out from the fit)."""
         write_blocks: bool = False
         """Also write the block means used by the fit as ``<name>_blocks.csv``."""
+        turntable_rate: float | None = None
+        """rad/s: the log holds turntable runs at +rate and -rate (gyro only, seed 004); fit the
+        scale factor of each turned axis against temperature; blocks with turning are left out of
+        the bias fit."""
+        scale_order: int = 2
+        """Polynomial order of the scale factor in T - Tref (piecewise model: linear per segment)."""
 
     @classmethod
     def sensors_for(cls, options: Any) -> tuple[str, ...]:
@@ -342,8 +380,23 @@ class TemperatureStage(Stage):
         direction = np.where(
             variables["dT"] > SOAK_RATE, 1, np.where(variables["dT"] < -SOAK_RATE, -1, 0)
         )
+        pairs: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+        keep = np.ones(len(blocks.t_ns), dtype=bool)
+        if o.turntable_rate is not None:
+            rate = float(o.turntable_rate)
+            turning = (np.abs(data.values) > rate / 2).any(axis=1)
+            busy = block_means(data.t_ns, turning.astype(np.float64), window, window_s).means > 0
+            keep = ~(busy | np.r_[busy[1:], False] | np.r_[False, busy[:-1]])
+            for i, axis in enumerate(AXES):
+                pair_t, pair_sf = tm.turntable_pairs(data.t_ns, data.values[:, i], temp, rate)
+                if len(pair_t):
+                    pairs[axis] = (pair_t, pair_sf)
+        variables = {k: v[keep] for k, v in variables.items()}
+        means, direction = means[keep], direction[keep]
         reference = self._reference(means)
-        return Prepared(blocks.t_ns, means - reference, variables, direction, reference)
+        return Prepared(
+            blocks.t_ns[keep], means - reference, variables, direction, reference, pairs
+        )
 
     def _reference(self, means: np.ndarray) -> np.ndarray:
         if self.options.reference is not None:
@@ -420,6 +473,7 @@ class TemperatureStage(Stage):
             axes=axes,
             ranges=ranges,
             knots=None if knots is None else knots.tolist(),
+            scale=self._fit_scale(prep, tref, ctx) if o.turntable_rate is not None else None,
             params={"reference": prep.reference.tolist()},
         )
         fitted = step.bias(rel)
@@ -440,6 +494,8 @@ class TemperatureStage(Stage):
         }
         if selection_log:
             results["selection"] = selection_log
+        if step.scale is not None:
+            results["scale"] = self._scale_metrics(prep, step)
         if o.validate is not None:
             results["metrics"]["validate"] = self._validate(step, ctx)
         artifacts = {}
@@ -447,6 +503,39 @@ class TemperatureStage(Stage):
             artifacts[f"{ctx.name}_blocks.csv"] = self._blocks_csv(prep, weights)
         self._record(ctx, prep, step, rel, fitted)
         return StageOutput(results=results, step=step, artifacts=artifacts)
+
+    def _fit_scale(
+        self, prep: Prepared, tref: float, ctx: StageContext
+    ) -> dict[str, dict[str, Any]]:
+        """sf(T) per turned axis: a polynomial of order ``scale_order`` (at most pairs - 1)."""
+        if self.options.sensor != "gyro":
+            raise ctx.fail("'turntable_rate' applies to sensor = \"gyro\" only")
+        if not prep.pairs:
+            raise ctx.fail(
+                f"turntable_rate = {self.options.turntable_rate} rad/s, but no gyro axis has a "
+                "+rate run next to a -rate run (a run reads beyond rate/2)"
+            )
+        scale = {}
+        for axis, (pair_t, pair_sf) in prep.pairs.items():
+            order = max(0, min(self.options.scale_order, len(pair_t) - 1))
+            terms = tm.poly_terms(order)
+            coef = tm.weighted_lstsq(tm.design(terms, {"T": pair_t - tref}), pair_sf)
+            scale[axis] = {"terms": terms, "coefficients": coef}
+        return scale
+
+    @staticmethod
+    def _scale_metrics(prep: Prepared, step: TemperatureStep) -> dict[str, Any]:
+        """Per turned axis: pairs, the measured scale factors' range and the fit's RMSE."""
+        out = {}
+        for axis, model in (step.scale or {}).items():
+            pair_t, pair_sf = prep.pairs[axis]
+            fit = step.scale_factor(model, {"T": pair_t - step.tref})
+            out[axis] = {
+                "pairs": len(pair_t),
+                "scale_range": [float(pair_sf.min()), float(pair_sf.max())],
+                "rmse": float(np.sqrt(np.mean((pair_sf - fit) ** 2))),
+            }
+        return out
 
     @staticmethod
     def _relative(variables: dict[str, np.ndarray], tref: float) -> dict[str, np.ndarray]:
@@ -484,6 +573,12 @@ class TemperatureStage(Stage):
         before = self.prepare(table, ctx, name)
         after = self.prepare(step.apply(table), ctx, name)
         metrics = self._metrics(before.bias, before.bias - after.bias)
+        for axis, (_, sf_after) in after.pairs.items():
+            sf_before = before.pairs[axis][1]
+            metrics[axis] |= {
+                "scale_error_before": float(np.max(np.abs(sf_before - 1.0))),
+                "scale_error_after": float(np.max(np.abs(sf_after - 1.0))),
+            }
         metrics["input"] = name
         metrics["blocks"] = len(before.t_ns)
         return metrics

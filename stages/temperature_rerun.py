@@ -8,6 +8,8 @@
   it (seed 000 draws the same with ``mesh`` and ``plot3``). Each axis sits in its own unit box
   (x: T from Tmin to Tmax, y: dT from its min to max, z: bias from its min to max, offset 1.5
   apart along x for axes x, y, z); the arrows' labels give the ranges.
+- ``scale_vs_temperature/<axis>`` (gyro with ``turntable_rate``): the scale factor of each
+  +/-rate pair against temperature and the fitted curve, on the same timeline.
 - ``bias``, ``residual``, ``temperature``, ``rate``: the block bias, the residual after the fit,
   the block temperature(s) (degC) and rate (degC/min) over time.
 
@@ -117,6 +119,19 @@ def record_fit(
             colors=[c[2] for c in curves],
         )
 
+    # the gyro scale factor against temperature (turntable pairs and the fitted curve)
+    for axis, model in (step.scale or {}).items():
+        pair_t, pair_sf = prep.pairs[axis]
+        base = f"/{name}/scale_vs_temperature/{axis}"
+        rec.curve(
+            f"{base}/pairs", np.round(pair_t * 100.0).astype(np.int64), pair_sf, ("+/-rate pairs",),
+            timeline=TEMPERATURE_TIMELINE, colors=[SOAK], points=True,
+        )  # fmt: skip
+        rec.curve(
+            f"{base}/fit", grid_x, step.scale_factor(model, {"T": grid - step.tref}), ("fit",),
+            timeline=TEMPERATURE_TIMELINE, colors=[(20, 20, 20)],
+        )  # fmt: skip
+
     # the fitted surface B(T, dT) with the data on it
     tg, rg = np.meshgrid(np.linspace(lo, hi, GRID_T), np.linspace(rlo, rhi, GRID_R), indexing="ij")
     surface = _model_at(step, tg.ravel(), rg.ravel())
@@ -169,6 +184,14 @@ def record_fit(
             name=f"{name}: bias vs temperature (timeline {TEMPERATURE_TIMELINE})",
         ),
     )
+    if step.scale:
+        rec.add_view(
+            name,
+            rrb.TimeSeriesView(
+                origin=f"/{name}/scale_vs_temperature",
+                name=f"{name}: scale factor vs temperature (timeline {TEMPERATURE_TIMELINE})",
+            ),
+        )
     rec.add_view(name, rrb.Spatial3DView(origin=f"/{name}/surface", name=f"{name}: B(T, dT)"))
     rec.add_view(
         name,
@@ -177,6 +200,7 @@ def record_fit(
             contents=[
                 f"+ /{name}/**",
                 f"- /{name}/bias_vs_temperature/**",
+                f"- /{name}/scale_vs_temperature/**",
                 f"- /{name}/surface/**",
             ],
             name=f"{name}: over time",

@@ -139,3 +139,54 @@ def evaluate(
 ) -> np.ndarray:
     """The model's bias at the given variables."""
     return design(terms, variables, knots) @ np.asarray(coef, dtype=np.float64)
+
+
+# -- scale factor from turntable runs (seed 004) ---------------------------------------------
+
+
+def turning_runs(t_ns: np.ndarray, raw: np.ndarray, rate: float) -> tuple[np.ndarray, np.ndarray]:
+    """Per sample: run id and turning state of one gyro axis, +1 where ``raw > rate / 2``, -1
+    where ``raw < -rate / 2``, 0 otherwise; a run is a stretch of equal state."""
+    state = np.where(raw > rate / 2, 1, np.where(raw < -rate / 2, -1, 0))
+    run = np.r_[0, np.cumsum(np.diff(state) != 0)]
+    return run, state
+
+
+def turntable_pairs(
+    t_ns: np.ndarray,
+    raw: np.ndarray,
+    temp: np.ndarray,
+    rate: float,
+    trim_s: float = 2.0,
+    max_gap_s: float = 10.0,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Seed 004's scale factor at each temperature: ``(out(+rate) - out(-rate)) / (2 rate)``
+    for each +rate run followed (within ``max_gap_s``) by a -rate run or the reverse, on one
+    gyro axis (``raw`` rad/s, ``rate`` rad/s > 0). Returns (mean temperature, scale factor) of
+    each pair. ``trim_s`` seconds at both ends of a run are left out (spin-up, spin-down)."""
+    run, state = turning_runs(t_ns, raw, rate)
+    n_runs = int(run[-1]) + 1 if len(run) else 0
+    t = (t_ns - t_ns[0]).astype(np.float64) * 1e-9
+    first = np.full(n_runs, np.inf)
+    last = np.full(n_runs, -np.inf)
+    np.minimum.at(first, run, t)
+    np.maximum.at(last, run, t)
+    inner = ((t - first[run]) >= trim_s) & ((last[run] - t) >= trim_s)
+    count = np.bincount(run, weights=inner, minlength=n_runs)
+    mean = np.bincount(run, weights=raw * inner, minlength=n_runs) / np.maximum(count, 1)
+    mean_t = np.bincount(run, weights=temp * inner, minlength=n_runs) / np.maximum(count, 1)
+    run_state = np.zeros(n_runs, dtype=np.int64)
+    run_state[run] = state
+    turning = np.flatnonzero((run_state != 0) & (count > 0))
+    temps, scales = [], []
+    k = 0
+    while k + 1 < len(turning):  # loops over runs (a few per turntable stop), not samples
+        a, b = turning[k], turning[k + 1]
+        if run_state[a] == -run_state[b] and first[b] - last[a] <= max_gap_s:
+            plus, minus = (a, b) if run_state[a] > 0 else (b, a)
+            scales.append((mean[plus] - mean[minus]) / (2.0 * rate))
+            temps.append(0.5 * (mean_t[a] + mean_t[b]))
+            k += 2
+        else:
+            k += 1
+    return np.array(temps), np.array(scales)

@@ -253,3 +253,25 @@ def test_recording_has_the_figures(converted):
         assert f"/temp_gyro/surface/{axis}/mesh" in entities
         assert f"/temp_gyro/surface/{axis}/data" in entities
     assert "/temp_accel/residual" in entities
+
+
+def test_turntable_scale_factor_against_temperature(tmp_path):
+    """Seed 004: +/-rate turntable runs in the chamber give sf(T) = (out+ - out-) / (2 rate)."""
+    turn = {"turntable_rate": 10.0}
+    fit, truth = simulate("thermal", {**FIT, **turn}, seed=21)
+    val, _ = simulate("thermal", {**VALIDATE, **turn}, seed=22)
+    rate = float(np.deg2rad(10.0))
+    out = fit_stage(fit, val, validate="val", turntable_rate=rate, tref=truth["poly_tref"])
+    assert list(out.step.scale) == ["z"]  # the table turns about z only
+    s1, s2 = truth["gyro"]["scale_poly"][2]
+    sf0, got1, got2 = out.step.scale["z"]["coefficients"]
+    assert abs(sf0 - 1.0) < 3e-4 and got1 == pytest.approx(s1, rel=0.02)
+    assert got2 == pytest.approx(s2, rel=0.1)
+    metrics = out.results["metrics"]["validate"]
+    assert metrics["z"]["scale_error_after"] < 0.1 * metrics["z"]["scale_error_before"]
+    for axis in "xyz":  # the turning blocks stay out of the bias fit
+        assert metrics[axis]["reduction"] >= 20
+    # the scale travels through calibration.json
+    (again,) = steps_from_json([out.step.to_json()])
+    a = sensor(out.step.apply(val), "gyro").values
+    np.testing.assert_array_equal(a, sensor(again.apply(val), "gyro").values)

@@ -20,9 +20,15 @@ specific force ``[0, 0, gravity]``. The temperature sensor reads ``T`` plus whit
 ``temperature_noise`` degC at ``temperature_rate_hz`` (null: every IMU sample); the
 ``ambient_temperature`` column holds ``Ta`` (when ``ambient`` is true).
 
+Turntable (seed 004), with ``turntable_rate`` (deg/s): at the end of every ``turntable_period_s``
+the table turns about the IMU's z axis at +rate for ``turntable_s`` seconds, then at -rate for
+as long (instantaneous switches; the accelerometer, at the centre, feels nothing). The gyro then
+reads ``bias + sf * true`` with the scale factor ``sf = 1 + s1 x + s2 x^2`` per axis
+(``gyro_scale_poly`` = [[s1, s2] per axis]).
+
 Truth: ``gyro`` and ``accel`` with ``poly`` (coefficients about ``poly_tref``), ``rate_coef``,
-``N`` and ``reference`` (the true output); ``poly_tref``; ``temperature_range`` (device T);
-``duration_s``.
+``N`` and ``reference`` (the true output when still); gyro ``scale_poly``; ``poly_tref``;
+``temperature_range`` (device T); ``duration_s``; ``turntable_rate`` (rad/s or null).
 """
 
 from __future__ import annotations
@@ -66,6 +72,10 @@ DEFAULTS: dict[str, Any] = {
     "temperature_noise": 0.02,
     "temperature_rate_hz": None,
     "ambient": True,
+    "turntable_rate": None,
+    "turntable_period_s": 900.0,
+    "turntable_s": 60.0,
+    "gyro_scale_poly": [[2.0e-4, -1.0e-6], [-1.0e-4, 2.0e-6], [3.0e-4, 1.0e-6]],
 }
 
 
@@ -135,6 +145,14 @@ def simulate(p: dict[str, Any], rng: np.random.Generator) -> tuple[pa.Table, dic
     gyro_ref = np.zeros(3)
     accel_ref = np.array([0.0, 0.0, float(p["gravity"])])
     gyro = gyro_ref + _bias(p["gyro_poly"], p["gyro_rate_coef"], x, rate)
+    table_rate = None
+    if p["turntable_rate"]:
+        table_rate = np.deg2rad(float(p["turntable_rate"]))
+        period, spin = float(p["turntable_period_s"]), float(p["turntable_s"])
+        phase = period - np.mod(t_s, period)  # seconds left in the period
+        w = np.where(phase <= spin, -table_rate, np.where(phase <= 2 * spin, table_rate, 0.0))
+        sf = 1.0 + np.column_stack([x, x * x]) @ np.asarray(p["gyro_scale_poly"], float).T
+        gyro[:, 2] += sf[:, 2] * w
     accel = accel_ref + _bias(p["accel_poly"], p["accel_rate_coef"], x, rate)
     for i in range(3):
         gyro[:, i] += white(rng, n, float(p["gyro_N"][i]), fs)
@@ -158,11 +176,13 @@ def simulate(p: dict[str, Any], rng: np.random.Generator) -> tuple[pa.Table, dic
         "poly_tref": float(p["poly_tref"]),
         "temperature_range": [float(temp.min()), float(temp.max())],
         "duration_s": float(t_s[-1]),
+        "turntable_rate": table_rate,
         "gyro": {
             "poly": p["gyro_poly"],
             "rate_coef": p["gyro_rate_coef"],
             "N": p["gyro_N"],
             "reference": gyro_ref.tolist(),
+            "scale_poly": p["gyro_scale_poly"],
         },
         "accel": {
             "poly": p["accel_poly"],
