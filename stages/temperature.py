@@ -501,7 +501,10 @@ class TemperatureStage(Stage):
         artifacts = {}
         if o.write_blocks:
             artifacts[f"{ctx.name}_blocks.csv"] = self._blocks_csv(prep, weights)
-        self._record(ctx, prep, step, rel, fitted)
+        if getattr(ctx.recorder, "enabled", False):
+            from imupipe.stages.temperature_rerun import record_fit  # imports rerun lazily
+
+            record_fit(ctx, prep, step, fitted)
         return StageOutput(results=results, step=step, artifacts=artifacts)
 
     def _fit_scale(
@@ -593,18 +596,3 @@ class TemperatureStage(Stage):
         lines = [",".join(names)]
         lines += [f"{int(r[0])}," + ",".join(f"{v:.17g}" for v in r[1:]) for r in rows]
         return "\n".join(lines) + "\n"
-
-    # -- Rerun -------------------------------------------------------------------------------
-    def _record(
-        self,
-        ctx: StageContext,
-        prep: Prepared,
-        step: TemperatureStep,
-        rel: dict[str, np.ndarray],
-        fitted: np.ndarray,
-    ) -> None:
-        if not getattr(ctx.recorder, "enabled", False):
-            return
-        from imupipe.stages.temperature_rerun import record_fit
-
-        record_fit(ctx, prep, step, rel, fitted)

@@ -24,6 +24,8 @@ import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
+from imupipe.pipeline.table import SENSOR_UNITS
+
 if TYPE_CHECKING:
     from imupipe.stages.base import StageContext
     from imupipe.stages.temperature import Prepared, TemperatureStep
@@ -58,12 +60,12 @@ def record_fit(
     ctx: StageContext,
     prep: Prepared,
     step: TemperatureStep,
-    rel: dict[str, np.ndarray],
     fitted: np.ndarray,
 ) -> None:
-    """Send the stage's figures (see the module docstring)."""
+    """Send the stage's figures (see the module docstring); ``fitted`` is the model at the
+    blocks of ``prep``."""
     rec, name = ctx.recorder, ctx.name
-    unit = "rad/s" if step.sensor == "gyro" else "m/s^2"
+    unit = SENSOR_UNITS[step.sensor]
     temp, rate = prep.variables["T"], prep.variables["dT"]
     lo, hi = step.ranges["T"]
     rlo, rhi = step.ranges["dT"]
