@@ -67,10 +67,11 @@ class StaticSetup:
 
 
 def detect_intervals(
-    t_ns: np.ndarray, accel: np.ndarray, setup: Any, g: float, method: str
+    t_ns: np.ndarray, accel: np.ndarray, setup: Any, g: float, n_params: int
 ) -> tuple[Intervals, dict[str, Any]]:
     """Static intervals with the threshold chosen by the lowest residual per degree of freedom
-    of a 9-parameter LM fit on the interval means (six_position: its own RMS on the means)."""
+    of an LM fit of the model (``n_params`` 9, or 6 without misalignment) on the interval means;
+    at least ``n_params`` intervals."""
     detector = make_detector(
         t_ns,
         accel,
@@ -81,20 +82,18 @@ def detect_intervals(
 
     def score(intervals: Intervals) -> float | None:
         means = intervals.means(accel)
+        free = np.ones(9, dtype=bool)
+        free[3:6] = n_params == 9
         try:
-            if method == "six_position":
-                params = am.six_position(means, g)
-                return rms(norm_residual_mg(params.apply(means), g))
-            problem = am.NormProblem(means, g, am.initial_guess(means, g))
+            problem = am.NormProblem(means, g, am.initial_guess(means, g), free)
             sol = am.solve_lm(problem, xtol=1e-8)
         except (FitError, np.linalg.LinAlgError, ValueError):
             return None
         r = problem.residual(sol.x) * g / am.MG
-        dof = len(r) - 9
+        dof = len(r) - n_params
         return float(r @ r) / dof if dof > 0 else 1e300
 
-    min_intervals = 6 if method == "six_position" else 9
-    choice = choose_threshold(detector, setup.thresholds, score, min_intervals)
+    choice = choose_threshold(detector, setup.thresholds, score, n_params)
     info = {
         "threshold_k": choice.k,
         "threshold_scores": {f"{k:g}": v for k, v in choice.scores.items()},
@@ -149,7 +148,8 @@ class AccelCalibrationStage(Stage):
             raise ctx.fail(f"non-finite accelerometer sample at sample {bad}")
         g = o.gravity
         try:
-            intervals, detection = detect_intervals(acc.t_ns, acc.values, o, g, o.method)
+            n_params = 9 if o.misalignment and o.method != "six_position" else 6
+            intervals, detection = detect_intervals(acc.t_ns, acc.values, o, g, n_params)
         except FitError as exc:
             raise ctx.fail(str(exc)) from None
         means = intervals.means(acc.values)

@@ -99,7 +99,7 @@ class GyroCalibrationStage(Stage):
                 f"the accelerometer norm is {norm:.4g}, not about g = {o.gravity}: is it "
                 "calibrated? (put accel_calibration before gyro_calibration)"
             )
-        intervals, detection = detect_intervals(acc.t_ns, acc.values, o, o.gravity, "lm")
+        intervals, detection = detect_intervals(acc.t_ns, acc.values, o, o.gravity, 6)
         bias = gyro.values[gyro.t_s <= o.init_static_s].mean(axis=0)
         moves = gm.PoseTransitions.build(gyro.t_ns, gyro.values, acc.values, intervals)
         fit = gm.fit_static_poses(moves, bias)

@@ -5,7 +5,8 @@ Timeline: ``init_static_s`` seconds at rest in the first pose (z up), then ``n_p
 a rotation of ``move_s`` seconds about a fixed body axis (smooth profile ``theta(t) = angle (1 -
 cos(pi t / move_s)) / 2``) into the next pose, and ``pose_s`` seconds at rest there. With
 ``faces = true`` poses 1..5 complete the six faces (+-x, +-y, +-z up); the others are uniformly
-random orientations (from the seed). The IMU rotates about its own origin (no linear acceleration).
+random orientations (from the seed), or with ``only_faces = true`` the six faces again and again,
+each tilted by a random angle of up to ``face_tilt_deg`` (a six-face session like the T265's). The IMU rotates about its own origin (no linear acceleration).
 
 Error model, the inverse of imupipe's calibration models (so a perfect fit returns the truth)::
 
@@ -40,6 +41,8 @@ DEFAULTS: dict[str, Any] = {
     "pose_s": 6.0,
     "move_s": 3.0,
     "faces": True,
+    "only_faces": False,
+    "face_tilt_deg": 2.0,
     "accel_scale": [1.02, 0.985, 1.01],
     "accel_misalignment": [0.004, -0.006, 0.008],
     "accel_bias": [0.15, -0.10, 0.20],
@@ -61,6 +64,17 @@ def pose_rotations(p: dict[str, Any], rng: np.random.Generator) -> Rotation:
         raise ValueError("n_poses must be >= 2")
     ups = FACES[: min(n, 6)] if p["faces"] else FACES[:1]
     rots = [Rotation.align_vectors([[0.0, 0.0, 1.0]], [u])[0] for u in ups]
+    if p["only_faces"]:
+        faces = Rotation.concatenate(
+            [Rotation.align_vectors([[0.0, 0.0, 1.0]], [FACES[i % 6]])[0] for i in range(n)]
+        )
+        tilt = rng.normal(size=(n, 3))
+        tilt *= (
+            np.radians(p["face_tilt_deg"])
+            * rng.uniform(size=(n, 1))
+            / np.linalg.norm(tilt, axis=1, keepdims=True)
+        )
+        return faces * Rotation.from_rotvec(tilt)
     rest = Rotation.random(n - len(rots), random_state=rng)
     return Rotation.concatenate([*rots, rest]) if n > len(rots) else Rotation.concatenate(rots)
 
