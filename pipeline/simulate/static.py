@@ -1,8 +1,9 @@
 """Scenario ``static``: an IMU at rest, z axis up, with constant biases and the noise model of
-:mod:`imupipe.pipeline.simulate.noise` per axis (white N, bias instability B, random walk K).
+:mod:`imupipe.pipeline.simulate.noise` per axis: white N, bias instability B, random walk K,
+quantisation Q and rate ramp R (continuous-time SI, the Allan ``allan`` stage's units).
 
-Truth: ``gyro`` and ``accel`` each with ``bias``, ``N``, ``B``, ``K`` (3 values each, SI), and
-``gravity`` (the true specific force at rest, m/s^2).
+Truth: ``gyro`` and ``accel`` each with ``bias``, ``N``, ``B``, ``K``, ``Q``, ``R`` (3 values
+each, SI), and ``gravity`` (the true specific force at rest, m/s^2).
 """
 
 from __future__ import annotations
@@ -12,7 +13,7 @@ from typing import Any
 import numpy as np
 import pyarrow as pa
 
-from imupipe.pipeline.simulate.noise import flicker, random_walk, white
+from imupipe.pipeline.simulate.noise import flicker, quantization, random_walk, rate_ramp, white
 from imupipe.pipeline.table import make_table
 
 DEFAULTS: dict[str, Any] = {
@@ -24,12 +25,19 @@ DEFAULTS: dict[str, Any] = {
     "gyro_N": [1.7e-4, 1.7e-4, 1.7e-4],
     "gyro_B": [0.0, 0.0, 0.0],
     "gyro_K": [2.0e-6, 2.0e-6, 2.0e-6],
+    "gyro_Q": [0.0, 0.0, 0.0],
+    "gyro_R": [0.0, 0.0, 0.0],
     "accel_bias": [0.05, -0.03, 0.08],
     "accel_N": [2.0e-3, 2.0e-3, 2.0e-3],
     "accel_B": [0.0, 0.0, 0.0],
     "accel_K": [3.0e-5, 3.0e-5, 3.0e-5],
+    "accel_Q": [0.0, 0.0, 0.0],
+    "accel_R": [0.0, 0.0, 0.0],
     "temperature": 25.0,
 }
+
+
+TRUTH_KEYS = ("bias", "N", "B", "K", "Q", "R")
 
 
 def _sensor(
@@ -42,6 +50,8 @@ def _sensor(
             + white(rng, n, p[f"{name}_N"][i], fs)
             + flicker(rng, n, p[f"{name}_B"][i], fs)
             + random_walk(rng, n, p[f"{name}_K"][i], fs)
+            + quantization(rng, n, p[f"{name}_Q"][i], fs)
+            + rate_ramp(n, p[f"{name}_R"][i], fs)
         )
     return np.column_stack(cols)
 
@@ -62,8 +72,8 @@ def simulate(p: dict[str, Any], rng: np.random.Generator) -> tuple[pa.Table, dic
         metadata={"source": "imupipe simulate static", "format": "simulated"},
     )
     truth = {
-        "gyro": {k: list(p[f"gyro_{k}"]) for k in ("bias", "N", "B", "K")},
-        "accel": {k: list(p[f"accel_{k}"]) for k in ("bias", "N", "B", "K")},
+        "gyro": {k: list(p[f"gyro_{k}"]) for k in TRUTH_KEYS},
+        "accel": {k: list(p[f"accel_{k}"]) for k in TRUTH_KEYS},
         "gravity": gravity.tolist(),
     }
     return table, truth

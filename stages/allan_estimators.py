@@ -1,0 +1,445 @@
+"""Exact frequency-stability estimators (NIST SP1065, Riley 2008), all axes at once.
+
+Input is *rate* data ``y`` (n, k): each column a sensor axis sampled every ``tau0 = 1/rate_hz``
+seconds (gyro rad/s, accel m/s^2; the deviations come out in the same unit). The mean of each
+column is removed first and the "phase" ``x = tau0 * cumsum(y)`` (n + 1 points, x[0] = 0) is
+formed; every estimator is then a sum of squared finite differences of ``x`` at lag ``m`` (the
+averaging factor, ``tau = m * tau0``), computed in O(n) per tau and in cache-sized row chunks:
+
+| kind | variance at tau = m tau0 (N phase points) | terms (Stable32 ``#``) |
+|---|---|---|
+| ``oadev`` | sum_i (x[i+2m] - 2x[i+m] + x[i])^2 / (2 tau^2 (N-2m)) | N - 2m |
+| ``adev`` | the same over i = 0, m, 2m, ... | (N-1)//m - 1 |
+| ``mdev`` | sum_j (sum_{i=j}^{j+m-1} (x[i+2m] - 2x[i+m] + x[i]))^2 / (2 m^2 tau^2 (N-3m+1)) | N - 3m + 1 |
+| ``hdev`` | sum over i = 0, m, ... of (x[i+3m] - 3x[i+2m] + 3x[i+m] - x[i])^2 / (6 tau^2 #) | (N-1)//m - 2 |
+| ``ohdev`` | the same over every i | N - 3m |
+| ``totdev`` | OADEV's sum over i = 1..N-2 of x extended by odd reflection at both ends, / (N-2) | N - 2 |
+
+Confidence: the noise type ``alpha`` (frequency PSD ~ f^alpha) is identified per tau by the lag-1
+autocorrelation method (Riley & Greenhall 2004); the equivalent degrees of freedom follow
+Greenhall & Riley 2003/2004 (the algorithm Stable32 uses) for the ADEV family and SP1065 Table 7
+for TOTDEV; the bounds are the chi-square ones: ``dev * sqrt(edf / chi2.ppf(p, edf))`` with
+p = 0.8415 (lower) and 0.1585 (upper), i.e. 68.3 % intervals.
+"""
+
+from __future__ import annotations
+
+import functools
+from dataclasses import dataclass
+from typing import Literal
+
+import numpy as np
+from scipy.special import binom
+from scipy.stats import chi2
+
+Kind = Literal["oadev", "adev", "mdev", "hdev", "ohdev", "totdev"]
+KINDS: tuple[str, ...] = ("oadev", "adev", "mdev", "hdev", "ohdev", "totdev")
+GRIDS: tuple[str, ...] = ("octave", "decade", "log", "all")
+CHUNK = 1 << 14
+"""Phase points processed at once (keeps the temporaries in cache and the memory small)."""
+
+
+@dataclass(frozen=True)
+class Deviation:
+    """A deviation curve of every axis: ``taus`` (t,) s, ``m`` (t,) averaging factors,
+    ``dev`` (t, k) in the unit of the rate data, ``n`` (t,) number of terms summed."""
+
+    kind: str
+    taus: np.ndarray
+    m: np.ndarray
+    dev: np.ndarray
+    n: np.ndarray
+    tau0: float
+    n_phase: int
+
+
+@dataclass(frozen=True)
+class Confidence:
+    """Per tau and axis: identified noise exponent ``alpha`` (int), equivalent degrees of
+    freedom ``edf`` and the 68.3 % chi-square bounds ``lo``, ``hi`` of the deviation."""
+
+    alpha: np.ndarray
+    edf: np.ndarray
+    lo: np.ndarray
+    hi: np.ndarray
+
+
+# -- data -----------------------------------------------------------------------------------------
+def rate_to_phase(y: np.ndarray, tau0: float) -> np.ndarray:
+    """Phase of rate data ``y`` (n,) or (n, k), mean removed first: (k, n + 1), x[:, 0] = 0.
+
+    Axis-major (each axis's phase contiguous) so that the lagged sums below stream through
+    memory. ``y`` may also be a sequence of k equal-length 1-D columns (no (n, k) copy needed)."""
+    if isinstance(y, list | tuple):
+        columns = [np.asarray(c, dtype=np.float64) for c in y]
+    else:
+        y = np.asarray(y, dtype=np.float64)
+        columns = list(y.reshape(len(y), -1).T)
+    x = np.empty((len(columns), len(columns[0]) + 1))
+    x[:, 0] = 0.0
+    for row, col in zip(x, columns, strict=True):
+        np.subtract(col, col.mean(), out=row[1:])
+        np.cumsum(row[1:], out=row[1:])
+        row[1:] *= tau0
+    return x
+
+
+def as_phase(x: np.ndarray) -> np.ndarray:
+    """Phase data (N,) or (N, k) as the axis-major (k, N) array the estimators use."""
+    x = np.asarray(x, dtype=np.float64)
+    return np.ascontiguousarray(x.reshape(len(x), -1).T)
+
+
+def max_af(kind: str, n_phase: int) -> int:
+    """The largest averaging factor ``kind`` can use on ``n_phase`` phase points (>= 1 term)."""
+    if kind in ("oadev", "adev"):
+        return (n_phase - 1) // 2
+    if kind in ("mdev", "hdev", "ohdev"):
+        return (n_phase - 1) // 3
+    if kind == "totdev":
+        return n_phase - 1
+    raise ValueError(f"unknown deviation kind '{kind}' (known: {', '.join(KINDS)})")
+
+
+def tau_grid(grid: str, max_m: int, points_per_decade: int = 10) -> np.ndarray:
+    """Averaging factors m (sorted, unique, 1 <= m <= max_m) of a grid:
+    ``octave`` 1, 2, 4, ...; ``decade`` 1, 2, 4, 10, 20, 40, ...; ``log`` ``points_per_decade``
+    log-spaced values per decade (rounded to integers); ``all`` every m."""
+    if max_m < 1:
+        return np.zeros(0, dtype=np.int64)
+    if grid == "octave":
+        m = 2 ** np.arange(int(np.log2(max_m)) + 1)
+    elif grid == "decade":
+        decades = 10 ** np.arange(int(np.log10(max_m)) + 1)
+        m = (np.array([1, 2, 4])[None, :] * decades[:, None]).ravel()
+    elif grid == "log":
+        if points_per_decade < 1:
+            raise ValueError("points_per_decade must be >= 1")
+        k = np.arange(int(np.floor(np.log10(max_m) * points_per_decade)) + 1)
+        m = np.round(10.0 ** (k / points_per_decade))
+    elif grid == "all":
+        m = np.arange(1, max_m + 1)
+    else:
+        raise ValueError(f"unknown tau grid '{grid}' (known: {', '.join(GRIDS)})")
+    m = np.unique(m.astype(np.int64))
+    return m[(m >= 1) & (m <= max_m)]
+
+
+# -- sums of squared differences ------------------------------------------------------------------
+def _sumsq_lagged(x: np.ndarray, m: int, hadamard: bool, count: int) -> np.ndarray:
+    """Per axis of ``x`` (k, N): sum_{i<count} of the squared second difference
+    x[i+2m] - 2x[i+m] + x[i] (or third, ``hadamard``), streamed in cache-sized chunks."""
+    total = np.zeros(len(x))
+    buf = np.empty(min(CHUNK, count))
+    for j, r in enumerate(x):
+        acc = 0.0
+        for a in range(0, count, CHUNK):
+            b = min(a + CHUNK, count)
+            d = buf[: b - a]
+            if hadamard:
+                np.subtract(r[a + m : b + m], r[a + 2 * m : b + 2 * m], out=d)
+                d *= 3.0
+                d += r[a + 3 * m : b + 3 * m]
+                d -= r[a:b]
+            else:
+                np.add(r[a:b], r[a + 2 * m : b + 2 * m], out=d)
+                d -= r[a + m : b + m]
+                d -= r[a + m : b + m]
+            acc += float(np.einsum("i,i->", d, d))
+        total[j] = acc
+    return total
+
+
+def _mod_sumsq(x: np.ndarray, m: int) -> tuple[np.ndarray, int]:
+    """MDEV's sum of squared m-sums of second differences per axis of ``x`` (k, N); the m-sums
+    come from a cumulative sum of the second differences (not of the phase: precision)."""
+    total = np.zeros(len(x))
+    count = x.shape[1] - 3 * m + 1
+    for j, r in enumerate(x):
+        d = r[2 * m :] - 2.0 * r[m:-m] + r[: -2 * m]
+        c = np.concatenate([[0.0], np.cumsum(d)])
+        s = c[m:] - c[:-m]
+        total[j] = float(np.einsum("i,i->", s, s))
+    return total, count
+
+
+def _reflect(x: np.ndarray) -> np.ndarray:
+    """TOTDEV's extension of x (k, N) by odd reflection at both ends: (k, 3N - 4)."""
+    n = x.shape[1]
+    inner = x[:, n - 2 : 0 : -1]  # x[N-2] ... x[1]
+    left = 2.0 * x[:, :1] - inner
+    right = 2.0 * x[:, -1:] - inner
+    return np.concatenate([left, x, right], axis=1)
+
+
+def _variance_at(kind: str, x: np.ndarray, m: int, tau0: float, ext: np.ndarray | None):
+    n = x.shape[1]
+    tau2 = (m * tau0) ** 2
+    if kind == "oadev":
+        count = n - 2 * m
+        return _sumsq_lagged(x, m, False, count) / (2.0 * tau2 * count), count
+    if kind == "ohdev":
+        count = n - 3 * m
+        return _sumsq_lagged(x, m, True, count) / (6.0 * tau2 * count), count
+    if kind == "adev":
+        xd = np.ascontiguousarray(x[:, ::m])
+        count = xd.shape[1] - 2
+        return _sumsq_lagged(xd, 1, False, count) / (2.0 * tau2 * count), count
+    if kind == "hdev":
+        xd = np.ascontiguousarray(x[:, ::m])
+        count = xd.shape[1] - 3
+        return _sumsq_lagged(xd, 1, True, count) / (6.0 * tau2 * count), count
+    if kind == "mdev":
+        s, count = _mod_sumsq(x, m)
+        return s / (2.0 * m * m * tau2 * count), count
+    if kind == "totdev":
+        assert ext is not None
+        start = n - 2 + 1 - m  # x*[i - m] for original index i = 1
+        s = _sumsq_lagged(ext[:, start:], m, False, n - 2)
+        return s / (2.0 * tau2 * (n - 2)), n - 2
+    raise ValueError(f"unknown deviation kind '{kind}' (known: {', '.join(KINDS)})")
+
+
+def deviation_of_phase(
+    x: np.ndarray, tau0: float, kind: str = "oadev", m: np.ndarray | None = None
+) -> Deviation:
+    """Deviation ``kind`` of axis-major phase ``x`` (k, N) (see :func:`as_phase`) at averaging
+    factors ``m`` (default octave). Factors beyond :func:`max_af` are dropped."""
+    n = x.shape[1]
+    top = max_af(kind, n)
+    m = tau_grid("octave", top) if m is None else np.asarray(m, dtype=np.int64)
+    m = m[(m >= 1) & (m <= top)]
+    ext = _reflect(x) if kind == "totdev" else None
+    dev = np.empty((len(m), len(x)))
+    counts = np.empty(len(m), dtype=np.int64)
+    for i, mi in enumerate(m):
+        var, counts[i] = _variance_at(kind, x, int(mi), tau0, ext)
+        dev[i] = np.sqrt(var)
+    return Deviation(kind, m * tau0, m, dev, counts, tau0, n)
+
+
+def deviation(
+    y: np.ndarray,
+    rate_hz: float,
+    kind: str = "oadev",
+    grid: str = "octave",
+    points_per_decade: int = 10,
+    m: np.ndarray | None = None,
+) -> Deviation:
+    """Deviation ``kind`` of rate data ``y`` (n,) or (n, k) sampled at ``rate_hz`` on ``grid``
+    (or at the given averaging factors ``m``), bounded by the data length."""
+    tau0 = 1.0 / rate_hz
+    x = rate_to_phase(y, tau0)
+    if m is None:
+        m = tau_grid(grid, max_af(kind, x.shape[1]), points_per_decade)
+    return deviation_of_phase(x, tau0, kind, m)
+
+
+# -- noise identification and confidence ----------------------------------------------------------
+def _lag1(z: np.ndarray) -> float:
+    """Lag-1 autocorrelation of the 1-D series ``z`` (its mean removed)."""
+    z = z - z.mean()
+    return float(np.einsum("i,i->", z[:-1], z[1:]) / np.einsum("i,i->", z, z))
+
+
+def _detrend2(z: np.ndarray) -> np.ndarray:
+    """``z`` (n,) minus its least-squares quadratic in time (orthogonal basis 1, t, t^2 - <t^2>)."""
+    t = np.linspace(-1.0, 1.0, len(z))
+    t2 = t * t
+    t2 -= t2.mean()
+    out = z - z.mean()
+    for p in (t, t2):
+        out -= (np.einsum("i,i->", out, p) / np.einsum("i,i->", p, p)) * p
+    return out
+
+
+NOISE_ID_MAX_POINTS = 1 << 20
+"""The noise identification uses at most this many decimated points (the first ones): the
+standard error of the lag-1 autocorrelation is then below 1e-3."""
+
+
+def noise_alpha(x: np.ndarray, m: int, dmax: int = 2) -> np.ndarray | None:
+    """Noise exponent alpha (int, per axis) at averaging factor ``m`` from phase ``x`` (k, N)
+    by the lag-1 autocorrelation method (Riley & Greenhall 2004): decimate by m, remove a
+    quadratic, difference until delta = r1 / (1 + r1) < 0.25 (at most ``dmax`` times),
+    alpha = -round(2 delta) - 2 d + 2. None when fewer than 30 decimated points remain."""
+    if (x.shape[1] + m - 1) // m < 30:
+        return None
+    alpha = np.zeros(len(x), dtype=np.int64)
+    for j, row in enumerate(x):
+        z = _detrend2(row[: m * NOISE_ID_MAX_POINTS : m])
+        for d in range(dmax + 1):
+            delta = (r1 := _lag1(z)) / (1.0 + r1)
+            if delta < 0.25 or d >= dmax or len(z) < 4:
+                alpha[j] = -round(2.0 * delta) - 2 * d + 2
+                break
+            z = np.diff(z)
+    return alpha
+
+
+def _sw(t: np.ndarray, alpha: int) -> np.ndarray:
+    """Greenhall's generalised autocovariance sw(t) for noise exponent alpha (eq. 7):
+    -|t| (alpha 2), |t|^(3-alpha) (even alpha <= 0), t^(3-alpha) ln|t| (odd alpha)."""
+    t = np.asarray(t, dtype=np.float64)
+    p = 3 - alpha
+    if alpha % 2 == 0:
+        return (-1.0 if alpha == 2 else 1.0) * np.abs(t) ** p
+    with np.errstate(divide="ignore", invalid="ignore"):
+        out = np.abs(t) ** p * np.log(np.abs(t))
+    return np.where(t == 0, 0.0, out)
+
+
+def _sx(t: np.ndarray, f: float, alpha: int) -> np.ndarray:
+    if np.isinf(f):
+        return _sw(t, alpha + 2)
+    return f * f * (2.0 * _sw(t, alpha) - _sw(t - 1.0 / f, alpha) - _sw(t + 1.0 / f, alpha))
+
+
+def _sz(t: np.ndarray, f: float, alpha: int, d: int) -> np.ndarray:
+    c = [binom(2 * d, d + j) * (-1) ** j for j in range(d + 1)]
+    out = c[0] * _sx(t, f, alpha)
+    for j in range(1, d + 1):
+        out = out + c[j] * (_sx(t - j, f, alpha) + _sx(t + j, f, alpha))
+    return out
+
+
+def _basic_sum(jj: float, mm: float, s: float, f: float, alpha: int, d: int) -> float:
+    j = np.arange(1, int(jj))
+    first = _sz(np.array(0.0), f, alpha, d) ** 2
+    second = (1 - jj / mm) * _sz(np.array(jj / s), f, alpha, d) ** 2
+    third = np.sum(2 * (1 - j / mm) * _sz(j / s, f, alpha, d) ** 2)
+    return float(first + second + third)
+
+
+_TABLE1 = {  # modified variances (F = 1): (a0, a1) by alpha, d
+    2: [(2 / 3, 1 / 3), (7 / 9, 1 / 2), (22 / 25, 2 / 3)],
+    1: [(0.840, 0.345), (0.997, 0.616), (1.141, 0.843)],
+    0: [(1.079, 0.368), (1.033, 0.607), (1.184, 0.848)],
+    -1: [None, (1.048, 0.534), (1.180, 0.816)],
+    -2: [None, (1.302, 0.535), (1.175, 0.777)],
+    -3: [None, None, (1.194, 0.703)],
+    -4: [None, None, (1.489, 0.702)],
+}
+_TABLE2 = {  # unmodified variances (F = m)
+    2: [(3 / 2, 1 / 2), (35 / 18, 1.0), (231 / 100, 3 / 2)],
+    1: [(78.6, 25.2), (790.0, 410.0), (9950.0, 6520.0)],
+    0: [(2 / 3, 1 / 6), (2 / 3, 1 / 3), (7 / 9, 1 / 2)],
+    -1: [None, (0.852, 0.375), (0.997, 0.617)],
+    -2: [None, (1.079, 0.368), (1.033, 0.607)],
+    -3: [None, None, (1.053, 0.553)],
+    -4: [None, None, (1.302, 0.535)],
+}
+_TABLE3 = [(6.0, 4.0), (15.23, 12.0), (47.8, 40.0)]  # alpha = 1, unmodified: b0, b1
+_J_MAX = 100
+
+
+@functools.lru_cache(maxsize=4096)
+def edf_greenhall(alpha: int, d: int, m: int, n: int, overlapping: bool, modified: bool) -> float:
+    """Equivalent degrees of freedom of a d-th difference variance (d = 2 Allan, 3 Hadamard)
+    at averaging factor m on n phase points for power-law noise alpha (Greenhall & Riley,
+    "Uncertainty of stability variances based on finite differences", 2003; cases 1-4)."""
+    if alpha + 2 * d <= 1:
+        raise ValueError(f"alpha {alpha} is not defined for difference order {d}")
+    f = 1.0 if modified else float(m)
+    s = float(m) if overlapping else 1.0
+    length = m / f + m * d
+    big_m = 1 + np.floor(s * (n - length) / m)
+    jj = min(big_m, (d + 1) * s)
+    r = big_m / s
+    if modified:
+        if jj <= _J_MAX:
+            return (
+                big_m
+                * _sz(np.array(0.0), 1.0, alpha, d) ** 2
+                / _basic_sum(jj, big_m, s, 1.0, alpha, d)
+            )
+        if r > d + 1:
+            a0, a1 = _TABLE1[alpha][d - 1]
+            return r / (a0 - a1 / r)
+        mp = _J_MAX / r
+        return (
+            _J_MAX
+            * _sz(np.array(0.0), 1.0, alpha, d) ** 2
+            / _basic_sum(_J_MAX, _J_MAX, mp, 1.0, alpha, d)
+        )
+    if alpha <= 0:
+        if jj <= _J_MAX:
+            fp = float(m) if m * (d + 1) <= _J_MAX else np.inf
+            return (
+                big_m
+                * _sz(np.array(0.0), fp, alpha, d) ** 2
+                / _basic_sum(jj, big_m, s, fp, alpha, d)
+            )
+        if r > d + 1:
+            a0, a1 = _TABLE2[alpha][d - 1]
+            return r / (a0 - a1 / r)
+        mp = _J_MAX / r
+        return (
+            _J_MAX
+            * _sz(np.array(0.0), np.inf, alpha, d) ** 2
+            / _basic_sum(_J_MAX, _J_MAX, mp, np.inf, alpha, d)
+        )
+    if alpha == 1:
+        if jj <= _J_MAX:
+            return (
+                big_m
+                * _sz(np.array(0.0), float(m), 1, d) ** 2
+                / _basic_sum(jj, big_m, s, float(m), 1, d)
+            )
+        b0, b1 = _TABLE3[d - 1]
+        if r > d + 1:
+            a0, a1 = _TABLE2[1][d - 1]
+            return (b0 + b1 * np.log(m)) ** 2 * r / (a0 - a1 / r)
+        mp = _J_MAX / r
+        return (b0 + b1 * np.log(m)) ** 2 * _J_MAX / _basic_sum(_J_MAX, _J_MAX, mp, mp, 1, d)
+    # alpha = 2, unmodified (white phase noise): case 4
+    a0 = binom(4 * d, 2 * d) / binom(2 * d, d) ** 2
+    return big_m / max(a0 - (d / 2.0) / r, 1e-12)
+
+
+def edf_totdev(n_phase: int, m: int, alpha: int) -> float | None:
+    """TOTDEV's EDF, SP1065 Table 7: b (T / tau) - c for alpha 0, -1, -2 (None otherwise)."""
+    table = {0: (1.50, 0.0), -1: (1.17, 0.22), -2: (0.93, 0.36)}
+    if alpha not in table:
+        return None
+    b, c = table[alpha]
+    return b * (n_phase - 1) / m - c
+
+
+def _edf(kind: str, alpha: int, m: int, n_phase: int) -> float:
+    if kind == "totdev":
+        edf = edf_totdev(n_phase, m, alpha)
+        if edf is not None:
+            return edf
+        kind = "oadev"
+    d = 3 if kind in ("hdev", "ohdev") else 2
+    alpha = min(max(alpha, 2 - 2 * d), 2)
+    return edf_greenhall(
+        int(alpha), d, int(m), int(n_phase), kind in ("oadev", "ohdev"), kind == "mdev"
+    )
+
+
+def confidence(dev: Deviation, x: np.ndarray, ci: float = 0.683) -> Confidence:
+    """Noise type, EDF and chi-square bounds of ``dev`` computed on phase ``x`` (k, N).
+    Where fewer than 30 decimated points remain for the noise identification, the last
+    identified alpha is carried on (Stable32 switches to the B1 bias ratio there)."""
+    k = len(x)
+    dmax = 3 if dev.kind in ("hdev", "ohdev") else 2
+    alphas = np.zeros((len(dev.m), k), dtype=np.int64)
+    last = np.zeros(k, dtype=np.int64)
+    for i, m in enumerate(dev.m):
+        a = noise_alpha(x, int(m), dmax)
+        if a is not None:
+            last = a
+        alphas[i] = last
+    edf = np.array(
+        [
+            [_edf(dev.kind, int(a), int(m), dev.n_phase) for a in row]
+            for row, m in zip(alphas, dev.m, strict=True)
+        ]
+    ).reshape(len(dev.m), k)
+    edf = np.maximum(edf, 1.0)
+    p_lo, p_hi = 0.5 + ci / 2.0, 0.5 - ci / 2.0
+    lo = dev.dev * np.sqrt(edf / chi2.ppf(p_lo, edf))
+    hi = dev.dev * np.sqrt(edf / chi2.ppf(p_hi, edf))
+    return Confidence(alphas, edf, lo, hi)
