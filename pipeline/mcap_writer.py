@@ -489,9 +489,12 @@ def write_mcap(
     topics: Mapping[str, str] | None = None,
     carry_over: Iterable[RawMessage] = (),
     library: str = "imupipe",
+    chunk_bytes: int = CHUNK_BYTES,
 ) -> dict[str, int]:
     """Write ``table`` (and ``carry_over`` messages) to ``path``; returns messages per topic."""
-    with McapTableWriter(path, calibration, topics, library=library) as writer:
+    with McapTableWriter(
+        path, calibration, topics, library=library, chunk_bytes=chunk_bytes
+    ) as writer:
         writer.write_table(table)
         writer.write_raw(carry_over)
     return writer.counts()

@@ -269,11 +269,12 @@ def assemble(
         for axis in "xyz":
             columns[f"{name}_{axis}"] = nulls
     columns["temperature"] = nulls
-    for s in streams:
+    for s in (s for s in STREAM_TYPES if s in ordered):  # every chosen stream: one schema per input
         piece = ordered[s][1]
+        where_rows = rows.get(s, np.zeros(0, np.int64))
         for name, _, _ in COLUMNS[s]:
             target = columns if name in columns else extra
-            target[name] = _column(n, rows[s], piece.columns.pop(name))
+            target[name] = _column(n, where_rows, piece.columns.pop(name))
 
     logs = [ordered[s][1].log for s in streams]
     log_all = np.concatenate(logs) if logs else np.zeros(0, np.int64)
@@ -296,8 +297,8 @@ def assemble(
     meta = {
         "source": source,
         "format": fmt,
-        "topics": {s: topics[s] for s in streams},
-        "types": {s: STREAM_TYPES[s] for s in streams},
+        "topics": {s: topics[s] for s in STREAM_TYPES if s in ordered},
+        "types": {s: STREAM_TYPES[s] for s in STREAM_TYPES if s in ordered},
         "frame_id": {
             s: ordered[s][1].frame[0].as_py() for s in streams if len(ordered[s][1].frame)
         },

@@ -34,7 +34,14 @@ from imupipe.readers.cdr import unaligned
 
 MAGIC = b"\x89MCAP0\r\n"
 OP_HEADER, OP_FOOTER, OP_SCHEMA, OP_CHANNEL, OP_MESSAGE = 0x01, 0x02, 0x03, 0x04, 0x05
-OP_CHUNK, OP_MESSAGE_INDEX, OP_STATISTICS, OP_DATA_END = 0x06, 0x07, 0x0B, 0x0F
+OP_CHUNK, OP_MESSAGE_INDEX, OP_CHUNK_INDEX, OP_STATISTICS, OP_DATA_END = (
+    0x06,
+    0x07,
+    0x08,
+    0x0B,
+    0x0F,
+)
+NEVER = 2**63 - 1
 MESSAGE_HEADER = 31
 """Bytes from a message record's opcode to its payload."""
 PSEUDO_CHUNK_BYTES = 1 << 20
@@ -60,6 +67,10 @@ class ChunkMessages:
     buf: np.ndarray
     offsets: dict[int, np.ndarray]
     where: str
+    bound: int = NEVER
+    """No message after this chunk (in file order) has a log time below ``bound``: from the
+    summary's chunk indexes, else assumed to be this chunk's start time (a log written in time
+    order)."""
 
     def records(self, channel_id: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """(log_time, publish_time, payload start, payload length) of a channel's messages,
@@ -93,6 +104,8 @@ class McapFile:
     counts: dict[int, int] | None = None
     """Messages per channel id from the Statistics record (None when the file has none)."""
     profile: str = ""
+    chunk_starts: list[tuple[int, int]] = field(default_factory=list)
+    """(file offset, message start time) of every chunk, from the summary's chunk indexes."""
 
     def __post_init__(self) -> None:
         self.path = Path(self.path)
@@ -167,6 +180,9 @@ class McapFile:
                 self.counts = dict(Statistics.read(stream).channel_message_counts)
             elif opcode == OP_HEADER:
                 self.profile = stream.read_prefixed_string()
+            elif opcode == OP_CHUNK_INDEX:
+                start, _end, offset = struct.unpack_from("<QQQ", body, 0)
+                self.chunk_starts.append((offset, start))
         except (struct.error, UnicodeDecodeError, Exception) as exc:  # noqa: BLE001
             raise ReadError(
                 f"{self.path}: corrupt MCAP record (opcode {opcode:#x}): {exc}"
@@ -249,8 +265,17 @@ class McapFile:
         return np.frombuffer(raw, dtype=np.uint8)
 
     # -- chunks ----------------------------------------------------------------------------
+    def _bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """Chunk offsets (sorted) and the minimum start time of the chunks from each on."""
+        if not self.chunk_starts:
+            return np.zeros(0, np.int64), np.zeros(0, np.int64)
+        pairs = np.array(sorted(self.chunk_starts), dtype=np.uint64)
+        suffix = np.minimum.accumulate(pairs[::-1, 1])[::-1]
+        return pairs[:, 0].astype(np.int64), np.minimum(suffix, NEVER).astype(np.int64)
+
     def chunks(self) -> Iterator[ChunkMessages]:
         """Every chunk (and every run of un-chunked messages) in file order."""
+        offsets, suffix_min = self._bounds()
         pending: ChunkMessages | None = None
         loose = bytearray()
         loose_off: dict[int, list[int]] = {}
@@ -284,8 +309,13 @@ class McapFile:
                     yield _loose_chunk(loose, loose_off, f"{self.path}: messages before byte {pos}")
                     loose, loose_off = bytearray(), {}
                 if opcode == OP_CHUNK:
+                    k = int(np.searchsorted(offsets, pos, side="right"))
+                    if len(offsets):
+                        bound = int(suffix_min[k]) if k < len(offsets) else NEVER
+                    else:
+                        bound = int.from_bytes(body[:8], "little") if len(body) >= 8 else 0
                     pending = ChunkMessages(
-                        self._decompress(body, pos), {}, f"{self.path}: chunk at byte {pos}"
+                        self._decompress(body, pos), {}, f"{self.path}: chunk at byte {pos}", bound
                     )
                 elif opcode == OP_DATA_END:
                     break
@@ -296,10 +326,13 @@ class McapFile:
 
 
 def _loose_chunk(buf: bytearray, offsets: dict[int, list[int]], where: str) -> ChunkMessages:
+    """Messages outside chunks as a pseudo-chunk (bound: its first message's log time)."""
+    first = min(o[0] for o in offsets.values())
     return ChunkMessages(
         np.frombuffer(bytes(buf), np.uint8),
         {cid: np.asarray(o, np.int64) for cid, o in offsets.items()},
         where,
+        int.from_bytes(bytes(buf[first + 15 : first + 23]), "little"),
     )
 
 

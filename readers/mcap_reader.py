@@ -66,7 +66,7 @@ class McapSource:
 
     def chunks(
         self, streams: dict[str, str], carry: bool, decode: bool = True
-    ) -> Iterator[tuple[dict[str, Piece], list[RawMessage]]]:
+    ) -> Iterator[tuple[dict[str, Piece], list[RawMessage], int]]:
         by_topic = {topic: stream for stream, topic in streams.items()}
         chosen = {
             cid: by_topic[c.topic] for cid, c in self.file.channels.items() if c.topic in by_topic
@@ -84,7 +84,7 @@ class McapSource:
                     if cid not in chosen:
                         raw.extend(self._raw(chunk, cid, converters))
                 raw.sort(key=lambda m: m.log_time)
-            yield {s: concat(p, s) for s, p in pieces.items()}, raw
+            yield {s: concat(p, s) for s, p in pieces.items()}, raw, chunk.bound
 
     def _decode(self, chunk: ChunkMessages, cid: int, stream: str) -> Piece:
         channel = self.file.channels[cid]

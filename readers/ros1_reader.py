@@ -109,6 +109,8 @@ class BagChunk:
     index: dict[int, tuple[np.ndarray, np.ndarray]]
     """connection id -> (log time ns, record offsets) in index order."""
     where: str
+    bound: int
+    """No later chunk has a message with a log time below this (from the chunk infos)."""
 
     def payloads(self, conn: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(log ns, payload start, payload length) of a connection's messages."""
@@ -225,8 +227,10 @@ class Ros1Bag:
 
     def bag_chunks(self) -> Iterator[BagChunk]:
         """Every chunk, decompressed, with its index, in file order."""
+        starts = [t for _, t, _ in self.chunk_infos]
+        bounds = list(np.minimum.accumulate(starts[::-1])[::-1][1:]) + [2**63 - 1] if starts else []
         with open(self.path, "rb") as fh:
-            for pos, _, counts in self.chunk_infos:
+            for (pos, _, counts), bound in zip(self.chunk_infos, bounds, strict=True):
                 fh.seek(pos)
                 where = f"{self.path}: chunk at byte {pos}"
                 op, fields, data = self._record(fh)
@@ -245,7 +249,7 @@ class Ros1Bag:
                     entries = np.frombuffer(data, "<u4", count=3 * count).reshape(-1, 3)
                     log = entries[:, 0].astype(np.int64) * 1_000_000_000 + entries[:, 1]
                     index[conn] = (log, entries[:, 2].astype(np.int64))
-                yield BagChunk(buf, index, where)
+                yield BagChunk(buf, index, where, int(bound))
 
     def _decompress(self, fields: dict[str, bytes], data: bytes, where: str) -> np.ndarray:
         compression = fields.get("compression", b"none").decode(errors="replace")
@@ -271,7 +275,7 @@ class Ros1Bag:
 
     def chunks(
         self, streams: dict[str, str], carry: bool, decode: bool = True
-    ) -> Iterator[tuple[dict[str, Piece], list[RawMessage]]]:
+    ) -> Iterator[tuple[dict[str, Piece], list[RawMessage], int]]:
         by_topic = {topic: stream for stream, topic in streams.items()}
         chosen = {
             cid: by_topic[c.topic] for cid, c in self.connections.items() if c.topic in by_topic
@@ -302,7 +306,7 @@ class Ros1Bag:
                         )
                     raw.extend(self._raw(chunk, conn, converters[cid]))
                 raw.sort(key=lambda m: m.log_time)
-            yield {s: concat(p, s) for s, p in pieces.items()}, raw
+            yield {s: concat(p, s) for s, p in pieces.items()}, raw, chunk.bound
 
     def _typestore(self) -> object:
         try:

@@ -96,7 +96,7 @@ class Sqlite3Bag:
 
     def chunks(
         self, streams: dict[str, str], carry: bool, decode: bool = True
-    ) -> Iterator[tuple[dict[str, Piece], list[RawMessage]]]:
+    ) -> Iterator[tuple[dict[str, Piece], list[RawMessage], int]]:
         by_topic = {topic: stream for stream, topic in streams.items()}
         chosen = {tid: by_topic[t[0]] for tid, t in self.topics.items() if t[0] in by_topic}
         for tid, (name, _, fmt) in self.topics.items():
@@ -116,7 +116,8 @@ class Sqlite3Bag:
 
     def _block(
         self, rows: list, chosen: dict[int, str], carry: bool, decode_: bool
-    ) -> tuple[dict[str, Piece], list[RawMessage]]:
+    ) -> tuple[dict[str, Piece], list[RawMessage], int]:
+        """Decode a block of rows (ordered by timestamp: later blocks start at its last one)."""
         tids, stamps, datas = zip(*rows, strict=True)
         tid = np.asarray(tids, np.int64)
         log = np.asarray(stamps, np.int64)
@@ -142,7 +143,7 @@ class Sqlite3Bag:
                     schema = self.defs[typ] = _schema_text(typ)
                 lt = int(log[i])
                 raw.append(RawMessage(name, typ, "ros2msg", schema, fmt, bytes(datas[i]), lt, lt))
-        return pieces, raw
+        return pieces, raw, int(log[-1])
 
     def _decode(self, datas: list[bytes], log: np.ndarray, tid: int, stream: str) -> Piece:
         lengths = np.fromiter(map(len, datas), np.int64, len(datas))

@@ -25,6 +25,8 @@ from imupipe.pipeline.errors import ReadError
 from imupipe.readers.decoded import Piece, assemble, concat, select_topics
 from imupipe.readers.spec import InputSpec, RawMessage
 
+NEVER = 2**63 - 1
+
 
 class LogSource(Protocol):
     path: Path
@@ -44,9 +46,10 @@ class LogSource(Protocol):
 
     def chunks(
         self, streams: dict[str, str], carry: bool, decode: bool = True
-    ) -> Iterator[tuple[dict[str, Piece], list[RawMessage]]]:
+    ) -> Iterator[tuple[dict[str, Piece], list[RawMessage], int]]:
         """Per chunk: stream -> Piece for the chosen ``streams`` (stream -> topic; none when not
-        ``decode``), and the messages of every other topic as RawMessage (when ``carry``)."""
+        ``decode``), the messages of every other topic as RawMessage (when ``carry``), and a
+        lower bound of the log times of every message that comes later in the file."""
 
 
 def _choose(spec: InputSpec, sources: Sequence[LogSource]) -> dict[str, str]:
@@ -72,7 +75,7 @@ def read_sources(spec: InputSpec, sources: Sequence[LogSource]) -> tuple[pa.Tabl
     streams = _choose(spec, sources)
     parts: dict[str, list[Piece]] = {s: [] for s in streams}
     for src in _ordered(sources):
-        for pieces, _ in src.chunks(streams, carry=False):
+        for pieces, _, _ in src.chunks(streams, carry=False):
             for stream, piece in pieces.items():
                 parts[stream].append(piece)
     joined = {s: concat(p, s) for s, p in parts.items()}
@@ -91,21 +94,54 @@ def read_sources(spec: InputSpec, sources: Sequence[LogSource]) -> tuple[pa.Tabl
     return table, warnings
 
 
+def _split(piece: Piece, keep: np.ndarray) -> tuple[Piece, Piece]:
+    """(rows where not ``keep``, rows where ``keep``) of a piece."""
+    out = []
+    for mask in (~keep, keep):
+        idx = pa.array(np.flatnonzero(mask))
+        out.append(
+            Piece(
+                piece.stamp[mask],
+                piece.log[mask],
+                piece.frame.take(idx),
+                {name: col[mask] for name, col in piece.columns.items()},
+            )
+        )
+    return out[0], out[1]
+
+
 def iter_sources(
     spec: InputSpec, sources: Sequence[LogSource], batch_rows: int
 ) -> Iterator[tuple[pa.Table, list[RawMessage]]]:
-    """Batches of about ``batch_rows`` rows in file (log) order, each sorted by time within
-    itself, with the carried-over messages of the same chunks."""
+    """Batches of about ``batch_rows`` rows in log-time order, each sorted by the chosen time
+    within itself, with the carried-over messages of the same log-time span.
+
+    Chunks are read in file order; after each, messages whose log time is below the bound of
+    everything still unread (chunk indexes / chunk infos) are final and may be emitted, the
+    rest wait. Memory is bounded by ``batch_rows`` plus the overlap of the log's chunks."""
     streams = _choose(spec, sources)
+    ordered = _ordered(sources)
+    later_first = [
+        min((s.first_time() for s in ordered[i + 1 :]), default=NEVER) for i in range(len(ordered))
+    ]
     parts: dict[str, list[Piece]] = {s: [] for s in streams}
     raw: list[RawMessage] = []
     rows = 0
     total = {s: 0 for s in streams}
 
-    def flush() -> tuple[pa.Table, list[RawMessage]]:
-        joined = {s: concat(p, s) for s, p in parts.items()}
+    def flush(bound: int) -> tuple[pa.Table, list[RawMessage]]:
+        nonlocal raw, rows
+        out: dict[str, Piece] = {}
+        for s in streams:
+            joined = concat(parts[s], s)
+            keep = joined.log >= bound
+            out[s], rest = _split(joined, keep) if keep.any() else (joined, None)
+            parts[s] = [rest] if rest is not None and len(rest) else []
+        emit = [m for m in raw if m.log_time < bound]
+        raw = [m for m in raw if m.log_time >= bound]
+        rows = sum(len(p) for ps in parts.values() for p in ps)
         table = assemble(
-            joined,
+            out,
             time=spec.time,
             source=str(spec.path),
             fmt=sources[0].format,
@@ -114,22 +150,25 @@ def iter_sources(
             warnings=[],
             sort=False,
         )
-        return table, raw
+        return table, emit
 
-    for src in _ordered(sources):
-        for pieces, messages in src.chunks(streams, carry=True):
+    for src, after in zip(ordered, later_first, strict=True):
+        for pieces, messages, bound in src.chunks(streams, carry=True):
             for stream, piece in pieces.items():
                 parts[stream].append(piece)
                 rows += len(piece)
                 total[stream] += len(piece)
             raw.extend(messages)
             if rows >= batch_rows:
-                yield flush()
-                parts = {s: [] for s in streams}
-                raw, rows = [], 0
+                limit = min(bound, after)
+                ready = sum(
+                    int(np.count_nonzero(p.log < limit)) for ps in parts.values() for p in ps
+                )
+                if ready >= batch_rows or (ready and rows >= 4 * batch_rows):
+                    yield flush(limit)
     _check_empty(spec, streams, total)
     if rows or raw:
-        yield flush()
+        yield flush(NEVER)
 
 
 def carry_sources(spec: InputSpec, sources: Sequence[LogSource]) -> list[RawMessage]:
@@ -137,7 +176,7 @@ def carry_sources(spec: InputSpec, sources: Sequence[LogSource]) -> list[RawMess
     streams = _choose(spec, sources)
     out: list[RawMessage] = []
     for src in _ordered(sources):
-        for _, messages in src.chunks(streams, carry=True, decode=False):
+        for _, messages, _ in src.chunks(streams, carry=True, decode=False):
             out.extend(messages)
     out.sort(key=lambda m: m.log_time)
     return out

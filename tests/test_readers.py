@@ -1,0 +1,330 @@
+"""Issue 3: MCAP, ROS 1 bag and ROS 2 bag readers, cross-checked against the libraries' decoders.
+
+A synthetic log with three streams at different rates (Imu 200 Hz, MagneticField 50 Hz,
+Temperature 1 Hz), random orientations and covariances and frame_ids of different lengths in one
+topic is written in every format and must read back to the same table; the numpy fast paths are
+compared field by field with mcap_ros2's decoder and rosbags' deserializer.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pyarrow as pa
+import pytest
+from rosbags.highlevel import AnyReader
+
+from imupipe.pipeline.errors import ReadError
+from imupipe.pipeline.simulate import write_log
+from imupipe.pipeline.table import COV, make_table, sensor
+from imupipe.readers.dispatch import iter_input, read_input
+from imupipe.readers.spec import InputSpec
+
+from helpers import decode_mcap
+
+T0 = 1_700_000_000_123_456_789
+FRAMES = np.array(["imu", "imu_link_long", "i", "imu_link_long_4567"])
+
+
+def multi_stream_table(seed: int = 0) -> pa.Table:
+    """Imu 200 Hz (4 frame_ids of different lengths), mag 50 Hz, temperature 1 Hz; every field
+    random so that nothing is left at a default."""
+    rng = np.random.default_rng(seed)
+    t = {
+        "imu": T0 + np.arange(600, dtype=np.int64) * 5_000_000,
+        "mag": T0 + 1_000_001 + np.arange(150, dtype=np.int64) * 20_000_000,
+        "temperature": T0 + 2_000_003 + np.arange(3, dtype=np.int64) * 1_000_000_000,
+    }
+    t_all = np.concatenate(list(t.values()))
+    order = np.argsort(t_all, kind="stable")
+    kind = np.repeat([0, 1, 2], [len(v) for v in t.values()])[order]
+    t_all = t_all[order]
+    n = len(t_all)
+    imu, mag, tmp = kind == 0, kind == 1, kind == 2
+    quat = rng.normal(size=(n, 4))
+    quat /= np.linalg.norm(quat, axis=1, keepdims=True)
+
+    def col(values: np.ndarray, mask: np.ndarray) -> pa.Array:
+        if values.ndim == 1:
+            return pa.array(values, pa.float64(), mask=~mask)
+        flat = pa.array(values.reshape(-1), pa.float64())
+        return pa.FixedSizeListArray.from_arrays(flat, 9, mask=pa.array(~mask))
+
+    frames = np.where(imu, FRAMES[rng.integers(0, 4, n)], np.where(mag, "magnetometer", "t"))
+    extra = {
+        "log_time_ns": pa.array(t_all + rng.integers(0, 3_000_000, n)),
+        "frame_id": pa.array(frames),
+        **{f"orientation_{a}": col(quat[:, i], imu) for i, a in enumerate("xyzw")},
+        "orientation_cov": col(rng.normal(size=(n, 9)), imu),
+        "gyro_cov": col(rng.normal(size=(n, 9)), imu),
+        "accel_cov": col(rng.normal(size=(n, 9)), imu),
+        "mag_cov": col(rng.normal(size=(n, 9)), mag),
+        "temperature_var": col(rng.uniform(0, 1, n), tmp),
+    }
+    table = make_table(
+        t_all,
+        gyro=rng.normal(0, 0.1, (n, 3)),
+        accel=rng.normal(0, 1, (n, 3)) + [0, 0, 9.81],
+        mag=rng.normal(0, 3e-5, (n, 3)),
+        temperature=rng.normal(25, 1, n),
+        valid={"imu": imu, "mag": mag, "temperature": tmp},
+        metadata={"topics": {"imu": "/imu/data", "mag": "/imu/mag", "temperature": "/imu/temp"}},
+    )
+    for name, array in extra.items():
+        table = table.append_column(pa.field(name, array.type), array)
+    return table
+
+
+BINARY = ["log.mcap", "log.bag", "log.db3", "log_folder"]
+
+
+@pytest.fixture(scope="module")
+def written(tmp_path_factory):
+    """The multi-stream table, written in every format (and read back once each)."""
+    d = tmp_path_factory.mktemp("formats")
+    table = multi_stream_table()
+    for name in ["log.csv", *BINARY]:
+        write_log(d / name, table)
+    from imupipe.pipeline.bag_writer import write_ros1_bag, write_ros2_bag
+
+    write_ros1_bag(d / "log_bz2.bag", table, compression="bz2")
+    write_ros1_bag(d / "log_none.bag", table, compression="none")
+    write_ros2_bag(d / "log_mcap2", table, storage="mcap")
+    names = ["log.csv", *BINARY, "log_bz2.bag", "log_none.bag", "log_mcap2"]
+    tables = {n: read_input(InputSpec(path=d / n)) for n in names}
+    return d, table, tables
+
+
+def test_every_binary_format_reads_to_the_same_table(written):
+    _, table, tables = written
+    ref, warnings = tables["log.mcap"]
+    assert warnings == []
+    assert ref.num_rows == table.num_rows
+    for name, (other, w) in tables.items():
+        if name != "log.csv":
+            assert w == []
+            assert other.equals(ref), name  # bit-exact, every column and null
+    # and the table is the one written: every column, bit for bit (log_time_ns included)
+    for col in ref.column_names:
+        assert ref.column(col).equals(table.column(col).cast(ref.schema.field(col).type)), col
+
+
+def test_csv_matches_binary_per_stream(written):
+    _, _, tables = written
+    csv, _ = tables["log.csv"]
+    ref, _ = tables["log.mcap"]
+    for name in ("gyro", "accel", "mag", "temperature"):
+        a, b = sensor(csv, name), sensor(ref, name)
+        np.testing.assert_array_equal(a.t_ns, b.t_ns)
+        np.testing.assert_array_equal(a.values, b.values)  # shortest round-trip text: exact
+
+
+def _fields(msg) -> list[float]:
+    if hasattr(msg, "angular_velocity"):
+        q, g, a = msg.orientation, msg.angular_velocity, msg.linear_acceleration
+        return [
+            q.x, q.y, q.z, q.w, *msg.orientation_covariance,
+            g.x, g.y, g.z, *msg.angular_velocity_covariance,
+            a.x, a.y, a.z, *msg.linear_acceleration_covariance,
+        ]  # fmt: skip
+    if hasattr(msg, "magnetic_field"):
+        m = msg.magnetic_field
+        return [m.x, m.y, m.z, *msg.magnetic_field_covariance]
+    return [msg.temperature, msg.variance]
+
+
+def _table_fields(table: pa.Table, stream: str) -> tuple[np.ndarray, list[str], np.ndarray]:
+    """(stamps, frame_ids, all float fields in message order) of one stream of a table."""
+    key = {"imu": "gyro_x", "mag": "mag_x", "temperature": "temperature"}[stream]
+    rows = table.filter(pa.compute.is_valid(table.column(key)))
+    names = {
+        "imu": [
+            *(f"orientation_{a}" for a in "xyzw"), "orientation_cov", "gyro_x", "gyro_y", "gyro_z",
+            "gyro_cov", "accel_x", "accel_y", "accel_z", "accel_cov",
+        ],
+        "mag": ["mag_x", "mag_y", "mag_z", "mag_cov"],
+        "temperature": ["temperature", "temperature_var"],
+    }[stream]  # fmt: skip
+    cols = []
+    for name in names:
+        c = rows.column(name).combine_chunks()
+        cols.append(
+            c.flatten().to_numpy().reshape(-1, 9) if c.type == COV else c.to_numpy()[:, None]
+        )
+    return rows.column("t_ns").to_numpy(), rows.column("frame_id").to_pylist(), np.hstack(cols)
+
+
+TOPIC_STREAM = {"/imu/data": "imu", "/imu/mag": "mag", "/imu/temp": "temperature"}
+
+
+def test_mcap_fast_path_equals_mcap_ros2_decoder(written):
+    d, _, tables = written
+    ref, _ = tables["log.mcap"]
+    decoded = decode_mcap(d / "log.mcap")
+    assert set(decoded) == set(TOPIC_STREAM)
+    for topic, stream in TOPIC_STREAM.items():
+        msgs = sorted(decoded[topic], key=lambda m: m[0])
+        stamps, frames, values = _table_fields(ref, stream)
+        lib = np.array([_fields(m) for _, m in msgs])
+        np.testing.assert_array_equal(
+            stamps, [m.header.stamp.sec * 10**9 + m.header.stamp.nanosec for _, m in msgs]
+        )
+        assert frames == [m.header.frame_id for _, m in msgs]
+        assert values.tobytes() == lib.tobytes()  # bit for bit
+
+
+@pytest.mark.parametrize("name", ["log.bag", "log_bz2.bag", "log.db3", "log_folder", "log_mcap2"])
+def test_bag_fast_paths_equal_rosbags(written, name):
+    d, _, tables = written
+    table, _ = tables[name]
+    path = d / name
+    with AnyReader([path]) as reader:
+        by_topic: dict[str, list] = {}
+        for conn, t, data in reader.messages():
+            by_topic.setdefault(conn.topic, []).append((t, reader.deserialize(data, conn.msgtype)))
+    for topic, stream in TOPIC_STREAM.items():
+        msgs = by_topic[topic]
+        stamps, frames, values = _table_fields(table, stream)
+        np.testing.assert_array_equal(
+            stamps, [m.header.stamp.sec * 10**9 + m.header.stamp.nanosec for _, m in msgs]
+        )
+        assert frames == [m.header.frame_id for _, m in msgs]
+        assert values.tobytes() == np.array([_fields(m) for _, m in msgs]).tobytes()
+
+
+def test_iter_input_batches_join_to_the_table(written):
+    """Batches come in log-time order: with ``time = "log"`` they join to exactly the table
+    ``read_input`` gives; with header stamps, each stream holds the same rows (a stamp may sit
+    one batch away from its place in the global sort)."""
+    d, _, tables = written
+    for name in ("log.mcap", "log.bag", "log.db3", "log_mcap2"):
+        spec = InputSpec(path=d / name, time="log")
+        batches = list(iter_input(spec, batch_rows=100))
+        assert all(raw == [] for _, raw in batches)
+        joined = pa.concat_tables([b for b, _ in batches])
+        assert joined.equals(read_input(spec)[0]), name
+        header = pa.concat_tables([b for b, _ in iter_input(InputSpec(path=d / name), 100)])
+        for sensor_name in ("gyro", "mag", "temperature"):
+            a, b = sensor(header, sensor_name), sensor(tables[name][0], sensor_name)
+            order = np.argsort(a.t_ns, kind="stable")
+            np.testing.assert_array_equal(a.t_ns[order], b.t_ns)
+            np.testing.assert_array_equal(a.values[order], b.values)
+
+
+def test_iter_input_memory_is_bounded_by_batch_and_chunk(written, tmp_path):
+    from imupipe.pipeline.mcap_writer import write_mcap
+
+    _, table, _ = written
+    path = tmp_path / "small_chunks.mcap"
+    write_mcap(path, table, chunk_bytes=4096)  # ~12 Imu messages per chunk
+    sizes = [b.num_rows for b, _ in iter_input(InputSpec(path=path), batch_rows=50)]
+    assert sum(sizes) == table.num_rows
+    assert len(sizes) >= 10 and max(sizes) < 50 + 100, sizes
+
+
+def test_time_log_uses_log_times(written):
+    d, table, _ = written
+    got, _ = read_input(InputSpec(path=d / "log.bag", time="log"))
+    for stream, key in (("imu", "gyro_x"), ("mag", "mag_x")):
+        mask = pa.compute.is_valid(table.column(key))
+        want = np.sort(table.filter(mask).column("log_time_ns").to_numpy())
+        have = got.filter(pa.compute.is_valid(got.column(key))).column("t_ns").to_numpy()
+        np.testing.assert_array_equal(have, want, stream)
+
+
+def test_out_of_order_and_duplicate_stamps_sorted_stably_and_warned(tmp_path):
+    rng = np.random.default_rng(5)
+    n = 400
+    t = T0 + np.arange(n, dtype=np.int64) * 5_000_000
+    stamps = t.copy()
+    swap = rng.choice(n - 1, 20, replace=False)
+    stamps[swap], stamps[swap + 1] = t[swap + 1], t[swap]
+    stamps[100] = stamps[99]  # a duplicate
+    gyro = np.column_stack([np.arange(n, dtype=float)] * 3)
+    table = make_table(
+        stamps,
+        gyro=gyro,
+        accel=np.zeros((n, 3)),
+        extra={"log_time_ns": t},
+        metadata={"topics": {"imu": "/imu"}},
+    )
+    write_log(tmp_path / "ooo.mcap", table)
+    got, warnings = read_input(InputSpec(path=tmp_path / "ooo.mcap"))
+    assert got.num_rows == n  # nothing dropped
+    order = np.argsort(stamps, kind="stable")
+    np.testing.assert_array_equal(got.column("t_ns").to_numpy(), stamps[order])
+    np.testing.assert_array_equal(got.column("gyro_x").to_numpy(), gyro[order, 0])
+    moved = int(np.count_nonzero(order != np.arange(n)))
+    assert any(f"{moved} messages out of header time order" in w for w in warnings), warnings
+    dups = int(np.count_nonzero(np.diff(np.sort(stamps)) == 0))
+    assert dups >= 1
+    assert any(f"{dups} messages repeat the previous header stamp" in w for w in warnings)
+
+
+def test_topic_selection_errors(written, tmp_path):
+    d, table, _ = written
+    path = d / "log.mcap"
+    with pytest.raises(ReadError, match=r"imu_topic '/nope' is not in the log.*/imu/data"):
+        read_input(InputSpec(path=path, imu_topic="/nope"))
+    with pytest.raises(ReadError, match=r"topic '/imu/mag' \(imu_topic\) has type .*MagneticField"):
+        read_input(InputSpec(path=path, imu_topic="/imu/mag"))
+    # two Imu topics: omitted imu_topic lists the candidates
+    from imupipe.pipeline.mcap_writer import McapTableWriter
+    from imupipe.pipeline.table import with_metadata
+
+    two = tmp_path / "two.mcap"
+    with McapTableWriter(two) as w:
+        w.write_table(table)
+        w.write_table(
+            with_metadata(table, {"topics": {"imu": "/imu2", "mag": "/m2", "temperature": "/t2"}})
+        )
+    with pytest.raises(ReadError, match=r"several sensor_msgs/msg/Imu topics \(/imu/data, /imu2\)"):
+        read_input(InputSpec(path=two))
+    got, _ = read_input(
+        InputSpec(path=two, imu_topic="/imu2", mag_topic="/m2", temperature_topic="/t2")
+    )
+    assert got.num_rows == table.num_rows
+
+
+def test_empty_topic_is_an_error(tmp_path):
+    from mcap.writer import Writer
+
+    from imupipe.pipeline.mcap_writer import msgdef
+
+    path = tmp_path / "empty.mcap"
+    with open(path, "wb") as fh:
+        w = Writer(fh)
+        w.start(profile="ros2")
+        sid = w.register_schema(
+            "sensor_msgs/msg/Imu", "ros2msg", msgdef("sensor_msgs/msg/Imu").encode()
+        )
+        w.register_channel("/imu", "cdr", sid)
+        w.finish()
+    with pytest.raises(ReadError, match=r"empty.mcap: topic '/imu' has no messages"):
+        read_input(InputSpec(path=path))
+
+
+def test_wrong_payload_on_a_topic_names_file_and_topic(tmp_path):
+    from mcap.writer import Writer
+
+    from imupipe.pipeline.mcap_writer import msgdef
+
+    path = tmp_path / "bad.mcap"
+    with open(path, "wb") as fh:
+        w = Writer(fh)
+        w.start(profile="ros2")
+        sid = w.register_schema(
+            "sensor_msgs/msg/Imu", "ros2msg", msgdef("sensor_msgs/msg/Imu").encode()
+        )
+        cid = w.register_channel("/imu", "cdr", sid)
+        # a Temperature payload published on an Imu topic
+        from imupipe.readers import cdr
+
+        payload = cdr.encode(
+            "sensor_msgs/msg/Temperature", np.array([T0]), b"imu", {"temperature": np.array([20.0])}
+        )
+        w.add_message(cid, log_time=T0, data=payload[0].tobytes(), publish_time=T0)
+        w.finish()
+    with pytest.raises(
+        ReadError, match=r"bad.mcap: topic '/imu': .* too short for sensor_msgs/msg/Imu"
+    ):
+        read_input(InputSpec(path=path))
