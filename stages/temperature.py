@@ -119,6 +119,8 @@ class TemperatureStep(Step):
     ``{"terms", "coefficients"}`` of ``sf(T)``; ``corrected = (raw - f) / sf(T)`` there."""
     params: dict[str, Any] = field(default_factory=dict)
     warnings: list[str] = field(default_factory=list)
+    quiet: bool = False
+    """Collect warnings without printing them (``run --quiet``); not part of the chain entry."""
 
     def variables(self, table: pa.Table, t_ns: np.ndarray) -> dict[str, Any]:
         """T, dT (and Ta, dTa when a term uses them) at ``t_ns``: T and Ta clamped to the fitted
@@ -159,7 +161,8 @@ class TemperatureStep(Step):
         """Print a warning once per step (the chain is applied to the same log several times)."""
         if message not in self.warnings:
             self.warnings.append(message)
-            print(f"imupipe: warning: [{self.type} {self.sensor}] {message}", file=sys.stderr)
+            if not self.quiet:
+                print(f"imupipe: warning: [{self.type} {self.sensor}] {message}", file=sys.stderr)
 
     def bias(self, variables: dict[str, np.ndarray]) -> np.ndarray:
         """(n, 3) modelled bias at the given variables."""
@@ -407,20 +410,45 @@ class TemperatureStage(Stage):
         return G0 * mean / np.linalg.norm(mean)
 
     # -- fit -----------------------------------------------------------------------------------
-    def fit(self, table: pa.Table, ctx: StageContext) -> StageOutput:
+    def check_options(self, ctx: StageContext) -> list[str]:
+        """Raise on an option value that cannot work; returns the poly model's terms."""
         o = self.options
-        if o.reference is not None and len(o.reference) != 3:
-            raise ctx.fail("'reference' must hold 3 values (the true output per axis, SI)")
+        problems = [
+            (o.reference is not None and len(o.reference) != 3, "'reference' must hold 3 values"),
+            (
+                o.window is not None and o.window_s is not None,
+                "give 'window' or 'window_s', not both",
+            ),
+            (o.window is not None and o.window < 1, "'window' must be >= 1 sample"),
+            (o.window_s is not None and o.window_s <= 0, "'window_s' must be > 0"),
+            (o.bin_width < 0, "'bin_width' must be >= 0 degC"),
+            (o.segment_width <= 0, "'segment_width' must be > 0 degC"),
+            (o.scale_order < 0, "'scale_order' must be >= 0"),
+            (not 0 < o.alpha_in <= o.alpha_out < 1, "need 0 < alpha_in <= alpha_out < 1"),
+            (
+                o.turntable_rate is not None and o.turntable_rate <= 0,
+                "'turntable_rate' must be > 0",
+            ),
+            (
+                o.model == "stepwise" and not 2 <= o.order <= tm.MAX_ORDER,
+                "stepwise 'order' must be 2..5",
+            ),
+        ]
+        for bad, message in problems:
+            if bad:
+                raise ctx.fail(message)
         if o.validate is not None and o.validate not in ctx.tables:
             raise ctx.fail(
                 f"validate: unknown input '{o.validate}' (inputs: {', '.join(ctx.tables)})"
             )
         try:
-            base_terms = tm.poly_terms(o.order, o.rate_terms) if o.model == "poly" else []
+            return tm.poly_terms(o.order, o.rate_terms) if o.model == "poly" else []
         except ValueError as exc:
             raise ctx.fail(str(exc)) from None
-        if o.window is not None and o.window_s is not None:
-            raise ctx.fail("give 'window' or 'window_s', not both")
+
+    def fit(self, table: pa.Table, ctx: StageContext) -> StageOutput:
+        o = self.options
+        base_terms = self.check_options(ctx)
         prep = self.prepare(table, ctx, ctx.input_name)
         temp = prep.variables["T"]
         lo, hi = float(temp.min()), float(temp.max())
@@ -446,7 +474,7 @@ class TemperatureStage(Stage):
             if o.model == "piecewise":
                 terms, coef = tm.fit_piecewise(rel, y, weights, knots - tref)
             elif o.model == "stepwise":
-                names = candidate_terms([v for v in tm.VARIABLES if v in rel], max(o.order, 2))
+                names = candidate_terms([v for v in tm.VARIABLES if v in rel], o.order)
                 sel = stepwise(
                     tm.design(names, rel),
                     y,
@@ -475,6 +503,7 @@ class TemperatureStage(Stage):
             knots=None if knots is None else knots.tolist(),
             scale=self._fit_scale(prep, tref, ctx) if o.turntable_rate is not None else None,
             params={"reference": prep.reference.tolist()},
+            quiet=ctx.quiet,
         )
         fitted = step.bias(rel)
         metrics = self._metrics(prep.bias, fitted)

@@ -175,15 +175,17 @@ def test_piecewise_hysteresis_term_matches_truth(cycles):
         assert out.results["metrics"]["validate"][axis]["reduction"] >= 20
 
 
-@pytest.mark.parametrize("ambient", [False, True])
-def test_stepwise_selects_temperature_and_rate_terms(cycles, ambient):
+@pytest.mark.parametrize(
+    ("ambient", "criterion"), [(False, "f_test"), (True, "f_test"), (False, "adj_r2")]
+)
+def test_stepwise_selects_temperature_and_rate_terms(cycles, ambient, criterion):
     fit, val, _ = cycles
     if not ambient:
         fit, val = (
             fit.drop_columns(["ambient_temperature"]),
             val.drop_columns(["ambient_temperature"]),
         )
-    out = fit_stage(fit, val, model="stepwise", validate="val")
+    out = fit_stage(fit, val, model="stepwise", validate="val", criterion=criterion)
     for axis in "xyz":
         terms = set(out.results["terms"][axis])
         assert {"T^2", "T^3"} <= terms
@@ -205,7 +207,7 @@ def test_soak_steps_work(cycles):
         assert out.results["metrics"]["validate"][axis]["reduction"] >= 20
 
 
-def test_narrow_span_refused_and_clamped(capsys):
+def test_narrow_span_refused_and_clamped():
     n = 2000
     t_ns = np.arange(n, dtype=np.int64) * 1_000_000_000
     temp = np.full(n, 25.0)
@@ -223,7 +225,9 @@ def test_narrow_span_refused_and_clamped(capsys):
     hi = out.step.ranges["T"][1]  # the warmest block mean
     want = -1e-3 * (hi - 20.0) * np.array([1.0, 2.0, 3.0])
     np.testing.assert_allclose(corrected, np.tile(want, (10, 1)), rtol=1e-9)
-    assert "clamped to the fitted range" in capsys.readouterr().err
+    assert "T clamped to the fitted range" in out.step.warnings[0]
+    with pytest.raises(FitError, match="'window' must be >= 1"):
+        fit_stage(table, window=0)
 
 
 def test_constant_temperature_refused_by_cli(tmp_path):
