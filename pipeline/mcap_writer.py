@@ -20,6 +20,7 @@ for carried-over messages, which arrive as Python objects anyway.
 
 from __future__ import annotations
 
+import bisect
 import json
 import struct
 import time
@@ -490,11 +491,26 @@ def write_mcap(
     carry_over: Iterable[RawMessage] = (),
     library: str = "imupipe",
     chunk_bytes: int = CHUNK_BYTES,
+    slice_rows: int = 100_000,
 ) -> dict[str, int]:
-    """Write ``table`` (and ``carry_over`` messages) to ``path``; returns messages per topic."""
+    """Write ``table`` (and ``carry_over`` messages) to ``path``; returns messages per topic.
+
+    The table is written in slices of ``slice_rows`` rows, each followed by the carried-over
+    messages up to its last log time, so the file stays in (nearly) log-time order."""
+    raw = sorted(carry_over, key=lambda m: m.log_time)
+    raw_logs = [m.log_time for m in raw]
     with McapTableWriter(
         path, calibration, topics, library=library, chunk_bytes=chunk_bytes
     ) as writer:
-        writer.write_table(table)
-        writer.write_raw(carry_over)
+        done = 0
+        for start in range(0, table.num_rows, slice_rows):
+            part = table.slice(start, slice_rows)
+            writer.write_table(part)
+            if raw:
+                log = "log_time_ns" if "log_time_ns" in part.column_names else "t_ns"
+                last = pc.max(pc.fill_null(part.column(log), part.column("t_ns"))).as_py()
+                upto = bisect.bisect_right(raw_logs, last, lo=done)
+                writer.write_raw(raw[done:upto])
+                done = upto
+        writer.write_raw(raw[done:])
     return writer.counts()
