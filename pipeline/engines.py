@@ -76,13 +76,33 @@ def default_jobs() -> int:
         return max(1, os.cpu_count() or 1)
 
 
+SINGLE_THREADED = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
+"""BLAS thread pools, read once when numpy loads: a worker is one of many, so each gets one thread
+(several BLAS threads per worker on a busy machine spin against each other)."""
+
+
 def _worker_init() -> None:
-    """Each worker is one of many: keep Arrow's and BLAS's own thread pools to one thread."""
+    """Each worker is one of many: Arrow's own thread pool gets one thread too."""
     import pyarrow as pa
 
     pa.set_cpu_count(1)
-    for var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
-        os.environ.setdefault(var, "1")
+
+
+def _start_forkserver(ctx: Any) -> None:
+    """Start the fork server (it preloads numpy and imupipe) with single-threaded BLAS."""
+    from multiprocessing import forkserver
+
+    saved = {var: os.environ.get(var) for var in SINGLE_THREADED}
+    os.environ.update(dict.fromkeys(SINGLE_THREADED, "1"))
+    try:
+        ctx.set_forkserver_preload(["imupipe.pipeline.convert"])
+        forkserver.ensure_running()
+    finally:
+        for var, value in saved.items():
+            if value is None:
+                os.environ.pop(var, None)
+            else:
+                os.environ[var] = value
 
 
 class _Tracker:
@@ -128,7 +148,7 @@ def run_local(
     tracker = _Tracker(tasks, retries, on_done)
     jobs = max(1, min(jobs or default_jobs(), len(tasks) or 1))
     ctx = mp.get_context("forkserver")
-    ctx.set_forkserver_preload(["imupipe.pipeline.convert"])
+    _start_forkserver(ctx)
     suspects: deque[int] = deque()
     while tracker.queue or suspects:
         crashed: list[int] = []
