@@ -419,6 +419,26 @@ def _edf(kind: str, alpha: int, m: int, n_phase: int) -> float:
     )
 
 
+def alpha_from_slope(taus: np.ndarray, dev: np.ndarray) -> np.ndarray:
+    """Noise exponent per point of a deviation curve (t, k) from its local log-log slope mu:
+    sigma ~ tau^mu for S_y ~ f^alpha with mu = -(alpha + 1) / 2 (alpha in -2..0; the ADEV
+    slope cannot tell white from flicker phase noise). For curves given without their data."""
+    lt = np.log(np.asarray(taus, dtype=np.float64))
+    ld = np.log(np.asarray(dev, dtype=np.float64).reshape(len(lt), -1))
+    mu = np.gradient(ld, lt, axis=0)
+    return np.clip(np.round(-2.0 * mu - 1.0), -2, 0).astype(np.int64)
+
+
+def edf_of_curve(kind: str, m: np.ndarray, alpha: np.ndarray, n_phase: int) -> np.ndarray:
+    """EDF (t, k) of a deviation ``kind`` at factors ``m`` on ``n_phase`` points, noise ``alpha``."""
+    return np.array(
+        [
+            [_edf(kind, int(a), int(mi), n_phase) for a in row]
+            for row, mi in zip(alpha.reshape(len(m), -1), m, strict=True)
+        ]
+    )
+
+
 def confidence(dev: Deviation, x: np.ndarray, ci: float = 0.683) -> Confidence:
     """Noise type, EDF and chi-square bounds of ``dev`` computed on phase ``x`` (k, N).
     Where fewer than 30 decimated points remain for the noise identification, the last
@@ -432,12 +452,7 @@ def confidence(dev: Deviation, x: np.ndarray, ci: float = 0.683) -> Confidence:
         if a is not None:
             last = a
         alphas[i] = last
-    edf = np.array(
-        [
-            [_edf(dev.kind, int(a), int(m), dev.n_phase) for a in row]
-            for row, m in zip(alphas, dev.m, strict=True)
-        ]
-    ).reshape(len(dev.m), k)
+    edf = edf_of_curve(dev.kind, dev.m, alphas, dev.n_phase)
     edf = np.maximum(edf, 1.0)
     p_lo, p_hi = 0.5 + ci / 2.0, 0.5 - ci / 2.0
     lo = dev.dev * np.sqrt(edf / chi2.ppf(p_lo, edf))
