@@ -14,6 +14,7 @@ from imupipe.pipeline.table import sensor
 from imupipe.readers.csv_reader import read_csv
 
 from conftest import TEST_DATA
+from helpers import rrd_rows
 
 
 def write_cfg(tmp_path, body: str):
@@ -76,3 +77,19 @@ def test_simulate_poses_cli_and_ferraris_without_labels_fails_in_one_line(tmp_pa
         "labelled segments: set csv.label"
     ]
     assert not (tmp_path / "out").exists()
+
+    cfg.write_text(
+        '[inputs.p]\npath = "poses.csv"\n[[stages]]\ntype = "accel_calibration"\n'
+        '[[stages]]\ntype = "gyro_calibration"\n[output]\ndir = "out"\n'
+    )
+    done = cli("run", cfg)
+    assert done.returncode == 0, done.stderr
+    rows = rrd_rows(tmp_path / "out" / "recording.rrd")
+    for entity in (
+        "/accel_calibration/norm/raw",
+        "/accel_calibration/norm/calibrated",
+        "/accel_calibration/residual_per_pose",
+        "/gyro_calibration/gravity_direction_residual_deg",
+    ):
+        assert rows.get(entity, 0) > 0, (entity, sorted(rows))
+    assert rows["/accel_calibration/residual_per_pose"] == 10
