@@ -121,7 +121,7 @@ class McapSource:
             if cid not in converters:
                 converters[cid] = ros2_converter(
                     normalize_type(schema_name),
-                    schema_data.decode(),
+                    schema_data.decode(errors="replace"),
                     f"{self.path}: topic '{channel.topic}'",
                 )
             schema_name, schema_data, convert = converters[cid]  # type: ignore[misc]

@@ -12,6 +12,7 @@ A folder's storage files (``*.db3``, ``*.mcap``) are joined in the order of thei
 
 from __future__ import annotations
 
+import contextlib
 import sqlite3
 from collections.abc import Iterator
 from pathlib import Path
@@ -26,6 +27,19 @@ from imupipe.readers.sources import LogSource, carry_sources, iter_sources, read
 from imupipe.readers.spec import InputSpec, RawMessage
 
 BLOCK_ROWS = 50_000
+CORRUPT = (sqlite3.DatabaseError, TypeError, ValueError, AttributeError, OverflowError)
+"""What a damaged sqlite3 file raises (bad pages, or cells of the wrong type)."""
+
+
+@contextlib.contextmanager
+def _guard(path: Path) -> Iterator[None]:
+    """Turn a damaged database's errors into one ReadError line."""
+    try:
+        yield
+    except CORRUPT as exc:
+        raise ReadError(
+            f"{path}: corrupt ROS 2 sqlite3 bag ({type(exc).__name__}: {exc})"
+        ) from None
 
 
 def _schema_text(msgtype: str) -> bytes:
@@ -48,46 +62,43 @@ class Sqlite3Bag:
             with open(self.path, "rb") as fh:
                 if not fh.read(16).startswith(b"SQLite format 3"):
                     raise ReadError(f"{self.path}: not a ROS 2 sqlite3 bag (not an SQLite file)")
+        except OSError as exc:
+            raise ReadError(f"{self.path}: cannot read: {exc.strerror or exc}") from None
+        with _guard(self.path):
             self._db = sqlite3.connect(f"file:{self.path}?mode=ro&immutable=1", uri=True)
-            rows = self._db.execute(
-                "SELECT id, name, type, serialization_format FROM topics"
-            ).fetchall()
-            self.defs: dict[str, bytes] = {}
-            tables = {
-                r[0] for r in self._db.execute("SELECT name FROM sqlite_master WHERE type='table'")
+            rows = self._db.execute("SELECT id, name, type, serialization_format FROM topics")
+            self.topics = {
+                int(tid): (str(name), normalize_type(str(typ)), str(fmt))
+                for tid, name, typ, fmt in rows
             }
+            self.defs: dict[str, bytes] = {}
+            tables = {r[0] for r in self._db.execute("SELECT name FROM sqlite_master")}
             if "message_definitions" in tables:
                 for typ, enc, text in self._db.execute(
                     "SELECT topic_type, encoding, encoded_message_definition FROM message_definitions"
                 ):
                     if enc == "ros2msg" and text:
-                        self.defs[typ] = text.encode()
-        except sqlite3.DatabaseError as exc:
-            raise ReadError(f"{self.path}: not a readable ROS 2 sqlite3 bag ({exc})") from None
-        self.topics = {int(tid): (name, normalize_type(typ), fmt) for tid, name, typ, fmt in rows}
+                        self.defs[str(typ)] = str(text).encode()
 
     def topic_types(self) -> dict[str, str]:
         return {name: typ for name, typ, _ in self.topics.values()}
 
     def topic_counts(self) -> dict[str, int]:
-        try:
+        with _guard(self.path):
             rows = self._db.execute("SELECT topic_id, COUNT(*) FROM messages GROUP BY topic_id")
-            return {self.topics[t][0]: n for t, n in rows if t in self.topics}
-        except sqlite3.DatabaseError as exc:
-            raise ReadError(f"{self.path}: corrupt ROS 2 sqlite3 bag ({exc})") from None
+            return {self.topics[t][0]: int(n) for t, n in rows if t in self.topics}
 
     def first_time(self) -> int:
-        row = self._db.execute("SELECT MIN(timestamp) FROM messages").fetchone()
-        return int(row[0] or 0)
+        with _guard(self.path):
+            row = self._db.execute("SELECT MIN(timestamp) FROM messages").fetchone()
+            return int(row[0] or 0)
 
     def topic_times(self) -> dict[str, np.ndarray]:
-        try:
+        with _guard(self.path):
             rows = self._db.execute("SELECT topic_id, timestamp FROM messages").fetchall()
-        except sqlite3.DatabaseError as exc:
-            raise ReadError(f"{self.path}: corrupt ROS 2 sqlite3 bag ({exc})") from None
-        if not rows:
-            return {}
-        tid, stamp = (np.asarray(c, np.int64) for c in zip(*rows, strict=True))
+            if not rows:
+                return {}
+            tid, stamp = (np.asarray(c, np.int64) for c in zip(*rows, strict=True))
         return {
             name: np.sort(stamp[tid == t])
             for t, (name, _, _) in self.topics.items()
@@ -102,17 +113,17 @@ class Sqlite3Bag:
         for tid, (name, _, fmt) in self.topics.items():
             if tid in chosen and fmt != "cdr":
                 raise ReadError(f"{self.path}: topic '{name}': serialization '{fmt}' is not cdr")
-        try:
+        with _guard(self.path):
             cursor = self._db.execute(
                 "SELECT topic_id, timestamp, data FROM messages ORDER BY timestamp, id"
             )
-            while True:
+        while True:
+            with _guard(self.path):
                 rows = cursor.fetchmany(BLOCK_ROWS)
                 if not rows:
-                    break
-                yield self._block(rows, chosen, carry, decode)
-        except sqlite3.DatabaseError as exc:
-            raise ReadError(f"{self.path}: corrupt ROS 2 sqlite3 bag ({exc})") from None
+                    return
+                block = self._block(rows, chosen, carry, decode)
+            yield block
 
     def _block(
         self, rows: list, chosen: dict[int, str], carry: bool, decode_: bool
