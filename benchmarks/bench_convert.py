@@ -68,6 +68,19 @@ def rosbags_read(path: Path) -> tuple[float, int]:
     return time.perf_counter() - start, n
 
 
+def burn(_: int) -> int:
+    """A pure-CPU task of about 0.1 s (no I/O, no numpy)."""
+    return sum(i * i for i in range(1_500_000))
+
+
+def timed_burn(n: int, jobs: int) -> float:
+    from imupipe.pipeline.engines import run_tasks
+
+    start = time.perf_counter()
+    run_tasks(burn, list(range(n)), lambda _: None, jobs=jobs)
+    return time.perf_counter() - start
+
+
 def timed_convert(logs: list[Path], cal: Path, out: Path, **kw) -> tuple[float, object]:
     shutil.rmtree(out, ignore_errors=True)
     start = time.perf_counter()
@@ -124,17 +137,32 @@ def main() -> None:
             f"{results['peak_rss_whole_mb']:.0f} MB"
         )
 
-        # 2. 20 logs, 1 worker against 2
+        # 2. 20 logs, 1 worker against 2; and what this (shared) machine gives two processes now:
+        # the same pool running a pure-CPU task, 1 against 2 workers, interleaved, best of 2
         fleet = tmp / "fleet"
         fleet.mkdir()
         for i in range(args.logs):
             make_log(fleet / f"log{i:02d}.mcap", args.log_messages, seed=10 + i)
-        t1, _ = timed_convert([fleet], cal, tmp / "out_j1", jobs=1)
-        t2, _ = timed_convert([fleet], cal, tmp / "out_j2", jobs=2)
-        results.update(fleet_1_worker_s=t1, fleet_2_workers_s=t2, fleet_speedup=t1 / t2)
+        t1 = t2 = c1 = c2 = float("inf")
+        busy = 0.0
+        for _ in range(2):
+            t1 = min(t1, timed_convert([fleet], cal, tmp / "out_j1", jobs=1)[0])
+            seconds, s2 = timed_convert([fleet], cal, tmp / "out_j2", jobs=2)
+            if seconds < t2:
+                t2, busy = seconds, sum(s.cpu_seconds for s in s2.converted) / seconds
+            c1 = min(c1, timed_burn(args.logs, jobs=1))
+            c2 = min(c2, timed_burn(args.logs, jobs=2))
+        results.update(
+            fleet_1_worker_s=t1,
+            fleet_2_workers_s=t2,
+            fleet_speedup=t1 / t2,
+            machine_speedup=c1 / c2,
+            cpus_busy_2_workers=busy,
+        )
         print(
             f"[2] {args.logs} logs x {args.log_messages:,} msgs: 1 worker {t1:.2f} s, "
-            f"2 workers {t2:.2f} s -> {t1 / t2:.2f}x (goal >= 1.6x)"
+            f"2 workers {t2:.2f} s -> {t1 / t2:.2f}x (goal >= 1.6x); the machine's own ceiling "
+            f"now (pure-CPU tasks, same pool): {c1 / c2:.2f}x; CPUs the 2 workers got: {busy:.2f}"
         )
         print(json.dumps({k: round(v, 3) for k, v in results.items()}))
     finally:

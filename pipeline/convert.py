@@ -198,6 +198,8 @@ class LogStats:
     counts: dict[str, int]
     calibration_sha256: str
     seconds: float
+    cpu_seconds: float
+    """CPU time the worker spent on this log (user + system); ``seconds`` is wall time."""
     mode: str  # streamed | whole | -
     peak_rss_mb: float
     warnings: list[str] = field(default_factory=list)
@@ -327,7 +329,7 @@ def verify_counts(where: Path, expected: Mapping[str, int], written: Mapping[str
 
 def convert_log(task: LogTask) -> LogStats:
     """Convert one log (runs in a worker); raises ImupipeError on bad input."""
-    start = time.perf_counter()
+    start, cpu_start = time.perf_counter(), time.process_time()
     spec = task.spec
     src = Path(spec.path)
     fmt = dispatch.detect_format(src)
@@ -385,6 +387,7 @@ def convert_log(task: LogTask) -> LogStats:
         counts=written,
         calibration_sha256=task.calibration_sha256,
         seconds=round(time.perf_counter() - start, 4),
+        cpu_seconds=round(time.process_time() - cpu_start, 4),
         mode=mode,
         peak_rss_mb=round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
         warnings=warnings,

@@ -4,8 +4,8 @@ Each line records what ``imupipe convert`` did with one log::
 
     {"input": "...", "output": "...", "parquet": null, "status": "converted",
      "counts": {"/imu/data": 12000, ...}, "calibration_sha256": "...", "seconds": 1.23,
-     "messages": 12000, "mode": "streamed", "attempts": 1, "host": "...", "peak_rss_mb": 143.2,
-     "error": null, "finished_at": "2026-11-21T15:40:02Z"}
+     "cpu_seconds": 1.1, "messages": 12000, "mode": "streamed", "attempts": 1, "host": "...",
+     "peak_rss_mb": 143.2, "error": null, "finished_at": "2026-11-21T15:40:02Z"}
 
 ``status`` is ``converted``, ``skipped`` (an output for the same calibration already existed) or
 ``failed`` (``error`` says why). Lines are only appended, each flushed and fsynced as soon as its
@@ -32,6 +32,7 @@ FIELDS = (
     "counts",
     "calibration_sha256",
     "seconds",
+    "cpu_seconds",
     "messages",
     "mode",
     "attempts",
