@@ -86,6 +86,18 @@ def log_variance_moments(edf: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return digamma(half) - np.log(half), polygamma(1, half)
 
 
+def fit_start(taus: np.ndarray, dev: np.ndarray) -> float:
+    """The shortest tau the model can describe: every term's deviation falls or stays flat at
+    short taus, so a curve that *rises* first (an anti-alias or averaging filter correlates the
+    samples) is fitted from its first peak on, before the minimum; else from the first tau."""
+    dev = np.asarray(dev, dtype=np.float64)
+    finite = np.isfinite(dev)
+    if len(dev) < 3 or not finite.all() or dev[1] <= dev[0]:
+        return float(taus[0])
+    head = dev[: int(np.argmin(dev)) + 1]
+    return float(taus[int(np.argmax(head))])
+
+
 def density_weights(taus: np.ndarray) -> np.ndarray:
     """Per-point factor <= 1 that counts about one point per octave of tau as independent:
     overlapping deviations at nearby taus are strongly correlated, so a denser grid must not
@@ -99,14 +111,16 @@ def density_weights(taus: np.ndarray) -> np.ndarray:
 
 
 def _solve(a: np.ndarray, target: np.ndarray, w: np.ndarray, iters: int = 60) -> np.ndarray:
-    """min_c sum w (ln(a c) - target)^2, c >= 0; ``a`` (t, p) positive columns."""
+    """min_c sum w (ln(a c) - target)^2, c >= 0; ``a`` (t, p) positive columns.
+
+    The log objective is not convex in c, so projected Gauss-Newton runs from three starts
+    (the relative-residual NNLS solution, the mean of the terms' lower-envelope tangents, and
+    their sum) and the best end point wins."""
     sw = np.sqrt(w)
     rel = a / np.exp(target)[:, None]
     scale = 1.0 / rel.max(axis=0)
-    a_s = a * scale  # solve for u = c / scale: columns of order 1 relative to the data
-    c, _ = nnls(sw[:, None] * rel * scale, sw)  # first order: relative residuals
-    if not np.any(c > 0):
-        c = np.full(a.shape[1], 1.0 / a.shape[1])
+    a_s = a * scale  # u = c / scale; u_k = 1 is term k's tangent to the curve from below
+    p = a.shape[1]
 
     def cost(u: np.ndarray) -> float:
         mu = a_s @ u
@@ -114,29 +128,32 @@ def _solve(a: np.ndarray, target: np.ndarray, w: np.ndarray, iters: int = 60) ->
             return np.inf
         return float(np.sum(w * (np.log(mu) - target) ** 2))
 
-    f = cost(c)
-    for _ in range(iters):
-        mu = a_s @ c
-        r = np.log(mu) - target
-        jac = a_s / mu[:, None]
-        new, _ = nnls(sw[:, None] * jac, sw * (1.0 - r))
-        step = new - c
-        lam, improved = 1.0, False
-        while lam > 1e-6:
-            trial = c + lam * step
-            ft = cost(trial)
-            if ft < f:
-                improved = True
+    def descend(u: np.ndarray) -> tuple[np.ndarray, float]:
+        f = cost(u)
+        for _ in range(iters):
+            mu = a_s @ u
+            jac = a_s / mu[:, None]
+            new, _ = nnls(sw[:, None] * jac, sw * (1.0 - (np.log(mu) - target)))
+            step = new - u
+            lam = 1.0
+            while lam > 1e-6 and cost(u + lam * step) >= f:
+                lam *= 0.5
+            if lam <= 1e-6:
                 break
-            lam *= 0.5
-        if not improved:
-            break
-        done = f - ft <= 1e-12 * max(f, 1e-300)
-        c, f = trial, ft
-        if done:
-            break
-    c[c < 0] = 0.0
-    return c * scale
+            trial = u + lam * step
+            ft = cost(trial)
+            done = f - ft <= 1e-12 * max(f, 1e-300)
+            u, f = trial, ft
+            if done:
+                break
+        return np.maximum(u, 0.0), f
+
+    first, _ = nnls(sw[:, None] * rel * scale, sw)  # first order: relative residuals
+    starts = [np.full(p, 1.0 / p), np.ones(p)]
+    if np.any(first > 0):
+        starts.insert(0, first)
+    u, _ = min((descend(s0) for s0 in starts), key=lambda item: item[1])
+    return u * scale
 
 
 def fit_allan(
@@ -146,11 +163,20 @@ def fit_allan(
     terms: tuple[str, ...] = TERMS,
     penalty: float = 10.0,
     model_error: float = 0.05,
+    tau_range: tuple[float, float] | None = None,
 ) -> AllanFit:
-    """Fit the model's ``terms`` to one measured deviation curve (``taus`` s, ``dev``, ``edf``)."""
+    """Fit the model's ``terms`` to one measured deviation curve (``taus`` s, ``dev``, ``edf``)
+    over ``tau_range`` (s; default: all taus from the curve's first peak on, see
+    :func:`fit_start`)."""
     taus = np.asarray(taus, dtype=np.float64)
     dev = np.asarray(dev, dtype=np.float64)
     ok = np.isfinite(dev) & (dev > 0) & np.isfinite(edf)
+    if tau_range is None:
+        ok &= taus >= fit_start(taus, dev)
+    else:
+        ok &= (taus >= tau_range[0]) & (taus <= tau_range[1])
+    if ok.sum() < 2:
+        raise ValueError(f"only {int(ok.sum())} usable taus to fit")
     taus, dev, edf = taus[ok], dev[ok], np.asarray(edf, dtype=np.float64)[ok]
     bias, var = log_variance_moments(edf)
     target = np.log(dev * dev) - bias
