@@ -51,7 +51,7 @@ import pyarrow as pa
 
 from imupipe.pipeline.atomic import staged_outputs
 from imupipe.pipeline.config import parse_input
-from imupipe.pipeline.engines import ENGINES, Outcome, default_jobs, run_tasks
+from imupipe.pipeline.engines import ENGINES, Outcome, run_tasks
 from imupipe.pipeline.errors import ConfigError, ImupipeError, ReadError
 from imupipe.pipeline.manifest import Manifest
 from imupipe.pipeline.mcap_writer import DEFAULT_TOPICS, McapTableWriter
@@ -539,11 +539,18 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         ),
     )
     p.add_argument("logs", nargs="+", type=Path, metavar="LOG", help="log files or folders")
-    p.add_argument("--calibration", type=Path, required=True, help="a calibration.json")
-    p.add_argument("--out", type=Path, required=True, help="output folder")
+    p.add_argument(
+        "--calibration",
+        type=Path,
+        required=True,
+        metavar="CAL.json",
+        help="a calibration.json (from imupipe run, or attached to a converted MCAP)",
+    )
+    p.add_argument("--out", type=Path, required=True, metavar="DIR", help="output folder")
     p.add_argument(
         "--config",
         type=Path,
+        metavar="READ.toml",
         help="TOML with how to read the logs: imu_topic, mag_topic, temperature_topic, time and a "
         "[csv] mapping (the keys of an [inputs.NAME] table); also makes folders yield .csv files",
     )
@@ -554,8 +561,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "--jobs",
         "-j",
         type=int,
+        metavar="N",
         default=None,
-        help=f"local worker processes (default: the CPUs available, here {default_jobs()})",
+        help="worker processes (default: the CPUs available); with --engine ray and no "
+        "--address, the CPUs of the local Ray it starts",
     )
     p.add_argument(
         "--address",
@@ -564,11 +573,16 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "default: start a local Ray",
     )
     p.add_argument(
-        "--retries", type=int, default=2, help="retries of a log after a crash (default 2)"
+        "--retries",
+        type=int,
+        default=2,
+        metavar="N",
+        help="retries of a log after a crash (default 2)",
     )
     p.add_argument(
         "--batch-rows",
         type=int,
+        metavar="ROWS",
         default=DEFAULT_BATCH_ROWS,
         help=f"rows per streamed batch (default {DEFAULT_BATCH_ROWS})",
     )

@@ -187,12 +187,14 @@ def run_ray(
     on_done: Callable[[Outcome], None],
     *,
     address: str | None = None,
+    jobs: int | None = None,
     retries: int = 2,
 ) -> None:
     """Run every task on a Ray cluster, one CPU each.
 
     ``address``: ``auto`` (the cluster this machine belongs to), ``ray://host:10001`` (Ray
-    Client) or ``None`` (join an already initialised Ray, else start a local one). Workers write
+    Client) or ``None`` (join an already initialised Ray, else start a local one with ``jobs``
+    CPUs, default all). Workers write
     their outputs themselves, so the logs and the output folder must be on storage every node
     sees at the same path.
     """
@@ -204,7 +206,8 @@ def run_ray(
         ) from None
     if not ray.is_initialized():
         try:
-            ray.init(address=address, log_to_driver=False, logging_level="WARNING")
+            local = {"num_cpus": jobs} if address is None and jobs else {}
+            ray.init(address=address, log_to_driver=False, logging_level="WARNING", **local)
         except ConnectionError as exc:
             raise ConfigError(f"--address {address}: cannot connect to Ray: {exc}") from None
     remote = ray.remote(num_cpus=1, max_retries=0)(guarded)
@@ -239,6 +242,6 @@ def run_tasks(
     if engine == "local":
         run_local(fn, tasks, on_done, jobs=jobs, retries=retries)
     elif engine == "ray":
-        run_ray(fn, tasks, on_done, address=address, retries=retries)
+        run_ray(fn, tasks, on_done, address=address, jobs=jobs, retries=retries)
     else:
         raise ConfigError(f"--engine {engine}: unknown engine (known: {', '.join(ENGINES)})")
