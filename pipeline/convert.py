@@ -436,6 +436,8 @@ def plan(
     for path, rel in found:
         output = out_dir / rel.with_name(rel.name + ".mcap")
         key = output.resolve()
+        if key in owners and owners[key].resolve() == path.resolve():
+            continue  # the same log named twice (a file and its folder)
         if key in owners:
             raise ConfigError(
                 f"{owners[key]} and {path} would both be written to {output}; "

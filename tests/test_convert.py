@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import collections
 import json
+import os
 import shutil
 from pathlib import Path
 
@@ -20,9 +21,11 @@ import pytest
 from mcap.reader import make_reader
 
 from imupipe.pipeline.convert import chain_sha256, convert, find_logs
+from imupipe.pipeline.engines import run_tasks
 from imupipe.pipeline.manifest import read_manifest
 from imupipe.pipeline.mcap_writer import msgdef, write_mcap
 from imupipe.pipeline.simulate import simulate, write_log
+from imupipe.readers.dispatch import detect_format
 from imupipe.readers.spec import RawMessage
 
 from conftest import run_cli
@@ -298,8 +301,17 @@ def test_ray_engine_matches_local(fleet, tmp_path):
     ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
     try:
         summary = convert(logs, cal, tmp_path / "out", engine="ray", parquet=True)
+        # the failure model on Ray: a task whose worker dies is retried, then reported; bad
+        # input is final at once
+        outcomes = []
+        tasks = [3, Path("/no/such.mcap")]
+        run_tasks(os._exit, tasks[:1], outcomes.append, engine="ray", retries=1)
+        run_tasks(detect_format, tasks[1:], outcomes.append, engine="ray", retries=1)
     finally:
         ray.shutdown()
+    died, bad = outcomes
+    assert died.attempts == 2 and "WorkerCrashedError" in died.error
+    assert bad.attempts == 1 and bad.error == "/no/such.mcap: no such file or folder"
     assert [Path(p).name for p, _ in summary.failed] == ["corrupt.mcap"]
     assert len(summary.converted) == 4
     for name in ("a", "site1/m", "site2/r1", "site2/r2"):
