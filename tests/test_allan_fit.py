@@ -1,0 +1,170 @@
+"""Issue 4: the five-term fit against known truths and peer tools.
+
+- units: white noise of discrete std 0.01 at 400 Hz is N = 0.01 / sqrt(400) = 5e-4;
+- recovery on simulated Kalibr-model data (white + random walk, 400 Hz, 3 h) and, slow-marked,
+  the 8-seed study;
+- the allan_variance_ros simulated IMU (truth known, BSD, tests/data): better than that tool;
+- imu_utils's own fits of 6 real IMUs' curves (MIT, ../shared): same curve values;
+- each simulated noise process (flicker, quantisation, ramp) comes back as its own term.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import yaml
+
+from imupipe.pipeline.simulate import noise, simulate
+from imupipe.pipeline.table import sensor
+from imupipe.stages import allan_estimators as est
+from imupipe.stages.allan_fit import B_FLOOR, TERMS, fit_allan, slope_readings
+
+from conftest import TEST_DATA, shared_path
+
+ROS_SIM = TEST_DATA / "allan" / "allan_variance_ros_sim"
+
+
+def curves(columns, rate_hz, grid="log", kind="oadev"):
+    """(deviation, confidence) of rate columns, as the stage computes them."""
+    x = est.rate_to_phase(columns, 1.0 / rate_hz)
+    m = est.tau_grid(grid, est.max_af(kind, x.shape[1]), 10)
+    dev = est.deviation_of_phase(x, 1.0 / rate_hz, kind, m)
+    return dev, est.confidence(dev, x)
+
+
+def fit_all(dev, conf, **kw):
+    return [
+        fit_allan(dev.taus, dev.dev[:, i], conf.edf[:, i], **kw) for i in range(dev.dev.shape[1])
+    ]
+
+
+def test_units_white_noise_density():
+    rng = np.random.default_rng(7)
+    y = rng.standard_normal((400 * 600, 6)) * 0.01  # 10 min at 400 Hz, discrete std 0.01
+    dev, conf = curves(y, 400.0)
+    for f in fit_all(dev, conf):
+        assert f.params["N"] == pytest.approx(5.0e-4, rel=0.03)
+        assert [t for t in TERMS if f.params[t] > 0] == ["N"]  # nothing else is supported
+    reading = slope_readings(dev.taus, dev.dev[:, 0])
+    assert reading["N"] == pytest.approx(5.0e-4, rel=0.03)
+
+
+KALIBR_TRUTH = {  # allan_variance_ros's simulator (ori-drs imu_simulator.yaml)
+    "gyro_N": [1.888339269965301e-4] * 3,
+    "gyro_K": [2.5565313322052523e-6] * 3,
+    "accel_N": [2.5019929573561175e-3] * 3,
+    "accel_K": [6.972435158192731e-5] * 3,
+}
+
+
+def kalibr_run(seed: int, hours: float = 3.0):
+    params = {"rate_hz": 400.0, "duration_s": hours * 3600.0, "temperature": None, **KALIBR_TRUTH}
+    table, truth = simulate("static", params, seed=seed)
+    columns = [sensor(table, s).values[:, i] for s in ("gyro", "accel") for i in range(3)]
+    del table
+    dev, conf = curves(columns, 400.0)
+    fits = fit_all(dev, conf)
+    n_true = np.array(truth["gyro"]["N"] + truth["accel"]["N"])
+    k_true = np.array(truth["gyro"]["K"] + truth["accel"]["K"])
+    n = np.array([f.params["N"] for f in fits])
+    k = np.array([f.params["K"] for f in fits])
+    return n / n_true - 1, k / k_true - 1, fits
+
+
+def test_recovery_kalibr_model_3h():
+    """One 3 h run (seed 0): N within 3 % and K within 35 % on every axis. (K from one 3 h run
+    scatters by about 13 % (1 sigma); see the slow 8-seed study for the mean.)"""
+    n_err, k_err, fits = kalibr_run(seed=0)
+    assert np.abs(n_err).max() < 0.03, n_err
+    assert np.abs(k_err).max() < 0.35, k_err
+    for f in fits:  # the terms the simulation does not have are left out
+        assert f.params["Q"] == f.params["B"] == f.params["R"] == 0.0
+
+
+@pytest.mark.slow
+def test_recovery_kalibr_model_8_seeds():
+    """The issue's study: over 8 seeds, mean N within 2 % and mean K within 10 % per axis."""
+    n_errs, k_errs = [], []
+    for seed in range(8):
+        n_err, k_err, _ = kalibr_run(seed)
+        n_errs.append(n_err)
+        k_errs.append(k_err)
+        print(f"seed {seed}: N {np.round(n_err, 4)} K {np.round(k_err, 3)}")
+    n_errs, k_errs = np.array(n_errs), np.array(k_errs)
+    print(
+        "mean N error per axis", n_errs.mean(axis=0), "mean K error per axis", k_errs.mean(axis=0)
+    )
+    print("K within 35 %:", int((np.abs(k_errs) < 0.35).sum()), "of", k_errs.size)
+    assert np.abs(n_errs.mean(axis=0)).max() < 0.02
+    assert np.abs(k_errs.mean(axis=0)).max() < 0.10
+
+
+def test_allan_variance_ros_simulated_truth():
+    """Fit the curve allan_variance_ros computed on its simulated IMU; report like Kalibr (the
+    largest axis) and beat that tool's own errors (+2.4 % / +30 % accel, +1.1 % / +61 % gyro)."""
+    rows = np.loadtxt(ROS_SIM / "allan_variance_log20.csv")
+    taus, dev = rows[:, 0], rows[:, 1:].copy()
+    dev[:, 3:] *= np.pi / 180.0  # gyro columns are deg/s
+    truth = yaml.safe_load((ROS_SIM / "imu_simulator_config_truth.yaml").read_text())
+    tool = yaml.safe_load((ROS_SIM / "expected_imu.yaml").read_text())
+    m = np.round(taus * 400.0).astype(np.int64)
+    alpha = est.alpha_from_slope(taus, dev)
+    edf = est.edf_of_curve("adev", m, alpha, int(11000 * 400) + 1)  # non-overlapping bins
+    fits = [fit_allan(taus, dev[:, i], edf[:, i]) for i in range(6)]
+    for sensor_cols, prefix in (((0, 1, 2), "accelerometer"), ((3, 4, 5), "gyroscope")):
+        for term, key in (("N", "noise_density"), ("K", "random_walk")):
+            true = truth[f"{prefix}_{key}"]
+            ours = max(fits[i].params[term] for i in sensor_cols)
+            theirs = tool[f"{prefix}_{key}"]
+            assert abs(ours / true - 1) < abs(theirs / true - 1), (prefix, key, ours, theirs)
+            for i in sensor_cols:  # and every axis within the issue's single-run tolerances
+                err = fits[i].params[term] / true - 1
+                assert abs(err) < (0.03 if term == "N" else 0.35), (prefix, key, i, err)
+
+
+def _imu_utils_yaml(path):
+    return yaml.safe_load(path.read_text().replace("%YAML:1.0", ""))
+
+
+@pytest.mark.parametrize("device", ["A3", "N3", "16448", "gx4", "xsens", "BMI160"])
+def test_imu_utils_real_curves(device):
+    """Same measured curves, same conventions (imu_utils: gyr_n = fitted ADEV at 1 s, gyr_w =
+    minimum of the fitted ADEV; BMI160's yaml is x sqrt(fs)): our fitted curve agrees with
+    imu_utils's at those two points within 15 % / 20 % on all 6 curves of each of 6 real IMUs."""
+    params = _imu_utils_yaml(shared_path("allan", "imu_utils_curves", f"{device}_imu_param.yaml"))
+    for short, section, scale in (("gyr", "Gyr", np.pi / 180 / 3600), ("acc", "Acc", 1.0)):
+        taus = np.loadtxt(shared_path("allan", "imu_utils_curves", f"data_{device}_{short}_t.txt"))
+        fs = 1.0 / taus[0]
+        m = np.round(taus * fs).astype(np.int64)
+        for axis in "xyz":
+            name = f"data_{device}_{short}_{axis}.txt"
+            dev = np.loadtxt(shared_path("allan", "imu_utils_curves", name)) * scale
+            edf = est.edf_of_curve("oadev", m, est.alpha_from_slope(taus, dev), 2 * int(m[-1]) + 1)
+            fit = fit_allan(taus, dev, edf[:, 0])
+            ref = params[section][f"{axis}-axis"]
+            at_1s = ref[f"{short}_n"] / (np.sqrt(fs) if device == "BMI160" else 1.0)
+            dense = np.logspace(np.log10(taus[0]), np.log10(taus[-1]), 400)
+            assert fit.deviation(np.array([1.0]))[0] == pytest.approx(at_1s, rel=0.15), name
+            assert fit.deviation(dense).min() == pytest.approx(ref[f"{short}_w"], rel=0.20), name
+            assert fit.rms_log10 < 0.25, name
+
+
+def test_each_simulated_process_is_its_own_term():
+    """noise.py's processes have the IEEE 952 Allan variances of the terms they stand for."""
+    rng = np.random.default_rng(11)
+    fs, n = 100.0, 100 * 3600
+    b, q, r, white = 5e-5, 2e-5, 2e-7, 1e-4
+    columns = [
+        noise.flicker(rng, n, b, fs),
+        noise.quantization(rng, n, q, fs) + noise.white(rng, n, white, fs),
+        noise.rate_ramp(n, r, fs) + noise.white(rng, n, white, fs),
+    ]
+    dev, conf = curves(columns, fs)
+    plateau = dev.dev[(dev.taus >= 0.1) & (dev.taus <= 30), 0] / (b * B_FLOOR)
+    assert np.abs(plateau - 1).max() < 0.1  # flat at 0.664 B where the EDF is large
+    flick, quant, ramp = fit_all(dev, conf)
+    assert flick.params["B"] == pytest.approx(b, rel=0.1)
+    assert quant.params["Q"] == pytest.approx(q, rel=0.1)
+    assert quant.params["N"] == pytest.approx(white, rel=0.05)
+    assert ramp.params["R"] == pytest.approx(r, rel=0.1)
+    assert ramp.params["N"] == pytest.approx(white, rel=0.05)
