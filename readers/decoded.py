@@ -205,6 +205,62 @@ def concat(pieces: list[Piece], stream: str) -> Piece:
     return joined
 
 
+class StreamBuffer:
+    """Collects one stream's pieces. With ``capacity`` (the message count the log states) the
+    columns are allocated once and each chunk's piece is copied in and dropped, so reading
+    costs the table's size once; without it (or when the count was wrong) pieces are kept and
+    joined at the end."""
+
+    def __init__(self, stream: str, capacity: int | None) -> None:
+        self.stream = stream
+        self.filled = 0
+        self.frames: list[pa.Array] = []
+        self.spill: list[Piece] = []
+        self.full: Piece | None = None
+        if capacity:
+            self.full = Piece(
+                np.empty(capacity, np.int64),
+                np.empty(capacity, np.int64),
+                pa.array([], pa.string()),
+                {
+                    name: np.empty(capacity) if count == 1 else np.empty((capacity, count))
+                    for name, _, count in COLUMNS[stream]
+                },
+            )
+
+    def add(self, piece: Piece) -> None:
+        full, a, m = self.full, self.filled, len(piece)
+        if full is None or self.spill or a + m > len(full.stamp):
+            self.spill.append(piece)
+            return
+        full.stamp[a : a + m] = piece.stamp
+        full.log[a : a + m] = piece.log
+        for name, col in piece.columns.items():
+            full.columns[name][a : a + m] = col
+        self.frames.append(piece.frame)
+        self.filled += m
+
+    def result(self) -> Piece:
+        """The joined stream (the buffer is emptied)."""
+        parts: list[Piece] = []
+        if self.full is not None and self.filled:
+            n = self.filled
+            full = self.full
+            frame = pa.concat_arrays(self.frames) if len(self.frames) > 1 else self.frames[0]
+            parts.append(
+                Piece(
+                    full.stamp[:n],
+                    full.log[:n],
+                    frame,
+                    {k: v[:n] for k, v in full.columns.items()},
+                )
+            )
+        self.full, self.frames = None, []
+        parts += self.spill
+        self.spill = []
+        return concat(parts, self.stream)
+
+
 def _column(n: int, rows: np.ndarray | None, values: np.ndarray) -> pa.Array:
     """A float64 (n,) or fixed-size-list (n, 9) column holding ``values`` at ``rows``, null elsewhere."""
     if rows is None:

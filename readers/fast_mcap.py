@@ -18,10 +18,12 @@ file and the byte offset.
 
 from __future__ import annotations
 
+import collections
 import io
 import struct
 import zlib
 from collections.abc import Iterator
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -274,12 +276,16 @@ class McapFile:
         return pairs[:, 0].astype(np.int64), np.minimum(suffix, NEVER).astype(np.int64)
 
     def chunks(self) -> Iterator[ChunkMessages]:
-        """Every chunk (and every run of un-chunked messages) in file order."""
+        """Every chunk (and every run of un-chunked messages) in file order.
+
+        A worker thread decompresses (and CRC-checks) the next chunk while the caller decodes
+        the current one (zstd, lz4 and zlib release the GIL)."""
         offsets, suffix_min = self._bounds()
         pending: ChunkMessages | None = None
+        queue: collections.deque[ChunkMessages] = collections.deque()
         loose = bytearray()
         loose_off: dict[int, list[int]] = {}
-        with open(self.path, "rb") as fh:
+        with open(self.path, "rb") as fh, ThreadPoolExecutor(1) as worker:
             for opcode, pos, body in self._records(fh, 8, self.size):
                 if opcode == OP_MESSAGE_INDEX and pending is not None:
                     if len(body) < 6:
@@ -291,8 +297,10 @@ class McapFile:
                     pending.offsets[cid] = np.sort(pairs[:, 1].astype(np.int64))
                     continue
                 if pending is not None:
-                    yield _indexed_or_scanned(pending)
+                    queue.append(pending)
                     pending = None
+                while len(queue) > 1 or (queue and opcode != OP_CHUNK):
+                    yield _finished(queue.popleft())
                 if opcode == OP_MESSAGE:
                     if len(body) < 22:
                         raise ReadError(f"{self.path}: corrupt message record at byte {pos}")
@@ -314,15 +322,22 @@ class McapFile:
                         bound = int(suffix_min[k]) if k < len(offsets) else NEVER
                     else:
                         bound = int.from_bytes(body[:8], "little") if len(body) >= 8 else 0
-                    pending = ChunkMessages(
-                        self._decompress(body, pos), {}, f"{self.path}: chunk at byte {pos}", bound
-                    )
+                    future = worker.submit(self._decompress, body, pos)
+                    pending = ChunkMessages(future, {}, f"{self.path}: chunk at byte {pos}", bound)  # type: ignore[arg-type]
                 elif opcode == OP_DATA_END:
                     break
             if pending is not None:
-                yield _indexed_or_scanned(pending)
+                queue.append(pending)
+            while queue:
+                yield _finished(queue.popleft())
             if loose:
                 yield _loose_chunk(loose, loose_off, f"{self.path}: messages at the end")
+
+
+def _finished(chunk: ChunkMessages) -> ChunkMessages:
+    """The chunk with its decompressed buffer (waiting for the worker) and its offsets."""
+    chunk.buf = chunk.buf.result()  # type: ignore[attr-defined]
+    return _indexed_or_scanned(chunk)
 
 
 def _loose_chunk(buf: bytearray, offsets: dict[int, list[int]], where: str) -> ChunkMessages:

@@ -22,7 +22,7 @@ import numpy as np
 import pyarrow as pa
 
 from imupipe.pipeline.errors import ReadError
-from imupipe.readers.decoded import Piece, assemble, concat, select_topics
+from imupipe.readers.decoded import Piece, StreamBuffer, assemble, concat, select_topics
 from imupipe.readers.spec import InputSpec, RawMessage
 
 NEVER = 2**63 - 1
@@ -73,14 +73,17 @@ def _check_empty(spec: InputSpec, streams: dict[str, str], counts: dict[str, int
 def read_sources(spec: InputSpec, sources: Sequence[LogSource]) -> tuple[pa.Table, list[str]]:
     """The whole input as one common table; returns (table, warnings)."""
     streams = _choose(spec, sources)
-    parts: dict[str, list[Piece]] = {s: [] for s in streams}
+    stated = [src.topic_counts() for src in sources]
+    buffers = {
+        s: StreamBuffer(s, None if None in stated else sum(c.get(t, 0) for c in stated))  # type: ignore[union-attr]
+        for s, t in streams.items()
+    }
     for src in _ordered(sources):
         for pieces, _, _ in src.chunks(streams, carry=False):
             for stream, piece in pieces.items():
-                parts[stream].append(piece)
-    joined = {s: concat(p, s) for s, p in parts.items()}
+                buffers[stream].add(piece)
+    joined = {s: b.result() for s, b in buffers.items()}
     _check_empty(spec, streams, {s: len(p) for s, p in joined.items()})
-    parts.clear()
     warnings: list[str] = []
     table = assemble(
         joined,
