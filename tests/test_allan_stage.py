@@ -1,0 +1,160 @@
+"""Issue 4: the ``allan`` stage end to end (``imupipe run`` on a simulated static CSV) and its
+input checks."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import yaml
+
+from imupipe.pipeline.simulate import simulate, write_log
+from imupipe.pipeline.table import make_table
+from imupipe.stages.allan import AllanStage
+from imupipe.stages.base import StageContext
+
+from helpers import rrd_rows
+
+TRUTH = {
+    "gyro_N": [1.7e-4, 2.0e-4, 1.5e-4],
+    "gyro_K": [0.0, 0.0, 0.0],
+    "accel_N": [2.0e-3, 1.5e-3, 2.5e-3],
+    "accel_K": [0.0, 0.0, 0.0],
+}
+
+
+@pytest.fixture(scope="module")
+def allan_run(tmp_path_factory):
+    from conftest import run_cli
+
+    d = tmp_path_factory.mktemp("allan")
+    table, truth = simulate("static", {"duration_s": 1200.0, "rate_hz": 100.0, **TRUTH}, seed=5)
+    write_log(d / "static.csv", table)
+    (d / "cfg.toml").write_text(
+        '[inputs.static]\npath = "static.csv"\n\n[[stages]]\ntype = "allan"\n\n'
+        '[output]\ndir = "out"\napply_to = []\n'
+    )
+    proc = run_cli("run", d / "cfg.toml")
+    assert proc.returncode == 0, proc.stderr
+    return d, truth, proc
+
+
+def test_results_in_calibration_json(allan_run):
+    d, truth, _ = allan_run
+    res = json.loads((d / "out" / "calibration.json").read_text())["results"]["allan"]
+    for s in ("gyro", "accel"):
+        for i, axis in enumerate("xyz"):
+            got = res[s][axis]
+            assert set(got) == {"N", "B", "K", "Q", "R"}
+            assert got["N"] == pytest.approx(truth[s]["N"][i], rel=0.03)
+    assert res["metrics"]["rate_hz"] == pytest.approx(100.0)
+    assert res["metrics"]["kind"] == "oadev"
+    assert any("two hours" in w for w in res["warnings"])
+
+
+def test_kalibr_yaml_is_the_largest_axis(allan_run):
+    d, _, _ = allan_run
+    res = json.loads((d / "out" / "calibration.json").read_text())["results"]["allan"]
+    kalibr = yaml.safe_load((d / "out" / "imu.yaml").read_text())
+    for prefix, s in (("gyroscope", "gyro"), ("accelerometer", "accel")):
+        assert kalibr[f"{prefix}_noise_density"] == pytest.approx(
+            max(res[s][a]["N"] for a in "xyz"), rel=1e-6
+        )
+        assert kalibr[f"{prefix}_random_walk"] == pytest.approx(
+            max(res[s][a]["K"] for a in "xyz"), rel=1e-6, abs=1e-30
+        )
+    assert kalibr["rostopic"] == "/imu/data"
+    assert kalibr["update_rate"] == pytest.approx(100.0)
+    text = (d / "out" / "imu.yaml").read_text()
+    assert "LARGEST" in text and "axis y" in text  # gyro N: y is the largest in TRUTH
+
+
+def test_imu_utils_yaml_and_curves(allan_run):
+    d, truth, _ = allan_run
+    text = (d / "out" / "allan_imu_utils.yaml").read_text()
+    assert text.startswith("%YAML:1.0") and "random walk density K" in text
+    doc = yaml.safe_load(text.replace("%YAML:1.0", ""))
+    assert doc["Gyr"]["y-axis"]["gyr_n"] == pytest.approx(truth["gyro"]["N"][1], rel=0.03)
+    assert doc["Acc"]["z-axis"]["acc_n"] == pytest.approx(truth["accel"]["N"][2], rel=0.03)
+    csv = np.genfromtxt(d / "out" / "allan_curves.csv", delimiter=",", names=True)
+    assert csv["tau_s"][0] == pytest.approx(0.01)
+    n_true = truth["gyro"]["N"][0]
+    np.testing.assert_allclose(
+        csv["gyro_x_oadev"][:5], n_true / np.sqrt(csv["tau_s"][:5]), rtol=0.05
+    )
+    assert np.all(csv["gyro_x_lo68"] < csv["gyro_x_oadev"])
+    assert np.all(csv["gyro_x_oadev"] < csv["gyro_x_hi68"])
+
+
+def test_rerun_curves(allan_run):
+    d, _, _ = allan_run
+    rows = rrd_rows(d / "out" / "recording.rrd")
+    for s in ("gyro", "accel"):
+        for axis in "xyz":
+            assert rows[f"/allan/{s}/{axis}/measured"] > 10
+            assert rows[f"/allan/{s}/{axis}/model"] > 10
+
+
+# -- input checks (in-process: the messages) ---------------------------------------------------
+def static_table(n=20_000, fs=100.0, seed=0):
+    rng = np.random.default_rng(seed)
+    t_ns = 1_700_000_000_000_000_000 + np.round(np.arange(n) * 1e9 / fs).astype(np.int64)
+    gyro = rng.standard_normal((n, 3)) * 1e-3
+    accel = rng.standard_normal((n, 3)) * 1e-2 + [0.0, 0.0, 9.81]
+    return t_ns, gyro, accel
+
+
+def fit(t_ns, gyro, accel, **options):
+    ctx = StageContext(name="allan", input_name="static", quiet=True)
+    stage = AllanStage(AllanStage.Options(**options))
+    return stage.fit(make_table(t_ns, gyro=gyro, accel=accel), ctx), ctx
+
+
+def test_nan_sample_is_an_error_naming_it():
+    from imupipe.pipeline.errors import FitError
+
+    t_ns, gyro, accel = static_table()
+    gyro[1234, 1] = np.nan
+    with pytest.raises(FitError, match=r"gyro sample 1234 \(t = 12\.340000 s\) is not finite"):
+        fit(t_ns, gyro, accel)
+
+
+def test_time_jump_is_an_error_naming_it():
+    from imupipe.pipeline.errors import FitError
+
+    t_ns, gyro, accel = static_table()
+    t_ns[5000:] += 2_000_000_000  # 2 s missing after sample 4999
+    with pytest.raises(FitError, match=r"time jump of 2\.010000 s .* after sample 4999"):
+        fit(t_ns, gyro, accel)
+
+
+def test_too_short_for_the_fit():
+    from imupipe.pipeline.errors import FitError
+
+    t_ns, gyro, accel = static_table(n=60)
+    with pytest.raises(FitError, match="taus on the 'octave' grid; fitting 5 terms needs"):
+        fit(t_ns, gyro, accel, taus="octave")
+
+
+def test_motion_warns():
+    t_ns, gyro, accel = static_table()
+    gyro[8000:9000, 2] += 0.5  # 10 s of turning
+    _, ctx = fit(t_ns, gyro, accel, taus="octave")
+    assert any("does not look static" in w for w in ctx.warnings)
+
+
+def test_cli_error_is_one_line(tmp_path):
+    from conftest import run_cli
+
+    table, _ = simulate("static", {"duration_s": 2.0, "rate_hz": 20.0}, seed=1)
+    write_log(tmp_path / "short.csv", table)
+    (tmp_path / "cfg.toml").write_text(
+        '[inputs.s]\npath = "short.csv"\n\n[[stages]]\ntype = "allan"\ntaus = "octave"\n\n'
+        '[output]\ndir = "out"\napply_to = []\n'
+    )
+    proc = run_cli("run", tmp_path / "cfg.toml", "--quiet")
+    assert proc.returncode == 2
+    assert len(proc.stderr.strip().splitlines()) == 1 and "Traceback" not in proc.stderr
+    assert "stage 'allan' on input 's'" in proc.stderr
+    assert not (tmp_path / "out" / "imu.yaml").exists()
