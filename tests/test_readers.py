@@ -328,3 +328,17 @@ def test_wrong_payload_on_a_topic_names_file_and_topic(tmp_path):
         ReadError, match=r"bad.mcap: topic '/imu': .* too short for sensor_msgs/msg/Imu"
     ):
         read_input(InputSpec(path=path))
+
+
+@pytest.mark.parametrize("suffix", [".bag", ".mcap"])
+def test_split_logs_in_a_folder_join_in_time_order(written, tmp_path, suffix):
+    d, table, tables = written
+    folder = tmp_path / "split"
+    folder.mkdir()
+    half = table.num_rows // 2
+    # written in reverse name order: the join follows the first message, not the file name
+    write_log(folder / f"b{suffix}", table.slice(0, half))
+    write_log(folder / f"a{suffix}", table.slice(half))
+    got, warnings = read_input(InputSpec(path=folder))
+    assert warnings == []
+    assert got.equals(tables["log.mcap"][0])
