@@ -110,18 +110,29 @@ def main() -> None:
         quarter.parent.mkdir()
         make_log(quarter, args.messages // 4, seed=1)
 
-        # 1. one big log against the rosbags read-and-deserialise loop
-        t_peer, n_peer = rosbags_read(big)
-        t_ours, summary = timed_convert([big], cal, tmp / "out_big", jobs=1)
-        (stats,) = summary.converted
-        assert stats.messages == n_peer == args.messages, (stats.messages, n_peer)
-        results["convert_1log_s"] = t_ours
-        results["rosbags_read_deserialize_s"] = t_peer
-        results["speedup_vs_rosbags"] = t_peer / t_ours
+        # 1. one big log against the rosbags read-and-deserialise loop, interleaved, best of 2:
+        # the worker's own time (read + correct + write + verify, like the peer's loop) and the
+        # whole command (process pool start and planning included)
+        t_peer = t_ours = t_worker = float("inf")
+        for _ in range(2):
+            seconds, n_peer = rosbags_read(big)
+            t_peer = min(t_peer, seconds)
+            seconds, summary = timed_convert([big], cal, tmp / "out_big", jobs=1)
+            (stats,) = summary.converted
+            assert stats.messages == n_peer == args.messages, (stats.messages, n_peer)
+            t_ours, t_worker = min(t_ours, seconds), min(t_worker, stats.seconds)
+        results.update(
+            convert_1log_worker_s=t_worker,
+            convert_1log_command_s=t_ours,
+            rosbags_read_deserialize_s=t_peer,
+            speedup_vs_rosbags=t_peer / t_worker,
+            speedup_vs_rosbags_command=t_peer / t_ours,
+        )
         print(
-            f"[1] {args.messages:,} Imu messages: imupipe convert (read+correct+write, 1 worker) "
-            f"{t_ours:.2f} s ({args.messages / t_ours / 1e6:.2f} M msg/s); rosbags AnyReader "
-            f"read+deserialise {t_peer:.2f} s -> {t_peer / t_ours:.1f}x faster (goal >= 5x)"
+            f"[1] {args.messages:,} Imu messages: rosbags AnyReader read+deserialise {t_peer:.2f} s; "
+            f"imupipe convert read+correct+write+verify in the worker {t_worker:.2f} s "
+            f"({args.messages / t_worker / 1e6:.2f} M msg/s) -> {t_peer / t_worker:.1f}x faster "
+            f"(goal >= 5x); whole command with pool start {t_ours:.2f} s -> {t_peer / t_ours:.1f}x"
         )
 
         # 3. peak memory: streamed big, streamed quarter, big read whole
