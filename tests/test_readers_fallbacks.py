@@ -32,7 +32,9 @@ def _messages(table: pa.Table, encoding: str) -> list[tuple[int, str, bytes]]:
     for stream in TYPES:
         rows, groups = encode_stream(table, stream, encoding)
         for sel, payloads in groups:
-            out += [(int(log[rows[i]]), stream, p.tobytes()) for i, p in zip(sel, payloads, strict=True)]
+            out += [
+                (int(log[rows[i]]), stream, p.tobytes()) for i, p in zip(sel, payloads, strict=True)
+            ]
     return sorted(out, key=lambda m: m[0])
 
 
