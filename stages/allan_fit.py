@@ -25,7 +25,9 @@ selection: every subset of the requested terms is fitted and the one with the le
 ``cost + penalty * terms`` wins (an information criterion; ``penalty`` default 10), with the
 weights thinned to about one independent point per octave of tau (overlapping estimates at
 nearby taus are strongly correlated, a denser grid must not make spurious terms significant);
-left-out terms are exactly zero.
+left-out terms are exactly zero. The rate ramp R pays the penalty twice: over a few hours one
+realisation of a rate random walk often looks like a ramp, and a stochastic K is the better
+default explanation unless the ramp clearly fits better.
 
 The IEEE/Kalibr slope readings are reported too: N from the -1/2 slope line at tau = 1 s, K from
 the +1/2 slope line at tau = 3 s (each line through the measured point whose local log-log slope
@@ -195,7 +197,7 @@ def fit_allan(
             c, cost = solve(list(subset))
             if np.any(c <= 0):
                 continue  # the same curve as a smaller subset, which is scored on its own
-            score = cost + penalty * size
+            score = cost + penalty * (size + ("R" in subset))
             if best is None or score < best[0]:
                 best = (score, list(subset), c, cost)
     if best is None:
