@@ -56,7 +56,7 @@ from imupipe.pipeline.errors import ConfigError, ImupipeError, ReadError
 from imupipe.pipeline.manifest import Manifest
 from imupipe.pipeline.mcap_writer import DEFAULT_TOPICS, McapTableWriter
 from imupipe.pipeline.progress import progress_bar
-from imupipe.pipeline.table import OPTIONAL_FIELDS, SCHEMA, counts, metadata
+from imupipe.pipeline.table import OPTIONAL_FIELDS, SCHEMA, counts, metadata, with_metadata
 from imupipe.readers import dispatch
 from imupipe.readers.spec import InputSpec, RawMessage
 from imupipe.stages.steps import Step, apply_chain, steps_from_json
@@ -301,15 +301,19 @@ def _batches(
     yield table, dispatch.carry_over(spec)
 
 
-def dataset_table(table: pa.Table) -> pa.Table:
-    """``table`` with every column of :data:`DATASET_SCHEMA` (absent optional columns null)."""
+def dataset_table(table: pa.Table, conversion: Mapping[str, Any]) -> pa.Table:
+    """``table`` with every column of :data:`DATASET_SCHEMA` (absent optional columns null); its
+    imupipe metadata (source, topics, ...) keeps the ``conversion`` record too."""
     columns = [
         table.column(f.name).cast(f.type)
         if f.name in table.column_names
         else pa.nulls(len(table), f.type)
         for f in DATASET_SCHEMA
     ]
-    return pa.Table.from_arrays(columns, schema=DATASET_SCHEMA)
+    return with_metadata(
+        pa.Table.from_arrays(columns, schema=DATASET_SCHEMA),
+        {**metadata(table), "conversion": dict(conversion)},
+    )
 
 
 def _counts_by_topic(table: pa.Table) -> collections.Counter[str]:
@@ -355,13 +359,8 @@ def convert_log(task: LogTask) -> LogStats:
         read: collections.Counter[str] = collections.Counter()
         with staged_outputs() as out:
             mcap_tmp = out.path(task.output)
+            parquet_tmp = None if task.parquet is None else out.path(task.parquet)
             parquet = None
-            if task.parquet is not None:
-                import pyarrow.parquet as pq
-
-                parquet = pq.ParquetWriter(
-                    out.path(task.parquet), DATASET_SCHEMA, compression="zstd"
-                )
             try:
                 with McapTableWriter(mcap_tmp, calibration=doc) as writer:
                     for batch, raw in _batches(spec, streamed, task.batch_rows, warnings):
@@ -371,11 +370,22 @@ def convert_log(task: LogTask) -> LogStats:
                         writer.write_raw(raw)
                         read.update(_counts_by_topic(batch))
                         read.update(m.topic for m in raw)
-                        if parquet is not None:
-                            parquet.write_table(dataset_table(corrected))
+                        if parquet_tmp is not None:
+                            rows = dataset_table(corrected, doc["conversion"])
+                            if parquet is None:
+                                import pyarrow.parquet as pq
+
+                                parquet = pq.ParquetWriter(
+                                    parquet_tmp, rows.schema, compression="zstd"
+                                )
+                            parquet.write_table(rows)
             finally:
                 if parquet is not None:
                     parquet.close()
+            if parquet_tmp is not None and parquet is None:  # a log without samples
+                import pyarrow.parquet as pq
+
+                pq.write_table(DATASET_SCHEMA.empty_table(), parquet_tmp)
             written = mcap_counts(mcap_tmp) or {}
             verify_counts(src, expected if expected is not None else read, written)
         status = "converted"

@@ -231,6 +231,9 @@ def test_manifest_and_parquet(fleet):
         rtol=0,
         atol=1e-9,
     )
+    meta = json.loads(dataset.schema.metadata[b"imupipe"])
+    assert meta["format"] == "mcap" and meta["topics"]["imu"] == "/imu/data"
+    assert meta["conversion"]["calibration_sha256"] == a["calibration_sha256"]
     # every file has the same schema (one pyarrow dataset)
     assert pq.read_schema(d / "out" / "site1" / "m.parquet").names == dataset.schema.names
 
