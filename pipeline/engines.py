@@ -88,14 +88,15 @@ def _worker_init() -> None:
     pa.set_cpu_count(1)
 
 
-def _start_forkserver(ctx: Any) -> None:
-    """Start the fork server (it preloads numpy and imupipe) with single-threaded BLAS."""
+def _start_forkserver(ctx: Any, preload: list[str]) -> None:
+    """Start the fork server, with single-threaded BLAS, preloading the modules the tasks need
+    (once per process: workers fork from it with those modules imported)."""
     from multiprocessing import forkserver
 
     saved = {var: os.environ.get(var) for var in SINGLE_THREADED}
     os.environ.update(dict.fromkeys(SINGLE_THREADED, "1"))
     try:
-        ctx.set_forkserver_preload(["imupipe.pipeline.convert"])
+        ctx.set_forkserver_preload(preload)
         forkserver.ensure_running()
     finally:
         for var, value in saved.items():
@@ -148,7 +149,7 @@ def run_local(
     tracker = _Tracker(tasks, retries, on_done)
     jobs = max(1, min(jobs or default_jobs(), len(tasks) or 1))
     ctx = mp.get_context("forkserver")
-    _start_forkserver(ctx)
+    _start_forkserver(ctx, [fn.__module__])
     suspects: deque[int] = deque()
     while tracker.queue or suspects:
         crashed: list[int] = []
