@@ -93,15 +93,20 @@ class AllanStage(Stage):
             len(opts.interval) != 2 or opts.interval[1] <= opts.interval[0]
         ):
             raise ctx.fail("'interval' must be [start_s, end_s] with end_s > start_s")
-        mask = select_interval(gyro, opts.interval)
-        t_ns = gyro.t_ns[mask]
-        data = {"gyro": gyro.values[mask], "accel": accel.values[mask]}
+        if opts.interval is None:  # no copies: the whole input
+            t_ns, data = gyro.t_ns, {"gyro": gyro.values, "accel": accel.values}
+        else:
+            mask = select_interval(gyro, opts.interval)
+            t_ns, data = gyro.t_ns[mask], {"gyro": gyro.values[mask], "accel": accel.values[mask]}
+        del gyro, accel
         rate_hz = self._check_samples(t_ns, data, ctx)
         duration = (t_ns[-1] - t_ns[0]) * 1e-9
         static = self._check_static(t_ns, data, ctx)
 
-        columns = [data[s][:, i] for s in self.sensors for i in range(3)]
-        x = est.rate_to_phase(columns, 1.0 / rate_hz)
+        x = est.rate_to_phase(
+            [data[s][:, i] for s in self.sensors for i in range(3)], 1.0 / rate_hz
+        )
+        del data  # the phase (6, n + 1) is all the estimators need
         m = est.tau_grid(opts.taus, est.max_af(opts.kind, x.shape[1]), opts.points_per_decade)
         if len(m) < len(opts.terms) + 2:
             raise ctx.fail(
@@ -116,7 +121,7 @@ class AllanStage(Stage):
             )
         dev = est.deviation_of_phase(x, 1.0 / rate_hz, opts.kind, m)
         conf = est.confidence(dev, x)
-        del x, columns
+        del x
 
         results: dict[str, Any] = {}
         metrics: dict[str, Any] = {
