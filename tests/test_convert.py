@@ -22,6 +22,7 @@ from mcap.reader import make_reader
 
 from imupipe.pipeline.convert import chain_sha256, convert, find_logs
 from imupipe.pipeline.engines import run_tasks
+from imupipe.pipeline.errors import ImupipeError
 from imupipe.pipeline.manifest import read_manifest
 from imupipe.pipeline.mcap_writer import msgdef, write_mcap
 from imupipe.pipeline.simulate import simulate, write_log
@@ -323,3 +324,34 @@ def test_ray_engine_matches_local(fleet, tmp_path):
         assert pq.read_table(ours.with_suffix(".parquet")).equals(
             pq.read_table(theirs.with_suffix(".parquet"))
         )
+
+
+def test_csv_logs_with_a_config_mapping(tmp_path):
+    """``--config`` maps a foreign CSV (deg/s, g, seconds); folders then yield .csv files."""
+    table, _ = simulate("static", {"duration_s": 1.0, "rate_hz": 100.0}, seed=4)
+    t_s = table.column("t_ns").to_numpy() * 1e-9
+    gyro = np.column_stack([table.column(f"gyro_{a}").to_numpy() for a in "xyz"])
+    accel = np.column_stack([table.column(f"accel_{a}").to_numpy() for a in "xyz"])
+    (tmp_path / "logs").mkdir()
+    rows = np.column_stack([t_s, np.degrees(gyro), accel / 9.80665])
+    np.savetxt(tmp_path / "logs" / "foreign.csv", rows, delimiter=",", fmt="%.17g",
+               header="time,gx,gy,gz,ax,ay,az", comments="")  # fmt: skip
+    (tmp_path / "read.toml").write_text(
+        '[csv]\ntime = "time"\ntime_unit = "s"\ngyro = ["gx", "gy", "gz"]\ngyro_unit = "deg/s"\n'
+        'accel = ["ax", "ay", "az"]\naccel_unit = "g"\n'
+    )
+    cal = tmp_path / "cal.json"
+    cal.write_text(json.dumps({"chain": CHAIN}))
+    summary = convert(
+        [tmp_path / "logs"], cal, tmp_path / "out", config=tmp_path / "read.toml", jobs=1
+    )
+    assert not summary.failed and len(summary.converted) == 1
+    imu = decode_mcap(tmp_path / "out" / "foreign.mcap")["/imu/data"]
+    step = {s["sensor"]: s for s in CHAIN}
+    pairs = [(gyro, "gyro", "angular_velocity"), (accel, "accel", "linear_acceleration")]
+    for raw, sensor, field in pairs:
+        want = (np.array(step[sensor]["matrix"]) @ (raw - step[sensor]["offset"]).T).T
+        np.testing.assert_allclose(vec(imu, field), want, rtol=0, atol=1e-9)
+    # without --config a folder's .csv files are not logs
+    with pytest.raises(ImupipeError, match="no logs found"):
+        convert([tmp_path / "logs"], cal, tmp_path / "out2", jobs=1)
