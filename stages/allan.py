@@ -114,7 +114,7 @@ class AllanStage(Stage):
                 f"taus on the '{opts.taus}' grid; fitting {len(opts.terms)} terms needs at least "
                 f"{len(opts.terms) + 2} (record longer, or use a denser grid / fewer terms)"
             )
-        if duration < 7200.0:
+        if len(t_ns) / rate_hz < 7200.0:  # n sample periods: 2 h at 400 Hz is 2.88 M samples
             ctx.warn(
                 f"the recording lasts {duration / 60:.1f} min; Allan fits want two hours or more "
                 "(B, K and R are poorly determined from a short recording)"
@@ -162,6 +162,7 @@ class AllanStage(Stage):
                 "slope_disagrees": disagree,
                 "min_deviation": float(np.min(dev.dev[:, col])),
                 "tau_at_min_s": float(dev.taus[int(np.argmin(dev.dev[:, col]))]),
+                "K_upper_68": k_upper(dev.taus, conf.hi[:, col]),
             }
             if disagree:
                 ctx.warn(
@@ -286,6 +287,12 @@ def _largest(results: dict[str, Any], name: str, term: str) -> tuple[float, str]
     return results[name][axis][term], axis
 
 
+def k_upper(taus: np.ndarray, hi: np.ndarray) -> float:
+    """The largest random-walk density K whose Allan deviation K sqrt(tau / 3) stays under the
+    upper 68 % bound at every tau (an upper bound when the fit finds no random walk)."""
+    return float(np.min(hi * np.sqrt(3.0 / taus)))
+
+
 def kalibr_yaml(
     results: dict[str, Any], topic: str, rate_hz: float, input_name: str, kind: str
 ) -> str:
@@ -303,8 +310,14 @@ def kalibr_yaml(
             continue
         n, na = _largest(results, name, "N")
         k, ka = _largest(results, name, "K")
+        note = f"axis {ka}"
+        if k == 0.0:  # no random walk resolved: a zero would make Kalibr overconfident
+            upper = results["metrics"][name]
+            ka = max(AXES, key=lambda a: upper[a]["K_upper_68"])
+            k = upper[ka]["K_upper_68"]
+            note = f"axis {ka}: the fit resolved no random walk; upper bound from the 68 % band"
         lines.append(f"{prefix}_noise_density: {n:.6e}  # {units[0]}, axis {na}")
-        lines.append(f"{prefix}_random_walk: {k:.6e}  # {units[1]}, axis {ka}")
+        lines.append(f"{prefix}_random_walk: {k:.6e}  # {units[1]}, {note}")
     lines.append(f'rostopic: "{topic}"')
     lines.append(f"update_rate: {rate_hz:.6g}  # Hz, measured from the timestamps")
     return "\n".join(lines) + "\n"
