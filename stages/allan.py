@@ -53,6 +53,9 @@ UNITS = {
     },
     "accel": {"Q": "m/s", "N": "m/s^2/sqrt(Hz)", "B": "m/s^2", "K": "m/s^3/sqrt(Hz)", "R": "m/s^3"},
 }
+FIT_KINDS = ("oadev", "adev")
+"""Deviations the five-term (Allan variance) model describes; other kinds are shown, and the
+fit runs on the OADEV at the same taus."""
 TIMELINE = "log10_tau_x1000"
 """Rerun sequence timeline of the curves: round(1000 * log10(tau / s))."""
 
@@ -107,7 +110,10 @@ class AllanStage(Stage):
             [data[s][:, i] for s in self.sensors for i in range(3)], 1.0 / rate_hz
         )
         del data  # the phase (6, n + 1) is all the estimators need
-        m = est.tau_grid(opts.taus, est.max_af(opts.kind, x.shape[1]), opts.points_per_decade)
+        top = est.max_af(opts.kind, x.shape[1])
+        if opts.kind not in FIT_KINDS:  # the fit runs on OADEV at the same taus
+            top = min(top, est.max_af("oadev", x.shape[1]))
+        m = est.tau_grid(opts.taus, top, opts.points_per_decade)
         if len(m) < len(opts.terms) + 2:
             raise ctx.fail(
                 f"{len(t_ns)} samples ({duration:.1f} s at {rate_hz:.1f} Hz) give only {len(m)} "
@@ -121,6 +127,10 @@ class AllanStage(Stage):
             )
         dev = est.deviation_of_phase(x, 1.0 / rate_hz, opts.kind, m)
         conf = est.confidence(dev, x)
+        fdev, fconf = dev, conf
+        if opts.kind not in FIT_KINDS:  # the five-term model is the Allan variance's
+            fdev = est.deviation_of_phase(x, 1.0 / rate_hz, "oadev", m)
+            fconf = est.confidence(fdev, x)
         del x
 
         results: dict[str, Any] = {}
@@ -129,6 +139,7 @@ class AllanStage(Stage):
             "duration_s": float(duration),
             "rate_hz": float(rate_hz),
             "kind": opts.kind,
+            "fit_kind": fdev.kind,
             "taus": int(len(m)),
             "tau_range_s": [float(dev.taus[0]), float(dev.taus[-1])],
             "static": static,
@@ -137,16 +148,16 @@ class AllanStage(Stage):
         fits: dict[tuple[str, int], AllanFit] = {}
         for col, (name, i) in enumerate((s, i) for s in self.sensors for i in range(3)):
             f = fit_allan(
-                dev.taus,
-                dev.dev[:, col],
-                conf.edf[:, col],
+                fdev.taus,
+                fdev.dev[:, col],
+                fconf.edf[:, col],
                 tuple(opts.terms),
                 opts.penalty,
                 opts.model_error,
             )
             fits[(name, i)] = f
             results.setdefault(name, {})[AXES[i]] = dict(f.params)
-            reading = slope_readings(dev.taus, dev.dev[:, col])
+            reading = slope_readings(fdev.taus, fdev.dev[:, col])
             disagree = [
                 k
                 for k, v in reading.items()
@@ -160,9 +171,9 @@ class AllanStage(Stage):
                 "fit_cost": f.cost,
                 "slope_readings": reading,
                 "slope_disagrees": disagree,
-                "min_deviation": float(np.min(dev.dev[:, col])),
-                "tau_at_min_s": float(dev.taus[int(np.argmin(dev.dev[:, col]))]),
-                "K_upper_68": k_upper(dev.taus, conf.hi[:, col]),
+                "min_deviation": float(np.min(fdev.dev[:, col])),
+                "tau_at_min_s": float(fdev.taus[int(np.argmin(fdev.dev[:, col]))]),
+                "K_upper_68": k_upper(fdev.taus, fconf.hi[:, col]),
             }
             if disagree:
                 ctx.warn(
@@ -170,13 +181,13 @@ class AllanStage(Stage):
                     f"from the fit by more than {opts.slope_tolerance:.0%} (see metrics)"
                 )
         results["metrics"] = metrics
-        self._record(ctx, dev, conf, fits)
+        self._record(ctx, dev, conf, fits, fdev)
         meta = metadata(table)
         topic = (meta.get("topics") or {}).get("imu") or "/imu/data"
         artifacts = {
-            "imu.yaml": kalibr_yaml(results, topic, rate_hz, ctx.input_name, opts.kind),
+            "imu.yaml": kalibr_yaml(results, topic, rate_hz, ctx.input_name, fdev.kind),
             f"{ctx.name}_imu_utils.yaml": imu_utils_yaml(results, ctx.input_name),
-            f"{ctx.name}_curves.csv": curves_csv(dev, conf, fits, self.sensors),
+            f"{ctx.name}_curves.csv": curves_csv(dev, conf, fits, self.sensors, fdev),
         }
         return StageOutput(results=results, artifacts=artifacts)
 
@@ -241,7 +252,14 @@ class AllanStage(Stage):
         return bool(static)
 
     # -- Rerun -------------------------------------------------------------------------------
-    def _record(self, ctx: StageContext, dev: est.Deviation, conf: est.Confidence, fits) -> None:
+    def _record(
+        self,
+        ctx: StageContext,
+        dev: est.Deviation,
+        conf: est.Confidence,
+        fits: dict[tuple[str, int], AllanFit],
+        fdev: est.Deviation,
+    ) -> None:
         rec = ctx.recorder
         if not getattr(rec, "enabled", False):
             return
@@ -254,13 +272,20 @@ class AllanStage(Stage):
         dense = dense[keep]
         for col, (name, i) in enumerate((s, i) for s in self.sensors for i in range(3)):
             base = f"/{ctx.name}/{name}/{AXES[i]}"
+            values = [dev.dev[:, col], conf.lo[:, col], conf.hi[:, col]]
+            names = [f"log10 {dev.kind}", "lower 68%", "upper 68%"]
+            if fdev is not dev:
+                values.append(fdev.dev[:, col])
+                names.append(f"log10 {fdev.kind} (fitted)")
             rec.curve(
                 f"{base}/measured",
                 xs,
-                np.log10(np.column_stack([dev.dev[:, col], conf.lo[:, col], conf.hi[:, col]])),
-                ("log10 deviation", "lower 68%", "upper 68%"),
+                np.log10(np.column_stack(values)),
+                names,
                 timeline=TIMELINE,
-                colors=[(30, 30, 30), (150, 150, 150), (150, 150, 150)],
+                colors=[(30, 30, 30), (150, 150, 150), (150, 150, 150), (200, 120, 0)][
+                    : len(names)
+                ],
             )
             f = fits[(name, i)]
             names = ["fit"] + [t for t in TERMS if f.params[t] > 0]
@@ -359,8 +384,15 @@ def imu_utils_yaml(results: dict[str, Any], input_name: str) -> str:
     return "\n".join(out) + "\n"
 
 
-def curves_csv(dev: est.Deviation, conf: est.Confidence, fits, sensors) -> str:
-    """tau_s, then per sensor axis: deviation, 68 % bounds, fitted model, EDF, noise alpha."""
+def curves_csv(
+    dev: est.Deviation,
+    conf: est.Confidence,
+    fits: dict[tuple[str, int], AllanFit],
+    sensors: tuple[str, ...],
+    fdev: est.Deviation,
+) -> str:
+    """tau_s, then per sensor axis: deviation, 68 % bounds, fitted model, EDF, noise alpha (and
+    the OADEV the model was fitted to, when the curve is another kind)."""
     cols = [dev.taus]
     header = ["tau_s", "m", "terms"]
     cols += [dev.m.astype(np.float64), dev.n.astype(np.float64)]
@@ -382,6 +414,9 @@ def curves_csv(dev: est.Deviation, conf: est.Confidence, fits, sensors) -> str:
             conf.edf[:, col],
             conf.alpha[:, col].astype(np.float64),
         ]
+        if fdev is not dev:
+            header.append(f"{p}_{fdev.kind}")
+            cols.append(fdev.dev[:, col])
     buf = io.StringIO()
     np.savetxt(
         buf, np.column_stack(cols), delimiter=",", header=",".join(header), comments="", fmt="%.10g"

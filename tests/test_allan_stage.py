@@ -160,3 +160,14 @@ def test_cli_error_is_one_line(tmp_path):
     assert len(proc.stderr.strip().splitlines()) == 1 and "Traceback" not in proc.stderr
     assert "stage 'allan' on input 's'" in proc.stderr
     assert not (tmp_path / "out" / "imu.yaml").exists()
+
+
+@pytest.mark.parametrize("kind", ["mdev", "hdev", "totdev"])
+def test_other_kinds_are_shown_and_the_fit_uses_oadev(kind):
+    t_ns, gyro, accel = static_table()  # white noise, std 1e-3 at 100 Hz: N = 1e-4
+    out, _ = fit(t_ns, gyro, accel, kind=kind, taus="octave")
+    assert out.results["metrics"]["kind"] == kind
+    assert out.results["metrics"]["fit_kind"] == "oadev"
+    assert out.results["gyro"]["x"]["N"] == pytest.approx(1e-4, rel=0.05)
+    header = out.artifacts["allan_curves.csv"].splitlines()[0].split(",")
+    assert f"gyro_x_{kind}" in header and "gyro_x_oadev" in header
