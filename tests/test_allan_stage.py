@@ -171,3 +171,12 @@ def test_other_kinds_are_shown_and_the_fit_uses_oadev(kind):
     assert out.results["gyro"]["x"]["N"] == pytest.approx(1e-4, rel=0.05)
     header = out.artifacts["allan_curves.csv"].splitlines()[0].split(",")
     assert f"gyro_x_{kind}" in header and "gyro_x_oadev" in header
+
+
+def test_interval_selects_samples():
+    t_ns, gyro, accel = static_table()
+    gyro[15_000:] += 1.0  # the IMU turns after 150 s: outside the interval
+    out, ctx = fit(t_ns, gyro, accel, interval=[0.0, 100.0], taus="octave")
+    assert out.results["metrics"]["samples"] == 10_001
+    assert out.results["metrics"]["static"] is True
+    assert out.results["gyro"]["x"]["N"] == pytest.approx(1e-4, rel=0.05)
