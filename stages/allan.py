@@ -30,7 +30,7 @@ from __future__ import annotations
 
 import io
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 import pyarrow as pa
@@ -66,9 +66,9 @@ class AllanStage(Stage):
 
     @dataclass
     class Options:
-        kind: str = "oadev"
+        kind: Literal["oadev", "adev", "mdev", "hdev", "ohdev", "totdev"] = "oadev"
         """Deviation: oadev (overlapping Allan, default), adev, mdev, hdev, ohdev, totdev."""
-        taus: str = "log"
+        taus: Literal["log", "octave", "decade", "all"] = "log"
         """Tau grid: log (``points_per_decade`` per decade), octave, decade, all."""
         points_per_decade: int = 10
         terms: list[str] = field(default_factory=lambda: list(TERMS))
