@@ -139,8 +139,10 @@ def run_local(
     *,
     jobs: int | None = None,
     retries: int = 2,
+    preload: Sequence[str] = (),
 ) -> None:
-    """Run every task in a pool of ``jobs`` worker processes (``forkserver`` start).
+    """Run every task in a pool of ``jobs`` worker processes (``forkserver`` start; the fork
+    server imports ``fn``'s module and ``preload`` once, so workers start warm).
 
     When a worker dies the pool breaks and every task in flight fails with it. If only one task
     was in flight it is to blame and is charged an attempt; otherwise the tasks in flight become
@@ -149,7 +151,7 @@ def run_local(
     tracker = _Tracker(tasks, retries, on_done)
     jobs = max(1, min(jobs or default_jobs(), len(tasks) or 1))
     ctx = mp.get_context("forkserver")
-    _start_forkserver(ctx, [fn.__module__])
+    _start_forkserver(ctx, [fn.__module__, *preload])
     suspects: deque[int] = deque()
     while tracker.queue or suspects:
         crashed: list[int] = []
@@ -236,12 +238,14 @@ def run_tasks(
     jobs: int | None = None,
     address: str | None = None,
     retries: int = 2,
+    preload: Sequence[str] = (),
 ) -> None:
-    """Run ``fn`` over ``tasks`` on ``engine`` (``local`` or ``ray``); see the module docstring."""
+    """Run ``fn`` over ``tasks`` on ``engine`` (``local`` or ``ray``); see the module docstring.
+    ``preload``: modules the local workers should have imported before they start."""
     if not tasks:
         return
     if engine == "local":
-        run_local(fn, tasks, on_done, jobs=jobs, retries=retries)
+        run_local(fn, tasks, on_done, jobs=jobs, retries=retries, preload=preload)
     elif engine == "ray":
         run_ray(fn, tasks, on_done, address=address, jobs=jobs, retries=retries)
     else:
