@@ -127,7 +127,7 @@ def raw_messages(path: Path) -> dict[str, list[tuple[int, int, bytes]]]:
 @pytest.fixture(scope="module")
 def fleet(tmp_path_factory):
     d = tmp_path_factory.mktemp("fleet")
-    logs = d / "logs" / "good"
+    logs = d / "logs"
     (logs / "site1").mkdir(parents=True)
     (logs / "site2").mkdir()
     static, _ = simulate("static", {"duration_s": 2.0, "rate_hz": 200.0}, seed=1)
@@ -140,8 +140,7 @@ def fleet(tmp_path_factory):
     write_bag_with_rosbags(logs / "site2" / "r2", ros, 2, status=4)
     # a truncated copy: the footer, summary and the last chunk are gone
     data = (logs / "a.mcap").read_bytes()
-    corrupt = d / "logs" / "corrupt.mcap"
-    corrupt.write_bytes(data[: len(data) // 2])
+    (logs / "corrupt.mcap").write_bytes(data[: len(data) // 2])
     cal = d / "calibration.json"
     cal.write_text(json.dumps({"imupipe_version": "test", "chain": CHAIN, "results": {}}))
     proc = run_cli(
@@ -154,7 +153,6 @@ def fleet(tmp_path_factory):
         "2",
         "--parquet",
         logs,
-        corrupt,
     )
     tables = {"a": static, "site1/m": mag, "site2/r1": ros, "site2/r2": ros}
     return d, cal, tables, status, proc
@@ -243,19 +241,19 @@ def test_second_run_rewrites_nothing(fleet):
     d, cal, _, _, _ = fleet
     outputs = sorted((d / "out").rglob("*.mcap")) + sorted((d / "out").rglob("*.parquet"))
     before = {p: (p.stat().st_ino, p.stat().st_mtime_ns) for p in outputs}
-    good = d / "logs" / "good"
-    proc = run_cli("convert", "--calibration", cal, "--out", d / "out", "--parquet", good)
-    assert proc.returncode == 0, proc.stderr
-    assert "0 converted, 4 skipped (already done), 0 failed of 4 logs" in proc.stdout
+    # the same command again: the good logs are skipped, the corrupt one fails again
+    proc = run_cli("convert", "--calibration", cal, "--out", d / "out", "--parquet", d / "logs")
+    assert proc.returncode == 1 and "corrupt.mcap" in proc.stderr, proc.stderr
+    assert "0 converted, 4 skipped (already done), 1 failed of 5 logs" in proc.stdout
     assert {p: (p.stat().st_ino, p.stat().st_mtime_ns) for p in outputs} == before
-    lines = list(read_manifest(d / "out"))[-4:]
-    assert [r["status"] for r in lines] == ["skipped"] * 4
+    lines = list(read_manifest(d / "out"))[-5:]
+    assert sorted(r["status"] for r in lines) == ["failed"] + ["skipped"] * 4
 
 
 def test_new_calibration_or_force_converts_again(fleet, tmp_path):
     d, _, tables, _, _ = fleet
     out = tmp_path / "out"
-    src = d / "logs" / "good" / "a.mcap"
+    src = d / "logs" / "a.mcap"
     cal2 = tmp_path / "cal2.json"
     chain2 = [dict(CHAIN[0], offset=[0.0, 0.0, 0.0])]
     cal2.write_text(json.dumps({"chain": CHAIN}))
@@ -287,7 +285,7 @@ def test_discovery_and_refusals(fleet, tmp_path):
     (logs / "out" / "old.mcap").write_bytes(b"")
     found = {str(rel) for _, rel in find_logs([logs], logs / "out")}
     assert found == {
-        "corrupt", "good/a", "good/site1/m", "good/site2/r1", "good/site2/r2", "r", "ros2bag"
+        "corrupt", "a", "site1/m", "site2/r1", "site2/r2", "r", "ros2bag"
     }  # fmt: skip
     assert "notes" in {str(rel) for _, rel in find_logs([logs], logs / "out", csv=True)}
     # an output that would replace its input is refused before anything is written
@@ -301,7 +299,7 @@ def test_discovery_and_refusals(fleet, tmp_path):
 def test_ray_engine_matches_local(fleet, tmp_path):
     ray = pytest.importorskip("ray")
     d, cal, _, _, _ = fleet
-    logs = [d / "logs" / "good", d / "logs" / "corrupt.mcap"]
+    logs = [d / "logs"]
     ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
     try:
         summary = convert(logs, cal, tmp_path / "out", engine="ray", parquet=True)
