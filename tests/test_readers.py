@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 import pyarrow as pa
+import pyarrow.ipc  # noqa: F401
 import pytest
 from rosbags.highlevel import AnyReader
 
@@ -72,6 +73,18 @@ def multi_stream_table(seed: int = 0) -> pa.Table:
     for name, array in extra.items():
         table = table.append_column(pa.field(name, array.type), array)
     return table
+
+
+def same_table(a: pa.Table, b: pa.Table) -> bool:
+    """Bit-exact equality of two tables' columns (NaN payloads included; metadata ignored)."""
+
+    def raw(t: pa.Table) -> bytes:
+        sink = pa.BufferOutputStream()
+        with pa.ipc.new_stream(sink, t.schema.remove_metadata()) as w:
+            w.write_table(t.replace_schema_metadata(None).combine_chunks())
+        return sink.getvalue().to_pybytes()
+
+    return raw(a) == raw(b)
 
 
 BINARY = ["log.mcap", "log.bag", "log.db3", "log_folder"]
