@@ -48,27 +48,42 @@ def _sniff(first_line: str, mapping: CsvMapping) -> tuple[str, bool]:
     return delimiter, header
 
 
-def _raw_table(path: Path, mapping: CsvMapping) -> tuple[pa.Table, bool]:
+def _first_line(path: Path) -> str:
     try:
-        data = path.read_bytes()
+        with open(path, "rb") as fh:
+            head = fh.read(1 << 16)
     except OSError as exc:
         raise ReadError(f"{path}: cannot read: {exc.strerror or exc}") from None
-    text_start = data.lstrip()[:4096].decode("utf-8", errors="replace")
-    first_line = text_start.splitlines()[0] if text_start.strip() else ""
+    text = head.lstrip().decode("utf-8", errors="replace")
+    return text.splitlines()[0] if text.strip() else ""
+
+
+def _raw_table(path: Path, mapping: CsvMapping) -> tuple[pa.Table, bool]:
+    first_line = _first_line(path)
     if not first_line.strip():
         raise ReadError(f"{path}: the file is empty")
     delimiter, header = _sniff(first_line, mapping)
-    if delimiter == "whitespace":
-        data = re.sub(rb"(?m)^[ \t]+", b"", data)
-        data = re.sub(rb"[ \t]+", b",", data)
+    source: str | io.BytesIO = str(path)
+    if delimiter == "whitespace":  # runs of spaces/tabs: normalise to commas (C-speed regex)
+        data = re.sub(rb"(?m)^[ \t]+", b"", path.read_bytes())
+        source = io.BytesIO(re.sub(rb"[ \t]+", b",", data))
+        del data
         delimiter = ","
-    read = pacsv.ReadOptions(autogenerate_column_names=not header, block_size=1 << 24)
+    read = pacsv.ReadOptions(autogenerate_column_names=not header, block_size=1 << 22)
     parse = pacsv.ParseOptions(delimiter=delimiter)
     convert = pacsv.ConvertOptions(strings_can_be_null=True)
     try:
-        table = pacsv.read_csv(io.BytesIO(data), read, parse, convert)
-    except pa.ArrowInvalid as exc:
-        raise ReadError(f"{path}: not a readable CSV: {str(exc).splitlines()[0]}") from None
+        # streamed in blocks: the peak stays near the table's size, not the text's
+        table = pacsv.open_csv(source, read, parse, convert).read_all()
+    except pa.ArrowInvalid:
+        # types inferred from the first block did not fit a later one (or a cell is bad):
+        # read whole, so the offending row can be named
+        if isinstance(source, io.BytesIO):
+            source.seek(0)
+        try:
+            table = pacsv.read_csv(source, read, parse, convert)
+        except pa.ArrowInvalid as exc:
+            raise ReadError(f"{path}: not a readable CSV: {str(exc).splitlines()[0]}") from None
     if not header:
         table = table.rename_columns([str(i) for i in range(table.num_columns)])
     return table, header
@@ -121,11 +136,15 @@ def _gyro_from_file(path: Path, m: CsvMapping, rows: int) -> tuple[np.ndarray, n
 
 
 def _scaled(columns: list[pa.Array], factor: float) -> tuple[np.ndarray, np.ndarray]:
-    values = np.column_stack([c.to_numpy(zero_copy_only=False) for c in columns]).astype(np.float64)
+    values = np.empty((len(columns[0]), len(columns)), dtype=np.float64)
+    for i, column in enumerate(columns):
+        values[:, i] = column.to_numpy(zero_copy_only=False)
+    if factor != 1.0:
+        values *= factor
     valid = np.column_stack([pc.is_valid(c).to_numpy(zero_copy_only=False) for c in columns]).all(
         axis=1
     )
-    return values * factor, valid
+    return values, valid
 
 
 def _unit(path: Path, key: str, unit: str, table: dict[str, float]) -> float:
@@ -204,6 +223,7 @@ def read_csv(spec: InputSpec) -> tuple[pa.Table, list[str]]:
             )
     else:
         raise ReadError(f"{path}: no time column and no csv.rate_hz")
+    raw = tcol = None  # free the parsed columns before the table is built (peak memory)
 
     imu_valid = None
     if gyro is not None or accel is not None:
