@@ -195,7 +195,8 @@ def decode(
 
     Returns ``(stamp_ns int64 (n,), frame_id string array (n,), values)`` where ``values`` is
     float64 (n, k), the float fields of :data:`FIELDS` in order, or with ``slots`` (a list of
-    ``(first float, count)``) one contiguous array per slot, (n,) for count 1 else (n, count).
+    ``(first float, count)``) one array per slot, (n,) for count 1 else (n, count), which may
+    be a read-only view into ``buf``.
     Raises :class:`PayloadError` for a payload that cannot hold the type, :class:`NotFastPath`
     for a valid layout this function does not handle (big-endian CDR).
     """
@@ -247,15 +248,12 @@ def decode(
     step = int(fstart[1] - fstart[0]) if n > 1 else 8 * k
     if step >= 8 * k and np.all(fstart[1:] - fstart[:-1] == step):
         # evenly spaced messages (one frame_id length, one channel per run): a strided view
-        # replaces the gather
+        # replaces the gather. The slots are read-only views into ``buf`` (no copy here: the
+        # reader copies them once, into the table's columns)
         rows = np.ndarray((n, k), "<f8", buffer=buf, offset=int(fstart[0]), strides=(step, 8))
         if slots is None:
             return stamp, frames, rows.copy()
-        return (
-            stamp,
-            frames,
-            [rows[:, f].copy() if c == 1 else rows[:, f : f + c].copy() for f, c in slots],
-        )
+        return stamp, frames, [rows[:, f] if c == 1 else rows[:, f : f + c] for f, c in slots]
     f8 = unaligned(buf, "<f8")
     if slots is None:
         return stamp, frames, f8[fstart[:, None] + 8 * np.arange(k)]

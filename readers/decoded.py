@@ -231,7 +231,9 @@ class StreamBuffer:
     def add(self, piece: Piece) -> None:
         full, a, m = self.full, self.filled, len(piece)
         if full is None or self.spill or a + m > len(full.stamp):
-            self.spill.append(piece)
+            # own copies: the piece's columns may be views into its chunk's buffer
+            columns = {name: np.array(col) for name, col in piece.columns.items()}
+            self.spill.append(Piece(piece.stamp, piece.log, piece.frame, columns))
             return
         full.stamp[a : a + m] = piece.stamp
         full.log[a : a + m] = piece.log
