@@ -95,10 +95,12 @@ def bench_run(hours: float) -> None:
         if proc.returncode != 0:
             print(proc.stderr)
             raise SystemExit(1)
-        peak = int(proc.stdout.strip().splitlines()[-1])
+        base, peak = (int(v) for v in proc.stdout.strip().splitlines()[-2:])
         print(
             f"imupipe run ({label}): {wall:.1f} s wall (goal < 15 s), peak RSS {peak / 1e6:.0f} MB "
-            f"= {peak / table_bytes:.2f} x the common table ({table_bytes / 1e6:.0f} MB; goal < 3x)"
+            f"= {peak / table_bytes:.2f} x the common table ({table_bytes / 1e6:.0f} MB); growth "
+            f"over the {base / 1e6:.0f} MB after imports {(peak - base) / 1e6:.0f} MB = "
+            f"{(peak - base) / table_bytes:.2f} x the table (goal < 3x)"
         )
     print(f"(files in {d})")
 
@@ -106,6 +108,8 @@ def bench_run(hours: float) -> None:
 RUN_AND_REPORT = """
 import resource, sys
 from imupipe.pipeline.run import run
+import imupipe.pipeline.recording, imupipe.stages.allan, imupipe.readers.csv_reader
+print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024)  # after imports
 run(sys.argv[1], quiet=True)
 print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024)
 """
