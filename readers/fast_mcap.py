@@ -33,6 +33,7 @@ from mcap.records import Channel, Schema, Statistics
 
 from imupipe.pipeline.errors import ReadError
 from imupipe.readers.cdr import unaligned
+from imupipe.readers.compression import decompress_chunk
 
 MAGIC = b"\x89MCAP0\r\n"
 OP_HEADER, OP_FOOTER, OP_SCHEMA, OP_CHANNEL, OP_MESSAGE = 0x01, 0x02, 0x03, 0x04, 0x05
@@ -243,28 +244,10 @@ class McapFile:
         data = memoryview(body)[40 + clen : 40 + clen + dlen]
         if len(data) != dlen:
             raise ReadError(f"{where}: corrupt chunk (data length {dlen} past the record)")
-        try:
-            if compression == "zstd":
-                import zstandard
-
-                raw = zstandard.ZstdDecompressor().decompress(data, max_output_size=usize)
-            elif compression == "lz4":
-                import lz4.frame
-
-                raw = lz4.frame.decompress(data)
-            elif compression == "":
-                raw = bytes(data)
-            else:
-                raise ReadError(f"{where}: unsupported chunk compression '{compression}'")
-        except ReadError:
-            raise
-        except Exception as exc:  # noqa: BLE001 - any decompressor failure is a corrupt chunk
-            raise ReadError(f"{where}: corrupt {compression} chunk ({exc})") from None
-        if len(raw) != usize:
-            raise ReadError(f"{where}: chunk decompressed to {len(raw)} bytes, expected {usize}")
+        raw = decompress_chunk(data, compression, usize, where)
         if crc and zlib.crc32(raw) != crc:
             raise ReadError(f"{where}: chunk CRC mismatch (corrupt data)")
-        return np.frombuffer(raw, dtype=np.uint8)
+        return raw
 
     # -- chunks ----------------------------------------------------------------------------
     def _bounds(self) -> tuple[np.ndarray, np.ndarray]:

@@ -14,7 +14,6 @@ Messages of every other topic are carried over converted to ROS 2 CDR the way
 
 from __future__ import annotations
 
-import bz2
 import io
 import struct
 from collections.abc import Callable, Iterator
@@ -26,6 +25,7 @@ import pyarrow as pa
 
 from imupipe.pipeline.errors import ReadError
 from imupipe.readers.cdr import unaligned
+from imupipe.readers.compression import decompress_chunk
 from imupipe.readers.decoded import Piece, concat, decode_piece, normalize_type
 from imupipe.readers.sources import carry_sources, iter_sources, read_sources
 from imupipe.readers.spec import InputSpec, RawMessage
@@ -254,24 +254,7 @@ class Ros1Bag:
     def _decompress(self, fields: dict[str, bytes], data: bytes, where: str) -> np.ndarray:
         compression = fields.get("compression", b"none").decode(errors="replace")
         size = _u32(fields, "size", where)
-        try:
-            if compression == "none":
-                raw = data
-            elif compression == "bz2":
-                raw = bz2.decompress(data)
-            elif compression == "lz4":
-                import lz4.frame
-
-                raw = lz4.frame.decompress(data)
-            else:
-                raise ReadError(f"{where}: unsupported chunk compression '{compression}'")
-        except ReadError:
-            raise
-        except Exception as exc:  # noqa: BLE001 - any decompressor failure is a corrupt chunk
-            raise ReadError(f"{where}: corrupt {compression} chunk ({exc})") from None
-        if len(raw) != size:
-            raise ReadError(f"{where}: chunk decompressed to {len(raw)} bytes, expected {size}")
-        return np.frombuffer(raw, np.uint8)
+        return decompress_chunk(data, compression, size, where)
 
     def chunks(
         self, streams: dict[str, str], carry: bool, decode: bool = True

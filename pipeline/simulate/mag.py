@@ -26,6 +26,7 @@ import pyarrow as pa
 from scipy.spatial.transform import Rotation
 
 from imupipe.pipeline.errors import ConfigError
+from imupipe.pipeline.simulate.clock import sample_times
 from imupipe.pipeline.simulate.noise import white
 from imupipe.pipeline.table import make_table
 
@@ -72,7 +73,7 @@ def simulate(p: dict[str, Any], rng: np.random.Generator) -> tuple[pa.Table, dic
     fs = float(p["rate_hz"])
     n = int(round(float(p["duration_s"]) * fs))
     t_s = np.arange(n) / fs
-    t_ns = int(round(p["t0_s"] * 1e9)) + np.round(t_s * 1e9).astype(np.int64)
+    t_ns = sample_times(p["t0_s"], n, fs)
     attitude = tumbling(rng, t_s, p["motion"], p["tumble_hz"])
     field = np.asarray(p["field"], dtype=np.float64)
     soft = soft_iron_matrix(p["soft_iron_scale"], p["soft_iron_euler_deg"])

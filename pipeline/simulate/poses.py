@@ -27,6 +27,7 @@ import numpy as np
 import pyarrow as pa
 from scipy.spatial.transform import Rotation
 
+from imupipe.pipeline.simulate.clock import sample_times
 from imupipe.pipeline.simulate.noise import white
 from imupipe.pipeline.table import make_table
 from imupipe.stages.accel_models import misalignment_matrix
@@ -116,7 +117,7 @@ def simulate(p: dict[str, Any], rng: np.random.Generator) -> tuple[pa.Table, dic
     accel = f_true @ np.linalg.inv(a_matrix).T + np.asarray(p["accel_bias"]) + noise_a
     gyro = w_true @ np.linalg.inv(g_matrix).T + np.asarray(p["gyro_bias"]) + noise_g
 
-    t_ns = int(round(p["t0_s"] * 1e9)) + np.round(np.arange(n) * (1e9 / fs)).astype(np.int64)
+    t_ns = sample_times(p["t0_s"], n, fs)
     temperature = None if p["temperature"] is None else np.full(n, float(p["temperature"]))
     table = make_table(
         t_ns,

@@ -13,6 +13,7 @@ from typing import Any
 import numpy as np
 import pyarrow as pa
 
+from imupipe.pipeline.simulate.clock import sample_times
 from imupipe.pipeline.simulate.noise import flicker, quantization, random_walk, rate_ramp, white
 from imupipe.pipeline.table import make_table
 
@@ -59,7 +60,7 @@ def _sensor(
 def simulate(p: dict[str, Any], rng: np.random.Generator) -> tuple[pa.Table, dict[str, Any]]:
     fs = float(p["rate_hz"])
     n = int(round(float(p["duration_s"]) * fs))
-    t_ns = int(round(p["t0_s"] * 1e9)) + np.round(np.arange(n) * (1e9 / fs)).astype(np.int64)
+    t_ns = sample_times(p["t0_s"], n, fs)
     gravity = np.array([0.0, 0.0, float(p["gravity"])])
     gyro = _sensor(rng, n, fs, p, "gyro")
     accel = _sensor(rng, n, fs, p, "accel") + gravity

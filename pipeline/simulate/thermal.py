@@ -40,6 +40,7 @@ import pyarrow as pa
 from scipy.signal import lfilter
 
 from imupipe.pipeline.errors import ConfigError
+from imupipe.pipeline.simulate.clock import sample_times
 from imupipe.pipeline.simulate.noise import white
 from imupipe.pipeline.table import make_table
 
@@ -162,7 +163,7 @@ def simulate(p: dict[str, Any], rng: np.random.Generator) -> tuple[pa.Table, dic
     if p["temperature_rate_hz"]:
         every = max(1, int(round(fs / float(p["temperature_rate_hz"]))))
         valid["temperature"] = np.arange(n) % every == 0
-    t_ns = int(round(p["t0_s"] * 1e9)) + np.round(t_s * 1e9).astype(np.int64)
+    t_ns = sample_times(p["t0_s"], n, fs)
     table = make_table(
         t_ns,
         gyro=gyro,
