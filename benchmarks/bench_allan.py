@@ -106,12 +106,19 @@ def bench_run(hours: float) -> None:
 
 
 RUN_AND_REPORT = """
-import resource, sys
+import sys
 from imupipe.pipeline.run import run
 import imupipe.pipeline.recording, imupipe.stages.allan, imupipe.readers.csv_reader
-print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024)  # after imports
+def status(key):
+    # VmHWM: this process's own high-water mark (ru_maxrss of an exec'd child can carry the
+    # parent's RSS at fork time, and the parent holds the simulated table)
+    with open('/proc/self/status') as fh:
+        for line in fh:
+            if line.startswith(key):
+                return int(line.split()[1]) * 1024
+print(status('VmHWM:'))  # after imports
 run(sys.argv[1], quiet=True)
-print(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024)
+print(status('VmHWM:'))
 """
 
 

@@ -105,14 +105,16 @@ import json, resource, sys
 from imupipe.readers.mcap_reader import read_mcap
 from imupipe.readers.spec import InputSpec
 import pyarrow, numpy, zstandard  # noqa
-def rss():
+def status(key):
+    # VmHWM is this process's own high-water mark; ru_maxrss of an exec'd child can carry the
+    # parent's RSS at fork time, which inflated this figure when the parent held a big table
     with open('/proc/self/status') as fh:
         for line in fh:
-            if line.startswith('VmRSS:'):
+            if line.startswith(key):
                 return int(line.split()[1]) * 1024
-base = rss()
+base = status('VmRSS:')
 table, _ = read_mcap(InputSpec(path=sys.argv[1]))
-peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+peak = status('VmHWM:')
 print(json.dumps({"base": base, "peak": peak, "table": table.nbytes, "rows": table.num_rows}))
 """
 
