@@ -7,7 +7,7 @@
 3. Peak memory of a worker (max RSS) converting the big log streamed in batches, a log a quarter
    of its size, and the big log read whole (one batch): streamed peak must not grow with the log.
 
-Usage: ``python benchmarks/bench_convert.py [--messages 1000000] [--logs 20] [--log-messages 50000]``
+Usage: ``python benchmarks/bench_convert.py [--messages 1000000] [--logs 20] [--log-messages 200000]``
 (prints each ratio; the machine is shared and noisy, so ratios, not absolute times, count).
 """
 
@@ -95,7 +95,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--messages", type=int, default=1_000_000)
     ap.add_argument("--logs", type=int, default=20)
-    ap.add_argument("--log-messages", type=int, default=50_000)
+    ap.add_argument("--log-messages", type=int, default=200_000)
     ap.add_argument("--keep", action="store_true", help="keep the temporary folder")
     args = ap.parse_args()
     tmp = Path(tempfile.mkdtemp(prefix="bench_convert_"))
