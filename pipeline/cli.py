@@ -28,7 +28,9 @@ def build_parser() -> argparse.ArgumentParser:
         description="Calibrate IMUs from CSV, MCAP and ROS bags; inspect every stage in Rerun.",
     )
     parser.add_argument("--version", action="version", version=f"imupipe {VERSION}")
-    parser.add_argument("--debug", action="store_true", help="show tracebacks on errors (anywhere on the line)")
+    parser.add_argument(
+        "--debug", action="store_true", help="show tracebacks on errors (anywhere on the line)"
+    )
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     for module in COMMANDS.values():
         try:

@@ -77,7 +77,6 @@ class StageOutput:
     step: Step | list[Step] | None = None
     artifacts: dict[str, str] = field(default_factory=dict)
 
-
     @property
     def steps(self) -> list[Step]:
         if self.step is None:

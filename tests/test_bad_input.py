@@ -67,15 +67,18 @@ def test_non_numeric_cell_names_row_and_column(tmp_path):
 
 
 def test_missing_mapped_column(tmp_path):
-    cfg = GOOD_CFG.replace(
-        '[[stages]]', '[inputs.a.csv]\ngyro = ["gx", "gy", "gz"]\n\n[[stages]]'
-    )
+    cfg = GOOD_CFG.replace("[[stages]]", '[inputs.a.csv]\ngyro = ["gx", "gy", "gz"]\n\n[[stages]]')
     run_case(tmp_path, GOOD_CSV, cfg, "a.csv", "'gx'", "not found")
 
 
 def test_unknown_stage_type(tmp_path):
-    run_case(tmp_path, GOOD_CSV, GOOD_CFG.replace('"gyro_bias"', '"gyro_bais"'),
-             "stages[0].type", "gyro_bais")
+    run_case(
+        tmp_path,
+        GOOD_CSV,
+        GOOD_CFG.replace('"gyro_bias"', '"gyro_bais"'),
+        "stages[0].type",
+        "gyro_bais",
+    )
 
 
 def test_unknown_stage_key(tmp_path):
@@ -93,14 +96,22 @@ def test_wrong_option_type(tmp_path):
     [
         ("[inputs.a\npath = 1", ("cfg.toml", "not valid TOML")),
         (GOOD_CFG + "[extra]\n", ("unknown key 'extra'",)),
-        (GOOD_CFG.replace('path = "a.csv"', 'path = "a.csv"\nimu_topicc = "/x"'),
-         ("[inputs.a]", "unknown key 'imu_topicc'")),
-        (GOOD_CFG.replace('dir = "out"', 'dir = "out"\napply_to = ["b"]'),
-         ("apply_to", "unknown input 'b'")),
-        (GOOD_CFG.replace('type = "gyro_bias"', 'type = "gyro_bias"\ninput = "zz"'),
-         ("stages[0].input", "unknown input 'zz'")),
-        (GOOD_CFG.replace('path = "a.csv"', 'path = "a.csv"\n[inputs.a.csv]\ngyro_unit = "rpm"'),
-         ("gyro_unit", "rpm")),
+        (
+            GOOD_CFG.replace('path = "a.csv"', 'path = "a.csv"\nimu_topicc = "/x"'),
+            ("[inputs.a]", "unknown key 'imu_topicc'"),
+        ),
+        (
+            GOOD_CFG.replace('dir = "out"', 'dir = "out"\napply_to = ["b"]'),
+            ("apply_to", "unknown input 'b'"),
+        ),
+        (
+            GOOD_CFG.replace('type = "gyro_bias"', 'type = "gyro_bias"\ninput = "zz"'),
+            ("stages[0].input", "unknown input 'zz'"),
+        ),
+        (
+            GOOD_CFG.replace('path = "a.csv"', 'path = "a.csv"\n[inputs.a.csv]\ngyro_unit = "rpm"'),
+            ("gyro_unit", "rpm"),
+        ),
     ],
 )
 def test_config_errors(tmp_path, cfg, needles):
