@@ -5,6 +5,9 @@ Signals are sent in bulk with ``rr.send_columns`` (never one ``rr.log`` per samp
 per axis. Signals longer than ``max_points`` are block-averaged to at most that many points before
 they are sent (the full-rate data stays in the MCAP output). A default blueprint has one tab per
 stage, holding the views the stage asked for (a time-series view of ``/<stage>`` by default).
+Every time-series view opens on the time span of the signals under its origin: the inputs of a
+run often lie hours apart, and Rerun would otherwise open each plot on a short window around the
+time cursor, which sits at the end of the last input.
 """
 
 from __future__ import annotations
@@ -46,6 +49,7 @@ class Recorder:
             self.rec.save(str(path))
         self._views: dict[str, list[Any]] = {}
         self._styled: set[str] = set()
+        self._spans: dict[str, tuple[int, int]] = {}  # entity -> (first, last) t_ns on TIMELINE
 
     # -- signals -----------------------------------------------------------------------------
     def series(
@@ -66,6 +70,8 @@ class Recorder:
             blocks = block_means(t_ns, values, window=math.ceil(len(t_ns) / self.max_points))
             t_ns, values = blocks.t_ns, blocks.means
         self._style(entity, names, colors)
+        first, last = self._spans.get(entity, (int(t_ns.min()), int(t_ns.max())))
+        self._spans[entity] = (min(first, int(t_ns.min())), max(last, int(t_ns.max())))
         rr.send_columns(
             entity,
             indexes=[rr.TimeColumn(TIMELINE, timestamp=t_ns.astype("datetime64[ns]"))],
@@ -130,16 +136,46 @@ class Recorder:
         self._views.setdefault(stage, []).append(view)
 
     def ensure_stage(self, stage: str) -> None:
-        """Give a stage a tab with a time-series view of ``/<stage>`` unless it asked for views."""
-        if stage not in self._views:
+        """Give a stage a tab unless it asked for views: one time-series view per signal kind
+        under ``/<stage>`` (e.g. ``input/gyro`` and ``output/gyro`` together, ``temperature``
+        apart), so that signals of different units do not share an axis."""
+        if stage in self._views:
+            return
+        prefix = f"/{stage}/"
+        groups: dict[str, list[str]] = {}
+        for entity in self._spans:
+            if entity.startswith(prefix):
+                groups.setdefault(entity.rsplit("/", 1)[-1], []).append(entity)
+        if len(groups) <= 1:
             self._views[stage] = [rrb.TimeSeriesView(origin=f"/{stage}", name=stage)]
+            return
+        self._views[stage] = [
+            _with_span(
+                rrb.TimeSeriesView(origin=f"/{stage}", contents=entities, name=f"{stage}: {kind}"),
+                [self._spans[e] for e in entities],
+            )
+            for kind, entities in groups.items()
+        ]
+
+    def _fit_time_axis(self, view: Any) -> None:
+        """Open a time-series view on the span of the signals under its origin (if it has any on
+        the ``time`` timeline and sets no x range itself)."""
+        if getattr(view, "class_identifier", None) != "TimeSeries" or "TimeAxis" in view.properties:
+            return
+        origin = str(view.origin).rstrip("/")
+        spans = [v for e, v in self._spans.items() if e == origin or e.startswith(origin + "/")]
+        _with_span(view, spans)
 
     def blueprint(self) -> rrb.Blueprint:
         tabs = []
         for stage, views in self._views.items():
+            for view in views:
+                self._fit_time_axis(view)
             tabs.append(views[0] if len(views) == 1 else rrb.Vertical(*views, name=stage))
         return rrb.Blueprint(
-            rrb.Tabs(*tabs) if tabs else rrb.TimeSeriesView(origin="/"), collapse_panels=False
+            rrb.Tabs(*tabs) if tabs else rrb.TimeSeriesView(origin="/"),
+            rrb.TimePanel(timeline=TIMELINE),
+            collapse_panels=False,
         )
 
     def close(self) -> None:
@@ -147,3 +183,15 @@ class Recorder:
         self.rec.send_blueprint(self.blueprint(), make_active=True, make_default=True)
         self.rec.flush()
         self.rec.disconnect()
+
+
+def _with_span(view: Any, spans: list[tuple[int, int]]) -> Any:
+    """``view`` with its time axis set to cover ``spans`` ((first, last) ns); unchanged if none."""
+    if spans:
+        view.properties["TimeAxis"] = rrb.TimeAxis(
+            view_range=rrb.TimeRange(
+                start=rrb.TimeRangeBoundary.absolute(nanos=min(a for a, _ in spans)),
+                end=rrb.TimeRangeBoundary.absolute(nanos=max(b for _, b in spans)),
+            )
+        )
+    return view
