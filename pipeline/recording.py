@@ -50,6 +50,7 @@ class Recorder:
         self._views: dict[str, list[Any]] = {}
         self._styled: set[str] = set()
         self._spans: dict[str, tuple[int, int]] = {}  # entity -> (first, last) t_ns on TIMELINE
+        self._curve_spans: dict[str, tuple[int, int]] = {}  # entity -> (first, last) sequence x
 
     # -- signals -----------------------------------------------------------------------------
     def series(
@@ -98,6 +99,8 @@ class Recorder:
         if len(x) == 0:
             return
         self._style(entity, names, colors, points=points)
+        first, last = self._curve_spans.get(entity, (int(x.min()), int(x.max())))
+        self._curve_spans[entity] = (min(first, int(x.min())), max(last, int(x.max())))
         rr.send_columns(
             entity,
             indexes=[rr.TimeColumn(timeline, sequence=x)],
@@ -158,13 +161,21 @@ class Recorder:
         ]
 
     def _fit_time_axis(self, view: Any) -> None:
-        """Open a time-series view on the span of the signals under its origin (if it has any on
-        the ``time`` timeline and sets no x range itself)."""
+        """Open a time-series view on the span of the signals under its origin: their ``time``
+        span, or, for a view of curves only, their span on the curve's sequence timeline.
+        Views that set their own x range are left alone."""
         if getattr(view, "class_identifier", None) != "TimeSeries" or "TimeAxis" in view.properties:
             return
         origin = str(view.origin).rstrip("/")
-        spans = [v for e, v in self._spans.items() if e == origin or e.startswith(origin + "/")]
-        _with_span(view, spans)
+
+        def under(spans: dict[str, tuple[int, int]]) -> list[tuple[int, int]]:
+            return [v for e, v in spans.items() if e == origin or e.startswith(origin + "/")]
+
+        spans = under(self._spans)
+        if spans:
+            _with_span(view, spans)
+        elif curves := under(self._curve_spans):
+            _with_span(view, curves, unit="seq")
 
     def blueprint(self) -> rrb.Blueprint:
         tabs = []
@@ -185,13 +196,14 @@ class Recorder:
         self.rec.disconnect()
 
 
-def _with_span(view: Any, spans: list[tuple[int, int]]) -> Any:
-    """``view`` with its time axis set to cover ``spans`` ((first, last) ns); unchanged if none."""
+def _with_span(view: Any, spans: list[tuple[int, int]], unit: str = "nanos") -> Any:
+    """``view`` with its time axis set to cover ``spans`` ((first, last) in ``unit``: ``nanos``
+    on the time timeline, ``seq`` on a sequence timeline); unchanged if there are none."""
     if spans:
         view.properties["TimeAxis"] = rrb.TimeAxis(
             view_range=rrb.TimeRange(
-                start=rrb.TimeRangeBoundary.absolute(nanos=min(a for a, _ in spans)),
-                end=rrb.TimeRangeBoundary.absolute(nanos=max(b for _, b in spans)),
+                start=rrb.TimeRangeBoundary.absolute(**{unit: min(a for a, _ in spans)}),
+                end=rrb.TimeRangeBoundary.absolute(**{unit: max(b for _, b in spans)}),
             )
         )
     return view

@@ -35,3 +35,15 @@ def test_views_open_on_their_stage_span_and_split_by_signal_kind(tmp_path):
     rows = rrd_rows(tmp_path / "r.rrd")
     assert rows["/a/input/gyro"] == 1000  # block-averaged to max_points
     assert rows["/b/input/gyro"] == 1000
+
+
+def test_curve_views_open_on_their_sequence_span(tmp_path):
+    import rerun.blueprint as rrb
+
+    rec = Recorder(tmp_path / "r.rrd")
+    x = np.arange(-2000, 3500, 100)
+    rec.curve("/allan/gyro/x", x, np.zeros((len(x), 2)), ("adev", "fit"), timeline="log10_tau")
+    rec.add_view("allan", rrb.TimeSeriesView(origin="/allan/gyro", name="gyro"))
+    rec.blueprint()
+    assert _span(rec._views["allan"][0]) == (-2000, 3400)
+    rec.close()
