@@ -20,13 +20,16 @@ One task's failure never stops the others.
 from __future__ import annotations
 
 import concurrent.futures as cf
+import contextlib
 import multiprocessing as mp
 import os
+import signal
 import socket
 import traceback
 from collections import deque
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 from imupipe.pipeline.errors import ConfigError, ImupipeError
@@ -132,6 +135,65 @@ class _Tracker:
             self.on_done(Outcome(i, self.tasks[i], None, error, self.attempts[i], host))
 
 
+def _close_broken(pool: cf.ProcessPoolExecutor) -> None:
+    """Close a pool one of whose workers died, without waiting forever.
+
+    Every task in flight has already failed with the pool. On Python 3.11 the broken pool's
+    own clean-up joins each worker, and a worker spawned while the pool was breaking is never
+    told to stop: ``shutdown(wait=True)`` then hung (seen in the test suite, about one run in
+    twenty under load). So: stop without waiting, kill the pool's workers and any other child
+    of the fork server (only this pool's workers exist at this point), and wait for the pool's
+    manager thread with a time limit, repeating until it has ended."""
+    manager = getattr(pool, "_executor_manager_thread", None)
+    pool.shutdown(wait=False, cancel_futures=True)
+    for _ in range(10):
+        for process in list((getattr(pool, "_processes", None) or {}).values()):
+            if process.is_alive():
+                process.kill()
+        _kill_forkserver_children()
+        if manager is None:
+            return
+        manager.join(timeout=2.0)
+        if not manager.is_alive():
+            return
+
+
+def _kill_forkserver_children() -> None:
+    """SIGKILL every process the fork server has forked and not yet reaped (Linux /proc)."""
+    from multiprocessing import forkserver
+
+    pid = getattr(getattr(forkserver, "_forkserver", None), "_forkserver_pid", None)
+    if not pid:
+        return
+    try:
+        children = Path(f"/proc/{pid}/task/{pid}/children").read_text().split()
+    except OSError:
+        return
+    for child in children:
+        with contextlib.suppress(OSError):
+            os.kill(int(child), signal.SIGKILL)
+
+
+def _submit(
+    pool: cf.ProcessPoolExecutor,
+    running: dict[cf.Future, int],
+    fn: Callable[[Any], Any],
+    tasks: Sequence[Any],
+    queue: deque[int],
+    tracker: _Tracker,
+) -> bool:
+    """Send the task at the head of ``queue`` to ``pool``; False (the task stays queued,
+    uncharged) when the pool has broken meanwhile."""
+    i = queue[0]
+    try:
+        running[pool.submit(guarded, fn, tasks[i])] = i
+    except cf.process.BrokenProcessPool:
+        return False
+    queue.popleft()
+    tracker.start(i)
+    return True
+
+
 def run_local(
     fn: Callable[[Any], Any],
     tasks: Sequence[Any],
@@ -155,18 +217,17 @@ def run_local(
     suspects: deque[int] = deque()
     while tracker.queue or suspects:
         crashed: list[int] = []
-        with cf.ProcessPoolExecutor(jobs, mp_context=ctx, initializer=_worker_init) as pool:
-            running: dict[cf.Future, int] = {}
+        refused = False  # the pool broke before it took a task: the task stays queued
+        pool = cf.ProcessPoolExecutor(jobs, mp_context=ctx, initializer=_worker_init)
+        running: dict[cf.Future, int] = {}
+        clean = False
+        try:
             while True:
-                if not crashed:
+                if not crashed and not refused:
                     if suspects and not running:
-                        i = suspects.popleft()
-                        tracker.start(i)
-                        running[pool.submit(guarded, fn, tasks[i])] = i
-                    while tracker.queue and not suspects:
-                        i = tracker.queue.popleft()
-                        tracker.start(i)
-                        running[pool.submit(guarded, fn, tasks[i])] = i
+                        refused = not _submit(pool, running, fn, tasks, suspects, tracker)
+                    while tracker.queue and not suspects and not refused:
+                        refused = not _submit(pool, running, fn, tasks, tracker.queue, tracker)
                 if not running:
                     break
                 done, _ = cf.wait(running, return_when=cf.FIRST_COMPLETED)
@@ -176,6 +237,12 @@ def run_local(
                         tracker.finish(i, future.result())
                     except cf.process.BrokenProcessPool:
                         crashed.append(i)
+            clean = not crashed and not refused
+        finally:
+            if clean:
+                pool.shutdown(wait=True)
+            else:
+                _close_broken(pool)
         if len(crashed) == 1:
             tracker.failed(crashed[0], "the worker process died (killed or out of memory)", True)
         else:

@@ -49,9 +49,11 @@ def test_failures_are_isolated_and_retried(tmp_path):
     tasks = [(k, tmp_path / k) for k in ("ok", "flaky", "dies", "killer", "bad", "broken")]
     out = _run(tasks, engine="local", jobs=2, retries=2)
     assert set(out) == {"ok", "flaky", "dies", "killer", "bad", "broken"}
-    assert out["ok"].error is None and out["ok"].attempts == 1
-    # an exception other than bad input is retried, and succeeds the second time
-    assert out["flaky"].error is None and out["flaky"].attempts == 2
+    assert out["ok"].error is None
+    # an exception other than bad input is retried and succeeds the second time; when a
+    # neighbour kills the pool before the first failure is delivered, that attempt is lost
+    # with the pool and not charged (exact counts: test_exceptions_are_retried_exactly)
+    assert out["flaky"].error is None and out["flaky"].attempts in (1, 2)
     # a worker process that dies is replaced and its task run again (tasks that were in flight
     # beside it are not charged an attempt: they are rerun one by one to find the culprit)
     assert out["dies"].error is None and (tmp_path / "dies").exists()
@@ -61,6 +63,15 @@ def test_failures_are_isolated_and_retried(tmp_path):
     # bad input is final at once, and says what and where
     assert out["bad"].attempts == 1 and out["bad"].error == f"{tmp_path / 'bad'}: not a log"
     # a persistent failure is tried 1 + retries times, then reported with its cause
+    assert out["broken"].attempts == 3
+    assert out["broken"].error.startswith("RuntimeError: always fails")
+
+
+def test_exceptions_are_retried_exactly(tmp_path):
+    tasks = [(k, tmp_path / k) for k in ("ok", "flaky", "broken")]
+    out = _run(tasks, engine="local", jobs=2, retries=2)
+    assert out["ok"].error is None and out["ok"].attempts == 1
+    assert out["flaky"].error is None and out["flaky"].attempts == 2
     assert out["broken"].attempts == 3
     assert out["broken"].error.startswith("RuntimeError: always fails")
 
