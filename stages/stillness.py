@@ -1,0 +1,48 @@
+"""Is the IMU at rest? The motion check shared by the stages that need static data.
+
+Over 1-second blocks: the largest departure of a 1 s gyro mean from the overall gyro mean
+(rad/s), and the spread (max - min) of the 1 s means of the accelerometer norm (m/s^2). The data
+is called static when the first is at most ``threshold`` and the second at most 0.05 g.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from imupipe.stages.blocks import Blocks, block_means
+
+G0 = 9.80665
+ACCEL_SPREAD_LIMIT = 0.05 * G0
+"""m/s^2: the largest spread of 1 s accelerometer-norm means still called static."""
+
+
+@dataclass(frozen=True)
+class Stillness:
+    """``gyro_1s``: the 1 s block means of the gyro; ``excursion`` (rad/s) and
+    ``accel_spread`` (m/s^2) as in the module docstring."""
+
+    gyro_1s: Blocks
+    excursion: float
+    accel_spread: float
+
+    def static(self, threshold: float) -> bool:
+        return self.excursion <= threshold and self.accel_spread <= ACCEL_SPREAD_LIMIT
+
+    def describe(self, threshold: float) -> str:
+        """One sentence for a warning: what moved, against which limits."""
+        return (
+            f"the data does not look static: 1 s gyro means depart {self.excursion:.3g} rad/s "
+            f"from the mean (threshold {threshold}), accel norm 1 s means spread "
+            f"{self.accel_spread:.3g} m/s^2"
+        )
+
+
+def stillness(t_ns: np.ndarray, gyro: np.ndarray, accel: np.ndarray) -> Stillness:
+    """The motion figures of gyro (n, 3) rad/s and accel (n, 3) m/s^2 sampled at ``t_ns``."""
+    second = block_means(t_ns, gyro, window_s=1.0)
+    excursion = float(np.abs(second.means - gyro.mean(axis=0)).max()) if len(second.counts) else 0.0
+    norm = block_means(t_ns, np.linalg.norm(accel, axis=1), window_s=1.0).means
+    spread = float(np.ptp(norm)) if len(norm) else 0.0
+    return Stillness(second, excursion, spread)
