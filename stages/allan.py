@@ -39,8 +39,8 @@ from imupipe.pipeline.table import has_stream, metadata, sensor
 from imupipe.stages import allan_estimators as est
 from imupipe.stages.allan_fit import TERMS, AllanFit, fit_allan, slope_readings, term_variance
 from imupipe.stages.base import Stage, StageContext, StageOutput
-from imupipe.stages.blocks import block_means
-from imupipe.stages.gyro_bias import G0, select_interval
+from imupipe.stages.gyro_bias import select_interval
+from imupipe.stages.stillness import stillness
 
 AXES = ("x", "y", "z")
 UNITS = {
@@ -238,18 +238,13 @@ class AllanStage(Stage):
     def _check_static(
         self, t_ns: np.ndarray, data: dict[str, np.ndarray], ctx: StageContext
     ) -> bool:
-        second = block_means(t_ns, data["gyro"], window_s=1.0).means
-        excursion = float(np.abs(second - data["gyro"].mean(axis=0)).max())
-        norm = block_means(t_ns, np.linalg.norm(data["accel"], axis=1), window_s=1.0).means
-        spread = float(np.ptp(norm))
-        static = excursion <= self.options.motion_threshold and spread <= 0.05 * G0
+        still = stillness(t_ns, data["gyro"], data["accel"])
+        static = still.static(self.options.motion_threshold)
         if not static:
             ctx.warn(
-                f"the data does not look static: 1 s gyro means depart {excursion:.3g} rad/s from "
-                f"the mean (threshold {self.options.motion_threshold}), accel norm 1 s means "
-                f"spread {spread:.3g} m/s^2; motion inflates every noise term"
+                f"{still.describe(self.options.motion_threshold)}; motion inflates every noise term"
             )
-        return bool(static)
+        return static
 
     # -- Rerun -------------------------------------------------------------------------------
     def _record(

@@ -16,10 +16,8 @@ import pyarrow as pa
 
 from imupipe.pipeline.table import SensorData, has_stream, sensor
 from imupipe.stages.base import Stage, StageContext, StageOutput
-from imupipe.stages.blocks import block_means
 from imupipe.stages.steps import LinearStep
-
-G0 = 9.80665
+from imupipe.stages.stillness import stillness
 
 
 def select_interval(data: SensorData, interval: list[float] | None) -> np.ndarray:
@@ -61,20 +59,14 @@ class GyroBiasStage(Stage):
         bias = values.mean(axis=0)
         std = values.std(axis=0, ddof=1)
 
-        second = block_means(t_ns, values, window_s=1.0)
-        excursion = float(np.abs(second.means - bias).max()) if len(second.counts) else 0.0
-        accel = sensor(table, "accel").values[mask]
-        norm_means = block_means(t_ns, np.linalg.norm(accel, axis=1), window_s=1.0).means
-        accel_spread = float(np.ptp(norm_means)) if len(norm_means) else 0.0
-        static = excursion <= self.options.motion_threshold and accel_spread <= 0.05 * G0
+        still = stillness(t_ns, values, sensor(table, "accel").values[mask])
+        static = still.static(self.options.motion_threshold)
         if not static:
             ctx.warn(
-                f"the data does not look static: 1 s gyro means depart {excursion:.3g} rad/s from "
-                f"the mean (threshold {self.options.motion_threshold}), accel norm 1 s means spread "
-                f"{accel_spread:.3g} m/s^2; the bias will include motion"
+                f"{still.describe(self.options.motion_threshold)}; the bias will include motion"
             )
         ctx.recorder.series(
-            f"/{ctx.name}/gyro_1s_means", second.t_ns, second.means, ("x", "y", "z")
+            f"/{ctx.name}/gyro_1s_means", still.gyro_1s.t_ns, still.gyro_1s.means, ("x", "y", "z")
         )
         step = LinearStep(
             type=self.type,
@@ -90,8 +82,8 @@ class GyroBiasStage(Stage):
                 "duration_s": float((t_ns[-1] - t_ns[0]) * 1e-9),
                 "std": std.tolist(),
                 "bias_std_error": (std / np.sqrt(n)).tolist(),
-                "max_1s_excursion": excursion,
-                "accel_norm_1s_spread": accel_spread,
+                "max_1s_excursion": still.excursion,
+                "accel_norm_1s_spread": still.accel_spread,
                 "static": bool(static),
             },
         }

@@ -44,8 +44,8 @@ from imupipe.stages.base import Stage, StageContext, StageOutput
 from imupipe.stages.blocks import block_means
 from imupipe.stages.steps import Step
 from imupipe.stages.stepwise import candidate_terms, stepwise
+from imupipe.stages.stillness import G0
 
-G0 = 9.80665
 MIN_SPAN = 10.0
 """degC: a narrower fitted temperature span is refused."""
 WARN_SPAN = 24.0
