@@ -32,15 +32,29 @@ from imupipe.stages.steps import Step, apply_chain
 
 
 class CorrectedTables(Mapping[str, pa.Table]):
-    """Every input as corrected by a chain, computed on first use."""
+    """Every input as corrected by the chain so far, computed on first use and kept: when the
+    chain grows (:meth:`extend`), a kept table gets only the new steps, never the whole chain
+    again."""
 
-    def __init__(self, raw: Mapping[str, pa.Table], chain: list[Step]) -> None:
-        self._raw, self._chain, self._cache = raw, list(chain), {}
+    def __init__(self, raw: Mapping[str, pa.Table]) -> None:
+        self._raw = raw
+        self.chain: list[Step] = []
+        self._kept: dict[str, tuple[pa.Table, int]] = {}  # input -> (table, steps applied)
+
+    def extend(self, steps: list[Step]) -> None:
+        self.chain.extend(steps)
+
+    def keep_only(self, name: str | None) -> None:
+        """Forget the corrected tables of every input but ``name`` (bounds memory: at most the
+        inputs one stage uses are held corrected besides the raw tables)."""
+        self._kept = {k: v for k, v in self._kept.items() if k == name}
 
     def __getitem__(self, name: str) -> pa.Table:
-        if name not in self._cache:
-            self._cache[name] = apply_chain(self._raw[name], self._chain)
-        return self._cache[name]
+        table, applied = self._kept.get(name, (self._raw[name], 0))
+        if applied < len(self.chain):
+            table = apply_chain(table, self.chain[applied:])
+            self._kept[name] = (table, len(self.chain))
+        return table
 
     def __iter__(self) -> Iterator[str]:
         return iter(self._raw)
@@ -90,7 +104,7 @@ def run(config: Config | str | Path, *, spawn: bool = False, quiet: bool = False
             raw[name] = table
             bar.advance()
 
-        chain: list[Step] = []
+        tables = CorrectedTables(raw)
         results: dict[str, Any] = {}
         with staged_outputs() as out:
             files: list[Path] = []
@@ -106,7 +120,7 @@ def run(config: Config | str | Path, *, spawn: bool = False, quiet: bool = False
             for st in cfg.stages:
                 bar.describe(f"stage {st.name}")
                 stage = stage_class(st.type)(st.options)
-                tables = CorrectedTables(raw, chain)
+                tables.keep_only(st.input)
                 table = tables[st.input]
                 ctx = StageContext(
                     name=st.name, input_name=st.input, recorder=recorder, tables=tables, quiet=quiet
@@ -115,10 +129,8 @@ def run(config: Config | str | Path, *, spawn: bool = False, quiet: bool = False
                 record_sensors(recorder, f"/{st.name}/input", table, sensors)
                 output = stage.fit(table, ctx)
                 if output.steps:
-                    chain.extend(output.steps)
-                    record_sensors(
-                        recorder, f"/{st.name}/output", apply_chain(table, output.steps), sensors
-                    )
+                    tables.extend(output.steps)
+                    record_sensors(recorder, f"/{st.name}/output", tables[st.input], sensors)
                 recorder.ensure_stage(st.name)
                 results[st.name] = {
                     "type": st.type,
@@ -131,13 +143,14 @@ def run(config: Config | str | Path, *, spawn: bool = False, quiet: bool = False
                     files.append(out_dir / fname)
                 bar.advance()
 
-            doc = calibration_document(chain, results)
+            doc = calibration_document(tables.chain, results)
             out.write_text(out_dir / "calibration.json", json.dumps(doc, indent=2) + "\n")
             files.append(out_dir / "calibration.json")
             counts: dict[str, dict[str, int]] = {}
             for name in cfg.output.apply_to:
                 bar.describe(f"writing {name}.mcap")
-                corrected = apply_chain(raw[name], chain)
+                tables.keep_only(name)
+                corrected = tables[name]
                 target = out_dir / f"{name}.mcap"
                 counts[name] = write_mcap(
                     out.path(target),
