@@ -23,6 +23,7 @@ from pathlib import Path
 
 import allantools
 import numpy as np
+from proc_memory import HERE
 
 from imupipe.stages import allan_estimators as est
 from imupipe.stages.allan_fit import fit_allan
@@ -88,7 +89,7 @@ def bench_run(hours: float) -> None:
             text += f"apply_to = {apply_to}\n"
         cfg.write_text(text)
         table_bytes = read_input(load_config(cfg).inputs["static"])[0].nbytes
-        cmd = [sys.executable, "-c", RUN_AND_REPORT, str(cfg)]
+        cmd = [sys.executable, "-c", RUN_AND_REPORT, str(cfg), HERE]
         t = time.perf_counter()
         proc = subprocess.run(cmd, capture_output=True, text=True)
         wall = time.perf_counter() - t
@@ -107,18 +108,13 @@ def bench_run(hours: float) -> None:
 
 RUN_AND_REPORT = """
 import sys
+sys.path.insert(0, sys.argv[2])
+from proc_memory import status_bytes
 from imupipe.pipeline.run import run
 import imupipe.pipeline.recording, imupipe.stages.allan, imupipe.readers.csv_reader
-def status(key):
-    # VmHWM: this process's own high-water mark (ru_maxrss of an exec'd child can carry the
-    # parent's RSS at fork time, and the parent holds the simulated table)
-    with open('/proc/self/status') as fh:
-        for line in fh:
-            if line.startswith(key):
-                return int(line.split()[1]) * 1024
-print(status('VmHWM:'))  # after imports
+print(status_bytes('VmHWM'))  # after imports
 run(sys.argv[1], quiet=True)
-print(status('VmHWM:'))
+print(status_bytes('VmHWM'))
 """
 
 

@@ -28,6 +28,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from proc_memory import HERE
 
 
 def make_table(n: int):
@@ -101,27 +102,25 @@ def peer_read(path: Path, n: int) -> int:
 
 
 MEMORY_PROBE = """
-import json, resource, sys
+import json, sys
+sys.path.insert(0, sys.argv[2])
+from proc_memory import status_bytes
 from imupipe.readers.mcap_reader import read_mcap
 from imupipe.readers.spec import InputSpec
 import pyarrow, numpy, zstandard  # noqa
-def status(key):
-    # VmHWM is this process's own high-water mark; ru_maxrss of an exec'd child can carry the
-    # parent's RSS at fork time, which inflated this figure when the parent held a big table
-    with open('/proc/self/status') as fh:
-        for line in fh:
-            if line.startswith(key):
-                return int(line.split()[1]) * 1024
-base = status('VmRSS:')
+base = status_bytes('VmRSS')
 table, _ = read_mcap(InputSpec(path=sys.argv[1]))
-peak = status('VmHWM:')
+peak = status_bytes('VmHWM')
 print(json.dumps({"base": base, "peak": peak, "table": table.nbytes, "rows": table.num_rows}))
 """
 
 
 def memory(path: Path) -> dict:
     out = subprocess.run(
-        [sys.executable, "-c", MEMORY_PROBE, str(path)], capture_output=True, text=True, check=True
+        [sys.executable, "-c", MEMORY_PROBE, str(path), HERE],
+        capture_output=True,
+        text=True,
+        check=True,
     )
     return json.loads(out.stdout)
 
