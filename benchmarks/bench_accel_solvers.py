@@ -21,9 +21,9 @@ from pathlib import Path
 import numpy as np
 
 from imupipe.pipeline.simulate import simulate
-from imupipe.pipeline.table import sensor
 from imupipe.readers.csv_reader import read_csv
 from imupipe.readers.spec import CsvMapping, InputSpec
+from imupipe.readers.table import sensor
 from imupipe.stages import accel_models as am
 from imupipe.stages.static_detector import make_detector
 

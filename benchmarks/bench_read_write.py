@@ -35,7 +35,7 @@ def make_table(n: int):
     """n Imu messages at 1 kHz with random values, one frame_id (as a real driver publishes)."""
     import pyarrow as pa
 
-    from imupipe.pipeline.table import make_table as mk
+    from imupipe.readers.table import make_table as mk
 
     rng = np.random.default_rng(0)
     t = 1_700_000_000_000_000_000 + np.arange(n, dtype=np.int64) * 1_000_000
@@ -60,7 +60,7 @@ def peer_write(path: Path, table, n: int) -> None:
     from mcap_ros2.writer import Writer
 
     from imupipe.pipeline.mcap_writer import msgdef
-    from imupipe.pipeline.table import sensor
+    from imupipe.readers.table import sensor
 
     g = sensor(table, "gyro").values[:n]
     a = sensor(table, "accel").values[:n]

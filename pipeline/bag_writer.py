@@ -29,7 +29,7 @@ import pyarrow.compute as pc
 
 from imupipe.pipeline.errors import ConfigError
 from imupipe.pipeline.mcap_writer import DEFAULT_TOPICS, STREAM_TYPES, encode_stream
-from imupipe.pipeline.table import metadata
+from imupipe.readers.table import metadata
 
 
 def _messages(table: pa.Table, encoding: str) -> Iterator[tuple[str, int, list[bytes], np.ndarray]]:

@@ -56,9 +56,9 @@ from imupipe.pipeline.errors import ConfigError, ImupipeError, ReadError
 from imupipe.pipeline.manifest import Manifest
 from imupipe.pipeline.mcap_writer import DEFAULT_TOPICS, McapTableWriter
 from imupipe.pipeline.progress import progress_bar
-from imupipe.pipeline.table import OPTIONAL_FIELDS, SCHEMA, counts, metadata, with_metadata
 from imupipe.readers import dispatch
 from imupipe.readers.spec import InputSpec, RawMessage
+from imupipe.readers.table import OPTIONAL_FIELDS, SCHEMA, counts, metadata, with_metadata
 from imupipe.stages.steps import Step, apply_chain, steps_from_json
 
 LOG_SUFFIXES = {".mcap": "mcap", ".bag": "ros1"}

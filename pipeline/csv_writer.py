@@ -9,7 +9,7 @@ from pathlib import Path
 import pyarrow as pa
 import pyarrow.csv as pacsv
 
-from imupipe.pipeline.table import SENSOR_COLUMNS, STREAM_OF_SENSOR, has_stream
+from imupipe.readers.table import SENSOR_COLUMNS, STREAM_OF_SENSOR, has_stream
 
 
 def write_csv(path: str | Path, table: pa.Table) -> None:

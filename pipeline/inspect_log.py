@@ -17,11 +17,10 @@ from typing import Any
 import numpy as np
 
 from imupipe.pipeline.errors import ImupipeError
-from imupipe.pipeline.table import SENSOR_COLUMNS, STREAM_OF_SENSOR, counts, sensor
 from imupipe.readers.decoded import COLUMNS, STREAM_TYPES, normalize_type, select_topics
-from imupipe.readers.dispatch import detect_format, read_input
-from imupipe.readers.sources import log_sources
+from imupipe.readers.dispatch import detect_format, log_sources, read_input
 from imupipe.readers.spec import InputSpec
+from imupipe.readers.table import SENSOR_COLUMNS, STREAM_OF_SENSOR, counts, sensor
 
 BASE_COLUMNS = ["t_ns", "log_time_ns", "frame_id"]
 

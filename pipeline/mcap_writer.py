@@ -49,9 +49,9 @@ from mcap.records import (
     SummaryOffset,
 )
 
-from imupipe.pipeline.table import metadata, sensor, stream_mask
 from imupipe.readers import cdr
 from imupipe.readers.spec import RawMessage
+from imupipe.readers.table import metadata, sensor, stream_mask
 
 DEFAULT_TOPICS = {"imu": "/imu/data", "mag": "/imu/mag", "temperature": "/imu/temperature"}
 STREAM_TYPES = {

@@ -23,9 +23,9 @@ from imupipe.pipeline.atomic import staged_outputs
 from imupipe.pipeline.config import Config, load_config
 from imupipe.pipeline.mcap_writer import write_mcap
 from imupipe.pipeline.progress import progress_bar
-from imupipe.pipeline.table import SENSOR_COLUMNS, STREAM_OF_SENSOR, has_stream, sensor
 from imupipe.pipeline.version import VERSION
 from imupipe.readers.dispatch import carry_over, read_input
+from imupipe.readers.table import SENSOR_COLUMNS, STREAM_OF_SENSOR, has_stream, sensor
 from imupipe.stages.base import NullRecorder, StageContext
 from imupipe.stages.registry import stage_class
 from imupipe.stages.steps import Step, apply_chain

@@ -10,7 +10,7 @@ import bz2
 
 import numpy as np
 
-from imupipe.pipeline.errors import ReadError
+from imupipe.readers.errors import ReadError
 
 
 def _zstd(data: bytes | memoryview, size: int) -> bytes:

@@ -16,8 +16,7 @@ import pyarrow as pa
 import pyarrow.compute as pc
 import pyarrow.csv as pacsv
 
-from imupipe.pipeline.errors import ReadError
-from imupipe.pipeline.table import make_table, sort_by_time
+from imupipe.readers.errors import ReadError
 from imupipe.readers.spec import (
     ACCEL_UNITS,
     GYRO_UNITS,
@@ -26,6 +25,7 @@ from imupipe.readers.spec import (
     CsvMapping,
     InputSpec,
 )
+from imupipe.readers.table import make_table, sort_by_time
 
 _NUMBER = r"^\s*[-+]?(\d+\.?\d*([eE][-+]?\d+)?|\.\d+([eE][-+]?\d+)?|nan|NaN|inf|-inf|Inf)\s*$"
 

@@ -18,10 +18,10 @@ from pathlib import Path
 import numpy as np
 import pyarrow as pa
 
-from imupipe.pipeline.errors import ReadError
-from imupipe.pipeline.table import COV, SCHEMA, with_metadata
 from imupipe.readers.cdr import NotFastPath, PayloadError, decode, decode_with_rosbags
+from imupipe.readers.errors import ReadError
 from imupipe.readers.spec import InputSpec
+from imupipe.readers.table import COV, SCHEMA, with_metadata
 
 STREAM_TYPES: dict[str, str] = {
     "imu": "sensor_msgs/msg/Imu",

@@ -5,11 +5,15 @@ from __future__ import annotations
 import importlib
 from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import pyarrow as pa
 
-from imupipe.pipeline.errors import ReadError
+from imupipe.readers.errors import ReadError
 from imupipe.readers.spec import InputSpec, RawMessage
+
+if TYPE_CHECKING:
+    from imupipe.readers.sources import LogSource
 
 CSV_SUFFIXES = {".csv", ".txt", ".tsv", ".mat", ".dat"}
 
@@ -36,6 +40,13 @@ ITERATORS: dict[str, str] = {
 }
 """Format -> "module:function(spec, batch_rows) -> Iterator[(table, [RawMessage])]": bounded
 memory batches (formats absent here are read whole and yielded as one batch)."""
+
+SOURCES: dict[str, str] = {
+    "mcap": "imupipe.readers.mcap_reader:mcap_sources",
+    "ros1": "imupipe.readers.ros1_reader:bag_sources",
+    "ros2": "imupipe.readers.ros2_reader:bag2_sources",
+}
+"""Format -> "module:function(path) -> [LogSource]": the files of a binary log, for ``inspect``."""
 
 
 def detect_format(path: Path) -> str:
@@ -108,3 +119,11 @@ def carry_over(spec: InputSpec) -> Iterable[RawMessage]:
     if fmt not in CARRY_OVER:
         return ()
     return _load(spec, fmt, CARRY_OVER[fmt])(spec)
+
+
+def log_sources(spec: InputSpec) -> list[LogSource]:
+    """The sources of a binary input (MCAP, ROS 1 bag(s), ROS 2 bag)."""
+    fmt = detect_format(Path(spec.path))
+    if fmt not in SOURCES:
+        raise ReadError(f"{spec.path}: not a binary log (MCAP or ROS bag)")
+    return list(_load(spec, fmt, SOURCES[fmt])(Path(spec.path)))

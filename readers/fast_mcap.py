@@ -31,9 +31,9 @@ import numpy as np
 from mcap.data_stream import ReadDataStream
 from mcap.records import Channel, Schema, Statistics
 
-from imupipe.pipeline.errors import ReadError
 from imupipe.readers.cdr import unaligned
 from imupipe.readers.compression import decompress_chunk
+from imupipe.readers.errors import ReadError
 
 MAGIC = b"\x89MCAP0\r\n"
 OP_HEADER, OP_FOOTER, OP_SCHEMA, OP_CHANNEL, OP_MESSAGE = 0x01, 0x02, 0x03, 0x04, 0x05

@@ -14,8 +14,8 @@ from pathlib import Path
 import numpy as np
 import pyarrow as pa
 
-from imupipe.pipeline.errors import ReadError
 from imupipe.readers.decoded import Piece, concat, decode_piece, normalize_type
+from imupipe.readers.errors import ReadError
 from imupipe.readers.fast_mcap import ChunkMessages, McapFile
 from imupipe.readers.sources import carry_sources, iter_sources, read_sources
 from imupipe.readers.spec import InputSpec, RawMessage
@@ -161,3 +161,8 @@ def iter_mcap(spec: InputSpec, batch_rows: int) -> Iterator[tuple[pa.Table, list
 def carry_over_mcap(spec: InputSpec) -> list[RawMessage]:
     """Messages of the topics the table does not hold, in log-time order."""
     return carry_sources(spec, [McapSource(spec.path)])
+
+
+def mcap_sources(path: Path) -> list[McapSource]:
+    """The one source of an MCAP file (the ``log_sources`` entry for MCAP)."""
+    return [McapSource(path)]

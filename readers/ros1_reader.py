@@ -23,10 +23,10 @@ from pathlib import Path
 import numpy as np
 import pyarrow as pa
 
-from imupipe.pipeline.errors import ReadError
 from imupipe.readers.cdr import unaligned
 from imupipe.readers.compression import decompress_chunk
 from imupipe.readers.decoded import Piece, concat, decode_piece, normalize_type
+from imupipe.readers.errors import ReadError
 from imupipe.readers.sources import carry_sources, iter_sources, read_sources
 from imupipe.readers.spec import InputSpec, RawMessage
 

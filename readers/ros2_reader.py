@@ -20,8 +20,8 @@ from pathlib import Path
 import numpy as np
 import pyarrow as pa
 
-from imupipe.pipeline.errors import ReadError
 from imupipe.readers.decoded import Piece, decode_piece, normalize_type
+from imupipe.readers.errors import ReadError
 from imupipe.readers.mcap_reader import McapSource
 from imupipe.readers.sources import LogSource, carry_sources, iter_sources, read_sources
 from imupipe.readers.spec import InputSpec, RawMessage

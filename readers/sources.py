@@ -21,8 +21,8 @@ from typing import Protocol
 import numpy as np
 import pyarrow as pa
 
-from imupipe.pipeline.errors import ReadError
 from imupipe.readers.decoded import Piece, StreamBuffer, assemble, concat, select_topics
+from imupipe.readers.errors import ReadError
 from imupipe.readers.spec import InputSpec, RawMessage
 
 NEVER = 2**63 - 1
@@ -192,23 +192,3 @@ def carry_sources(spec: InputSpec, sources: Sequence[LogSource]) -> list[RawMess
             out.extend(messages)
     out.sort(key=lambda m: m.log_time)
     return out
-
-
-def log_sources(spec: InputSpec) -> list[LogSource]:
-    """The sources of a binary input (MCAP, ROS 1 bag(s), ROS 2 bag)."""
-    from imupipe.readers.dispatch import detect_format
-
-    fmt = detect_format(Path(spec.path))
-    if fmt == "mcap":
-        from imupipe.readers.mcap_reader import McapSource
-
-        return [McapSource(spec.path)]
-    if fmt == "ros1":
-        from imupipe.readers.ros1_reader import bag_sources
-
-        return list(bag_sources(Path(spec.path)))
-    if fmt == "ros2":
-        from imupipe.readers.ros2_reader import bag2_sources
-
-        return bag2_sources(Path(spec.path))
-    raise ReadError(f"{spec.path}: not a binary log (MCAP or ROS bag)")

@@ -26,10 +26,10 @@ from typing import Any, Literal
 import numpy as np
 import pyarrow as pa
 
-from imupipe.pipeline.errors import FitError
-from imupipe.pipeline.table import has_stream, sensor
+from imupipe.readers.table import has_stream, sensor
 from imupipe.stages import accel_models as am
 from imupipe.stages.base import Stage, StageContext, StageOutput
+from imupipe.stages.errors import FitError
 from imupipe.stages.ferraris import ROTATION_PARTS, STATIC_PARTS, ferraris
 from imupipe.stages.static_detector import (
     Intervals,

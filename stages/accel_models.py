@@ -25,7 +25,7 @@ from typing import Any
 import numpy as np
 from scipy.optimize import least_squares
 
-from imupipe.pipeline.errors import FitError
+from imupipe.stages.errors import FitError
 
 MG = 9.80665e-3
 """One milli-g in m/s^2 (the unit of the accelerometer metrics)."""

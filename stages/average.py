@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 import pyarrow as pa
 
-from imupipe.pipeline.table import SENSOR_COLUMNS, STREAM_OF_SENSOR, has_stream, sensor
+from imupipe.readers.table import SENSOR_COLUMNS, STREAM_OF_SENSOR, has_stream, sensor
 from imupipe.stages.base import Stage, StageContext, StageOutput
 from imupipe.stages.blocks import block_means
 

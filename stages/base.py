@@ -20,7 +20,7 @@ from typing import Any, ClassVar
 
 import pyarrow as pa
 
-from imupipe.pipeline.errors import FitError
+from imupipe.stages.errors import FitError
 from imupipe.stages.steps import Step
 
 

@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 import pyarrow as pa
 
-from imupipe.pipeline.table import SensorData, has_stream, sensor
+from imupipe.readers.table import SensorData, has_stream, sensor
 from imupipe.stages.base import Stage, StageContext, StageOutput
 from imupipe.stages.steps import LinearStep
 from imupipe.stages.stillness import stillness

@@ -25,11 +25,11 @@ from typing import Any, Literal
 import numpy as np
 import pyarrow as pa
 
-from imupipe.pipeline.errors import FitError
-from imupipe.pipeline.table import SensorData, has_stream, sensor
+from imupipe.readers.table import SensorData, has_stream, sensor
 from imupipe.stages import gyro_models as gm
 from imupipe.stages.accel_calibration import StaticSetup, detect_intervals, rms
 from imupipe.stages.base import Stage, StageContext, StageOutput
+from imupipe.stages.errors import FitError
 from imupipe.stages.static_detector import sample_rate, segment_mask
 from imupipe.stages.steps import LinearStep
 

@@ -31,7 +31,7 @@ import rerun as rr
 import rerun.blueprint as rrb
 from scipy.spatial.transform import Rotation
 
-from imupipe.pipeline.table import has_stream, sensor
+from imupipe.readers.table import has_stream, sensor
 from imupipe.stages import ellipsoid as ell
 from imupipe.stages.base import Stage, StageContext, StageOutput
 from imupipe.stages.steps import LinearStep

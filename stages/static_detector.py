@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 import pyarrow as pa
 
-from imupipe.pipeline.errors import FitError
+from imupipe.stages.errors import FitError
 
 
 @dataclass(frozen=True)

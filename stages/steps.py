@@ -16,8 +16,8 @@ from typing import Any, ClassVar
 import numpy as np
 import pyarrow as pa
 
-from imupipe.pipeline.errors import ConfigError
-from imupipe.pipeline.table import SENSOR_COLUMNS, has_stream, replace_sensor, sensor
+from imupipe.readers.table import SENSOR_COLUMNS, has_stream, replace_sensor, sensor
+from imupipe.stages.errors import CalibrationError
 
 
 class Step(ABC):
@@ -67,7 +67,7 @@ class LinearStep(Step):
     def apply(self, table: pa.Table) -> pa.Table:
         if len(SENSOR_COLUMNS[self.sensor]) != 3:
             raise ValueError(f"linear step on non-vector sensor {self.sensor}")
-        from imupipe.pipeline.table import STREAM_OF_SENSOR
+        from imupipe.readers.table import STREAM_OF_SENSOR
 
         if not has_stream(table, STREAM_OF_SENSOR[self.sensor]):
             return table
@@ -102,7 +102,7 @@ class LinearStep(Step):
 
 STEP_KINDS: dict[str, str] = {
     "linear": "imupipe.stages.steps:LinearStep",
-    "temperature": "imupipe.stages.temperature:TemperatureStep",
+    "temperature": "imupipe.stages.temperature_step:TemperatureStep",
 }
 """Step kind -> "module:Class". A new kind of correction registers here."""
 
@@ -111,7 +111,7 @@ def step_class(kind: str) -> type[Step]:
     try:
         module, name = STEP_KINDS[kind].split(":")
     except KeyError:
-        raise ConfigError(
+        raise CalibrationError(
             f"calibration chain: unknown step kind '{kind}' (known: {', '.join(STEP_KINDS)})"
         ) from None
     return getattr(importlib.import_module(module), name)
@@ -122,11 +122,11 @@ def steps_from_json(chain: Sequence[dict[str, Any]], where: str = "calibration")
     steps: list[Step] = []
     for i, entry in enumerate(chain):
         if not isinstance(entry, dict) or "kind" not in entry:
-            raise ConfigError(f"{where}: chain[{i}] has no 'kind'")
+            raise CalibrationError(f"{where}: chain[{i}] has no 'kind'")
         try:
             steps.append(step_class(entry["kind"]).from_json(entry))
         except (KeyError, TypeError, ValueError) as exc:
-            raise ConfigError(
+            raise CalibrationError(
                 f"{where}: chain[{i}] ({entry.get('type')}) is malformed: {exc}"
             ) from None
     return steps

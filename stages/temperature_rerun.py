@@ -24,11 +24,11 @@ import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
-from imupipe.pipeline.table import SENSOR_UNITS
+from imupipe.readers.table import SENSOR_UNITS
 
 if TYPE_CHECKING:
     from imupipe.stages.base import StageContext
-    from imupipe.stages.temperature import Prepared, TemperatureStep
+    from imupipe.stages.temperature_step import Prepared, TemperatureStep
 
 AXES = ("x", "y", "z")
 TEMPERATURE_TIMELINE = "temperature_cdegC"

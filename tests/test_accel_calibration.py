@@ -14,7 +14,7 @@ from scipy.optimize import approx_fprime
 from imupipe.pipeline.errors import FitError
 from imupipe.pipeline.run import run
 from imupipe.pipeline.simulate import simulate
-from imupipe.pipeline.table import sensor
+from imupipe.readers.table import sensor
 from imupipe.stages import accel_models as am
 from imupipe.stages.accel_calibration import AccelCalibrationStage
 from imupipe.stages.base import StageContext

@@ -10,8 +10,8 @@ import pytest
 
 from imupipe.pipeline.config import load_config
 from imupipe.pipeline.errors import ConfigError, ReadError
-from imupipe.pipeline.table import sensor
 from imupipe.readers.csv_reader import read_csv
+from imupipe.readers.table import sensor
 
 from conftest import TEST_DATA
 from helpers import rrd_rows

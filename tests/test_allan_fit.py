@@ -15,7 +15,7 @@ import pytest
 import yaml
 
 from imupipe.pipeline.simulate import noise, simulate
-from imupipe.pipeline.table import sensor
+from imupipe.readers.table import sensor
 from imupipe.stages import allan_estimators as est
 from imupipe.stages.allan_fit import B_FLOOR, TERMS, fit_allan, slope_readings
 

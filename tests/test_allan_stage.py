@@ -10,7 +10,7 @@ import pytest
 import yaml
 
 from imupipe.pipeline.simulate import simulate, write_log
-from imupipe.pipeline.table import make_table
+from imupipe.readers.table import make_table
 from imupipe.stages.allan import AllanStage
 from imupipe.stages.base import StageContext
 

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 from imupipe.pipeline.errors import ReadError
-from imupipe.pipeline.table import counts, sensor
 from imupipe.readers.csv_reader import read_csv
 from imupipe.readers.spec import G0, CsvMapping, InputSpec
+from imupipe.readers.table import counts, sensor
 
 
 def read(path, **mapping):

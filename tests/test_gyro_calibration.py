@@ -9,7 +9,7 @@ from scipy.spatial.transform import Rotation
 
 from imupipe.pipeline.errors import FitError
 from imupipe.pipeline.simulate import simulate
-from imupipe.pipeline.table import make_table
+from imupipe.readers.table import make_table
 from imupipe.stages import gyro_models as gm
 from imupipe.stages.accel_calibration import AccelCalibrationStage
 from imupipe.stages.base import StageContext

@@ -13,7 +13,7 @@ from imupipe.pipeline.config import build_options
 from imupipe.pipeline.errors import FitError
 from imupipe.pipeline.simulate import simulate, write_log
 from imupipe.pipeline.simulate.mag import DEFAULTS as MAG_DEFAULTS
-from imupipe.pipeline.table import make_table, sensor
+from imupipe.readers.table import make_table, sensor
 from imupipe.stages.base import StageContext
 from imupipe.stages.mag_calibration import MagCalibrationStage
 

@@ -16,9 +16,9 @@ from rosbags.highlevel import AnyReader
 
 from imupipe.pipeline.errors import ReadError
 from imupipe.pipeline.simulate import write_log
-from imupipe.pipeline.table import COV, make_table, sensor
 from imupipe.readers.dispatch import iter_input, read_input
 from imupipe.readers.spec import InputSpec
+from imupipe.readers.table import COV, make_table, sensor
 
 from helpers import decode_mcap
 
@@ -282,7 +282,7 @@ def test_topic_selection_errors(written, tmp_path):
         read_input(InputSpec(path=path, imu_topic="/imu/mag"))
     # two Imu topics: omitted imu_topic lists the candidates
     from imupipe.pipeline.mcap_writer import McapTableWriter
-    from imupipe.pipeline.table import with_metadata
+    from imupipe.readers.table import with_metadata
 
     two = tmp_path / "two.mcap"
     with McapTableWriter(two) as w:

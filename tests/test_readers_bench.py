@@ -10,9 +10,9 @@ import time
 import numpy as np
 
 from imupipe.pipeline.mcap_writer import write_mcap
-from imupipe.pipeline.table import sensor
 from imupipe.readers.mcap_reader import read_mcap
 from imupipe.readers.spec import InputSpec
+from imupipe.readers.table import sensor
 
 from conftest import REPO
 

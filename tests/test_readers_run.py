@@ -11,7 +11,7 @@ import pytest
 from test_readers import multi_stream_table
 
 from imupipe.pipeline.simulate import write_log
-from imupipe.pipeline.table import sensor
+from imupipe.readers.table import sensor
 
 from conftest import run_cli
 from helpers import decode_mcap, stamps_ns, vec

@@ -9,7 +9,7 @@ from numpy.lib.stride_tricks import sliding_window_view
 
 from imupipe.pipeline.errors import FitError
 from imupipe.pipeline.simulate import simulate
-from imupipe.pipeline.table import sensor
+from imupipe.readers.table import sensor
 from imupipe.stages.static_detector import (
     Intervals,
     make_detector,

@@ -18,14 +18,15 @@ from scipy.optimize import curve_fit
 
 from imupipe.pipeline.errors import FitError
 from imupipe.pipeline.simulate import simulate, write_log
-from imupipe.pipeline.table import make_table, sensor
 from imupipe.readers.dispatch import read_input
 from imupipe.readers.spec import InputSpec
+from imupipe.readers.table import make_table, sensor
 from imupipe.stages.base import StageContext
 from imupipe.stages.blocks import block_means
 from imupipe.stages.steps import apply_chain, steps_from_json
 from imupipe.stages.stepwise import candidate_terms
-from imupipe.stages.temperature import TemperatureStage, TemperatureStep
+from imupipe.stages.temperature import TemperatureStage
+from imupipe.stages.temperature_step import TemperatureStep
 
 from conftest import run_cli
 

@@ -28,7 +28,7 @@ from scipy.spatial.transform import Rotation
 from imupipe.pipeline.errors import ConfigError
 from imupipe.pipeline.simulate.clock import sample_times
 from imupipe.pipeline.simulate.noise import white
-from imupipe.pipeline.table import make_table
+from imupipe.readers.table import make_table
 
 DEFAULTS: dict[str, Any] = {
     "rate_hz": 100.0,

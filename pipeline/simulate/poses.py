@@ -29,7 +29,7 @@ from scipy.spatial.transform import Rotation
 
 from imupipe.pipeline.simulate.clock import sample_times
 from imupipe.pipeline.simulate.noise import white
-from imupipe.pipeline.table import make_table
+from imupipe.readers.table import make_table
 from imupipe.stages.accel_models import misalignment_matrix
 from imupipe.stages.gyro_models import gyro_matrix
 

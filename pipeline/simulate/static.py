@@ -15,7 +15,7 @@ import pyarrow as pa
 
 from imupipe.pipeline.simulate.clock import sample_times
 from imupipe.pipeline.simulate.noise import flicker, quantization, random_walk, rate_ramp, white
-from imupipe.pipeline.table import make_table
+from imupipe.readers.table import make_table
 
 DEFAULTS: dict[str, Any] = {
     "rate_hz": 200.0,
