@@ -39,6 +39,8 @@ class StageConfig:
     input: str
     options: Any
     index: int
+    accept_failed_checks: bool = False
+    """Keep a fit that fails its own quality check (with a warning) instead of stopping."""
 
 
 @dataclass
@@ -234,9 +236,12 @@ def load_config(path: str | Path) -> Config:
             raise ConfigError(
                 f"{where}.input: unknown input '{input_name}' (inputs: {', '.join(inputs)})"
             )
+        accept = entry.pop("accept_failed_checks", False)
+        if not isinstance(accept, bool):
+            raise ConfigError(f"{where}.accept_failed_checks: must be true or false")
         cls = stage_class(type_name)
         options = build_options(cls.Options, entry, f"{where} ({type_name})")
-        stages.append(StageConfig(type_name, name, input_name, options, i))
+        stages.append(StageConfig(type_name, name, input_name, options, i, accept))
 
     out_raw = raw.get("output", {})
     if not isinstance(out_raw, dict):

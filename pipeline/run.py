@@ -123,7 +123,12 @@ def run(config: Config | str | Path, *, spawn: bool = False, quiet: bool = False
                 tables.keep_only(st.input)
                 table = tables[st.input]
                 ctx = StageContext(
-                    name=st.name, input_name=st.input, recorder=recorder, tables=tables, quiet=quiet
+                    name=st.name,
+                    input_name=st.input,
+                    recorder=recorder,
+                    tables=tables,
+                    quiet=quiet,
+                    accept_failed_checks=st.accept_failed_checks,
                 )
                 sensors = stage.sensors_for(st.options)
                 record_sensors(recorder, f"/{st.name}/input", table, sensors)
@@ -138,6 +143,8 @@ def run(config: Config | str | Path, *, spawn: bool = False, quiet: bool = False
                     **output.results,
                     "warnings": ctx.warnings,
                 }
+                if ctx.failed_checks:
+                    results[st.name]["failed_checks"] = ctx.failed_checks
                 for fname, text in output.artifacts.items():
                     out.write_text(out_dir / fname, text)
                     files.append(out_dir / fname)

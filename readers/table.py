@@ -213,6 +213,17 @@ def sensor(table: pa.Table, name: str) -> SensorData:
     return SensorData(t_ns=t_ns if rows is None else t_ns[rows], values=values, rows=idx)
 
 
+def finite(data: SensorData) -> tuple[SensorData, int]:
+    """The samples of ``data`` whose values are all finite, and how many were not (NaN, Inf).
+
+    Stages fit on the finite samples only; writers keep every sample as it came."""
+    ok = np.isfinite(data.values).all(axis=1)
+    bad = int(len(ok) - np.count_nonzero(ok))
+    if bad == 0:
+        return data, 0
+    return SensorData(t_ns=data.t_ns[ok], values=data.values[ok], rows=data.rows[ok]), bad
+
+
 def replace_sensor(table: pa.Table, name: str, rows: np.ndarray, values: np.ndarray) -> pa.Table:
     """A copy of ``table`` with sensor ``name`` set to ``values`` (n, k) at ``rows``.
 

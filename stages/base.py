@@ -20,6 +20,7 @@ from typing import Any, ClassVar
 
 import pyarrow as pa
 
+from imupipe.readers.table import SensorData, finite
 from imupipe.stages.errors import FitError
 from imupipe.stages.steps import Step
 
@@ -42,6 +43,9 @@ class StageContext:
     - ``recorder``: a :class:`imupipe.pipeline.recording.Recorder` (or a no-op stand-in).
     - ``tables``: every input's table, corrected by the chain so far (for ``validate`` inputs).
     - ``warnings``: collected warnings; :meth:`warn` also prints them on stderr.
+    - ``accept_failed_checks``: the stage's ``accept_failed_checks`` key: a fit that fails one of
+      its quality checks (:meth:`check`) is kept, with a warning, instead of stopping the run.
+    - ``failed_checks``: the checks that failed and were accepted (recorded in the results).
     """
 
     name: str
@@ -50,6 +54,8 @@ class StageContext:
     tables: Mapping[str, pa.Table] = field(default_factory=dict)
     warnings: list[str] = field(default_factory=list)
     quiet: bool = False
+    accept_failed_checks: bool = False
+    failed_checks: list[str] = field(default_factory=list)
 
     def warn(self, message: str) -> None:
         message = " ".join(message.split())
@@ -60,6 +66,34 @@ class StageContext:
     def fail(self, message: str) -> FitError:
         """An error to raise: ``raise ctx.fail("...")``; names the stage and its input."""
         return FitError(f"stage '{self.name}' on input '{self.input_name}': {message}")
+
+    def check(self, ok: bool, message: str) -> None:
+        """A quality check of the fit. ``message`` names the check and the figure against its
+        bound (``residual 4.2 mg > 3 x noise 0.9 mg``). A failed check stops the stage with one
+        line (the fit is not applied) unless the stage sets ``accept_failed_checks = true``; then
+        it is a warning and is listed under ``failed_checks`` in the stage's results."""
+        if ok:
+            return
+        if not self.accept_failed_checks:
+            raise self.fail(
+                f"{message}; the fit is not applied (set accept_failed_checks = true in this "
+                "stage to use it anyway)"
+            )
+        self.failed_checks.append(" ".join(message.split()))
+        self.warn(f"{message} (accepted: accept_failed_checks = true)")
+
+    def finite(self, data: SensorData, what: str, minimum: int = 1) -> SensorData:
+        """``data`` without its non-finite samples (NaN, Inf), with one warning that counts them
+        (``6990 of 13964 magnetometer samples are NaN or Inf; fitted on 6974``); a stage error
+        when fewer than ``minimum`` remain."""
+        kept, bad = finite(data)
+        if bad:
+            self.warn(f"{bad} of {len(data)} {what} samples are NaN or Inf; fitted on {len(kept)}")
+        if len(kept) < minimum:
+            raise self.fail(
+                f"{len(kept)} finite {what} samples of {len(data)}; the fit needs at least {minimum}"
+            )
+        return kept
 
 
 @dataclass

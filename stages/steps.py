@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import importlib
 from abc import ABC, abstractmethod
-from collections.abc import Sequence
+from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
@@ -30,6 +30,18 @@ class Step(ABC):
     @abstractmethod
     def apply(self, table: pa.Table) -> pa.Table:
         """The table with this correction applied (other columns unchanged)."""
+
+    def apply_stream(self, batches: Iterable[pa.Table]) -> Iterator[pa.Table]:
+        """Apply to a log read as consecutive batches (``iter_input``), with bounded memory.
+
+        Yields batches that together hold every row of the input exactly once, in the same
+        order, so that concatenating them equals :meth:`apply` on the whole log. The default
+        applies each batch on its own (right for steps that correct each sample by itself); a
+        step that needs context beyond one sample (the temperature stream around a stamp, a
+        filter state) overrides this and may hold rows back until their context has arrived.
+        """
+        for batch in batches:
+            yield self.apply(batch)
 
     @abstractmethod
     def to_json(self) -> dict[str, Any]:
@@ -137,3 +149,11 @@ def apply_chain(table: pa.Table, steps: Sequence[Step]) -> pa.Table:
     for step in steps:
         table = step.apply(table)
     return table
+
+
+def apply_chain_stream(batches: Iterable[pa.Table], steps: Sequence[Step]) -> Iterator[pa.Table]:
+    """Apply every step in order to a stream of batches (see :meth:`Step.apply_stream`)."""
+    stream: Iterable[pa.Table] = batches
+    for step in steps:
+        stream = step.apply_stream(stream)
+    yield from stream
