@@ -8,6 +8,7 @@ the config file's folder.
 from __future__ import annotations
 
 import dataclasses
+import math
 import tomllib
 import types
 import typing
@@ -132,8 +133,20 @@ def _csv_mapping(where: str, raw: dict[str, Any]) -> CsvMapping:
         value = getattr(mapping, key)
         if value is not None and len(value) != 3:
             raise ConfigError(f"{where}.{key}: must name 3 columns, got {len(value)}")
+    for key in ("scale", "offset"):
+        for col, value in (getattr(mapping, key) or {}).items():
+            if not (isinstance(value, int | float) and not isinstance(value, bool)) or not (
+                math.isfinite(value)
+            ):
+                raise ConfigError(f"{where}.{key}.{col}: {value!r} is not a finite number")
+            if key == "scale" and value == 0:
+                raise ConfigError(f"{where}.scale.{col}: must not be 0")
+        if getattr(mapping, key) is not None:
+            setattr(mapping, key, {str(c): float(v) for c, v in getattr(mapping, key).items()})
     mapping.required = tuple(
-        k for k in ("gyro", "accel", "mag", "temperature", "ambient_temperature") if k in raw
+        k
+        for k in ("time", "gyro", "accel", "mag", "temperature", "ambient_temperature")
+        if k in raw
     )
     if "time" not in raw and "rate_hz" in raw:
         mapping.time = None

@@ -53,6 +53,20 @@ class CsvMapping:
     ambient_temperature: str | int | None = "ambient_temperature"
     """The ambient (chamber air) temperature column, degC (optional; used by the ``temperature``
     stage's stepwise model); goes to the common table's optional ``ambient_temperature`` column."""
+    skip_rows: int | None = None
+    """Lines before the header (or the first data line) to skip, e.g. metadata lines such as
+    ``Fs,100``; None: detected (the lines before the block of lines that all have the data's
+    number of fields). Skipped lines are reported; a ``rate``/``Fs`` line among them gives the
+    sample rate when the file has no time column."""
+    comment: str | None = None
+    """Lines starting with this text (after blanks), anywhere in the file, are ignored."""
+    scale: dict[str, float] | None = None
+    """Per column (by name, or index for files without a header): the file's value is
+    multiplied by this, then ``offset`` is added, giving the value in the column's unit
+    (``gyro_unit``, ..., degC for temperature), which is then converted to SI. For raw
+    registers with a known LSB: ``scale = {temp = 0.00390625}``, ``offset = {temp = -231.0}``."""
+    offset: dict[str, float] | None = None
+    """Per column: added after ``scale`` (see ``scale``)."""
     required: tuple[str, ...] = ()
     """Sensors the user mapped explicitly: a missing column is then an error, not an absent sensor."""
 

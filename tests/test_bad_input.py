@@ -62,7 +62,7 @@ def test_header_only_csv(tmp_path):
 def test_non_numeric_cell_names_row_and_column(tmp_path):
     lines = GOOD_CSV.splitlines()
     lines[7] = lines[7].replace("0.02", "abc")
-    line = run_case(tmp_path, "\n".join(lines) + "\n", GOOD_CFG, "a.csv", "row 8", "gyro_y", "abc")
+    line = run_case(tmp_path, "\n".join(lines) + "\n", GOOD_CFG, "a.csv", "line 8", "gyro_y", "abc")
     assert "not a number" in line
 
 

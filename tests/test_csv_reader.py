@@ -126,3 +126,81 @@ def test_bad_time_unit_is_an_error(tmp_path):
     p.write_text("t,gyro_x,gyro_y,gyro_z,accel_x,accel_y,accel_z\n0,0,0,0,0,0,0\n")
     with pytest.raises(ReadError, match="time_unit"):
         read(p, time="t", time_unit="h")
+
+
+DATA = __import__("pathlib").Path(__file__).resolve().parent / "data"
+
+
+def test_metadata_lines_are_skipped_and_give_the_rate():
+    """The MPU-6050 files (tomisuarez2/ImuCalibration) start with `Fs,100`, `Logging Type,0`,
+    `Initialization time,36.5`, `Waiting time,3`, then the header: read as they are."""
+    path = DATA / "mpu6050_tomisuarez" / "example_data_calibration.csv"
+    table, warnings = read(
+        path,
+        gyro=["gx", "gy", "gz"],
+        gyro_unit="raw",
+        accel=["ax", "ay", "az"],
+        accel_unit="raw",
+    )
+    lines = path.read_text().splitlines()
+    assert table.num_rows == len(lines) - 5
+    assert any("skipped 4 line(s) before the header: Fs,100 | Logging Type,0" in w for w in warnings)
+    assert any("rate 100 Hz" in w for w in warnings)
+    t = table.column("t_ns").to_numpy()
+    assert t[1] - t[0] == 10_000_000
+    first = [float(v) for v in lines[5].split(",")]
+    np.testing.assert_array_equal(sensor(table, "accel").values[0], first[:3])
+    np.testing.assert_array_equal(sensor(table, "gyro").values[0], first[3:])
+
+
+def test_metadata_rate_with_decimals_and_mag_only():
+    path = DATA / "qmc5883l_tomisuarez" / "noisy_raw_data.csv"
+    table, warnings = read(path, mag=["mx", "my", "mz"], mag_unit="raw")
+    assert any("rate 50 Hz" in w for w in warnings)
+    assert counts(table) == {"mag": len(path.read_text().splitlines()) - 3}
+
+
+def test_scale_and_offset_convert_raw_registers():
+    """The PAN thermal log's `temp` is a raw register: degC = raw / 256 - 231 (25 degC at
+    65536 counts, 256 LSB/degC); its gyro columns are logged 2x too large."""
+    path = DATA / "pan_tvc_gyro" / "TVCtest3_7_20.csv"
+    gyro = ["gyrox rad/s", "gyroy rad/s", "gyroz rad/s"]
+    table, _ = read(
+        path,
+        time="time (ms)",
+        time_unit="ms",
+        gyro=gyro,
+        accel=None,
+        mag=None,
+        temperature="temp",
+        scale={"temp": 1 / 256, **{g: 0.5 for g in gyro}},
+        offset={"temp": -231.0},
+    )
+    temp = sensor(table, "temperature").values[:, 0]
+    assert temp[0] == pytest.approx(25 + (65236 - 65536) / 256)
+    assert 15.0 < temp.min() < 16.5 and 23.0 < temp.max() < 24.5
+    assert sensor(table, "gyro").values[0, 0] == pytest.approx(-6.53e-2 * 0.5)
+
+
+def test_scale_must_name_a_mapped_column(tmp_path):
+    p = tmp_path / "a.csv"
+    p.write_text("t_ns,gyro_x,gyro_y,gyro_z\n0,1,2,3\n")
+    with pytest.raises(ReadError, match=r"csv.scale.gx: not a mapped column"):
+        read(p, scale={"gx": 2.0})
+
+
+def test_comment_lines_and_explicit_skip_rows(tmp_path):
+    p = tmp_path / "c.csv"
+    p.write_text(
+        "logger v2\nsome words here\n"
+        "t_ns,gyro_x,gyro_y,gyro_z\n# paused\n0,1,2,3\n  # resumed\n10,4,5,6\n"
+    )
+    table, _ = read(p, skip_rows=2, comment="#")
+    np.testing.assert_array_equal(sensor(table, "gyro").values, [[1, 2, 3], [4, 5, 6]])
+
+
+def test_metadata_without_rate_needs_a_time(tmp_path):
+    p = tmp_path / "m.csv"
+    p.write_text("device,abc\nax,ay,az\n1,2,3\n4,5,6\n")
+    with pytest.raises(ReadError, match="column 't_ns' .csv.time. not found"):
+        read(p, gyro=None, accel=["ax", "ay", "az"])
