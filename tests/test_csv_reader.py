@@ -144,7 +144,9 @@ def test_metadata_lines_are_skipped_and_give_the_rate():
     )
     lines = path.read_text().splitlines()
     assert table.num_rows == len(lines) - 5
-    assert any("skipped 4 line(s) before the header: Fs,100 | Logging Type,0" in w for w in warnings)
+    assert any(
+        "skipped 4 line(s) before the header: Fs,100 | Logging Type,0" in w for w in warnings
+    )
     assert any("rate 100 Hz" in w for w in warnings)
     t = table.column("t_ns").to_numpy()
     assert t[1] - t[0] == 10_000_000
