@@ -88,7 +88,7 @@ def test_tutorial_runs_as_written(page: Path, tmp_path: Path) -> None:
             (tmp_path / title.group(1)).write_text(body, encoding="utf-8")
     bin_dir = str(Path(sys.executable).parent)
     env = {**os.environ, "PATH": bin_dir + os.pathsep + os.environ.get("PATH", "")}
-    for info, body in blocks(page, "bash"):
+    for _info, body in blocks(page, "bash"):
         lines = [
             line
             for line in body.splitlines()
