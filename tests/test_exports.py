@@ -359,3 +359,20 @@ def test_px4_composes_with_the_logs_calibration(tmp_path):
     assert [p[f"CAL_GYRO0_{a}OFF"] for a in "XYZ"] == pytest.approx(old + bias)
     assert p["CAL_GYRO0_ID"] == params["CAL_GYRO0_ID"]
     assert not (out / "ardupilot_calibration.param").exists()
+
+
+def test_kalibr_intrinsics_import_back(calibrated, tmp_path):
+    """imupipe import kalibr of the exported intrinsics: the same correction, in Kalibr's frame
+    (accel and gyro matrices R A and R G), with zero offsets (Kalibr keeps no biases)."""
+    out, doc, _, _ = calibrated
+    proc = run_cli(
+        "import", "kalibr", out / "kalibr_imu_intrinsics.yaml", "--out", tmp_path / "k.json"
+    )
+    assert proc.returncode == 0, proc.stderr
+    assert "biases online" in proc.stderr
+    back = json.loads((tmp_path / "k.json").read_text())["chain"]
+    r = np.array(doc["exports"]["kalibr_imu_intrinsics.yaml"]["R_kalibr_from_imupipe"])
+    for entry in back:
+        (ours,) = (np.array(e["matrix"]) for e in _chain(doc, entry["sensor"]))  # one step each
+        np.testing.assert_allclose(entry["matrix"], r @ ours, atol=1e-9)
+        assert entry["offset"] == [0.0, 0.0, 0.0]
