@@ -30,7 +30,16 @@ from typing import Any
 
 import numpy as np
 
-from imupipe.pipeline.exports.common import Export, SensorModel, number, params_text, sensor_model
+from imupipe.pipeline.exports.common import (
+    RELATIVE_TOLERANCE,
+    Export,
+    SensorModel,
+    number,
+    off_diagonal,
+    params_text,
+    sensor_model,
+    soft_iron,
+)
 
 FNAME = "ardupilot_calibration.param"
 TCAL_REFERENCE = 35.0
@@ -38,12 +47,7 @@ TCAL_REFERENCE = 35.0
 TCAL_SCALE = 1e6
 """ArduPilot stores the ``INS_TCAL`` coefficients multiplied by this (``SCALE_FACTOR``)."""
 MILLIGAUSS_PER_TESLA = 1e7
-RELATIVE_TOLERANCE = 1e-9
 NAMES = {"accel": ("INS_ACCOFFS", "INS_ACCSCAL", "ACC"), "gyro": ("INS_GYROFFS", None, "GYR")}
-
-
-def _off_diagonal(m: np.ndarray) -> float:
-    return float(np.abs(m - np.diag(np.diag(m))).max() / np.abs(np.diag(m)).mean())
 
 
 def imu_rows(model: SensorModel, out: Export) -> list[tuple[str, float]]:
@@ -71,7 +75,7 @@ def imu_rows(model: SensorModel, out: Export) -> list[tuple[str, float]]:
         )
     rows += [(f"{offs}_{a}", offset[i]) for i, a in enumerate("XYZ")]
     diag = np.diag(m)
-    off = _off_diagonal(m)
+    off = off_diagonal(m)
     if off > RELATIVE_TOLERANCE:
         out.note(
             FNAME,
@@ -96,24 +100,13 @@ def imu_rows(model: SensorModel, out: Export) -> list[tuple[str, float]]:
 
 
 def mag_rows(model: SensorModel, out: Export) -> list[tuple[str, float]]:
-    m = model.matrix
     if model.thermal is not None:
         out.note(FNAME, "mag: ArduPilot has no compass temperature model; left out")
-    asym = float(np.abs(m - m.T).max() / np.abs(np.diag(m)).mean())
-    if asym > RELATIVE_TOLERANCE:
-        out.note(
-            FNAME,
-            f"mag: the soft-iron matrix is not symmetric (up to {asym:.2g} of its "
-            "diagonal); its symmetric part is written",
-        )
-    sym = (m + m.T) / 2
+    diag, off = soft_iron(model.matrix, out, FNAME)
     ofs = -model.offset * MILLIGAUSS_PER_TESLA
     rows = [(f"COMPASS_OFS_{a}", ofs[i]) for i, a in enumerate("XYZ")]
-    rows += [(f"COMPASS_DIA_{a}", sym[i, i]) for i, a in enumerate("XYZ")]
-    rows += [
-        (f"COMPASS_ODI_{a}", sym[i, j])
-        for a, (i, j) in zip("XYZ", ((0, 1), (0, 2), (1, 2)), strict=True)
-    ]
+    rows += [(f"COMPASS_DIA_{a}", diag[i]) for i, a in enumerate("XYZ")]
+    rows += [(f"COMPASS_ODI_{a}", off[i]) for i, a in enumerate("XYZ")]
     return rows
 
 

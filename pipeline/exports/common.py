@@ -35,6 +35,10 @@ import numpy as np
 AXES = ("x", "y", "z")
 POLY_TERMS = ("1", "T", "T^2", "T^3")
 """The temperature-model terms the autopilots' thermal polynomials can hold."""
+OFF_DIAGONAL = ((0, 1), (0, 2), (1, 2))
+"""The autopilots' order of a symmetric matrix's off-diagonal elements (X, Y, Z)."""
+RELATIVE_TOLERANCE = 1e-9
+"""Off-diagonal (or asymmetric) parts below this fraction of the diagonal count as zero."""
 
 
 @dataclass
@@ -85,6 +89,12 @@ def noise(results: Mapping[str, Any], sensor: str) -> Noise | None:
         k_axis = max(AXES, key=lambda a: upper[a]["K_upper_68"])
         k, bound = float(upper[k_axis]["K_upper_68"]), True
     return Noise(float(per_axis[n_axis]["N"]), n_axis, k, k_axis, bound)
+
+
+def first_allan(doc: Mapping[str, Any]) -> tuple[str, dict[str, Any]] | None:
+    """(name, results) of the first ``allan`` stage, or None."""
+    found = allan_results(doc)
+    return found[0] if found else None
 
 
 def imu_topic(results: Mapping[str, Any], default: str = "/imu/data") -> str:
@@ -189,6 +199,25 @@ def sensor_model(doc: Mapping[str, Any], sensor: str) -> SensorModel | None:
         else:
             issues.append(f"a '{kind}' step: not mapped")
     return SensorModel(sensor, m, o, thermal, entries, issues)
+
+
+def off_diagonal(m: np.ndarray) -> float:
+    """The largest off-diagonal element of ``m`` relative to its mean absolute diagonal."""
+    return float(np.abs(m - np.diag(np.diag(m))).max() / np.abs(np.diag(m)).mean())
+
+
+def soft_iron(m: np.ndarray, out: Export, fname: str) -> tuple[np.ndarray, np.ndarray]:
+    """(diagonal, off-diagonal X Y Z) of the symmetric part of a magnetometer matrix, the form
+    both autopilots store; an asymmetric matrix is noted."""
+    asym = float(np.abs(m - m.T).max() / np.abs(np.diag(m)).mean())
+    if asym > RELATIVE_TOLERANCE:
+        out.note(
+            fname,
+            f"mag: the soft-iron matrix is not symmetric (up to {asym:.2g} of its diagonal); "
+            "its symmetric part is written",
+        )
+    sym = (m + m.T) / 2
+    return np.diag(sym).copy(), np.array([sym[i, j] for i, j in OFF_DIAGONAL])
 
 
 # -- Kalibr's intrinsics form --------------------------------------------------------------------

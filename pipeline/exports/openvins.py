@@ -25,7 +25,7 @@ import numpy as np
 
 from imupipe.pipeline.exports.common import (
     Export,
-    allan_results,
+    first_allan,
     imu_topic,
     kalibr_intrinsics,
     rate_hz,
@@ -39,10 +39,10 @@ FNAME = "kalibr_imu_chain.yaml"
 
 def export(doc: dict[str, Any]) -> Export:
     out = Export()
-    allan = allan_results(doc)
-    if not allan:
+    first = first_allan(doc)
+    if first is None:
         return out
-    name, res = allan[0]
+    name, res = first
     accel, gyro = sensor_model(doc, "accel"), sensor_model(doc, "gyro")
     k = kalibr_intrinsics(
         None if accel is None else accel.matrix, None if gyro is None else gyro.matrix

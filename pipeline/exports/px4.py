@@ -38,11 +38,15 @@ from typing import Any
 import numpy as np
 
 from imupipe.pipeline.exports.common import (
+    OFF_DIAGONAL,
+    RELATIVE_TOLERANCE,
     Export,
     SensorModel,
     number,
+    off_diagonal,
     params_text,
     sensor_model,
+    soft_iron,
 )
 
 FNAME = "px4_calibration.params"
@@ -52,8 +56,6 @@ STREAM = {"accel": "imu", "gyro": "imu", "mag": "mag"}
 INT32, REAL32 = 6, 9
 """MAVLink ``MAV_PARAM_TYPE`` of the rows (the last column)."""
 GAUSS_PER_TESLA = 1e4
-RELATIVE_TOLERANCE = 1e-9
-"""Off-diagonal (or asymmetric) parts below this fraction of the diagonal count as zero."""
 
 
 @dataclass
@@ -105,7 +107,7 @@ def _compose_with_log(model: SensorModel, t: Target, out: Export) -> SensorModel
     s = np.diag(np.asarray(diag, dtype=np.float64))
     if model.sensor == "mag":
         od = [p.get(f"CAL_MAG{t.n}_{a}ODIAG", 0.0) for a in "XYZ"]
-        for (i, j), value in zip(((0, 1), (0, 2), (1, 2)), od, strict=True):
+        for (i, j), value in zip(OFF_DIAGONAL, od, strict=True):
             s[i, j] = s[j, i] = value
         old_off = old_off / GAUSS_PER_TESLA
     elif model.sensor == "gyro":
@@ -133,10 +135,6 @@ def _compose_with_log(model: SensorModel, t: Target, out: Export) -> SensorModel
     )
 
 
-def _off_diagonal(m: np.ndarray) -> float:
-    return float(np.abs(m - np.diag(np.diag(m))).max() / np.abs(np.diag(m)).mean())
-
-
 def rows_for(model: SensorModel, out: Export) -> list[tuple[str, float | int, int]]:
     """(name, value, type) rows of one sensor."""
     t = target(model, out)
@@ -156,21 +154,11 @@ def rows_for(model: SensorModel, out: Export) -> list[tuple[str, float | int, in
     rows += [(f"CAL_{cal}{n}_{a}OFF", offset[i], REAL32) for i, a in enumerate("XYZ")]
     diag = np.diag(m)
     if model.sensor == "mag":
-        asym = float(np.abs(m - m.T).max() / np.abs(diag).mean())
-        if asym > RELATIVE_TOLERANCE:
-            out.note(
-                FNAME,
-                f"mag: the soft-iron matrix is not symmetric (up to {asym:.2g} of "
-                "its diagonal); its symmetric part is written",
-            )
-        sym = (m + m.T) / 2
-        rows += [(f"CAL_MAG{n}_{a}SCALE", sym[i, i], REAL32) for i, a in enumerate("XYZ")]
-        rows += [
-            (f"CAL_MAG{n}_{a}ODIAG", sym[i, j], REAL32)
-            for a, (i, j) in zip("XYZ", ((0, 1), (0, 2), (1, 2)), strict=True)
-        ]
+        diag_s, off_s = soft_iron(m, out, FNAME)
+        rows += [(f"CAL_MAG{n}_{a}SCALE", diag_s[i], REAL32) for i, a in enumerate("XYZ")]
+        rows += [(f"CAL_MAG{n}_{a}ODIAG", off_s[i], REAL32) for i, a in enumerate("XYZ")]
     else:
-        off = _off_diagonal(m)
+        off = off_diagonal(m)
         if off > RELATIVE_TOLERANCE:
             out.note(
                 FNAME,

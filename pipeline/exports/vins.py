@@ -13,17 +13,17 @@ from __future__ import annotations
 
 from typing import Any
 
-from imupipe.pipeline.exports.common import Export, allan_results, imu_topic, noise, yaml_text
+from imupipe.pipeline.exports.common import Export, first_allan, imu_topic, noise, yaml_text
 
 FNAME = "vins_imu.yaml"
 
 
 def export(doc: dict[str, Any]) -> Export:
     out = Export()
-    allan = allan_results(doc)
-    if not allan:
+    first = first_allan(doc)
+    if first is None:
         return out
-    name, res = allan[0]
+    name, res = first
     data: dict[str, Any] = {"imu_topic": imu_topic(res)}
     for sensor, p in (("accel", "acc"), ("gyro", "gyr")):
         n = noise(res, sensor)
