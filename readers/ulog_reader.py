@@ -42,6 +42,9 @@ written to the corrected MCAP and one warning lists them.
 
 from __future__ import annotations
 
+import contextlib
+import io
+import struct
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -133,18 +136,25 @@ class UlogFile:
         if not self.path.is_file():
             raise ReadError(f"{self.path}: no such file")
         wanted = None if topics is None else _TopicFilter(topics)
+        said = io.StringIO()  # pyulog prints its corruption notices: keep them for a warning
         try:
-            self.ulog = ULog(str(self.path), wanted)
+            with contextlib.redirect_stdout(said):
+                self.ulog = ULog(str(self.path), wanted)
         except ULogException as exc:
             raise ReadError(f"{self.path}: not a readable ULog file ({exc})") from None
-        except (OSError, ValueError, IndexError, KeyError, UnicodeDecodeError) as exc:
+        except (OSError, ValueError, IndexError, KeyError, TypeError, struct.error) as exc:
             raise ReadError(
                 f"{self.path}: corrupt ULog file ({type(exc).__name__}: {exc})"
             ) from None
+        self.notices = [line for line in said.getvalue().splitlines() if line.strip()]
+        """What pyulog said while parsing (corruption it skipped)."""
         self.instances: dict[str, Instance] = {}
         for d in sorted(self.ulog.data_list, key=lambda d: (d.name, d.multi_id)):
             inst = Instance(d.name, int(d.multi_id), d.data)
-            self.instances[inst.key] = inst
+            if "timestamp" in d.data:  # a damaged format definition can lose it
+                self.instances[inst.key] = inst
+            else:
+                self.notices.append(f"topic {inst.key} has no timestamp field: not read")
         self.skipped: list[str] = [] if wanted is None else sorted(wanted.seen - wanted.names)
         """Topics the log holds that were not parsed (names, every instance)."""
 
@@ -166,9 +176,9 @@ class UlogFile:
     def parameters(self) -> dict[str, float | int]:
         """The calibration-related parameters at start (:data:`PARAMETER_PREFIXES`)."""
         return {
-            k: v
+            str(k): v if isinstance(v, int) else float(v)
             for k, v in sorted(self.ulog.initial_parameters.items())
-            if k.startswith(PARAMETER_PREFIXES)
+            if str(k).startswith(PARAMETER_PREFIXES) and isinstance(v, int | float)
         }
 
     def info(self, key: str) -> str | None:
@@ -474,10 +484,15 @@ def read_ulog(spec: InputSpec) -> tuple[pa.Table, list[str]]:
     builders = {"imu": _imu_piece, "mag": _mag_piece, "temperature": _temperature_piece}
     pieces: dict[str, Piece] = {}
     for stream, key in chosen.items():
-        if stream == "imu":
-            pieces[stream] = _imu_piece(f, key, spec.time, warnings)
-        else:
-            pieces[stream] = builders[stream](f, key, spec.time)
+        try:
+            if stream == "imu":
+                pieces[stream] = _imu_piece(f, key, spec.time, warnings)
+            else:
+                pieces[stream] = builders[stream](f, key, spec.time)
+        except KeyError as exc:  # a damaged format definition lost a field
+            raise ReadError(
+                f"{spec.path}: topic '{key}' has no field {exc} (corrupt log?)"
+            ) from None
         if len(pieces[stream]) == 0:
             raise ReadError(f"{spec.path}: topic '{key}' has no messages")
     table = assemble(
@@ -503,8 +518,9 @@ def read_ulog(spec: InputSpec) -> tuple[pa.Table, list[str]]:
     count, ms = f.dropouts()
     if count:
         warnings.append(f"the logger dropped data {count} times ({ms} ms in total)")
-    if f.ulog.file_corruption:
-        warnings.append("the file is corrupt in places (pyulog skipped the damaged messages)")
+    if f.ulog.file_corruption or f.notices:
+        said = f"; pyulog: {f.notices[0]}" if f.notices else ""
+        warnings.append(f"the file is corrupt in places (the damaged messages were skipped{said})")
     others = sorted(set(f.instances) - set(chosen.values())) + f.skipped
     if others:
         warnings.append(

@@ -15,6 +15,8 @@ import numpy as np
 import pytest
 
 from imupipe.pipeline.calibration_file import load_calibration
+from imupipe.pipeline.errors import ImupipeError
+from imupipe.pipeline.imports import import_calibration
 from imupipe.readers.table import make_table, sensor
 from imupipe.stages.steps import apply_chain
 
@@ -88,14 +90,16 @@ def test_into_appends_and_bad_files_are_one_line(tmp_path):
     doc = json.loads((tmp_path / "both.json").read_text())
     assert [e["sensor"] for e in doc["chain"]] == ["accel", "gyro"]
     (tmp_path / "short.calib").write_text("1 2 3\n")
-    for args, message in (
-        (("imu_tk", tmp_path / "short.calib"), "holds 21 numbers"),
-        (("magneto", acc), "Combined bias vector B"),
-        (("kalibr", acc), "no Kalibr IMU block"),
-        (("imu_tk", acc, "--unit", "furlong"), "--unit furlong: not a accel unit"),
-        (("imu_tk", tmp_path / "none.calib"), "no such file"),
+    for tool, files, kw, message in (
+        ("imu_tk", [tmp_path / "short.calib"], {}, "holds 21 numbers"),
+        ("magneto", [acc], {}, "Combined bias vector B"),
+        ("kalibr", [acc], {}, "no Kalibr IMU block"),
+        ("imu_tk", [acc], {"unit": "furlong"}, "--unit furlong: not a accel unit"),
+        ("imu_tk", [tmp_path / "none.calib"], {}, "no such file"),
     ):
-        proc = run_cli("import", *args, "--out", tmp_path / "x.json")
-        assert proc.returncode == 2, (args, proc.stderr)
-        assert message in proc.stderr and len(proc.stderr.strip().splitlines()) == 1
+        with pytest.raises(ImupipeError, match=message):
+            import_calibration(tool, files, tmp_path / "x.json", **kw)
+    proc = run_cli("import", "imu_tk", tmp_path / "short.calib", "--out", tmp_path / "x.json")
+    assert proc.returncode == 2 and "holds 21 numbers" in proc.stderr
+    assert len(proc.stderr.strip().splitlines()) == 1
     assert not (tmp_path / "x.json").exists()

@@ -11,15 +11,20 @@ _offset``), so a still stretch of a raw instance must average to that offset, an
 
 from __future__ import annotations
 
+import contextlib
 import json
+import os
 from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 from pyulog import ULog
 
+from imupipe.pipeline.inspect_log import inspect
 from imupipe.readers.dispatch import detect_format, read_input
-from imupipe.readers.errors import ReadError
+from imupipe.readers.errors import ImupipeError, ReadError
 from imupipe.readers.spec import InputSpec
 from imupipe.readers.table import counts, metadata, sensor
 from imupipe.stages.base import StageContext
@@ -232,3 +237,28 @@ def test_truncated_ulog_reads_what_is_there(tmp_path):
     n = counts(table)["imu"]
     assert 0 < n < counts(full)["imu"]
     assert np.array_equal(sensor(table, "gyro").values, sensor(full, "gyro").values[:n])
+
+
+@settings(
+    max_examples=int(os.environ.get("IMUPIPE_FUZZ_EXAMPLES", "20")),
+    derandomize="IMUPIPE_FUZZ_EXAMPLES" not in os.environ,  # CI: the same 20; set it to explore
+    deadline=10000,
+    suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow],
+)
+@given(
+    cut=st.floats(0.0, 1.0),
+    flips=st.lists(st.tuples(st.floats(0.0, 1.0), st.integers(1, 255)), max_size=20),
+)
+def test_damaged_ulog_is_an_imupipe_error_or_reads(tmp_path, cut, flips):
+    """Truncations and byte flips: read_input and inspect give a table or one ImupipeError
+    (pyulog's own complaints become a warning, nothing is printed)."""
+    data = bytearray(SMALL.read_bytes())
+    for where, xor in flips:
+        data[min(int(where * len(data)), len(data) - 1)] ^= xor
+    if cut < 0.5:
+        data = data[: int(cut * 2 * len(data))]
+    path = tmp_path / "damaged.ulg"
+    path.write_bytes(bytes(data))
+    for read in (lambda: read_input(InputSpec(path=path)), lambda: inspect(InputSpec(path=path))):
+        with contextlib.suppress(ImupipeError):
+            read()
