@@ -26,7 +26,9 @@ candidates and the key to set.
 **Time**: ULog stamps are microseconds since boot (PX4's ``hrt_absolute_time``); imupipe keeps
 them as nanoseconds since boot (x 1000), not wall time. The header time is ``timestamp_sample``
 where the topic has it (the sensor's sampling instant), else ``timestamp``; the log time is
-``timestamp`` (publication). A raw gyro sample is paired with the accel sample of the same
+``timestamp`` (publication). A ``sensor_combined`` row keeps PX4's pairing of gyro and accel
+(the accel's ``accelerometer_timestamp_relative`` offset, 0 in the logs tested, is not applied
+to the row's stamp). A raw gyro sample is paired with the accel sample of the same
 device nearest in ``timestamp_sample`` (within half a gyro period; PX4's FIFO drivers stamp both
 identically); a gyro sample without a partner keeps NaN accel (counted in a warning), an accel
 sample without a partner is not read (counted).
