@@ -1,4 +1,4 @@
-"""The ``imupipe`` command line: ``run``, ``convert``, ``inspect``, ``simulate``.
+"""The ``imupipe`` command line: ``run``, ``convert``, ``inspect``, ``simulate``, ``import``.
 
 Errors in the user's input end the command with one line on stderr (``imupipe: error: ...``)
 and exit status 2; any other failure prints one line and exits 1. ``--debug`` shows tracebacks.
@@ -18,6 +18,7 @@ COMMANDS = {
     "convert": "imupipe.pipeline.convert",
     "inspect": "imupipe.pipeline.inspect_log",
     "simulate": "imupipe.pipeline.simulate",
+    "import": "imupipe.pipeline.imports",
 }
 """Command -> module with ``add_parser(subparsers)`` and ``main(args) -> int``."""
 
@@ -25,7 +26,9 @@ COMMANDS = {
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="imupipe",
-        description="Calibrate IMUs from CSV, MCAP and ROS bags; inspect every stage in Rerun.",
+        description=(
+            "Calibrate IMUs from CSV, MCAP, ROS bags and PX4 ULog; inspect every stage in Rerun."
+        ),
     )
     parser.add_argument("--version", action="version", version=f"imupipe {VERSION}")
     parser.add_argument(

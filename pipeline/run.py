@@ -2,9 +2,10 @@
 
 Order: inputs are read once; each stage fits on its input as corrected by the correction stages
 before it, and a correction stage's step then joins the chain. Outputs (``calibration.json``,
-artifacts such as ``imu.yaml``, one corrected ``<input>.mcap`` per ``apply_to`` input,
-``recording.rrd``) are staged under temporary names and renamed into ``[output] dir`` only when
-everything succeeded.
+with where each step was fitted; each stage's artifacts; the files other tools read, made from
+the calibration by :mod:`imupipe.pipeline.exports` such as ``imu.yaml``; one corrected
+``<input>.mcap`` per ``apply_to`` input; ``recording.rrd``) are staged under temporary names and
+renamed into ``[output] dir`` only when everything succeeded.
 """
 
 from __future__ import annotations
@@ -20,7 +21,9 @@ from typing import Any
 import pyarrow as pa
 
 from imupipe.pipeline.atomic import staged_outputs
+from imupipe.pipeline.calibration_file import fitted_on
 from imupipe.pipeline.config import Config, load_config
+from imupipe.pipeline.exports import export_all
 from imupipe.pipeline.mcap_writer import write_mcap
 from imupipe.pipeline.progress import progress_bar
 from imupipe.pipeline.version import VERSION
@@ -71,13 +74,15 @@ class RunSummary:
     counts: dict[str, dict[str, int]] = field(default_factory=dict)
 
 
-def calibration_document(chain: list[Step], results: dict[str, Any]) -> dict[str, Any]:
-    """The ``calibration.json`` document (SPEC)."""
-    return {
-        "imupipe_version": VERSION,
-        "chain": [step.to_json() for step in chain],
-        "results": results,
-    }
+def calibration_document(
+    chain: list[Step], results: dict[str, Any], fitted: list[dict[str, Any]] | None = None
+) -> dict[str, Any]:
+    """The ``calibration.json`` document; ``fitted`` gives each chain entry's ``fitted_on``
+    (:func:`imupipe.pipeline.calibration_file.fitted_on`)."""
+    entries = [step.to_json() for step in chain]
+    for entry, where in zip(entries, fitted or [], strict=False):
+        entry["fitted_on"] = where
+    return {"imupipe_version": VERSION, "chain": entries, "results": results}
 
 
 def record_sensors(recorder: Any, prefix: str, table: pa.Table, sensors: tuple[str, ...]) -> None:
@@ -106,6 +111,7 @@ def run(config: Config | str | Path, *, spawn: bool = False, quiet: bool = False
 
         tables = CorrectedTables(raw)
         results: dict[str, Any] = {}
+        fitted: list[dict[str, Any]] = []  # fitted_on of each chain entry
         with staged_outputs() as out:
             files: list[Path] = []
             recorder: Any = NullRecorder()
@@ -133,8 +139,10 @@ def run(config: Config | str | Path, *, spawn: bool = False, quiet: bool = False
                 sensors = stage.sensors_for(st.options)
                 record_sensors(recorder, f"/{st.name}/input", table, sensors)
                 output = stage.fit(table, ctx)
+                where = fitted_on(st.input, cfg.inputs[st.input], table)
                 if output.steps:
                     tables.extend(output.steps)
+                    fitted.extend([where] * len(output.steps))
                     record_sensors(recorder, f"/{st.name}/output", tables[st.input], sensors)
                 recorder.ensure_stage(st.name)
                 results[st.name] = {
@@ -142,6 +150,7 @@ def run(config: Config | str | Path, *, spawn: bool = False, quiet: bool = False
                     "input": st.input,
                     **output.results,
                     "warnings": ctx.warnings,
+                    "fitted_on": where,
                 }
                 if ctx.failed_checks:
                     results[st.name]["failed_checks"] = ctx.failed_checks
@@ -150,9 +159,18 @@ def run(config: Config | str | Path, *, spawn: bool = False, quiet: bool = False
                     files.append(out_dir / fname)
                 bar.advance()
 
-            doc = calibration_document(tables.chain, results)
+            doc = calibration_document(tables.chain, results, fitted)
+            exported, report = export_all(doc)
+            if report:
+                doc["exports"] = report
+            for name, rep in report.items():
+                for note in rep.get("notes", []) if not quiet else []:
+                    print(f"imupipe: warning: [exports] {name}: {note}", file=sys.stderr)
             out.write_text(out_dir / "calibration.json", json.dumps(doc, indent=2) + "\n")
             files.append(out_dir / "calibration.json")
+            for fname, text in exported.items():
+                out.write_text(out_dir / fname, text)
+                files.append(out_dir / fname)
             counts: dict[str, dict[str, int]] = {}
             for name in cfg.output.apply_to:
                 bar.describe(f"writing {name}.mcap")

@@ -355,7 +355,7 @@ def assemble(
     for s in (s for s in STREAM_TYPES if s in ordered):  # every chosen stream: one schema per input
         piece = ordered[s][1]
         where_rows = rows.get(s, np.zeros(0, np.int64))
-        for name, _, _ in COLUMNS[s]:
+        for name in (c for c, _, _ in COLUMNS[s] if c in piece.columns):  # ULog: no covariances
             target = columns if name in columns else extra
             target[name] = _column(n, where_rows, piece.columns.pop(name))
 

@@ -15,8 +15,8 @@ confidence. All results are continuous-time SI:
 | R rate ramp | rad/s^2 | m/s^3 |
 
 Outputs: ``results[<name>]`` = ``{"gyro": {"x": {N, B, K, Q, R}, ...}, "accel": {...},
-"metrics": {...}}``; artifacts ``imu.yaml`` (Kalibr), ``<name>_imu_utils.yaml`` (imu_utils
-layout, meanings stated) and ``<name>_curves.csv``; Rerun: per axis the log10 deviation with its
+"metrics": {...}}``; artifact ``<name>_curves.csv`` (the pipeline exports ``imu.yaml`` for
+Kalibr and ``<name>_imu_utils.yaml`` from these results); Rerun: per axis the log10 deviation with its
 bounds, the fitted model and each fitted term's line over ``log10(tau) * 1000``.
 
 Input checks: NaN samples and time jumps (a step longer than ``max_gap`` nominal periods, or
@@ -35,7 +35,7 @@ from typing import Any, Literal
 import numpy as np
 import pyarrow as pa
 
-from imupipe.readers.table import has_stream, metadata, sensor
+from imupipe.readers.table import has_stream, sensor
 from imupipe.stages import allan_estimators as est
 from imupipe.stages.allan_fit import TERMS, AllanFit, fit_allan, slope_readings, term_variance
 from imupipe.stages.base import Stage, StageContext, StageOutput
@@ -182,13 +182,9 @@ class AllanStage(Stage):
                 )
         results["metrics"] = metrics
         self._record(ctx, dev, conf, fits, fdev)
-        meta = metadata(table)
-        topic = (meta.get("topics") or {}).get("imu") or "/imu/data"
-        artifacts = {
-            "imu.yaml": kalibr_yaml(results, topic, rate_hz, ctx.input_name, fdev.kind),
-            f"{ctx.name}_imu_utils.yaml": imu_utils_yaml(results, ctx.input_name),
-            f"{ctx.name}_curves.csv": curves_csv(dev, conf, fits, self.sensors, fdev),
-        }
+        # imu.yaml and the imu_utils layout are written from these results by the pipeline's
+        # exports (imupipe.pipeline.exports.kalibr, .imu_utils)
+        artifacts = {f"{ctx.name}_curves.csv": curves_csv(dev, conf, fits, self.sensors, fdev)}
         return StageOutput(results=results, artifacts=artifacts)
 
     # -- checks ------------------------------------------------------------------------------
@@ -302,81 +298,10 @@ class AllanStage(Stage):
 
 
 # -- artifacts ---------------------------------------------------------------------------------
-def _largest(results: dict[str, Any], name: str, term: str) -> tuple[float, str]:
-    axis = max(AXES, key=lambda a: results[name][a][term])
-    return results[name][axis][term], axis
-
-
 def k_upper(taus: np.ndarray, hi: np.ndarray) -> float:
     """The largest random-walk density K whose Allan deviation K sqrt(tau / 3) stays under the
     upper 68 % bound at every tau (an upper bound when the fit finds no random walk)."""
     return float(np.min(hi * np.sqrt(3.0 / taus)))
-
-
-def kalibr_yaml(
-    results: dict[str, Any], topic: str, rate_hz: float, input_name: str, kind: str
-) -> str:
-    """Kalibr's IMU noise file (continuous time; the largest axis of each sensor)."""
-    lines = [
-        f"# Kalibr IMU noise model from imupipe's allan stage (input '{input_name}', {kind} fit).",
-        "# Continuous-time SI: noise densities per sqrt(Hz), random walks per second per sqrt(Hz).",
-        "# Kalibr takes one value per sensor: each line is the LARGEST of the three axes (named).",
-    ]
-    for name, prefix, units in (
-        ("accel", "accelerometer", ("m/s^2/sqrt(Hz)", "m/s^3/sqrt(Hz)")),
-        ("gyro", "gyroscope", ("rad/s/sqrt(Hz)", "rad/s^2/sqrt(Hz)")),
-    ):
-        if name not in results:
-            continue
-        n, na = _largest(results, name, "N")
-        k, ka = _largest(results, name, "K")
-        note = f"axis {ka}"
-        if k == 0.0:  # no random walk resolved: a zero would make Kalibr overconfident
-            upper = results["metrics"][name]
-            ka = max(AXES, key=lambda a: upper[a]["K_upper_68"])
-            k = upper[ka]["K_upper_68"]
-            note = f"axis {ka}: the fit resolved no random walk; upper bound from the 68 % band"
-        lines.append(f"{prefix}_noise_density: {n:.6e}  # {units[0]}, axis {na}")
-        lines.append(f"{prefix}_random_walk: {k:.6e}  # {units[1]}, {note}")
-    lines.append(f'rostopic: "{topic}"')
-    lines.append(f"update_rate: {rate_hz:.6g}  # Hz, measured from the timestamps")
-    return "\n".join(lines) + "\n"
-
-
-def imu_utils_yaml(results: dict[str, Any], input_name: str) -> str:
-    """imu_utils's layout (``gyr_n``, ``gyr_w``, ``acc_n``, ``acc_w``) with honest meanings."""
-    out = [
-        "%YAML:1.0",
-        "---",
-        "# imu_utils layout, written by imupipe's allan stage. Continuous-time SI, per axis:",
-        "#   gyr_n / acc_n: white noise density N (rad/s/sqrt(Hz), m/s^2/sqrt(Hz))",
-        "#   gyr_w / acc_w: random walk density K (rad/s^2/sqrt(Hz), m/s^3/sqrt(Hz)), the",
-        "#     meaning VINS and Kalibr expect. NOT what imu_utils writes there (the minimum of the",
-        "#     Allan deviation, i.e. bias instability 0.664 B, in rad/s): that is gyr_b / acc_b",
-        "#     here, the bias instability B itself (rad/s, m/s^2).",
-        "#   avg-axis: the mean of the three axes.",
-        "type: IMU",
-        f"name: {input_name}",
-    ]
-    for name, section, p, unit in (
-        ("gyro", "Gyr", "gyr", "rad/s"),
-        ("accel", "Acc", "acc", "m/s^2"),
-    ):
-        if name not in results:
-            continue
-        out += [f"{section}:", f'   unit: " {unit}"']
-        rows = [
-            ("avg-axis", {t: float(np.mean([results[name][a][t] for a in AXES])) for t in TERMS})
-        ]
-        rows += [(f"{a}-axis", results[name][a]) for a in AXES]
-        for label, vals in rows:
-            out += [
-                f"   {label}:",
-                f"      {p}_n: {vals['N']:.16e}",
-                f"      {p}_w: {vals['K']:.16e}",
-                f"      {p}_b: {vals['B']:.16e}",
-            ]
-    return "\n".join(out) + "\n"
 
 
 def curves_csv(
