@@ -4,8 +4,10 @@
   (input files replaced by empty placeholders), so a renamed or mistyped key fails here.
 - Pages under ``docs/tutorials/`` and the README's walk-through run as written: each block
   ```toml title="NAME" is written to NAME in a fresh folder, then the ```bash blocks run in order
-  (lines that open a viewer, serve docs or install packages are skipped). A tutorial that cannot
-  run without data from outside the repository says so with ``<!-- not run: reason -->``.
+  (lines that open a viewer, serve docs or install packages are skipped), in a fresh folder
+  that holds the repository's ``tests/`` and ``examples/`` (tutorials run from the repository
+  root). A tutorial that cannot run without data from outside the repository says so with
+  ``<!-- not run: reason -->``.
 """
 
 from __future__ import annotations
@@ -82,6 +84,8 @@ def test_tutorial_runs_as_written(page: Path, tmp_path: Path) -> None:
     reason = re.search(r"<!-- not run: (.*?) -->", text)
     if reason:
         pytest.skip(reason.group(1))
+    for folder in ("tests", "examples"):
+        (tmp_path / folder).symlink_to(ROOT / folder, target_is_directory=True)
     for info, body in blocks(page, "toml"):
         title = TITLE.search(info)
         if title:
