@@ -252,8 +252,14 @@ def evaluate(
     variables: Mapping[str, np.ndarray],
     knots: np.ndarray | None = None,
 ) -> np.ndarray:
-    """The model's bias at the given variables."""
-    return design(terms, variables, knots) @ np.asarray(coef, dtype=np.float64)
+    """The model's bias at the given variables. Summed term by term (elementwise, in the order
+    of the terms), not by a matrix product, so that a sample's value does not depend on how
+    many samples are evaluated with it (BLAS sums in an order that depends on the shape)."""
+    x = design(terms, variables, knots)
+    out = np.zeros(x.shape[0])
+    for j, c in enumerate(np.asarray(coef, dtype=np.float64)):  # terms, not samples
+        out += c * x[:, j]
+    return out
 
 
 # -- scale factor from turntable runs (the gyro patent) ---------------------------------------
