@@ -391,3 +391,145 @@ class TemperatureStep(ThermalStep):
         if step.track_spec().blocking is None and step.used_variables() - {"T"}:
             raise ValueError("rate terms need 'window' or 'window_s'")
         return step
+
+
+MATRIX_FORMS: dict[str, tuple[int, str]] = {
+    "accel": (3, "a = diag(s) K (raw - b), K = [[1, -yz, zy], [0, 1, -zx], [0, 0, 1]]"),
+    "gyro": (6, "w = T diag(s) (raw - b), T = [[1, -yz, zy], [xz, 1, -zx], [-xy, yx, 1]]"),
+}
+"""Per form: the number of misalignment angles and the model (imupipe's accelerometer and
+gyroscope calibration models: :mod:`imupipe.stages.accel_models`, :mod:`imupipe.stages.gyro_models`)."""
+
+
+def apply_matrix_form(
+    form: str, raw: np.ndarray, scale: np.ndarray, angles: np.ndarray, bias: np.ndarray
+) -> np.ndarray:
+    """The calibration model ``form`` with per-sample parameters ((n, 3), (n, 3 or 6), (n, 3)),
+    elementwise (no per-sample matrix)."""
+    v = raw - bias
+    if form == "accel":
+        yz, zy, zx = angles.T
+        u = np.column_stack(
+            [v[:, 0] - yz * v[:, 1] + zy * v[:, 2], v[:, 1] - zx * v[:, 2], v[:, 2]]
+        )
+        return scale * u
+    yz, zy, zx, xz, xy, yx = angles.T
+    w = scale * v
+    return np.column_stack(
+        [
+            w[:, 0] - yz * w[:, 1] + zy * w[:, 2],
+            xz * w[:, 0] + w[:, 1] - zx * w[:, 2],
+            -xy * w[:, 0] + yx * w[:, 1] + w[:, 2],
+        ]
+    )
+
+
+@dataclass
+class ThermalMatrixStep(ThermalStep):
+    """A calibration whose parameters are polynomials in the temperature (the soak method):
+    ``parameters`` maps ``scale`` (3), ``misalignment`` (3 for ``form = "accel"``, 6 for
+    ``"gyro"``, in the order of :data:`MATRIX_FORMS`) and ``bias`` (3) to one
+    ``{"terms", "coefficients"}`` per component, in ``T`` = temperature - ``tref`` (degC); a
+    missing quantity is 1 (scale) or 0. The temperature is clamped to ``range`` (the soaks')."""
+
+    kind: ClassVar[str] = "thermal_matrix"
+    type: str
+    sensor: str
+    form: str
+    tref: float
+    range: list[float]
+    parameters: dict[str, list[dict[str, Any]]]
+    params: dict[str, Any] = field(default_factory=dict)
+    warnings: list[str] = field(default_factory=list)
+    quiet: bool = False
+
+    def track_spec(self) -> TrackSpec:
+        return TrackSpec()
+
+    def values_at(self, temp: np.ndarray) -> dict[str, np.ndarray]:
+        """Each quantity (n, k) at absolute temperatures ``temp`` (clamped to ``range``)."""
+        x = {"T": np.clip(temp, *self.range) - self.tref}
+        size = {"scale": 3, "misalignment": MATRIX_FORMS[self.form][0], "bias": 3}
+        out = {}
+        for name, k in size.items():
+            comps = self.parameters.get(name)
+            if comps is None:
+                out[name] = np.full((len(temp), k), 1.0 if name == "scale" else 0.0)
+            else:
+                out[name] = np.column_stack(
+                    [tm.evaluate(c["terms"], c["coefficients"], x) for c in comps]
+                )
+        return out
+
+    def correct(self, values: np.ndarray, variables: Variables, stats: RangeStats) -> np.ndarray:
+        temp = variables.T[:, 0]
+        lo, hi = self.range
+        stats.add(
+            "T", temp, int(np.count_nonzero((temp < lo - WARN_MARGIN) | (temp > hi + WARN_MARGIN)))
+        )
+        stats.total += len(temp)
+        p = self.values_at(temp)
+        return apply_matrix_form(self.form, values, p["scale"], p["misalignment"], p["bias"])
+
+    def range_warning(self, stats: RangeStats) -> str | None:
+        far = stats.outside.get("T", 0)
+        if not far:
+            return None
+        seen = stats.seen["T"]
+        return (
+            f"T clamped to the soaks' range [{self.range[0]:.4g}, {self.range[1]:.4g}] at {far} "
+            f"of {stats.total} samples (seen {seen[0]:.4g}..{seen[1]:.4g})"
+        )
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "type": self.type,
+            "sensor": self.sensor,
+            "kind": self.kind,
+            "form": self.form,
+            "model": MATRIX_FORMS[self.form][1],
+            "tref": self.tref,
+            "range": list(self.range),
+            "parameters": {
+                name: [
+                    {
+                        "terms": list(c["terms"]),
+                        "coefficients": [float(v) for v in c["coefficients"]],
+                    }
+                    for c in comps
+                ]
+                for name, comps in self.parameters.items()
+            },
+            **self.params,
+        }
+
+    @classmethod
+    def from_json(cls, entry: dict[str, Any]) -> ThermalMatrixStep:
+        known = {"type", "sensor", "kind", "form", "model", "tref", "range", "parameters"}
+        form = entry["form"]
+        if form not in MATRIX_FORMS:
+            raise ValueError(f"unknown form '{form}' (known: {', '.join(MATRIX_FORMS)})")
+        size = {"scale": 3, "misalignment": MATRIX_FORMS[form][0], "bias": 3}
+        parameters = {}
+        for name, comps in entry["parameters"].items():
+            if name not in size or len(comps) != size[name]:
+                raise ValueError(f"parameters.{name}: expected {size.get(name, 'no')} components")
+            for c in comps:
+                if tm.term_variables(c["terms"]) - {"T"} or len(c["terms"]) != len(
+                    c["coefficients"]
+                ):
+                    raise ValueError(f"parameters.{name}: terms in T with one coefficient each")
+            parameters[name] = [
+                {"terms": list(c["terms"]), "coefficients": np.asarray(c["coefficients"], float)}
+                for c in comps
+            ]
+        lo, hi = (float(v) for v in entry["range"])
+        return cls(
+            type=entry["type"],
+            sensor=entry["sensor"],
+            form=form,
+            tref=float(entry["tref"]),
+            range=[lo, hi],
+            parameters=parameters,
+            params={k: v for k, v in entry.items() if k not in known},
+        )

@@ -15,7 +15,7 @@ import pytest
 
 from imupipe.readers.table import make_table
 from imupipe.stages.steps import apply_chain, apply_chain_stream
-from imupipe.stages.temperature_step import TemperatureStep
+from imupipe.stages.temperature_step import TemperatureStep, ThermalMatrixStep
 
 IMU_HZ, TEMP_HZ = 20, 1
 
@@ -69,12 +69,35 @@ def step(
     )
 
 
+def matrix_step() -> ThermalMatrixStep:
+    def comps(k: int, base: float) -> list[dict]:
+        return [
+            {"terms": ["1", "T", "T^2"], "coefficients": [base, 1e-4 * (i + 1), -2e-6]}
+            for i in range(k)
+        ]
+
+    return ThermalMatrixStep(
+        type="thermal_soak",
+        sensor="gyro",
+        form="gyro",
+        tref=25.0,
+        range=[10.0, 30.0],
+        parameters={
+            "scale": comps(3, 1.01),
+            "misalignment": comps(6, 1e-3),
+            "bias": comps(3, 0.01),
+        },
+        quiet=True,
+    )
+
+
 STEPS = {
     "T only": step(["1", "T", "T^2"]),
     "T and dT": step(["1", "T", "T^2", "T^3", "dT"]),
     "ambient": step(["1", "T", "Ta", "dTa", "T*dT"]),
     "lag": step(["1", "Ts", "Ts^2", "dTs"], lag_s=150.0),
     "lag, sample blocks": step(["1", "Ts", "dTs", "dT"], lag_s=40.0, window=37),
+    "soak matrix": matrix_step(),
 }
 
 
@@ -147,7 +170,7 @@ def test_stream_holds_a_bounded_window(log):
 
 
 def test_chain_of_steps_streams_like_the_whole_chain(log):
-    chain = [STEPS["T and dT"], STEPS["lag"]]
+    chain = [STEPS["soak matrix"], STEPS["T and dT"], STEPS["lag"]]
     whole = apply_chain(log, chain)
     streamed = pa.concat_tables(list(apply_chain_stream(batches(log, [1, 2, 5000, 5001]), chain)))
     for column, values in bits(whole).items():
