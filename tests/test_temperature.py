@@ -283,3 +283,84 @@ def test_turntable_scale_factor_against_temperature(tmp_path):
     (again,) = steps_from_json([out.step.to_json()])
     a = sensor(out.step.apply(val), "gyro").values
     np.testing.assert_array_equal(a, sensor(again.apply(val), "gyro").values)
+
+
+LAG = {"rate_hz": 2.0, "element_lag_s": 200.0, "gyro_rate_coef": [0.0] * 3, "ambient": False}
+
+
+@pytest.fixture(scope="module")
+def lagging():
+    """The sensing element lags the board sensor by 200 s (the bias follows the element): fit on
+    cycles at 1 and 0.5 degC/min, held-out cycle at 2 degC/min."""
+    fit, truth = simulate("thermal", {"heating_rates": [1.0, 0.5], **LAG}, seed=11)
+    val, _ = simulate("thermal", {"heating_rates": [2.0], **LAG}, seed=12)
+    return fit, val, truth
+
+
+def test_lag_model_beats_piecewise_and_stepwise_on_held_out_cycle(lagging):
+    fit, val, truth = lagging
+    rms = {}
+    for model in ("lag", "piecewise", "stepwise"):
+        out = fit_stage(fit, val, model=model, validate="val")
+        rms[model] = np.array([out.results["metrics"]["validate"][a]["rms_after"] for a in "xyz"])
+        if model == "lag":
+            tau = out.results["lag"]["lag_s"]
+            assert tau == pytest.approx(truth["element_lag_s"], rel=0.10)
+            assert out.step.lag_s == tau and "Ts" in out.results["terms"]["x"]
+    assert (2 * rms["lag"] <= rms["piecewise"]).all(), rms
+    assert (2 * rms["lag"] <= rms["stepwise"]).all(), rms
+
+
+def test_lag_model_round_trips_and_streams(lagging):
+    fit, val, _ = lagging
+    out = fit_stage(fit, model="lag")
+    (again,) = steps_from_json([out.step.to_json()])
+    np.testing.assert_array_equal(
+        sensor(out.step.apply(val), "gyro").values, sensor(again.apply(val), "gyro").values
+    )
+
+
+def test_one_way_narrow_ramp_falls_back_with_warnings():
+    """An 8 degC cooling ramp: the span is a warning, the rate term and the lag cannot be
+    identified (one direction), so the fit falls back to a polynomial in T and says so."""
+    n = 4000
+    t_ns = np.arange(n, dtype=np.int64) * 1_000_000_000
+    temp = 24.0 - 8.0 * np.arange(n) / n
+    gyro = np.outer(1e-4 * (temp - 20.0), [1.0, -2.0, 0.5])
+    table = make_table(t_ns, gyro=gyro, accel=np.zeros((n, 3)), temperature=temp)
+    for model in ("poly", "lag"):
+        stage = TemperatureStage(TemperatureStage.Options(model=model))
+        ctx = StageContext(name="t", input_name="ramp", quiet=True)
+        out = stage.fit(table, ctx)
+        assert any("spans only 7.9" in w for w in ctx.warnings), ctx.warnings
+        (note,) = out.results["fallback"]
+        assert "cannot be identified: the temperature only falls (23.99 -> 16" in note, note
+        assert out.results["model"] == "poly" and out.step.lag_s is None
+        for axis in "xyz":
+            assert not {"dT", "Ts", "dTs"} & set(out.results["terms"][axis])
+        assert (
+            out.results["metrics"]["x"]["rms_after"]
+            < 1e-3 * out.results["metrics"]["x"]["rms_before"]
+        )
+
+
+def test_partial_last_block_is_left_out():
+    """A trailing 1-sample block does not enter the fit or the metrics (it used to weigh like a
+    full block): an outlier there changes nothing but the neighbouring block's temperature
+    rate (the partial block's temperature still counts there)."""
+    table, _ = simulate("thermal", {"heating_rates": [2.0], "rate_hz": 1.0, "hold_s": 300.0})
+    n = len(table) - len(table) % 50
+    full = fit_stage(table.slice(0, n), window=50)
+    data = sensor(table.slice(0, n + 1), "gyro")
+    spiked = data.values.copy()
+    spiked[-1] += 0.5  # rad/s, 10^4 x the noise
+    extra = fit_stage(
+        make_table(data.t_ns, gyro=spiked, accel=np.zeros_like(spiked),
+                   temperature=sensor(table.slice(0, n + 1), "temperature").values[:, 0]),
+        window=50,
+    )  # fmt: skip
+    assert full.results["blocks"] == extra.results["blocks"]
+    for axis in "xyz":
+        a, b = full.results["metrics"][axis], extra.results["metrics"][axis]
+        assert b["rms_after"] == pytest.approx(a["rms_after"], rel=0.01)
+        assert b["rms_before"] == pytest.approx(a["rms_before"], rel=1e-9)
