@@ -3,7 +3,7 @@
 Done-when: thermal cycles -40..80 degC (cubic bias + rate term), fitted on cycles at 1 and
 0.5 degC/min and validated on a 2 degC/min cycle through ``imupipe convert``: the 10 s-mean bias
 RMS drops >= 20x on every axis; the rate model beats the plain polynomial; the cubic is recovered
-to 1e-6 on noiseless data; seed 000's six-term model equals curve_fit to 1e-9; a constant
+to 1e-6 on noiseless data; the MATLAB example's six-term model equals curve_fit to 1e-9; a constant
 temperature is refused with one line.
 """
 
@@ -264,7 +264,7 @@ def test_recording_has_the_figures(converted):
 
 
 def test_turntable_scale_factor_against_temperature(tmp_path):
-    """Seed 004: +/-rate turntable runs in the chamber give sf(T) = (out+ - out-) / (2 rate)."""
+    """The gyro patent: +/-rate turntable runs in the chamber give sf(T) = (out+ - out-) / (2 rate)."""
     turn = {"turntable_rate": 10.0}
     fit, truth = simulate("thermal", {**FIT, **turn}, seed=21)
     val, _ = simulate("thermal", {**VALIDATE, **turn}, seed=22)
