@@ -43,7 +43,6 @@ from imupipe.stages.base import Stage, StageContext, StageOutput
 from imupipe.stages.errors import FitError
 from imupipe.stages.static_detector import Intervals, choose_threshold, make_detector
 from imupipe.stages.temperature_step import (
-    MATRIX_FORMS,
     ThermalMatrixStep,
     apply_matrix_form,
     temperature_samples,
@@ -469,13 +468,13 @@ class ThermalSoakStage(Stage):
             ):
                 rows[key].append((np.linalg.norm(values, axis=1) - g) / am.MG)
             if len(steps) > 1:
-                gm_ = iv.means(gyro)
+                gyro_means = iv.means(gyro)
                 q = steps[1].values_at(t_iv)
-                gyro_rows["raw"].append(gm_)
+                gyro_rows["raw"].append(gyro_means)
                 gyro_rows["thermal"].append(
-                    apply_matrix_form("gyro", gm_, q["scale"], q["misalignment"], q["bias"])
+                    apply_matrix_form("gyro", gyro_means, q["scale"], q["misalignment"], q["bias"])
                 )
-                gyro_rows["one"].append(gm_ - nearest.gyro["bias"])
+                gyro_rows["one"].append(gyro_means - nearest.gyro["bias"])
 
         def rms(parts: list[np.ndarray]) -> float:
             x = np.concatenate(parts)
@@ -529,6 +528,3 @@ class ThermalSoakStage(Stage):
                 )
                 curves[quantity] = at[quantity] * scale
             record_soak(ctx, which, temps, values, curves, grid)
-
-
-__all__ = ["MATRIX_FORMS", "ThermalSoakStage"]

@@ -214,19 +214,6 @@ def edge_rate(centre: np.ndarray, values: np.ndarray) -> np.ndarray:
     return (values[1:2] - values[0:1]) / h
 
 
-def block_rates(centre: np.ndarray, values: np.ndarray) -> np.ndarray:
-    """The rate of every block of a whole log (see the module docstring)."""
-    m = len(centre)
-    out = np.zeros((m, values.shape[1]))
-    if m < 2:
-        return out
-    out[0] = edge_rate(centre[:2], values[:2])[0]
-    out[-1] = edge_rate(centre[-2:], values[-2:])[0]
-    if m > 2:
-        out[1:-1] = interior_rate(centre, values)
-    return out
-
-
 # -- the first-order lag ---------------------------------------------------------------------
 
 

@@ -364,3 +364,28 @@ def test_partial_last_block_is_left_out():
         a, b = full.results["metrics"][axis], extra.results["metrics"][axis]
         assert b["rms_after"] == pytest.approx(a["rms_after"], rel=0.01)
         assert b["rms_before"] == pytest.approx(a["rms_before"], rel=1e-9)
+
+
+def test_lag_model_recording(lagging, tmp_path):
+    """Rerun: lagged vs measured temperature, the bias against the element's temperature, the
+    lag fit's cost profile."""
+    import rerun.chunk as rc
+
+    from imupipe.pipeline.recording import Recorder
+
+    fit, _, _ = lagging
+    recorder = Recorder(tmp_path / "lag.rrd")
+    stage = TemperatureStage(TemperatureStage.Options(model="lag"))
+    stage.fit(
+        fit, StageContext(name="temperature_gyro", input_name="fit", recorder=recorder, quiet=True)
+    )
+    recorder.close()
+    chunks = list(rc.RrdReader(str(tmp_path / "lag.rrd")).stream().to_chunks())
+    entities = {c.entity_path for c in chunks}
+    for axis in "xyz":
+        assert f"/temperature_gyro/bias_vs_temperature/{axis}/fit" in entities
+    assert {"/temperature_gyro/temperature", "/temperature_gyro/lag_fit"} <= entities
+    names = str(
+        [c.to_record_batch() for c in chunks if c.entity_path == "/temperature_gyro/temperature"]
+    )
+    assert "sensing element Ts (lag 199.7 s)" in names and "measured T" in names
