@@ -189,6 +189,42 @@ def parse_input(name: str, raw: Any, base: Path, where: str) -> InputSpec:
     )
 
 
+def _name_part(key: str, value: Any) -> str | None:
+    """A value as part of a stage name (``gyro``, ``order3``); None for unset values, lists and
+    tables."""
+    if value is None or isinstance(value, list | dict):
+        return None
+    text = value if isinstance(value, str) else f"{key}{value}"
+    return "".join(c if c.isalnum() or c in "_-" else "_" for c in str(text))
+
+
+def default_names(stages: list[StageConfig], taken: set[str], path: Path) -> None:
+    """Name the stages written without ``name``: the type alone when the type appears once
+    among them, else the type followed by what tells the stages of that type apart, their
+    input and then their options in declaration order (``temperature_gyro`` and
+    ``temperature_accel``). Two stages of one type on one input with the same options need a
+    ``name``; so does a default name that another stage took."""
+    groups: dict[str, list[StageConfig]] = {}
+    for st in stages:
+        if not st.name:
+            groups.setdefault(st.type, []).append(st)
+    for type_name, group in groups.items():
+        rows = [{"input": st.input, **dataclasses.asdict(st.options)} for st in group]
+        keys = [k for k in rows[0] if len({repr(r[k]) for r in rows}) > 1]
+        for st, row in zip(group, rows, strict=True):
+            parts = [_name_part(k, row[k]) for k in keys]
+            st.name = "_".join([type_name, *(p for p in parts if p)])
+        names = [st.name for st in group]
+        for st in group:
+            if names.count(st.name) > 1 or st.name in taken:
+                clash = "another stage's name" if st.name in taken else "another stage"
+                raise ConfigError(
+                    f"{path}: stages[{st.index}] ({type_name} on input '{st.input}') would be "
+                    f"named '{st.name}' like {clash}; give it a distinct 'name'"
+                )
+        taken.update(names)
+
+
 def load_config(path: str | Path) -> Config:
     """Read and validate a config file."""
     path = Path(path)
@@ -230,14 +266,15 @@ def load_config(path: str | Path) -> Config:
             raise ConfigError(
                 f"{where}.type: unknown stage type '{type_name}' (known: {', '.join(STAGE_TYPES)})"
             )
-        name = entry.pop("name", type_name)
-        if not isinstance(name, str) or not name.replace("_", "").replace("-", "").isalnum():
-            raise ConfigError(f"{where}.name: must be a word (letters, digits, _ or -)")
-        if name in seen:
-            raise ConfigError(
-                f"{where}: a second stage named '{name}'; give each a distinct 'name'"
-            )
-        seen.add(name)
+        name = entry.pop("name", None)
+        if name is not None:
+            if not isinstance(name, str) or not name.replace("_", "").replace("-", "").isalnum():
+                raise ConfigError(f"{where}.name: must be a word (letters, digits, _ or -)")
+            if name in seen:
+                raise ConfigError(
+                    f"{where}: a second stage named '{name}'; give each a distinct 'name'"
+                )
+            seen.add(name)
         input_name = entry.pop("input", None)
         if input_name is None:
             if len(inputs) != 1:
@@ -254,7 +291,9 @@ def load_config(path: str | Path) -> Config:
             raise ConfigError(f"{where}.accept_failed_checks: must be true or false")
         cls = stage_class(type_name)
         options = build_options(cls.Options, entry, f"{where} ({type_name})")
-        stages.append(StageConfig(type_name, name, input_name, options, i, accept))
+        stages.append(StageConfig(type_name, name or "", input_name, options, i, accept))
+
+    default_names(stages, seen, path)
 
     out_raw = raw.get("output", {})
     if not isinstance(out_raw, dict):

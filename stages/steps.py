@@ -150,6 +150,7 @@ class LinearStep(Step):
 STEP_KINDS: dict[str, str] = {
     "linear": "imupipe.stages.steps:LinearStep",
     "temperature": "imupipe.stages.temperature_step:TemperatureStep",
+    "thermal_matrix": "imupipe.stages.temperature_step:ThermalMatrixStep",
 }
 """Step kind -> "module:Class". A new kind of correction registers here."""
 
