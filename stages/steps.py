@@ -89,8 +89,17 @@ class LinearStep(Step):
         self.offset = np.asarray(self.offset, dtype=np.float64).reshape(3)
 
     def apply_values(self, values: np.ndarray) -> np.ndarray:
-        """Apply to an (n, 3) array."""
-        return (np.asarray(values, dtype=np.float64) - self.offset) @ self.matrix.T
+        """Apply to an (n, 3) array.
+
+        Summed term by term (not a matrix product, whose summation order BLAS may choose by the
+        array's shape), so a sample's result does not depend on the batch it is corrected in:
+        a log converted in batches equals the log corrected whole, bit for bit."""
+        d = np.asarray(values, dtype=np.float64) - self.offset
+        m = self.matrix
+        out = np.empty_like(d)
+        for i in range(3):
+            out[:, i] = m[i, 0] * d[:, 0] + m[i, 1] * d[:, 1] + m[i, 2] * d[:, 2]
+        return out
 
     def apply(self, table: pa.Table) -> pa.Table:
         if len(SENSOR_COLUMNS[self.sensor]) != 3:
