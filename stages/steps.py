@@ -115,6 +115,7 @@ class LinearStep(Step):
 STEP_KINDS: dict[str, str] = {
     "linear": "imupipe.stages.steps:LinearStep",
     "temperature": "imupipe.stages.temperature_step:TemperatureStep",
+    "g_sensitivity": "imupipe.stages.ferraris:GSensitivityStep",
 }
 """Step kind -> "module:Class". A new kind of correction registers here."""
 
