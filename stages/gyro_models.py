@@ -131,19 +131,44 @@ class PoseTransitions:
         return np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
 
 
+def scale_guess(moves: PoseTransitions, bias: np.ndarray) -> float | None:
+    """A ballpark scalar scale: the median over the motions of the angle between the measured
+    gravity directions over the magnitude of the integrated bias-free raw gyro (the turn about
+    gravity is invisible to the first, so this is low by up to a few times). None when no motion
+    turned the gravity direction by at least 10 deg."""
+    turned = np.arccos(np.clip(np.einsum("ij,ij->i", moves.u_start, moves.u_end), -1.0, 1.0))
+    raw = moves.raw - bias
+    integral = np.linalg.norm(
+        (0.5 * (raw[:, 1:] + raw[:, :-1]) * moves.dt[..., None]).sum(1), axis=1
+    )
+    ok = (turned > np.radians(10)) & (integral > 0)
+    return float(np.median(turned[ok] / integral[ok])) if ok.any() else None
+
+
 def scale_start(
     moves: PoseTransitions, bias: np.ndarray, low: float = 1e-7, high: float = 1e3
 ) -> float:
     """The scalar scale (same on every axis, no misalignment) with the lowest RMS angle residual:
-    a log grid (ratio 1.25) from ``low`` to ``high``, refined by a bounded scalar search between
-    the best grid point's neighbours."""
+    a log grid (ratio 1.25) over a factor 30 either side of :func:`scale_guess` (from ``low`` to
+    ``high`` without a guess, or when the best point lies on the window's edge), refined by a
+    bounded scalar search between the best grid point's neighbours."""
 
     def rms(log_s: float) -> float:
         return float(np.sqrt(np.mean(moves.angles_deg(np.exp(log_s) * np.eye(3), bias) ** 2)))
 
     step = np.log(1.25)
+    guess = scale_guess(moves, bias)
     grid = np.arange(np.log(low), np.log(high), step)
-    best = grid[int(np.argmin([rms(x) for x in grid]))]
+    if guess is not None:
+        window = np.log(guess) + np.arange(-15, 16) * step
+        scores = [rms(x) for x in window]
+        best_i = int(np.argmin(scores))
+        if 0 < best_i < len(window) - 1:
+            grid, best = window, window[best_i]
+        else:
+            best = grid[int(np.argmin([rms(x) for x in grid]))]
+    else:
+        best = grid[int(np.argmin([rms(x) for x in grid]))]
     res = minimize_scalar(rms, bounds=(best - step, best + step), method="bounded")
     return float(np.exp(res.x if res.fun < rms(best) else best))
 

@@ -1,21 +1,19 @@
 """accel_calibration: simulated truths (held-out sessions; a session recorded the usual way; truths
 whose form differs from the model's), the model choice, Frank-Wolfe's box, the quality checks,
-imu_tk's Xsens raw counts, imucal's Ferraris snapshot and its g-sensitivity, the T265 session."""
+imucal's Ferraris snapshot and its g-sensitivity. The real sessions run end to end in
+tests/test_real_sessions.py."""
 
 from __future__ import annotations
 
 import json
-import shutil
 
 import numpy as np
 import pytest
 from scipy.optimize import approx_fprime
 
-from imupipe.pipeline.config import load_config
 from imupipe.pipeline.errors import FitError
 from imupipe.pipeline.run import run
 from imupipe.pipeline.simulate import simulate
-from imupipe.readers.dispatch import read_input
 from imupipe.readers.table import make_table, sensor
 from imupipe.stages import accel_models as am
 from imupipe.stages.accel_calibration import AccelCalibrationStage
@@ -243,56 +241,6 @@ def test_nan_samples_are_excluded_with_one_warning(sessions):
     np.testing.assert_allclose(out.step.matrix, sessions[0][1]["accel"]["matrix"], atol=3e-4)
 
 
-XSENS_CSV = """
-[inputs.xsens.csv]
-time = 0
-time_unit = "s"
-accel = [1, 2, 3]
-accel_unit = "raw"
-gyro_file = "{gyro}"
-gyro = [1, 2, 3]
-gyro_unit = "raw"
-"""
-
-
-def test_xsens_raw_counts_without_initial_guess(tmp_path):
-    """imu_tk's own session, raw counts, default options (no initial rest given): the 9-parameter
-    model is chosen; the figures agree with the independent re-implementation of imu_tk's model
-    in the data's README (38 intervals, 0.11 mg on means, 0.82 mg per sample; gyro 0.52 deg)."""
-    data = TEST_DATA / "imu_tk_xsens"
-    cfg = tmp_path / "xsens.toml"
-    cfg.write_text(
-        f'[inputs.xsens]\npath = "{data / "xsens_acc.mat"}"\n'
-        + XSENS_CSV.format(gyro=data / "xsens_gyro.mat")
-        + """
-[[stages]]
-type = "accel_calibration"
-gravity = 9.81744
-
-[[stages]]
-type = "gyro_calibration"
-gravity = 9.81744
-
-[output]
-dir = "out"
-rerun = false
-apply_to = []
-"""
-    )
-    doc = run(cfg, quiet=True).calibration
-    accel = doc["results"]["accel_calibration"]
-    assert accel["model"]["chosen"] == "9-parameter"
-    metrics = accel["metrics"]
-    assert metrics["poses"] >= 38
-    assert metrics["residual_mg"]["means_rms"] <= 0.11
-    assert metrics["residual_mg"]["samples_rms"] <= 0.83
-    assert metrics["residual_mg"]["start_means_rms"] > 1.0  # the start alone is not the answer
-    gyro = doc["results"]["gyro_calibration"]["metrics"]
-    assert gyro["gravity_direction_residual_deg"]["rms"] <= 0.52
-    # imu_tk's nominal 1/6258 (rad/s)/count is 25 % off; the data says ~2.09e-4
-    np.testing.assert_allclose(doc["results"]["gyro_calibration"]["scale"], 2.09e-4, rtol=0.02)
-
-
 FERRARIS_CFG = """
 [inputs.session]
 path = "{path}"
@@ -419,73 +367,3 @@ def test_g_sensitivity_step_streams_sample_by_sample():
         streamed = list(apply_chain_stream(batches, rebuilt[1:2]))
         got = np.vstack([sensor(b, "gyro").values for b in streamed])
         np.testing.assert_array_equal(got, sensor(alone, "gyro").values)
-
-
-# imu_tk's published answer for this session: cggos/imu_tk @ d07e762b3c0f1526418058694a84a1164ddded92,
-# bin/test_data/t265_test_imu_acc.calib (the same figures as its scripts/data/t265.log): a 9-parameter
-# fit on 41 intervals, calibrated = T K (raw - b) with T the misalignment, K the scale.
-T265_PUBLISHED_T = np.array([[1, 0.0194692, -0.0574956], [0, 1, -0.00366816], [0, 0, 1]])
-T265_PUBLISHED_K = np.diag([1.00773, 1.01848, 1.01499])
-T265_PUBLISHED_B = np.array([-0.19119, 0.57394, -0.231325])
-
-
-def test_t265_end_to_end_chooses_six_parameters(tmp_path):
-    """The T265 session's poses are the six faces: the 9-parameter model is not supported, so the
-    6-parameter one is chosen and said; at least as many intervals as imu_tk's detector (41);
-    its scale and bias agree with imu_tk's published answer, and its residual on the pose means
-    is lower than that answer's."""
-    acc_file = shared_path("calib", "imu_tk_t265_cggos", "t265_acc.mat")
-    gyro_file = acc_file.with_name("t265_gyr.mat")
-    shutil.copy(acc_file, tmp_path / "t265_acc.mat")
-    shutil.copy(gyro_file, tmp_path / "t265_gyr.mat")
-    cfg = tmp_path / "t265.toml"
-    cfg.write_text(
-        """
-[inputs.t265]
-path = "t265_acc.mat"
-[inputs.t265.csv]
-time = 0
-time_unit = "s"
-accel = [1, 2, 3]
-gyro_file = "t265_gyr.mat"
-gyro = [1, 2, 3]
-
-[[stages]]
-type = "accel_calibration"
-gravity = 9.8016
-
-[[stages]]
-type = "gyro_calibration"
-gravity = 9.8016
-
-[output]
-dir = "out"
-rerun = false
-"""
-    )
-    summary = run(cfg, quiet=True)
-    accel = summary.calibration["results"]["accel_calibration"]
-    assert accel["model"]["chosen"] == "6-parameter"
-    assert any(w.startswith("misalignment not fitted") for w in accel["warnings"])
-    metrics = accel["metrics"]
-    assert metrics["intervals"] >= 41
-    assert (
-        metrics["residual_mg"]["means_rms"] < 0.6 < 5.0 < metrics["residual_mg"]["start_means_rms"]
-    )
-    np.testing.assert_allclose(accel["scale"], np.diag(T265_PUBLISHED_K), atol=2e-3)
-    np.testing.assert_allclose(accel["bias"], T265_PUBLISHED_B, atol=5e-3)
-    raw = sensor(read_input(load_config(cfg).inputs["t265"])[0], "accel")
-    means = np.array(
-        [raw.values[(raw.t_s >= a) & (raw.t_s <= b)].mean(axis=0) for a, b in accel["intervals_s"]]
-    )
-    ours = LinearStep.from_json(summary.calibration["chain"][0]).apply_values(means)
-    published = (means - T265_PUBLISHED_B) @ (T265_PUBLISHED_T @ T265_PUBLISHED_K).T
-
-    def rms_mg(values):
-        return float(np.sqrt(np.mean(((np.linalg.norm(values, axis=1) - 9.8016) / am.MG) ** 2)))
-
-    assert rms_mg(ours) < rms_mg(published) < 0.7
-    gyro = summary.calibration["results"]["gyro_calibration"]
-    assert "quantised to 10 ms" in gyro["metrics"]["clock"]
-    assert gyro["metrics"]["gravity_direction_residual_deg"]["rms"] < 1.1
-    assert (summary.out_dir / "t265.mcap").exists()
