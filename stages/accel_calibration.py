@@ -327,12 +327,21 @@ class AccelCalibrationStage(Stage):
             "the model does not fit",
         )
         predicted = found.fit.predicted_error_mg()
+        spare = len(means) - found.fit.n_params
         ctx.check(
             predicted <= MAX_PREDICTED_ERROR_MG,
-            f"pose coverage: the {len(means)} poses leave the calibration "
-            f"undetermined (predicted error over all orientations {_fmt_mg(predicted)} > "
-            f"{MAX_PREDICTED_ERROR_MG:g} mg; record more poses, spread over the sphere"
-            + (", or set misalignment = false)" if model == "9-parameter" else ")"),
+            (
+                f"pose coverage: {len(means)} poses for {found.fit.n_params} parameters leave "
+                f"{max(spare, 0)} degree(s) of freedom: the fit cannot be checked; record more "
+                "poses (method ferraris fits exactly six labelled faces)"
+            )
+            if not np.isfinite(predicted)
+            else (
+                f"pose coverage: the {len(means)} poses leave the calibration undetermined "
+                f"(predicted error over all orientations {predicted:.3g} mg > "
+                f"{MAX_PREDICTED_ERROR_MG:g} mg); record more poses, spread over the sphere"
+                + (", or set misalignment = false" if model == "9-parameter" else "")
+            ),
         )
         step = LinearStep(
             type=self.type,
@@ -514,10 +523,6 @@ def problem_x(problem: am.NormProblem, params: am.NineParams) -> np.ndarray:
 def _loo_rms(values: np.ndarray) -> float | None:
     ok = np.isfinite(values)
     return rms(values[ok]) if ok.any() else None
-
-
-def _fmt_mg(value: float) -> str:
-    return f"{value:.3g} mg" if np.isfinite(value) else "unbounded"
 
 
 def _middle_samples(samples: np.ndarray, intervals: Intervals, o: Any) -> np.ndarray:

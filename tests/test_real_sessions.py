@@ -318,3 +318,69 @@ def test_mpu6050_held_out(mpu):
     ours = rotation_error_deg(table, acc, gyro_matrix)
     nominal = rotation_error_deg(table, acc, NOMINAL_GYRO * np.eye(3))
     assert ours < 1.4 < 1.52 < nominal
+
+
+# -- imucal's sessions with the default (static-pose) methods -----------------------------------
+
+
+def test_imucal_sessions_with_default_options(tmp_path):
+    """imucal's annotated session holds only its six labelled faces (and three turns): six poses
+    for six parameters cannot be checked, which the default fit says in one line (exit 2,
+    nothing written; method ferraris is the one for it). Its continuous example session
+    (../shared) calibrates with the static-pose methods: the 6-parameter model, and the three
+    gyro scales, each chosen and said; the calibrated |a| at imucal's six static regions is within
+    1 mg of g."""
+    annotated = TEST_DATA / "imucal" / "annotated_session.csv"
+    cfg = tmp_path / "cfg.toml"
+    cfg.write_text(
+        f"""[inputs.s]
+path = "{annotated}"
+[inputs.s.csv]
+rate_hz = 204.8
+accel = ["acc_x", "acc_y", "acc_z"]
+accel_unit = "raw"
+gyro = ["gyr_x", "gyr_y", "gyr_z"]
+gyro_unit = "raw"
+[[stages]]
+type = "accel_calibration"
+gravity = 9.81
+[output]
+dir = "out"
+"""
+    )
+    done = run_cli("run", cfg)
+    assert done.returncode == 2
+    assert done.stderr.strip().splitlines()[-1] == (
+        "imupipe: error: stage 'accel_calibration' on input 's': pose coverage: 6 poses for 6 "
+        "parameters leave 0 degree(s) of freedom: the fit cannot be checked; record more poses "
+        "(method ferraris fits exactly six labelled faces); the fit is not applied (set "
+        "accept_failed_checks = true in this stage to use it anyway)"
+    )
+    assert not (tmp_path / "out").exists()
+
+    folder = shared_path("calib", "imucal_ferraris")
+    out = tmp_path / "example"
+    out.mkdir()
+    doc = run_default(
+        out,
+        f"""[inputs.s]
+path = "{folder / "example_ferraris_session.csv"}"
+[inputs.s.csv]
+rate_hz = 102.4
+accel = ["acc_x", "acc_y", "acc_z"]
+gyro = ["gyr_x", "gyr_y", "gyr_z"]
+gyro_unit = "deg/s"
+""",
+        gravity=9.81,
+    )
+    accel, gyro = doc["results"]["accel_calibration"], doc["results"]["gyro_calibration"]
+    assert accel["model"]["chosen"] == "6-parameter"
+    assert gyro["model"]["chosen"] == "scale-only"
+    assert gyro["metrics"]["gravity_direction_residual_deg"]["rms"] < 1.1
+    regions = json.loads((folder / "example_ferraris_session_list.json").read_text())
+    table = read_input(load_config(out / "cfg.toml").inputs["s"])[0]
+    corrected = sensor(apply_chain(table, steps_from_json(doc["chain"])), "accel").values
+    for part in ("x_p", "x_a", "y_p", "y_a", "z_p", "z_a"):
+        r = regions[part]
+        norm = np.linalg.norm(corrected[r["start"] : r["end"]].mean(axis=0))
+        assert abs(norm - 9.81) / MG < 1.0, part
