@@ -413,11 +413,7 @@ class ModelFit:
 
     @property
     def aicc(self) -> float:
-        """Corrected Akaike information criterion (see the module docstring)."""
-        n, k = len(self.problem.samples), self.n_params + 1
-        if n - k - 1 <= 0:
-            return float("inf")
-        return n * np.log(max(self.rss, 1e-300) / n) + 2 * k + 2 * k * (k + 1) / (n - k - 1)
+        return aicc(len(self.problem.samples), self.n_params, self.rss)
 
     def covariance(self) -> np.ndarray | None:
         """Covariance of the free normalised unknowns, ``sigma^2 (J^T J)^-1`` (None without
@@ -471,6 +467,22 @@ class ModelFit:
         }
 
 
+def aicc(n: int, n_params: int, rss: float) -> float:
+    """Corrected Akaike information criterion of a least-squares fit of ``n_params`` parameters
+    to ``n`` observations with residual sum of squares ``rss`` (Hurvich and Tsai 1989):
+    ``n ln(rss / n) + 2K + 2K(K + 1) / (n - K - 1)``, ``K = n_params + 1`` (the noise variance
+    counts); infinite where ``n - K - 1 <= 0`` (too few observations to support the fit)."""
+    k = n_params + 1
+    if n - k - 1 <= 0:
+        return float("inf")
+    return float(n * np.log(max(rss, 1e-300) / n) + 2 * k + 2 * k * (k + 1) / (n - k - 1))
+
+
+def fmt_criterion(value: float) -> str:
+    """An information criterion for a message ("undefined" where infinite)."""
+    return f"{value:.4g}" if np.isfinite(value) else "undefined (too few observations)"
+
+
 def _finite_or_none(value: float) -> float | None:
     return float(value) if np.isfinite(value) else None
 
@@ -498,12 +510,12 @@ def choose_model(fits: list[ModelFit]) -> tuple[ModelFit, str]:
             f"poses); the {best.name} model has the fewest parameters"
         )
     figures = "; ".join(
-        f"{f.name}: AICc {_fmt(f.aicc)}, residual {f.summary()['residual_mg_rms']:.3g} mg, "
-        f"predicted error {_fmt(f.predicted_error_mg())} mg"
+        f"{f.name}: AICc {fmt_criterion(f.aicc)}, residual {f.summary()['residual_mg_rms']:.3g} "
+        f"mg, predicted error {_fmt_mg(f.predicted_error_mg())}"
         for f in [best, *others]
     )
     return best, f"lowest AICc ({figures})"
 
 
-def _fmt(value: float) -> str:
-    return f"{value:.4g}" if np.isfinite(value) else "undefined (too few poses)"
+def _fmt_mg(value: float) -> str:
+    return f"{value:.4g} mg" if np.isfinite(value) else "unbounded"

@@ -32,6 +32,7 @@ from typing import Any
 import numpy as np
 from scipy.optimize import least_squares, minimize_scalar
 
+from imupipe.stages.accel_models import aicc, fmt_criterion
 from imupipe.stages.errors import FitError
 from imupipe.stages.static_detector import Intervals, Poses
 
@@ -217,12 +218,8 @@ class GyroFit:
 
     @property
     def aicc(self) -> float:
-        """Corrected Akaike information criterion over the direction residuals (see
-        :mod:`imupipe.stages.accel_models`)."""
-        n, k = self.n_obs, self.n_params + 1
-        if n - k - 1 <= 0:
-            return float("inf")
-        return n * np.log(max(self.rss, 1e-300) / n) + 2 * k + 2 * k * (k + 1) / (n - k - 1)
+        """Corrected Akaike information criterion over the direction residuals."""
+        return aicc(self.n_obs, self.n_params, self.rss)
 
     def standard_errors(self) -> np.ndarray:
         """(9,) standard errors of ``x`` (relative scale, rad), 0 where not fitted, NaN without
@@ -289,7 +286,7 @@ def fit_static_poses(
         reason = (
             "lowest AICc ("
             + "; ".join(
-                f"{f.name}: AICc {_fmt(f.aicc)}, direction residual "
+                f"{f.name}: AICc {fmt_criterion(f.aicc)}, direction residual "
                 f"{np.degrees(np.sqrt(f.rss / len(moves.u_end))):.3g} deg"
                 for f in sorted(fits, key=lambda f: f is not best)
             )
@@ -311,10 +308,6 @@ def fit_static_poses(
         "residual_deg_start": moves.angles_deg(s0 * np.eye(3), bias),
         "time_s": time.perf_counter() - t0,
     }
-
-
-def _fmt(value: float) -> str:
-    return f"{value:.4g}" if np.isfinite(value) else "undefined (too few motions)"
 
 
 def turntable_columns(
