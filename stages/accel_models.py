@@ -463,7 +463,7 @@ class ModelFit:
             "parameters": self.n_params,
             "aicc": float(aicc) if np.isfinite(aicc) else None,
             "residual_mg_rms": float(np.sqrt(np.mean(r**2))),
-            "predicted_error_mg": _finite_or_none(self.predicted_error_mg()),
+            "predicted_error_mg": finite_or_none(self.predicted_error_mg()),
         }
 
 
@@ -483,7 +483,7 @@ def fmt_criterion(value: float) -> str:
     return f"{value:.4g}" if np.isfinite(value) else "undefined (too few observations)"
 
 
-def _finite_or_none(value: float) -> float | None:
+def finite_or_none(value: float) -> float | None:
     return float(value) if np.isfinite(value) else None
 
 
