@@ -21,7 +21,7 @@ from imupipe.stages.base import StageContext
 from imupipe.stages.ferraris import GSensitivityStep
 from imupipe.stages.steps import LinearStep, apply_chain, apply_chain_stream, steps_from_json
 
-from conftest import TEST_DATA, shared_path
+from conftest import TEST_DATA, run_cli, shared_path
 
 G = 9.80665
 USUAL = {"init_static_s": 0.0, "accel_N": 0.4e-3 * G / 10}
@@ -294,7 +294,8 @@ def test_ferraris_reproduces_imucal_snapshot(tmp_path):
 def test_ferraris_g_sensitivity_matches_imucals_calibrated_output(tmp_path):
     """imucal's example session (102.4 Hz, m/s^2 and deg/s), regions from its section list, and
     imucal's own calibrate_df output for the first 50 samples: with apply_g_sensitivity the
-    corrected MCAP equals it to 1e-12; without, the gyro differs by K_ga a."""
+    corrected MCAP of imupipe run, and that of imupipe convert (streamed in batches of 7 rows),
+    equal it to 1e-12; without, the gyro differs by K_ga a."""
     from helpers import decode_mcap, vec
 
     folder = shared_path("calib", "imucal_ferraris")
@@ -330,6 +331,22 @@ def test_ferraris_g_sensitivity_matches_imucals_calibrated_output(tmp_path):
         if applied:
             assert kinds == ["linear", "g_sensitivity", "linear"]
             np.testing.assert_allclose(gyr_dps, expected[:, 1:4], atol=1e-12)
+            # imupipe convert applies the same chain, streamed in batches of 7 rows
+            read = tmp_path / "read.toml"
+            read.write_text(
+                '[csv]\nrate_hz = 102.4\naccel = ["acc_x", "acc_y", "acc_z"]\n'
+                'gyro = ["gyr_x", "gyr_y", "gyr_z"]\ngyro_unit = "deg/s"\n'
+            )
+            done = run_cli(
+                "convert", "--calibration", summary.out_dir / "calibration.json", "--out",
+                tmp_path / "conv", "--config", read, "--batch-rows", "7", "--quiet",
+                folder / "example_ferraris_session.csv",
+            )  # fmt: skip
+            assert done.returncode == 0, done.stderr
+            conv = decode_mcap(tmp_path / "conv" / "example_ferraris_session.mcap")["/imu/data"]
+            np.testing.assert_allclose(
+                np.degrees(vec(conv[:50], "angular_velocity")), expected[:, 1:4], atol=1e-12
+            )
         else:
             assert kinds == ["linear", "linear"]
             assert np.abs(gyr_dps - expected[:, 1:4]).max() > 1e-3
