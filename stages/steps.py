@@ -160,6 +160,7 @@ STEP_KINDS: dict[str, str] = {
     "linear": "imupipe.stages.steps:LinearStep",
     "temperature": "imupipe.stages.temperature_step:TemperatureStep",
     "thermal_matrix": "imupipe.stages.temperature_step:ThermalMatrixStep",
+    "g_sensitivity": "imupipe.stages.ferraris:GSensitivityStep",
 }
 """Step kind -> "module:Class". A new kind of correction registers here."""
 

@@ -33,7 +33,7 @@ a warning.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any, Literal
 
 import numpy as np
@@ -46,6 +46,7 @@ from imupipe.stages.stepwise import candidate_terms, stepwise
 from imupipe.stages.stillness import G0
 from imupipe.stages.temperature_step import (
     AXES,
+    Prepared,
     TemperatureStep,
     temperature_samples,
 )
@@ -97,26 +98,6 @@ def directions_identify_rate(temp: np.ndarray, direction: np.ndarray) -> str | N
             f"({cool.min():.4g}..{cool.max():.4g} degC) overlap over {max(overlap, 0):.3g} degC"
         )
     return None
-
-
-@dataclass
-class Prepared:
-    """Complete blocks of one input: centres ``t_ns``, ``bias`` (m, 3) = means - reference,
-    ``variables`` (absolute ``T``, ``dT``, maybe ``Ta``, ``dTa``), ``direction`` (+1 heating,
-    -1 cooling, 0 soak), sample ``counts``; ``centre_all``/``temp_all`` every block of the log
-    (the lag runs over them) and ``keep`` the indices of the complete ones."""
-
-    t_ns: np.ndarray
-    bias: np.ndarray
-    variables: dict[str, np.ndarray]
-    direction: np.ndarray
-    reference: np.ndarray
-    counts: np.ndarray
-    centre_all: np.ndarray
-    temp_all: np.ndarray
-    keep: np.ndarray
-    pairs: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
-    """Turntable runs per turned axis: (temperature degC, scale factor) of each +/-rate pair."""
 
 
 class TemperatureStage(Stage):

@@ -38,8 +38,7 @@ from imupipe.readers.table import SENSOR_UNITS
 
 if TYPE_CHECKING:
     from imupipe.stages.base import StageContext
-    from imupipe.stages.temperature import Prepared
-    from imupipe.stages.temperature_step import TemperatureStep
+    from imupipe.stages.temperature_step import Prepared, TemperatureStep
 
 AXES = ("x", "y", "z")
 TEMPERATURE_TIMELINE = "temperature_cdegC"

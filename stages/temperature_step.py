@@ -533,3 +533,23 @@ class ThermalMatrixStep(ThermalStep):
             parameters=parameters,
             params={k: v for k, v in entry.items() if k not in known},
         )
+
+
+@dataclass
+class Prepared:
+    """Complete blocks of one input: centres ``t_ns``, ``bias`` (m, 3) = means - reference,
+    ``variables`` (absolute ``T``, ``dT``, maybe ``Ta``, ``dTa``), ``direction`` (+1 heating,
+    -1 cooling, 0 soak), sample ``counts``; ``centre_all``/``temp_all`` every block of the log
+    (the lag runs over them) and ``keep`` the indices of the complete ones."""
+
+    t_ns: np.ndarray
+    bias: np.ndarray
+    variables: dict[str, np.ndarray]
+    direction: np.ndarray
+    reference: np.ndarray
+    counts: np.ndarray
+    centre_all: np.ndarray
+    temp_all: np.ndarray
+    keep: np.ndarray
+    pairs: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
+    """Turntable runs per turned axis: (temperature degC, scale factor) of each +/-rate pair."""

@@ -74,7 +74,8 @@ def test_simulate_poses_cli_and_ferraris_without_labels_fails_in_one_line(tmp_pa
     assert done.returncode == 2
     assert done.stderr.strip().splitlines() == [
         "imupipe: error: stage 'accel_calibration' on input 'p': method 'ferraris' needs "
-        "labelled segments: set csv.label"
+        "labelled segments: set csv.label (or give every part as [start_s, end_s] in "
+        "ferraris_parts)"
     ]
     assert not (tmp_path / "out").exists()
 
