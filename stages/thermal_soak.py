@@ -41,7 +41,12 @@ from imupipe.stages import gyro_models as gm
 from imupipe.stages import thermal_models as tm
 from imupipe.stages.base import Stage, StageContext, StageOutput
 from imupipe.stages.errors import FitError
-from imupipe.stages.static_detector import Intervals, choose_threshold, make_detector
+from imupipe.stages.static_detector import (
+    Intervals,
+    choose_threshold,
+    make_detector,
+    sample_clock,
+)
 from imupipe.stages.temperature_step import (
     ThermalMatrixStep,
     apply_matrix_form,
@@ -50,6 +55,8 @@ from imupipe.stages.temperature_step import (
 from imupipe.stages.thermal_track import Blocking, Track, TrackSpec, Variables
 
 MAX_ORDER = 3
+FULL_GYRO_MODEL = "9-parameter"
+"""The gyro model fitted at each soak: scale and misalignment are both followed in temperature."""
 GYRO_MAX_CONDITION = 1e4
 GYRO_MIN_TRANSITIONS = 9
 ACCEL_NAMES = {
@@ -346,16 +353,18 @@ class ThermalSoakStage(Stage):
         p = am.NineParams(s.accel["scale"], s.accel["misalignment"], s.accel["bias"])
         seg = slice(int(iv.start[0]), int(iv.stop[-1]))
         local = Intervals(iv.start - seg.start, iv.stop - seg.start)
-        moves = gm.PoseTransitions.build(t_ns[seg], gyro[seg], p.apply(accel[seg]), local)
-        fit = gm.fit_static_poses(moves, bias)
-        s.info["gyro_condition_number"] = fit["condition_number"]
+        t_s, _ = sample_clock(t_ns[seg])
+        moves = gm.PoseTransitions.build(t_s, gyro[seg], p.apply(accel[seg]), local)
+        fit = gm.fit_static_poses(moves, bias, models=[FULL_GYRO_MODEL])
+        condition = fit["fit"].condition_number()
+        s.info["gyro_condition_number"] = condition
         s.info["gyro_transition_residual_deg"] = float(np.sqrt(np.mean(fit["residual_deg"] ** 2)))
-        if not fit["condition_number"] < GYRO_MAX_CONDITION:
-            s.info["gyro_matrix"] = f"condition number {fit['condition_number']:.3g}"
+        if not condition < GYRO_MAX_CONDITION:
+            s.info["gyro_matrix"] = f"condition number {condition:.3g}"
             return
         s.gyro |= {
-            "scale": np.asarray(fit["scale"]),
-            "misalignment": np.asarray(fit["misalignment_rad"]),
+            "scale": np.asarray(fit["fit"].scale),
+            "misalignment": np.asarray(fit["fit"].x[3:]),
         }
 
     # -- against temperature -----------------------------------------------------------------
