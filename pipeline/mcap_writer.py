@@ -1,21 +1,25 @@
-"""Corrected logs as MCAP (SPEC "Corrected MCAP"), written chunk by chunk with numpy.
+"""Corrected logs as MCAP, written chunk by chunk with numpy: every message as it came, only the
+corrected fields changed.
 
 Profile ``ros2``, message encoding ``cdr``, schemas ``ros2msg`` (the message definitions rosbags
 generates), so the ``mcap`` library's ROS 2 decoder, rosbags, Foxglove and ``ros2 bag`` read it.
 The IMU stream is written as ``sensor_msgs/msg/Imu``, the magnetometer as
 ``sensor_msgs/msg/MagneticField`` (tesla), the temperature as ``sensor_msgs/msg/Temperature``
-(degC), each row of the table exactly once, with the table's timestamps (header stamp = ``t_ns``,
-log and publish time = ``log_time_ns`` when the reader kept it, else ``t_ns``). The calibration
-that was applied travels as the attachment ``calibration.json``. Messages of other topics given
-as ``carry_over`` are written unchanged.
+(degC), each row of the table exactly once (NaN values as NaN), with the message's own times:
+header stamp = ``header_stamp_ns`` where the reader kept it (``time = "log"``), else ``t_ns``;
+log time = ``log_time_ns``, else ``t_ns``; publish time = ``publish_time_ns`` (MCAP inputs), else
+the log time, as the MCAP specification asks of a message without one. The calibration that was
+applied travels as the attachment ``calibration.json``. Messages of other topics given as
+``carry_over`` are written unchanged, their log and publish times kept.
 
-:class:`McapTableWriter` streams: each ``write_table`` batch is encoded with
-:func:`imupipe.readers.cdr.encode` (one structured array per frame_id), its message records
-are built as one numpy array (``opcode, length, channel, sequence, log_time, publish_time,
-payload``), cut into ~1 MiB chunks, zstd-compressed, and each chunk is followed by its
-``MessageIndex`` records; the summary (schemas, channels, statistics, chunk and attachment
-indexes) is written at :meth:`~McapTableWriter.close`. No Python loop runs per message except
-for carried-over messages, which arrive as Python objects anyway.
+:class:`McapTableWriter` streams with bounded memory: ``write_table`` queues rows and encodes
+:data:`SLICE_ROWS` at a time (counted from the first row written, so the bytes do not depend on
+how the rows were batched) with :func:`imupipe.readers.cdr.encode` (one structured array per
+frame_id); its message records are built as one numpy array (``opcode, length, channel,
+sequence, log_time, publish_time, payload``), cut into ~1 MiB chunks, zstd-compressed, and each
+chunk is followed by its ``MessageIndex`` records; the summary (schemas, channels, statistics,
+chunk and attachment indexes) is written at :meth:`~McapTableWriter.close`. No Python loop runs
+per message except for carried-over messages, which arrive as Python objects anyway.
 """
 
 from __future__ import annotations
