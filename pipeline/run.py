@@ -21,15 +21,14 @@ import pyarrow as pa
 
 from imupipe.pipeline.atomic import staged_outputs
 from imupipe.pipeline.config import Config, load_config
-from imupipe.pipeline.mcap_writer import SLICE_ROWS, McapTableWriter
+from imupipe.pipeline.corrected import write_corrected
 from imupipe.pipeline.progress import progress_bar
 from imupipe.pipeline.version import VERSION
-from imupipe.readers.dispatch import iter_input, read_input
-from imupipe.readers.spec import InputSpec
+from imupipe.readers.dispatch import read_input
 from imupipe.readers.table import SENSOR_COLUMNS, has_sensor, sensor
 from imupipe.stages.base import NullRecorder, StageContext
 from imupipe.stages.registry import stage_class
-from imupipe.stages.steps import Step, apply_chain, apply_chain_stream
+from imupipe.stages.steps import Step, apply_chain
 
 
 class CorrectedTables(Mapping[str, pa.Table]):
@@ -100,32 +99,6 @@ def record_sensors(recorder: Any, prefix: str, table: pa.Table, sensors: tuple[s
             data = sensor(table, name)
             axes = tuple(c.split("_")[-1] for c in SENSOR_COLUMNS[name])
             recorder.series(f"{prefix}/{name}", data.t_ns, data.values, axes)
-
-
-def write_corrected(
-    path: Path,
-    spec: InputSpec,
-    chain: list[Step],
-    calibration: dict[str, Any] | None,
-    *,
-    batch_rows: int = 200_000,
-    slice_rows: int = SLICE_ROWS,
-) -> dict[str, int]:
-    """The corrected MCAP of one input, streamed: read in bounded batches
-    (:func:`~imupipe.readers.dispatch.iter_input`), corrected batch by batch
-    (:func:`~imupipe.stages.steps.apply_chain_stream`), written by a writer that encodes in
-    slices; memory is bounded by a batch, not the log. For a log in time order the file is the
-    same, byte for byte, as correcting and writing the whole table. Returns messages per topic."""
-    with McapTableWriter(path, calibration=calibration, slice_rows=slice_rows) as writer:
-
-        def batches() -> Iterator[pa.Table]:
-            for table, carried in iter_input(spec, batch_rows=batch_rows):
-                writer.write_raw(carried)  # before the rows that pass their log times
-                yield table
-
-        for corrected in apply_chain_stream(batches(), chain):
-            writer.write_table(corrected)
-    return writer.counts()
 
 
 def run(config: Config | str | Path, *, spawn: bool = False, quiet: bool = False) -> RunSummary:

@@ -338,11 +338,14 @@ def absent_sensors(piece: Piece) -> dict[str, np.ndarray]:
     (the message then stays a sample, its NaN values kept)."""
     out: dict[str, np.ndarray] = {}
     for name in ("gyro", "accel"):
+        cov = piece.columns.get(f"{name}_cov")  # a format without covariances marks nothing
+        if cov is None or f"{name}_x" not in piece.columns:
+            continue
         marked = np.isnan(piece.columns[f"{name}_x"])
         if marked.any():
             for axis in "yz":
                 marked &= np.isnan(piece.columns[f"{name}_{axis}"])
-            marked &= piece.columns[f"{name}_cov"][:, 0] == -1.0
+            marked &= cov[:, 0] == -1.0
             if marked.any():
                 out[name] = marked
     if len(out) == 2:

@@ -25,8 +25,8 @@ from mcap.writer import Writer as RawMcapWriter
 from rosbags.typesys import Stores, get_typestore
 from rosbags.typesys.base import Nodetype
 
+from imupipe.pipeline.corrected import write_corrected
 from imupipe.pipeline.mcap_writer import McapTableWriter, write_mcap
-from imupipe.pipeline.run import write_corrected
 from imupipe.readers.dispatch import carry_over, iter_input, read_input
 from imupipe.readers.spec import InputSpec
 from imupipe.readers.table import has_sensor, sensor
@@ -573,7 +573,8 @@ def test_run_keeps_every_field_of_every_message(generated, run_outputs, name, ti
 @pytest.fixture(scope="module")
 def convert_outputs(generated, tmp_path_factory):
     """``imupipe convert`` of every generated log with a three-sensor linear calibration, once
-    per time source."""
+    per time source, streamed in batches of 150 rows (``imupipe run`` above reads each of these
+    logs as one batch)."""
     d = tmp_path_factory.mktemp("convert")
     cal = _calibration(d / "cal.json", CHAIN)
     outs = {}
@@ -582,7 +583,7 @@ def convert_outputs(generated, tmp_path_factory):
         logs = [generated / name for name in WRITERS]
         proc = run_cli(
             "convert", "--calibration", cal, "--out", d / time, "--config", d / f"{time}.toml",
-            "-j", "1", "--quiet", *logs,
+            "-j", "1", "--batch-rows", "150", "--quiet", *logs,
         )  # fmt: skip
         assert proc.returncode == 0, proc.stderr
         outs[time] = d / time
@@ -872,3 +873,26 @@ def test_writer_memory_is_bounded_by_a_slice(tmp_path):
     assert (tmp_path / "10000.mcap").stat().st_size > 0
     assert peaks[10_000] < peaks[n] / 8, peaks
     assert peaks[10_000] < 30e6, peaks
+
+
+@pytest.mark.parametrize("name", ["log.mcap", "log.bag", "log.db3", "log.csv"])
+def test_every_writer_round_trips_nan_and_absent_sensors(tmp_path, name):
+    """``imupipe simulate``'s writers (MCAP, ROS 1 bag, ROS 2 bag, CSV) keep a NaN value as NaN
+    and an absent gyro absent: read back, the table holds the same samples."""
+    from imupipe.pipeline.simulate import write_log
+    from imupipe.readers.table import make_table
+
+    rng = np.random.default_rng(3)
+    accel = rng.normal(size=(50, 3))
+    accel[7, 0] = np.nan  # one axis: the CSV's other cells keep the row a sample
+    mag = rng.normal(0, 3e-5, (50, 3))
+    mag[9, 1] = np.nan  # (a row of three 'nan' CSV cells: see NAN_CELLS)
+    t = T0 + np.arange(50, dtype=np.int64) * 10_000_000
+    table = make_table(t, accel=accel, mag=mag)
+    write_log(tmp_path / name, table)
+    back, _ = read_input(InputSpec(path=tmp_path / name))
+    assert not has_sensor(back, "gyro") and has_sensor(back, "accel")
+    np.testing.assert_array_equal(sensor(back, "accel").values, accel)
+    np.testing.assert_array_equal(sensor(back, "accel").t_ns, t)
+    np.testing.assert_array_equal(sensor(back, "mag").values, mag)
+    np.testing.assert_array_equal(sensor(back, "mag").t_ns, t)
