@@ -226,6 +226,17 @@ def _fill_record_headers(
     head["pub"] = pub
 
 
+def _conform(table: pa.Table, schema: pa.Schema) -> pa.Table:
+    """``table`` with the columns of ``schema`` (a column it lacks: null, so the default)."""
+    columns = [
+        table.column(f.name).cast(f.type)
+        if f.name in table.column_names
+        else pa.nulls(table.num_rows, f.type)
+        for f in schema
+    ]
+    return pa.Table.from_arrays(columns, schema=schema)
+
+
 def _where_to(table: pa.Table) -> tuple[Any, Any]:
     """The table metadata that the writer uses: topics, and the default frame_ids where rows have
     none of their own."""
@@ -388,7 +399,7 @@ class McapTableWriter:
         if self._rows and _where_to(table) != _where_to(self._rows[0]):
             self._write_slice(self._queued)  # other topics or frames: not one slice
         if self._rows and table.schema != self._rows[0].schema:
-            table = table.select(self._rows[0].column_names).cast(self._rows[0].schema)
+            table = _conform(table, self._rows[0].schema)
         self._rows.append(table)
         self._queued += table.num_rows
         while self._queued >= self.slice_rows:
