@@ -23,7 +23,13 @@ from imupipe.pipeline.errors import ImupipeError
 from imupipe.readers.decoded import COLUMNS, STREAM_TYPES, normalize_type, select_topics
 from imupipe.readers.dispatch import detect_format, log_sources, read_input
 from imupipe.readers.spec import InputSpec
-from imupipe.readers.table import SENSOR_COLUMNS, STREAM_OF_SENSOR, counts, sensor
+from imupipe.readers.table import (
+    SENSOR_COLUMNS,
+    STREAM_OF_SENSOR,
+    counts,
+    has_sensor,
+    stream_mask,
+)
 
 BASE_COLUMNS = ["t_ns", "log_time_ns", "frame_id"]
 
@@ -52,13 +58,17 @@ def inspect(spec: InputSpec) -> dict[str, Any]:
         streams = {}
         filled = ["t_ns"]
         present = counts(table)
-        for stream, first in (("imu", "gyro"), ("mag", "mag"), ("temperature", "temperature")):
+        t_ns = table.column("t_ns").to_numpy()
+        for stream in ("imu", "mag", "temperature"):
             if stream in present:
-                streams[stream] = {"source": "csv columns", **_span(sensor(table, first).t_ns)}
+                streams[stream] = {
+                    "source": "csv columns",
+                    **_span(t_ns[stream_mask(table, stream)]),
+                }
                 filled += [
                     c
                     for s, cols in SENSOR_COLUMNS.items()
-                    if STREAM_OF_SENSOR[s] == stream
+                    if STREAM_OF_SENSOR[s] == stream and has_sensor(table, s)
                     for c in cols
                 ]
         return {

@@ -13,7 +13,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from collections.abc import Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -23,12 +23,12 @@ import pyarrow as pa
 from imupipe.pipeline.atomic import staged_outputs
 from imupipe.pipeline.calibration_file import fitted_on
 from imupipe.pipeline.config import Config, load_config
+from imupipe.pipeline.corrected import write_corrected
 from imupipe.pipeline.exports import export_all
-from imupipe.pipeline.mcap_writer import write_mcap
 from imupipe.pipeline.progress import progress_bar
 from imupipe.pipeline.version import VERSION
-from imupipe.readers.dispatch import carry_over, read_input
-from imupipe.readers.table import SENSOR_COLUMNS, STREAM_OF_SENSOR, has_stream, sensor
+from imupipe.readers.dispatch import read_input
+from imupipe.readers.table import SENSOR_COLUMNS, has_sensor, sensor
 from imupipe.stages.base import NullRecorder, StageContext
 from imupipe.stages.registry import stage_class
 from imupipe.stages.steps import Step, apply_chain
@@ -37,10 +37,14 @@ from imupipe.stages.steps import Step, apply_chain
 class CorrectedTables(Mapping[str, pa.Table]):
     """Every input as corrected by the chain so far, computed on first use and kept: when the
     chain grows (:meth:`extend`), a kept table gets only the new steps, never the whole chain
-    again."""
+    again. An input not in ``raw`` is read with ``read(name)`` when a stage first asks for it."""
 
-    def __init__(self, raw: Mapping[str, pa.Table]) -> None:
+    def __init__(
+        self, raw: dict[str, pa.Table], names: list[str], read: Callable[[str], pa.Table]
+    ) -> None:
         self._raw = raw
+        self._names = names
+        self._read = read
         self.chain: list[Step] = []
         self._kept: dict[str, tuple[pa.Table, int]] = {}  # input -> (table, steps applied)
 
@@ -52,7 +56,16 @@ class CorrectedTables(Mapping[str, pa.Table]):
         inputs one stage uses are held corrected besides the raw tables)."""
         self._kept = {k: v for k, v in self._kept.items() if k == name}
 
+    def release(self) -> None:
+        """Forget every table (the stages are done; the outputs are streamed from the logs)."""
+        self._raw.clear()
+        self._kept.clear()
+
     def __getitem__(self, name: str) -> pa.Table:
+        if name not in self._names:
+            raise KeyError(name)
+        if name not in self._raw:
+            self._raw[name] = self._read(name)
         table, applied = self._kept.get(name, (self._raw[name], 0))
         if applied < len(self.chain):
             table = apply_chain(table, self.chain[applied:])
@@ -60,10 +73,10 @@ class CorrectedTables(Mapping[str, pa.Table]):
         return table
 
     def __iter__(self) -> Iterator[str]:
-        return iter(self._raw)
+        return iter(self._names)
 
     def __len__(self) -> int:
-        return len(self._raw)
+        return len(self._names)
 
 
 @dataclass
@@ -87,7 +100,7 @@ def calibration_document(
 
 def record_sensors(recorder: Any, prefix: str, table: pa.Table, sensors: tuple[str, ...]) -> None:
     for name in sensors:
-        if has_stream(table, STREAM_OF_SENSOR[name]):
+        if has_sensor(table, name):
             data = sensor(table, name)
             axes = tuple(c.split("_")[-1] for c in SENSOR_COLUMNS[name])
             recorder.series(f"{prefix}/{name}", data.t_ns, data.values, axes)
@@ -98,18 +111,23 @@ def run(config: Config | str | Path, *, spawn: bool = False, quiet: bool = False
     cfg = config if isinstance(config, Config) else load_config(config)
     out_dir = cfg.output.dir
     raw: dict[str, pa.Table] = {}
-    n_steps = len(cfg.inputs) + len(cfg.stages) + len(cfg.output.apply_to) + 1
+    used = [name for name in cfg.inputs if any(st.input == name for st in cfg.stages)]
+    n_steps = len(used) + len(cfg.stages) + len(cfg.output.apply_to) + 1
+
+    def read(name: str) -> pa.Table:
+        table, warnings = read_input(cfg.inputs[name])
+        for w in warnings:
+            if not quiet:
+                print(f"imupipe: warning: [inputs.{name}] {w}", file=sys.stderr)
+        return table
+
     with progress_bar("imupipe run", total=n_steps, quiet=quiet) as bar:
-        for name, spec in cfg.inputs.items():
+        for name in used:  # inputs only written (apply_to) are never held: streamed below
             bar.describe(f"reading {name}")
-            table, warnings = read_input(spec)
-            for w in warnings:
-                if not quiet:
-                    print(f"imupipe: warning: [inputs.{name}] {w}", file=sys.stderr)
-            raw[name] = table
+            raw[name] = read(name)
             bar.advance()
 
-        tables = CorrectedTables(raw)
+        tables = CorrectedTables(raw, list(cfg.inputs), read)
         results: dict[str, Any] = {}
         fitted: list[dict[str, Any]] = []  # fitted_on of each chain entry
         with staged_outputs() as out:
@@ -172,16 +190,12 @@ def run(config: Config | str | Path, *, spawn: bool = False, quiet: bool = False
                 out.write_text(out_dir / fname, text)
                 files.append(out_dir / fname)
             counts: dict[str, dict[str, int]] = {}
+            tables.release()
             for name in cfg.output.apply_to:
                 bar.describe(f"writing {name}.mcap")
-                tables.keep_only(name)
-                corrected = tables[name]
                 target = out_dir / f"{name}.mcap"
-                counts[name] = write_mcap(
-                    out.path(target),
-                    corrected,
-                    calibration=doc,
-                    carry_over=carry_over(cfg.inputs[name]),
+                counts[name] = write_corrected(
+                    out.path(target), cfg.inputs[name], tables.chain, doc
                 )
                 files.append(target)
                 bar.advance()

@@ -258,7 +258,8 @@ def _scaled(columns: list[pa.Array], factor: float) -> tuple[np.ndarray, np.ndar
         values[:, i] = column.to_numpy(zero_copy_only=False)
     if factor != 1.0:
         values *= factor
-    valid = np.column_stack([pc.is_valid(c).to_numpy(zero_copy_only=False) for c in columns]).all(
+    # a row holds a sample where any axis has a value; an empty cell beside it is NaN (kept)
+    valid = np.column_stack([pc.is_valid(c).to_numpy(zero_copy_only=False) for c in columns]).any(
         axis=1
     )
     return values, valid
@@ -370,20 +371,8 @@ def read_csv(spec: InputSpec) -> tuple[pa.Table, list[str]]:
     t_ns = _time_ns(path, m, cols, n, warnings)
     cols = None  # free the parsed columns before the table is built (peak memory)
 
-    imu_valid = None
-    if gyro is not None or accel is not None:
-        if gyro is None or accel is None:
-            missing = "gyro" if gyro is None else "accel"
-            warnings.append(f"{path}: no {missing} columns; {missing} is left as zeros")
-            zero = (np.zeros((n, 3)), np.ones(n, dtype=bool))
-            gyro = gyro or zero
-            accel = accel or zero
-        imu_valid = gyro[1] & accel[1]
-        partial = int(np.count_nonzero(gyro[1] != accel[1]))
-        if partial:
-            warnings.append(
-                f"{path}: {partial} rows have gyro or accel but not both; they are not IMU samples"
-            )
+    # each sensor keeps its own validity: a row with gyro but no accel (or a file with only one
+    # of them) is an IMU sample whose other sensor is absent (null), never zeros
     table = make_table(
         t_ns,
         gyro=None if gyro is None else gyro[0],
@@ -391,7 +380,8 @@ def read_csv(spec: InputSpec) -> tuple[pa.Table, list[str]]:
         mag=None if mag is None else mag[0],
         temperature=None if temperature is None else temperature[0][:, 0],
         valid={
-            "imu": imu_valid if imu_valid is not None else np.zeros(n, bool),
+            "gyro": gyro[1] if gyro is not None else np.zeros(n, bool),
+            "accel": accel[1] if accel is not None else np.zeros(n, bool),
             "mag": mag[1] if mag is not None else np.zeros(n, bool),
             "temperature": temperature[1] if temperature is not None else np.zeros(n, bool),
         },

@@ -65,13 +65,15 @@ def normalize_type(name: str) -> str:
 @dataclass
 class Piece:
     """Decoded messages of one stream: header ``stamp`` and ``log`` time (int64 ns), ``frame``
-    (Arrow strings) and ``columns`` (table column -> (n,) or (n, 9) float64, see
-    :data:`COLUMNS`)."""
+    (Arrow strings), ``columns`` (table column -> (n,) or (n, 9) float64, see
+    :data:`COLUMNS`) and ``pub``, the publish time (int64 ns; None where the format has none:
+    ROS bags)."""
 
     stamp: np.ndarray
     log: np.ndarray
     frame: pa.Array
     columns: dict[str, np.ndarray]
+    pub: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.stamp.shape[0])
@@ -85,6 +87,7 @@ def decode_piece(
     stream: str,
     encoding: str,
     where: str,
+    pub: np.ndarray | None = None,
 ) -> Piece:
     """Decode one chunk's messages of ``stream`` (payloads in ``buf``) into a :class:`Piece`;
     numpy path first, rosbags' deserializer for layouts it does not take. A bad payload is a
@@ -107,7 +110,7 @@ def decode_piece(
             f"{exc.reason}"
         ) from None
     names = [name for name, _, _ in COLUMNS[stream]]
-    return Piece(stamp, log, frame, dict(zip(names, cols, strict=True)))
+    return Piece(stamp, log, frame, dict(zip(names, cols, strict=True)), pub)
 
 
 def select_topics(path: Path | str, spec: InputSpec, types: Mapping[str, str]) -> dict[str, str]:
@@ -177,8 +180,9 @@ def _take(piece: Piece, order: np.ndarray) -> Piece:
     """``piece`` reordered; its columns are replaced one at a time (memory: one column extra)."""
     for name in list(piece.columns):
         piece.columns[name] = piece.columns.pop(name)[order]
+    pub = None if piece.pub is None else piece.pub[order]
     return Piece(
-        piece.stamp[order], piece.log[order], piece.frame.take(pa.array(order)), piece.columns
+        piece.stamp[order], piece.log[order], piece.frame.take(pa.array(order)), piece.columns, pub
     )
 
 
@@ -196,11 +200,15 @@ def concat(pieces: list[Piece], stream: str) -> Piece:
     columns = {}
     for name, _, _ in COLUMNS[stream]:
         columns[name] = np.concatenate([p.columns.pop(name) for p in pieces])
+    pubs = None
+    if any(p.pub is not None for p in pieces):  # the log time stands in where there is none
+        pubs = np.concatenate([p.log if p.pub is None else p.pub for p in pieces])
     joined = Piece(
         np.concatenate([p.stamp for p in pieces]),
         np.concatenate([p.log for p in pieces]),
         pa.concat_arrays([p.frame for p in pieces]),
         columns,
+        pubs,
     )
     pieces.clear()
     return joined
@@ -258,10 +266,15 @@ class StreamBuffer:
         if full is None or self.spill or a + m > len(full.stamp):
             # own copies: the piece's columns may be views into its chunk's buffer
             columns = {name: np.array(col) for name, col in piece.columns.items()}
-            self.spill.append(Piece(piece.stamp, piece.log, piece.frame, columns))
+            self.spill.append(Piece(piece.stamp, piece.log, piece.frame, columns, piece.pub))
             return
         full.stamp[a : a + m] = piece.stamp
         full.log[a : a + m] = piece.log
+        if piece.pub is not None and full.pub is None:
+            full.pub = np.empty_like(full.log)
+            full.pub[:a] = full.log[:a]
+        if full.pub is not None:
+            full.pub[a : a + m] = piece.log if piece.pub is None else piece.pub
         for name, col in piece.columns.items():
             full.columns[name][a : a + m] = col
         self.frames.append(piece.frame)
@@ -280,6 +293,7 @@ class StreamBuffer:
                     full.log[:n],
                     frame,
                     {k: v[:n] for k, v in full.columns.items()},
+                    None if full.pub is None else full.pub[:n],
                 )
             )
         self.full, self.frames = None, []
@@ -288,8 +302,20 @@ class StreamBuffer:
         return concat(parts, self.stream)
 
 
-def _column(n: int, rows: np.ndarray | None, values: np.ndarray) -> pa.Array:
-    """A float64 (n,) or fixed-size-list (n, 9) column holding ``values`` at ``rows``, null elsewhere."""
+def _column(
+    n: int, rows: np.ndarray | None, values: np.ndarray, absent: np.ndarray | None = None
+) -> pa.Array:
+    """A float64 (n,) or fixed-size-list (n, 9) column holding ``values`` at ``rows``, null elsewhere
+    (and null where ``absent``, a mask over ``values``)."""
+    if absent is not None:
+        mask = np.ones(n, dtype=bool) if rows is not None else np.zeros(n, dtype=bool)
+        if rows is not None:
+            mask[rows] = False
+        mask[absent if rows is None else rows[absent]] = True
+        full = values if rows is None else np.zeros(n, dtype=np.float64)
+        if rows is not None:
+            full[rows] = values
+        return pa.array(full, pa.float64(), mask=mask)
     if rows is None:
         if values.ndim == 1:
             return pa.array(values, pa.float64())
@@ -303,6 +329,29 @@ def _column(n: int, rows: np.ndarray | None, values: np.ndarray) -> pa.Array:
         return pa.array(full, pa.float64(), mask=mask)
     flat = pa.array(full.reshape(-1), pa.float64())
     return pa.FixedSizeListArray.from_arrays(flat, values.shape[1], mask=pa.array(mask))
+
+
+def absent_sensors(piece: Piece) -> dict[str, np.ndarray]:
+    """Imu messages that mark gyro or accel as "no data" (sensor_msgs/Imu: element 0 of the
+    covariance is -1) *and* carry NaN in that vector: what the corrected MCAP writes for a CSV
+    without that sensor. The sensor is read back as absent (null) there, unless both are marked
+    (the message then stays a sample, its NaN values kept)."""
+    out: dict[str, np.ndarray] = {}
+    for name in ("gyro", "accel"):
+        cov = piece.columns.get(f"{name}_cov")  # a format without covariances marks nothing
+        if cov is None or f"{name}_x" not in piece.columns:
+            continue
+        marked = np.isnan(piece.columns[f"{name}_x"])
+        if marked.any():
+            for axis in "yz":
+                marked &= np.isnan(piece.columns[f"{name}_{axis}"])
+            marked &= cov[:, 0] == -1.0
+            if marked.any():
+                out[name] = marked
+    if len(out) == 2:
+        both = out["gyro"] & out["accel"]
+        out = {k: v & ~both for k, v in out.items() if np.any(v & ~both)}
+    return out
 
 
 def assemble(
@@ -355,22 +404,32 @@ def assemble(
     for s in (s for s in STREAM_TYPES if s in ordered):  # every chosen stream: one schema per input
         piece = ordered[s][1]
         where_rows = rows.get(s, np.zeros(0, np.int64))
+        absent = absent_sensors(piece) if s == "imu" else {}
         for name in (c for c, _, _ in COLUMNS[s] if c in piece.columns):  # ULog: no covariances
             target = columns if name in columns else extra
-            target[name] = _column(n, where_rows, piece.columns.pop(name))
+            marked = absent.get(name.split("_")[0]) if name in columns else None
+            target[name] = _column(n, where_rows, piece.columns.pop(name), marked)
 
-    logs = [ordered[s][1].log for s in streams]
-    log_all = np.concatenate(logs) if logs else np.zeros(0, np.int64)
+    def merged(times: list[np.ndarray]) -> pa.Array:
+        joined = np.concatenate(times) if times else np.zeros(0, np.int64)
+        return pa.array(joined if merge is None else joined[merge], pa.int64())
+
     frames = [ordered[s][1].frame for s in streams]
     frame_all = pa.concat_arrays(frames) if frames else pa.array([], pa.string())
     if merge is not None:
-        log_all = log_all[merge]
         frame_all = frame_all.take(pa.array(merge))
-    fields = list(SCHEMA) + [
-        pa.field("log_time_ns", pa.int64()),
-        pa.field("frame_id", pa.string()),
-    ]
-    arrays = [columns[f.name] for f in SCHEMA] + [pa.array(log_all, pa.int64()), frame_all]
+    fields = list(SCHEMA) + [pa.field("log_time_ns", pa.int64())]
+    arrays = [columns[f.name] for f in SCHEMA] + [merged([ordered[s][1].log for s in streams])]
+    # what the writer needs to give every message back its own times (see readers.table)
+    if time == "log":
+        fields.append(pa.field("header_stamp_ns", pa.int64()))
+        arrays.append(merged([ordered[s][1].stamp for s in streams]))
+    if any(p.pub is not None for _, p in ordered.values()):
+        fields.append(pa.field("publish_time_ns", pa.int64()))
+        pieces_ = [ordered[s][1] for s in streams]
+        arrays.append(merged([p.log if p.pub is None else p.pub for p in pieces_]))
+    fields.append(pa.field("frame_id", pa.string()))
+    arrays.append(frame_all)
     for name, array in extra.items():
         fields.append(
             pa.field(name, COV if isinstance(array.type, pa.FixedSizeListType) else pa.float64())
