@@ -31,7 +31,9 @@ nothing is resampled silently; a stage that needs one stream at another's timest
 :func:`interpolate` explicitly.
 
 **Metadata** (schema metadata key ``imupipe``, JSON): ``source`` (file), ``format``, ``topics``
-(stream -> topic name), ``types`` (stream -> message type) and ``frame_id`` (stream -> frame).
+(stream -> topic name), ``types`` (stream -> message type) and ``frame_id`` (stream -> frame);
+``units`` (sensor -> ``"raw"``) where a sensor's values are its own counts, not SI (a CSV
+mapped with ``mag_unit = "raw"``...), so that stages word their figures in counts.
 """
 
 from __future__ import annotations
@@ -153,7 +155,7 @@ def _as_arrow(column: pa.Array | np.ndarray, typ: pa.DataType) -> pa.Array:
 
 
 def metadata(table: pa.Table) -> dict[str, Any]:
-    """The table's imupipe metadata (source, format, topics, types, frame_id)."""
+    """The table's imupipe metadata (source, format, topics, types, frame_id, units)."""
     raw = (table.schema.metadata or {}).get(META_KEY)
     return json.loads(raw) if raw else {}
 

@@ -1,4 +1,5 @@
-"""``allan`` stage: IMU noise identification from a long static recording (seed 001).
+"""``allan`` stage: IMU noise identification from a long static recording (IEEE Std 952-1997
+Annex C; the imu_utils / Kalibr workflow).
 
 Computes a stability deviation (overlapping Allan deviation by default; see
 :mod:`imupipe.stages.allan_estimators`) of every gyro and accelerometer axis at once, its 68 %

@@ -1,4 +1,4 @@
-"""The five-term Allan-variance noise model (seed 001, IEEE Std 952) and its fit.
+"""The five-term Allan-variance noise model (IEEE Std 952-1997 Annex C) and its fit.
 
 Model, continuous-time SI parameters (gyro units shown; accel: m/s, m/s/sqrt(Hz), m/s^2,
 m/s^2/sqrt(Hz), m/s^3)::
