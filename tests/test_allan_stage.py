@@ -270,3 +270,26 @@ def test_interval_selects_samples():
     assert out.results["metrics"]["samples"] == 10_001
     assert out.results["metrics"]["static"] is True
     assert out.results["gyro"]["x"]["N"] == pytest.approx(1e-4, rel=0.05)
+
+
+def test_analysis_only_run_writes_no_corrected_copy(tmp_path):
+    """``[output] apply_to`` left out: a run whose stages only analyse (allan) writes no
+    corrected MCAP (nothing was corrected); an explicit list still writes its inputs."""
+    from conftest import run_cli
+
+    table, _ = simulate("static", {"duration_s": 120.0, "rate_hz": 50.0}, seed=2)
+    write_log(tmp_path / "static.csv", table)
+    base = '[inputs.static]\npath = "static.csv"\n\n[[stages]]\ntype = "allan"\ntaus = "octave"\n\n'
+    for out, extra in (("default", ""), ("listed", 'apply_to = ["static"]\n')):
+        (tmp_path / f"{out}.toml").write_text(
+            base + f'[output]\ndir = "{out}"\nrerun = false\n' + extra
+        )
+        proc = run_cli("run", tmp_path / f"{out}.toml", "--quiet")
+        assert proc.returncode == 0, proc.stderr
+    assert sorted(p.name for p in (tmp_path / "default").iterdir()) == [
+        "allan_curves.csv",
+        "allan_imu_utils.yaml",
+        "calibration.json",
+        "imu.yaml",
+    ]
+    assert (tmp_path / "listed" / "static.mcap").stat().st_size > 0
