@@ -74,7 +74,7 @@ class ImuSeries:
     @property
     def span_s(self) -> float:
         """Slots times the period: what the deviations cover (2 h at 400 Hz: 2.88 M slots)."""
-        return float((self.clock.slots[-1] + 1) / self.rate_hz)
+        return float(self.clock.n_slots / self.rate_hz)
 
 
 def _take(data: SensorData, keep: np.ndarray) -> SensorData:
@@ -143,7 +143,7 @@ class AllanStage(Stage):
         static = self._check_static(t_ns, data, ctx)
 
         x = est.rate_to_phase(
-            [fill_lost(clock.slots, data[s][:, i]) for s in self.sensors for i in range(3)],
+            [fill_lost(clock, data[s][:, i]) for s in self.sensors for i in range(3)],
             1.0 / rate_hz,
         )
         del data, series  # the phase (6, n + 1) is all the estimators need
@@ -259,29 +259,32 @@ class AllanStage(Stage):
         stretch without a gap longer than ``max_gap`` periods (a warning)."""
         opts = self.options
         gyro, accel = sensor(table, "gyro"), sensor(table, "accel")
-        number = np.arange(len(gyro))  # IMU sample numbers of the input, for messages
+        number = None  # IMU sample numbers of the input, for messages (None: 0, 1, 2, ...)
         if opts.interval is not None:
             keep = select_interval(gyro, opts.interval)
             gyro, accel = _take(gyro, keep), _take(accel, keep)
-            number = number[keep]
-        ok = np.isfinite(gyro.values).all(axis=1) & np.isfinite(accel.values).all(axis=1)
-        if not ok.all():
-            both = SensorData(gyro.t_ns, np.column_stack([gyro.values, accel.values]), number)
-            kept = ctx.finite(both, "IMU (gyro and accel)", minimum=3)
+            number = np.flatnonzero(keep)
+        # one sum per sensor tells whether any value is NaN or Inf (no (n, 3) mask)
+        if not (np.isfinite(gyro.values.sum()) and np.isfinite(accel.values.sum())):
+            ok = np.isfinite(gyro.values).all(axis=1) & np.isfinite(accel.values).all(axis=1)
+            rows = np.arange(len(gyro)) if number is None else number
+            both = SensorData(gyro.t_ns, np.column_stack([gyro.values, accel.values]), rows)
+            number = ctx.finite(both, "IMU (gyro and accel)", minimum=3).rows
             gyro, accel = _take(gyro, ok), _take(accel, ok)
-            number = kept.rows
+
+        def num(i: int) -> int:
+            return int(i if number is None else number[i])
+
         t_ns = gyro.t_ns
         if len(t_ns) < 3:
             raise ctx.fail(f"only {len(t_ns)} IMU samples")
         dt = np.diff(t_ns)
-        if np.any(dt <= 0):
+        if dt.min() <= 0:
             i = int(np.flatnonzero(dt <= 0)[0])
-            raise ctx.fail(
-                f"time does not increase at IMU sample {number[i + 1]} (step {dt[i]} ns)"
-            )
+            raise ctx.fail(f"time does not increase at IMU sample {num(i + 1)} (step {dt[i]} ns)")
         data = {"gyro": gyro.values, "accel": accel.values}
         clock = sample_clock(t_ns)
-        breaks = np.flatnonzero(clock.lost + 1 > opts.max_gap)
+        breaks = np.flatnonzero(clock.lost + 1 > opts.max_gap) if clock.n_lost else []
         if len(breaks):
             start, stop = longest_run(breaks, len(t_ns))
             worst = int(breaks[np.argmax(clock.lost[breaks])])
@@ -289,22 +292,23 @@ class AllanStage(Stage):
             ctx.warn(
                 f"{len(breaks)} gap(s) longer than max_gap = {opts.max_gap:g} sample periods (the "
                 f"longest: {dt[worst] * 1e-9:.3f} s, {clock.lost[worst]} samples missing, after "
-                f"IMU sample {number[worst]} at t = {(t_ns[worst] - t_ns[0]) * 1e-9:.3f} s); the "
-                f"deviations use the longest stretch without one: IMU samples {number[start]} to "
-                f"{number[stop - 1]}, {(t_ns[stop - 1] - t_ns[start]) * 1e-9:.1f} s of "
+                f"IMU sample {num(worst)} at t = {(t_ns[worst] - t_ns[0]) * 1e-9:.3f} s); the "
+                f"deviations use the longest stretch without one: IMU samples {num(start)} to "
+                f"{num(stop - 1)}, {(t_ns[stop - 1] - t_ns[start]) * 1e-9:.1f} s of "
                 f"{whole:.1f} s (set interval to choose another)"
             )
-            t_ns, number = t_ns[start:stop], number[start:stop]
+            number = np.arange(start, stop) if number is None else number[start:stop]
+            t_ns = t_ns[start:stop]
             data = {k: v[start:stop] for k, v in data.items()}
             clock = sample_clock(t_ns)
-        rate_hz = float(clock.slots[-1] / ((t_ns[-1] - t_ns[0]) * 1e-9))
+        rate_hz = float((clock.n_slots - 1) / ((t_ns[-1] - t_ns[0]) * 1e-9))
         if clock.n_lost:
             worst = int(np.argmax(clock.lost))
             ctx.warn(
                 f"{clock.n_lost} IMU samples missing in {clock.n_gaps} gap(s) "
-                f"({100 * clock.n_lost / (clock.slots[-1] + 1):.2g} % of the "
+                f"({100 * clock.n_lost / clock.n_slots:.2g} % of the "
                 f"{rate_hz:.4g} Hz clock; the longest: {clock.lost[worst]} after IMU sample "
-                f"{number[worst]}) are filled by linear interpolation; timestamp jitter "
+                f"{num(worst)}) are filled by linear interpolation; timestamp jitter "
                 f"({100 * clock.jitter:.2g} % of the period, RMS) is not counted as missing"
             )
         return ImuSeries(t_ns, data, clock, rate_hz)

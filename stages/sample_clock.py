@@ -28,23 +28,30 @@ import numpy as np
 
 @dataclass(frozen=True)
 class SampleClock:
-    """``period_ns`` the nominal period (median step), ``slots`` (n,) int64 each sample's slot on
-    the nominal clock (``slots[0] = 0``), ``lost`` (n - 1,) samples lost in each step,
-    ``jitter`` the RMS step deviation of the steps that lost nothing, in periods."""
+    """``period_ns`` the nominal period (median step), ``lost`` (n - 1,) the samples lost in
+    each step, ``jitter`` the RMS step deviation of the steps that lost nothing, in periods."""
 
     period_ns: float
-    slots: np.ndarray
     lost: np.ndarray
     jitter: float
+    n_lost: int
 
     @property
-    def n_lost(self) -> int:
-        return int(self.slots[-1] + 1 - len(self.slots)) if len(self.slots) else 0
+    def n_slots(self) -> int:
+        """Slots of the nominal clock from the first sample to the last, both included."""
+        return len(self.lost) + 1 + self.n_lost
+
+    @property
+    def slots(self) -> np.ndarray:
+        """(n,) int64: each sample's slot on the nominal clock (the first at 0)."""
+        slots = np.zeros(len(self.lost) + 1, dtype=np.int64)
+        np.cumsum(self.lost + 1, out=slots[1:])
+        return slots
 
     @property
     def n_gaps(self) -> int:
         """Steps that lost one sample or more."""
-        return int(np.count_nonzero(self.lost))
+        return int(np.count_nonzero(self.lost)) if self.n_lost else 0
 
 
 def sample_clock(t_ns: np.ndarray) -> SampleClock:
@@ -53,26 +60,28 @@ def sample_clock(t_ns: np.ndarray) -> SampleClock:
     t_ns = np.asarray(t_ns, dtype=np.int64)
     dt = np.diff(t_ns)
     period = float(np.median(dt))
-    one = np.round(dt / period) - 1.0
-    lost = one
+    ratio = dt / period
+    if ratio.max() < 1.5:  # no step reaches a second slot: nothing lost (the common case)
+        ratio -= 1.0
+        jitter = float(np.sqrt(np.mean(ratio * ratio)))
+        return SampleClock(period, np.zeros(len(dt), dtype=np.int64), jitter, 0)
+    lost = np.round(ratio) - 1.0
     if len(dt) >= 2:
         two = np.round((t_ns[2:] - t_ns[:-2]) / period) - 2.0  # steps (i, i + 1)
         lost = np.minimum(lost, np.r_[two, np.inf])  # the window starting at step i
         lost = np.minimum(lost, np.r_[np.inf, two])  # the window ending at step i
     lost = np.maximum(lost, 0.0).astype(np.int64)
-    slots = np.zeros(len(t_ns), dtype=np.int64)
-    np.cumsum(lost + 1, out=slots[1:])
-    clean = dt[lost == 0] / period - 1.0
+    clean = ratio[lost == 0] - 1.0
     jitter = float(np.sqrt(np.mean(clean * clean))) if len(clean) else 0.0
-    return SampleClock(period, slots, lost, jitter)
+    return SampleClock(period, lost, jitter, int(lost.sum()))
 
 
-def fill_lost(slots: np.ndarray, values: np.ndarray) -> np.ndarray:
-    """``values`` (n,) sampled at integer ``slots`` put on every slot ``0 .. slots[-1]``, the
-    lost ones linearly interpolated between their neighbours."""
-    if slots[-1] + 1 == len(slots):
+def fill_lost(clock: SampleClock, values: np.ndarray) -> np.ndarray:
+    """``values`` (n,) sampled on ``clock`` put on every one of its slots, the lost ones
+    linearly interpolated between their neighbours."""
+    if not clock.n_lost:
         return np.asarray(values, dtype=np.float64)
-    return np.interp(np.arange(slots[-1] + 1, dtype=np.float64), slots, values)
+    return np.interp(np.arange(clock.n_slots, dtype=np.float64), clock.slots, values)
 
 
 def longest_run(breaks: np.ndarray, n: int) -> tuple[int, int]:
