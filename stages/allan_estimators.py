@@ -458,12 +458,23 @@ def chi2_quantile(p: float, dof: np.ndarray) -> np.ndarray:
 
 
 def confidence(
-    dev: Deviation, x: np.ndarray, ci: float = 0.683, known: dict[int, np.ndarray] | None = None
+    dev: Deviation,
+    x: np.ndarray,
+    ci: float = 0.683,
+    known: dict[int, np.ndarray] | None = None,
+    monotone: bool = False,
 ) -> Confidence:
     """Noise type, EDF and chi-square bounds of ``dev`` computed on phase ``x`` (k, N).
     Where fewer than 30 decimated points remain for the noise identification, the last
     identified alpha is carried on (Stable32 switches to the B1 bias ratio there). ``known``
-    maps averaging factors to alphas identified before (kept, not identified again)."""
+    maps averaging factors to alphas identified before (kept, not identified again).
+
+    ``monotone``: alpha may only stay or fall as tau grows. Each power law's Allan variance goes
+    as tau^(-alpha - 1), so longer taus are dominated by smaller exponents (an IMU: quantisation,
+    white, flicker, random walk); with few decimated points (30 to 60) the lag-1 method can
+    read a random walk as white phase noise (alpha 2), whose EDF is thousands of times larger,
+    and the bounds of every longer tau collapse (a 20 min simulated gyro with K = 2e-6: K's
+    68 % upper bound came out 1.7e-7)."""
     k = len(x)
     dmax = 3 if dev.kind in ("hdev", "ohdev") else 2
     alphas = np.zeros((len(dev.m), k), dtype=np.int64)
@@ -473,7 +484,7 @@ def confidence(
         if a is None:
             a = noise_alpha(x, int(m), dmax)
         if a is not None:
-            last = a
+            last = np.minimum(a, last) if monotone and i else a
         alphas[i] = last
     edf = edf_of_curve(dev.kind, dev.m, alphas, dev.n_phase)
     edf = np.maximum(edf, 1.0)
@@ -539,7 +550,7 @@ def curve(
     if m is None:
         m = tau_grid(grid, top, points_per_decade)
     dev = deviation_of_phase(x, tau0, kind, m)
-    conf = confidence(dev, x)
+    conf = confidence(dev, x, monotone=True)
     if not refine or len(dev.m) < 3:
         return dev, conf
     j = bends(dev, conf)
@@ -550,4 +561,4 @@ def curve(
         return dev, conf
     known = {int(mi): conf.alpha[i] for i, mi in enumerate(dev.m)}
     merged = _merge(dev, deviation_of_phase(x, tau0, kind, extra))
-    return merged, confidence(merged, x, known=known)
+    return merged, confidence(merged, x, known=known, monotone=True)

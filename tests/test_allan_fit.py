@@ -89,7 +89,7 @@ def test_recovery_kalibr_model_3h():
 
 
 @pytest.mark.slow
-def test_recovery_kalibr_model_8_seeds():
+def test_recovery_kalibr_model_8_runs():
     """The issue's study: 8 seeds x 3 h; the mean over seeds (and the three axes of a sensor,
     the value Kalibr takes) of the N error within 2 % and of the K error within 10 %. Per axis,
     an 8-run mean of K still scatters by about 5 % (1 sigma): printed, not asserted."""
