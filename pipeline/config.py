@@ -302,7 +302,10 @@ def load_config(path: str | Path) -> Config:
     out_dir = Path(out_raw.get("dir", "out"))
     if not out_dir.is_absolute():
         out_dir = base / out_dir
-    apply_to = out_raw.get("apply_to", list(inputs))
+    # default: every input when a stage corrects (a calibration), none for analyses alone (an
+    # Allan run of a static recording needs no corrected copy of it)
+    corrects = any(stage_class(st.type).corrects for st in stages)
+    apply_to = out_raw.get("apply_to", list(inputs) if corrects else [])
     if not isinstance(apply_to, list) or not all(isinstance(a, str) for a in apply_to):
         raise ConfigError(f"{path}: [output].apply_to must be a list of input names")
     for name in apply_to:

@@ -373,6 +373,11 @@ def read_csv(spec: InputSpec) -> tuple[pa.Table, list[str]]:
 
     # each sensor keeps its own validity: a row with gyro but no accel (or a file with only one
     # of them) is an IMU sample whose other sensor is absent (null), never zeros
+    meta = {"source": str(path), "format": "csv", "topics": {}, "types": {}, "frame_id": {}}
+    raw = [k for k, v in (("gyro", gyro), ("accel", accel), ("mag", mag)) if v is not None]
+    raw = [k for k in raw if getattr(m, f"{k}_unit") == "raw"]
+    if raw:  # the values are the sensor's own counts, not SI: stages word their figures so
+        meta["units"] = dict.fromkeys(raw, "raw")
     table = make_table(
         t_ns,
         gyro=None if gyro is None else gyro[0],
@@ -386,7 +391,7 @@ def read_csv(spec: InputSpec) -> tuple[pa.Table, list[str]]:
             "temperature": temperature[1] if temperature is not None else np.zeros(n, bool),
         },
         extra=extra or None,
-        metadata={"source": str(path), "format": "csv", "topics": {}, "types": {}, "frame_id": {}},
+        metadata=meta,
     )
     table, moved = sort_by_time(table)
     if moved:

@@ -42,7 +42,9 @@ resampled silently; a stage that needs one stream at another's timestamps calls
 :func:`interpolate` explicitly.
 
 **Metadata** (schema metadata key ``imupipe``, JSON): ``source`` (file), ``format``, ``topics``
-(stream -> topic name), ``types`` (stream -> message type) and ``frame_id`` (stream -> frame).
+(stream -> topic name), ``types`` (stream -> message type) and ``frame_id`` (stream -> frame);
+``units`` (sensor -> ``"raw"``) where a sensor's values are its own counts, not SI (a CSV
+mapped with ``mag_unit = "raw"``...), so that stages word their figures in counts.
 """
 
 from __future__ import annotations
@@ -171,7 +173,7 @@ def _as_arrow(column: pa.Array | np.ndarray, typ: pa.DataType) -> pa.Array:
 
 
 def metadata(table: pa.Table) -> dict[str, Any]:
-    """The table's imupipe metadata (source, format, topics, types, frame_id)."""
+    """The table's imupipe metadata (source, format, topics, types, frame_id, units)."""
     raw = (table.schema.metadata or {}).get(META_KEY)
     return json.loads(raw) if raw else {}
 

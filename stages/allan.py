@@ -1,4 +1,5 @@
-"""``allan`` stage: IMU noise identification from a long static recording (seed 001).
+"""``allan`` stage: IMU noise identification from a long static recording (IEEE Std 952-1997
+Annex C; the imu_utils / Kalibr workflow).
 
 Computes a stability deviation (overlapping Allan deviation by default; see
 :mod:`imupipe.stages.allan_estimators`) of every gyro and accelerometer axis at once, its 68 %
@@ -19,11 +20,20 @@ Outputs: ``results[<name>]`` = ``{"gyro": {"x": {N, B, K, Q, R}, ...}, "accel": 
 Kalibr and ``<name>_imu_utils.yaml`` from these results); Rerun: per axis the log10 deviation with its
 bounds, the fitted model and each fitted term's line over ``log10(tau) * 1000``.
 
-Input checks: NaN samples and time jumps (a step longer than ``max_gap`` nominal periods, or
-time not increasing) are errors naming the sample; a recording too short to give the fit more
-taus than terms is an error; motion (1 s gyro means further than ``motion_threshold`` from the
-mean, or accel-norm 1 s means spreading more than 0.05 g) and a recording under two hours are
-warnings. An analysis stage: it adds nothing to the calibration chain.
+Input. Samples with a NaN or Inf are left out (one counted warning). The stamps are read as a
+sample clock (:mod:`imupipe.stages.sample_clock`): timestamp jitter is told apart from lost
+samples, the lost ones are filled by linear interpolation on the nominal clock (one counted
+warning), and a gap longer than ``max_gap`` periods cuts the recording: the deviations use the
+longest stretch without one (a warning). Time not increasing, or a recording too short to give
+the fit more taus than terms, is an error; motion (1 s gyro means further than
+``motion_threshold`` from the mean, or accel-norm 1 s means spreading more than 0.05 g) is a
+failed check (``accept_failed_checks = true`` fits anyway); under two hours is a warning.
+
+Tau grid (``taus``): ``auto`` (default) computes the octave grid, then refines to thirds of an
+octave where the curve bends (the transitions between noise types, where the slope readings and
+the fit's term boundaries are): about 20-30 taus for two hours at 400 Hz, where ``log``'s 10 per
+decade gives 60 at the same accuracy of the fitted terms (each tau costs one pass over the data).
+An analysis stage: it adds nothing to the calibration chain.
 """
 
 from __future__ import annotations
@@ -35,14 +45,42 @@ from typing import Any, Literal
 import numpy as np
 import pyarrow as pa
 
-from imupipe.readers.table import has_stream, sensor
+from imupipe.readers.table import SensorData, has_stream, sensor
 from imupipe.stages import allan_estimators as est
 from imupipe.stages.allan_fit import TERMS, AllanFit, fit_allan, slope_readings, term_variance
 from imupipe.stages.base import Stage, StageContext, StageOutput
 from imupipe.stages.gyro_bias import select_interval
+from imupipe.stages.sample_clock import SampleClock, fill_lost, longest_run, sample_clock
 from imupipe.stages.stillness import stillness
 
 AXES = ("x", "y", "z")
+
+
+@dataclass
+class ImuSeries:
+    """The IMU samples an Allan run uses: stamps, gyro and accel (n, 3), their sample clock,
+    and the mean rate over the clock's slots (Hz)."""
+
+    t_ns: np.ndarray
+    data: dict[str, np.ndarray]
+    clock: SampleClock
+    rate_hz: float
+
+    @property
+    def duration_s(self) -> float:
+        """From the first stamp to the last."""
+        return float((self.t_ns[-1] - self.t_ns[0]) * 1e-9)
+
+    @property
+    def span_s(self) -> float:
+        """Slots times the period: what the deviations cover (2 h at 400 Hz: 2.88 M slots)."""
+        return float(self.clock.n_slots / self.rate_hz)
+
+
+def _take(data: SensorData, keep: np.ndarray) -> SensorData:
+    return SensorData(data.t_ns[keep], data.values[keep], data.rows[keep])
+
+
 UNITS = {
     "gyro": {
         "Q": "rad",
@@ -68,8 +106,9 @@ class AllanStage(Stage):
     class Options:
         kind: Literal["oadev", "adev", "mdev", "hdev", "ohdev", "totdev"] = "oadev"
         """Deviation: oadev (overlapping Allan, default), adev, mdev, hdev, ohdev, totdev."""
-        taus: Literal["log", "octave", "decade", "all"] = "log"
-        """Tau grid: log (``points_per_decade`` per decade), octave, decade, all."""
+        taus: Literal["auto", "log", "octave", "decade", "all"] = "auto"
+        """Tau grid: auto (octaves, refined to thirds of an octave where the curve bends), log
+        (``points_per_decade`` per decade), octave, decade, all."""
         points_per_decade: int = 10
         terms: list[str] = field(default_factory=lambda: list(TERMS))
         """Model terms to fit (subset of Q, N, B, K, R); unsupported ones come out zero."""
@@ -81,35 +120,33 @@ class AllanStage(Stage):
         """Flag a slope reading that differs from the fit by more than this fraction."""
         interval: list[float] | None = None
         """[start_s, end_s] seconds from the first sample; default the whole input."""
-        max_gap: float = 2.0
-        """A time step longer than this many nominal sample periods is an error (a gap)."""
+        max_gap: float = 10.0
+        """Sample periods: a step that spans more (timestamp jitter told apart from missing
+        samples) is a gap; the deviations use the longest stretch without one (a warning).
+        Missing samples in shorter steps are filled by linear interpolation (counted)."""
         motion_threshold: float = 0.02
-        """rad/s: a 1 s gyro mean further than this from the overall mean warns of motion."""
+        """rad/s: a 1 s gyro mean further than this from the overall mean is motion, a failed
+        check (``accept_failed_checks = true`` to fit anyway)."""
 
     def fit(self, table: pa.Table, ctx: StageContext) -> StageOutput:
         opts = self.options
         self._check_options(ctx)
         if not has_stream(table, "imu"):
             raise ctx.fail("the input has no IMU samples")
-        gyro, accel = sensor(table, "gyro"), sensor(table, "accel")
         if opts.interval is not None and (
             len(opts.interval) != 2 or opts.interval[1] <= opts.interval[0]
         ):
             raise ctx.fail("'interval' must be [start_s, end_s] with end_s > start_s")
-        if opts.interval is None:  # no copies: the whole input
-            t_ns, data = gyro.t_ns, {"gyro": gyro.values, "accel": accel.values}
-        else:
-            mask = select_interval(gyro, opts.interval)
-            t_ns, data = gyro.t_ns[mask], {"gyro": gyro.values[mask], "accel": accel.values[mask]}
-        del gyro, accel
-        rate_hz = self._check_samples(t_ns, data, ctx)
-        duration = (t_ns[-1] - t_ns[0]) * 1e-9
+        series = self._samples(table, ctx)
+        t_ns, data, clock = series.t_ns, series.data, series.clock
+        rate_hz, duration, span = series.rate_hz, series.duration_s, series.span_s
         static = self._check_static(t_ns, data, ctx)
 
         x = est.rate_to_phase(
-            [data[s][:, i] for s in self.sensors for i in range(3)], 1.0 / rate_hz
+            [fill_lost(clock, data[s][:, i]) for s in self.sensors for i in range(3)],
+            1.0 / rate_hz,
         )
-        del data  # the phase (6, n + 1) is all the estimators need
+        del data, series  # the phase (6, n + 1) is all the estimators need
         top = est.max_af(opts.kind, x.shape[1])
         if opts.kind not in FIT_KINDS:  # the fit runs on OADEV at the same taus
             top = min(top, est.max_af("oadev", x.shape[1]))
@@ -120,17 +157,18 @@ class AllanStage(Stage):
                 f"taus on the '{opts.taus}' grid; fitting {len(opts.terms)} terms needs at least "
                 f"{len(opts.terms) + 2} (record longer, or use a denser grid / fewer terms)"
             )
-        if len(t_ns) / rate_hz < 7200.0:  # n sample periods: 2 h at 400 Hz is 2.88 M samples
+        if span < 7200.0:
             ctx.warn(
                 f"the recording lasts {duration / 60:.1f} min; Allan fits want two hours or more "
                 "(B, K and R are poorly determined from a short recording)"
             )
-        dev = est.deviation_of_phase(x, 1.0 / rate_hz, opts.kind, m)
-        conf = est.confidence(dev, x)
-        fdev, fconf = dev, conf
-        if opts.kind not in FIT_KINDS:  # the five-term model is the Allan variance's
-            fdev = est.deviation_of_phase(x, 1.0 / rate_hz, "oadev", m)
-            fconf = est.confidence(fdev, x)
+        tau0, grid, ppd = 1.0 / rate_hz, opts.taus, opts.points_per_decade
+        if opts.kind in FIT_KINDS:
+            dev, conf = est.curve(x, tau0, opts.kind, grid, ppd, top=top)
+            fdev, fconf = dev, conf
+        else:  # the five-term model is the Allan variance's: its grid, the other kind shown
+            fdev, fconf = est.curve(x, tau0, "oadev", grid, ppd, top=top)
+            dev, conf = est.curve(x, tau0, opts.kind, m=fdev.m)
         del x
 
         results: dict[str, Any] = {}
@@ -140,12 +178,16 @@ class AllanStage(Stage):
             "rate_hz": float(rate_hz),
             "kind": opts.kind,
             "fit_kind": fdev.kind,
-            "taus": int(len(m)),
+            "taus": int(len(dev.m)),
             "tau_range_s": [float(dev.taus[0]), float(dev.taus[-1])],
             "static": static,
+            "missing_samples": clock.n_lost,
+            "gaps_filled": clock.n_gaps,
+            "timestamp_jitter": clock.jitter,
             "units": UNITS,
         }
         fits: dict[tuple[str, int], AllanFit] = {}
+        disagreements: list[str] = []
         for col, (name, i) in enumerate((s, i) for s in self.sensors for i in range(3)):
             f = fit_allan(
                 fdev.taus,
@@ -173,13 +215,17 @@ class AllanStage(Stage):
                 "slope_disagrees": disagree,
                 "min_deviation": float(np.min(fdev.dev[:, col])),
                 "tau_at_min_s": float(fdev.taus[int(np.argmin(fdev.dev[:, col]))]),
-                "K_upper_68": k_upper(fdev.taus, fconf.hi[:, col]),
+                "K_range_68": list(f.ranges["K"]) if "K" in f.ranges else None,
+                "K_upper_68": k_upper(f, fdev.taus, fconf.hi[:, col]),
             }
             if disagree:
-                ctx.warn(
-                    f"{name} {AXES[i]}: the IEEE slope reading of {', '.join(disagree)} differs "
-                    f"from the fit by more than {opts.slope_tolerance:.0%} (see metrics)"
-                )
+                disagreements.append(f"{name} {AXES[i]} ({', '.join(disagree)})")
+        if disagreements:
+            ctx.warn(
+                f"the IEEE slope readings differ from the fit by more than "
+                f"{opts.slope_tolerance:.0%} on {'; '.join(disagreements)} (slope_readings in "
+                "the metrics)"
+            )
         results["metrics"] = metrics
         self._record(ctx, dev, conf, fits, fdev)
         # imu.yaml and the imu_utils layout are written from these results by the pipeline's
@@ -199,47 +245,80 @@ class AllanStage(Stage):
         bad = [t for t in opts.terms if t not in TERMS]
         if bad or not opts.terms:
             raise ctx.fail(f"terms {opts.terms} must be a non-empty subset of {', '.join(TERMS)}")
-        if opts.max_gap <= 1.0:
-            raise ctx.fail("max_gap must be > 1 (sample periods)")
+        if opts.max_gap < 2.0:
+            raise ctx.fail(f"max_gap must be >= 2 (sample periods), got {opts.max_gap}")
 
-    def _check_samples(
-        self, t_ns: np.ndarray, data: dict[str, np.ndarray], ctx: StageContext
-    ) -> float:
-        """Errors on NaN samples and gaps; returns the mean sample rate, Hz."""
+    def _samples(self, table: pa.Table, ctx: StageContext) -> ImuSeries:
+        """The IMU samples the deviations are computed on: the ``interval``, without non-finite
+        samples (one counted warning), on their sample clock (lost samples counted and filled,
+        jitter told apart from gaps: :mod:`imupipe.stages.sample_clock`), cut to the longest
+        stretch without a gap longer than ``max_gap`` periods (a warning)."""
+        opts = self.options
+        gyro, accel = sensor(table, "gyro"), sensor(table, "accel")
+        number = None  # IMU sample numbers of the input, for messages (None: 0, 1, 2, ...)
+        if opts.interval is not None:
+            keep = select_interval(gyro, opts.interval)
+            gyro, accel = _take(gyro, keep), _take(accel, keep)
+            number = np.flatnonzero(keep)
+        # one sum per sensor tells whether any value is NaN or Inf (no (n, 3) mask)
+        if not (np.isfinite(gyro.values.sum()) and np.isfinite(accel.values.sum())):
+            ok = np.isfinite(gyro.values).all(axis=1) & np.isfinite(accel.values).all(axis=1)
+            rows = np.arange(len(gyro)) if number is None else number
+            both = SensorData(gyro.t_ns, np.column_stack([gyro.values, accel.values]), rows)
+            number = ctx.finite(both, "IMU (gyro and accel)", minimum=3).rows
+            gyro, accel = _take(gyro, ok), _take(accel, ok)
+
+        def num(i: int) -> int:
+            return int(i if number is None else number[i])
+
+        t_ns = gyro.t_ns
         if len(t_ns) < 3:
             raise ctx.fail(f"only {len(t_ns)} IMU samples")
-        for name, values in data.items():
-            bad = ~np.isfinite(values).all(axis=1)
-            if bad.any():
-                i = int(np.flatnonzero(bad)[0])
-                raise ctx.fail(
-                    f"{name} sample {i} (t = {(t_ns[i] - t_ns[0]) * 1e-9:.6f} s) is not finite "
-                    f"({int(bad.sum())} such samples); Allan variance needs gap-free data"
-                )
         dt = np.diff(t_ns)
-        if np.any(dt <= 0):
+        if dt.min() <= 0:
             i = int(np.flatnonzero(dt <= 0)[0])
-            raise ctx.fail(f"time does not increase at sample {i + 1} (step {dt[i]} ns)")
-        nominal = float(np.median(dt))
-        jumps = dt > self.options.max_gap * nominal
-        if jumps.any():
-            i = int(np.flatnonzero(jumps)[0])
-            raise ctx.fail(
-                f"time jump of {dt[i] * 1e-9:.6f} s ({dt[i] / nominal:.1f} sample periods) after "
-                f"sample {i} (t = {(t_ns[i] - t_ns[0]) * 1e-9:.3f} s); {int(jumps.sum())} gap(s) "
-                f"longer than max_gap = {self.options.max_gap} periods"
+            raise ctx.fail(f"time does not increase at IMU sample {num(i + 1)} (step {dt[i]} ns)")
+        data = {"gyro": gyro.values, "accel": accel.values}
+        clock = sample_clock(t_ns)
+        breaks = np.flatnonzero(clock.lost + 1 > opts.max_gap) if clock.n_lost else []
+        if len(breaks):
+            start, stop = longest_run(breaks, len(t_ns))
+            worst = int(breaks[np.argmax(clock.lost[breaks])])
+            whole = (t_ns[-1] - t_ns[0]) * 1e-9
+            ctx.warn(
+                f"{len(breaks)} gap(s) longer than max_gap = {opts.max_gap:g} sample periods (the "
+                f"longest: {dt[worst] * 1e-9:.3f} s, {clock.lost[worst]} samples missing, after "
+                f"IMU sample {num(worst)} at t = {(t_ns[worst] - t_ns[0]) * 1e-9:.3f} s); the "
+                f"deviations use the longest stretch without one: IMU samples {num(start)} to "
+                f"{num(stop - 1)}, {(t_ns[stop - 1] - t_ns[start]) * 1e-9:.1f} s of "
+                f"{whole:.1f} s (set interval to choose another)"
             )
-        return (len(t_ns) - 1) / ((t_ns[-1] - t_ns[0]) * 1e-9)
+            number = np.arange(start, stop) if number is None else number[start:stop]
+            t_ns = t_ns[start:stop]
+            data = {k: v[start:stop] for k, v in data.items()}
+            clock = sample_clock(t_ns)
+        rate_hz = float((clock.n_slots - 1) / ((t_ns[-1] - t_ns[0]) * 1e-9))
+        if clock.n_lost:
+            worst = int(np.argmax(clock.lost))
+            ctx.warn(
+                f"{clock.n_lost} IMU samples missing in {clock.n_gaps} gap(s) "
+                f"({100 * clock.n_lost / clock.n_slots:.2g} % of the "
+                f"{rate_hz:.4g} Hz clock; the longest: {clock.lost[worst]} after IMU sample "
+                f"{num(worst)}) are filled by linear interpolation; timestamp jitter "
+                f"({100 * clock.jitter:.2g} % of the period, RMS) is not counted as missing"
+            )
+        return ImuSeries(t_ns, data, clock, rate_hz)
 
     def _check_static(
         self, t_ns: np.ndarray, data: dict[str, np.ndarray], ctx: StageContext
     ) -> bool:
         still = stillness(t_ns, data["gyro"], data["accel"])
         static = still.static(self.options.motion_threshold)
-        if not static:
-            ctx.warn(
-                f"{still.describe(self.options.motion_threshold)}; motion inflates every noise term"
-            )
+        ctx.check(
+            static,
+            f"{still.describe(self.options.motion_threshold)}: an Allan deviation of a moving IMU "
+            "measures the motion, not the noise",
+        )
         return static
 
     # -- Rerun -------------------------------------------------------------------------------
@@ -298,9 +377,14 @@ class AllanStage(Stage):
 
 
 # -- artifacts ---------------------------------------------------------------------------------
-def k_upper(taus: np.ndarray, hi: np.ndarray) -> float:
-    """The largest random-walk density K whose Allan deviation K sqrt(tau / 3) stays under the
-    upper 68 % bound at every tau (an upper bound when the fit finds no random walk)."""
+def k_upper(fit: AllanFit, taus: np.ndarray, hi: np.ndarray) -> float:
+    """An upper bound of the random-walk density K: the upper end of the fit's 68 % profile
+    interval of K (:func:`imupipe.stages.allan_fit.profile_interval`: the other fitted terms
+    re-fitted at every K, so a bias instability that could hide a random walk widens it); when
+    K is not among the fitted terms, the largest K whose deviation K sqrt(tau / 3) stays under
+    the upper 68 % bound at every tau."""
+    if "K" in fit.ranges:
+        return fit.ranges["K"][1]
     return float(np.min(hi * np.sqrt(3.0 / taus)))
 
 

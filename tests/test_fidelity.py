@@ -629,12 +629,14 @@ def _real_outputs(d: Path, runs: dict[str, tuple[str, ...]], times: list[str]) -
     logs = SHARED / "logs"
     if not all((logs / name).exists() for name in runs):
         pytest.skip(f"shared data not present: {logs} (GPL data is not copied into the repo)")
-    text = ""
+    text, names = "", []
     for name in (n for n, commands in runs.items() if "run" in commands):
         for time in times:
-            text += f'[inputs.{Path(name).stem}_{time}]\npath = "{logs / name}"\ntime = "{time}"\n'
-    if text:
-        (d / "run.toml").write_text(text + '[output]\ndir = "run"\nrerun = false\n')
+            names.append(f"{Path(name).stem}_{time}")
+            text += f'[inputs.{names[-1]}]\npath = "{logs / name}"\ntime = "{time}"\n'
+    if text:  # no stage: apply_to must name the inputs (its default is the inputs a chain corrects)
+        text += f'[output]\ndir = "run"\nrerun = false\napply_to = {json.dumps(names)}\n'
+        (d / "run.toml").write_text(text)
         proc = run_cli("run", d / "run.toml", "--quiet", cwd=d)
         assert proc.returncode == 0, proc.stderr
     cal = _calibration(d / "cal.json", CHAIN)
@@ -759,7 +761,7 @@ def test_writer_output_does_not_depend_on_batches(generated, tmp_path):
 
 # --- NaN and absent sensors from CSV ------------------------------------------------------------
 
-CFG = '[inputs.a]\npath = "{csv}"\n[output]\ndir = "{out}"\nrerun = false\n'
+CFG = '[inputs.a]\npath = "{csv}"\n[output]\ndir = "{out}"\nrerun = false\napply_to = ["a"]\n'
 
 
 def _cov0(message: Message, vector: str) -> float:
