@@ -24,6 +24,7 @@ import pytest
 from imupipe.pipeline.config import load_config
 from imupipe.readers.dispatch import read_input
 from imupipe.readers.table import sensor
+from imupipe.stages import accel_models as am
 from imupipe.stages import gyro_models as gm
 from imupipe.stages.accel_calibration import AccelCalibrationStage, detect_intervals
 from imupipe.stages.static_detector import sample_clock
@@ -191,6 +192,10 @@ PUBLISHED_GYRO = [-9.967394130262499652e-03, 9.183836411500549690e-03, -2.912198
                   -4.274617614746093750e+02, 1.479479370117187500e+02, -8.072266387939453125e+01]  # fmt: skip
 NOMINAL_GYRO = np.radians(1.0) / 131.0
 """The datasheet's 131 LSB/(deg/s), in (rad/s)/LSB."""
+AUTHORS_STARTS = [150, 4297, 4934, 5585, 6205, 7018, 7570, 8297, 9094, 9662]
+AUTHORS_ENDS = [3613, 4299, 4946, 5690, 6368, 7046, 7765, 8457, 9158, 10095]
+"""The authors' ten static intervals (sample indices, end exclusive): their
+"optmization result data/static_intervals.csv" @ 1c30280f5537226b3644c6274f43ec1b30c13fb5."""
 
 
 def published_accel(raw: np.ndarray) -> np.ndarray:
@@ -205,23 +210,39 @@ def published_gyro_matrix() -> tuple[np.ndarray, np.ndarray]:
     return t @ np.diag(s), b
 
 
+def authors_means(tmp_path: Path) -> np.ndarray:
+    """(10, 3) raw means of the session over the authors' static intervals."""
+    raw = sensor(read_mpu("example_data_calibration.csv", tmp_path), "accel").values
+    pairs = zip(AUTHORS_STARTS, AUTHORS_ENDS, strict=True)
+    return np.array([raw[a:b].mean(axis=0) for a, b in pairs])
+
+
 def read_mpu(name: str, tmp_path: Path):
     cfg = tmp_path / f"{name}.toml"
     cfg.write_text(MPU_CSV.format(name="x", path=MPU / name))
     return read_input(load_config(cfg).inputs["x"])[0]
 
 
-def held_out_rms_mg(table, accel_values: np.ndarray, gyro_rad_s: np.ndarray) -> float:
-    """| |a| - g | RMS (mg) over the 10 s block means of a held-out recording, blocks in which
-    the IMU moved left out (the shared motion check on the block)."""
+def held_out_blocks_mg(
+    table, accel_values: np.ndarray, gyro_rad_s: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """The 10 s block means (k, 3) of a held-out recording's calibrated accelerometer and their
+    signed |a| - g (k,) mg, blocks in which the IMU moved left out (the shared motion check)."""
     t_ns = sensor(table, "accel").t_ns
     n = len(t_ns) // 1000 * 1000
-    residuals = []
+    means = []
     for i in range(0, n, 1000):  # ten-second blocks (tens per file)
         block = slice(i, i + 1000)
         rate = gyro_rad_s[block] - gyro_rad_s[:1000].mean(axis=0)
         if stillness(t_ns[block], rate, accel_values[block]).static(0.02):
-            residuals.append((np.linalg.norm(accel_values[block].mean(axis=0)) - G) / MG)
+            means.append(accel_values[block].mean(axis=0))
+    means_array = np.array(means)
+    return means_array, (np.linalg.norm(means_array, axis=1) - G) / MG
+
+
+def held_out_rms_mg(table, accel_values: np.ndarray, gyro_rad_s: np.ndarray) -> float:
+    """| |a| - g | RMS (mg) over the still 10 s block means of a held-out recording."""
+    residuals = held_out_blocks_mg(table, accel_values, gyro_rad_s)[1]
     return float(np.sqrt(np.mean(np.square(residuals))))
 
 
@@ -272,10 +293,7 @@ def test_mpu6050_published_figures_reproduce(tmp_path):
     """The authors' parameters reproduce their own calibrated pose means, and give the held-out
     figures we compare against (mean 1.03 mg; rotation 1.52 deg; nominal 131 LSB/(deg/s) with the
     same accelerometer calibration: 1.67 deg)."""
-    starts = [150, 4297, 4934, 5585, 6205, 7018, 7570, 8297, 9094, 9662]
-    ends = [3613, 4299, 4946, 5690, 6368, 7046, 7765, 8457, 9158, 10095]
-    raw = sensor(read_mpu("example_data_calibration.csv", tmp_path), "accel").values
-    means = np.array([raw[a:b].mean(axis=0) for a, b in zip(starts, ends, strict=True)])
+    means = authors_means(tmp_path)
     # their calibrated_accel_avg_data.csv @ 1c30280, first and last rows
     np.testing.assert_allclose(
         published_accel(means)[[0, -1]],
@@ -296,12 +314,83 @@ def test_mpu6050_published_figures_reproduce(tmp_path):
     assert rotation_error_deg(table, acc, NOMINAL_GYRO * np.eye(3)) == pytest.approx(1.67, abs=0.01)
 
 
+def test_mpu6050_published_is_the_six_parameter_model_on_its_intervals(tmp_path):
+    """The authors' code fits nine parameters, but their published answer is the 6-parameter
+    model fitted on their ten interval means (equal weights, g = 9.80665, the g of the held-out
+    figure): our 6-parameter fit on those means gives their parameters and their held-out figures.
+    The 9-parameter optimum on the same means has a 0.12 rad angle (one degree of freedom) and a
+    cost 270 times lower: not what they published. So the method is ours; the held-out gap comes
+    from which samples make the pose means (their intervals hold 2 to 3463 samples, ours 101 to
+    3661)."""
+    means = authors_means(tmp_path)
+    six = am.fit_model(means, G, "6-parameter")
+    angles, scale, bias = np.split(np.asarray(PUBLISHED_ACC), [3, 6])
+    assert np.abs(angles).max() < 2e-5
+    np.testing.assert_allclose(six.params.scale, scale, rtol=1e-5)
+    np.testing.assert_allclose(six.params.bias, -bias, atol=0.02)  # counts (1 count = 0.06 mg)
+    nine = am.fit_model(means, G, "9-parameter")
+    assert abs(nine.params.angles[0]) > 0.1
+    published_rss = np.sum(((np.linalg.norm(published_accel(means), axis=1) - G) / G) ** 2)
+    assert nine.rss * 200 < published_rss < six.rss * 1.01
+    figures = []
+    for name in HELD_OUT:
+        table = read_mpu(name, tmp_path)
+        gyro = sensor(table, "gyro").values * NOMINAL_GYRO
+        figures.append(
+            held_out_rms_mg(table, six.params.apply(sensor(table, "accel").values), gyro)
+        )
+    np.testing.assert_allclose(figures, [1.385, 0.911, 0.782], atol=2e-3)
+
+
+def test_mpu6050_held_out_gap_is_a_power_up_shift(mpu):
+    """What the held-out figure measures. 54 of its 60 still blocks hold the IMU z up; on every
+    one of them both calibrations read at least 0.5 mg above what the same calibration reads on
+    the session's own z-up rest (-0.2 mg, flat over its 36 s): a z-axis zero-g shift between
+    power-ups (the datasheet allows +-60 mg over 0-70 degC on z), which no calibration of the
+    session can see. On the 6 blocks a z shift cannot touch (y up, after the turn) the two
+    calibrations tie (0.195 mg RMS each). A calibration reading lower everywhere gains on this
+    figure: the authors' reads 0.10-0.23 mg below ours, within our standard error there (0.46-0.64
+    mg)."""
+    doc, chain, tmp_path = mpu
+    session = read_mpu("example_data_calibration.csv", tmp_path)
+    raw_rest = sensor(session, "accel").values[50:3600]  # the initial rest, z up
+    ours_acc = sensor(apply_chain(session, chain[:1]), "accel").values[50:3600]
+    rest = {
+        "ours": (np.linalg.norm(ours_acc.mean(axis=0)) - G) / MG,
+        "authors'": (np.linalg.norm(published_accel(raw_rest).mean(axis=0)) - G) / MG,
+    }
+    z_up: dict[str, list] = {"ours": [], "authors'": []}
+    y_up: dict[str, list] = {"ours": [], "authors'": []}
+    for name in HELD_OUT:
+        table = read_mpu(name, tmp_path)
+        corrected = apply_chain(table, chain)
+        gyro = sensor(corrected, "gyro").values
+        calibrated = {
+            "ours": sensor(corrected, "accel").values,
+            "authors'": published_accel(sensor(table, "accel").values),
+        }
+        for label, acc in calibrated.items():
+            means, residual = held_out_blocks_mg(table, acc, gyro)
+            up = np.abs(means[:, 2]) > np.abs(means[:, 1])
+            z_up[label].extend(residual[up])
+            y_up[label].extend(residual[~up])
+    for label in ("ours", "authors'"):
+        assert -0.5 < rest[label] < 0.0
+        assert len(z_up[label]) == 54 and len(y_up[label]) == 6
+        assert min(z_up[label]) > rest[label] + 0.5
+    rms = {label: float(np.sqrt(np.mean(np.square(v)))) for label, v in y_up.items()}
+    assert max(rms.values()) < 0.25
+    assert abs(rms["ours"] - rms["authors'"]) < 0.02
+
+
 def test_mpu6050_held_out(mpu):
-    """Accelerometer: mean held-out | |a| - g | RMS 1.12 mg (main 1.43; the authors' 1.03, a
-    difference below this calibration's own predicted error of 0.56 mg: the three held-out
-    recordings mostly hold one pose, z up, in a later power-up). Gyroscope: the held-out ~90 deg
-    turn is predicted within 1.35 deg: better than the authors' calibration (1.52 deg) and than
-    the datasheet's nominal scale (1.68 deg with this accelerometer calibration; main 2.16 deg)."""
+    """Accelerometer: mean held-out | |a| - g | RMS 1.12 mg (main 1.43; the authors' 1.03). The
+    figure is dominated by a z-axis shift of the later power-ups (+0.6 to +2.1 mg on z-up blocks,
+    test above) that rewards a calibration reading low; ours reads 0.1 mg above the authors' there,
+    less than its own predicted error (0.56 mg), and ties with it where the shift does not act.
+    Gyroscope: the held-out ~90 deg turn is predicted within 1.35 deg: better than the authors'
+    calibration (1.52 deg) and than the datasheet's nominal scale (1.68 deg with this accelerometer
+    calibration; main 2.16 deg)."""
     doc, chain, tmp_path = mpu
     figures = []
     for name in HELD_OUT:
