@@ -28,7 +28,7 @@ from imupipe.stages.registry import STAGE_TYPES, stage_class
 
 INPUT_KEYS = {"path", "imu_topic", "mag_topic", "temperature_topic", "time", "csv"}
 CSV_KEYS = {f.name for f in dataclasses.fields(CsvMapping)} - {"required"}
-OUTPUT_KEYS = {"dir", "apply_to", "rerun", "rerun_max_points"}
+OUTPUT_KEYS = {"dir", "apply_to", "rerun", "rerun_max_points", "report"}
 TOP_KEYS = {"inputs", "stages", "output"}
 
 
@@ -48,8 +48,10 @@ class OutputConfig:
     dir: Path
     apply_to: list[str]
     rerun: bool = True
-    rerun_max_points: int = 200_000
+    rerun_max_points: int = 20_000
     """Signals longer than this are block-averaged before they go to Rerun (the file stays small)."""
+    report: bool = True
+    """Write ``report.html`` (plots and numbers of every stage, one self-contained file)."""
 
 
 @dataclass
@@ -259,8 +261,13 @@ def load_config(path: str | Path) -> Config:
     rerun = out_raw.get("rerun", True)
     if not isinstance(rerun, bool):
         raise ConfigError(f"{path}: [output].rerun must be true or false")
-    max_points = out_raw.get("rerun_max_points", 200_000)
+    max_points = out_raw.get("rerun_max_points", OutputConfig.rerun_max_points)
     if not isinstance(max_points, int) or isinstance(max_points, bool) or max_points < 100:
         raise ConfigError(f"{path}: [output].rerun_max_points must be an integer >= 100")
-    output = OutputConfig(dir=out_dir, apply_to=apply_to, rerun=rerun, rerun_max_points=max_points)
+    report = out_raw.get("report", True)
+    if not isinstance(report, bool):
+        raise ConfigError(f"{path}: [output].report must be true or false")
+    output = OutputConfig(
+        dir=out_dir, apply_to=apply_to, rerun=rerun, rerun_max_points=max_points, report=report
+    )
     return Config(path=path, inputs=inputs, stages=stages, output=output, raw=raw)

@@ -23,10 +23,11 @@ from imupipe.pipeline.atomic import staged_outputs
 from imupipe.pipeline.config import Config, load_config
 from imupipe.pipeline.mcap_writer import write_mcap
 from imupipe.pipeline.progress import progress_bar
+from imupipe.pipeline.recording import open_recorder
+from imupipe.pipeline.summary import StageSummary, publish, summarise
 from imupipe.pipeline.version import VERSION
 from imupipe.readers.dispatch import carry_over, read_input
-from imupipe.readers.table import SENSOR_COLUMNS, STREAM_OF_SENSOR, has_stream, sensor
-from imupipe.stages.base import NullRecorder, StageContext
+from imupipe.stages.base import StageContext
 from imupipe.stages.registry import stage_class
 from imupipe.stages.steps import Step, apply_chain
 
@@ -69,6 +70,7 @@ class RunSummary:
     files: list[Path]
     calibration: dict[str, Any]
     counts: dict[str, dict[str, int]] = field(default_factory=dict)
+    summaries: list[StageSummary] = field(default_factory=list)
 
 
 def calibration_document(chain: list[Step], results: dict[str, Any]) -> dict[str, Any]:
@@ -78,14 +80,6 @@ def calibration_document(chain: list[Step], results: dict[str, Any]) -> dict[str
         "chain": [step.to_json() for step in chain],
         "results": results,
     }
-
-
-def record_sensors(recorder: Any, prefix: str, table: pa.Table, sensors: tuple[str, ...]) -> None:
-    for name in sensors:
-        if has_stream(table, STREAM_OF_SENSOR[name]):
-            data = sensor(table, name)
-            axes = tuple(c.split("_")[-1] for c in SENSOR_COLUMNS[name])
-            recorder.series(f"{prefix}/{name}", data.t_ns, data.values, axes)
 
 
 def run(config: Config | str | Path, *, spawn: bool = False, quiet: bool = False) -> RunSummary:
@@ -107,16 +101,7 @@ def run(config: Config | str | Path, *, spawn: bool = False, quiet: bool = False
         tables = CorrectedTables(raw)
         results: dict[str, Any] = {}
         with staged_outputs() as out:
-            files: list[Path] = []
-            recorder: Any = NullRecorder()
-            if cfg.output.rerun:
-                from imupipe.pipeline.recording import Recorder
-
-                rrd = out_dir / "recording.rrd"
-                recorder = Recorder(
-                    out.path(rrd), spawn=spawn, max_points=cfg.output.rerun_max_points
-                )
-                files.append(rrd)
+            recorder, files = open_recorder(cfg, out, spawn=spawn, quiet=quiet)
             for st in cfg.stages:
                 bar.describe(f"stage {st.name}")
                 stage = stage_class(st.type)(st.options)
@@ -131,11 +116,14 @@ def run(config: Config | str | Path, *, spawn: bool = False, quiet: bool = False
                     accept_failed_checks=st.accept_failed_checks,
                 )
                 sensors = stage.sensors_for(st.options)
-                record_sensors(recorder, f"/{st.name}/input", table, sensors)
+                recorder.sensors(st.name, table, sensors, input_name=st.input, chain=tables.chain)
                 output = stage.fit(table, ctx)
                 if output.steps:
                     tables.extend(output.steps)
-                    record_sensors(recorder, f"/{st.name}/output", tables[st.input], sensors)
+                    fixed = [n for n in sensors if any(s.sensor == n for s in output.steps)]
+                    recorder.sensors(
+                        st.name, tables[st.input], fixed, input_name=st.input, corrected=True
+                    )
                 recorder.ensure_stage(st.name)
                 results[st.name] = {
                     "type": st.type,
@@ -153,6 +141,8 @@ def run(config: Config | str | Path, *, spawn: bool = False, quiet: bool = False
             doc = calibration_document(tables.chain, results)
             out.write_text(out_dir / "calibration.json", json.dumps(doc, indent=2) + "\n")
             files.append(out_dir / "calibration.json")
+            summaries = summarise(results)
+            files += publish(summaries, recorder, cfg, out)
             counts: dict[str, dict[str, int]] = {}
             for name in cfg.output.apply_to:
                 bar.describe(f"writing {name}.mcap")
@@ -169,7 +159,9 @@ def run(config: Config | str | Path, *, spawn: bool = False, quiet: bool = False
                 bar.advance()
             recorder.close()
             bar.advance()
-    return RunSummary(out_dir=out_dir, files=files, calibration=doc, counts=counts)
+    return RunSummary(
+        out_dir=out_dir, files=files, calibration=doc, counts=counts, summaries=summaries
+    )
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -185,6 +177,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 def main(args: argparse.Namespace) -> int:
     summary = run(args.config, spawn=args.spawn, quiet=args.quiet)
     if not args.quiet:
+        from imupipe.pipeline.summary import print_summary
+
+        print_summary(summary.summaries)
         for path in summary.files:
             print(path)
     return 0

@@ -1,17 +1,17 @@
 """What the ``temperature`` stage shows in Rerun (under ``/<stage name>``).
 
-- ``bias_vs_temperature/<axis>``: the block bias against temperature on the sequence timeline
-  ``temperature_cdegC`` (hundredths of a degC), heating blocks in red, cooling in blue, soak in
-  grey (markers), and the fitted curve (lines) at dT = 0 and at the median heating and cooling
-  rates: the gap between the two is the hysteresis the rate terms model.
+- ``bias_vs_temperature/<axis>``: the block bias against temperature (a 2D plot), heating
+  blocks in red, cooling in blue, soak in grey (markers), and the fitted curve (lines) at dT = 0
+  and at the median heating and cooling rates: the gap between the two is the hysteresis the
+  rate terms model.
 - ``surface``: the fitted surface B(T, dT) per axis as an ``rr.Mesh3D`` with the data points on
   it (seed 000 draws the same with ``mesh`` and ``plot3``). Each axis sits in its own unit box
   (x: T from Tmin to Tmax, y: dT from its min to max, z: bias from its min to max, offset 1.5
   apart along x for axes x, y, z); the arrows' labels give the ranges.
 - ``scale_vs_temperature/<axis>`` (gyro with ``turntable_rate``): the scale factor of each
-  +/-rate pair against temperature and the fitted curve, on the same timeline.
-- ``bias``, ``residual``, ``temperature``, ``rate``: the block bias, the residual after the fit,
-  the block temperature(s) (degC) and rate (degC/min) over time.
+  +/-rate pair against temperature and the fitted curve.
+- ``bias``, ``residual``, ``block_temperature``, ``rate``: the block bias, the residual after
+  the fit, the block temperature(s) (degC) and rate (degC/min) over time, one plot each.
 
 For models with ambient terms the curves and the surface take Ta = T and dTa = dT.
 """
@@ -31,7 +31,6 @@ if TYPE_CHECKING:
     from imupipe.stages.temperature_step import Prepared, TemperatureStep
 
 AXES = ("x", "y", "z")
-TEMPERATURE_TIMELINE = "temperature_cdegC"
 HEATING, COOLING, SOAK = (220, 50, 50), (50, 90, 220), (150, 150, 150)
 GRID_T, GRID_R = 41, 21
 
@@ -70,16 +69,20 @@ def record_fit(
     lo, hi = step.ranges["T"]
     rlo, rhi = step.ranges["dT"]
 
-    rec.series(f"/{name}/bias", prep.t_ns, prep.bias, AXES)
-    rec.series(f"/{name}/residual", prep.t_ns, prep.bias - fitted, AXES)
+    sn = step.sensor
+    rec.series(f"/{name}/bias", prep.t_ns, prep.bias, [f"{sn} {a} bias" for a in AXES], unit=unit)
+    rec.series(f"/{name}/residual", prep.t_ns, prep.bias - fitted,
+               [f"{sn} {a} residual after fit" for a in AXES], unit=unit)  # fmt: skip
     temps = [prep.variables[k] for k in ("T", "Ta") if k in prep.variables]
-    rec.series(f"/{name}/temperature", prep.t_ns, np.column_stack(temps), ("T", "Ta")[: len(temps)])
-    rec.series(f"/{name}/rate", prep.t_ns, rate * 60.0, ("dT/dt degC/min",))
+    rec.series(f"/{name}/block_temperature", prep.t_ns, np.column_stack(temps),
+               ("T", "Ta")[: len(temps)], unit="degC", title="block temperature")  # fmt: skip
+    rec.series(f"/{name}/rate", prep.t_ns, rate * 60.0, ("dT/dt",), unit="degC/min",
+               title="temperature rate")  # fmt: skip
 
     # bias against temperature: data by direction, fitted curves at 0 and the median rates
-    x = np.round(temp * 100.0).astype(np.int64)
+    x = temp
     grid = np.linspace(lo, hi, 200)
-    grid_x = np.round(grid * 100.0).astype(np.int64)
+    grid_x = grid
     heat = rate[prep.direction > 0]
     cool = rate[prep.direction < 0]
     curves = [("fit dT=0", 0.0, (20, 20, 20))]
@@ -93,6 +96,8 @@ def record_fit(
         )
     for i, axis in enumerate(AXES):
         base = f"/{name}/bias_vs_temperature/{axis}"
+        plot = dict(plot=f"bias_vs_temperature/{axis}", title=f"{sn} {axis} bias", unit=unit,
+                    x_label="temperature", x_unit="degC")  # fmt: skip
         for label, sign, color in (
             ("heating", 1, HEATING),
             ("cooling", -1, COOLING),
@@ -105,9 +110,9 @@ def record_fit(
                     x[mask],
                     prep.bias[mask, i],
                     (label,),
-                    timeline=TEMPERATURE_TIMELINE,
                     colors=[color],
                     points=True,
+                    **plot,
                 )
         values = np.column_stack(
             [_model_at(step, grid, np.full(len(grid), r))[:, i] for _, r, _ in curves]
@@ -117,21 +122,23 @@ def record_fit(
             grid_x,
             values,
             [c[0] for c in curves],
-            timeline=TEMPERATURE_TIMELINE,
             colors=[c[2] for c in curves],
+            **plot,
         )
 
     # the gyro scale factor against temperature (turntable pairs and the fitted curve)
     for axis, model in (step.scale or {}).items():
         pair_t, pair_sf = prep.pairs[axis]
         base = f"/{name}/scale_vs_temperature/{axis}"
+        plot = dict(plot=f"scale_vs_temperature/{axis}", title=f"{sn} {axis} scale factor",
+                    x_label="temperature", x_unit="degC")  # fmt: skip
         rec.curve(
-            f"{base}/pairs", np.round(pair_t * 100.0).astype(np.int64), pair_sf, ("+/-rate pairs",),
-            timeline=TEMPERATURE_TIMELINE, colors=[SOAK], points=True,
+            f"{base}/pairs", pair_t, pair_sf, ("+/-rate pairs",), colors=[SOAK], points=True,
+            **plot,
         )  # fmt: skip
         rec.curve(
             f"{base}/fit", grid_x, step.scale_factor(model, {"T": grid - step.tref}), ("fit",),
-            timeline=TEMPERATURE_TIMELINE, colors=[(20, 20, 20)],
+            colors=[(20, 20, 20)], **plot,
         )  # fmt: skip
 
     # the fitted surface B(T, dT) with the data on it
@@ -179,32 +186,7 @@ def record_fit(
                 colors=[(200, 200, 200)] * 3,
             ),
         )
-    rec.add_view(
-        name,
-        rrb.TimeSeriesView(
-            origin=f"/{name}/bias_vs_temperature",
-            name=f"{name}: bias vs temperature (timeline {TEMPERATURE_TIMELINE})",
-        ),
-    )
-    if step.scale:
+    for axis in AXES:
         rec.add_view(
-            name,
-            rrb.TimeSeriesView(
-                origin=f"/{name}/scale_vs_temperature",
-                name=f"{name}: scale factor vs temperature (timeline {TEMPERATURE_TIMELINE})",
-            ),
+            name, rrb.Spatial3DView(origin=f"/{name}/surface/{axis}", name=f"{sn} {axis} B(T, dT)")
         )
-    rec.add_view(name, rrb.Spatial3DView(origin=f"/{name}/surface", name=f"{name}: B(T, dT)"))
-    rec.add_view(
-        name,
-        rrb.TimeSeriesView(
-            origin=f"/{name}",
-            contents=[
-                f"+ /{name}/**",
-                f"- /{name}/bias_vs_temperature/**",
-                f"- /{name}/scale_vs_temperature/**",
-                f"- /{name}/surface/**",
-            ],
-            name=f"{name}: over time",
-        ),
-    )
