@@ -11,7 +11,8 @@ declared; the sinks decide *how* to lay them out. The kinds:
 - ``bars``: one value per item (residual per pose, per transition),
 - ``3d``: point clouds and ellipsoids (magnetometer coverage).
 
-Every plot has one physical unit. Values are stored in the unit they are shown in: SI, except
+Every plot has one physical unit (a series declared into a plot of another unit gets a plot of
+its own beside it). Values are stored in the unit they are shown in: SI, except
 tesla, shown in microtesla (``DISPLAY_UNITS``). The kept copies are small: a signal is averaged
 down to at most ``keep_points`` blocks (the recording holds more, the MCAP output all of it).
 """
@@ -28,7 +29,7 @@ import numpy as np
 from imupipe.stages.blocks import block_means
 
 PlotKind = Literal["time", "xy", "bars", "3d"]
-Style = Literal["line", "points", "band", "cloud", "ellipsoid"]
+Style = Literal["line", "guide", "points", "band", "cloud", "ellipsoid"]
 
 DISPLAY_UNITS: dict[str, tuple[str, float]] = {"T": ("uT", 1e6), "T/s": ("uT/s", 1e6)}
 """SI unit -> (unit shown, factor): the magnetometer is shown in microtesla."""
@@ -170,10 +171,23 @@ class Figures:
         log_x: bool = False,
         log_y: bool = False,
     ) -> Plot:
-        """The plot ``key`` of ``stage`` (made on first use). A plot holds one unit: declaring a
-        series of another unit into it is a programming error (``ValueError``)."""
+        """The plot ``key`` of ``stage`` (made on first use). A plot holds one unit and one
+        kind: a series of another unit (raw counts beside m/s^2) goes to a plot of its own beside
+        it, ``<key> [<unit>]``, with the same title."""
         self.stage(stage)
         plot = self.plots.get((stage, key))
+        if plot is not None and (plot.unit != unit or plot.kind != kind):
+            return self.plot(
+                stage,
+                f"{key} [{unit or kind}]",
+                kind,
+                title=plot.title,
+                unit=unit,
+                x_label=x_label,
+                x_unit=x_unit,
+                log_x=log_x,
+                log_y=log_y,
+            )
         if plot is None:
             plot = Plot(
                 stage=stage,
@@ -187,11 +201,6 @@ class Figures:
                 log_y=log_y,
             )
             self.plots[(stage, key)] = plot
-        elif plot.unit != unit or plot.kind != kind:
-            raise ValueError(
-                f"plot '{key}' of stage '{stage}' shows {plot.kind} in '{plot.unit}'; "
-                f"cannot add {kind} in '{unit}' (one physical unit per plot)"
-            )
         return plot
 
     def of_stage(self, stage: str) -> list[Plot]:

@@ -7,7 +7,8 @@ panel starts on ``time``) and cannot be read on log-log axes. So such a plot is 
 units (log10 for logarithmic axes, y pointing up), and around them the frame, the grid, the tick
 labels, the x-axis title and a legend, all logged as static 2D primitives. It opens showing all
 of it, on any timeline; hovering a line names it. Line widths and marker sizes are in UI points
-(negative radii), so they stay thin when zooming.
+(negative radii), so they stay thin when zooming. Confidence bands and guide lines (the terms of
+a model) lie beneath the data points, fitted curves over them.
 """
 
 from __future__ import annotations
@@ -23,14 +24,17 @@ from imupipe.pipeline.figures import Plot
 
 W, H = 160.0, 100.0
 """The plot area, in scene units."""
-MARGIN_LEFT, MARGIN_RIGHT, MARGIN_TOP, MARGIN_BOTTOM = 32.0, 88.0, 6.0, 24.0
+MARGIN_LEFT, MARGIN_TOP, MARGIN_BOTTOM = 34.0, 6.0, 27.0
+CHAR_WIDTH = 4.2  # scene units per character of a label in a view of ~500 px (for the legend)
 FRAME_COLOR = (128, 128, 128)
 GRID_COLOR = (150, 150, 150)
 TEXT_COLOR = (110, 110, 110)
 LINE_RADIUS = -1.5  # negative radii are UI points
 BAND_RADIUS = -1.0
 POINT_RADIUS = -2.0
-BAND_ORDER, POINT_ORDER, LINE_ORDER = 10.0, 20.0, 30.0  # fitted lines are drawn over the data
+GUIDE_RADIUS = -1.0
+# bands and guide lines (model terms) beneath the data, fitted lines over it
+BAND_ORDER, GUIDE_ORDER, POINT_ORDER, LINE_ORDER = 10.0, 15.0, 20.0, 30.0
 
 
 def nice_ticks(lo: float, hi: float, n: int = 5) -> np.ndarray:
@@ -44,8 +48,9 @@ def nice_ticks(lo: float, hi: float, n: int = 5) -> np.ndarray:
     mag = 10.0 ** math.floor(math.log10((hi - lo) / n))
     best = None
     for step in (m * mag for m in (0.5, 1, 2, 2.5, 5, 10, 20)):
-        first = math.floor(lo / step + 1e-9) * step
-        last = math.ceil(hi / step - 1e-9) * step
+        # data a hair past a round value (-40.006 degC) does not add a whole step
+        first = math.floor(lo / step + 0.02) * step
+        last = math.ceil(hi / step - 0.02) * step
         count = round((last - first) / step)
         if 3 <= count <= n + 2 and (best is None or (last - first, -step) < best[0]):
             best = ((last - first, -step), first, step, count)
@@ -131,6 +136,12 @@ def _strips(x: np.ndarray, y: np.ndarray) -> list[np.ndarray]:
     return [seg for seg, good in pieces if len(seg) > 1 and good[0]]
 
 
+def right_margin(plot: Plot) -> float:
+    """Room right of the plot area for the legend (centred labels): its longest name."""
+    longest = max((len(n) for s in plot.series for n in s.names), default=0)
+    return min(max(12.0 + CHAR_WIDTH * longest, 40.0), 140.0)
+
+
 def axes_root(plot: Plot) -> str:
     """Where a plot's frame, ticks and legend are logged."""
     return f"/{plot.stage}/{plot.key}/axes"
@@ -174,13 +185,14 @@ def _series(plot: Plot, xa: Axis, ya: Axis) -> tuple[list, list[tuple[str, tuple
                 cols += [s.colors[j]] * len(parts)
                 labels += [name] * len(parts)
                 legend.append((name, s.colors[j]))
+            guide = s.style == "guide"
             lines = rr.LineStrips2D(
                 strips,
                 colors=cols,
-                radii=LINE_RADIUS,
+                radii=GUIDE_RADIUS if guide else LINE_RADIUS,
                 labels=labels,
                 show_labels=False,
-                draw_order=LINE_ORDER,
+                draw_order=GUIDE_ORDER if guide else LINE_ORDER,
             )
             out.append((s.entity, lines))
     return out, legend
@@ -203,14 +215,14 @@ def draw(plot: Plot) -> list[tuple[str, Any]]:
         points = rr.Points2D(xy, labels=labels, colors=colors, radii=0.0, show_labels=True)
         out.append((f"{root}/{where}", points))
 
-    text("x_ticks", [[xa(t) * W, H + 6.0] for t in xa.ticks], xa.labels, [TEXT_COLOR])
+    text("x_ticks", [[xa(t) * W, H + 8.0] for t in xa.ticks], xa.labels, [TEXT_COLOR])
     y_ticks = [[-MARGIN_LEFT / 2, (1 - ya(t)) * H] for t in ya.ticks]
     text("y_ticks", y_ticks, ya.labels, [TEXT_COLOR])
-    text("x_title", [[W / 2, H + 17.0]], [plot.x_heading], [TEXT_COLOR])
+    text("x_title", [[W / 2, H + 20.0]], [plot.x_heading], [TEXT_COLOR])
     if legend:
         text(
             "legend",
-            [[W + MARGIN_RIGHT / 2, 6.0 + 9.0 * i] for i in range(len(legend))],
+            [[W + right_margin(plot) / 2, 6.0 + 9.0 * i] for i in range(len(legend))],
             [name for name, _ in legend],
             [c for _, c in legend],
         )
@@ -224,6 +236,7 @@ def view(plot: Plot) -> Any:
         contents=[*dict.fromkeys(plot.entities), f"{axes_root(plot)}/**"],
         name=f"{plot.heading} vs {plot.x_heading}",
         visual_bounds=rrb.VisualBounds2D(
-            x_range=[-MARGIN_LEFT, W + MARGIN_RIGHT], y_range=[-MARGIN_TOP, H + MARGIN_BOTTOM]
+            x_range=[-MARGIN_LEFT, W + right_margin(plot)],
+            y_range=[-MARGIN_TOP, H + MARGIN_BOTTOM],
         ),
     )

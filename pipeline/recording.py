@@ -62,6 +62,7 @@ from imupipe.pipeline.figures import (
     lighter,
     stage_of,
 )
+from imupipe.pipeline.summary import raw_count_sensors
 from imupipe.readers.table import SENSOR_COLUMNS, SENSOR_UNITS, STREAM_OF_SENSOR, has_stream, sensor
 from imupipe.stages.base import NullRecorder
 
@@ -86,6 +87,8 @@ class Recorder:
     ) -> None:
         self.max_points = max_points
         self.figures = Figures(keep_points)
+        self.raw_counts: dict[str, set[str]] = {}
+        """input -> the sensors it holds in raw counts (not SI): plotted apart, in counts"""
         self._warn = warn or (lambda message: None)
         self._streams: list[rr.RecordingStream] = []
         self._live: rr.RecordingStream | None = None
@@ -103,6 +106,7 @@ class Recorder:
         self._documents: dict[str, str] = {}  # stage ("" for the run) -> markdown
         self._styled: set[str] = set()
         self._spans: dict[str, tuple[int, int]] = {}  # entity -> (first, last) t_ns
+        self._input_units: dict[tuple[str, str], str] = {}  # (stage, sensor) -> unit of its input
         self._reused: dict[Any, Series] = {}  # (input, sensor, steps applied) -> series sent
 
     # -- sending -------------------------------------------------------------------------------
@@ -196,13 +200,15 @@ class Recorder:
         log_y: bool = False,
         points: bool = False,
         band: bool = False,
+        guide: bool = False,
         colors: Sequence[Any] | None = None,
         timeline: str | None = None,
     ) -> None:
         """A curve over something other than time: ``values`` (n,) or (n, k) in the SI ``unit``
         against ``x`` (in ``x_unit``), one named line per column, drawn as markers with
-        ``points``. With ``band``, ``values`` is (n, 2), the lower and upper edge of a
-        confidence band, and ``names`` has its one name. Curves with the same ``plot`` (default:
+        ``points``, as thin guide lines beneath the data with ``guide`` (the terms of a model).
+        With ``band``, ``values`` is (n, 2), the lower and upper edge of a confidence band, and
+        ``names`` has its one name. Curves with the same ``plot`` (default:
         the entity, relative to its stage) share a plot and its axes, logarithmic with
         ``log_x``/``log_y``. (``timeline``: the older form, kept working: a label for ``x``.)"""
         x = np.asarray(x, dtype=np.float64)
@@ -227,7 +233,7 @@ class Recorder:
             color = colors_for(names, colors)[0] if colors is not None else (150, 150, 150)
             fig.series.append(Series(entity, list(names[:1]), [color], x, values * factor, "band"))
             return
-        style = "points" if points else "line"
+        style = "points" if points else "guide" if guide else "line"
         x, kept = decimate(x, values * factor, 5 * self.figures.keep_points)
         if colors is None:
             used = sum(len(s.names) for s in fig.series if s.style != "band")
@@ -381,11 +387,17 @@ class Recorder:
                 continue
             applied = sum(getattr(step, "sensor", None) == name for step in chain)
             label = "corrected" if corrected else "input" if applied else "raw"
-            key = None if corrected else (input_name, name, applied)
-            if key is not None and key in self._reused:
-                shown = display_unit(SENSOR_UNITS[name])[0]
-                plot = self.figures.plot(stage, name, "time", title=name, unit=shown)
-                plot.series.append(self._reused[key])
+            # raw counts (a CSV read with <sensor>_unit = "raw") are not SI: a plot of their own
+            counts = label == "raw" and name in self.raw_counts.get(input_name, ())
+            unit = "raw counts" if counts else SENSOR_UNITS[name]
+            key, title = name, name
+            if not corrected:
+                self._input_units[(stage, name)] = unit
+            reuse = None if corrected else (input_name, name, applied)
+            if reuse is not None and reuse in self._reused:
+                shown = display_unit(unit)[0]
+                plot = self.figures.plot(stage, key, "time", title=title, unit=shown)
+                plot.series.append(self._reused[reuse])
                 continue
             data = sensor(table, name)
             axes = [c.split("_")[-1] for c in SENSOR_COLUMNS[name]]
@@ -399,13 +411,22 @@ class Recorder:
                 data.t_ns,
                 data.values,
                 names,
-                unit=SENSOR_UNITS[name],
-                plot=name,
-                title=name,
+                unit=unit,
+                plot=key,
+                title=title,
                 colors=colors,
             )
-            if key is not None:
-                self._reused[key] = self.figures.plots[(stage, name)].series[-1]
+            if reuse is not None:
+                self._reused[reuse] = next(
+                    p.series[-1]
+                    for p in self.figures.of_stage(stage)
+                    if p.series and p.series[-1].entity == entity
+                )
+
+    def input_unit(self, stage: str, sensor: str) -> str:
+        """The unit of ``sensor`` in the table ``stage`` fits on: SI, or ``raw counts`` for a
+        CSV read with ``<sensor>_unit = "raw"`` that no earlier stage corrected."""
+        return self._input_units.get((stage, sensor), SENSOR_UNITS[sensor])
 
     def document(self, stage: str | None, markdown: str) -> None:
         """A stage's results (``stage`` None: the run's summary) as a markdown ``TextDocument``."""
@@ -582,6 +603,7 @@ def open_recorder(
         max_points=cfg.output.rerun_max_points,
         warn=warn,
     )
+    recorder.raw_counts = raw_count_sensors(cfg.inputs)
     return recorder, [rrd] if cfg.output.rerun else []
 
 

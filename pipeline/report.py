@@ -110,17 +110,14 @@ def _stage(s: StageSummary, plots: list[Plot]) -> str:
         out.append(f'<p class="look"><b>What to look at.</b> {html.escape(s.look_at)}</p>')
     if s.rows:
         rows = "".join(
-            f"<tr><td>{html.escape(r.name)}</td>"
+            f"<tr><td>{html.escape(r.label)}</td>"
             + "".join(
                 f'<td class="num">{html.escape(c)}</td>' for c in (r.cells + ["", "", ""])[:3]
             )
-            + f"<td>{html.escape(r.unit)}</td></tr>"
+            + "</tr>"
             for r in s.rows
         )
-        out.append(
-            "<table><tr><th>quantity</th><th>x</th><th>y</th><th>z</th><th>unit</th></tr>"
-            f"{rows}</table>"
-        )
+        out.append(f"<table><tr><th>quantity</th><th>x</th><th>y</th><th>z</th></tr>{rows}</table>")
     if s.quality:
         out.append(
             "<ul>"
@@ -229,8 +226,12 @@ def _draw_xy(ax: Any, plot: Plot) -> bool:
                 ax.plot(
                     s.x, s.values[:, j], "o", markersize=2.5, color=_rgb(s.colors[j]), label=name
                 )
+            elif s.style == "guide":
+                ax.plot(
+                    s.x, s.values[:, j], "--", color=_rgb(s.colors[j]), linewidth=0.9, label=name
+                )
             else:
-                ax.plot(s.x, s.values[:, j], color=_rgb(s.colors[j]), linewidth=1.2, label=name)
+                ax.plot(s.x, s.values[:, j], color=_rgb(s.colors[j]), linewidth=1.4, label=name)
     if plot.log_x:
         ax.set_xscale("log")
     if plot.log_y:
@@ -253,6 +254,9 @@ def _draw_bars(ax: Any, plot: Plot) -> bool:
                 color=_rgb(s.colors[j]),
                 label=name,
             )
+    from matplotlib.ticker import MaxNLocator
+
+    ax.xaxis.set_major_locator(MaxNLocator(integer=True))
     ax.set_xlabel(plot.x_label, fontsize=8)
     ax.set_ylabel(plot.unit, fontsize=8)
     return bool(plot.series)
@@ -310,6 +314,4 @@ def _draw_3d(fig: Any, plot: Plot) -> None:
     ax.set_title("directions (coverage)", fontsize=8)
     ax.tick_params(labelsize=6)
     ax.grid(True, alpha=0.3)
-    fig.suptitle(
-        plot.heading + ("; " + ", ".join(s.names[0] for s in shells) if shells else ""), fontsize=9
-    )
+    fig.suptitle(plot.heading, fontsize=9)

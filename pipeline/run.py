@@ -24,7 +24,7 @@ from imupipe.pipeline.config import Config, load_config
 from imupipe.pipeline.mcap_writer import write_mcap
 from imupipe.pipeline.progress import progress_bar
 from imupipe.pipeline.recording import open_recorder
-from imupipe.pipeline.summary import StageSummary, publish, summarise
+from imupipe.pipeline.summary import StageSummary, publish, raw_count_sensors, summarise
 from imupipe.pipeline.version import VERSION
 from imupipe.readers.dispatch import carry_over, read_input
 from imupipe.stages.base import StageContext
@@ -141,7 +141,7 @@ def run(config: Config | str | Path, *, spawn: bool = False, quiet: bool = False
             doc = calibration_document(tables.chain, results)
             out.write_text(out_dir / "calibration.json", json.dumps(doc, indent=2) + "\n")
             files.append(out_dir / "calibration.json")
-            summaries = summarise(results)
+            summaries = summarise(results, raw_count_sensors(cfg.inputs))
             files += publish(summaries, recorder, cfg, out)
             counts: dict[str, dict[str, int]] = {}
             for name in cfg.output.apply_to:

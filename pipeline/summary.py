@@ -11,7 +11,7 @@ without a summariser here still gets its vectors, scalars and warnings listed.
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -26,6 +26,11 @@ class Row:
     cells: list[str]
     unit: str = ""
 
+    @property
+    def label(self) -> str:
+        """``bias (rad/s)``: the name with the unit."""
+        return f"{self.name} ({self.unit})" if self.unit else self.name
+
 
 @dataclass
 class StageSummary:
@@ -38,6 +43,11 @@ class StageSummary:
     warnings: list[str] = field(default_factory=list)
     failed_checks: list[str] = field(default_factory=list)
     look_at: str = ""
+    counts: frozenset[str] = frozenset()
+    """Sensors the stage's input holds in raw counts (not SI): their offsets are in counts."""
+
+    def unit(self, sensor: str, si: str) -> str:
+        return "counts" if sensor in self.counts else si
 
     @property
     def status(self) -> str:
@@ -162,19 +172,20 @@ def _allan(r: dict[str, Any], s: StageSummary) -> None:
 def _gyro_bias(r: dict[str, Any], s: StageSummary) -> None:
     m = r.get("metrics", {})
     cells = _vector(r.get("bias"), sigmas=m.get("bias_std_error"))
-    _row(s.rows, "bias", cells, "rad/s")
-    _row(s.rows, "noise std", _vector(m.get("std")), "rad/s")
+    unit = s.unit("gyro", "rad/s")
+    _row(s.rows, "bias", cells, unit)
+    _row(s.rows, "noise std", _vector(m.get("std")), unit)
     if "duration_s" in m:
         s.quality.append(
             ("recording", f"{fmt(m['duration_s'], 4)} s, {m.get('samples', '-')} samples")
         )
     if "max_1s_excursion" in m:
-        s.quality.append(("largest 1 s mean excursion", f"{fmt(m['max_1s_excursion'], 3)} rad/s"))
+        s.quality.append(("largest 1 s mean excursion", f"{fmt(m['max_1s_excursion'], 3)} {unit}"))
     if "static" in m:
         s.quality.append(("at rest", fmt(m["static"])))
     if cells:
         s.headline = (
-            "bias " + ", ".join(f"{a} {c}" for a, c in zip(AXES, cells, strict=True)) + " rad/s"
+            "bias " + ", ".join(f"{a} {c}" for a, c in zip(AXES, cells, strict=True)) + f" {unit}"
         )
 
 
@@ -208,7 +219,8 @@ def _accel_calibration(r: dict[str, Any], s: StageSummary) -> None:
     u = m.get("uncertainty", {})
     _row(s.rows, "scale", _vector(r.get("scale"), sigmas=u.get("scale_std")))
     _misalignment(r, s, u.get("misalignment_std_rad"))
-    _row(s.rows, "bias", _vector(r.get("bias"), sigmas=u.get("bias_std")), "m/s^2")
+    bias = _vector(r.get("bias"), sigmas=u.get("bias_std"))
+    _row(s.rows, "bias", bias, s.unit("accel", "m/s^2"))
     res = m.get("residual_mg", {})
     if "means_rms" in res:
         text = _residual(res["means_rms"], res.get("means_max"), res.get("start_means_rms"), "mg")
@@ -234,7 +246,7 @@ def _gyro_calibration(r: dict[str, Any], s: StageSummary) -> None:
     m = r.get("metrics", {})
     _row(s.rows, "scale", _vector(r.get("scale")))
     _misalignment(r, s)
-    _row(s.rows, "bias", _vector(r.get("bias")), "rad/s")
+    _row(s.rows, "bias", _vector(r.get("bias")), s.unit("gyro", "rad/s"))
     res = m.get("gravity_direction_residual_deg", {})
     if "rms" in res:
         text = _residual(res["rms"], res.get("max"), res.get("start_rms"), "deg")
@@ -246,11 +258,12 @@ def _gyro_calibration(r: dict[str, Any], s: StageSummary) -> None:
 
 def _mag_calibration(r: dict[str, Any], s: StageSummary) -> None:
     m = r.get("metrics", {})
-    _row(s.rows, "hard iron (centre)", _vector(r.get("centre"), 1e6), "uT")
-    _row(s.rows, "ellipsoid radii", _vector(r.get("radii"), 1e6), "uT")
+    unit, scale = ("counts", 1.0) if "mag" in s.counts else ("uT", 1e6)
+    _row(s.rows, "hard iron, centre", _vector(r.get("centre"), scale), unit)
+    _row(s.rows, "ellipsoid radii", _vector(r.get("radii"), scale), unit)
     _row(s.rows, "soft iron diagonal", _vector(m.get("soft_iron_diagonal")))
     if isinstance(r.get("field"), (int, float)):
-        s.rows.append(Row("field magnitude", [fmt(r["field"] * 1e6)], "uT"))
+        s.rows.append(Row("field magnitude", [fmt(r["field"] * scale)], unit))
     if "norm_std_pct" in m:
         text = f"{fmt(m['norm_std_pct'], 3)} %"
         if "raw_norm_std_pct" in m:
@@ -291,7 +304,7 @@ def _temperature(r: dict[str, Any], s: StageSummary) -> None:
             _row(s.rows, f"bias at {fmt(r['tref'], 4)} degC", [fmt(c) for c in const], unit)
     for key, name in (("rms_before", "rms before"), ("rms_after", "rms after")):
         _row(s.rows, name, _vector([_get(m, a, key) for a in AXES]), unit)
-    _row(s.rows, "reduction", _vector([_get(m, a, "reduction") for a in AXES]), "x")
+    _row(s.rows, "reduction (rms before / after)", _vector([_get(m, a, "reduction") for a in AXES]))
     _row(s.rows, "R^2", _vector([_get(m, a, "r2") for a in AXES]))
     if "validate" in m:
         v = m["validate"]
@@ -383,11 +396,23 @@ SUMMARISERS: dict[str, Callable[[dict[str, Any], StageSummary], None]] = {
 }
 
 
-def summarise(results: dict[str, dict[str, Any]]) -> list[StageSummary]:
-    """One :class:`StageSummary` per stage of ``calibration.json``'s ``results``, in run order."""
+def raw_count_sensors(inputs: Mapping[str, Any]) -> dict[str, set[str]]:
+    """Input name -> the sensors a CSV mapping reads in raw counts (``<sensor>_unit = "raw"``)."""
+    return {
+        name: {s for s in ("gyro", "accel", "mag") if getattr(spec.csv, f"{s}_unit", "") == "raw"}
+        for name, spec in inputs.items()
+    }
+
+
+def summarise(
+    results: dict[str, dict[str, Any]], counts: Mapping[str, set[str]] | None = None
+) -> list[StageSummary]:
+    """One :class:`StageSummary` per stage of ``calibration.json``'s ``results``, in run order;
+    ``counts``: input -> sensors in raw counts (:func:`raw_count_sensors`)."""
     out = []
     for name, r in results.items():
         s = StageSummary(name=name, type=str(r.get("type", "?")), input=str(r.get("input", "?")))
+        s.counts = frozenset((counts or {}).get(s.input, ()))
         try:
             SUMMARISERS.get(s.type, _generic)(r, s)
         except (TypeError, ValueError, KeyError, IndexError, ZeroDivisionError) as exc:
@@ -407,10 +432,10 @@ def _md_escape(text: str) -> str:
 def _md_table(rows: Sequence[Row]) -> list[str]:
     if not rows:
         return []
-    lines = ["| quantity | x | y | z | unit |", "|---|---:|---:|---:|---|"]
+    lines = ["| quantity | x | y | z |", "|---|---:|---:|---:|"]
     for row in rows:
         cells = (row.cells + ["", "", ""])[:3]
-        lines.append("| " + " | ".join(_md_escape(c) for c in [row.name, *cells, row.unit]) + " |")
+        lines.append("| " + " | ".join(_md_escape(c) for c in [row.label, *cells]) + " |")
     return lines
 
 
@@ -467,9 +492,8 @@ def print_summary(summaries: Sequence[StageSummary], console: Any = None) -> Non
             table.add_column("quantity")
             for axis in AXES:
                 table.add_column(axis, justify="right", no_wrap=True)
-            table.add_column("unit")
             for row in s.rows:
-                table.add_row(row.name, *(row.cells + ["", "", ""])[:3], row.unit)
+                table.add_row(row.label, *(row.cells + ["", "", ""])[:3])
             console.print(table)
         else:
             console.print(title)

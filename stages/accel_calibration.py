@@ -348,7 +348,7 @@ class AccelCalibrationStage(Stage):
             np.linalg.norm(raw, axis=1),
             ("|a| raw",),
             colors=[(150, 150, 150)],
-            **norm,
+            **(norm | {"unit": rec.input_unit(ctx.name, "accel")}),  # raw counts: a plot apart
         )
         rec.series(
             f"/{ctx.name}/norm/calibrated",

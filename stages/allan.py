@@ -288,11 +288,11 @@ class AllanStage(Stage):
                     **plot,
                 )
             f = fits[(name, i)]
-            names = ["fit"] + [t for t in TERMS if f.params[t] > 0]
-            lines = [f.deviation(dense)] + [
-                np.sqrt(term_variance(t, f.params[t], dense)) for t in names[1:]
-            ]
-            rec.curve(f"{base}/model", dense, np.column_stack(lines), names, **plot)
+            rec.curve(f"{base}/model", dense, f.deviation(dense), ("fit",), **plot)
+            terms = [t for t in TERMS if f.params[t] > 0]
+            lines = [np.sqrt(term_variance(t, f.params[t], dense)) for t in terms]
+            if terms:
+                rec.curve(f"{base}/terms", dense, np.column_stack(lines), terms, guide=True, **plot)
 
 
 # -- artifacts ---------------------------------------------------------------------------------

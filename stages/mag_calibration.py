@@ -268,7 +268,7 @@ class MagCalibrationStage(Stage):
         rec.points3d(
             f"/{name}/raw/points",
             raw[::stride],
-            name="raw samples (grey: not used)",
+            name="raw samples",
             colors=colors,
             **raw_plot,
         )

@@ -95,7 +95,8 @@ def test_rerun_curves(allan_run):
     for s in ("gyro", "accel"):
         for axis in "xyz":
             assert len(plots[f"/allan/{s}/{axis}/measured"]["Points2D:positions"]) > 10
-            assert len(plots[f"/allan/{s}/{axis}/model"]["LineStrips2D:strips"]) >= 2
+            assert len(plots[f"/allan/{s}/{axis}/model"]["LineStrips2D:strips"]) == 1  # the fit
+            assert len(plots[f"/allan/{s}/{axis}/terms"]["LineStrips2D:strips"]) >= 1
 
 
 # -- input checks (in-process: the messages) ---------------------------------------------------

@@ -268,9 +268,10 @@ def test_plots_split_by_unit_and_open_on_their_own_span(tmp_path):
 
 def test_one_physical_unit_per_plot():
     figures = Figures()
-    figures.plot("s", "gyro", "time", title=None, unit="rad/s")
-    with pytest.raises(ValueError, match="one physical unit per plot"):
-        figures.plot("s", "gyro", "time", title=None, unit="degC")
+    gyro = figures.plot("s", "gyro", "time", title=None, unit="rad/s")
+    counts = figures.plot("s", "gyro", "time", title=None, unit="raw counts")
+    assert counts is not gyro and counts.heading == "gyro (raw counts)"
+    assert figures.plot("s", "gyro", "time", title=None, unit="rad/s") is gyro
     assert display_unit("T") == ("uT", 1e6)
     assert display_unit("rad/s") == ("rad/s", 1.0)
 
@@ -300,3 +301,25 @@ def test_axes_ticks():
     assert log.labels == ["1e-5", "1e-4", "0.001", "0.01", "0.1"]
     np.testing.assert_allclose(log(np.array([1e-5, 1e-1])), [0.0, 1.0])
     assert np.isnan(log(np.array([0.0]))[0])  # no log of zero: a gap in the curve
+
+
+def test_raw_counts_are_plotted_apart_from_si(tmp_path, cli):
+    """imu_tk's Xsens log (raw counts, tests/data/imu_tk_xsens): the input is shown in counts,
+    the corrected signal in m/s^2, never on one axis; the summary's offsets are in counts."""
+    from conftest import TEST_DATA
+
+    data = TEST_DATA / "imu_tk_xsens"
+    cfg = tmp_path / "xsens.toml"
+    cfg.write_text(
+        f'[inputs.xsens]\npath = "{data / "xsens_acc.mat"}"\n[inputs.xsens.csv]\ntime = 0\n'
+        'time_unit = "s"\naccel = [1, 2, 3]\naccel_unit = "raw"\n'
+        f'gyro_file = "{data / "xsens_gyro.mat"}"\ngyro = [1, 2, 3]\ngyro_unit = "raw"\n'
+        '[[stages]]\ntype = "accel_calibration"\ngravity = 9.81744\ninit_static_s = 50.0\n'
+        '[output]\ndir = "out"\napply_to = []\nreport = false\n'
+    )
+    done = cli("run", cfg)
+    assert done.returncode == 0, done.stderr
+    views, _, _ = read_blueprint(tmp_path / "out" / "recording.rrd")
+    titles = {v["name"] for v in views.values()}
+    assert {"accel (raw counts)", "accel (m/s^2)", "|a| (raw counts)", "|a| (m/s^2)"} <= titles
+    assert "bias (counts)" in done.stdout and "bias (m/s^2)" not in done.stdout

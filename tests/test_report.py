@@ -78,7 +78,8 @@ def test_report_holds_every_stage_with_its_numbers_and_plots(report_run):
         assert f'id="stage-{stage.replace("_", "-")}"' in html
     residual = cal["accel_calibration"]["metrics"]["residual_mg"]["means_rms"]
     assert f"{fmt(residual, 3)} mg rms" in html
-    assert f"{fmt(cal['mag_calibration']['field'] * 1e6)}</td>" in html  # field in uT
+    field = fmt(cal["mag_calibration"]["field"] * 1e6)
+    assert f'<td>field magnitude (uT)</td><td class="num">{field}</td>' in html
     for caption in (
         "|a| - g after calibration (mg) per pose",
         "gravity direction residual (deg) per transition",

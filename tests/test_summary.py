@@ -54,7 +54,7 @@ def test_stage_summary_holds_values_units_uncertainty_and_warnings():
     ]
     assert s.warnings == ["the IMU moved"] and s.status == "1 warning(s)"
     md = stage_markdown(s)
-    assert "| bias | 0.0100598 ± 0.0000020 |" in md
+    assert "| bias (rad/s) | 0.0100598 ± 0.0000020 |" in md
     assert "**Warnings**" in md and "- the IMU moved" in md
     assert "What to look at." in md
 
@@ -87,7 +87,7 @@ def test_terminal_table():
     print_summary(summarise({"gyro_bias": GYRO_BIAS}), Console(file=buf, width=120))
     text = buf.getvalue()
     assert "gyro_bias (gyro_bias on static): 1 warning(s)" in text
-    assert "0.0100598 ± 0.0000020" in text and "rad/s" in text
+    assert "bias (rad/s)" in text and "0.0100598 ± 0.0000020" in text
     assert "warning: the IMU moved" in text
 
 
