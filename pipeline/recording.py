@@ -589,6 +589,8 @@ def open_recorder(
         if not quiet:
             print(f"imupipe: warning: {message}", file=sys.stderr)
 
+    if spawn and not cfg.output.rerun:
+        warn("--spawn: [output] rerun = false: there is no recording to show")
     if not (cfg.output.rerun or cfg.output.report):
         return NullRecorder(), []
     rrd = cfg.output.dir / "recording.rrd"
@@ -654,5 +656,6 @@ def _last_line(log: Any) -> str:
     log.seek(0)
     text = log.read().decode("utf-8", "replace")
     lines = [re.sub(r"\x1b\[[0-9;]*m", "", line).strip() for line in text.splitlines()]
+    lines = [re.sub(r" at \S+\.rs:\d+", "", line) for line in lines]  # Rust source locations
     lines = [line for line in lines if line]
     return lines[-1][:300] if lines else "it exited without a message"

@@ -23,7 +23,6 @@ from imupipe.pipeline.atomic import staged_outputs
 from imupipe.pipeline.config import Config, load_config
 from imupipe.pipeline.mcap_writer import write_mcap
 from imupipe.pipeline.progress import progress_bar
-from imupipe.pipeline.recording import open_recorder
 from imupipe.pipeline.summary import StageSummary, publish, raw_count_sensors, summarise
 from imupipe.pipeline.version import VERSION
 from imupipe.readers.dispatch import carry_over, read_input
@@ -101,6 +100,8 @@ def run(config: Config | str | Path, *, spawn: bool = False, quiet: bool = False
         tables = CorrectedTables(raw)
         results: dict[str, Any] = {}
         with staged_outputs() as out:
+            from imupipe.pipeline.recording import open_recorder  # rerun: loaded when run
+
             recorder, files = open_recorder(cfg, out, spawn=spawn, quiet=quiet)
             for st in cfg.stages:
                 bar.describe(f"stage {st.name}")

@@ -122,6 +122,9 @@ def test_spawned_viewer_receives_the_whole_recording(cfg, tmp_path):
                 break
             time.sleep(0.5)
         assert received == expected
+        import rerun.chunk as rc
+
+        assert len(rc.RrdReader(str(saved)).blueprints()) == 1  # the layout came along
     finally:
         if pidfile.exists():
             os.kill(int(pidfile.read_text()), signal.SIGTERM)
