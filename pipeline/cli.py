@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import sys
 
 from imupipe.pipeline.errors import ImupipeError
@@ -48,6 +49,8 @@ def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     debug = "--debug" in argv
     argv = [a for a in argv if a != "--debug"]  # accepted anywhere on the line
+    if not debug:  # Rerun's own (Rust) log lines are for its developers; read before rerun loads
+        os.environ.setdefault("RUST_LOG", "off")
     try:
         args = build_parser().parse_args(argv)
         return int(args.func(args) or 0)

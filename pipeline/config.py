@@ -29,7 +29,9 @@ from imupipe.stages.registry import STAGE_TYPES, stage_class
 
 INPUT_KEYS = {"path", "imu_topic", "mag_topic", "temperature_topic", "time", "csv"}
 CSV_KEYS = {f.name for f in dataclasses.fields(CsvMapping)} - {"required"}
-OUTPUT_KEYS = {"dir", "apply_to", "rerun", "rerun_max_points"}
+OUTPUT_KEYS = {"dir", "apply_to", "rerun", "rerun_max_points", "report", "exports"}
+EXPORT_NAMES = ("kalibr", "imu_utils", "vins", "openvins", "px4", "ardupilot")
+"""The files for other tools that ``[output] exports`` may name (``imupipe.pipeline.exports``)."""
 TOP_KEYS = {"inputs", "stages", "output"}
 
 
@@ -49,8 +51,14 @@ class OutputConfig:
     dir: Path
     apply_to: list[str]
     rerun: bool = True
-    rerun_max_points: int = 200_000
+    rerun_max_points: int = 20_000
     """Signals longer than this are block-averaged before they go to Rerun (the file stays small)."""
+    report: bool = True
+    """Write ``report.html`` (plots and numbers of every stage, one self-contained file)."""
+    exports: list[str] | None = None
+    """The files for other tools to write (names of :data:`EXPORT_NAMES`); None: the ROS and VIO
+    ones (Kalibr, imu_utils, VINS, OpenVINS), plus PX4's when a step was fitted on a PX4 log.
+    Kalibr's ``imu.yaml`` is written whenever an ``allan`` stage ran."""
 
 
 @dataclass
@@ -314,8 +322,23 @@ def load_config(path: str | Path) -> Config:
     rerun = out_raw.get("rerun", True)
     if not isinstance(rerun, bool):
         raise ConfigError(f"{path}: [output].rerun must be true or false")
-    max_points = out_raw.get("rerun_max_points", 200_000)
+    max_points = out_raw.get("rerun_max_points", OutputConfig.rerun_max_points)
     if not isinstance(max_points, int) or isinstance(max_points, bool) or max_points < 100:
         raise ConfigError(f"{path}: [output].rerun_max_points must be an integer >= 100")
-    output = OutputConfig(dir=out_dir, apply_to=apply_to, rerun=rerun, rerun_max_points=max_points)
+    report = out_raw.get("report", True)
+    if not isinstance(report, bool):
+        raise ConfigError(f"{path}: [output].report must be true or false")
+    exports = out_raw.get("exports")
+    if exports is not None and (
+        not isinstance(exports, list) or not all(e in EXPORT_NAMES for e in exports)
+    ):
+        raise ConfigError(f"{path}: [output].exports must be a list of: {', '.join(EXPORT_NAMES)}")
+    output = OutputConfig(
+        dir=out_dir,
+        apply_to=apply_to,
+        rerun=rerun,
+        rerun_max_points=max_points,
+        report=report,
+        exports=exports,
+    )
     return Config(path=path, inputs=inputs, stages=stages, output=output, raw=raw)

@@ -13,7 +13,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from collections.abc import Callable, Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -24,12 +24,19 @@ from imupipe.pipeline.atomic import staged_outputs
 from imupipe.pipeline.calibration_file import fitted_on
 from imupipe.pipeline.config import Config, load_config
 from imupipe.pipeline.corrected import write_corrected
+from imupipe.pipeline.exports import chosen as chosen_exports
 from imupipe.pipeline.exports import export_all
 from imupipe.pipeline.progress import progress_bar
+from imupipe.pipeline.summary import (
+    StageSummary,
+    raw_count_sensors,
+    run_markdown,
+    stage_markdown,
+    summarise,
+)
 from imupipe.pipeline.version import VERSION
 from imupipe.readers.dispatch import read_input
-from imupipe.readers.table import SENSOR_COLUMNS, has_sensor, sensor
-from imupipe.stages.base import NullRecorder, StageContext
+from imupipe.stages.base import StageContext
 from imupipe.stages.registry import stage_class
 from imupipe.stages.steps import Step, apply_chain
 
@@ -85,6 +92,7 @@ class RunSummary:
     files: list[Path]
     calibration: dict[str, Any]
     counts: dict[str, dict[str, int]] = field(default_factory=dict)
+    summaries: list[StageSummary] = field(default_factory=list)
 
 
 def calibration_document(
@@ -98,12 +106,19 @@ def calibration_document(
     return {"imupipe_version": VERSION, "chain": entries, "results": results}
 
 
-def record_sensors(recorder: Any, prefix: str, table: pa.Table, sensors: tuple[str, ...]) -> None:
-    for name in sensors:
-        if has_sensor(table, name):
-            data = sensor(table, name)
-            axes = tuple(c.split("_")[-1] for c in SENSOR_COLUMNS[name])
-            recorder.series(f"{prefix}/{name}", data.t_ns, data.values, axes)
+def publish(summaries: Sequence[StageSummary], recorder: Any, cfg: Any, out: Any) -> list[Any]:
+    """The summary into the recording (a document per stage, and the Summary tab) and, with
+    ``[output] report``, into ``report.html`` (staged in ``out``); returns the files written."""
+    for s in summaries:
+        recorder.document(s.name, stage_markdown(s))
+    recorder.document(None, run_markdown(summaries, f"imupipe run {cfg.path.name}"))
+    if not cfg.output.report:
+        return []
+    from imupipe.pipeline.report import write_report  # matplotlib: imported only when needed
+
+    target = cfg.output.dir / "report.html"
+    write_report(out.path(target), summaries, recorder.figures, cfg)
+    return [target]
 
 
 def run(config: Config | str | Path, *, spawn: bool = False, quiet: bool = False) -> RunSummary:
@@ -131,16 +146,9 @@ def run(config: Config | str | Path, *, spawn: bool = False, quiet: bool = False
         results: dict[str, Any] = {}
         fitted: list[dict[str, Any]] = []  # fitted_on of each chain entry
         with staged_outputs() as out:
-            files: list[Path] = []
-            recorder: Any = NullRecorder()
-            if cfg.output.rerun:
-                from imupipe.pipeline.recording import Recorder
+            from imupipe.pipeline.recording import open_recorder  # rerun: loaded when run
 
-                rrd = out_dir / "recording.rrd"
-                recorder = Recorder(
-                    out.path(rrd), spawn=spawn, max_points=cfg.output.rerun_max_points
-                )
-                files.append(rrd)
+            recorder, files = open_recorder(cfg, out, spawn=spawn, quiet=quiet)
             for st in cfg.stages:
                 bar.describe(f"stage {st.name}")
                 stage = stage_class(st.type)(st.options)
@@ -155,13 +163,16 @@ def run(config: Config | str | Path, *, spawn: bool = False, quiet: bool = False
                     accept_failed_checks=st.accept_failed_checks,
                 )
                 sensors = stage.sensors_for(st.options)
-                record_sensors(recorder, f"/{st.name}/input", table, sensors)
+                recorder.sensors(st.name, table, sensors, input_name=st.input, chain=tables.chain)
                 output = stage.fit(table, ctx)
                 where = fitted_on(st.input, cfg.inputs[st.input], table)
                 if output.steps:
                     tables.extend(output.steps)
                     fitted.extend([where] * len(output.steps))
-                    record_sensors(recorder, f"/{st.name}/output", tables[st.input], sensors)
+                    fixed = [n for n in sensors if any(s.sensor == n for s in output.steps)]
+                    recorder.sensors(
+                        st.name, tables[st.input], fixed, input_name=st.input, corrected=True
+                    )
                 recorder.ensure_stage(st.name)
                 results[st.name] = {
                     "type": st.type,
@@ -178,17 +189,23 @@ def run(config: Config | str | Path, *, spawn: bool = False, quiet: bool = False
                 bar.advance()
 
             doc = calibration_document(tables.chain, results, fitted)
-            exported, report = export_all(doc)
-            if report:
+            exported, report = export_all(doc, chosen_exports(doc, cfg.output.exports))
+            if report:  # what each tool's file leaves out: in the document, and one line
                 doc["exports"] = report
-            for name, rep in report.items():
-                for note in rep.get("notes", []) if not quiet else []:
-                    print(f"imupipe: warning: [exports] {name}: {note}", file=sys.stderr)
+            noted = [name for name, rep in report.items() if rep.get("notes")]
+            if noted and not quiet:
+                print(
+                    f"imupipe: note: [exports] {', '.join(noted)} leave out what their format "
+                    'has no place for: see "exports" in calibration.json',
+                    file=sys.stderr,
+                )
             out.write_text(out_dir / "calibration.json", json.dumps(doc, indent=2) + "\n")
             files.append(out_dir / "calibration.json")
             for fname, text in exported.items():
                 out.write_text(out_dir / fname, text)
                 files.append(out_dir / fname)
+            summaries = summarise(results, raw_count_sensors(cfg.inputs))
+            files += publish(summaries, recorder, cfg, out)
             counts: dict[str, dict[str, int]] = {}
             tables.release()
             for name in cfg.output.apply_to:
@@ -201,7 +218,9 @@ def run(config: Config | str | Path, *, spawn: bool = False, quiet: bool = False
                 bar.advance()
             recorder.close()
             bar.advance()
-    return RunSummary(out_dir=out_dir, files=files, calibration=doc, counts=counts)
+    return RunSummary(
+        out_dir=out_dir, files=files, calibration=doc, counts=counts, summaries=summaries
+    )
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -217,6 +236,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 def main(args: argparse.Namespace) -> int:
     summary = run(args.config, spawn=args.spawn, quiet=args.quiet)
     if not args.quiet:
+        from imupipe.pipeline.summary import print_summary
+
+        print_summary(summary.summaries)
         for path in summary.files:
             print(path)
     return 0

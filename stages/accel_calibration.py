@@ -493,20 +493,31 @@ class AccelCalibrationStage(Stage):
         rec = ctx.recorder
         if not rec.enabled:
             return
-        static = intervals.mask(len(t_ns)).astype(float) * g
-        rec.series(f"/{ctx.name}/norm/raw", t_ns, np.linalg.norm(raw, axis=1), ("raw |a|",))
+        static = np.where(intervals.mask(len(t_ns)), g, np.nan)  # g where still
+        norm = dict(unit="m/s^2", plot="norm", title="|a|")
+        rec.series(
+            f"/{ctx.name}/norm/raw",
+            t_ns,
+            np.linalg.norm(raw, axis=1),
+            ("|a| raw",),
+            colors=[(150, 150, 150)],
+            **(norm | {"unit": rec.input_unit(ctx.name, "accel")}),  # raw counts: a plot apart
+        )
         rec.series(
             f"/{ctx.name}/norm/calibrated",
             t_ns,
             np.column_stack([np.linalg.norm(params.apply(raw), axis=1), static]),
-            ("calibrated |a| m/s^2", "static intervals (g)"),
+            ("|a| calibrated", "still intervals (at g)"),
+            colors=[(40, 100, 230), (230, 120, 20)],
+            **norm,
         )
-        rec.curve(
+        rec.bars(
             f"/{ctx.name}/residual_per_pose",
-            np.arange(len(per_pose)),
             per_pose,
-            ("| |a| - g | mg",),
-            timeline="pose",
+            ("|a| - g",),
+            x_label="pose",
+            unit="mg",
+            title="|a| - g after calibration",
         )
 
 

@@ -45,7 +45,7 @@ from typing import Any, Literal
 import numpy as np
 import pyarrow as pa
 
-from imupipe.readers.table import SensorData, has_stream, sensor
+from imupipe.readers.table import SENSOR_UNITS, SensorData, has_stream, sensor
 from imupipe.stages import allan_estimators as est
 from imupipe.stages.allan_fit import TERMS, AllanFit, fit_allan, slope_readings, term_variance
 from imupipe.stages.base import Stage, StageContext, StageOutput
@@ -94,8 +94,6 @@ UNITS = {
 FIT_KINDS = ("oadev", "adev")
 """Deviations the five-term (Allan variance) model describes; other kinds are shown, and the
 fit runs on the OADEV at the same taus."""
-TIMELINE = "log10_tau_x1000"
-"""Rerun sequence timeline of the curves: round(1000 * log10(tau / s))."""
 
 
 class AllanStage(Stage):
@@ -333,47 +331,43 @@ class AllanStage(Stage):
         rec = ctx.recorder
         if not getattr(rec, "enabled", False):
             return
-        import rerun.blueprint as rrb
-
-        xs = np.round(1000.0 * np.log10(dev.taus)).astype(np.int64)
         dense = np.logspace(np.log10(dev.taus[0]), np.log10(dev.taus[-1]), 200)
-        xd = np.round(1000.0 * np.log10(dense)).astype(np.int64)
-        xd, keep = np.unique(xd, return_index=True)
-        dense = dense[keep]
         for col, (name, i) in enumerate((s, i) for s in self.sensors for i in range(3)):
             base = f"/{ctx.name}/{name}/{AXES[i]}"
-            values = [dev.dev[:, col], conf.lo[:, col], conf.hi[:, col]]
-            names = [f"log10 {dev.kind}", "lower 68%", "upper 68%"]
-            if fdev is not dev:
-                values.append(fdev.dev[:, col])
-                names.append(f"log10 {fdev.kind} (fitted)")
+            plot = dict(
+                plot=f"{name}/{AXES[i]}",
+                title=f"{name} {AXES[i]} Allan deviation",
+                unit=SENSOR_UNITS[name],
+                x_label="tau",
+                x_unit="s",
+                log_x=True,
+                log_y=True,
+            )
+            band = np.column_stack([conf.lo[:, col], conf.hi[:, col]])
+            rec.curve(f"{base}/band", dev.taus, band, ("68% confidence",), band=True, **plot)
             rec.curve(
                 f"{base}/measured",
-                xs,
-                np.log10(np.column_stack(values)),
-                names,
-                timeline=TIMELINE,
-                colors=[(30, 30, 30), (150, 150, 150), (150, 150, 150), (200, 120, 0)][
-                    : len(names)
-                ],
+                dev.taus,
+                dev.dev[:, col],
+                (f"measured {dev.kind}",),
+                points=True,
+                **plot,
             )
+            if fdev is not dev:
+                rec.curve(
+                    f"{base}/fitted_kind",
+                    fdev.taus,
+                    fdev.dev[:, col],
+                    (f"{fdev.kind} (fitted)",),
+                    points=True,
+                    **plot,
+                )
             f = fits[(name, i)]
-            names = ["fit"] + [t for t in TERMS if f.params[t] > 0]
-            lines = [f.deviation(dense)] + [
-                np.sqrt(term_variance(t, f.params[t], dense)) for t in names[1:]
-            ]
-            rec.curve(
-                f"{base}/model", xd, np.log10(np.column_stack(lines)), names, timeline=TIMELINE
-            )
-        for name in self.sensors:
-            rec.add_view(
-                ctx.name,
-                rrb.TimeSeriesView(
-                    origin=f"/{ctx.name}/{name}",
-                    name=f"{name} log10 {dev.kind} vs 1000 log10 tau (timeline {TIMELINE})",
-                ),
-            )
-        rec.add_view(ctx.name, rrb.TimeSeriesView(origin=f"/{ctx.name}/input", name="input"))
+            rec.curve(f"{base}/model", dense, f.deviation(dense), ("fit",), **plot)
+            terms = [t for t in TERMS if f.params[t] > 0]
+            lines = [np.sqrt(term_variance(t, f.params[t], dense)) for t in terms]
+            if terms:
+                rec.curve(f"{base}/terms", dense, np.column_stack(lines), terms, guide=True, **plot)
 
 
 # -- artifacts ---------------------------------------------------------------------------------

@@ -72,7 +72,12 @@ class GyroBiasStage(Stage):
         still = stillness(t_ns, values, both.values[:, 3:])
         static = still.static(self.options.motion_threshold)
         ctx.recorder.series(
-            f"/{ctx.name}/gyro_1s_means", still.gyro_1s.t_ns, still.gyro_1s.means, ("x", "y", "z")
+            f"/{ctx.name}/gyro_1s_means",
+            still.gyro_1s.t_ns,
+            still.gyro_1s.means,
+            ("gyro x 1 s mean", "gyro y 1 s mean", "gyro z 1 s mean"),
+            unit="rad/s",
+            title="gyro, 1 s means of the input",
         )
         step = LinearStep(
             type=self.type,

@@ -261,10 +261,11 @@ class GyroCalibrationStage(Stage):
 
     def _record_transitions(self, ctx: StageContext, before: np.ndarray, after: np.ndarray) -> None:
         if ctx.recorder.enabled:
-            ctx.recorder.curve(
+            ctx.recorder.bars(
                 f"/{ctx.name}/gravity_direction_residual_deg",
-                np.arange(len(after)),
                 np.column_stack([before, after]),
                 ("start", "calibrated"),
-                timeline="transition",
+                x_label="transition",
+                unit="deg",
+                title="gravity direction residual",
             )

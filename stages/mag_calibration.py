@@ -44,9 +44,6 @@ from typing import Any, Literal
 
 import numpy as np
 import pyarrow as pa
-import rerun as rr
-import rerun.blueprint as rrb
-from scipy.spatial.transform import Rotation
 
 from imupipe.readers.table import has_stream, metadata, sensor
 from imupipe.stages import ellipsoid as ell
@@ -322,41 +319,43 @@ class MagCalibrationStage(Stage):
         if not getattr(rec, "enabled", False):
             return
         name = ctx.name
-        scale, unit_name = (1e6, "uT") if target < 1e-2 else (1.0, unit.name)
+        unit_name = "raw units" if unit.raw else "T"  # the recorder shows tesla as uT
+        fixed_unit = "T" if target < 1e-2 else unit_name  # raw counts scaled to field_ut: tesla
         stride = max(1, int(np.ceil(len(raw) / MAX_3D_POINTS)))
         colors = np.where(
             report.used[:, None],
             np.array([[60, 100, 230]]),
             np.where(report.thinned[:, None], np.array([[230, 60, 60]]), np.array([[150] * 3])),
         ).astype(np.uint8)[::stride]
-        size = 0.01 * target * scale
-        rec.log(
+        raw_plot = dict(unit=unit_name, plot="raw", title="raw samples and the fitted ellipsoid")
+        rec.points3d(
             f"/{name}/raw/points",
-            rr.Points3D(raw[::stride] * scale, colors=colors, radii=size),
+            raw[::stride],
+            name="raw samples",
+            colors=colors,
+            **raw_plot,
         )
         radii, axes = e.axes
-        quat = Rotation.from_matrix(axes).as_quat()
-        rec.log(
-            f"/{name}/raw/ellipsoid",
-            rr.Ellipsoids3D(
-                centers=[e.centre * scale],
-                half_sizes=[radii * scale],
-                quaternions=[rr.Quaternion(xyzw=quat)],
-                colors=[(240, 180, 40)],
-                labels=[f"fitted ellipsoid ({unit_name})"],
-            ),
+        rec.ellipsoid(
+            f"/{name}/raw/ellipsoid", e.centre, radii, axes, name="fitted ellipsoid", **raw_plot
         )
-        rec.log(
+        fixed_plot = dict(
+            unit=fixed_unit, plot="corrected", title="corrected samples and the field sphere"
+        )
+        rec.points3d(
             f"/{name}/corrected/points",
-            rr.Points3D(corrected[::stride] * scale, colors=colors, radii=size),
+            corrected[::stride],
+            name="corrected samples",
+            colors=colors,
+            **fixed_plot,
         )
-        rec.log(
+        rec.ellipsoid(
             f"/{name}/corrected/sphere",
-            rr.Ellipsoids3D(
-                half_sizes=[[target * scale] * 3],
-                colors=[(60, 180, 75)],
-                labels=[f"field sphere {target * scale:.4g} {unit_name}"],
-            ),
+            np.zeros(3),
+            [target] * 3,
+            name="field sphere",
+            color=(60, 180, 75),
+            **fixed_plot,
         )
         norms = np.column_stack(
             [
@@ -365,14 +364,15 @@ class MagCalibrationStage(Stage):
                 np.full(len(raw), target),
             ]
         )
-        rec.series(f"/{name}/norm", t_ns, norms * scale, ("before", "after", "field"))
-        rec.add_view(
-            name, rrb.Spatial3DView(origin=f"/{name}/raw", name=f"{name}: raw + fitted ellipsoid")
-        )
-        rec.add_view(
-            name,
-            rrb.Spatial3DView(origin=f"/{name}/corrected", name=f"{name}: corrected + field"),
-        )
-        rec.add_view(
-            name, rrb.TimeSeriesView(origin=f"/{name}/norm", name=f"{name}: |h| ({unit_name})")
+        names = ("|h| raw", "|h| corrected", "field magnitude")
+        colors = [(150, 150, 150), (40, 100, 230), (30, 160, 60)]
+        keep = slice(0, 3) if unit_name == fixed_unit else slice(1, 3)  # one unit per plot
+        rec.series(
+            f"/{name}/norm",
+            t_ns,
+            norms[:, keep],
+            names[keep],
+            unit=fixed_unit,
+            title="|h|",
+            colors=colors[keep],
         )

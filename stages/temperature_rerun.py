@@ -1,8 +1,7 @@
 """What the thermal stages show in Rerun (under ``/<stage name>``), one unit per plot.
 
-Curves against temperature are sent on the sequence timeline ``temperature_cdegC`` (x =
-hundredths of a degC; select it in the time panel to read them): the data as points, the fitted
-curve as a line.
+Curves against temperature are 2D plots (x in degC) that open readable on any timeline: the
+data as points, the fitted curve as a line.
 
 ``temperature`` stage:
 
@@ -14,11 +13,10 @@ curve as a line.
 - ``temperature`` (degC, over time): the measured block temperature, the ambient one, and with
   the lag model the sensing element's lagged temperature Ts; ``temperature rate`` (degC/min).
 - ``<sensor> bias`` and ``<sensor> residual`` (SI, over time): the block bias before and after.
-- ``lag fit`` (lag model): the cost (sum over axes of ln RSS) against the time constant, on the
-  sequence timeline ``lag_s`` (whole seconds).
+- ``lag fit`` (lag model): the cost (sum over axes of ln RSS) against the time constant (s).
 - ``surface``: the fitted surface B(T, dT) (B(Ts, dTs) for the lag model) per axis as an
   ``rr.Mesh3D`` with the blocks on it (the MATLAB example's ``mesh`` and ``plot3``); each axis in
-  its own unit box, the arrows' labels give the ranges.
+  its own 3D view and unit box, the arrows' labels give the ranges.
 - ``<axis> scale vs temperature`` (turntable runs): each +/-rate pair and the fitted sf(T).
 
 ``thermal_soak`` stage (:func:`record_soak`): per sensor, ``bias``, ``scale`` and
@@ -41,16 +39,9 @@ if TYPE_CHECKING:
     from imupipe.stages.temperature_step import Prepared, TemperatureStep
 
 AXES = ("x", "y", "z")
-TEMPERATURE_TIMELINE = "temperature_cdegC"
-LAG_TIMELINE = "lag_s"
 HEATING, COOLING, SOAK, FIT = (220, 50, 50), (50, 90, 220), (150, 150, 150), (20, 20, 20)
 AXIS_COLORS = [(230, 60, 60), (60, 180, 75), (60, 100, 230), (200, 140, 20), (150, 60, 200)]
 GRID_T, GRID_R = 41, 21
-
-
-def cdeg(temp: np.ndarray) -> np.ndarray:
-    """Temperatures (degC) as the ``temperature_cdegC`` sequence (hundredths of a degC)."""
-    return np.round(np.asarray(temp, dtype=np.float64) * 100.0).astype(np.int64)
 
 
 def _colormap(z: np.ndarray) -> np.ndarray:
@@ -65,10 +56,6 @@ def _grid_triangles(nx: int, ny: int) -> np.ndarray:
     a = (i * ny + j).ravel()
     b, c, d = a + ny, a + 1, a + ny + 1
     return np.vstack([np.column_stack([a, b, d]), np.column_stack([a, d, c])]).astype(np.uint32)
-
-
-def _view(rec: Any, stage: str, origin: str, name: str) -> None:
-    rec.add_view(stage, rrb.TimeSeriesView(origin=origin, name=name))
 
 
 def record_fit(
@@ -89,12 +76,21 @@ def record_fit(
     rate = rel["dTs"] if lagged else prep.variables["dT"]
     lo, hi = float(x.min()), float(x.max())
 
-    rec.series(f"/{name}/bias", prep.t_ns, prep.bias, [f"{sensor} {a} bias" for a in AXES])
+    rec.series(
+        f"/{name}/bias",
+        prep.t_ns,
+        prep.bias,
+        [f"{sensor} {a} bias" for a in AXES],
+        unit=unit,
+        title=f"{sensor} block bias",
+    )
     rec.series(
         f"/{name}/residual",
         prep.t_ns,
         prep.bias - fitted,
         [f"{sensor} {a} residual" for a in AXES],
+        unit=unit,
+        title=f"{sensor} residual after the fit",
     )
     temps = [prep.variables["T"]]
     labels = ["measured T"]
@@ -104,9 +100,21 @@ def record_fit(
     if lagged:
         temps.append(x)
         labels.append(f"sensing element Ts (lag {step.lag_s:.4g} s)")
-    rec.series(f"/{name}/temperature", prep.t_ns, np.column_stack(temps), labels)
     rec.series(
-        f"/{name}/temperature_rate", prep.t_ns, prep.variables["dT"] * 60.0, ("dT/dt degC/min",)
+        f"/{name}/temperature",
+        prep.t_ns,
+        np.column_stack(temps),
+        labels,
+        unit="degC",
+        title="block temperature",
+    )
+    rec.series(
+        f"/{name}/temperature_rate",
+        prep.t_ns,
+        prep.variables["dT"] * 60.0,
+        ("dT/dt",),
+        unit="degC/min",
+        title="temperature rate",
     )
 
     # bias against (element) temperature: the data by direction, the fitted curve at rates
@@ -122,8 +130,16 @@ def record_fit(
             (f"fit cooling {np.median(cool) * 60:.3g} degC/min", np.median(cool), COOLING)
         )
     grid = np.linspace(lo, hi, 200)
+    x_label = "sensing element temperature Ts" if lagged else "temperature"
     for i, axis in enumerate(AXES):
         base = f"/{name}/bias_vs_temperature/{axis}"
+        plot = dict(
+            plot=f"bias_vs_temperature/{axis}",
+            title=f"{sensor} {axis} bias",
+            unit=unit,
+            x_label=x_label,
+            x_unit="degC",
+        )
         for label, sign, color in (
             ("heating", 1, HEATING),
             ("cooling", -1, COOLING),
@@ -132,57 +148,44 @@ def record_fit(
             mask = prep.direction == sign
             if mask.any():
                 rec.curve(
-                    f"{base}/{label}", cdeg(x[mask]), prep.bias[mask, i],
-                    (f"{sensor} {axis} bias {label}",), timeline=TEMPERATURE_TIMELINE,
-                    colors=[color], points=True,
+                    f"{base}/{label}", x[mask], prep.bias[mask, i],
+                    (f"{sensor} {axis} bias {label}",), colors=[color], points=True, **plot,
                 )  # fmt: skip
         values = np.column_stack(
             [_model_at(step, grid, np.full(len(grid), r), lagged)[:, i] for _, r, _ in curves]
         )
         rec.curve(
-            f"{base}/fit", cdeg(grid), values, [c[0] for c in curves],
-            timeline=TEMPERATURE_TIMELINE, colors=[c[2] for c in curves],
-        )  # fmt: skip
-        _view(
-            rec, name, base,
-            f"{sensor} {axis} bias ({unit}) vs {'element temperature Ts' if lagged else 'temperature'}"
-            f" (degC/100, timeline {TEMPERATURE_TIMELINE})",
+            f"{base}/fit", grid, values, [c[0] for c in curves], colors=[c[2] for c in curves],
+            **plot,
         )  # fmt: skip
 
     if lag is not None and "profile" in lag:
         taus = np.asarray(lag["profile"]["lag_s"])
         rec.curve(
-            f"/{name}/lag_fit", np.round(taus).astype(np.int64), np.asarray(lag["profile"]["cost"]),
-            ("sum of ln RSS over axes",), timeline=LAG_TIMELINE, colors=[FIT], points=True,
+            f"/{name}/lag_fit", taus, np.asarray(lag["profile"]["cost"]),
+            ("sum of ln RSS over axes",), colors=[FIT], points=True, plot="lag_fit",
+            title="lag fit: cost", x_label="time constant", x_unit="s",
         )  # fmt: skip
-        _view(
-            rec,
-            name,
-            f"/{name}/lag_fit",
-            f"lag fit: cost vs time constant (s, timeline {LAG_TIMELINE})",
-        )
 
     for axis, model in (step.scale or {}).items():
         pair_t, pair_sf = prep.pairs[axis]
         base = f"/{name}/scale_vs_temperature/{axis}"
+        plot = dict(
+            plot=f"scale_vs_temperature/{axis}",
+            title=f"gyro {axis} scale factor",
+            x_label="temperature",
+            x_unit="degC",
+        )
         rec.curve(
-            f"{base}/pairs", cdeg(pair_t), pair_sf, (f"gyro {axis} scale +/-rate pairs",),
-            timeline=TEMPERATURE_TIMELINE, colors=[SOAK], points=True,
+            f"{base}/pairs", pair_t, pair_sf, (f"gyro {axis} scale +/-rate pairs",),
+            colors=[SOAK], points=True, **plot,
         )  # fmt: skip
         rec.curve(
-            f"{base}/fit", cdeg(grid), step.scale_factor(model, {"T": grid - step.tref}),
-            (f"gyro {axis} scale fit",), timeline=TEMPERATURE_TIMELINE, colors=[FIT],
+            f"{base}/fit", grid, step.scale_factor(model, {"T": grid - step.tref}),
+            (f"gyro {axis} scale fit",), colors=[FIT], **plot,
         )  # fmt: skip
-        _view(rec, name, base, f"gyro {axis} scale factor (1) vs temperature (degC/100)")
 
     _surface(ctx, prep, step, x, rate, lagged)
-    for origin, label in (
-        ("bias", f"{sensor} bias ({unit})"),
-        ("residual", f"{sensor} residual after the fit ({unit})"),
-        ("temperature", "temperature (degC)"),
-        ("temperature_rate", "temperature rate (degC/min)"),
-    ):
-        _view(rec, name, f"/{name}/{origin}", label)
 
 
 def _model_at(
@@ -226,7 +229,7 @@ def _surface(
         zmax = max(surface[:, i].max(), prep.bias[:, i].max())
         span = max(zmax - zmin, 1e-300)
         w, wd = (surface[:, i] - zmin) / span, (prep.bias[:, i] - zmin) / span
-        off = np.array([1.5 * i, 0.0, 0.0])
+        off = np.zeros(3)  # each axis in its own view
         base = f"/{name}/surface/{axis}"
         rec.log(
             f"{base}/mesh",
@@ -253,10 +256,10 @@ def _surface(
                 colors=[(200, 200, 200)] * 3,
             ),
         )
-    rec.add_view(
-        name,
-        rrb.Spatial3DView(origin=f"/{name}/surface", name=f"{step.sensor} B({tname}, {rname})"),
-    )
+        rec.add_view(
+            name,
+            rrb.Spatial3DView(origin=base, name=f"{step.sensor} {axis} B({tname}, {rname})"),
+        )
 
 
 def record_soak(
@@ -274,15 +277,18 @@ def record_soak(
     for quantity, (data, labels, unit) in values.items():
         base = f"/{name}/{sensor}_{quantity}_vs_temperature"
         colors = AXIS_COLORS[: len(labels)]
+        plot = dict(
+            plot=f"{sensor}_{quantity}_vs_temperature",
+            title=f"{sensor} {quantity}",
+            unit=unit,
+            x_label="temperature",
+            x_unit="degC",
+        )
         rec.curve(
-            f"{base}/soaks", cdeg(temps), data, [f"{label} at each soak" for label in labels],
-            timeline=TEMPERATURE_TIMELINE, colors=colors, points=True,
+            f"{base}/soaks", temps, data, [f"{label} at each soak" for label in labels],
+            colors=colors, points=True, **plot,
         )  # fmt: skip
         rec.curve(
-            f"{base}/fit", cdeg(grid), curves[quantity], [f"{label} fit" for label in labels],
-            timeline=TEMPERATURE_TIMELINE, colors=colors,
-        )  # fmt: skip
-        _view(
-            rec, name, base,
-            f"{sensor} {quantity} ({unit}) vs temperature (degC/100, timeline {TEMPERATURE_TIMELINE})",
+            f"{base}/fit", grid, curves[quantity], [f"{label} fit" for label in labels],
+            colors=colors, **plot,
         )  # fmt: skip

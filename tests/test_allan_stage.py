@@ -14,7 +14,7 @@ from imupipe.readers.table import make_table
 from imupipe.stages.allan import AllanStage
 from imupipe.stages.base import StageContext
 
-from helpers import rrd_rows
+from helpers import rrd_static
 
 TRUTH = {
     "gyro_N": [1.7e-4, 2.0e-4, 1.5e-4],
@@ -91,11 +91,12 @@ def test_imu_utils_yaml_and_curves(allan_run):
 
 def test_rerun_curves(allan_run):
     d, _, _ = allan_run
-    rows = rrd_rows(d / "out" / "recording.rrd")
+    plots = rrd_static(d / "out" / "recording.rrd")  # static 2D plots, no time axis
     for s in ("gyro", "accel"):
         for axis in "xyz":
-            assert rows[f"/allan/{s}/{axis}/measured"] > 10
-            assert rows[f"/allan/{s}/{axis}/model"] > 10
+            assert len(plots[f"/allan/{s}/{axis}/measured"]["Points2D:positions"]) > 10
+            assert len(plots[f"/allan/{s}/{axis}/model"]["LineStrips2D:strips"]) == 1  # the fit
+            assert len(plots[f"/allan/{s}/{axis}/terms"]["LineStrips2D:strips"]) >= 1
 
 
 # -- input checks (in-process: the messages) ---------------------------------------------------
@@ -292,6 +293,7 @@ def test_analysis_only_run_writes_no_corrected_copy(tmp_path):
         "calibration.json",
         "imu.yaml",
         "kalibr_imu_chain.yaml",
+        "report.html",
         "vins_imu.yaml",
     ]
     assert (tmp_path / "listed" / "static.mcap").stat().st_size > 0

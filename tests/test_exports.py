@@ -89,7 +89,8 @@ def calibrated(tmp_path_factory):
         '[[stages]]\ntype = "allan"\ninput = "static"\ntaus = "octave"\n\n'
         '[[stages]]\ntype = "accel_calibration"\ninput = "poses"\n\n'
         '[[stages]]\ntype = "gyro_calibration"\ninput = "poses"\n\n'
-        '[output]\ndir = "out"\napply_to = []\nrerun = false\n'
+        '[output]\ndir = "out"\napply_to = []\nrerun = false\nreport = false\n'
+        'exports = ["kalibr", "imu_utils", "vins", "openvins", "px4", "ardupilot"]\n'
     )
     proc = run_cli("run", d / "cfg.toml")
     assert proc.returncode == 0, proc.stderr
@@ -123,6 +124,32 @@ def test_files_written_when_their_stages_ran(calibrated):
         assert where["t_end_ns"] > where["t_start_ns"]
     assert doc["results"]["allan"]["fitted_on"]["input"] == "static"
     assert "kalibr_imu_intrinsics.yaml" in doc["exports"]
+
+
+def test_autopilot_files_only_when_asked_or_fitted_on_a_px4_log(calibrated, tmp_path):
+    """By default the ROS and VIO tools' files are written; PX4's only for a step fitted on a
+    PX4 log, ArduPilot's only when asked; Kalibr's imu.yaml whenever an allan stage ran."""
+    out, *_ = calibrated
+    cfg = (out.parent / "cfg.toml").read_text()
+    default = cfg.replace(
+        'exports = ["kalibr", "imu_utils", "vins", "openvins", "px4", "ardupilot"]\n', ""
+    )
+    (out.parent / "default.toml").write_text(default.replace('dir = "out"', 'dir = "out_default"'))
+    none = cfg.replace(
+        'exports = ["kalibr", "imu_utils", "vins", "openvins", "px4", "ardupilot"]', "exports = []"
+    )
+    (out.parent / "none.toml").write_text(none.replace('dir = "out"', 'dir = "out_none"'))
+    for name in ("default", "none"):
+        proc = run_cli("run", out.parent / f"{name}.toml", "--quiet")
+        assert proc.returncode == 0, proc.stderr
+    names = {p.name for p in (out.parent / "out_default").iterdir()}
+    assert {"imu.yaml", "kalibr_imu_chain.yaml", "vins_imu.yaml"} <= names
+    assert not names & {"px4_calibration.params", "ardupilot_calibration.param"}
+    names = {p.name for p in (out.parent / "out_none").iterdir()}
+    assert "imu.yaml" in names and "vins_imu.yaml" not in names
+    doc, px4_out = _run(tmp_path, SMALL, imu_topic="sensor_gyro_2")
+    assert (px4_out / "px4_calibration.params").exists()
+    assert not (px4_out / "ardupilot_calibration.param").exists()
 
 
 def test_kalibr_intrinsics_reproduce_the_chain(calibrated):
@@ -199,7 +226,7 @@ def test_autopilot_files_drop_misalignment_with_a_note(calibrated):
     notes = " ".join(doc["exports"]["px4_calibration.params"]["notes"])
     assert "no misalignment terms" in notes and "CAL_ACC0_ID is not written" in notes
     assert "no gyro scale" in notes
-    assert "[exports] px4_calibration.params" in stderr
+    assert "[exports] " in stderr and "px4_calibration.params" in stderr
     ap = mavparm(out / "ardupilot_calibration.param")
     assert [ap[f"INS_ACCOFFS_{a}"] for a in "XYZ"] == pytest.approx(accel["offset"])
     assert [ap[f"INS_GYROFFS_{a}"] for a in "XYZ"] == pytest.approx(

@@ -29,14 +29,30 @@ EXPORTERS: tuple[str, ...] = ("kalibr", "imu_utils", "vins", "openvins", "px4", 
 """The exporter modules, in the order their files are listed."""
 
 
-def export_all(doc: dict[str, Any]) -> tuple[dict[str, str], dict[str, dict[str, Any]]]:
-    """Every export of a calibration document: (file name -> text, file name -> report). A
-    report has ``notes`` (what was left out or approximated) and facts such as the frame
-    rotation of Kalibr's intrinsics; ``run`` keeps the reports in ``calibration.json`` under
-    ``exports`` and prints the notes as warnings."""
+DEFAULT: tuple[str, ...] = ("kalibr", "imu_utils", "vins", "openvins")
+"""Written unless ``[output] exports`` says otherwise: the ROS and VIO tools' files."""
+
+
+def chosen(doc: dict[str, Any], asked: list[str] | None) -> list[str]:
+    """The exporters to run: ``asked`` (``[output] exports``), else :data:`DEFAULT` plus ``px4``
+    when a chain step was fitted on a PX4 log. Kalibr's noise file ``imu.yaml`` is written
+    whenever an ``allan`` stage ran, whatever was asked."""
+    if asked is not None:
+        return [name for name in EXPORTERS if name in asked or name == "kalibr"]
+    px4 = any((e.get("fitted_on") or {}).get("format") == "ulog" for e in doc.get("chain", []))
+    return [name for name in EXPORTERS if name in DEFAULT or (name == "px4" and px4)]
+
+
+def export_all(
+    doc: dict[str, Any], names: list[str] | None = None
+) -> tuple[dict[str, str], dict[str, dict[str, Any]]]:
+    """The exports ``names`` (default: every exporter) of a calibration document: (file name ->
+    text, file name -> report). A report has ``notes`` (what was left out or approximated) and
+    facts such as the frame rotation of Kalibr's intrinsics; ``run`` keeps the reports in
+    ``calibration.json`` under ``exports``."""
     files: dict[str, str] = {}
     report: dict[str, dict[str, Any]] = {}
-    for name in EXPORTERS:
+    for name in EXPORTERS if names is None else names:
         out: Export = importlib.import_module(f"imupipe.pipeline.exports.{name}").export(doc)
         files.update(out.files)
         for fname in set(out.notes) | set(out.info):
