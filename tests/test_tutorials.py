@@ -18,7 +18,7 @@ TUTORIALS = REPO / "docs" / "tutorials"
 
 def blocks(page: str, language: str) -> list[str]:
     text = (TUTORIALS / page).read_text()
-    return re.findall(rf"```{language}\n(.*?)```", text, flags=re.S)
+    return re.findall(rf"```{language}[^\n]*\n(.*?)```", text, flags=re.S)
 
 
 def run_commands(block: str, cwd: Path) -> None:
@@ -38,7 +38,8 @@ def test_ros_bag_to_imu_yaml(tmp_path):
     assert proc.returncode == 0, proc.stderr
     shown = blocks(page, "text")[0].splitlines()
     assert proc.stderr.strip() == shown[0]
-    assert proc.stdout.split() == [str(tmp_path / line) for line in shown[1:]]
+    written = proc.stdout.split()[-len(shown[1:]) :]  # the files, after the summary table
+    assert written == [str(tmp_path / line) for line in shown[1:]]
     quoted = yaml.safe_load(blocks(page, "yaml")[0])
     written = yaml.safe_load((tmp_path / "out" / "imu.yaml").read_text())
     for key, value in quoted.items():

@@ -294,7 +294,13 @@ def yaml_text(data: Mapping[str, Any], comments: Iterable[str] = (), opencv: boo
         style = '"' if any(c in value for c in "\n\r\t") else None
         return dumper.represent_scalar("tag:yaml.org,2002:str", value, style=style)
 
+    def mapping(dumper: yaml.SafeDumper, value: dict) -> yaml.MappingNode:
+        """Mappings in block style (one key a line, as Kalibr's and OpenCV's files are); only
+        sequences of numbers (matrix rows, vectors) go in flow style."""
+        return dumper.represent_mapping("tag:yaml.org,2002:map", value.items(), flow_style=False)
+
     Dumper.add_representer(str, text)
+    Dumper.add_representer(dict, mapping)
 
     head = ["%YAML:1.0", "---"] if opencv else []
     head += [f"# {line}" for c in comments for line in c.splitlines()]
