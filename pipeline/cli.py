@@ -15,7 +15,7 @@ from imupipe.pipeline.version import VERSION
 
 COMMANDS = {
     "run": "imupipe.pipeline.run",
-    "convert": "imupipe.pipeline.convert",
+    "convert": "imupipe.pipeline.convert_cli",
     "inspect": "imupipe.pipeline.inspect_log",
     "simulate": "imupipe.pipeline.simulate",
 }

@@ -20,7 +20,9 @@ import pyarrow.parquet as pq
 import pytest
 from mcap.reader import make_reader
 
-from imupipe.pipeline.convert import chain_sha256, convert, find_logs
+from imupipe.pipeline.convert import convert
+from imupipe.pipeline.convert_plan import find_logs
+from imupipe.pipeline.convert_settings import chain_sha256
 from imupipe.pipeline.engines import run_tasks
 from imupipe.pipeline.errors import ImupipeError
 from imupipe.pipeline.manifest import read_manifest
