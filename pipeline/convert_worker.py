@@ -5,6 +5,14 @@ offset)`` for linear steps), writes the corrected MCAP (every other topic carrie
 the messages per topic in the written file and checks them against the input's own index
 (:mod:`imupipe.pipeline.convert_verify`), then renames the outputs into place. It returns
 statistics only.
+
+**Every chain streams.** The log is read with :func:`imupipe.readers.dispatch.iter_input` in
+batches of about ``batch_rows`` rows, corrected with
+:func:`imupipe.stages.steps.apply_chain_stream` (each step's ``apply_stream``: a step that needs
+context beyond one sample, such as the temperature step, holds rows back until their context has
+arrived) and written batch by batch with :class:`~imupipe.pipeline.mcap_writer.McapTableWriter`,
+so a worker's memory is bounded by the batch, not by the log. The other topics' messages are
+written as they are read.
 """
 
 from __future__ import annotations
@@ -30,12 +38,8 @@ from imupipe.pipeline.convert_verify import (
 )
 from imupipe.pipeline.mcap_writer import McapTableWriter
 from imupipe.readers import dispatch
-from imupipe.readers.spec import InputSpec, RawMessage
-from imupipe.stages.steps import apply_chain, steps_from_json
-
-STREAMABLE_KINDS = {"linear"}
-"""Step kinds that correct each sample from that sample alone, so a log can be corrected batch by
-batch. Any other kind (e.g. ``temperature``) makes the log be corrected whole."""
+from imupipe.readers.spec import RawMessage
+from imupipe.stages.steps import apply_chain_stream, steps_from_json
 
 
 @dataclass
@@ -51,7 +55,7 @@ class LogStats:
     seconds: float
     cpu_seconds: float
     """CPU time the worker spent on this log (user + system); ``seconds`` is wall time."""
-    mode: str  # streamed | whole | -
+    mode: str  # streamed | - (skipped)
     peak_rss_mb: float
     warnings: list[str] = field(default_factory=list)
 
@@ -60,17 +64,19 @@ class LogStats:
         return sum(self.counts.values())
 
 
-def _batches(
-    spec: InputSpec, streamed: bool, batch_rows: int, warnings: list[str]
-) -> Iterator[tuple[pa.Table, Iterable[RawMessage]]]:
-    """(table batch, carry-over messages) in log order: batches of about ``batch_rows`` rows when
-    ``streamed``, else the whole table (sorted by time) once, then the carry-over as a stream."""
-    if streamed:
-        yield from dispatch.iter_input(spec, batch_rows=batch_rows)
-        return
-    table, read_warnings = dispatch.read_input(spec)
-    warnings.extend(read_warnings)
-    yield table, dispatch.carry_over(spec)
+def _tables(
+    pairs: Iterable[tuple[pa.Table, list[RawMessage]]],
+    carried: list[RawMessage],
+    read: collections.Counter[str],
+) -> Iterator[pa.Table]:
+    """The table batches of ``iter_input``'s pairs; each batch's carried-over messages are
+    appended to ``carried`` (for the writer) and every message is counted in ``read``."""
+    for table, raw in pairs:
+        raw = list(raw)
+        read.update(counts_by_topic(table))
+        read.update(m.topic for m in raw)
+        carried.extend(raw)
+        yield table
 
 
 def convert_log(task: LogTask) -> LogStats:
@@ -86,8 +92,7 @@ def convert_log(task: LogTask) -> LogStats:
         status, written = "skipped", found
     else:
         steps = steps_from_json(task.calibration["chain"])
-        streamed = all(step.kind in STREAMABLE_KINDS for step in steps)
-        mode = "streamed" if streamed else "whole"
+        mode = "streamed"
         expected = input_counts(src, fmt)
         doc = {
             **task.calibration,
@@ -105,13 +110,14 @@ def convert_log(task: LogTask) -> LogStats:
             parquet = None
             try:
                 with McapTableWriter(mcap_tmp, calibration=doc) as writer:
-                    for batch, raw in _batches(spec, streamed, task.batch_rows, warnings):
-                        corrected = apply_chain(batch, steps)
+                    carried: list[RawMessage] = []
+                    batches = _tables(
+                        dispatch.iter_input(spec, batch_rows=task.batch_rows), carried, read
+                    )
+                    for corrected in apply_chain_stream(batches, steps):
                         writer.write_table(corrected)
-                        raw = list(raw)
-                        writer.write_raw(raw)
-                        read.update(counts_by_topic(batch))
-                        read.update(m.topic for m in raw)
+                        writer.write_raw(carried)
+                        carried.clear()
                         if parquet_tmp is not None:
                             rows = dataset_table(corrected, doc["conversion"])
                             if parquet is None:
@@ -121,6 +127,7 @@ def convert_log(task: LogTask) -> LogStats:
                                     parquet_tmp, rows.schema, compression="zstd"
                                 )
                             parquet.write_table(rows)
+                    writer.write_raw(carried)
             finally:
                 if parquet is not None:
                     parquet.close()
