@@ -29,9 +29,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from imupipe.pipeline.atomic import OutputGuard, remove_stale_temps
 from imupipe.pipeline.convert_plan import DEFAULT_BATCH_ROWS, LogTask, plan
 from imupipe.pipeline.convert_settings import load_calibration, load_read_settings
-from imupipe.pipeline.convert_worker import LogStats, convert_log
+from imupipe.pipeline.convert_worker import LogStats, OutputFolderError, convert_log
 from imupipe.pipeline.engines import Outcome, run_tasks
 from imupipe.pipeline.errors import ConfigError
 from imupipe.pipeline.manifest import Manifest
@@ -78,8 +79,14 @@ def convert(
     force: bool = False,
     batch_rows: int = DEFAULT_BATCH_ROWS,
     quiet: bool = True,
+    dashboard: bool = False,
 ) -> ConvertSummary:
-    """Convert every log under ``logs`` into ``out_dir``; see the module docstring."""
+    """Convert every log under ``logs`` into ``out_dir``; see the module docstring.
+
+    Raises :class:`~imupipe.pipeline.errors.ImupipeError` before anything is written when the
+    plan is wrong (no logs, an output over an input or outside ``out_dir``, an output folder
+    that cannot be written), and :class:`OutputFolderError` when the output folder fails during
+    the run (full, read-only): the other logs are stopped, the same command resumes."""
     start = time.perf_counter()
     out = Path(out_dir)
     doc, _ = load_calibration(Path(calibration))
@@ -97,7 +104,10 @@ def convert(
     summary = ConvertSummary(out_dir=out)
     if not tasks:
         raise ConfigError(f"no logs found in {', '.join(map(str, logs))}")
+    OutputGuard(out, [], "--out").probe()
+    remove_stale_temps(out, recursive=True)  # of workers killed in an earlier run
     manifest = Manifest(out)
+    fatal: list[str] = []
     with progress_bar("imupipe convert", total=len(tasks), quiet=quiet) as bar:
 
         def on_done(outcome: Outcome) -> None:
@@ -123,16 +133,33 @@ def convert(
             manifest.append(record)
             bar.advance()
             bar.describe(f"imupipe convert: {summary.messages:,} messages")
+            if outcome.fatal:
+                fatal.append(outcome.error or "")
+                raise _Stop()
 
-        run_tasks(
-            convert_log,
-            tasks,
-            on_done,
-            engine=engine,
-            jobs=jobs,
-            address=address,
-            retries=retries,
-            preload=WORKER_PRELOAD,
-        )
+        try:
+            run_tasks(
+                convert_log,
+                tasks,
+                on_done,
+                engine=engine,
+                jobs=jobs,
+                address=address,
+                retries=retries,
+                preload=WORKER_PRELOAD,
+                dashboard=dashboard,
+            )
+        except _Stop:
+            done = len(summary.converted) + len(summary.skipped)
+            raise OutputFolderError(
+                f"{fatal[0]} ({done} of {len(tasks)} logs done; "
+                "the same command resumes where this one stopped)"
+            ) from None
+        finally:  # also on SIGINT/SIGTERM: what stopped workers could not remove
+            remove_stale_temps(out, recursive=True)
     summary.seconds = time.perf_counter() - start
     return summary
+
+
+class _Stop(Exception):
+    """Raised in ``on_done`` to stop the engine (its workers are stopped)."""

@@ -68,6 +68,11 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         default=DEFAULT_BATCH_ROWS,
         help=f"rows per streamed batch (default {DEFAULT_BATCH_ROWS})",
     )
+    p.add_argument(
+        "--dashboard",
+        action="store_true",
+        help="with --engine ray and no --address: also start Ray's dashboard (on 127.0.0.1)",
+    )
     p.add_argument("--parquet", action="store_true", help="also write DIR/<stem>.parquet per log")
     p.add_argument("--force", action="store_true", help="convert again even if already done")
     p.add_argument("--quiet", "-q", action="store_true", help="no progress or summary")
@@ -83,6 +88,8 @@ def main(args: argparse.Namespace) -> int:
         raise ConfigError(f"--retries {args.retries}: must be at least 0")
     if args.address is not None and args.engine != "ray":
         raise ConfigError("--address is for --engine ray")
+    if args.dashboard and (args.engine != "ray" or args.address is not None):
+        raise ConfigError("--dashboard is for --engine ray without --address")
     from imupipe.pipeline.convert import convert
 
     summary = convert(
@@ -98,6 +105,7 @@ def main(args: argparse.Namespace) -> int:
         force=args.force,
         batch_rows=args.batch_rows,
         quiet=args.quiet,
+        dashboard=args.dashboard,
     )
     for path, why in summary.failed:
         print(

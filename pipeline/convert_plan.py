@@ -17,6 +17,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from imupipe.pipeline.atomic import OutputGuard
 from imupipe.pipeline.convert_settings import chain_sha256, settings_sha256
 from imupipe.pipeline.errors import ConfigError
 from imupipe.readers.spec import InputSpec
@@ -92,16 +93,16 @@ def plan(
 ) -> list[LogTask]:
     """One task per log found; ConfigError when two logs would share an output or an output
     would overwrite an input."""
-    if out_dir.exists() and not out_dir.is_dir():
-        raise ConfigError(f"--out {out_dir}: exists and is not a folder")
     cal_sha, set_sha = chain_sha256(calibration), settings_sha256(settings)
     tasks: list[LogTask] = []
     owners: dict[Path, Path] = {}
     out_dir = out_dir.absolute()  # workers (Ray nodes) may run in another folder
     found = [(p.absolute(), rel) for p, rel in find_logs(logs, out_dir, csv=csv)]
-    inputs = {p.resolve() for p, _ in found}
+    guard = OutputGuard(out_dir, [p for p, _ in found], "--out")
     for path, rel in found:
-        output = out_dir / rel.with_name(rel.name + ".mcap")
+        if rel.name in ("", ".", ".."):
+            raise ConfigError(f"{path}: no file name to name its output after; name the log")
+        output = guard.check(out_dir / rel.with_name(rel.name + ".mcap"))
         key = output.resolve()
         if key in owners and owners[key].resolve() == path.resolve():
             continue  # the same log named twice (a file and its folder)
@@ -109,10 +110,6 @@ def plan(
             raise ConfigError(
                 f"{owners[key]} and {path} would both be written to {output}; "
                 "convert them into separate --out folders"
-            )
-        if key in inputs or any(key.is_relative_to(i) for i in inputs if i.is_dir()):
-            raise ConfigError(
-                f"{path}: its output {output} would overwrite an input; choose another --out"
             )
         owners[key] = path
         spec = dataclasses.replace(settings, path=path, name=rel.name)

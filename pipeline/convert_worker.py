@@ -18,6 +18,7 @@ written as they are read.
 from __future__ import annotations
 
 import collections
+import errno
 import resource
 import time
 from collections.abc import Iterable, Iterator
@@ -26,7 +27,7 @@ from pathlib import Path
 
 import pyarrow as pa
 
-from imupipe.pipeline.atomic import staged_outputs
+from imupipe.pipeline.atomic import remove_stale_temps, staged_outputs
 from imupipe.pipeline.convert_dataset import DATASET_SCHEMA, dataset_table
 from imupipe.pipeline.convert_done import existing_output, input_size
 from imupipe.pipeline.convert_plan import LogTask
@@ -36,10 +37,41 @@ from imupipe.pipeline.convert_verify import (
     mcap_counts,
     verify_counts,
 )
+from imupipe.pipeline.errors import ImupipeError, ReadError
 from imupipe.pipeline.mcap_writer import McapTableWriter
 from imupipe.readers import dispatch
 from imupipe.readers.spec import RawMessage
 from imupipe.stages.steps import apply_chain_stream, steps_from_json
+
+OUTPUT_FAULTS = {
+    errno.ENOSPC: "no space left on the device",
+    errno.EDQUOT: "disk quota exceeded",
+    errno.EROFS: "read-only file system",
+    errno.EACCES: "permission denied",
+    errno.EPERM: "operation not permitted",
+    errno.EFBIG: "file too large for the file system",
+}
+"""File-system errors that hit every log alike when they come from the output folder."""
+
+
+class OutputFolderError(ImupipeError):
+    """The output folder cannot take the outputs (full, read-only, no permission): every other
+    log would fail the same way, so the conversion stops (``fatal``)."""
+
+    fatal = True
+
+
+def _os_fault(exc: OSError, task: LogTask) -> BaseException:
+    """The error to raise for a file-system error while converting ``task``: the output folder's
+    faults are fatal, the input's are final for this log, others are retried (unchanged)."""
+    where = None if exc.filename is None else Path(exc.filename).absolute()
+    src = Path(task.spec.path).absolute()
+    out = task.output.parent
+    if where is not None and (where == src or where.is_relative_to(src)):
+        return ReadError(f"{src}: cannot read: {exc.strerror or exc}")
+    if exc.errno in OUTPUT_FAULTS and (where is None or where.is_relative_to(out)):
+        return OutputFolderError(f"{out}: {OUTPUT_FAULTS[exc.errno]}")
+    return exc
 
 
 @dataclass
@@ -80,7 +112,18 @@ def _tables(
 
 
 def convert_log(task: LogTask) -> LogStats:
-    """Convert one log (runs in a worker); raises ImupipeError on bad input."""
+    """Convert one log (runs in a worker); raises ImupipeError on bad input, and
+    :class:`OutputFolderError` when the output folder cannot take the outputs."""
+    try:
+        return _convert_log(task)
+    except OSError as exc:
+        fault = _os_fault(exc, task)
+        if fault is exc:
+            raise
+        raise fault from None
+
+
+def _convert_log(task: LogTask) -> LogStats:
     start, cpu_start = time.perf_counter(), time.process_time()
     spec = task.spec
     src = Path(spec.path)
@@ -104,6 +147,9 @@ def convert_log(task: LogTask) -> LogStats:
             },
         }
         read: collections.Counter[str] = collections.Counter()
+        remove_stale_temps(task.output.parent, name=task.output.name, other_hosts=True)
+        if task.parquet is not None:
+            remove_stale_temps(task.parquet.parent, name=task.parquet.name, other_hosts=True)
         with staged_outputs() as out:
             mcap_tmp = out.path(task.output)
             parquet_tmp = None if task.parquet is None else out.path(task.parquet)

@@ -19,7 +19,7 @@ from typing import Any
 
 import pyarrow as pa
 
-from imupipe.pipeline.atomic import staged_outputs
+from imupipe.pipeline.atomic import OutputGuard, remove_stale_temps, staged_outputs
 from imupipe.pipeline.config import Config, load_config
 from imupipe.pipeline.mcap_writer import write_mcap
 from imupipe.pipeline.progress import progress_bar
@@ -88,10 +88,25 @@ def record_sensors(recorder: Any, prefix: str, table: pa.Table, sensors: tuple[s
             recorder.series(f"{prefix}/{name}", data.t_ns, data.values, axes)
 
 
+def output_guard(cfg: Config) -> OutputGuard:
+    """The guard of ``[output] dir``, with the outputs known before the stages run checked: none
+    may lie outside the folder or replace an input (the inputs, a CSV's gyro file, the config)."""
+    inputs = [cfg.path, *(spec.path for spec in cfg.inputs.values())]
+    inputs += [spec.csv.gyro_file for spec in cfg.inputs.values() if spec.csv.gyro_file]
+    guard = OutputGuard(cfg.output.dir, inputs, "[output] dir")
+    known = ["calibration.json", *(f"{name}.mcap" for name in cfg.output.apply_to)]
+    for name in known + (["recording.rrd"] if cfg.output.rerun else []):
+        guard.check(name)
+    guard.probe()
+    return guard
+
+
 def run(config: Config | str | Path, *, spawn: bool = False, quiet: bool = False) -> RunSummary:
     """Run a config end to end; returns what was written."""
     cfg = config if isinstance(config, Config) else load_config(config)
     out_dir = cfg.output.dir
+    guard = output_guard(cfg)
+    remove_stale_temps(out_dir)
     raw: dict[str, pa.Table] = {}
     n_steps = len(cfg.inputs) + len(cfg.stages) + len(cfg.output.apply_to) + 1
     with progress_bar("imupipe run", total=n_steps, quiet=quiet) as bar:
@@ -106,7 +121,7 @@ def run(config: Config | str | Path, *, spawn: bool = False, quiet: bool = False
 
         tables = CorrectedTables(raw)
         results: dict[str, Any] = {}
-        with staged_outputs() as out:
+        with staged_outputs(guard) as out:
             files: list[Path] = []
             recorder: Any = NullRecorder()
             if cfg.output.rerun:

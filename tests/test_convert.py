@@ -292,7 +292,7 @@ def test_discovery_and_refusals(fleet, tmp_path):
     assert "notes" in {str(rel) for _, rel in find_logs([logs], logs / "out", csv=True)}
     # an output that would replace its input is refused before anything is written
     proc = run_cli("convert", "--calibration", cal, "--out", logs, logs / "corrupt.mcap")
-    assert proc.returncode == 2 and "would overwrite an input" in proc.stderr
+    assert proc.returncode == 2 and "would overwrite the input" in proc.stderr
     proc = run_cli("convert", "--calibration", tmp_path / "nope.json", "--out", logs / "o", logs)
     assert proc.returncode == 2
     assert proc.stderr.strip().count("\n") == 0 and "nope.json: no such file" in proc.stderr
