@@ -31,6 +31,7 @@ from typing import Any
 
 from imupipe.pipeline.atomic import OutputGuard, remove_stale_temps
 from imupipe.pipeline.convert_plan import DEFAULT_BATCH_ROWS, LogTask, plan
+from imupipe.pipeline.convert_provenance import ON_MISMATCH, fitted_on
 from imupipe.pipeline.convert_settings import load_calibration, load_read_settings
 from imupipe.pipeline.convert_worker import LogStats, OutputFolderError, convert_log
 from imupipe.pipeline.engines import Outcome, run_tasks
@@ -80,6 +81,7 @@ def convert(
     batch_rows: int = DEFAULT_BATCH_ROWS,
     quiet: bool = True,
     dashboard: bool = False,
+    on_mismatch: str = "warn",
 ) -> ConvertSummary:
     """Convert every log under ``logs`` into ``out_dir``; see the module docstring.
 
@@ -100,10 +102,19 @@ def convert(
         force=force,
         batch_rows=batch_rows,
         csv=config is not None,
+        on_mismatch=on_mismatch,
     )
     summary = ConvertSummary(out_dir=out)
     if not tasks:
         raise ConfigError(f"no logs found in {', '.join(map(str, logs))}")
+    if on_mismatch not in ON_MISMATCH:
+        raise ConfigError(f"--on-mismatch {on_mismatch}: not one of {', '.join(ON_MISMATCH)}")
+    if not fitted_on(doc["chain"]) and not quiet:
+        print(
+            f"imupipe: note: {calibration} does not record which sensor it was fitted on "
+            "(written by an older imupipe): the logs are not checked against it",
+            file=sys.stderr,
+        )
     OutputGuard(out, [], "--out").probe()
     remove_stale_temps(out, recursive=True)  # of workers killed in an earlier run
     manifest = Manifest(out)

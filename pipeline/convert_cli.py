@@ -73,7 +73,18 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         action="store_true",
         help="with --engine ray and no --address: also start Ray's dashboard (on 127.0.0.1)",
     )
-    p.add_argument("--parquet", action="store_true", help="also write DIR/<stem>.parquet per log")
+    p.add_argument(
+        "--parquet",
+        action="store_true",
+        help="also write DIR/parquet/<stem>.parquet per log (one dataset)",
+    )
+    p.add_argument(
+        "--on-mismatch",
+        choices=("warn", "refuse"),
+        default="warn",
+        help="a log whose topics, frames or instances differ from those the calibration was "
+        "fitted on: convert it with a warning (default) or refuse it",
+    )
     p.add_argument("--force", action="store_true", help="convert again even if already done")
     p.add_argument("--quiet", "-q", action="store_true", help="no progress or summary")
     p.set_defaults(func=main)
@@ -106,6 +117,7 @@ def main(args: argparse.Namespace) -> int:
         batch_rows=args.batch_rows,
         quiet=args.quiet,
         dashboard=args.dashboard,
+        on_mismatch=args.on_mismatch,
     )
     for path, why in summary.failed:
         print(

@@ -4,7 +4,8 @@ Folders are searched recursively for ``.mcap`` files, ROS 1 ``.bag`` files and R
 (a folder holding ``metadata.yaml`` or a ``.db3``), and ``.csv`` files when ``--config`` is given;
 names starting with a dot and the output folder itself are skipped. Each log becomes
 ``DIR/<stem>.mcap`` (a log found inside a folder argument keeps its sub-folder:
-``LOG/robot1/a.mcap`` -> ``DIR/robot1/a.mcap``). The plan is checked before anything is written:
+``LOG/robot1/a.mcap`` -> ``DIR/robot1/a.mcap``) and, with ``--parquet``,
+``DIR/parquet/<stem>.parquet``. The plan is checked before anything is written:
 two logs that would share an output, or an output that would replace an input, stop the command.
 """
 
@@ -27,6 +28,9 @@ LOG_SUFFIXES = {".mcap": "mcap", ".bag": "ros1"}
 
 DEFAULT_BATCH_ROWS = 100_000
 
+PARQUET_DIR = "parquet"
+"""``--parquet`` writes ``DIR/parquet/<log>.parquet``: a folder of Parquet files only."""
+
 
 @dataclass
 class LogTask:
@@ -40,6 +44,10 @@ class LogTask:
     settings_sha256: str
     force: bool = False
     batch_rows: int = DEFAULT_BATCH_ROWS
+    log: str = ""
+    """The log's name: its output path relative to DIR, without suffix (``robot1/day1``)."""
+    on_mismatch: str = "warn"
+    """What a log that is not from the calibration's sensor does: ``warn`` or ``refuse``."""
 
 
 def is_ros2_bag_dir(path: Path) -> bool:
@@ -90,6 +98,7 @@ def plan(
     force: bool = False,
     batch_rows: int = DEFAULT_BATCH_ROWS,
     csv: bool = False,
+    on_mismatch: str = "warn",
 ) -> list[LogTask]:
     """One task per log found; ConfigError when two logs would share an output or an output
     would overwrite an input."""
@@ -112,17 +121,26 @@ def plan(
                 "convert them into separate --out folders"
             )
         owners[key] = path
+        if parquet and output.is_relative_to(out_dir / PARQUET_DIR):
+            raise ConfigError(
+                f"{path}: its output {output} would land in the Parquet folder "
+                f"{out_dir / PARQUET_DIR}; rename its folder or give --out another folder"
+            )
         spec = dataclasses.replace(settings, path=path, name=rel.name)
         tasks.append(
             LogTask(
                 spec=spec,
                 output=output,
-                parquet=output.with_suffix(".parquet") if parquet else None,
+                parquet=guard.check(out_dir / PARQUET_DIR / rel.with_name(rel.name + ".parquet"))
+                if parquet
+                else None,
                 calibration=calibration,
                 calibration_sha256=cal_sha,
                 settings_sha256=set_sha,
                 force=force,
                 batch_rows=batch_rows,
+                log=rel.as_posix(),
+                on_mismatch=on_mismatch,
             )
         )
     return tasks

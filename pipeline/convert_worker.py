@@ -28,9 +28,10 @@ from pathlib import Path
 import pyarrow as pa
 
 from imupipe.pipeline.atomic import remove_stale_temps, staged_outputs
-from imupipe.pipeline.convert_dataset import DATASET_SCHEMA, dataset_table
+from imupipe.pipeline.convert_dataset import dataset_table
 from imupipe.pipeline.convert_done import existing_output, input_size
 from imupipe.pipeline.convert_plan import LogTask
+from imupipe.pipeline.convert_provenance import ProvenanceCheck
 from imupipe.pipeline.convert_verify import (
     counts_by_topic,
     input_counts,
@@ -41,6 +42,7 @@ from imupipe.pipeline.errors import ImupipeError, ReadError
 from imupipe.pipeline.mcap_writer import McapTableWriter
 from imupipe.readers import dispatch
 from imupipe.readers.spec import RawMessage
+from imupipe.readers.table import SCHEMA, metadata
 from imupipe.stages.steps import apply_chain_stream, steps_from_json
 
 OUTPUT_FAULTS = {
@@ -90,6 +92,9 @@ class LogStats:
     mode: str  # streamed | - (skipped)
     peak_rss_mb: float
     warnings: list[str] = field(default_factory=list)
+    provenance: str = "-"
+    """``match``, ``mismatch: ...`` or ``unknown`` (see :mod:`convert_provenance`); ``-`` when
+    skipped."""
 
     @property
     def messages(self) -> int:
@@ -100,10 +105,14 @@ def _tables(
     pairs: Iterable[tuple[pa.Table, list[RawMessage]]],
     carried: list[RawMessage],
     read: collections.Counter[str],
+    provenance: ProvenanceCheck,
+    warnings: list[str],
 ) -> Iterator[pa.Table]:
     """The table batches of ``iter_input``'s pairs; each batch's carried-over messages are
-    appended to ``carried`` (for the writer) and every message is counted in ``read``."""
+    appended to ``carried`` (for the writer), every message is counted in ``read`` and each
+    batch's topics and frames are checked against the calibration's provenance."""
     for table, raw in pairs:
+        warnings += provenance.check(metadata(table))
         raw = list(raw)
         read.update(counts_by_topic(table))
         read.update(m.topic for m in raw)
@@ -129,7 +138,7 @@ def _convert_log(task: LogTask) -> LogStats:
     src = Path(spec.path)
     fmt = dispatch.detect_format(src)
     size = input_size(src)
-    mode, warnings = "-", []
+    mode, warnings, checked = "-", [], "-"
     found = None if task.force else existing_output(task, size)
     if found is not None:
         status, written = "skipped", found
@@ -147,6 +156,7 @@ def _convert_log(task: LogTask) -> LogStats:
             },
         }
         read: collections.Counter[str] = collections.Counter()
+        provenance = ProvenanceCheck(task.calibration["chain"], task.on_mismatch, str(src))
         remove_stale_temps(task.output.parent, name=task.output.name, other_hosts=True)
         if task.parquet is not None:
             remove_stale_temps(task.parquet.parent, name=task.parquet.name, other_hosts=True)
@@ -157,15 +167,14 @@ def _convert_log(task: LogTask) -> LogStats:
             try:
                 with McapTableWriter(mcap_tmp, calibration=doc) as writer:
                     carried: list[RawMessage] = []
-                    batches = _tables(
-                        dispatch.iter_input(spec, batch_rows=task.batch_rows), carried, read
-                    )
+                    pairs = dispatch.iter_input(spec, batch_rows=task.batch_rows)
+                    batches = _tables(pairs, carried, read, provenance, warnings)
                     for corrected in apply_chain_stream(batches, steps):
                         writer.write_table(corrected)
                         writer.write_raw(carried)
                         carried.clear()
                         if parquet_tmp is not None:
-                            rows = dataset_table(corrected, doc["conversion"])
+                            rows = dataset_table(corrected, task.log, doc)
                             if parquet is None:
                                 import pyarrow.parquet as pq
 
@@ -180,10 +189,10 @@ def _convert_log(task: LogTask) -> LogStats:
             if parquet_tmp is not None and parquet is None:  # a log without samples
                 import pyarrow.parquet as pq
 
-                pq.write_table(DATASET_SCHEMA.empty_table(), parquet_tmp)
+                pq.write_table(dataset_table(SCHEMA.empty_table(), task.log, doc), parquet_tmp)
             written = mcap_counts(mcap_tmp) or {}
             verify_counts(src, expected if expected is not None else read, written)
-        status = "converted"
+        status, checked = "converted", provenance.status
     return LogStats(
         input=str(src),
         output=str(task.output),
@@ -196,4 +205,5 @@ def _convert_log(task: LogTask) -> LogStats:
         mode=mode,
         peak_rss_mb=round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
         warnings=warnings,
+        provenance=checked,
     )
