@@ -124,15 +124,15 @@ class OutputGuard:
         final = Path(final)
         final = final if final.is_absolute() else self.root / final
         real = final.resolve()
-        if not real.is_relative_to(self._root) or real == self._root:
-            raise ConfigError(
-                f"{final}: would be written outside the output folder {self.root} ({self.where})"
-            )
         for inp in self._inputs:
             if real == inp or (inp.is_dir() and real.is_relative_to(inp)):
                 raise ConfigError(
                     f"{final}: would overwrite the input {inp}; choose another {self.where}"
                 )
+        if not real.is_relative_to(self._root) or real == self._root:
+            raise ConfigError(
+                f"{final}: would be written outside the output folder {self.root} ({self.where})"
+            )
         return final
 
 

@@ -37,6 +37,8 @@ def load_calibration(path: Path) -> tuple[dict[str, Any], list[Step]]:
         raise ConfigError(f"--calibration {path}: no such file") from None
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise ConfigError(f"--calibration {path}: not a readable JSON file: {exc}") from None
+    except RecursionError:
+        raise ConfigError(f"--calibration {path}: nested too deeply to be a calibration") from None
     if not isinstance(doc, dict) or not isinstance(doc.get("chain"), list):
         raise ConfigError(f"--calibration {path}: no 'chain' list (is it a calibration.json?)")
     doc.pop("conversion", None)  # a calibration taken from a converted MCAP's attachment
