@@ -30,8 +30,9 @@ from pathlib import Path
 from typing import Any
 
 from imupipe.pipeline.atomic import OutputGuard, remove_stale_temps
-from imupipe.pipeline.convert_plan import DEFAULT_BATCH_ROWS, LogTask, plan
-from imupipe.pipeline.convert_provenance import ON_MISMATCH, fitted_on
+from imupipe.pipeline.convert_options import DEFAULT_BATCH_ROWS, ON_MISMATCH
+from imupipe.pipeline.convert_plan import LogTask, plan
+from imupipe.pipeline.convert_provenance import fitted_on
 from imupipe.pipeline.convert_settings import load_calibration, load_read_settings
 from imupipe.pipeline.convert_worker import LogStats, OutputFolderError, convert_log
 from imupipe.pipeline.engines import Outcome, run_tasks

@@ -6,7 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from imupipe.pipeline.convert_plan import DEFAULT_BATCH_ROWS
+from imupipe.pipeline.convert_options import DEFAULT_BATCH_ROWS, ON_MISMATCH
 from imupipe.pipeline.engines import ENGINES
 from imupipe.pipeline.errors import ConfigError
 
@@ -80,7 +80,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument(
         "--on-mismatch",
-        choices=("warn", "refuse"),
+        choices=ON_MISMATCH,
         default="warn",
         help="a log whose topics, frames or instances differ from those the calibration was "
         "fitted on: convert it with a warning (default) or refuse it",

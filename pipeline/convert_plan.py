@@ -19,14 +19,13 @@ from pathlib import Path
 from typing import Any
 
 from imupipe.pipeline.atomic import OutputGuard
+from imupipe.pipeline.convert_options import DEFAULT_BATCH_ROWS
 from imupipe.pipeline.convert_settings import chain_sha256, settings_sha256
 from imupipe.pipeline.errors import ConfigError
 from imupipe.readers.spec import InputSpec
 
 LOG_SUFFIXES = {".mcap": "mcap", ".bag": "ros1"}
 """File suffixes found in folders (``.csv`` too when ``--config`` is given)."""
-
-DEFAULT_BATCH_ROWS = 100_000
 
 PARQUET_DIR = "parquet"
 """``--parquet`` writes ``DIR/parquet/<log>.parquet``: a folder of Parquet files only."""

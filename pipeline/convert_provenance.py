@@ -24,8 +24,6 @@ from imupipe.pipeline.errors import ImupipeError
 COMPARED = ("topics", "frame_id", "instance")
 """The ``fitted_on`` keys compared with the log (each maps stream -> value)."""
 
-ON_MISMATCH = ("warn", "refuse")
-
 
 class ProvenanceMismatch(ImupipeError):
     """The log does not come from the sensor the calibration was fitted on (``--on-mismatch
