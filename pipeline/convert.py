@@ -117,7 +117,9 @@ def convert(
             file=sys.stderr,
         )
     OutputGuard(out, [], "--out").probe()
-    remove_stale_temps(out, recursive=True)  # of workers killed in an earlier run
+    # temporary files of workers killed in an earlier run (on this machine, or on any Ray node:
+    # no worker of this run has started yet, and one conversion at a time writes into DIR)
+    remove_stale_temps(out, recursive=True, other_hosts=True)
     manifest = Manifest(out)
     fatal: list[str] = []
     with progress_bar("imupipe convert", total=len(tasks), quiet=quiet) as bar:

@@ -27,7 +27,7 @@ from pathlib import Path
 
 import pyarrow as pa
 
-from imupipe.pipeline.atomic import remove_stale_temps, staged_outputs
+from imupipe.pipeline.atomic import staged_outputs
 from imupipe.pipeline.convert_dataset import dataset_table
 from imupipe.pipeline.convert_done import existing_output, input_size
 from imupipe.pipeline.convert_plan import LogTask
@@ -157,9 +157,6 @@ def _convert_log(task: LogTask) -> LogStats:
         }
         read: collections.Counter[str] = collections.Counter()
         provenance = ProvenanceCheck(task.calibration["chain"], task.on_mismatch, str(src))
-        remove_stale_temps(task.output.parent, name=task.output.name, other_hosts=True)
-        if task.parquet is not None:
-            remove_stale_temps(task.parquet.parent, name=task.parquet.name, other_hosts=True)
         with staged_outputs() as out:
             mcap_tmp = out.path(task.output)
             parquet_tmp = None if task.parquet is None else out.path(task.parquet)
