@@ -75,11 +75,17 @@ def fleet(tmp_path_factory):
     return d, cal, table.num_rows
 
 
+def _sigint_default() -> None:
+    """In the child: SIGINT as in a terminal (a shell's background job inherits it ignored, and
+    Python then installs no KeyboardInterrupt handler)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def start(d: Path, cal: Path, out: Path) -> subprocess.Popen:
     return subprocess.Popen(
         [sys.executable, "-m", "imupipe.pipeline.cli", "convert", "--calibration", str(cal),
          "--out", str(out), "-j", "2", "-q", str(d / "logs")],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, preexec_fn=_sigint_default,
     )  # fmt: skip
 
 
@@ -182,3 +188,56 @@ def test_soak_sigkill_at_random_moments(fleet, tmp_path):
     rng = random.Random(1818)
     for k in range(30):
         kill_driver_at(d, cal, tmp_path / f"out{k}", rows, rng.uniform(0.0, 4.0))
+
+
+@pytest.fixture(scope="module")
+def run_config(tmp_path_factory):
+    d = tmp_path_factory.mktemp("runkill")
+    table, _ = simulate("static", {"rate_hz": 200.0, "duration_s": 600.0}, 1)
+    write_mcap(d / "s.mcap", table)
+    (d / "cfg.toml").write_text(
+        '[inputs.s]\npath = "s.mcap"\n\n[[stages]]\ntype = "allan"\n\n[output]\ndir = "out"\n'
+    )
+    return d
+
+
+def run_until_staged(d: Path) -> subprocess.Popen:
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "imupipe.pipeline.cli", "run", str(d / "cfg.toml"), "-q"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, preexec_fn=_sigint_default,
+    )  # fmt: skip
+    deadline = time.monotonic() + 120
+    while not (d / "out").exists() or not temps(d / "out"):
+        assert proc.poll() is None and time.monotonic() < deadline, proc.stderr.read()
+        time.sleep(0.02)
+    return proc
+
+
+@pytest.mark.parametrize("sig,code", [(signal.SIGTERM, 143), (signal.SIGINT, 130)])
+def test_sigterm_and_sigint_of_run_clean_up(run_config, sig, code):
+    d = run_config
+    proc = run_until_staged(d)
+    proc.send_signal(sig)
+    _, err = proc.communicate(timeout=60)
+    TALLY["cases"] += 1
+    assert proc.returncode == code, err
+    assert "Traceback" not in err and not (d / "out").exists()
+    TALLY["clean"] += 1
+
+
+def test_sigkill_of_run_leaves_temps_the_next_run_removes(run_config):
+    d = run_config
+    proc = run_until_staged(d)
+    proc.kill()
+    proc.communicate()
+    left = temps(d / "out")
+    assert left  # a killed process cannot clean up ...
+    proc = subprocess.run(
+        [sys.executable, "-m", "imupipe.pipeline.cli", "run", str(d / "cfg.toml"), "-q"],
+        capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    TALLY["cases"] += 1
+    assert proc.returncode == 0, proc.stderr
+    assert temps(d / "out") == []  # ... the next run does
+    assert (d / "out" / "calibration.json").is_file()
+    TALLY["clean"] += 1
