@@ -6,8 +6,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from imupipe.pipeline.convert_options import DEFAULT_BATCH_ROWS, ON_MISMATCH
-from imupipe.pipeline.engines import ENGINES
+from imupipe.pipeline.convert_options import DEFAULT_BATCH_ROWS, ENGINES, ON_MISMATCH
 from imupipe.pipeline.errors import ConfigError
 
 

@@ -8,3 +8,6 @@ DEFAULT_BATCH_ROWS = 100_000
 
 ON_MISMATCH = ("warn", "refuse")
 """What a log that is not from the calibration's sensor does (``--on-mismatch``)."""
+
+ENGINES = ("local", "ray")
+"""Where the logs are converted (``--engine``): a process pool on this machine, or Ray."""

@@ -68,11 +68,13 @@ def _os_fault(exc: OSError, task: LogTask) -> BaseException:
     faults are fatal, the input's are final for this log, others are retried (unchanged)."""
     where = None if exc.filename is None else Path(exc.filename).absolute()
     src = Path(task.spec.path).absolute()
-    out = task.output.parent
+    outs = [task.output.parent] + ([task.parquet.parent] if task.parquet is not None else [])
     if where is not None and (where == src or where.is_relative_to(src)):
         return ReadError(f"{src}: cannot read: {exc.strerror or exc}")
-    if exc.errno in OUTPUT_FAULTS and (where is None or where.is_relative_to(out)):
-        return OutputFolderError(f"{out}: {OUTPUT_FAULTS[exc.errno]}")
+    if exc.errno in OUTPUT_FAULTS:
+        out = next((o for o in outs if where is None or where.is_relative_to(o)), None)
+        if out is not None:
+            return OutputFolderError(f"{out}: {OUTPUT_FAULTS[exc.errno]}")
     return exc
 
 

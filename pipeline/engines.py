@@ -49,10 +49,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from imupipe.pipeline.convert_options import ENGINES
 from imupipe.pipeline.errors import ConfigError, ImupipeError
 from imupipe.pipeline.signals import Terminated
-
-ENGINES = ("local", "ray")
 
 STOP_GRACE_S = 5.0
 """How long stopped workers get to remove their temporary files before they are killed."""
