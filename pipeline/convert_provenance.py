@@ -6,7 +6,7 @@
                   "frame_id": {stream: frame}, "instance": {stream: id},
                   "t_start_ns": ..., "t_end_ns": ..., "rate_hz": {stream: Hz}}
 
-``convert`` compares ``topics``, ``frame_id`` and ``instance`` with the log's own (the common
+``convert`` compares ``topics``, ``frame_id``, ``instance`` and ``device_id`` with the log's own (the common
 table's metadata), stream by stream, wherever both sides name one: a calibration fitted on one
 robot's IMU should not be applied silently to another's. What a mismatch does is the user's
 choice (``--on-mismatch warn|refuse``); either way the manifest records it. A calibration
@@ -21,8 +21,9 @@ from typing import Any
 
 from imupipe.pipeline.errors import ImupipeError
 
-COMPARED = ("topics", "frame_id", "instance")
-"""The ``fitted_on`` keys compared with the log (each maps stream -> value)."""
+COMPARED = ("topics", "frame_id", "instance", "device_id")
+"""The ``fitted_on`` keys compared with the log (each maps stream -> value; ``instance`` and
+``device_id`` come from logs that have them, e.g. PX4 ULog)."""
 
 
 class ProvenanceMismatch(ImupipeError):
