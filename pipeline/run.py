@@ -23,6 +23,7 @@ from imupipe.pipeline.atomic import OutputGuard, remove_stale_temps, staged_outp
 from imupipe.pipeline.config import Config, load_config
 from imupipe.pipeline.mcap_writer import write_mcap
 from imupipe.pipeline.progress import progress_bar
+from imupipe.pipeline.signals import signals_deferred
 from imupipe.pipeline.version import VERSION
 from imupipe.readers.dispatch import carry_over, read_input
 from imupipe.readers.table import SENSOR_COLUMNS, STREAM_OF_SENSOR, has_stream, sensor
@@ -128,9 +129,10 @@ def run(config: Config | str | Path, *, spawn: bool = False, quiet: bool = False
                 from imupipe.pipeline.recording import Recorder
 
                 rrd = out_dir / "recording.rrd"
-                recorder = Recorder(
-                    out.path(rrd), spawn=spawn, max_points=cfg.output.rerun_max_points
-                )
+                with signals_deferred():  # never a half-made recording stream
+                    recorder = Recorder(
+                        out.path(rrd), spawn=spawn, max_points=cfg.output.rerun_max_points
+                    )
                 files.append(rrd)
             for st in cfg.stages:
                 bar.describe(f"stage {st.name}")

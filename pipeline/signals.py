@@ -8,7 +8,9 @@ staged outputs are discarded, worker pools are stopped.
 
 from __future__ import annotations
 
+import contextlib
 import signal
+from collections.abc import Iterator
 from types import FrameType
 
 
@@ -26,3 +28,16 @@ def _raise_terminated(signum: int, frame: FrameType | None) -> None:
 def terminate_on_sigterm() -> None:
     """From now on SIGTERM raises :class:`Terminated` in the main thread."""
     signal.signal(signal.SIGTERM, _raise_terminated)
+
+
+@contextlib.contextmanager
+def signals_deferred() -> Iterator[None]:
+    """SIGINT and SIGTERM held back (delivered when the block ends): for a third-party object
+    whose construction must not be cut in two (an interrupted Rerun ``RecordingStream.__init__``
+    prints a traceback when the half-made object is collected)."""
+    held = {signal.SIGINT, signal.SIGTERM}
+    old = signal.pthread_sigmask(signal.SIG_BLOCK, held)
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, old)
