@@ -23,6 +23,7 @@ import hashlib
 import io
 import json
 import os
+import signal
 from collections.abc import Iterable
 from pathlib import Path
 
@@ -64,11 +65,14 @@ def cli(*argv: str | os.PathLike[str]) -> tuple[int, str]:
     """Run the command line in this process (fast enough for many generated cases): (exit
     status, stderr)."""
     err = io.StringIO()
+    sigterm = signal.getsignal(signal.SIGTERM)  # main() installs its own: give pytest's back
     with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
         try:
             code = main([str(a) for a in argv])
         except SystemExit as exc:  # argparse
             code = exc.code if isinstance(exc.code, int) else 2
+        finally:
+            signal.signal(signal.SIGTERM, sigterm)
     return code, err.getvalue()
 
 
