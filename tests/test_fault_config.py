@@ -212,3 +212,19 @@ def test_output_dir_is_a_file_or_holds_a_folder_of_an_output_name(tmp_path):
     (tmp_path / "out" / "calibration.json").mkdir(parents=True)  # "busy": a folder in the way
     code, err = run_case(tmp_path, BASE.format(extra=""), "folder in the way")
     assert code == 2 and "calibration.json" in err, err
+
+
+def test_output_dir_inside_an_input_folder_is_refused(tmp_path):
+    """A ROS 2 bag is a folder: writing into it would change the bag (its reader takes every
+    .mcap/.db3 file there)."""
+    from test_convert import write_bag_with_rosbags
+
+    from imupipe.pipeline.simulate import simulate
+
+    table, _ = simulate("static", {"duration_s": 0.5, "rate_hz": 100.0, "temperature": None}, 2)
+    write_bag_with_rosbags(tmp_path / "bag", table, 2, status=0)
+    cfg = (
+        BASE.format(extra="").replace('"a.csv"', '"bag"').replace('dir = "out"', 'dir = "bag/out"')
+    )
+    code, err = run_case(tmp_path, cfg, "dir inside the input bag")
+    assert code == 2 and "inside the input" in err and "bag" in err, err
