@@ -1,4 +1,4 @@
-"""The TOML config (SPEC "Config file"), parsed and validated into dataclasses.
+"""The TOML config (docs: reference/config.md), parsed and validated into dataclasses.
 
 Every problem is a :class:`ConfigError` naming the file and the key: broken TOML, unknown keys
 (never ignored), wrong types, missing files, unknown inputs or stage types. Paths are relative to
@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import re
 import tomllib
 import types
 import typing
@@ -33,6 +34,12 @@ OUTPUT_KEYS = {"dir", "apply_to", "rerun", "rerun_max_points", "report", "export
 EXPORT_NAMES = ("kalibr", "imu_utils", "vins", "openvins", "px4", "ardupilot")
 """The files for other tools that ``[output] exports`` may name (``imupipe.pipeline.exports``)."""
 TOP_KEYS = {"inputs", "stages", "output"}
+
+INPUT_NAME = re.compile(r"^\w[\w.-]*$")
+"""An input's name becomes a file name (``<name>.mcap``, ``<stage>_<name>_<sensor>.csv``): letters,
+digits, ``_``, ``-`` and ``.``, not starting with ``.`` or ``-`` (no path separator, no ``..``)."""
+
+INT64 = (-(2**63), 2**63 - 1)
 
 
 @dataclass
@@ -110,14 +117,36 @@ def _describe(hint: Any) -> str:
     return getattr(hint, "__name__", None) or str(hint).replace("typing.", "")
 
 
+def _check_range(where: str, value: Any, meta: typing.Mapping[str, Any]) -> None:
+    """Numbers (also inside lists) must be finite (unless the field's metadata says
+    ``finite=False``), fit in int64, and lie within the field's ``min``/``max`` metadata."""
+    if isinstance(value, list):
+        for i, v in enumerate(value):
+            _check_range(f"{where}[{i}]", v, meta)
+        return
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        return
+    if isinstance(value, float) and not math.isfinite(value) and meta.get("finite", True):
+        raise ConfigError(f"{where}: {value} is not a finite number")
+    if isinstance(value, int) and not INT64[0] <= value <= INT64[1]:
+        raise ConfigError(f"{where}: {value} does not fit in a 64-bit integer")
+    low, high = meta.get("min"), meta.get("max")
+    if (low is not None and value < low) or (high is not None and value > high):
+        bounds = f"[{'' if low is None else low}, {'' if high is None else high}]"
+        raise ConfigError(f"{where}: {value} is out of range {bounds}")
+
+
 def build_options(cls: type, values: dict[str, Any], where: str) -> Any:
-    """Instantiate the options dataclass ``cls`` from TOML values, checking names and types."""
+    """Instantiate the options dataclass ``cls`` from TOML values, checking names, types and
+    ranges: a number must be finite unless its field says ``metadata={"finite": False}``, and
+    within ``metadata={"min": ..., "max": ...}`` where the field gives them."""
     hints = typing.get_type_hints(cls)
-    names = {f.name for f in dataclasses.fields(cls)}
-    _check_keys(where, values, names)
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    _check_keys(where, values, set(fields))
     for key, value in values.items():
         if not _type_ok(value, hints[key]):
             raise ConfigError(f"{where}.{key}: {value!r} is not of type {_describe(hints[key])}")
+        _check_range(f"{where}.{key}", value, fields[key].metadata)
         if typing.get_origin(hints[key]) is float or hints[key] is float:
             values[key] = float(value)
     return cls(**values)
@@ -240,8 +269,10 @@ def load_config(path: str | Path) -> Config:
         text = path.read_text(encoding="utf-8")
     except FileNotFoundError:
         raise ConfigError(f"{path}: no such config file") from None
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"{path}: not UTF-8 text (byte {exc.start}); TOML is UTF-8") from None
     except OSError as exc:
-        raise ConfigError(f"{path}: cannot read: {exc.strerror}") from None
+        raise ConfigError(f"{path}: cannot read: {exc.strerror or exc}") from None
     try:
         raw = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
@@ -252,6 +283,12 @@ def load_config(path: str | Path) -> Config:
     inputs_raw = raw.get("inputs")
     if not isinstance(inputs_raw, dict) or not inputs_raw:
         raise ConfigError(f"{path}: no [inputs.NAME] table")
+    for name in inputs_raw:
+        if not INPUT_NAME.match(name):
+            raise ConfigError(
+                f"{path}: [inputs.{name!r}]: an input's name becomes a file name: use letters, "
+                "digits, _, - and . (not first)"
+            )
     inputs = {
         name: parse_input(name, value, base, f"{path}: [inputs.{name}]")
         for name, value in inputs_raw.items()
@@ -270,6 +307,8 @@ def load_config(path: str | Path) -> Config:
         type_name = entry.pop("type", None)
         if type_name is None:
             raise ConfigError(f"{where}: missing key 'type'")
+        if not isinstance(type_name, str):
+            raise ConfigError(f"{where}.type: must be a string (a stage type)")
         if type_name not in STAGE_TYPES:
             raise ConfigError(
                 f"{where}.type: unknown stage type '{type_name}' (known: {', '.join(STAGE_TYPES)})"
@@ -284,6 +323,8 @@ def load_config(path: str | Path) -> Config:
                 )
             seen.add(name)
         input_name = entry.pop("input", None)
+        if input_name is not None and not isinstance(input_name, str):
+            raise ConfigError(f"{where}.input: must be a string (an input's name)")
         if input_name is None:
             if len(inputs) != 1:
                 raise ConfigError(
@@ -307,6 +348,8 @@ def load_config(path: str | Path) -> Config:
     if not isinstance(out_raw, dict):
         raise ConfigError(f"{path}: [output] must be a table")
     _check_keys(f"{path}: [output]", out_raw, OUTPUT_KEYS)
+    if not isinstance(out_raw.get("dir", "out"), str):
+        raise ConfigError(f"{path}: [output].dir must be a string (a folder)")
     out_dir = Path(out_raw.get("dir", "out"))
     if not out_dir.is_absolute():
         out_dir = base / out_dir

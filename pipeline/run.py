@@ -20,13 +20,14 @@ from typing import Any
 
 import pyarrow as pa
 
-from imupipe.pipeline.atomic import staged_outputs
+from imupipe.pipeline.atomic import OutputGuard, remove_stale_temps, staged_outputs
 from imupipe.pipeline.calibration_file import fitted_on
 from imupipe.pipeline.config import Config, load_config
 from imupipe.pipeline.corrected import write_corrected
 from imupipe.pipeline.exports import chosen as chosen_exports
 from imupipe.pipeline.exports import export_all
 from imupipe.pipeline.progress import progress_bar
+from imupipe.pipeline.signals import signals_deferred
 from imupipe.pipeline.summary import (
     StageSummary,
     raw_count_sensors,
@@ -121,10 +122,25 @@ def publish(summaries: Sequence[StageSummary], recorder: Any, cfg: Any, out: Any
     return [target]
 
 
+def output_guard(cfg: Config) -> OutputGuard:
+    """The guard of ``[output] dir``, with the outputs known before the stages run checked: none
+    may lie outside the folder or replace an input (the inputs, a CSV's gyro file, the config)."""
+    inputs = [cfg.path, *(spec.path for spec in cfg.inputs.values())]
+    inputs += [spec.csv.gyro_file for spec in cfg.inputs.values() if spec.csv.gyro_file]
+    guard = OutputGuard(cfg.output.dir, inputs, "[output] dir")
+    known = ["calibration.json", *(f"{name}.mcap" for name in cfg.output.apply_to)]
+    for name in known + (["recording.rrd"] if cfg.output.rerun else []):
+        guard.check(name)
+    guard.probe()
+    return guard
+
+
 def run(config: Config | str | Path, *, spawn: bool = False, quiet: bool = False) -> RunSummary:
     """Run a config end to end; returns what was written."""
     cfg = config if isinstance(config, Config) else load_config(config)
     out_dir = cfg.output.dir
+    guard = output_guard(cfg)
+    remove_stale_temps(out_dir)
     raw: dict[str, pa.Table] = {}
     used = [name for name in cfg.inputs if any(st.input == name for st in cfg.stages)]
     n_steps = len(used) + len(cfg.stages) + len(cfg.output.apply_to) + 1
@@ -145,10 +161,11 @@ def run(config: Config | str | Path, *, spawn: bool = False, quiet: bool = False
         tables = CorrectedTables(raw, list(cfg.inputs), read)
         results: dict[str, Any] = {}
         fitted: list[dict[str, Any]] = []  # fitted_on of each chain entry
-        with staged_outputs() as out:
+        with staged_outputs(guard) as out:
             from imupipe.pipeline.recording import open_recorder  # rerun: loaded when run
 
-            recorder, files = open_recorder(cfg, out, spawn=spawn, quiet=quiet)
+            with signals_deferred():  # never a half-made recording stream
+                recorder, files = open_recorder(cfg, out, spawn=spawn, quiet=quiet)
             for st in cfg.stages:
                 bar.describe(f"stage {st.name}")
                 stage = stage_class(st.type)(st.options)

@@ -195,12 +195,19 @@ def _numbers(value: Any, shape: tuple[int, ...]) -> np.ndarray | None:
     return np.asarray(value, dtype=np.float64) if ok(value, shape) else None
 
 
+MAX_MAGNITUDE = 1e12
+"""The largest magnitude a calibration's real numbers may have: far beyond any scale, offset or
+coefficient of an IMU correction (raw counts to SI are 1e-9 to 1e4), far below where products
+with the data overflow to infinity; larger is a damaged or hostile file."""
+
+
 def _non_finite(value: Any, path: str) -> str | None:
-    """The path of the first NaN or infinite number inside ``value`` (None when all finite)."""
+    """The path of the first real number inside ``value`` that is NaN, infinite or larger in
+    magnitude than :data:`MAX_MAGNITUDE` (None when there is none)."""
     stack = [(value, path)]
     while stack:
         v, p = stack.pop()
-        if isinstance(v, float) and not np.isfinite(v):
+        if isinstance(v, float) and not (np.isfinite(v) and abs(v) <= MAX_MAGNITUDE):
             return p
         if isinstance(v, dict):
             stack.extend((x, f"{p}.{k}") for k, x in reversed(list(v.items())))
@@ -244,7 +251,9 @@ def check_entry(entry: Any, i: int, where: str) -> dict[str, Any]:
         )
     bad = _non_finite(entry, f"chain[{i}]")
     if bad is not None:
-        raise CalibrationError(f"{where}: {bad}: not a finite number")
+        raise CalibrationError(
+            f"{where}: {bad}: not a finite number of magnitude at most {MAX_MAGNITUDE:g}"
+        )
     return entry
 
 
