@@ -93,7 +93,7 @@ def check(
     outs = [Path(d).relative_to(root).as_posix() for d in out_dirs]
 
     def inside(rel: str) -> bool:
-        return any(rel == o or rel.startswith(o + "/") for o in outs)
+        return any(o == "." or rel == o or rel.startswith(o + "/") for o in outs)
 
     lost = [p for p in before if p not in after]
     altered = [p for p in before if p in after and after[p] != before[p] and not inside(p)]
