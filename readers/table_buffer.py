@@ -1,0 +1,376 @@
+"""Decoded messages into the common table, each value copied once into its final column.
+
+The readers promise one order (see :mod:`imupipe.readers.decoded`): per stream, messages in log
+order, then sorted stably by the chosen time; the streams merged stably by time (at equal times:
+imu, mag, temperature); out-of-order and repeated stamps counted and warned about, none dropped.
+
+:class:`TableBuffer` takes a log chunk by chunk and keeps each stream's messages in the order
+they come, in columns allocated once from the message counts the log states (grown by doubling
+when it states none). The largest stream (the IMU, typically) is written straight into the
+table's own columns, which have room for every stream's rows. At the end, when every stream is
+already in order (the common case), the streams are merged without sorting: a message's row is
+its index plus the number of the other streams' messages before it (``searchsorted``); the large
+stream's columns are then spread to their rows in place, block by block from the end, and the
+other streams' values are scattered into theirs. A log with a 1 Hz temperature topic beside
+its IMU thus costs about what the IMU alone costs, whether the log interleaves the topics in its
+chunks or writes each topic in chunks of its own. A stream out of order is put in order with
+one permutation of the whole table.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Iterator, Mapping, Sequence
+
+import numpy as np
+import pyarrow as pa
+
+from imupipe.readers.decoded import COLUMNS, STREAM_TYPES, Piece
+from imupipe.readers.table import COV, SCHEMA, with_metadata
+
+SPREAD_ROWS = 1 << 15
+"""Rows moved per step when a column is spread to its rows in place."""
+
+
+@contextlib.contextmanager
+def small_pages() -> Iterator[None]:
+    """numpy allocations without its transparent-huge-page hint.
+
+    numpy asks the kernel for huge pages on large arrays; with the common THP setting
+    (``defrag = madvise``) the first touch of such an array can stall on memory compaction: a
+    fresh 1M-message read took 0.9 s instead of 0.4 s in a process that had already used a lot
+    of memory. Columns that are filled once, sequentially, gain nothing from huge pages."""
+    setter = getattr(getattr(np, "_core", None), "multiarray", None)
+    setter = getattr(setter, "_set_madvise_hugepage", None)
+    if setter is None:
+        yield
+        return
+    previous = setter(False)
+    try:
+        yield
+    finally:
+        setter(previous)
+
+
+def _zeros(n: int, count: int = 1) -> np.ndarray:
+    with small_pages():
+        return np.zeros(n) if count == 1 else np.zeros((n, count))
+
+
+class _Stream:
+    """One stream's messages in the order they come: times, values, frame_ids."""
+
+    def __init__(self, stream: str, capacity: int) -> None:
+        self.stream = stream
+        self.m = 0
+        self.capacity = -1
+        self.t = self.log = np.zeros(0, np.int64)
+        self.columns: dict[str, np.ndarray] = {}
+        self.frames: list[pa.Array] = []
+        self.t_sorted = self.log_sorted = True
+        self.reserve(capacity)
+
+    def reserve(self, capacity: int) -> None:
+        """Room for ``capacity`` messages (the rows so far kept)."""
+        if capacity <= self.capacity:
+            return
+        m = self.m
+        with small_pages():
+            t, log = np.zeros(capacity, np.int64), np.zeros(capacity, np.int64)
+        columns = {name: _zeros(capacity, count) for name, _, count in COLUMNS[self.stream]}
+        if m:
+            t[:m], log[:m] = self.t[:m], self.log[:m]
+            for name, column in columns.items():
+                column[:m] = self.columns[name][:m]
+        self.t, self.log, self.columns, self.capacity = t, log, columns, capacity
+
+    def add(self, piece: Piece, time: str) -> None:
+        k = len(piece)
+        if k == 0:
+            return
+        if self.m + k > self.capacity:
+            self.reserve(max(self.m + k, 2 * self.capacity, 1 << 12))
+        a, b = self.m, self.m + k
+        t = piece.stamp if time == "header" else piece.log
+        self.t_sorted = self.t_sorted and _follows(self.t[:a], t)
+        self.log_sorted = self.log_sorted and _follows(self.log[:a], piece.log)
+        self.t[a:b], self.log[a:b] = t, piece.log
+        for name, column in piece.columns.items():
+            self.columns[name][a:b] = column
+        self.frames.append(piece.frame)
+        self.m = b
+
+    def frame(self) -> pa.Array:
+        if not self.frames:
+            return pa.array([], pa.string())
+        return self.frames[0] if len(self.frames) == 1 else pa.concat_arrays(self.frames)
+
+
+def _follows(before: np.ndarray, new: np.ndarray) -> bool:
+    """``new`` is non-decreasing and starts at or after the end of ``before``."""
+    if len(before) and new[0] < before[-1]:
+        return False
+    return len(new) < 2 or bool(np.all(new[1:] >= new[:-1]))
+
+
+def _merge_rows(times: list[np.ndarray]) -> list[np.ndarray]:
+    """The table row of every message of each stream, for streams each sorted by time, merged
+    stably (at equal times the earlier stream first): index + the other streams' messages
+    before it."""
+    rows = []
+    for i, t in enumerate(times):
+        row = np.arange(len(t), dtype=np.int64)
+        for j, other in enumerate(times):
+            if j != i and len(other):
+                row += np.searchsorted(other, t, side="right" if j < i else "left")
+        rows.append(row)
+    return rows
+
+
+def _spread(column: np.ndarray, rows: np.ndarray) -> None:
+    """Move ``column[:len(rows)]`` to ``column[rows]`` in place (``rows`` increasing, each
+    >= its index): block by block from the end, so that no value is overwritten unread."""
+    m = len(rows)
+    moved = np.flatnonzero(rows != np.arange(m))
+    if not len(moved):
+        return
+    first = int(moved[0])
+    for b in range(m, first, -SPREAD_ROWS):
+        a = max(first, b - SPREAD_ROWS)
+        column[rows[a:b]] = column[a:b].copy()
+
+
+def _unclaimed(m: int, rows: np.ndarray) -> np.ndarray:
+    """Indices below ``m`` that ``rows`` does not hold: what a spread leaves stale."""
+    held = np.zeros(m, bool)
+    held[rows[rows < m]] = True
+    return np.flatnonzero(~held)
+
+
+class TableBuffer:
+    """The common table of the streams ``streams`` being filled chunk by chunk (see the module
+    docstring). ``time`` is ``header`` (t_ns = header stamps) or ``log``; ``counts`` the
+    messages per stream the log states (None: unknown)."""
+
+    def __init__(
+        self, streams: Sequence[str], time: str, counts: Mapping[str, int] | None = None
+    ) -> None:
+        self.time = time
+        names = [s for s in STREAM_TYPES if s in streams]
+        counts = counts or {}
+        total = sum(counts.get(s, 0) for s in names)
+        self.large = max(names, key=lambda s: counts.get(s, 0)) if counts else None
+        self.streams = {
+            s: _Stream(s, total if s == self.large else counts.get(s, 0)) for s in names
+        }
+
+    def add(self, pieces: Mapping[str, Piece]) -> None:
+        """Append one chunk's pieces (stream -> Piece), each stream in the order given."""
+        for s, piece in pieces.items():
+            self.streams[s].add(piece, self.time)
+
+    def __len__(self) -> int:
+        return sum(st.m for st in self.streams.values())
+
+    # -- order -----------------------------------------------------------------------------
+    def _within(self, st: _Stream, warnings: list[str], where: str, topic: str) -> np.ndarray:
+        """The promised order of one stream's messages (log order, then stably by time)."""
+        order = np.arange(st.m)
+        if not st.log_sorted:
+            order = np.argsort(st.log[: st.m], kind="stable")
+        by_time = np.argsort(st.t[: st.m][order], kind="stable")
+        moved = int(np.count_nonzero(by_time != np.arange(st.m)))
+        if moved:
+            warnings.append(
+                f"{where} topic {topic}: {moved} messages out of {self.time} time order; "
+                "sorted stably (none dropped)"
+            )
+        return order[by_time]
+
+    def table(
+        self,
+        *,
+        sort: bool,
+        source: str,
+        fmt: str,
+        topics: Mapping[str, str],
+        where: str,
+        warnings: list[str],
+    ) -> pa.Table:
+        """The common table of what was added (the buffer is emptied).
+
+        ``sort``: the promised order, with warnings; else only a stable merge of the streams
+        by time, each stream kept in log order (the batches of the streaming path)."""
+        streams = list(self.streams.values())
+        n = len(self)
+        in_order = all(st.t_sorted for st in streams)
+        if sort:
+            in_order = in_order and all(st.log_sorted for st in streams)
+        within: list[np.ndarray | None] = [None] * len(streams)
+        if sort:
+            for i, st in enumerate(streams):
+                order = None if in_order else self._within(st, warnings, where, topics[st.stream])
+                within[i] = order
+                t = st.t[: st.m] if order is None else st.t[: st.m][order]
+                dups = int(np.count_nonzero(t[1:] == t[:-1])) if st.m > 1 else 0
+                if dups:
+                    warnings.append(
+                        f"{where} topic {topics[st.stream]}: {dups} messages repeat the "
+                        f"previous {self.time} stamp (kept)"
+                    )
+        frames = [st.frame() for st in streams]
+        # each stream's frame_id: its first message's (in the table's order; batches: log order)
+        frame_ids = {
+            st.stream: f[0 if order is None else int(order[0])].as_py()
+            for st, f, order in zip(streams, frames, within, strict=True)
+            if st.m
+        }
+        if in_order or not sort:
+            if in_order:
+                rows = _merge_rows([st.t[: st.m] for st in streams])
+                columns, t, log, frame = self._spread_all(streams, rows, frames, n)
+            else:  # batches out of order: a stable sort by time, streams in order at ties
+                columns, t, log, frame = self._gather(streams, within, frames, n, lexsort=True)
+        else:
+            columns, t, log, frame = self._gather(streams, within, frames, n, lexsort=False)
+        self.streams = {}
+        arrays: dict[str, pa.Array] = {"t_ns": pa.array(t, pa.int64())}
+        extra: dict[str, pa.Array] = {}
+        for name, array in columns.items():
+            (arrays if name in SCHEMA.names else extra)[name] = array
+        empty = pa.nulls(n, pa.float64())
+        fields = list(SCHEMA) + [
+            pa.field("log_time_ns", pa.int64()),
+            pa.field("frame_id", pa.string()),
+        ]
+        values = [arrays.get(f.name, empty) for f in SCHEMA] + [pa.array(log, pa.int64()), frame]
+        for name, array in extra.items():
+            fields.append(pa.field(name, COV if array.type == COV else pa.float64()))
+            values.append(array)
+        names = [st.stream for st in streams]
+        meta = {
+            "source": source,
+            "format": fmt,
+            "topics": {s: topics[s] for s in names},
+            "types": {s: STREAM_TYPES[s] for s in names},
+            "frame_id": frame_ids,
+        }
+        return with_metadata(pa.Table.from_arrays(values, schema=pa.schema(fields)), meta)
+
+    # -- building the columns --------------------------------------------------------------
+    def _spread_all(
+        self, streams: list[_Stream], rows: list[np.ndarray], frames: list[pa.Array], n: int
+    ) -> tuple[dict[str, pa.Array], np.ndarray, np.ndarray, pa.Array]:
+        """Columns of streams already in order, whose messages go to ``rows``."""
+        large = max(range(len(streams)), key=lambda i: streams[i].m)
+        big = streams[large]
+        big.reserve(n)  # the table's own columns (already this size when the log stated counts)
+        stale = _unclaimed(big.m, rows[large]) if len(streams) > 1 else np.zeros(0, np.int64)
+        for column in (big.t, big.log, *big.columns.values()):
+            _spread(column, rows[large])
+            column[stale] = 0
+        t, log = big.t[:n], big.log[:n]
+        columns: dict[str, np.ndarray] = {name: c[:n] for name, c in big.columns.items()}
+        stream_of_row = None
+        if len(streams) > 1:
+            stream_of_row = np.full(n, large, np.uint8)
+        for i, (st, at) in enumerate(zip(streams, rows, strict=True)):
+            if i == large:
+                continue
+            m = st.m
+            t[at], log[at] = st.t[:m], st.log[:m]
+            for name, _, count in COLUMNS[st.stream]:
+                full = _zeros(n, count)
+                full[at] = st.columns.pop(name)[:m]
+                columns[name] = full
+            stream_of_row[at] = i  # type: ignore[index]
+        if stream_of_row is None:
+            frame = frames[large]
+        else:
+            source = np.empty(n, np.int64)
+            start = 0
+            for st, at in zip(streams, rows, strict=True):
+                source[at] = np.arange(start, start + st.m)
+                start += st.m
+            frame = pa.concat_arrays(frames).take(pa.array(source))
+        return self._arrays(streams, columns, stream_of_row), t, log, frame
+
+    def _gather(
+        self,
+        streams: list[_Stream],
+        within: list[np.ndarray | None],
+        frames: list[pa.Array],
+        n: int,
+        lexsort: bool,
+    ) -> tuple[dict[str, pa.Array], np.ndarray, np.ndarray, pa.Array]:
+        """Columns of streams out of order: every row gathered through one permutation of the
+        streams' messages one after the other (each in the order ``within`` gives)."""
+        start = np.cumsum([0] + [st.m for st in streams])
+        index = np.concatenate(
+            [
+                start[i] + (np.arange(st.m) if order is None else order)
+                for i, (st, order) in enumerate(zip(streams, within, strict=True))
+            ]
+        )
+        t_all = np.concatenate([st.t[: st.m] for st in streams])
+        sid_all = np.repeat(np.arange(len(streams), dtype=np.uint8), [st.m for st in streams])
+        if lexsort:
+            perm = index[np.lexsort((sid_all[index], t_all[index]))]
+        else:
+            perm = index[np.argsort(t_all[index], kind="stable")]
+        t = t_all[perm]
+        log = np.concatenate([st.log[: st.m] for st in streams])[perm]
+        stream_of_row = sid_all[perm] if len(streams) > 1 else None
+        columns: dict[str, np.ndarray] = {}
+        for i, st in enumerate(streams):
+            at = np.flatnonzero(stream_of_row == i) if stream_of_row is not None else None
+            for name, _, count in COLUMNS[st.stream]:
+                values = st.columns.pop(name)[: st.m]
+                if at is None:
+                    columns[name] = values[perm]
+                else:
+                    full = _zeros(n, count)
+                    full[at] = values[perm[at] - start[i]]
+                    columns[name] = full
+        frame = pa.concat_arrays(frames).take(pa.array(perm))
+        return self._arrays(streams, columns, stream_of_row), t, log, frame
+
+    @staticmethod
+    def _arrays(
+        streams: list[_Stream], columns: dict[str, np.ndarray], stream_of_row: np.ndarray | None
+    ) -> dict[str, pa.Array]:
+        """Arrow columns, null where a row holds another stream's message."""
+        out: dict[str, pa.Array] = {}
+        for i, st in enumerate(streams):
+            nulls = None if stream_of_row is None else stream_of_row != i
+            for name, _, _ in COLUMNS[st.stream]:
+                out[name] = _array(columns.pop(name), nulls)
+        return out
+
+
+def _array(values: np.ndarray, nulls: np.ndarray | None) -> pa.Array:
+    """A float64 (n,) or fixed-size-list (n, 9) column, null where ``nulls``."""
+    if values.ndim == 1:
+        return pa.array(values, pa.float64(), mask=nulls)
+    flat = pa.array(np.ascontiguousarray(values).reshape(-1), pa.float64())
+    mask = None if nulls is None else pa.array(nulls)
+    return pa.FixedSizeListArray.from_arrays(flat, values.shape[1], mask=mask)
+
+
+def assemble(
+    pieces: Mapping[str, Piece],
+    *,
+    time: str,
+    source: str,
+    fmt: str,
+    topics: Mapping[str, str],
+    where: str,
+    warnings: list[str],
+    sort: bool = True,
+) -> pa.Table:
+    """The common table of the decoded ``pieces`` (stream -> Piece), all at once."""
+    buffer = TableBuffer(list(pieces), time, {s: len(p) for s, p in pieces.items()})
+    buffer.add(pieces)
+    return buffer.table(
+        sort=sort, source=source, fmt=fmt, topics=topics, where=where, warnings=warnings
+    )
