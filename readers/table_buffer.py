@@ -26,10 +26,13 @@ import numpy as np
 import pyarrow as pa
 
 from imupipe.readers.decoded import COLUMNS, STREAM_TYPES, Piece
+from imupipe.readers.prefault import Prefault
 from imupipe.readers.table import COV, SCHEMA, with_metadata
 
 SPREAD_ROWS = 1 << 15
 """Rows moved per step when a column is spread to its rows in place."""
+PREFAULT_ROWS = 1 << 16
+"""Columns of at least this many rows have their pages mapped by a helper thread."""
 
 
 @contextlib.contextmanager
@@ -68,6 +71,7 @@ class _Stream:
         self.columns: dict[str, np.ndarray] = {}
         self.frames: list[pa.Array] = []
         self.t_sorted = self.log_sorted = True
+        self.prefault: Prefault | None = None
         self.reserve(capacity)
 
     def reserve(self, capacity: int) -> None:
@@ -83,6 +87,16 @@ class _Stream:
             for name, column in columns.items():
                 column[:m] = self.columns[name][:m]
         self.t, self.log, self.columns, self.capacity = t, log, columns, capacity
+        self.close()
+        if capacity >= PREFAULT_ROWS:
+            self.prefault = Prefault([t, log, *columns.values()])
+            self.prefault.advance(m)
+
+    def close(self) -> None:
+        """Stop mapping pages ahead (the columns are complete)."""
+        if self.prefault is not None:
+            self.prefault.close()
+            self.prefault = None
 
     def add(self, piece: Piece, time: str) -> None:
         k = len(piece)
@@ -99,6 +113,8 @@ class _Stream:
             self.columns[name][a:b] = column
         self.frames.append(piece.frame)
         self.m = b
+        if self.prefault is not None:
+            self.prefault.advance(b)
 
     def frame(self) -> pa.Array:
         if not self.frames:
@@ -115,29 +131,45 @@ def _follows(before: np.ndarray, new: np.ndarray) -> bool:
 
 def _merge_rows(times: list[np.ndarray]) -> list[np.ndarray]:
     """The table row of every message of each stream, for streams each sorted by time, merged
-    stably (at equal times the earlier stream first): index + the other streams' messages
-    before it."""
+    stably (at equal times the earlier stream first): its index plus the number of the other
+    streams' messages before it."""
     rows = []
     for i, t in enumerate(times):
         row = np.arange(len(t), dtype=np.int64)
         for j, other in enumerate(times):
-            if j != i and len(other):
+            if j == i or not len(other):
+                continue
+            if len(other) * 16 < len(t):  # few: where each lands in t, then a running count
+                lands = np.searchsorted(t, other, side="left" if j < i else "right")
+                row += np.cumsum(np.bincount(lands, minlength=len(t) + 1))[: len(t)]
+            else:
                 row += np.searchsorted(other, t, side="right" if j < i else "left")
         rows.append(row)
     return rows
 
 
-def _spread(column: np.ndarray, rows: np.ndarray) -> None:
-    """Move ``column[:len(rows)]`` to ``column[rows]`` in place (``rows`` increasing, each
-    >= its index): block by block from the end, so that no value is overwritten unread."""
+def _spread(columns: list[np.ndarray], rows: np.ndarray) -> None:
+    """Move ``column[:len(rows)]`` to ``column[rows]`` in place for each column (``rows``
+    increasing, each >= its index), from the end so that no value is overwritten before it is
+    read: run by run when few runs move (a slow topic beside the IMU), else block by block."""
     m = len(rows)
     moved = np.flatnonzero(rows != np.arange(m))
     if not len(moved):
         return
     first = int(moved[0])
-    for b in range(m, first, -SPREAD_ROWS):
-        a = max(first, b - SPREAD_ROWS)
-        column[rows[a:b]] = column[a:b].copy()
+    jumps = np.flatnonzero(rows[first + 1 :] - rows[first:-1] != 1) + first + 1
+    if len(jumps) < m // 256:
+        starts = [first, *jumps.tolist()]
+        ends = [*jumps.tolist(), m]
+        targets = rows[starts].tolist()
+        for column in columns:
+            for a, b, to in zip(starts[::-1], ends[::-1], targets[::-1], strict=True):
+                column[to : to + b - a] = column[a:b]
+        return
+    for column in columns:
+        for b in range(m, first, -SPREAD_ROWS):
+            a = max(first, b - SPREAD_ROWS)
+            column[rows[a:b]] = column[a:b].copy()
 
 
 def _unclaimed(m: int, rows: np.ndarray) -> np.ndarray:
@@ -202,6 +234,8 @@ class TableBuffer:
         ``sort``: the promised order, with warnings; else only a stable merge of the streams
         by time, each stream kept in log order (the batches of the streaming path)."""
         streams = list(self.streams.values())
+        for st in streams:
+            st.close()
         n = len(self)
         in_order = all(st.t_sorted for st in streams)
         if sort:
@@ -227,7 +261,7 @@ class TableBuffer:
         }
         if in_order or not sort:
             if in_order:
-                rows = _merge_rows([st.t[: st.m] for st in streams])
+                rows = _merge_rows([st.t[: st.m] for st in streams]) if len(streams) > 1 else []
                 columns, t, log, frame = self._spread_all(streams, rows, frames, n)
             else:  # batches out of order: a stable sort by time, streams in order at ties
                 columns, t, log, frame = self._gather(streams, within, frames, n, lexsort=True)
@@ -265,16 +299,22 @@ class TableBuffer:
         large = max(range(len(streams)), key=lambda i: streams[i].m)
         big = streams[large]
         big.reserve(n)  # the table's own columns (already this size when the log stated counts)
-        stale = _unclaimed(big.m, rows[large]) if len(streams) > 1 else np.zeros(0, np.int64)
-        for column in (big.t, big.log, *big.columns.values()):
-            _spread(column, rows[large])
-            column[stale] = 0
+        if len(streams) > 1:
+            own = [big.t, big.log, *big.columns.values()]
+            _spread(own, rows[large])
+            stale = _unclaimed(big.m, rows[large])
+            for column in own:
+                column[stale] = 0
         t, log = big.t[:n], big.log[:n]
         columns: dict[str, np.ndarray] = {name: c[:n] for name, c in big.columns.items()}
-        stream_of_row = None
-        if len(streams) > 1:
-            stream_of_row = np.full(n, large, np.uint8)
+        if len(streams) == 1:
+            return self._arrays(streams, columns, None), t, log, frames[0]
+        stream_of_row = np.full(n, large, np.uint8)
+        source = np.empty(n, np.int64)  # row -> message of the streams one after the other
+        start = 0
         for i, (st, at) in enumerate(zip(streams, rows, strict=True)):
+            source[at] = np.arange(start, start + st.m)
+            start += st.m
             if i == large:
                 continue
             m = st.m
@@ -283,16 +323,8 @@ class TableBuffer:
                 full = _zeros(n, count)
                 full[at] = st.columns.pop(name)[:m]
                 columns[name] = full
-            stream_of_row[at] = i  # type: ignore[index]
-        if stream_of_row is None:
-            frame = frames[large]
-        else:
-            source = np.empty(n, np.int64)
-            start = 0
-            for st, at in zip(streams, rows, strict=True):
-                source[at] = np.arange(start, start + st.m)
-                start += st.m
-            frame = pa.concat_arrays(frames).take(pa.array(source))
+            stream_of_row[at] = i
+        frame = pa.concat_arrays(frames).take(pa.array(source))
         return self._arrays(streams, columns, stream_of_row), t, log, frame
 
     def _gather(

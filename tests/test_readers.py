@@ -453,3 +453,26 @@ def test_streams_merge_in_the_promised_order(tmp_path, layout, time):
             if moved
             else []
         )
+
+
+@pytest.mark.parametrize("sizes", [(2000, 3, 0), (600, 150, 3), (50, 900, 40), (1, 1, 1)])
+def test_merge_rows_and_spread_equal_a_stable_sort(sizes):
+    """The merge behind multi-topic reads (both of its ways of counting) and the in-place
+    spread (run by run, block by block) against numpy's stable sort of the streams in order."""
+    from imupipe.readers import table_buffer as tb
+
+    rng = np.random.default_rng(sum(sizes))
+    times = [np.sort(rng.integers(0, 300, k)) for k in sizes]
+    rows = tb._merge_rows(times)
+    order = np.argsort(np.concatenate(times), kind="stable")
+    expected = np.empty(len(order), np.int64)
+    expected[order] = np.arange(len(order))
+    np.testing.assert_array_equal(np.concatenate(rows), expected)
+    big = int(np.argmax(sizes))
+    n = sum(sizes)
+    for shape in ((n,), (n, 9)):
+        values = rng.normal(size=(sizes[big],) + shape[1:])
+        column = np.zeros(shape)
+        column[: sizes[big]] = values
+        tb._spread([column], rows[big])
+        np.testing.assert_array_equal(column[rows[big]], values)
