@@ -476,3 +476,41 @@ def test_merge_rows_and_spread_equal_a_stable_sort(sizes):
         column[: sizes[big]] = values
         tb._spread([column], rows[big])
         np.testing.assert_array_equal(column[rows[big]], values)
+
+
+def test_prefault_maps_a_bounded_distance_ahead_and_stops():
+    """The page-mapping helper maps at most AHEAD_ROWS past the filled rows (a log that states
+    a wrong, huge message count costs no memory for it), changes no value, and its thread ends
+    on close or when its owner is dropped."""
+    import gc
+    import time
+
+    from imupipe.readers import prefault
+
+    if prefault._madvise is None:
+        pytest.skip("no madvise here")
+
+    def rss() -> int:
+        with open("/proc/self/status") as fh:
+            return next(int(line.split()[1]) * 1024 for line in fh if line.startswith("VmRSS"))
+
+    rows = 8 * prefault.AHEAD_ROWS  # 2 M rows x 80 bytes: 168 MB if all were mapped
+    arrays = [np.zeros(rows), np.zeros((rows, 9))]
+    before = rss()
+    helper = prefault.Prefault(arrays)
+    helper.advance(0)
+    deadline = time.monotonic() + 20
+    while rss() - before < 0.9 * prefault.AHEAD_ROWS * 80 and time.monotonic() < deadline:
+        time.sleep(0.01)
+    time.sleep(0.2)
+    grown = rss() - before
+    assert 0.9 * prefault.AHEAD_ROWS * 80 <= grown < 2 * prefault.AHEAD_ROWS * 80, grown
+    helper.close()
+    assert not helper.thread.is_alive()
+    assert not arrays[1].any()
+    dropped = prefault.Prefault([np.zeros(rows)])
+    thread = dropped.thread
+    del dropped
+    gc.collect()
+    thread.join(timeout=5)
+    assert not thread.is_alive()
