@@ -230,7 +230,7 @@ class CsvFile:
                 line, fields, text = found
                 hint = " (a comment line? set csv.comment)" if text.lstrip()[:1] in "#%;/" else ""
                 return ReadError(
-                    f"{self.path}: line {line}: {fields} fields where the data have "
+                    f"{self.path}: line {line}: {fields} field{'s' * (fields != 1)} where the data have "
                     f"{self.layout.fields} (from line {self.layout.first_line}){hint}"
                 )
         return ReadError(f"{self.path}: not a readable CSV: {message}")

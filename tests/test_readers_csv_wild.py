@@ -246,7 +246,7 @@ def test_a_line_with_other_fields_is_named(tmp_path):
 def test_a_commented_line_gets_a_hint(tmp_path):
     path = tmp_path / "c.csv"
     path.write_text(_lines(["0,1,2,3,4,5,6", "# paused", "20,1,2,3,4,5,6"] * 10))
-    with pytest.raises(ReadError, match=r"line 3: 1 fields .* set csv.comment"):
+    with pytest.raises(ReadError, match=r"line 3: 1 field where .* set csv.comment"):
         read_csv(InputSpec(path=path))
     table, _ = read_csv(InputSpec(path=path, csv=CsvMapping(comment="#")))
     assert table.num_rows == 20
