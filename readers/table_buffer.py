@@ -33,6 +33,8 @@ SPREAD_ROWS = 1 << 15
 """Rows moved per step when a column is spread to its rows in place."""
 PREFAULT_ROWS = 1 << 16
 """Columns of at least this many rows have their pages mapped by a helper thread."""
+TIME_COLUMNS = {"log_time_ns": "log"}
+"""The table's int64 per-message columns besides ``t_ns``: column -> :class:`Piece` attribute."""
 
 
 @contextlib.contextmanager
@@ -67,7 +69,8 @@ class _Stream:
         self.stream = stream
         self.m = 0
         self.capacity = -1
-        self.t = self.log = np.zeros(0, np.int64)
+        self.times: dict[str, np.ndarray] = {}
+        """``t_ns`` (the chosen time) and :data:`TIME_COLUMNS`, int64."""
         self.columns: dict[str, np.ndarray] = {}
         self.frames: list[pa.Array] = []
         self.t_sorted = self.log_sorted = True
@@ -80,17 +83,25 @@ class _Stream:
             return
         m = self.m
         with small_pages():
-            t, log = np.zeros(capacity, np.int64), np.zeros(capacity, np.int64)
+            times = {name: np.zeros(capacity, np.int64) for name in ("t_ns", *TIME_COLUMNS)}
         columns = {name: _zeros(capacity, count) for name, _, count in COLUMNS[self.stream]}
         if m:
-            t[:m], log[:m] = self.t[:m], self.log[:m]
-            for name, column in columns.items():
-                column[:m] = self.columns[name][:m]
-        self.t, self.log, self.columns, self.capacity = t, log, columns, capacity
+            for old, new in ((self.times, times), (self.columns, columns)):
+                for name, column in new.items():
+                    column[:m] = old[name][:m]
+        self.times, self.columns, self.capacity = times, columns, capacity
         self.close()
         if capacity >= PREFAULT_ROWS:
-            self.prefault = Prefault([t, log, *columns.values()])
+            self.prefault = Prefault([*times.values(), *columns.values()])
             self.prefault.advance(m)
+
+    @property
+    def t(self) -> np.ndarray:
+        return self.times["t_ns"]
+
+    @property
+    def log(self) -> np.ndarray:
+        return self.times["log_time_ns"]
 
     def close(self) -> None:
         """Stop mapping pages ahead (the columns are complete)."""
@@ -108,7 +119,9 @@ class _Stream:
         t = piece.stamp if time == "header" else piece.log
         self.t_sorted = self.t_sorted and _follows(self.t[:a], t)
         self.log_sorted = self.log_sorted and _follows(self.log[:a], piece.log)
-        self.t[a:b], self.log[a:b] = t, piece.log
+        self.t[a:b] = t
+        for name, attribute in TIME_COLUMNS.items():
+            self.times[name][a:b] = getattr(piece, attribute)
         for name, column in piece.columns.items():
             self.columns[name][a:b] = column
         self.frames.append(piece.frame)
@@ -259,25 +272,21 @@ class TableBuffer:
             for st, f, order in zip(streams, frames, within, strict=True)
             if st.m
         }
-        if in_order or not sort:
-            if in_order:
-                rows = _merge_rows([st.t[: st.m] for st in streams]) if len(streams) > 1 else []
-                columns, t, log, frame = self._spread_all(streams, rows, frames, n)
-            else:  # batches out of order: a stable sort by time, streams in order at ties
-                columns, t, log, frame = self._gather(streams, within, frames, n, lexsort=True)
-        else:
-            columns, t, log, frame = self._gather(streams, within, frames, n, lexsort=False)
+        if in_order:
+            rows = _merge_rows([st.t[: st.m] for st in streams]) if len(streams) > 1 else []
+            columns, times, frame = self._spread_all(streams, rows, frames, n)
+        else:  # the batches of the streaming path: a stable sort by time, streams in order at ties
+            columns, times, frame = self._gather(streams, within, frames, n, lexsort=not sort)
         self.streams = {}
-        arrays: dict[str, pa.Array] = {"t_ns": pa.array(t, pa.int64())}
+        arrays: dict[str, pa.Array] = {"t_ns": pa.array(times.pop("t_ns"), pa.int64())}
         extra: dict[str, pa.Array] = {}
         for name, array in columns.items():
             (arrays if name in SCHEMA.names else extra)[name] = array
         empty = pa.nulls(n, pa.float64())
-        fields = list(SCHEMA) + [
-            pa.field("log_time_ns", pa.int64()),
-            pa.field("frame_id", pa.string()),
-        ]
-        values = [arrays.get(f.name, empty) for f in SCHEMA] + [pa.array(log, pa.int64()), frame]
+        fields = list(SCHEMA) + [pa.field(name, pa.int64()) for name in times]
+        fields.append(pa.field("frame_id", pa.string()))
+        values = [arrays.get(f.name, empty) for f in SCHEMA]
+        values += [pa.array(column, pa.int64()) for column in times.values()] + [frame]
         for name, array in extra.items():
             fields.append(pa.field(name, COV if array.type == COV else pa.float64()))
             values.append(array)
@@ -294,21 +303,21 @@ class TableBuffer:
     # -- building the columns --------------------------------------------------------------
     def _spread_all(
         self, streams: list[_Stream], rows: list[np.ndarray], frames: list[pa.Array], n: int
-    ) -> tuple[dict[str, pa.Array], np.ndarray, np.ndarray, pa.Array]:
+    ) -> tuple[dict[str, pa.Array], dict[str, np.ndarray], pa.Array]:
         """Columns of streams already in order, whose messages go to ``rows``."""
         large = max(range(len(streams)), key=lambda i: streams[i].m)
         big = streams[large]
         big.reserve(n)  # the table's own columns (already this size when the log stated counts)
         if len(streams) > 1:
-            own = [big.t, big.log, *big.columns.values()]
+            own = [*big.times.values(), *big.columns.values()]
             _spread(own, rows[large])
             stale = _unclaimed(big.m, rows[large])
             for column in own:
                 column[stale] = 0
-        t, log = big.t[:n], big.log[:n]
+        times = {name: c[:n] for name, c in big.times.items()}
         columns: dict[str, np.ndarray] = {name: c[:n] for name, c in big.columns.items()}
         if len(streams) == 1:
-            return self._arrays(streams, columns, None), t, log, frames[0]
+            return self._arrays(streams, columns, None), times, frames[0]
         stream_of_row = np.full(n, large, np.uint8)
         source = np.empty(n, np.int64)  # row -> message of the streams one after the other
         start = 0
@@ -318,14 +327,15 @@ class TableBuffer:
             if i == large:
                 continue
             m = st.m
-            t[at], log[at] = st.t[:m], st.log[:m]
+            for name, column in times.items():
+                column[at] = st.times[name][:m]
             for name, _, count in COLUMNS[st.stream]:
                 full = _zeros(n, count)
                 full[at] = st.columns.pop(name)[:m]
                 columns[name] = full
             stream_of_row[at] = i
         frame = pa.concat_arrays(frames).take(pa.array(source))
-        return self._arrays(streams, columns, stream_of_row), t, log, frame
+        return self._arrays(streams, columns, stream_of_row), times, frame
 
     def _gather(
         self,
@@ -334,7 +344,7 @@ class TableBuffer:
         frames: list[pa.Array],
         n: int,
         lexsort: bool,
-    ) -> tuple[dict[str, pa.Array], np.ndarray, np.ndarray, pa.Array]:
+    ) -> tuple[dict[str, pa.Array], dict[str, np.ndarray], pa.Array]:
         """Columns of streams out of order: every row gathered through one permutation of the
         streams' messages one after the other (each in the order ``within`` gives)."""
         start = np.cumsum([0] + [st.m for st in streams])
@@ -350,8 +360,10 @@ class TableBuffer:
             perm = index[np.lexsort((sid_all[index], t_all[index]))]
         else:
             perm = index[np.argsort(t_all[index], kind="stable")]
-        t = t_all[perm]
-        log = np.concatenate([st.log[: st.m] for st in streams])[perm]
+        times = {
+            name: np.concatenate([st.times[name][: st.m] for st in streams])[perm]
+            for name in streams[0].times
+        }
         stream_of_row = sid_all[perm] if len(streams) > 1 else None
         columns: dict[str, np.ndarray] = {}
         for i, st in enumerate(streams):
@@ -365,7 +377,7 @@ class TableBuffer:
                     full[at] = values[perm[at] - start[i]]
                     columns[name] = full
         frame = pa.concat_arrays(frames).take(pa.array(perm))
-        return self._arrays(streams, columns, stream_of_row), t, log, frame
+        return self._arrays(streams, columns, stream_of_row), times, frame
 
     @staticmethod
     def _arrays(
