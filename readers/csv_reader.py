@@ -112,7 +112,7 @@ class CsvFile:
             i = int(name)
             return i if 0 <= i < self.layout.fields else None
         found = [i for i, n in enumerate(names) if n == name]
-        if not found and names and names[0][:1] in "#%" and names[0][1:].strip() == name:
+        if not found and names and names[0][:1] in ("#", "%") and names[0][1:].strip() == name:
             found = [0]  # a header written as a comment (numpy.savetxt: '# t,x'; rostopic: '%time')
         if len(found) > 1:
             raise ReadError(
@@ -188,6 +188,9 @@ class CsvFile:
                     self.layout.clean = True  # e.g. a line of blanks: read once more, cleaned
                     continue
                 raise self._error(message, conversion) from None
+            except pa.ArrowException as exc:  # anything else pyarrow refuses
+                line = str(exc).splitlines()[0] if str(exc) else type(exc).__name__
+                raise ReadError(f"{self.path}: not a readable CSV: {line}") from None
             except (OSError, MemoryError) as exc:
                 raise ReadError(f"{self.path}: cannot read: {exc}") from None
         self.rows = table.num_rows
@@ -241,7 +244,7 @@ class CsvFile:
         return f"line {line}" if line else f"data row {row + 1}"
 
     # -- columns ---------------------------------------------------------------------------
-    def floats(self, key: str, index: int, out: np.ndarray) -> np.ndarray | None:
+    def floats(self, index: int, out: np.ndarray) -> np.ndarray | None:
         """Write column ``index`` (float64, after ``csv.scale`` and ``csv.offset``) into
         ``out``, NaN where empty; returns the mask of the cells that hold a value (None: all).
         The parsed column is dropped."""
@@ -287,10 +290,10 @@ class _Sensor:
         self.nan = nan
 
 
-def _sensor(f: CsvFile, key: str, indices: list[int], factor: float) -> _Sensor:
+def _sensor(f: CsvFile, indices: list[int], factor: float) -> _Sensor:
     """Columns ``indices`` of ``f`` (loaded) into SI, with the rows that hold a sample."""
     values = np.empty((f.rows, len(indices)), order="F")
-    masks = [f.floats(key, i, values[:, k]) for k, i in enumerate(indices)]
+    masks = [f.floats(i, values[:, k]) for k, i in enumerate(indices)]
     if factor != 1.0:
         values *= factor
     given = [m for m in masks if m is not None]
@@ -439,16 +442,16 @@ def read_csv(spec: InputSpec) -> tuple[pa.Table, list[str]]:
     sensors: dict[str, _Sensor] = {}
     for key, ix in vectors.items():
         factor = _unit(path, f"{key}_unit", getattr(m, f"{key}_unit"), units[key])
-        sensors[key] = _sensor(f, key, ix, factor)
+        sensors[key] = _sensor(f, ix, factor)
     if m.gyro_file is not None:
         sensors["gyro"] = _gyro_from_file(Path(m.gyro_file), m, n)
     if "temperature" in singles:
-        sensors["temperature"] = _sensor(f, "temperature", [singles["temperature"]], 1.0)
+        sensors["temperature"] = _sensor(f, [singles["temperature"]], 1.0)
     extra: dict[str, Any] = {}
     if "label" in singles:
         extra["label"] = f.columns.pop(singles["label"]).combine_chunks()
     if "ambient_temperature" in singles:
-        air = _sensor(f, "ambient_temperature", [singles["ambient_temperature"]], 1.0)
+        air = _sensor(f, [singles["ambient_temperature"]], 1.0)
         extra["ambient_temperature"] = pa.array(
             air.values[:, 0], pa.float64(), mask=None if air.has is None else ~air.has
         )
@@ -544,4 +547,4 @@ def _gyro_from_file(path: Path, m: CsvMapping, rows: int) -> _Sensor:
             "they must match row for row"
         )
     factor = _unit(path, "gyro_unit", m.gyro_unit, GYRO_UNITS)
-    return _sensor(f, "gyro", indices, factor)
+    return _sensor(f, indices, factor)
