@@ -33,6 +33,8 @@ SPREAD_ROWS = 1 << 15
 """Rows moved per step when a column is spread to its rows in place."""
 PREFAULT_ROWS = 1 << 16
 """Columns of at least this many rows have their pages mapped by a helper thread."""
+ORDER = {s: i for i, s in enumerate(STREAM_TYPES)}
+"""At equal times, the streams' rows in this order."""
 TIME_COLUMNS = {"log_time_ns": "log"}
 """The table's int64 per-message columns besides ``t_ns``: column -> :class:`Piece` attribute."""
 
@@ -74,6 +76,9 @@ class _Stream:
         self.columns: dict[str, np.ndarray] = {}
         self.frames: list[pa.Array] = []
         self.t_sorted = self.log_sorted = True
+        self.last_t = self.last_log = -(2**63)
+        self.end = 0
+        """One past the last row written (rows may have gaps: see :class:`TableBuffer`)."""
         self.prefault: Prefault | None = None
         self.reserve(capacity)
 
@@ -81,19 +86,19 @@ class _Stream:
         """Room for ``capacity`` messages (the rows so far kept)."""
         if capacity <= self.capacity:
             return
-        m = self.m
+        end = self.end
         with small_pages():
             times = {name: np.zeros(capacity, np.int64) for name in ("t_ns", *TIME_COLUMNS)}
         columns = {name: _zeros(capacity, count) for name, _, count in COLUMNS[self.stream]}
-        if m:
+        if end:
             for old, new in ((self.times, times), (self.columns, columns)):
                 for name, column in new.items():
-                    column[:m] = old[name][:m]
+                    column[:end] = old[name][:end]
         self.times, self.columns, self.capacity = times, columns, capacity
         self.close()
         if capacity >= PREFAULT_ROWS:
             self.prefault = Prefault([*times.values(), *columns.values()])
-            self.prefault.advance(m)
+            self.prefault.advance(end)
 
     @property
     def t(self) -> np.ndarray:
@@ -109,25 +114,36 @@ class _Stream:
             self.prefault.close()
             self.prefault = None
 
-    def add(self, piece: Piece, time: str) -> None:
+    def arrays(self) -> list[np.ndarray]:
+        """Every per-row array (times and values), for moving rows."""
+        return [*self.times.values(), *self.columns.values()]
+
+    def add(self, piece: Piece, t: np.ndarray, at: slice | np.ndarray | None = None) -> None:
+        """Append ``piece`` (``t``: its chosen times) at rows ``at`` (default: the next rows)."""
         k = len(piece)
         if k == 0:
             return
-        if self.m + k > self.capacity:
-            self.reserve(max(self.m + k, 2 * self.capacity, 1 << 12))
-        a, b = self.m, self.m + k
-        t = piece.stamp if time == "header" else piece.log
-        self.t_sorted = self.t_sorted and _follows(self.t[:a], t)
-        self.log_sorted = self.log_sorted and _follows(self.log[:a], piece.log)
-        self.t[a:b] = t
-        for name, attribute in TIME_COLUMNS.items():
-            self.times[name][a:b] = getattr(piece, attribute)
-        for name, column in piece.columns.items():
-            self.columns[name][a:b] = column
+        if at is None:
+            if self.end + k > self.capacity:
+                self.reserve(max(self.end + k, 2 * self.capacity, 1 << 12))
+            at = slice(self.end, self.end + k)
+        self.t_sorted = self.t_sorted and _follows(self.last_t, t)
+        self.log_sorted = self.log_sorted and _follows(self.last_log, piece.log)
+        self.last_t, self.last_log = (
+            max(self.last_t, int(t[-1])),
+            max(self.last_log, int(piece.log[-1])),
+        )
+        values = {"t_ns": t, **{c: getattr(piece, a) for c, a in TIME_COLUMNS.items()}}
+        targets = {**self.times, **self.columns}
+        values.update(piece.columns)
+        for run, rows in _runs(at):
+            for name, column in values.items():
+                targets[name][rows] = column[run]
         self.frames.append(piece.frame)
-        self.m = b
+        self.m += k
+        self.end = max(self.end, (at.stop if isinstance(at, slice) else int(at[-1]) + 1))
         if self.prefault is not None:
-            self.prefault.advance(b)
+            self.prefault.advance(self.end)
 
     def frame(self) -> pa.Array:
         if not self.frames:
@@ -135,9 +151,24 @@ class _Stream:
         return self.frames[0] if len(self.frames) == 1 else pa.concat_arrays(self.frames)
 
 
-def _follows(before: np.ndarray, new: np.ndarray) -> bool:
-    """``new`` is non-decreasing and starts at or after the end of ``before``."""
-    if len(before) and new[0] < before[-1]:
+def _runs(at: slice | np.ndarray) -> list[tuple[slice, slice | np.ndarray]]:
+    """``at`` (rows for consecutive values) as (values, rows) pairs: slices for each run of
+    consecutive rows when there are few runs (a slow topic's gaps), else one index array."""
+    if isinstance(at, slice):
+        return [(slice(0, at.stop - at.start), at)]
+    breaks = np.flatnonzero(at[1:] - at[:-1] != 1) + 1
+    if len(breaks) > 16:
+        return [(slice(0, len(at)), at)]
+    edges = [0, *breaks.tolist(), len(at)]
+    return [
+        (slice(a, b), slice(int(at[a]), int(at[a]) + b - a))
+        for a, b in zip(edges[:-1], edges[1:], strict=True)
+    ]
+
+
+def _follows(last: int, new: np.ndarray) -> bool:
+    """``new`` is non-decreasing and starts at or after ``last``."""
+    if new[0] < last:
         return False
     return len(new) < 2 or bool(np.all(new[1:] >= new[:-1]))
 
@@ -208,11 +239,136 @@ class TableBuffer:
         self.streams = {
             s: _Stream(s, total if s == self.large else counts.get(s, 0)) for s in names
         }
+        self.gapped = self.large is not None and len(names) > 1
+        """The large stream is written at its rows in the table, leaving gaps for the other
+        streams' messages (while every stream comes in time order)."""
+        self.landed = np.zeros(0, np.int64)
+        """For each message of the other streams placed among the large stream's: the index of
+        the large stream's first message after it (sorted)."""
+        self.waiting: list[tuple[np.ndarray, bool]] = []
+        """Times of the other streams' messages that come after every large-stream message so
+        far, and whether they follow a large-stream message of the same time."""
+        self.large_t = np.zeros(total if self.gapped else 0, np.int64)
+        self.moved = 0
+
+    def _t(self, piece: Piece) -> np.ndarray:
+        return piece.stamp if self.time == "header" else piece.log
 
     def add(self, pieces: Mapping[str, Piece]) -> None:
         """Append one chunk's pieces (stream -> Piece), each stream in the order given."""
-        for s, piece in pieces.items():
-            self.streams[s].add(piece, self.time)
+        if not self.gapped:
+            for s, piece in pieces.items():
+                self.streams[s].add(piece, self._t(piece))
+            return
+        for s, piece in pieces.items():  # the other streams first: they make room
+            if s != self.large and len(piece):
+                self._other(s, piece)
+        piece = pieces.get(self.large)  # type: ignore[arg-type]
+        if piece is not None and len(piece):
+            self._large(piece)
+
+    # -- the large stream at its rows, gaps for the others ---------------------------------
+    def _other(self, s: str, piece: Piece) -> None:
+        st = self.streams[s]
+        t = self._t(piece)
+        st.add(piece, t)
+        if not self.gapped:
+            return
+        if not st.t_sorted:
+            self._ungap()
+            return
+        big = self.streams[self.large]  # type: ignore[index]
+        after = ORDER[s] > ORDER[self.large]  # type: ignore[index]
+        land = np.searchsorted(self.large_t[: big.m], t, side="right" if after else "left")
+        inside = land < big.m
+        if inside.any():
+            self._make_room(land[inside])
+        if self.gapped and not inside.all():
+            self.waiting.append((t[~inside], after))
+
+    def _large(self, piece: Piece) -> None:
+        big = self.streams[self.large]  # type: ignore[index]
+        t = self._t(piece)
+        k, m = len(t), big.m
+        if self.gapped and not _follows(big.last_t, t):
+            self._ungap()
+        if not self.gapped:
+            big.add(piece, t)
+            return
+        if self.waiting:  # messages waiting for their place among these
+            still: list[tuple[np.ndarray, bool]] = []
+            lands = [self.landed]
+            for wait, after in self.waiting:
+                idx = np.searchsorted(t, wait, side="right" if after else "left")
+                lands.append(m + idx[idx < k])
+                if not (idx < k).all():
+                    still.append((wait[idx >= k], after))
+            self.landed = np.sort(np.concatenate(lands))
+            self.waiting = still
+        i = np.arange(m, m + k)
+        rows = i + np.searchsorted(self.landed, i, side="right")
+        if rows[-1] >= big.capacity:  # the log stated too few messages
+            self._ungap()
+            big.add(piece, t)
+            return
+        self.large_t[m : m + k] = t
+        big.add(
+            piece,
+            t,
+            slice(int(rows[0]), int(rows[-1]) + 1) if rows[-1] - rows[0] == k - 1 else rows,
+        )
+
+    def _make_room(self, lands: np.ndarray) -> None:
+        """Move the large stream's messages from ``min(lands)`` on to make room for messages
+        of the other streams that come before them."""
+        big = self.streams[self.large]  # type: ignore[index]
+        m = big.m
+        i = np.arange(int(lands.min()), m)
+        src = i + np.searchsorted(self.landed, i, side="right")
+        landed = np.sort(np.concatenate([self.landed, lands]))
+        dst = i + np.searchsorted(landed, i, side="right")
+        self.moved += len(i)
+        if dst[-1] >= big.capacity or self.moved > 2 * big.capacity:
+            self._ungap()  # too many messages, or too much moving: merge at the end instead
+            return
+        arrays = big.arrays()
+        for b in range(len(i), 0, -SPREAD_ROWS):  # from the end: nothing overwritten unread
+            a = max(0, b - SPREAD_ROWS)
+            for array in arrays:
+                array[dst[a:b]] = array[src[a:b]]
+        vacated = np.setdiff1d(np.arange(src[0], dst[-1] + 1), dst, assume_unique=True)
+        for array in arrays:
+            array[vacated] = 0
+        self.landed = landed
+        big.end = max(big.end, int(dst[-1]) + 1)
+
+    def _rows(self) -> np.ndarray:
+        """The rows the large stream's messages are written at."""
+        i = np.arange(self.streams[self.large].m)  # type: ignore[index]
+        return i + np.searchsorted(self.landed, i, side="right")
+
+    def _ungap(self) -> None:
+        """Close the large stream's gaps: its messages one after the other again."""
+        if not self.gapped:
+            return
+        self.gapped = False
+        big = self.streams[self.large]  # type: ignore[index]
+        rows = self._rows()
+        moved = np.flatnonzero(rows != np.arange(len(rows)))
+        if len(moved):
+            arrays = big.arrays()
+            for a in range(int(moved[0]), len(rows), SPREAD_ROWS):  # from the front
+                b = min(len(rows), a + SPREAD_ROWS)
+                for array in arrays:
+                    array[a:b] = array[rows[a:b]]
+            for array in arrays:
+                array[big.m : big.end] = 0
+        big.end = big.m
+        self.landed, self.waiting = np.zeros(0, np.int64), []
+
+    def _stream_t(self, st: _Stream) -> np.ndarray:
+        """A stream's chosen times in the order its messages came."""
+        return self.large_t[: st.m] if self.gapped and st.stream == self.large else st.t[: st.m]
 
     def __len__(self) -> int:
         return sum(st.m for st in self.streams.values())
@@ -253,12 +409,14 @@ class TableBuffer:
         in_order = all(st.t_sorted for st in streams)
         if sort:
             in_order = in_order and all(st.log_sorted for st in streams)
+        if not in_order:
+            self._ungap()
         within: list[np.ndarray | None] = [None] * len(streams)
         if sort:
             for i, st in enumerate(streams):
                 order = None if in_order else self._within(st, warnings, where, topics[st.stream])
                 within[i] = order
-                t = st.t[: st.m] if order is None else st.t[: st.m][order]
+                t = self._stream_t(st) if order is None else st.t[: st.m][order]
                 dups = int(np.count_nonzero(t[1:] == t[:-1])) if st.m > 1 else 0
                 if dups:
                     warnings.append(
@@ -273,7 +431,7 @@ class TableBuffer:
             if st.m
         }
         if in_order:
-            rows = _merge_rows([st.t[: st.m] for st in streams]) if len(streams) > 1 else []
+            rows = _merge_rows([self._stream_t(st) for st in streams]) if len(streams) > 1 else []
             columns, times, frame = self._spread_all(streams, rows, frames, n)
         else:  # the batches of the streaming path: a stable sort by time, streams in order at ties
             columns, times, frame = self._gather(streams, within, frames, n, lexsort=not sort)
@@ -305,10 +463,17 @@ class TableBuffer:
         self, streams: list[_Stream], rows: list[np.ndarray], frames: list[pa.Array], n: int
     ) -> tuple[dict[str, pa.Array], dict[str, np.ndarray], pa.Array]:
         """Columns of streams already in order, whose messages go to ``rows``."""
-        large = max(range(len(streams)), key=lambda i: streams[i].m)
+        names = [st.stream for st in streams]
+        large = (
+            names.index(self.large)  # type: ignore[arg-type]
+            if self.gapped
+            else max(range(len(streams)), key=lambda i: streams[i].m)
+        )
         big = streams[large]
+        if self.gapped and not np.array_equal(rows[large], self._rows()):
+            self._ungap()  # not where the gaps were left (cannot happen when all is in order)
         big.reserve(n)  # the table's own columns (already this size when the log stated counts)
-        if len(streams) > 1:
+        if len(streams) > 1 and not self.gapped:
             own = [*big.times.values(), *big.columns.values()]
             _spread(own, rows[large])
             stale = _unclaimed(big.m, rows[large])

@@ -18,7 +18,7 @@ from imupipe.pipeline.errors import ReadError
 from imupipe.pipeline.simulate import write_log
 from imupipe.readers.dispatch import iter_input, read_input
 from imupipe.readers.spec import InputSpec
-from imupipe.readers.table import COV, make_table, sensor
+from imupipe.readers.table import COV, make_table, metadata, sensor
 
 from helpers import decode_mcap
 
@@ -373,13 +373,18 @@ def _promised_order(table: pa.Table, time: str) -> np.ndarray:
 
 
 def _write_order(table, path, order: str, rng) -> pa.Table:
-    """Write ``table``'s messages to an MCAP in one of three layouts; returns the table with its
-    rows in the file's order (what the readers see)."""
+    """Write ``table``'s messages to an MCAP in one of four layouts; returns the table with its
+    rows in the file's order per topic (what the readers see)."""
     from mcap.writer import CompressionType, Writer
 
     from imupipe.pipeline.mcap_writer import encode_stream, msgdef
 
     log = table.column("log_time_ns").to_numpy()
+    if order == "imupipe":  # imupipe's writer: chunks of one topic each, by first log time
+        from imupipe.pipeline.mcap_writer import write_mcap
+
+        write_mcap(path, table, chunk_bytes=2000)
+        return table
     messages = []  # (row, channel, payload)
     with open(path, "wb") as fh:
         w = Writer(fh, compression=CompressionType.ZSTD, chunk_size=3000)
@@ -407,19 +412,30 @@ def _write_order(table, path, order: str, rng) -> pa.Table:
     return table.take(pa.array([m[0] for m in messages]))
 
 
-@pytest.mark.parametrize("layout", ["log", "topics", "shuffled"])
+@pytest.mark.parametrize("layout", ["log", "topics", "imupipe", "shuffled"])
 @pytest.mark.parametrize("time", ["header", "log"])
-def test_streams_merge_in_the_promised_order(tmp_path, layout, time):
-    """Jittered and repeated header stamps, repeated log times, chunks interleaved, per topic
-    or shuffled: the table is the promised order, field for field, and the out-of-order and
-    repeated stamps are counted per topic."""
+@pytest.mark.parametrize("jitter", [True, False])
+def test_streams_merge_in_the_promised_order(tmp_path, layout, time, jitter):
+    """Jittered and repeated header stamps (or stamps in order, with ties across topics),
+    repeated log times, chunks interleaved, per topic or shuffled: the table is the promised
+    order, field for field, and the out-of-order and repeated stamps are counted per topic."""
+    if layout == "imupipe" and jitter:
+        pytest.skip("imupipe's writer orders each (topic, frame_id) on its own: no file order here")
     rng = np.random.default_rng(11)
     table = multi_stream_table(seed=3)
+    table = table.filter(pa.compute.not_equal(table.column("frame_id"), "i"))  # 3 Imu frames
     n = table.num_rows
-    t = table.column("t_ns").to_numpy() + rng.integers(-12_000_000, 12_000_000, n)
-    t[rng.choice(n, 30)] = t[rng.choice(n, 30)]
+    t = table.column("t_ns").to_numpy().copy()
     log = table.column("log_time_ns").to_numpy().copy()
-    log[rng.choice(n, 20)] = log[rng.choice(n, 20)]
+    if jitter:
+        t += rng.integers(-12_000_000, 12_000_000, n)
+        t[rng.choice(n, 30)] = t[rng.choice(n, 30)]
+        log[rng.choice(n, 20)] = log[rng.choice(n, 20)]
+    else:  # in order, one Imu frame_id, ties between topics at equal stamps
+        t = (t // 20_000_000) * 20_000_000
+        log = np.maximum.accumulate(log)
+        frames = pa.array(np.where(pa.compute.is_valid(table.column("gyro_x")), "imu", "m"))
+        table = table.set_column(table.schema.get_field_index("frame_id"), "frame_id", frames)
     table = table.set_column(0, "t_ns", pa.array(t))
     i = table.schema.get_field_index("log_time_ns")
     table = table.set_column(i, "log_time_ns", pa.array(log))
@@ -439,7 +455,8 @@ def test_streams_merge_in_the_promised_order(tmp_path, layout, time):
             raw = np.frombuffer(column.buffers()[1], np.float64)[column.offset :][: len(column)]
             under = raw[column.is_null().to_numpy(zero_copy_only=False)]
         assert not np.any(under), f"{name}: values under nulls are not 0 (not deterministic)"
-    for topic, key in (("/imu", "gyro_x"), ("/mag", "mag_x")):
+    topics = metadata(got)["topics"]
+    for topic, key in ((topics["imu"], "gyro_x"), (topics["mag"], "mag_x")):
         rows = np.flatnonzero(pa.compute.is_valid(in_file.column(key)).to_numpy())
         file_log = in_file.column("log_time_ns").to_numpy()[rows]
         file_t = file_log if time == "log" else in_file.column("t_ns").to_numpy()[rows]
