@@ -24,6 +24,7 @@ from collections.abc import Iterator, Mapping, Sequence
 
 import numpy as np
 import pyarrow as pa
+import pyarrow.compute as pc
 
 from imupipe.readers.decoded import COLUMNS, STREAM_TYPES, Piece
 from imupipe.readers.prefault import Prefault
@@ -484,11 +485,7 @@ class TableBuffer:
         if len(streams) == 1:
             return self._arrays(streams, columns, None), times, frames[0]
         stream_of_row = np.full(n, large, np.uint8)
-        source = np.empty(n, np.int64)  # row -> message of the streams one after the other
-        start = 0
         for i, (st, at) in enumerate(zip(streams, rows, strict=True)):
-            source[at] = np.arange(start, start + st.m)
-            start += st.m
             if i == large:
                 continue
             m = st.m
@@ -499,7 +496,7 @@ class TableBuffer:
                 full[at] = st.columns.pop(name)[:m]
                 columns[name] = full
             stream_of_row[at] = i
-        frame = pa.concat_arrays(frames).take(pa.array(source))
+        frame = _frames(frames, rows, stream_of_row)
         return self._arrays(streams, columns, stream_of_row), times, frame
 
     def _gather(
@@ -555,6 +552,24 @@ class TableBuffer:
             for name, _, _ in COLUMNS[st.stream]:
                 out[name] = _array(columns.pop(name), nulls)
         return out
+
+
+def _frames(frames: list[pa.Array], rows: list[np.ndarray], stream_of_row: np.ndarray) -> pa.Array:
+    """The frame_id column of streams whose messages go to ``rows``: a dictionary decode when
+    each stream has one frame_id (a sensor's usual case), else one take."""
+    firsts = [frame[0] if len(frame) else None for frame in frames]
+    if all(
+        first is None or pc.all(pc.equal(frame, first)).as_py()
+        for frame, first in zip(frames, firsts, strict=True)
+    ):
+        values = pa.array([f.as_py() if f is not None else "" for f in firsts], pa.string())
+        return pa.DictionaryArray.from_arrays(stream_of_row.view(np.int8), values).cast(pa.string())
+    source = np.empty(len(stream_of_row), np.int64)  # row -> message of the streams in turn
+    start = 0
+    for frame, at in zip(frames, rows, strict=True):
+        source[at] = np.arange(start, start + len(frame))
+        start += len(frame)
+    return pa.concat_arrays(frames).take(pa.array(source))
 
 
 def _array(values: np.ndarray, nulls: np.ndarray | None) -> pa.Array:
