@@ -119,7 +119,7 @@ class _Stream:
         """Every per-row array (times and values), for moving rows."""
         return [*self.times.values(), *self.columns.values()]
 
-    def add(self, piece: Piece, t: np.ndarray, at: slice | np.ndarray | None = None) -> None:
+    def add(self, piece: Piece, t: np.ndarray, at: slice | np.ndarray | Runs | None = None) -> None:
         """Append ``piece`` (``t``: its chosen times) at rows ``at`` (default: the next rows)."""
         k = len(piece)
         if k == 0:
@@ -142,7 +142,8 @@ class _Stream:
                 targets[name][rows] = column[run]
         self.frames.append(piece.frame)
         self.m += k
-        self.end = max(self.end, (at.stop if isinstance(at, slice) else int(at[-1]) + 1))
+        last = at[-1][1] if isinstance(at, list) else at
+        self.end = max(self.end, last.stop if isinstance(last, slice) else int(last[-1]) + 1)
         if self.prefault is not None:
             self.prefault.advance(self.end)
 
@@ -152,9 +153,15 @@ class _Stream:
         return self.frames[0] if len(self.frames) == 1 else pa.concat_arrays(self.frames)
 
 
-def _runs(at: slice | np.ndarray) -> list[tuple[slice, slice | np.ndarray]]:
+Runs = list[tuple[slice, slice]]
+"""(values, rows) slice pairs: where runs of consecutive values go."""
+
+
+def _runs(at: slice | np.ndarray | Runs) -> list[tuple[slice, slice | np.ndarray]]:
     """``at`` (rows for consecutive values) as (values, rows) pairs: slices for each run of
     consecutive rows when there are few runs (a slow topic's gaps), else one index array."""
+    if isinstance(at, list):
+        return at  # type: ignore[return-value]
     if isinstance(at, slice):
         return [(slice(0, at.stop - at.start), at)]
     breaks = np.flatnonzero(at[1:] - at[:-1] != 1) + 1
@@ -306,18 +313,26 @@ class TableBuffer:
                     still.append((wait[idx >= k], after))
             self.landed = np.sort(np.concatenate(lands))
             self.waiting = still
-        i = np.arange(m, m + k)
-        rows = i + np.searchsorted(self.landed, i, side="right")
-        if rows[-1] >= big.capacity:  # the log stated too few messages
+        # message m + j goes to row m + j + (the others' messages landed at or before it)
+        before = int(np.searchsorted(self.landed, m, side="right"))
+        inner = self.landed[before : int(np.searchsorted(self.landed, m + k - 1, side="right"))]
+        if m + k + before + len(inner) > big.capacity:  # the log stated too few messages
             self._ungap()
             big.add(piece, t)
             return
         self.large_t[m : m + k] = t
-        big.add(
-            piece,
-            t,
-            slice(int(rows[0]), int(rows[-1]) + 1) if rows[-1] - rows[0] == k - 1 else rows,
-        )
+        if len(inner) > 16:
+            i = np.arange(m, m + k)
+            big.add(piece, t, i + np.searchsorted(self.landed, i, side="right"))
+            return
+        runs = []
+        a, offset = m, before
+        for v, c in zip([*inner.tolist(), m + k], [*([1] * len(inner)), 0], strict=True):
+            if v > a:
+                runs.append((slice(a - m, v - m), slice(a + offset, v + offset)))
+            offset += c
+            a = v
+        big.add(piece, t, runs)
 
     def _make_room(self, lands: np.ndarray) -> None:
         """Move the large stream's messages from ``min(lands)`` on to make room for messages
@@ -432,8 +447,7 @@ class TableBuffer:
             if st.m
         }
         if in_order:
-            rows = _merge_rows([self._stream_t(st) for st in streams]) if len(streams) > 1 else []
-            columns, times, frame = self._spread_all(streams, rows, frames, n)
+            columns, times, frame = self._spread_all(streams, frames, n)
         else:  # the batches of the streaming path: a stable sort by time, streams in order at ties
             columns, times, frame = self._gather(streams, within, frames, n, lexsort=not sort)
         self.streams = {}
@@ -460,24 +474,47 @@ class TableBuffer:
         return with_metadata(pa.Table.from_arrays(values, schema=pa.schema(fields)), meta)
 
     # -- building the columns --------------------------------------------------------------
-    def _spread_all(
-        self, streams: list[_Stream], rows: list[np.ndarray], frames: list[pa.Array], n: int
-    ) -> tuple[dict[str, pa.Array], dict[str, np.ndarray], pa.Array]:
-        """Columns of streams already in order, whose messages go to ``rows``."""
-        names = [st.stream for st in streams]
-        large = (
-            names.index(self.large)  # type: ignore[arg-type]
-            if self.gapped
-            else max(range(len(streams)), key=lambda i: streams[i].m)
-        )
+    def _gap_rows(self, streams: list[_Stream], large: int) -> list[np.ndarray | None] | None:
+        """The rows of the other streams' messages when the large stream's gaps are theirs
+        (None for the large stream), or None when they are not (cannot happen: checked)."""
         big = streams[large]
-        if self.gapped and not np.array_equal(rows[large], self._rows()):
-            self._ungap()  # not where the gaps were left (cannot happen when all is in order)
+        others = [i for i in range(len(streams)) if i != large]
+        merged = _merge_rows([streams[i].t[: streams[i].m] for i in others])
+        rows: list[np.ndarray | None] = [None] * len(streams)
+        for i, among in zip(others, merged, strict=True):
+            st = streams[i]
+            after = ORDER[st.stream] > ORDER[big.stream]
+            land = np.searchsorted(
+                self.large_t[: big.m], st.t[: st.m], side="right" if after else "left"
+            )
+            rows[i] = land + among
+        waiting = sum(len(wait) for wait, _ in self.waiting)
+        lands = np.concatenate([self.landed, np.full(waiting, big.m, np.int64)])
+        gaps = np.sort(lands) + np.arange(len(lands))
+        mine = np.sort(np.concatenate([rows[i] for i in others]))  # type: ignore[misc]
+        return rows if np.array_equal(gaps, mine) else None
+
+    def _spread_all(
+        self, streams: list[_Stream], frames: list[pa.Array], n: int
+    ) -> tuple[dict[str, pa.Array], dict[str, np.ndarray], pa.Array]:
+        """Columns of streams already in order, each message at its row of the merged order:
+        the large stream's already there (gaps) or spread there in place."""
+        names = [st.stream for st in streams]
+        rows: list[np.ndarray | None] = []
+        if self.gapped:
+            large = names.index(self.large)  # type: ignore[arg-type]
+            rows = self._gap_rows(streams, large) or []
+            if not rows:
+                self._ungap()
+        if not self.gapped:
+            large = max(range(len(streams)), key=lambda i: streams[i].m)
+            rows = _merge_rows([st.t[: st.m] for st in streams]) if len(streams) > 1 else []  # type: ignore[assignment]
+        big = streams[large]
         big.reserve(n)  # the table's own columns (already this size when the log stated counts)
         if len(streams) > 1 and not self.gapped:
             own = [*big.times.values(), *big.columns.values()]
-            _spread(own, rows[large])
-            stale = _unclaimed(big.m, rows[large])
+            _spread(own, rows[large])  # type: ignore[arg-type]
+            stale = _unclaimed(big.m, rows[large])  # type: ignore[arg-type]
             for column in own:
                 column[stale] = 0
         times = {name: c[:n] for name, c in big.times.items()}
@@ -496,7 +533,9 @@ class TableBuffer:
                 full[at] = st.columns.pop(name)[:m]
                 columns[name] = full
             stream_of_row[at] = i
-        frame = _frames(frames, rows, stream_of_row)
+        if rows[large] is None:
+            rows[large] = self._rows()
+        frame = _frames(frames, rows, stream_of_row)  # type: ignore[arg-type]
         return self._arrays(streams, columns, stream_of_row), times, frame
 
     def _gather(
@@ -545,12 +584,15 @@ class TableBuffer:
     def _arrays(
         streams: list[_Stream], columns: dict[str, np.ndarray], stream_of_row: np.ndarray | None
     ) -> dict[str, pa.Array]:
-        """Arrow columns, null where a row holds another stream's message."""
+        """Arrow columns, null where a row holds another stream's message (one validity bitmap
+        per stream, shared by its columns)."""
         out: dict[str, pa.Array] = {}
         for i, st in enumerate(streams):
-            nulls = None if stream_of_row is None else stream_of_row != i
+            valid = None
+            if stream_of_row is not None:
+                valid = pa.py_buffer(np.packbits(stream_of_row == i, bitorder="little"))
             for name, _, _ in COLUMNS[st.stream]:
-                out[name] = _array(columns.pop(name), nulls)
+                out[name] = _array(columns.pop(name), valid)
         return out
 
 
@@ -572,13 +614,16 @@ def _frames(frames: list[pa.Array], rows: list[np.ndarray], stream_of_row: np.nd
     return pa.concat_arrays(frames).take(pa.array(source))
 
 
-def _array(values: np.ndarray, nulls: np.ndarray | None) -> pa.Array:
-    """A float64 (n,) or fixed-size-list (n, 9) column, null where ``nulls``."""
+def _array(values: np.ndarray, valid: pa.Buffer | None) -> pa.Array:
+    """A float64 (n,) or fixed-size-list (n, 9) column, null where the bitmap ``valid`` says."""
+    n = len(values)
+    flat = pa.py_buffer(np.ascontiguousarray(values).reshape(-1))
     if values.ndim == 1:
-        return pa.array(values, pa.float64(), mask=nulls)
-    flat = pa.array(np.ascontiguousarray(values).reshape(-1), pa.float64())
-    mask = None if nulls is None else pa.array(nulls)
-    return pa.FixedSizeListArray.from_arrays(flat, values.shape[1], mask=mask)
+        return pa.Array.from_buffers(pa.float64(), n, [valid, flat])
+    child = pa.Array.from_buffers(pa.float64(), n * values.shape[1], [None, flat])
+    return pa.Array.from_buffers(
+        pa.list_(pa.float64(), values.shape[1]), n, [valid], children=[child]
+    )
 
 
 def assemble(
