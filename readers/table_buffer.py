@@ -250,14 +250,25 @@ class TableBuffer:
         self.gapped = self.large is not None and len(names) > 1
         """The large stream is written at its rows in the table, leaving gaps for the other
         streams' messages (while every stream comes in time order)."""
-        self.landed = np.zeros(0, np.int64)
-        """For each message of the other streams placed among the large stream's: the index of
-        the large stream's first message after it (sorted)."""
+        self._landed = np.zeros(1024, np.int64)
+        self._n_landed = 0
         self.waiting: list[tuple[np.ndarray, bool]] = []
         """Times of the other streams' messages that come after every large-stream message so
         far, and whether they follow a large-stream message of the same time."""
         self.large_t = np.zeros(total if self.gapped else 0, np.int64)
         self.moved = 0
+        self.full: dict[str, np.ndarray] = {}
+        """The other streams' columns in the table, allocated (and mapped) with the large one."""
+        self.full_prefault: Prefault | None = None
+        if self.gapped:
+            self.full = {
+                name: _zeros(total, count)
+                for s in names
+                if s != self.large
+                for name, _, count in COLUMNS[s]
+            }
+            if total >= PREFAULT_ROWS:
+                self.full_prefault = Prefault(list(self.full.values()))
 
     def _t(self, piece: Piece) -> np.ndarray:
         return piece.stamp if self.time == "header" else piece.log
@@ -303,19 +314,22 @@ class TableBuffer:
         if not self.gapped:
             big.add(piece, t)
             return
+        before = self._n_landed  # every message landed so far is before message m
+        inner = np.zeros(0, np.int64)
         if self.waiting:  # messages waiting for their place among these
             still: list[tuple[np.ndarray, bool]] = []
-            lands = [self.landed]
+            lands = []
             for wait, after in self.waiting:
                 idx = np.searchsorted(t, wait, side="right" if after else "left")
                 lands.append(m + idx[idx < k])
                 if not (idx < k).all():
                     still.append((wait[idx >= k], after))
-            self.landed = np.sort(np.concatenate(lands))
+            new = np.sort(np.concatenate(lands))
+            self._land(new)
             self.waiting = still
+            before += int(np.count_nonzero(new == m))
+            inner = new[new > m]
         # message m + j goes to row m + j + (the others' messages landed at or before it)
-        before = int(np.searchsorted(self.landed, m, side="right"))
-        inner = self.landed[before : int(np.searchsorted(self.landed, m + k - 1, side="right"))]
         if m + k + before + len(inner) > big.capacity:  # the log stated too few messages
             self._ungap()
             big.add(piece, t)
@@ -333,6 +347,8 @@ class TableBuffer:
             offset += c
             a = v
         big.add(piece, t, runs)
+        if self.full_prefault is not None:
+            self.full_prefault.advance(big.end)
 
     def _make_room(self, lands: np.ndarray) -> None:
         """Move the large stream's messages from ``min(lands)`` on to make room for messages
@@ -341,7 +357,7 @@ class TableBuffer:
         m = big.m
         i = np.arange(int(lands.min()), m)
         src = i + np.searchsorted(self.landed, i, side="right")
-        landed = np.sort(np.concatenate([self.landed, lands]))
+        landed = np.sort(np.concatenate([self.landed, lands]))  # (rare: the others came late)
         dst = i + np.searchsorted(landed, i, side="right")
         self.moved += len(i)
         if dst[-1] >= big.capacity or self.moved > 2 * big.capacity:
@@ -355,8 +371,25 @@ class TableBuffer:
         vacated = np.setdiff1d(np.arange(src[0], dst[-1] + 1), dst, assume_unique=True)
         for array in arrays:
             array[vacated] = 0
-        self.landed = landed
+        self._n_landed = 0
+        self._land(landed)
         big.end = max(big.end, int(dst[-1]) + 1)
+
+    @property
+    def landed(self) -> np.ndarray:
+        """For each message of the other streams placed among the large stream's: the index of
+        the large stream's first message after it (sorted)."""
+        return self._landed[: self._n_landed]
+
+    def _land(self, values: np.ndarray) -> None:
+        """Append landings (sorted, none below the last)."""
+        n = self._n_landed + len(values)
+        if n > len(self._landed):
+            grown = np.zeros(max(n, 2 * len(self._landed)), np.int64)
+            grown[: self._n_landed] = self.landed
+            self._landed = grown
+        self._landed[self._n_landed : n] = values
+        self._n_landed = n
 
     def _rows(self) -> np.ndarray:
         """The rows the large stream's messages are written at."""
@@ -380,7 +413,7 @@ class TableBuffer:
             for array in arrays:
                 array[big.m : big.end] = 0
         big.end = big.m
-        self.landed, self.waiting = np.zeros(0, np.int64), []
+        self._n_landed, self.waiting = 0, []
 
     def _stream_t(self, st: _Stream) -> np.ndarray:
         """A stream's chosen times in the order its messages came."""
@@ -421,6 +454,8 @@ class TableBuffer:
         streams = list(self.streams.values())
         for st in streams:
             st.close()
+        if self.full_prefault is not None:
+            self.full_prefault.close()
         n = len(self)
         in_order = all(st.t_sorted for st in streams)
         if sort:
@@ -529,7 +564,8 @@ class TableBuffer:
             for name, column in times.items():
                 column[at] = st.times[name][:m]
             for name, _, count in COLUMNS[st.stream]:
-                full = _zeros(n, count)
+                full = self.full.pop(name, None)
+                full = full[:n] if full is not None and len(full) >= n else _zeros(n, count)
                 full[at] = st.columns.pop(name)[:m]
                 columns[name] = full
             stream_of_row[at] = i
