@@ -5,7 +5,10 @@
    loop that only reads and deserialises the same file. Goal: >= 5x faster.
 2. 20 logs with 2 workers against 1 worker. Goal: >= 1.6x faster.
 3. Peak memory of a worker (max RSS) converting the big log streamed in batches, a log a quarter
-   of its size, and the big log read whole (one batch): streamed peak must not grow with the log.
+   of its size, and the big log in one batch: streamed peak must not grow with the log.
+4. The per-log fixed cost (issue 17): 20 tiny logs (1,000 messages) against one, one worker, in
+   the same run as the rest; beside it the cost per message of the fleet's logs and of the big
+   log, so that what the fixed cost adds to a fleet of short logs is seen.
 
 Usage: ``python benchmarks/bench_convert.py [--messages 1000000] [--logs 20] [--log-messages 200000]``
 (prints each ratio; the machine is shared and noisy, so ratios, not absolute times, count).
@@ -140,12 +143,34 @@ def main() -> None:
         _, s_quarter = timed_convert([quarter], cal, tmp / "out_quarter", jobs=1)
         results["peak_rss_streamed_quarter_mb"] = s_quarter.converted[0].peak_rss_mb
         _, s_whole = timed_convert([big], cal, tmp / "out_whole", jobs=1, batch_rows=10**12)
-        results["peak_rss_whole_mb"] = s_whole.converted[0].peak_rss_mb
+        results["peak_rss_one_batch_mb"] = s_whole.converted[0].peak_rss_mb
         print(
             f"[3] worker peak RSS: streamed {args.messages:,} msgs "
             f"{results['peak_rss_streamed_mb']:.0f} MB, streamed {args.messages // 4:,} msgs "
-            f"{results['peak_rss_streamed_quarter_mb']:.0f} MB, whole log in one batch "
-            f"{results['peak_rss_whole_mb']:.0f} MB"
+            f"{results['peak_rss_streamed_quarter_mb']:.0f} MB, the big log in one batch "
+            f"{results['peak_rss_one_batch_mb']:.0f} MB"
+        )
+
+        # 4. the per-log fixed cost: n tiny logs against one, one worker, best of 3
+        tiny = tmp / "tiny"
+        tiny.mkdir()
+        for i in range(args.logs):
+            make_log(tiny / f"t{i:02d}.mcap", 1000, seed=100 + i)
+        one = all_ = float("inf")
+        worker_ms = float("inf")
+        for _ in range(3):
+            one = min(one, timed_convert([tiny / "t00.mcap"], cal, tmp / "out_t1", jobs=1)[0])
+            seconds, s_tiny = timed_convert([tiny], cal, tmp / "out_tn", jobs=1)
+            all_ = min(all_, seconds)
+            worker_ms = min(worker_ms, 1e3 * sum(s.seconds for s in s_tiny.converted) / args.logs)
+        fixed = (all_ - one) / (args.logs - 1)
+        results.update(fixed_cost_per_log_ms=1e3 * fixed, worker_time_per_tiny_log_ms=worker_ms)
+        print(
+            f"[4] per-log fixed cost: {1e3 * fixed:.1f} ms per log ({args.logs} logs of 1,000 "
+            f"msgs {all_:.2f} s against one {one:.2f} s, one worker; the worker's own time per "
+            f"tiny log {worker_ms:.1f} ms) = {1e6 * fixed / args.log_messages:.2f} us per message "
+            f"on logs of {args.log_messages:,}; the big log alone: "
+            f"{1e6 * t_ours / args.messages:.2f} us per message (whole command)"
         )
 
         # 2. 20 logs, 1 worker against 2; and what this (shared) machine gives two processes now:
@@ -163,7 +188,9 @@ def main() -> None:
                 t2, busy = seconds, sum(s.cpu_seconds for s in s2.converted) / seconds
             c1 = min(c1, timed_burn(args.logs, jobs=1))
             c2 = min(c2, timed_burn(args.logs, jobs=2))
+        per_msg = 1e6 * t1 / (args.logs * args.log_messages)
         results.update(
+            fleet_us_per_message_1_worker=per_msg,
             fleet_1_worker_s=t1,
             fleet_2_workers_s=t2,
             fleet_speedup=t1 / t2,
@@ -173,7 +200,8 @@ def main() -> None:
         print(
             f"[2] {args.logs} logs x {args.log_messages:,} msgs: 1 worker {t1:.2f} s, "
             f"2 workers {t2:.2f} s -> {t1 / t2:.2f}x (goal >= 1.6x); the machine's own ceiling "
-            f"now (pure-CPU tasks, same pool): {c1 / c2:.2f}x; CPUs the 2 workers got: {busy:.2f}"
+            f"now (pure-CPU tasks, same pool): {c1 / c2:.2f}x; CPUs the 2 workers got: {busy:.2f}; "
+            f"{per_msg:.2f} us per message with 1 worker"
         )
         print(json.dumps({k: round(v, 3) for k, v in results.items()}))
     finally:

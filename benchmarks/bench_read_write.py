@@ -7,12 +7,18 @@ Measured in one run, on the same file, against the peers the issue names:
 - corrected-MCAP write: ``imupipe.pipeline.mcap_writer.write_mcap`` vs ``mcap_ros2.writer.Writer``
   ``write_message`` per message (goal: >= 5x);
 - peak memory growth of a fresh process reading the file, over its size after imports, against
-  the size of the decoded table (goal: < 3x).
+  the size of the decoded table (goal: < 3x);
+- with ``--writer-memory N [N ...]`` (issue 17): the peak memory a fresh process adds while
+  ``McapTableWriter.write_table`` writes one whole table of N messages, encoded in slices (the
+  writer's default) and, for comparison, in one piece (what the writer did before it sliced),
+  beside ``mcap_ros2``'s writer in the same run (memory on ``--peer-n`` messages; it holds one
+  chunk whatever the count) and the write times.
 
-Prints wall times, the ratios and the memory figure. Not part of the CI test run (minutes of CPU);
-``tests/test_readers_bench.py`` runs a small smoke version.
+Prints wall times, the ratios and the memory figures. Not part of the CI test run (minutes of
+CPU); ``tests/test_readers_bench.py`` runs a small smoke version.
 
     python benchmarks/bench_read_write.py [--n 1000000] [--peer-n N] [--keep DIR]
+    python benchmarks/bench_read_write.py --writer-memory 1000000 5000000 --peer-n 200000
 
 ``--peer-n`` times the peers on the first N messages only and scales linearly (default: all).
 """
@@ -115,6 +121,65 @@ print(json.dumps({"base": base, "peak": peak, "table": table.nbytes, "rows": tab
 """
 
 
+WRITER_PROBE = """
+import json, sys, time
+from pathlib import Path
+sys.path.insert(0, sys.argv[1])
+from proc_memory import status_bytes
+from bench_read_write import make_table, peer_write
+from imupipe.pipeline.mcap_writer import McapTableWriter
+n, how, out = int(sys.argv[2]), sys.argv[3], Path(sys.argv[4])
+table = make_table(n)
+with open("/proc/self/clear_refs", "w") as fh:  # the high-water mark starts here
+    fh.write("5")
+base = status_bytes("VmRSS")
+start = time.perf_counter()
+if how == "mcap_ros2":
+    peer_write(out, table, n)
+else:
+    kw = {"slice_rows": n} if how == "whole" else {}
+    with McapTableWriter(out, **kw) as writer:
+        writer.write_table(table)
+seconds = time.perf_counter() - start
+peak = status_bytes("VmHWM")
+print(json.dumps({"base": base, "peak": peak, "table": table.nbytes, "seconds": seconds}))
+"""
+
+
+def writer_memory(n: int, how: str, out: Path) -> dict:
+    """Peak memory growth of a fresh process writing a table of ``n`` Imu messages: ``sliced``
+    (McapTableWriter's default), ``whole`` (one slice) or ``mcap_ros2`` (the peer)."""
+    proc = subprocess.run(
+        [sys.executable, "-c", WRITER_PROBE, HERE, str(n), how, str(out)],
+        capture_output=True,
+        text=True,
+        check=True,
+    )
+    out.unlink(missing_ok=True)
+    return json.loads(proc.stdout)
+
+
+def report_writer_memory(sizes: list[int], peer_n: int, work: Path) -> None:
+    peer = writer_memory(peer_n, "mcap_ros2", work / "peer.mcap")
+    peer_growth = (peer["peak"] - peer["base"]) / 1e6
+    per_msg = peer["seconds"] / peer_n
+    print(
+        f"writer memory, mcap_ros2 write_message on {peer_n} messages: +{peer_growth:.0f} MB, "
+        f"{per_msg * 1e6:.1f} us/message"
+    )
+    for n in sizes:
+        row = {how: writer_memory(n, how, work / f"{how}.mcap") for how in ("sliced", "whole")}
+        growth = {how: (r["peak"] - r["base"]) / 1e6 for how, r in row.items()}
+        print(
+            f"writer memory, {n} messages (table {row['sliced']['table'] / 1e6:.0f} MB): "
+            f"sliced +{growth['sliced']:.0f} MB in {row['sliced']['seconds']:.2f} s, "
+            f"one piece +{growth['whole']:.0f} MB in {row['whole']['seconds']:.2f} s "
+            f"({growth['whole'] / growth['sliced']:.1f}x the sliced); mcap_ros2 "
+            f"+{peer_growth:.0f} MB ({growth['sliced'] / max(peer_growth, 1):.1f}x ours/peer), "
+            f"{per_msg * n:.1f} s scaled -> {per_msg * n / row['sliced']['seconds']:.1f}x faster"
+        )
+
+
 def memory(path: Path) -> dict:
     out = subprocess.run(
         [sys.executable, "-c", MEMORY_PROBE, str(path), HERE],
@@ -131,9 +196,17 @@ def main() -> None:
     parser.add_argument("--peer-n", type=int, default=None)
     parser.add_argument("--keep", type=Path, default=None)
     parser.add_argument("--repeat", type=int, default=3, help="reads: best of this many, each side")
+    parser.add_argument(
+        "--writer-memory", type=int, nargs="+", metavar="N", help="only the writer memory probes"
+    )
     args = parser.parse_args()
     n = args.n
     peer_n = min(args.peer_n or n, n)
+    if args.writer_memory:
+        work = args.keep or Path(tempfile.mkdtemp(prefix="imupipe-bench-"))
+        work.mkdir(parents=True, exist_ok=True)
+        report_writer_memory(args.writer_memory, args.peer_n or 100_000, work)
+        return
 
     from imupipe.pipeline.mcap_writer import write_mcap
     from imupipe.readers.mcap_reader import read_mcap

@@ -1,17 +1,37 @@
-"""Outputs that appear whole or not at all.
+"""Outputs that appear whole or not at all, only inside the output folder, never over an input.
 
 Every output file is written under a temporary name in its final folder and renamed into place
-only when the whole command has succeeded; on any error the temporary files are removed, so a
-failed run never leaves a half-written file behind.
+only when the whole command has succeeded; on any error (an exception, SIGINT, SIGTERM) the
+temporary files are removed, so a failed run never leaves a half-written file behind.
+
+**Temporary names** say who wrote them: ``.<name>.<pid>@<host>.<random>.tmp`` (``host`` is a
+short hash of the machine's name). A process killed outright (SIGKILL, out of memory) cannot
+remove its own; :func:`remove_stale_temps` removes those whose process is gone, and every
+command calls it on its output folder before it writes.
+
+**Inputs are sacred.** With an :class:`OutputGuard`, every final path is resolved (symbolic
+links followed) before anything is written and refused with one line when it lies outside the
+output folder, is an input, or lies inside an input folder (a ROS 2 bag).
 """
 
 from __future__ import annotations
 
 import contextlib
+import hashlib
 import os
+import re
+import socket
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from pathlib import Path
+
+from imupipe.pipeline.errors import ConfigError
+
+HOST_KEY = hashlib.sha1(socket.gethostname().encode()).hexdigest()[:8]
+"""A short, file-name-safe key of this machine (temporary names carry it)."""
+
+TEMP_NAME = re.compile(r"^\.(?P<name>.+)\.(?P<pid>\d+)@(?P<host>[0-9a-f]{8})\.[A-Za-z0-9_]+\.tmp$")
+"""A temporary output's name: ``.<final name>.<pid>@<host key>.<random>.tmp``."""
 
 
 def _umask() -> int:
@@ -20,24 +40,129 @@ def _umask() -> int:
     return mask
 
 
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's live process
+        return True
+    return True
+
+
+def remove_stale_temps(
+    folder: str | os.PathLike[str],
+    *,
+    name: str | None = None,
+    recursive: bool = False,
+    other_hosts: bool = False,
+) -> list[Path]:
+    """Remove the temporary outputs in ``folder`` left by processes that no longer run.
+
+    A temporary file of this machine is stale when its process is gone; one of another machine
+    (a Ray node) only with ``other_hosts`` (the caller then owns every output of that name).
+    ``name``: only the temporary files of that final name. Returns the files removed."""
+    root = Path(folder)
+    if not root.is_dir():
+        return []
+    walk = os.walk(root) if recursive else [(str(root), [], os.listdir(root))]
+    removed = []
+    for here, _dirs, files in walk:
+        for f in files:
+            m = TEMP_NAME.match(f)
+            if m is None or (name is not None and m["name"] != name):
+                continue
+            if m["host"] == HOST_KEY:
+                pid = int(m["pid"])
+                if pid == os.getpid() or _alive(pid):
+                    continue
+            elif not other_hosts:
+                continue
+            path = Path(here) / f
+            with contextlib.suppress(FileNotFoundError):
+                path.unlink()
+                removed.append(path)
+    return removed
+
+
+class OutputGuard:
+    """Refuses output paths outside ``root`` or onto (or into) an input.
+
+    ``where`` names the setting that chose the folder in messages (``[output] dir``, ``--out``).
+    """
+
+    def __init__(
+        self, root: str | os.PathLike[str], inputs: Iterable[str | os.PathLike[str]], where: str
+    ) -> None:
+        self.root = Path(root).absolute()
+        self.where = where
+        self._root = self.root.resolve()
+        self._inputs = {Path(p).absolute().resolve() for p in inputs}
+        if self.root.exists() and not self.root.is_dir():
+            raise ConfigError(f"{where} {self.root}: exists and is not a folder")
+        for inp in self._inputs:
+            if self._root == inp or (inp.is_dir() and self._root.is_relative_to(inp)):
+                raise ConfigError(
+                    f"{where} {self.root}: is inside the input {inp}; choose another folder"
+                )
+
+    def probe(self) -> None:
+        """ConfigError unless a file can be created in the output folder (or, when it does not
+        exist yet, in its nearest existing parent): read-only, permission, full inode table."""
+        folder = next(p for p in [self.root, *self.root.parents] if p.exists())
+        try:
+            fd, tmp = tempfile.mkstemp(prefix=f".probe.{os.getpid()}@{HOST_KEY}.", dir=folder)
+        except OSError as exc:
+            raise ConfigError(
+                f"{self.where} {self.root}: cannot write in {folder}: {exc.strerror or exc}"
+            ) from None
+        os.close(fd)
+        os.unlink(tmp)
+
+    def check(self, final: str | os.PathLike[str]) -> Path:
+        """``final`` made absolute; ConfigError when it must not be written."""
+        final = Path(final)
+        final = final if final.is_absolute() else self.root / final
+        real = final.resolve()
+        for inp in self._inputs:
+            if real == inp or (inp.is_dir() and real.is_relative_to(inp)):
+                raise ConfigError(
+                    f"{final}: would overwrite the input {inp}; choose another {self.where}"
+                )
+        if not real.is_relative_to(self._root) or real == self._root:
+            raise ConfigError(
+                f"{final}: would be written outside the output folder {self.root} ({self.where})"
+            )
+        return final
+
+
 class StagedOutputs:
     """Hands out temporary paths for final paths; commits (renames) or discards them together."""
 
-    def __init__(self) -> None:
+    def __init__(self, guard: OutputGuard | None = None) -> None:
+        self.guard = guard
         self._pending: list[tuple[Path, Path]] = []
         self._created_dirs: list[Path] = []
 
     def path(self, final: str | os.PathLike[str]) -> Path:
         """A temporary path next to ``final``; it becomes ``final`` on commit."""
-        final = Path(final)
+        final = Path(final) if self.guard is None else self.guard.check(final)
         missing = [p for p in [final.parent, *final.parent.parents] if not p.exists()]
         final.parent.mkdir(parents=True, exist_ok=True)
         self._created_dirs.extend(missing)
-        fd, tmp = tempfile.mkstemp(prefix=f".{final.name}.", suffix=".tmp", dir=final.parent)
+        fd, tmp = tempfile.mkstemp(
+            prefix=f".{final.name}.{os.getpid()}@{HOST_KEY}.", suffix=".tmp", dir=final.parent
+        )
         os.close(fd)
         os.chmod(tmp, 0o666 & ~_umask())
         self._pending.append((Path(tmp), final))
         return Path(tmp)
+
+    def folder(self) -> str | None:
+        """The output folder (for messages): the guard's, else the first output's."""
+        if self.guard is not None:
+            return str(self.guard.root)
+        return str(self._pending[0][1].parent) if self._pending else None
 
     def write_text(self, final: str | os.PathLike[str], text: str) -> None:
         self.path(final).write_text(text, encoding="utf-8")
@@ -59,15 +184,22 @@ class StagedOutputs:
 
 
 @contextlib.contextmanager
-def staged_outputs() -> Iterator[StagedOutputs]:
-    """Context manager: commit all staged files on success, remove them all on any exception."""
-    staged = StagedOutputs()
+def staged_outputs(guard: OutputGuard | None = None) -> Iterator[StagedOutputs]:
+    """Context manager: commit all staged files on success, remove them all on any exception
+    (SIGINT and SIGTERM included: the command line turns both into exceptions)."""
+    staged = StagedOutputs(guard)
     try:
         yield staged
+    except BaseException as exc:
+        if isinstance(exc, OSError) and exc.filename is None:  # e.g. a write on a full disk
+            exc.filename = staged.folder()
+        staged.discard()
+        raise
+    try:
+        staged.commit()
     except BaseException:
         staged.discard()
         raise
-    staged.commit()
 
 
 @contextlib.contextmanager

@@ -3,8 +3,9 @@
 Each stream becomes one topic (the table's topic names, else ``/imu/data``, ``/imu/mag``,
 ``/imu/temperature``) of ``sensor_msgs/Imu``, ``MagneticField`` or ``Temperature``; the payloads
 are encoded with numpy (:func:`imupipe.pipeline.mcap_writer.encode_stream`: CDR for ROS 2, the
-ROS 1 wire format for ROS 1 bags), the header stamp is ``t_ns`` and the bag time
-``log_time_ns`` (else ``t_ns``). Messages are written in bag-time order.
+ROS 1 wire format for ROS 1 bags; NaN values and absent vectors as in the corrected MCAP), the
+header stamp is ``header_stamp_ns`` where kept, else ``t_ns``, and the bag time ``log_time_ns``
+(else ``t_ns``); bags have no publish time. Messages are written in bag-time order.
 
 The result appears whole or not at all: the bag is written under a temporary name next to the
 target and renamed into place when complete.
@@ -25,20 +26,21 @@ from pathlib import Path
 
 import numpy as np
 import pyarrow as pa
-import pyarrow.compute as pc
 
 from imupipe.pipeline.errors import ConfigError
-from imupipe.pipeline.mcap_writer import DEFAULT_TOPICS, STREAM_TYPES, encode_stream
+from imupipe.pipeline.mcap_writer import (
+    DEFAULT_TOPICS,
+    STREAM_TYPES,
+    encode_stream,
+    message_times,
+)
 from imupipe.readers.table import metadata
 
 
 def _messages(table: pa.Table, encoding: str) -> Iterator[tuple[str, int, list[bytes], np.ndarray]]:
     """Per stream present: (stream, topic, payloads in row order, log times)."""
     topics = {**DEFAULT_TOPICS, **metadata(table).get("topics", {})}
-    if "log_time_ns" in table.column_names:
-        log_all = pc.fill_null(table.column("log_time_ns"), table.column("t_ns")).to_numpy()
-    else:
-        log_all = table.column("t_ns").to_numpy()
+    log_all, _ = message_times(table)  # a bag has no publish time
     for stream in ("imu", "mag", "temperature"):
         rows, groups = encode_stream(table, stream, encoding)
         if not len(rows):

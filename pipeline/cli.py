@@ -1,61 +1,126 @@
-"""The ``imupipe`` command line: ``run``, ``convert``, ``inspect``, ``simulate``.
+"""The ``imupipe`` command line: ``run``, ``convert``, ``inspect``, ``simulate``, ``import``.
 
-Errors in the user's input end the command with one line on stderr (``imupipe: error: ...``)
-and exit status 2; any other failure prints one line and exits 1. ``--debug`` shows tracebacks.
+**One error contract.** A problem with the user's input or environment ends the command with one
+line on stderr (``imupipe: error: ...``) naming the file or key, and exit status 2: an
+:class:`~imupipe.readers.errors.ImupipeError`, or an ``OSError`` of the file system (disk full,
+permission denied, read-only folder, busy file; the line names the file). Exit status 1 is kept
+for ``convert`` when some logs of a fleet failed, and for bugs, which also print one line
+(``--debug`` shows the traceback). SIGINT exits 130, SIGTERM 143; both remove the command's
+temporary files first.
+
+**Start-up.** Only the module of the command given is imported (``imupipe --help`` imports
+none), so the command line starts in a few tens of milliseconds.
 """
 
 from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import sys
 
 from imupipe.pipeline.errors import ImupipeError
-from imupipe.pipeline.version import VERSION
+from imupipe.pipeline.signals import Terminated, terminate_on_sigterm
 
-COMMANDS = {
-    "run": "imupipe.pipeline.run",
-    "convert": "imupipe.pipeline.convert",
-    "inspect": "imupipe.pipeline.inspect_log",
-    "simulate": "imupipe.pipeline.simulate",
+COMMANDS: dict[str, tuple[str, str]] = {
+    "run": (
+        "imupipe.pipeline.run",
+        "calibrate: read the inputs, run the stages, write the outputs",
+    ),
+    "convert": (
+        "imupipe.pipeline.convert_cli",
+        "apply a saved calibration to many logs (files or folders), locally or on Ray",
+    ),
+    "inspect": (
+        "imupipe.pipeline.inspect_log",
+        "topics, types, counts, rates and the columns a log fills",
+    ),
+    "simulate": (
+        "imupipe.pipeline.simulate",
+        "write a synthetic log with a known truth (static, poses, mag, thermal)",
+    ),
+    "import": (
+        "imupipe.pipeline.imports",
+        "make a calibration.json from another tool's calibration (Kalibr, imu_tk, Magneto)",
+    ),
 }
-"""Command -> module with ``add_parser(subparsers)`` and ``main(args) -> int``."""
+"""Command -> (module with ``add_parser(subparsers)`` and ``main(args) -> int``, one-line help)."""
 
 
-def build_parser() -> argparse.ArgumentParser:
+class _Version(argparse.Action):
+    """``--version``, reading the installed version only when asked."""
+
+    def __init__(self, option_strings: list[str], dest: str, **kwargs: object) -> None:
+        super().__init__(option_strings, dest, nargs=0, help="show the version and exit")
+
+    def __call__(self, parser: argparse.ArgumentParser, *_: object) -> None:
+        from imupipe.pipeline.version import VERSION
+
+        parser.exit(message=f"imupipe {VERSION}\n")
+
+
+def _command(argv: list[str]) -> str | None:
+    """The command named on the line (the first word that is not an option)."""
+    return next((a for a in argv if not a.startswith("-")), None)
+
+
+def build_parser(command: str | None = None) -> argparse.ArgumentParser:
+    """The parser; only ``command``'s module is imported (the others get their help line)."""
     parser = argparse.ArgumentParser(
         prog="imupipe",
-        description="Calibrate IMUs from CSV, MCAP and ROS bags; inspect every stage in Rerun.",
+        description=(
+            "Calibrate IMUs from CSV, MCAP, ROS bags and PX4 ULog; inspect every stage in Rerun."
+        ),
     )
-    parser.add_argument("--version", action="version", version=f"imupipe {VERSION}")
+    parser.add_argument("--version", action=_Version)
     parser.add_argument(
         "--debug", action="store_true", help="show tracebacks on errors (anywhere on the line)"
     )
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    for module in COMMANDS.values():
-        try:
+    for name, (module, help_line) in COMMANDS.items():
+        if name == command:
             importlib.import_module(module).add_parser(sub)
-        except ModuleNotFoundError as exc:
-            if exc.name != module:
-                raise
+        else:
+            sub.add_parser(name, help=help_line, add_help=False)
     return parser
+
+
+def _os_error(exc: OSError) -> str:
+    """One line for a file-system error: the file and what is wrong."""
+    what = exc.strerror or type(exc).__name__
+    if exc.filename is None:
+        return what
+    if exc.filename2 is not None:
+        return f"{exc.filename} -> {exc.filename2}: {what}"
+    return f"{exc.filename}: {what}"
 
 
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     debug = "--debug" in argv
     argv = [a for a in argv if a != "--debug"]  # accepted anywhere on the line
+    if not debug:  # Rerun's own (Rust) log lines are for its developers; read before rerun loads
+        os.environ.setdefault("RUST_LOG", "off")
+    terminate_on_sigterm()
     try:
-        args = build_parser().parse_args(argv)
+        args = build_parser(_command(argv)).parse_args(argv)
         return int(args.func(args) or 0)
     except ImupipeError as exc:
         if debug:
             raise
         print(f"imupipe: error: {exc}", file=sys.stderr)
         return exc.exit_code
+    except OSError as exc:  # the file system: disk full, permissions, read-only, busy
+        if debug:
+            raise
+        print(f"imupipe: error: {_os_error(exc)}", file=sys.stderr)
+        return 2
     except KeyboardInterrupt:
         print("imupipe: interrupted", file=sys.stderr)
         return 130
+    except Terminated as exc:
+        print("imupipe: terminated", file=sys.stderr)
+        return exc.exit_code
     except Exception as exc:  # noqa: BLE001 - the one place that turns any failure into one line
         if debug:
             raise

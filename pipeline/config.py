@@ -1,4 +1,4 @@
-"""The TOML config (SPEC "Config file"), parsed and validated into dataclasses.
+"""The TOML config (docs: reference/config.md), parsed and validated into dataclasses.
 
 Every problem is a :class:`ConfigError` naming the file and the key: broken TOML, unknown keys
 (never ignored), wrong types, missing files, unknown inputs or stage types. Paths are relative to
@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import re
 import tomllib
 import types
 import typing
@@ -29,8 +30,16 @@ from imupipe.stages.registry import STAGE_TYPES, stage_class
 
 INPUT_KEYS = {"path", "imu_topic", "mag_topic", "temperature_topic", "time", "csv"}
 CSV_KEYS = {f.name for f in dataclasses.fields(CsvMapping)} - {"required"}
-OUTPUT_KEYS = {"dir", "apply_to", "rerun", "rerun_max_points"}
+OUTPUT_KEYS = {"dir", "apply_to", "rerun", "rerun_max_points", "report", "exports"}
+EXPORT_NAMES = ("kalibr", "imu_utils", "vins", "openvins", "px4", "ardupilot")
+"""The files for other tools that ``[output] exports`` may name (``imupipe.pipeline.exports``)."""
 TOP_KEYS = {"inputs", "stages", "output"}
+
+INPUT_NAME = re.compile(r"^\w[\w.-]*$")
+"""An input's name becomes a file name (``<name>.mcap``, ``<stage>_<name>_<sensor>.csv``): letters,
+digits, ``_``, ``-`` and ``.``, not starting with ``.`` or ``-`` (no path separator, no ``..``)."""
+
+INT64 = (-(2**63), 2**63 - 1)
 
 
 @dataclass
@@ -49,8 +58,14 @@ class OutputConfig:
     dir: Path
     apply_to: list[str]
     rerun: bool = True
-    rerun_max_points: int = 200_000
+    rerun_max_points: int = 20_000
     """Signals longer than this are block-averaged before they go to Rerun (the file stays small)."""
+    report: bool = True
+    """Write ``report.html`` (plots and numbers of every stage, one self-contained file)."""
+    exports: list[str] | None = None
+    """The files for other tools to write (names of :data:`EXPORT_NAMES`); None: the ROS and VIO
+    ones (Kalibr, imu_utils, VINS, OpenVINS), plus PX4's when a step was fitted on a PX4 log.
+    Kalibr's ``imu.yaml`` is written whenever an ``allan`` stage ran."""
 
 
 @dataclass
@@ -102,14 +117,36 @@ def _describe(hint: Any) -> str:
     return getattr(hint, "__name__", None) or str(hint).replace("typing.", "")
 
 
+def _check_range(where: str, value: Any, meta: typing.Mapping[str, Any]) -> None:
+    """Numbers (also inside lists) must be finite (unless the field's metadata says
+    ``finite=False``), fit in int64, and lie within the field's ``min``/``max`` metadata."""
+    if isinstance(value, list):
+        for i, v in enumerate(value):
+            _check_range(f"{where}[{i}]", v, meta)
+        return
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        return
+    if isinstance(value, float) and not math.isfinite(value) and meta.get("finite", True):
+        raise ConfigError(f"{where}: {value} is not a finite number")
+    if isinstance(value, int) and not INT64[0] <= value <= INT64[1]:
+        raise ConfigError(f"{where}: {value} does not fit in a 64-bit integer")
+    low, high = meta.get("min"), meta.get("max")
+    if (low is not None and value < low) or (high is not None and value > high):
+        bounds = f"[{'' if low is None else low}, {'' if high is None else high}]"
+        raise ConfigError(f"{where}: {value} is out of range {bounds}")
+
+
 def build_options(cls: type, values: dict[str, Any], where: str) -> Any:
-    """Instantiate the options dataclass ``cls`` from TOML values, checking names and types."""
+    """Instantiate the options dataclass ``cls`` from TOML values, checking names, types and
+    ranges: a number must be finite unless its field says ``metadata={"finite": False}``, and
+    within ``metadata={"min": ..., "max": ...}`` where the field gives them."""
     hints = typing.get_type_hints(cls)
-    names = {f.name for f in dataclasses.fields(cls)}
-    _check_keys(where, values, names)
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    _check_keys(where, values, set(fields))
     for key, value in values.items():
         if not _type_ok(value, hints[key]):
             raise ConfigError(f"{where}.{key}: {value!r} is not of type {_describe(hints[key])}")
+        _check_range(f"{where}.{key}", value, fields[key].metadata)
         if typing.get_origin(hints[key]) is float or hints[key] is float:
             values[key] = float(value)
     return cls(**values)
@@ -189,6 +226,42 @@ def parse_input(name: str, raw: Any, base: Path, where: str) -> InputSpec:
     )
 
 
+def _name_part(key: str, value: Any) -> str | None:
+    """A value as part of a stage name (``gyro``, ``order3``); None for unset values, lists and
+    tables."""
+    if value is None or isinstance(value, list | dict):
+        return None
+    text = value if isinstance(value, str) else f"{key}{value}"
+    return "".join(c if c.isalnum() or c in "_-" else "_" for c in str(text))
+
+
+def default_names(stages: list[StageConfig], taken: set[str], path: Path) -> None:
+    """Name the stages written without ``name``: the type alone when the type appears once
+    among them, else the type followed by what tells the stages of that type apart, their
+    input and then their options in declaration order (``temperature_gyro`` and
+    ``temperature_accel``). Two stages of one type on one input with the same options need a
+    ``name``; so does a default name that another stage took."""
+    groups: dict[str, list[StageConfig]] = {}
+    for st in stages:
+        if not st.name:
+            groups.setdefault(st.type, []).append(st)
+    for type_name, group in groups.items():
+        rows = [{"input": st.input, **dataclasses.asdict(st.options)} for st in group]
+        keys = [k for k in rows[0] if len({repr(r[k]) for r in rows}) > 1]
+        for st, row in zip(group, rows, strict=True):
+            parts = [_name_part(k, row[k]) for k in keys]
+            st.name = "_".join([type_name, *(p for p in parts if p)])
+        names = [st.name for st in group]
+        for st in group:
+            if names.count(st.name) > 1 or st.name in taken:
+                clash = "another stage's name" if st.name in taken else "another stage"
+                raise ConfigError(
+                    f"{path}: stages[{st.index}] ({type_name} on input '{st.input}') would be "
+                    f"named '{st.name}' like {clash}; give it a distinct 'name'"
+                )
+        taken.update(names)
+
+
 def load_config(path: str | Path) -> Config:
     """Read and validate a config file."""
     path = Path(path)
@@ -196,8 +269,10 @@ def load_config(path: str | Path) -> Config:
         text = path.read_text(encoding="utf-8")
     except FileNotFoundError:
         raise ConfigError(f"{path}: no such config file") from None
+    except UnicodeDecodeError as exc:
+        raise ConfigError(f"{path}: not UTF-8 text (byte {exc.start}); TOML is UTF-8") from None
     except OSError as exc:
-        raise ConfigError(f"{path}: cannot read: {exc.strerror}") from None
+        raise ConfigError(f"{path}: cannot read: {exc.strerror or exc}") from None
     try:
         raw = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
@@ -208,6 +283,12 @@ def load_config(path: str | Path) -> Config:
     inputs_raw = raw.get("inputs")
     if not isinstance(inputs_raw, dict) or not inputs_raw:
         raise ConfigError(f"{path}: no [inputs.NAME] table")
+    for name in inputs_raw:
+        if not INPUT_NAME.match(name):
+            raise ConfigError(
+                f"{path}: [inputs.{name!r}]: an input's name becomes a file name: use letters, "
+                "digits, _, - and . (not first)"
+            )
     inputs = {
         name: parse_input(name, value, base, f"{path}: [inputs.{name}]")
         for name, value in inputs_raw.items()
@@ -226,19 +307,24 @@ def load_config(path: str | Path) -> Config:
         type_name = entry.pop("type", None)
         if type_name is None:
             raise ConfigError(f"{where}: missing key 'type'")
+        if not isinstance(type_name, str):
+            raise ConfigError(f"{where}.type: must be a string (a stage type)")
         if type_name not in STAGE_TYPES:
             raise ConfigError(
                 f"{where}.type: unknown stage type '{type_name}' (known: {', '.join(STAGE_TYPES)})"
             )
-        name = entry.pop("name", type_name)
-        if not isinstance(name, str) or not name.replace("_", "").replace("-", "").isalnum():
-            raise ConfigError(f"{where}.name: must be a word (letters, digits, _ or -)")
-        if name in seen:
-            raise ConfigError(
-                f"{where}: a second stage named '{name}'; give each a distinct 'name'"
-            )
-        seen.add(name)
+        name = entry.pop("name", None)
+        if name is not None:
+            if not isinstance(name, str) or not name.replace("_", "").replace("-", "").isalnum():
+                raise ConfigError(f"{where}.name: must be a word (letters, digits, _ or -)")
+            if name in seen:
+                raise ConfigError(
+                    f"{where}: a second stage named '{name}'; give each a distinct 'name'"
+                )
+            seen.add(name)
         input_name = entry.pop("input", None)
+        if input_name is not None and not isinstance(input_name, str):
+            raise ConfigError(f"{where}.input: must be a string (an input's name)")
         if input_name is None:
             if len(inputs) != 1:
                 raise ConfigError(
@@ -254,16 +340,23 @@ def load_config(path: str | Path) -> Config:
             raise ConfigError(f"{where}.accept_failed_checks: must be true or false")
         cls = stage_class(type_name)
         options = build_options(cls.Options, entry, f"{where} ({type_name})")
-        stages.append(StageConfig(type_name, name, input_name, options, i, accept))
+        stages.append(StageConfig(type_name, name or "", input_name, options, i, accept))
+
+    default_names(stages, seen, path)
 
     out_raw = raw.get("output", {})
     if not isinstance(out_raw, dict):
         raise ConfigError(f"{path}: [output] must be a table")
     _check_keys(f"{path}: [output]", out_raw, OUTPUT_KEYS)
+    if not isinstance(out_raw.get("dir", "out"), str):
+        raise ConfigError(f"{path}: [output].dir must be a string (a folder)")
     out_dir = Path(out_raw.get("dir", "out"))
     if not out_dir.is_absolute():
         out_dir = base / out_dir
-    apply_to = out_raw.get("apply_to", list(inputs))
+    # default: every input when a stage corrects (a calibration), none for analyses alone (an
+    # Allan run of a static recording needs no corrected copy of it)
+    corrects = any(stage_class(st.type).corrects for st in stages)
+    apply_to = out_raw.get("apply_to", list(inputs) if corrects else [])
     if not isinstance(apply_to, list) or not all(isinstance(a, str) for a in apply_to):
         raise ConfigError(f"{path}: [output].apply_to must be a list of input names")
     for name in apply_to:
@@ -272,8 +365,23 @@ def load_config(path: str | Path) -> Config:
     rerun = out_raw.get("rerun", True)
     if not isinstance(rerun, bool):
         raise ConfigError(f"{path}: [output].rerun must be true or false")
-    max_points = out_raw.get("rerun_max_points", 200_000)
+    max_points = out_raw.get("rerun_max_points", OutputConfig.rerun_max_points)
     if not isinstance(max_points, int) or isinstance(max_points, bool) or max_points < 100:
         raise ConfigError(f"{path}: [output].rerun_max_points must be an integer >= 100")
-    output = OutputConfig(dir=out_dir, apply_to=apply_to, rerun=rerun, rerun_max_points=max_points)
+    report = out_raw.get("report", True)
+    if not isinstance(report, bool):
+        raise ConfigError(f"{path}: [output].report must be true or false")
+    exports = out_raw.get("exports")
+    if exports is not None and (
+        not isinstance(exports, list) or not all(e in EXPORT_NAMES for e in exports)
+    ):
+        raise ConfigError(f"{path}: [output].exports must be a list of: {', '.join(EXPORT_NAMES)}")
+    output = OutputConfig(
+        dir=out_dir,
+        apply_to=apply_to,
+        rerun=rerun,
+        rerun_max_points=max_points,
+        report=report,
+        exports=exports,
+    )
     return Config(path=path, inputs=inputs, stages=stages, output=output, raw=raw)

@@ -13,8 +13,22 @@ Failure model, the same for both engines:
 - A worker process that dies (killed, out of memory, segfault; a lost Ray node) fails the tasks
   it was running; they are retried in a fresh worker.
 - A task is tried at most ``1 + retries`` times; then its Outcome carries the last error.
+- An error marked ``fatal`` (an :class:`ImupipeError` with ``fatal = True``: the output folder is
+  full or read-only, so every other task would fail the same way) is final and its Outcome says
+  so; the caller decides to stop (``on_done`` may raise: the engine then stops its workers).
 
-One task's failure never stops the others.
+One task's failure never stops the others (unless ``on_done`` raises).
+
+**No orphans** (local engine). Workers ignore SIGINT (the driver decides) and turn SIGTERM into
+:class:`~imupipe.pipeline.signals.Terminated`, so a worker stopped in the middle of a log removes
+its temporary files. When the driver ends for any reason (an exception, SIGINT, SIGTERM), it
+sends SIGTERM to its workers, waits for them a few seconds, then kills what is left. Each
+worker watches the driver's process (a pidfd on Linux): when the driver is gone, even killed
+with SIGKILL, an idle worker exits at once and a busy one as soon as its current log is done
+(its output is complete; the next run records it as already done).
+
+**Ray on loopback.** With no ``address``, the Ray started here listens on 127.0.0.1 only
+(Ray's local-only mode: its servers bind the loopback address), with no dashboard unless asked.
 """
 
 from __future__ import annotations
@@ -23,8 +37,11 @@ import concurrent.futures as cf
 import contextlib
 import multiprocessing as mp
 import os
+import select
 import signal
 import socket
+import threading
+import time
 import traceback
 from collections import deque
 from collections.abc import Callable, Sequence
@@ -32,9 +49,12 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from imupipe.pipeline.convert_options import ENGINES
 from imupipe.pipeline.errors import ConfigError, ImupipeError
+from imupipe.pipeline.signals import Terminated
 
-ENGINES = ("local", "ray")
+STOP_GRACE_S = 5.0
+"""How long stopped workers get to remove their temporary files before they are killed."""
 
 
 @dataclass
@@ -47,6 +67,8 @@ class Outcome:
     error: str | None = None
     attempts: int = 1
     host: str | None = None
+    fatal: bool = False
+    """The error concerns every task alike (e.g. the output folder is full): stop."""
 
 
 @dataclass
@@ -55,20 +77,41 @@ class _Attempt:
     value: Any
     retryable: bool
     host: str
+    fatal: bool = False
+
+
+class _WorkerState:
+    """A local worker's state for its signal handler and its watchdog."""
+
+    lock = threading.RLock()  # re-entrant: the SIGTERM handler runs in the main thread
+    busy = False
+    orphaned = False
 
 
 def guarded(fn: Callable[[Any], Any], task: Any) -> _Attempt:
-    """Run ``fn(task)`` in a worker and turn any exception into a one-line, picklable error."""
+    """Run ``fn(task)`` in a worker and turn any exception into a one-line, picklable error.
+
+    SIGTERM during the task (:class:`Terminated`) has let the task remove its temporary files;
+    the worker then exits. A worker whose driver has died exits after the task."""
     host = socket.gethostname()
+    with _WorkerState.lock:
+        _WorkerState.busy = True
     try:
         return _Attempt(True, fn(task), False, host)
     except ImupipeError as exc:
-        return _Attempt(False, str(exc), False, host)
+        return _Attempt(False, str(exc), False, host, bool(getattr(exc, "fatal", False)))
+    except Terminated:
+        os._exit(Terminated.exit_code)
     except Exception as exc:  # noqa: BLE001 - a worker reports every failure as data
         where = traceback.extract_tb(exc.__traceback__)[-1]
         message = " ".join(str(exc).split())
         detail = f"{type(exc).__name__}: {message} (at {os.path.basename(where.filename)}:{where.lineno})"
         return _Attempt(False, detail, True, host)
+    finally:
+        with _WorkerState.lock:
+            _WorkerState.busy = False
+            if _WorkerState.orphaned:
+                os._exit(0)  # nobody will take the result: the driver is gone
 
 
 def default_jobs() -> int:
@@ -84,11 +127,53 @@ SINGLE_THREADED = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
 (several BLAS threads per worker on a busy machine spin against each other)."""
 
 
-def _worker_init() -> None:
-    """Each worker is one of many: Arrow's own thread pool gets one thread too."""
+def _on_sigterm(signum: int, frame: Any) -> None:
+    """A worker's SIGTERM: a busy worker unwinds its task (its temporary files are removed), an
+    idle one exits at once."""
+    with _WorkerState.lock:
+        if not _WorkerState.busy:
+            os._exit(Terminated.exit_code)
+    raise Terminated()
+
+
+def _wait_for_exit(pid: int) -> None:
+    """Return when process ``pid`` has ended (a pidfd on Linux; else polling once a second)."""
+    try:
+        fd = os.pidfd_open(pid)
+    except (AttributeError, OSError):
+        while True:
+            try:
+                os.kill(pid, 0)
+            except ProcessLookupError:
+                return
+            except PermissionError:
+                pass
+            time.sleep(1.0)
+    try:
+        select.select([fd], [], [])
+    finally:
+        os.close(fd)
+
+
+def _watch_driver(driver: int) -> None:
+    """The worker's watchdog thread: when the driver is gone, an idle worker exits now, a busy
+    one after its current task (see :func:`guarded`)."""
+    _wait_for_exit(driver)
+    with _WorkerState.lock:
+        _WorkerState.orphaned = True
+        if not _WorkerState.busy:
+            os._exit(0)
+
+
+def _worker_init(driver: int) -> None:
+    """Each worker is one of many: Arrow's own thread pool gets one thread too. SIGINT is left to
+    the driver, SIGTERM unwinds the current task, and a thread watches the driver."""
     import pyarrow as pa
 
     pa.set_cpu_count(1)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, _on_sigterm)
+    threading.Thread(target=_watch_driver, args=(driver,), daemon=True, name="watch-driver").start()
 
 
 def _start_forkserver(ctx: Any, preload: list[str]) -> None:
@@ -126,26 +211,37 @@ class _Tracker:
                 Outcome(i, self.tasks[i], attempt.value, None, self.attempts[i], attempt.host)
             )
         else:
-            self.failed(i, attempt.value, attempt.retryable, attempt.host)
+            self.failed(i, attempt.value, attempt.retryable, attempt.host, attempt.fatal)
 
-    def failed(self, i: int, error: str, retryable: bool, host: str | None = None) -> None:
+    def failed(
+        self, i: int, error: str, retryable: bool, host: str | None = None, fatal: bool = False
+    ) -> None:
         if retryable and self.attempts[i] <= self.retries:
             self.queue.append(i)
         else:
-            self.on_done(Outcome(i, self.tasks[i], None, error, self.attempts[i], host))
+            self.on_done(Outcome(i, self.tasks[i], None, error, self.attempts[i], host, fatal))
 
 
-def _close_broken(pool: cf.ProcessPoolExecutor) -> None:
-    """Close a pool one of whose workers died, without waiting forever.
+def _stop_pool(pool: cf.ProcessPoolExecutor) -> None:
+    """Stop a pool that is broken (one of its workers died) or abandoned (the driver is ending
+    on an exception, SIGINT or SIGTERM), without waiting forever.
 
-    Every task in flight has already failed with the pool. On Python 3.11 the broken pool's
-    own clean-up joins each worker, and a worker spawned while the pool was breaking is never
-    told to stop: ``shutdown(wait=True)`` then hung (seen in the test suite, about one run in
-    twenty under load). So: stop without waiting, kill the pool's workers and any other child
-    of the fork server (only this pool's workers exist at this point), and wait for the pool's
-    manager thread with a time limit, repeating until it has ended."""
+    Its workers first get SIGTERM and :data:`STOP_GRACE_S` seconds to remove their temporary
+    files. On Python 3.11 the broken pool's own clean-up joins each worker, and a worker spawned
+    while the pool was breaking is never told to stop: ``shutdown(wait=True)`` then hung (seen
+    in the test suite, about one run in twenty under load). So: stop without waiting, kill the
+    pool's workers and any other child of the fork server (only this pool's workers exist at
+    this point), and wait for the pool's manager thread with a time limit, repeating until it
+    has ended."""
     manager = getattr(pool, "_executor_manager_thread", None)
     pool.shutdown(wait=False, cancel_futures=True)
+    processes = list((getattr(pool, "_processes", None) or {}).values())
+    for process in processes:
+        with contextlib.suppress(OSError, AttributeError):
+            process.terminate()
+    deadline = time.monotonic() + STOP_GRACE_S
+    for process in processes:
+        process.join(timeout=max(0.0, deadline - time.monotonic()))
     for _ in range(10):
         for process in list((getattr(pool, "_processes", None) or {}).values()):
             if process.is_alive():
@@ -218,7 +314,9 @@ def run_local(
     while tracker.queue or suspects:
         crashed: list[int] = []
         refused = False  # the pool broke before it took a task: the task stays queued
-        pool = cf.ProcessPoolExecutor(jobs, mp_context=ctx, initializer=_worker_init)
+        pool = cf.ProcessPoolExecutor(
+            jobs, mp_context=ctx, initializer=_worker_init, initargs=(os.getpid(),)
+        )
         running: dict[cf.Future, int] = {}
         clean = False
         try:
@@ -242,13 +340,38 @@ def run_local(
             if clean:
                 pool.shutdown(wait=True)
             else:
-                _close_broken(pool)
+                _stop_pool(pool)
         if len(crashed) == 1:
             tracker.failed(crashed[0], "the worker process died (killed or out of memory)", True)
         else:
             for i in crashed:
                 tracker.attempts[i] -= 1
                 suspects.append(i)
+
+
+LOCAL_ONLY_ENV = "RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"
+"""Ray's switch between cluster mode and local-only mode (its name is historical: it applies on
+Linux too). ``0``: the node's address is 127.0.0.1 and Ray's servers (GCS, raylet, workers,
+dashboard agent, runtime-env agent) bind the loopback address instead of every interface."""
+
+
+@contextlib.contextmanager
+def _local_only_ray() -> Any:
+    """Start-up settings for a Ray that only this machine can reach (restored afterwards)."""
+    saved = os.environ.get(LOCAL_ONLY_ENV)
+    os.environ[LOCAL_ONLY_ENV] = "0"  # read by the Ray processes started now
+    from ray._private import ray_constants  # read when ray was imported: set it too
+
+    saved_const = ray_constants.ENABLE_RAY_CLUSTER
+    ray_constants.ENABLE_RAY_CLUSTER = False
+    try:
+        yield
+    finally:
+        ray_constants.ENABLE_RAY_CLUSTER = saved_const
+        if saved is None:
+            os.environ.pop(LOCAL_ONLY_ENV, None)
+        else:
+            os.environ[LOCAL_ONLY_ENV] = saved
 
 
 def run_ray(
@@ -259,14 +382,15 @@ def run_ray(
     address: str | None = None,
     jobs: int | None = None,
     retries: int = 2,
+    dashboard: bool = False,
 ) -> None:
     """Run every task on a Ray cluster, one CPU each.
 
     ``address``: ``auto`` (the cluster this machine belongs to), ``ray://host:10001`` (Ray
     Client) or ``None`` (join an already initialised Ray, else start a local one with ``jobs``
-    CPUs, default all). Workers write
-    their outputs themselves, so the logs and the output folder must be on storage every node
-    sees at the same path.
+    CPUs, default all, listening on 127.0.0.1 only, with the dashboard on 127.0.0.1 when
+    ``dashboard``; it is shut down at the end). Workers write their outputs themselves, so the
+    logs and the output folder must be on storage every node sees at the same path.
     """
     try:
         import ray
@@ -274,26 +398,58 @@ def run_ray(
         raise ConfigError(
             "--engine ray needs Ray: pip install 'imupipe[ray]' (on every node of the cluster)"
         ) from None
+    started = False
     if not ray.is_initialized():
         try:
-            local = {"num_cpus": jobs} if address is None and jobs else {}
-            ray.init(address=address, log_to_driver=False, logging_level="WARNING", **local)
+            if address is None:
+                with _local_only_ray():
+                    ray.init(
+                        num_cpus=jobs,
+                        _node_ip_address="127.0.0.1",
+                        include_dashboard=dashboard,
+                        dashboard_host="127.0.0.1",
+                        log_to_driver=False,
+                        logging_level="WARNING",
+                    )
+            else:
+                ray.init(address=address, log_to_driver=False, logging_level="WARNING")
+            started = True
         except ConnectionError as exc:
             raise ConfigError(f"--address {address}: cannot connect to Ray: {exc}") from None
+    try:
+        _run_on_ray(ray, fn, tasks, on_done, retries)
+    finally:
+        if started:
+            ray.shutdown()
+
+
+def _run_on_ray(
+    ray: Any,
+    fn: Callable[[Any], Any],
+    tasks: Sequence[Any],
+    on_done: Callable[[Outcome], None],
+    retries: int,
+) -> None:
     remote = ray.remote(num_cpus=1, max_retries=0)(guarded)
     tracker = _Tracker(tasks, retries, on_done)
     running: dict[Any, int] = {}
-    while tracker.queue or running:
-        while tracker.queue:
-            i = tracker.queue.popleft()
-            tracker.start(i)
-            running[remote.remote(fn, tasks[i])] = i
-        (ref,), _ = ray.wait(list(running), num_returns=1)
-        i = running.pop(ref)
-        try:
-            tracker.finish(i, ray.get(ref))
-        except ray.exceptions.RayError as exc:  # the worker or its node died
-            tracker.failed(i, f"{type(exc).__name__}: {' '.join(str(exc).split())[:300]}", True)
+    try:
+        while tracker.queue or running:
+            while tracker.queue:
+                i = tracker.queue.popleft()
+                tracker.start(i)
+                running[remote.remote(fn, tasks[i])] = i
+            (ref,), _ = ray.wait(list(running), num_returns=1)
+            i = running.pop(ref)
+            try:
+                tracker.finish(i, ray.get(ref))
+            except ray.exceptions.RayError as exc:  # the worker or its node died
+                error = f"{type(exc).__name__}: {' '.join(str(exc).split())[:300]}"
+                tracker.failed(i, error, True)
+    finally:
+        for ref in running:  # the driver is ending early: stop what is still running
+            with contextlib.suppress(Exception):
+                ray.cancel(ref)
 
 
 def run_tasks(
@@ -306,14 +462,18 @@ def run_tasks(
     address: str | None = None,
     retries: int = 2,
     preload: Sequence[str] = (),
+    dashboard: bool = False,
 ) -> None:
     """Run ``fn`` over ``tasks`` on ``engine`` (``local`` or ``ray``); see the module docstring.
-    ``preload``: modules the local workers should have imported before they start."""
+    ``preload``: modules the local workers should have imported before they start;
+    ``dashboard``: start Ray's dashboard (on 127.0.0.1) with a local Ray."""
     if not tasks:
         return
     if engine == "local":
         run_local(fn, tasks, on_done, jobs=jobs, retries=retries, preload=preload)
     elif engine == "ray":
-        run_ray(fn, tasks, on_done, address=address, jobs=jobs, retries=retries)
+        run_ray(
+            fn, tasks, on_done, address=address, jobs=jobs, retries=retries, dashboard=dashboard
+        )
     else:
         raise ConfigError(f"--engine {engine}: unknown engine (known: {', '.join(ENGINES)})")

@@ -3,8 +3,11 @@
 For MCAP and ROS bags: every topic with its message type, message count, mean rate (from the log
 times: ``(count - 1) / span``) and time span, without decoding payloads; then the topic each
 stream would be read from (the same choice ``imupipe run`` makes, so an ambiguous choice is shown
-with its candidates) and the common-table columns that would be filled. For CSV: the columns
-mapped with the default mapping, samples per stream, rate and span.
+with its candidates) and the common-table columns that would be filled. For a PX4 ULog: every
+topic instance (``sensor_gyro_1`` is instance 1) with its uORB message, instance and device id,
+the streams a read would fill, whether PX4 had already calibrated them, and the log's ``CAL_*``
+and ``TC_*`` parameters. For CSV: the columns mapped with the default mapping, samples per
+stream, rate and span.
 """
 
 from __future__ import annotations
@@ -20,7 +23,13 @@ from imupipe.pipeline.errors import ImupipeError
 from imupipe.readers.decoded import COLUMNS, STREAM_TYPES, normalize_type, select_topics
 from imupipe.readers.dispatch import detect_format, log_sources, read_input
 from imupipe.readers.spec import InputSpec
-from imupipe.readers.table import SENSOR_COLUMNS, STREAM_OF_SENSOR, counts, sensor
+from imupipe.readers.table import (
+    SENSOR_COLUMNS,
+    STREAM_OF_SENSOR,
+    counts,
+    has_sensor,
+    stream_mask,
+)
 
 BASE_COLUMNS = ["t_ns", "log_time_ns", "frame_id"]
 
@@ -49,13 +58,17 @@ def inspect(spec: InputSpec) -> dict[str, Any]:
         streams = {}
         filled = ["t_ns"]
         present = counts(table)
-        for stream, first in (("imu", "gyro"), ("mag", "mag"), ("temperature", "temperature")):
+        t_ns = table.column("t_ns").to_numpy()
+        for stream in ("imu", "mag", "temperature"):
             if stream in present:
-                streams[stream] = {"source": "csv columns", **_span(sensor(table, first).t_ns)}
+                streams[stream] = {
+                    "source": "csv columns",
+                    **_span(t_ns[stream_mask(table, stream)]),
+                }
                 filled += [
                     c
                     for s, cols in SENSOR_COLUMNS.items()
-                    if STREAM_OF_SENSOR[s] == stream
+                    if STREAM_OF_SENSOR[s] == stream and has_sensor(table, s)
                     for c in cols
                 ]
         return {
@@ -79,6 +92,8 @@ def inspect(spec: InputSpec) -> dict[str, Any]:
         t = np.concatenate(times[topic]) if topic in times else np.zeros(0, np.int64)
         topics[topic] = {"type": normalize_type(types[topic]), **_span(t)}
     out: dict[str, Any] = {"path": str(path), "format": fmt, "topics": topics, "streams": {}}
+    if fmt == "ulog":
+        return _ulog(spec, out)
     try:
         chosen = select_topics(path, spec, types)
     except ImupipeError as exc:
@@ -94,6 +109,35 @@ def inspect(spec: InputSpec) -> dict[str, Any]:
         }
         columns += [name for name, _, _ in COLUMNS[stream]]
     out["columns"] = columns
+    return out
+
+
+def _ulog(spec: InputSpec, out: dict[str, Any]) -> dict[str, Any]:
+    """The ULog part of :func:`inspect`: instances, chosen streams, PX4's calibration."""
+    from imupipe.readers.ulog_reader import describe
+
+    info = describe(spec)
+    for key, inst in info["instances"].items():
+        out["topics"][key].update(instance=inst["instance"], device_id=inst["device_id"])
+    if info["selection_error"]:
+        out["selection_error"] = info["selection_error"]
+    columns = list(BASE_COLUMNS[:2])
+    for stream, key in info["chosen"].items():
+        out["streams"][stream] = {
+            "topic": key,
+            "type": STREAM_TYPES[stream],
+            "count": info["samples"][stream],
+            "instance": info["instances"][key]["instance"],
+            "device_id": info["device_id"][stream],
+        }
+        if stream in info["calibrated"]:
+            out["streams"][stream]["px4_calibrated"] = info["calibrated"][stream]
+        columns += [
+            c for s, cols in SENSOR_COLUMNS.items() if STREAM_OF_SENSOR[s] == stream for c in cols
+        ]
+    out["columns"] = columns
+    out["warnings"] = info["warnings"]
+    out["parameters"] = info["parameters"]
     return out
 
 
@@ -121,9 +165,21 @@ def render(info: dict[str, Any]) -> str:
     for stream, v in info["streams"].items():
         source = v.get("topic", v.get("source"))
         extra = "" if "rate_hz" not in v or v["rate_hz"] is None else f", {v['rate_hz']:.2f} Hz"
+        if v.get("device_id") is not None:
+            extra += f", device id {v['device_id']}"
+        if "px4_calibrated" in v:
+            extra += ", already calibrated by PX4" if v["px4_calibrated"] else ", raw"
         lines.append(f"stream {stream}: {source} ({v['count']} samples{extra})")
     if info["columns"]:
         lines.append("columns filled: " + ", ".join(info["columns"]))
+    if info.get("parameters"):
+        lines.append(
+            "PX4 parameters: "
+            + ", ".join(
+                f"{k}={v:.6g}" if isinstance(v, float) else f"{k}={v}"
+                for k, v in info["parameters"].items()
+            )
+        )
     for w in info.get("warnings", []):
         lines.append(f"warning: {w}")
     return "\n".join(lines)
@@ -131,7 +187,9 @@ def render(info: dict[str, Any]) -> str:
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("inspect", help="topics, types, counts, rates and the columns a log fills")
-    p.add_argument("log", type=Path, help="a .csv, .mcap, ROS 1 .bag, ROS 2 bag folder or .db3")
+    p.add_argument(
+        "log", type=Path, help="a .csv, .mcap, ROS 1 .bag, ROS 2 bag folder, .db3 or PX4 .ulg"
+    )
     p.add_argument("--imu-topic", help="as imu_topic in the config")
     p.add_argument("--mag-topic", help="as mag_topic in the config")
     p.add_argument("--temperature-topic", help="as temperature_topic in the config")

@@ -5,12 +5,17 @@ Each line records what ``imupipe convert`` did with one log::
     {"input": "...", "output": "...", "parquet": null, "status": "converted",
      "counts": {"/imu/data": 12000, ...}, "calibration_sha256": "...", "seconds": 1.23,
      "cpu_seconds": 1.1, "messages": 12000, "mode": "streamed", "attempts": 1, "host": "...",
-     "peak_rss_mb": 143.2, "error": null, "finished_at": "2026-11-21T15:40:02Z"}
+     "peak_rss_mb": 143.2, "provenance": "match", "warnings": [], "error": null,
+     "finished_at": "2026-11-21T15:40:02Z"}
 
 ``status`` is ``converted``, ``skipped`` (an output for the same calibration already existed) or
-``failed`` (``error`` says why). Lines are only appended, each flushed and fsynced as soon as its
-log is finished, so the manifest survives an interrupted run and shows every attempt in order;
-the latest line for an input is its current state.
+``failed`` (``error`` says why). ``provenance`` says whether the log comes from the sensor the
+calibration was fitted on: ``match``, ``mismatch: <what differs>``, ``unknown`` (the calibration
+does not record it) or ``-`` (skipped, failed). Lines are only appended, each written whole and flushed to the
+operating system as soon as its log is finished, so the manifest survives an interrupted or
+killed run and shows every attempt in order; the latest line for an input is its current state.
+(Lines are not fsynced: after a power cut the last ones may be missing, and the next run finds
+their logs already done and records them as skipped.)
 """
 
 from __future__ import annotations
@@ -38,6 +43,8 @@ FIELDS = (
     "attempts",
     "host",
     "peak_rss_mb",
+    "provenance",
+    "warnings",
     "error",
     "finished_at",
 )
@@ -58,8 +65,6 @@ class Manifest:
         )
         with open(self.path, "a", encoding="utf-8") as fh:
             fh.write(json.dumps(line, sort_keys=False) + "\n")
-            fh.flush()
-            os.fsync(fh.fileno())
 
 
 def read_manifest(out_dir: str | os.PathLike[str]) -> Iterator[dict[str, Any]]:

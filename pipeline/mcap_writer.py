@@ -1,21 +1,25 @@
-"""Corrected logs as MCAP (SPEC "Corrected MCAP"), written chunk by chunk with numpy.
+"""Corrected logs as MCAP, written chunk by chunk with numpy: every message as it came, only the
+corrected fields changed.
 
 Profile ``ros2``, message encoding ``cdr``, schemas ``ros2msg`` (the message definitions rosbags
 generates), so the ``mcap`` library's ROS 2 decoder, rosbags, Foxglove and ``ros2 bag`` read it.
 The IMU stream is written as ``sensor_msgs/msg/Imu``, the magnetometer as
 ``sensor_msgs/msg/MagneticField`` (tesla), the temperature as ``sensor_msgs/msg/Temperature``
-(degC), each row of the table exactly once, with the table's timestamps (header stamp = ``t_ns``,
-log and publish time = ``log_time_ns`` when the reader kept it, else ``t_ns``). The calibration
-that was applied travels as the attachment ``calibration.json``. Messages of other topics given
-as ``carry_over`` are written unchanged.
+(degC), each row of the table exactly once (NaN values as NaN), with the message's own times:
+header stamp = ``header_stamp_ns`` where the reader kept it (``time = "log"``), else ``t_ns``;
+log time = ``log_time_ns``, else ``t_ns``; publish time = ``publish_time_ns`` (MCAP inputs), else
+the log time, as the MCAP specification asks of a message without one. The calibration that was
+applied travels as the attachment ``calibration.json``. Messages of other topics given as
+``carry_over`` are written unchanged, their log and publish times kept.
 
-:class:`McapTableWriter` streams: each ``write_table`` batch is encoded with
-:func:`imupipe.readers.cdr.encode` (one structured array per frame_id), its message records
-are built as one numpy array (``opcode, length, channel, sequence, log_time, publish_time,
-payload``), cut into ~1 MiB chunks, zstd-compressed, and each chunk is followed by its
-``MessageIndex`` records; the summary (schemas, channels, statistics, chunk and attachment
-indexes) is written at :meth:`~McapTableWriter.close`. No Python loop runs per message except
-for carried-over messages, which arrive as Python objects anyway.
+:class:`McapTableWriter` streams with bounded memory: ``write_table`` queues rows and encodes
+:data:`SLICE_ROWS` at a time (counted from the first row written, so the bytes do not depend on
+how the rows were batched) with :func:`imupipe.readers.cdr.encode` (one structured array per
+frame_id); its message records are built as one numpy array (``opcode, length, channel,
+sequence, log_time, publish_time, payload``), cut into ~1 MiB chunks, zstd-compressed, and each
+chunk is followed by its ``MessageIndex`` records; the summary (schemas, channels, statistics,
+chunk and attachment indexes) is written at :meth:`~McapTableWriter.close`. No Python loop runs
+per message except for carried-over messages, which arrive as Python objects anyway.
 """
 
 from __future__ import annotations
@@ -51,7 +55,7 @@ from mcap.records import (
 
 from imupipe.readers import cdr
 from imupipe.readers.spec import RawMessage
-from imupipe.readers.table import metadata, sensor, stream_mask
+from imupipe.readers.table import metadata, sensor, sensor_mask, stream_mask
 
 DEFAULT_TOPICS = {"imu": "/imu/data", "mag": "/imu/mag", "temperature": "/imu/temperature"}
 STREAM_TYPES = {
@@ -64,6 +68,10 @@ MAGIC = b"\x89MCAP0\r\n"
 CHUNK_BYTES = 1 << 20
 RECORD_HEADER = 31
 """Bytes of a message record before its payload (opcode, length, channel, seq, 2 times)."""
+SLICE_ROWS = 65_536
+"""Table rows encoded at once (the writer's memory: about 1 kB per row of a slice)."""
+RAW_BUFFER_BYTES = 256 << 20
+"""Carried-over payload bytes held back, at most, waiting for the table rows to pass them."""
 
 
 @cache
@@ -75,20 +83,36 @@ def msgdef(msgtype: str) -> str:
 
 
 def _column_or(table: pa.Table, name: str, rows: np.ndarray, default: np.ndarray) -> np.ndarray:
+    """Column ``name`` at ``rows`` as numpy, ``default`` (same shape) where it is null or absent."""
     if name not in table.column_names:
         return default
-    column = table.column(name).take(pa.array(rows))
+    column = table.column(name)
+    if len(rows) != len(column):
+        column = column.take(pa.array(rows))
+    column = column.combine_chunks()
+    valid = None if column.null_count == 0 else pc.is_valid(column).to_numpy(zero_copy_only=False)
     if isinstance(column.type, pa.FixedSizeListType):
-        filled = column.combine_chunks()
-        if filled.null_count:
-            filled = pc.if_else(
-                pc.is_valid(filled), filled, pa.scalar(default[0].tolist(), column.type)
+        if valid is not None:
+            column = pc.if_else(
+                valid, column, pa.scalar([0.0] * column.type.list_size, column.type)
             )
-        return np.asarray(filled.flatten().to_numpy(zero_copy_only=False)).reshape(len(rows), -1)
-    values = column.to_numpy(zero_copy_only=False)
-    if values.dtype == object or np.issubdtype(values.dtype, np.floating):
-        values = np.where(pc.is_valid(column).to_numpy(zero_copy_only=False), values, default)
-    return values
+        values = np.asarray(column.flatten().to_numpy(zero_copy_only=False))
+        values = values.reshape(len(rows), -1)
+    else:
+        values = column.to_numpy(zero_copy_only=False)
+    if valid is None:
+        return values
+    return np.where(valid.reshape((-1,) + (1,) * (values.ndim - 1)), values, default)
+
+
+NO_ESTIMATE = np.array([[-1.0] + [0.0] * 8])
+"""sensor_msgs/Imu's covariance for "no estimate of this field": element 0 = -1."""
+
+IMU_VECTORS = (
+    ("gyro", "angular_velocity", "gyro_cov"),
+    ("accel", "linear_acceleration", "accel_cov"),
+)
+"""sensor_msgs/Imu: (sensor, vector field, covariance column) of the two measured vectors."""
 
 
 def encode_stream(
@@ -96,38 +120,52 @@ def encode_stream(
 ) -> tuple[np.ndarray, list[tuple[np.ndarray, np.ndarray]]]:
     """Encode every row of ``stream`` as CDR (or ROS 1 with ``encoding="ros1"``).
 
+    Every field comes from the table: the header stamp is ``header_stamp_ns`` where the reader
+    kept it (``time = "log"``), else ``t_ns``; values are written as they are, NaN included. In
+    an Imu message whose gyro (or accel) is absent from the row (a CSV without those columns),
+    the vector is NaN and element 0 of its covariance is -1, sensor_msgs/Imu's mark for "no
+    data". Optional columns left out take ROS defaults: orientation (0, 0, 0, 1) with
+    covariance element 0 = -1 (no orientation estimate), other covariances zero.
+
     Returns ``(rows, groups)``: the table rows of the stream, and per frame_id a pair
     ``(positions into rows, payloads (m, prefix + L) uint8)`` (see :func:`cdr.encode`)."""
     rows = np.flatnonzero(stream_mask(table, stream))
     n = len(rows)
-    t_ns = table.column("t_ns").to_numpy()[rows]
-    meta_frame = metadata(table).get("frame_id", {}).get(stream, DEFAULT_FRAME)
-    fields: dict[str, np.ndarray] = {}
-    if stream == "imu":
-        fields["angular_velocity"] = sensor(table, "gyro").values
-        fields["linear_acceleration"] = sensor(table, "accel").values
-        default_q = np.tile([0.0, 0.0, 0.0, 1.0], (n, 1))
-        quat = [
-            _column_or(table, f"orientation_{a}", rows, default_q[:, i])
-            for i, a in enumerate("xyzw")
-        ]
-        fields["orientation"] = np.column_stack(quat) if n else default_q
-        no_orientation = np.zeros((n, 9))
-        no_orientation[:, 0] = -1.0
-        fields["orientation_covariance"] = _column_or(
-            table, "orientation_cov", rows, no_orientation
-        )
-        zeros = np.zeros((n, 9))
-        fields["angular_velocity_covariance"] = _column_or(table, "gyro_cov", rows, zeros)
-        fields["linear_acceleration_covariance"] = _column_or(table, "accel_cov", rows, zeros)
-    elif stream == "mag":
-        fields["magnetic_field"] = sensor(table, "mag").values
-        fields["magnetic_field_covariance"] = _column_or(table, "mag_cov", rows, np.zeros((n, 9)))
-    else:
-        fields["temperature"] = sensor(table, "temperature").values[:, 0]
-        fields["variance"] = _column_or(table, "temperature_var", rows, np.zeros(n))
     if n == 0:
         return rows, []
+    t_ns = table.column("t_ns").to_numpy()[rows]
+    stamp = _column_or(table, "header_stamp_ns", rows, t_ns)
+    meta_frame = metadata(table).get("frame_id", {}).get(stream, DEFAULT_FRAME)
+    # defaults are one row, (1, k), broadcast by the encoder: no (n, 9) arrays of zeros
+    zeros = np.zeros((1, 9))
+    fields: dict[str, np.ndarray] = {}
+    if stream == "imu":
+        for name, vector, cov in IMU_VECTORS:
+            fields[vector] = sensor(table, name).values  # NaN where the sensor is absent
+            covariance = _column_or(table, cov, rows, zeros)
+            absent = ~sensor_mask(table, name)[rows]
+            if absent.any():
+                covariance = np.array(np.broadcast_to(covariance, (n, 9)))
+                covariance[absent, 0] = -1.0
+            fields[f"{vector}_covariance"] = covariance
+        quat = [f"orientation_{a}" for a in "xyzw"]
+        if any(c in table.column_names for c in quat):
+            default_q = (0.0, 0.0, 0.0, 1.0)
+            fields["orientation"] = np.column_stack(
+                [
+                    _column_or(table, c, rows, np.full(n, q))
+                    for c, q in zip(quat, default_q, strict=True)
+                ]
+            )
+        else:
+            fields["orientation"] = np.array([[0.0, 0.0, 0.0, 1.0]])
+        fields["orientation_covariance"] = _column_or(table, "orientation_cov", rows, NO_ESTIMATE)
+    elif stream == "mag":
+        fields["magnetic_field"] = sensor(table, "mag").values
+        fields["magnetic_field_covariance"] = _column_or(table, "mag_cov", rows, zeros)
+    else:
+        fields["temperature"] = sensor(table, "temperature").values[:, 0]
+        fields["variance"] = _column_or(table, "temperature_var", rows, np.zeros(1))
     if "frame_id" in table.column_names:
         frames = pc.fill_null(table.column("frame_id").take(pa.array(rows)), meta_frame)
         encoded = pc.dictionary_encode(frames.combine_chunks())
@@ -143,9 +181,9 @@ def encode_stream(
         whole = len(sel) == n
         payloads = cdr.encode(
             STREAM_TYPES[stream],
-            t_ns if whole else t_ns[sel],
+            stamp if whole else stamp[sel],
             name.encode(),
-            fields if whole else {k: v[sel] for k, v in fields.items()},
+            fields if whole else {k: v if len(v) < n else v[sel] for k, v in fields.items()},
             encoding,
             prefix,
         )
@@ -153,8 +191,21 @@ def encode_stream(
     return rows, groups
 
 
+def message_times(table: pa.Table) -> tuple[np.ndarray, np.ndarray]:
+    """(log time, publish time) of every row, int64 ns: ``log_time_ns`` where the reader kept it,
+    else ``t_ns``; ``publish_time_ns`` where kept, else the log time."""
+    t_ns = table.column("t_ns")
+    log = table.column("log_time_ns") if "log_time_ns" in table.column_names else t_ns
+    log = pc.fill_null(log, t_ns) if log.null_count else log
+    if "publish_time_ns" not in table.column_names:
+        return log.to_numpy(), log.to_numpy()
+    pub = table.column("publish_time_ns")
+    pub = pc.fill_null(pub, log) if pub.null_count else pub
+    return log.to_numpy(), pub.to_numpy()
+
+
 def _fill_record_headers(
-    records: np.ndarray, channel: int, seq: np.ndarray, log: np.ndarray
+    records: np.ndarray, channel: int, seq: np.ndarray, log: np.ndarray, pub: np.ndarray
 ) -> None:
     """Fill the 31-byte message record headers in front of the payloads of ``records`` (m, S)."""
     m, size = records.shape
@@ -172,7 +223,27 @@ def _fill_record_headers(
     head["ch"] = channel
     head["seq"] = seq
     head["log"] = log
-    head["pub"] = log
+    head["pub"] = pub
+
+
+def _conform(table: pa.Table, schema: pa.Schema) -> pa.Table:
+    """``table`` with the columns of ``schema`` (a column it lacks: null, so the default)."""
+    columns = [
+        table.column(f.name).cast(f.type)
+        if f.name in table.column_names
+        else pa.nulls(table.num_rows, f.type)
+        for f in schema
+    ]
+    return pa.Table.from_arrays(columns, schema=schema)
+
+
+def _where_to(table: pa.Table) -> tuple[Any, Any]:
+    """The table metadata that the writer uses: topics, and the default frame_ids where rows have
+    none of their own."""
+    meta = metadata(table)
+    column = table.column("frame_id") if "frame_id" in table.column_names else None
+    own = column is not None and column.null_count == 0
+    return meta.get("topics"), None if own else meta.get("frame_id")
 
 
 class McapTableWriter:
@@ -193,11 +264,20 @@ class McapTableWriter:
         *,
         library: str = "imupipe",
         chunk_bytes: int = CHUNK_BYTES,
+        slice_rows: int = SLICE_ROWS,
+        raw_buffer_bytes: int = RAW_BUFFER_BYTES,
     ) -> None:
         self.path = Path(path)
         self.calibration = calibration
         self.topics = dict(topics or {})
         self.chunk_bytes = chunk_bytes
+        self.slice_rows = slice_rows
+        self.raw_buffer_bytes = raw_buffer_bytes
+        self._rows: list[pa.Table] = []  # queued table rows, fewer than slice_rows
+        self._queued = 0
+        self._held: list[RawMessage] = []  # carried-over messages the rows have not passed
+        self._held_bytes = 0
+        self._passed = -1  # the largest log time of the rows written so far
         self._fh = open(self.path, "wb")  # noqa: SIM115 - closed in close()
         self._compressor = zstandard.ZstdCompressor(level=1)
         self._schemas: dict[tuple[str, str, bytes], Schema] = {}
@@ -309,18 +389,79 @@ class McapTableWriter:
 
     # -- public ----------------------------------------------------------------------------
     def write_table(self, table: pa.Table) -> None:
-        """Write every sample of a common-table batch.
+        """Write every sample of a common-table batch (any size: it is encoded in slices).
 
-        Each (topic, frame_id) group of messages goes into its own chunks, in log-time order
-        within the group; chunks are written in the order of their first log time (MCAP
-        readers merge overlapping chunks by log time)."""
+        Rows are queued and encoded ``slice_rows`` at a time, counted from the first row ever
+        written, so the file does not depend on how the table was cut into batches: one whole
+        table or the same rows in any batches give the same bytes. Memory: one slice."""
         if table.num_rows == 0:
             return
+        if self._rows and _where_to(table) != _where_to(self._rows[0]):
+            self._write_slice(self._queued)  # other topics or frames: not one slice
+        if self._rows and table.schema != self._rows[0].schema:
+            table = _conform(table, self._rows[0].schema)
+        self._rows.append(table)
+        self._queued += table.num_rows
+        while self._queued >= self.slice_rows:
+            self._write_slice(self.slice_rows)
+
+    def write_raw(self, messages: Iterable[RawMessage]) -> None:
+        """Write messages of other topics unchanged, log and publish times kept.
+
+        A message is held until the table's rows have passed its log time (or until
+        :meth:`close`), then written after the slice that passed it: give a batch's carried-over
+        messages *before* its table rows (as :func:`write_mcap` does) and the file is the same
+        whatever the batches. Held messages are written at once when they exceed
+        ``raw_buffer_bytes`` (memory stays bounded when the sensor topics stop early)."""
+        now: list[RawMessage] = []
+        for msg in messages:
+            if msg.log_time <= self._passed:
+                now.append(msg)
+            else:
+                self._held.append(msg)
+                self._held_bytes += len(msg.data)
+        if now:
+            self._write_raw_now(now)
+        if self._held_bytes > self.raw_buffer_bytes:
+            self._release(None)
+
+    def _write_slice(self, m: int) -> None:
+        """Encode and write the first ``m`` queued rows, then the held messages they passed."""
+        parts, taken = [], 0
+        while taken < m:
+            head = self._rows[0]
+            k = min(m - taken, head.num_rows)
+            parts.append(head.slice(0, k))
+            if k == head.num_rows:
+                self._rows.pop(0)
+            else:
+                self._rows[0] = head.slice(k)
+            taken += k
+        self._queued -= m
+        part = parts[0] if len(parts) == 1 else pa.concat_tables(parts)
+        log = self._encode_rows(part)
+        self._passed = max(self._passed, int(log.max()))
+        self._release(self._passed)
+
+    def _release(self, upto: int | None) -> None:
+        """Write the held messages with log time <= ``upto`` (all when None), in log order."""
+        if not self._held:
+            return
+        self._held.sort(key=lambda m: m.log_time)  # stable: arrival order among equal times
+        k = len(self._held)
+        if upto is not None:
+            k = bisect.bisect_right([m.log_time for m in self._held], upto)
+        if k:
+            out, self._held = self._held[:k], self._held[k:]
+            self._held_bytes = sum(len(m.data) for m in self._held)
+            self._write_raw_now(out)
+
+    def _encode_rows(self, table: pa.Table) -> np.ndarray:
+        """Encode one slice; each (topic, frame_id) group of messages goes into its own chunks,
+        in log-time order within the group; chunks are written in the order of their first log
+        time (MCAP readers merge overlapping chunks by log time). Returns the log times."""
         topics = {**DEFAULT_TOPICS, **metadata(table).get("topics", {}), **self.topics}
-        if "log_time_ns" in table.column_names:
-            log_all = pc.fill_null(table.column("log_time_ns"), table.column("t_ns")).to_numpy()
-        else:
-            log_all = table.column("t_ns").to_numpy()
+        log_all, pub_all = message_times(table)
         pending = []  # (first log time, order, channel, records, log times)
         for stream in ("imu", "mag", "temperature"):
             rows, groups = encode_stream(table, stream, prefix=RECORD_HEADER)
@@ -333,7 +474,7 @@ class McapTableWriter:
             seq = self._sequence(cid, len(rows))
             for sel, recs in groups:
                 log = log_all[rows[sel]]
-                _fill_record_headers(recs, cid, seq[sel], log)
+                _fill_record_headers(recs, cid, seq[sel], log, pub_all[rows[sel]])
                 if np.any(log[1:] < log[:-1]):
                     order = np.argsort(log, kind="stable")
                     recs, log = recs[order], log[order]
@@ -351,9 +492,10 @@ class McapTableWriter:
                 np.full(m, cid, dtype=np.int64),
                 log,
             )
+        return log_all
 
-    def write_raw(self, messages: Iterable[RawMessage]) -> None:
-        """Write messages of other topics unchanged (one record each)."""
+    def _write_raw_now(self, messages: Iterable[RawMessage]) -> None:
+        """Write messages of other topics now, in the order given (one record each)."""
         pieces: list[bytes] = []
         starts: list[int] = []
         channels: list[int] = []
@@ -402,6 +544,9 @@ class McapTableWriter:
         """Attach the calibration, write the summary and footer; returns messages per topic."""
         if self._closed:
             return self.counts()
+        if self._queued:
+            self._write_slice(self._queued)
+        self._release(None)
         self._closed = True
         if self.calibration is not None:
             now = time.time_ns()
@@ -491,26 +636,25 @@ def write_mcap(
     carry_over: Iterable[RawMessage] = (),
     library: str = "imupipe",
     chunk_bytes: int = CHUNK_BYTES,
-    slice_rows: int = 100_000,
+    slice_rows: int = SLICE_ROWS,
 ) -> dict[str, int]:
     """Write ``table`` (and ``carry_over`` messages) to ``path``; returns messages per topic.
 
-    The table is written in slices of ``slice_rows`` rows, each followed by the carried-over
-    messages up to its last log time, so the file stays in (nearly) log-time order."""
+    The carried-over messages are given to the writer slice by slice, before the rows that pass
+    their log times, the way a streamed read hands them over: the file is the same as the one
+    written from :func:`~imupipe.readers.dispatch.iter_input` batches of the same log."""
     raw = sorted(carry_over, key=lambda m: m.log_time)
     raw_logs = [m.log_time for m in raw]
     with McapTableWriter(
-        path, calibration, topics, library=library, chunk_bytes=chunk_bytes
+        path, calibration, topics, library=library, chunk_bytes=chunk_bytes, slice_rows=slice_rows
     ) as writer:
         done = 0
         for start in range(0, table.num_rows, slice_rows):
             part = table.slice(start, slice_rows)
-            writer.write_table(part)
             if raw:
-                log = "log_time_ns" if "log_time_ns" in part.column_names else "t_ns"
-                last = pc.max(pc.fill_null(part.column(log), part.column("t_ns"))).as_py()
-                upto = bisect.bisect_right(raw_logs, last, lo=done)
+                upto = bisect.bisect_right(raw_logs, int(message_times(part)[0].max()), lo=done)
                 writer.write_raw(raw[done:upto])
-                done = upto
+                done = max(done, upto)
+            writer.write_table(part)
         writer.write_raw(raw[done:])
     return writer.counts()

@@ -1,19 +1,46 @@
-"""The Rerun sink: every stage's signals in one ``recording.rrd``.
+"""The Rerun sink: every stage's signals in one ``recording.rrd``, laid out so that every view
+shows its data when the recording opens.
 
-Signals are sent in bulk with ``rr.send_columns`` (never one ``rr.log`` per sample) on the
-``time`` timeline (the samples' own timestamps). Each signal is one entity with one named series
-per axis. Signals longer than ``max_points`` are block-averaged to at most that many points before
-they are sent (the full-rate data stays in the MCAP output). A default blueprint has one tab per
-stage, holding the views the stage asked for (a time-series view of ``/<stage>`` by default).
-Every time-series view opens on the time span of the signals under its origin: the inputs of a
-run often lie hours apart, and Rerun would otherwise open each plot on a short window around the
-time cursor, which sits at the end of the last input.
+A stage declares *what* it shows through the recorder (``ctx.recorder``): a signal over time
+(:meth:`Recorder.series`), a curve over something else (:meth:`Recorder.curve`), one value per
+item (:meth:`Recorder.bars`), points and ellipsoids in 3D (:meth:`Recorder.points3d`,
+:meth:`Recorder.ellipsoid`), each with its SI unit, the names of its lines and the plot it goes
+in. The recorder keeps these as :class:`~imupipe.pipeline.figures.Figures` (which ``report.html``
+draws too) and decides *how* they look in Rerun:
+
+- signals over time: a ``TimeSeriesView`` per plot, on the ``time`` timeline (the one the time
+  panel opens on), opened on the span of its own data, titled with its unit. Signals are sent in
+  bulk with ``rr.send_columns``; one longer than ``max_points`` is averaged over consecutive
+  blocks down to that many points (the MCAP output keeps every sample);
+- curves over something else (Allan deviation over tau, bias against temperature): a
+  ``Spatial2DView`` of line strips in plot coordinates, with the axes, grid, tick labels, axis
+  titles and a legend drawn as 2D primitives, logged as static data. A time-series view cannot
+  do it: its x axis is the time panel's timeline, so a curve on a timeline of its own opens empty
+  until one switches timelines by hand, and Rerun's plots have no logarithmic axes;
+- one value per item (residual per pose or per transition): a ``BarChartView`` (static);
+- 3D points and ellipsoids: a ``Spatial3DView``;
+- per stage a markdown ``TextDocument`` with the results (:mod:`imupipe.pipeline.summary`), and
+  a first tab, "Summary", with all of them.
+
+The default blueprint has the Summary tab, then one tab per stage. With a viewer (``--spawn``)
+everything also streams live to it over gRPC (a second stream with the same recording id, so a
+failing viewer never touches the file).
 """
 
 from __future__ import annotations
 
+import contextlib
 import math
-from collections.abc import Sequence
+import os
+import re
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -21,38 +48,103 @@ import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
-from imupipe.stages.blocks import block_means
+from imupipe.pipeline import plot2d
+from imupipe.pipeline.figures import (
+    AXIS_COLORS,
+    NAMED_COLORS,
+    PALETTE,
+    Figures,
+    Plot,
+    Series,
+    colors_for,
+    decimate,
+    display_unit,
+    lighter,
+    stage_of,
+)
+from imupipe.pipeline.summary import raw_count_sensors
+from imupipe.readers.table import SENSOR_COLUMNS, SENSOR_UNITS, STREAM_OF_SENSOR, has_stream, sensor
+from imupipe.stages.base import NullRecorder
 
 TIMELINE = "time"
-AXIS_COLORS = [(230, 60, 60), (60, 180, 75), (60, 100, 230), (200, 140, 20)]
 
 
 class Recorder:
-    """Writes a Rerun recording to ``path`` (and to a viewer with ``spawn``)."""
+    """Collects what the stages show and writes it to ``path`` (a Rerun recording; None: keep
+    the figures only, for the report) and, with ``viewer`` (a gRPC URL), streams it live."""
 
     enabled = True
 
     def __init__(
         self,
-        path: Path,
+        path: Path | None,
         *,
-        spawn: bool = False,
-        max_points: int = 200_000,
+        viewer: str | None = None,
+        max_points: int = 20_000,
+        keep_points: int = 2_000,
         application_id: str = "imupipe",
+        warn: Callable[[str], None] | None = None,
     ) -> None:
         self.max_points = max_points
-        self.rec = rr.RecordingStream(application_id)
-        if spawn:
-            rr.spawn(connect=False)
-            self.rec.set_sinks(rr.FileSink(str(path)), rr.GrpcSink())
-        else:
+        self.figures = Figures(keep_points)
+        self.raw_counts: dict[str, set[str]] = {}
+        """input -> the sensors it holds in raw counts (not SI): plotted apart, in counts"""
+        self._warn = warn or (lambda message: None)
+        self._streams: list[rr.RecordingStream] = []
+        self._live: rr.RecordingStream | None = None
+        if path is not None:
+            self.rec = rr.RecordingStream(application_id)
             self.rec.save(str(path))
-        self._views: dict[str, list[Any]] = {}
+            self._streams.append(self.rec)
+            if viewer is not None:
+                self._live = rr.RecordingStream(
+                    application_id, recording_id=self.rec.get_recording_id()
+                )
+                self._live.set_sinks(rr.GrpcSink(viewer))
+                self._streams.append(self._live)
+        self._views: dict[str, list[Any]] = {}  # stage -> views added with add_view
+        self._documents: dict[str, str] = {}  # stage ("" for the run) -> markdown
         self._styled: set[str] = set()
-        self._spans: dict[str, tuple[int, int]] = {}  # entity -> (first, last) t_ns on TIMELINE
-        self._curve_spans: dict[str, tuple[int, int]] = {}  # entity -> (first, last) sequence x
+        self._spans: dict[str, tuple[int, int]] = {}  # entity -> (first, last) t_ns
+        self._input_units: dict[tuple[str, str], str] = {}  # (stage, sensor) -> unit of its input
+        self._reused: dict[Any, Series] = {}  # (input, sensor, steps applied) -> series sent
 
-    # -- signals -----------------------------------------------------------------------------
+    # -- sending -------------------------------------------------------------------------------
+    def _send(self, fn: Callable[[rr.RecordingStream], None]) -> None:
+        """``fn(stream)`` for the file and, while it works, the live viewer."""
+        for stream in list(self._streams):
+            if stream is self._live:
+                try:
+                    fn(stream)
+                except Exception as exc:  # noqa: BLE001 - a viewer failure never stops the run
+                    self._drop_live(exc)
+            else:
+                fn(stream)
+
+    def _drop_live(self, exc: BaseException) -> None:
+        if self._live is not None:
+            self._streams.remove(self._live)
+            with contextlib.suppress(Exception):
+                self._live.disconnect()
+            self._live = None
+            self._warn(f"the Rerun viewer stopped receiving ({' '.join(str(exc).split())})")
+
+    def log(self, entity: str, archetype: Any, *, static: bool = True) -> None:
+        """Anything else (a mesh, arrows...): one ``rr.log`` call, shown in a view the stage adds
+        with :meth:`add_view`."""
+        self.figures.stage(stage_of(entity))
+        self._send(lambda s: rr.log(entity, archetype, static=static, recording=s))
+
+    def _style(
+        self, entity: str, names: Sequence[str], colors: Sequence[Any], points: bool
+    ) -> None:
+        if entity in self._styled:
+            return
+        self._styled.add(entity)
+        style = rr.SeriesPoints if points else rr.SeriesLines
+        self.log(entity, style(names=list(names), colors=list(colors)))
+
+    # -- what a stage shows ------------------------------------------------------------------
     def series(
         self,
         entity: str,
@@ -60,25 +152,37 @@ class Recorder:
         values: np.ndarray,
         names: Sequence[str] = ("x", "y", "z"),
         *,
+        unit: str | None = None,
+        plot: str | None = None,
+        title: str | None = None,
         colors: Sequence[Any] | None = None,
+        points: bool = False,
     ) -> None:
-        """One signal: ``values`` (n,) or (n, k) at ``t_ns`` (int64 ns), one named series per column."""
+        """A signal over time: ``values`` (n,) or (n, k) in the SI ``unit`` at ``t_ns`` (int64
+        ns), one named line per column. ``plot`` (default: the entity's last path part) groups
+        signals of one stage into one plot; ``title`` names it (the unit is appended)."""
         t_ns = np.asarray(t_ns, dtype=np.int64)
         values = np.asarray(values, dtype=np.float64).reshape(len(t_ns), -1)
         if len(t_ns) == 0:
             return
-        if len(t_ns) > self.max_points:
-            blocks = block_means(t_ns, values, window=math.ceil(len(t_ns) / self.max_points))
-            t_ns, values = blocks.t_ns, blocks.means
-        self._style(entity, names, colors)
+        shown, factor = display_unit(unit)
+        key = plot or entity.rstrip("/").rsplit("/", 1)[-1]
+        fig = self.figures.plot(stage_of(entity), key, "time", title=title, unit=shown)
+        colors = colors_for(names, colors)
+        t_ns, values = decimate(t_ns, values * factor, self.max_points)
+        kept_t, kept = decimate(t_ns, values, self.figures.keep_points)
+        fig.series.append(
+            Series(entity, list(names), colors, kept_t, kept, "points" if points else "line")
+        )
+        self._style(entity, names, colors, points)
         first, last = self._spans.get(entity, (int(t_ns.min()), int(t_ns.max())))
         self._spans[entity] = (min(first, int(t_ns.min())), max(last, int(t_ns.max())))
-        rr.send_columns(
-            entity,
-            indexes=[rr.TimeColumn(TIMELINE, timestamp=t_ns.astype("datetime64[ns]"))],
-            columns=rr.Scalars.columns(scalars=values),
-            recording=self.rec,
-        )
+        if self._streams:
+            indexes = [rr.TimeColumn(TIMELINE, timestamp=t_ns.astype("datetime64[ns]"))]
+            columns = rr.Scalars.columns(scalars=values)
+            self._send(
+                lambda s: rr.send_columns(entity, indexes=indexes, columns=columns, recording=s)
+            )
 
     def curve(
         self,
@@ -87,123 +191,471 @@ class Recorder:
         values: np.ndarray,
         names: Sequence[str],
         *,
-        timeline: str,
-        colors: Sequence[Any] | None = None,
+        x_label: str | None = None,
+        x_unit: str = "",
+        unit: str | None = None,
+        plot: str | None = None,
+        title: str | None = None,
+        log_x: bool = False,
+        log_y: bool = False,
         points: bool = False,
+        band: bool = False,
+        guide: bool = False,
+        colors: Sequence[Any] | None = None,
+        timeline: str | None = None,
     ) -> None:
-        """A curve over something other than time (``x`` becomes a ``sequence`` timeline of ints,
-        e.g. round(1000 * log10(tau)) for Allan curves); ``points``: draw markers, not lines
-        (for scatter data such as bias against temperature)."""
-        x = np.asarray(x, dtype=np.int64)
+        """A curve over something other than time: ``values`` (n,) or (n, k) in the SI ``unit``
+        against ``x`` (in ``x_unit``), one named line per column, drawn as markers with
+        ``points``, as thin guide lines beneath the data with ``guide`` (the terms of a model).
+        With ``band``, ``values`` is (n, 2), the lower and upper edge of a confidence band, and
+        ``names`` has its one name. Curves with the same ``plot`` (default:
+        the entity, relative to its stage) share a plot and its axes, logarithmic with
+        ``log_x``/``log_y``. (``timeline``: the older form, kept working: a label for ``x``.)"""
+        x = np.asarray(x, dtype=np.float64)
         values = np.asarray(values, dtype=np.float64).reshape(len(x), -1)
         if len(x) == 0:
             return
-        self._style(entity, names, colors, points=points)
-        first, last = self._curve_spans.get(entity, (int(x.min()), int(x.max())))
-        self._curve_spans[entity] = (min(first, int(x.min())), max(last, int(x.max())))
-        rr.send_columns(
-            entity,
-            indexes=[rr.TimeColumn(timeline, sequence=x)],
-            columns=rr.Scalars.columns(scalars=values),
-            recording=self.rec,
+        shown, factor = display_unit(unit)
+        stage = stage_of(entity)
+        key = plot or entity.strip("/").split("/", 1)[-1]
+        fig = self.figures.plot(
+            stage,
+            key,
+            "xy",
+            title=title,
+            unit=shown,
+            x_label=x_label or timeline or "x",
+            x_unit=x_unit,
+            log_x=log_x,
+            log_y=log_y,
         )
+        if band:
+            color = colors_for(names, colors)[0] if colors is not None else (150, 150, 150)
+            fig.series.append(Series(entity, list(names[:1]), [color], x, values * factor, "band"))
+            return
+        style = "points" if points else "guide" if guide else "line"
+        x, kept = decimate(x, values * factor, 5 * self.figures.keep_points)
+        if colors is None:
+            used = sum(len(s.names) for s in fig.series if s.style != "band")
+            colors = [PALETTE[(used + i) % len(PALETTE)] for i in range(len(names))]
+        fig.series.append(Series(entity, list(names), colors_for(names, colors), x, kept, style))
 
-    def _style(
+    def bars(
         self,
         entity: str,
+        values: np.ndarray,
         names: Sequence[str],
-        colors: Sequence[Any] | None,
-        points: bool = False,
+        *,
+        x_label: str,
+        unit: str | None = None,
+        plot: str | None = None,
+        title: str | None = None,
+        colors: Sequence[Any] | None = None,
     ) -> None:
-        if entity in self._styled:
-            return
-        self._styled.add(entity)
-        colors = list(colors) if colors is not None else AXIS_COLORS[: len(names)]
-        if len(colors) < len(names):
-            colors = [AXIS_COLORS[i % len(AXIS_COLORS)] for i in range(len(names))]
-        style = rr.SeriesPoints if points else rr.SeriesLines
-        rr.log(
+        """One value per item (``values`` (n,) or (n, k), item i at x = i), e.g. the residual
+        per pose; ``k`` columns are drawn side by side (before/after)."""
+        values = np.asarray(values, dtype=np.float64)
+        values = values.reshape(len(values), -1)
+        shown, factor = display_unit(unit)
+        key = plot or entity.strip("/").split("/", 1)[-1]
+        fig = self.figures.plot(
+            stage_of(entity), key, "bars", title=title, unit=shown, x_label=x_label
+        )
+        if colors is None:
+            named = list(NAMED_COLORS.values())
+            colors = named[1:2] if len(names) == 1 else named[: len(names)]
+        colors = colors_for(names, colors)
+        x = np.arange(len(values), dtype=np.float64)
+        fig.series.append(Series(entity, list(names), colors, x, values * factor, "line"))
+        k = values.shape[1]
+        width = 0.8 / k
+        for j, name in enumerate(names):
+            offset = (j - (k - 1) / 2) * width
+            chart = rr.BarChart(
+                values[:, j] * factor,
+                color=colors[j],
+                abscissa=x + offset,
+                widths=np.full(len(x), width),
+            )
+            self._send(
+                lambda s, c=chart, n=name: rr.log(
+                    f"{entity}/{_part(n)}", c, static=True, recording=s
+                )
+            )
+
+    def points3d(
+        self,
+        entity: str,
+        xyz: np.ndarray,
+        *,
+        unit: str | None,
+        name: str,
+        plot: str | None = None,
+        title: str | None = None,
+        colors: np.ndarray | Sequence[Any] | None = None,
+        radius: float | None = None,
+    ) -> None:
+        """A cloud of 3D points (n, 3) in the SI ``unit`` (``colors``: one, or one per point)."""
+        xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
+        shown, factor = display_unit(unit)
+        key = plot or entity.strip("/").split("/", 1)[-1]
+        fig = self.figures.plot(stage_of(entity), key, "3d", title=title, unit=shown)
+        pts = xyz * factor
+        cols = np.asarray(colors if colors is not None else [(40, 100, 230)], dtype=np.uint8)
+        cols = cols.reshape(-1, cols.shape[-1])
+        stride = max(1, math.ceil(len(pts) / (2 * self.figures.keep_points)))
+        kept_cols = cols[::stride] if len(cols) == len(pts) else cols
+        fig.series.append(
+            Series(
+                entity,
+                [name],
+                [tuple(int(c) for c in cols[0][:3])],
+                np.arange(len(pts))[::stride],
+                pts[::stride],
+                "cloud",
+                {"colors": kept_cols},
+            )
+        )
+        if radius is None:
+            extent = float(np.nanmax(np.abs(pts))) if len(pts) else 1.0
+            radius = 0.008 * extent
+        self.log(entity, rr.Points3D(pts, colors=cols, radii=radius))
+
+    def ellipsoid(
+        self,
+        entity: str,
+        centre: Sequence[float],
+        half_sizes: Sequence[float],
+        rotation: np.ndarray | None = None,
+        *,
+        unit: str | None,
+        name: str,
+        plot: str | None = None,
+        title: str | None = None,
+        color: Sequence[int] = (240, 180, 40),
+    ) -> None:
+        """An ellipsoid (``rotation``: 3x3 matrix whose columns are its axes) in the SI ``unit``."""
+        from scipy.spatial.transform import Rotation
+
+        shown, factor = display_unit(unit)
+        key = plot or entity.strip("/").split("/", 1)[-1]
+        fig = self.figures.plot(stage_of(entity), key, "3d", title=title, unit=shown)
+        rot = np.eye(3) if rotation is None else np.asarray(rotation, dtype=np.float64)
+        centre_s = np.asarray(centre, dtype=np.float64) * factor
+        half = np.asarray(half_sizes, dtype=np.float64) * factor
+        fig.series.append(
+            Series(
+                entity,
+                [name],
+                [tuple(color)],
+                np.zeros(1),
+                centre_s[None, :],
+                "ellipsoid",
+                {"half_sizes": half, "rotation": rot},
+            )
+        )
+        quat = Rotation.from_matrix(rot).as_quat()
+        self.log(
             entity,
-            style(names=list(names), colors=colors),
-            static=True,
-            recording=self.rec,
+            rr.Ellipsoids3D(
+                centers=[centre_s],
+                half_sizes=[half],
+                quaternions=[rr.Quaternion(xyzw=quat)],
+                colors=[color],
+                labels=[name],
+            ),
         )
 
-    def log(self, entity: str, archetype: Any, *, static: bool = True) -> None:
-        """Anything else (3D points, ellipsoids, meshes, text): one ``rr.log`` call."""
-        rr.log(entity, archetype, static=static, recording=self.rec)
+    # -- what the pipeline shows -------------------------------------------------------------
+    def sensors(
+        self,
+        stage: str,
+        table: Any,
+        sensors: Sequence[str],
+        *,
+        input_name: str,
+        chain: Sequence[Any] = (),
+        corrected: bool = False,
+    ) -> None:
+        """A stage's ``sensors`` in ``table``, one plot per sensor: before the stage (``gyro x
+        raw``, or ``gyro x input`` when earlier steps of the ``chain`` corrected it; lighter
+        colours) or, with ``corrected``, after it (``gyro x corrected``). A sensor of an input
+        already sent at the same point of the chain (an earlier stage on the same input) is not
+        sent again: the stage's plot shows the earlier signal."""
+        for name in sensors:
+            if not has_stream(table, STREAM_OF_SENSOR[name]):
+                continue
+            applied = sum(getattr(step, "sensor", None) == name for step in chain)
+            label = "corrected" if corrected else "input" if applied else "raw"
+            # raw counts (a CSV read with <sensor>_unit = "raw") are not SI: a plot of their own
+            counts = label == "raw" and name in self.raw_counts.get(input_name, ())
+            unit = "raw counts" if counts else SENSOR_UNITS[name]
+            key, title = name, name
+            if not corrected:
+                self._input_units[(stage, name)] = unit
+            reuse = None if corrected else (input_name, name, applied)
+            if reuse is not None and reuse in self._reused:
+                shown = display_unit(unit)[0]
+                plot = self.figures.plot(stage, key, "time", title=title, unit=shown)
+                plot.series.append(self._reused[reuse])
+                continue
+            data = sensor(table, name)
+            axes = [c.split("_")[-1] for c in SENSOR_COLUMNS[name]]
+            names = [f"{name} {a} {label}" if len(axes) > 1 else f"{name} {label}" for a in axes]
+            colors = AXIS_COLORS[: len(axes)]
+            if not corrected:
+                colors = [lighter(c) for c in colors]
+            entity = f"/{stage}/{label}/{name}"
+            self.series(
+                entity,
+                data.t_ns,
+                data.values,
+                names,
+                unit=unit,
+                plot=key,
+                title=title,
+                colors=colors,
+            )
+            if reuse is not None:
+                self._reused[reuse] = next(
+                    p.series[-1]
+                    for p in self.figures.of_stage(stage)
+                    if p.series and p.series[-1].entity == entity
+                )
+
+    def input_unit(self, stage: str, sensor: str) -> str:
+        """The unit of ``sensor`` in the table ``stage`` fits on: SI, or ``raw counts`` for a
+        CSV read with ``<sensor>_unit = "raw"`` that no earlier stage corrected."""
+        return self._input_units.get((stage, sensor), SENSOR_UNITS[sensor])
+
+    def document(self, stage: str | None, markdown: str) -> None:
+        """A stage's results (``stage`` None: the run's summary) as a markdown ``TextDocument``."""
+        path = "/summary" if stage is None else f"/{stage}/summary"
+        self._documents[stage or ""] = path
+        if stage is not None:
+            self.figures.stage(stage)
+        self._send(
+            lambda s: rr.log(
+                path,
+                rr.TextDocument(markdown, media_type=rr.MediaType.MARKDOWN),
+                static=True,
+                recording=s,
+            )
+        )
 
     # -- blueprint ---------------------------------------------------------------------------
     def add_view(self, stage: str, view: Any) -> None:
-        """Add a blueprint view (``rrb.TimeSeriesView``, ``rrb.Spatial3DView``...) to a stage's tab."""
+        """Add a view of your own (``rrb.Spatial3DView`` of what :meth:`log` sent...) to a
+        stage's tab, after the plots the recorder lays out."""
+        self.figures.stage(stage)
         self._views.setdefault(stage, []).append(view)
 
     def ensure_stage(self, stage: str) -> None:
-        """Give a stage a tab unless it asked for views: one time-series view per signal kind
-        under ``/<stage>`` (e.g. ``input/gyro`` and ``output/gyro`` together, ``temperature``
-        apart), so that signals of different units do not share an axis."""
-        if stage in self._views:
-            return
-        prefix = f"/{stage}/"
-        groups: dict[str, list[str]] = {}
-        for entity in self._spans:
-            if entity.startswith(prefix):
-                groups.setdefault(entity.rsplit("/", 1)[-1], []).append(entity)
-        if len(groups) <= 1:
-            self._views[stage] = [rrb.TimeSeriesView(origin=f"/{stage}", name=stage)]
-            return
-        self._views[stage] = [
-            _with_span(
-                rrb.TimeSeriesView(origin=f"/{stage}", contents=entities, name=f"{stage}: {kind}"),
-                [self._spans[e] for e in entities],
+        """Give a stage a tab (even one that showed nothing: its results document)."""
+        self.figures.stage(stage)
+
+    def _view(self, plot: Plot) -> Any:
+        if plot.kind == "time":
+            view = rrb.TimeSeriesView(
+                origin="/",
+                contents=list(dict.fromkeys(plot.entities)),
+                name=plot.heading,
+                plot_legend=rrb.PlotLegend(visible=True),
             )
-            for kind, entities in groups.items()
-        ]
+            return _with_span(view, [self._spans[e] for e in plot.entities if e in self._spans])
+        if plot.kind == "bars":
+            # the legend of a bar chart shows entity paths: the colours are named in the title
+            named = {c: n for n, c in NAMED_COLORS.items()}
+            key = [
+                f"{named.get(tuple(c), str(tuple(c)))} {n}"
+                for s in plot.series
+                for n, c in zip(s.names, s.colors, strict=True)
+            ]
+            title = f"{plot.heading} per {plot.x_label}"
+            return rrb.BarChartView(
+                origin="/",
+                contents=[f"{e}/**" for e in dict.fromkeys(plot.entities)],
+                name=title + (f": {', '.join(key)}" if len(key) > 1 else ""),
+                plot_legend=rrb.PlotLegend(visible=False),
+            )
+        if plot.kind == "3d":
+            return rrb.Spatial3DView(
+                origin="/", contents=list(dict.fromkeys(plot.entities)), name=plot.heading
+            )
+        return plot2d.view(plot)
 
     def _fit_time_axis(self, view: Any) -> None:
-        """Open a time-series view on the span of the signals under its origin: their ``time``
-        span, or, for a view of curves only, their span on the curve's sequence timeline.
-        Views that set their own x range are left alone."""
+        """A time-series view added by a stage opens on the span of the signals under its origin."""
         if getattr(view, "class_identifier", None) != "TimeSeries" or "TimeAxis" in view.properties:
             return
         origin = str(view.origin).rstrip("/")
-
-        def under(spans: dict[str, tuple[int, int]]) -> list[tuple[int, int]]:
-            return [v for e, v in spans.items() if e == origin or e.startswith(origin + "/")]
-
-        spans = under(self._spans)
-        if spans:
-            _with_span(view, spans)
-        elif curves := under(self._curve_spans):
-            _with_span(view, curves, unit="seq")
-
-    def blueprint(self) -> rrb.Blueprint:
-        tabs = []
-        for stage, views in self._views.items():
-            for view in views:
-                self._fit_time_axis(view)
-            tabs.append(views[0] if len(views) == 1 else rrb.Vertical(*views, name=stage))
-        return rrb.Blueprint(
-            rrb.Tabs(*tabs) if tabs else rrb.TimeSeriesView(origin="/"),
-            rrb.TimePanel(timeline=TIMELINE),
-            collapse_panels=False,
+        _with_span(
+            view,
+            [v for e, v in self._spans.items() if e == origin or e.startswith(origin + "/")],
         )
 
+    def blueprint(self) -> rrb.Blueprint:
+        tabs: list[Any] = []
+        if "" in self._documents:
+            tabs.append(rrb.TextDocumentView(origin=self._documents[""], name="Summary"))
+        for stage in self.figures.stages:
+            plots = self.figures.of_stage(stage)
+            signals = [self._view(p) for p in plots if p.kind == "time"]
+            others = [self._view(p) for p in plots if p.kind != "time"]
+            for view in self._views.get(stage, []):
+                self._fit_time_axis(view)
+                (signals if view.class_identifier == "TimeSeries" else others).append(view)
+            text = (
+                rrb.TextDocumentView(origin=self._documents[stage], name=f"{stage}: results")
+                if stage in self._documents
+                else None
+            )
+            tabs.append(_stage_layout(stage, text, others, signals))
+        return rrb.Blueprint(
+            rrb.Tabs(*tabs) if tabs else rrb.TimeSeriesView(origin="/"),
+            rrb.TimePanel(timeline=TIMELINE, state="collapsed"),
+            rrb.BlueprintPanel(state="collapsed"),
+            rrb.SelectionPanel(state="collapsed"),
+        )
+
+    def _draw_plots(self) -> None:
+        for plot in self.figures.plots.values():
+            if plot.kind == "xy":
+                for entity, archetype in plot2d.draw(plot):
+                    self._send(
+                        lambda s, e=entity, a=archetype: rr.log(e, a, static=True, recording=s)
+                    )
+
     def close(self) -> None:
-        """Send the blueprint and flush everything to the sinks."""
-        self.rec.send_blueprint(self.blueprint(), make_active=True, make_default=True)
+        """Draw the 2D plots, send the blueprint and flush everything to the sinks."""
+        if not self._streams:
+            return
+        self._draw_plots()
+        blueprint = self.blueprint()
+        self._send(lambda s: s.send_blueprint(blueprint, make_active=True, make_default=True))
         self.rec.flush()
-        self.rec.disconnect()
+        if self._live is not None:
+            try:
+                self._live.flush(timeout_sec=10.0)
+            except Exception as exc:  # noqa: BLE001 - the file is complete; only the viewer failed
+                self._drop_live(exc)
+        for stream in self._streams:
+            stream.disconnect()
 
 
-def _with_span(view: Any, spans: list[tuple[int, int]], unit: str = "nanos") -> Any:
-    """``view`` with its time axis set to cover ``spans`` ((first, last) in ``unit``: ``nanos``
-    on the time timeline, ``seq`` on a sequence timeline); unchanged if there are none."""
+def _part(name: str) -> str:
+    """A name as one entity path part (``|a| - g`` -> ``a_g``)."""
+    return re.sub(r"[^0-9A-Za-z]+", "_", name).strip("_") or "value"
+
+
+def _stage_layout(stage: str, text: Any, plots: list[Any], signals: list[Any]) -> Any:
+    """A stage's tab: its results document beside its plots; when it has both plots of its fit
+    and signals over time, and more than four views in all, those sit in two inner tabs."""
+    if len(plots) + len(signals) > 4 and plots and signals:
+        right: Any = rrb.Tabs(
+            rrb.Grid(*plots, name=f"{stage}: fit"), rrb.Grid(*signals, name=f"{stage}: signals")
+        )
+    else:
+        right = rrb.Grid(*plots, *signals, name=f"{stage}: plots")
+    if text is None:
+        return rrb.Horizontal(right, name=stage) if plots or signals else rrb.Grid(name=stage)
+    if not plots and not signals:
+        return rrb.TextDocumentView(origin=text.origin, name=stage)
+    return rrb.Horizontal(text, right, column_shares=[2, 3], name=stage)
+
+
+def _with_span(view: Any, spans: list[tuple[int, int]]) -> Any:
+    """``view`` with its time axis set to cover ``spans`` ((first, last) ns); unchanged if none."""
     if spans:
         view.properties["TimeAxis"] = rrb.TimeAxis(
             view_range=rrb.TimeRange(
-                start=rrb.TimeRangeBoundary.absolute(**{unit: min(a for a, _ in spans)}),
-                end=rrb.TimeRangeBoundary.absolute(**{unit: max(b for _, b in spans)}),
+                start=rrb.TimeRangeBoundary.absolute(nanos=min(a for a, _ in spans)),
+                end=rrb.TimeRangeBoundary.absolute(nanos=max(b for _, b in spans)),
             )
         )
     return view
+
+
+def open_recorder(
+    cfg: Any, out: Any, *, spawn: bool = False, quiet: bool = False
+) -> tuple[Any, list[Path]]:
+    """The recorder of a run and the files it writes: a :class:`Recorder` writing
+    ``recording.rrd`` (staged in ``out``) when ``[output] rerun``, keeping the figures for
+    ``report.html`` when ``[output] report``, streaming to a viewer with ``spawn``; a
+    :class:`NullRecorder` when neither is wanted. A viewer that cannot start is one warning:
+    the run and its files go on without it."""
+
+    def warn(message: str) -> None:
+        if not quiet:
+            print(f"imupipe: warning: {message}", file=sys.stderr)
+
+    if spawn and not cfg.output.rerun:
+        warn("--spawn: [output] rerun = false: there is no recording to show")
+    if not (cfg.output.rerun or cfg.output.report):
+        return NullRecorder(), []
+    rrd = cfg.output.dir / "recording.rrd"
+    viewer = None
+    if spawn and cfg.output.rerun:
+        viewer, why = start_viewer()
+        if viewer is None:
+            warn(f"--spawn: {why}; the recording is written to {rrd}")
+    recorder = Recorder(
+        out.path(rrd) if cfg.output.rerun else None,
+        viewer=viewer,
+        max_points=cfg.output.rerun_max_points,
+        warn=warn,
+    )
+    recorder.raw_counts = raw_count_sensors(cfg.inputs)
+    return recorder, [rrd] if cfg.output.rerun else []
+
+
+# -- the viewer (--spawn) --------------------------------------------------------------------------
+def start_viewer(timeout: float = 20.0) -> tuple[str | None, str]:
+    """Start the Rerun viewer (the ``rerun`` command on PATH, which rerun-sdk installs) on a free
+    port, detached, and wait until it accepts data. Returns (its gRPC URL, "") or (None, why it
+    cannot be used)."""
+    exe = shutil.which("rerun")
+    if exe is None:
+        return None, "no Rerun viewer on PATH (the 'rerun' command comes with rerun-sdk)"
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = int(s.getsockname()[1])
+    # the viewer's messages go to a file of its own (unlinked: gone when it exits)
+    with tempfile.TemporaryFile() as log:
+        try:
+            proc = subprocess.Popen(
+                [exe, "--port", str(port), "--expect-data-soon"],
+                stdin=subprocess.DEVNULL,
+                stdout=log,
+                stderr=log,
+                env={**os.environ, "RERUN_APP_ONLY": "true"},
+                start_new_session=True,
+            )
+        except OSError as exc:
+            return None, f"the Rerun viewer could not start ({exc})"
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if proc.poll() is not None:
+                return None, f"the Rerun viewer could not start ({_last_line(log)})"
+            try:
+                socket.create_connection(("127.0.0.1", port), timeout=0.5).close()
+            except OSError:
+                time.sleep(0.1)
+                continue
+            time.sleep(0.5)  # a viewer without a display listens, then exits
+            if proc.poll() is not None:
+                return None, f"the Rerun viewer could not start ({_last_line(log)})"
+            return f"rerun+http://127.0.0.1:{port}/proxy", ""
+    with contextlib.suppress(ProcessLookupError):
+        os.killpg(proc.pid, signal.SIGTERM)
+    return None, f"the Rerun viewer did not answer within {timeout:.0f} s"
+
+
+def _last_line(log: Any) -> str:
+    """The last non-empty line a process wrote, without terminal colour codes."""
+    log.seek(0)
+    text = log.read().decode("utf-8", "replace")
+    lines = [re.sub(r"\x1b\[[0-9;]*m", "", line).strip() for line in text.splitlines()]
+    lines = [re.sub(r" at \S+\.rs:\d+", "", line) for line in lines]  # Rust source locations
+    lines = [line for line in lines if line]
+    return lines[-1][:300] if lines else "it exited without a message"

@@ -2,9 +2,10 @@
 
 Order: inputs are read once; each stage fits on its input as corrected by the correction stages
 before it, and a correction stage's step then joins the chain. Outputs (``calibration.json``,
-artifacts such as ``imu.yaml``, one corrected ``<input>.mcap`` per ``apply_to`` input,
-``recording.rrd``) are staged under temporary names and renamed into ``[output] dir`` only when
-everything succeeded.
+with where each step was fitted; each stage's artifacts; the files other tools read, made from
+the calibration by :mod:`imupipe.pipeline.exports` such as ``imu.yaml``; one corrected
+``<input>.mcap`` per ``apply_to`` input; ``recording.rrd``) are staged under temporary names and
+renamed into ``[output] dir`` only when everything succeeded.
 """
 
 from __future__ import annotations
@@ -12,21 +13,31 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from collections.abc import Iterator, Mapping
+from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import pyarrow as pa
 
-from imupipe.pipeline.atomic import staged_outputs
+from imupipe.pipeline.atomic import OutputGuard, remove_stale_temps, staged_outputs
+from imupipe.pipeline.calibration_file import fitted_on
 from imupipe.pipeline.config import Config, load_config
-from imupipe.pipeline.mcap_writer import write_mcap
+from imupipe.pipeline.corrected import write_corrected
+from imupipe.pipeline.exports import chosen as chosen_exports
+from imupipe.pipeline.exports import export_all
 from imupipe.pipeline.progress import progress_bar
+from imupipe.pipeline.signals import signals_deferred
+from imupipe.pipeline.summary import (
+    StageSummary,
+    raw_count_sensors,
+    run_markdown,
+    stage_markdown,
+    summarise,
+)
 from imupipe.pipeline.version import VERSION
-from imupipe.readers.dispatch import carry_over, read_input
-from imupipe.readers.table import SENSOR_COLUMNS, STREAM_OF_SENSOR, has_stream, sensor
-from imupipe.stages.base import NullRecorder, StageContext
+from imupipe.readers.dispatch import read_input
+from imupipe.stages.base import StageContext
 from imupipe.stages.registry import stage_class
 from imupipe.stages.steps import Step, apply_chain
 
@@ -34,10 +45,14 @@ from imupipe.stages.steps import Step, apply_chain
 class CorrectedTables(Mapping[str, pa.Table]):
     """Every input as corrected by the chain so far, computed on first use and kept: when the
     chain grows (:meth:`extend`), a kept table gets only the new steps, never the whole chain
-    again."""
+    again. An input not in ``raw`` is read with ``read(name)`` when a stage first asks for it."""
 
-    def __init__(self, raw: Mapping[str, pa.Table]) -> None:
+    def __init__(
+        self, raw: dict[str, pa.Table], names: list[str], read: Callable[[str], pa.Table]
+    ) -> None:
         self._raw = raw
+        self._names = names
+        self._read = read
         self.chain: list[Step] = []
         self._kept: dict[str, tuple[pa.Table, int]] = {}  # input -> (table, steps applied)
 
@@ -49,7 +64,16 @@ class CorrectedTables(Mapping[str, pa.Table]):
         inputs one stage uses are held corrected besides the raw tables)."""
         self._kept = {k: v for k, v in self._kept.items() if k == name}
 
+    def release(self) -> None:
+        """Forget every table (the stages are done; the outputs are streamed from the logs)."""
+        self._raw.clear()
+        self._kept.clear()
+
     def __getitem__(self, name: str) -> pa.Table:
+        if name not in self._names:
+            raise KeyError(name)
+        if name not in self._raw:
+            self._raw[name] = self._read(name)
         table, applied = self._kept.get(name, (self._raw[name], 0))
         if applied < len(self.chain):
             table = apply_chain(table, self.chain[applied:])
@@ -57,10 +81,10 @@ class CorrectedTables(Mapping[str, pa.Table]):
         return table
 
     def __iter__(self) -> Iterator[str]:
-        return iter(self._raw)
+        return iter(self._names)
 
     def __len__(self) -> int:
-        return len(self._raw)
+        return len(self._names)
 
 
 @dataclass
@@ -69,54 +93,79 @@ class RunSummary:
     files: list[Path]
     calibration: dict[str, Any]
     counts: dict[str, dict[str, int]] = field(default_factory=dict)
+    summaries: list[StageSummary] = field(default_factory=list)
 
 
-def calibration_document(chain: list[Step], results: dict[str, Any]) -> dict[str, Any]:
-    """The ``calibration.json`` document (SPEC)."""
-    return {
-        "imupipe_version": VERSION,
-        "chain": [step.to_json() for step in chain],
-        "results": results,
-    }
+def calibration_document(
+    chain: list[Step], results: dict[str, Any], fitted: list[dict[str, Any]] | None = None
+) -> dict[str, Any]:
+    """The ``calibration.json`` document; ``fitted`` gives each chain entry's ``fitted_on``
+    (:func:`imupipe.pipeline.calibration_file.fitted_on`)."""
+    entries = [step.to_json() for step in chain]
+    for entry, where in zip(entries, fitted or [], strict=False):
+        entry["fitted_on"] = where
+    return {"imupipe_version": VERSION, "chain": entries, "results": results}
 
 
-def record_sensors(recorder: Any, prefix: str, table: pa.Table, sensors: tuple[str, ...]) -> None:
-    for name in sensors:
-        if has_stream(table, STREAM_OF_SENSOR[name]):
-            data = sensor(table, name)
-            axes = tuple(c.split("_")[-1] for c in SENSOR_COLUMNS[name])
-            recorder.series(f"{prefix}/{name}", data.t_ns, data.values, axes)
+def publish(summaries: Sequence[StageSummary], recorder: Any, cfg: Any, out: Any) -> list[Any]:
+    """The summary into the recording (a document per stage, and the Summary tab) and, with
+    ``[output] report``, into ``report.html`` (staged in ``out``); returns the files written."""
+    for s in summaries:
+        recorder.document(s.name, stage_markdown(s))
+    recorder.document(None, run_markdown(summaries, f"imupipe run {cfg.path.name}"))
+    if not cfg.output.report:
+        return []
+    from imupipe.pipeline.report import write_report  # matplotlib: imported only when needed
+
+    target = cfg.output.dir / "report.html"
+    write_report(out.path(target), summaries, recorder.figures, cfg)
+    return [target]
+
+
+def output_guard(cfg: Config) -> OutputGuard:
+    """The guard of ``[output] dir``, with the outputs known before the stages run checked: none
+    may lie outside the folder or replace an input (the inputs, a CSV's gyro file, the config)."""
+    inputs = [cfg.path, *(spec.path for spec in cfg.inputs.values())]
+    inputs += [spec.csv.gyro_file for spec in cfg.inputs.values() if spec.csv.gyro_file]
+    guard = OutputGuard(cfg.output.dir, inputs, "[output] dir")
+    known = ["calibration.json", *(f"{name}.mcap" for name in cfg.output.apply_to)]
+    for name in known + (["recording.rrd"] if cfg.output.rerun else []):
+        guard.check(name)
+    guard.probe()
+    return guard
 
 
 def run(config: Config | str | Path, *, spawn: bool = False, quiet: bool = False) -> RunSummary:
     """Run a config end to end; returns what was written."""
     cfg = config if isinstance(config, Config) else load_config(config)
     out_dir = cfg.output.dir
+    guard = output_guard(cfg)
+    remove_stale_temps(out_dir)
     raw: dict[str, pa.Table] = {}
-    n_steps = len(cfg.inputs) + len(cfg.stages) + len(cfg.output.apply_to) + 1
+    used = [name for name in cfg.inputs if any(st.input == name for st in cfg.stages)]
+    n_steps = len(used) + len(cfg.stages) + len(cfg.output.apply_to) + 1
+
+    def read(name: str) -> pa.Table:
+        table, warnings = read_input(cfg.inputs[name])
+        for w in warnings:
+            if not quiet:
+                print(f"imupipe: warning: [inputs.{name}] {w}", file=sys.stderr)
+        return table
+
     with progress_bar("imupipe run", total=n_steps, quiet=quiet) as bar:
-        for name, spec in cfg.inputs.items():
+        for name in used:  # inputs only written (apply_to) are never held: streamed below
             bar.describe(f"reading {name}")
-            table, warnings = read_input(spec)
-            for w in warnings:
-                if not quiet:
-                    print(f"imupipe: warning: [inputs.{name}] {w}", file=sys.stderr)
-            raw[name] = table
+            raw[name] = read(name)
             bar.advance()
 
-        tables = CorrectedTables(raw)
+        tables = CorrectedTables(raw, list(cfg.inputs), read)
         results: dict[str, Any] = {}
-        with staged_outputs() as out:
-            files: list[Path] = []
-            recorder: Any = NullRecorder()
-            if cfg.output.rerun:
-                from imupipe.pipeline.recording import Recorder
+        fitted: list[dict[str, Any]] = []  # fitted_on of each chain entry
+        with staged_outputs(guard) as out:
+            from imupipe.pipeline.recording import open_recorder  # rerun: loaded when run
 
-                rrd = out_dir / "recording.rrd"
-                recorder = Recorder(
-                    out.path(rrd), spawn=spawn, max_points=cfg.output.rerun_max_points
-                )
-                files.append(rrd)
+            with signals_deferred():  # never a half-made recording stream
+                recorder, files = open_recorder(cfg, out, spawn=spawn, quiet=quiet)
             for st in cfg.stages:
                 bar.describe(f"stage {st.name}")
                 stage = stage_class(st.type)(st.options)
@@ -131,17 +180,23 @@ def run(config: Config | str | Path, *, spawn: bool = False, quiet: bool = False
                     accept_failed_checks=st.accept_failed_checks,
                 )
                 sensors = stage.sensors_for(st.options)
-                record_sensors(recorder, f"/{st.name}/input", table, sensors)
+                recorder.sensors(st.name, table, sensors, input_name=st.input, chain=tables.chain)
                 output = stage.fit(table, ctx)
+                where = fitted_on(st.input, cfg.inputs[st.input], table)
                 if output.steps:
                     tables.extend(output.steps)
-                    record_sensors(recorder, f"/{st.name}/output", tables[st.input], sensors)
+                    fitted.extend([where] * len(output.steps))
+                    fixed = [n for n in sensors if any(s.sensor == n for s in output.steps)]
+                    recorder.sensors(
+                        st.name, tables[st.input], fixed, input_name=st.input, corrected=True
+                    )
                 recorder.ensure_stage(st.name)
                 results[st.name] = {
                     "type": st.type,
                     "input": st.input,
                     **output.results,
                     "warnings": ctx.warnings,
+                    "fitted_on": where,
                 }
                 if ctx.failed_checks:
                     results[st.name]["failed_checks"] = ctx.failed_checks
@@ -150,26 +205,39 @@ def run(config: Config | str | Path, *, spawn: bool = False, quiet: bool = False
                     files.append(out_dir / fname)
                 bar.advance()
 
-            doc = calibration_document(tables.chain, results)
+            doc = calibration_document(tables.chain, results, fitted)
+            exported, report = export_all(doc, chosen_exports(doc, cfg.output.exports))
+            if report:  # what each tool's file leaves out: in the document, and one line
+                doc["exports"] = report
+            noted = [name for name, rep in report.items() if rep.get("notes")]
+            if noted and not quiet:
+                print(
+                    f"imupipe: note: [exports] {', '.join(noted)} leave out what their format "
+                    'has no place for: see "exports" in calibration.json',
+                    file=sys.stderr,
+                )
             out.write_text(out_dir / "calibration.json", json.dumps(doc, indent=2) + "\n")
             files.append(out_dir / "calibration.json")
+            for fname, text in exported.items():
+                out.write_text(out_dir / fname, text)
+                files.append(out_dir / fname)
+            summaries = summarise(results, raw_count_sensors(cfg.inputs))
+            files += publish(summaries, recorder, cfg, out)
             counts: dict[str, dict[str, int]] = {}
+            tables.release()
             for name in cfg.output.apply_to:
                 bar.describe(f"writing {name}.mcap")
-                tables.keep_only(name)
-                corrected = tables[name]
                 target = out_dir / f"{name}.mcap"
-                counts[name] = write_mcap(
-                    out.path(target),
-                    corrected,
-                    calibration=doc,
-                    carry_over=carry_over(cfg.inputs[name]),
+                counts[name] = write_corrected(
+                    out.path(target), cfg.inputs[name], tables.chain, doc
                 )
                 files.append(target)
                 bar.advance()
             recorder.close()
             bar.advance()
-    return RunSummary(out_dir=out_dir, files=files, calibration=doc, counts=counts)
+    return RunSummary(
+        out_dir=out_dir, files=files, calibration=doc, counts=counts, summaries=summaries
+    )
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -185,6 +253,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 def main(args: argparse.Namespace) -> int:
     summary = run(args.config, spawn=args.spawn, quiet=args.quiet)
     if not args.quiet:
+        from imupipe.pipeline.summary import print_summary
+
+        print_summary(summary.summaries)
         for path in summary.files:
             print(path)
     return 0

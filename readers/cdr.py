@@ -83,8 +83,9 @@ def encode(
 ) -> np.ndarray:
     """Encode ``n`` messages with one frame_id into an (n, prefix + itemsize) uint8 array.
 
-    ``fields`` maps each float field name of :data:`FIELDS` to an (n,) or (n, count) array; a
-    missing field is zeros. ``encoding``: ``cdr`` (ROS 2) or ``ros1`` (header ``seq`` 0).
+    ``fields`` maps each float field name of :data:`FIELDS` to an (n,) or (n, count) array, or
+    one row ((1,) or (1, count)) that every message gets; a missing field is zeros. Values are
+    written as given, NaN included. ``encoding``: ``cdr`` (ROS 2) or ``ros1`` (header ``seq`` 0).
     ``prefix`` bytes (zeros) precede each message, for the caller to fill (a record header).
     """
     dt = layout(msgtype, len(frame_id), encoding, prefix)

@@ -459,26 +459,25 @@ def read_csv(spec: InputSpec) -> tuple[pa.Table, list[str]]:
     f.columns.clear()
 
     gyro, accel = sensors.get("gyro"), sensors.get("accel")
-    imu_valid = None
-    if gyro is not None or accel is not None:
-        if gyro is None or accel is None:
-            missing = "gyro" if gyro is None else "accel"
-            present = accel if gyro is None else gyro
-            warnings.append(f"{path}: no {missing} columns; {missing} is left as zeros")
-            zero = _Sensor(np.zeros((n, 3)), present.has, {})  # type: ignore[union-attr]
-            gyro = gyro or zero
-            accel = accel or zero
-        imu_valid = _any(gyro.has, accel.has)
-        _nan_warning(path, "IMU", imu_valid, n, {**gyro.nan, **accel.nan}, warnings, gyro, accel)
+    if gyro is not None or accel is not None:  # each sensor keeps its own validity (see table)
+        imu = [s for s in (gyro, accel) if s is not None]
+        has = (
+            None if any(s.has is None for s in imu) else np.logical_or.reduce([s.has for s in imu])
+        )
+        nan = {k: v for s in imu for k, v in s.nan.items()}
+        _nan_warning(path, "IMU", has, n, nan, warnings, *imu)
     for key, what in (("mag", "magnetometer"), ("temperature", "temperature")):
         s = sensors.get(key)
         if s is not None and s.nan:
             _nan_warning(path, what, s.has, n, s.nan, warnings, s)
     mag, temperature = sensors.get("mag"), sensors.get("temperature")
+    meta = {"source": str(path), "format": "csv", "topics": {}, "types": {}, "frame_id": {}}
+    raw = [k for k in ("gyro", "accel", "mag") if k in sensors and getattr(m, f"{k}_unit") == "raw"]
+    if raw:  # the values are the sensor's own counts, not SI: stages word their figures so
+        meta["units"] = dict.fromkeys(raw, "raw")
     valid = {
-        "imu": _mask(imu_valid, n) if gyro is not None else np.zeros(n, bool),
-        "mag": _mask(mag.has, n) if mag is not None else np.zeros(n, bool),
-        "temperature": _mask(temperature.has, n) if temperature is not None else np.zeros(n, bool),
+        key: _mask(sensors[key].has, n) if key in sensors else np.zeros(n, bool)
+        for key in ("gyro", "accel", "mag", "temperature")
     }
     table = make_table(
         t_ns,
@@ -488,7 +487,7 @@ def read_csv(spec: InputSpec) -> tuple[pa.Table, list[str]]:
         temperature=None if temperature is None else temperature.values[:, 0],
         valid=valid,
         extra=extra or None,
-        metadata={"source": str(path), "format": "csv", "topics": {}, "types": {}, "frame_id": {}},
+        metadata=meta,
     )
     table, moved = sort_by_time(table)
     if moved:
@@ -496,13 +495,6 @@ def read_csv(spec: InputSpec) -> tuple[pa.Table, list[str]]:
             f"{path}: {moved} rows were out of time order; sorted stably (none dropped)"
         )
     return table, warnings
-
-
-def _any(a: np.ndarray | None, b: np.ndarray | None) -> np.ndarray | None:
-    """Rows where either mask holds (None: every row)."""
-    if a is None or b is None:
-        return None
-    return a | b
 
 
 def _mask(has: np.ndarray | None, n: int) -> np.ndarray:

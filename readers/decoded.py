@@ -64,13 +64,15 @@ def normalize_type(name: str) -> str:
 @dataclass
 class Piece:
     """Decoded messages of one stream: header ``stamp`` and ``log`` time (int64 ns), ``frame``
-    (Arrow strings) and ``columns`` (table column -> (n,) or (n, 9) float64, see
-    :data:`COLUMNS`)."""
+    (Arrow strings), ``columns`` (table column -> (n,) or (n, 9) float64, see
+    :data:`COLUMNS`) and ``pub``, the publish time (int64 ns; None where the format has none:
+    ROS bags)."""
 
     stamp: np.ndarray
     log: np.ndarray
     frame: pa.Array
     columns: dict[str, np.ndarray]
+    pub: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.stamp.shape[0])
@@ -84,6 +86,7 @@ def decode_piece(
     stream: str,
     encoding: str,
     where: str,
+    pub: np.ndarray | None = None,
 ) -> Piece:
     """Decode one chunk's messages of ``stream`` (payloads in ``buf``) into a :class:`Piece`;
     numpy path first, rosbags' deserializer for layouts it does not take. A bad payload is a
@@ -106,7 +109,7 @@ def decode_piece(
             f"{exc.reason}"
         ) from None
     names = [name for name, _, _ in COLUMNS[stream]]
-    return Piece(stamp, log, frame, dict(zip(names, cols, strict=True)))
+    return Piece(stamp, log, frame, dict(zip(names, cols, strict=True)), pub)
 
 
 def select_topics(path: Path | str, spec: InputSpec, types: Mapping[str, str]) -> dict[str, str]:
@@ -161,11 +164,38 @@ def concat(pieces: list[Piece], stream: str) -> Piece:
     columns = {}
     for name, _, _ in COLUMNS[stream]:
         columns[name] = np.concatenate([p.columns.pop(name) for p in pieces])
+    pubs = None
+    if any(p.pub is not None for p in pieces):  # the log time stands in where there is none
+        pubs = np.concatenate([p.log if p.pub is None else p.pub for p in pieces])
     joined = Piece(
         np.concatenate([p.stamp for p in pieces]),
         np.concatenate([p.log for p in pieces]),
         pa.concat_arrays([p.frame for p in pieces]),
         columns,
+        pubs,
     )
     pieces.clear()
     return joined
+
+
+def absent_sensors(piece: Piece) -> dict[str, np.ndarray]:
+    """Imu messages that mark gyro or accel as "no data" (sensor_msgs/Imu: element 0 of the
+    covariance is -1) *and* carry NaN in that vector: what the corrected MCAP writes for a CSV
+    without that sensor. The sensor is read back as absent (null) there, unless both are marked
+    (the message then stays a sample, its NaN values kept)."""
+    out: dict[str, np.ndarray] = {}
+    for name in ("gyro", "accel"):
+        cov = piece.columns.get(f"{name}_cov")  # a format without covariances marks nothing
+        if cov is None or f"{name}_x" not in piece.columns:
+            continue
+        marked = np.isnan(piece.columns[f"{name}_x"])
+        if marked.any():
+            for axis in "yz":
+                marked &= np.isnan(piece.columns[f"{name}_{axis}"])
+            marked &= cov[:, 0] == -1.0
+            if marked.any():
+                out[name] = marked
+    if len(out) == 2:
+        both = out["gyro"] & out["accel"]
+        out = {k: v & ~both for k, v in out.items() if np.any(v & ~both)}
+    return out

@@ -22,6 +22,7 @@ READERS: dict[str, str] = {
     "mcap": "imupipe.readers.mcap_reader:read_mcap",
     "ros1": "imupipe.readers.ros1_reader:read_ros1",
     "ros2": "imupipe.readers.ros2_reader:read_ros2",
+    "ulog": "imupipe.readers.ulog_reader:read_ulog",
 }
 """Format -> "module:function(spec) -> (table, warnings)"."""
 
@@ -31,7 +32,8 @@ CARRY_OVER: dict[str, str] = {
     "ros2": "imupipe.readers.ros2_reader:carry_over_ros2",
 }
 """Format -> "module:function(spec) -> Iterable[RawMessage]": the messages of every topic the
-table does not hold, in log-time order (formats without other topics are absent)."""
+table does not hold, in log-time order (formats without other topics are absent; a ULog's other
+topics have no ROS type and are listed in one warning by its reader instead)."""
 
 ITERATORS: dict[str, str] = {
     "mcap": "imupipe.readers.mcap_reader:iter_mcap",
@@ -39,18 +41,21 @@ ITERATORS: dict[str, str] = {
     "ros2": "imupipe.readers.ros2_reader:iter_ros2",
 }
 """Format -> "module:function(spec, batch_rows) -> Iterator[(table, [RawMessage])]": bounded
-memory batches (formats absent here are read whole and yielded as one batch)."""
+memory batches (formats absent here are read whole and yielded as one batch: CSV, and ULog,
+which pyulog reads whole)."""
 
 SOURCES: dict[str, str] = {
     "mcap": "imupipe.readers.mcap_reader:mcap_sources",
     "ros1": "imupipe.readers.ros1_reader:bag_sources",
     "ros2": "imupipe.readers.ros2_reader:bag2_sources",
+    "ulog": "imupipe.readers.ulog_reader:ulog_sources",
 }
 """Format -> "module:function(path) -> [LogSource]": the files of a binary log, for ``inspect``."""
 
 
 def detect_format(path: Path) -> str:
-    """``csv``, ``mcap``, ``ros1`` or ``ros2`` for a path; ReadError when unknown or missing."""
+    """``csv``, ``mcap``, ``ros1``, ``ros2`` or ``ulog`` for a path; ReadError when unknown or
+    missing."""
     if not path.exists():
         raise ReadError(f"{path}: no such file or folder")
     if path.is_dir():
@@ -71,8 +76,11 @@ def detect_format(path: Path) -> str:
         return "ros1"
     if suffix == ".db3":
         return "ros2"
+    if suffix == ".ulg":
+        return "ulog"
     raise ReadError(
-        f"{path}: unknown log format '{suffix}' (expected .csv, .mcap, .bag, .db3 or a ROS 2 bag folder)"
+        f"{path}: unknown log format '{suffix}' (expected .csv, .mcap, .bag, .db3, .ulg or a ROS 2 "
+        "bag folder)"
     )
 
 
@@ -122,8 +130,8 @@ def carry_over(spec: InputSpec) -> Iterable[RawMessage]:
 
 
 def log_sources(spec: InputSpec) -> list[LogSource]:
-    """The sources of a binary input (MCAP, ROS 1 bag(s), ROS 2 bag)."""
+    """The sources of a binary input (MCAP, ROS 1 bag(s), ROS 2 bag, ULog)."""
     fmt = detect_format(Path(spec.path))
     if fmt not in SOURCES:
-        raise ReadError(f"{spec.path}: not a binary log (MCAP or ROS bag)")
+        raise ReadError(f"{spec.path}: not a binary log (MCAP, ROS bag or ULog)")
     return list(_load(spec, fmt, SOURCES[fmt])(Path(spec.path)))

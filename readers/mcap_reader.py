@@ -94,9 +94,9 @@ class McapSource:
                 f"{where}: message encoding '{channel.message_encoding}' is not supported "
                 "(cdr or ros1)"
             )
-        log, _pub, starts, lengths = chunk.records(cid)
+        log, pub, starts, lengths = chunk.records(cid)
         return decode_piece(
-            chunk.buf, starts, lengths, log, stream, channel.message_encoding, where
+            chunk.buf, starts, lengths, log, stream, channel.message_encoding, where, pub
         )
 
     def _raw(

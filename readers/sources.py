@@ -115,6 +115,7 @@ def _split(piece: Piece, keep: np.ndarray) -> tuple[Piece, Piece]:
                 piece.log[mask],
                 piece.frame.take(idx),
                 {name: col[mask] for name, col in piece.columns.items()},
+                None if piece.pub is None else piece.pub[mask],
             )
         )
     return out[0], out[1]

@@ -30,15 +30,25 @@ class CsvMapping:
     """
 
     time: str | int | None = "t_ns"
+    """The time column (name, or 0-based index); none with ``rate_hz``."""
     time_unit: str = "ns"
+    """Unit of the time column: s, ms, us or ns."""
     gyro: list[str | int] | None = field(default_factory=lambda: ["gyro_x", "gyro_y", "gyro_z"])
+    """The three gyroscope columns (x, y, z)."""
     gyro_unit: str = "rad/s"
+    """rad/s, deg/s, or raw (counts, left unscaled)."""
     accel: list[str | int] | None = field(default_factory=lambda: ["accel_x", "accel_y", "accel_z"])
+    """The three accelerometer columns (x, y, z)."""
     accel_unit: str = "m/s^2"
+    """m/s^2, g, mg, or raw (counts, left unscaled)."""
     mag: list[str | int] | None = field(default_factory=lambda: ["mag_x", "mag_y", "mag_z"])
+    """The three magnetometer columns (x, y, z)."""
     mag_unit: str = "T"
+    """T, mT, uT, nT, gauss, mgauss, or raw (counts, left unscaled)."""
     temperature: str | int | None = "temperature"
+    """The temperature column, degC (after ``scale``/``offset``)."""
     rate_hz: float | None = None
+    """Sample rate, Hz: times from the row number instead of a time column."""
     delimiter: str = "auto"
     """``,`` ``;`` ``\\t`` ``whitespace`` (runs of blanks) or ``auto`` (sniffed from the file's
     first 64 KiB)."""

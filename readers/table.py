@@ -5,10 +5,13 @@ One row per *sample event*, rows in time order (stable: equal stamps keep their 
 | column | type | unit | meaning |
 |---|---|---|---|
 | ``t_ns`` | int64 | ns | sample time (header stamp by default; log time with ``time = "log"``) |
-| ``gyro_x``, ``gyro_y``, ``gyro_z`` | float64 | rad/s | angular rate; null where the row has no IMU sample |
-| ``accel_x``, ``accel_y``, ``accel_z`` | float64 | m/s^2 | specific force; null where the row has no IMU sample |
+| ``gyro_x``, ``gyro_y``, ``gyro_z`` | float64 | rad/s | angular rate; null where the row has no gyro sample |
+| ``accel_x``, ``accel_y``, ``accel_z`` | float64 | m/s^2 | specific force; null where the row has no accel sample |
 | ``mag_x``, ``mag_y``, ``mag_z`` | float64 | T | magnetic field; null where the row has no magnetometer sample |
 | ``temperature`` | float64 | degC | temperature; null where the row has no temperature sample |
+
+Null means "no sample"; NaN is a sample whose value came as NaN (it is kept and written back as
+NaN; stages leave it out of their fits, see :func:`finite`).
 
 Optional columns, filled by the binary readers so that a log can be written back message for
 message (absent or null: the writer uses ROS defaults):
@@ -16,6 +19,8 @@ message (absent or null: the writer uses ROS defaults):
 | column | type | meaning |
 |---|---|---|
 | ``log_time_ns`` | int64 | the log (receive) time of the message, ns |
+| ``header_stamp_ns`` | int64 | the message's header stamp, ns, where it differs from ``t_ns``: filled with ``time = "log"`` (with ``time = "header"``, ``t_ns`` is the header stamp) |
+| ``publish_time_ns`` | int64 | the MCAP publish time, ns (MCAP inputs; ROS 1/ROS 2 bags have none: the log time stands for it) |
 | ``frame_id`` | string | the message header's frame_id |
 | ``orientation_x/y/z/w`` | float64 | sensor_msgs/Imu orientation quaternion |
 | ``orientation_cov``, ``gyro_cov``, ``accel_cov``, ``mag_cov`` | fixed_size_list<float64, 9> | covariances |
@@ -23,15 +28,23 @@ message (absent or null: the writer uses ROS defaults):
 | ``label`` | string | a CSV's segment label (csv ``label`` key), e.g. a calibration pose name |
 | ``ambient_temperature`` | float64 | degC, the air (chamber) temperature around the IMU (csv ``ambient_temperature`` key); null where absent |
 
-**Streams.** A row belongs to the ``imu`` stream where ``gyro_x`` is valid (an Imu message always
-carries both gyro and accel), to the ``mag`` stream where ``mag_x`` is valid, and to the
-``temperature`` stream where ``temperature`` is valid. A CSV row may belong to all three; a
-message from a bag belongs to exactly one. Streams at different rates keep their own timestamps:
-nothing is resampled silently; a stage that needs one stream at another's timestamps calls
+**Streams.** Each sensor has its own validity (the first column of the sensor is valid). A row
+belongs to the ``imu`` stream where gyro *or* accel is valid, to the ``mag`` stream where
+``mag_x`` is valid, and to the ``temperature`` stream where ``temperature`` is valid. An Imu
+message from a log carries both gyro and accel; a CSV with only accel columns (or only gyro)
+gives an ``imu`` stream whose other sensor is null on every row: it is absent, never zeros
+(:func:`has_sensor` is false; :func:`sensor` gives NaN for it on every IMU row). The
+corrected MCAP writes such a row as a ``sensor_msgs/Imu`` whose missing vector is NaN with
+element 0 of its covariance set to -1 (the message's own convention for "no data"), and the
+readers read that back as null. A CSV row may belong to all three streams; a message from a bag
+belongs to exactly one. Streams at different rates keep their own timestamps: nothing is
+resampled silently; a stage that needs one stream at another's timestamps calls
 :func:`interpolate` explicitly.
 
 **Metadata** (schema metadata key ``imupipe``, JSON): ``source`` (file), ``format``, ``topics``
-(stream -> topic name), ``types`` (stream -> message type) and ``frame_id`` (stream -> frame).
+(stream -> topic name), ``types`` (stream -> message type) and ``frame_id`` (stream -> frame);
+``units`` (sensor -> ``"raw"``) where a sensor's values are its own counts, not SI (a CSV
+mapped with ``mag_unit = "raw"``...), so that stages word their figures in counts.
 """
 
 from __future__ import annotations
@@ -68,8 +81,12 @@ STREAM_OF_SENSOR: dict[str, str] = {
 }
 """The stream (message) each sensor travels in."""
 
-STREAM_KEY_COLUMN: dict[str, str] = {"imu": "gyro_x", "mag": "mag_x", "temperature": "temperature"}
-"""The column whose validity marks membership of a stream."""
+STREAM_SENSORS: dict[str, tuple[str, ...]] = {
+    "imu": ("gyro", "accel"),
+    "mag": ("mag",),
+    "temperature": ("temperature",),
+}
+"""The sensors each stream carries: a row belongs to a stream where any of them is valid."""
 
 STREAMS: tuple[str, ...] = ("imu", "mag", "temperature")
 
@@ -84,6 +101,8 @@ SCHEMA = pa.schema(
 OPTIONAL_FIELDS = pa.schema(
     [
         pa.field("log_time_ns", pa.int64()),
+        pa.field("header_stamp_ns", pa.int64()),
+        pa.field("publish_time_ns", pa.int64()),
         pa.field("frame_id", pa.string()),
         pa.field("orientation_x", pa.float64()),
         pa.field("orientation_y", pa.float64()),
@@ -116,8 +135,9 @@ def make_table(
     """Build a common table from numpy arrays (SI units, ``t_ns`` int64 ns).
 
     ``gyro``, ``accel``, ``mag`` are (n, 3), ``temperature`` is (n,). A sensor left out is all
-    null. ``valid`` maps a stream name (``imu``, ``mag``, ``temperature``) to a boolean mask of the
-    rows that hold a sample of it (default: every row, for the sensors given). ``extra`` adds
+    null. ``valid`` maps a stream name (``imu``, ``mag``, ``temperature``) or a sensor name
+    (``gyro``, ``accel``: its own entry wins over its stream's) to a boolean mask of the rows
+    that hold a sample of it (default: every row, for the sensors given). ``extra`` adds
     optional columns (see :data:`OPTIONAL_FIELDS`). Rows are kept in the order given.
     """
     t_ns = np.asarray(t_ns, dtype=np.int64)
@@ -132,7 +152,7 @@ def make_table(
             arrays += [pa.nulls(n, pa.float64()) for _ in cols]
             continue
         values = np.asarray(values, dtype=np.float64).reshape(n, len(cols))
-        mask = valid.get(stream)
+        mask = valid.get(sensor, valid.get(stream))
         null_mask = None if mask is None else ~np.asarray(mask, dtype=bool)
         arrays += [pa.array(values[:, i], pa.float64(), mask=null_mask) for i in range(len(cols))]
     table = pa.Table.from_arrays(arrays, schema=SCHEMA)
@@ -153,7 +173,7 @@ def _as_arrow(column: pa.Array | np.ndarray, typ: pa.DataType) -> pa.Array:
 
 
 def metadata(table: pa.Table) -> dict[str, Any]:
-    """The table's imupipe metadata (source, format, topics, types, frame_id)."""
+    """The table's imupipe metadata (source, format, topics, types, frame_id, units)."""
     raw = (table.schema.metadata or {}).get(META_KEY)
     return json.loads(raw) if raw else {}
 
@@ -165,16 +185,41 @@ def with_metadata(table: pa.Table, meta: Mapping[str, Any]) -> pa.Table:
     return table.replace_schema_metadata(old)
 
 
-def stream_mask(table: pa.Table, stream: str) -> np.ndarray:
-    """Boolean mask of the rows that hold a sample of ``stream`` (imu, mag, temperature)."""
-    column = table.column(STREAM_KEY_COLUMN[stream])
+def _valid(table: pa.Table, column_name: str) -> np.ndarray | None:
+    """Validity of a column as a boolean mask; None when every row is valid."""
+    column = table.column(column_name)
     if column.null_count == 0:
-        return np.ones(len(table), dtype=bool)
+        return None
     return pc.is_valid(column).to_numpy(zero_copy_only=False)
 
 
+def sensor_mask(table: pa.Table, name: str) -> np.ndarray:
+    """Boolean mask of the rows that hold a sample of sensor ``name`` (gyro, accel, mag,
+    temperature): its first column is valid."""
+    mask = _valid(table, SENSOR_COLUMNS[name][0])
+    return np.ones(len(table), dtype=bool) if mask is None else mask
+
+
+def stream_mask(table: pa.Table, stream: str) -> np.ndarray:
+    """Boolean mask of the rows that hold a sample of ``stream`` (imu, mag, temperature): any of
+    its sensors is valid."""
+    mask = np.zeros(len(table), dtype=bool)
+    for name in STREAM_SENSORS[stream]:
+        valid = _valid(table, SENSOR_COLUMNS[name][0])
+        if valid is None:
+            return np.ones(len(table), dtype=bool)
+        mask |= valid
+    return mask
+
+
+def has_sensor(table: pa.Table, name: str) -> bool:
+    """Whether sensor ``name`` has at least one sample in ``table``."""
+    return table.column(SENSOR_COLUMNS[name][0]).null_count < len(table)
+
+
 def has_stream(table: pa.Table, stream: str) -> bool:
-    return table.column(STREAM_KEY_COLUMN[stream]).null_count < len(table)
+    """Whether ``stream`` has at least one sample (row) in ``table``."""
+    return any(has_sensor(table, name) for name in STREAM_SENSORS[stream])
 
 
 def _column_f64(table: pa.Table, name: str, rows: np.ndarray | None) -> np.ndarray:
@@ -204,7 +249,10 @@ class SensorData:
 
 
 def sensor(table: pa.Table, name: str) -> SensorData:
-    """The samples of sensor ``name`` (gyro, accel, mag, temperature) as :class:`SensorData`."""
+    """The samples of sensor ``name`` (gyro, accel, mag, temperature) as :class:`SensorData`:
+    one per row of its stream, so that gyro and accel stay row for row; NaN where that row has
+    no sample of this sensor (an IMU stream from a CSV without accel columns: accel all NaN; see
+    :func:`has_sensor`)."""
     mask = stream_mask(table, STREAM_OF_SENSOR[name])
     rows = None if mask.all() else np.flatnonzero(mask)
     t_ns = table.column("t_ns").to_numpy()
@@ -230,11 +278,11 @@ def replace_sensor(table: pa.Table, name: str, rows: np.ndarray, values: np.ndar
     Rows not listed keep their values; validity (which rows hold a sample) never changes.
     """
     values = np.asarray(values, dtype=np.float64).reshape(len(rows), -1)
+    valid = _valid(table, SENSOR_COLUMNS[name][0])
+    null_mask = None if valid is None else ~valid
     for i, col in enumerate(SENSOR_COLUMNS[name]):
-        column = table.column(col)
         full = _column_f64(table, col, None).copy()
         full[rows] = values[:, i]
-        null_mask = None if column.null_count == 0 else ~stream_mask(table, STREAM_OF_SENSOR[name])
         idx = table.schema.get_field_index(col)
         table = table.set_column(idx, table.schema.field(idx), pa.array(full, mask=null_mask))
     return table

@@ -26,7 +26,7 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.compute as pc
 
-from imupipe.readers.decoded import COLUMNS, STREAM_TYPES, Piece
+from imupipe.readers.decoded import COLUMNS, STREAM_TYPES, Piece, absent_sensors
 from imupipe.readers.prefault import Prefault
 from imupipe.readers.table import COV, SCHEMA, with_metadata
 
@@ -36,8 +36,11 @@ PREFAULT_ROWS = 1 << 16
 """Columns of at least this many rows have their pages mapped by a helper thread."""
 ORDER = {s: i for i, s in enumerate(STREAM_TYPES)}
 """At equal times, the streams' rows in this order."""
-TIME_COLUMNS = {"log_time_ns": "log"}
-"""The table's int64 per-message columns besides ``t_ns``: column -> :class:`Piece` attribute."""
+TIME_COLUMNS = {"log_time_ns": "log", "header_stamp_ns": "stamp", "publish_time_ns": "pub"}
+"""The table's int64 per-message columns besides ``t_ns``, in their order: column ->
+:class:`Piece` attribute. ``header_stamp_ns`` only with ``time = "log"`` (else it is ``t_ns``);
+``publish_time_ns`` only when the log has publish times (MCAP; where a message has none, its log
+time stands in)."""
 
 
 @contextlib.contextmanager
@@ -68,13 +71,19 @@ def _zeros(n: int, count: int = 1) -> np.ndarray:
 class _Stream:
     """One stream's messages in the order they come: times, values, frame_ids."""
 
-    def __init__(self, stream: str, capacity: int) -> None:
+    def __init__(self, stream: str, capacity: int, time: str = "header") -> None:
         self.stream = stream
         self.m = 0
         self.capacity = -1
         self.times: dict[str, np.ndarray] = {}
         """``t_ns`` (the chosen time) and :data:`TIME_COLUMNS`, int64."""
+        self.time_names = ["t_ns", "log_time_ns"] + (["header_stamp_ns"] if time == "log" else [])
         self.columns: dict[str, np.ndarray] = {}
+        self.flags: dict[str, np.ndarray] = {}
+        """Imu only: per sensor (gyro, accel), the messages that mark it "no data" (NaN with
+        covariance[0] = -1, see :func:`imupipe.readers.decoded.absent_sensors`): null there."""
+        self.seen: set[str] = set()
+        """The value columns the messages carried (a ULog has no covariances)."""
         self.frames: list[pa.Array] = []
         self.t_sorted = self.log_sorted = True
         self.last_t = self.last_log = -(2**63)
@@ -89,17 +98,25 @@ class _Stream:
             return
         end = self.end
         with small_pages():
-            times = {name: np.zeros(capacity, np.int64) for name in ("t_ns", *TIME_COLUMNS)}
+            times = {name: np.zeros(capacity, np.int64) for name in self.time_names}
         columns = {name: _zeros(capacity, count) for name, _, count in COLUMNS[self.stream]}
+        flags = {name: np.zeros(capacity, bool) for name in self.flags}
         if end:
-            for old, new in ((self.times, times), (self.columns, columns)):
+            for old, new in ((self.times, times), (self.columns, columns), (self.flags, flags)):
                 for name, column in new.items():
                     column[:end] = old[name][:end]
-        self.times, self.columns, self.capacity = times, columns, capacity
+        self.times, self.columns, self.flags = times, columns, flags
+        self.capacity = capacity
         self.close()
         if capacity >= PREFAULT_ROWS:
             self.prefault = Prefault([*times.values(), *columns.values()])
             self.prefault.advance(end)
+
+    def add_time(self, name: str) -> None:
+        """Start keeping ``name`` (publish times): the messages so far get their log time."""
+        if name not in self.times:
+            self.time_names.append(name)
+            self.times[name] = self.log.copy()
 
     @property
     def t(self) -> np.ndarray:
@@ -116,8 +133,8 @@ class _Stream:
             self.prefault = None
 
     def arrays(self) -> list[np.ndarray]:
-        """Every per-row array (times and values), for moving rows."""
-        return [*self.times.values(), *self.columns.values()]
+        """Every per-row array (times, values, flags), for moving rows."""
+        return [*self.times.values(), *self.columns.values(), *self.flags.values()]
 
     def add(self, piece: Piece, t: np.ndarray, at: slice | np.ndarray | Runs | None = None) -> None:
         """Append ``piece`` (``t``: its chosen times) at rows ``at`` (default: the next rows)."""
@@ -134,9 +151,20 @@ class _Stream:
             max(self.last_t, int(t[-1])),
             max(self.last_log, int(piece.log[-1])),
         )
-        values = {"t_ns": t, **{c: getattr(piece, a) for c, a in TIME_COLUMNS.items()}}
-        targets = {**self.times, **self.columns}
+        if piece.pub is not None:
+            self.add_time("publish_time_ns")
+        values = {"t_ns": t}
+        for name in self.time_names[1:]:
+            value = getattr(piece, TIME_COLUMNS[name])
+            values[name] = piece.log if value is None else value
         values.update(piece.columns)
+        self.seen.update(piece.columns)
+        if self.stream == "imu":
+            for name, marked in absent_sensors(piece).items():
+                if name not in self.flags:
+                    self.flags[name] = np.zeros(self.capacity, bool)
+                values[f"flag_{name}"] = marked
+        targets = {**self.times, **self.columns, **{f"flag_{k}": v for k, v in self.flags.items()}}
         for run, rows in _runs(at):
             for name, column in values.items():
                 targets[name][rows] = column[run]
@@ -245,7 +273,7 @@ class TableBuffer:
         total = sum(counts.get(s, 0) for s in names)
         self.large = max(names, key=lambda s: counts.get(s, 0)) if counts else None
         self.streams = {
-            s: _Stream(s, total if s == self.large else counts.get(s, 0)) for s in names
+            s: _Stream(s, total if s == self.large else counts.get(s, 0), time) for s in names
         }
         self.gapped = self.large is not None and len(names) > 1
         """The large stream is written at its rows in the table, leaving gaps for the other
@@ -456,6 +484,9 @@ class TableBuffer:
             st.close()
         if self.full_prefault is not None:
             self.full_prefault.close()
+        if any("publish_time_ns" in st.times for st in streams):
+            for st in streams:  # a stream without publish times: its log times stand in
+                st.add_time("publish_time_ns")
         n = len(self)
         in_order = all(st.t_sorted for st in streams)
         if sort:
@@ -547,15 +578,16 @@ class TableBuffer:
         big = streams[large]
         big.reserve(n)  # the table's own columns (already this size when the log stated counts)
         if len(streams) > 1 and not self.gapped:
-            own = [*big.times.values(), *big.columns.values()]
+            own = big.arrays()
             _spread(own, rows[large])  # type: ignore[arg-type]
             stale = _unclaimed(big.m, rows[large])  # type: ignore[arg-type]
             for column in own:
                 column[stale] = 0
         times = {name: c[:n] for name, c in big.times.items()}
         columns: dict[str, np.ndarray] = {name: c[:n] for name, c in big.columns.items()}
+        flags = {name: c[:n] for name, c in big.flags.items()}
         if len(streams) == 1:
-            return self._arrays(streams, columns, None), times, frames[0]
+            return self._arrays(streams, columns, None, flags), times, frames[0]
         stream_of_row = np.full(n, large, np.uint8)
         for i, (st, at) in enumerate(zip(streams, rows, strict=True)):
             if i == large:
@@ -568,11 +600,14 @@ class TableBuffer:
                 full = full[:n] if full is not None and len(full) >= n else _zeros(n, count)
                 full[at] = st.columns.pop(name)[:m]
                 columns[name] = full
+            for name, flag in st.flags.items():
+                flags[name] = np.zeros(n, bool)
+                flags[name][at] = flag[:m]
             stream_of_row[at] = i
         if rows[large] is None:
             rows[large] = self._rows()
         frame = _frames(frames, rows, stream_of_row)  # type: ignore[arg-type]
-        return self._arrays(streams, columns, stream_of_row), times, frame
+        return self._arrays(streams, columns, stream_of_row, flags), times, frame
 
     def _gather(
         self,
@@ -603,6 +638,7 @@ class TableBuffer:
         }
         stream_of_row = sid_all[perm] if len(streams) > 1 else None
         columns: dict[str, np.ndarray] = {}
+        flags: dict[str, np.ndarray] = {}
         for i, st in enumerate(streams):
             at = np.flatnonzero(stream_of_row == i) if stream_of_row is not None else None
             for name, _, count in COLUMNS[st.stream]:
@@ -613,22 +649,40 @@ class TableBuffer:
                     full = _zeros(n, count)
                     full[at] = values[perm[at] - start[i]]
                     columns[name] = full
+            for name, flag in st.flags.items():
+                flags[name] = np.zeros(n, bool)
+                if at is None:
+                    flags[name] = flag[: st.m][perm]
+                else:
+                    flags[name][at] = flag[: st.m][perm[at] - start[i]]
         frame = pa.concat_arrays(frames).take(pa.array(perm))
-        return self._arrays(streams, columns, stream_of_row), times, frame
+        return self._arrays(streams, columns, stream_of_row, flags), times, frame
 
     @staticmethod
     def _arrays(
-        streams: list[_Stream], columns: dict[str, np.ndarray], stream_of_row: np.ndarray | None
+        streams: list[_Stream],
+        columns: dict[str, np.ndarray],
+        stream_of_row: np.ndarray | None,
+        flags: dict[str, np.ndarray],
     ) -> dict[str, pa.Array]:
-        """Arrow columns, null where a row holds another stream's message (one validity bitmap
-        per stream, shared by its columns)."""
+        """Arrow columns of the value columns the messages carried, null where a row holds
+        another stream's message (one validity bitmap per stream, shared by its columns) or
+        where an Imu message marks the sensor "no data"."""
         out: dict[str, pa.Array] = {}
         for i, st in enumerate(streams):
-            valid = None
-            if stream_of_row is not None:
-                valid = pa.py_buffer(np.packbits(stream_of_row == i, bitorder="little"))
+            mine = None if stream_of_row is None else stream_of_row == i
+            valid = None if mine is None else pa.py_buffer(np.packbits(mine, bitorder="little"))
+            marked = {}
+            for sensor, flag in flags.items():
+                keep = ~flag if mine is None else mine & ~flag
+                marked[sensor] = pa.py_buffer(np.packbits(keep, bitorder="little"))
             for name, _, _ in COLUMNS[st.stream]:
-                out[name] = _array(columns.pop(name), valid)
+                values = columns.pop(name)
+                if st.seen and name not in st.seen:
+                    continue  # a column no message carried (a ULog's covariances)
+                sensor = name.split("_")[0]
+                own = marked.get(sensor) if name in SCHEMA.names else None
+                out[name] = _array(values, valid if own is None else own)
         return out
 
 

@@ -1,21 +1,37 @@
 """``accel_calibration`` stage: accelerometer scale, non-orthogonality and bias from a
-multi-position session (seeds 002 and 003; imu_tk; imucal's Ferraris).
+multi-position session (Tedaldi, Pretto and Menegatti, ICRA 2014, as imu_tk implements it; the
+six-position method; Xiangtan University's Frank-Wolfe patent; Ferraris et al. 1995 as imucal
+implements it).
 
-Static intervals are detected automatically (:mod:`imupipe.stages.static_detector`; the threshold
-``k`` with the lowest residual per degree of freedom of a 9-parameter fit wins). Then ``method``:
+Static intervals are detected automatically (:mod:`imupipe.stages.static_detector`): the
+threshold is ``k`` times the noise floor of the log itself (or, with ``init_static_s``, imu_tk's
+variance of an initial rest), and every ``k`` of ``thresholds`` is tried. At each ``k`` the
+candidate models are fitted on the interval means and the one with the lowest AICc is kept
+(:func:`imupipe.stages.accel_models.choose_model`); the ``k`` whose kept model has the smallest
+*predicted error* (the RMS over all orientations of the calibrated |a|'s standard deviation, mg)
+wins: the threshold that gives the best-determined calibration. Then ``method``:
 
-- ``six_position`` (seed 002): per axis ``b = (max + min) / 2``, ``k = 2 g / (max - min)`` over the
-  static-interval means; ``matrix = diag(k)``, ``offset = b``. Needs all six faces.
-- ``lm``: the 9-parameter model ``a = S K (a_t - b)`` (:mod:`imupipe.stages.accel_models`) with
-  scipy's Levenberg-Marquardt.
-- ``frank_wolfe``: the same model by Frank-Wolfe over a box around the data-derived start (seed 003).
-- ``ferraris``: imucal's Ferraris calibration from *labelled* segments (``csv.label``; six static
-  poses and three turns); adds an accelerometer and a gyroscope step (:mod:`imupipe.stages.ferraris`).
+- ``lm``: the chosen model ``a = S K (a_t - b)`` (:mod:`imupipe.stages.accel_models`; 9
+  parameters, or 6 without the three misalignment angles) by scipy's Levenberg-Marquardt.
+- ``frank_wolfe``: the same model by Frank-Wolfe over a box around the data-derived start (the
+  patent's method); a box bound that stops it is enlarged and the problem solved again.
+- ``six_position``: per axis ``b = (max + min) / 2``, ``k = 2 g / (max - min)`` over the static
+  means; ``matrix = diag(k)``, ``offset = b``. Needs all six faces.
+- ``ferraris``: imucal's Ferraris calibration from *labelled* (``csv.label``) or timed segments:
+  six static poses and three turns; adds an accelerometer and a gyroscope step, and with
+  ``apply_g_sensitivity`` the gyro's measured g-sensitivity (:mod:`imupipe.stages.ferraris`).
 
-The start of lm and frank_wolfe comes from the data (bias = sphere centre of the static means,
-scale = g / their median radius), so raw counts (``accel_unit = "raw"``) need no hand-made guess.
-Output ``matrix``/``offset`` are SI: ``a [m/s^2] = matrix @ (raw - offset)``. Metrics in mg
-(1 mg = 9.80665e-3 m/s^2) are | |a| - g | over the static intervals.
+``misalignment = "auto"`` (default) lets the data choose between the 9- and the 6-parameter
+model; ``true`` or ``false`` forces one. The start of lm and frank_wolfe comes from the data
+(bias = sphere centre of the static means, scale = g / their median radius), so raw counts need
+no hand-made guess. Output ``matrix``/``offset`` are SI: ``a [m/s^2] = matrix @ (raw - offset)``.
+Metrics in mg (1 mg = 9.80665e-3 m/s^2) are | |a| - g | over the static intervals.
+
+Quality checks (``ctx.check``; ``accept_failed_checks = true`` keeps a fit that fails them):
+the residual over the pose means must stay within :data:`NOISE_FACTOR` times the noise of one
+still sample, and the poses must determine the calibration: predicted error at most
+:data:`MAX_PREDICTED_ERROR_MG` mg over all orientations (``six_position`` checks its coverage
+itself: it needs every face).
 """
 
 from __future__ import annotations
@@ -26,21 +42,36 @@ from typing import Any, Literal
 import numpy as np
 import pyarrow as pa
 
-from imupipe.readers.table import has_stream, sensor
+from imupipe.readers.table import SensorData, has_stream, sensor
 from imupipe.stages import accel_models as am
 from imupipe.stages.base import Stage, StageContext, StageOutput
 from imupipe.stages.errors import FitError
-from imupipe.stages.ferraris import ROTATION_PARTS, STATIC_PARTS, ferraris
+from imupipe.stages.ferraris import ROTATION_PARTS, STATIC_PARTS, GSensitivityStep, ferraris
 from imupipe.stages.static_detector import (
+    Detector,
     Intervals,
-    choose_threshold,
+    Poses,
     make_detector,
     sample_rate,
     segment_mask,
 )
-from imupipe.stages.steps import LinearStep
+from imupipe.stages.steps import LinearStep, Step
 
 DEG = np.pi / 180
+NOISE_FACTOR = 3.0
+"""The | |a| - g | RMS over the pose means may be at most this many times the noise of one still
+sample (from the noise floor): a mean over a second or more at rest is far more precise than one
+sample, so a larger residual is a misfit (real sessions measured: 0.12 to 0.47 times)."""
+MERGE_ANGLE_DEG = 2.0
+"""deg: consecutive static intervals whose mean specific force turned by less than this are the
+same pose (held, disturbed, held again), not two independent ones."""
+MAX_PREDICTED_ERROR_MG = 3.0
+"""mg: the largest predicted error over all orientations of a calibration the poses determine."""
+MISALIGNMENT_MODELS: dict[str, list[str]] = {
+    "auto": ["9-parameter", "6-parameter"],
+    "true": ["9-parameter"],
+    "false": ["6-parameter"],
+}
 
 
 def rms(x: np.ndarray) -> float:
@@ -58,48 +89,126 @@ class StaticSetup:
 
     window_s: float = 1.0
     """Variance window, s."""
-    init_static_s: float = 30.0
-    """Length of the initial static period (threshold reference; gyro bias), s."""
+    init_static_s: float | None = None
+    """Optional: the log starts with this many seconds at rest; its variance is the threshold
+    reference (imu_tk's rule) instead of the noise floor measured on the whole log."""
     min_interval_s: float = 1.0
     """Shortest static interval kept, s."""
-    thresholds: list[float] = field(default_factory=lambda: [2, 3, 4, 5, 6, 7, 8, 9, 10])
-    """Candidate k (threshold = k x variance of the initial period); the best is chosen."""
+    thresholds: list[float] = field(default_factory=lambda: [2, 3, 4, 5, 7, 10, 15, 20, 30])
+    """Candidate k (threshold = k x the reference variance); the best is chosen."""
+    noise_quantile: float = 0.1
+    """The quantile of the windowed variance taken as the noise floor (the log must be at rest
+    for more than this fraction of its length)."""
+    misalignment: Literal["auto"] | bool = "auto"
+    """Fit the three misalignment angles (true), not (false: 6 parameters, scale and bias), or
+    let the poses decide by AICc ("auto")."""
+
+
+@dataclass
+class Detection:
+    """The chosen static intervals grouped into poses, the model fitted on the pose means, and
+    how both were chosen."""
+
+    poses: Poses
+    fit: am.ModelFit
+    reason: str
+    candidates: list[am.ModelFit]
+    report: dict[str, Any]
+
+    @property
+    def intervals(self) -> Intervals:
+        return self.poses.intervals
+
+
+def group_poses(intervals: Intervals, accel: np.ndarray) -> Poses:
+    """Consecutive intervals whose mean specific force (about the sphere centre of the means,
+    so raw counts work) turned by less than :data:`MERGE_ANGLE_DEG` are one pose."""
+    means = intervals.means(accel)
+    centre = am.sphere_centre(means) if len(means) >= 4 else np.zeros(3)
+    if not np.all(np.isfinite(centre)):
+        centre = np.zeros(3)
+    unit = means - centre
+    unit /= np.maximum(np.linalg.norm(unit, axis=1), 1e-300)[:, None]
+    turn = np.degrees(np.arccos(np.clip(np.sum(unit[1:] * unit[:-1], axis=1), -1.0, 1.0)))
+    group = np.r_[0, np.cumsum(turn >= MERGE_ANGLE_DEG)].astype(np.int64)
+    return Poses(intervals, group)
 
 
 def detect_intervals(
-    t_ns: np.ndarray, accel: np.ndarray, setup: Any, g: float, n_params: int
-) -> tuple[Intervals, dict[str, Any]]:
-    """Static intervals with the threshold chosen by the lowest residual per degree of freedom
-    of an LM fit of the model (``n_params`` 9, or 6 without misalignment) on the interval means;
-    at least ``n_params`` intervals."""
+    t_ns: np.ndarray, accel: np.ndarray, setup: Any, g: float, models: list[str] | None = None
+) -> Detection:
+    """Static intervals and the accelerometer model fitted on their means: for every ``k`` of
+    ``setup.thresholds`` the candidate ``models`` (default by ``setup.misalignment``) are fitted
+    and the AICc-best kept; the ``k`` whose kept model has the smallest predicted error wins."""
+    if setup.noise_quantile <= 0 or setup.noise_quantile >= 1:
+        raise FitError(f"noise_quantile must be in (0, 1), got {setup.noise_quantile}")
+    if setup.init_static_s is not None and setup.init_static_s <= 0:
+        raise FitError(f"init_static_s must be > 0 s, got {setup.init_static_s}")
+    if not setup.thresholds or min(setup.thresholds) <= 0:
+        raise FitError("thresholds must be a non-empty list of k > 0")
     detector = make_detector(
         t_ns,
         accel,
         window_s=setup.window_s,
         init_static_s=setup.init_static_s,
         min_interval_s=setup.min_interval_s,
+        floor_quantile=setup.noise_quantile,
     )
-
-    def score(intervals: Intervals) -> float | None:
-        means = intervals.means(accel)
-        free = np.ones(9, dtype=bool)
-        free[3:6] = n_params == 9
+    if models is None:
+        models = MISALIGNMENT_MODELS[str(setup.misalignment).lower()]
+    need = min(int(am.MODEL_FREE[m].sum()) for m in models)
+    table: dict[str, Any] = {}
+    best: tuple[float, float, Detection] | None = None
+    for k in setup.thresholds:
+        intervals = detector.detect(k)
+        row: dict[str, Any] = {"intervals": len(intervals)}
+        table[f"{k:g}"] = row
+        if len(intervals) < need:
+            continue
+        poses = group_poses(intervals, accel)
+        row["poses"] = len(poses)
+        if len(poses) < need:
+            continue
+        means = poses.means(accel)
         try:
-            problem = am.NormProblem(means, g, am.initial_guess(means, g), free)
-            sol = am.solve_lm(problem, xtol=1e-8)
+            start = am.initial_guess(means, g)
+            fits = [
+                am.fit_model(means, g, m, start)
+                for m in models
+                if len(means) >= am.MODEL_FREE[m].sum()
+            ]
         except (FitError, np.linalg.LinAlgError, ValueError):
-            return None
-        r = problem.residual(sol.x) * g / am.MG
-        dof = len(r) - n_params
-        return float(r @ r) / dof if dof > 0 else 1e300
-
-    choice = choose_threshold(detector, setup.thresholds, score, n_params)
-    info = {
-        "threshold_k": choice.k,
-        "threshold_scores": {f"{k:g}": v for k, v in choice.scores.items()},
-        "reference_variance": detector.reference,
+            continue
+        chosen, reason = am.choose_model(fits)
+        score = chosen.predicted_error_mg()
+        row.update({"model": chosen.name, "predicted_error_mg": am.finite_or_none(score)})
+        if best is None or score < best[0]:
+            best = (score, k, Detection(poses, chosen, reason, fits, {}))
+    if best is None:
+        found = ", ".join(f"k={k}: {row['intervals']}" for k, row in table.items())
+        raise FitError(
+            f"too few static poses: need at least {need}, found {found} intervals "
+            "(hold the IMU still longer in more poses, or lower min_interval_s)"
+        )
+    score, k, chosen = best
+    chosen.report = {
+        **detector.describe(k),
+        "window_s": setup.window_s,
+        "min_interval_s": setup.min_interval_s,
+        "noise_sigma_per_axis": detector_noise(detector),
+        "rule": (
+            "the k whose intervals give the smallest predicted calibration error over all "
+            "orientations (its model chosen by AICc)"
+        ),
+        "candidates": table,
     }
-    return choice.intervals, info
+    return chosen
+
+
+def detector_noise(detector: Detector) -> float:
+    """Standard deviation of one still sample per axis implied by the reference variance (input
+    units): the reference is the norm of three per-axis variances."""
+    return float(np.sqrt(detector.reference / np.sqrt(3.0)))
 
 
 class AccelCalibrationStage(Stage):
@@ -111,24 +220,26 @@ class AccelCalibrationStage(Stage):
     class Options(StaticSetup):
         method: Literal["six_position", "lm", "frank_wolfe", "ferraris"] = "lm"
         gravity: float = 9.80665
-        """Local gravity g, m/s^2."""
-        misalignment: bool = True
-        """lm / frank_wolfe: fit the three non-orthogonality angles (false: 6 parameters, for
-        sessions whose poses are only the six faces, where misalignment is unobservable)."""
+        """Local g, m/s^2."""
         fit_on: Literal["means", "samples"] = "means"
         """Fit on the static-interval means, or on up to ``samples_per_interval`` samples from the
         middle of each interval (imu_tk's acc_use_means = false)."""
         samples_per_interval: int = 100
         fw_box: list[float] = field(default_factory=lambda: [0.05, 0.05, 0.05])
         """Frank-Wolfe box half-widths around the start: relative scale, angles (rad), bias
-        (relative to g)."""
+        (relative to g); a half-width the solution ends on is doubled and the problem solved
+        again (up to 8 times)."""
         fw_max_iter: int = 20000
         fw_gap_rtol: float = 1e-2
         """Frank-Wolfe stops when its duality gap is below this fraction of the cost."""
-        ferraris_parts: dict[str, str] | None = None
-        """ferraris: imucal part name (x_p ... z_rot) -> label in the data (default: the same)."""
+        ferraris_parts: dict[str, Any] | None = None
+        """ferraris: imucal part name (x_p ... z_rot) -> its label in the data, or
+        [start_s, end_s] (default: the label of the same name)."""
         ferraris_expected_angle_deg: float = -360.0
         """ferraris: the angle of each turn (imucal's default -360: clockwise)."""
+        apply_g_sensitivity: bool = False
+        """ferraris: also correct the gyro's measured g-sensitivity ``K_ga`` (a step that reads
+        the calibrated accelerometer of each sample)."""
 
     @classmethod
     def sensors_for(cls, options: Any) -> tuple[str, ...]:
@@ -142,41 +253,58 @@ class AccelCalibrationStage(Stage):
             raise ctx.fail(f"gravity must be > 0, got {o.gravity}")
         if o.method == "ferraris":
             return self._ferraris(table, ctx)
-        acc = sensor(table, "accel")
-        if not np.isfinite(acc.values).all():
-            bad = int(np.flatnonzero(~np.isfinite(acc.values).all(axis=1))[0])
-            raise ctx.fail(f"non-finite accelerometer sample at sample {bad}")
+        acc = ctx.finite(sensor(table, "accel"), "accelerometer", minimum=2)
         g = o.gravity
+        models = None if o.method != "six_position" else ["6-parameter"]
         try:
-            n_params = 9 if o.misalignment and o.method != "six_position" else 6
-            intervals, detection = detect_intervals(acc.t_ns, acc.values, o, g, n_params)
+            found = detect_intervals(acc.t_ns, acc.values, o, g, models)
+            params, solver, problem = self._solve(found, acc, ctx)
         except FitError as exc:
             raise ctx.fail(str(exc)) from None
-        means = intervals.means(acc.values)
-        distinct = am.distinct_poses(means)
-        start = am.initial_guess(means, g)
-        results: dict[str, Any] = {"method": o.method}
-        metrics: dict[str, Any] = {
-            "intervals": len(intervals),
-            "distinct_poses": distinct,
-            **detection,
-        }
-        try:
-            params, solver = self._solve(means, acc.values, intervals, start, ctx, metrics)
-        except FitError as exc:
-            raise ctx.fail(str(exc)) from None
-        if solver:
-            metrics["solver"] = solver
-
+        intervals, means = found.intervals, found.poses.means(acc.values)
+        model = found.fit.name if o.method != "six_position" else "six-position"
+        if o.method != "six_position" and o.misalignment == "auto" and model == "6-parameter":
+            ctx.warn(
+                "misalignment not fitted: the poses do not support the 9-parameter model, so the "
+                f"6-parameter model (scale, bias) is used ({found.reason})"
+            )
         inside = intervals.mask(len(acc))
         per_pose = norm_residual_mg(params.apply(means), g)
         per_sample = norm_residual_mg(params.apply(acc.values[inside]), g)
-        metrics["residual_mg"] = {
+        noise_mg = found.report["noise_sigma_per_axis"] * float(np.mean(params.scale)) / am.MG
+        residual = {
             "means_rms": rms(per_pose),
             "means_max": float(np.abs(per_pose).max()),
             "samples_rms": rms(per_sample),
-            "start_means_rms": rms(norm_residual_mg(start.apply(means), g)),
+            "start_means_rms": rms(norm_residual_mg(found.fit.problem.start.apply(means), g)),
+            "noise_per_sample": noise_mg,
         }
+        metrics: dict[str, Any] = {
+            "intervals": len(intervals),
+            "poses": len(means),
+            "distinct_poses": am.distinct_poses(means),
+            "threshold": found.report,
+            "residual_mg": residual,
+            "predicted_error_mg": am.finite_or_none(found.fit.predicted_error_mg()),
+        }
+        if solver:
+            metrics["solver"] = solver
+        results: dict[str, Any] = {"method": o.method}
+        if problem is not None:
+            unc = am.uncertainty(problem, problem_x(problem, params))
+            metrics["uncertainty"] = unc
+            loo = found.fit.leave_one_out_mg()
+            results["model"] = {
+                "chosen": model,
+                "reason": found.reason,
+                "candidates": {f.name: f.summary() for f in found.candidates},
+                "leave_one_pose_out_mg_rms": _loo_rms(loo),
+            }
+            results["standard_errors"] = {
+                "scale": unc.get("scale_std"),
+                "misalignment_rad": unc.get("misalignment_std_rad"),
+                "bias": unc.get("bias_std"),
+            }
         results.update(
             {
                 "scale": params.scale.tolist(),
@@ -192,6 +320,30 @@ class AccelCalibrationStage(Stage):
             }
         )
         self._record(ctx, acc.t_ns, acc.values, params, intervals, per_pose, g)
+        ctx.check(
+            residual["means_rms"] <= NOISE_FACTOR * noise_mg,
+            f"residual far above the noise: | |a| - g | RMS over the pose means "
+            f"{residual['means_rms']:.3g} mg > {NOISE_FACTOR:g} x the noise of one still sample "
+            f"({noise_mg:.3g} mg): motion in the static intervals, a wrong gravity, or a sensor "
+            "the model does not fit",
+        )
+        predicted = found.fit.predicted_error_mg()
+        spare = len(means) - found.fit.n_params
+        ctx.check(
+            predicted <= MAX_PREDICTED_ERROR_MG or o.method == "six_position",
+            (
+                f"pose coverage: {len(means)} poses for {found.fit.n_params} parameters leave "
+                f"{max(spare, 0)} degree(s) of freedom: the fit cannot be checked; record more "
+                "poses (methods six_position and ferraris fit exactly the six faces)"
+            )
+            if not np.isfinite(predicted)
+            else (
+                f"pose coverage: the {len(means)} poses leave the calibration undetermined "
+                f"(predicted error over all orientations {predicted:.3g} mg > "
+                f"{MAX_PREDICTED_ERROR_MG:g} mg); record more poses, spread over the sphere"
+                + (", or set misalignment = false" if model == "9-parameter" else "")
+            ),
+        )
         step = LinearStep(
             type=self.type,
             sensor="accel",
@@ -199,6 +351,7 @@ class AccelCalibrationStage(Stage):
             offset=params.bias,
             params={
                 "method": o.method,
+                "model": model,
                 "scale": params.scale.tolist(),
                 "misalignment_rad": params.angles.tolist(),
                 "bias": params.bias.tolist(),
@@ -208,63 +361,44 @@ class AccelCalibrationStage(Stage):
 
     # -- methods -----------------------------------------------------------------------------
     def _solve(
-        self,
-        means: np.ndarray,
-        samples: np.ndarray,
-        intervals: Intervals,
-        start: am.NineParams,
-        ctx: StageContext,
-        metrics: dict[str, Any],
-    ) -> tuple[am.NineParams, dict[str, Any] | None]:
+        self, found: Detection, acc: SensorData, ctx: StageContext
+    ) -> tuple[am.NineParams, dict[str, Any] | None, am.NormProblem | None]:
         o = self.options
+        means = found.poses.means(acc.values)
         if o.method == "six_position":
             params = am.six_position(means, o.gravity)
             ctx.warn(
                 "six_position fits scale and bias only: axis misalignment is not estimated "
                 "(use lm or frank_wolfe on nine or more distinct poses)"
             )
-            return params, None
-        free = np.ones(9, dtype=bool)
-        free[3:6] = o.misalignment
-        if metrics["distinct_poses"] < free.sum():
-            raise FitError(
-                f"{metrics['distinct_poses']} distinct poses (>= 10 deg apart) in "
-                f"{len(intervals)} static intervals: the {free.sum()}-parameter model needs at "
-                f"least {free.sum()}"
-                + (
-                    " (with only the six faces the misalignment is unobservable: set "
-                    "misalignment = false, or record more poses)"
-                    if o.misalignment
-                    else ""
-                )
-            )
-        data = means if o.fit_on == "means" else _middle_samples(samples, intervals, o)
-        problem = am.NormProblem(data, o.gravity, start, free)
-        if o.method == "lm":
-            sol = am.solve_lm(problem)
+            return params, None, None
+        if o.fit_on == "means":
+            problem = found.fit.problem
         else:
-            if len(o.fw_box) != 3 or min(o.fw_box) <= 0:
-                raise FitError("fw_box must be 3 positive half-widths [scale, angle, bias]")
-            box = np.repeat(np.asarray(o.fw_box, dtype=float), 3)
-            sol = am.solve_frank_wolfe(
-                problem, box=box, max_iter=o.fw_max_iter, gap_rtol=o.fw_gap_rtol
+            data = _middle_samples(acc.values, found.intervals, o)
+            problem = am.NormProblem(
+                data, o.gravity, found.fit.problem.start, found.fit.problem.free
             )
-            if sol.info["at_box_bound"]:
-                ctx.warn(
-                    "frank_wolfe ended on the bound of its box: the optimum may lie outside; "
-                    "widen fw_box"
-                )
-            if sol.info["stop"].startswith("max_iter"):
-                ctx.warn(f"frank_wolfe did not meet its stopping rule: {sol.info['stop']}")
-        unc = am.uncertainty(problem, sol.x)
-        metrics["uncertainty"] = unc
-        worst = max(unc.get("misalignment_std_rad", [np.inf]))
-        if o.misalignment and (worst > 1e-3 or unc["condition_number"] > 1e4):
+        if o.method == "lm":
+            sol = found.fit.solution if o.fit_on == "means" else am.solve_lm(problem)
+            return sol.params, sol.info, problem
+        if len(o.fw_box) != 3 or min(o.fw_box) <= 0:
+            raise FitError("fw_box must be 3 positive half-widths [scale, angle, bias]")
+        sol = am.solve_frank_wolfe_enlarging(
+            problem,
+            box=np.repeat(np.asarray(o.fw_box, dtype=float), 3),
+            max_iter=o.fw_max_iter,
+            gap_rtol=o.fw_gap_rtol,
+        )
+        if sol.info["box_enlargements"]:
             ctx.warn(
-                f"misalignment is poorly observable (angle std up to {worst:.2g} rad, condition "
-                f"number {unc['condition_number']:.3g}): record more, better spread poses"
+                f"frank_wolfe: the solution reached its box {sol.info['box_enlargements']} "
+                "time(s); the box was enlarged and the problem solved again (final half-widths "
+                f"{np.round(sol.info['box'], 4).tolist()})"
             )
-        return sol.params, sol.info
+        if sol.info["stop"].startswith("max_iter"):
+            ctx.warn(f"frank_wolfe did not meet its stopping rule: {sol.info['stop']}")
+        return sol.params, sol.info, problem
 
     def _ferraris(self, table: pa.Table, ctx: StageContext) -> StageOutput:
         o = self.options
@@ -272,16 +406,27 @@ class AccelCalibrationStage(Stage):
         unknown = set(names) - set(STATIC_PARTS + ROTATION_PARTS)
         if unknown:
             raise ctx.fail(f"ferraris_parts: unknown part(s) {sorted(unknown)}")
-        if "label" not in table.column_names:
-            raise ctx.fail("method 'ferraris' needs labelled segments: set csv.label")
+        labelled = any(isinstance(names.get(p, p), str) for p in STATIC_PARTS + ROTATION_PARTS)
+        if labelled and "label" not in table.column_names:
+            raise ctx.fail(
+                "method 'ferraris' needs labelled segments: set csv.label (or give every part "
+                "as [start_s, end_s] in ferraris_parts)"
+            )
         acc = sensor(table, "accel")
         gyro = sensor(table, "gyro")
-        labels = table.column("label").take(pa.array(acc.rows))
+        labels = table.column("label").take(pa.array(acc.rows)) if labelled else None
         parts = {}
         try:
             for part in STATIC_PARTS + ROTATION_PARTS:
                 mask = segment_mask(acc.t_s, labels, f"ferraris part {part}", names.get(part, part))
-                parts[part] = (acc.values[mask], gyro.values[mask])
+                ok = (
+                    mask
+                    & np.isfinite(acc.values).all(axis=1)
+                    & np.isfinite(gyro.values).all(axis=1)
+                )
+                if not ok.any():
+                    raise FitError(f"ferraris part {part}: no finite samples")
+                parts[part] = (acc.values[ok], gyro.values[ok])
             fs = sample_rate(acc.t_ns)
         except FitError as exc:
             raise ctx.fail(str(exc)) from None
@@ -289,32 +434,40 @@ class AccelCalibrationStage(Stage):
         static = np.vstack([parts[p][0] for p in STATIC_PARTS])
         pose_means = np.vstack([parts[p][0].mean(axis=0) for p in STATIC_PARTS])
         per_pose = norm_residual_mg(cal.calibrate_acc(pose_means), o.gravity)
-        acc_step = LinearStep(
-            type=self.type,
-            sensor="accel",
-            matrix=cal.accel_matrix,
-            offset=cal.b_a,
-            params={"method": "ferraris", "K_a": cal.K_a.tolist(), "R_a": cal.R_a.tolist()},
+        steps: list[Step] = [
+            LinearStep(
+                type=self.type,
+                sensor="accel",
+                matrix=cal.accel_matrix,
+                offset=cal.b_a,
+                params={"method": "ferraris", "K_a": cal.K_a.tolist(), "R_a": cal.R_a.tolist()},
+            )
+        ]
+        if o.apply_g_sensitivity:
+            steps.append(GSensitivityStep(type=self.type, sensor="gyro", k_ga=cal.K_ga))
+        steps.append(
+            LinearStep(
+                type=self.type,
+                sensor="gyro",
+                matrix=cal.gyro_matrix_dps * DEG,
+                offset=cal.b_g,
+                params={
+                    "method": "ferraris",
+                    "K_g": cal.K_g.tolist(),
+                    "R_g": cal.R_g.tolist(),
+                    "K_ga_applied": o.apply_g_sensitivity,
+                },
+            )
         )
-        gyro_step = LinearStep(
-            type=self.type,
-            sensor="gyro",
-            matrix=cal.gyro_matrix_dps * DEG,
-            offset=cal.b_g,
-            params={
-                "method": "ferraris",
-                "K_g": cal.K_g.tolist(),
-                "R_g": cal.R_g.tolist(),
-                "K_ga_not_applied": cal.K_ga.tolist(),
-            },
-        )
-        ctx.warn(
-            "ferraris: the gyro's acceleration sensitivity K_ga is reported but not applied by the "
-            "chain (a linear step corrects each sensor on its own)"
-        )
+        if not o.apply_g_sensitivity:
+            ctx.warn(
+                "ferraris: the gyro's g-sensitivity K_ga is reported but not applied (set "
+                "apply_g_sensitivity = true to correct it)"
+            )
         results = {
             "method": "ferraris",
             "imucal": {**cal.to_json(), "acc_unit": "m/s^2", "gyr_unit": "deg/s"},
+            "g_sensitivity_applied": o.apply_g_sensitivity,
             "gravity": o.gravity,
             "sample_rate_hz": fs,
             "metrics": {
@@ -325,7 +478,7 @@ class AccelCalibrationStage(Stage):
                 "static_samples": len(static),
             },
         }
-        return StageOutput(results=results, step=[acc_step, gyro_step])
+        return StageOutput(results=results, step=steps)
 
     def _record(
         self,
@@ -340,21 +493,48 @@ class AccelCalibrationStage(Stage):
         rec = ctx.recorder
         if not rec.enabled:
             return
-        static = intervals.mask(len(t_ns)).astype(float) * g
-        rec.series(f"/{ctx.name}/norm/raw", t_ns, np.linalg.norm(raw, axis=1), ("raw |a|",))
+        static = np.where(intervals.mask(len(t_ns)), g, np.nan)  # g where still
+        norm = dict(unit="m/s^2", plot="norm", title="|a|")
+        rec.series(
+            f"/{ctx.name}/norm/raw",
+            t_ns,
+            np.linalg.norm(raw, axis=1),
+            ("|a| raw",),
+            colors=[(150, 150, 150)],
+            **(norm | {"unit": rec.input_unit(ctx.name, "accel")}),  # raw counts: a plot apart
+        )
         rec.series(
             f"/{ctx.name}/norm/calibrated",
             t_ns,
             np.column_stack([np.linalg.norm(params.apply(raw), axis=1), static]),
-            ("calibrated |a| m/s^2", "static intervals (g)"),
+            ("|a| calibrated", "still intervals (at g)"),
+            colors=[(40, 100, 230), (230, 120, 20)],
+            **norm,
         )
-        rec.curve(
+        rec.bars(
             f"/{ctx.name}/residual_per_pose",
-            np.arange(len(per_pose)),
             per_pose,
-            ("| |a| - g | mg",),
-            timeline="pose",
+            ("|a| - g",),
+            x_label="pose",
+            unit="mg",
+            title="|a| - g after calibration",
         )
+
+
+def problem_x(problem: am.NormProblem, params: am.NineParams) -> np.ndarray:
+    """The normalised unknowns of ``problem`` that give ``params``."""
+    return np.concatenate(
+        [
+            params.scale / problem.start.scale - 1,
+            params.angles,
+            (params.bias - problem.start.bias) / problem.radius,
+        ]
+    )
+
+
+def _loo_rms(values: np.ndarray) -> float | None:
+    ok = np.isfinite(values)
+    return rms(values[ok]) if ok.any() else None
 
 
 def _middle_samples(samples: np.ndarray, intervals: Intervals, o: Any) -> np.ndarray:

@@ -1,5 +1,9 @@
-"""Accelerometer models fitted on static poses: six-position (seed 002) and the 9-parameter model
-of seed 003 solved by Levenberg-Marquardt (scipy) or by Frank-Wolfe (the patent's method).
+"""Accelerometer models fitted on static poses: the six-position method, and the 9-parameter
+model (Tedaldi, Pretto and Menegatti, "A robust and easy to implement method for IMU
+calibration without external equipments", ICRA 2014; Xiangtan University's patent "Accelerometer
+calibration method based on the Frank-Wolfe method", 2023) solved by
+Levenberg-Marquardt (scipy) or by Frank-Wolfe (the patent's method), with or without its three
+misalignment angles (the 6-parameter model).
 
 9-parameter model (units of the raw input, e.g. m/s^2 or ADC counts, to m/s^2)::
 
@@ -7,13 +11,22 @@ of seed 003 solved by Levenberg-Marquardt (scipy) or by Frank-Wolfe (the patent'
     K = [[1, -a_yz, a_zy], [0, 1, -a_zx], [0, 0, 1]]   (non-orthogonality, three small angles, rad)
 
 fitted so that |a| = g at rest: minimise ``sum_i (|S K (a_t,i - b)| - g)^2`` over the static
-samples (or static-interval means). Seed 003 writes ``S K (a_t + B)``: its ``B`` is ``-b`` here.
+samples (or static-interval means). The patent writes ``S K (a_t + B)``: its ``B`` is ``-b`` here.
 The correction exported to the chain is ``matrix = S K``, ``offset = b``.
 
 Both solvers work on the same normalised unknowns ``x`` (9,) around a data-derived start
 (:func:`initial_guess`): ``s = s0 (1 + x[0:3])``, angles ``= x[3:6]``, ``b = b0 + r0 x[6:9]``
 (``r0`` the median raw radius of the poses), so every unknown is O(1e-2) whatever the raw unit.
 Residuals are ``(|a| - g) / g`` (dimensionless).
+
+**Model choice** (:func:`fit_model`, :func:`choose_model`): the 9- and the 6-parameter model are
+both fitted; the one with the lower corrected Akaike information criterion (Hurvich and Tsai,
+Biometrika 1989) ``AICc = n ln(RSS / n) + 2K + 2K(K + 1) / (n - K - 1)`` (``n`` poses, ``K`` =
+parameters + 1 for the noise variance; infinite where ``n <= K + 1``) is kept. Each fit also
+reports its parameters' standard errors (``sigma^2 (J^T J)^-1``, ``sigma^2 = RSS / (n - p)``), its
+*predicted error*: the RMS over 200 directions evenly spread on the sphere (a Fibonacci lattice)
+of the standard deviation of the calibrated | |a| - g | that those standard errors imply, in
+mg -- what the poses leave undetermined -- and its leave-one-pose-out prediction errors.
 """
 
 from __future__ import annotations
@@ -168,8 +181,9 @@ def solve_frank_wolfe(
     max_iter: int = 20000,
     gap_rtol: float = 1e-2,
     rms_tol: float = 1e-5,
+    x0: np.ndarray | None = None,
 ) -> Solution:
-    """Frank-Wolfe (conditional gradient) over the box ``|x_j| <= box_j`` (seed 003).
+    """Frank-Wolfe (conditional gradient) over the box ``|x_j| <= box_j`` (the patent's method).
 
     Objective ``f(x) = 0.5 sum r_i(x)^2``, gradient ``J^T r``. Each iteration: the linear
     minimisation oracle over the box gives the vertex ``s = -box * sign(grad)``; direction
@@ -180,13 +194,15 @@ def solve_frank_wolfe(
     within a fraction ``gap_rtol`` of the best in the box, or the RMS residual (fraction of g) is
     within ``sqrt(rms^2 - rms*^2) <= rms_tol`` of it (1e-5 g ~ 0.01 mg); or ``max_iter``.
     The default box is +-5 % on scale and bias (bias relative to g) and +-0.05 rad on the angles
-    around the data-derived start; the result reports ``at_box_bound`` when it ends on the box.
+    around the data-derived start; ``x0`` (inside the box) is the first iterate (default the
+    start). The result reports ``active_bounds``: the unknowns that end on the box with the
+    gradient pushing outward (:func:`solve_frank_wolfe_enlarging` enlarges those).
     """
     t0 = time.perf_counter()
     if box is None:
         box = np.full(9, 0.05)
     box = np.where(problem.free, box, 0.0)
-    x = np.zeros(9)
+    x = np.zeros(9) if x0 is None else np.clip(np.asarray(x0, dtype=float), -box, box)
     r = problem.residual(x)
     f = 0.5 * float(r @ r)
     n_eval = 1
@@ -216,6 +232,8 @@ def solve_frank_wolfe(
             break
         x = x + gamma * d
         r, f = r_new, f_new
+    grad = problem.jacobian(x).T @ r
+    active = (box > 0) & (np.abs(x) >= ACTIVE_FRACTION * box) & (grad * np.sign(x) < 0)
     info = {
         "solver": "frank_wolfe",
         "iterations": it,
@@ -225,9 +243,62 @@ def solve_frank_wolfe(
         "duality_gap": gap,
         "stop": stop,
         "box": box.tolist(),
-        "at_box_bound": bool(np.any((box > 0) & (np.abs(x) >= 0.999 * box))),
+        "active_bounds": [UNKNOWNS[j] for j in np.flatnonzero(active)],
     }
     return Solution(problem.params(x), x, info)
+
+
+ACTIVE_FRACTION = 0.9
+"""An unknown beyond this fraction of its box half-width, with the gradient pushing it outward,
+is on an active bound: the optimum may lie outside the box."""
+
+UNKNOWNS = ("scale_x", "scale_y", "scale_z", "a_yz", "a_zy", "a_zx", "bias_x", "bias_y", "bias_z")
+"""Names of the nine normalised unknowns (for messages)."""
+
+
+def solve_frank_wolfe_enlarging(
+    problem: NormProblem,
+    *,
+    box: np.ndarray,
+    max_enlargements: int = 8,
+    **kwargs: Any,
+) -> Solution:
+    """Frank-Wolfe that never stops on its box: while the solution has active bounds (see
+    :func:`solve_frank_wolfe`), the half-widths of those unknowns are doubled and the problem is
+    solved again from the last iterate. ``FitError`` naming the unknowns still on their bound
+    after ``max_enlargements`` doublings. ``info`` adds ``box_enlargements``, the iterations and
+    time summed over the solves, and the box it ended with."""
+    box = np.asarray(box, dtype=float).copy()
+    x0 = None
+    total_iter = total_eval = 0
+    total_time = 0.0
+    for enlargement in range(max_enlargements + 1):
+        sol = solve_frank_wolfe(problem, box=box, x0=x0, **kwargs)
+        total_iter += sol.info["iterations"]
+        total_eval += sol.info["function_evaluations"]
+        total_time += sol.info["time_s"]
+        active = [UNKNOWNS.index(name) for name in sol.info["active_bounds"]]
+        if not active:
+            break
+        if enlargement == max_enlargements:
+            names = ", ".join(sol.info["active_bounds"])
+            raise FitError(
+                f"frank_wolfe: {names} still on the bound of a box enlarged {max_enlargements} "
+                f"times (half-widths {np.round(box[active], 4).tolist()}): the start is far from "
+                "the optimum; check the units, or use method lm"
+            )
+        box[active] *= 2
+        x0 = sol.x
+    sol.info.update(
+        {
+            "box_enlargements": enlargement,
+            "iterations": total_iter,
+            "function_evaluations": total_eval,
+            "time_s": total_time,
+            "box": box.tolist(),
+        }
+    )
+    return sol
 
 
 def uncertainty(problem: NormProblem, x: np.ndarray) -> dict[str, Any]:
@@ -255,7 +326,7 @@ def uncertainty(problem: NormProblem, x: np.ndarray) -> dict[str, Any]:
 
 
 def six_position(means: np.ndarray, g: float, max_angle_deg: float = 30.0) -> NineParams:
-    """Seed 002: per axis ``b = (max + min) / 2``, ``k = 2 g / (max - min)`` over the static
+    """The six-position method: per axis ``b = (max + min) / 2``, ``k = 2 g / (max - min)`` over the static
     means; the max (min) must come from a pose with that axis up (down) within ``max_angle_deg``
     (directions taken about the sphere centre of the means, so raw counts work).
     ``FitError`` naming the missing face otherwise."""
@@ -290,3 +361,161 @@ def distinct_poses(means: np.ndarray, min_angle_deg: float = 10.0) -> int:
         if all(float(u @ k) < cos_min for k in kept):
             kept.append(u)
     return len(kept)
+
+
+# -- model choice ----------------------------------------------------------------------------
+
+MODEL_FREE: dict[str, np.ndarray] = {
+    "9-parameter": np.ones(9, dtype=bool),
+    "6-parameter": np.r_[np.ones(3, dtype=bool), np.zeros(3, dtype=bool), np.ones(3, dtype=bool)],
+}
+"""The models and which unknowns each fits (the 6-parameter model keeps the angles at 0)."""
+
+
+def fibonacci_sphere(n: int = 200) -> np.ndarray:
+    """(n, 3) unit vectors evenly spread over the sphere (a Fibonacci lattice)."""
+    i = np.arange(n) + 0.5
+    polar = np.arccos(1 - 2 * i / n)
+    azimuth = np.pi * (1 + 5**0.5) * i
+    return np.column_stack(
+        [np.cos(azimuth) * np.sin(polar), np.sin(azimuth) * np.sin(polar), np.cos(polar)]
+    )
+
+
+SPHERE = fibonacci_sphere()
+
+
+@dataclass
+class ModelFit:
+    """One model fitted by Levenberg-Marquardt on the pose means, with its statistics."""
+
+    name: str
+    problem: NormProblem
+    solution: Solution
+
+    @property
+    def params(self) -> NineParams:
+        return self.solution.params
+
+    @property
+    def n_params(self) -> int:
+        return int(self.problem.free.sum())
+
+    @property
+    def residual_mg(self) -> np.ndarray:
+        """Signed | |a| - g | per pose, mg."""
+        return self.problem.residual(self.solution.x) * self.problem.g / MG
+
+    @property
+    def rss(self) -> float:
+        r = self.problem.residual(self.solution.x)
+        return float(r @ r)
+
+    @property
+    def aicc(self) -> float:
+        return aicc(len(self.problem.samples), self.n_params, self.rss)
+
+    def covariance(self) -> np.ndarray | None:
+        """Covariance of the free normalised unknowns, ``sigma^2 (J^T J)^-1`` (None without
+        degrees of freedom)."""
+        dof = len(self.problem.samples) - self.n_params
+        if dof <= 0:
+            return None
+        jac = self.problem.jacobian(self.solution.x)[:, self.problem.free]
+        return np.linalg.pinv(jac.T @ jac) * (self.rss / dof)
+
+    def predicted_error_mg(self) -> float:
+        """RMS over the sphere of the standard deviation of the calibrated | |a| - g | (mg)."""
+        cov = self.covariance()
+        if cov is None:
+            return float("inf")
+        p = self.params
+        raw = (self.problem.g * SPHERE) @ np.linalg.inv(p.matrix).T + p.bias
+        on_sphere = NormProblem(raw, self.problem.g, self.problem.start, self.problem.free)
+        jac = on_sphere.jacobian(self.solution.x)[:, self.problem.free]
+        var = np.einsum("ij,jk,ik->i", jac, cov, jac)
+        return float(np.sqrt(np.mean(var)) * self.problem.g / MG)
+
+    def leave_one_out_mg(self) -> np.ndarray:
+        """Each pose's | |a| - g | (mg) predicted by the model fitted on the other poses
+        (NaN where the others cannot support the fit)."""
+        means = self.problem.samples
+        out = np.full(len(means), np.nan)
+        if len(means) - 1 < self.n_params:
+            return out
+        for i in range(len(means)):  # one small LM fit per pose (tens of poses)
+            keep = np.arange(len(means)) != i
+            try:
+                sub = NormProblem(
+                    means[keep], self.problem.g, self.problem.start, self.problem.free
+                )
+                params = solve_lm(sub).params
+            except (FitError, np.linalg.LinAlgError, ValueError):
+                continue
+            out[i] = (np.linalg.norm(params.apply(means[i : i + 1])) - self.problem.g) / MG
+        return out
+
+    def summary(self) -> dict[str, Any]:
+        """The figures the results report for this model."""
+        r = self.residual_mg
+        aicc = self.aicc
+        return {
+            "parameters": self.n_params,
+            "aicc": float(aicc) if np.isfinite(aicc) else None,
+            "residual_mg_rms": float(np.sqrt(np.mean(r**2))),
+            "predicted_error_mg": finite_or_none(self.predicted_error_mg()),
+        }
+
+
+def aicc(n: int, n_params: int, rss: float) -> float:
+    """Corrected Akaike information criterion of a least-squares fit of ``n_params`` parameters
+    to ``n`` observations with residual sum of squares ``rss`` (Hurvich and Tsai 1989):
+    ``n ln(rss / n) + 2K + 2K(K + 1) / (n - K - 1)``, ``K = n_params + 1`` (the noise variance
+    counts); infinite where ``n - K - 1 <= 0`` (too few observations to support the fit)."""
+    k = n_params + 1
+    if n - k - 1 <= 0:
+        return float("inf")
+    return float(n * np.log(max(rss, 1e-300) / n) + 2 * k + 2 * k * (k + 1) / (n - k - 1))
+
+
+def fmt_criterion(value: float) -> str:
+    """An information criterion for a message ("undefined" where infinite)."""
+    return f"{value:.4g}" if np.isfinite(value) else "undefined (too few observations)"
+
+
+def finite_or_none(value: float) -> float | None:
+    return float(value) if np.isfinite(value) else None
+
+
+def fit_model(means: np.ndarray, g: float, name: str, start: NineParams | None = None) -> ModelFit:
+    """Fit the model ``name`` (a key of :data:`MODEL_FREE`) on the pose means by LM."""
+    start = start if start is not None else initial_guess(means, g)
+    problem = NormProblem(means, g, start, MODEL_FREE[name].copy())
+    if len(means) < problem.free.sum():
+        raise FitError(
+            f"{len(means)} static intervals: the {name} model needs at least {problem.free.sum()}"
+        )
+    return ModelFit(name, problem, solve_lm(problem))
+
+
+def choose_model(fits: list[ModelFit]) -> tuple[ModelFit, str]:
+    """The fit with the lowest AICc, and the reason in one sentence."""
+    best = min(fits, key=lambda f: (f.aicc, f.n_params))
+    if len(fits) == 1:
+        return best, f"the {best.name} model was asked for"
+    others = [f for f in fits if f is not best]
+    if not np.isfinite(best.aicc):
+        return best, (
+            f"no model has enough poses for an information criterion ({len(best.problem.samples)} "
+            f"poses); the {best.name} model has the fewest parameters"
+        )
+    figures = "; ".join(
+        f"{f.name}: AICc {fmt_criterion(f.aicc)}, residual {f.summary()['residual_mg_rms']:.3g} "
+        f"mg, predicted error {_fmt_mg(f.predicted_error_mg())}"
+        for f in [best, *others]
+    )
+    return best, f"lowest AICc ({figures})"
+
+
+def _fmt_mg(value: float) -> str:
+    return f"{value:.4g} mg" if np.isfinite(value) else "unbounded"

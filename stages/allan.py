@@ -1,4 +1,5 @@
-"""``allan`` stage: IMU noise identification from a long static recording (seed 001).
+"""``allan`` stage: IMU noise identification from a long static recording (IEEE Std 952-1997
+Annex C; the imu_utils / Kalibr workflow).
 
 Computes a stability deviation (overlapping Allan deviation by default; see
 :mod:`imupipe.stages.allan_estimators`) of every gyro and accelerometer axis at once, its 68 %
@@ -15,15 +16,24 @@ confidence. All results are continuous-time SI:
 | R rate ramp | rad/s^2 | m/s^3 |
 
 Outputs: ``results[<name>]`` = ``{"gyro": {"x": {N, B, K, Q, R}, ...}, "accel": {...},
-"metrics": {...}}``; artifacts ``imu.yaml`` (Kalibr), ``<name>_imu_utils.yaml`` (imu_utils
-layout, meanings stated) and ``<name>_curves.csv``; Rerun: per axis the log10 deviation with its
+"metrics": {...}}``; artifact ``<name>_curves.csv`` (the pipeline exports ``imu.yaml`` for
+Kalibr and ``<name>_imu_utils.yaml`` from these results); Rerun: per axis the log10 deviation with its
 bounds, the fitted model and each fitted term's line over ``log10(tau) * 1000``.
 
-Input checks: NaN samples and time jumps (a step longer than ``max_gap`` nominal periods, or
-time not increasing) are errors naming the sample; a recording too short to give the fit more
-taus than terms is an error; motion (1 s gyro means further than ``motion_threshold`` from the
-mean, or accel-norm 1 s means spreading more than 0.05 g) and a recording under two hours are
-warnings. An analysis stage: it adds nothing to the calibration chain.
+Input. Samples with a NaN or Inf are left out (one counted warning). The stamps are read as a
+sample clock (:mod:`imupipe.stages.sample_clock`): timestamp jitter is told apart from lost
+samples, the lost ones are filled by linear interpolation on the nominal clock (one counted
+warning), and a gap longer than ``max_gap`` periods cuts the recording: the deviations use the
+longest stretch without one (a warning). Time not increasing, or a recording too short to give
+the fit more taus than terms, is an error; motion (1 s gyro means further than
+``motion_threshold`` from the mean, or accel-norm 1 s means spreading more than 0.05 g) is a
+failed check (``accept_failed_checks = true`` fits anyway); under two hours is a warning.
+
+Tau grid (``taus``): ``auto`` (default) computes the octave grid, then refines to thirds of an
+octave where the curve bends (the transitions between noise types, where the slope readings and
+the fit's term boundaries are): about 20-30 taus for two hours at 400 Hz, where ``log``'s 10 per
+decade gives 60 at the same accuracy of the fitted terms (each tau costs one pass over the data).
+An analysis stage: it adds nothing to the calibration chain.
 """
 
 from __future__ import annotations
@@ -35,14 +45,42 @@ from typing import Any, Literal
 import numpy as np
 import pyarrow as pa
 
-from imupipe.readers.table import has_stream, metadata, sensor
+from imupipe.readers.table import SENSOR_UNITS, SensorData, has_stream, sensor
 from imupipe.stages import allan_estimators as est
 from imupipe.stages.allan_fit import TERMS, AllanFit, fit_allan, slope_readings, term_variance
 from imupipe.stages.base import Stage, StageContext, StageOutput
 from imupipe.stages.gyro_bias import select_interval
+from imupipe.stages.sample_clock import SampleClock, fill_lost, longest_run, sample_clock
 from imupipe.stages.stillness import stillness
 
 AXES = ("x", "y", "z")
+
+
+@dataclass
+class ImuSeries:
+    """The IMU samples an Allan run uses: stamps, gyro and accel (n, 3), their sample clock,
+    and the mean rate over the clock's slots (Hz)."""
+
+    t_ns: np.ndarray
+    data: dict[str, np.ndarray]
+    clock: SampleClock
+    rate_hz: float
+
+    @property
+    def duration_s(self) -> float:
+        """From the first stamp to the last."""
+        return float((self.t_ns[-1] - self.t_ns[0]) * 1e-9)
+
+    @property
+    def span_s(self) -> float:
+        """Slots times the period: what the deviations cover (2 h at 400 Hz: 2.88 M slots)."""
+        return float(self.clock.n_slots / self.rate_hz)
+
+
+def _take(data: SensorData, keep: np.ndarray) -> SensorData:
+    return SensorData(data.t_ns[keep], data.values[keep], data.rows[keep])
+
+
 UNITS = {
     "gyro": {
         "Q": "rad",
@@ -56,8 +94,6 @@ UNITS = {
 FIT_KINDS = ("oadev", "adev")
 """Deviations the five-term (Allan variance) model describes; other kinds are shown, and the
 fit runs on the OADEV at the same taus."""
-TIMELINE = "log10_tau_x1000"
-"""Rerun sequence timeline of the curves: round(1000 * log10(tau / s))."""
 
 
 class AllanStage(Stage):
@@ -68,8 +104,9 @@ class AllanStage(Stage):
     class Options:
         kind: Literal["oadev", "adev", "mdev", "hdev", "ohdev", "totdev"] = "oadev"
         """Deviation: oadev (overlapping Allan, default), adev, mdev, hdev, ohdev, totdev."""
-        taus: Literal["log", "octave", "decade", "all"] = "log"
-        """Tau grid: log (``points_per_decade`` per decade), octave, decade, all."""
+        taus: Literal["auto", "log", "octave", "decade", "all"] = "auto"
+        """Tau grid: auto (octaves, refined to thirds of an octave where the curve bends), log
+        (``points_per_decade`` per decade), octave, decade, all."""
         points_per_decade: int = 10
         terms: list[str] = field(default_factory=lambda: list(TERMS))
         """Model terms to fit (subset of Q, N, B, K, R); unsupported ones come out zero."""
@@ -81,35 +118,33 @@ class AllanStage(Stage):
         """Flag a slope reading that differs from the fit by more than this fraction."""
         interval: list[float] | None = None
         """[start_s, end_s] seconds from the first sample; default the whole input."""
-        max_gap: float = 2.0
-        """A time step longer than this many nominal sample periods is an error (a gap)."""
+        max_gap: float = 10.0
+        """Sample periods: a step that spans more (timestamp jitter told apart from missing
+        samples) is a gap; the deviations use the longest stretch without one (a warning).
+        Missing samples in shorter steps are filled by linear interpolation (counted)."""
         motion_threshold: float = 0.02
-        """rad/s: a 1 s gyro mean further than this from the overall mean warns of motion."""
+        """rad/s: a 1 s gyro mean further than this from the overall mean is motion, a failed
+        check (``accept_failed_checks = true`` to fit anyway)."""
 
     def fit(self, table: pa.Table, ctx: StageContext) -> StageOutput:
         opts = self.options
         self._check_options(ctx)
         if not has_stream(table, "imu"):
             raise ctx.fail("the input has no IMU samples")
-        gyro, accel = sensor(table, "gyro"), sensor(table, "accel")
         if opts.interval is not None and (
             len(opts.interval) != 2 or opts.interval[1] <= opts.interval[0]
         ):
             raise ctx.fail("'interval' must be [start_s, end_s] with end_s > start_s")
-        if opts.interval is None:  # no copies: the whole input
-            t_ns, data = gyro.t_ns, {"gyro": gyro.values, "accel": accel.values}
-        else:
-            mask = select_interval(gyro, opts.interval)
-            t_ns, data = gyro.t_ns[mask], {"gyro": gyro.values[mask], "accel": accel.values[mask]}
-        del gyro, accel
-        rate_hz = self._check_samples(t_ns, data, ctx)
-        duration = (t_ns[-1] - t_ns[0]) * 1e-9
+        series = self._samples(table, ctx)
+        t_ns, data, clock = series.t_ns, series.data, series.clock
+        rate_hz, duration, span = series.rate_hz, series.duration_s, series.span_s
         static = self._check_static(t_ns, data, ctx)
 
         x = est.rate_to_phase(
-            [data[s][:, i] for s in self.sensors for i in range(3)], 1.0 / rate_hz
+            [fill_lost(clock, data[s][:, i]) for s in self.sensors for i in range(3)],
+            1.0 / rate_hz,
         )
-        del data  # the phase (6, n + 1) is all the estimators need
+        del data, series  # the phase (6, n + 1) is all the estimators need
         top = est.max_af(opts.kind, x.shape[1])
         if opts.kind not in FIT_KINDS:  # the fit runs on OADEV at the same taus
             top = min(top, est.max_af("oadev", x.shape[1]))
@@ -120,17 +155,18 @@ class AllanStage(Stage):
                 f"taus on the '{opts.taus}' grid; fitting {len(opts.terms)} terms needs at least "
                 f"{len(opts.terms) + 2} (record longer, or use a denser grid / fewer terms)"
             )
-        if len(t_ns) / rate_hz < 7200.0:  # n sample periods: 2 h at 400 Hz is 2.88 M samples
+        if span < 7200.0:
             ctx.warn(
                 f"the recording lasts {duration / 60:.1f} min; Allan fits want two hours or more "
                 "(B, K and R are poorly determined from a short recording)"
             )
-        dev = est.deviation_of_phase(x, 1.0 / rate_hz, opts.kind, m)
-        conf = est.confidence(dev, x)
-        fdev, fconf = dev, conf
-        if opts.kind not in FIT_KINDS:  # the five-term model is the Allan variance's
-            fdev = est.deviation_of_phase(x, 1.0 / rate_hz, "oadev", m)
-            fconf = est.confidence(fdev, x)
+        tau0, grid, ppd = 1.0 / rate_hz, opts.taus, opts.points_per_decade
+        if opts.kind in FIT_KINDS:
+            dev, conf = est.curve(x, tau0, opts.kind, grid, ppd, top=top)
+            fdev, fconf = dev, conf
+        else:  # the five-term model is the Allan variance's: its grid, the other kind shown
+            fdev, fconf = est.curve(x, tau0, "oadev", grid, ppd, top=top)
+            dev, conf = est.curve(x, tau0, opts.kind, m=fdev.m)
         del x
 
         results: dict[str, Any] = {}
@@ -140,12 +176,16 @@ class AllanStage(Stage):
             "rate_hz": float(rate_hz),
             "kind": opts.kind,
             "fit_kind": fdev.kind,
-            "taus": int(len(m)),
+            "taus": int(len(dev.m)),
             "tau_range_s": [float(dev.taus[0]), float(dev.taus[-1])],
             "static": static,
+            "missing_samples": clock.n_lost,
+            "gaps_filled": clock.n_gaps,
+            "timestamp_jitter": clock.jitter,
             "units": UNITS,
         }
         fits: dict[tuple[str, int], AllanFit] = {}
+        disagreements: list[str] = []
         for col, (name, i) in enumerate((s, i) for s in self.sensors for i in range(3)):
             f = fit_allan(
                 fdev.taus,
@@ -173,22 +213,22 @@ class AllanStage(Stage):
                 "slope_disagrees": disagree,
                 "min_deviation": float(np.min(fdev.dev[:, col])),
                 "tau_at_min_s": float(fdev.taus[int(np.argmin(fdev.dev[:, col]))]),
-                "K_upper_68": k_upper(fdev.taus, fconf.hi[:, col]),
+                "K_range_68": list(f.ranges["K"]) if "K" in f.ranges else None,
+                "K_upper_68": k_upper(f, fdev.taus, fconf.hi[:, col]),
             }
             if disagree:
-                ctx.warn(
-                    f"{name} {AXES[i]}: the IEEE slope reading of {', '.join(disagree)} differs "
-                    f"from the fit by more than {opts.slope_tolerance:.0%} (see metrics)"
-                )
+                disagreements.append(f"{name} {AXES[i]} ({', '.join(disagree)})")
+        if disagreements:
+            ctx.warn(
+                f"the IEEE slope readings differ from the fit by more than "
+                f"{opts.slope_tolerance:.0%} on {'; '.join(disagreements)} (slope_readings in "
+                "the metrics)"
+            )
         results["metrics"] = metrics
         self._record(ctx, dev, conf, fits, fdev)
-        meta = metadata(table)
-        topic = (meta.get("topics") or {}).get("imu") or "/imu/data"
-        artifacts = {
-            "imu.yaml": kalibr_yaml(results, topic, rate_hz, ctx.input_name, fdev.kind),
-            f"{ctx.name}_imu_utils.yaml": imu_utils_yaml(results, ctx.input_name),
-            f"{ctx.name}_curves.csv": curves_csv(dev, conf, fits, self.sensors, fdev),
-        }
+        # imu.yaml and the imu_utils layout are written from these results by the pipeline's
+        # exports (imupipe.pipeline.exports.kalibr, .imu_utils)
+        artifacts = {f"{ctx.name}_curves.csv": curves_csv(dev, conf, fits, self.sensors, fdev)}
         return StageOutput(results=results, artifacts=artifacts)
 
     # -- checks ------------------------------------------------------------------------------
@@ -203,47 +243,80 @@ class AllanStage(Stage):
         bad = [t for t in opts.terms if t not in TERMS]
         if bad or not opts.terms:
             raise ctx.fail(f"terms {opts.terms} must be a non-empty subset of {', '.join(TERMS)}")
-        if opts.max_gap <= 1.0:
-            raise ctx.fail("max_gap must be > 1 (sample periods)")
+        if opts.max_gap < 2.0:
+            raise ctx.fail(f"max_gap must be >= 2 (sample periods), got {opts.max_gap}")
 
-    def _check_samples(
-        self, t_ns: np.ndarray, data: dict[str, np.ndarray], ctx: StageContext
-    ) -> float:
-        """Errors on NaN samples and gaps; returns the mean sample rate, Hz."""
+    def _samples(self, table: pa.Table, ctx: StageContext) -> ImuSeries:
+        """The IMU samples the deviations are computed on: the ``interval``, without non-finite
+        samples (one counted warning), on their sample clock (lost samples counted and filled,
+        jitter told apart from gaps: :mod:`imupipe.stages.sample_clock`), cut to the longest
+        stretch without a gap longer than ``max_gap`` periods (a warning)."""
+        opts = self.options
+        gyro, accel = sensor(table, "gyro"), sensor(table, "accel")
+        number = None  # IMU sample numbers of the input, for messages (None: 0, 1, 2, ...)
+        if opts.interval is not None:
+            keep = select_interval(gyro, opts.interval)
+            gyro, accel = _take(gyro, keep), _take(accel, keep)
+            number = np.flatnonzero(keep)
+        # one sum per sensor tells whether any value is NaN or Inf (no (n, 3) mask)
+        if not (np.isfinite(gyro.values.sum()) and np.isfinite(accel.values.sum())):
+            ok = np.isfinite(gyro.values).all(axis=1) & np.isfinite(accel.values).all(axis=1)
+            rows = np.arange(len(gyro)) if number is None else number
+            both = SensorData(gyro.t_ns, np.column_stack([gyro.values, accel.values]), rows)
+            number = ctx.finite(both, "IMU (gyro and accel)", minimum=3).rows
+            gyro, accel = _take(gyro, ok), _take(accel, ok)
+
+        def num(i: int) -> int:
+            return int(i if number is None else number[i])
+
+        t_ns = gyro.t_ns
         if len(t_ns) < 3:
             raise ctx.fail(f"only {len(t_ns)} IMU samples")
-        for name, values in data.items():
-            bad = ~np.isfinite(values).all(axis=1)
-            if bad.any():
-                i = int(np.flatnonzero(bad)[0])
-                raise ctx.fail(
-                    f"{name} sample {i} (t = {(t_ns[i] - t_ns[0]) * 1e-9:.6f} s) is not finite "
-                    f"({int(bad.sum())} such samples); Allan variance needs gap-free data"
-                )
         dt = np.diff(t_ns)
-        if np.any(dt <= 0):
+        if dt.min() <= 0:
             i = int(np.flatnonzero(dt <= 0)[0])
-            raise ctx.fail(f"time does not increase at sample {i + 1} (step {dt[i]} ns)")
-        nominal = float(np.median(dt))
-        jumps = dt > self.options.max_gap * nominal
-        if jumps.any():
-            i = int(np.flatnonzero(jumps)[0])
-            raise ctx.fail(
-                f"time jump of {dt[i] * 1e-9:.6f} s ({dt[i] / nominal:.1f} sample periods) after "
-                f"sample {i} (t = {(t_ns[i] - t_ns[0]) * 1e-9:.3f} s); {int(jumps.sum())} gap(s) "
-                f"longer than max_gap = {self.options.max_gap} periods"
+            raise ctx.fail(f"time does not increase at IMU sample {num(i + 1)} (step {dt[i]} ns)")
+        data = {"gyro": gyro.values, "accel": accel.values}
+        clock = sample_clock(t_ns)
+        breaks = np.flatnonzero(clock.lost + 1 > opts.max_gap) if clock.n_lost else []
+        if len(breaks):
+            start, stop = longest_run(breaks, len(t_ns))
+            worst = int(breaks[np.argmax(clock.lost[breaks])])
+            whole = (t_ns[-1] - t_ns[0]) * 1e-9
+            ctx.warn(
+                f"{len(breaks)} gap(s) longer than max_gap = {opts.max_gap:g} sample periods (the "
+                f"longest: {dt[worst] * 1e-9:.3f} s, {clock.lost[worst]} samples missing, after "
+                f"IMU sample {num(worst)} at t = {(t_ns[worst] - t_ns[0]) * 1e-9:.3f} s); the "
+                f"deviations use the longest stretch without one: IMU samples {num(start)} to "
+                f"{num(stop - 1)}, {(t_ns[stop - 1] - t_ns[start]) * 1e-9:.1f} s of "
+                f"{whole:.1f} s (set interval to choose another)"
             )
-        return (len(t_ns) - 1) / ((t_ns[-1] - t_ns[0]) * 1e-9)
+            number = np.arange(start, stop) if number is None else number[start:stop]
+            t_ns = t_ns[start:stop]
+            data = {k: v[start:stop] for k, v in data.items()}
+            clock = sample_clock(t_ns)
+        rate_hz = float((clock.n_slots - 1) / ((t_ns[-1] - t_ns[0]) * 1e-9))
+        if clock.n_lost:
+            worst = int(np.argmax(clock.lost))
+            ctx.warn(
+                f"{clock.n_lost} IMU samples missing in {clock.n_gaps} gap(s) "
+                f"({100 * clock.n_lost / clock.n_slots:.2g} % of the "
+                f"{rate_hz:.4g} Hz clock; the longest: {clock.lost[worst]} after IMU sample "
+                f"{num(worst)}) are filled by linear interpolation; timestamp jitter "
+                f"({100 * clock.jitter:.2g} % of the period, RMS) is not counted as missing"
+            )
+        return ImuSeries(t_ns, data, clock, rate_hz)
 
     def _check_static(
         self, t_ns: np.ndarray, data: dict[str, np.ndarray], ctx: StageContext
     ) -> bool:
         still = stillness(t_ns, data["gyro"], data["accel"])
         static = still.static(self.options.motion_threshold)
-        if not static:
-            ctx.warn(
-                f"{still.describe(self.options.motion_threshold)}; motion inflates every noise term"
-            )
+        ctx.check(
+            static,
+            f"{still.describe(self.options.motion_threshold)}: an Allan deviation of a moving IMU "
+            "measures the motion, not the noise",
+        )
         return static
 
     # -- Rerun -------------------------------------------------------------------------------
@@ -258,125 +331,55 @@ class AllanStage(Stage):
         rec = ctx.recorder
         if not getattr(rec, "enabled", False):
             return
-        import rerun.blueprint as rrb
-
-        xs = np.round(1000.0 * np.log10(dev.taus)).astype(np.int64)
         dense = np.logspace(np.log10(dev.taus[0]), np.log10(dev.taus[-1]), 200)
-        xd = np.round(1000.0 * np.log10(dense)).astype(np.int64)
-        xd, keep = np.unique(xd, return_index=True)
-        dense = dense[keep]
         for col, (name, i) in enumerate((s, i) for s in self.sensors for i in range(3)):
             base = f"/{ctx.name}/{name}/{AXES[i]}"
-            values = [dev.dev[:, col], conf.lo[:, col], conf.hi[:, col]]
-            names = [f"log10 {dev.kind}", "lower 68%", "upper 68%"]
-            if fdev is not dev:
-                values.append(fdev.dev[:, col])
-                names.append(f"log10 {fdev.kind} (fitted)")
+            plot = dict(
+                plot=f"{name}/{AXES[i]}",
+                title=f"{name} {AXES[i]} Allan deviation",
+                unit=SENSOR_UNITS[name],
+                x_label="tau",
+                x_unit="s",
+                log_x=True,
+                log_y=True,
+            )
+            band = np.column_stack([conf.lo[:, col], conf.hi[:, col]])
+            rec.curve(f"{base}/band", dev.taus, band, ("68% confidence",), band=True, **plot)
             rec.curve(
                 f"{base}/measured",
-                xs,
-                np.log10(np.column_stack(values)),
-                names,
-                timeline=TIMELINE,
-                colors=[(30, 30, 30), (150, 150, 150), (150, 150, 150), (200, 120, 0)][
-                    : len(names)
-                ],
+                dev.taus,
+                dev.dev[:, col],
+                (f"measured {dev.kind}",),
+                points=True,
+                **plot,
             )
+            if fdev is not dev:
+                rec.curve(
+                    f"{base}/fitted_kind",
+                    fdev.taus,
+                    fdev.dev[:, col],
+                    (f"{fdev.kind} (fitted)",),
+                    points=True,
+                    **plot,
+                )
             f = fits[(name, i)]
-            names = ["fit"] + [t for t in TERMS if f.params[t] > 0]
-            lines = [f.deviation(dense)] + [
-                np.sqrt(term_variance(t, f.params[t], dense)) for t in names[1:]
-            ]
-            rec.curve(
-                f"{base}/model", xd, np.log10(np.column_stack(lines)), names, timeline=TIMELINE
-            )
-        for name in self.sensors:
-            rec.add_view(
-                ctx.name,
-                rrb.TimeSeriesView(
-                    origin=f"/{ctx.name}/{name}",
-                    name=f"{name} log10 {dev.kind} vs 1000 log10 tau (timeline {TIMELINE})",
-                ),
-            )
-        rec.add_view(ctx.name, rrb.TimeSeriesView(origin=f"/{ctx.name}/input", name="input"))
+            rec.curve(f"{base}/model", dense, f.deviation(dense), ("fit",), **plot)
+            terms = [t for t in TERMS if f.params[t] > 0]
+            lines = [np.sqrt(term_variance(t, f.params[t], dense)) for t in terms]
+            if terms:
+                rec.curve(f"{base}/terms", dense, np.column_stack(lines), terms, guide=True, **plot)
 
 
 # -- artifacts ---------------------------------------------------------------------------------
-def _largest(results: dict[str, Any], name: str, term: str) -> tuple[float, str]:
-    axis = max(AXES, key=lambda a: results[name][a][term])
-    return results[name][axis][term], axis
-
-
-def k_upper(taus: np.ndarray, hi: np.ndarray) -> float:
-    """The largest random-walk density K whose Allan deviation K sqrt(tau / 3) stays under the
-    upper 68 % bound at every tau (an upper bound when the fit finds no random walk)."""
+def k_upper(fit: AllanFit, taus: np.ndarray, hi: np.ndarray) -> float:
+    """An upper bound of the random-walk density K: the upper end of the fit's 68 % profile
+    interval of K (:func:`imupipe.stages.allan_fit.profile_interval`: the other fitted terms
+    re-fitted at every K, so a bias instability that could hide a random walk widens it); when
+    K is not among the fitted terms, the largest K whose deviation K sqrt(tau / 3) stays under
+    the upper 68 % bound at every tau."""
+    if "K" in fit.ranges:
+        return fit.ranges["K"][1]
     return float(np.min(hi * np.sqrt(3.0 / taus)))
-
-
-def kalibr_yaml(
-    results: dict[str, Any], topic: str, rate_hz: float, input_name: str, kind: str
-) -> str:
-    """Kalibr's IMU noise file (continuous time; the largest axis of each sensor)."""
-    lines = [
-        f"# Kalibr IMU noise model from imupipe's allan stage (input '{input_name}', {kind} fit).",
-        "# Continuous-time SI: noise densities per sqrt(Hz), random walks per second per sqrt(Hz).",
-        "# Kalibr takes one value per sensor: each line is the LARGEST of the three axes (named).",
-    ]
-    for name, prefix, units in (
-        ("accel", "accelerometer", ("m/s^2/sqrt(Hz)", "m/s^3/sqrt(Hz)")),
-        ("gyro", "gyroscope", ("rad/s/sqrt(Hz)", "rad/s^2/sqrt(Hz)")),
-    ):
-        if name not in results:
-            continue
-        n, na = _largest(results, name, "N")
-        k, ka = _largest(results, name, "K")
-        note = f"axis {ka}"
-        if k == 0.0:  # no random walk resolved: a zero would make Kalibr overconfident
-            upper = results["metrics"][name]
-            ka = max(AXES, key=lambda a: upper[a]["K_upper_68"])
-            k = upper[ka]["K_upper_68"]
-            note = f"axis {ka}: the fit resolved no random walk; upper bound from the 68 % band"
-        lines.append(f"{prefix}_noise_density: {n:.6e}  # {units[0]}, axis {na}")
-        lines.append(f"{prefix}_random_walk: {k:.6e}  # {units[1]}, {note}")
-    lines.append(f'rostopic: "{topic}"')
-    lines.append(f"update_rate: {rate_hz:.6g}  # Hz, measured from the timestamps")
-    return "\n".join(lines) + "\n"
-
-
-def imu_utils_yaml(results: dict[str, Any], input_name: str) -> str:
-    """imu_utils's layout (``gyr_n``, ``gyr_w``, ``acc_n``, ``acc_w``) with honest meanings."""
-    out = [
-        "%YAML:1.0",
-        "---",
-        "# imu_utils layout, written by imupipe's allan stage. Continuous-time SI, per axis:",
-        "#   gyr_n / acc_n: white noise density N (rad/s/sqrt(Hz), m/s^2/sqrt(Hz))",
-        "#   gyr_w / acc_w: random walk density K (rad/s^2/sqrt(Hz), m/s^3/sqrt(Hz)), the",
-        "#     meaning VINS and Kalibr expect. NOT what imu_utils writes there (the minimum of the",
-        "#     Allan deviation, i.e. bias instability 0.664 B, in rad/s): that is gyr_b / acc_b",
-        "#     here, the bias instability B itself (rad/s, m/s^2).",
-        "#   avg-axis: the mean of the three axes.",
-        "type: IMU",
-        f"name: {input_name}",
-    ]
-    for name, section, p, unit in (
-        ("gyro", "Gyr", "gyr", "rad/s"),
-        ("accel", "Acc", "acc", "m/s^2"),
-    ):
-        if name not in results:
-            continue
-        out += [f"{section}:", f'   unit: " {unit}"']
-        rows = [
-            ("avg-axis", {t: float(np.mean([results[name][a][t] for a in AXES])) for t in TERMS})
-        ]
-        rows += [(f"{a}-axis", results[name][a]) for a in AXES]
-        for label, vals in rows:
-            out += [
-                f"   {label}:",
-                f"      {p}_n: {vals['N']:.16e}",
-                f"      {p}_w: {vals['K']:.16e}",
-                f"      {p}_b: {vals['B']:.16e}",
-            ]
-    return "\n".join(out) + "\n"
 
 
 def curves_csv(

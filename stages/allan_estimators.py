@@ -19,7 +19,8 @@ Confidence: the noise type ``alpha`` (frequency PSD ~ f^alpha) is identified per
 autocorrelation method (Riley & Greenhall 2004); the equivalent degrees of freedom follow
 Greenhall & Riley 2003/2004 (the algorithm Stable32 uses) for the ADEV family and SP1065 Table 7
 for TOTDEV; the bounds are the chi-square ones: ``dev * sqrt(edf / chi2.ppf(p, edf))`` with
-p = 0.8415 (lower) and 0.1585 (upper), i.e. 68.3 % intervals.
+p = 0.8415 (lower) and 0.1585 (upper), i.e. 68.3 % intervals (the chi-square quantile is
+``2 * gammaincinv(edf / 2, p)``: no ``scipy.stats`` import).
 """
 
 from __future__ import annotations
@@ -29,12 +30,14 @@ from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
-from scipy.special import binom
-from scipy.stats import chi2
+from scipy.special import binom, gammaincinv, polygamma
 
 Kind = Literal["oadev", "adev", "mdev", "hdev", "ohdev", "totdev"]
 KINDS: tuple[str, ...] = ("oadev", "adev", "mdev", "hdev", "ohdev", "totdev")
-GRIDS: tuple[str, ...] = ("octave", "decade", "log", "all")
+GRIDS: tuple[str, ...] = ("auto", "octave", "decade", "log", "all")
+BEND = 0.125
+"""The ``auto`` grid refines an octave where the log-log slope of the curve changes by more
+than this (beyond twice its statistical scatter) at either end."""
 CHUNK = 1 << 16
 """Phase points processed at once (keeps the temporaries in cache and the memory small)."""
 
@@ -104,10 +107,11 @@ def max_af(kind: str, n_phase: int) -> int:
 def tau_grid(grid: str, max_m: int, points_per_decade: int = 10) -> np.ndarray:
     """Averaging factors m (sorted, unique, 1 <= m <= max_m) of a grid:
     ``octave`` 1, 2, 4, ...; ``decade`` 1, 2, 4, 10, 20, 40, ...; ``log`` ``points_per_decade``
-    log-spaced values per decade (rounded to integers); ``all`` every m."""
+    log-spaced values per decade (rounded to integers); ``all`` every m. ``auto`` starts from
+    ``octave`` and is refined where the curve bends (:func:`curve`)."""
     if max_m < 1:
         return np.zeros(0, dtype=np.int64)
-    if grid == "octave":
+    if grid in ("octave", "auto"):
         m = 2 ** np.arange(int(np.log2(max_m)) + 1)
     elif grid == "decade":
         decades = 10 ** np.arange(int(np.log10(max_m)) + 1)
@@ -128,9 +132,13 @@ def tau_grid(grid: str, max_m: int, points_per_decade: int = 10) -> np.ndarray:
 # -- sums of squared differences ------------------------------------------------------------------
 def _sumsq_lagged(x: np.ndarray, m: int, hadamard: bool, count: int) -> np.ndarray:
     """Per axis of ``x`` (k, N): sum_{i<count} of the squared second difference
-    x[i+2m] - 2x[i+m] + x[i] (or third, ``hadamard``), streamed in cache-sized chunks."""
+    x[i+2m] - 2x[i+m] + x[i] (or third, ``hadamard``), streamed in cache-sized chunks. For
+    lags up to half a chunk the second difference is the lag-m difference of the first
+    differences ``D = x[i+m] - x[i]`` over the chunk and m more points: two passes instead of
+    three."""
     total = np.zeros(len(x))
     buf = np.empty(min(CHUNK, count))
+    first = np.empty(min(CHUNK, count) + m) if m <= CHUNK // 2 and not hadamard else None
     for j, r in enumerate(x):
         acc = 0.0
         for a in range(0, count, CHUNK):
@@ -141,6 +149,10 @@ def _sumsq_lagged(x: np.ndarray, m: int, hadamard: bool, count: int) -> np.ndarr
                 d *= 3.0
                 d += r[a + 3 * m : b + 3 * m]
                 d -= r[a:b]
+            elif first is not None:
+                f = first[: b - a + m]
+                np.subtract(r[a + m : b + 2 * m], r[a : b + m], out=f)
+                np.subtract(f[m:], f[: b - a], out=d)
             else:
                 np.add(r[a:b], r[a + 2 * m : b + 2 * m], out=d)
                 d -= r[a + m : b + m]
@@ -253,9 +265,9 @@ def _detrend2(z: np.ndarray) -> np.ndarray:
     return out
 
 
-NOISE_ID_MAX_POINTS = 1 << 18
+NOISE_ID_MAX_POINTS = 1 << 16
 """The noise identification uses at most this many decimated points (the first ones): the
-standard error of the lag-1 autocorrelation is then about 2e-3, far below the 0.25 steps of
+standard error of the lag-1 autocorrelation is then about 4e-3, far below the 0.25 steps of
 the decision."""
 
 
@@ -440,22 +452,113 @@ def edf_of_curve(kind: str, m: np.ndarray, alpha: np.ndarray, n_phase: int) -> n
     )
 
 
-def confidence(dev: Deviation, x: np.ndarray, ci: float = 0.683) -> Confidence:
+def chi2_quantile(p: float, dof: np.ndarray) -> np.ndarray:
+    """The chi-square quantile ``chi2.ppf(p, dof)`` as ``2 * gammaincinv(dof / 2, p)``."""
+    return 2.0 * gammaincinv(0.5 * np.asarray(dof, dtype=np.float64), p)
+
+
+def confidence(
+    dev: Deviation,
+    x: np.ndarray,
+    ci: float = 0.683,
+    known: dict[int, np.ndarray] | None = None,
+    monotone: bool = False,
+) -> Confidence:
     """Noise type, EDF and chi-square bounds of ``dev`` computed on phase ``x`` (k, N).
     Where fewer than 30 decimated points remain for the noise identification, the last
-    identified alpha is carried on (Stable32 switches to the B1 bias ratio there)."""
+    identified alpha is carried on (Stable32 switches to the B1 bias ratio there). ``known``
+    maps averaging factors to alphas identified before (kept, not identified again).
+
+    ``monotone``: alpha may only stay or fall as tau grows. Each power law's Allan variance goes
+    as tau^(-alpha - 1), so longer taus are dominated by smaller exponents (an IMU: quantisation,
+    white, flicker, random walk); with few decimated points (30 to 60) the lag-1 method can
+    read a random walk as white phase noise (alpha 2), whose EDF is thousands of times larger,
+    and the bounds of every longer tau collapse (a 20 min simulated gyro with K = 2e-6: K's
+    68 % upper bound came out 1.7e-7)."""
     k = len(x)
     dmax = 3 if dev.kind in ("hdev", "ohdev") else 2
     alphas = np.zeros((len(dev.m), k), dtype=np.int64)
     last = np.zeros(k, dtype=np.int64)
     for i, m in enumerate(dev.m):
-        a = noise_alpha(x, int(m), dmax)
+        a = (known or {}).get(int(m))
+        if a is None:
+            a = noise_alpha(x, int(m), dmax)
         if a is not None:
-            last = a
+            last = np.minimum(a, last) if monotone and i else a
         alphas[i] = last
     edf = edf_of_curve(dev.kind, dev.m, alphas, dev.n_phase)
     edf = np.maximum(edf, 1.0)
     p_lo, p_hi = 0.5 + ci / 2.0, 0.5 - ci / 2.0
-    lo = dev.dev * np.sqrt(edf / chi2.ppf(p_lo, edf))
-    hi = dev.dev * np.sqrt(edf / chi2.ppf(p_hi, edf))
+    lo = dev.dev * np.sqrt(edf / chi2_quantile(p_lo, edf))
+    hi = dev.dev * np.sqrt(edf / chi2_quantile(p_hi, edf))
     return Confidence(alphas, edf, lo, hi)
+
+
+def bends(dev: Deviation, conf: Confidence, bend: float = BEND) -> np.ndarray:
+    """Indices j of the intervals [m_j, m_j+1] of a curve at whose ends the log-log slope of any
+    axis changes by more than ``bend`` plus twice the change's statistical scatter (each point's
+    ln deviation has variance trigamma(edf / 2) / 4; the points are taken as independent)."""
+    if len(dev.m) < 3:
+        return np.zeros(0, dtype=np.int64)
+    lt = np.log(dev.taus)[:, None]
+    ld = np.log(dev.dev)
+    var = polygamma(1, 0.5 * conf.edf) / 4.0
+    slope = np.diff(ld, axis=0) / np.diff(lt, axis=0)
+    change = np.abs(np.diff(slope, axis=0))  # at interior points 1 .. t-2
+    h1, h2 = np.diff(lt, axis=0)[:-1], np.diff(lt, axis=0)[1:]
+    scatter = np.sqrt(var[:-2] / h1**2 + var[1:-1] * (1 / h1 + 1 / h2) ** 2 + var[2:] / h2**2)
+    at = np.flatnonzero((change > bend + 2.0 * scatter).any(axis=1)) + 1
+    return np.unique(np.concatenate([at - 1, at]))
+
+
+def _merge(a: Deviation, b: Deviation) -> Deviation:
+    order = np.argsort(np.concatenate([a.m, b.m]), kind="stable")
+
+    def cat(u: np.ndarray, v: np.ndarray) -> np.ndarray:
+        return np.concatenate([u, v])[order]
+
+    return Deviation(
+        a.kind,
+        cat(a.taus, b.taus),
+        cat(a.m, b.m),
+        cat(a.dev, b.dev),
+        cat(a.n, b.n),
+        a.tau0,
+        a.n_phase,
+    )
+
+
+def curve(
+    x: np.ndarray,
+    tau0: float,
+    kind: str = "oadev",
+    grid: str = "auto",
+    points_per_decade: int = 10,
+    m: np.ndarray | None = None,
+    top: int | None = None,
+) -> tuple[Deviation, Confidence]:
+    """Deviation ``kind`` of phase ``x`` (k, N) and its confidence, on ``grid`` up to the
+    averaging factor ``top`` (default :func:`max_af`), or at exactly the factors ``m``.
+
+    ``auto``: the octave grid, then, in each octave where the curve bends (:func:`bends`: the
+    transitions between noise types, a filter's roll-off), two more factors at a third and two
+    thirds of the octave. Straight stretches (white noise, a random walk) keep one point per
+    octave, the density at which the fit counts points as independent anyway; the cost of a
+    curve is one pass over the data per factor."""
+    top = max_af(kind, x.shape[1]) if top is None else min(top, max_af(kind, x.shape[1]))
+    refine = m is None and grid == "auto"
+    if m is None:
+        m = tau_grid(grid, top, points_per_decade)
+    dev = deviation_of_phase(x, tau0, kind, m)
+    conf = confidence(dev, x, monotone=True)
+    if not refine or len(dev.m) < 3:
+        return dev, conf
+    j = bends(dev, conf)
+    extra = np.round(dev.m[j][:, None] * 2.0 ** (np.array([1.0, 2.0]) / 3.0)).astype(np.int64)
+    extra = np.setdiff1d(extra.ravel(), dev.m)
+    extra = extra[extra <= top]
+    if not len(extra):
+        return dev, conf
+    known = {int(mi): conf.alpha[i] for i, mi in enumerate(dev.m)}
+    merged = _merge(dev, deviation_of_phase(x, tau0, kind, extra))
+    return merged, confidence(merged, x, known=known, monotone=True)

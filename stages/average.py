@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 import pyarrow as pa
 
-from imupipe.readers.table import SENSOR_COLUMNS, STREAM_OF_SENSOR, has_stream, sensor
+from imupipe.readers.table import SENSOR_COLUMNS, SENSOR_UNITS, STREAM_OF_SENSOR, has_stream, sensor
 from imupipe.stages.base import Stage, StageContext, StageOutput
 from imupipe.stages.blocks import block_means
 
@@ -50,7 +50,12 @@ class AverageStage(Stage):
             data = sensor(table, name)
             blocks = block_means(data.t_ns, data.values, opts.window, opts.window_s)
             ctx.recorder.series(
-                f"/{ctx.name}/{name}", blocks.t_ns, blocks.means, SENSOR_COLUMNS[name]
+                f"/{ctx.name}/means/{name}",
+                blocks.t_ns,
+                blocks.means,
+                [f"{c.replace('_', ' ')} block mean" for c in SENSOR_COLUMNS[name]],
+                unit=SENSOR_UNITS[name],
+                plot=name,
             )
             results["metrics"][name] = {
                 "samples": len(data),

@@ -1,4 +1,4 @@
-"""Ellipsoid fitting for magnetometer calibration (seed 002, Li & Griffiths 2004, ArduPilot).
+"""Ellipsoid fitting for magnetometer calibration (Li & Griffiths 2004, Magneto, ArduPilot).
 
 Model. A magnetometer with hard iron ``c`` (3,) and soft iron reads points ``h`` on an ellipsoid
 ``|W (h - c)| = 1`` with ``W`` symmetric positive definite (3x3, inverse length). The correction
@@ -8,7 +8,7 @@ Model. A magnetometer with hard iron ``c`` (3,) and soft iron reads points ``h``
 Fits (all on points shifted to their centroid and scaled to unit RMS, for conditioning):
 
 - :func:`fit_sphere`: ``|h|^2 = 2 c.h + k`` by linear least squares; ``W = I / R``.
-- :func:`fit_axis_aligned`: seed 002's ``a x^2 + b y^2 + c z^2 + d x + e y + f z = 1`` by linear
+- :func:`fit_axis_aligned`: the axis-aligned ellipsoid ``a x^2 + b y^2 + c z^2 + d x + e y + f z = 1`` by linear
   least squares; centre ``-d/(2a)``..., radii ``sqrt(G/a)``... with
   ``G = 1 + d^2/(4a) + e^2/(4b) + f^2/(4c)``; ``W = diag(1/radii)``.
 - :func:`fit_li_griffiths`: the ellipsoid-specific algebraic fit of Li & Griffiths (2004) with
@@ -21,6 +21,7 @@ Fits (all on points shifted to their centroid and scaled to unit RMS, for condit
 
 Robustness helpers: :func:`thin_by_direction` (cap the samples per direction cell so over-sampled
 orientations do not pull the fit), :func:`inliers` (k-sigma on the residuals with a MAD sigma),
+:func:`white_part_std` (the per-sample noise of a time-ordered residual series),
 :func:`direction_spread` (the coverage check: eigenvalues of the covariance of the unit directions;
 a full sphere gives 1/3 each, planar data or a narrow cone gives ~0 for the smallest).
 """
@@ -132,7 +133,8 @@ def fit_sphere(points: np.ndarray) -> Ellipsoid:
 
 
 def fit_axis_aligned(points: np.ndarray) -> Ellipsoid:
-    """Seed 002: ``a x^2 + b y^2 + c z^2 + d x + e y + f z = 1`` by linear least squares."""
+    """The axis-aligned ellipsoid ``a x^2 + b y^2 + c z^2 + d x + e y + f z = 1`` by linear
+    least squares."""
     points = _points(points, 6)
     frame = _Frame.of(points)
     q = frame.forward(points)
@@ -282,6 +284,20 @@ def inliers(residuals: np.ndarray, k: float) -> np.ndarray:
     return np.abs(residuals - centre) <= k * sigma
 
 
+def white_part_std(series: np.ndarray, clip: float = 5.0) -> float:
+    """Std of the white (sample-to-sample) part of a time-ordered series: the std of its second
+    differences over sqrt(6) (a white sequence's second difference has 6 times its variance;
+    a part that changes slowly from sample to sample, such as a calibration residual that
+    depends on the direction of a slowly turning sensor, cancels). Differences beyond ``clip``
+    robust sigmas (spikes, a jump) are left out."""
+    series = np.asarray(series, dtype=np.float64)
+    if len(series) < 8:
+        return float("nan")
+    d2 = np.diff(series, n=2)
+    d2 = d2[inliers(d2, clip)]
+    return float(np.sqrt(np.mean(d2 * d2) / 6.0))
+
+
 def fibonacci_directions(n: int) -> np.ndarray:
     """``n`` nearly uniform unit vectors (Fibonacci lattice): the centres of direction cells."""
     i = np.arange(n) + 0.5
@@ -315,12 +331,17 @@ def thin_by_direction(
     directions: np.ndarray, cells: int, max_per_cell: int | None = None
 ) -> Thinning:
     """Keep at most ``max_per_cell`` samples per direction cell, evenly spread in time within
-    the cell. Default cap: twice the median count of the occupied cells (at least 2), so an
+    the cell. Default cap: twice the median count of the occupied cells, and at least 4 Poisson
+    sigmas above it (``median + 4 sqrt(median) + 2``: a uniform tumble of few samples per cell
+    fills some cells three or four times by chance, which is no reason to drop samples), so an
     orientation held for long contributes like a typical one."""
     cell = direction_cells(directions, cells)
     counts = np.bincount(cell, minlength=cells)
     occupied = counts[counts > 0]
-    cap = int(max_per_cell) if max_per_cell else max(2, int(2 * np.median(occupied)))
+    typical = float(np.median(occupied))
+    cap = (
+        int(max_per_cell) if max_per_cell else int(max(2 * typical, typical + 4 * typical**0.5 + 2))
+    )
     order = np.argsort(cell, kind="stable")
     sorted_cells = cell[order]
     starts = np.searchsorted(sorted_cells, sorted_cells, side="left")

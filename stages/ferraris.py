@@ -15,14 +15,23 @@ accelerometer in the x/y/z ``_p`` and ``_a`` poses; ``b_a = diag((U_p + U_n) / 2
 gyro means (9); each turn's gyro, with offsets ``b_g + K_ga a`` removed, is summed and divided by
 the sample rate into the columns of ``W`` (13-14); ``M = W / angle``, ``K_g = diag(sqrt(diag(M
 M^T)))``, ``R_g = K_g^-1 M`` (12, 15).
+
+The chain applies this as three steps: the accelerometer's linear step, then (on request)
+:class:`GSensitivityStep`, ``w_raw - K_ga a`` with ``a`` the *calibrated* accelerometer of the
+same sample, then the gyroscope's linear step ``R_g^-1 K_g^-1 (w - b_g)``.
 """
 
 from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass
+from typing import Any, ClassVar
 
 import numpy as np
+import pyarrow as pa
+
+from imupipe.readers.table import has_stream, replace_sensor, sensor
+from imupipe.stages.steps import Step
 
 STATIC_PARTS = ("x_p", "x_a", "y_p", "y_a", "z_p", "z_a")
 ROTATION_PARTS = ("x_rot", "y_rot", "z_rot")
@@ -90,3 +99,50 @@ def ferraris(
     k_g = np.diag(np.sqrt(np.diag(m @ m.T)))
     r_g = np.linalg.inv(k_g) @ m
     return FerrarisResult(k_a, r_a, b_a, k_g, r_g, k_ga, b_g)
+
+
+@dataclass
+class GSensitivityStep(Step):
+    """``w <- w - K_ga a``: removes the gyroscope's sensitivity to specific force (imucal's
+    ``K_ga``, eq. 9), with ``a`` the accelerometer of the same IMU sample *as corrected by the
+    chain so far* (m/s^2) and ``w`` the gyro in the units the next (linear) step expects.
+
+    Each sample is corrected from its own accelerometer values, so the default
+    :meth:`Step.apply_stream` (every batch on its own) equals :meth:`apply` on the whole log.
+    A sample whose accelerometer is not finite keeps its gyro value (nothing to subtract)."""
+
+    kind: ClassVar[str] = "g_sensitivity"
+    type: str
+    sensor: str
+    k_ga: np.ndarray
+
+    def __post_init__(self) -> None:
+        self.k_ga = np.asarray(self.k_ga, dtype=np.float64).reshape(3, 3)
+        if self.sensor != "gyro":
+            raise ValueError(f"a g-sensitivity step corrects the gyro, not {self.sensor}")
+
+    def apply(self, table: pa.Table) -> pa.Table:
+        if not has_stream(table, "imu"):
+            return table
+        gyro = sensor(table, "gyro")
+        acc = sensor(table, "accel").values
+        ok = np.isfinite(acc).all(axis=1)
+        # elementwise (not a matrix product, whose rounding depends on the batch size): each
+        # sample's result is the same whether the log is corrected whole or batch by batch
+        a = np.where(ok[:, None], acc, 0.0)
+        offset = (
+            a[:, 0:1] * self.k_ga[:, 0] + a[:, 1:2] * self.k_ga[:, 1] + a[:, 2:3] * self.k_ga[:, 2]
+        )
+        return replace_sensor(table, "gyro", gyro.rows, gyro.values - offset)
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "type": self.type,
+            "sensor": self.sensor,
+            "kind": self.kind,
+            "K_ga": self.k_ga.tolist(),
+        }
+
+    @classmethod
+    def from_json(cls, entry: dict[str, Any]) -> GSensitivityStep:
+        return cls(type=entry["type"], sensor=entry["sensor"], k_ga=np.array(entry["K_ga"]))

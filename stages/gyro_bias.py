@@ -1,10 +1,14 @@
-"""``gyro_bias`` stage: gyroscope bias from a static recording (seed 002).
+"""``gyro_bias`` stage: gyroscope bias from a static recording (the turn-on bias of the
+basic calibration: the mean of N samples at rest after power-up, subtracted from every sample).
 
 Model: ``bias = mean(gyro)`` over the static samples (all of them, or those in ``interval =
 [start_s, end_s]`` seconds after the input's first sample); ``corrected = gyro - bias`` (rad/s).
-Added to the chain as ``matrix = I``, ``offset = bias``. Warns when the data is not static: when
-any 1-second mean of the gyro departs from the overall mean by more than ``motion_threshold``
-rad/s, or the accelerometer norm's 1-second means spread by more than 0.05 g.
+Added to the chain as ``matrix = I``, ``offset = bias``.
+
+Quality check (``ctx.check``): the data must be static (:mod:`imupipe.stages.stillness`): no
+1-second gyro mean further than ``motion_threshold`` rad/s from the overall mean, and the
+accelerometer norm's 1-second means within 0.05 g. A recording that moved stops the run with one
+line (a bias that includes motion is not applied) unless ``accept_failed_checks = true``.
 """
 
 from __future__ import annotations
@@ -17,7 +21,7 @@ import pyarrow as pa
 from imupipe.readers.table import SensorData, has_stream, sensor
 from imupipe.stages.base import Stage, StageContext, StageOutput
 from imupipe.stages.steps import LinearStep
-from imupipe.stages.stillness import stillness
+from imupipe.stages.stillness import ACCEL_SPREAD_LIMIT, stillness
 
 
 def select_interval(data: SensorData, interval: list[float] | None) -> np.ndarray:
@@ -51,22 +55,29 @@ class GyroBiasStage(Stage):
         n = int(mask.sum())
         if n < 2:
             raise ctx.fail(f"only {n} gyroscope samples in interval {interval}")
-        values = gyro.values[mask]
-        t_ns = gyro.t_ns[mask]
-        if not np.isfinite(values).all():
-            bad = int(np.flatnonzero(~np.isfinite(values).all(axis=1))[0])
-            raise ctx.fail(f"non-finite gyroscope sample at sample {bad}")
+        both = ctx.finite(
+            SensorData(
+                gyro.t_ns[mask],
+                np.hstack([gyro.values[mask], sensor(table, "accel").values[mask]]),
+                gyro.rows[mask],
+            ),
+            "IMU (gyroscope and accelerometer)",
+            minimum=2,
+        )
+        values, t_ns = both.values[:, :3], both.t_ns
+        n = len(both)
         bias = values.mean(axis=0)
         std = values.std(axis=0, ddof=1)
 
-        still = stillness(t_ns, values, sensor(table, "accel").values[mask])
+        still = stillness(t_ns, values, both.values[:, 3:])
         static = still.static(self.options.motion_threshold)
-        if not static:
-            ctx.warn(
-                f"{still.describe(self.options.motion_threshold)}; the bias will include motion"
-            )
         ctx.recorder.series(
-            f"/{ctx.name}/gyro_1s_means", still.gyro_1s.t_ns, still.gyro_1s.means, ("x", "y", "z")
+            f"/{ctx.name}/gyro_1s_means",
+            still.gyro_1s.t_ns,
+            still.gyro_1s.means,
+            ("gyro x 1 s mean", "gyro y 1 s mean", "gyro z 1 s mean"),
+            unit="rad/s",
+            title="gyro, 1 s means of the input",
         )
         step = LinearStep(
             type=self.type,
@@ -87,4 +98,12 @@ class GyroBiasStage(Stage):
                 "static": bool(static),
             },
         }
+        threshold = self.options.motion_threshold
+        ctx.check(
+            static,
+            f"motion in the bias recording: 1 s gyro means depart {still.excursion:.3g} rad/s "
+            f"from the mean (motion_threshold {threshold:g} rad/s), accelerometer-norm 1 s means "
+            f"spread {still.accel_spread:.3g} m/s^2 (limit {ACCEL_SPREAD_LIMIT:.3g}): the bias "
+            "would include the motion; give a still interval",
+        )
         return StageOutput(results=results, step=step)

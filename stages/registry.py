@@ -14,6 +14,7 @@ STAGE_TYPES: dict[str, str] = {
     "gyro_calibration": "imupipe.stages.gyro_calibration:GyroCalibrationStage",
     "mag_calibration": "imupipe.stages.mag_calibration:MagCalibrationStage",
     "temperature": "imupipe.stages.temperature:TemperatureStage",
+    "thermal_soak": "imupipe.stages.thermal_soak:ThermalSoakStage",
 }
 
 

@@ -19,11 +19,16 @@ from __future__ import annotations
 
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import pyarrow as pa
 
 from imupipe.stages.errors import FitError
+
+FLOOR_QUANTILE = 0.1
+"""The quantile of the windowed variance taken as the noise floor: a calibration session is at
+rest for far more than a tenth of its length, so this quantile falls among still windows."""
 
 
 @dataclass(frozen=True)
@@ -61,12 +66,80 @@ class Intervals:
         return (csum[self.stop] - csum[self.start]) / self.lengths[:, None]
 
 
+@dataclass(frozen=True)
+class Poses:
+    """Static intervals grouped into poses: consecutive intervals whose mean specific force
+    points the same way (the IMU was disturbed, not turned) are one pose. ``group`` (m,) is the
+    pose index of each interval (non-decreasing, consecutive)."""
+
+    intervals: Intervals
+    group: np.ndarray
+
+    def __len__(self) -> int:
+        return int(self.group[-1]) + 1 if len(self.group) else 0
+
+    @property
+    def start(self) -> np.ndarray:
+        """(p,) first sample of each pose."""
+        first = np.r_[True, self.group[1:] != self.group[:-1]]
+        return self.intervals.start[first]
+
+    @property
+    def stop(self) -> np.ndarray:
+        """(p,) one past the last sample of each pose."""
+        last = np.r_[self.group[1:] != self.group[:-1], True]
+        return self.intervals.stop[last]
+
+    @property
+    def lengths(self) -> np.ndarray:
+        """(p,) static samples of each pose (the gaps between its intervals left out)."""
+        return np.bincount(self.group, weights=self.intervals.lengths).astype(np.int64)
+
+    def mask(self, n: int) -> np.ndarray:
+        return self.intervals.mask(n)
+
+    def means(self, values: np.ndarray) -> np.ndarray:
+        """(p, k) mean of ``values`` (n, k) over the static samples of each pose."""
+        sums = self.intervals.means(values) * self.intervals.lengths[:, None]
+        out = np.zeros((len(self), sums.shape[1]))
+        np.add.at(out, self.group, sums)
+        return out / self.lengths[:, None]
+
+
 def sample_rate(t_ns: np.ndarray) -> float:
     """Mean sample rate (Hz) from first and last stamp (robust to quantised timestamps)."""
     span = float(t_ns[-1] - t_ns[0]) * 1e-9
     if len(t_ns) < 2 or span <= 0:
         raise FitError("cannot get a sample rate: fewer than 2 distinct timestamps")
     return (len(t_ns) - 1) / span
+
+
+def sample_clock(t_ns: np.ndarray) -> tuple[np.ndarray, str | None]:
+    """Seconds since the first sample for integrating between samples, and a note when the
+    stamps had to be regularised: stamps that repeat because they were printed coarser than the
+    sample period (e.g. to 10 ms at 200 Hz) are replaced by the least-squares line through
+    them, provided no step exceeds the quantum (the most common non-zero step: no gap) and
+    every stamp lies within one quantum of the line. Otherwise the stamps are used as they are."""
+    t_s = (t_ns - t_ns[0]).astype(np.float64) * 1e-9
+    steps = np.diff(t_s)
+    if len(steps) < 2 or bool(np.all(steps > 0)):
+        return t_s, None
+    positive = steps[steps > 0]
+    if len(positive) == 0:
+        return t_s, None
+    values, counts = np.unique(np.round(positive, 9), return_counts=True)
+    quantum = float(values[np.argmax(counts)])
+    index = np.arange(len(t_s), dtype=np.float64)
+    slope, intercept = np.polyfit(index, t_s, 1)
+    line = intercept + slope * index
+    if steps.max() > 1.01 * quantum or np.abs(t_s - line).max() > quantum or not slope > 0:
+        return t_s, None
+    repeated = int(np.count_nonzero(steps <= 0))
+    return line - line[0], (
+        f"{repeated} of {len(steps)} time steps are zero (stamps quantised to "
+        f"{quantum * 1e3:.3g} ms at {1 / slope:.4g} Hz): integrated on the least-squares line "
+        "through the stamps"
+    )
 
 
 def moving_variance_norm(values: np.ndarray, window: int) -> np.ndarray:
@@ -104,11 +177,22 @@ class Detector:
     variance: np.ndarray
     """(n,) windowed variance norm, (m/s^2)^2 (or counts^2)."""
     reference: float
-    """Variance norm of the initial static period."""
+    """The variance norm a threshold multiplies: the noise floor, or the initial period's."""
     min_samples: int
+    source: str
+    """How ``reference`` was obtained (one sentence for the results)."""
 
     def detect(self, k: float) -> Intervals:
         return runs(self.variance < k * self.reference, self.min_samples)
+
+    def describe(self, k: float) -> dict[str, Any]:
+        """The threshold as the results report it."""
+        return {
+            "k": float(k),
+            "threshold": float(k * self.reference),
+            "reference_variance": self.reference,
+            "reference": self.source,
+        }
 
 
 def make_detector(
@@ -116,25 +200,42 @@ def make_detector(
     accel: np.ndarray,
     *,
     window_s: float = 1.0,
-    init_static_s: float = 30.0,
+    init_static_s: float | None = None,
     min_interval_s: float = 1.0,
+    floor_quantile: float = FLOOR_QUANTILE,
 ) -> Detector:
-    """Prepare the detection on ``accel`` (n, 3) at ``t_ns`` (see the module docstring)."""
+    """Prepare the detection on ``accel`` (n, 3) at ``t_ns`` (see the module docstring): the
+    reference is the noise floor of the log itself, or, with ``init_static_s``, the variance of
+    that initial period (imu_tk's rule, which needs the log to start at rest)."""
     rate = sample_rate(t_ns)
     window = max(int(round(window_s * rate)), 3)
-    t_s = (t_ns - t_ns[0]) * 1e-9
-    init = t_s <= init_static_s
-    if init.sum() < window:
-        raise FitError(
-            f"the initial static period ({init_static_s} s) holds {int(init.sum())} samples, "
-            f"fewer than one {window_s} s window"
+    variance = moving_variance_norm(accel, window)
+    if init_static_s is None:
+        finite = variance[np.isfinite(variance)]
+        if len(finite) == 0:
+            raise FitError(
+                f"the log holds {len(accel)} samples, fewer than one {window_s} s window"
+            )
+        reference = float(np.quantile(finite, floor_quantile))
+        source = (
+            f"noise floor: the {floor_quantile:.0%} quantile of the {window_s:g} s windowed "
+            "accelerometer variance over the whole log"
         )
-    reference = float(np.linalg.norm(accel[init].var(axis=0, ddof=1)))
+    else:
+        init = (t_ns - t_ns[0]) * 1e-9 <= init_static_s
+        if init.sum() < window:
+            raise FitError(
+                f"the initial static period ({init_static_s} s) holds {int(init.sum())} "
+                f"samples, fewer than one {window_s} s window"
+            )
+        reference = float(np.linalg.norm(accel[init].var(axis=0, ddof=1)))
+        source = f"variance of the first init_static_s = {init_static_s:g} s (imu_tk's rule)"
     if not reference > 0:
-        raise FitError("the accelerometer does not vary at all in the initial static period")
-    return Detector(
-        moving_variance_norm(accel, window), reference, int(round(min_interval_s * rate))
-    )
+        raise FitError(
+            "the accelerometer does not vary at all where it is still (quantised to a constant?): "
+            "no noise floor to set the static threshold"
+        )
+    return Detector(variance, reference, int(round(min_interval_s * rate)), source)
 
 
 @dataclass(frozen=True)

@@ -3,6 +3,14 @@
 A step is serialised into ``calibration.json``'s ``chain`` and read back to apply the same
 correction in ``run`` and ``convert``. Every step entry has ``type`` (the stage type that made it),
 ``sensor`` and ``kind`` (how to apply it); linear steps also carry ``matrix`` and ``offset``.
+A linear step written by hand as the chain format shows it (``type``, ``sensor``, ``matrix``,
+``offset``, no ``kind``) is read as ``kind = "linear"``.
+
+Reading a chain checks every entry (:func:`steps_from_json`): an object with a string ``type``, a
+known ``sensor`` and ``kind``, every number finite, then the kind's own checks
+(:meth:`Step.check_entry`: shapes, ranges); a failure is one
+:class:`~imupipe.stages.errors.CalibrationError` line naming the entry and the field
+(``chain[1].matrix: 3x3 numbers expected, got [[1, 0], [0, 1]]``).
 """
 
 from __future__ import annotations
@@ -52,6 +60,14 @@ class Step(ABC):
     def from_json(cls, entry: dict[str, Any]) -> Step:
         """Inverse of :meth:`to_json`."""
 
+    @classmethod
+    def check_entry(cls, entry: dict[str, Any]) -> None:
+        """The kind's own checks of a chain entry before :meth:`from_json`: raise
+        :class:`EntryError` naming the field (``EntryError("matrix", "3x3 numbers expected,
+        got ...")``). The default checks nothing beyond the generic checks of
+        :func:`steps_from_json`."""
+        return None
+
 
 @dataclass
 class LinearStep(Step):
@@ -73,8 +89,17 @@ class LinearStep(Step):
         self.offset = np.asarray(self.offset, dtype=np.float64).reshape(3)
 
     def apply_values(self, values: np.ndarray) -> np.ndarray:
-        """Apply to an (n, 3) array."""
-        return (np.asarray(values, dtype=np.float64) - self.offset) @ self.matrix.T
+        """Apply to an (n, 3) array.
+
+        Summed term by term (not a matrix product, whose summation order BLAS may choose by the
+        array's shape), so a sample's result does not depend on the batch it is corrected in:
+        a log converted in batches equals the log corrected whole, bit for bit."""
+        d = np.asarray(values, dtype=np.float64) - self.offset
+        m = self.matrix
+        out = np.empty_like(d)
+        for i in range(3):
+            out[:, i] = m[i, 0] * d[:, 0] + m[i, 1] * d[:, 1] + m[i, 2] * d[:, 2]
+        return out
 
     def apply(self, table: pa.Table) -> pa.Table:
         if len(SENSOR_COLUMNS[self.sensor]) != 3:
@@ -97,6 +122,25 @@ class LinearStep(Step):
         }
 
     @classmethod
+    def check_entry(cls, entry: dict[str, Any]) -> None:
+        if len(SENSOR_COLUMNS.get(entry["sensor"], ())) != 3:
+            raise EntryError(
+                "sensor", f"a linear step corrects gyro, accel or mag, not {entry['sensor']!r}"
+            )
+        for key, shape in (("matrix", (3, 3)), ("offset", (3,))):
+            if key not in entry:
+                raise EntryError(key, "missing")
+            value = _numbers(entry[key], shape)
+            if value is None:
+                what = "3x3 numbers" if key == "matrix" else "3 numbers"
+                raise EntryError(key, f"{what} expected, got {_short(entry[key])}")
+            if (
+                key == "matrix"
+                and abs(np.linalg.det(value)) < 1e-12 * max(np.abs(value).max(), 1e-300) ** 3
+            ):
+                raise EntryError(key, f"singular (determinant {np.linalg.det(value):.3g})")
+
+    @classmethod
     def from_json(cls, entry: dict[str, Any]) -> LinearStep:
         params = {
             k: v
@@ -115,8 +159,61 @@ class LinearStep(Step):
 STEP_KINDS: dict[str, str] = {
     "linear": "imupipe.stages.steps:LinearStep",
     "temperature": "imupipe.stages.temperature_step:TemperatureStep",
+    "thermal_matrix": "imupipe.stages.temperature_step:ThermalMatrixStep",
+    "g_sensitivity": "imupipe.stages.ferraris:GSensitivityStep",
 }
 """Step kind -> "module:Class". A new kind of correction registers here."""
+
+
+SENSORS: tuple[str, ...] = tuple(SENSOR_COLUMNS)
+"""The sensor names a step may correct."""
+
+
+class EntryError(ValueError):
+    """A chain entry's ``field`` is wrong (``reason``); :func:`steps_from_json` adds where."""
+
+    def __init__(self, field: str, reason: str) -> None:
+        super().__init__(f"{field}: {reason}")
+        self.field = field
+        self.reason = reason
+
+
+def _short(value: Any, limit: int = 60) -> str:
+    text = repr(value)
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+def _numbers(value: Any, shape: tuple[int, ...]) -> np.ndarray | None:
+    """``value`` as a float array of ``shape`` when it is nested lists of real numbers (not
+    booleans), else None."""
+
+    def ok(v: Any, dims: tuple[int, ...]) -> bool:
+        if not dims:
+            return isinstance(v, int | float) and not isinstance(v, bool)
+        return isinstance(v, list) and len(v) == dims[0] and all(ok(x, dims[1:]) for x in v)
+
+    return np.asarray(value, dtype=np.float64) if ok(value, shape) else None
+
+
+MAX_MAGNITUDE = 1e12
+"""The largest magnitude a calibration's real numbers may have: far beyond any scale, offset or
+coefficient of an IMU correction (raw counts to SI are 1e-9 to 1e4), far below where products
+with the data overflow to infinity; larger is a damaged or hostile file."""
+
+
+def _non_finite(value: Any, path: str) -> str | None:
+    """The path of the first real number inside ``value`` that is NaN, infinite or larger in
+    magnitude than :data:`MAX_MAGNITUDE` (None when there is none)."""
+    stack = [(value, path)]
+    while stack:
+        v, p = stack.pop()
+        if isinstance(v, float) and not (np.isfinite(v) and abs(v) <= MAX_MAGNITUDE):
+            return p
+        if isinstance(v, dict):
+            stack.extend((x, f"{p}.{k}") for k, x in reversed(list(v.items())))
+        elif isinstance(v, list):
+            stack.extend((x, f"{p}[{j}]") for j, x in reversed(list(enumerate(v))))
+    return None
 
 
 def step_class(kind: str) -> type[Step]:
@@ -129,14 +226,49 @@ def step_class(kind: str) -> type[Step]:
     return getattr(importlib.import_module(module), name)
 
 
+def check_entry(entry: Any, i: int, where: str) -> dict[str, Any]:
+    """The generic checks of chain entry ``i`` (see the module docstring); returns the entry with
+    ``kind`` filled in for a hand-written linear step."""
+    at = f"{where}: chain[{i}]"
+    if not isinstance(entry, dict):
+        raise CalibrationError(f"{at}: an object expected, got {_short(entry)}")
+    if "kind" not in entry:
+        if not {"type", "sensor", "matrix", "offset"} <= set(entry):
+            raise CalibrationError(
+                f"{at}: no 'kind', and not a linear step written as type, sensor, matrix, offset"
+            )
+        entry = {**entry, "kind": "linear"}
+    for key in ("type", "sensor", "kind"):
+        if not isinstance(entry.get(key), str):
+            raise CalibrationError(f"{at}.{key}: a string expected, got {_short(entry.get(key))}")
+    if entry["sensor"] not in SENSORS:
+        raise CalibrationError(
+            f"{at}.sensor: unknown sensor '{entry['sensor']}' (known: {', '.join(SENSORS)})"
+        )
+    if entry["kind"] not in STEP_KINDS:
+        raise CalibrationError(
+            f"{at}.kind: unknown step kind '{entry['kind']}' (known: {', '.join(STEP_KINDS)})"
+        )
+    bad = _non_finite(entry, f"chain[{i}]")
+    if bad is not None:
+        raise CalibrationError(
+            f"{where}: {bad}: not a finite number of magnitude at most {MAX_MAGNITUDE:g}"
+        )
+    return entry
+
+
 def steps_from_json(chain: Sequence[dict[str, Any]], where: str = "calibration") -> list[Step]:
-    """Rebuild the steps of a ``calibration.json`` chain."""
+    """Rebuild (and check, see the module docstring) the steps of a ``calibration.json``
+    chain."""
     steps: list[Step] = []
-    for i, entry in enumerate(chain):
-        if not isinstance(entry, dict) or "kind" not in entry:
-            raise CalibrationError(f"{where}: chain[{i}] has no 'kind'")
+    for i, raw in enumerate(chain):
+        entry = check_entry(raw, i, where)
+        cls = step_class(entry["kind"])
         try:
-            steps.append(step_class(entry["kind"]).from_json(entry))
+            cls.check_entry(entry)
+            steps.append(cls.from_json(entry))
+        except EntryError as exc:
+            raise CalibrationError(f"{where}: chain[{i}].{exc.field}: {exc.reason}") from None
         except (KeyError, TypeError, ValueError) as exc:
             raise CalibrationError(
                 f"{where}: chain[{i}] ({entry.get('type')}) is malformed: {exc}"

@@ -1,9 +1,10 @@
-"""Stepwise regression: choose the terms of a linear model (seed 000's multi-factor model).
+"""Stepwise regression: choose the terms of a linear model (the multi-factor temperature model
+of "MEMS 惯性测量组件的温度误差补偿模型研究", whose terms are chosen by stepwise regression).
 
 Candidates: every monomial of degree <= 2 in the available variables (device temperature T and
 its rate dT, and ambient temperature Ta and its rate dTa when the log has an ambient column),
 plus the powers T^3 .. T^order of the device temperature. With four variables that is
-1 + 4 + 10 = 15 terms (+ T^3). Seed 000's list has 21 terms because it also takes the sensor's
+1 + 4 + 10 = 15 terms (+ T^3). The paper's list has 21 terms because it also takes the sensor's
 own output V as a variable; on a static recording the error *is* V minus the reference, so V
 terms would explain it trivially: imupipe leaves them out.
 

@@ -1,57 +1,70 @@
-"""``temperature`` stage: bias of the gyro or accel against temperature (seeds 000 and 004).
+"""``temperature`` stage: bias of the gyro or accel against temperature.
 
-Model, per axis: ``bias = f(T, dT [, Ta, dTa])`` with T the device temperature (degC), dT its
-rate dT/dt (degC/s), Ta/dTa the ambient temperature and its rate when the log has an
-``ambient_temperature`` column; f is linear in named terms (:mod:`imupipe.stages.thermal_models`).
-``corrected = raw - f(T, dT)`` in the sensor's SI unit (rad/s or m/s^2).
+Model, per axis: ``bias = f(T, dT [, Ta, dTa] | Ts, dTs)`` with T the measured temperature
+(degC), dT its rate (degC/s), Ta/dTa the ambient temperature and its rate when the log has an
+``ambient_temperature`` column, Ts/dTs the sensing element's lagged temperature and its rate (the
+``lag`` model); f is linear in named terms (:mod:`imupipe.stages.thermal_models`).
+``corrected = raw - f(...)`` in the sensor's SI unit (rad/s or m/s^2).
 
-Preprocessing: the temperature stream is interpolated onto the IMU timestamps
-(:func:`imupipe.readers.table.interpolate`); sensor and temperature are block-averaged
-(seed 000's ``ImuDataSum``: :func:`imupipe.stages.blocks.block_means`, ``window`` samples or
-``window_s`` seconds, default 10 s); dT is the gradient of the block-mean temperature over the
-block centres. The bias of a block is its mean minus the ``reference`` (the true output: zero for
-a gyro; for an accelerometer, by default gravity, 9.80665 m/s^2 along the mean specific force).
-Blocks are weighted by temperature bin (``bin_width`` degC, heating, cooling and soak apart) so
-that slow parts of a ramp and long soaks do not outweigh fast ones (PX4 resamples by temperature
-for the same reason).
+Preprocessing (:mod:`imupipe.stages.thermal_track`, shared with the correction): the temperature
+stream is interpolated onto the IMU stamps; samples are grouped into blocks (``window`` samples,
+or ``window_s`` seconds within each burst of a gappy log; default 10 s), each replaced by its mean
+(the block means of the MATLAB example in "MEMS 惯性测量组件的温度误差补偿模型研究"); dT is the
+three-point derivative of the block temperatures over the block centres. Only **complete** blocks
+enter the fit and the metrics (a log's trailing partial block does not). The bias of a block is
+its mean minus the ``reference`` (the true output: zero for a gyro; for an accelerometer, by
+default gravity, 9.80665 m/s^2, along the mean specific force). Blocks are weighted by their
+sample count and by temperature bin (``bin_width`` degC, heating, cooling and soak apart) so that
+slow parts of a ramp and long soaks do not outweigh fast ones (PX4 resamples by temperature for
+the same reason).
 
-The correction (:class:`TemperatureStep`) recomputes T and dT the same way on any log, clamps
-T (and Ta) to the fitted range and warns when a sample lies more than 0.5 degC outside it; rates
-outside the fitted range are extrapolated, with a warning. A fitted span under 10 degC is
-refused, under 24 degC warned about (ArduPilot asks for 10 degC at least).
+What the data support: a span under 10 degC (ArduPilot's minimum) is warned about, one under
+``MIN_SPAN`` refused; rate terms and the lag need the temperature to rise and fall over a common
+range (at one temperature, two rates): from a one-direction ramp or soaks they cannot be
+identified, and the fit falls back to the terms in T with a warning naming what was dropped.
+Unless ``order`` is given, the polynomial order (0..3) and whether the rate term enters are chosen
+per axis by the small-sample Akaike criterion.
+
+The correction (:class:`~imupipe.stages.temperature_step.TemperatureStep`) recomputes the
+variables the same way on any log, clamps temperatures to the fitted range and warns when a
+sample lies more than 0.5 degC outside it; rates outside the fitted range are extrapolated, with
+a warning.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any, Literal
 
 import numpy as np
 import pyarrow as pa
 
-from imupipe.readers.table import (
-    SENSOR_UNITS,
-    has_stream,
-    sensor,
-)
+from imupipe.readers.table import SENSOR_UNITS, has_stream, sensor
 from imupipe.stages import thermal_models as tm
 from imupipe.stages.base import Stage, StageContext, StageOutput
-from imupipe.stages.blocks import block_means
 from imupipe.stages.stepwise import candidate_terms, stepwise
 from imupipe.stages.stillness import G0
 from imupipe.stages.temperature_step import (
     AXES,
     Prepared,
     TemperatureStep,
-    temperature_at,
+    temperature_samples,
 )
+from imupipe.stages.thermal_track import Blocking, Track, TrackSpec, Variables
 
-MIN_SPAN = 10.0
-"""degC: a narrower fitted temperature span is refused."""
-WARN_SPAN = 24.0
-"""degC: a narrower span is warned about."""
+MIN_SPAN = 1.0
+"""degC: a narrower fitted temperature span is refused (no temperature term is identifiable)."""
+WARN_SPAN = 10.0
+"""degC: a narrower span is warned about (ArduPilot asks for 10 degC at least)."""
 SOAK_RATE = 0.05 / 60.0
 """degC/s: blocks with |dT| below this count as soak (neither heating nor cooling)."""
+MAX_AUTO_ORDER = 3
+"""Highest polynomial order tried when the order is chosen by the data."""
+MIN_DIRECTION_SHARE = 0.1
+"""Heating and cooling must each hold this share of the blocks ..."""
+MIN_OVERLAP = 0.25
+"""... over temperature ranges that overlap by this share of the span, for a rate term or a lag
+to be identifiable (at one temperature, two rates)."""
 
 
 def bin_weights(temp: np.ndarray, direction: np.ndarray, width: float) -> np.ndarray:
@@ -64,6 +77,29 @@ def bin_weights(temp: np.ndarray, direction: np.ndarray, width: float) -> np.nda
     return w * (len(w) / w.sum())
 
 
+def directions_identify_rate(temp: np.ndarray, direction: np.ndarray) -> str | None:
+    """None when heating and cooling both cover a common temperature range (see
+    ``MIN_DIRECTION_SHARE``, ``MIN_OVERLAP``), else why not (for the warning)."""
+    n = len(temp)
+    span = float(np.ptp(temp)) if n else 0.0
+    heat, cool = temp[direction > 0], temp[direction < 0]
+    if len(heat) < MIN_DIRECTION_SHARE * n or len(cool) < MIN_DIRECTION_SHARE * n:
+        if len(heat) < MIN_DIRECTION_SHARE * n and len(cool) < MIN_DIRECTION_SHARE * n:
+            return "the temperature is held (soaks), not ramped"
+        falls = len(cool) >= len(heat)
+        start, end = (temp.max(), temp.min()) if falls else (temp.min(), temp.max())
+        return (
+            f"the temperature only {'falls' if falls else 'rises'} ({start:.4g} -> {end:.4g} degC)"
+        )
+    overlap = min(heat.max(), cool.max()) - max(heat.min(), cool.min())
+    if overlap < MIN_OVERLAP * span:
+        return (
+            f"heating ({heat.min():.4g}..{heat.max():.4g} degC) and cooling "
+            f"({cool.min():.4g}..{cool.max():.4g} degC) overlap over {max(overlap, 0):.3g} degC"
+        )
+    return None
+
+
 class TemperatureStage(Stage):
     type = "temperature"
     corrects = True
@@ -72,19 +108,23 @@ class TemperatureStage(Stage):
     class Options:
         sensor: Literal["gyro", "accel"] = "gyro"
         """Which sensor to compensate (every axis)."""
-        model: Literal["poly", "seed000", "piecewise", "stepwise"] = "poly"
-        order: int = 3
-        """poly: polynomial order in T - Tref (0..5); stepwise: highest power of T offered."""
-        rate_terms: list[str] = field(default_factory=lambda: ["dT"])
-        """poly: rate terms among dT, dT^2, T*dT (empty: a plain polynomial in T)."""
+        model: Literal["poly", "lag", "six_term", "piecewise", "stepwise"] = "poly"
+        order: int | None = None
+        """poly, lag: polynomial order (0..5); default: chosen per axis by the data (0..3).
+        stepwise: highest power of T offered (default 3)."""
+        rate_terms: list[str] | None = None
+        """poly: rate terms among dT, dT^2, T*dT; lag: dTs. Default: dT (poly) or dTs (lag),
+        kept where the data choose it; a list given is fitted as given; [] leaves them out."""
+        lag_s: float | None = None
+        """lag: the sensing element's time constant, s (default: fitted)."""
         tref: float | None = None
-        """degC; default the middle of the fitted range (seed000: 0, the formula as written)."""
+        """degC; default the middle of the fitted range (six_term: 0, the formula as written)."""
         window: int | None = None
-        """Samples per block (seed 000 uses 500)."""
+        """Samples per block."""
         window_s: float | None = None
         """Seconds per block (default 10 s when neither is given)."""
         bin_width: float = 1.0
-        """degC; temperature bins for weighting (0: every block weighs the same)."""
+        """degC; temperature bins for weighting (0: every block weighs by its samples only)."""
         segment_width: float = 10.0
         """piecewise: degC between knots."""
         criterion: Literal["f_test", "adj_r2"] = "f_test"
@@ -99,73 +139,94 @@ class TemperatureStage(Stage):
         write_blocks: bool = False
         """Also write the block means used by the fit as ``<name>_blocks.csv``."""
         turntable_rate: float | None = None
-        """rad/s: the log holds turntable runs at +rate and -rate (gyro only, seed 004); fit the
-        scale factor of each turned axis against temperature; blocks with turning are left out of
-        the bias fit."""
+        """rad/s: the log holds turntable runs at +rate and -rate (gyro only; the gyro patent's
+        method); fit the scale factor of each turned axis against temperature; blocks with
+        turning are left out of the bias fit."""
         scale_order: int = 2
-        """Polynomial order of the scale factor in T - Tref (piecewise model: linear per segment)."""
+        """Polynomial order of the scale factor in T - Tref."""
 
     @classmethod
     def sensors_for(cls, options: Any) -> tuple[str, ...]:
         return (options.sensor, "temperature")
 
     # -- helpers -------------------------------------------------------------------------------
-    def _window(self) -> tuple[int | None, float | None]:
+    def blocking(self) -> Blocking:
         o = self.options
         if o.window is None and o.window_s is None:
-            return None, 10.0
-        return o.window, o.window_s
+            return Blocking(window_s=10.0)
+        return Blocking(o.window, o.window_s)
 
     def prepare(self, table: pa.Table, ctx: StageContext, input_name: str) -> Prepared:
-        """Block means and rates of ``table`` (see the module docstring)."""
+        """Complete blocks of ``table`` (see the module docstring)."""
         o = self.options
         if not has_stream(table, "imu"):
             raise ctx.fail(f"input '{input_name}' has no IMU samples")
-        if not has_stream(table, "temperature"):
+        if not len(temperature_samples(table, "temperature")[0]):
             raise ctx.fail(
                 f"input '{input_name}' has no temperature samples (map csv.temperature or set "
                 "temperature_topic)"
             )
         data = sensor(table, o.sensor)
-        if not np.isfinite(data.values).all():
-            bad = int(np.flatnonzero(~np.isfinite(data.values).all(axis=1))[0])
-            raise ctx.fail(f"input '{input_name}': non-finite {o.sensor} sample at sample {bad}")
-        window, window_s = self._window()
-        temp = temperature_at(table, data.t_ns)
-        columns = [data.values, temp[:, None]]
-        has_ambient = "ambient_temperature" in table.column_names and table.column(
-            "ambient_temperature"
-        ).null_count < len(table)
-        if has_ambient:
-            columns.append(temperature_at(table, data.t_ns, "ambient_temperature")[:, None])
-        blocks = block_means(data.t_ns, np.hstack(columns), window, window_s)
-        if len(blocks.t_ns) < 2:
-            raise ctx.fail(f"input '{input_name}': fewer than 2 blocks of {window or window_s}")
-        t_s = (blocks.t_ns - blocks.t_ns[0]).astype(np.float64) * 1e-9
-        means = blocks.means[:, :3]
-        variables = {"T": blocks.means[:, 3], "dT": np.gradient(blocks.means[:, 3], t_s)}
-        if has_ambient:
-            variables["Ta"] = blocks.means[:, 4]
-            variables["dTa"] = np.gradient(blocks.means[:, 4], t_s)
+        what = {"gyro": "gyroscope", "accel": "accelerometer"}[o.sensor]
+        ctx.finite(data, f"{what} ({input_name})", minimum=2)
+        finite = np.isfinite(data.values).all(axis=1)
+        channels = ["temperature"]
+        if len(temperature_samples(table, "ambient_temperature")[0]):
+            channels.append("ambient_temperature")
+        blocking = self.blocking()
+        track = Track(TrackSpec(tuple(channels), blocking, keep_blocks=True))
+        temps = [temperature_samples(table, c) for c in channels]
+        v = Variables.concat([track.push(data.t_ns, temps), track.finish()])
+        b = track.blocks
+        ids = v.block - b.id[0]
+        m = len(b)
+        n_finite = np.bincount(ids, weights=finite, minlength=m)
+        sums = np.column_stack(
+            [
+                np.bincount(ids, weights=np.where(finite, data.values[:, i], 0.0), minlength=m)
+                for i in range(3)
+            ]
+        )
+        keep = b.complete(blocking) & (n_finite >= 0.5 * b.count)
+        pairs: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+        if o.turntable_rate is not None:
+            rate = float(o.turntable_rate)
+            turning = (np.abs(np.nan_to_num(data.values)) > rate / 2).any(axis=1)
+            busy = np.bincount(ids, weights=turning, minlength=m) > 0
+            keep &= ~(busy | np.r_[busy[1:], False] | np.r_[False, busy[:-1]])
+            for i, axis in enumerate(AXES):
+                ok = finite
+                pair_t, pair_sf = tm.turntable_pairs(
+                    data.t_ns[ok], data.values[ok, i], v.T[ok, 0], rate
+                )
+                if len(pair_t):
+                    pairs[axis] = (pair_t, pair_sf)
+        keep_idx = np.flatnonzero(keep)
+        if len(keep_idx) < 2:
+            raise ctx.fail(
+                f"input '{input_name}': {len(keep_idx)} complete blocks of "
+                f"{blocking.window or blocking.window_s}{'' if blocking.window else ' s'}; "
+                "the fit needs at least 2 (record longer or use smaller blocks)"
+            )
+        means = sums[keep_idx] / n_finite[keep_idx, None]
+        variables = {"T": b.temps[keep_idx, 0], "dT": b.rate[keep_idx, 0]}
+        if len(channels) > 1:
+            variables["Ta"], variables["dTa"] = b.temps[keep_idx, 1], b.rate[keep_idx, 1]
         direction = np.where(
             variables["dT"] > SOAK_RATE, 1, np.where(variables["dT"] < -SOAK_RATE, -1, 0)
         )
-        pairs: dict[str, tuple[np.ndarray, np.ndarray]] = {}
-        keep = np.ones(len(blocks.t_ns), dtype=bool)
-        if o.turntable_rate is not None:
-            rate = float(o.turntable_rate)
-            turning = (np.abs(data.values) > rate / 2).any(axis=1)
-            busy = block_means(data.t_ns, turning.astype(np.float64), window, window_s).means > 0
-            keep = ~(busy | np.r_[busy[1:], False] | np.r_[False, busy[:-1]])
-            for i, axis in enumerate(AXES):
-                pair_t, pair_sf = tm.turntable_pairs(data.t_ns, data.values[:, i], temp, rate)
-                if len(pair_t):
-                    pairs[axis] = (pair_t, pair_sf)
-        variables = {k: v[keep] for k, v in variables.items()}
-        means, direction = means[keep], direction[keep]
         reference = self._reference(means)
         return Prepared(
-            blocks.t_ns[keep], means - reference, variables, direction, reference, pairs
+            t_ns=b.centre[keep_idx],
+            bias=means - reference,
+            variables=variables,
+            direction=direction,
+            reference=reference,
+            counts=b.count[keep_idx],
+            centre_all=b.centre,
+            temp_all=b.temps[:, 0],
+            keep=keep_idx,
+            pairs=pairs,
         )
 
     def _reference(self, means: np.ndarray) -> np.ndarray:
@@ -176,9 +237,15 @@ class TemperatureStage(Stage):
         mean = means.mean(axis=0)
         return G0 * mean / np.linalg.norm(mean)
 
+    def weights(self, prep: Prepared) -> np.ndarray:
+        """Sample count x temperature-bin weight, normalised to mean 1."""
+        w = bin_weights(prep.variables["T"], prep.direction, self.options.bin_width)
+        w = w * prep.counts
+        return w * (len(w) / w.sum())
+
     # -- fit -----------------------------------------------------------------------------------
-    def check_options(self, ctx: StageContext) -> list[str]:
-        """Raise on an option value that cannot work; returns the poly model's terms."""
+    def check_options(self, ctx: StageContext) -> None:
+        """Raise on an option value that cannot work."""
         o = self.options
         problems = [
             (o.reference is not None and len(o.reference) != 3, "'reference' must hold 3 values"),
@@ -196,26 +263,35 @@ class TemperatureStage(Stage):
                 o.turntable_rate is not None and o.turntable_rate <= 0,
                 "'turntable_rate' must be > 0",
             ),
+            (o.lag_s is not None and o.lag_s <= 0, "'lag_s' must be > 0"),
+            (o.lag_s is not None and o.model != "lag", "'lag_s' applies to model = \"lag\""),
             (
-                o.model == "stepwise" and not 2 <= o.order <= tm.MAX_ORDER,
+                o.order is not None and not 0 <= o.order <= tm.MAX_ORDER,
+                f"'order' must be 0..{tm.MAX_ORDER}",
+            ),
+            (
+                o.model == "stepwise" and o.order is not None and o.order < 2,
                 "stepwise 'order' must be 2..5",
             ),
         ]
         for bad, message in problems:
             if bad:
                 raise ctx.fail(message)
+        allowed = {"lag": ("dTs",), "poly": tm.RATE_TERMS}.get(o.model)
+        if o.rate_terms is not None:
+            if allowed is None:
+                raise ctx.fail(f'\'rate_terms\' applies to model = "poly" or "lag", not {o.model}')
+            bad = [t for t in o.rate_terms if t not in allowed]
+            if bad:
+                raise ctx.fail(f"unknown rate term(s) {bad} (known: {', '.join(allowed)})")
         if o.validate is not None and o.validate not in ctx.tables:
             raise ctx.fail(
                 f"validate: unknown input '{o.validate}' (inputs: {', '.join(ctx.tables)})"
             )
-        try:
-            return tm.poly_terms(o.order, o.rate_terms) if o.model == "poly" else []
-        except ValueError as exc:
-            raise ctx.fail(str(exc)) from None
 
     def fit(self, table: pa.Table, ctx: StageContext) -> StageOutput:
         o = self.options
-        base_terms = self.check_options(ctx)
+        self.check_options(ctx)
         prep = self.prepare(table, ctx, ctx.input_name)
         temp = prep.variables["T"]
         lo, hi = float(temp.min()), float(temp.max())
@@ -226,58 +302,54 @@ class TemperatureStage(Stage):
             )
         if hi - lo < WARN_SPAN:
             ctx.warn(
-                f"the temperature spans only {hi - lo:.3g} degC; the correction is clamped outside "
-                f"{lo:.4g}..{hi:.4g} degC"
+                f"the temperature spans only {hi - lo:.3g} degC ({lo:.4g}..{hi:.4g}), less than "
+                f"the {WARN_SPAN:g} degC recommended; the correction is clamped outside this range"
             )
-        tref = o.tref if o.tref is not None else (0.0 if o.model == "seed000" else (lo + hi) / 2)
-        weights = bin_weights(temp, prep.direction, o.bin_width)
+        tref = o.tref if o.tref is not None else (0.0 if o.model == "six_term" else (lo + hi) / 2)
+        weights = self.weights(prep)
         rel = self._relative(prep.variables, tref)
-        knots = None
-        if o.model == "piecewise":
-            knots = tm.segment_knots(lo, hi, o.segment_width)
-        axes, selection_log = [], {}
-        for i, axis in enumerate(AXES):
-            y = prep.bias[:, i]
-            if o.model == "piecewise":
-                terms, coef = tm.fit_piecewise(rel, y, weights, knots - tref)
-            elif o.model == "stepwise":
-                names = candidate_terms([v for v in tm.VARIABLES if v in rel], o.order)
-                sel = stepwise(
-                    tm.design(names, rel),
-                    y,
-                    names,
-                    weights,
-                    criterion=o.criterion,
-                    alpha_in=o.alpha_in,
-                    alpha_out=o.alpha_out,
-                )
-                terms, coef = sel.terms, sel.coef
-                selection_log[axis] = {"adj_r2": sel.adj_r2, "steps": sel.history}
-            else:
-                terms = list(tm.SEED000_TERMS) if o.model == "seed000" else base_terms
-                coef = tm.weighted_lstsq(tm.design(terms, rel), y, weights)
-            axes.append({"terms": terms, "coefficients": np.asarray(coef)})
+        no_rate = directions_identify_rate(temp, prep.direction)
+        model, lag, notes = self._fallback(no_rate, ctx)
+        knots = tm.segment_knots(lo, hi, o.segment_width) if model == "piecewise" else None
+        if no_rate is not None:
+            rel = {k: v for k, v in rel.items() if k in ("T", "Ta")}
         ranges = {k: [float(v.min()), float(v.max())] for k, v in prep.variables.items()}
+        selection: dict[str, Any] = {}
+        lag_info: dict[str, Any] | None = None
+        lag_s = None
+        if lag:
+            lag_s, lag_info, rel = self._fit_lag(prep, weights, tref, ctx)
+            for name in ("Ts", "dTs"):
+                value = rel[name] + (tref if name == "Ts" else 0.0)
+                ranges[name] = [float(value.min()), float(value.max())]
+        axes = []
+        for i, axis in enumerate(AXES):
+            terms, coef, info = self._fit_axis(model, rel, prep.bias[:, i], weights, knots, tref)
+            axes.append({"terms": terms, "coefficients": np.asarray(coef)})
+            if info:
+                selection[axis] = info
         step = TemperatureStep(
             type=self.type,
             sensor=o.sensor,
-            model=o.model,
+            model=model,
             tref=float(tref),
-            window=self._window()[0],
-            window_s=self._window()[1],
+            window=self.blocking().window,
+            window_s=self.blocking().window_s,
             axes=axes,
             ranges=ranges,
             knots=None if knots is None else knots.tolist(),
+            lag_s=lag_s,
             scale=self._fit_scale(prep, tref, ctx) if o.turntable_rate is not None else None,
             params={"reference": prep.reference.tolist()},
             quiet=ctx.quiet,
         )
+        used = step.used_variables()
+        step.ranges = {k: v for k, v in ranges.items() if k in used}
         fitted = step.bias(rel)
-        metrics = self._metrics(prep.bias, fitted)
         results: dict[str, Any] = {
             "sensor": o.sensor,
             "unit": SENSOR_UNITS[o.sensor],
-            "model": o.model,
+            "model": model,
             "tref": float(tref),
             "temperature_range": [lo, hi],
             "rate_range": ranges["dT"],
@@ -286,22 +358,143 @@ class TemperatureStage(Stage):
             "coefficients": {
                 ax: [float(c) for c in step.axes[i]["coefficients"]] for i, ax in enumerate(AXES)
             },
-            "metrics": metrics,
+            "metrics": self.metrics(prep.bias, prep.bias - fitted),
         }
-        if selection_log:
-            results["selection"] = selection_log
+        if notes:
+            results["fallback"] = notes
+        if lag_info is not None:
+            results["lag"] = lag_info
+        if selection:
+            results["selection"] = selection
         if step.scale is not None:
             results["scale"] = self._scale_metrics(prep, step)
         if o.validate is not None:
             results["metrics"]["validate"] = self._validate(step, ctx)
         artifacts = {}
         if o.write_blocks:
-            artifacts[f"{ctx.name}_blocks.csv"] = self._blocks_csv(prep, weights)
+            artifacts[f"{ctx.name}_blocks.csv"] = self._blocks_csv(prep, weights, rel)
         if getattr(ctx.recorder, "enabled", False):
             from imupipe.stages.temperature_rerun import record_fit  # imports rerun lazily
 
-            record_fit(ctx, prep, step, fitted)
+            record_fit(ctx, prep, step, fitted, rel, lag_info)
         return StageOutput(results=results, step=step, artifacts=artifacts)
+
+    def _fallback(self, no_rate: str | None, ctx: StageContext) -> tuple[str, bool, list[str]]:
+        """The model the data support: (model, whether the lag is fitted, what was dropped)."""
+        o = self.options
+        model = o.model
+        if no_rate is None or (o.model == "poly" and o.rate_terms == []):
+            return model, model == "lag", []
+        dropped = {
+            "poly": f"the rate term(s) {', '.join(o.rate_terms or ['dT'])}",
+            "lag": "the sensing element's lag (and dTs)",
+            "six_term": "the rate terms dT, dT^2, T*dT of the six-term model",
+            "piecewise": "the hysteresis term k_dt * dT",
+            "stepwise": "the rate candidates dT (and dTa)",
+        }[model]
+        fitted = {
+            "poly": "a polynomial in T",
+            "lag": "a polynomial in T",
+            "six_term": "T^2, T, 1",
+            "piecewise": "the piecewise-linear bias in T",
+            "stepwise": "a stepwise choice among the terms in T",
+        }[model]
+        note = (
+            f"{dropped} cannot be identified: {no_rate}; fitted {fitted} instead (heat and cool "
+            "the IMU over a common range, at several rates, to fit it)"
+        )
+        ctx.warn(note)
+        return ("poly" if model in ("lag", "six_term") else model), False, [note]
+
+    def _fit_axis(
+        self,
+        model: str,
+        rel: dict[str, np.ndarray],
+        y: np.ndarray,
+        w: np.ndarray,
+        knots: np.ndarray | None,
+        tref: float,
+    ) -> tuple[list[str], np.ndarray, dict[str, Any]]:
+        """Terms, coefficients and (when chosen by the data) the selection of one axis."""
+        o = self.options
+        if model == "piecewise":
+            terms, coef = tm.fit_piecewise(rel, y, w, knots - tref)
+            return terms, coef, {}
+        if model == "stepwise":
+            names = candidate_terms([v for v in ("T", "dT", "Ta", "dTa") if v in rel], o.order or 3)
+            sel = stepwise(
+                tm.design(names, rel),
+                y,
+                names,
+                w,
+                criterion=o.criterion,
+                alpha_in=o.alpha_in,
+                alpha_out=o.alpha_out,
+            )
+            return sel.terms, sel.coef, {"adj_r2": sel.adj_r2, "steps": sel.history}
+        if model == "six_term":
+            terms = list(tm.SIX_TERMS) if "dT" in rel else ["T^2", "T", "1"]
+            return terms, tm.weighted_lstsq(tm.design(terms, rel), y, w), {}
+        var = "Ts" if model == "lag" else "T"
+        rates = "dTs" if model == "lag" else "dT"
+        if rates not in rel:
+            offered: list[str] = []
+        else:
+            offered = list(o.rate_terms) if o.rate_terms is not None else [rates]
+        orders = [o.order] if o.order is not None else range(MAX_AUTO_ORDER + 1)
+        base = [
+            ["1"] + [(var if p == 1 else f"{var}^{p}") for p in range(1, k + 1)] for k in orders
+        ]
+        if o.rate_terms is not None:  # given: fitted as given
+            candidates = [b + offered for b in base]
+        else:
+            candidates = base + ([b + offered for b in base] if offered else [])
+        if len(candidates) == 1:
+            return candidates[0], tm.weighted_lstsq(tm.design(candidates[0], rel), y, w), {}
+        choice = tm.select_terms(candidates, rel, y, w)
+        return choice.terms, choice.coef, {"aicc": choice.scores}
+
+    def _fit_lag(
+        self, prep: Prepared, w: np.ndarray, tref: float, ctx: StageContext
+    ) -> tuple[float, dict[str, Any], dict[str, np.ndarray]]:
+        """The sensing element's time constant (given, or fitted on every axis at once with the
+        richest candidate model), and the variables with Ts, dTs at it."""
+        o = self.options
+        spacing = (
+            float(np.median(np.diff(prep.centre_all))) * 1e-9 if len(prep.centre_all) > 1 else 1.0
+        )
+        duration = float(prep.centre_all[-1] - prep.centre_all[0]) * 1e-9
+        bounds = (max(0.5 * spacing, 1e-3), max(duration / 2, spacing))
+        order = o.order if o.order is not None else MAX_AUTO_ORDER
+        terms = ["1"] + [("Ts" if p == 1 else f"Ts^{p}") for p in range(1, order + 1)]
+        terms += list(o.rate_terms) if o.rate_terms is not None else ["dTs"]
+        if o.lag_s is not None:
+            tau = float(o.lag_s)
+            info: dict[str, Any] = {"lag_s": tau, "fitted": False}
+        else:
+            fit = tm.fit_lag(
+                prep.centre_all, prep.temp_all, prep.keep, prep.bias, w, terms, tref, bounds
+            )
+            tau = fit.tau_s
+            info = {
+                "lag_s": tau,
+                "fitted": True,
+                "search_s": list(bounds),
+                "profile": {"lag_s": fit.taus.tolist(), "cost": fit.costs.tolist()},
+            }
+            if fit.at_bound == "low":
+                ctx.warn(
+                    f"the sensing element's time constant is at or below the block spacing "
+                    f"({tau:.3g} s): no lag is resolved, the model is a polynomial in T with dT"
+                )
+            ctx.check(
+                fit.at_bound != "high",
+                f"the sensing element's time constant sits at the top of the search "
+                f"({tau:.4g} s of {bounds[1]:.3g} s): the data do not pin it down",
+            )
+        rel = self._relative(prep.variables, tref)
+        rel.update(tm.lag_variables(prep.centre_all, prep.temp_all, prep.keep, tau, tref))
+        return tau, info, rel
 
     def _fit_scale(
         self, prep: Prepared, tref: float, ctx: StageContext
@@ -339,39 +532,54 @@ class TemperatureStage(Stage):
     @staticmethod
     def _relative(variables: dict[str, np.ndarray], tref: float) -> dict[str, np.ndarray]:
         rel = dict(variables)
-        rel["T"] = variables["T"] - tref
-        if "Ta" in rel:
-            rel["Ta"] = variables["Ta"] - tref
+        for name in tm.TEMPERATURES:
+            if name in rel:
+                rel[name] = variables[name] - tref
         return rel
 
     @staticmethod
-    def _metrics(bias: np.ndarray, fitted: np.ndarray | None) -> dict[str, Any]:
-        """Per axis: RMS and peak-to-peak of the block bias before and after; RMSE and R^2."""
+    def metrics(bias: np.ndarray, residual: np.ndarray) -> dict[str, Any]:
+        """Per axis, over the complete blocks (SI): the constant part of the bias before and
+        after (``constant_before``: the mean block bias; ``constant_after``: the mean residual),
+        and the temperature-driven part: ``rms_before``/``rms_after`` the RMS about those means,
+        ``p2p_before``/``p2p_after`` the peak-to-peak, ``reduction`` their RMS ratio; ``rmse``
+        the RMS residual about zero and ``r2`` = 1 - sum(residual^2) / sum((bias - mean)^2)."""
         out: dict[str, Any] = {}
-        after = bias - fitted if fitted is not None else None
         for i, axis in enumerate(AXES):
-            b = bias[:, i]
-            m = {"rms_before": float(np.sqrt(np.mean(b * b))), "p2p_before": float(np.ptp(b))}
-            if after is not None:
-                r = after[:, i]
-                ss = float(np.sum((b - b.mean()) ** 2)) or 1.0
-                m |= {
-                    "rms_after": float(np.sqrt(np.mean(r * r))),
-                    "p2p_after": float(np.ptp(r)),
-                    "rmse": float(np.sqrt(np.mean(r * r))),
-                    "r2": 1.0 - float(np.sum(r * r)) / ss,
-                }
-                m["reduction"] = m["rms_before"] / max(m["rms_after"], 1e-300)
-            out[axis] = m
+            b, r = bias[:, i], residual[:, i]
+            before, after = float(np.std(b)), float(np.std(r))
+            ss = float(np.sum((b - b.mean()) ** 2)) or 1.0
+            out[axis] = {
+                "constant_before": float(b.mean()),
+                "constant_after": float(r.mean()),
+                "rms_before": before,
+                "rms_after": after,
+                "p2p_before": float(np.ptp(b)),
+                "p2p_after": float(np.ptp(r)),
+                "reduction": before / max(after, 1e-300),
+                "rmse": float(np.sqrt(np.mean(r * r))),
+                "r2": 1.0 - float(np.sum(r * r)) / ss,
+            }
         return out
 
     def _validate(self, step: TemperatureStep, ctx: StageContext) -> dict[str, Any]:
-        """The same metrics on the ``validate`` input: blocks before and after the step."""
+        """The same metrics on the ``validate`` input: blocks before and after the step; a
+        quality check that the correction did not raise the temperature-driven variation."""
         name = self.options.validate
         table = ctx.tables[name]
         before = self.prepare(table, ctx, name)
         after = self.prepare(step.apply(table), ctx, name)
-        metrics = self._metrics(before.bias, before.bias - after.bias)
+        metrics = self.metrics(before.bias, after.bias)
+        worse = [
+            f"{axis} {metrics[axis]['rms_before']:.3g} -> {metrics[axis]['rms_after']:.3g}"
+            for axis in AXES
+            if metrics[axis]["rms_after"] > metrics[axis]["rms_before"]
+        ]
+        ctx.check(
+            not worse,
+            f"on the held-out input '{name}' the correction raised the temperature-driven bias "
+            f"RMS ({', '.join(worse)} {SENSOR_UNITS[self.options.sensor]})",
+        )
         for axis, (_, sf_after) in after.pairs.items():
             sf_before = before.pairs[axis][1]
             metrics[axis] |= {
@@ -383,11 +591,16 @@ class TemperatureStage(Stage):
         return metrics
 
     @staticmethod
-    def _blocks_csv(prep: Prepared, weights: np.ndarray) -> str:
-        """The fit's data: block centre, bias per axis (SI), T (degC), dT (degC/s) [, Ta, dTa],
-        the block's weight."""
-        names = ["t_ns", "bias_x", "bias_y", "bias_z", *prep.variables, "weight"]
-        cols = [prep.t_ns.astype(np.float64), *prep.bias.T, *prep.variables.values(), weights]
+    def _blocks_csv(prep: Prepared, weights: np.ndarray, rel: dict[str, np.ndarray]) -> str:
+        """The fit's data: block centre, bias per axis (SI), T (degC), dT (degC/s) [, Ta, dTa]
+        [, Ts (degC), dTs], samples in the block, the block's weight."""
+        variables = dict(prep.variables)
+        if "Ts" in rel:
+            variables["Ts"] = rel["Ts"] + (prep.variables["T"] - rel["T"])
+            variables["dTs"] = rel["dTs"]
+        names = ["t_ns", "bias_x", "bias_y", "bias_z", *variables, "samples", "weight"]
+        cols = [prep.t_ns.astype(np.float64), *prep.bias.T, *variables.values()]
+        cols += [prep.counts.astype(np.float64), weights]
         rows = np.column_stack(cols)
         lines = [",".join(names)]
         lines += [f"{int(r[0])}," + ",".join(f"{v:.17g}" for v in r[1:]) for r in rows]

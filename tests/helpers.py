@@ -1,4 +1,4 @@
-"""Test helpers: decode an MCAP with the mcap library's ROS 2 decoder; count Rerun rows."""
+"""Test helpers: decode an MCAP with the mcap library's ROS 2 decoder; read Rerun recordings."""
 
 from __future__ import annotations
 
@@ -48,3 +48,32 @@ def rrd_rows(path: str | Path) -> dict[str, int]:
         if not chunk.is_static:
             rows[chunk.entity_path] += chunk.num_rows
     return dict(rows)
+
+
+def rrd_static(path: str | Path) -> dict[str, dict]:
+    """Entity path -> {component: its last static value} in a recording (rerun.chunk.RrdReader):
+    what views without a time axis show (bar charts, 2D plots, text documents)."""
+    import pyarrow as pa
+    import rerun.chunk as rc
+
+    out: dict[str, dict] = collections.defaultdict(dict)
+    for chunk in rc.RrdReader(str(path)).stream().to_chunks():
+        if chunk.is_static:
+            batch = chunk.to_record_batch()
+            for column in batch.schema.names:
+                if ":" in column:
+                    value = pa.array(batch.column(column)).to_pylist()[-1]
+                    out[chunk.entity_path][column] = value
+    return dict(out)
+
+
+def screenshot_tool():
+    """``docs/screenshots/make_screenshots.py`` as a module: its Chromium and Rerun viewer lookups
+    and flags, shared with the tests that render in a browser or start a viewer."""
+    import importlib.util
+
+    path = Path(__file__).resolve().parents[1] / "docs" / "screenshots" / "make_screenshots.py"
+    spec = importlib.util.spec_from_file_location("make_screenshots", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module

@@ -14,7 +14,7 @@ from imupipe.readers.csv_reader import read_csv
 from imupipe.readers.table import sensor
 
 from conftest import TEST_DATA
-from helpers import rrd_rows
+from helpers import rrd_rows, rrd_static
 
 
 def write_cfg(tmp_path, body: str):
@@ -74,7 +74,8 @@ def test_simulate_poses_cli_and_ferraris_without_labels_fails_in_one_line(tmp_pa
     assert done.returncode == 2
     assert done.stderr.strip().splitlines() == [
         "imupipe: error: stage 'accel_calibration' on input 'p': method 'ferraris' needs "
-        "labelled segments: set csv.label"
+        "labelled segments: set csv.label (or give every part as [start_s, end_s] in "
+        "ferraris_parts)"
     ]
     assert not (tmp_path / "out").exists()
 
@@ -85,11 +86,8 @@ def test_simulate_poses_cli_and_ferraris_without_labels_fails_in_one_line(tmp_pa
     done = cli("run", cfg)
     assert done.returncode == 0, done.stderr
     rows = rrd_rows(tmp_path / "out" / "recording.rrd")
-    for entity in (
-        "/accel_calibration/norm/raw",
-        "/accel_calibration/norm/calibrated",
-        "/accel_calibration/residual_per_pose",
-        "/gyro_calibration/gravity_direction_residual_deg",
-    ):
+    for entity in ("/accel_calibration/norm/raw", "/accel_calibration/norm/calibrated"):
         assert rows.get(entity, 0) > 0, (entity, sorted(rows))
-    assert rows["/accel_calibration/residual_per_pose"] == 10
+    bars = rrd_static(tmp_path / "out" / "recording.rrd")  # bar charts: static, no time axis
+    assert bars["/accel_calibration/residual_per_pose/a_g"]["BarChart:values"][0]["shape"] == [10]
+    assert "BarChart:values" in bars["/gyro_calibration/gravity_direction_residual_deg/calibrated"]

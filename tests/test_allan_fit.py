@@ -42,9 +42,16 @@ def test_units_white_noise_density():
     rng = np.random.default_rng(7)
     y = rng.standard_normal((400 * 600, 6)) * 0.01  # 10 min at 400 Hz, discrete std 0.01
     dev, conf = curves(y, 400.0)
-    for f in fit_all(dev, conf):
+    fits = fit_all(dev, conf)
+    for f in fits:
         assert f.params["N"] == pytest.approx(5.0e-4, rel=0.03)
-        assert [t for t in TERMS if f.params[t] > 0] == ["N"]  # nothing else is supported
+        assert [t for t in TERMS if f.params[t] > 0 and t != "K"] == ["N"]  # nothing else
+    # K is always fitted (Kalibr needs one) but white noise does not resolve it: its 68 %
+    # interval reaches zero on most axes (a 68 % interval misses one time in three), and it
+    # stays below a few times the K whose line meets the white noise at the longest tau
+    k_meets_n = 5.0e-4 * np.sqrt(3.0) / dev.taus[-1]
+    assert sum(f.ranges["K"][0] == 0.0 for f in fits) >= 4
+    assert all(f.params["K"] <= f.ranges["K"][1] < 4 * k_meets_n for f in fits)
     reading = slope_readings(dev.taus, dev.dev[:, 0])
     assert reading["N"] == pytest.approx(5.0e-4, rel=0.03)
 
@@ -82,7 +89,7 @@ def test_recovery_kalibr_model_3h():
 
 
 @pytest.mark.slow
-def test_recovery_kalibr_model_8_seeds():
+def test_recovery_kalibr_model_8_runs():
     """The issue's study: 8 seeds x 3 h; the mean over seeds (and the three axes of a sensor,
     the value Kalibr takes) of the N error within 2 % and of the K error within 10 %. Per axis,
     an 8-run mean of K still scatters by about 5 % (1 sigma): printed, not asserted."""
@@ -173,3 +180,46 @@ def test_each_simulated_process_is_its_own_term():
     assert quant.params["N"] == pytest.approx(white, rel=0.05)
     assert ramp.params["R"] == pytest.approx(r, rel=0.1)
     assert ramp.params["N"] == pytest.approx(white, rel=0.05)
+
+
+def k_study(b: float, seeds: range, hours: float = 2.0, rate_hz: float = 20.0):
+    """K/K_true - 1, whether the 68 % profile interval covers K_true, and the fits, for a
+    gyro with white noise, random walk K = 2e-6 and bias instability ``b`` (simulated as a sum
+    of Gauss-Markov processes, not the model's own form), over ``seeds`` x 3 axes."""
+    k_true = 2.0e-6
+    errors, covered, fits = [], [], []
+    for seed in seeds:
+        params = {
+            "rate_hz": rate_hz,
+            "duration_s": hours * 3600.0,
+            "temperature": None,
+            "gyro_N": [1.7e-4] * 3,
+            "gyro_B": [b] * 3,
+            "gyro_K": [k_true] * 3,
+        }
+        table, _ = simulate("static", params, seed=seed)
+        columns = [sensor(table, "gyro").values[:, i] for i in range(3)]
+        dev, conf = est.curve(est.rate_to_phase(columns, 1.0 / rate_hz), 1.0 / rate_hz)
+        for f in fit_all(dev, conf):
+            errors.append(f.params["K"] / k_true - 1.0)
+            low, high = f.ranges["K"]
+            covered.append(low <= k_true <= high)
+            fits.append(f)
+    return np.array(errors), np.array(covered), fits
+
+
+def test_random_walk_kept_under_bias_instability():
+    """2 h, B = 5e-5 and K = 2e-6 (gyro), 4 seeds x 3 axes. Left to the information criterion,
+    B absorbed the first rise of the random walk and K came out zero on every axis, with an
+    upper bound below the truth. K is now always fitted: it is kept, its mean error is as small
+    as without B, and its 68 % profile interval (other terms re-fitted) covers the truth about
+    as often as it should. A single 2 h run cannot pin K down better than about 40 % (1 sigma)
+    with this B: the random walk rises above the bias-instability floor only past ~800 s."""
+    with_b, covered, fits = k_study(5.0e-5, range(4))
+    without_b, covered_0, _ = k_study(0.0, range(4))
+    print("K error with B", np.round(with_b, 2), "without", np.round(without_b, 2))
+    assert np.count_nonzero(with_b > -1.0) >= 11  # K > 0 on all axes but at most one
+    assert abs(with_b.mean()) < 0.15 and abs(without_b.mean()) < 0.15
+    assert covered.sum() >= 6 and covered_0.sum() >= 6  # 68 % intervals: about 8 of 12
+    for f in fits:  # B is found too, and nothing the simulation does not have
+        assert f.params["B"] > 0 and f.params["Q"] == f.params["R"] == 0.0

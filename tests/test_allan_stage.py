@@ -14,7 +14,7 @@ from imupipe.readers.table import make_table
 from imupipe.stages.allan import AllanStage
 from imupipe.stages.base import StageContext
 
-from helpers import rrd_rows
+from helpers import rrd_static
 
 TRUTH = {
     "gyro_N": [1.7e-4, 2.0e-4, 1.5e-4],
@@ -91,11 +91,12 @@ def test_imu_utils_yaml_and_curves(allan_run):
 
 def test_rerun_curves(allan_run):
     d, _, _ = allan_run
-    rows = rrd_rows(d / "out" / "recording.rrd")
+    plots = rrd_static(d / "out" / "recording.rrd")  # static 2D plots, no time axis
     for s in ("gyro", "accel"):
         for axis in "xyz":
-            assert rows[f"/allan/{s}/{axis}/measured"] > 10
-            assert rows[f"/allan/{s}/{axis}/model"] > 10
+            assert len(plots[f"/allan/{s}/{axis}/measured"]["Points2D:positions"]) > 10
+            assert len(plots[f"/allan/{s}/{axis}/model"]["LineStrips2D:strips"]) == 1  # the fit
+            assert len(plots[f"/allan/{s}/{axis}/terms"]["LineStrips2D:strips"]) >= 1
 
 
 # -- input checks (in-process: the messages) ---------------------------------------------------
@@ -113,21 +114,103 @@ def fit(t_ns, gyro, accel, **options):
     return stage.fit(make_table(t_ns, gyro=gyro, accel=accel), ctx), ctx
 
 
-def test_nan_sample_is_an_error_naming_it():
-    from imupipe.pipeline.errors import FitError
-
+def test_nan_samples_are_excluded_and_counted():
     t_ns, gyro, accel = static_table()
     gyro[1234, 1] = np.nan
-    with pytest.raises(FitError, match=r"gyro sample 1234 \(t = 12\.340000 s\) is not finite"):
+    accel[5000:5003, 0] = np.inf
+    out, ctx = fit(t_ns, gyro, accel, taus="octave")
+    assert "4 of 20000 IMU (gyro and accel) samples are NaN or Inf; fitted on 19996" in (
+        ctx.warnings
+    )
+    # their slots on the sample clock are filled, not closed up: the rate stays 100 Hz
+    assert any("4 IMU samples missing in 2 gap(s)" in w for w in ctx.warnings)
+    m = out.results["metrics"]
+    assert m["samples"] == 19996 and m["missing_samples"] == 4
+    assert m["rate_hz"] == pytest.approx(100.0, rel=1e-9)
+    assert out.results["gyro"]["y"]["N"] == pytest.approx(1e-4, rel=0.05)
+
+
+def test_too_few_finite_samples_refused():
+    from imupipe.pipeline.errors import FitError
+
+    t_ns, gyro, accel = static_table(n=100)
+    gyro[2:] = np.nan
+    with pytest.raises(FitError, match="2 finite IMU .* samples of 100; the fit needs at least 3"):
         fit(t_ns, gyro, accel)
 
 
-def test_time_jump_is_an_error_naming_it():
+def jittered(t_ns, rng, late=0.45, spikes=True):
+    """Stamps taken on arrival: each late by up to ``late`` periods (uniform), and with
+    ``spikes`` every 50th sample 0.66 periods late (steps of 1.66 and 0.34 periods, as in the
+    Phidgets bag)."""
+    period = float(np.median(np.diff(t_ns)))
+    delay = rng.uniform(0.0, late, len(t_ns))
+    if spikes:
+        delay[::50] = 0.66
+    return t_ns + np.round(delay * period).astype(np.int64)
+
+
+def test_jitter_is_not_a_gap():
+    """Stamps late by up to 0.66 periods: steps from 0.34 to 1.66 periods; nothing missing,
+    nothing filled, no gap, the rate and the noise as without jitter."""
+    t_ns, gyro, accel = static_table()
+    stamps = jittered(t_ns, np.random.default_rng(1))
+    assert np.diff(stamps).max() > 1.6 * 10_000_000
+    out, ctx = fit(stamps, gyro, accel, taus="octave")
+    m = out.results["metrics"]
+    assert m["missing_samples"] == 0 and m["samples"] == 20_000
+    assert 0.1 < m["timestamp_jitter"] < 0.3
+    assert not any("gap" in w or "missing" in w for w in ctx.warnings)
+    assert m["rate_hz"] == pytest.approx(100.0, rel=1e-4)
+    plain, _ = fit(t_ns, gyro, accel, taus="octave")
+    for axis in "xyz":  # the same samples; the mean rate differs by the end stamps' jitter
+        assert out.results["gyro"][axis]["N"] == pytest.approx(
+            plain.results["gyro"][axis]["N"], rel=1e-4
+        )
+
+
+def test_lost_samples_are_filled_and_counted():
+    """50 single samples lost (steps of two periods) among stamps late by up to 0.3 periods:
+    counted, filled by interpolation on the nominal clock, the noise density unchanged within
+    2 %. (A stamp more than half a period late next to a lost sample is ambiguous from its
+    neighbours alone: such a loss may go uncounted.)"""
+    t_ns, gyro, accel = static_table()
+    stamps = jittered(t_ns, np.random.default_rng(2), late=0.3, spikes=False)
+    lost = np.arange(200, 20_000, 397)[:50]
+    keep = np.setdiff1d(np.arange(len(t_ns)), lost)
+    out, ctx = fit(stamps[keep], gyro[keep], accel[keep], taus="octave")
+    m = out.results["metrics"]
+    assert m["missing_samples"] == 50 and m["gaps_filled"] == 50
+    (warning,) = [w for w in ctx.warnings if "missing" in w]
+    assert warning.startswith("50 IMU samples missing in 50 gap(s) (0.25 % of the 100 Hz clock")
+    assert m["rate_hz"] == pytest.approx(100.0, rel=1e-4)
+    plain, _ = fit(t_ns, gyro, accel, taus="octave")
+    for axis in "xyz":
+        assert out.results["gyro"][axis]["N"] == pytest.approx(
+            plain.results["gyro"][axis]["N"], rel=0.02
+        )
+
+
+def test_long_gap_uses_the_longest_stretch():
+    t_ns, gyro, accel = static_table()
+    t_ns[5000:] += 2_000_000_000  # 2 s missing after sample 4999
+    out, ctx = fit(t_ns, gyro, accel, taus="octave")
+    (warning,) = [w for w in ctx.warnings if "gap(s) longer" in w]
+    assert warning.startswith(
+        "1 gap(s) longer than max_gap = 10 sample periods (the longest: 2.010 s, 200 samples "
+        "missing, after IMU sample 4999 at t = 49.990 s); the deviations use the longest stretch "
+        "without one: IMU samples 5000 to 19999, 150.0 s of 202.0 s"
+    )
+    assert out.results["metrics"]["samples"] == 15_000
+    assert out.results["metrics"]["missing_samples"] == 0
+
+
+def test_time_not_increasing_is_an_error_naming_it():
     from imupipe.pipeline.errors import FitError
 
     t_ns, gyro, accel = static_table()
-    t_ns[5000:] += 2_000_000_000  # 2 s missing after sample 4999
-    with pytest.raises(FitError, match=r"time jump of 2\.010000 s .* after sample 4999"):
+    t_ns[700] = t_ns[699]
+    with pytest.raises(FitError, match=r"time does not increase at IMU sample 700 \(step 0 ns\)"):
         fit(t_ns, gyro, accel)
 
 
@@ -139,11 +222,19 @@ def test_too_short_for_the_fit():
         fit(t_ns, gyro, accel, taus="octave")
 
 
-def test_motion_warns():
+def test_motion_is_a_failed_check():
+    from imupipe.pipeline.errors import FitError
+
     t_ns, gyro, accel = static_table()
     gyro[8000:9000, 2] += 0.5  # 10 s of turning
-    _, ctx = fit(t_ns, gyro, accel, taus="octave")
-    assert any("does not look static" in w for w in ctx.warnings)
+    with pytest.raises(FitError, match=r"1 s gyro means depart 0\.\d+ rad/s from the mean"):
+        fit(t_ns, gyro, accel, taus="octave")
+    ctx = StageContext(name="allan", input_name="static", quiet=True, accept_failed_checks=True)
+    stage = AllanStage(AllanStage.Options(taus="octave"))
+    out = stage.fit(make_table(t_ns, gyro=gyro, accel=accel), ctx)
+    assert out.results["metrics"]["static"] is False
+    assert any("does not look static" in w and "accepted" in w for w in ctx.warnings)
+    assert "measures the motion, not the noise" in ctx.failed_checks[0]
 
 
 def test_cli_error_is_one_line(tmp_path):
@@ -180,3 +271,29 @@ def test_interval_selects_samples():
     assert out.results["metrics"]["samples"] == 10_001
     assert out.results["metrics"]["static"] is True
     assert out.results["gyro"]["x"]["N"] == pytest.approx(1e-4, rel=0.05)
+
+
+def test_analysis_only_run_writes_no_corrected_copy(tmp_path):
+    """``[output] apply_to`` left out: a run whose stages only analyse (allan) writes no
+    corrected MCAP (nothing was corrected); an explicit list still writes its inputs."""
+    from conftest import run_cli
+
+    table, _ = simulate("static", {"duration_s": 120.0, "rate_hz": 50.0}, seed=2)
+    write_log(tmp_path / "static.csv", table)
+    base = '[inputs.static]\npath = "static.csv"\n\n[[stages]]\ntype = "allan"\ntaus = "octave"\n\n'
+    for out, extra in (("default", ""), ("listed", 'apply_to = ["static"]\n')):
+        (tmp_path / f"{out}.toml").write_text(
+            base + f'[output]\ndir = "{out}"\nrerun = false\n' + extra
+        )
+        proc = run_cli("run", tmp_path / f"{out}.toml", "--quiet")
+        assert proc.returncode == 0, proc.stderr
+    assert sorted(p.name for p in (tmp_path / "default").iterdir()) == [
+        "allan_curves.csv",
+        "allan_imu_utils.yaml",
+        "calibration.json",
+        "imu.yaml",
+        "kalibr_imu_chain.yaml",
+        "report.html",
+        "vins_imu.yaml",
+    ]
+    assert (tmp_path / "listed" / "static.mcap").stat().st_size > 0

@@ -20,7 +20,9 @@ import pyarrow.parquet as pq
 import pytest
 from mcap.reader import make_reader
 
-from imupipe.pipeline.convert import chain_sha256, convert, find_logs
+from imupipe.pipeline.convert import convert
+from imupipe.pipeline.convert_plan import find_logs
+from imupipe.pipeline.convert_settings import chain_sha256
 from imupipe.pipeline.engines import run_tasks
 from imupipe.pipeline.errors import ImupipeError
 from imupipe.pipeline.manifest import read_manifest
@@ -166,7 +168,8 @@ def test_corrupt_log_is_named_and_has_no_output(fleet):
     assert "Traceback" not in proc.stderr
     assert "4 converted, 0 skipped (already done), 1 failed of 5 logs" in proc.stdout
     out = d / "out"
-    assert not (out / "corrupt.mcap").exists() and not (out / "corrupt.parquet").exists()
+    assert not (out / "corrupt.mcap").exists()
+    assert not (out / "parquet" / "corrupt.parquet").exists()
     assert [p.name for p in out.rglob("*.tmp")] == []
     lines = list(read_manifest(out))
     status = {Path(r["input"]).name: r["status"] for r in lines}
@@ -219,11 +222,11 @@ def test_manifest_and_parquet(fleet):
     assert a["calibration_sha256"] == chain_sha256({"chain": CHAIN})
     assert a["output"] == str(d / "out" / "a.mcap") and a["seconds"] > 0
     assert "corrupt.mcap" in lines["corrupt"]["error"]
-    dataset = pq.read_table(d / "out" / "a.parquet")
+    dataset = pq.read_table(d / "out" / "parquet" / "a.parquet")
     # one row per message of the log: 400 Imu and 400 Temperature messages
     assert dataset.num_rows == 800
     imu = dataset.filter(dataset.column("gyro_x").is_valid())
-    np.testing.assert_array_equal(imu.column("t_ns"), tables["a"].column("t_ns"))
+    np.testing.assert_array_equal(imu.column("t_ns").cast("int64"), tables["a"].column("t_ns"))
     np.testing.assert_allclose(
         np.column_stack([imu.column(f"accel_{a}").to_numpy() for a in "xyz"]),
         expected(tables["a"], "accel"),
@@ -232,9 +235,10 @@ def test_manifest_and_parquet(fleet):
     )
     meta = json.loads(dataset.schema.metadata[b"imupipe"])
     assert meta["format"] == "mcap" and meta["topics"]["imu"] == "/imu/data"
-    assert meta["conversion"]["calibration_sha256"] == a["calibration_sha256"]
+    assert meta["calibration"]["conversion"]["calibration_sha256"] == a["calibration_sha256"]
+    assert meta["calibration"]["chain"] == CHAIN
     # every file has the same schema (one pyarrow dataset)
-    assert pq.read_schema(d / "out" / "site1" / "m.parquet").names == dataset.schema.names
+    assert pq.read_schema(d / "out" / "parquet" / "site1" / "m.parquet") == dataset.schema
 
 
 def test_second_run_rewrites_nothing(fleet):
@@ -290,7 +294,7 @@ def test_discovery_and_refusals(fleet, tmp_path):
     assert "notes" in {str(rel) for _, rel in find_logs([logs], logs / "out", csv=True)}
     # an output that would replace its input is refused before anything is written
     proc = run_cli("convert", "--calibration", cal, "--out", logs, logs / "corrupt.mcap")
-    assert proc.returncode == 2 and "would overwrite an input" in proc.stderr
+    assert proc.returncode == 2 and "would overwrite the input" in proc.stderr
     proc = run_cli("convert", "--calibration", tmp_path / "nope.json", "--out", logs / "o", logs)
     assert proc.returncode == 2
     assert proc.stderr.strip().count("\n") == 0 and "nope.json: no such file" in proc.stderr
@@ -319,8 +323,8 @@ def test_ray_engine_matches_local(fleet, tmp_path):
     for name in ("a", "site1/m", "site2/r1", "site2/r2"):
         ours, theirs = tmp_path / "out" / f"{name}.mcap", d / "out" / f"{name}.mcap"
         assert raw_messages(ours) == raw_messages(theirs)
-        assert pq.read_table(ours.with_suffix(".parquet")).equals(
-            pq.read_table(theirs.with_suffix(".parquet"))
+        assert pq.read_table(tmp_path / "out" / "parquet" / f"{name}.parquet").equals(
+            pq.read_table(d / "out" / "parquet" / f"{name}.parquet")
         )
 
 

@@ -1,7 +1,7 @@
 """Issue 8: a temperature step (it needs the temperature stream and its rate, i.e. context beyond
 one sample) applies through ``imupipe convert`` exactly as ``imupipe run`` applies it.
 
-Convert reads such a log whole (mode ``whole`` in the manifest) instead of in batches, so the
+Convert streams every chain (a CSV is one batch), so the
 corrected messages are byte for byte those of ``run``'s corrected MCAP.
 """
 
@@ -38,7 +38,7 @@ def test_temperature_step_converts_like_run(tmp_path):
     proc = run_cli("convert", "--calibration", cal, "--out", tmp_path / "conv", log)
     assert proc.returncode == 0, proc.stderr
     (line,) = read_manifest(tmp_path / "conv")
-    assert line["mode"] == "whole" and line["status"] == "converted"
+    assert line["mode"] == "streamed" and line["status"] == "converted"
     ours = raw_messages(tmp_path / "conv" / "therm.mcap")
     assert ours == raw_messages(tmp_path / "run" / "therm.mcap")
     # and the step did correct: the compensated gyro is much closer to the true rate (zero)

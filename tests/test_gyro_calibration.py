@@ -1,18 +1,24 @@
-"""gyro_calibration: static_poses on a simulated session with known truth, turntable and rotations
-on synthetic runs, and the quaternion composition against scipy's Rotation."""
+"""gyro_calibration: static_poses on simulated sessions with known truth (with and without a still
+start), the direction-residual check, turntable and rotations on synthetic runs, the quaternion
+composition against scipy's Rotation; gyro_bias's motion check. The real sessions run end to end in
+tests/test_real_sessions.py."""
 
 from __future__ import annotations
+
+import json
 
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
 from imupipe.pipeline.errors import FitError
-from imupipe.pipeline.simulate import simulate
-from imupipe.readers.table import make_table
+from imupipe.pipeline.simulate import simulate, write_log
+from imupipe.readers.spec import InputSpec
+from imupipe.readers.table import make_table, replace_sensor, sensor
 from imupipe.stages import gyro_models as gm
 from imupipe.stages.accel_calibration import AccelCalibrationStage
 from imupipe.stages.base import StageContext
+from imupipe.stages.gyro_bias import GyroBiasStage
 from imupipe.stages.gyro_calibration import GyroCalibrationStage
 from imupipe.stages.steps import apply_chain
 
@@ -105,3 +111,89 @@ def test_rotations_recover_sensitivity_from_full_turns():
     np.testing.assert_allclose(out.step.offset, B_TRUE, atol=1e-12)
     with pytest.raises(FitError, match="segments"):
         fit(table, method="rotations", segments={"x": [0.0, 1.0]})
+
+
+def test_static_poses_without_a_still_start():
+    """A session recorded the usual way (no long rest at the start): the bias comes from the
+    static intervals, and the calibration still recovers the truth."""
+    table, truth = simulate("poses", {"init_static_s": 0.0}, seed=12)
+    accel = AccelCalibrationStage(AccelCalibrationStage.Options()).fit(
+        table, StageContext(name="a", input_name="sim", quiet=True)
+    )
+    out = fit(apply_chain(table, [accel.step]))
+    assert out.results["bias_from"] == "mean over the 18 static intervals"
+    assert out.results["model"]["chosen"] == "9-parameter"
+    np.testing.assert_allclose(out.step.matrix, truth["gyro"]["matrix"], atol=1e-3)
+    np.testing.assert_allclose(out.step.offset, truth["gyro"]["offset"], atol=1e-4)
+    se = out.results["standard_errors"]
+    assert len(se["scale"]) == 3 and set(se["misalignment_rad"]) == {
+        "yz",
+        "zy",
+        "zx",
+        "xz",
+        "xy",
+        "yx",
+    }
+
+
+def test_gyro_fit_that_does_not_chain_the_poses_is_not_applied():
+    """A gyro whose z axis is dead (reads 0) cannot carry one pose onto the next: the
+    direction-residual check stops the stage with the figure, unless accepted. (A dead or
+    negated axis is not an error: the fit finds the permutation or the sign.)"""
+    table, _ = simulate("poses", seed=13)
+    accel = AccelCalibrationStage(AccelCalibrationStage.Options()).fit(
+        table, StageContext(name="a", input_name="sim", quiet=True)
+    )
+    corrected = apply_chain(table, [accel.step])
+    gyro = sensor(corrected, "gyro").values
+    dead = replace_sensor(corrected, "gyro", np.arange(len(gyro)), gyro * [1.0, 1.0, 0.0])
+    with pytest.raises(
+        FitError, match=r"gravity-direction residual .* deg RMS over 17 motions > 2"
+    ):
+        fit(dead)
+    ctx = StageContext(name="gyro", input_name="sim", quiet=True, accept_failed_checks=True)
+    GyroCalibrationStage(GyroCalibrationStage.Options()).fit(dead, ctx)
+    assert ctx.failed_checks[0].startswith("gravity-direction residual")
+
+
+def test_gyro_bias_on_a_recording_that_moves(tmp_path, cli):
+    """gyro_bias on data that moves: one line naming the motion against its threshold, exit 2,
+    nothing written; with accept_failed_checks = true the bias is used, the warning and the
+    failed check are in calibration.json and the corrected MCAP is written."""
+    table, _ = simulate("poses", {"n_poses": 4}, seed=14)
+    log = tmp_path / "moving.csv"
+    write_log(log, table)
+    cfg = tmp_path / "cfg.toml"
+    body = '[inputs.m]\npath = "moving.csv"\n[[stages]]\ntype = "gyro_bias"\n{extra}\n[output]\ndir = "out"\nrerun = false\n'
+    cfg.write_text(body.format(extra=""))
+    done = cli("run", cfg)
+    assert done.returncode == 2
+    lines = done.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith(
+        "imupipe: error: stage 'gyro_bias' on input 'm': motion in the bias recording: 1 s gyro "
+        "means depart"
+    )
+    assert "(motion_threshold 0.02 rad/s)" in lines[0] and "accept_failed_checks = true" in lines[0]
+    assert not (tmp_path / "out").exists()
+    cfg.write_text(body.format(extra="accept_failed_checks = true"))
+    done = cli("run", cfg, "--quiet")
+    assert done.returncode == 0, done.stderr
+    doc = json.loads((tmp_path / "out" / "calibration.json").read_text())
+    assert doc["results"]["gyro_bias"]["failed_checks"][0].startswith("motion in the bias")
+    assert doc["results"]["gyro_bias"]["metrics"]["static"] is False
+    assert (tmp_path / "out" / "m.mcap").exists()
+
+
+def test_gyro_bias_refuses_a_real_robot_that_moves():
+    """The Phidgets bag (an IMU turned by hand, upside down): main warned '1 s gyro means depart
+    0.595 rad/s' and applied the bias; now the stage stops."""
+    from imupipe.readers.dispatch import read_input
+
+    from conftest import shared_path
+
+    bag = shared_path("logs", "madgwick_phidgets_imu_upside_down.bag")
+    spec = InputSpec(path=bag, name="phidgets")
+    table, _ = read_input(spec)
+    stage = GyroBiasStage(GyroBiasStage.Options())
+    with pytest.raises(FitError, match=r"1 s gyro means depart 0.595 rad/s"):
+        stage.fit(table, StageContext(name="gyro_bias", input_name="phidgets", quiet=True))

@@ -63,7 +63,7 @@ def test_general_recovers_hard_and_soft_iron(tumbles):
 def test_axis_aligned_is_worse_on_rotated_soft_iron(tumbles):
     fit_table, held_out, truth = tumbles
     general = held_out_std_pct(fit(fit_table, model="general").step, held_out, truth["field_norm"])
-    loose = {"max_norm_std_pct": None}  # the default 5 % bound refuses these fits
+    loose = {"max_unexplained_pct": None}  # the default 5 % bound refuses these fits
     aligned = held_out_std_pct(
         fit(fit_table, model="axis_aligned", **loose).step, held_out, truth["field_norm"]
     )
@@ -122,15 +122,21 @@ def test_outliers_rejected():
 @pytest.mark.parametrize(
     "options,match",
     [
-        ({"max_offset": 0.1}, "max_offset"),
-        ({"soft_iron_range": [0.97, 1.03]}, "soft_iron_range"),
-        ({"max_norm_std_pct": 0.1}, "max_norm_std_pct"),
+        ({"max_offset": 0.1}, "> max_offset = 0.1; the fit is not applied"),
+        ({"soft_iron_range": [0.97, 1.03]}, "outside soft_iron_range"),
         ({"min_samples": 10_000}, "at least 10000"),
     ],
 )
 def test_acceptance_bounds_refuse(tumbles, options, match):
     with pytest.raises(FitError, match=match):
         fit(tumbles[0], **options)
+
+
+def test_failed_check_accepted_on_request(tumbles):
+    stage = MagCalibrationStage(build_options(MagCalibrationStage.Options, {"max_offset": 0.1}, ""))
+    ctx = StageContext(name="mag", input_name="sim", quiet=True, accept_failed_checks=True)
+    out = stage.fit(tumbles[0], ctx)
+    assert out.step is not None and "max_offset" in ctx.failed_checks[0]
 
 
 def test_narrow_cone_refused():
@@ -231,3 +237,39 @@ def test_cli_refuses_planar_and_magless_data(tmp_path, scenario, overrides, mess
     assert len(lines) == 1 and lines[0].startswith("imupipe: error: stage 'mag_calibration'")
     assert message in lines[0] and "Traceback" not in proc.stderr
     assert not (tmp_path / "out").exists() or not any((tmp_path / "out").iterdir())
+
+
+def test_noisy_tumble_judged_against_its_noise():
+    """White noise of 3 uT per axis (6 % of the field): the corrected norm spreads by ~6 % (the
+    old 5 % bound refused it), all of it per-sample noise; the fit is kept and its hard and soft
+    iron, judged on a clean held-out tumble, are as good as the noise allows."""
+    noisy, truth = simulate("mag", {"mag_noise": 3e-6}, seed=61)
+    held_out, _ = simulate("mag", {}, seed=62)
+    out = fit(noisy)
+    m = out.results["metrics"]
+    assert m["norm_std_pct"] > 5.5 and m["unexplained_pct"] < 0.6
+    assert m["noise"] == pytest.approx(3e-6, rel=0.1)  # T: along the field, per sample
+    field = truth["mag"]["field_norm"]
+    assert held_out_std_pct(out.step, held_out, field) < 0.5
+    assert np.linalg.norm(out.step.offset - truth["mag"]["hard_iron"]) < 0.02 * field
+
+
+@pytest.mark.parametrize("noise", [1e-7, 2e-6])
+def test_a_second_field_is_refused_whatever_the_noise(noise):
+    """A magnet fixed to the sensor halfway (the hard iron moves by 20 % of the field): two
+    ellipsoids. What the noise does not explain is 6 % at either noise level: refused with the
+    figures; a shift of 5 % (1.5 % unexplained, like a real sensor's model error) is kept."""
+    field = 4.9e-5
+    first, _ = simulate("mag", {"duration_s": 60.0, "mag_noise": noise}, seed=3)
+    second, _ = simulate("mag", {"duration_s": 60.0, "mag_noise": noise}, seed=4)
+    direction = np.array([1.0, 0.5, -0.3]) / np.linalg.norm([1.0, 0.5, -0.3])
+
+    def joined(shift):
+        h = np.vstack([sensor(first, "mag").values, sensor(second, "mag").values])
+        h[len(h) // 2 :] += shift * field * direction
+        return make_table(np.arange(len(h)) * 10_000_000, mag=h)
+
+    with pytest.raises(FitError, match=r"explains all but 6\.\d+ % > max_unexplained_pct = 5"):
+        fit(joined(0.2))
+    kept = fit(joined(0.05)).results["metrics"]
+    assert 1.2 < kept["unexplained_pct"] < 2.0

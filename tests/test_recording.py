@@ -1,49 +1,325 @@
-"""The Rerun sink: bulk signals, and a blueprint whose plots open on each stage's own data."""
+"""The Rerun recording: what a person sees when it opens.
+
+A run over every stage type is read back from ``recording.rrd`` (data and blueprint, with
+``rerun.chunk.RrdReader``) and every view is checked the way a person would look at it: it has
+data on the timeline the time panel opens on (or static data, for the views that have no time
+axis), its title carries its unit, and the lines it shows have distinct names.
+"""
 
 from __future__ import annotations
 
+import collections
+from pathlib import Path
+
 import numpy as np
+import pyarrow as pa
+import pytest
 
+from imupipe.pipeline.figures import Figures, display_unit
+from imupipe.pipeline.plot2d import Axis, nice_ticks, tick_labels
 from imupipe.pipeline.recording import Recorder
+from imupipe.pipeline.simulate import simulate, write_log
 
-from helpers import rrd_rows
+from helpers import rrd_rows, rrd_static
+
+CONFIG = """
+[inputs.static]
+path = "static.mcap"
+[inputs.poses]
+path = "poses.csv"
+[inputs.tumble]
+path = "tumble.mcap"
+[inputs.chamber]
+path = "chamber.csv"
+[[stages]]
+type = "average"
+input = "static"
+window = 500
+[[stages]]
+type = "allan"
+input = "static"
+[[stages]]
+type = "gyro_bias"
+input = "static"
+[[stages]]
+type = "accel_calibration"
+input = "poses"
+[[stages]]
+type = "gyro_calibration"
+input = "poses"
+[[stages]]
+type = "mag_calibration"
+input = "tumble"
+[[stages]]
+type = "temperature"
+input = "chamber"
+sensor = "gyro"
+[output]
+dir = "out"
+apply_to = []
+rerun_max_points = 2000
+report = false
+"""
 
 
+@pytest.fixture(scope="module")
+def every_stage(tmp_path_factory) -> Path:
+    """A run of every stage type on short simulated sessions; returns its output folder."""
+    from conftest import run_cli
+
+    d = tmp_path_factory.mktemp("every_stage")
+    sessions = [
+        ("static", {"duration_s": 600.0, "rate_hz": 100.0}, "static.mcap"),
+        ("poses", {}, "poses.csv"),
+        ("mag", {"duration_s": 30.0}, "tumble.mcap"),
+        ("thermal", {"heating_rates": [2.0], "hold_s": 300.0, "rate_hz": 1.0}, "chamber.csv"),
+    ]
+    for name, params, file in sessions:
+        table, _ = simulate(name, params, seed=1)
+        write_log(d / file, table)
+    (d / "cfg.toml").write_text(CONFIG)
+    done = run_cli("run", d / "cfg.toml", "--quiet")
+    assert done.returncode == 0, done.stderr
+    return d / "out"
+
+
+# -- reading a recording back -------------------------------------------------------------------
+def _last(batch: pa.RecordBatch, column: str):
+    return pa.array(batch.column(column)).to_pylist()[-1]
+
+
+def read_blueprint(path: Path) -> tuple[dict[str, dict], str, list[str]]:
+    """(views by path, the time panel's timeline, the root tabs' names) of a recording."""
+    import rerun.chunk as rc
+
+    reader = rc.RrdReader(str(path))
+    fields: dict[str, dict[str, object]] = collections.defaultdict(dict)
+    for chunk in reader.stream(store=reader.blueprints()[0]).to_chunks():
+        batch = chunk.to_record_batch()
+        for column in batch.schema.names:
+            if ":" in column:
+                fields[chunk.entity_path][column] = _last(batch, column)
+    views = {}
+    for path_, f in fields.items():
+        if path_.startswith("/view/") and path_.count("/") == 2:
+            views[path_] = {
+                "class": f["ViewBlueprint:class_identifier"][0],
+                "name": f["ViewBlueprint:display_name"][0],
+                "query": [
+                    q.replace("$origin", f["ViewBlueprint:space_origin"][0].rstrip("/"))
+                    for q in fields[f"{path_}/ViewContents"]["ViewContents:query"]
+                ],
+                "range": (fields.get(f"{path_}/TimeAxis") or {}).get("TimeAxis:view_range"),
+            }
+    timeline = fields["/time_panel"]["TimePanelBlueprint:timeline"][0]
+    root = bytes(fields["/viewport"]["ViewportBlueprint:root_container"][0])
+    import uuid
+
+    tabs = fields[f"/container/{uuid.UUID(bytes=root)}"]["ContainerBlueprint:contents"]
+    names = []
+    for tab in tabs:
+        f = fields["/" + tab]
+        names.append(
+            (f.get("ContainerBlueprint:display_name") or f["ViewBlueprint:display_name"])[0]
+        )
+    return views, timeline, names
+
+
+def read_data(path: Path) -> tuple[dict, dict, dict]:
+    """(static entity -> components, (entity, timeline) -> (first, last), entity -> line names)."""
+    import rerun.chunk as rc
+
+    static = rrd_static(path)
+    names = {e: c["SeriesLines:names"] for e, c in static.items() if "SeriesLines:names" in c}
+    spans: dict[tuple[str, str], tuple[int, int]] = {}
+    for chunk in rc.RrdReader(str(path)).stream().to_chunks():
+        if chunk.is_static:
+            continue
+        batch = chunk.to_record_batch()
+        for timeline in chunk.timeline_names:
+            col = pa.array(batch.column(timeline)).cast(pa.int64()).to_numpy()
+            key = (chunk.entity_path, timeline)
+            first, last = spans.get(key, (int(col.min()), int(col.max())))
+            spans[key] = (min(first, int(col.min())), max(last, int(col.max())))
+    return static, spans, names
+
+
+def _entities(query: list[str], known: set[str]) -> list[str]:
+    out = []
+    for q in query:
+        q = q.lstrip("+ ").strip()
+        out += [e for e in known if e.startswith(q[:-3])] if q.endswith("/**") else [q]
+    return out
+
+
+# -- the run of every stage -----------------------------------------------------------------------
+def test_every_view_shows_data_on_the_timeline_the_time_panel_opens_on(every_stage):
+    views, timeline, _ = read_blueprint(every_stage / "recording.rrd")
+    static, spans, _ = read_data(every_stage / "recording.rrd")
+    assert timeline == "time"
+    known = set(static) | {e for e, _ in spans}
+    assert len(views) > 20
+    for view in views.values():
+        entities = _entities(view["query"], known)
+        assert entities, view
+        if view["class"] == "TimeSeries":
+            start, end = view["range"][0]["start"], view["range"][0]["end"]
+            for e in entities:
+                first, last = spans[(e, timeline)]  # data on the time panel's timeline
+                assert first <= end and last >= start, (view["name"], e)  # inside the view
+        else:  # no time axis: static data, shown whatever the time cursor
+            assert all(e in static for e in entities), view
+
+
+def test_views_say_their_units_and_lines_have_distinct_names(every_stage):
+    views, _, _ = read_blueprint(every_stage / "recording.rrd")
+    static, spans, names = read_data(every_stage / "recording.rrd")
+    known = set(static) | {e for e, _ in spans}
+    titles = {v["name"] for v in views.values()}
+    for expected in (
+        "gyro (rad/s)",
+        "accel (m/s^2)",
+        "mag (uT)",
+        "|h| (uT)",
+        "gyro x Allan deviation (rad/s) vs tau (s)",
+        "accel z Allan deviation (m/s^2) vs tau (s)",
+        "gyro y bias (rad/s) vs temperature (degC)",
+        "|a| - g after calibration (mg) per pose",
+        "raw samples and the fitted ellipsoid (uT)",
+    ):
+        assert expected in titles, sorted(titles)
+    assert not any("(T)" in t or "log10" in t or "timeline" in t for t in titles)
+    for view in views.values():
+        if view["class"] in ("TimeSeries", "2D", "BarChart", "3D"):
+            assert view["name"].count("(") >= 1 or "scale factor" in view["name"], view["name"]
+        if view["class"] == "TimeSeries":
+            lines = [n for e in _entities(view["query"], known) for n in names[e]]
+            assert len(lines) == len(set(lines)), (view["name"], lines)
+    # the pipeline's before/after signals say which is which
+    gyro = names["/gyro_bias/corrected/gyro"]
+    assert gyro == ["gyro x corrected", "gyro y corrected", "gyro z corrected"]
+    assert names["/average/raw/gyro"] == ["gyro x raw", "gyro y raw", "gyro z raw"]
+
+
+def test_summary_tab_first_then_one_tab_per_stage(every_stage):
+    _, _, tabs = read_blueprint(every_stage / "recording.rrd")
+    assert tabs == [
+        "Summary",
+        "average",
+        "allan",
+        "gyro_bias",
+        "accel_calibration",
+        "gyro_calibration",
+        "mag_calibration",
+        "temperature",
+    ]
+    static, _, _ = read_data(every_stage / "recording.rrd")
+    assert "TextDocument:text" in static["/summary"]
+    assert all("TextDocument:text" in static[f"/{t}/summary"] for t in tabs[1:])
+
+
+def test_magnetometer_in_microtesla_and_signals_capped(every_stage):
+    import rerun.chunk as rc
+
+    rows = rrd_rows(every_stage / "recording.rrd")
+    assert max(rows.values()) <= 2000  # rerun_max_points
+    assert rows["/average/raw/gyro"] == 2000  # 60000 samples, averaged over blocks
+    assert rows["/mag_calibration/raw/mag"] == 1500  # 3000 samples in blocks of 2
+    values = []
+    for chunk in rc.RrdReader(str(every_stage / "recording.rrd")).stream().to_chunks():
+        if chunk.entity_path == "/mag_calibration/corrected/mag" and not chunk.is_static:
+            col = pa.array(chunk.to_record_batch().column("Scalars:scalars"))
+            values.append(np.array(col.to_pylist(), dtype=float))
+    norm = np.linalg.norm(np.concatenate(values), axis=1)
+    assert 40 < np.median(norm) < 60  # the simulated field is 48.2 uT
+
+
+def test_static_input_is_sent_once_for_the_stages_that_share_it(every_stage):
+    rows = rrd_rows(every_stage / "recording.rrd")
+    assert "/average/raw/gyro" in rows
+    assert "/allan/raw/gyro" not in rows and "/gyro_bias/raw/gyro" not in rows
+    views, _, _ = read_blueprint(every_stage / "recording.rrd")
+    shown = [v["query"] for v in views.values() if "/average/raw/gyro" in v["query"]]
+    assert len(shown) == 3  # average, allan and gyro_bias each plot it
+
+
+# -- the recorder ----------------------------------------------------------------------------------
 def _span(view) -> tuple[int, int]:
     rng = view.properties["TimeAxis"].view_range.as_arrow_array()[0].as_py()
     return rng["start"], rng["end"]
 
 
-def test_views_open_on_their_stage_span_and_split_by_signal_kind(tmp_path):
+def test_plots_split_by_unit_and_open_on_their_own_span(tmp_path):
     rec = Recorder(tmp_path / "r.rrd", max_points=1000)
     t_a = 1_000_000_000_000 + np.arange(5000, dtype=np.int64) * 10_000_000  # 50 s
     t_b = t_a + 36_000_000_000_000  # ten hours later
-    rec.series("/a/input/gyro", t_a, np.zeros((5000, 3)))
-    rec.series("/a/input/temperature", t_a, np.full(5000, 25.0), ("t",))
-    rec.ensure_stage("a")
-    rec.series("/b/input/gyro", t_b, np.zeros((5000, 3)))
-    rec.ensure_stage("b")
-    rec.blueprint()
-    views_a, views_b = rec._views["a"], rec._views["b"]
-    assert [v.name for v in views_a] == ["a: gyro", "a: temperature"]
-    # what was recorded: means of 5-sample blocks, stamped at the block centres
-    centre = 20_000_000
-    for view in views_a:
-        assert _span(view) == (int(t_a[0]) + centre, int(t_a[-1]) - centre)
-    assert _span(views_b[0]) == (int(t_b[0]) + centre, int(t_b[-1]) - centre)
+    rec.series("/a/gyro", t_a, np.zeros((5000, 3)), unit="rad/s")
+    rec.series("/a/temperature", t_a, np.full(5000, 25.0), ("T",), unit="degC")
+    rec.series("/b/gyro", t_b, np.zeros((5000, 3)), unit="rad/s")
+    plots = {(p.stage, p.key): p for p in rec.figures.plots.values()}
+    assert plots[("a", "gyro")].heading == "gyro (rad/s)"
+    assert plots[("a", "temperature")].heading == "temperature (degC)"
+    centre = 20_000_000  # means of 5-sample blocks, stamped at the block centres
+    assert _span(rec._view(plots[("a", "gyro")])) == (int(t_a[0]) + centre, int(t_a[-1]) - centre)
+    assert _span(rec._view(plots[("b", "gyro")])) == (int(t_b[0]) + centre, int(t_b[-1]) - centre)
     rec.close()
-    rows = rrd_rows(tmp_path / "r.rrd")
-    assert rows["/a/input/gyro"] == 1000  # block-averaged to max_points
-    assert rows["/b/input/gyro"] == 1000
+    assert rrd_rows(tmp_path / "r.rrd")["/a/gyro"] == 1000  # block-averaged to max_points
 
 
-def test_curve_views_open_on_their_sequence_span(tmp_path):
-    import rerun.blueprint as rrb
+def test_one_physical_unit_per_plot():
+    figures = Figures()
+    gyro = figures.plot("s", "gyro", "time", title=None, unit="rad/s")
+    counts = figures.plot("s", "gyro", "time", title=None, unit="raw counts")
+    assert counts is not gyro and counts.heading == "gyro (raw counts)"
+    assert figures.plot("s", "gyro", "time", title=None, unit="rad/s") is gyro
+    assert display_unit("T") == ("uT", 1e6)
+    assert display_unit("rad/s") == ("rad/s", 1.0)
 
+
+def test_curves_without_time_become_static_2d_plots(tmp_path):
     rec = Recorder(tmp_path / "r.rrd")
-    x = np.arange(-2000, 3500, 100)
-    rec.curve("/allan/gyro/x", x, np.zeros((len(x), 2)), ("adev", "fit"), timeline="log10_tau")
-    rec.add_view("allan", rrb.TimeSeriesView(origin="/allan/gyro", name="gyro"))
-    rec.blueprint()
-    assert _span(rec._views["allan"][0]) == (-2000, 3400)
+    tau = np.logspace(-2, 3, 40)
+    rec.curve("/allan/gyro/x/measured", tau, 1e-3 / np.sqrt(tau), ("measured",), plot="x",
+              unit="rad/s", x_label="tau", x_unit="s", log_x=True, log_y=True, points=True)  # fmt: skip
+    # the older form (a timeline name for x) still works
+    rec.curve("/old/c", np.arange(10), np.arange(10.0), ("c",), timeline="pose")
     rec.close()
+    views, _, _ = read_blueprint(tmp_path / "r.rrd")
+    assert {v["class"] for v in views.values()} == {"2D"}
+    static, spans, _ = read_data(tmp_path / "r.rrd")
+    assert "Points2D:positions" in static["/allan/gyro/x/measured"]
+    assert "Points2D:labels" in static["/allan/x/axes/x_ticks"]
+    assert not spans  # nothing on any timeline
+
+
+def test_axes_ticks():
+    # round steps (1, 2, 2.5, 5 x 10^k) that cover the data
+    np.testing.assert_allclose(nice_ticks(-0.0183, 0.0327), [-0.02, 0.0, 0.02, 0.04], atol=1e-15)
+    np.testing.assert_allclose(nice_ticks(-40.0, 80.0), [-40, -20, 0, 20, 40, 60, 80])
+    assert tick_labels(np.array([-0.02, 0.0, 0.02])) == ["-0.02", "0.00", "0.02"]
+    log = Axis([np.array([2e-5, 3e-2])], log=True)
+    assert log.labels == ["1e-5", "1e-4", "0.001", "0.01", "0.1"]
+    np.testing.assert_allclose(log(np.array([1e-5, 1e-1])), [0.0, 1.0])
+    assert np.isnan(log(np.array([0.0]))[0])  # no log of zero: a gap in the curve
+
+
+def test_raw_counts_are_plotted_apart_from_si(tmp_path, cli):
+    """imu_tk's Xsens log (raw counts, tests/data/imu_tk_xsens): the input is shown in counts,
+    the corrected signal in m/s^2, never on one axis; the summary's offsets are in counts."""
+    from conftest import TEST_DATA
+
+    data = TEST_DATA / "imu_tk_xsens"
+    cfg = tmp_path / "xsens.toml"
+    cfg.write_text(
+        f'[inputs.xsens]\npath = "{data / "xsens_acc.mat"}"\n[inputs.xsens.csv]\ntime = 0\n'
+        'time_unit = "s"\naccel = [1, 2, 3]\naccel_unit = "raw"\n'
+        f'gyro_file = "{data / "xsens_gyro.mat"}"\ngyro = [1, 2, 3]\ngyro_unit = "raw"\n'
+        '[[stages]]\ntype = "accel_calibration"\ngravity = 9.81744\ninit_static_s = 50.0\n'
+        '[output]\ndir = "out"\napply_to = []\nreport = false\n'
+    )
+    done = cli("run", cfg)
+    assert done.returncode == 0, done.stderr
+    views, _, _ = read_blueprint(tmp_path / "out" / "recording.rrd")
+    titles = {v["name"] for v in views.values()}
+    assert {"accel (raw counts)", "accel (m/s^2)", "|a| (raw counts)", "|a| (m/s^2)"} <= titles
+    assert "bias (counts)" in done.stdout and "bias (m/s^2)" not in done.stdout

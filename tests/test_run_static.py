@@ -69,10 +69,11 @@ def test_recording_has_stage_entities(static_run):
     d, table, _ = static_run
     rows = rrd_rows(d / "out" / "recording.rrd")
     n = table.num_rows
-    assert rows["/gyro_bias/input/gyro"] == n
-    assert rows["/gyro_bias/output/gyro"] == n
-    assert rows["/average/input/accel"] == n
-    assert rows["/average/gyro"] == int(np.ceil(n / 500))
+    assert rows["/average/raw/gyro"] == n  # sent once, shown by gyro_bias too
+    assert "/gyro_bias/raw/gyro" not in rows
+    assert rows["/gyro_bias/corrected/gyro"] == n
+    assert rows["/average/raw/accel"] == n
+    assert rows["/average/means/gyro"] == int(np.ceil(n / 500))
 
 
 def test_calibration_json_reapplies_the_same_chain(static_run):

@@ -26,6 +26,7 @@ SCENARIOS: dict[str, str] = {
     "poses": "imupipe.pipeline.simulate.poses",
     "mag": "imupipe.pipeline.simulate.mag",
     "thermal": "imupipe.pipeline.simulate.thermal",
+    "thermal_soak": "imupipe.pipeline.simulate.thermal_soak",
 }
 
 WRITERS: dict[str, str] = {

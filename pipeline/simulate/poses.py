@@ -1,12 +1,14 @@
 """Scenario ``poses``: a multi-position calibration session with a known accelerometer and
 gyroscope error model.
 
-Timeline: ``init_static_s`` seconds at rest in the first pose (z up), then ``n_poses - 1`` times:
+Timeline: ``max(init_static_s, pose_s)`` seconds at rest in the first pose (z up; ``init_static_s
+= 0`` is a session without a long still start, as most are recorded), then ``n_poses - 1`` times:
 a rotation of ``move_s`` seconds about a fixed body axis (smooth profile ``theta(t) = angle (1 -
 cos(pi t / move_s)) / 2``) into the next pose, and ``pose_s`` seconds at rest there. With
 ``faces = true`` poses 1..5 complete the six faces (+-x, +-y, +-z up); the others are uniformly
 random orientations (from the seed), or with ``only_faces = true`` the six faces again and again,
-each tilted by a random angle of up to ``face_tilt_deg`` (a six-face session like the T265's). The IMU rotates about its own origin (no linear acceleration).
+each tilted by a random angle of up to ``face_tilt_deg`` (a six-face session like the T265's).
+The IMU rotates about its own origin (no linear acceleration).
 
 Error model, the inverse of imupipe's calibration models (so a perfect fit returns the truth)::
 
@@ -14,7 +16,14 @@ Error model, the inverse of imupipe's calibration models (so a perfect fit retur
     gyro_raw  = (T diag(s))^-1 w + b_g   (T: six angles yz, zy, zx, xz, xy, yx; stages/gyro_models)
 
 plus white noise of density ``accel_N`` (m/s^2/sqrt(Hz)) and ``gyro_N`` (rad/s/sqrt(Hz)) on the raw
-outputs (raw units are SI scaled by the model). Truth: ``accel`` and ``gyro`` each with ``matrix``
+outputs (raw units are SI scaled by the model). Truths the models do *not* have (all off by
+default), to test the fits on data whose form differs from theirs:
+
+- ``accel_nonlinearity`` (3, 1/(m/s^2)): ``accel_raw += c f^2`` per axis (a quadratic scale error);
+- ``gyro_g_sensitivity`` (3x3, rad/s per m/s^2): ``gyro_raw += G f`` (g-sensitivity);
+- ``accel_bias_rw``, ``gyro_bias_rw``: random walk of the biases (density, unit/s/sqrt(Hz));
+- ``tremor_deg``: a hand holding each pose: the attitude wanders by this RMS angle (deg), band
+  limited to about ``tremor_hz``, and the gyro sees the matching rates. Truth: ``accel`` and ``gyro`` each with ``matrix``
 and ``offset`` (``corrected = matrix @ (raw - offset)``) and their native parameters, ``gravity``
 and ``static_intervals_s`` ([start, end] seconds from the first sample of each rest).
 """
@@ -28,7 +37,7 @@ import pyarrow as pa
 from scipy.spatial.transform import Rotation
 
 from imupipe.pipeline.simulate.clock import sample_times
-from imupipe.pipeline.simulate.noise import white
+from imupipe.pipeline.simulate.noise import random_walk, white
 from imupipe.readers.table import make_table
 from imupipe.stages.accel_models import misalignment_matrix
 from imupipe.stages.gyro_models import gyro_matrix
@@ -52,6 +61,12 @@ DEFAULTS: dict[str, Any] = {
     "gyro_misalignment": [0.003, -0.002, 0.004, 0.001, -0.003, 0.002],
     "gyro_bias": [0.01, -0.02, 0.005],
     "gyro_N": 1.0e-4,
+    "accel_nonlinearity": [0.0, 0.0, 0.0],
+    "gyro_g_sensitivity": [[0.0, 0.0, 0.0], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]],
+    "accel_bias_rw": 0.0,
+    "gyro_bias_rw": 0.0,
+    "tremor_deg": 0.0,
+    "tremor_hz": 3.0,
     "temperature": 25.0,
 }
 
@@ -80,14 +95,31 @@ def pose_rotations(p: dict[str, Any], rng: np.random.Generator) -> Rotation:
     return Rotation.concatenate([*rots, rest]) if n > len(rots) else Rotation.concatenate(rots)
 
 
+def tremor(
+    rng: np.random.Generator, n: int, rms_deg: float, band_hz: float, fs: float
+) -> tuple[Rotation, np.ndarray]:
+    """A hand's wander about a held pose: small rotations (n,) of RMS angle ``rms_deg`` per axis,
+    white noise smoothed by a Gaussian kernel of width ``1 / (2 pi band_hz)`` s, and the body
+    rates (n, 3) that produce them (small angles: the rate is the angle's derivative)."""
+    if rms_deg <= 0 or n < 2:
+        return Rotation.identity(n), np.zeros((n, 3))
+    width = max(fs / (2 * np.pi * band_hz), 1.0)
+    kernel = np.exp(-0.5 * (np.arange(-4 * width, 4 * width + 1) / width) ** 2)
+    noise = rng.standard_normal((n + len(kernel) - 1, 3))
+    angle = np.column_stack([np.convolve(noise[:, i], kernel, mode="valid") for i in range(3)])
+    angle *= np.radians(rms_deg) / angle.std(axis=0)
+    return Rotation.from_rotvec(angle), np.gradient(angle, 1 / fs, axis=0)
+
+
 def simulate(p: dict[str, Any], rng: np.random.Generator) -> tuple[pa.Table, dict[str, Any]]:
     fs = float(p["rate_hz"])
     poses = pose_rotations(p, rng)
-    n_init = int(round(p["init_static_s"] * fs))
+    n_init = int(round(max(p["init_static_s"], p["pose_s"]) * fs))
     n_pose = int(round(p["pose_s"] * fs))
     n_move = int(round(p["move_s"] * fs))
-    attitude = [Rotation.from_quat(np.tile(poses[0].as_quat(), (n_init, 1)))]
-    omega = [np.zeros((n_init, 3))]
+    wander, wander_rate = tremor(rng, n_init, p["tremor_deg"], p["tremor_hz"], fs)
+    attitude = [Rotation.from_quat(np.tile(poses[0].as_quat(), (n_init, 1))) * wander]
+    omega = [wander_rate]
     intervals = [[0.0, (n_init - 1) / fs]]
     start = n_init
     tau = (np.arange(n_move) + 1) / n_move
@@ -99,8 +131,9 @@ def simulate(p: dict[str, Any], rng: np.random.Generator) -> tuple[pa.Table, dic
         rate = angle * np.pi / (2 * p["move_s"]) * np.sin(np.pi * tau)
         attitude.append(poses[i - 1] * Rotation.from_rotvec(theta[:, None] * axis))
         omega.append(rate[:, None] * axis)
-        attitude.append(Rotation.from_quat(np.tile(poses[i].as_quat(), (n_pose, 1))))
-        omega.append(np.zeros((n_pose, 3)))
+        wander, wander_rate = tremor(rng, n_pose, p["tremor_deg"], p["tremor_hz"], fs)
+        attitude.append(Rotation.from_quat(np.tile(poses[i].as_quat(), (n_pose, 1))) * wander)
+        omega.append(wander_rate)
         start += n_move
         intervals.append([start / fs, (start + n_pose - 1) / fs])
         start += n_pose
@@ -116,6 +149,10 @@ def simulate(p: dict[str, Any], rng: np.random.Generator) -> tuple[pa.Table, dic
     noise_g = np.column_stack([white(rng, n, p["gyro_N"], fs) for _ in range(3)])
     accel = f_true @ np.linalg.inv(a_matrix).T + np.asarray(p["accel_bias"]) + noise_a
     gyro = w_true @ np.linalg.inv(g_matrix).T + np.asarray(p["gyro_bias"]) + noise_g
+    accel += np.asarray(p["accel_nonlinearity"], dtype=float) * f_true**2
+    gyro += f_true @ np.asarray(p["gyro_g_sensitivity"], dtype=float).reshape(3, 3).T
+    accel += np.column_stack([random_walk(rng, n, p["accel_bias_rw"], fs) for _ in range(3)])
+    gyro += np.column_stack([random_walk(rng, n, p["gyro_bias_rw"], fs) for _ in range(3)])
 
     t_ns = sample_times(p["t0_s"], n, fs)
     temperature = None if p["temperature"] is None else np.full(n, float(p["temperature"]))

@@ -1,26 +1,30 @@
 """Scenario ``thermal``: a static IMU in a temperature chamber, cycled between ``t_min`` and
-``t_max`` (seed 000's ramp method, seed 004's full-temperature cycles).
+``t_max`` (the ramp method of "MEMS 惯性测量组件的温度误差补偿模型研究"; the full-temperature
+cycles of the gyro patent "陀螺仪的温度标定补偿方法、装置、设备及介质").
 
 Chamber (ambient) temperature ``Ta(t)``: piecewise linear. It starts held at ``t_min`` for
 ``hold_s``; then each cycle ``i`` heats to ``t_max`` at ``heating_rates[i]`` degC/min, holds
 ``hold_s``, cools to ``t_min`` at ``cooling_rates[i]`` degC/min (default: the heating rates) and
 holds ``hold_s``. With ``soak_step`` (degC) the ramps pause for ``hold_s`` every ``soak_step``
-degrees (the soak method). The device temperature ``T`` follows the chamber through a first-order
-lag, ``dT/dt = (Ta - T) / lag_s``, integrated exactly for the piecewise-linear ``Ta``.
+degrees (the soak method). The device temperature ``T`` (what the temperature sensor reads)
+follows the chamber through a first-order lag, ``dT/dt = (Ta - T) / lag_s``, integrated exactly
+for the piecewise-linear ``Ta``. With ``element_lag_s`` > 0 the sensing element's temperature
+``Te`` lags ``T`` in turn, ``dTe/dt = (T - Te) / element_lag_s`` (the gyro patent's mechanism:
+the sensing core lags the board's temperature sensor); else ``Te = T``.
 
-Sensor error, per axis of gyro (rad/s) and accel (m/s^2), with ``x = T - poly_tref`` (degC) and
-``r = dT/dt`` (degC/s, the exact rate of the device temperature)::
+Sensor error, per axis of gyro (rad/s) and accel (m/s^2), with ``x = Te - poly_tref`` (degC) and
+``r = dTe/dt`` (degC/s, its exact rate)::
 
     bias = c0 + c1 x + c2 x^2 + c3 x^3 + k r
 
 (``<sensor>_poly`` = [[c0, c1, c2, c3] per axis], ``<sensor>_rate_coef`` = [k per axis]: a rate
-term makes heating and cooling read differently at the same temperature, the hysteresis of seed
-004) plus white noise of density ``<sensor>_N``. The IMU is at rest, z up: true rate 0, true
+term makes heating and cooling read differently at the same temperature, the hysteresis the gyro
+patent fits with ``k_dt``) plus white noise of density ``<sensor>_N``. The IMU is at rest, z up: true rate 0, true
 specific force ``[0, 0, gravity]``. The temperature sensor reads ``T`` plus white noise of std
 ``temperature_noise`` degC at ``temperature_rate_hz`` (null: every IMU sample); the
 ``ambient_temperature`` column holds ``Ta`` (when ``ambient`` is true).
 
-Turntable (seed 004), with ``turntable_rate`` (deg/s): at the end of every ``turntable_period_s``
+Turntable (the gyro patent's scale-factor runs), with ``turntable_rate`` (deg/s): at the end of every ``turntable_period_s``
 the table turns about the IMU's z axis at +rate for ``turntable_s`` seconds, then at -rate for
 as long (instantaneous switches; the accelerometer, at the centre, feels nothing). The gyro then
 reads ``bias + sf * true`` with the scale factor ``sf = 1 + s1 x + s2 x^2`` per axis
@@ -28,7 +32,8 @@ reads ``bias + sf * true`` with the scale factor ``sf = 1 + s1 x + s2 x^2`` per 
 
 Truth: ``gyro`` and ``accel`` with ``poly`` (coefficients about ``poly_tref``), ``rate_coef``,
 ``N`` and ``reference`` (the true output when still); gyro ``scale_poly``; ``poly_tref``;
-``temperature_range`` (device T); ``duration_s``; ``turntable_rate`` (rad/s or null).
+``temperature_range`` (device T); ``element_lag_s``; ``duration_s``; ``turntable_rate`` (rad/s or
+null).
 """
 
 from __future__ import annotations
@@ -54,6 +59,7 @@ DEFAULTS: dict[str, Any] = {
     "hold_s": 1200.0,
     "soak_step": None,
     "lag_s": 300.0,
+    "element_lag_s": 0.0,
     "gravity": 9.80665,
     "poly_tref": 25.0,
     "gyro_poly": [
@@ -142,7 +148,12 @@ def simulate(p: dict[str, Any], rng: np.random.Generator) -> tuple[pa.Table, dic
     lag = float(p["lag_s"])
     temp = lagged(t_s, ambient, lag)
     rate = (ambient - temp) / lag if lag > 0 else np.gradient(ambient, t_s)
-    x = temp - float(p["poly_tref"])
+    element_lag = float(p["element_lag_s"])
+    element = temp
+    if element_lag > 0:
+        element = lagged(t_s, temp, element_lag)
+        rate = (temp - element) / element_lag
+    x = element - float(p["poly_tref"])
     gyro_ref = np.zeros(3)
     accel_ref = np.array([0.0, 0.0, float(p["gravity"])])
     gyro = gyro_ref + _bias(p["gyro_poly"], p["gyro_rate_coef"], x, rate)
@@ -176,6 +187,7 @@ def simulate(p: dict[str, Any], rng: np.random.Generator) -> tuple[pa.Table, dic
     truth = {
         "poly_tref": float(p["poly_tref"]),
         "temperature_range": [float(temp.min()), float(temp.max())],
+        "element_lag_s": element_lag,
         "duration_s": float(t_s[-1]),
         "turntable_rate": table_rate,
         "gyro": {

@@ -1,0 +1,68 @@
+"""Start-up time of the command line (issue 17: under 0.15 s for ``imupipe --help`` and
+``imupipe inspect small.mcap``).
+
+Prints, best of N runs each (wall time of the whole process): a bare ``python -c pass`` (the
+floor), ``imupipe --help``, ``imupipe convert --help`` and ``imupipe inspect`` on a 2 s MCAP;
+then the slowest imports of the ``inspect`` run (``python -X importtime``), cumulative.
+
+Usage: ``python benchmarks/bench_startup.py [--runs 7]``
+"""
+
+from __future__ import annotations
+
+import argparse
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+CLI = [sys.executable, "-m", "imupipe.pipeline.cli"]
+
+
+def best(cmd: list[str], runs: int) -> float:
+    times = []
+    for _ in range(runs):
+        start = time.perf_counter()
+        subprocess.run(cmd, check=True, capture_output=True)
+        times.append(time.perf_counter() - start)
+    return min(times)
+
+
+def slowest_imports(cmd: list[str], n: int = 8) -> list[tuple[float, str]]:
+    err = subprocess.run([sys.executable, "-X", "importtime", *cmd[1:]], capture_output=True,
+                         text=True).stderr  # fmt: skip
+    rows = []
+    for line in err.splitlines():
+        if line.startswith("import time:") and "|" in line and "cumulative" not in line:
+            _, cumulative, name = line.split("|")
+            if not name.startswith("  "):  # top-level imports only (cumulative of their tree)
+                rows.append((int(cumulative) / 1e6, name.strip()))
+    return sorted(rows, reverse=True)[:n]
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--runs", type=int, default=7)
+    args = parser.parse_args()
+    with tempfile.TemporaryDirectory() as d:
+        log = Path(d) / "small.mcap"
+        subprocess.run([*CLI, "simulate", "static", "--out", str(log), "--duration", "2"],
+                       check=True, capture_output=True)  # fmt: skip
+        floor = best([sys.executable, "-c", "pass"], args.runs)
+        print(f"python -c pass              {floor:6.3f} s (the floor)")
+        for label, cmd in [
+            ("imupipe --help", [*CLI, "--help"]),
+            ("imupipe convert --help", [*CLI, "convert", "--help"]),
+            ("imupipe inspect small.mcap", [*CLI, "inspect", str(log)]),
+        ]:
+            t = best(cmd, args.runs)
+            verdict = "meets" if t < 0.15 else "misses"
+            print(f"{label:<27} {t:6.3f} s ({t - floor:5.3f} s over python; {verdict} 0.15 s)")
+        print("slowest top-level imports of inspect (cumulative s):")
+        for seconds, name in slowest_imports([*CLI, "inspect", str(log)]):
+            print(f"  {seconds:6.3f}  {name}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,139 @@
+"""``calibration.json``: what a calibration records about where it was fitted, and reading one
+back with every field checked.
+
+**Provenance.** Every chain entry (and every stage's results) carries ``fitted_on``, taken from
+the common table the stage fitted on (the readers put ``source``, ``format``, ``topics``,
+``frame_id`` and, for a ULog, ``instance`` and ``device_id`` in its metadata)::
+
+    {"input": "static", "path": "logs/static.mcap", "format": "mcap",
+     "topics": {"imu": "/imu/data"}, "frame_id": {"imu": "imu_link"},
+     "instance": {"imu": 1}, "device_id": {"imu": 3670050},
+     "t_start_ns": ..., "t_end_ns": ..., "rate_hz": {"imu": 199.9},
+     "px4": {"calibrated": {"imu": false}, "parameters": {"CAL_GYRO1_XOFF": ...}}}
+
+``instance``, ``device_id`` and ``px4`` appear only where the log has them (PX4 ULog);
+``px4.parameters`` keeps the log's ``CAL_*``/``TC_*``/``SENS_BOARD_*`` values, which the PX4
+export needs when the data were already corrected by PX4. A step imported from another tool
+(``imupipe import``) has ``{"input": null, "path": <its file>, "format": <the tool>}``.
+
+**Loading** (:func:`load_calibration`): the file must be under :data:`MAX_BYTES`, UTF-8 JSON
+nested at most :data:`MAX_DEPTH` deep, an object with a ``chain`` list; every chain entry is
+checked by :func:`imupipe.stages.steps.steps_from_json` (known sensor and kind, finite numbers,
+3x3 ``matrix`` and 3 ``offset`` for linear steps, which may be written by hand without
+``kind``) and ``fitted_on``, when present, must be an object. Any failure is one
+:class:`~imupipe.stages.errors.CalibrationError` line naming the file, the entry and the field.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import pyarrow as pa
+
+from imupipe.readers.spec import InputSpec
+from imupipe.readers.table import STREAMS, metadata, stream_mask
+from imupipe.stages.errors import CalibrationError
+from imupipe.stages.steps import Step, steps_from_json
+
+MAX_BYTES = 64 * 1024 * 1024
+"""A calibration larger than this is refused (a real one is a few kB to a few MB)."""
+MAX_DEPTH = 64
+"""Deepest JSON nesting accepted (a calibration nests about 6 deep)."""
+PROVENANCE_KEYS = ("topics", "frame_id", "instance", "device_id", "px4")
+"""Table metadata keys copied into ``fitted_on`` when present."""
+
+
+def fitted_on(input_name: str, spec: InputSpec, table: pa.Table) -> dict[str, Any]:
+    """Where a stage fitted: the input's name, file and format, its topics, frames and sensor
+    instances, the time span of the table and each stream's mean rate (see the module
+    docstring)."""
+    meta = metadata(table)
+    out: dict[str, Any] = {
+        "input": input_name,
+        "path": str(spec.path),
+        "format": meta.get("format", "csv"),
+    }
+    for key in PROVENANCE_KEYS:
+        if meta.get(key):
+            out[key] = meta[key]
+    t = table.column("t_ns").to_numpy()
+    if len(t):
+        out["t_start_ns"], out["t_end_ns"] = int(t.min()), int(t.max())
+    rates: dict[str, float] = {}
+    for stream in STREAMS:
+        stamps = t[stream_mask(table, stream)] if len(t) else t
+        span = (int(stamps.max()) - int(stamps.min())) * 1e-9 if len(stamps) > 1 else 0.0
+        if span > 0:
+            rates[stream] = (len(stamps) - 1) / span
+    out["rate_hz"] = rates
+    return out
+
+
+def _depth(value: Any) -> int:
+    """The nesting depth of parsed JSON (iterative: no recursion limit)."""
+    deepest, stack = 0, [(value, 1)]
+    while stack:
+        v, d = stack.pop()
+        if isinstance(v, dict | list):
+            deepest = max(deepest, d)
+            if d <= MAX_DEPTH:
+                stack.extend((x, d + 1) for x in (v.values() if isinstance(v, dict) else v))
+    return deepest
+
+
+def parse_calibration(text: str, where: str) -> dict[str, Any]:
+    """A calibration document's JSON text as a dict with a ``chain`` list (structure only; see
+    :func:`check_calibration` for the entries)."""
+    try:
+        doc = json.loads(text)
+    except json.JSONDecodeError as exc:
+        raise CalibrationError(f"{where}: not valid JSON: {exc}") from None
+    except RecursionError:
+        raise CalibrationError(f"{where}: JSON nested deeper than {MAX_DEPTH} levels") from None
+    if _depth(doc) > MAX_DEPTH:
+        raise CalibrationError(f"{where}: JSON nested deeper than {MAX_DEPTH} levels")
+    if not isinstance(doc, dict) or not isinstance(doc.get("chain"), list):
+        raise CalibrationError(f"{where}: no 'chain' list (is it a calibration.json?)")
+    return doc
+
+
+def check_calibration(doc: Mapping[str, Any], where: str) -> list[Step]:
+    """The steps of a parsed document, every entry checked (see the module docstring)."""
+    steps = steps_from_json(doc["chain"], where=where)
+    for i, entry in enumerate(doc["chain"]):
+        if "fitted_on" in entry and not isinstance(entry["fitted_on"], dict | type(None)):
+            raise CalibrationError(f"{where}: chain[{i}].fitted_on: an object expected")
+    results = doc.get("results", {})
+    if not isinstance(results, dict):
+        raise CalibrationError(f"{where}: results: an object expected")
+    return steps
+
+
+def load_calibration(path: str | Path) -> tuple[dict[str, Any], list[Step]]:
+    """Read and check a ``calibration.json`` (or a corrected MCAP's attached copy: its
+    ``conversion`` record is dropped); returns (document, steps)."""
+    path = Path(path)
+    where = str(path)
+    try:
+        size = path.stat().st_size
+        if size > MAX_BYTES:
+            raise CalibrationError(
+                f"{where}: {size} bytes; a calibration file is at most {MAX_BYTES} bytes"
+            )
+        text = path.read_bytes().decode("utf-8")
+    except FileNotFoundError:
+        raise CalibrationError(f"{where}: no such file") from None
+    except IsADirectoryError:
+        raise CalibrationError(f"{where}: a folder, not a calibration file") from None
+    except UnicodeDecodeError as exc:
+        raise CalibrationError(
+            f"{where}: not UTF-8 text ({exc.reason} at byte {exc.start})"
+        ) from None
+    except OSError as exc:
+        raise CalibrationError(f"{where}: cannot read: {exc.strerror or exc}") from None
+    doc = parse_calibration(text, where)
+    doc.pop("conversion", None)
+    return doc, check_calibration(doc, where)

@@ -1,0 +1,93 @@
+"""Verification of a converted log: the written file holds the input's messages, topic for topic.
+
+The reference is the input's own index, read without reading the messages (MCAP summary
+statistics, the ROS 1 bag index, ROS 2 ``metadata.yaml``); for CSV and unindexed logs, the
+messages read. The written file's counts come from its own summary.
+"""
+
+from __future__ import annotations
+
+import collections
+import json
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import pyarrow as pa
+
+from imupipe.pipeline.errors import ImupipeError, ReadError
+from imupipe.pipeline.mcap_writer import DEFAULT_TOPICS
+from imupipe.readers.table import counts, metadata
+
+
+class VerifyError(ImupipeError):
+    """The written output does not hold the input's messages, topic for topic."""
+
+
+def mcap_summary(path: Path) -> tuple[dict[str, int], dict[str, Any] | None] | None:
+    """(messages per topic, the attached calibration.json) of a finished MCAP; None when the file
+    has no summary (unfinished, or written without one)."""
+    from mcap.reader import make_reader
+
+    with open(path, "rb") as fh:
+        reader = make_reader(fh)
+        summary = reader.get_summary()
+        if summary is None or summary.statistics is None:
+            return None
+        per_topic: collections.Counter[str] = collections.Counter()
+        for cid, n in summary.statistics.channel_message_counts.items():
+            per_topic[summary.channels[cid].topic] += n
+        attached = None
+        for att in reader.iter_attachments():
+            if att.name == "calibration.json":
+                attached = json.loads(att.data)
+    return dict(per_topic), attached
+
+
+def mcap_counts(path: Path) -> dict[str, int] | None:
+    """Messages per topic from an MCAP's summary statistics (None when it has none)."""
+    summary = mcap_summary(path)
+    return None if summary is None else summary[0]
+
+
+def input_counts(path: Path, fmt: str) -> dict[str, int] | None:
+    """Messages per topic from the log's own index, without reading the messages; None for CSV and
+    for logs that have no index (then the counts read are the reference)."""
+    try:
+        if fmt == "mcap":
+            return mcap_counts(path)
+        if fmt in ("ros1", "ros2"):
+            from rosbags.rosbag1 import Reader as Ros1Reader
+            from rosbags.rosbag2 import Reader as Ros2Reader
+
+            if fmt == "ros2" and not (path.is_dir() and (path / "metadata.yaml").exists()):
+                return None
+            per_topic: collections.Counter[str] = collections.Counter()
+            with (Ros1Reader if fmt == "ros1" else Ros2Reader)(path) as reader:
+                for conn in reader.connections:
+                    per_topic[conn.topic] += conn.msgcount
+            return dict(per_topic)
+    except ImupipeError:
+        raise
+    except Exception as exc:  # noqa: BLE001 - any failure to open the index is a bad log
+        what = "truncated or corrupt" if fmt == "mcap" else "unreadable"
+        raise ReadError(
+            f"{path}: {what} {fmt} log (its index cannot be read: {' '.join(str(exc).split())})"
+        ) from None
+    return None
+
+
+def counts_by_topic(table: pa.Table) -> collections.Counter[str]:
+    """Messages per topic that ``table`` will be written as."""
+    topics = {**DEFAULT_TOPICS, **metadata(table).get("topics", {})}
+    return collections.Counter({topics[s]: n for s, n in counts(table).items() if n})
+
+
+def verify_counts(where: Path, expected: Mapping[str, int], written: Mapping[str, int]) -> None:
+    """Raise :class:`VerifyError` naming the first topic whose count differs."""
+    for topic in sorted(set(expected) | set(written)):
+        want, got = expected.get(topic, 0), written.get(topic, 0)
+        if want != got:
+            raise VerifyError(
+                f"{where}: topic {topic}: the input has {want} messages but the output {got}"
+            )

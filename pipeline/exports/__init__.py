@@ -1,0 +1,63 @@
+"""Files other tools read, made from the calibration document (``chain`` + ``results``).
+
+One module per consumer; each has ``export(doc) -> Export`` (file name -> text, and notes on
+what did not map) and writes a file only when the stages that fill it ran:
+
+| file | consumer | written when |
+|---|---|---|
+| ``imu.yaml`` | Kalibr's IMU noise model | an ``allan`` stage ran |
+| ``<stage>_imu_utils.yaml`` | imu_utils' layout (``gyr_n``...) | an ``allan`` stage ran |
+| ``vins_imu.yaml`` | VINS-Mono/VINS-Fusion noise block (``%YAML:1.0``, OpenCV) | an ``allan`` stage ran |
+| ``kalibr_imu_intrinsics.yaml`` | Kalibr's ``scale-misalignment`` IMU model | accel or gyro scale/misalignment fitted |
+| ``kalibr_imu_chain.yaml`` | OpenVINS ``imu0`` (noise + ``Tw``, ``R_IMUtoGYRO``, ``Ta``, ``R_IMUtoACC``, ``Tg``) | an ``allan`` stage ran |
+| ``px4_calibration.params`` | PX4 ``CAL_*`` and ``TC_*`` (QGroundControl's ``.params``) | an accel, gyro, mag or temperature step maps |
+| ``ardupilot_calibration.param`` | ArduPilot ``INS_*``, ``COMPASS_*``, ``INS_TCAL*`` (Mission Planner's ``.param``) | the same |
+
+Every file is produced by a serializer (PyYAML's ``safe_dump``, the ``csv`` module): no value of
+the document reaches a file by string formatting. The model mappings are in each module's
+docstring and in the exports reference page.
+"""
+
+from __future__ import annotations
+
+import importlib
+from typing import Any
+
+from imupipe.pipeline.exports.common import Export
+
+EXPORTERS: tuple[str, ...] = ("kalibr", "imu_utils", "vins", "openvins", "px4", "ardupilot")
+"""The exporter modules, in the order their files are listed."""
+
+
+DEFAULT: tuple[str, ...] = ("kalibr", "imu_utils", "vins", "openvins")
+"""Written unless ``[output] exports`` says otherwise: the ROS and VIO tools' files."""
+
+
+def chosen(doc: dict[str, Any], asked: list[str] | None) -> list[str]:
+    """The exporters to run: ``asked`` (``[output] exports``), else :data:`DEFAULT` plus ``px4``
+    when a chain step was fitted on a PX4 log. Kalibr's noise file ``imu.yaml`` is written
+    whenever an ``allan`` stage ran, whatever was asked."""
+    if asked is not None:
+        return [name for name in EXPORTERS if name in asked or name == "kalibr"]
+    px4 = any((e.get("fitted_on") or {}).get("format") == "ulog" for e in doc.get("chain", []))
+    return [name for name in EXPORTERS if name in DEFAULT or (name == "px4" and px4)]
+
+
+def export_all(
+    doc: dict[str, Any], names: list[str] | None = None
+) -> tuple[dict[str, str], dict[str, dict[str, Any]]]:
+    """The exports ``names`` (default: every exporter) of a calibration document: (file name ->
+    text, file name -> report). A report has ``notes`` (what was left out or approximated) and
+    facts such as the frame rotation of Kalibr's intrinsics; ``run`` keeps the reports in
+    ``calibration.json`` under ``exports``."""
+    files: dict[str, str] = {}
+    report: dict[str, dict[str, Any]] = {}
+    for name in EXPORTERS if names is None else names:
+        out: Export = importlib.import_module(f"imupipe.pipeline.exports.{name}").export(doc)
+        files.update(out.files)
+        for fname in set(out.notes) | set(out.info):
+            entry = report.setdefault(fname, {})
+            entry.update(out.info.get(fname, {}))
+            if out.notes.get(fname):
+                entry.setdefault("notes", []).extend(out.notes[fname])
+    return files, report

@@ -1,0 +1,333 @@
+"""What the exporters share: the noise figures of an ``allan`` stage, the chain of one sensor
+composed into one raw-domain model, the IMU intrinsics in Kalibr's form, and the serializers.
+
+**Composition** (:func:`sensor_model`). The chain's steps of one sensor, in order, become
+
+    corrected = M @ (raw - o - b(T)),   b(T) = sum_k C[:, k] (T - Tref)^k  (k <= 3, clamped T)
+
+A linear step ``M2 @ (x - o2)`` after it gives ``M <- M2 M``, ``o <- o + M^-1 o2``; a
+temperature step ``x - f(T)`` gives ``b <- b + M^-1 f`` (re-expanded about the first Tref). This
+is the form of PX4 (``Correct``: ``(data - _thermal_offset - _offset) * _scale``, PX4-Autopilot
+``src/lib/sensor_calibration/Accelerometer.hpp``) and ArduPilot
+(``_rotate_and_correct_accel``: temperature correction, ``-= offset``, ``*= scale``,
+``libraries/AP_InertialSensor/AP_InertialSensor_Backend.cpp``). A temperature model maps only
+when every axis is a polynomial of order <= 3 in T (no rate, ambient, piecewise or scale terms);
+anything else is reported as an issue and left out.
+
+**Kalibr's form** (:func:`kalibr_intrinsics`): Kalibr's ``scale-misalignment`` model
+(ethz-asl/kalibr ``IccSensors.py``, ``IccScaledMisalignedImu``) measures
+``a_m = M_a a + b_a`` and ``w_m = M_g C_gyro_i w + A a + b_g`` with ``M_a``, ``M_g`` lower
+triangular and ``C_gyro_i`` a rotation, in an IMU frame whose x axis is the accelerometer's.
+From imupipe's ``a = A (a_m - o_a)``: the LQ decomposition ``A^-1 = M_a Q`` gives ``M_a`` and
+the rotation ``Q`` from imupipe's corrected frame to Kalibr's; then ``G^-1 Q^T = M_g C_gyro_i``.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+AXES = ("x", "y", "z")
+POLY_TERMS = ("1", "T", "T^2", "T^3")
+"""The temperature-model terms the autopilots' thermal polynomials can hold."""
+OFF_DIAGONAL = ((0, 1), (0, 2), (1, 2))
+"""The autopilots' order of a symmetric matrix's off-diagonal elements (X, Y, Z)."""
+RELATIVE_TOLERANCE = 1e-9
+"""Off-diagonal (or asymmetric) parts below this fraction of the diagonal count as zero."""
+
+
+@dataclass
+class Export:
+    """An exporter's output: file name -> text; file name -> notes (what did not map, printed
+    as warnings); file name -> facts recorded in ``calibration.json`` (``exports``)."""
+
+    files: dict[str, str] = field(default_factory=dict)
+    notes: dict[str, list[str]] = field(default_factory=dict)
+    info: dict[str, dict[str, Any]] = field(default_factory=dict)
+
+    def note(self, fname: str, text: str) -> None:
+        self.notes.setdefault(fname, []).append(" ".join(text.split()))
+
+
+# -- noise ---------------------------------------------------------------------------------------
+
+
+def allan_results(doc: Mapping[str, Any]) -> list[tuple[str, dict[str, Any]]]:
+    """(stage name, results) of every ``allan`` stage, in run order."""
+    return [(n, r) for n, r in doc.get("results", {}).items() if r.get("type") == "allan"]
+
+
+@dataclass(frozen=True)
+class Noise:
+    """One sensor's Kalibr-style noise: the largest axis of N and K, and where they came from.
+    ``k_bound`` is true when the fit resolved no random walk and K is the upper bound of the
+    68 % band (a zero would make a filter overconfident)."""
+
+    density: float
+    density_axis: str
+    random_walk: float
+    random_walk_axis: str
+    k_bound: bool
+
+
+def noise(results: Mapping[str, Any], sensor: str) -> Noise | None:
+    """The noise of ``sensor`` (gyro or accel) in an allan stage's results (continuous time:
+    N per sqrt(Hz), K per second per sqrt(Hz)); None when the stage did not fit it."""
+    if sensor not in results:
+        return None
+    per_axis = results[sensor]
+    n_axis = max(AXES, key=lambda a: per_axis[a]["N"])
+    k_axis = max(AXES, key=lambda a: per_axis[a]["K"])
+    k, bound = float(per_axis[k_axis]["K"]), False
+    if k == 0.0:
+        upper = results["metrics"][sensor]
+        k_axis = max(AXES, key=lambda a: upper[a]["K_upper_68"])
+        k, bound = float(upper[k_axis]["K_upper_68"]), True
+    return Noise(float(per_axis[n_axis]["N"]), n_axis, k, k_axis, bound)
+
+
+def first_allan(doc: Mapping[str, Any]) -> tuple[str, dict[str, Any]] | None:
+    """(name, results) of the first ``allan`` stage, or None."""
+    found = allan_results(doc)
+    return found[0] if found else None
+
+
+def imu_topic(results: Mapping[str, Any], default: str = "/imu/data") -> str:
+    """The IMU topic a stage fitted on (its ``fitted_on``), else ``default``."""
+    return (results.get("fitted_on") or {}).get("topics", {}).get("imu") or default
+
+
+def rate_hz(results: Mapping[str, Any]) -> float:
+    return float(results["metrics"]["rate_hz"])
+
+
+# -- composition ---------------------------------------------------------------------------------
+
+
+@dataclass
+class Thermal:
+    """A raw-domain thermal bias ``b(T) = sum_k C[:, k] (T - tref)^k``, valid (clamped) over
+    ``t_range`` degC; ``C`` (3, 4) in the sensor's unit."""
+
+    tref: float
+    coefficients: np.ndarray
+    t_range: tuple[float, float]
+
+    def about(self, t0: float) -> np.ndarray:
+        """The coefficients re-expanded about ``t0``: ``b(T) = sum_k D[:, k] (T - t0)^k``."""
+        shift = np.polynomial.Polynomial([t0 - self.tref, 1.0])
+        out = np.zeros((3, 4))
+        for i in range(3):
+            c = np.polynomial.Polynomial(self.coefficients[i])(shift).coef
+            out[i, : len(c)] = c
+        return out
+
+    def at(self, t: float) -> np.ndarray:
+        x = float(np.clip(t, *self.t_range)) - self.tref
+        return self.coefficients @ (x ** np.arange(4))
+
+
+@dataclass
+class SensorModel:
+    """One sensor's chain composed (see the module docstring): ``corrected = matrix @ (raw -
+    offset - thermal(T))``; ``entries`` are the chain entries used, ``issues`` what could not
+    be composed (left out)."""
+
+    sensor: str
+    matrix: np.ndarray
+    offset: np.ndarray
+    thermal: Thermal | None
+    entries: list[dict[str, Any]]
+    issues: list[str]
+
+    @property
+    def fitted_on(self) -> dict[str, Any]:
+        return next((e["fitted_on"] for e in self.entries if e.get("fitted_on")), {})
+
+    def fitted(self, type_: str) -> bool:
+        return any(e.get("type") == type_ for e in self.entries)
+
+
+def _thermal(entry: Mapping[str, Any]) -> Thermal | str:
+    """The entry's polynomial as a :class:`Thermal`, or why it does not map."""
+    if entry.get("scale"):
+        return "the temperature model has a scale-factor part (turntable): not mapped"
+    coef = np.zeros((3, 4))
+    for i, ax in enumerate(entry["axes"]):
+        extra = [t for t in ax["terms"] if t not in POLY_TERMS]
+        if extra:
+            return (
+                f"the temperature model's terms {', '.join(extra)} (axis {AXES[i]}) are not a "
+                "polynomial of order <= 3 in T: not mapped"
+            )
+        for term, c in zip(ax["terms"], ax["coefficients"], strict=True):
+            coef[i, POLY_TERMS.index(term)] += float(c)
+    lo, hi = entry["ranges"]["T"]
+    return Thermal(float(entry["tref"]), coef, (float(lo), float(hi)))
+
+
+def sensor_model(doc: Mapping[str, Any], sensor: str) -> SensorModel | None:
+    """The chain of ``sensor`` composed into one raw-domain model; None when no step corrects
+    it."""
+    entries = [e for e in doc.get("chain", []) if e.get("sensor") == sensor]
+    if not entries:
+        return None
+    m, o = np.eye(3), np.zeros(3)
+    thermal: Thermal | None = None
+    issues: list[str] = []
+    for e in entries:
+        kind = e.get("kind", "linear")
+        if kind == "linear":
+            m2 = np.asarray(e["matrix"], dtype=np.float64)
+            o = o + np.linalg.solve(m, np.asarray(e["offset"], dtype=np.float64))
+            m = m2 @ m
+        elif kind == "temperature":
+            t = _thermal(e)
+            if isinstance(t, str):
+                issues.append(t)
+                continue
+            if thermal is not None:
+                issues.append("a second temperature step: not mapped")
+                continue
+            minv = np.linalg.inv(m)
+            thermal = Thermal(t.tref, minv @ t.coefficients, t.t_range)
+        else:
+            issues.append(f"a '{kind}' step: not mapped")
+    return SensorModel(sensor, m, o, thermal, entries, issues)
+
+
+def off_diagonal(m: np.ndarray) -> float:
+    """The largest off-diagonal element of ``m`` relative to its mean absolute diagonal."""
+    return float(np.abs(m - np.diag(np.diag(m))).max() / np.abs(np.diag(m)).mean())
+
+
+def soft_iron(m: np.ndarray, out: Export, fname: str) -> tuple[np.ndarray, np.ndarray]:
+    """(diagonal, off-diagonal X Y Z) of the symmetric part of a magnetometer matrix, the form
+    both autopilots store; an asymmetric matrix is noted."""
+    asym = float(np.abs(m - m.T).max() / np.abs(np.diag(m)).mean())
+    if asym > RELATIVE_TOLERANCE:
+        out.note(
+            fname,
+            f"mag: the soft-iron matrix is not symmetric (up to {asym:.2g} of its diagonal); "
+            "its symmetric part is written",
+        )
+    sym = (m + m.T) / 2
+    return np.diag(sym).copy(), np.array([sym[i, j] for i, j in OFF_DIAGONAL])
+
+
+# -- Kalibr's intrinsics form --------------------------------------------------------------------
+
+
+def lq(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``x = L @ Q`` with L lower triangular (positive diagonal where a proper rotation allows)
+    and Q a proper rotation (det +1)."""
+    q1, r1 = np.linalg.qr(np.asarray(x, dtype=np.float64).T)
+    lower, q = r1.T, q1.T
+    signs = np.sign(np.diag(lower))
+    signs[signs == 0] = 1.0
+    lower, q = lower * signs, (q.T * signs).T
+    if np.linalg.det(q) < 0:  # a reflection in x: keep it in L's last diagonal element
+        lower[:, 2] *= -1.0
+        q[2] *= -1.0
+    return lower, q
+
+
+@dataclass(frozen=True)
+class KalibrIntrinsics:
+    """Kalibr's ``scale-misalignment`` matrices (module docstring) and ``frame``, the rotation
+    from imupipe's corrected IMU frame to Kalibr's (accelerometer-anchored) one."""
+
+    m_accel: np.ndarray
+    m_gyro: np.ndarray
+    c_gyro_i: np.ndarray
+    frame: np.ndarray
+
+
+def kalibr_intrinsics(accel: np.ndarray | None, gyro: np.ndarray | None) -> KalibrIntrinsics:
+    """From imupipe's accel and gyro matrices (``corrected = matrix @ (raw - offset)``; None:
+    identity)."""
+    a = np.eye(3) if accel is None else np.asarray(accel, dtype=np.float64)
+    g = np.eye(3) if gyro is None else np.asarray(gyro, dtype=np.float64)
+    m_accel, q = lq(np.linalg.inv(a))
+    m_gyro, c = lq(np.linalg.inv(g) @ q.T)
+    return KalibrIntrinsics(m_accel, m_gyro, c, q)
+
+
+# -- serializers ---------------------------------------------------------------------------------
+
+
+def plain(value: Any) -> Any:
+    """numpy scalars and arrays as Python floats and lists (for the serializers)."""
+    if isinstance(value, np.ndarray):
+        return plain(value.tolist())
+    if isinstance(value, np.generic):
+        return plain(value.item())
+    if isinstance(value, float):
+        return value + 0.0  # no -0.0
+    if isinstance(value, dict):
+        return {k: plain(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [plain(v) for v in value]
+    return value
+
+
+def yaml_text(data: Mapping[str, Any], comments: Iterable[str] = (), opencv: bool = False) -> str:
+    """``data`` as YAML by PyYAML's ``safe_dump`` (keys in order, matrix rows in flow style),
+    after ``comments`` (fixed text written by imupipe, one ``#`` line each). ``opencv`` starts
+    the file with ``%YAML:1.0``, the directive OpenCV's ``FileStorage`` requires."""
+    import yaml
+
+    class Dumper(yaml.SafeDumper):
+        """Block sequences indented under their key (OpenCV's parser needs it)."""
+
+        def increase_indent(self, flow: bool = False, indentless: bool = False) -> None:
+            return super().increase_indent(flow, False)
+
+    def text(dumper: yaml.SafeDumper, value: str) -> yaml.ScalarNode:
+        """Strings with line breaks double-quoted and escaped on one line (OpenCV's parser
+        takes no multi-line scalars)."""
+        style = '"' if any(c in value for c in "\n\r\t") else None
+        return dumper.represent_scalar("tag:yaml.org,2002:str", value, style=style)
+
+    def mapping(dumper: yaml.SafeDumper, value: dict) -> yaml.MappingNode:
+        """Mappings in block style (one key a line, as Kalibr's and OpenCV's files are); only
+        sequences of numbers (matrix rows, vectors) go in flow style."""
+        return dumper.represent_mapping("tag:yaml.org,2002:map", value.items(), flow_style=False)
+
+    Dumper.add_representer(str, text)
+    Dumper.add_representer(dict, mapping)
+
+    head = ["%YAML:1.0", "---"] if opencv else []
+    head += [f"# {line}" for c in comments for line in c.splitlines()]
+    body = yaml.dump(
+        plain(dict(data)),
+        Dumper=Dumper,
+        sort_keys=False,
+        default_flow_style=None,
+        width=float("inf"),
+    )
+    return "\n".join(head + [body.rstrip("\n")]) + "\n"
+
+
+def params_text(
+    rows: Iterable[tuple[str, float | int]], comments: Iterable[str], delimiter: str
+) -> str:
+    """Parameter rows through the ``csv`` module (``delimiter`` tab: QGroundControl's
+    ``vehicle component name value type`` rows; comma: Mission Planner's ``name,value``)."""
+    buf = io.StringIO()
+    for c in comments:
+        buf.write(f"# {c}\n")
+    writer = csv.writer(buf, delimiter=delimiter, lineterminator="\n")
+    for row in rows:
+        writer.writerow(row)
+    return buf.getvalue()
+
+
+def number(value: float) -> str:
+    """A parameter value written so that it reads back as the same float."""
+    return repr(float(value))

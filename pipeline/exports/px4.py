@@ -1,0 +1,236 @@
+"""PX4 calibration parameters (``px4_calibration.params``, QGroundControl's parameter file).
+
+PX4 corrects each sensor (PX4-Autopilot ``src/lib/sensor_calibration``, ``Correct``)::
+
+    accel: R ((raw - thermal(T) - CAL_ACCn_{X,Y,Z}OFF) * CAL_ACCn_{X,Y,Z}SCALE)   m/s^2
+    gyro:  R (raw - thermal(T) - CAL_GYROn_{X,Y,Z}OFF)                             rad/s
+    mag:   R (S (raw - CAL_MAGn_{X,Y,Z}OFF)),  S symmetric: diagonal CAL_MAGn_*SCALE,
+           off-diagonal CAL_MAGn_{X,Y,Z}ODIAG = S01, S02, S12                      gauss
+
+``thermal(T)`` is the cubic ``TC_{A,G}n_X{0..3}_{axis}`` in ``T - TC_*n_TREF`` (T clamped to
+``TC_*n_TMIN..TMAX``, ``src/modules/temperature_compensation``, ``calc_thermal_offsets_3D``),
+enabled by ``TC_A_ENABLE``/``TC_G_ENABLE``. ``R`` is the board rotation. A slot ``n`` applies to
+the device whose id ``CAL_*n_ID`` (``TC_*n_ID``) holds.
+
+imupipe's chain of a sensor, composed (:func:`imupipe.pipeline.exports.common.sensor_model`),
+maps as follows. Offsets map exactly (sign: PX4 subtracts them, as imupipe's ``offset``). The
+accelerometer's scale maps from the diagonal; PX4 has no accelerometer misalignment, so the
+off-diagonal part is left out (noted with its size). PX4 v1.11 and later have no gyro scale
+(the ``CAL_GYROn_*SCALE`` of older firmware is written only when the log had it). The
+magnetometer's soft iron maps to SCALE/ODIAG when symmetric (imupipe's ellipsoid fits are). A
+temperature model maps to ``TC_*`` when it is a polynomial of order <= 3 in T; rate, ambient,
+piecewise and scale-factor terms do not (noted, left out). The mag has no TC export.
+
+**Data PX4 had already corrected.** ``sensor_combined`` and ``vehicle_magnetometer`` hold data
+PX4 corrected with the log's own parameters (``fitted_on.px4.calibrated``). The chain fitted on
+them is composed with those parameters (PX4's ``BiasCorrectedSensorOffset``: new offset = old
+offset + bias / scale), so the file replaces the log's calibration; this needs no board
+rotation (``SENS_BOARD_ROT = 0``), else the sensor is left out with a note. The slot is the one
+whose ``CAL_*n_ID`` is the fitted device (``fitted_on.device_id``); for a log that names no PX4
+device (CSV, ROS), slot 0 without ``*_ID``, noted.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from imupipe.pipeline.exports.common import (
+    OFF_DIAGONAL,
+    RELATIVE_TOLERANCE,
+    Export,
+    SensorModel,
+    number,
+    off_diagonal,
+    params_text,
+    sensor_model,
+    soft_iron,
+)
+
+FNAME = "px4_calibration.params"
+CAL = {"accel": "ACC", "gyro": "GYRO", "mag": "MAG"}
+TC = {"accel": "A", "gyro": "G"}
+STREAM = {"accel": "imu", "gyro": "imu", "mag": "mag"}
+INT32, REAL32 = 6, 9
+"""MAVLink ``MAV_PARAM_TYPE`` of the rows (the last column)."""
+GAUSS_PER_TESLA = 1e4
+
+
+@dataclass
+class Target:
+    """Where a sensor goes: PX4's slot ``n``, the device id (None: unknown), the log's
+    parameters and whether PX4 had corrected the fitted data."""
+
+    n: int
+    device: int | None
+    params: dict[str, Any]
+    calibrated: bool
+
+
+def target(model: SensorModel, out: Export) -> Target:
+    prov = model.fitted_on
+    stream = STREAM[model.sensor]
+    px4 = prov.get("px4") or {}
+    params = px4.get("parameters") or {}
+    device = (prov.get("device_id") or {}).get(stream)
+    cal = CAL[model.sensor]
+    slots = [k for k in range(4) if device is not None and params.get(f"CAL_{cal}{k}_ID") == device]
+    if slots:
+        n = slots[0]
+    else:
+        free = [k for k in range(4) if not params.get(f"CAL_{cal}{k}_ID")]
+        n = free[0] if (device is not None and free) else 0
+    if device is None:
+        out.note(
+            FNAME,
+            f"{model.sensor}: the input names no PX4 device, so CAL_{cal}{n}_ID is not written; "
+            f"PX4 applies slot {n} only to the device whose id it holds: set it",
+        )
+    return Target(n, device, params, bool((px4.get("calibrated") or {}).get(stream)))
+
+
+def _compose_with_log(model: SensorModel, t: Target, out: Export) -> SensorModel | None:
+    """The model in PX4's raw domain when the fitted data held the log's CAL_* correction."""
+    cal, p = CAL[model.sensor], t.params
+    board, rot = p.get("SENS_BOARD_ROT", 0), p.get(f"CAL_{cal}{t.n}_ROT", -1)
+    if board != 0 or rot not in (-1, 0):
+        out.note(
+            FNAME,
+            f"{model.sensor}: fitted on data PX4 had rotated (SENS_BOARD_ROT = {board}, "
+            f"CAL_{cal}{t.n}_ROT = {rot}); not written: fit on the raw sensor topics instead",
+        )
+        return None
+    old_off = np.array([p.get(f"CAL_{cal}{t.n}_{a}OFF", 0.0) for a in "XYZ"], dtype=np.float64)
+    diag = [p.get(f"CAL_{cal}{t.n}_{a}SCALE", 1.0) for a in "XYZ"]
+    s = np.diag(np.asarray(diag, dtype=np.float64))
+    if model.sensor == "mag":
+        od = [p.get(f"CAL_MAG{t.n}_{a}ODIAG", 0.0) for a in "XYZ"]
+        for (i, j), value in zip(OFF_DIAGONAL, od, strict=True):
+            s[i, j] = s[j, i] = value
+        old_off = old_off / GAUSS_PER_TESLA
+    elif model.sensor == "gyro":
+        s = np.diag([p.get(f"CAL_GYRO{t.n}_{a}SCALE", 1.0) for a in "XYZ"]).astype(np.float64)
+    sinv = np.linalg.inv(s)
+    thermal = model.thermal
+    if thermal is not None:
+        thermal = type(thermal)(thermal.tref, sinv @ thermal.coefficients, thermal.t_range)
+    tc = TC.get(model.sensor)
+    if tc and p.get(f"TC_{tc}_ENABLE") == 1:
+        out.note(
+            FNAME,
+            f"{model.sensor}: the log's data were also thermally compensated by PX4 "
+            f"(TC_{tc}_ENABLE = 1): keep its TC_{tc}* parameters"
+            + ("; the fitted temperature model is not written" if thermal is not None else ""),
+        )
+        thermal = None
+    return SensorModel(
+        model.sensor,
+        model.matrix @ s,
+        old_off + sinv @ model.offset,
+        thermal,
+        model.entries,
+        model.issues,
+    )
+
+
+def rows_for(model: SensorModel, out: Export) -> list[tuple[str, float | int, int]]:
+    """(name, value, type) rows of one sensor."""
+    t = target(model, out)
+    cal = CAL[model.sensor]
+    if t.calibrated:
+        composed = _compose_with_log(model, t, out)
+        if composed is None:
+            return []
+        model = composed
+    for issue in model.issues:
+        out.note(FNAME, f"{model.sensor}: {issue}")
+    m, n = model.matrix, t.n
+    rows: list[tuple[str, float | int, int]] = []
+    if t.device is not None:
+        rows.append((f"CAL_{cal}{n}_ID", int(t.device), INT32))
+    offset = model.offset * (GAUSS_PER_TESLA if model.sensor == "mag" else 1.0)
+    rows += [(f"CAL_{cal}{n}_{a}OFF", offset[i], REAL32) for i, a in enumerate("XYZ")]
+    diag = np.diag(m)
+    if model.sensor == "mag":
+        diag_s, off_s = soft_iron(m, out, FNAME)
+        rows += [(f"CAL_MAG{n}_{a}SCALE", diag_s[i], REAL32) for i, a in enumerate("XYZ")]
+        rows += [(f"CAL_MAG{n}_{a}ODIAG", off_s[i], REAL32) for i, a in enumerate("XYZ")]
+    else:
+        off = off_diagonal(m)
+        if off > RELATIVE_TOLERANCE:
+            out.note(
+                FNAME,
+                f"{model.sensor}: PX4 has no misalignment terms; the off-diagonal "
+                f"part of the matrix (up to {off:.2g} of its diagonal) is left out",
+            )
+        has_scale = model.sensor == "accel" or f"CAL_GYRO{n}_XSCALE" in t.params
+        if has_scale:
+            rows += [(f"CAL_{cal}{n}_{a}SCALE", diag[i], REAL32) for i, a in enumerate("XYZ")]
+        elif np.abs(diag - 1.0).max() > RELATIVE_TOLERANCE:
+            out.note(
+                FNAME,
+                f"gyro: PX4 (v1.11 and later) has no gyro scale; the scale "
+                f"{np.round(diag, 6).tolist()} is left out",
+            )
+    if np.abs(diag).mean() < 0.2 or np.abs(diag).mean() > 5:
+        out.note(
+            FNAME,
+            f"{model.sensor}: scale about {np.abs(diag).mean():.3g}: PX4 expects "
+            "data in SI units (were the data raw counts?)",
+        )
+    if model.thermal is not None:
+        rows += thermal_rows(model, t, out)
+    return rows
+
+
+def thermal_rows(model: SensorModel, t: Target, out: Export) -> list[tuple[str, float | int, int]]:
+    th = model.thermal
+    assert th is not None
+    letter = TC.get(model.sensor)
+    if letter is None:
+        out.note(FNAME, f"{model.sensor}: PX4 thermal compensation of this sensor is not exported")
+        return []
+    prefix = f"TC_{letter}{t.n}"
+    rows: list[tuple[str, float | int, int]] = [(f"TC_{letter}_ENABLE", 1, INT32)]
+    if t.device is not None:
+        rows.append((f"{prefix}_ID", int(t.device), INT32))
+    rows += [(f"{prefix}_TREF", th.tref, REAL32)]
+    rows += [(f"{prefix}_TMIN", th.t_range[0], REAL32), (f"{prefix}_TMAX", th.t_range[1], REAL32)]
+    rows += [
+        (f"{prefix}_X{k}_{i}", th.coefficients[i, k], REAL32) for k in range(4) for i in range(3)
+    ]
+    temp = model.fitted_on.get("topics", {}).get("temperature")
+    devices = model.fitted_on.get("device_id") or {}
+    if devices.get("temperature") is None or devices.get("temperature") != devices.get("imu"):
+        out.note(
+            FNAME,
+            f"{model.sensor}: the temperature model was fitted against {temp or 'a temperature'}"
+            " not known to be the sensor's own; PX4 compensates against each sensor's own "
+            "temperature",
+        )
+    return rows
+
+
+def export(doc: dict[str, Any]) -> Export:
+    out = Export()
+    rows: list[tuple[str, float | int, int]] = []
+    for sensor in CAL:
+        model = sensor_model(doc, sensor)
+        if model is not None:
+            rows += rows_for(model, out)
+    if not rows:
+        return out
+    comments = [
+        "PX4 calibration parameters from imupipe (load in QGroundControl: Parameters, Tools,",
+        "Load from file). corrected = (raw - thermal(T) - OFF) * SCALE, SI units (mag: gauss).",
+        "",
+        "Vehicle-Id Component-Id Name Value Type",
+    ]
+    table = [
+        (1, 1, name, number(value) if kind == REAL32 else int(value), kind)
+        for name, value, kind in rows
+    ]
+    out.files[FNAME] = params_text(table, comments, delimiter="\t")
+    return out

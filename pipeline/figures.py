@@ -1,0 +1,207 @@
+"""What a run shows, declared once by the stages and drawn twice: in ``recording.rrd`` (Rerun)
+and in ``report.html`` (matplotlib).
+
+A stage says *what* it shows (a signal, its SI unit, the names of its lines, the kind of plot);
+:class:`Figures` keeps it as :class:`Plot` objects, one per plot, in the order they were first
+declared; the sinks decide *how* to lay them out. The kinds:
+
+- ``time``: signals over time (x = int64 ns timestamps),
+- ``xy``: curves over something other than time (Allan deviation over tau, bias against
+  temperature), on linear or logarithmic axes,
+- ``bars``: one value per item (residual per pose, per transition),
+- ``3d``: point clouds and ellipsoids (magnetometer coverage).
+
+Every plot has one physical unit (a series declared into a plot of another unit gets a plot of
+its own beside it). Values are stored in the unit they are shown in: SI, except
+tesla, shown in microtesla (``DISPLAY_UNITS``). The kept copies are small: a signal is averaged
+down to at most ``keep_points`` blocks (the recording holds more, the MCAP output all of it).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Literal
+
+import numpy as np
+
+from imupipe.stages.blocks import block_means
+
+PlotKind = Literal["time", "xy", "bars", "3d"]
+Style = Literal["line", "guide", "points", "band", "cloud", "ellipsoid"]
+
+DISPLAY_UNITS: dict[str, tuple[str, float]] = {"T": ("uT", 1e6), "T/s": ("uT/s", 1e6)}
+"""SI unit -> (unit shown, factor): the magnetometer is shown in microtesla."""
+
+AXIS_COLORS: list[tuple[int, int, int]] = [(228, 26, 28), (30, 160, 60), (40, 100, 230)]
+"""x, y, z: red, green, blue (readable on Rerun's dark and light themes)."""
+
+PALETTE: list[tuple[int, int, int]] = [
+    (40, 100, 230),
+    (230, 120, 20),
+    (30, 160, 60),
+    (200, 40, 160),
+    (140, 90, 40),
+    (0, 170, 190),
+    (120, 80, 210),
+]
+"""Colours for lines that are not axes (fitted terms, before/after...), in the order curves of
+one plot take them."""
+
+
+def display_unit(unit: str | None) -> tuple[str, float]:
+    """(unit shown, factor from SI) for an SI ``unit`` (None: dimensionless)."""
+    if unit is None:
+        return "", 1.0
+    return DISPLAY_UNITS.get(unit, (unit, 1.0))
+
+
+def lighter(color: Sequence[int], amount: float = 0.55) -> tuple[int, int, int]:
+    """``color`` mixed with grey: the 'before' version of a line."""
+    grey = 160.0
+    return tuple(int(round(c + (grey - c) * amount)) for c in color[:3])  # type: ignore[return-value]
+
+
+NAMED_COLORS: dict[str, tuple[int, int, int]] = {
+    "grey": (150, 150, 150),
+    "blue": (40, 100, 230),
+    "orange": (230, 120, 20),
+    "green": (30, 160, 60),
+    "magenta": (200, 40, 160),
+}
+"""Colours that can be named in a title (bar charts, whose legend shows entity paths)."""
+
+
+def colors_for(names: Sequence[str], colors: Sequence[Sequence[int]] | None) -> list[tuple]:
+    """Colours for ``names``: the given ones, else x/y/z colours for up to 3 lines, else the
+    palette."""
+    if colors is not None and len(colors) >= len(names):
+        return [tuple(c) for c in colors[: len(names)]]
+    base = AXIS_COLORS if len(names) <= len(AXIS_COLORS) else PALETTE
+    return [base[i % len(base)] for i in range(len(names))]
+
+
+@dataclass
+class Series:
+    """One declared signal or curve: ``values`` (n, k) with one name and colour per column.
+
+    For ``band``, ``values`` is (n, 2): lower and upper bound; for ``cloud`` (n, 3) points and
+    for ``ellipsoid`` a (1, 3) centre with ``extra = {"half_sizes", "rotation"}``."""
+
+    entity: str
+    names: list[str]
+    colors: list[tuple]
+    x: np.ndarray
+    values: np.ndarray
+    style: Style = "line"
+    extra: dict = field(default_factory=dict)
+
+
+@dataclass
+class Plot:
+    """One plot: a view in the recording, a figure in the report."""
+
+    stage: str
+    key: str
+    kind: PlotKind
+    title: str
+    unit: str
+    """The unit shown (after :data:`DISPLAY_UNITS`); one per plot."""
+    x_label: str = "time"
+    x_unit: str = ""
+    log_x: bool = False
+    log_y: bool = False
+    series: list[Series] = field(default_factory=list)
+
+    @property
+    def heading(self) -> str:
+        """The title with the unit: ``gyro, raw and corrected (rad/s)``."""
+        return f"{self.title} ({self.unit})" if self.unit else self.title
+
+    @property
+    def x_heading(self) -> str:
+        return f"{self.x_label} ({self.x_unit})" if self.x_unit else self.x_label
+
+    @property
+    def entities(self) -> list[str]:
+        return [s.entity for s in self.series]
+
+
+def stage_of(entity: str) -> str:
+    """The stage an entity belongs to: its first path part (``/allan/gyro/x`` -> ``allan``)."""
+    return entity.strip("/").split("/", 1)[0]
+
+
+def decimate(t: np.ndarray, values: np.ndarray, max_points: int) -> tuple[np.ndarray, np.ndarray]:
+    """At most ``max_points`` rows: means of consecutive blocks (``t`` int64 ns or float)."""
+    if len(t) <= max_points:
+        return t, values
+    window = math.ceil(len(t) / max_points)
+    if np.issubdtype(t.dtype, np.integer):
+        blocks = block_means(t, values, window=window)
+        return blocks.t_ns, blocks.means
+    keep = np.arange(0, len(t), window)
+    return t[keep], values[keep]
+
+
+class Figures:
+    """The plots of a run, in the order they were declared (see the module docstring)."""
+
+    def __init__(self, keep_points: int = 2000) -> None:
+        self.keep_points = keep_points
+        self.plots: dict[tuple[str, str], Plot] = {}
+        self.stages: list[str] = []
+
+    def stage(self, name: str) -> None:
+        """Register a stage (its tab) even if it declares nothing."""
+        if name not in self.stages:
+            self.stages.append(name)
+
+    def plot(
+        self,
+        stage: str,
+        key: str,
+        kind: PlotKind,
+        *,
+        title: str | None,
+        unit: str,
+        x_label: str = "time",
+        x_unit: str = "",
+        log_x: bool = False,
+        log_y: bool = False,
+    ) -> Plot:
+        """The plot ``key`` of ``stage`` (made on first use). A plot holds one unit and one
+        kind: a series of another unit (raw counts beside m/s^2) goes to a plot of its own beside
+        it, ``<key> [<unit>]``, with the same title."""
+        self.stage(stage)
+        plot = self.plots.get((stage, key))
+        if plot is not None and (plot.unit != unit or plot.kind != kind):
+            return self.plot(
+                stage,
+                f"{key} [{unit or kind}]",
+                kind,
+                title=plot.title,
+                unit=unit,
+                x_label=x_label,
+                x_unit=x_unit,
+                log_x=log_x,
+                log_y=log_y,
+            )
+        if plot is None:
+            plot = Plot(
+                stage=stage,
+                key=key,
+                kind=kind,
+                title=title or key.replace("_", " ").replace("/", " "),
+                unit=unit,
+                x_label=x_label,
+                x_unit=x_unit,
+                log_x=log_x,
+                log_y=log_y,
+            )
+            self.plots[(stage, key)] = plot
+        return plot
+
+    def of_stage(self, stage: str) -> list[Plot]:
+        return [p for (s, _), p in self.plots.items() if s == stage]

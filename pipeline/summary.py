@@ -1,0 +1,506 @@
+"""The results of a run in short: per stage the fitted values with their units and
+uncertainties, the quality figures, the warnings and what to look at.
+
+One summary, three renderings: the terminal (:func:`print_summary`, with rich), the Rerun
+recording (:func:`stage_markdown` and :func:`run_markdown`, markdown ``TextDocument`` s) and
+``report.html``. It reads the ``results`` of ``calibration.json``; a key a stage does not write
+is left out, so a stage that gains or loses a figure never breaks the summary, and a stage type
+without a summariser here still gets its vectors, scalars and warnings listed.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+AXES = ("x", "y", "z")
+
+
+@dataclass
+class Row:
+    """One fitted quantity: up to three cells (x, y, z; or the axes named in ``name``)."""
+
+    name: str
+    cells: list[str]
+    unit: str = ""
+
+    @property
+    def label(self) -> str:
+        """``bias (rad/s)``: the name with the unit."""
+        return f"{self.name} ({self.unit})" if self.unit else self.name
+
+
+@dataclass
+class StageSummary:
+    name: str
+    type: str
+    input: str
+    headline: str = ""
+    rows: list[Row] = field(default_factory=list)
+    quality: list[tuple[str, str]] = field(default_factory=list)
+    warnings: list[str] = field(default_factory=list)
+    failed_checks: list[str] = field(default_factory=list)
+    look_at: str = ""
+    counts: frozenset[str] = frozenset()
+    """Sensors the stage's input holds in raw counts (not SI): their offsets are in counts."""
+
+    def unit(self, sensor: str, si: str) -> str:
+        return "counts" if sensor in self.counts else si
+
+    @property
+    def status(self) -> str:
+        if self.failed_checks:
+            return f"{len(self.failed_checks)} failed check(s) accepted"
+        if self.warnings:
+            return f"{len(self.warnings)} warning(s)"
+        return "ok"
+
+
+# -- number formatting -------------------------------------------------------------------------
+def fmt(value: Any, digits: int = 5) -> str:
+    """A number with ``digits`` significant digits (``-`` when missing)."""
+    if value is None:
+        return "-"
+    if isinstance(value, bool):
+        return "yes" if value else "no"
+    if isinstance(value, int):
+        return str(value)
+    if not isinstance(value, float) or not math.isfinite(value):
+        return str(value)
+    if value == 0:
+        return "0"
+    if 1e-3 <= abs(value) < 1e6:
+        return f"{value:.{digits}g}"
+    mantissa, exponent = f"{value:.{digits - 1}e}".split("e")
+    return f"{mantissa}e{int(exponent)}"
+
+
+def fmt_pm(value: Any, sigma: Any) -> str:
+    """``value ± sigma``, the value rounded to the second significant digit of ``sigma``."""
+    if value is None:
+        return "-"
+    if sigma is None or not isinstance(sigma, (int, float)) or not sigma > 0:
+        return fmt(value)
+    value = float(value)
+    last = math.floor(math.log10(sigma)) - 1  # decimal position of sigma's second digit
+    if 1e-3 <= abs(value) < 1e6 and last >= -9:
+        decimals = max(0, -last)
+        return f"{value:.{decimals}f} ± {sigma:.{decimals}f}"
+    top = math.floor(math.log10(abs(value))) if value else last + 1
+    mantissa, exponent = f"{value:.{max(0, top - last)}e}".split("e")
+    return f"{mantissa}e{int(exponent)} ± {sigma:.1e}".replace("e-0", "e-").replace("e+0", "e")
+
+
+def _get(d: Any, *keys: str, default: Any = None) -> Any:
+    for key in keys:
+        if not isinstance(d, dict) or key not in d:
+            return default
+        d = d[key]
+    return d
+
+
+def _vector(values: Any, scale: float = 1.0, sigmas: Any = None) -> list[str] | None:
+    """Three cells from a list of three numbers (with ``sigmas``: value ± sigma)."""
+    if not isinstance(values, (list, tuple)) or not values:
+        return None
+    if not all(isinstance(v, (int, float)) for v in values):
+        return None
+    if isinstance(sigmas, (list, tuple)) and len(sigmas) == len(values):
+        return [fmt_pm(v * scale, s * scale) for v, s in zip(values, sigmas, strict=True)]
+    return [fmt(v * scale) for v in values]
+
+
+def _row(rows: list[Row], name: str, cells: list[str] | None, unit: str = "") -> None:
+    if cells:
+        rows.append(Row(name, cells, unit))
+
+
+# -- per stage type ----------------------------------------------------------------------------
+TERM_NAMES = {
+    "Q": "quantization",
+    "N": "white noise density",
+    "B": "bias instability",
+    "K": "random walk",
+    "R": "rate ramp",
+}
+
+
+def _allan(r: dict[str, Any], s: StageSummary) -> None:
+    units = _get(r, "metrics", "units", default={})
+    heads = []
+    for sensor in ("gyro", "accel"):
+        per_axis = r.get(sensor)
+        if not isinstance(per_axis, dict):
+            continue
+        for term in ("N", "B", "K", "Q", "R"):
+            values = [_get(per_axis, a, term) for a in AXES]
+            if not all(isinstance(v, (int, float)) for v in values):
+                continue
+            if term not in ("N", "K") and not any(values):
+                continue
+            cells = [fmt(v, 3) for v in values]
+            if term == "K":
+                upper = [_get(r, "metrics", sensor, a, "K_upper_68") for a in AXES]
+                cells = [
+                    f"< {fmt(u, 3)} (68%)" if v == 0 and isinstance(u, (int, float)) else c
+                    for v, u, c in zip(values, upper, cells, strict=True)
+                ]
+            unit = _get(units, sensor, term, default="")
+            s.rows.append(Row(f"{sensor} {term}, {TERM_NAMES[term]}", cells, unit))
+            if term == "N":
+                heads.append(f"{sensor} N {fmt(max(values), 3)} {unit}")
+        fits = [_get(r, "metrics", sensor, a, "fit_rms_log10") for a in AXES]
+        if any(isinstance(f, (int, float)) for f in fits):
+            s.quality.append(
+                (
+                    f"{sensor} fit rms (log10 deviation)",
+                    ", ".join(f"{a} {fmt(f, 2)}" for a, f in zip(AXES, fits, strict=True)),
+                )
+            )
+    m = r.get("metrics", {})
+    if "duration_s" in m:
+        s.quality.append(
+            ("recording", f"{fmt(m['duration_s'] / 3600, 3)} h at {fmt(m.get('rate_hz'), 4)} Hz")
+        )
+    if "static" in m:
+        s.quality.append(("at rest", fmt(m["static"])))
+    s.headline = "; ".join(heads)
+
+
+def _gyro_bias(r: dict[str, Any], s: StageSummary) -> None:
+    m = r.get("metrics", {})
+    cells = _vector(r.get("bias"), sigmas=m.get("bias_std_error"))
+    unit = s.unit("gyro", "rad/s")
+    _row(s.rows, "bias", cells, unit)
+    _row(s.rows, "noise std", _vector(m.get("std")), unit)
+    if "duration_s" in m:
+        s.quality.append(
+            ("recording", f"{fmt(m['duration_s'], 4)} s, {m.get('samples', '-')} samples")
+        )
+    if "max_1s_excursion" in m:
+        s.quality.append(("largest 1 s mean excursion", f"{fmt(m['max_1s_excursion'], 3)} {unit}"))
+    if "static" in m:
+        s.quality.append(("at rest", fmt(m["static"])))
+    if cells:
+        s.headline = (
+            "bias " + ", ".join(f"{a} {c}" for a, c in zip(AXES, cells, strict=True)) + f" {unit}"
+        )
+
+
+def _residual(rms: Any, largest: Any, before: Any, unit: str) -> str:
+    """``0.0075 mg rms (max 0.018 mg); before calibration 10.1 mg``."""
+    text = f"{fmt(rms, 3)} {unit} rms"
+    if largest is not None:
+        text += f" (max {fmt(largest, 3)} {unit})"
+    if before is not None:
+        text += f"; before calibration {fmt(before, 3)} {unit}"
+    return text
+
+
+def _misalignment(r: dict[str, Any], s: StageSummary, sigmas: Any = None) -> None:
+    mis = r.get("misalignment_rad")
+    if not isinstance(mis, dict):
+        return
+    names = list(mis)
+    sig = sigmas if isinstance(sigmas, list) and len(sigmas) == len(names) else [None] * len(names)
+    for i in range(0, len(names), 3):
+        part = names[i : i + 3]
+        cells = [
+            fmt_pm(mis[n] * 1e3, None if sig[i + j] is None else sig[i + j] * 1e3)
+            for j, n in enumerate(part)
+        ]
+        s.rows.append(Row(f"misalignment ({', '.join(part)})", cells, "mrad"))
+
+
+def _accel_calibration(r: dict[str, Any], s: StageSummary) -> None:
+    m = r.get("metrics", {})
+    u = m.get("uncertainty", {})
+    _row(s.rows, "scale", _vector(r.get("scale"), sigmas=u.get("scale_std")))
+    _misalignment(r, s, u.get("misalignment_std_rad"))
+    bias = _vector(r.get("bias"), sigmas=u.get("bias_std"))
+    _row(s.rows, "bias", bias, s.unit("accel", "m/s^2"))
+    res = m.get("residual_mg", {})
+    if "means_rms" in res:
+        text = _residual(res["means_rms"], res.get("means_max"), res.get("start_means_rms"), "mg")
+        s.quality.append(("residual |a| - g of the pose means", text))
+        s.headline = (
+            f"residual {fmt(res['means_rms'], 3)} mg rms over {m.get('intervals', '?')} poses"
+        )
+    if "samples_rms" in res:
+        s.quality.append(
+            ("residual |a| - g of every still sample", f"{fmt(res['samples_rms'], 3)} mg rms")
+        )
+    if "intervals" in m:
+        s.quality.append(
+            ("still poses", f"{m['intervals']} ({m.get('distinct_poses', '?')} distinct)")
+        )
+    if "condition_number" in u:
+        s.quality.append(("condition number", fmt(u["condition_number"], 3)))
+    if r.get("method"):
+        s.quality.append(("method", str(r["method"])))
+
+
+def _gyro_calibration(r: dict[str, Any], s: StageSummary) -> None:
+    m = r.get("metrics", {})
+    _row(s.rows, "scale", _vector(r.get("scale")))
+    _misalignment(r, s)
+    _row(s.rows, "bias", _vector(r.get("bias")), s.unit("gyro", "rad/s"))
+    res = m.get("gravity_direction_residual_deg", {})
+    if "rms" in res:
+        text = _residual(res["rms"], res.get("max"), res.get("start_rms"), "deg")
+        s.quality.append(("gravity direction after each rotation", text))
+        s.headline = f"gravity direction residual {fmt(res['rms'], 3)} deg rms over {m.get('transitions', '?')} rotations"
+    if "condition_number" in m:
+        s.quality.append(("condition number", fmt(m["condition_number"], 3)))
+
+
+def _mag_calibration(r: dict[str, Any], s: StageSummary) -> None:
+    m = r.get("metrics", {})
+    unit, scale = ("counts", 1.0) if "mag" in s.counts else ("uT", 1e6)
+    _row(s.rows, "hard iron, centre", _vector(r.get("centre"), scale), unit)
+    _row(s.rows, "ellipsoid radii", _vector(r.get("radii"), scale), unit)
+    _row(s.rows, "soft iron diagonal", _vector(m.get("soft_iron_diagonal")))
+    if isinstance(r.get("field"), (int, float)):
+        s.rows.append(Row("field magnitude", [fmt(r["field"] * scale)], unit))
+    if "norm_std_pct" in m:
+        text = f"{fmt(m['norm_std_pct'], 3)} %"
+        if "raw_norm_std_pct" in m:
+            text += f" (raw {fmt(m['raw_norm_std_pct'], 3)} %)"
+        s.quality.append(("spread of |h| after calibration", text))
+        s.headline = (
+            f"|h| spread {fmt(m['norm_std_pct'], 3)} % (raw {fmt(m.get('raw_norm_std_pct'), 3)} %)"
+        )
+    if "coverage_fraction" in m:
+        s.quality.append(("sphere coverage", f"{fmt(m['coverage_fraction'] * 100, 3)} %"))
+    if "samples_used" in m:
+        s.quality.append(
+            (
+                "samples used",
+                f"{m['samples_used']} of {m.get('samples', '?')} ({m.get('outliers', 0)} outliers)",
+            )
+        )
+
+
+def _temperature(r: dict[str, Any], s: StageSummary) -> None:
+    m = r.get("metrics", {})
+    unit = r.get("unit", "")
+    coef = r.get("coefficients", {})
+    terms = r.get("terms", {})
+    if r.get("model"):
+        s.quality.append(
+            (
+                "model",
+                f"{r['model']}: " + ", ".join(terms.get("x", [])) if terms else str(r["model"]),
+            )
+        )
+    if isinstance(r.get("tref"), (int, float)):
+        const = [
+            coef.get(a, [None])[terms.get(a, []).index("1")] if "1" in terms.get(a, []) else None
+            for a in AXES
+        ]
+        if all(isinstance(c, (int, float)) for c in const):
+            _row(s.rows, f"bias at {fmt(r['tref'], 4)} degC", [fmt(c) for c in const], unit)
+    for key, name in (("rms_before", "rms before"), ("rms_after", "rms after")):
+        _row(s.rows, name, _vector([_get(m, a, key) for a in AXES]), unit)
+    _row(s.rows, "reduction (rms before / after)", _vector([_get(m, a, "reduction") for a in AXES]))
+    _row(s.rows, "R^2", _vector([_get(m, a, "r2") for a in AXES]))
+    if "validate" in m:
+        v = m["validate"]
+        _row(
+            s.rows,
+            f"held-out rms after ({v.get('input', '?')})",
+            _vector([_get(v, a, "rms_after") for a in AXES]),
+            unit,
+        )
+    if "temperature_range" in r:
+        lo, hi = r["temperature_range"]
+        s.quality.append(("temperature range", f"{fmt(lo, 3)} .. {fmt(hi, 3)} degC"))
+    if "rate_range" in r:
+        lo, hi = r["rate_range"]
+        s.quality.append(("rate range", f"{fmt(lo * 60, 3)} .. {fmt(hi * 60, 3)} degC/min"))
+    after = [_get(m, a, "rms_after") for a in AXES]
+    if all(isinstance(v, (int, float)) for v in after):
+        s.headline = f"{r.get('sensor', '')} bias rms after {fmt(max(after), 3)} {unit}"
+
+
+def _average(r: dict[str, Any], s: StageSummary) -> None:
+    window = f"{r['window']} samples" if r.get("window") else f"{fmt(r.get('window_s'))} s"
+    s.quality.append(("window", window))
+    for name, m in r.get("metrics", {}).items():
+        if isinstance(m, dict) and "blocks" in m:
+            s.quality.append((name, f"{m.get('samples')} samples -> {m['blocks']} block means"))
+    s.headline = f"block means over {window}"
+
+
+def _generic(r: dict[str, Any], s: StageSummary) -> None:
+    skip = {"type", "input", "warnings", "failed_checks", "metrics"}
+    for key, value in r.items():
+        if key in skip:
+            continue
+        if cells := _vector(value):
+            s.rows.append(Row(key, cells[:3] if len(cells) == 3 else [", ".join(cells)]))
+        elif isinstance(value, (int, float, str)) and not isinstance(value, bool):
+            s.quality.append((key, fmt(value)))
+    for key, value in r.get("metrics", {}).items():
+        if isinstance(value, (int, float, str)):
+            s.quality.append((key, fmt(value)))
+
+
+LOOK_AT: dict[str, str] = {
+    "allan": (
+        "The measured deviation (markers) should follow the fitted model inside its 68% band. "
+        "The slope reads the noise: -1/2 at short tau is white noise (N), flat is bias "
+        "instability (B), +1/2 at long tau is random walk (K). A bump or a step away from the "
+        "model means the IMU moved or its temperature drifted during the recording; a band that "
+        "widens at long tau asks for a longer recording (IEEE Std 952, Annex C)."
+    ),
+    "gyro_bias": (
+        "The corrected gyro should sit on zero with no trend; a drift or steps in the one-second "
+        "means mean the IMU moved or warmed up during the recording."
+    ),
+    "accel_calibration": (
+        "After calibration |a| should equal g in every still pose: the residual per pose should "
+        "be small and even across poses (one pose far above the rest was not still, or was "
+        "touched). The poses should cover many directions (Tedaldi et al., ICRA 2014)."
+    ),
+    "gyro_calibration": (
+        "Integrating the calibrated gyro between two still poses should turn gravity into the "
+        "next pose's gravity: the residual per transition should be small everywhere "
+        "(Tedaldi et al., ICRA 2014)."
+    ),
+    "mag_calibration": (
+        "The raw samples should lie on the fitted ellipsoid and cover it all round; after "
+        "calibration they should lie on the sphere of the field's magnitude, and |h| should be "
+        "flat over time. Gaps in the coverage leave the soft-iron terms poorly determined."
+    ),
+    "temperature": (
+        "The fitted curves should pass through the bias blocks at every temperature; heating and "
+        "cooling apart means hysteresis, which the rate (dT) terms model. The residual over time "
+        "should be flat, and the held-out run's residual as small as the fitted one's."
+    ),
+    "average": "The block means show slow drift that the raw noise hides.",
+}
+"""What a person should check in each stage's plots (the report and the recording say it)."""
+
+
+SUMMARISERS: dict[str, Callable[[dict[str, Any], StageSummary], None]] = {
+    "allan": _allan,
+    "gyro_bias": _gyro_bias,
+    "accel_calibration": _accel_calibration,
+    "gyro_calibration": _gyro_calibration,
+    "mag_calibration": _mag_calibration,
+    "temperature": _temperature,
+    "average": _average,
+}
+
+
+def raw_count_sensors(inputs: Mapping[str, Any]) -> dict[str, set[str]]:
+    """Input name -> the sensors a CSV mapping reads in raw counts (``<sensor>_unit = "raw"``)."""
+    return {
+        name: {s for s in ("gyro", "accel", "mag") if getattr(spec.csv, f"{s}_unit", "") == "raw"}
+        for name, spec in inputs.items()
+    }
+
+
+def summarise(
+    results: dict[str, dict[str, Any]], counts: Mapping[str, set[str]] | None = None
+) -> list[StageSummary]:
+    """One :class:`StageSummary` per stage of ``calibration.json``'s ``results``, in run order;
+    ``counts``: input -> sensors in raw counts (:func:`raw_count_sensors`)."""
+    out = []
+    for name, r in results.items():
+        s = StageSummary(name=name, type=str(r.get("type", "?")), input=str(r.get("input", "?")))
+        s.counts = frozenset((counts or {}).get(s.input, ()))
+        try:
+            SUMMARISERS.get(s.type, _generic)(r, s)
+        except (TypeError, ValueError, KeyError, IndexError, ZeroDivisionError) as exc:
+            s.quality.append(("summary", f"incomplete ({type(exc).__name__}: {exc})"))
+        s.look_at = LOOK_AT.get(s.type, "")
+        s.warnings = [str(w) for w in r.get("warnings", [])]
+        s.failed_checks = [str(c) for c in r.get("failed_checks", [])]
+        out.append(s)
+    return out
+
+
+# -- renderings --------------------------------------------------------------------------------
+def _md_escape(text: str) -> str:
+    return text.replace("|", "\\|")
+
+
+def _md_table(rows: Sequence[Row]) -> list[str]:
+    if not rows:
+        return []
+    lines = ["| quantity | x | y | z |", "|---|---:|---:|---:|"]
+    for row in rows:
+        cells = (row.cells + ["", "", ""])[:3]
+        lines.append("| " + " | ".join(_md_escape(c) for c in [row.label, *cells]) + " |")
+    return lines
+
+
+def stage_markdown(s: StageSummary, heading: str = "#") -> str:
+    """A stage's summary as markdown (its tab's document in the recording)."""
+    lines = [f"{heading} {s.name}", "", f"`{s.type}` on input `{s.input}`: {s.status}", ""]
+    lines += _md_table(s.rows)
+    if s.quality:
+        lines += ["", "**Quality**", ""]
+        lines += [f"- {_md_escape(k)}: {_md_escape(v)}" for k, v in s.quality]
+    if s.failed_checks:
+        lines += ["", "**Failed checks (accepted)**", ""] + [f"- {c}" for c in s.failed_checks]
+    if s.warnings:
+        lines += ["", "**Warnings**", ""] + [f"- {w}" for w in s.warnings]
+    if s.look_at:
+        lines += ["", f"**What to look at.** {s.look_at}"]
+    return "\n".join(lines) + "\n"
+
+
+def run_markdown(summaries: Sequence[StageSummary], title: str = "imupipe run") -> str:
+    """The run's summary: a table of the stages, then each stage's summary."""
+    lines = [
+        f"# {title}",
+        "",
+        "| stage | type | input | result | status |",
+        "|---|---|---|---|---|",
+    ]
+    for s in summaries:
+        lines.append(
+            "| "
+            + " | ".join(
+                _md_escape(c) for c in (s.name, s.type, s.input, s.headline or "-", s.status)
+            )
+            + " |"
+        )
+    for s in summaries:
+        lines += ["", stage_markdown(s, heading="##")]
+    return "\n".join(lines) + "\n"
+
+
+def print_summary(summaries: Sequence[StageSummary], console: Any = None) -> None:
+    """The summary on the terminal (rich tables; plain text when not a terminal)."""
+    from rich.console import Console
+    from rich.table import Table
+
+    if console is None:  # a pipe or a file gets the long lines whole
+        import sys
+
+        console = Console(width=None if sys.stdout.isatty() else 160)
+    for s in summaries:
+        title = f"[bold]{s.name}[/bold] ({s.type} on {s.input}): {s.status}"
+        if s.rows:
+            table = Table(title=title, title_justify="left", show_edge=False, pad_edge=False)
+            table.add_column("quantity")
+            for axis in AXES:
+                table.add_column(axis, justify="right", no_wrap=True)
+            for row in s.rows:
+                table.add_row(row.label, *(row.cells + ["", "", ""])[:3])
+            console.print(table)
+        else:
+            console.print(title)
+        for key, value in s.quality:
+            console.print(f"  {key}: {value}", highlight=False)
+        for check in s.failed_checks:
+            console.print(f"  [red]failed check (accepted):[/red] {check}", highlight=False)
+        for warning in s.warnings:
+            console.print(f"  [yellow]warning:[/yellow] {warning}", highlight=False)
+        console.print()

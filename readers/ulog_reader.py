@@ -1,0 +1,562 @@
+"""PX4 ULog files (``.ulg``) into the common table, with pyulog.
+
+A ULog (PX4's log format, https://docs.px4.io/main/en/dev_log/ulog_file_format.html) holds uORB
+topics, each possibly in several *instances* (``multi_id``: one per sensor of a kind), the
+parameters at start and the firmware's info. imupipe names a topic instance ``<topic>`` for
+instance 0 and ``<topic>_<instance>`` for the others (``sensor_gyro``, ``sensor_gyro_1``), as
+pyulog's ``ulog2csv`` names its files.
+
+**What fills the streams** (units converted to SI):
+
+| stream | topics (first default) | fields |
+|---|---|---|
+| ``imu`` | ``sensor_combined`` (PX4's primary IMU, *already corrected* by PX4's ``CAL_*``), or a raw ``sensor_gyro[_N]`` instance with its ``sensor_accel`` (same ``device_id``) | ``gyro_rad``, ``accelerometer_m_s2``; or ``x, y, z`` of each |
+| ``mag`` | ``vehicle_magnetometer`` (corrected), old firmware's ``sensor_combined.magnetometer_ga``, or a raw ``sensor_mag[_N]`` | gauss -> tesla (x 1e-4) |
+| ``temperature`` | the ``temperature`` of the IMU's own ``sensor_gyro`` instance, or any ``sensor_gyro``/``sensor_accel``/``sensor_mag``/``sensor_baro`` instance, or old firmware's ``sensor_combined.baro_temp_celcius`` | degC |
+
+Defaults: ``imu_topic`` unset takes ``sensor_combined`` when logged, else the only
+``sensor_gyro`` instance (several: an error naming them). ``mag_topic`` unset takes the
+magnetometer that matches the IMU's kind (corrected ``vehicle_magnetometer`` or old
+``sensor_combined`` with ``sensor_combined``; the only raw ``sensor_mag`` with a raw IMU);
+``temperature_topic`` unset takes the temperature of the ``sensor_gyro`` instance of the IMU's
+device (for ``sensor_combined``: the gyro PX4 selected, ``sensor_selection.gyro_device_id`` or
+``CAL_GYRO_PRIME``). When no default applies the stream is left out with a warning naming the
+candidates and the key to set.
+
+**Time**: ULog stamps are microseconds since boot (PX4's ``hrt_absolute_time``); imupipe keeps
+them as nanoseconds since boot (x 1000), not wall time. The header time is ``timestamp_sample``
+where the topic has it (the sensor's sampling instant), else ``timestamp``; the log time is
+``timestamp`` (publication). A ``sensor_combined`` row keeps PX4's pairing of gyro and accel
+(the accel's ``accelerometer_timestamp_relative`` offset, 0 in the logs tested, is not applied
+to the row's stamp). A raw gyro sample is paired with the accel sample of the same
+device nearest in ``timestamp_sample`` (within half a gyro period; PX4's FIFO drivers stamp both
+identically); a gyro sample without a partner keeps NaN accel (counted in a warning), an accel
+sample without a partner is not read (counted).
+
+**Metadata** (besides the common keys): ``instance`` (stream -> ``multi_id``), ``device_id``
+(stream -> PX4 device id, when known) and ``px4``: ``calibrated`` (stream -> whether PX4 had
+already applied its ``CAL_*`` calibration), ``parameters`` (the log's ``CAL_*``, ``TC_*`` and
+``SENS_BOARD_*`` values at start), ``software`` and ``hardware``.
+
+**Not carried**: ULog topics other than the ones read have no ROS message type; they are not
+written to the corrected MCAP and one warning lists them.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import struct
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pyarrow as pa
+
+from imupipe.readers.decoded import Piece
+from imupipe.readers.errors import ReadError
+from imupipe.readers.spec import InputSpec
+from imupipe.readers.table import metadata, with_metadata
+from imupipe.readers.table_buffer import assemble
+
+US_TO_NS = 1000
+"""ULog timestamps are microseconds since boot."""
+GAUSS = 1e-4
+"""Tesla per gauss (PX4 publishes magnetic fields in gauss)."""
+RELATIVE_INVALID = 2**31 - 1
+"""``sensor_combined``'s ``*_timestamp_relative`` value meaning "no sample" (uORB's
+``RELATIVE_TIMESTAMP_INVALID``)."""
+READ_TOPICS = (
+    "sensor_combined",
+    "sensor_gyro",
+    "sensor_accel",
+    "sensor_mag",
+    "vehicle_magnetometer",
+    "sensor_baro",
+    "sensor_selection",
+)
+"""The topics a read parses (pyulog skips the payload of every other topic)."""
+PARAMETER_PREFIXES = ("CAL_", "TC_", "SENS_BOARD_")
+"""Parameters kept in the table's metadata (calibration, thermal compensation, board rotation)."""
+TEMPERATURE_TOPICS = ("sensor_gyro", "sensor_accel", "sensor_mag", "sensor_baro")
+TOPIC_KEYS = {"imu": "imu_topic", "mag": "mag_topic", "temperature": "temperature_topic"}
+CALIBRATED_TOPICS = ("sensor_combined", "vehicle_magnetometer")
+"""Topics PX4 publishes after applying its ``CAL_*`` (and thermal) corrections."""
+
+
+def topic_key(name: str, instance: int) -> str:
+    """``sensor_gyro``, ``sensor_gyro_1``: how imupipe names a topic instance."""
+    return name if instance == 0 else f"{name}_{instance}"
+
+
+@dataclass(frozen=True)
+class Instance:
+    """One logged instance of a uORB topic: its name, ``multi_id`` and field arrays."""
+
+    name: str
+    instance: int
+    data: Mapping[str, np.ndarray]
+
+    @property
+    def key(self) -> str:
+        return topic_key(self.name, self.instance)
+
+    def __len__(self) -> int:
+        return int(len(self.data["timestamp"]))
+
+    def has(self, *fields: str) -> bool:
+        return all(f in self.data for f in fields)
+
+    def vector(self, *fields: str) -> np.ndarray:
+        """(n, k) float64 of the given fields."""
+        return np.column_stack([self.data[f].astype(np.float64) for f in fields])
+
+    def stamps(self, time: str) -> tuple[np.ndarray, np.ndarray]:
+        """(header, log) times in ns: ``timestamp_sample`` (or ``timestamp``), ``timestamp``."""
+        log = self.data["timestamp"].astype(np.int64) * US_TO_NS
+        if time == "header" and "timestamp_sample" in self.data:
+            return self.data["timestamp_sample"].astype(np.int64) * US_TO_NS, log
+        return log, log
+
+    def device_id(self) -> int | None:
+        ids = self.data.get("device_id")
+        return int(ids[0]) if ids is not None and len(ids) else None
+
+
+class UlogFile:
+    """A ULog read with pyulog (the whole file, or only ``topics``); also the
+    :class:`~imupipe.readers.sources.LogSource` view ``inspect`` uses (topics and their stamps)."""
+
+    format = "ulog"
+
+    def __init__(self, path: str | Path, topics: Sequence[str] | None = None) -> None:
+        from pyulog import ULog
+        from pyulog.core import ULogException
+
+        self.path = Path(path)
+        if not self.path.is_file():
+            raise ReadError(f"{self.path}: no such file")
+        wanted = None if topics is None else _TopicFilter(topics)
+        said = io.StringIO()  # pyulog prints its corruption notices: keep them for a warning
+        try:
+            with contextlib.redirect_stdout(said):
+                self.ulog = ULog(str(self.path), wanted)
+        except ULogException as exc:
+            raise ReadError(f"{self.path}: not a readable ULog file ({exc})") from None
+        except (OSError, ValueError, IndexError, KeyError, TypeError, struct.error) as exc:
+            raise ReadError(
+                f"{self.path}: corrupt ULog file ({type(exc).__name__}: {exc})"
+            ) from None
+        self.notices = [line for line in said.getvalue().splitlines() if line.strip()]
+        """What pyulog said while parsing (corruption it skipped)."""
+        self.instances: dict[str, Instance] = {}
+        for d in sorted(self.ulog.data_list, key=lambda d: (d.name, d.multi_id)):
+            inst = Instance(d.name, int(d.multi_id), d.data)
+            if "timestamp" in d.data:  # a damaged format definition can lose it
+                self.instances[inst.key] = inst
+            else:
+                self.notices.append(f"topic {inst.key} has no timestamp field: not read")
+        self.skipped: list[str] = [] if wanted is None else sorted(wanted.seen - wanted.names)
+        """Topics the log holds that were not parsed (names, every instance)."""
+
+    # -- LogSource view, for inspect ----------------------------------------------------------
+    def topic_types(self) -> dict[str, str]:
+        """Topic instance -> its uORB message name."""
+        return {k: v.name for k, v in self.instances.items()}
+
+    def topic_counts(self) -> dict[str, int]:
+        return {k: len(v) for k, v in self.instances.items()}
+
+    def first_time(self) -> int:
+        return int(self.ulog.start_timestamp) * US_TO_NS
+
+    def topic_times(self) -> dict[str, np.ndarray]:
+        return {k: v.stamps("log")[1] for k, v in self.instances.items()}
+
+    # -- what the log says about itself --------------------------------------------------------
+    def parameters(self) -> dict[str, float | int]:
+        """The calibration-related parameters at start (:data:`PARAMETER_PREFIXES`)."""
+        return {
+            str(k): v if isinstance(v, int) else float(v)
+            for k, v in sorted(self.ulog.initial_parameters.items())
+            if str(k).startswith(PARAMETER_PREFIXES) and isinstance(v, int | float)
+        }
+
+    def info(self, key: str) -> str | None:
+        value = self.ulog.msg_info_dict.get(key)
+        return None if value is None else str(value)
+
+    def named(self, name: str) -> list[Instance]:
+        return [v for v in self.instances.values() if v.name == name]
+
+    def dropouts(self) -> tuple[int, int]:
+        """(count, total ms) of the logger's dropouts."""
+        drops = self.ulog.dropouts
+        return len(drops), int(sum(d.duration for d in drops))
+
+
+class _TopicFilter:
+    """pyulog's ``message_name_filter_list``: parse only ``names``, remember every topic asked
+    about (pyulog keeps nothing of the topics it filters out)."""
+
+    def __init__(self, names: Sequence[str]) -> None:
+        self.names = set(names)
+        self.seen: set[str] = set()
+
+    def __contains__(self, name: object) -> bool:
+        self.seen.add(str(name))
+        return name in self.names
+
+
+# -- choosing the topics -------------------------------------------------------------------------
+
+
+def _old_combined(f: UlogFile, prefix: str) -> Instance | None:
+    """Old firmware's ``sensor_combined`` when it holds valid ``<prefix>_timestamp_relative``
+    samples (magnetometer or baro)."""
+    inst = f.instances.get("sensor_combined")
+    if inst is None or f"{prefix}_timestamp_relative" not in inst.data:
+        return None
+    rel = inst.data[f"{prefix}_timestamp_relative"]
+    return inst if bool(np.any(rel != RELATIVE_INVALID)) else None
+
+
+def accel_partner(f: UlogFile, gyro: Instance) -> Instance | None:
+    """The ``sensor_accel`` instance of the same device as a ``sensor_gyro`` instance (same
+    ``device_id``; else the same instance number)."""
+    accels = f.named("sensor_accel")
+    dev = gyro.device_id()
+    for acc in accels:
+        if dev is not None and acc.device_id() == dev:
+            return acc
+    same = [a for a in accels if a.instance == gyro.instance]
+    return same[0] if same and dev is None else None
+
+
+def candidates(f: UlogFile) -> dict[str, list[str]]:
+    """Stream -> the topic instances that can fill it, defaults first."""
+    imu = [k for k in ("sensor_combined",) if k in f.instances]
+    imu += [g.key for g in f.named("sensor_gyro") if accel_partner(f, g) is not None]
+    mag = [v.key for v in f.named("vehicle_magnetometer")]
+    mag += ["sensor_combined"] if _old_combined(f, "magnetometer") else []
+    mag += [v.key for v in f.named("sensor_mag")]
+    temperature = [
+        v.key for name in TEMPERATURE_TOPICS for v in f.named(name) if v.has("temperature")
+    ]
+    temperature += ["sensor_combined"] if _old_combined(f, "baro") else []
+    return {"imu": imu, "mag": mag, "temperature": temperature}
+
+
+def _selected_gyro_device(f: UlogFile) -> int | None:
+    """The gyro device PX4 used for ``sensor_combined``: ``sensor_selection.gyro_device_id``
+    (first message), else ``CAL_GYRO_PRIME`` (older firmware)."""
+    sel = f.instances.get("sensor_selection")
+    if sel is not None and "gyro_device_id" in sel.data and len(sel):
+        return int(sel.data["gyro_device_id"][0])
+    prime = f.ulog.initial_parameters.get("CAL_GYRO_PRIME")
+    return int(prime) if prime else None
+
+
+def choose_topics(spec: InputSpec, f: UlogFile) -> tuple[dict[str, str], list[str]]:
+    """Stream -> topic instance, from the spec's topic settings and the log (see the module
+    docstring); returns (choice, warnings). A setting naming a topic that cannot fill its
+    stream is an error listing the ones that can."""
+    cands = candidates(f)
+    chosen: dict[str, str] = {}
+    warnings: list[str] = []
+    for stream, key in TOPIC_KEYS.items():
+        wanted = getattr(spec, key)
+        if wanted is None:
+            continue
+        if wanted not in cands[stream]:
+            where = "is not in the log" if wanted not in f.instances else "cannot fill it"
+            raise ReadError(
+                f"{f.path}: {key} '{wanted}' {where}; ULog topics that can: "
+                f"{', '.join(cands[stream]) or 'none'}"
+            )
+        chosen[stream] = wanted
+    if "imu" not in chosen:
+        raw = [k for k in cands["imu"] if k != "sensor_combined"]
+        if "sensor_combined" in cands["imu"]:
+            chosen["imu"] = "sensor_combined"
+        elif len(raw) == 1:
+            chosen["imu"] = raw[0]
+        elif raw:
+            raise ReadError(
+                f"{f.path}: several IMU instances ({', '.join(raw)}); set imu_topic in "
+                f"[inputs.{spec.name}]"
+            )
+    imu = chosen.get("imu")
+    raw_imu = imu is not None and imu != "sensor_combined"
+    if "mag" not in chosen:
+        if raw_imu:
+            pick = [k for k in cands["mag"] if k.startswith("sensor_mag")]
+        else:
+            pick = [k for k in cands["mag"] if not k.startswith("sensor_mag")]
+        if len(pick) == 1:
+            chosen["mag"] = pick[0]
+        elif cands["mag"]:
+            warnings.append(
+                f"magnetometer not read: several candidates ({', '.join(cands['mag'])}); "
+                f"set mag_topic in [inputs.{spec.name}]"
+            )
+    if "temperature" not in chosen and imu is not None:
+        device = f.instances[imu].device_id() if raw_imu else _selected_gyro_device(f)
+        own = [
+            g.key
+            for g in f.named("sensor_gyro")
+            if g.has("temperature") and device is not None and g.device_id() == device
+        ]
+        if len(own) == 1:
+            chosen["temperature"] = own[0]
+        elif cands["temperature"]:
+            warnings.append(
+                "temperature not read: the IMU's own sensor_gyro instance is not logged; "
+                f"candidates: {', '.join(cands['temperature'])}; set temperature_topic in "
+                f"[inputs.{spec.name}]"
+            )
+    if "imu" not in chosen and "mag" not in chosen and "temperature" not in chosen:
+        raise ReadError(
+            f"{f.path}: no IMU, magnetometer or temperature topic (sensor_combined, "
+            f"sensor_gyro/sensor_accel, sensor_mag, vehicle_magnetometer); topics: "
+            f"{', '.join(f.instances) or 'none'}"
+        )
+    return chosen, warnings
+
+
+# -- decoding ------------------------------------------------------------------------------------
+
+
+def _piece(stamp: np.ndarray, log: np.ndarray, columns: dict[str, np.ndarray]) -> Piece:
+    return Piece(stamp, log, pa.array([""] * len(stamp), pa.string()), columns)
+
+
+def _xyz(prefix: str, values: np.ndarray) -> dict[str, np.ndarray]:
+    return {f"{prefix}_{a}": np.ascontiguousarray(values[:, i]) for i, a in enumerate("xyz")}
+
+
+def _pair(gyro_t: np.ndarray, accel_t: np.ndarray) -> np.ndarray:
+    """For each gyro stamp, the index of the nearest accel stamp within half the median gyro
+    period (-1: none); each accel sample is used at most once (first come)."""
+    if len(accel_t) == 0 or len(gyro_t) == 0:
+        return np.full(len(gyro_t), -1, dtype=np.int64)
+    order = np.argsort(accel_t, kind="stable")
+    sorted_t = accel_t[order]
+    pos = (
+        np.clip(np.searchsorted(sorted_t, gyro_t), 1, len(sorted_t) - 1)
+        if len(sorted_t) > 1
+        else np.zeros(len(gyro_t), dtype=np.int64)
+    )
+    left = np.maximum(pos - 1, 0)
+    pick = np.where(np.abs(sorted_t[left] - gyro_t) <= np.abs(sorted_t[pos] - gyro_t), left, pos)
+    half = np.median(np.diff(gyro_t)) / 2 if len(gyro_t) > 1 else np.inf
+    idx = np.where(np.abs(sorted_t[pick] - gyro_t) <= half, order[pick], -1)
+    valid = idx >= 0
+    _, first = np.unique(idx[valid], return_index=True)
+    keep = np.zeros(int(valid.sum()), dtype=bool)
+    keep[first] = True
+    out = np.full(len(gyro_t), -1, dtype=np.int64)
+    out[np.flatnonzero(valid)[keep]] = idx[valid][keep]
+    return out
+
+
+def _imu_piece(f: UlogFile, key: str, time: str, warnings: list[str]) -> Piece:
+    inst = f.instances[key]
+    if key == "sensor_combined":
+        stamp, log = inst.stamps(time)
+        gyro = inst.vector(*(f"gyro_rad[{i}]" for i in range(3)))
+        accel = inst.vector(*(f"accelerometer_m_s2[{i}]" for i in range(3)))
+        return _piece(stamp, log, {**_xyz("gyro", gyro), **_xyz("accel", accel)})
+    acc = accel_partner(f, inst)
+    assert acc is not None  # a candidate has a partner
+    stamp, log = inst.stamps(time)
+    acc_stamp, _ = acc.stamps("header")
+    match = _pair(inst.stamps("header")[0], acc_stamp)
+    accel = np.full((len(inst), 3), np.nan)
+    paired = match >= 0
+    accel[paired] = acc.vector("x", "y", "z")[match[paired]]
+    lonely_gyro = int(np.count_nonzero(~paired))
+    lonely_accel = len(acc) - int(np.count_nonzero(paired))
+    if lonely_gyro or lonely_accel:
+        warnings.append(
+            f"topic {key}: {lonely_gyro} gyro samples have no {acc.key} sample within half a "
+            f"period (accel NaN) and {lonely_accel} {acc.key} samples no gyro sample (not read)"
+        )
+    offsets = np.abs(acc_stamp[match[paired]] - inst.stamps("header")[0][paired])
+    if len(offsets) and offsets.max() > 0:
+        warnings.append(
+            f"topic {key}: gyro and {acc.key} samples paired by nearest timestamp_sample, up "
+            f"to {offsets.max() / 1e6:.3f} ms apart"
+        )
+    return _piece(stamp, log, {**_xyz("gyro", inst.vector("x", "y", "z")), **_xyz("accel", accel)})
+
+
+def _relative(inst: Instance, prefix: str) -> np.ndarray:
+    """Row indices of old ``sensor_combined``'s distinct ``<prefix>`` samples: a sample repeats
+    on every row until the next arrives (same absolute stamp)."""
+    rel = inst.data[f"{prefix}_timestamp_relative"].astype(np.int64)
+    t = inst.data["timestamp"].astype(np.int64) + rel
+    valid = np.flatnonzero(rel != RELATIVE_INVALID)
+    _, first = np.unique(t[valid], return_index=True)
+    return valid[np.sort(first)]
+
+
+def _combined_sub(
+    inst: Instance, prefix: str, time: str
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(rows, header stamps, log stamps) of old ``sensor_combined``'s distinct ``<prefix>``
+    samples (magnetometer or baro)."""
+    rows = _relative(inst, prefix)
+    log = inst.data["timestamp"].astype(np.int64)[rows] * US_TO_NS
+    rel = inst.data[f"{prefix}_timestamp_relative"].astype(np.int64)[rows] * US_TO_NS
+    return rows, (log + rel) if time == "header" else log, log
+
+
+def _mag_piece(f: UlogFile, key: str, time: str) -> Piece:
+    inst = f.instances[key]
+    if inst.name == "sensor_combined":
+        rows, stamp, log = _combined_sub(inst, "magnetometer", time)
+        values = inst.vector(*(f"magnetometer_ga[{i}]" for i in range(3)))[rows]
+    else:
+        stamp, log = inst.stamps(time)
+        fields = (
+            ("x", "y", "z")
+            if inst.name == "sensor_mag"
+            else tuple(f"magnetometer_ga[{i}]" for i in range(3))
+        )
+        values = inst.vector(*fields)
+    return _piece(stamp, log, _xyz("mag", values * GAUSS))
+
+
+def _temperature_piece(f: UlogFile, key: str, time: str) -> Piece:
+    inst = f.instances[key]
+    if inst.name == "sensor_combined":
+        rows, stamp, log = _combined_sub(inst, "baro", time)
+        values = inst.data["baro_temp_celcius"].astype(np.float64)[rows]
+    else:
+        stamp, log = inst.stamps(time)
+        values = inst.data["temperature"].astype(np.float64)
+    return _piece(stamp, log, {"temperature": values})
+
+
+def _device_id(f: UlogFile, stream: str, key: str) -> int | None:
+    inst = f.instances[key]
+    if inst.device_id() is not None:
+        return inst.device_id()
+    if stream == "imu" and key == "sensor_combined":
+        return _selected_gyro_device(f)
+    if stream == "mag" and inst.name != "sensor_mag":
+        prime = f.ulog.initial_parameters.get("CAL_MAG_PRIME")
+        return int(prime) if prime else None
+    return None
+
+
+def _samples(f: UlogFile, stream: str, key: str) -> int:
+    """How many samples a read of ``stream`` from ``key`` gives."""
+    inst = f.instances[key]
+    if inst.name == "sensor_combined" and stream != "imu":
+        return len(_relative(inst, "magnetometer" if stream == "mag" else "baro"))
+    return len(inst)
+
+
+def _calibrated(f: UlogFile, chosen: Mapping[str, str]) -> dict[str, bool]:
+    """Stream -> whether PX4 had applied its ``CAL_*`` corrections (imu and mag streams)."""
+    return {
+        s: f.instances[k].name in CALIBRATED_TOPICS for s, k in chosen.items() if s != "temperature"
+    }
+
+
+def output_topic(stream: str, inst: Instance) -> str:
+    """The table's (and the corrected MCAP's) topic name of a stream read from ``inst``: the
+    instance's key, with ``/temperature`` (or ``/magnetometer`` for old firmware's
+    ``sensor_combined``) appended when the stream is one field of a topic that carries more: a
+    ROS topic has one message type."""
+    if stream == "temperature":
+        return f"{inst.key}/temperature"
+    if stream == "mag" and inst.name == "sensor_combined":
+        return f"{inst.key}/magnetometer"
+    return inst.key
+
+
+def read_ulog(spec: InputSpec) -> tuple[pa.Table, list[str]]:
+    """Read a ULog input into the common table; returns (table, warnings)."""
+    f = UlogFile(spec.path, READ_TOPICS)
+    chosen, warnings = choose_topics(spec, f)
+    builders = {"imu": _imu_piece, "mag": _mag_piece, "temperature": _temperature_piece}
+    pieces: dict[str, Piece] = {}
+    for stream, key in chosen.items():
+        try:
+            if stream == "imu":
+                pieces[stream] = _imu_piece(f, key, spec.time, warnings)
+            else:
+                pieces[stream] = builders[stream](f, key, spec.time)
+        except KeyError as exc:  # a damaged format definition lost a field
+            raise ReadError(
+                f"{spec.path}: topic '{key}' has no field {exc} (corrupt log?)"
+            ) from None
+        if len(pieces[stream]) == 0:
+            raise ReadError(f"{spec.path}: topic '{key}' has no messages")
+    table = assemble(
+        pieces,
+        time=spec.time,
+        source=str(spec.path),
+        fmt="ulog",
+        topics={s: output_topic(s, f.instances[k]) for s, k in chosen.items()},
+        where=str(spec.path),
+        warnings=warnings,
+    )
+    meta = metadata(table)
+    meta.pop("frame_id", None)  # a ULog names no frames
+    meta["instance"] = {s: f.instances[k].instance for s, k in chosen.items()}
+    devices = {s: _device_id(f, s, k) for s, k in chosen.items()}
+    meta["device_id"] = {s: d for s, d in devices.items() if d is not None}
+    meta["px4"] = {
+        "calibrated": _calibrated(f, chosen),
+        "parameters": f.parameters(),
+        "software": f.info("ver_sw"),
+        "hardware": f.info("ver_hw"),
+    }
+    count, ms = f.dropouts()
+    if count:
+        warnings.append(f"the logger dropped data {count} times ({ms} ms in total)")
+    if f.ulog.file_corruption or f.notices:
+        said = f"; pyulog: {f.notices[0]}" if f.notices else ""
+        warnings.append(f"the file is corrupt in places (the damaged messages were skipped{said})")
+    others = sorted(set(f.instances) - set(chosen.values())) + f.skipped
+    if others:
+        warnings.append(
+            f"{len(others)} other ULog topics are not carried into the corrected MCAP (they "
+            f"have no ROS message type): {', '.join(others)}"
+        )
+    return with_metadata(table, meta), warnings
+
+
+def ulog_sources(path: Path) -> list[UlogFile]:
+    """The one source of a ULog file, every topic parsed (the ``log_sources`` entry)."""
+    return [UlogFile(path)]
+
+
+def describe(spec: InputSpec) -> dict[str, Any]:
+    """What ``inspect`` shows beyond the topics: the instance and device of every topic
+    instance, the streams a read would fill and why not, and the calibration parameters."""
+    f = UlogFile(spec.path)
+    try:
+        chosen, warnings = choose_topics(spec, f)
+        error = None
+    except ReadError as exc:
+        chosen, warnings, error = {}, [], str(exc)
+    return {
+        "instances": {
+            k: {"topic": v.name, "instance": v.instance, "device_id": v.device_id()}
+            for k, v in f.instances.items()
+        },
+        "chosen": chosen,
+        "device_id": {s: _device_id(f, s, k) for s, k in chosen.items()},
+        "samples": {s: _samples(f, s, k) for s, k in chosen.items()},
+        "warnings": warnings,
+        "selection_error": error,
+        "calibrated": _calibrated(f, chosen),
+        "parameters": f.parameters(),
+    }

@@ -1,0 +1,116 @@
+"""The results summary: numbers with their units and uncertainties, on the terminal, in the
+recording's documents and in the report; stages whose results lack a key still summarise."""
+
+from __future__ import annotations
+
+import io
+import json
+
+import pytest
+
+from imupipe.pipeline.simulate import simulate, write_log
+from imupipe.pipeline.summary import (
+    fmt,
+    fmt_pm,
+    print_summary,
+    run_markdown,
+    stage_markdown,
+    summarise,
+)
+
+
+def test_value_rounded_to_its_uncertainty():
+    assert fmt_pm(0.0100598090, 2.0018e-6) == "0.0100598 ± 0.0000020"
+    assert fmt_pm(1.0199966606, 6.855e-6) == "1.0199967 ± 0.0000069"
+    assert fmt_pm(4.0609, 0.0117) == "4.061 ± 0.012"
+    assert fmt_pm(-8.68e-5, 3.1e-6) == "-8.68e-5 ± 3.1e-6"
+    assert fmt_pm(5.0, None) == "5"  # no uncertainty: 5 significant digits
+    assert fmt(1.7132e-4, 3) == "1.71e-4"
+    assert fmt(None) == "-"
+
+
+GYRO_BIAS = {
+    "type": "gyro_bias",
+    "input": "static",
+    "bias": [0.0100598090, -0.0198317747, 0.0050605560],
+    "metrics": {
+        "samples": 720000,
+        "duration_s": 7199.99,
+        "std": [0.0016986, 0.0017007, 0.0017011],
+        "bias_std_error": [2.0018e-6, 2.0043e-6, 2.0048e-6],
+        "static": True,
+    },
+    "warnings": ["the IMU moved"],
+}
+
+
+def test_stage_summary_holds_values_units_uncertainty_and_warnings():
+    (s,) = summarise({"gyro_bias": GYRO_BIAS})
+    assert s.rows[0].name == "bias" and s.rows[0].unit == "rad/s"
+    assert s.rows[0].cells == [
+        "0.0100598 ± 0.0000020",
+        "-0.0198318 ± 0.0000020",
+        "0.0050606 ± 0.0000020",
+    ]
+    assert s.warnings == ["the IMU moved"] and s.status == "1 warning(s)"
+    md = stage_markdown(s)
+    assert "| bias (rad/s) | 0.0100598 ± 0.0000020 |" in md
+    assert "**Warnings**" in md and "- the IMU moved" in md
+    assert "What to look at." in md
+
+
+def test_missing_keys_and_unknown_stage_types_still_summarise():
+    results = {
+        "a": {"type": "accel_calibration", "input": "p", "warnings": []},  # nothing fitted
+        "b": {
+            "type": "future_stage",
+            "input": "q",
+            "gain": [1.0, 2.0, 3.0],
+            "order": 4,
+            "failed_checks": ["residual 4 mg > 3 mg"],
+            "warnings": [],
+        },  # fmt: skip
+    }
+    a, b = summarise(results)
+    assert a.rows == [] and a.status == "ok"
+    assert [r.name for r in b.rows] == ["gain"] and ("order", "4") in b.quality
+    assert b.status == "1 failed check(s) accepted"
+    md = run_markdown([a, b])
+    assert md.startswith("# imupipe run")
+    assert "| b | future_stage | q | - | 1 failed check(s) accepted |" in md
+
+
+def test_terminal_table():
+    from rich.console import Console
+
+    buf = io.StringIO()
+    print_summary(summarise({"gyro_bias": GYRO_BIAS}), Console(file=buf, width=120))
+    text = buf.getvalue()
+    assert "gyro_bias (gyro_bias on static): 1 warning(s)" in text
+    assert "bias (rad/s)" in text and "0.0100598 ± 0.0000020" in text
+    assert "warning: the IMU moved" in text
+
+
+@pytest.fixture(scope="module")
+def static_cfg(tmp_path_factory):
+    d = tmp_path_factory.mktemp("summary")
+    table, _ = simulate("static", {"duration_s": 20.0, "rate_hz": 100.0}, seed=4)
+    write_log(d / "static.csv", table)
+    (d / "cfg.toml").write_text(
+        '[inputs.static]\npath = "static.csv"\n[[stages]]\ntype = "gyro_bias"\n'
+        '[output]\ndir = "out"\nrerun = false\nreport = false\n'
+    )
+    return d / "cfg.toml"
+
+
+def test_run_prints_the_summary_unless_quiet(static_cfg, cli):
+    done = cli("run", static_cfg)
+    assert done.returncode == 0, done.stderr
+    cal = json.loads((static_cfg.parent / "out" / "calibration.json").read_text())
+    r = cal["results"]["gyro_bias"]
+    bias = fmt_pm(r["bias"][0], r["metrics"]["bias_std_error"][0])
+    assert "gyro_bias (gyro_bias on static)" in done.stdout
+    assert bias in done.stdout  # the same number as calibration.json, with its uncertainty
+    assert str(static_cfg.parent / "out" / "calibration.json") in done.stdout
+    quiet = cli("run", static_cfg, "--quiet")
+    assert quiet.returncode == 0 and quiet.stdout == "" and quiet.stderr == ""
