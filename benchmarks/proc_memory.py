@@ -19,3 +19,19 @@ def status_bytes(key: str) -> int:
             if line.startswith(key + ":"):
                 return int(line.split()[1]) * 1024
     raise KeyError(key)
+
+
+def run_probe(code: str, *args: str) -> dict:
+    """Run ``code`` in a fresh Python with ``args`` and this folder as its last argument (for
+    ``sys.path``); returns the JSON object it prints last."""
+    import json
+    import subprocess
+    import sys
+
+    out = subprocess.run(
+        [sys.executable, "-c", code, *map(str, args), HERE],
+        capture_output=True,
+        text=True,
+        check=True,
+    )
+    return json.loads(out.stdout.strip().splitlines()[-1])

@@ -149,34 +149,64 @@ def unaligned(buf: np.ndarray, dtype: str | np.dtype) -> np.ndarray:
     return np.ndarray((n,), dtype=dt, buffer=buf, offset=0, strides=(1,)) if n else np.empty(0, dt)
 
 
-def gather_strings(buf: np.ndarray, starts: np.ndarray, lengths: np.ndarray) -> pa.Array:
+def even_step(starts: np.ndarray) -> int | None:
+    """The distance between consecutive ``starts`` when it is one positive constant (records
+    of one size, one after the other), else None."""
+    n = len(starts)
+    if n < 2:
+        return 1 if n else None
+    step = int(starts[1] - starts[0])
+    if step <= 0 or int(starts[-1] - starts[0]) != step * (n - 1):
+        return None
+    return step if bool(np.all(starts[1:] - starts[:-1] == step)) else None
+
+
+def at(
+    buf: np.ndarray, starts: np.ndarray, offset: int, dtype: str, step: int | None
+) -> np.ndarray:
+    """The ``dtype`` value at byte ``start + offset`` of ``buf`` for every start (the caller
+    has checked the bounds): a strided view when the starts are ``step`` apart (see
+    :func:`even_step`), else a gather through :func:`unaligned`."""
+    dt = np.dtype(dtype)
+    if step is None:
+        return unaligned(buf, dt)[starts + offset]
+    n = len(starts)
+    return np.ndarray((n,), dt, buffer=buf, offset=int(starts[0]) + offset, strides=(step,))
+
+
+def gather_strings(
+    buf: np.ndarray, starts: np.ndarray, lengths: np.ndarray, step: int | None = None
+) -> pa.Array:
     """The byte ranges ``buf[starts[i] : starts[i] + lengths[i]]`` as an Arrow string array
-    (UTF-8 validated), built with one ragged gather."""
+    (UTF-8 validated), built with one ragged gather (one strided copy when the ranges have one
+    length and lie ``step`` apart; the UTF-8 check of one string when they are all equal, as a
+    sensor's frame_id is)."""
     lengths = lengths.astype(np.int64)
-    ends = np.cumsum(lengths)
-    total = int(ends[-1]) if len(ends) else 0
     n = len(lengths)
-    step = int(starts[1] - starts[0]) if n > 1 else 0
-    if (
-        total
-        and n > 1
-        and step > 0
-        and np.all(lengths == lengths[0])
-        and np.all(starts[1:] - starts[:-1] == step)
-    ):
-        size = int(lengths[0])
-        data = np.ndarray((n, size), np.uint8, buffer=buf, offset=int(starts[0]), strides=(step, 1))
-        data = data.reshape(-1) if step == size else data.copy().reshape(-1)
-    elif total:
-        idx = np.repeat(starts.astype(np.int64) - (ends - lengths), lengths)
-        idx += np.arange(total, dtype=np.int64)
-        data = buf[idx]
+    size = int(lengths[0]) if n else 0
+    if n and step is not None and size and bool(np.all(lengths == size)):
+        rows = np.ndarray((n, size), np.uint8, buffer=buf, offset=int(starts[0]), strides=(step, 1))
+        data = rows.copy().reshape(-1)  # a copy: the chunk's buffer is not kept alive
+        offsets = np.arange(0, (n + 1) * size, size, dtype=np.int32)
+        raw = data.tobytes()
+        if raw == raw[:size] * n:  # one frame_id: check its UTF-8 once
+            try:
+                raw[:size].decode()
+            except UnicodeDecodeError:
+                raise PayloadError(0, "frame_id is not valid UTF-8") from None
+            return pa.StringArray.from_buffers(n, pa.py_buffer(offsets), pa.py_buffer(data))
+        ends = offsets[1:].astype(np.int64)
     else:
-        data = np.zeros(0, np.uint8)
+        ends = np.cumsum(lengths)
+        total = int(ends[-1]) if n else 0
+        if total:
+            idx = np.repeat(starts.astype(np.int64) - (ends - lengths), lengths)
+            idx += np.arange(total, dtype=np.int64)
+            data = buf[idx]
+        else:
+            data = np.zeros(0, np.uint8)
     offsets = np.concatenate([[0], ends]).astype(np.int32)
-    array = pa.StringArray.from_buffers(
-        len(lengths), pa.py_buffer(offsets.tobytes()), pa.py_buffer(data.tobytes())
-    )
+    array = pa.StringArray.from_buffers(n, pa.py_buffer(offsets), pa.py_buffer(data))
     try:
         array.validate(full=True)
     except pa.ArrowInvalid:
@@ -216,16 +246,16 @@ def decode(
         raise PayloadError(
             int(short[0]), f"payload of {int(ends[short[0]] - starts[short[0]])} bytes"
         )
-    u4 = unaligned(buf, "<u4")
-    strlen = u4[starts + 12].astype(np.int64)
+    even = even_step(starts)
+    strlen = at(buf, starts, 12, "<u4", even).astype(np.int64)
     if encoding == "cdr":
-        encap = buf[starts + 1]
-        if np.any(buf[starts] != 0) or np.any((encap != 1) & (encap != 0)):
-            bad = int(np.flatnonzero((buf[starts] != 0) | ((encap != 1) & (encap != 0)))[0])
+        zero, encap = at(buf, starts, 0, "u1", even), at(buf, starts, 1, "u1", even)
+        if np.any(zero != 0) or np.any((encap != 1) & (encap != 0)):
+            bad = int(np.flatnonzero((zero != 0) | ((encap != 1) & (encap != 0)))[0])
             raise PayloadError(bad, "not a CDR payload (bad encapsulation header)")
         if np.any(encap == 0):
             raise NotFastPath("big-endian CDR")
-        sec = unaligned(buf, "<i4")[starts + 4].astype(np.int64)
+        sec = at(buf, starts, 4, "<i4", even).astype(np.int64)
         bad = np.flatnonzero(strlen < 1)
         if len(bad):
             raise PayloadError(int(bad[0]), "string length 0 (CDR strings end with a NUL)")
@@ -233,7 +263,7 @@ def decode(
         body = 12 + strlen
         fstart = starts + 4 + body + (-body) % 8
     elif encoding == "ros1":
-        sec = u4[starts + 4].astype(np.int64)
+        sec = at(buf, starts, 4, "<u4", even).astype(np.int64)
         frame_len = strlen
         fstart = starts + 16 + strlen
     else:
@@ -244,8 +274,8 @@ def decode(
         raise PayloadError(
             i, f"payload of {int(ends[i] - starts[i])} bytes is too short for {msgtype}"
         )
-    stamp = sec * 1_000_000_000 + u4[starts + 8].astype(np.int64)
-    frames = gather_strings(buf, starts + 16, frame_len)
+    stamp = sec * 1_000_000_000 + at(buf, starts, 8, "<u4", even).astype(np.int64)
+    frames = gather_strings(buf, starts + 16, frame_len, even)
     step = int(fstart[1] - fstart[0]) if n > 1 else 8 * k
     if step >= 8 * k and np.all(fstart[1:] - fstart[:-1] == step):
         # evenly spaced messages (one frame_id length, one channel per run): a strided view

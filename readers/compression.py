@@ -1,7 +1,9 @@
 """Chunk decompression shared by the MCAP and ROS 1 bag readers.
 
 Any decompressor failure, an unknown compression or a size other than the one the chunk header
-states is a :class:`ReadError` naming the chunk (``where``), never a crash.
+states is a :class:`ReadError` naming the chunk (``where``), never a crash. The decompressors
+release the GIL: the MCAP and bag readers run them in worker threads, :data:`PREFETCH` chunks
+ahead of the chunk they decode.
 """
 
 from __future__ import annotations
@@ -11,6 +13,11 @@ import bz2
 import numpy as np
 
 from imupipe.readers.errors import ReadError
+
+PREFETCH = 3
+"""Chunks a reader has decompressed (or in decompression) ahead of the one it decodes."""
+DECOMPRESS_THREADS = 2
+"""Worker threads that decompress chunks for one reader."""
 
 
 def _zstd(data: bytes | memoryview, size: int) -> bytes:

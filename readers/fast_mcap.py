@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import collections
 import io
+import os
 import struct
 import zlib
 from collections.abc import Iterator
@@ -31,8 +32,8 @@ import numpy as np
 from mcap.data_stream import ReadDataStream
 from mcap.records import Channel, Schema, Statistics
 
-from imupipe.readers.cdr import unaligned
-from imupipe.readers.compression import decompress_chunk
+from imupipe.readers.cdr import at, even_step
+from imupipe.readers.compression import DECOMPRESS_THREADS, PREFETCH, decompress_chunk
 from imupipe.readers.errors import ReadError
 
 MAGIC = b"\x89MCAP0\r\n"
@@ -85,16 +86,18 @@ class ChunkMessages:
         buf = self.buf
         if off[0] < 0 or off[-1] + MESSAGE_HEADER > len(buf):
             raise ReadError(f"{self.where}: message index points outside its chunk")
-        reclen = unaligned(buf, "<u8")[off + 1].astype(np.int64)
-        bad = (buf[off] != OP_MESSAGE) | (unaligned(buf, "<u2")[off + 9] != channel_id)
+        step = even_step(off)  # records of one size, one after the other: strided views
+        reclen = at(buf, off, 1, "<u8", step).astype(np.int64)
+        bad = (at(buf, off, 0, "u1", step) != OP_MESSAGE) | (
+            at(buf, off, 9, "<u2", step) != channel_id
+        )
         bad |= (reclen < MESSAGE_HEADER - 9) | (off + 9 + reclen > len(buf))
         if np.any(bad):
             raise ReadError(
                 f"{self.where}: message index does not point at channel {channel_id}'s messages"
             )
-        u8 = unaligned(buf, "<u8")
-        log = u8[off + 15].astype(np.int64)
-        pub = u8[off + 23].astype(np.int64)
+        log = at(buf, off, 15, "<u8", step).astype(np.int64)
+        pub = at(buf, off, 23, "<u8", step).astype(np.int64)
         return log, pub, off + MESSAGE_HEADER, reclen - (MESSAGE_HEADER - 9)
 
 
@@ -125,9 +128,11 @@ class McapFile:
 
     # -- records ---------------------------------------------------------------------------
     def _records(
-        self, fh: io.BufferedReader, start: int, end: int
+        self, fh: io.BufferedReader, start: int, end: int, lazy: bool = False
     ) -> Iterator[tuple[int, int, bytes]]:
-        """Top-level records between ``start`` and ``end``: (opcode, offset, body)."""
+        """Top-level records between ``start`` and ``end``: (opcode, offset, body). ``lazy``:
+        a chunk's body is left unread but for its first 8 bytes (its start time); a worker
+        reads the rest (:meth:`_load_chunk`)."""
         pos = start
         fh.seek(pos)
         while pos < end:
@@ -145,7 +150,11 @@ class McapFile:
                 raise ReadError(
                     f"{self.path}: truncated MCAP (record at byte {pos} runs past the end of the file)"
                 )
-            body = fh.read(length)
+            if lazy and opcode == OP_CHUNK:
+                body = fh.read(min(length, 8))
+                fh.seek(pos + 9 + length)
+            else:
+                body = fh.read(length)
             yield opcode, pos, body
             pos += 9 + length
 
@@ -232,6 +241,15 @@ class McapFile:
         self.channels = self._join(schemas, channels)
         self.counts = counts
 
+    def _load_chunk(self, fd: int, pos: int) -> np.ndarray:
+        """Read the chunk record at ``pos`` (thread-safe: ``pread``) and decompress it."""
+        try:
+            head = os.pread(fd, 9, pos)
+            body = os.pread(fd, int.from_bytes(head[1:9], "little"), pos + 9)
+        except OSError as exc:
+            raise ReadError(f"{self.path}: cannot read: {exc.strerror or exc}") from None
+        return self._decompress(body, pos)
+
     def _decompress(self, body: bytes, pos: int) -> np.ndarray:
         where = f"{self.path}: chunk at byte {pos}"
         try:
@@ -261,15 +279,15 @@ class McapFile:
     def chunks(self) -> Iterator[ChunkMessages]:
         """Every chunk (and every run of un-chunked messages) in file order.
 
-        A worker thread decompresses (and CRC-checks) the next chunk while the caller decodes
-        the current one (zstd, lz4 and zlib release the GIL)."""
+        Worker threads decompress (and CRC-check) the next :data:`PREFETCH` chunks while the
+        caller decodes the current one (zstd, lz4 and zlib release the GIL)."""
         offsets, suffix_min = self._bounds()
         pending: ChunkMessages | None = None
         queue: collections.deque[ChunkMessages] = collections.deque()
         loose = bytearray()
         loose_off: dict[int, list[int]] = {}
-        with open(self.path, "rb") as fh, ThreadPoolExecutor(1) as worker:
-            for opcode, pos, body in self._records(fh, 8, self.size):
+        with open(self.path, "rb") as fh, ThreadPoolExecutor(DECOMPRESS_THREADS) as worker:
+            for opcode, pos, body in self._records(fh, 8, self.size, lazy=True):
                 if opcode == OP_MESSAGE_INDEX and pending is not None:
                     if len(body) < 6:
                         raise ReadError(f"{pending.where}: corrupt message index")
@@ -277,12 +295,15 @@ class McapFile:
                     if 6 + rlen > len(body) or rlen % 16:
                         raise ReadError(f"{pending.where}: corrupt message index")
                     pairs = np.frombuffer(body, "<u8", count=rlen // 8, offset=6).reshape(-1, 2)
-                    pending.offsets[cid] = np.sort(pairs[:, 1].astype(np.int64))
+                    found = pairs[:, 1].astype(np.int64)
+                    if len(found) > 1 and np.any(found[1:] < found[:-1]):
+                        found.sort()
+                    pending.offsets[cid] = found
                     continue
                 if pending is not None:
                     queue.append(pending)
                     pending = None
-                while len(queue) > 1 or (queue and opcode != OP_CHUNK):
+                while len(queue) > PREFETCH or (queue and opcode != OP_CHUNK):
                     yield _finished(queue.popleft())
                 if opcode == OP_MESSAGE:
                     if len(body) < 22:
@@ -305,7 +326,7 @@ class McapFile:
                         bound = int(suffix_min[k]) if k < len(offsets) else NEVER
                     else:
                         bound = int.from_bytes(body[:8], "little") if len(body) >= 8 else 0
-                    future = worker.submit(self._decompress, body, pos)
+                    future = worker.submit(self._load_chunk, fh.fileno(), pos)
                     pending = ChunkMessages(future, {}, f"{self.path}: chunk at byte {pos}", bound)  # type: ignore[arg-type]
                 elif opcode == OP_DATA_END:
                     break

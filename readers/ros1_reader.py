@@ -14,9 +14,11 @@ Messages of every other topic are carried over converted to ROS 2 CDR the way
 
 from __future__ import annotations
 
+import collections
 import io
 import struct
 from collections.abc import Callable, Iterator
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -24,7 +26,7 @@ import numpy as np
 import pyarrow as pa
 
 from imupipe.readers.cdr import unaligned
-from imupipe.readers.compression import decompress_chunk
+from imupipe.readers.compression import DECOMPRESS_THREADS, PREFETCH, decompress_chunk
 from imupipe.readers.decoded import Piece, concat, decode_piece, normalize_type
 from imupipe.readers.errors import ReadError
 from imupipe.readers.sources import carry_sources, iter_sources, read_sources
@@ -226,17 +228,20 @@ class Ros1Bag:
         return {t: np.concatenate(v) for t, v in times.items()}
 
     def bag_chunks(self) -> Iterator[BagChunk]:
-        """Every chunk, decompressed, with its index, in file order."""
+        """Every chunk, decompressed, with its index, in file order. Worker threads decompress
+        the next chunks while the caller decodes the current one (lz4 and bz2 release the
+        GIL)."""
         starts = [t for _, t, _ in self.chunk_infos]
         bounds = list(np.minimum.accumulate(starts[::-1])[::-1][1:]) + [2**63 - 1] if starts else []
-        with open(self.path, "rb") as fh:
+        queue: collections.deque[BagChunk] = collections.deque()
+        with open(self.path, "rb") as fh, ThreadPoolExecutor(DECOMPRESS_THREADS) as worker:
             for (pos, _, counts), bound in zip(self.chunk_infos, bounds, strict=True):
                 fh.seek(pos)
                 where = f"{self.path}: chunk at byte {pos}"
                 op, fields, data = self._record(fh)
                 if op != OP_CHUNK:
                     raise ReadError(f"{where}: the index points at a record that is not a chunk")
-                buf = self._decompress(fields, data, where)
+                future = worker.submit(self._decompress, fields, data, where)
                 index: dict[int, tuple[np.ndarray, np.ndarray]] = {}
                 for _ in range(len(counts)):
                     op, fields, data = self._record(fh)
@@ -249,7 +254,11 @@ class Ros1Bag:
                     entries = np.frombuffer(data, "<u4", count=3 * count).reshape(-1, 3)
                     log = entries[:, 0].astype(np.int64) * 1_000_000_000 + entries[:, 1]
                     index[conn] = (log, entries[:, 2].astype(np.int64))
-                yield BagChunk(buf, index, where, int(bound))
+                queue.append(BagChunk(future, index, where, int(bound)))  # type: ignore[arg-type]
+                if len(queue) > PREFETCH:
+                    yield _decompressed(queue.popleft())
+            while queue:
+                yield _decompressed(queue.popleft())
 
     def _decompress(self, fields: dict[str, bytes], data: bytes, where: str) -> np.ndarray:
         compression = fields.get("compression", b"none").decode(errors="replace")
@@ -319,6 +328,12 @@ class Ros1Bag:
                 ) from None
             out.append(RawMessage(conn.topic, name, "ros2msg", schema, "cdr", data, lt, lt))
         return out
+
+
+def _decompressed(chunk: BagChunk) -> BagChunk:
+    """The chunk with its buffer (waiting for the worker that decompresses it)."""
+    chunk.buf = chunk.buf.result()  # type: ignore[attr-defined]
+    return chunk
 
 
 def bag_sources(path: Path) -> list[Ros1Bag]:

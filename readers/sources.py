@@ -21,9 +21,10 @@ from typing import Protocol
 import numpy as np
 import pyarrow as pa
 
-from imupipe.readers.decoded import Piece, StreamBuffer, assemble, concat, select_topics
+from imupipe.readers.decoded import Piece, concat, select_topics
 from imupipe.readers.errors import ReadError
 from imupipe.readers.spec import InputSpec, RawMessage
+from imupipe.readers.table_buffer import TableBuffer, assemble
 
 NEVER = 2**63 - 1
 
@@ -78,25 +79,22 @@ def read_sources(spec: InputSpec, sources: Sequence[LogSource]) -> tuple[pa.Tabl
     """The whole input as one common table; returns (table, warnings)."""
     streams = _choose(spec, sources)
     stated = [src.topic_counts() for src in sources]
-    # a damaged file may state absurd counts: never trust more than one message per 16 bytes
-    most = sum(_size(src.path) for src in sources) // 16
-    buffers = {
-        s: StreamBuffer(
-            s,
-            None if None in stated else min(most, sum(c.get(t, 0) for c in stated)),  # type: ignore[union-attr]
-        )
-        for s, t in streams.items()
-    }
+    counts = None
+    if None not in stated:
+        # a damaged file may state absurd counts: never trust more than one message per 16 bytes
+        most = sum(_size(src.path) for src in sources) // 16
+        counts = {s: min(most, sum(c.get(t, 0) for c in stated)) for s, t in streams.items()}  # type: ignore[union-attr]
+    buffer = TableBuffer(list(streams), spec.time, counts)
+    total = dict.fromkeys(streams, 0)
     for src in _ordered(sources):
         for pieces, _, _ in src.chunks(streams, carry=False):
+            buffer.add(pieces)
             for stream, piece in pieces.items():
-                buffers[stream].add(piece)
-    joined = {s: b.result() for s, b in buffers.items()}
-    _check_empty(spec, streams, {s: len(p) for s, p in joined.items()})
+                total[stream] += len(piece)
+    _check_empty(spec, streams, total)
     warnings: list[str] = []
-    table = assemble(
-        joined,
-        time=spec.time,
+    table = buffer.table(
+        sort=True,
         source=str(spec.path),
         fmt=sources[0].format,
         topics=streams,

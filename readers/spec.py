@@ -50,7 +50,11 @@ class CsvMapping:
     rate_hz: float | None = None
     """Sample rate, Hz: times from the row number instead of a time column."""
     delimiter: str = "auto"
-    """``,`` ``;`` ``\\t`` ``whitespace`` or ``auto`` (sniffed from the first line)."""
+    """``,`` ``;`` ``\\t`` ``whitespace`` (runs of blanks) or ``auto`` (sniffed from the file's
+    first 64 KiB)."""
+    decimal: str = "auto"
+    """The decimal point: ``.``, ``,`` (``1,5``; with a ``;``, tab or blank delimiter) or ``auto``
+    (sniffed: ``,`` when the data's numbers are written with a comma)."""
     header: bool | None = None
     """Whether the first line names the columns; None: sniffed (a non-numeric first line)."""
     gyro_file: str | None = None

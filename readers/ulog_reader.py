@@ -55,10 +55,11 @@ from typing import Any
 import numpy as np
 import pyarrow as pa
 
-from imupipe.readers.decoded import Piece, assemble
+from imupipe.readers.decoded import Piece
 from imupipe.readers.errors import ReadError
 from imupipe.readers.spec import InputSpec
 from imupipe.readers.table import metadata, with_metadata
+from imupipe.readers.table_buffer import assemble
 
 US_TO_NS = 1000
 """ULog timestamps are microseconds since boot."""

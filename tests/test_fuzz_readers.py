@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import os
 
+import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
@@ -23,6 +24,7 @@ from imupipe.pipeline.inspect_log import inspect
 from imupipe.pipeline.mcap_writer import McapTableWriter, encode_stream, msgdef
 from imupipe.readers.dispatch import carry_over, read_input
 from imupipe.readers.spec import InputSpec, RawMessage
+from imupipe.readers.table import counts, sensor
 
 CHATTER = b"string data\n"
 
@@ -131,3 +133,108 @@ def test_flipped_payload_is_caught_not_misread(seeds, tmp_path):
     path.write_bytes(bytes(data))
     with pytest.raises(ImupipeError, match=r"flipped.mcap: topic '/(imu|mag)'"):
         read_input(InputSpec(path=path))
+
+
+# -- CSV -------------------------------------------------------------------------------------
+
+CSV_NAMES = ["t_ns", "gyro_x", "gyro_y", "gyro_z", "accel_x", "accel_y", "accel_z"]
+FINITE = st.floats(allow_nan=False, allow_infinity=False, width=64)
+
+
+@st.composite
+def csv_layouts(draw):
+    """A small IMU table and a way of writing it as text (what loggers and spreadsheets do)."""
+    n = draw(st.integers(1, 25))
+    t = np.cumsum(draw(st.lists(st.integers(1, 2**40), min_size=n, max_size=n)))
+    values = np.array(draw(st.lists(FINITE, min_size=6 * n, max_size=6 * n))).reshape(n, 6)
+    empty = np.array(draw(st.lists(st.booleans(), min_size=6 * n, max_size=6 * n))).reshape(n, 6)
+    nan = np.array(draw(st.lists(st.booleans(), min_size=6 * n, max_size=6 * n))).reshape(n, 6)
+    delimiter = draw(st.sampled_from([",", ";", "\t"]))
+    return {
+        "t": t,
+        "values": np.where(nan & ~empty, np.nan, values),
+        "empty": empty,
+        "delimiter": delimiter,
+        "comma": delimiter != "," and draw(st.booleans()),
+        "end": draw(st.sampled_from(["\n", "\r\n"])),
+        "bom": draw(st.booleans()),
+        "quote": draw(st.booleans()),
+        "trailing": draw(st.booleans()),
+        "metadata": draw(st.lists(st.sampled_from(["logger v2", "Fs,100", "a;b"]), max_size=3)),
+        "last_newline": draw(st.booleans()),
+    }
+
+
+def _csv_text(c) -> bytes:
+    def cell(v: float) -> str:
+        s = repr(float(v))
+        return s.replace(".", ",") if c["comma"] else s
+
+    q = '"' if c["quote"] else ""
+    d = c["delimiter"]
+    lines = list(c["metadata"]) + [
+        d.join(q + n + q for n in CSV_NAMES) + (d if c["trailing"] else "")
+    ]
+    for ti, row, empty in zip(c["t"], c["values"], c["empty"], strict=True):
+        cells = [str(int(ti))] + ["" if e else cell(v) for v, e in zip(row, empty, strict=True)]
+        lines.append(d.join(q + x + q if x else x for x in cells) + (d if c["trailing"] else ""))
+    text = c["end"].join(lines) + (c["end"] if c["last_newline"] else "")
+    return (b"\xef\xbb\xbf" if c["bom"] else b"") + text.encode()
+
+
+@settings(
+    max_examples=int(os.environ.get("IMUPIPE_FUZZ_EXAMPLES", "60")),
+    derandomize="IMUPIPE_FUZZ_EXAMPLES" not in os.environ,
+    deadline=5000,
+    suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow],
+)
+@given(c=csv_layouts())
+def test_csv_layouts_read_back_exactly(tmp_path, c):
+    """Every way of writing the table reads back to it: same stamps, every row with an IMU
+    cell an IMU sample, its empty cells NaN, values bit for bit."""
+    path = tmp_path / "w.csv"
+    path.write_bytes(_csv_text(c))
+    table, _ = read_input(InputSpec(path=path))
+    np.testing.assert_array_equal(table.column("t_ns").to_numpy(), c["t"])
+    has = ~c["empty"].all(axis=1)
+    expected = np.where(c["empty"], np.nan, c["values"])[has]
+    got = (
+        np.column_stack([sensor(table, "gyro").values, sensor(table, "accel").values])
+        if has.any()
+        else np.zeros((0, 6))
+    )
+    np.testing.assert_array_equal(got, expected)
+    assert counts(table).get("imu", 0) == int(has.sum())
+
+
+@settings(
+    max_examples=int(os.environ.get("IMUPIPE_FUZZ_EXAMPLES", "60")),
+    derandomize="IMUPIPE_FUZZ_EXAMPLES" not in os.environ,
+    deadline=5000,
+    suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow],
+)
+@given(
+    c=csv_layouts(),
+    edits=st.lists(
+        st.tuples(
+            st.floats(0.0, 1.0),
+            st.sampled_from(
+                ["", ",", ";", '"', "\n", "\r", "\x00", "\xff", "x", "-", "e", "1e400", "nan"]
+            ),
+            st.integers(0, 3),
+        ),
+        max_size=5,
+    ),
+)
+def test_damaged_csv_is_read_or_one_line(tmp_path, c, edits):
+    """Cells and bytes replaced, inserted or removed: the file is read or refused in one line."""
+    data = bytearray(_csv_text(c))
+    for where, text, cut in edits:
+        i = min(int(where * len(data)), len(data))
+        data[i : i + cut] = text.encode("latin-1")
+    path = tmp_path / "d.csv"
+    path.write_bytes(bytes(data))
+    try:
+        read_input(InputSpec(path=path))
+    except ImupipeError as exc:
+        assert "\n" not in str(exc)

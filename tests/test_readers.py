@@ -18,7 +18,7 @@ from imupipe.pipeline.errors import ReadError
 from imupipe.pipeline.simulate import write_log
 from imupipe.readers.dispatch import iter_input, read_input
 from imupipe.readers.spec import InputSpec
-from imupipe.readers.table import COV, make_table, sensor
+from imupipe.readers.table import COV, make_table, metadata, sensor
 
 from helpers import decode_mcap
 
@@ -359,3 +359,179 @@ def test_split_logs_in_a_folder_join_in_time_order(written, tmp_path, suffix):
     got, warnings = read_input(InputSpec(path=folder))
     assert warnings == []
     assert got.equals(tables["log" + suffix][0])
+
+
+def _promised_order(table: pa.Table, time: str) -> np.ndarray:
+    """The row order the readers promise, computed directly: per stream, log order, then
+    stably by the chosen time; then the streams merged stably by time (imu, mag, temperature
+    first at equal times). Rows of ``table`` are given in file order per stream."""
+    log = table.column("log_time_ns").to_numpy()
+    t = table.column("t_ns").to_numpy() if time == "header" else log
+    parts = []
+    for key in ("gyro_x", "mag_x", "temperature"):
+        rows = np.flatnonzero(pa.compute.is_valid(table.column(key)).to_numpy())
+        rows = rows[np.argsort(log[rows], kind="stable")]
+        parts.append(rows[np.argsort(t[rows], kind="stable")])
+    rows = np.concatenate(parts)
+    return rows[np.argsort(t[rows], kind="stable")]
+
+
+def _write_order(table, path, order: str, rng) -> pa.Table:
+    """Write ``table``'s messages to an MCAP in one of four layouts; returns the table with its
+    rows in the file's order per topic (what the readers see)."""
+    from mcap.writer import CompressionType, Writer
+
+    from imupipe.pipeline.mcap_writer import encode_stream, msgdef
+
+    log = table.column("log_time_ns").to_numpy()
+    if order == "imupipe":  # imupipe's writer: chunks of one topic each, by first log time
+        from imupipe.pipeline.mcap_writer import write_mcap
+
+        write_mcap(path, table, chunk_bytes=2000)
+        return table
+    messages = []  # (row, channel, payload)
+    with open(path, "wb") as fh:
+        w = Writer(fh, compression=CompressionType.ZSTD, chunk_size=3000)
+        w.start(profile="ros2")
+        for stream, typ in (
+            ("imu", "sensor_msgs/msg/Imu"),
+            ("mag", "sensor_msgs/msg/MagneticField"),
+            ("temperature", "sensor_msgs/msg/Temperature"),
+        ):
+            schema = w.register_schema(typ, "ros2msg", msgdef(typ).encode())
+            cid = w.register_channel(f"/{stream}", "cdr", schema)
+            rows, groups = encode_stream(table, stream)
+            for sel, payloads in groups:
+                messages += [
+                    (rows[i], cid, p.tobytes()) for i, p in zip(sel, payloads, strict=True)
+                ]
+        if order == "log":  # one chunk stream, every topic interleaved (rosbag record)
+            messages.sort(key=lambda m: log[m[0]])
+        elif order == "shuffled":  # chunks overlapping in time, messages out of log order
+            messages = [messages[i] for i in rng.permutation(len(messages))]
+        # "topics": each topic's messages after the other's (chunks of one topic each)
+        for row, cid, data in messages:
+            w.add_message(cid, log_time=int(log[row]), publish_time=int(log[row]), data=data)
+        w.finish()
+    return table.take(pa.array([m[0] for m in messages]))
+
+
+@pytest.mark.parametrize("layout", ["log", "topics", "imupipe", "shuffled"])
+@pytest.mark.parametrize("time", ["header", "log"])
+@pytest.mark.parametrize("jitter", [True, False])
+def test_streams_merge_in_the_promised_order(tmp_path, layout, time, jitter):
+    """Jittered and repeated header stamps (or stamps in order, with ties across topics),
+    repeated log times, chunks interleaved, per topic or shuffled: the table is the promised
+    order, field for field, and the out-of-order and repeated stamps are counted per topic."""
+    if layout == "imupipe" and jitter:
+        pytest.skip("imupipe's writer orders each (topic, frame_id) on its own: no file order here")
+    rng = np.random.default_rng(11)
+    table = multi_stream_table(seed=3)
+    table = table.filter(pa.compute.not_equal(table.column("frame_id"), "i"))  # 3 Imu frames
+    n = table.num_rows
+    t = table.column("t_ns").to_numpy().copy()
+    log = table.column("log_time_ns").to_numpy().copy()
+    if jitter:
+        t += rng.integers(-12_000_000, 12_000_000, n)
+        t[rng.choice(n, 30)] = t[rng.choice(n, 30)]
+        log[rng.choice(n, 20)] = log[rng.choice(n, 20)]
+    else:  # in order, one Imu frame_id, ties between topics at equal stamps
+        t = (t // 20_000_000) * 20_000_000
+        log = np.maximum.accumulate(log)
+        frames = pa.array(np.where(pa.compute.is_valid(table.column("gyro_x")), "imu", "m"))
+        table = table.set_column(table.schema.get_field_index("frame_id"), "frame_id", frames)
+    table = table.set_column(0, "t_ns", pa.array(t))
+    i = table.schema.get_field_index("log_time_ns")
+    table = table.set_column(i, "log_time_ns", pa.array(log))
+    in_file = _write_order(table, tmp_path / "m.mcap", layout, rng)
+    got, warnings = read_input(InputSpec(path=tmp_path / "m.mcap", time=time))
+    want = in_file.take(pa.array(_promised_order(in_file, time)))
+    if time == "log":
+        want = want.set_column(0, "t_ns", want.column("log_time_ns"))
+    assert got.num_rows == n
+    for name in want.column_names:
+        assert got.column(name).equals(want.column(name)), name
+    for name in ("gyro_x", "gyro_cov", "mag_y", "mag_cov", "temperature", "temperature_var"):
+        column = got.column(name).combine_chunks()
+        if isinstance(column, pa.FixedSizeListArray):
+            under = column.values.to_numpy().reshape(-1, 9)[column.is_null().to_numpy(False)]
+        else:
+            raw = np.frombuffer(column.buffers()[1], np.float64)[column.offset :][: len(column)]
+            under = raw[column.is_null().to_numpy(zero_copy_only=False)]
+        assert not np.any(under), f"{name}: values under nulls are not 0 (not deterministic)"
+    topics = metadata(got)["topics"]
+    for topic, key in ((topics["imu"], "gyro_x"), (topics["mag"], "mag_x")):
+        rows = np.flatnonzero(pa.compute.is_valid(in_file.column(key)).to_numpy())
+        file_log = in_file.column("log_time_ns").to_numpy()[rows]
+        file_t = file_log if time == "log" else in_file.column("t_ns").to_numpy()[rows]
+        file_t = file_t[np.argsort(file_log, kind="stable")]
+        moved = int(np.count_nonzero(np.argsort(file_t, kind="stable") != np.arange(len(rows))))
+        said = [w for w in warnings if f"topic {topic}: " in w and "out of" in w]
+        assert said == (
+            [
+                f"{tmp_path / 'm.mcap'} topic {topic}: {moved} messages out of {time} time order; sorted stably (none dropped)"
+            ]
+            if moved
+            else []
+        )
+
+
+@pytest.mark.parametrize("sizes", [(2000, 3, 0), (600, 150, 3), (50, 900, 40), (1, 1, 1)])
+def test_merge_rows_and_spread_equal_a_stable_sort(sizes):
+    """The merge behind multi-topic reads (both of its ways of counting) and the in-place
+    spread (run by run, block by block) against numpy's stable sort of the streams in order."""
+    from imupipe.readers import table_buffer as tb
+
+    rng = np.random.default_rng(sum(sizes))
+    times = [np.sort(rng.integers(0, 300, k)) for k in sizes]
+    rows = tb._merge_rows(times)
+    order = np.argsort(np.concatenate(times), kind="stable")
+    expected = np.empty(len(order), np.int64)
+    expected[order] = np.arange(len(order))
+    np.testing.assert_array_equal(np.concatenate(rows), expected)
+    big = int(np.argmax(sizes))
+    n = sum(sizes)
+    for shape in ((n,), (n, 9)):
+        values = rng.normal(size=(sizes[big],) + shape[1:])
+        column = np.zeros(shape)
+        column[: sizes[big]] = values
+        tb._spread([column], rows[big])
+        np.testing.assert_array_equal(column[rows[big]], values)
+
+
+def test_prefault_maps_a_bounded_distance_ahead_and_stops():
+    """The page-mapping helper maps at most AHEAD_ROWS past the filled rows (a log that states
+    a wrong, huge message count costs no memory for it), changes no value, and its thread ends
+    on close or when its owner is dropped."""
+    import gc
+    import time
+
+    from imupipe.readers import prefault
+
+    if prefault._madvise is None:
+        pytest.skip("no madvise here")
+
+    def rss() -> int:
+        with open("/proc/self/status") as fh:
+            return next(int(line.split()[1]) * 1024 for line in fh if line.startswith("VmRSS"))
+
+    rows = 8 * prefault.AHEAD_ROWS  # 2 M rows x 80 bytes: 168 MB if all were mapped
+    arrays = [np.zeros(rows), np.zeros((rows, 9))]
+    before = rss()
+    helper = prefault.Prefault(arrays)
+    helper.advance(0)
+    deadline = time.monotonic() + 20
+    while rss() - before < 0.9 * prefault.AHEAD_ROWS * 80 and time.monotonic() < deadline:
+        time.sleep(0.01)
+    time.sleep(0.2)
+    grown = rss() - before
+    assert 0.9 * prefault.AHEAD_ROWS * 80 <= grown < 2 * prefault.AHEAD_ROWS * 80, grown
+    helper.close()
+    assert not helper.thread.is_alive()
+    assert not arrays[1].any()
+    dropped = prefault.Prefault([np.zeros(rows)])
+    thread = dropped.thread
+    del dropped
+    gc.collect()
+    thread.join(timeout=5)
+    assert not thread.is_alive()

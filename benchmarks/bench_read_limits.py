@@ -1,0 +1,192 @@
+"""Benchmark (issue 17 item 3): MCAP reads against the decompression + CRC limit.
+
+Measured in one run, on the same files:
+
+- **limit**: every chunk of the file read, zstd-decompressed and CRC-checked, nothing else, in
+  one thread; a read that decodes the messages cannot be faster on one core;
+- **read**: ``imupipe.readers.mcap_reader.read_mcap`` of the whole file into the common table;
+  ratio read / limit (goal: <= 2.0) for 1 M and 5 M ``sensor_msgs/Imu`` messages at 400 Hz;
+- **multi-topic**: the same Imu messages plus a 1 Hz ``sensor_msgs/Temperature`` topic in one
+  MCAP, read / Imu-only read (goal: <= 1.20);
+- **peak memory**: VmHWM growth of a fresh process reading the file, over the decoded table.
+
+Each side runs ``--repeat`` times, interleaved (the 2-core machine is shared); the best wall time
+counts. CPU time is reported too: the whole process (all threads) and the reading thread alone.
+The reading thread is the critical path when the helper threads (decompression, page mapping)
+find a free core; ``max(reading thread, process / 2)`` is what the read would take on two idle
+cores, printed as the "idle estimate". ``--load K`` starts K busy processes for the run, to
+measure on a loaded machine on purpose.
+
+    python benchmarks/bench_read_limits.py [--n 1000000 5000000] [--repeat 3] [--load 0]
+"""
+
+from __future__ import annotations
+
+import argparse
+import multiprocessing
+import os
+import struct
+import tempfile
+import time
+import zlib
+from pathlib import Path
+
+import numpy as np
+from bench_read_write import memory
+
+RATE_HZ = 400.0
+
+
+def make_table(n: int, temperature_hz: float | None = None):
+    """n Imu messages at 400 Hz, random values, one frame_id; optionally a Temperature stream
+    at ``temperature_hz`` interleaved in time (its own rows, as a bag's messages are)."""
+    import pyarrow as pa
+
+    from imupipe.readers.table import make_table as mk
+
+    rng = np.random.default_rng(0)
+    t = 1_700_000_000_000_000_000 + np.round(np.arange(n) * 1e9 / RATE_HZ).astype(np.int64)
+    gyro = rng.normal(0, 0.01, (n, 3))
+    accel = rng.normal(0, 0.1, (n, 3)) + [0, 0, 9.81]
+    if temperature_hz is None:
+        return mk(
+            t,
+            gyro=gyro,
+            accel=accel,
+            extra={"frame_id": pa.array(np.full(n, "imu_link"))},
+            metadata={"topics": {"imu": "/imu/data"}},
+        )
+    m = int(n / RATE_HZ * temperature_hz)
+    tt = t[0] + np.round((np.arange(m) + 0.5) * 1e9 / temperature_hz).astype(np.int64)
+    t_all = np.concatenate([t, tt])
+    order = np.argsort(t_all, kind="stable")
+    k = n + m
+    imu = order < n
+    g = np.zeros((k, 3))
+    a = np.zeros((k, 3))
+    g[imu], a[imu] = gyro[order[imu]], accel[order[imu]]
+    temp = np.zeros(k)
+    temp[~imu] = 25 + rng.normal(0, 0.1, m)
+    return mk(
+        t_all[order],
+        gyro=g,
+        accel=a,
+        temperature=temp,
+        valid={"imu": imu, "temperature": ~imu},
+        extra={"frame_id": pa.array(np.full(k, "imu_link"))},
+        metadata={"topics": {"imu": "/imu/data", "temperature": "/imu/temperature"}},
+    )
+
+
+def limit(path: Path) -> int:
+    """Read every chunk record, decompress it and check its CRC; returns the bytes produced."""
+    import zstandard
+
+    total = 0
+    dctx = zstandard.ZstdDecompressor()
+    with open(path, "rb") as fh:
+        fh.seek(8)
+        while True:
+            head = fh.read(9)
+            if len(head) < 9:
+                break
+            op, length = head[0], int.from_bytes(head[1:9], "little")
+            if op == 0x0F:  # data end
+                break
+            body = fh.read(length)
+            if op != 0x06:
+                continue
+            usize, crc = struct.unpack_from("<QI", body, 16)
+            (clen,) = struct.unpack_from("<I", body, 28)
+            compression = body[32 : 32 + clen]
+            (dlen,) = struct.unpack_from("<Q", body, 32 + clen)
+            data = memoryview(body)[40 + clen : 40 + clen + dlen]
+            raw = dctx.decompress(data, max_output_size=usize) if compression else bytes(data)
+            if crc and zlib.crc32(raw) != crc:
+                raise SystemExit(f"{path}: CRC mismatch")
+            total += len(raw)
+    return total
+
+
+def ours(path: Path) -> int:
+    from imupipe.readers.mcap_reader import read_mcap
+    from imupipe.readers.spec import InputSpec
+
+    table, _ = read_mcap(InputSpec(path=path))
+    return table.num_rows
+
+
+def timed(fn, path: Path) -> tuple[float, float, float]:
+    """(wall, process CPU, this thread's CPU) seconds of ``fn(path)``."""
+    wall, cpu, thread = time.perf_counter(), time.process_time(), time.thread_time()
+    fn(path)
+    return (
+        time.perf_counter() - wall,
+        time.process_time() - cpu,
+        time.thread_time() - thread,
+    )
+
+
+def _burn() -> None:
+    while True:
+        pass
+
+
+def _fmt(runs: list[tuple[float, float, float]]) -> str:
+    return ", ".join(f"{w:.2f}/{c:.2f}/{m:.2f}" for w, c, m in runs)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--n", type=int, nargs="+", default=[1_000_000, 5_000_000])
+    parser.add_argument("--repeat", type=int, default=3)
+    parser.add_argument("--load", type=int, default=0, help="busy processes during the run")
+    parser.add_argument("--keep", type=Path, default=None)
+    args = parser.parse_args()
+
+    from imupipe.pipeline.mcap_writer import write_mcap
+
+    work = args.keep or Path(tempfile.mkdtemp(prefix="imupipe-limits-"))
+    work.mkdir(parents=True, exist_ok=True)
+    for n in args.n:
+        if not (work / f"imu_{n}.mcap").exists():
+            write_mcap(work / f"imu_{n}.mcap", make_table(n))
+        if not (work / f"imu_temp_{n}.mcap").exists():
+            write_mcap(work / f"imu_temp_{n}.mcap", make_table(n, temperature_hz=1.0))
+    burners = [multiprocessing.Process(target=_burn, daemon=True) for _ in range(args.load)]
+    for p in burners:
+        p.start()
+    try:
+        print(f"load average before: {os.getloadavg()[0]:.2f}; busy processes added: {args.load}")
+        for n in args.n:
+            imu_only, multi = work / f"imu_{n}.mcap", work / f"imu_temp_{n}.mcap"
+            runs: dict[str, list[tuple[float, float, float]]] = {"lim": [], "read": [], "multi": []}
+            for _ in range(args.repeat):  # interleaved: the load changes under us
+                runs["lim"].append(timed(limit, imu_only))
+                runs["read"].append(timed(ours, imu_only))
+                runs["multi"].append(timed(ours, multi))
+            lim, read, mul = (min(r[0] for r in runs[k]) for k in ("lim", "read", "multi"))
+            lim_cpu = min(r[1] for r in runs["lim"])
+            idle = min(max(m, c / 2) for _, c, m in runs["read"])
+            mem = memory(imu_only)
+            growth = (mem["peak"] - mem["base"]) / mem["table"]
+            print(
+                f"{n:>9,} Imu ({imu_only.stat().st_size / 1e6:.0f} MB): limit {lim:.2f} s, "
+                f"read {read:.2f} s -> {read / lim:.2f}x the limit (goal <= 2); idle estimate "
+                f"{idle:.2f} s -> {idle / lim_cpu:.2f}x; +1 Hz Temperature {mul:.2f} s -> "
+                f"{mul / read:.2f}x Imu-only (goal <= 1.20); peak growth "
+                f"{(mem['peak'] - mem['base']) / 1e6:.0f} MB = {growth:.2f}x the "
+                f"{mem['table'] / 1e6:.0f} MB table"
+            )
+            for k, label in (("lim", "limit"), ("read", "read"), ("multi", "multi")):
+                print(
+                    f"          {label:5s} wall/process CPU/reading thread CPU (s): {_fmt(runs[k])}"
+                )
+        print(f"load average after: {os.getloadavg()[0]:.2f}")
+    finally:
+        for p in burners:
+            p.kill()
+
+
+if __name__ == "__main__":
+    main()
