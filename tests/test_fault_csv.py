@@ -92,11 +92,6 @@ def test_damaged_rows_keep_the_contract(text):
     _contract(text)
 
 
-@pytest.mark.xfail(
-    reason="lands from the readers branch (e.g. a header cell emptied and a null cell: "
-    "TypeError in csv_reader._column); not strict: hypothesis may miss it in a short run",
-    strict=False,
-)
 @settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(damaged())
 def test_damaged_csvs_keep_the_contract(text):
