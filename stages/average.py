@@ -1,4 +1,5 @@
-"""``average`` stage: block means of every sensor (seed 000's ``ImuDataSum``).
+"""``average`` stage: block means of every sensor (``ImuDataSum`` of the MATLAB example in the
+Chinese article "【IMU】温度零偏标定" on IMU temperature bias calibration).
 
 Model: each block of ``window`` samples (or ``window_s`` seconds) is replaced by its mean; the
 trailing partial block is averaged too; block times are block centres. Units are those of the
@@ -26,7 +27,8 @@ class AverageStage(Stage):
     @dataclass
     class Options:
         window: int | None = None
-        """Samples per block (seed 000 uses 500)."""
+        """Samples per block (500 when neither ``window`` nor ``window_s`` is given, as the
+        MATLAB example of the temperature-calibration method)."""
         window_s: float | None = None
         """Seconds per block (instead of ``window``)."""
         write_csv: bool = False

@@ -111,7 +111,8 @@ class MagCalibrationStage(Stage):
         thinning_cells: int = 200
         """Equal-area direction cells for thinning."""
         thinning_max_per_cell: int | None = None
-        """Cap per cell; default twice the median count of the occupied cells (at least 2)."""
+        """Cap per cell, samples; default ``max(2 m, m + 4 sqrt(m) + 2)``, m the median count of
+        the occupied cells (an orientation held for long then weighs like a typical one)."""
         outlier_k: float | None = 3.0
         """Reject samples whose residual is beyond k robust sigmas (1.4826 MAD); None: keep all."""
         outlier_iterations: int = 3

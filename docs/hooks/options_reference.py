@@ -8,7 +8,12 @@ drift from the code: a key added to a stage appears here with its docstring.
 
 from __future__ import annotations
 
+import dataclasses
+import json
 import re
+import types
+import typing
+from typing import Any
 
 from imupipe.readers.spec import CsvMapping
 from imupipe.stages.options_doc import option_docs
@@ -16,20 +21,68 @@ from imupipe.stages.registry import stage_class
 
 MARKER = re.compile(r"^<!-- options: ([a-z_]+) -->$", re.MULTILINE)
 HIDDEN = {"required"}  # set by the config parser, not a user key
+ROLE = re.compile(r":(?:func|class|data|attr|meth|mod):`~?([^`]+)`")
+
+
+def options_class(name: str) -> type:
+    """The dataclass whose fields are the keys of ``name`` (a stage type, or ``csv``)."""
+    return CsvMapping if name == "csv" else stage_class(name).Options
+
+
+def type_text(hint: Any) -> str:
+    """A type as a reader of TOML sees it: ``"auto" or bool``, ``list of float or none``."""
+    origin = typing.get_origin(hint)
+    args = typing.get_args(hint)
+    if origin is typing.Literal:
+        return " or ".join(f'"{a}"' if isinstance(a, str) else repr(a) for a in args)
+    if origin in (typing.Union, types.UnionType):
+        return " or ".join(type_text(a) for a in args)
+    if hint is type(None):
+        return "none"
+    if origin is list:
+        if not args:
+            return "list"
+        inner = type_text(args[0])
+        return f"list of ({inner})" if " or " in inner else f"list of {inner}"
+    if origin is dict:
+        return "table" if not args else f"table of {type_text(args[1])}"
+    if hint is Any:
+        return "any"
+    if hint is dict:
+        return "table"
+    return {"str": "string", "float": "float", "int": "integer", "bool": "bool"}.get(
+        getattr(hint, "__name__", ""), str(hint)
+    )
+
+
+def default_text(f: dataclasses.Field) -> str:
+    """A field's default as it would be written in TOML; ``(required)`` or ``none``."""
+    if f.default is not dataclasses.MISSING:
+        value = f.default
+    elif f.default_factory is not dataclasses.MISSING:
+        value = f.default_factory()
+    else:
+        return "(required)"
+    return "none" if value is None else f"`{_cell(json.dumps(value))}`"
 
 
 def _cell(text: str) -> str:
+    text = ROLE.sub(lambda m: f"``{m.group(1).rsplit('.', 1)[-1]}``", text)
     return " ".join(text.split()).replace("|", "\\|")
 
 
 def options_table(name: str) -> str:
-    cls = CsvMapping if name == "csv" else stage_class(name).Options
+    cls = options_class(name)
+    hints = typing.get_type_hints(cls)
+    fields = {f.name: f for f in dataclasses.fields(cls)}
     rows = ["| key | type | default | meaning |", "|---|---|---|---|"]
     for opt in option_docs(cls):
         if opt.name in HIDDEN:
             continue
-        kind = " ".join(opt.type.split()).replace(" | ", " or ")
-        rows.append(f"| `{opt.name}` | {kind} | `{_cell(opt.default)}` | {_cell(opt.doc)} |")
+        rows.append(
+            f"| `{opt.name}` | {type_text(hints[opt.name])} | {default_text(fields[opt.name])} "
+            f"| {_cell(opt.doc)} |"
+        )
     return "\n".join(rows)
 
 
