@@ -120,8 +120,9 @@ class MagCalibrationStage(Stage):
         min_samples: int = 20
         """Fewer magnetometer samples than this are refused."""
         min_spread: float = 0.02
-        """Smallest eigenvalue of the covariance of the field directions (1/3: all orientations;
-        ~0: planar); below it the data is refused."""
+        """Smallest eigenvalue of the covariance of the field directions (1/3: all orientations,
+        0.083: a hemisphere, ~0.003: a cap of +-35 deg, ~0: planar); below it the data is
+        refused."""
         max_offset: float = 10.0
         """Largest accepted hard iron, in multiples of the field radius."""
         soft_iron_range: list[float] = field(default_factory=lambda: [0.5, 2.0])

@@ -83,6 +83,12 @@ OWNED_ELSEWHERE = {
 }
 
 
+QUOTED_OLD_VALUES = {
+    # the value 0.1 accepted, quoted so that users of 0.1 find what it became
+    "docs/changes.md": ['model = "seed000"'],
+}
+
+
 def _shipped_ids() -> list[str]:
     return [str(p.relative_to(ROOT)) for p in SHIPPED]
 
@@ -98,6 +104,8 @@ def _shipped_ids() -> list[str]:
 )
 def test_no_internal_words(rel: str) -> None:
     text = (ROOT / rel).read_text(encoding="utf-8")
+    for quoted in QUOTED_OLD_VALUES.get(rel, []):
+        text = text.replace(quoted, "")
     found = [
         f"line {text.count(chr(10), 0, m.start()) + 1}: {m.group(0)!r}"
         for m in INTERNAL.finditer(text)
