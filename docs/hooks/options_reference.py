@@ -45,7 +45,7 @@ def type_text(hint: Any) -> str:
         inner = type_text(args[0])
         return f"list of ({inner})" if " or " in inner else f"list of {inner}"
     if origin is dict:
-        return "table" if not args else f"table of {type_text(args[1])}"
+        return "table" if not args or args[1] is Any else f"table of {type_text(args[1])}"
     if hint is Any:
         return "any"
     if hint is dict:
