@@ -4,7 +4,8 @@ Chinese article "【IMU】温度零偏标定" on IMU temperature bias calibratio
 Model: each block of ``window`` samples (or ``window_s`` seconds) is replaced by its mean; the
 trailing partial block is averaged too; block times are block centres. Units are those of the
 input (SI). An analysis stage: it adds nothing to the calibration chain. The block means of each
-sensor go to Rerun under ``/<name>/<sensor>`` and, with ``write_csv``, to ``<name>_<input>.csv``.
+sensor go to Rerun under ``/<name>/<sensor>`` and, with ``write_csv``, to
+``<name>_<input>_<sensor>.csv``.
 """
 
 from __future__ import annotations
@@ -32,7 +33,8 @@ class AverageStage(Stage):
         window_s: float | None = None
         """Seconds per block (instead of ``window``)."""
         write_csv: bool = False
-        """Also write the block means as ``<name>_<input>.csv`` (t_ns + SI columns)."""
+        """Also write each sensor's block means as ``<name>_<input>_<sensor>.csv`` (t_ns + SI
+        columns)."""
 
     def fit(self, table: pa.Table, ctx: StageContext) -> StageOutput:
         opts = self.options
