@@ -8,7 +8,7 @@ drift from the code: a key added to a stage appears here with its docstring.
 
 from __future__ import annotations
 
-import dataclasses
+import ast
 import json
 import re
 import types
@@ -55,15 +55,15 @@ def type_text(hint: Any) -> str:
     )
 
 
-def default_text(f: dataclasses.Field) -> str:
-    """A field's default as it would be written in TOML; ``(required)`` or ``none``."""
-    if f.default is not dataclasses.MISSING:
-        value = f.default
-    elif f.default_factory is not dataclasses.MISSING:
-        value = f.default_factory()
-    else:
-        return "(required)"
-    return "none" if value is None else f"`{_cell(json.dumps(value))}`"
+def default_text(default: str) -> str:
+    """An option's default (as ``option_docs`` gives it) as it would be written in TOML."""
+    if default == "(none)":
+        return "none"
+    if default == "(required)":
+        return default
+    if default[:1] in "[{":  # Python's repr of a list or table: TOML's quotes
+        default = json.dumps(ast.literal_eval(default))
+    return f"`{_cell(default)}`"
 
 
 def _cell(text: str) -> str:
@@ -74,13 +74,12 @@ def _cell(text: str) -> str:
 def options_table(name: str) -> str:
     cls = options_class(name)
     hints = typing.get_type_hints(cls)
-    fields = {f.name: f for f in dataclasses.fields(cls)}
     rows = ["| key | type | default | meaning |", "|---|---|---|---|"]
     for opt in option_docs(cls):
         if opt.name in HIDDEN:
             continue
         rows.append(
-            f"| `{opt.name}` | {type_text(hints[opt.name])} | {default_text(fields[opt.name])} "
+            f"| `{opt.name}` | {type_text(hints[opt.name])} | {default_text(opt.default)} "
             f"| {_cell(opt.doc)} |"
         )
     return "\n".join(rows)
