@@ -1,4 +1,4 @@
-"""The TOML config (docs: reference/config.md), parsed and validated into dataclasses.
+"""The TOML config (see ``docs/reference/config.md``), parsed and validated into dataclasses.
 
 Every problem is a :class:`ConfigError` naming the file and the key: broken TOML, unknown keys
 (never ignored), wrong types, missing files, unknown inputs or stage types. Paths are relative to

@@ -219,17 +219,25 @@ class AccelCalibrationStage(Stage):
     @dataclass
     class Options(StaticSetup):
         method: Literal["six_position", "lm", "frank_wolfe", "ferraris"] = "lm"
+        """How the model is solved: ``lm`` (Levenberg-Marquardt on the pose means, 9 or 6
+        parameters as ``misalignment`` says), ``six_position`` (per axis ``b = (max + min) / 2``,
+        ``k = 2g / (max - min)``: needs every face, no misalignment), ``frank_wolfe`` (the same
+        model by the conditional-gradient method of Xiangtan University's patent; slower, for
+        comparison) or ``ferraris`` (Ferraris et al. 1995 as imucal computes it, from six labelled
+        faces and three labelled turns; also fits the gyroscope)."""
         gravity: float = 9.80665
         """Local g, m/s^2."""
         fit_on: Literal["means", "samples"] = "means"
         """Fit on the static-interval means, or on up to ``samples_per_interval`` samples from the
         middle of each interval (imu_tk's acc_use_means = false)."""
         samples_per_interval: int = 100
+        """With ``fit_on = "samples"``: samples taken from the middle of each interval."""
         fw_box: list[float] = field(default_factory=lambda: [0.05, 0.05, 0.05])
         """Frank-Wolfe box half-widths around the start: relative scale, angles (rad), bias
         (relative to g); a half-width the solution ends on is doubled and the problem solved
         again (up to 8 times)."""
         fw_max_iter: int = 20000
+        """Frank-Wolfe: iterations allowed per solve."""
         fw_gap_rtol: float = 1e-2
         """Frank-Wolfe stops when its duality gap is below this fraction of the cost."""
         ferraris_parts: dict[str, Any] | None = None

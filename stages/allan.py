@@ -103,13 +103,19 @@ class AllanStage(Stage):
     @dataclass
     class Options:
         kind: Literal["oadev", "adev", "mdev", "hdev", "ohdev", "totdev"] = "oadev"
-        """Deviation: oadev (overlapping Allan, default), adev, mdev, hdev, ohdev, totdev."""
+        """Deviation shown and written: oadev (overlapping Allan), adev, mdev (modified), hdev
+        (Hadamard), ohdev (overlapping Hadamard), totdev (total). The five-term model is the Allan
+        variance's, so with mdev, hdev, ohdev or totdev it is fitted on the OADEV at the same
+        taus (also written)."""
         taus: Literal["auto", "log", "octave", "decade", "all"] = "auto"
         """Tau grid: auto (octaves, refined to thirds of an octave where the curve bends), log
         (``points_per_decade`` per decade), octave, decade, all."""
         points_per_decade: int = 10
+        """Taus per decade with ``taus = "log"``."""
         terms: list[str] = field(default_factory=lambda: list(TERMS))
-        """Model terms to fit (subset of Q, N, B, K, R); unsupported ones come out zero."""
+        """Model terms to fit (subset of Q, N, B, K, R); a term the curve does not support comes
+        out zero. K, when listed, is always fitted (it may come out zero, with its 68 %
+        interval)."""
         penalty: float = 10.0
         """Information-criterion cost of one more term (log-space weighted residual units)."""
         model_error: float = 0.05

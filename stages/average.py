@@ -1,9 +1,11 @@
-"""``average`` stage: block means of every sensor (seed 000's ``ImuDataSum``).
+"""``average`` stage: block means of every sensor (``ImuDataSum`` of the MATLAB example in the
+Chinese article "【IMU】温度零偏标定" on IMU temperature bias calibration).
 
 Model: each block of ``window`` samples (or ``window_s`` seconds) is replaced by its mean; the
 trailing partial block is averaged too; block times are block centres. Units are those of the
 input (SI). An analysis stage: it adds nothing to the calibration chain. The block means of each
-sensor go to Rerun under ``/<name>/<sensor>`` and, with ``write_csv``, to ``<name>_<input>.csv``.
+sensor go to Rerun under ``/<name>/<sensor>`` and, with ``write_csv``, to
+``<name>_<input>_<sensor>.csv``.
 """
 
 from __future__ import annotations
@@ -26,11 +28,13 @@ class AverageStage(Stage):
     @dataclass
     class Options:
         window: int | None = None
-        """Samples per block (seed 000 uses 500)."""
+        """Samples per block (500 when neither ``window`` nor ``window_s`` is given, as the
+        MATLAB example of the temperature-calibration method)."""
         window_s: float | None = None
         """Seconds per block (instead of ``window``)."""
         write_csv: bool = False
-        """Also write the block means as ``<name>_<input>.csv`` (t_ns + SI columns)."""
+        """Also write each sensor's block means as ``<name>_<input>_<sensor>.csv`` (t_ns + SI
+        columns)."""
 
     def fit(self, table: pa.Table, ctx: StageContext) -> StageOutput:
         opts = self.options

@@ -1,4 +1,5 @@
-"""Block averaging (seed 000's ``ImuDataSum``).
+"""Block averaging (``ImuDataSum`` of the MATLAB example in the Chinese article "【IMU】温度零偏标定"
+on IMU temperature bias calibration).
 
 The samples are cut into consecutive blocks of ``window`` samples (or of ``window_s`` seconds of
 timestamps); each block is replaced by its mean. The trailing partial block is averaged too (as

@@ -66,6 +66,10 @@ class GyroCalibrationStage(Stage):
     @dataclass
     class Options(StaticSetup):
         method: Literal["static_poses", "turntable", "rotations"] = "static_poses"
+        """``static_poses`` (the rotations between the still poses of a multi-position session
+        carry one pose's gravity direction onto the next: Tedaldi et al., ICRA 2014),
+        ``turntable`` (runs at +rate and -rate about each axis, ``runs``) or ``rotations`` (one
+        full turn about each axis, ``segments``, as imucal's Ferraris method)."""
         gravity: float = 9.80665
         """static_poses: local g, m/s^2 (only used to choose the static threshold)."""
         misalignment: Literal["auto"] | bool = "auto"

@@ -111,7 +111,8 @@ class MagCalibrationStage(Stage):
         thinning_cells: int = 200
         """Equal-area direction cells for thinning."""
         thinning_max_per_cell: int | None = None
-        """Cap per cell; default twice the median count of the occupied cells (at least 2)."""
+        """Cap per cell, samples; default ``max(2 m, m + 4 sqrt(m) + 2)``, m the median count of
+        the occupied cells (an orientation held for long then weighs like a typical one)."""
         outlier_k: float | None = 3.0
         """Reject samples whose residual is beyond k robust sigmas (1.4826 MAD); None: keep all."""
         outlier_iterations: int = 3
@@ -119,8 +120,9 @@ class MagCalibrationStage(Stage):
         min_samples: int = 20
         """Fewer magnetometer samples than this are refused."""
         min_spread: float = 0.02
-        """Smallest eigenvalue of the covariance of the field directions (1/3: all orientations;
-        ~0: planar); below it the data is refused."""
+        """Smallest eigenvalue of the covariance of the field directions (1/3: all orientations,
+        0.083: a hemisphere, ~0.003: a cap of +-35 deg, ~0: planar); below it the data is
+        refused."""
         max_offset: float = 10.0
         """Largest accepted hard iron, in multiples of the field radius."""
         soft_iron_range: list[float] = field(default_factory=lambda: [0.5, 2.0])

@@ -109,6 +109,12 @@ class TemperatureStage(Stage):
         sensor: Literal["gyro", "accel"] = "gyro"
         """Which sensor to compensate (every axis)."""
         model: Literal["poly", "lag", "six_term", "piecewise", "stepwise"] = "poly"
+        """The bias model: ``poly`` (a polynomial in T, its order and the ``dT`` term chosen by
+        AICc), ``lag`` (a polynomial in the sensing element's temperature Ts, a first-order lag
+        of T whose time constant is fitted), ``six_term`` (``a1 T^2 + a2 T + a3 dT^2 + a4 dT +
+        a5 T dT + a6``, the MATLAB example of the temperature-calibration method), ``piecewise``
+        (linear per temperature segment plus ``k_dt x dT``, the gyro patent's model) or
+        ``stepwise`` (terms in T, dT and the ambient Ta, dTa chosen by stepwise regression)."""
         order: int | None = None
         """poly, lag: polynomial order (0..5); default: chosen per axis by the data (0..3).
         stepwise: highest power of T offered (default 3)."""
@@ -124,20 +130,28 @@ class TemperatureStage(Stage):
         window_s: float | None = None
         """Seconds per block (default 10 s when neither is given)."""
         bin_width: float = 1.0
-        """degC; temperature bins for weighting (0: every block weighs by its samples only)."""
+        """degC; blocks are weighted by their sample count / the blocks in the same temperature
+        bin and direction (heating, cooling), so slow stretches and long soaks do not outweigh
+        fast ones; 0: by the sample count only."""
         segment_width: float = 10.0
         """piecewise: degC between knots."""
         criterion: Literal["f_test", "adj_r2"] = "f_test"
-        """stepwise: how terms are chosen."""
+        """stepwise: how terms are chosen, ``f_test`` (forward-backward by the F-test's p-value,
+        ``alpha_in``/``alpha_out``) or ``adj_r2`` (while the adjusted R^2 rises)."""
         alpha_in: float = 0.05
+        """stepwise, f_test: a term enters when its p-value is below this."""
         alpha_out: float = 0.10
+        """stepwise, f_test: a term leaves when its p-value rises above this."""
         reference: list[float] | None = None
         """The true sensor output during the recording (3 values, SI); default zero for a gyro,
         gravity along the mean specific force for an accelerometer."""
         validate: str | None = None
-        """An input to evaluate the fitted correction on (held out from the fit)."""
+        """An input to evaluate the fitted correction on (held out from the fit, as corrected by
+        the stages before); a correction that raises its temperature-driven variation on an axis
+        fails a quality check."""
         write_blocks: bool = False
-        """Also write the block means used by the fit as ``<name>_blocks.csv``."""
+        """Also write the fit's data (block bias, T, dT [, Ts, dTs], samples, weight) as
+        ``<name>_blocks.csv``."""
         turntable_rate: float | None = None
         """rad/s: the log holds turntable runs at +rate and -rate (gyro only; the gyro patent's
         method); fit the scale factor of each turned axis against temperature; blocks with

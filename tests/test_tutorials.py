@@ -32,7 +32,7 @@ def run_commands(block: str, cwd: Path) -> None:
 def test_ros_bag_to_imu_yaml(tmp_path):
     page = "ros-bag-to-imu-yaml.md"
     run_commands(blocks(page, "bash")[0], tmp_path)
-    (config,) = blocks(page, "toml")
+    config = blocks(page, "toml")[0]
     (tmp_path / "allan.toml").write_text(config)
     proc = run_cli("run", "allan.toml", cwd=tmp_path)
     assert proc.returncode == 0, proc.stderr
@@ -80,3 +80,44 @@ def test_magnetometer_tumble(tmp_path):
     m = m["mag_calibration"]["metrics"]
     assert round(m["norm_std_pct"], 2) == 6.19 and round(m["unexplained_pct"], 1) == 1.7
     assert round(m["noise"]) == 64
+
+
+def test_multi_position_session(tmp_path):
+    """The figures the multi-position tutorial quotes (imu_tk's Xsens session, then a simulated
+    session against its truth)."""
+    page = "multi-position-session.md"
+    (tmp_path / "tests").symlink_to(REPO / "tests")
+    xsens, poses = blocks(page, "toml")
+    (tmp_path / "xsens.toml").write_text(xsens)
+    proc = run_cli("run", "xsens.toml", "--quiet", cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    doc = json.loads((tmp_path / "out_xsens" / "calibration.json").read_text())
+    accel, gyro = doc["results"]["accel_calibration"], doc["results"]["gyro_calibration"]
+    m = accel["metrics"]
+    assert (m["intervals"], m["poses"], m["threshold"]["k"]) == (40, 38, 4.0)
+    assert round(m["predicted_error_mg"], 3) == 0.143
+    assert round(m["residual_mg"]["means_rms"], 3) == 0.099
+    assert round(m["residual_mg"]["samples_rms"], 2) == 0.82
+    assert round(m["residual_mg"]["noise_per_sample"], 2) == 0.75
+    assert "9-parameter: AICc -672.8, residual 0.0988 mg" in accel["model"]["reason"]
+    assert "6-parameter: AICc -413.5, residual 3.44 mg" in accel["model"]["reason"]
+    assert round(1e3 * accel["misalignment_rad"]["zx"], 2) == 21.23
+    g = gyro["metrics"]
+    assert gyro["model"]["chosen"] == "9-parameter" and g["transitions"] == 37
+    assert round(g["gravity_direction_residual_deg"]["rms"], 2) == 0.48
+    assert round(g["gravity_direction_residual_deg"]["start_rms"], 2) == 3.25
+    assert all(2.09e-4 <= s < 2.10e-4 for s in gyro["scale"])
+    # the simulated session against its truth, to the digits of the table
+    run_commands(blocks(page, "bash")[3], tmp_path)
+    (tmp_path / "poses.toml").write_text(poses)
+    proc = run_cli("run", "poses.toml", "--quiet", cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    truth = json.loads((tmp_path / "poses.csv.truth.json").read_text())
+    doc = json.loads((tmp_path / "out_poses" / "calibration.json").read_text())
+    accel, gyro = doc["results"]["accel_calibration"], doc["results"]["gyro_calibration"]
+    assert truth["accel"]["scale"] == [1.02, 0.985, 1.01]
+    assert [round(v, 5) for v in accel["scale"]] == [1.02001, 0.98501, 1.00999]
+    assert [round(v, 5) for v in accel["misalignment_rad"].values()] == [0.00402, -0.00601, 0.008]
+    assert [round(v, 5) for v in accel["bias"]] == [0.14995, -0.10016, 0.19991]
+    assert [round(v, 5) for v in gyro["scale"]] == [1.01, 0.98995, 1.00497]
+    assert [round(v, 5) for v in gyro["bias"]] == [0.01, -0.02001, 0.00499]
