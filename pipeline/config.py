@@ -18,6 +18,7 @@ from pathlib import Path
 from typing import Any
 
 from imupipe.pipeline.errors import ConfigError
+from imupipe.pipeline.exports import EXPORTERS
 from imupipe.readers.spec import (
     ACCEL_UNITS,
     GYRO_UNITS,
@@ -31,8 +32,6 @@ from imupipe.stages.registry import STAGE_TYPES, stage_class
 INPUT_KEYS = {"path", "imu_topic", "mag_topic", "temperature_topic", "time", "csv"}
 CSV_KEYS = {f.name for f in dataclasses.fields(CsvMapping)} - {"required"}
 OUTPUT_KEYS = {"dir", "apply_to", "rerun", "rerun_max_points", "report", "exports"}
-EXPORT_NAMES = ("kalibr", "imu_utils", "vins", "openvins", "px4", "ardupilot")
-"""The files for other tools that ``[output] exports`` may name (``imupipe.pipeline.exports``)."""
 TOP_KEYS = {"inputs", "stages", "output"}
 
 INPUT_NAME = re.compile(r"^\w[\w.-]*$")
@@ -63,7 +62,7 @@ class OutputConfig:
     report: bool = True
     """Write ``report.html`` (plots and numbers of every stage, one self-contained file)."""
     exports: list[str] | None = None
-    """The files for other tools to write (names of :data:`EXPORT_NAMES`); None: the ROS and VIO
+    """The files for other tools to write (names of :data:`EXPORTERS`); None: the ROS and VIO
     ones (Kalibr, imu_utils, VINS, OpenVINS), plus PX4's when a step was fitted on a PX4 log.
     Kalibr's ``imu.yaml`` is written whenever an ``allan`` stage ran."""
 
@@ -373,9 +372,9 @@ def load_config(path: str | Path) -> Config:
         raise ConfigError(f"{path}: [output].report must be true or false")
     exports = out_raw.get("exports")
     if exports is not None and (
-        not isinstance(exports, list) or not all(e in EXPORT_NAMES for e in exports)
+        not isinstance(exports, list) or not all(e in EXPORTERS for e in exports)
     ):
-        raise ConfigError(f"{path}: [output].exports must be a list of: {', '.join(EXPORT_NAMES)}")
+        raise ConfigError(f"{path}: [output].exports must be a list of: {', '.join(EXPORTERS)}")
     output = OutputConfig(
         dir=out_dir,
         apply_to=apply_to,
