@@ -225,16 +225,15 @@ def _accel_calibration(r: dict[str, Any], s: StageSummary) -> None:
     if "means_rms" in res:
         text = _residual(res["means_rms"], res.get("means_max"), res.get("start_means_rms"), "mg")
         s.quality.append(("residual |a| - g of the pose means", text))
-        s.headline = (
-            f"residual {fmt(res['means_rms'], 3)} mg rms over {m.get('intervals', '?')} poses"
-        )
+        s.headline = f"residual {fmt(res['means_rms'], 3)} mg rms over {m.get('poses', '?')} poses"
     if "samples_rms" in res:
         s.quality.append(
             ("residual |a| - g of every still sample", f"{fmt(res['samples_rms'], 3)} mg rms")
         )
     if "intervals" in m:
+        text = f"{m['intervals']}, grouped into {m.get('poses', '?')} poses"
         s.quality.append(
-            ("still poses", f"{m['intervals']} ({m.get('distinct_poses', '?')} distinct)")
+            ("still intervals", f"{text} ({m.get('distinct_poses', '?')} distinct directions)")
         )
     if "condition_number" in u:
         s.quality.append(("condition number", fmt(u["condition_number"], 3)))
@@ -278,9 +277,20 @@ def _mag_calibration(r: dict[str, Any], s: StageSummary) -> None:
         s.quality.append(
             (
                 "samples used",
-                f"{m['samples_used']} of {m.get('samples', '?')} ({m.get('outliers', 0)} outliers)",
+                f"{m['samples_used']} of {m.get('samples', '?')} ({_dropped(m)})",
             )
         )
+
+
+def _dropped(m: dict[str, Any]) -> str:
+    """Where the samples a magnetometer fit did not use went: ``7 thinned, 6 outliers``."""
+    samples, thinned = m.get("samples"), m.get("samples_after_thinning")
+    parts = (
+        [f"{samples - thinned} thinned"]
+        if isinstance(samples, int) and isinstance(thinned, int)
+        else []
+    )
+    return ", ".join([*parts, f"{m.get('outliers', 0)} outliers"])
 
 
 def _temperature(r: dict[str, Any], s: StageSummary) -> None:

@@ -80,6 +80,39 @@ def test_missing_keys_and_unknown_stage_types_still_summarise():
     assert "| b | future_stage | q | - | 1 failed check(s) accepted |" in md
 
 
+def test_poses_and_samples_counted_as_the_metrics_count_them():
+    """imu_tk's Xsens session: 40 still intervals make 38 poses (two intervals turned by less than
+    2 deg), 14 distinct; the summary names each count for what it is. A magnetometer fit says
+    where the samples it did not use went: thinned (over-sampled orientations) and outliers."""
+    accel = {
+        "type": "accel_calibration",
+        "input": "xsens",
+        "metrics": {
+            "intervals": 40,
+            "poses": 38,
+            "distinct_poses": 14,
+            "residual_mg": {"means_rms": 0.0988, "means_max": 0.21, "start_means_rms": 3.95},
+        },
+        "warnings": [],
+    }
+    mag = {
+        "type": "mag_calibration",
+        "input": "icm",
+        "metrics": {
+            "samples": 300,
+            "samples_after_thinning": 293,
+            "samples_used": 287,
+            "outliers": 6,
+        },
+        "warnings": [],
+    }
+    a, m = summarise({"accel_calibration": accel, "mag_calibration": mag})
+    quality = dict(a.quality)
+    assert quality["still intervals"] == "40, grouped into 38 poses (14 distinct directions)"
+    assert a.headline == "residual 0.0988 mg rms over 38 poses"
+    assert dict(m.quality)["samples used"] == "287 of 300 (7 thinned, 6 outliers)"
+
+
 def test_terminal_table():
     from rich.console import Console
 
