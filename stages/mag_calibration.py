@@ -87,6 +87,11 @@ class SensorUnit:
         return f"{value:.4g} counts" if self.raw else f"{value * 1e6:.4g} uT"
 
 
+NORMALISED_PCT = 1e-4
+"""A field norm whose std is below this % of its mean was normalised before it was logged: even
+a 24-bit magnetometer's quantisation leaves more."""
+
+
 def norm_std_pct(values: np.ndarray) -> float:
     """Std of the vector norms in % of their mean."""
     norms = np.linalg.norm(values, axis=1)
@@ -143,6 +148,7 @@ class MagCalibrationStage(Stage):
         data = ctx.finite(sensor(table, "mag"), "magnetometer", minimum=o.min_samples)
         values = data.values
         unit = SensorUnit.of(table)
+        self._check_not_normalised(ctx, values, unit)
 
         try:
             sphere = ell.fit_sphere(values)
@@ -256,6 +262,22 @@ class MagCalibrationStage(Stage):
         lo_hi = o.soft_iron_range
         if len(lo_hi) != 2 or not 0 < lo_hi[0] < 1 < lo_hi[1]:
             raise ctx.fail(f"soft_iron_range must be [low < 1, high > 1], got {lo_hi}")
+
+    def _check_not_normalised(
+        self, ctx: StageContext, values: np.ndarray, unit: SensorUnit
+    ) -> None:
+        """A real magnetometer's norm varies by its noise at least (0.1 % and more); one that is
+        constant to :data:`NORMALISED_PCT` was scaled to one length before it was logged (some
+        drivers publish field directions), which removes the hard and soft iron to be fitted."""
+        spread = norm_std_pct(values)
+        ctx.check(
+            not spread < NORMALISED_PCT,
+            f"the magnetometer norm is constant: |h| = "
+            f"{unit.format(float(np.linalg.norm(values, axis=1).mean()))} on every sample "
+            f"(std {spread:.2g} % < {NORMALISED_PCT:g} %): the log holds field directions "
+            "normalised by the driver, from which no hard or soft iron can be fitted; log the "
+            "magnetometer's raw readings",
+        )
 
     def _check_spread(self, ctx: StageContext, spread: np.ndarray, where: str) -> None:
         ctx.check(

@@ -139,6 +139,21 @@ def test_failed_check_accepted_on_request(tumbles):
     assert out.step is not None and "max_offset" in ctx.failed_checks[0]
 
 
+def test_normalised_field_directions_are_refused(tumbles):
+    """A driver that publishes the field normalised (every sample scaled to one length, as the
+    SparkFun Razor of imu_tools' bag does at 100 uT) has thrown hard and soft iron away: the fit
+    would be the identity and say nothing. Refused with the figure; accepted on request."""
+    values = sensor(tumbles[0], "mag").values
+    unit = 1e-4 * values / np.linalg.norm(values, axis=1)[:, None]
+    table = make_table(sensor(tumbles[0], "mag").t_ns, mag=unit)
+    with pytest.raises(FitError, match=r"the magnetometer norm is constant: .* normalised"):
+        fit(table)
+    stage = MagCalibrationStage(MagCalibrationStage.Options())
+    ctx = StageContext(name="mag", input_name="sim", quiet=True, accept_failed_checks=True)
+    stage.fit(table, ctx)
+    assert ctx.failed_checks[0].startswith("the magnetometer norm is constant")
+
+
 def test_narrow_cone_refused():
     """Tilting by at most ~35 degrees: a cap of directions, refused by the spread check."""
     table, truth = simulate("mag", {"duration_s": 20.0}, seed=51)
