@@ -87,6 +87,9 @@ class SensorUnit:
         return f"{value:.4g} counts" if self.raw else f"{value * 1e6:.4g} uT"
 
 
+CONE_DEG = 30.0
+"""A raw field inside a cone this narrow (deg) about its mean direction, with the sphere through
+it beyond ``max_offset`` radii from zero: the sensor did not turn."""
 NORMALISED_PCT = 1e-4
 """A field norm whose std is below this % of its mean was normalised before it was logged: even
 a 24-bit magnetometer's quantisation leaves more."""
@@ -154,6 +157,7 @@ class MagCalibrationStage(Stage):
             sphere = ell.fit_sphere(values)
         except ell.EllipsoidFitError as exc:
             raise ctx.fail(f"magnetometer data is degenerate: {exc}") from None
+        self._check_turned(ctx, values, sphere, unit)
         directions = ell.unit(values - sphere.centre)
         spread_raw = ell.direction_spread(directions)
         self._check_spread(ctx, spread_raw, "raw")
@@ -277,6 +281,28 @@ class MagCalibrationStage(Stage):
             f"(std {spread:.2g} % < {NORMALISED_PCT:g} %): the log holds field directions "
             "normalised by the driver, from which no hard or soft iron can be fitted; log the "
             "magnetometer's raw readings",
+        )
+
+    def _check_turned(
+        self, ctx: StageContext, values: np.ndarray, sphere: ell.Ellipsoid, unit: SensorUnit
+    ) -> None:
+        """A sensor that did not turn gives a cluster of noise: the sphere through it is as small
+        as the noise and lies far from zero, and its directions look spread all round. A centre
+        beyond ``max_offset`` radii with the raw field inside a narrow cone (:data:`CONE_DEG`,
+        about its mean direction) says so before any ellipsoid is fitted; a wide cone is left to
+        the hard-iron bound on the fitted ellipsoid."""
+        radius = sphere.mean_radius
+        ratio = float(np.linalg.norm(sphere.centre) / radius)
+        mean = ell.unit(values.mean(axis=0)[None, :])[0]
+        cone = float(np.degrees(np.arccos(np.clip(ell.unit(values) @ mean, -1.0, 1.0))).max())
+        o = self.options
+        ctx.check(
+            ratio <= o.max_offset or cone >= CONE_DEG,
+            f"the raw magnetometer field stays within {cone:.2g} deg of one direction: the "
+            f"sensor did not turn, or a hard iron of more than max_offset = {o.max_offset:g} "
+            f"field radii hides its turns (the sphere through the samples: radius "
+            f"{unit.format(radius)}, {ratio:.3g} radii from zero); tumble the sensor through all "
+            "orientations",
         )
 
     def _check_spread(self, ctx: StageContext, spread: np.ndarray, where: str) -> None:
