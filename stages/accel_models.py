@@ -431,7 +431,11 @@ class ModelFit:
         if cov is None:
             return float("inf")
         p = self.params
-        raw = (self.problem.g * SPHERE) @ np.linalg.inv(p.matrix).T + p.bias
+        try:
+            inverse = np.linalg.inv(p.matrix)
+        except np.linalg.LinAlgError:  # a scale or angle fitted to nothing: undetermined
+            return float("inf")
+        raw = (self.problem.g * SPHERE) @ inverse.T + p.bias
         on_sphere = NormProblem(raw, self.problem.g, self.problem.start, self.problem.free)
         jac = on_sphere.jacobian(self.solution.x)[:, self.problem.free]
         var = np.einsum("ij,jk,ik->i", jac, cov, jac)

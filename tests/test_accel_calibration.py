@@ -216,6 +216,15 @@ def test_too_few_poses_for_nine_parameters_says_so_not_asked_for():
     assert any(reason in w for w in ctx.warnings)
 
 
+def test_a_tumble_without_still_poses_is_refused_in_one_line():
+    """A magnetometer tumble (the IMU always turning) fed to accel_calibration: where the
+    threshold finds a few 'poses' whose fit is degenerate (a singular matrix), that threshold is
+    undetermined, and the stage refuses with its check, not numpy's LinAlgError (exit 1)."""
+    table, _ = simulate("mag", seed=0)  # `imupipe simulate mag` as the CLI makes it
+    with pytest.raises(FitError, match="pose coverage"):
+        fit(table)
+
+
 def test_residual_far_above_the_noise_is_not_applied():
     """A sensor the model does not fit (a 30 mg quadratic scale error) fails the residual check:
     the stage stops with one line naming the figure, unless the check is accepted."""
