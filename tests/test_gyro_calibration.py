@@ -62,6 +62,16 @@ def test_static_poses_recovers_simulated_truth():
     np.testing.assert_allclose(out.step.offset, truth["gyro"]["offset"], atol=1e-4)
 
 
+def test_motions_that_do_not_turn_the_imu_are_refused():
+    """A thermal ramp at rest (`imupipe simulate thermal`): the detector's 'poses' are drifts
+    of one orientation, the motions turn nothing and the scales came out 0.0047, 1.8e-4 and 17.9
+    with a residual of 0.26 deg, 'ok'. Their standard errors (30 to 860 times the scale) refuse
+    it; real sessions' are under 1 %."""
+    table, _ = simulate("thermal", {"rate_hz": 2.0}, seed=0)
+    with pytest.raises(FitError, match=r"do not determine the gyro scale: .* % of it > 10 %"):
+        fit(table, method="static_poses")
+
+
 def test_two_motions_say_they_are_too_few_for_nine_parameters():
     """Two motions hold too few observations for the 9-parameter gyro model: the reason says so,
     never that the scale-only model was asked for (the default allows both)."""
