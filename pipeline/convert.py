@@ -136,7 +136,7 @@ def convert(
                 record.update(dataclasses.asdict(stats), messages=stats.messages)
                 if not quiet:
                     for w in stats.warnings:
-                        print(f"imupipe: warning: {w}", file=sys.stderr)
+                        print(f"imupipe: warning: {stats.input}: {w}", file=sys.stderr)
             else:
                 summary.failed.append((str(task.spec.path), outcome.error))
                 record.update(

@@ -24,6 +24,7 @@ import time
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 import pyarrow as pa
 
@@ -42,7 +43,7 @@ from imupipe.pipeline.errors import ImupipeError, ReadError
 from imupipe.pipeline.mcap_writer import McapTableWriter
 from imupipe.readers import dispatch
 from imupipe.readers.spec import RawMessage
-from imupipe.readers.table import SCHEMA, metadata
+from imupipe.readers.table import SCHEMA, STREAM_OF_SENSOR, STREAM_SENSORS, has_stream, metadata
 from imupipe.stages.steps import apply_chain_stream, steps_from_json
 
 OUTPUT_FAULTS = {
@@ -109,17 +110,32 @@ def _tables(
     read: collections.Counter[str],
     provenance: ProvenanceCheck,
     warnings: list[str],
+    streams: set[str],
 ) -> Iterator[pa.Table]:
     """The table batches of ``iter_input``'s pairs; each batch's carried-over messages are
-    appended to ``carried`` (for the writer), every message is counted in ``read`` and each
-    batch's topics and frames are checked against the calibration's provenance."""
+    appended to ``carried`` (for the writer), every message is counted in ``read``, the streams
+    with samples are added to ``streams`` and each batch's topics and frames are checked against
+    the calibration's provenance."""
     for table, raw in pairs:
         warnings += provenance.check(metadata(table))
+        streams.update(s for s in STREAM_SENSORS if s not in streams and has_stream(table, s))
         raw = list(raw)
         read.update(counts_by_topic(table))
         read.update(m.topic for m in raw)
         carried.extend(raw)
         yield table
+
+
+def _nothing_applies(chain: list[dict[str, Any]], streams: set[str]) -> list[str]:
+    """A warning when no step of ``chain`` corrects a sensor the log has samples of (a
+    magnetometer calibration on a log without a magnetometer): the log is written as it came."""
+    sensors = sorted({str(e.get("sensor")) for e in chain if e.get("sensor") in STREAM_OF_SENSOR})
+    if not sensors or any(STREAM_OF_SENSOR[s] in streams for s in sensors):
+        return []
+    return [
+        f"no step of the calibration applies (it corrects {', '.join(sensors)}; the log has no "
+        f"{' or '.join(sensors)} samples): written uncorrected"
+    ]
 
 
 def convert_log(task: LogTask) -> LogStats:
@@ -167,7 +183,8 @@ def _convert_log(task: LogTask) -> LogStats:
                 with McapTableWriter(mcap_tmp, calibration=doc) as writer:
                     carried: list[RawMessage] = []
                     pairs = dispatch.iter_input(spec, batch_rows=task.batch_rows)
-                    batches = _tables(pairs, carried, read, provenance, warnings)
+                    streams: set[str] = set()
+                    batches = _tables(pairs, carried, read, provenance, warnings, streams)
                     for corrected in apply_chain_stream(batches, steps):
                         writer.write_table(corrected)
                         writer.write_raw(carried)
@@ -190,6 +207,7 @@ def _convert_log(task: LogTask) -> LogStats:
 
                 pq.write_table(dataset_table(SCHEMA.empty_table(), task.log, doc), parquet_tmp)
             written = mcap_counts(mcap_tmp) or {}
+            warnings += _nothing_applies(task.calibration["chain"], streams)
             verify_counts(src, expected if expected is not None else read, written)
         status, checked = "converted", provenance.status
     return LogStats(

@@ -211,11 +211,7 @@ def run(config: Config | str | Path, *, spawn: bool = False, quiet: bool = False
                 doc["exports"] = report
             noted = [name for name, rep in report.items() if rep.get("notes")]
             if noted and not quiet:
-                print(
-                    f"imupipe: note: [exports] {', '.join(noted)} leave out what their format "
-                    'has no place for: see "exports" in calibration.json',
-                    file=sys.stderr,
-                )
+                print(exports_note(noted), file=sys.stderr)
             out.write_text(out_dir / "calibration.json", json.dumps(doc, indent=2) + "\n")
             files.append(out_dir / "calibration.json")
             for fname, text in exported.items():
@@ -237,6 +233,17 @@ def run(config: Config | str | Path, *, spawn: bool = False, quiet: bool = False
             bar.advance()
     return RunSummary(
         out_dir=out_dir, files=files, calibration=doc, counts=counts, summaries=summaries
+    )
+
+
+def exports_note(noted: list[str]) -> str:
+    """The one line that says which files for other tools left something out."""
+    verb = (
+        "leaves out what its format has" if len(noted) == 1 else "leave out what their formats have"
+    )
+    return (
+        f'imupipe: note: [exports] {", ".join(noted)} {verb} no place for: see "exports" in '
+        "calibration.json"
     )
 
 

@@ -225,16 +225,15 @@ def _accel_calibration(r: dict[str, Any], s: StageSummary) -> None:
     if "means_rms" in res:
         text = _residual(res["means_rms"], res.get("means_max"), res.get("start_means_rms"), "mg")
         s.quality.append(("residual |a| - g of the pose means", text))
-        s.headline = (
-            f"residual {fmt(res['means_rms'], 3)} mg rms over {m.get('intervals', '?')} poses"
-        )
+        s.headline = f"residual {fmt(res['means_rms'], 3)} mg rms over {m.get('poses', '?')} poses"
     if "samples_rms" in res:
         s.quality.append(
             ("residual |a| - g of every still sample", f"{fmt(res['samples_rms'], 3)} mg rms")
         )
     if "intervals" in m:
+        text = f"{m['intervals']}, grouped into {m.get('poses', '?')} poses"
         s.quality.append(
-            ("still poses", f"{m['intervals']} ({m.get('distinct_poses', '?')} distinct)")
+            ("still intervals", f"{text} ({m.get('distinct_poses', '?')} distinct directions)")
         )
     if "condition_number" in u:
         s.quality.append(("condition number", fmt(u["condition_number"], 3)))
@@ -278,9 +277,20 @@ def _mag_calibration(r: dict[str, Any], s: StageSummary) -> None:
         s.quality.append(
             (
                 "samples used",
-                f"{m['samples_used']} of {m.get('samples', '?')} ({m.get('outliers', 0)} outliers)",
+                f"{m['samples_used']} of {m.get('samples', '?')} ({_dropped(m)})",
             )
         )
+
+
+def _dropped(m: dict[str, Any]) -> str:
+    """Where the samples a magnetometer fit did not use went: ``7 thinned, 6 outliers``."""
+    samples, thinned = m.get("samples"), m.get("samples_after_thinning")
+    parts = (
+        [f"{samples - thinned} thinned"]
+        if isinstance(samples, int) and isinstance(thinned, int)
+        else []
+    )
+    return ", ".join([*parts, f"{m.get('outliers', 0)} outliers"])
 
 
 def _temperature(r: dict[str, Any], s: StageSummary) -> None:
@@ -323,6 +333,37 @@ def _temperature(r: dict[str, Any], s: StageSummary) -> None:
     after = [_get(m, a, "rms_after") for a in AXES]
     if all(isinstance(v, (int, float)) for v in after):
         s.headline = f"{r.get('sensor', '')} bias rms after {fmt(max(after), 3)} {unit}"
+
+
+def _at_tref(r: dict[str, Any], sensor: str, quantity: str) -> list[Any]:
+    """Per axis the constant term (the value at tref) of a thermal_soak parameter polynomial."""
+    per_axis = _get(r, sensor, "parameters", quantity, default={})
+    return [
+        p["coefficients"][p["terms"].index("1")] if "1" in p.get("terms", []) else None
+        for p in (per_axis.get(a, {}) for a in AXES)
+    ]
+
+
+def _thermal_soak(r: dict[str, Any], s: StageSummary) -> None:
+    tref = fmt(r.get("tref"), 4)
+    for sensor, unit in (("accel", "m/s^2"), ("gyro", "rad/s")):
+        if sensor in r:
+            _row(s.rows, f"{sensor} scale at {tref} degC", _vector(_at_tref(r, sensor, "scale")))
+            bias = _vector(_at_tref(r, sensor, "bias"))
+            _row(s.rows, f"{sensor} bias at {tref} degC", bias, s.unit(sensor, unit))
+    temps = [soak.get("temperature") for soak in r.get("soaks", [])]
+    if temps:
+        s.quality.append(
+            ("soaks", f"{len(temps)}, at " + ", ".join(fmt(t, 3) for t in temps) + " degC")
+        )
+    res = _get(r, "metrics", "accel_norm_residual_mg", default={})
+    if "thermal_model" in res:
+        one = res.get("one_temperature")
+        text = f"{fmt(res['thermal_model'], 3)} mg with the thermal model; raw {fmt(res.get('raw'), 3)} mg"
+        if one is not None:
+            text += f"; {fmt(one, 3)} mg with the {fmt(res.get('one_temperature_at'), 3)} degC soak's calibration everywhere"
+        s.quality.append(("| |a| - g | at the soaks' poses", text))
+        s.headline = f"| |a| - g | {fmt(res['thermal_model'], 3)} mg over {len(temps)} soaks"
 
 
 def _average(r: dict[str, Any], s: StageSummary) -> None:
@@ -392,6 +433,7 @@ SUMMARISERS: dict[str, Callable[[dict[str, Any], StageSummary], None]] = {
     "gyro_calibration": _gyro_calibration,
     "mag_calibration": _mag_calibration,
     "temperature": _temperature,
+    "thermal_soak": _thermal_soak,
     "average": _average,
 }
 

@@ -179,7 +179,7 @@ def detect_intervals(
             ]
         except (FitError, np.linalg.LinAlgError, ValueError):
             continue
-        chosen, reason = am.choose_model(fits)
+        chosen, reason = am.choose_model(fits, models)
         score = chosen.predicted_error_mg()
         row.update({"model": chosen.name, "predicted_error_mg": am.finite_or_none(score)})
         if best is None or score < best[0]:

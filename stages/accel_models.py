@@ -32,6 +32,7 @@ mg -- what the poses leave undetermined -- and its leave-one-pose-out prediction
 from __future__ import annotations
 
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -430,7 +431,11 @@ class ModelFit:
         if cov is None:
             return float("inf")
         p = self.params
-        raw = (self.problem.g * SPHERE) @ np.linalg.inv(p.matrix).T + p.bias
+        try:
+            inverse = np.linalg.inv(p.matrix)
+        except np.linalg.LinAlgError:  # a scale or angle fitted to nothing: undetermined
+            return float("inf")
+        raw = (self.problem.g * SPHERE) @ inverse.T + p.bias
         on_sphere = NormProblem(raw, self.problem.g, self.problem.start, self.problem.free)
         jac = on_sphere.jacobian(self.solution.x)[:, self.problem.free]
         var = np.einsum("ij,jk,ik->i", jac, cov, jac)
@@ -498,10 +503,19 @@ def fit_model(means: np.ndarray, g: float, name: str, start: NineParams | None =
     return ModelFit(name, problem, solve_lm(problem))
 
 
-def choose_model(fits: list[ModelFit]) -> tuple[ModelFit, str]:
-    """The fit with the lowest AICc, and the reason in one sentence."""
+def choose_model(fits: list[ModelFit], asked: Sequence[str] = ()) -> tuple[ModelFit, str]:
+    """The fit with the lowest AICc, and the reason in one sentence. ``asked``: the models the
+    options allowed; one of them missing from ``fits`` had more parameters than poses."""
     best = min(fits, key=lambda f: (f.aicc, f.n_params))
     if len(fits) == 1:
+        n = len(best.problem.samples)
+        short = [
+            f"the {m} model needs at least {int(MODEL_FREE[m].sum())}"
+            for m in asked
+            if m not in {f.name for f in fits}
+        ]
+        if short:
+            return best, f"{n} poses: " + "; ".join(short)
         return best, f"the {best.name} model was asked for"
     others = [f for f in fits if f is not best]
     if not np.isfinite(best.aicc):

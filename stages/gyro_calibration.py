@@ -19,8 +19,10 @@
 
 Correction: ``w [rad/s] = matrix @ (raw - offset)`` (``offset`` = bias, raw units).
 
-Quality check of ``static_poses`` (``ctx.check``): the calibrated gravity-direction residual
-RMS over the motions at most :data:`MAX_DIRECTION_RESIDUAL_DEG` degrees.
+Quality checks of ``static_poses`` (``ctx.check``): the calibrated gravity-direction residual
+RMS over the motions at most :data:`MAX_DIRECTION_RESIDUAL_DEG` degrees, and each scale's
+standard error at most :data:`MAX_SCALE_ERROR` of it (motions that do not turn the IMU, or not
+about every axis, leave a scale undetermined however small the residual).
 """
 
 from __future__ import annotations
@@ -42,6 +44,9 @@ from imupipe.stages.steps import LinearStep
 DEG = np.pi / 180
 MAX_DIRECTION_RESIDUAL_DEG = 2.0
 """deg: the largest gravity-direction residual RMS of a gyro calibration that is applied."""
+MAX_SCALE_ERROR = 0.1
+"""The largest standard error of a fitted gyro scale, as a fraction of it (real sessions: 0.02 to
+0.9 %; a log at rest: 30 to 800 times the scale)."""
 ACCEL_MODELS = ["9-parameter", "6-parameter"]
 """The accelerometer models the interval detection weighs (the accelerometer is corrected
 already; the models only score the thresholds)."""
@@ -117,6 +122,15 @@ class GyroCalibrationStage(Stage):
                 f"{results['metrics']['transitions']} motions > {MAX_DIRECTION_RESIDUAL_DEG:g} "
                 "deg: the calibrated gyro does not carry one pose onto the next (motion inside "
                 "the static intervals, a wrong clock, or an uncalibrated accelerometer)",
+            )
+            scale, std = results["scale"], results["standard_errors"]["scale"]
+            worst = int(np.argmax(np.abs(std) / np.abs(scale)))
+            relative = abs(std[worst] / scale[worst])
+            ctx.check(
+                relative <= MAX_SCALE_ERROR,
+                f"the motions do not determine the gyro scale: {'xyz'[worst]}'s standard error is "
+                f"{100 * relative:.3g} % of it > {100 * MAX_SCALE_ERROR:g} % (turn the IMU about "
+                "every axis between the poses, by tens of degrees)",
             )
         step = LinearStep(
             type=self.type,

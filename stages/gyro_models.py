@@ -280,7 +280,14 @@ def fit_static_poses(
         if 3 * len(moves.u_end) >= GYRO_MODELS[m].sum()
     ]
     best = min(fits, key=lambda f: (f.aicc, f.n_params))
-    if len(fits) == 1:
+    short = [
+        f"the {m} model needs at least {-(-int(GYRO_MODELS[m].sum()) // 3)}"
+        for m in models
+        if m not in {f.name for f in fits}
+    ]
+    if len(fits) == 1 and short:
+        reason = f"{len(moves.u_end)} motions: " + "; ".join(short)
+    elif len(fits) == 1:
         reason = f"the {best.name} model was asked for"
     else:
         reason = (

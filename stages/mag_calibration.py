@@ -87,6 +87,14 @@ class SensorUnit:
         return f"{value:.4g} counts" if self.raw else f"{value * 1e6:.4g} uT"
 
 
+CONE_DEG = 30.0
+"""A raw field inside a cone this narrow (deg) about its mean direction, with the sphere through
+it beyond ``max_offset`` radii from zero: the sensor did not turn."""
+NORMALISED_PCT = 1e-4
+"""A field norm whose std is below this % of its mean was normalised before it was logged: even
+a 24-bit magnetometer's quantisation leaves more."""
+
+
 def norm_std_pct(values: np.ndarray) -> float:
     """Std of the vector norms in % of their mean."""
     norms = np.linalg.norm(values, axis=1)
@@ -143,11 +151,13 @@ class MagCalibrationStage(Stage):
         data = ctx.finite(sensor(table, "mag"), "magnetometer", minimum=o.min_samples)
         values = data.values
         unit = SensorUnit.of(table)
+        self._check_not_normalised(ctx, values, unit)
 
         try:
             sphere = ell.fit_sphere(values)
         except ell.EllipsoidFitError as exc:
             raise ctx.fail(f"magnetometer data is degenerate: {exc}") from None
+        self._check_turned(ctx, values, sphere, unit)
         directions = ell.unit(values - sphere.centre)
         spread_raw = ell.direction_spread(directions)
         self._check_spread(ctx, spread_raw, "raw")
@@ -256,6 +266,44 @@ class MagCalibrationStage(Stage):
         lo_hi = o.soft_iron_range
         if len(lo_hi) != 2 or not 0 < lo_hi[0] < 1 < lo_hi[1]:
             raise ctx.fail(f"soft_iron_range must be [low < 1, high > 1], got {lo_hi}")
+
+    def _check_not_normalised(
+        self, ctx: StageContext, values: np.ndarray, unit: SensorUnit
+    ) -> None:
+        """A real magnetometer's norm varies by its noise at least (0.1 % and more); one that is
+        constant to :data:`NORMALISED_PCT` was scaled to one length before it was logged (some
+        drivers publish field directions), which removes the hard and soft iron to be fitted."""
+        spread = norm_std_pct(values)
+        ctx.check(
+            not spread < NORMALISED_PCT,
+            f"the magnetometer norm is constant: |h| = "
+            f"{unit.format(float(np.linalg.norm(values, axis=1).mean()))} on every sample "
+            f"(std {spread:.2g} % < {NORMALISED_PCT:g} %): the log holds field directions "
+            "normalised by the driver, from which no hard or soft iron can be fitted; log the "
+            "magnetometer's raw readings",
+        )
+
+    def _check_turned(
+        self, ctx: StageContext, values: np.ndarray, sphere: ell.Ellipsoid, unit: SensorUnit
+    ) -> None:
+        """A sensor that did not turn gives a cluster of noise: the sphere through it is as small
+        as the noise and lies far from zero, and its directions look spread all round. A centre
+        beyond ``max_offset`` radii with the raw field inside a narrow cone (:data:`CONE_DEG`,
+        about its mean direction) says so before any ellipsoid is fitted; a wide cone is left to
+        the hard-iron bound on the fitted ellipsoid."""
+        radius = sphere.mean_radius
+        ratio = float(np.linalg.norm(sphere.centre) / radius)
+        mean = ell.unit(values.mean(axis=0)[None, :])[0]
+        cone = float(np.degrees(np.arccos(np.clip(ell.unit(values) @ mean, -1.0, 1.0))).max())
+        o = self.options
+        ctx.check(
+            ratio <= o.max_offset or cone >= CONE_DEG,
+            f"the raw magnetometer field stays within {cone:.2g} deg of one direction: the "
+            f"sensor did not turn, or a hard iron of more than max_offset = {o.max_offset:g} "
+            f"field radii hides its turns (the sphere through the samples: radius "
+            f"{unit.format(radius)}, {ratio:.3g} radii from zero); tumble the sensor through all "
+            "orientations",
+        )
 
     def _check_spread(self, ctx: StageContext, spread: np.ndarray, where: str) -> None:
         ctx.check(

@@ -152,8 +152,8 @@ class ThermalStep(Step):
         if not yielded and first is not None:
             yield first
         message = self.range_warning(stats)
-        if message:
-            self._warn(message)
+        if message:  # named by its log: run and convert correct several at once
+            self._warn(f"{source}: {message}" if source else message)
 
     def _missing(self, source: str, columns: list[str]) -> CalibrationError:
         what = " and ".join(

@@ -396,20 +396,21 @@ class ThermalSoakStage(Stage):
     ) -> tuple[dict[str, list[dict[str, Any]]], dict[str, Any]]:
         """Each parameter component as a polynomial in T - tref (see the module docstring)."""
         o = self.options
-        x = {"T": np.array([s.temperature for s in soaks]) - tref}
-        m = len(soaks)
-        if o.order is not None and o.order > m - 1:
-            raise ctx.fail(f"order {o.order} needs {o.order + 1} soaks; found {m}")
-        orders = [o.order] if o.order is not None else range(min(MAX_ORDER, m - 1) + 1)
-        candidates = [tm.poly_terms(k) for k in orders]
         poly: dict[str, list[dict[str, Any]]] = {}
         info: dict[str, Any] = {}
         for quantity, labels in names.items():
-            values = np.array([getattr(s, which)[quantity] for s in soaks])
+            have = [s for s in soaks if quantity in getattr(s, which)]  # the gyro matrix: where
+            x = {"T": np.array([s.temperature for s in have]) - tref}  # the poses observe it
+            m = len(have)
+            if o.order is not None and o.order > m - 1:
+                raise ctx.fail(f"order {o.order} needs {o.order + 1} soaks; found {m}")
+            orders = [o.order] if o.order is not None else range(min(MAX_ORDER, m - 1) + 1)
+            candidates = [tm.poly_terms(k) for k in orders]
+            values = np.array([getattr(s, which)[quantity] for s in have])
             stds = np.array(
                 [
                     getattr(s, f"{which}_std").get(quantity, np.full(len(labels), np.nan))
-                    for s in soaks
+                    for s in have
                 ]
             )
             comps, info[quantity] = [], {}

@@ -203,6 +203,28 @@ def test_six_faces_only_chooses_six_parameters_and_says_why():
     assert accepted.failed_checks and accepted.failed_checks[0].startswith("pose coverage")
 
 
+def test_too_few_poses_for_nine_parameters_says_so_not_asked_for():
+    """Eight poses cannot hold the 9-parameter model: with the default ``misalignment = "auto"``
+    the reason says the poses were too few, never that the user asked for six parameters."""
+    table, _ = simulate("poses", {"n_poses": 8, "accel_misalignment": [0.0, 0.0, 0.0]}, seed=3)
+    ctx = StageContext(name="accel", input_name="sim", quiet=True)
+    out = fit(table, ctx)
+    reason = out.results["model"]["reason"]
+    assert out.results["model"]["chosen"] == "6-parameter"
+    assert "asked for" not in reason
+    assert reason == "8 poses: the 9-parameter model needs at least 9", reason
+    assert any(reason in w for w in ctx.warnings)
+
+
+def test_a_tumble_without_still_poses_is_refused_in_one_line():
+    """A magnetometer tumble (the IMU always turning) fed to accel_calibration: where the
+    threshold finds a few 'poses' whose fit is degenerate (a singular matrix), that threshold is
+    undetermined, and the stage refuses with its check, not numpy's LinAlgError (exit 1)."""
+    table, _ = simulate("mag", seed=0)  # `imupipe simulate mag` as the CLI makes it
+    with pytest.raises(FitError, match="pose coverage"):
+        fit(table)
+
+
 def test_residual_far_above_the_noise_is_not_applied():
     """A sensor the model does not fit (a 30 mg quadratic scale error) fails the residual check:
     the stage stops with one line naming the figure, unless the check is accepted."""

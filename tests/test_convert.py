@@ -357,3 +357,32 @@ def test_csv_logs_with_a_config_mapping(tmp_path):
     # without --config a folder's .csv files are not logs
     with pytest.raises(ImupipeError, match="no logs found"):
         convert([tmp_path / "logs"], cal, tmp_path / "out2", jobs=1)
+
+
+def test_a_log_no_step_applies_to_is_said_so(tmp_path):
+    """A magnetometer calibration converted onto a log without a magnetometer (robot_localization's
+    bags hold only Imu) changes nothing: the log is written, and a warning says that no step of
+    the calibration applied. A log some step applies to gets no such warning."""
+    logs = tmp_path / "logs"
+    logs.mkdir()
+    imu_only, _ = simulate("static", {"duration_s": 1.0, "rate_hz": 100.0}, seed=5)
+    write_log(logs / "imu_only.mcap", imu_only)
+    mag, _ = simulate("mag", {"duration_s": 1.0, "rate_hz": 50.0}, seed=6)
+    write_log(logs / "with_mag.mcap", mag)
+    cal = tmp_path / "cal.json"
+    cal.write_text(json.dumps({"chain": [CHAIN[2]]}))
+    summary = convert([logs], cal, tmp_path / "out", jobs=1, quiet=True)
+    assert len(summary.converted) == 2
+    warned = {Path(s.input).name: s.warnings for s in summary.converted}
+    assert warned["with_mag.mcap"] == []
+    assert warned["imu_only.mcap"] == [
+        "no step of the calibration applies (it corrects mag; the log has no mag samples): "
+        "written uncorrected"
+    ]
+    # on stderr each warning names its log (several logs convert at once)
+    done = run_cli("convert", "--calibration", cal, "--out", tmp_path / "out2", logs)
+    assert done.returncode == 0, done.stderr
+    assert done.stderr.strip().splitlines()[-1] == (
+        f"imupipe: warning: {logs / 'imu_only.mcap'}: no step of the calibration applies (it "
+        "corrects mag; the log has no mag samples): written uncorrected"
+    )

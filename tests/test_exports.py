@@ -403,3 +403,16 @@ def test_kalibr_intrinsics_import_back(calibrated, tmp_path):
         (ours,) = (np.array(e["matrix"]) for e in _chain(doc, entry["sensor"]))  # one step each
         np.testing.assert_allclose(entry["matrix"], r @ ours, atol=1e-9)
         assert entry["offset"] == [0.0, 0.0, 0.0]
+
+
+def test_exports_note_agrees_with_its_files():
+    from imupipe.pipeline.run import exports_note
+
+    assert exports_note(["kalibr_imu_intrinsics.yaml"]) == (
+        "imupipe: note: [exports] kalibr_imu_intrinsics.yaml leaves out what its format has no "
+        'place for: see "exports" in calibration.json'
+    )
+    assert exports_note(["imu.yaml", "px4_calibration.params"]).startswith(
+        "imupipe: note: [exports] imu.yaml, px4_calibration.params leave out what their formats "
+        "have no place for"
+    )

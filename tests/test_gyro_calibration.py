@@ -62,6 +62,40 @@ def test_static_poses_recovers_simulated_truth():
     np.testing.assert_allclose(out.step.offset, truth["gyro"]["offset"], atol=1e-4)
 
 
+def test_motions_that_do_not_turn_the_imu_are_refused():
+    """A thermal ramp at rest (`imupipe simulate thermal`): the detector's 'poses' are drifts
+    of one orientation, the motions turn nothing and the scales came out 0.0047, 1.8e-4 and 17.9
+    with a residual of 0.26 deg, 'ok'. Their standard errors (30 to 860 times the scale) refuse
+    it; real sessions' are under 1 %."""
+    table, _ = simulate("thermal", {"rate_hz": 2.0}, seed=0)
+    with pytest.raises(FitError, match=r"do not determine the gyro scale: .* % of it > 10 %"):
+        fit(table, method="static_poses")
+
+
+def test_two_motions_say_they_are_too_few_for_nine_parameters():
+    """Two motions hold too few observations for the 9-parameter gyro model: the reason says so,
+    never that the scale-only model was asked for (the default allows both)."""
+    from imupipe.stages.static_detector import Intervals
+
+    fs, g = 100.0, 9.80665
+    turn = np.pi / 2  # rad/s for one second: 90 deg about x, then about y
+    segments = [([0, 0, 0], 5.0), ([turn, 0, 0], 1.0), ([0, 0, 0], 5.0), ([0, turn, 0], 1.0)]
+    segments.append(([0, 0, 0], 5.0))
+    gyro = np.vstack([np.tile(w, (int(sec * fs), 1)) for w, sec in segments])
+    up = [Rotation.identity(), Rotation.from_rotvec([turn, 0, 0])]
+    up.append(up[1] * Rotation.from_rotvec([0, turn, 0]))
+    accel = np.vstack(
+        [np.tile(r.inv().apply([0, 0, g]), (600 if i < 2 else 500, 1)) for i, r in enumerate(up)]
+    )
+    accel = accel[: len(gyro)]
+    t_s = np.arange(len(gyro)) / fs
+    intervals = Intervals(np.array([0, 600, 1200]), np.array([500, 1100, 1700]))
+    moves = gm.PoseTransitions.build(t_s, gyro, accel, intervals)
+    out = gm.fit_static_poses(moves, np.zeros(3))
+    assert out["fit"].name == "scale-only"
+    assert out["reason"] == "2 motions: the 9-parameter model needs at least 3", out["reason"]
+
+
 def synthetic(segments: list[tuple[np.ndarray, float]], fs: float = 100.0):
     """Raw gyro for piecewise-constant true rates: [(w (3,) rad/s, seconds)], raw = M w + b."""
     w = np.vstack([np.tile(rate, (int(round(sec * fs)), 1)) for rate, sec in segments])

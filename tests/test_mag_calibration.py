@@ -139,6 +139,51 @@ def test_failed_check_accepted_on_request(tumbles):
     assert out.step is not None and "max_offset" in ctx.failed_checks[0]
 
 
+def test_normalised_field_directions_are_refused(tumbles):
+    """A driver that publishes the field normalised (every sample scaled to one length, as the
+    SparkFun Razor of imu_tools' bag does at 100 uT) has thrown hard and soft iron away: the fit
+    would be the identity and say nothing. Refused with the figure; accepted on request."""
+    values = sensor(tumbles[0], "mag").values
+    unit = 1e-4 * values / np.linalg.norm(values, axis=1)[:, None]
+    table = make_table(sensor(tumbles[0], "mag").t_ns, mag=unit)
+    with pytest.raises(FitError, match=r"the magnetometer norm is constant: .* normalised"):
+        fit(table)
+    stage = MagCalibrationStage(MagCalibrationStage.Options())
+    ctx = StageContext(name="mag", input_name="sim", quiet=True, accept_failed_checks=True)
+    stage.fit(table, ctx)
+    assert ctx.failed_checks[0].startswith("the magnetometer norm is constant")
+
+
+@pytest.mark.parametrize("noise_ut", [0.15, 0.7])
+def test_a_sensor_that_did_not_turn_is_refused_for_it(noise_ut):
+    """A magnetometer at rest (a drone on the ground: PX4's test logs) gives a cluster of noise;
+    the sphere through it is as small as the noise, so its directions look spread. The stage says
+    the sensor did not turn, with the cone its raw field spans, instead of failing the ellipsoid
+    fit ('the refined fit is not an ellipsoid') or passing the coverage check."""
+    rng = np.random.default_rng(3)
+    field = np.array([21.5, 1.0, 43.0]) * 1e-6
+    values = field + rng.normal(scale=noise_ut * 1e-6, size=(600, 3))
+    table = make_table(np.arange(600, dtype=np.int64) * 100_000_000, mag=values)
+    with pytest.raises(
+        FitError, match=r"stays within [\d.]+ deg of one direction: the sensor did not turn"
+    ):
+        fit(table)
+
+
+def test_px4_log_at_rest_is_refused_for_not_turning():
+    """PX4's sample_log_small.ulg (tests/data, BSD-3): vehicle_magnetometer on the ground."""
+    from imupipe.readers.dispatch import read_input
+    from imupipe.readers.spec import InputSpec
+
+    from conftest import TEST_DATA
+
+    table, _ = read_input(InputSpec(path=TEST_DATA / "px4_ulog" / "sample_log_small.ulg"))
+    with pytest.raises(
+        FitError, match=r"stays within 2\.8 deg of one direction: the sensor did not turn"
+    ):
+        fit(table)
+
+
 def test_narrow_cone_refused():
     """Tilting by at most ~35 degrees: a cap of directions, refused by the spread check."""
     table, truth = simulate("mag", {"duration_s": 20.0}, seed=51)

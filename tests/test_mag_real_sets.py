@@ -177,3 +177,14 @@ def test_phidgets_bag_half_nan_refused_for_coverage_not_nan():
     ):
         stage.fit(table, ctx)
     assert ctx.warnings == ["6990 of 13964 magnetometer samples are NaN or Inf; fitted on 6974"]
+
+
+def test_razor_bag_publishes_normalised_directions_refused():
+    """imu_tools' SparkFun Razor bag publishes the field as directions of length 100 uT (|h| equal
+    to 1e-14 %): no hard or soft iron can be fitted, and the stage says so instead of returning
+    the identity as "ok"."""
+    table, _ = read_input(InputSpec(path=shared_path("logs", "madgwick_sparkfun_razor.bag")))
+    stage = MagCalibrationStage(MagCalibrationStage.Options())
+    ctx = StageContext(name="mag_calibration", input_name="log", quiet=True)
+    with pytest.raises(FitError, match=r"norm is constant: .* 100 uT .* normalised"):
+        stage.fit(table, ctx)

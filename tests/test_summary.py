@@ -80,6 +80,77 @@ def test_missing_keys_and_unknown_stage_types_still_summarise():
     assert "| b | future_stage | q | - | 1 failed check(s) accepted |" in md
 
 
+def test_poses_and_samples_counted_as_the_metrics_count_them():
+    """imu_tk's Xsens session: 40 still intervals make 38 poses (two intervals turned by less than
+    2 deg), 14 distinct; the summary names each count for what it is. A magnetometer fit says
+    where the samples it did not use went: thinned (over-sampled orientations) and outliers."""
+    accel = {
+        "type": "accel_calibration",
+        "input": "xsens",
+        "metrics": {
+            "intervals": 40,
+            "poses": 38,
+            "distinct_poses": 14,
+            "residual_mg": {"means_rms": 0.0988, "means_max": 0.21, "start_means_rms": 3.95},
+        },
+        "warnings": [],
+    }
+    mag = {
+        "type": "mag_calibration",
+        "input": "icm",
+        "metrics": {
+            "samples": 300,
+            "samples_after_thinning": 293,
+            "samples_used": 287,
+            "outliers": 6,
+        },
+        "warnings": [],
+    }
+    a, m = summarise({"accel_calibration": accel, "mag_calibration": mag})
+    quality = dict(a.quality)
+    assert quality["still intervals"] == "40, grouped into 38 poses (14 distinct directions)"
+    assert a.headline == "residual 0.0988 mg rms over 38 poses"
+    assert dict(m.quality)["samples used"] == "287 of 300 (7 thinned, 6 outliers)"
+
+
+def test_thermal_soak_summarised_as_values_at_tref_and_the_soaks_residual():
+    """thermal_soak had no summariser: the terminal listed its temperature range as an x cell
+    and nothing else. It shows each parameter at tref, the soaks and | |a| - g |."""
+    poly = {
+        a: {"terms": ["1", "T"], "coefficients": [c, 1e-4]}
+        for a, c in zip("xyz", [1.02, 0.985, 1.01], strict=True)
+    }
+    bias = {
+        a: {"terms": ["1", "T", "T^2"], "coefficients": [c, 1e-3, 2e-5]}
+        for a, c in zip("xyz", [0.15, -0.1, 0.2], strict=True)
+    }
+    r = {
+        "type": "thermal_soak",
+        "input": "soaks",
+        "tref": 24.97,
+        "temperature_range": [-20.0, 69.94],
+        "soaks": [{"temperature": t} for t in (-20.0, 24.93, 69.94)],
+        "accel": {"parameters": {"scale": poly, "bias": bias}},
+        "metrics": {
+            "accel_norm_residual_mg": {
+                "raw": 20.15, "thermal_model": 0.0183, "one_temperature": 5.22,
+                "one_temperature_at": 24.93,
+            },
+        },
+        "warnings": [],
+    }  # fmt: skip
+    (t,) = summarise({"thermal_soak": r})
+    assert [row.label for row in t.rows] == [
+        "accel scale at 24.97 degC",
+        "accel bias at 24.97 degC (m/s^2)",
+    ]
+    assert t.rows[1].cells == ["0.15", "-0.1", "0.2"]
+    quality = dict(t.quality)
+    assert quality["soaks"] == "3, at -20, 24.9, 69.9 degC"
+    assert quality["| |a| - g | at the soaks' poses"].startswith("0.0183 mg with the thermal model")
+    assert t.headline == "| |a| - g | 0.0183 mg over 3 soaks"
+
+
 def test_terminal_table():
     from rich.console import Console
 

@@ -20,7 +20,7 @@ from imupipe.pipeline.errors import FitError
 from imupipe.pipeline.simulate import simulate, write_log
 from imupipe.readers.dispatch import read_input
 from imupipe.readers.spec import InputSpec
-from imupipe.readers.table import make_table, sensor
+from imupipe.readers.table import make_table, metadata, sensor, with_metadata
 from imupipe.stages.base import StageContext
 from imupipe.stages.blocks import block_means
 from imupipe.stages.steps import apply_chain, steps_from_json
@@ -230,6 +230,10 @@ def test_narrow_span_refused_and_clamped():
     want = -1e-3 * (hi - 20.0) * np.array([1.0, 2.0, 3.0])
     np.testing.assert_allclose(corrected, np.tile(want, (10, 1)), rtol=1e-9)
     assert "T clamped to the fitted range" in out.step.warnings[0]
+    # the warning names the log it is about (run and convert correct several)
+    named = with_metadata(hot, {**metadata(hot), "source": "hot.mcap"})
+    out.step.apply(named)
+    assert out.step.warnings[-1].startswith("hot.mcap: T clamped to the fitted range")
     with pytest.raises(FitError, match="'window' must be >= 1"):
         fit_stage(table, window=0)
 

@@ -145,3 +145,19 @@ def test_one_temperature_is_refused_with_one_line(tmp_path):
     assert proc.returncode == 2
     (line,) = proc.stderr.strip().splitlines()
     assert "soak" in line and "2 or more held temperatures" in line, line
+
+
+def test_a_ramp_at_rest_is_refused_in_one_line(tmp_path):
+    """A chamber ramp with the IMU at rest (`imupipe simulate thermal`) holds no multi-position
+    session. The gyro matrix was observed at some of the soaks the stage thought it found and not
+    at others, which raised a KeyError (exit 1); now each quantity is fitted on the soaks that
+    observe it, and the fit is refused by its own check (exit 2, one line)."""
+    table, _ = simulate("thermal", {"rate_hz": 2.0}, seed=0)
+    write_log(tmp_path / "ramp.mcap", table)
+    (tmp_path / "cfg.toml").write_text(
+        '[inputs.r]\npath = "ramp.mcap"\n[[stages]]\ntype = "thermal_soak"\n[output]\ndir = "out"\n'
+    )
+    proc = run_cli("run", tmp_path / "cfg.toml", "--quiet")
+    assert proc.returncode == 2, proc.stderr
+    (line,) = proc.stderr.strip().splitlines()
+    assert line.startswith("imupipe: error: stage 'thermal_soak' on input 'r': "), line

@@ -121,3 +121,26 @@ def test_multi_position_session(tmp_path):
     assert [round(v, 5) for v in accel["bias"]] == [0.14995, -0.10016, 0.19991]
     assert [round(v, 5) for v in gyro["scale"]] == [1.01, 0.98995, 1.00497]
     assert [round(v, 5) for v in gyro["bias"]] == [0.01, -0.02001, 0.00499]
+
+
+def test_px4_ulog(tmp_path):
+    """The PX4 tutorial's run writes the files it lists (both autopilots' parameter files, as its
+    introduction says), warns as shown, and fits the offsets its table quotes."""
+    page = "px4-ulog.md"
+    (tmp_path / "sample_log_small.ulg").symlink_to(
+        REPO / "tests/data/px4_ulog/sample_log_small.ulg"
+    )
+    (tmp_path / "px4.toml").write_text(blocks(page, "toml")[0])
+    proc = run_cli("run", "px4.toml", cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    shown = blocks(page, "text")[1].strip().splitlines()
+    warnings = [line for line in shown if line.startswith("imupipe: warning:")]
+    files = [line for line in shown if not line.startswith("imupipe:")]
+    got = proc.stderr.strip().splitlines()
+    assert len(got) == len(warnings)
+    for line, quoted in zip(got, warnings, strict=True):
+        assert line.startswith(quoted.removesuffix(" ..."))
+    assert proc.stdout.split()[-len(files) :] == [str(tmp_path / f) for f in files]
+    bias = json.loads((tmp_path / "out_px4" / "calibration.json").read_text())
+    bias = bias["results"]["gyro_bias"]["bias"]
+    assert [round(b, 5) for b in bias] == [0.01737, -0.00013, -0.00556]
