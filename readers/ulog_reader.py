@@ -526,9 +526,12 @@ def read_ulog(spec: InputSpec) -> tuple[pa.Table, list[str]]:
         warnings.append(f"the file is corrupt in places (the damaged messages were skipped{said})")
     others = sorted(set(f.instances) - set(chosen.values())) + f.skipped
     if others:
+        shown = ", ".join(others[:5]) + (
+            f", ... ({len(others) - 5} more)" if len(others) > 5 else ""
+        )
         warnings.append(
             f"{len(others)} other ULog topics are not carried into the corrected MCAP (they "
-            f"have no ROS message type): {', '.join(others)}"
+            f"have no ROS message type; imupipe inspect lists them): {shown}"
         )
     return with_metadata(table, meta), warnings
 

@@ -18,7 +18,8 @@ def shared_path(*parts: str) -> Path:
     path = SHARED.joinpath(*parts)
     if not path.exists():
         pytest.skip(
-            f"shared data not present: {path} (GPL/unlicensed data is not copied into the repo)"
+            f"shared data not present: {path} (data kept out of the repository: its licence "
+            "does not allow copying it, or it is large; see docs/how-to/test-data.md)"
         )
     return path
 

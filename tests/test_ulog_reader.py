@@ -75,7 +75,8 @@ def test_sensor_combined_field_for_field():
     assert meta["px4"]["calibrated"] == {"imu": True, "mag": True}
     assert meta["device_id"]["imu"] == meta["px4"]["parameters"]["CAL_GYRO0_ID"] == 2162688
     assert meta["px4"]["parameters"]["CAL_GYRO0_YOFF"] == pytest.approx(-0.0188062135)
-    assert any("not carried" in w and "vehicle_attitude" in w for w in warnings)
+    (note,) = [w for w in warnings if "not carried" in w]
+    assert "more)" in note and len(note) < 400  # a count and the first few, not every topic
 
 
 def test_raw_instance_field_for_field():

@@ -103,7 +103,9 @@ def imu_topic(results: Mapping[str, Any], default: str = "/imu/data") -> str:
 
 
 def rate_hz(results: Mapping[str, Any]) -> float:
-    return float(results["metrics"]["rate_hz"])
+    """The sample rate measured from the timestamps, Hz, to 9 significant digits (a 400 Hz clock
+    reads 400.0, not 399.99999999999994)."""
+    return float(f"{float(results['metrics']['rate_hz']):.9g}")
 
 
 # -- composition ---------------------------------------------------------------------------------
