@@ -67,6 +67,14 @@ MERGE_ANGLE_DEG = 2.0
 same pose (held, disturbed, held again), not two independent ones."""
 MAX_PREDICTED_ERROR_MG = 3.0
 """mg: the largest predicted error over all orientations of a calibration the poses determine."""
+MIN_SPARE_POSES = 3
+"""Poses beyond the model's parameters needed to check a fit: the residual variance behind the
+predicted error has this many degrees of freedom (with 1 or 2 it can be near zero by chance)."""
+MAX_SCALE_RATIO = 1.5
+"""The largest ratio of the three axes' fitted scales: the axes of one accelerometer share their
+sensitivity within a few per cent (datasheets: +-3 % to +-10 %; a grossly mis-set axis of +15 %
+beside one of -10 % is 1.28); a spread of half again is a fit of poses that were not still, or of
+too few of them."""
 MISALIGNMENT_MODELS: dict[str, list[str]] = {
     "auto": ["9-parameter", "6-parameter"],
     "true": ["9-parameter"],
@@ -337,20 +345,30 @@ class AccelCalibrationStage(Stage):
         )
         predicted = found.fit.predicted_error_mg()
         spare = len(means) - found.fit.n_params
+        checkable = spare >= MIN_SPARE_POSES
         ctx.check(
-            predicted <= MAX_PREDICTED_ERROR_MG or o.method == "six_position",
+            (checkable and predicted <= MAX_PREDICTED_ERROR_MG) or o.method == "six_position",
             (
                 f"pose coverage: {len(means)} poses for {found.fit.n_params} parameters leave "
-                f"{max(spare, 0)} degree(s) of freedom: the fit cannot be checked; record more "
-                "poses (methods six_position and ferraris fit exactly the six faces)"
+                f"{max(spare, 0)} degree(s) of freedom (at least {MIN_SPARE_POSES} are needed): "
+                "the fit cannot be checked; record more poses (methods six_position and ferraris "
+                "fit exactly the six faces)"
             )
-            if not np.isfinite(predicted)
+            if not (checkable and np.isfinite(predicted))
             else (
                 f"pose coverage: the {len(means)} poses leave the calibration undetermined "
                 f"(predicted error over all orientations {predicted:.3g} mg > "
                 f"{MAX_PREDICTED_ERROR_MG:g} mg); record more poses, spread over the sphere"
                 + (", or set misalignment = false" if model == "9-parameter" else "")
             ),
+        )
+        ratio = float(np.max(params.scale) / np.min(params.scale))
+        ctx.check(
+            ratio <= MAX_SCALE_RATIO or o.method == "ferraris",
+            f"implausible scales: the axes' fitted scales {np.array2string(params.scale, precision=4)} "
+            f"differ by a factor {ratio:.3g} > {MAX_SCALE_RATIO:g}; the axes of one "
+            "accelerometer share their sensitivity within a few per cent: were the intervals "
+            "still?",
         )
         step = LinearStep(
             type=self.type,

@@ -441,7 +441,7 @@ dir = "out"
     assert done.returncode == 2
     assert done.stderr.strip().splitlines()[-1] == (
         "imupipe: error: stage 'accel_calibration' on input 's': pose coverage: 6 poses for 6 "
-        "parameters leave 0 degree(s) of freedom: the fit cannot be checked; record more poses "
+        "parameters leave 0 degree(s) of freedom (at least 3 are needed): the fit cannot be checked; record more poses "
         "(methods six_position and ferraris fit exactly the six faces); the fit is not applied (set "
         "accept_failed_checks = true in this stage to use it anyway)"
     )
