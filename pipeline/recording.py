@@ -169,14 +169,17 @@ class Recorder:
         key = plot or entity.rstrip("/").rsplit("/", 1)[-1]
         fig = self.figures.plot(stage_of(entity), key, "time", title=title, unit=shown)
         colors = colors_for(names, colors)
-        t_ns, values = decimate(t_ns, values * factor, self.max_points)
+        t_ns, values = decimate(t_ns, values, self.max_points)  # then scaled: fewer points
+        if factor != 1.0:
+            values = values * factor
         kept_t, kept = decimate(t_ns, values, self.figures.keep_points)
         fig.series.append(
             Series(entity, list(names), colors, kept_t, kept, "points" if points else "line")
         )
         self._style(entity, names, colors, points)
-        first, last = self._spans.get(entity, (int(t_ns.min()), int(t_ns.max())))
-        self._spans[entity] = (min(first, int(t_ns.min())), max(last, int(t_ns.max())))
+        lo, hi = int(t_ns.min()), int(t_ns.max())
+        first, last = self._spans.get(entity, (lo, hi))
+        self._spans[entity] = (min(first, lo), max(last, hi))
         if self._streams:
             indexes = [rr.TimeColumn(TIMELINE, timestamp=t_ns.astype("datetime64[ns]"))]
             columns = rr.Scalars.columns(scalars=values)

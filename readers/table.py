@@ -52,7 +52,7 @@ from __future__ import annotations
 import json
 from collections.abc import Mapping
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 import pyarrow as pa
@@ -248,15 +248,20 @@ class SensorData:
         return (self.t_ns - self.t_ns[0]).astype(np.float64) * 1e-9
 
 
-def sensor(table: pa.Table, name: str) -> SensorData:
+def sensor(table: pa.Table, name: str, order: Literal["C", "F"] = "C") -> SensorData:
     """The samples of sensor ``name`` (gyro, accel, mag, temperature) as :class:`SensorData`:
     one per row of its stream, so that gyro and accel stay row for row; NaN where that row has
     no sample of this sensor (an IMU stream from a CSV without accel columns: accel all NaN; see
-    :func:`has_sensor`)."""
+    :func:`has_sensor`). ``order = "F"``: ``values`` column-major, each column contiguous (for
+    work done column by column)."""
     mask = stream_mask(table, STREAM_OF_SENSOR[name])
     rows = None if mask.all() else np.flatnonzero(mask)
     t_ns = table.column("t_ns").to_numpy()
-    values = np.column_stack([_column_f64(table, c, rows) for c in SENSOR_COLUMNS[name]])
+    columns = SENSOR_COLUMNS[name]
+    n = len(table) if rows is None else len(rows)
+    values = np.empty((n, len(columns)), order=order)
+    for i, c in enumerate(columns):
+        values[:, i] = _column_f64(table, c, rows)
     idx = np.arange(len(table)) if rows is None else rows
     return SensorData(t_ns=t_ns if rows is None else t_ns[rows], values=values, rows=idx)
 

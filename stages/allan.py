@@ -258,7 +258,8 @@ class AllanStage(Stage):
         jitter told apart from gaps: :mod:`imupipe.stages.sample_clock`), cut to the longest
         stretch without a gap longer than ``max_gap`` periods (a warning)."""
         opts = self.options
-        gyro, accel = sensor(table, "gyro"), sensor(table, "accel")
+        # column-major: the estimators work axis by axis on contiguous columns
+        gyro, accel = sensor(table, "gyro", order="F"), sensor(table, "accel", order="F")
         number = None  # IMU sample numbers of the input, for messages (None: 0, 1, 2, ...)
         if opts.interval is not None:
             keep = select_interval(gyro, opts.interval)
@@ -283,7 +284,7 @@ class AllanStage(Stage):
             i = int(np.flatnonzero(dt <= 0)[0])
             raise ctx.fail(f"time does not increase at IMU sample {num(i + 1)} (step {dt[i]} ns)")
         data = {"gyro": gyro.values, "accel": accel.values}
-        clock = sample_clock(t_ns)
+        clock = sample_clock(t_ns, dt)
         breaks = np.flatnonzero(clock.lost + 1 > opts.max_gap) if clock.n_lost else []
         if len(breaks):
             start, stop = longest_run(breaks, len(t_ns))

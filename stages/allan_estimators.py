@@ -248,20 +248,21 @@ def deviation(
 
 
 # -- noise identification and confidence ----------------------------------------------------------
-def _lag1(z: np.ndarray) -> float:
-    """Lag-1 autocorrelation of the 1-D series ``z`` (its mean removed)."""
-    z = z - z.mean()
-    return float(np.einsum("i,i->", z[:-1], z[1:]) / np.einsum("i,i->", z, z))
+def _lag1(z: np.ndarray) -> np.ndarray:
+    """Lag-1 autocorrelation of each row of ``z`` (k, n) (its mean removed)."""
+    z = z - z.mean(axis=1, keepdims=True)
+    return np.einsum("ij,ij->i", z[:, :-1], z[:, 1:]) / np.einsum("ij,ij->i", z, z)
 
 
 def _detrend2(z: np.ndarray) -> np.ndarray:
-    """``z`` (n,) minus its least-squares quadratic in time (orthogonal basis 1, t, t^2 - <t^2>)."""
-    t = np.linspace(-1.0, 1.0, len(z))
+    """Each row of ``z`` (k, n) minus its least-squares quadratic in time (orthogonal basis 1,
+    t, t^2 - <t^2>)."""
+    t = np.linspace(-1.0, 1.0, z.shape[1])
     t2 = t * t
     t2 -= t2.mean()
-    out = z - z.mean()
+    out = z - z.mean(axis=1, keepdims=True)
     for p in (t, t2):
-        out -= (np.einsum("i,i->", out, p) / np.einsum("i,i->", p, p)) * p
+        out -= (np.einsum("ij,j->i", out, p) / np.einsum("i,i->", p, p))[:, None] * p
     return out
 
 
@@ -275,18 +276,22 @@ def noise_alpha(x: np.ndarray, m: int, dmax: int = 2) -> np.ndarray | None:
     """Noise exponent alpha (int, per axis) at averaging factor ``m`` from phase ``x`` (k, N)
     by the lag-1 autocorrelation method (Riley & Greenhall 2004): decimate by m, remove a
     quadratic, difference until delta = r1 / (1 + r1) < 0.25 (at most ``dmax`` times),
-    alpha = -round(2 delta) - 2 d + 2. None when fewer than 30 decimated points remain."""
+    alpha = -round(2 delta) - 2 d + 2. None when fewer than 30 decimated points remain.
+    Every axis at once (those still undecided are differenced again)."""
     if (x.shape[1] + m - 1) // m < 30:
         return None
     alpha = np.zeros(len(x), dtype=np.int64)
-    for j, row in enumerate(x):
-        z = _detrend2(row[: m * NOISE_ID_MAX_POINTS : m])
-        for d in range(dmax + 1):
-            delta = (r1 := _lag1(z)) / (1.0 + r1)
-            if delta < 0.25 or d >= dmax or len(z) < 4:
-                alpha[j] = -round(2.0 * delta) - 2 * d + 2
-                break
-            z = np.diff(z)
+    todo = np.arange(len(x))
+    z = _detrend2(x[:, : m * NOISE_ID_MAX_POINTS : m])
+    for d in range(dmax + 1):
+        r1 = _lag1(z)
+        delta = r1 / (1.0 + r1)
+        done = (delta < 0.25) | (d >= dmax) | (z.shape[1] < 4)
+        alpha[todo[done]] = -np.round(2.0 * delta[done]).astype(np.int64) - 2 * d + 2
+        todo = todo[~done]
+        if not len(todo):
+            break
+        z = np.diff(z[~done], axis=1)
     return alpha
 
 

@@ -149,9 +149,10 @@ def _solve(
 
     def cost(u: np.ndarray) -> float:
         mu = a_s @ u + off
-        if np.any(mu <= 0):
+        if not mu.min() > 0:
             return np.inf
-        return float(np.sum(w * (np.log(mu) - target) ** 2))
+        r = np.log(mu) - target
+        return float(r @ (w * r))
 
     def descend(u: np.ndarray) -> tuple[np.ndarray, float]:
         f = cost(u)
