@@ -58,12 +58,19 @@ from imupipe.pipeline.figures import (
     Series,
     colors_for,
     decimate,
+    decimate_columns,
     display_unit,
     lighter,
     stage_of,
 )
 from imupipe.pipeline.summary import raw_count_sensors
-from imupipe.readers.table import SENSOR_COLUMNS, SENSOR_UNITS, STREAM_OF_SENSOR, has_stream, sensor
+from imupipe.readers.table import (
+    SENSOR_COLUMNS,
+    SENSOR_UNITS,
+    STREAM_OF_SENSOR,
+    has_stream,
+    sensor_columns,
+)
 from imupipe.stages.base import NullRecorder
 
 TIMELINE = "time"
@@ -402,7 +409,8 @@ class Recorder:
                 plot = self.figures.plot(stage, key, "time", title=title, unit=shown)
                 plot.series.append(self._reused[reuse])
                 continue
-            data = sensor(table, name)
+            # averaged down column by column first: no (n, 3) copy of the input
+            t_ns, values = decimate_columns(*sensor_columns(table, name), self.max_points)
             axes = [c.split("_")[-1] for c in SENSOR_COLUMNS[name]]
             names = [f"{name} {a} {label}" if len(axes) > 1 else f"{name} {label}" for a in axes]
             colors = AXIS_COLORS[: len(axes)]
@@ -411,8 +419,8 @@ class Recorder:
             entity = f"/{stage}/{label}/{name}"
             self.series(
                 entity,
-                data.t_ns,
-                data.values,
+                t_ns,
+                values,
                 names,
                 unit=unit,
                 plot=key,

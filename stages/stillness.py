@@ -7,6 +7,7 @@ is called static when the first is at most ``threshold`` and the second at most 
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -39,18 +40,25 @@ class Stillness:
         )
 
 
-def stillness(t_ns: np.ndarray, gyro: np.ndarray, accel: np.ndarray) -> Stillness:
-    """The motion figures of gyro (n, 3) rad/s and accel (n, 3) m/s^2 sampled at ``t_ns``.
-    Column by column (either memory order; column-major is the fastest)."""
+def stillness(
+    t_ns: np.ndarray,
+    gyro: np.ndarray | Sequence[np.ndarray],
+    accel: np.ndarray | Sequence[np.ndarray],
+) -> Stillness:
+    """The motion figures of gyro rad/s and accel m/s^2 sampled at ``t_ns``: each (n, 3), or
+    three columns (n,) (no copy made either way)."""
+    gyro = list(gyro.T) if isinstance(gyro, np.ndarray) else list(gyro)
+    accel = list(accel.T) if isinstance(accel, np.ndarray) else list(accel)
     starts = block_starts(t_ns, window_s=1.0)
-    second = block_means(t_ns, gyro, starts=starts)
-    if not len(second.counts):
-        return Stillness(second, 0.0, 0.0)
-    excursion = max(float(np.abs(second.means[:, k] - gyro[:, k].mean()).max()) for k in range(3))
-    norm = np.multiply(accel[:, 0], accel[:, 0])
-    for k in (1, 2):
-        norm += accel[:, k] * accel[:, k]
+    first = block_means(t_ns, gyro[0], starts=starts)
+    if not len(first.counts):
+        return Stillness(Blocks(first.t_ns, np.zeros((0, 3)), first.counts, starts), 0.0, 0.0)
+    counts = first.counts
+    means = np.column_stack([first.means] + [np.add.reduceat(c, starts) / counts for c in gyro[1:]])
+    excursion = max(float(np.abs(means[:, k] - c.mean()).max()) for k, c in enumerate(gyro))
+    norm = np.multiply(accel[0], accel[0])
+    for c in accel[1:]:
+        norm += c * c
     np.sqrt(norm, out=norm)
-    counts = second.counts
     spread = float(np.ptp(np.add.reduceat(norm, starts) / counts))
-    return Stillness(second, excursion, spread)
+    return Stillness(Blocks(first.t_ns, means, counts, starts), excursion, spread)
