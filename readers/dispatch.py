@@ -7,12 +7,12 @@ from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-import pyarrow as pa
-
 from imupipe.readers.errors import ReadError
 from imupipe.readers.spec import InputSpec, RawMessage
 
-if TYPE_CHECKING:
+if TYPE_CHECKING:  # pyarrow is loaded by the reader a read imports, not by choosing one
+    import pyarrow as pa
+
     from imupipe.readers.sources import LogSource
 
 CSV_SUFFIXES = {".csv", ".txt", ".tsv", ".mat", ".dat"}
@@ -98,6 +98,12 @@ def read_input(spec: InputSpec) -> tuple[pa.Table, list[str]]:
     """Read one input into the common table; returns (table, warnings)."""
     fmt = detect_format(Path(spec.path))
     return _load(spec, fmt, READERS[fmt])(spec)
+
+
+def reader_module(spec: InputSpec) -> None:
+    """Import the reader :func:`read_input` uses for ``spec`` (without reading)."""
+    fmt = detect_format(Path(spec.path))
+    _load(spec, fmt, READERS[fmt])
 
 
 def iter_input(

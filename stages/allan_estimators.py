@@ -26,11 +26,11 @@ p = 0.8415 (lower) and 0.1585 (upper), i.e. 68.3 % intervals (the chi-square qua
 from __future__ import annotations
 
 import functools
+import math
 from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
-from scipy.special import binom, gammaincinv, polygamma
 
 Kind = Literal["oadev", "adev", "mdev", "hdev", "ohdev", "totdev"]
 KINDS: tuple[str, ...] = ("oadev", "adev", "mdev", "hdev", "ohdev", "totdev")
@@ -314,7 +314,7 @@ def _sx(t: np.ndarray, f: float, alpha: int) -> np.ndarray:
 
 
 def _sz(t: np.ndarray, f: float, alpha: int, d: int) -> np.ndarray:
-    c = [binom(2 * d, d + j) * (-1) ** j for j in range(d + 1)]
+    c = [math.comb(2 * d, d + j) * (-1) ** j for j in range(d + 1)]
     out = c[0] * _sx(t, f, alpha)
     for j in range(1, d + 1):
         out = out + c[j] * (_sx(t - j, f, alpha) + _sx(t + j, f, alpha))
@@ -411,7 +411,7 @@ def edf_greenhall(alpha: int, d: int, m: int, n: int, overlapping: bool, modifie
         mp = _J_MAX / r
         return (b0 + b1 * np.log(m)) ** 2 * _J_MAX / _basic_sum(_J_MAX, _J_MAX, mp, mp, 1, d)
     # alpha = 2, unmodified (white phase noise): case 4
-    a0 = binom(4 * d, 2 * d) / binom(2 * d, d) ** 2
+    a0 = math.comb(4 * d, 2 * d) / math.comb(2 * d, d) ** 2
     return big_m / max(a0 - (d / 2.0) / r, 1e-12)
 
 
@@ -459,6 +459,8 @@ def edf_of_curve(kind: str, m: np.ndarray, alpha: np.ndarray, n_phase: int) -> n
 
 def chi2_quantile(p: float, dof: np.ndarray) -> np.ndarray:
     """The chi-square quantile ``chi2.ppf(p, dof)`` as ``2 * gammaincinv(dof / 2, p)``."""
+    from scipy.special import gammaincinv  # scipy: loaded on first use (start-up)
+
     return 2.0 * gammaincinv(0.5 * np.asarray(dof, dtype=np.float64), p)
 
 
@@ -507,6 +509,8 @@ def bends(dev: Deviation, conf: Confidence, bend: float = BEND) -> np.ndarray:
         return np.zeros(0, dtype=np.int64)
     lt = np.log(dev.taus)[:, None]
     ld = np.log(dev.dev)
+    from scipy.special import polygamma
+
     var = polygamma(1, 0.5 * conf.edf) / 4.0
     slope = np.diff(ld, axis=0) / np.diff(lt, axis=0)
     change = np.abs(np.diff(slope, axis=0))  # at interior points 1 .. t-2
