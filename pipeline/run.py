@@ -11,11 +11,8 @@ renamed into ``[output] dir`` only when everything succeeded.
 from __future__ import annotations
 
 import argparse
-import contextlib
-import importlib
 import json
 import sys
-import threading
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -27,7 +24,6 @@ from imupipe.pipeline.atomic import OutputGuard, remove_stale_temps, staged_outp
 from imupipe.pipeline.calibration_file import fitted_on
 from imupipe.pipeline.config import Config, load_config
 from imupipe.pipeline.corrected import write_corrected
-from imupipe.pipeline.errors import ImupipeError
 from imupipe.pipeline.exports import chosen as chosen_exports
 from imupipe.pipeline.exports import export_all
 from imupipe.pipeline.progress import progress_bar
@@ -40,7 +36,7 @@ from imupipe.pipeline.summary import (
     summarise,
 )
 from imupipe.pipeline.version import VERSION
-from imupipe.readers.dispatch import read_input, reader_module
+from imupipe.readers.dispatch import read_input
 from imupipe.stages.base import StageContext
 from imupipe.stages.registry import stage_class
 from imupipe.stages.steps import Step, apply_chain
@@ -139,32 +135,6 @@ def output_guard(cfg: Config) -> OutputGuard:
     return guard
 
 
-def warm_imports(cfg: Config, used: Sequence[str]) -> None:
-    """Import, on a daemon thread while the inputs are read, the modules the run loads only
-    after them: those a stage's fit imports on first use (its ``imports_later``), Rerun (the
-    recording) and matplotlib (the report). The readers parse with the
-    GIL released (pyarrow, numpy), so a core the parse leaves free does the imports at no wall
-    time (about 0.6 s of the 2 h CSV Allan run). The readers of ``used`` inputs are imported
-    first, here, so the two threads never import one module at once; an import that fails on
-    the thread is left: it is done again, and reported, where it is used."""
-    for name in used:
-        try:
-            reader_module(cfg.inputs[name])
-        except (ImupipeError, ImportError):
-            return  # the read says what is wrong
-    modules = [m for st in cfg.stages for m in getattr(stage_class(st.type), "imports_later", ())]
-    modules.append("imupipe.pipeline.recording")
-    if cfg.output.report:
-        modules += ["matplotlib.figure", "matplotlib.backends.backend_agg"]
-
-    def load() -> None:
-        for module in modules:
-            with contextlib.suppress(Exception):
-                importlib.import_module(module)
-
-    threading.Thread(target=load, name="imupipe-imports", daemon=True).start()
-
-
 def run(config: Config | str | Path, *, spawn: bool = False, quiet: bool = False) -> RunSummary:
     """Run a config end to end; returns what was written."""
     cfg = config if isinstance(config, Config) else load_config(config)
@@ -174,7 +144,6 @@ def run(config: Config | str | Path, *, spawn: bool = False, quiet: bool = False
     raw: dict[str, pa.Table] = {}
     used = [name for name in cfg.inputs if any(st.input == name for st in cfg.stages)]
     n_steps = len(used) + len(cfg.stages) + len(cfg.output.apply_to) + 1
-    warm_imports(cfg, used)
 
     def read(name: str) -> pa.Table:
         table, warnings = read_input(cfg.inputs[name])

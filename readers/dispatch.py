@@ -100,12 +100,6 @@ def read_input(spec: InputSpec) -> tuple[pa.Table, list[str]]:
     return _load(spec, fmt, READERS[fmt])(spec)
 
 
-def reader_module(spec: InputSpec) -> None:
-    """Import the reader :func:`read_input` uses for ``spec`` (without reading)."""
-    fmt = detect_format(Path(spec.path))
-    _load(spec, fmt, READERS[fmt])
-
-
 def iter_input(
     spec: InputSpec, batch_rows: int = 200_000
 ) -> Iterator[tuple[pa.Table, list[RawMessage]]]:

@@ -95,9 +95,6 @@ fit runs on the OADEV at the same taus."""
 class AllanStage(Stage):
     type = "allan"
     sensors = ("gyro", "accel")
-    imports_later = ("scipy.special", "scipy.optimize")
-    """Modules the fit imports on first use (the pipeline may import them ahead, in the
-    background while the inputs are read)."""
 
     @dataclass
     class Options:
