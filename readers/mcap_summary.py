@@ -47,6 +47,33 @@ def _index_times(f: BinaryIO, offset: int, channel: int) -> list[int] | None:
     return list(struct.unpack(f"<{size // 8}Q", body)[::2])
 
 
+class _CannotTell(Exception):
+    """The summary does not hold what :func:`topic_summary` needs."""
+
+
+def _edge(f: BinaryIO, chunks: list, channel: int, last: bool) -> int | None:
+    """The first (``last``: the last) log time of ``channel`` over the ``chunks`` (chunk
+    indexes) that hold it: their message indexes read in order of chunk start (end) time, until
+    a chunk starts after (ends before) the earliest (latest) time found."""
+    if last:
+        order = sorted(chunks, key=lambda c: -c.message_end_time)
+    else:
+        order = sorted(chunks, key=lambda c: c.message_start_time)
+    best: int | None = None
+    for chunk in order:
+        if best is not None and (
+            chunk.message_end_time <= best if last else chunk.message_start_time >= best
+        ):
+            break
+        times = _index_times(f, chunk.message_index_offsets[channel], channel)
+        if times is None:
+            raise _CannotTell
+        if times:
+            edge = max(times) if last else min(times)
+            best = edge if best is None else (max(best, edge) if last else min(best, edge))
+    return best
+
+
 def topic_summary(path: Path) -> dict[str, TopicSummary] | None:
     """Topic -> :class:`TopicSummary` from the summary section, or None when the file does not
     hold what it takes (see the module docstring)."""
@@ -71,26 +98,12 @@ def topic_summary(path: Path) -> dict[str, TopicSummary] | None:
             first = last = None
             if count:
                 holding = [c for c in indexes if cid in c.message_index_offsets]
-                if not holding:
+                try:
+                    first, last = _edge(f, holding, cid, False), _edge(f, holding, cid, True)
+                except _CannotTell:
                     return None
-                for chunk in sorted(holding, key=lambda c: c.message_start_time):
-                    if first is not None and chunk.message_start_time >= first:
-                        break
-                    times = _index_times(f, chunk.message_index_offsets[cid], cid)
-                    if times is None:
-                        return None
-                    if times:
-                        first = min(times) if first is None else min(first, min(times))
-                for chunk in sorted(holding, key=lambda c: -c.message_end_time):
-                    if last is not None and chunk.message_end_time <= last:
-                        break
-                    times = _index_times(f, chunk.message_index_offsets[cid], cid)
-                    if times is None:
-                        return None
-                    if times:
-                        last = max(times) if last is None else max(last, max(times))
                 if first is None or last is None:
-                    return None  # indexes that list none of the messages counted
+                    return None  # no chunk lists a message of it, or its indexes are empty
             prev = out.get(channel.topic)
             if prev is not None:  # several channels on one topic: one entry
                 starts = [t for t in (prev.start_ns, first) if t is not None]
