@@ -56,9 +56,10 @@ def stillness(
     counts = first.counts
     means = np.column_stack([first.means] + [np.add.reduceat(c, starts) / counts for c in gyro[1:]])
     excursion = max(float(np.abs(means[:, k] - c.mean()).max()) for k, c in enumerate(gyro))
-    norm = np.multiply(accel[0], accel[0])
-    for c in accel[1:]:
-        norm += c * c
+    with np.errstate(over="ignore"):  # a damaged value's square is inf: not static
+        norm = np.multiply(accel[0], accel[0])
+        for c in accel[1:]:
+            norm += c * c
     np.sqrt(norm, out=norm)
     spread = float(np.ptp(np.add.reduceat(norm, starts) / counts))
     return Stillness(Blocks(first.t_ns, means, counts, starts), excursion, spread)
