@@ -10,7 +10,8 @@
    (read + fit + ``imu.yaml`` + Rerun recording), as a user runs it: a fresh Python process,
    imports included; against allantools ``oadev(taus="octave")`` on the same six arrays in
    memory. Goal: ratio <= 2.0. Peak RSS (``VmHWM``) of the run's process beside the size of
-   the input's common table.
+   the input's common table; and the floor no run avoids (a fresh process importing what a
+   run imports, then ``pyarrow.csv.read_csv`` of the file) against the same peer.
 
 Times are noisy on a shared machine: the load average is printed, and the ratios (both sides
 measured in the same run, interleaved) are what count.
@@ -72,6 +73,19 @@ print(json.dumps({"ours": ours, "peer": peer, "taus": taus, "table": table.nbyte
                   "growth": peak - base}))
 """
 
+FLOOR_CHILD = """
+import sys, time
+t0 = time.perf_counter()
+import imupipe.pipeline.run, imupipe.pipeline.recording, imupipe.stages.allan
+import scipy.special, scipy.optimize, matplotlib.figure, matplotlib.backends.backend_agg
+t1 = time.perf_counter()
+import pyarrow.csv
+pyarrow.csv.read_csv(sys.argv[1])
+print(t1 - t0, time.perf_counter() - t1)
+"""
+"""What no run can avoid: the imports of a run (pyarrow, numpy, Rerun, matplotlib, scipy) and
+``pyarrow.csv.read_csv`` of the whole file, in a fresh process."""
+
 RUN_CHILD = """
 import sys, time
 t0 = time.perf_counter()
@@ -132,8 +146,15 @@ def bench_run(repeats: int) -> None:
         '[inputs.static]\npath = "static.csv"\n\n[[stages]]\ntype = "allan"\n\n'
         '[output]\ndir = "out"\n'
     )
-    walls, peers, peak = [], [], 0
+    walls, peers, floors, peak = [], [], [], 0
     for _ in range(repeats):
+        proc = subprocess.run(
+            [sys.executable, "-c", FLOOR_CHILD, str(d / "static.csv")],
+            capture_output=True,
+            text=True,
+            check=True,
+        )
+        floors.append(tuple(float(v) for v in proc.stdout.split()))
         t = time.perf_counter()
         proc = subprocess.run(
             [sys.executable, "-c", RUN_CHILD, str(cfg), HERE], capture_output=True, text=True
@@ -153,6 +174,11 @@ def bench_run(repeats: int) -> None:
         f"   imupipe run {wall:.2f} s (process start to exit; repeats "
         f"{', '.join(f'{w:.2f}' for w in walls)}), allantools oadev octave on the same arrays "
         f"in memory {peer:.2f} s: ratio {wall / peer:.2f} (goal <= 2.0)"
+    )
+    imports, read = min(f[0] for f in floors), min(f[1] for f in floors)
+    print(
+        f"   floor: the run's imports {imports:.2f} s + pyarrow.csv.read_csv {read:.2f} s = "
+        f"{(imports + read) / peer:.2f} x allantools before any fitting"
     )
     print(
         f"   peak RSS {peak / 1e6:.0f} MB = {peak / table_bytes:.2f} x the common table "

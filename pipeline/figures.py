@@ -137,12 +137,23 @@ def decimate(t: np.ndarray, values: np.ndarray, max_points: int) -> tuple[np.nda
     """At most ``max_points`` rows: means of consecutive blocks (``t`` int64 ns or float)."""
     if len(t) <= max_points:
         return t, values
+    return decimate_columns(t, list(values.reshape(len(t), -1).T), max_points)
+
+
+def decimate_columns(
+    t: np.ndarray, columns: Sequence[np.ndarray], max_points: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`decimate` of the (n, k) array whose columns are ``columns`` (each (n,)), without
+    making that array: (times, (m, k) values)."""
+    if len(t) <= max_points:
+        return t, np.column_stack(columns)
     window = math.ceil(len(t) / max_points)
     if np.issubdtype(t.dtype, np.integer):
-        blocks = block_means(t, values, window=window)
-        return blocks.t_ns, blocks.means
+        blocks = block_means(t, columns[0], window=window)
+        rest = [np.add.reduceat(c, blocks.starts) / blocks.counts for c in columns[1:]]
+        return blocks.t_ns, np.column_stack([blocks.means, *rest])
     keep = np.arange(0, len(t), window)
-    return t[keep], values[keep]
+    return t[keep], np.column_stack([c[keep] for c in columns])
 
 
 class Figures:

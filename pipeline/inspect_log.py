@@ -1,7 +1,9 @@
 """``imupipe inspect LOG``: what a log holds and what imupipe would read from it.
 
 For MCAP and ROS bags: every topic with its message type, message count, mean rate (from the log
-times: ``(count - 1) / span``) and time span, without decoding payloads; then the topic each
+times: ``(count - 1) / span``) and time span, without decoding payloads (an MCAP file with a
+summary section answers from it, :mod:`imupipe.readers.mcap_summary`, without reading a chunk
+or importing numpy; else from every message's log time); then the topic each
 stream would be read from (the same choice ``imupipe run`` makes, so an ambiguous choice is shown
 with its candidates) and the common-table columns that would be filled. For a PX4 ULog: every
 topic instance (``sensor_gyro_1`` is instance 1) with its uORB message, instance and device id,
@@ -17,28 +19,23 @@ import json
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from imupipe.pipeline.errors import ImupipeError
-from imupipe.readers.decoded import COLUMNS, STREAM_TYPES, normalize_type, select_topics
-from imupipe.readers.dispatch import detect_format, log_sources, read_input
+from imupipe.readers.dispatch import detect_format
 from imupipe.readers.spec import InputSpec
-from imupipe.readers.table import (
-    SENSOR_COLUMNS,
-    STREAM_OF_SENSOR,
-    counts,
-    has_sensor,
-    stream_mask,
-)
+from imupipe.readers.topics import COLUMNS, STREAM_TYPES, normalize_type, select_topics
 
 BASE_COLUMNS = ["t_ns", "log_time_ns", "frame_id"]
 
 
-def _span(t: np.ndarray) -> dict[str, Any]:
+def _span(t: Any) -> dict[str, Any]:
+    """Count, first and last time, duration and mean rate of the times ``t`` (int64 ns)."""
     n = len(t)
-    if n == 0:
+    return _counted(n, int(t.min()) if n else None, int(t.max()) if n else None)
+
+
+def _counted(n: int, lo: int | None, hi: int | None) -> dict[str, Any]:
+    if n == 0 or lo is None or hi is None:
         return {"count": 0, "start_ns": None, "end_ns": None, "duration_s": 0.0, "rate_hz": None}
-    lo, hi = int(t.min()), int(t.max())
     duration = (hi - lo) * 1e-9
     return {
         "count": n,
@@ -54,6 +51,15 @@ def inspect(spec: InputSpec) -> dict[str, Any]:
     path = Path(spec.path)
     fmt = detect_format(path)
     if fmt == "csv":
+        from imupipe.readers.dispatch import read_input
+        from imupipe.readers.table import (
+            SENSOR_COLUMNS,
+            STREAM_OF_SENSOR,
+            counts,
+            has_sensor,
+            stream_mask,
+        )
+
         table, warnings = read_input(spec)
         streams = {}
         filled = ["t_ns"]
@@ -80,17 +86,8 @@ def inspect(spec: InputSpec) -> dict[str, Any]:
             "warnings": warnings,
         }
 
-    sources = log_sources(spec)
-    types: dict[str, str] = {}
-    times: dict[str, list[np.ndarray]] = {}
-    for src in sources:
-        types.update(src.topic_types())
-        for topic, t in src.topic_times().items():
-            times.setdefault(topic, []).append(t)
-    topics = {}
-    for topic in sorted(types):
-        t = np.concatenate(times[topic]) if topic in times else np.zeros(0, np.int64)
-        topics[topic] = {"type": normalize_type(types[topic]), **_span(t)}
+    described = _from_summary(path) if fmt == "mcap" else None
+    types, topics = described if described is not None else _from_messages(spec)
     out: dict[str, Any] = {"path": str(path), "format": fmt, "topics": topics, "streams": {}}
     if fmt == "ulog":
         return _ulog(spec, out)
@@ -112,8 +109,47 @@ def inspect(spec: InputSpec) -> dict[str, Any]:
     return out
 
 
+def _from_summary(path: Path) -> tuple[dict[str, str], dict[str, Any]] | None:
+    """(topic -> type, topic -> entry) from an MCAP summary section, or None when it cannot
+    tell (:func:`imupipe.readers.mcap_summary.topic_summary`): no payload read, no numpy."""
+    from imupipe.readers.mcap_summary import topic_summary
+
+    summary = topic_summary(path)
+    if summary is None:
+        return None
+    types = {topic: s.type for topic, s in summary.items()}
+    topics = {
+        topic: {
+            "type": normalize_type(s.type),
+            **_counted(s.count, s.start_ns, s.end_ns),
+        }
+        for topic, s in sorted(summary.items())
+    }
+    return types, topics
+
+
+def _from_messages(spec: InputSpec) -> tuple[dict[str, str], dict[str, Any]]:
+    """(topic -> type, topic -> entry) from the log times of every message of the log."""
+    import numpy as np
+
+    from imupipe.readers.dispatch import log_sources
+
+    types: dict[str, str] = {}
+    times: dict[str, list[np.ndarray]] = {}
+    for src in log_sources(spec):
+        types.update(src.topic_types())
+        for topic, t in src.topic_times().items():
+            times.setdefault(topic, []).append(t)
+    topics = {}
+    for topic in sorted(types):
+        t = np.concatenate(times[topic]) if topic in times else np.zeros(0, np.int64)
+        topics[topic] = {"type": normalize_type(types[topic]), **_span(t)}
+    return types, topics
+
+
 def _ulog(spec: InputSpec, out: dict[str, Any]) -> dict[str, Any]:
     """The ULog part of :func:`inspect`: instances, chosen streams, PX4's calibration."""
+    from imupipe.readers.table import SENSOR_COLUMNS, STREAM_OF_SENSOR
     from imupipe.readers.ulog_reader import describe
 
     info = describe(spec)

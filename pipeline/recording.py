@@ -58,12 +58,19 @@ from imupipe.pipeline.figures import (
     Series,
     colors_for,
     decimate,
+    decimate_columns,
     display_unit,
     lighter,
     stage_of,
 )
 from imupipe.pipeline.summary import raw_count_sensors
-from imupipe.readers.table import SENSOR_COLUMNS, SENSOR_UNITS, STREAM_OF_SENSOR, has_stream, sensor
+from imupipe.readers.table import (
+    SENSOR_COLUMNS,
+    SENSOR_UNITS,
+    STREAM_OF_SENSOR,
+    has_stream,
+    sensor_columns,
+)
 from imupipe.stages.base import NullRecorder
 
 TIMELINE = "time"
@@ -169,14 +176,17 @@ class Recorder:
         key = plot or entity.rstrip("/").rsplit("/", 1)[-1]
         fig = self.figures.plot(stage_of(entity), key, "time", title=title, unit=shown)
         colors = colors_for(names, colors)
-        t_ns, values = decimate(t_ns, values * factor, self.max_points)
+        t_ns, values = decimate(t_ns, values, self.max_points)  # then scaled: fewer points
+        if factor != 1.0:
+            values = values * factor
         kept_t, kept = decimate(t_ns, values, self.figures.keep_points)
         fig.series.append(
             Series(entity, list(names), colors, kept_t, kept, "points" if points else "line")
         )
         self._style(entity, names, colors, points)
-        first, last = self._spans.get(entity, (int(t_ns.min()), int(t_ns.max())))
-        self._spans[entity] = (min(first, int(t_ns.min())), max(last, int(t_ns.max())))
+        lo, hi = int(t_ns.min()), int(t_ns.max())
+        first, last = self._spans.get(entity, (lo, hi))
+        self._spans[entity] = (min(first, lo), max(last, hi))
         if self._streams:
             indexes = [rr.TimeColumn(TIMELINE, timestamp=t_ns.astype("datetime64[ns]"))]
             columns = rr.Scalars.columns(scalars=values)
@@ -399,7 +409,8 @@ class Recorder:
                 plot = self.figures.plot(stage, key, "time", title=title, unit=shown)
                 plot.series.append(self._reused[reuse])
                 continue
-            data = sensor(table, name)
+            # averaged down column by column first: no (n, 3) copy of the input
+            t_ns, values = decimate_columns(*sensor_columns(table, name), self.max_points)
             axes = [c.split("_")[-1] for c in SENSOR_COLUMNS[name]]
             names = [f"{name} {a} {label}" if len(axes) > 1 else f"{name} {label}" for a in axes]
             colors = AXIS_COLORS[: len(axes)]
@@ -408,8 +419,8 @@ class Recorder:
             entity = f"/{stage}/{label}/{name}"
             self.series(
                 entity,
-                data.t_ns,
-                data.values,
+                t_ns,
+                values,
                 names,
                 unit=unit,
                 plot=key,

@@ -7,12 +7,12 @@ from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-import pyarrow as pa
-
 from imupipe.readers.errors import ReadError
 from imupipe.readers.spec import InputSpec, RawMessage
 
-if TYPE_CHECKING:
+if TYPE_CHECKING:  # pyarrow is loaded by the reader a read imports, not by choosing one
+    import pyarrow as pa
+
     from imupipe.readers.sources import LogSource
 
 CSV_SUFFIXES = {".csv", ".txt", ".tsv", ".mat", ".dat"}

@@ -14,11 +14,12 @@ from pathlib import Path
 import numpy as np
 import pyarrow as pa
 
-from imupipe.readers.decoded import Piece, concat, decode_piece, normalize_type
+from imupipe.readers.decoded import Piece, concat, decode_piece
 from imupipe.readers.errors import ReadError
 from imupipe.readers.fast_mcap import ChunkMessages, McapFile
 from imupipe.readers.sources import carry_sources, iter_sources, read_sources
 from imupipe.readers.spec import InputSpec, RawMessage
+from imupipe.readers.topics import normalize_type
 
 
 class McapSource:

@@ -27,10 +27,11 @@ import pyarrow as pa
 
 from imupipe.readers.cdr import unaligned
 from imupipe.readers.compression import DECOMPRESS_THREADS, PREFETCH, decompress_chunk
-from imupipe.readers.decoded import Piece, concat, decode_piece, normalize_type
+from imupipe.readers.decoded import Piece, concat, decode_piece
 from imupipe.readers.errors import ReadError
 from imupipe.readers.sources import carry_sources, iter_sources, read_sources
 from imupipe.readers.spec import InputSpec, RawMessage
+from imupipe.readers.topics import normalize_type
 
 VERSION_LINE = b"#ROSBAG V2.0\n"
 OP_MSG, OP_BAG_HEADER, OP_INDEX, OP_CHUNK, OP_CHUNK_INFO, OP_CONNECTION = 2, 3, 4, 5, 6, 7

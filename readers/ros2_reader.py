@@ -20,11 +20,12 @@ from pathlib import Path
 import numpy as np
 import pyarrow as pa
 
-from imupipe.readers.decoded import Piece, decode_piece, normalize_type
+from imupipe.readers.decoded import Piece, decode_piece
 from imupipe.readers.errors import ReadError
 from imupipe.readers.mcap_reader import McapSource
 from imupipe.readers.sources import LogSource, carry_sources, iter_sources, read_sources
 from imupipe.readers.spec import InputSpec, RawMessage
+from imupipe.readers.topics import normalize_type
 
 BLOCK_ROWS = 50_000
 CORRUPT = (sqlite3.DatabaseError, TypeError, ValueError, AttributeError, OverflowError)

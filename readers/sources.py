@@ -21,10 +21,11 @@ from typing import Protocol
 import numpy as np
 import pyarrow as pa
 
-from imupipe.readers.decoded import Piece, concat, select_topics
+from imupipe.readers.decoded import Piece, concat
 from imupipe.readers.errors import ReadError
 from imupipe.readers.spec import InputSpec, RawMessage
 from imupipe.readers.table_buffer import TableBuffer, assemble
+from imupipe.readers.topics import select_topics
 
 NEVER = 2**63 - 1
 

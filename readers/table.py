@@ -248,17 +248,37 @@ class SensorData:
         return (self.t_ns - self.t_ns[0]).astype(np.float64) * 1e-9
 
 
+def _stream_rows(table: pa.Table, name: str) -> np.ndarray | None:
+    """The rows of sensor ``name``'s stream (None: every row)."""
+    mask = stream_mask(table, STREAM_OF_SENSOR[name])
+    return None if mask.all() else np.flatnonzero(mask)
+
+
+def _sensor_columns(
+    table: pa.Table, name: str, rows: np.ndarray | None
+) -> tuple[np.ndarray, list[np.ndarray]]:
+    t_ns = table.column("t_ns").to_numpy()
+    columns = [_column_f64(table, c, rows) for c in SENSOR_COLUMNS[name]]
+    return (t_ns if rows is None else t_ns[rows]), columns
+
+
+def sensor_columns(table: pa.Table, name: str) -> tuple[np.ndarray, list[np.ndarray]]:
+    """:func:`sensor` column by column, without its (n, k) copy: the stamps and one float64
+    array per column over the rows of the sensor's stream (NaN where a row has no sample of
+    it). Where the stream holds every row and a column is one chunk without nulls, the array is
+    a read-only view of the table's own buffer."""
+    return _sensor_columns(table, name, _stream_rows(table, name))
+
+
 def sensor(table: pa.Table, name: str) -> SensorData:
     """The samples of sensor ``name`` (gyro, accel, mag, temperature) as :class:`SensorData`:
     one per row of its stream, so that gyro and accel stay row for row; NaN where that row has
     no sample of this sensor (an IMU stream from a CSV without accel columns: accel all NaN; see
     :func:`has_sensor`)."""
-    mask = stream_mask(table, STREAM_OF_SENSOR[name])
-    rows = None if mask.all() else np.flatnonzero(mask)
-    t_ns = table.column("t_ns").to_numpy()
-    values = np.column_stack([_column_f64(table, c, rows) for c in SENSOR_COLUMNS[name]])
+    rows = _stream_rows(table, name)
+    t_ns, columns = _sensor_columns(table, name, rows)
     idx = np.arange(len(table)) if rows is None else rows
-    return SensorData(t_ns=t_ns if rows is None else t_ns[rows], values=values, rows=idx)
+    return SensorData(t_ns=t_ns, values=np.column_stack(columns), rows=idx)
 
 
 def finite(data: SensorData) -> tuple[SensorData, int]:

@@ -26,9 +26,10 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.compute as pc
 
-from imupipe.readers.decoded import COLUMNS, STREAM_TYPES, Piece, absent_sensors
+from imupipe.readers.decoded import Piece, absent_sensors
 from imupipe.readers.prefault import Prefault
 from imupipe.readers.table import COV, SCHEMA, with_metadata
+from imupipe.readers.topics import COLUMNS, STREAM_TYPES
 
 SPREAD_ROWS = 1 << 15
 """Rows moved per step when a column is spread to its rows in place."""

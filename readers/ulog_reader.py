@@ -60,6 +60,7 @@ from imupipe.readers.errors import ReadError
 from imupipe.readers.spec import InputSpec
 from imupipe.readers.table import metadata, with_metadata
 from imupipe.readers.table_buffer import assemble
+from imupipe.readers.topics import TOPIC_KEYS
 
 US_TO_NS = 1000
 """ULog timestamps are microseconds since boot."""
@@ -81,7 +82,6 @@ READ_TOPICS = (
 PARAMETER_PREFIXES = ("CAL_", "TC_", "SENS_BOARD_")
 """Parameters kept in the table's metadata (calibration, thermal compensation, board rotation)."""
 TEMPERATURE_TOPICS = ("sensor_gyro", "sensor_accel", "sensor_mag", "sensor_baro")
-TOPIC_KEYS = {"imu": "imu_topic", "mag": "mag_topic", "temperature": "temperature_topic"}
 CALIBRATED_TOPICS = ("sensor_combined", "vehicle_magnetometer")
 """Topics PX4 publishes after applying its ``CAL_*`` (and thermal) corrections."""
 

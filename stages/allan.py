@@ -45,7 +45,7 @@ from typing import Any, Literal
 import numpy as np
 import pyarrow as pa
 
-from imupipe.readers.table import SENSOR_UNITS, SensorData, has_stream, sensor
+from imupipe.readers.table import SENSOR_UNITS, SensorData, has_stream, sensor_columns
 from imupipe.stages import allan_estimators as est
 from imupipe.stages.allan_fit import TERMS, AllanFit, fit_allan, slope_readings, term_variance
 from imupipe.stages.base import Stage, StageContext, StageOutput
@@ -58,11 +58,11 @@ AXES = ("x", "y", "z")
 
 @dataclass
 class ImuSeries:
-    """The IMU samples an Allan run uses: stamps, gyro and accel (n, 3), their sample clock,
-    and the mean rate over the clock's slots (Hz)."""
+    """The IMU samples an Allan run uses: stamps, gyro and accel (three columns each), their
+    sample clock, and the mean rate over the clock's slots (Hz)."""
 
     t_ns: np.ndarray
-    data: dict[str, np.ndarray]
+    data: dict[str, list[np.ndarray]]
     clock: SampleClock
     rate_hz: float
 
@@ -75,10 +75,6 @@ class ImuSeries:
     def span_s(self) -> float:
         """Slots times the period: what the deviations cover (2 h at 400 Hz: 2.88 M slots)."""
         return float(self.clock.n_slots / self.rate_hz)
-
-
-def _take(data: SensorData, keep: np.ndarray) -> SensorData:
-    return SensorData(data.t_ns[keep], data.values[keep], data.rows[keep])
 
 
 UNITS = {
@@ -147,7 +143,7 @@ class AllanStage(Stage):
         static = self._check_static(t_ns, data, ctx)
 
         x = est.rate_to_phase(
-            [fill_lost(clock, data[s][:, i]) for s in self.sensors for i in range(3)],
+            [fill_lost(clock, c) for s in self.sensors for c in data[s]],
             1.0 / rate_hz,
         )
         del data, series  # the phase (6, n + 1) is all the estimators need
@@ -258,32 +254,36 @@ class AllanStage(Stage):
         jitter told apart from gaps: :mod:`imupipe.stages.sample_clock`), cut to the longest
         stretch without a gap longer than ``max_gap`` periods (a warning)."""
         opts = self.options
-        gyro, accel = sensor(table, "gyro"), sensor(table, "accel")
+        # column by column, views of the table where it can: no (n, 3) copy
+        t_ns, gyro = sensor_columns(table, "gyro")
+        cols = gyro + sensor_columns(table, "accel")[1]  # gyro x, y, z, accel x, y, z
         number = None  # IMU sample numbers of the input, for messages (None: 0, 1, 2, ...)
         if opts.interval is not None:
-            keep = select_interval(gyro, opts.interval)
-            gyro, accel = _take(gyro, keep), _take(accel, keep)
+            everyone = np.arange(len(t_ns))
+            keep = select_interval(
+                SensorData(t_ns, np.zeros((len(t_ns), 0)), everyone), opts.interval
+            )
+            t_ns, cols = t_ns[keep], [c[keep] for c in cols]
             number = np.flatnonzero(keep)
-        # one sum per sensor tells whether any value is NaN or Inf (no (n, 3) mask)
-        if not (np.isfinite(gyro.values.sum()) and np.isfinite(accel.values.sum())):
-            ok = np.isfinite(gyro.values).all(axis=1) & np.isfinite(accel.values).all(axis=1)
-            rows = np.arange(len(gyro)) if number is None else number
-            both = SensorData(gyro.t_ns, np.column_stack([gyro.values, accel.values]), rows)
+        # one sum per column tells whether any value is NaN or Inf (no mask)
+        if not all(np.isfinite(c.sum()) for c in cols):
+            ok = np.logical_and.reduce([np.isfinite(c) for c in cols])
+            rows = np.arange(len(t_ns)) if number is None else number
+            both = SensorData(t_ns, np.column_stack(cols), rows)
             number = ctx.finite(both, "IMU (gyro and accel)", minimum=3).rows
-            gyro, accel = _take(gyro, ok), _take(accel, ok)
+            t_ns, cols = t_ns[ok], [c[ok] for c in cols]
 
         def num(i: int) -> int:
             return int(i if number is None else number[i])
 
-        t_ns = gyro.t_ns
         if len(t_ns) < 3:
             raise ctx.fail(f"only {len(t_ns)} IMU samples")
         dt = np.diff(t_ns)
         if dt.min() <= 0:
             i = int(np.flatnonzero(dt <= 0)[0])
             raise ctx.fail(f"time does not increase at IMU sample {num(i + 1)} (step {dt[i]} ns)")
-        data = {"gyro": gyro.values, "accel": accel.values}
-        clock = sample_clock(t_ns)
+        data = {"gyro": cols[:3], "accel": cols[3:]}
+        clock = sample_clock(t_ns, dt)
         breaks = np.flatnonzero(clock.lost + 1 > opts.max_gap) if clock.n_lost else []
         if len(breaks):
             start, stop = longest_run(breaks, len(t_ns))
@@ -299,7 +299,7 @@ class AllanStage(Stage):
             )
             number = np.arange(start, stop) if number is None else number[start:stop]
             t_ns = t_ns[start:stop]
-            data = {k: v[start:stop] for k, v in data.items()}
+            data = {k: [c[start:stop] for c in v] for k, v in data.items()}
             clock = sample_clock(t_ns)
         rate_hz = float((clock.n_slots - 1) / ((t_ns[-1] - t_ns[0]) * 1e-9))
         if clock.n_lost:
@@ -314,7 +314,7 @@ class AllanStage(Stage):
         return ImuSeries(t_ns, data, clock, rate_hz)
 
     def _check_static(
-        self, t_ns: np.ndarray, data: dict[str, np.ndarray], ctx: StageContext
+        self, t_ns: np.ndarray, data: dict[str, list[np.ndarray]], ctx: StageContext
     ) -> bool:
         still = stillness(t_ns, data["gyro"], data["accel"])
         static = still.static(self.options.motion_threshold)

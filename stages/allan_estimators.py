@@ -26,11 +26,11 @@ p = 0.8415 (lower) and 0.1585 (upper), i.e. 68.3 % intervals (the chi-square qua
 from __future__ import annotations
 
 import functools
+import math
 from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
-from scipy.special import binom, gammaincinv, polygamma
 
 Kind = Literal["oadev", "adev", "mdev", "hdev", "ohdev", "totdev"]
 KINDS: tuple[str, ...] = ("oadev", "adev", "mdev", "hdev", "ohdev", "totdev")
@@ -248,20 +248,21 @@ def deviation(
 
 
 # -- noise identification and confidence ----------------------------------------------------------
-def _lag1(z: np.ndarray) -> float:
-    """Lag-1 autocorrelation of the 1-D series ``z`` (its mean removed)."""
-    z = z - z.mean()
-    return float(np.einsum("i,i->", z[:-1], z[1:]) / np.einsum("i,i->", z, z))
+def _lag1(z: np.ndarray) -> np.ndarray:
+    """Lag-1 autocorrelation of each row of ``z`` (k, n) (its mean removed)."""
+    z = z - z.mean(axis=1, keepdims=True)
+    return np.einsum("ij,ij->i", z[:, :-1], z[:, 1:]) / np.einsum("ij,ij->i", z, z)
 
 
 def _detrend2(z: np.ndarray) -> np.ndarray:
-    """``z`` (n,) minus its least-squares quadratic in time (orthogonal basis 1, t, t^2 - <t^2>)."""
-    t = np.linspace(-1.0, 1.0, len(z))
+    """Each row of ``z`` (k, n) minus its least-squares quadratic in time (orthogonal basis 1,
+    t, t^2 - <t^2>)."""
+    t = np.linspace(-1.0, 1.0, z.shape[1])
     t2 = t * t
     t2 -= t2.mean()
-    out = z - z.mean()
+    out = z - z.mean(axis=1, keepdims=True)
     for p in (t, t2):
-        out -= (np.einsum("i,i->", out, p) / np.einsum("i,i->", p, p)) * p
+        out -= (np.einsum("ij,j->i", out, p) / np.einsum("i,i->", p, p))[:, None] * p
     return out
 
 
@@ -275,18 +276,22 @@ def noise_alpha(x: np.ndarray, m: int, dmax: int = 2) -> np.ndarray | None:
     """Noise exponent alpha (int, per axis) at averaging factor ``m`` from phase ``x`` (k, N)
     by the lag-1 autocorrelation method (Riley & Greenhall 2004): decimate by m, remove a
     quadratic, difference until delta = r1 / (1 + r1) < 0.25 (at most ``dmax`` times),
-    alpha = -round(2 delta) - 2 d + 2. None when fewer than 30 decimated points remain."""
+    alpha = -round(2 delta) - 2 d + 2. None when fewer than 30 decimated points remain.
+    Every axis at once (those still undecided are differenced again)."""
     if (x.shape[1] + m - 1) // m < 30:
         return None
     alpha = np.zeros(len(x), dtype=np.int64)
-    for j, row in enumerate(x):
-        z = _detrend2(row[: m * NOISE_ID_MAX_POINTS : m])
-        for d in range(dmax + 1):
-            delta = (r1 := _lag1(z)) / (1.0 + r1)
-            if delta < 0.25 or d >= dmax or len(z) < 4:
-                alpha[j] = -round(2.0 * delta) - 2 * d + 2
-                break
-            z = np.diff(z)
+    todo = np.arange(len(x))
+    z = _detrend2(x[:, : m * NOISE_ID_MAX_POINTS : m])
+    for d in range(dmax + 1):
+        r1 = _lag1(z)
+        delta = r1 / (1.0 + r1)
+        done = (delta < 0.25) | (d >= dmax) | (z.shape[1] < 4)
+        alpha[todo[done]] = -np.round(2.0 * delta[done]).astype(np.int64) - 2 * d + 2
+        todo = todo[~done]
+        if not len(todo):
+            break
+        z = np.diff(z[~done], axis=1)
     return alpha
 
 
@@ -309,7 +314,7 @@ def _sx(t: np.ndarray, f: float, alpha: int) -> np.ndarray:
 
 
 def _sz(t: np.ndarray, f: float, alpha: int, d: int) -> np.ndarray:
-    c = [binom(2 * d, d + j) * (-1) ** j for j in range(d + 1)]
+    c = [math.comb(2 * d, d + j) * (-1) ** j for j in range(d + 1)]
     out = c[0] * _sx(t, f, alpha)
     for j in range(1, d + 1):
         out = out + c[j] * (_sx(t - j, f, alpha) + _sx(t + j, f, alpha))
@@ -406,7 +411,7 @@ def edf_greenhall(alpha: int, d: int, m: int, n: int, overlapping: bool, modifie
         mp = _J_MAX / r
         return (b0 + b1 * np.log(m)) ** 2 * _J_MAX / _basic_sum(_J_MAX, _J_MAX, mp, mp, 1, d)
     # alpha = 2, unmodified (white phase noise): case 4
-    a0 = binom(4 * d, 2 * d) / binom(2 * d, d) ** 2
+    a0 = math.comb(4 * d, 2 * d) / math.comb(2 * d, d) ** 2
     return big_m / max(a0 - (d / 2.0) / r, 1e-12)
 
 
@@ -454,6 +459,8 @@ def edf_of_curve(kind: str, m: np.ndarray, alpha: np.ndarray, n_phase: int) -> n
 
 def chi2_quantile(p: float, dof: np.ndarray) -> np.ndarray:
     """The chi-square quantile ``chi2.ppf(p, dof)`` as ``2 * gammaincinv(dof / 2, p)``."""
+    from scipy.special import gammaincinv  # scipy: loaded on first use (start-up)
+
     return 2.0 * gammaincinv(0.5 * np.asarray(dof, dtype=np.float64), p)
 
 
@@ -502,6 +509,8 @@ def bends(dev: Deviation, conf: Confidence, bend: float = BEND) -> np.ndarray:
         return np.zeros(0, dtype=np.int64)
     lt = np.log(dev.taus)[:, None]
     ld = np.log(dev.dev)
+    from scipy.special import polygamma
+
     var = polygamma(1, 0.5 * conf.edf) / 4.0
     slope = np.diff(ld, axis=0) / np.diff(lt, axis=0)
     change = np.abs(np.diff(slope, axis=0))  # at interior points 1 .. t-2

@@ -47,8 +47,6 @@ import itertools
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.optimize import nnls
-from scipy.special import digamma, polygamma
 
 TERMS: tuple[str, ...] = ("Q", "N", "B", "K", "R")
 POWERS: dict[str, int] = {"Q": -2, "N": -1, "B": 0, "K": 1, "R": 2}
@@ -94,6 +92,8 @@ def term_variance(term: str, value: float, taus: np.ndarray) -> np.ndarray:
 
 def log_variance_moments(edf: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(bias, variance) of ln(s^2 / sigma^2) for s^2 ~ sigma^2 chi2(edf) / edf."""
+    from scipy.special import digamma, polygamma  # scipy: loaded on first use (start-up)
+
     half = 0.5 * np.asarray(edf, dtype=np.float64)
     return digamma(half) - np.log(half), polygamma(1, half)
 
@@ -139,6 +139,8 @@ def _solve(
     lower-envelope tangents and from their sum, and the better end point wins; with ``start``
     (a previous solution, for a profile) from that one only. (On 96 simulated curves x 16 subsets
     the first-order start was never beaten by the two others.)"""
+    from scipy.optimize import nnls  # scipy: loaded on first use (start-up)
+
     sw = np.sqrt(w)
     level = np.exp(target)
     rel = a / level[:, None]
@@ -149,9 +151,10 @@ def _solve(
 
     def cost(u: np.ndarray) -> float:
         mu = a_s @ u + off
-        if np.any(mu <= 0):
+        if not mu.min() > 0:
             return np.inf
-        return float(np.sum(w * (np.log(mu) - target) ** 2))
+        r = np.log(mu) - target
+        return float(r @ (w * r))
 
     def descend(u: np.ndarray) -> tuple[np.ndarray, float]:
         f = cost(u)

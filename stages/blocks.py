@@ -50,13 +50,16 @@ def block_means(
     values: np.ndarray,
     window: int | None = None,
     window_s: float | None = None,
+    starts: np.ndarray | None = None,
 ) -> Blocks:
-    """Means of consecutive blocks of ``values`` (n,) or (n, k); see the module docstring."""
+    """Means of consecutive blocks of ``values`` (n,) or (n, k); see the module docstring.
+    ``starts``: the blocks as :func:`block_starts` gave them (instead of a window)."""
     t_ns = np.asarray(t_ns, dtype=np.int64)
     values = np.asarray(values, dtype=np.float64)
     squeeze = values.ndim == 1
     values2 = values.reshape(len(t_ns), -1)
-    starts = block_starts(t_ns, window, window_s)
+    if starts is None:
+        starts = block_starts(t_ns, window, window_s)
     if len(starts) == 0:
         return Blocks(t_ns, values2[:0], np.zeros(0, np.int64), starts)
     counts = np.diff(np.r_[starts, len(t_ns)])

@@ -54,17 +54,21 @@ class SampleClock:
         return int(np.count_nonzero(self.lost)) if self.n_lost else 0
 
 
-def sample_clock(t_ns: np.ndarray) -> SampleClock:
+def sample_clock(t_ns: np.ndarray, dt: np.ndarray | None = None) -> SampleClock:
     """The sample clock of increasing stamps ``t_ns`` (int64 ns, at least 2); see the module
-    docstring. The caller checks that time increases."""
+    docstring. The caller checks that time increases (``dt``: its ``np.diff(t_ns)``, if it
+    has it)."""
     t_ns = np.asarray(t_ns, dtype=np.int64)
-    dt = np.diff(t_ns)
+    dt = np.diff(t_ns) if dt is None else dt
+    lo, hi = int(dt.min()), int(dt.max())
+    if lo == hi:  # a perfectly regular clock: the median is every step, no jitter, none lost
+        return SampleClock(float(lo), np.zeros(len(dt), dtype=np.int64), 0.0, 0)
     period = float(np.median(dt))
-    ratio = dt / period
-    if ratio.max() < 1.5:  # no step reaches a second slot: nothing lost (the common case)
-        ratio -= 1.0
-        jitter = float(np.sqrt(np.mean(ratio * ratio)))
+    if hi < 1.5 * period:  # no step reaches a second slot: nothing lost (the common case)
+        off = dt - period
+        jitter = float(np.sqrt(np.einsum("i,i->", off, off) / len(off))) / period
         return SampleClock(period, np.zeros(len(dt), dtype=np.int64), jitter, 0)
+    ratio = dt / period
     lost = np.round(ratio) - 1.0
     if len(dt) >= 2:
         two = np.round((t_ns[2:] - t_ns[:-2]) / period) - 2.0  # steps (i, i + 1)

@@ -7,11 +7,12 @@ is called static when the first is at most ``threshold`` and the second at most 
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
-from imupipe.stages.blocks import Blocks, block_means
+from imupipe.stages.blocks import Blocks, block_means, block_starts
 
 G0 = 9.80665
 ACCEL_SPREAD_LIMIT = 0.05 * G0
@@ -39,10 +40,26 @@ class Stillness:
         )
 
 
-def stillness(t_ns: np.ndarray, gyro: np.ndarray, accel: np.ndarray) -> Stillness:
-    """The motion figures of gyro (n, 3) rad/s and accel (n, 3) m/s^2 sampled at ``t_ns``."""
-    second = block_means(t_ns, gyro, window_s=1.0)
-    excursion = float(np.abs(second.means - gyro.mean(axis=0)).max()) if len(second.counts) else 0.0
-    norm = block_means(t_ns, np.linalg.norm(accel, axis=1), window_s=1.0).means
-    spread = float(np.ptp(norm)) if len(norm) else 0.0
-    return Stillness(second, excursion, spread)
+def stillness(
+    t_ns: np.ndarray,
+    gyro: np.ndarray | Sequence[np.ndarray],
+    accel: np.ndarray | Sequence[np.ndarray],
+) -> Stillness:
+    """The motion figures of gyro rad/s and accel m/s^2 sampled at ``t_ns``: each (n, 3), or
+    three columns (n,) (no copy made either way)."""
+    gyro = list(gyro.T) if isinstance(gyro, np.ndarray) else list(gyro)
+    accel = list(accel.T) if isinstance(accel, np.ndarray) else list(accel)
+    starts = block_starts(t_ns, window_s=1.0)
+    first = block_means(t_ns, gyro[0], starts=starts)
+    if not len(first.counts):
+        return Stillness(Blocks(first.t_ns, np.zeros((0, 3)), first.counts, starts), 0.0, 0.0)
+    counts = first.counts
+    means = np.column_stack([first.means] + [np.add.reduceat(c, starts) / counts for c in gyro[1:]])
+    excursion = max(float(np.abs(means[:, k] - c.mean()).max()) for k, c in enumerate(gyro))
+    with np.errstate(over="ignore"):  # a damaged value's square is inf: not static
+        norm = np.multiply(accel[0], accel[0])
+        for c in accel[1:]:
+            norm += c * c
+    np.sqrt(norm, out=norm)
+    spread = float(np.ptp(np.add.reduceat(norm, starts) / counts))
+    return Stillness(Blocks(first.t_ns, means, counts, starts), excursion, spread)

@@ -129,3 +129,27 @@ def test_report_renders_in_a_headless_browser(report_run, tmp_path):
     from matplotlib.image import imread
 
     assert _not_blank(imread(shot))
+
+
+def test_log_axes_are_labelled_in_plain_text_at_any_span():
+    """Log axes carry plain-text labels (no mathtext parse per label): powers of ten, and 2
+    and 5 times them on an axis spanning less than two decades, which otherwise shows no
+    label at all."""
+    from matplotlib.figure import Figure
+
+    from imupipe.pipeline.report import _log_axis, _pow10
+
+    assert [_pow10(v) for v in (1e-3, 1.0, 100.0, 2e-5, 5e3, 0.0)] == [
+        "10\u207b\u00b3",
+        "10\u2070",
+        "10\u00b2",
+        "2\u00d710\u207b\u2075",
+        "5\u00d710\u00b3",
+        "",
+    ]
+    for lo, hi in ((1e-6, 1e-1), (2.2e-4, 7e-4)):
+        ax = Figure().add_subplot()
+        ax.plot([1.0, 10.0], [lo, hi])
+        _log_axis(ax, "y")
+        shown = [_pow10(v) for v in ax.get_yticks() if lo <= v <= hi]
+        assert len([s for s in shown if s]) >= 1, (lo, hi, shown)
