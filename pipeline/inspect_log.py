@@ -19,7 +19,7 @@ import json
 from pathlib import Path
 from typing import Any
 
-from imupipe.pipeline.errors import ImupipeError
+from imupipe.pipeline.errors import ImupipeError, ReadError
 from imupipe.readers.dispatch import detect_format
 from imupipe.readers.spec import InputSpec
 from imupipe.readers.topics import COLUMNS, STREAM_TYPES, normalize_type, select_topics
@@ -60,7 +60,10 @@ def inspect(spec: InputSpec) -> dict[str, Any]:
             stream_mask,
         )
 
-        table, warnings = read_input(spec)
+        try:
+            table, warnings = read_input(spec)
+        except ReadError as exc:  # not read with this mapping: say what the file holds
+            return _csv_layout(spec, str(exc))
         streams = {}
         filled = ["t_ns"]
         present = counts(table)
@@ -181,6 +184,43 @@ def _fmt_time(ns: int | None) -> str:
     return "-" if ns is None else f"{ns * 1e-9:.3f}"
 
 
+def _csv_layout(spec: InputSpec, why: str) -> dict[str, Any]:
+    """A CSV the mapping cannot read: its layout (delimiter, header, columns, lines skipped, a
+    rate line) and why, so that the user can write the mapping (``--config``, or the run config's
+    ``[inputs.NAME.csv]``). A file that is not a CSV at all is still an error."""
+    from imupipe.readers.csv_layout import sniff
+
+    m = spec.csv
+    layout = sniff(
+        Path(spec.path),
+        delimiter=m.delimiter,
+        header=m.header,
+        skip_rows=m.skip_rows,
+        comment=m.comment,
+    )
+    columns = layout.names or [str(i) for i in range(layout.fields)]
+    return {
+        "path": str(spec.path),
+        "format": "csv",
+        "topics": {},
+        "streams": {},
+        "columns": [],
+        "layout": {
+            "delimiter": layout.delimiter,
+            "header": layout.header,
+            "file_columns": columns,
+            "first_data_line": layout.first_line,
+            "lines_skipped": layout.skipped,
+            "rate_hz": layout.rate_hz,
+        },
+        "warnings": [
+            f"not read with this mapping: {why.split(': ', 1)[-1].split('; set [inputs.')[0]}; "
+            "map the columns in a "
+            "[csv] table (inspect --config READ.toml, or the run config's [inputs.NAME.csv])"
+        ],
+    }
+
+
 def render(info: dict[str, Any]) -> str:
     """The inspect result as text."""
     lines = [f"{info['path']}  ({info['format']})"]
@@ -208,6 +248,15 @@ def render(info: dict[str, Any]) -> str:
         lines.append(f"stream {stream}: {source} ({v['count']} samples{extra})")
     if info["columns"]:
         lines.append("columns filled: " + ", ".join(info["columns"]))
+    if "layout" in info:
+        lay = info["layout"]
+        named = "named by the header" if lay["header"] else "no header: named by index"
+        lines.append(
+            f"csv: {len(lay['file_columns'])} columns ({named}), delimiter "
+            f"{lay['delimiter']!r}, data from line {lay['first_data_line']}"
+            + (f", rate {lay['rate_hz']:g} Hz from the lines before" if lay["rate_hz"] else "")
+        )
+        lines.append("file columns: " + ", ".join(lay["file_columns"]))
     if info.get("parameters"):
         lines.append(
             "PX4 parameters: "
@@ -229,17 +278,26 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--imu-topic", help="as imu_topic in the config")
     p.add_argument("--mag-topic", help="as mag_topic in the config")
     p.add_argument("--temperature-topic", help="as temperature_topic in the config")
+    p.add_argument(
+        "--config",
+        type=Path,
+        help="how to read the log, as for convert: the keys of one [inputs.NAME] table without "
+        "path (topics, time, a [csv] mapping)",
+    )
     p.add_argument("--json", action="store_true", help="print JSON instead of text")
     p.set_defaults(func=main)
 
 
 def main(args: argparse.Namespace) -> int:
-    spec = InputSpec(
-        path=args.log,
-        imu_topic=args.imu_topic,
-        mag_topic=args.mag_topic,
-        temperature_topic=args.temperature_topic,
-    )
+    spec = InputSpec(path=args.log)
+    if args.config is not None:  # the config parser: imported only when asked (start-up time)
+        from imupipe.pipeline.convert_settings import load_read_settings
+
+        spec = load_read_settings(args.config)
+        spec.path = args.log
+    for key in ("imu_topic", "mag_topic", "temperature_topic"):
+        if getattr(args, key) is not None:
+            setattr(spec, key, getattr(args, key))
     info = inspect(spec)
     print(json.dumps(info, indent=2) if args.json else render(info))
     return 0

@@ -320,8 +320,8 @@ class AllanStage(Stage):
         static = still.static(self.options.motion_threshold)
         ctx.check(
             static,
-            f"{still.describe(self.options.motion_threshold)}: an Allan deviation of a moving IMU "
-            "measures the motion, not the noise",
+            f"the data does not look static: {still.describe(self.options.motion_threshold)}: an "
+            "Allan deviation of a moving IMU measures the motion, not the noise",
         )
         return static
 

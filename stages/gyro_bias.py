@@ -21,7 +21,7 @@ import pyarrow as pa
 from imupipe.readers.table import SensorData, has_stream, sensor
 from imupipe.stages.base import Stage, StageContext, StageOutput
 from imupipe.stages.steps import LinearStep
-from imupipe.stages.stillness import ACCEL_SPREAD_LIMIT, stillness
+from imupipe.stages.stillness import stillness
 
 
 def select_interval(data: SensorData, interval: list[float] | None) -> np.ndarray:
@@ -98,12 +98,9 @@ class GyroBiasStage(Stage):
                 "static": bool(static),
             },
         }
-        threshold = self.options.motion_threshold
         ctx.check(
             static,
-            f"motion in the bias recording: 1 s gyro means depart {still.excursion:.3g} rad/s "
-            f"from the mean (motion_threshold {threshold:g} rad/s), accelerometer-norm 1 s means "
-            f"spread {still.accel_spread:.3g} m/s^2 (limit {ACCEL_SPREAD_LIMIT:.3g}): the bias "
-            "would include the motion; give a still interval",
+            f"motion in the bias recording: {still.describe(self.options.motion_threshold)}: the "
+            "bias would include the motion; give a still interval",
         )
         return StageOutput(results=results, step=step)

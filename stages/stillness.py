@@ -32,11 +32,11 @@ class Stillness:
         return self.excursion <= threshold and self.accel_spread <= ACCEL_SPREAD_LIMIT
 
     def describe(self, threshold: float) -> str:
-        """One sentence for a warning: what moved, against which limits."""
+        """One sentence for a refusal or a warning: what moved, against which limits."""
         return (
-            f"the data does not look static: 1 s gyro means depart {self.excursion:.3g} rad/s "
-            f"from the mean (threshold {threshold}), accel norm 1 s means spread "
-            f"{self.accel_spread:.3g} m/s^2"
+            f"1 s gyro means depart {self.excursion:.3g} rad/s from the mean (motion_threshold "
+            f"{threshold:g} rad/s), accelerometer-norm 1 s means spread "
+            f"{self.accel_spread:.3g} m/s^2 (limit {ACCEL_SPREAD_LIMIT:.3g} m/s^2)"
         )
 
 

@@ -4,6 +4,7 @@ table columns the reader would fill (checked against the log that was written)."
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import pytest
 from test_readers import multi_stream_table
@@ -73,3 +74,20 @@ def test_inspect_missing_file_is_one_line(tmp_path):
     assert proc.stderr.strip().splitlines() == [
         f"imupipe: error: {tmp_path / 'nope.mcap'}: no such file or folder"
     ]
+
+
+def test_csv_of_another_layout_shows_its_columns_and_reads_with_a_mapping(tmp_path, cli):
+    """A CSV not in imupipe's own layout (the MPU-6050's metadata lines, ax..gz in counts):
+    inspect shows its layout instead of failing, and reads it with --config's [csv] mapping."""
+    log = Path(__file__).parent / "data" / "mpu6050_tomisuarez" / "imu_static_test.csv"
+    done = cli("inspect", log)
+    assert done.returncode == 0, done.stderr
+    assert "file columns: ax, ay, az, gx, gy, gz" in done.stdout
+    assert "data from line 6, rate 100 Hz" in done.stdout and "--config" in done.stdout
+    (tmp_path / "read.toml").write_text(
+        '[csv]\naccel = ["ax", "ay", "az"]\naccel_unit = "raw"\n'
+        'gyro = ["gx", "gy", "gz"]\ngyro_unit = "raw"\n'
+    )
+    done = cli("inspect", "--config", tmp_path / "read.toml", log)
+    assert done.returncode == 0, done.stderr
+    assert "stream imu: csv columns (9986 samples, 100.00 Hz)" in done.stdout
