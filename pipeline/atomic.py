@@ -26,6 +26,7 @@ from collections.abc import Iterable, Iterator
 from pathlib import Path
 
 from imupipe.pipeline.errors import ConfigError
+from imupipe.pipeline.signals import signals_deferred
 
 HOST_KEY = hashlib.sha1(socket.gethostname().encode()).hexdigest()[:8]
 """A short, file-name-safe key of this machine (temporary names carry it)."""
@@ -168,9 +169,12 @@ class StagedOutputs:
         self.path(final).write_text(text, encoding="utf-8")
 
     def commit(self) -> None:
-        for tmp, final in self._pending:
-            os.replace(tmp, final)
-        self._pending.clear()
+        """Rename every staged file to its final name, with SIGINT and SIGTERM held back until
+        the last rename: an interrupted run leaves all of its outputs or none."""
+        with signals_deferred():
+            for tmp, final in self._pending:
+                os.replace(tmp, final)
+            self._pending.clear()
 
     def discard(self) -> None:
         for tmp, _ in self._pending:

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import contextlib
 import signal
+import threading
 from collections.abc import Iterator
 from types import FrameType
 
@@ -32,12 +33,25 @@ def terminate_on_sigterm() -> None:
 
 @contextlib.contextmanager
 def signals_deferred() -> Iterator[None]:
-    """SIGINT and SIGTERM held back (delivered when the block ends): for a third-party object
-    whose construction must not be cut in two (an interrupted Rerun ``RecordingStream.__init__``
-    prints a traceback when the half-made object is collected)."""
-    held = {signal.SIGINT, signal.SIGTERM}
-    old = signal.pthread_sigmask(signal.SIG_BLOCK, held)
+    """SIGINT and SIGTERM held back until the block ends, then delivered to their own handlers:
+    for work that must not be cut in two (committing a set of outputs, constructing a Rerun
+    ``RecordingStream``, whose half-made object prints a traceback when collected).
+
+    Python runs signal handlers in the main thread only, so the main thread's handlers are swapped
+    for ones that note the signal; a block in another thread is never interrupted anyway. (A
+    thread signal mask would not do: the kernel hands a process signal to any thread that does not
+    block it, pyarrow's and Rerun's included, and Python then raises it in the main thread.)
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    held = (signal.SIGINT, signal.SIGTERM)
+    noted: list[int] = []
+    old = {sig: signal.signal(sig, lambda signum, frame: noted.append(signum)) for sig in held}
     try:
         yield
     finally:
-        signal.pthread_sigmask(signal.SIG_SETMASK, old)
+        for sig, handler in old.items():  # None: a handler set outside Python
+            signal.signal(sig, signal.SIG_DFL if handler is None else handler)
+        for sig in dict.fromkeys(noted):  # once each, in order of arrival
+            signal.raise_signal(sig)

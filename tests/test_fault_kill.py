@@ -191,6 +191,9 @@ def test_soak_sigkill_at_random_moments(fleet, tmp_path):
         kill_driver_at(d, cal, tmp_path / f"out{k}", rows, rng.uniform(0.0, 4.0))
 
 
+COMPLETE: list[str] = []  # what an uninterrupted run of run_config writes
+
+
 @pytest.fixture(scope="module")
 def run_config(tmp_path_factory):
     d = tmp_path_factory.mktemp("runkill")
@@ -199,6 +202,13 @@ def run_config(tmp_path_factory):
     (d / "cfg.toml").write_text(
         '[inputs.s]\npath = "s.mcap"\n\n[[stages]]\ntype = "allan"\n\n[output]\ndir = "out"\n'
     )
+    done = subprocess.run(
+        [sys.executable, "-m", "imupipe.pipeline.cli", "run", str(d / "cfg.toml"), "-q"],
+        capture_output=True, text=True, check=False,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    COMPLETE[:] = sorted(p.name for p in (d / "out").iterdir())
+    assert {"calibration.json", "recording.rrd", "imu.yaml"} <= set(COMPLETE), COMPLETE
     return d
 
 
@@ -227,7 +237,7 @@ def test_sigterm_and_sigint_of_run_clean_up(run_config, sig, code):
     assert temps(d / "out") == [] if (d / "out").exists() else True
     left = sorted(p.name for p in (d / "out").iterdir()) if (d / "out").exists() else []
     # nothing, or (the signal came after the outputs were committed) every output, complete
-    assert not left or {"calibration.json", "s.mcap", "recording.rrd"} <= set(left), left
+    assert not left or left == COMPLETE, left
     TALLY["clean"] += 1
 
 
@@ -247,3 +257,26 @@ def test_sigkill_of_run_leaves_temps_the_next_run_removes(run_config):
     assert temps(d / "out") == []  # ... the next run does
     assert (d / "out" / "calibration.json").is_file()
     TALLY["clean"] += 1
+
+
+def test_a_signal_during_commit_waits_for_the_last_rename(tmp_path, monkeypatch):
+    """SIGTERM arriving between two renames of a commit: every output lands, then it is raised."""
+    from imupipe.pipeline import atomic
+    from imupipe.pipeline.signals import Terminated, terminate_on_sigterm
+
+    old = signal.getsignal(signal.SIGTERM)
+    terminate_on_sigterm()
+    real_replace = os.replace
+
+    def replace_then_signal(src, dst):
+        real_replace(src, dst)
+        os.kill(os.getpid(), signal.SIGTERM)
+
+    monkeypatch.setattr(atomic.os, "replace", replace_then_signal)
+    try:
+        with pytest.raises(Terminated), atomic.staged_outputs() as staged:
+            for name in ("a.json", "b.mcap", "c.rrd"):
+                staged.write_text(tmp_path / name, name)
+    finally:
+        signal.signal(signal.SIGTERM, old)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.json", "b.mcap", "c.rrd"]
