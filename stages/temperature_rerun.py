@@ -243,17 +243,23 @@ def _surface(
             f"{base}/data",
             rr.Points3D(np.column_stack([ud, vd, wd]) + off, colors=colors, radii=0.006),
         )
+        tips = np.eye(3) * 1.1
         rec.log(
             f"{base}/axes",
-            rr.Arrows3D(
-                origins=[off, off, off],
-                vectors=[[1.1, 0, 0], [0, 1.1, 0], [0, 0, 1.1]],
+            rr.Arrows3D(origins=[off, off, off], vectors=tips, colors=[(200, 200, 200)] * 3),
+        )
+        rec.log(  # labelled points at the arrow tips: Rerun draws an arrow's label at its middle,
+            # where the three crowd into one another and onto the surface
+            f"{base}/axis_names",
+            rr.Points3D(
+                tips * 1.08 + off,
+                radii=0.001,
+                colors=[(200, 200, 200)] * 3,
                 labels=[
                     f"{axis}: {tname} {lo:.3g}..{hi:.3g} degC",
                     f"{rname} {rlo * 60:.3g}..{rhi * 60:.3g} degC/min",
                     f"bias {zmin:.3g}..{zmax:.3g} {SENSOR_UNITS[step.sensor]}",
                 ],
-                colors=[(200, 200, 200)] * 3,
             ),
         )
         rec.add_view(
