@@ -50,6 +50,17 @@ PALETTE: list[tuple[int, int, int]] = [
 one plot take them."""
 
 
+WALL_CLOCK_NS = 10**18
+"""2001-09-09 UTC, in ns since the Unix epoch: times from here on are read as dates (a ROS or
+MCAP stamp); earlier ones as time since the log's own origin (a CSV counting from 0, a PX4
+ULog's time since boot), shown as a duration, never as a day in 1970."""
+
+
+def is_wall_clock(t_ns: int) -> bool:
+    """Whether ``t_ns`` (int64 ns) reads as a date; see :data:`WALL_CLOCK_NS`."""
+    return int(t_ns) >= WALL_CLOCK_NS
+
+
 def display_unit(unit: str | None) -> tuple[str, float]:
     """(unit shown, factor from SI) for an SI ``unit`` (None: dimensionless)."""
     if unit is None:

@@ -60,6 +60,7 @@ from imupipe.pipeline.figures import (
     decimate,
     decimate_columns,
     display_unit,
+    is_wall_clock,
     lighter,
     stage_of,
 )
@@ -113,6 +114,8 @@ class Recorder:
         self._documents: dict[str, str] = {}  # stage ("" for the run) -> markdown
         self._styled: set[str] = set()
         self._spans: dict[str, tuple[int, int]] = {}  # entity -> (first, last) t_ns
+        self._wall_clock: bool | None = None  # the time line: dates, or durations from 0
+        self._still_counts: set[tuple[str, str]] = set()  # (input, sensor) corrected, in counts
         self._input_units: dict[tuple[str, str], str] = {}  # (stage, sensor) -> unit of its input
         self._reused: dict[Any, Series] = {}  # (input, sensor, steps applied) -> series sent
 
@@ -187,8 +190,14 @@ class Recorder:
         lo, hi = int(t_ns.min()), int(t_ns.max())
         first, last = self._spans.get(entity, (lo, hi))
         self._spans[entity] = (min(first, lo), max(last, hi))
+        if self._wall_clock is None:  # one kind per timeline: the first signal decides
+            self._wall_clock = is_wall_clock(lo)
         if self._streams:
-            indexes = [rr.TimeColumn(TIMELINE, timestamp=t_ns.astype("datetime64[ns]"))]
+            indexes = [
+                rr.TimeColumn(TIMELINE, timestamp=t_ns.astype("datetime64[ns]"))
+                if self._wall_clock
+                else rr.TimeColumn(TIMELINE, duration=t_ns.astype("timedelta64[ns]"))
+            ]
             columns = rr.Scalars.columns(scalars=values)
             self._send(
                 lambda s: rr.send_columns(entity, indexes=indexes, columns=columns, recording=s)
@@ -386,20 +395,29 @@ class Recorder:
         input_name: str,
         chain: Sequence[Any] = (),
         corrected: bool = False,
+        counts: Sequence[str] = (),
     ) -> None:
         """A stage's ``sensors`` in ``table``, one plot per sensor: before the stage (``gyro x
         raw``, or ``gyro x input`` when earlier steps of the ``chain`` corrected it; lighter
-        colours) or, with ``corrected``, after it (``gyro x corrected``). A sensor of an input
-        already sent at the same point of the chain (an earlier stage on the same input) is not
-        sent again: the stage's plot shows the earlier signal."""
+        colours) or, with ``corrected``, after it (``gyro x corrected``; ``counts``: the sensors
+        the correction left in raw counts). A sensor of an input already sent at the same point
+        of the chain (an earlier stage on the same input) is not sent again: the stage's plot
+        shows the earlier signal."""
         for name in sensors:
             if not has_stream(table, STREAM_OF_SENSOR[name]):
                 continue
             applied = sum(getattr(step, "sensor", None) == name for step in chain)
             label = "corrected" if corrected else "input" if applied else "raw"
-            # raw counts (a CSV read with <sensor>_unit = "raw") are not SI: a plot of their own
-            counts = label == "raw" and name in self.raw_counts.get(input_name, ())
-            unit = "raw counts" if counts else SENSOR_UNITS[name]
+            # raw counts (a CSV read with <sensor>_unit = "raw", until a correction makes them
+            # SI) are not SI: a plot of their own
+            if corrected and name in self.raw_counts.get(input_name, ()):
+                (self._still_counts.add if name in counts else self._still_counts.discard)(
+                    (input_name, name)
+                )
+            in_counts = name in self.raw_counts.get(input_name, ()) and (
+                label == "raw" or (input_name, name) in self._still_counts
+            )
+            unit = "raw counts" if in_counts else SENSOR_UNITS[name]
             key, title = name, name
             if not corrected:
                 self._input_units[(stage, name)] = unit

@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from imupipe.pipeline.figures import Figures, Plot, Series
+from imupipe.pipeline.figures import Figures, Plot, Series, is_wall_clock
 from imupipe.pipeline.summary import StageSummary
 from imupipe.pipeline.version import VERSION
 
@@ -202,7 +202,10 @@ def _draw_time(ax: Any, plot: Plot) -> bool:
                 else {"linewidth": 0.8}
             )
             ax.plot(x, s.values[:, j], color=_rgb(s.colors[j]), label=name, **kw)
-    start = dt.datetime.fromtimestamp(t0 * 1e-9, dt.UTC).strftime("%Y-%m-%d %H:%M:%S UTC")
+    if is_wall_clock(t0):
+        start = dt.datetime.fromtimestamp(t0 * 1e-9, dt.UTC).strftime("%Y-%m-%d %H:%M:%S UTC")
+    else:  # a log's own clock (time since boot, a CSV from 0): no date to give
+        start = f"{t0 * 1e-9:.9g} s on the log's clock"
     ax.set_xlabel(f"time since {start} ({unit})", fontsize=8)
     ax.set_ylabel(plot.unit, fontsize=8)
     return True

@@ -188,7 +188,12 @@ def run(config: Config | str | Path, *, spawn: bool = False, quiet: bool = False
                     fitted.extend([where] * len(output.steps))
                     fixed = [n for n in sensors if any(s.sensor == n for s in output.steps)]
                     recorder.sensors(
-                        st.name, tables[st.input], fixed, input_name=st.input, corrected=True
+                        st.name,
+                        tables[st.input],
+                        fixed,
+                        input_name=st.input,
+                        corrected=True,
+                        counts=output.counts,
                     )
                 recorder.ensure_stage(st.name)
                 results[st.name] = {

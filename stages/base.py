@@ -105,11 +105,14 @@ class StageOutput:
     - ``step``: the correction this stage adds to the chain (None for analysis stages), or a list
       of steps when one fit corrects several sensors (e.g. accel and gyro together).
     - ``artifacts``: extra output files, file name -> text, written atomically in the output dir.
+    - ``counts``: the sensors whose corrected values are still the input's raw counts, not SI
+      (a magnetometer fitted in counts without a field magnitude keeps their scale).
     """
 
     results: dict[str, Any]
     step: Step | list[Step] | None = None
     artifacts: dict[str, str] = field(default_factory=dict)
+    counts: tuple[str, ...] = ()
 
     @property
     def steps(self) -> list[Step]:

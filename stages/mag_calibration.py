@@ -226,7 +226,8 @@ class MagCalibrationStage(Stage):
             type=self.type, sensor="mag", matrix=matrix, offset=e.centre, params=params
         )
         results = {"model": o.model, **params, "metrics": metrics}
-        return StageOutput(results=results, step=step)
+        in_counts = ("mag",) if unit.raw and target >= 1e-2 else ()  # no field_ut: still counts
+        return StageOutput(results=results, step=step, counts=in_counts)
 
     def _robust_fit(self, values: np.ndarray, directions: np.ndarray) -> FitReport:
         o = self.options
@@ -369,7 +370,7 @@ class MagCalibrationStage(Stage):
         if not getattr(rec, "enabled", False):
             return
         name = ctx.name
-        unit_name = "raw units" if unit.raw else "T"  # the recorder shows tesla as uT
+        unit_name = "raw counts" if unit.raw else "T"  # the recorder shows tesla as uT
         fixed_unit = "T" if target < 1e-2 else unit_name  # raw counts scaled to field_ut: tesla
         stride = max(1, int(np.ceil(len(raw) / MAX_3D_POINTS)))
         colors = np.where(

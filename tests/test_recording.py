@@ -323,3 +323,55 @@ def test_raw_counts_are_plotted_apart_from_si(tmp_path, cli):
     titles = {v["name"] for v in views.values()}
     assert {"accel (raw counts)", "accel (m/s^2)", "|a| (raw counts)", "|a| (m/s^2)"} <= titles
     assert "bias (counts)" in done.stdout and "bias (m/s^2)" not in done.stdout
+
+
+@pytest.mark.parametrize("field_ut,corrected", [(None, "mag (raw counts)"), (50.0, "mag (uT)")])
+def test_a_magnetometer_fitted_in_counts_stays_in_counts(tmp_path, cli, field_ut, corrected):
+    """The QMC5883L tumble in raw counts (tests/data, MIT): without field_ut the corrected field
+    keeps the counts' scale and is plotted in counts (it was drawn as tesla: +-1e9 uT); with
+    field_ut it is tesla, shown in uT."""
+    from conftest import TEST_DATA
+
+    path = TEST_DATA / "qmc5883l_tomisuarez" / "filtered_raw_data.csv"
+    cfg = tmp_path / "qmc.toml"
+    cfg.write_text(
+        f'[inputs.qmc]\npath = "{path}"\n[inputs.qmc.csv]\nmag = ["mx", "my", "mz"]\n'
+        'mag_unit = "raw"\n[[stages]]\ntype = "mag_calibration"\n'
+        + (f"field_ut = {field_ut}\n" if field_ut else "")
+        + '[output]\ndir = "out"\napply_to = []\nreport = false\n'
+    )
+    done = cli("run", cfg)
+    assert done.returncode == 0, done.stderr
+    views, _, _ = read_blueprint(tmp_path / "out" / "recording.rrd")
+    titles = {v["name"] for v in views.values()}
+    assert {"mag (raw counts)", corrected} <= titles
+    assert ("mag (uT)" in titles) == (field_ut is not None)
+
+
+@pytest.mark.parametrize(
+    "t0,kind,label",
+    [(0, "duration[ns]", "time since 5 s on the log's clock (s)"),
+     (1_700_000_000_000_000_000, "timestamp[ns]", "time since 2023-11-14 22:13:25 UTC (s)")],
+)  # fmt: skip
+def test_a_log_on_its_own_clock_is_shown_as_durations_not_1970(tmp_path, t0, kind, label):
+    """A CSV counting from 0 or a ULog's time since boot opens as time since the log's origin in
+    the viewer and the report; a ROS or MCAP stamp as a date."""
+    import matplotlib.figure
+    import rerun.chunk as rc
+
+    from imupipe.pipeline.report import _draw_time
+
+    rec = Recorder(tmp_path / "r.rrd", max_points=1000)
+    t = t0 + 5_000_000_000 + np.arange(100, dtype=np.int64) * 10_000_000
+    rec.series("/a/gyro", t, np.zeros((100, 3)), unit="rad/s")
+    rec.series("/a/temperature", t, np.full(100, 25.0), ("T",), unit="degC")
+    rec.close()
+    kinds = {
+        str(chunk.to_record_batch().schema.field("time").type)
+        for chunk in rc.RrdReader(str(tmp_path / "r.rrd")).stream().to_chunks()
+        if not chunk.is_static
+    }
+    assert kinds == {kind}
+    ax = matplotlib.figure.Figure().add_subplot()
+    assert _draw_time(ax, next(iter(rec.figures.plots.values())))
+    assert ax.get_xlabel() == label
