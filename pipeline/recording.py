@@ -410,11 +410,12 @@ class Recorder:
             label = "corrected" if corrected else "input" if applied else "raw"
             # raw counts (a CSV read with <sensor>_unit = "raw", until a correction makes them
             # SI) are not SI: a plot of their own
-            if corrected and name in self.raw_counts.get(input_name, ()):
-                (self._still_counts.add if name in counts else self._still_counts.discard)(
-                    (input_name, name)
-                )
-            in_counts = name in self.raw_counts.get(input_name, ()) and (
+            read_in_counts = name in self.raw_counts.get(input_name, ())
+            if corrected and read_in_counts and name in counts:
+                self._still_counts.add((input_name, name))
+            elif corrected:
+                self._still_counts.discard((input_name, name))
+            in_counts = read_in_counts and (
                 label == "raw" or (input_name, name) in self._still_counts
             )
             unit = "raw counts" if in_counts else SENSOR_UNITS[name]

@@ -82,6 +82,11 @@ class SensorUnit:
     def name(self) -> str:
         return "counts" if self.raw else "T"
 
+    @property
+    def plotted(self) -> str:
+        """The unit a plot is given: ``raw counts``, or tesla (the recorder shows it as uT)."""
+        return "raw counts" if self.raw else "T"
+
     def format(self, value: float) -> str:
         """A field value in the data's unit: counts, or uT for tesla."""
         return f"{value:.4g} counts" if self.raw else f"{value * 1e6:.4g} uT"
@@ -175,6 +180,7 @@ class MagCalibrationStage(Stage):
         target = o.field_ut * 1e-6 if o.field_ut is not None else radius
         if o.field_ut is None:
             self._warn_scale(ctx, unit, radius)
+        fixed = SensorUnit(unit.raw and o.field_ut is None)  # field_ut scales counts to tesla
         matrix = target * e.shape
         corrected = target * unit_corrected
         off_sphere = np.linalg.norm(unit_corrected, axis=1) - 1.0  # every sample, time order
@@ -212,7 +218,7 @@ class MagCalibrationStage(Stage):
             "soft_iron_diagonal": np.diag(shape_unit).tolist(),
         }
         self._check_bounds(ctx, metrics, unit)
-        self._record(ctx, data.t_ns, values, corrected, e, target, report, unit)
+        self._record(ctx, data.t_ns, values, corrected, e, target, report, unit, fixed)
 
         params = {
             "model": o.model,
@@ -226,8 +232,7 @@ class MagCalibrationStage(Stage):
             type=self.type, sensor="mag", matrix=matrix, offset=e.centre, params=params
         )
         results = {"model": o.model, **params, "metrics": metrics}
-        in_counts = ("mag",) if unit.raw and target >= 1e-2 else ()  # no field_ut: still counts
-        return StageOutput(results=results, step=step, counts=in_counts)
+        return StageOutput(results=results, step=step, counts=("mag",) if fixed.raw else ())
 
     def _robust_fit(self, values: np.ndarray, directions: np.ndarray) -> FitReport:
         o = self.options
@@ -365,13 +370,14 @@ class MagCalibrationStage(Stage):
         target: float,
         report: FitReport,
         unit: SensorUnit,
+        fixed: SensorUnit,
     ) -> None:
+        """``unit``: of the raw samples; ``fixed``: of the corrected ones."""
         rec = ctx.recorder
         if not getattr(rec, "enabled", False):
             return
         name = ctx.name
-        unit_name = "raw counts" if unit.raw else "T"  # the recorder shows tesla as uT
-        fixed_unit = "T" if target < 1e-2 else unit_name  # raw counts scaled to field_ut: tesla
+        unit_name, fixed_unit = unit.plotted, fixed.plotted
         stride = max(1, int(np.ceil(len(raw) / MAX_3D_POINTS)))
         colors = np.where(
             report.used[:, None],
