@@ -126,7 +126,7 @@ class MagCalibrationStage(Stage):
         thinning_max_per_cell: int | None = None
         """Cap per cell, samples; default ``max(2 m, m + 4 sqrt(m) + 2)``, m the median count of
         the occupied cells (an orientation held for long then weighs like a typical one)."""
-        outlier_k: float | None = 3.0
+        outlier_k: float | None = 4.0
         """Reject samples whose residual is beyond k robust sigmas (1.4826 MAD); None: keep all."""
         outlier_iterations: int = 3
         """Fit-reject rounds at most."""

@@ -111,7 +111,9 @@ def test_outliers_rejected():
     values[spikes] += 20e-6  # a motor switching on
     spiky = make_table(table.column("t_ns").to_numpy(), mag=values)
     out = fit(spiky)
-    assert out.results["metrics"]["outliers"] >= len(spikes)
+    # a spike across the field changes its norm little: 27 of the 29 are beyond 4 robust sigmas
+    # (the two left weigh nothing: the hard iron is as close as with none), and no sample else
+    assert len(spikes) - 3 <= out.results["metrics"]["outliers"] <= len(spikes)
     err = np.linalg.norm(out.step.offset - truth["mag"]["hard_iron"])
     assert err < 0.05e-6
     kept = fit(spiky, outlier_k=None)

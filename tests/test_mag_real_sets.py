@@ -144,9 +144,11 @@ def test_wrona_against_magneto():
     """Magneto leaves 2.17 % on all 324 samples. The first 2.4 s (24 samples, the sensor still)
     lie off the ellipsoid of the tumbling (+6 % against -1 % for later samples in the same
     direction): thinning caps their weight like any over-sampled orientation, so the default
-    fit leaves 1.74 % on the tumbling samples where Magneto leaves 1.94 %, and 2.29 % on all.
-    Without thinning (every sample weighs alike, as in Magneto) it leaves 2.17 % on all, the
-    geometric optimum of (|M (h - b)| - F)^2."""
+    fit leaves 2.21 % on all (no worse than Magneto + 0.05 pp) and 1.79 % on the tumbling samples,
+    where Magneto leaves 1.94 %. Without thinning (every sample weighs alike, as in Magneto) it
+    leaves 2.17 % on all, the geometric optimum of (|M (h - b)| - F)^2. With 0.1's 3-sigma
+    rejection 7 of the still samples were dropped and the fit turned away from them: 2.29 % on
+    all."""
     h, out = wrona_fit()
     magneto_all = std_pct((h - WRONA_B) @ WRONA_A.T)
     assert magneto_all == pytest.approx(2.17, abs=0.005)
@@ -157,9 +159,13 @@ def test_wrona_against_magneto():
 
     tumbling = slice(WRONA_STILL, None)
     magneto_tumbling = std_pct((h[tumbling] - WRONA_B) @ WRONA_A.T)
-    assert ours(out, tumbling) <= magneto_tumbling - 0.15  # 1.74 % against 1.94 %
+    assert ours(out) <= magneto_all + 0.05
+    assert ours(out, tumbling) <= magneto_tumbling - 0.1  # 1.79 % against 1.94 %
     _, unthinned = wrona_fit(thinning=False)
-    assert ours(unthinned) <= magneto_all + 0.05
+    assert ours(unthinned) <= magneto_all + 0.005
+    assert ours(out) > ours(unthinned)  # thinning trades a little of the all-sample figure
+    _, three_sigma = wrona_fit(outlier_k=3.0)
+    assert three_sigma.results["metrics"]["outliers"] >= 5 and ours(three_sigma) > ours(out) + 0.05
     # the hard iron agrees with Magneto's within 1 % of the field
     assert np.linalg.norm(out.step.offset / uT - WRONA_B) < 0.01 * out.step.params["field"] / uT
 
