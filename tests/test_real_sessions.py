@@ -27,7 +27,7 @@ from imupipe.readers.table import sensor
 from imupipe.stages import accel_models as am
 from imupipe.stages import gyro_models as gm
 from imupipe.stages.accel_calibration import AccelCalibrationStage, detect_intervals
-from imupipe.stages.static_detector import sample_clock
+from imupipe.stages.static_detector import make_detector, sample_clock
 from imupipe.stages.steps import apply_chain, steps_from_json
 from imupipe.stages.stillness import stillness
 
@@ -210,6 +210,41 @@ def published_gyro_matrix() -> tuple[np.ndarray, np.ndarray]:
     return t @ np.diag(s), b
 
 
+AUTHORS_INIT_S, AUTHORS_WAIT_S = 36.5, 3.0
+"""The session file's header ``Initialization time,36.5`` and ``Waiting time,3``: the authors'
+t_init (the initial rest whose variance is the threshold's reference) and t_wait (their variance
+window), s."""
+
+
+def authors_detection(raw: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """The authors' static detector at threshold ``k`` (find_static_imu_intervals with the
+    threshold of calibrate_accel_from_data, imu_calibration.py @ 1bc11c96): sample i (100 Hz) is
+    static when the sum of the squared per-axis variances (ddof 0, counts^4) over the 300 samples
+    [i - 150, i + 150) is below k times that of the first int(36.5 * 100) - 1 samples; every run of
+    static samples is an interval, however short. Returns (starts, ends), ends exclusive."""
+    n, half = len(raw), int(AUTHORS_WAIT_S * 100 / 2)
+    x = raw - raw.mean(axis=0)  # the variances do not change; the running sums stay small
+    c1 = np.vstack([np.zeros((1, 3)), np.cumsum(x, axis=0)])
+    c2 = np.vstack([np.zeros((1, 3)), np.cumsum(x * x, axis=0)])
+    centre = np.arange(half, n - half)
+    s1, s2 = c1[centre + half] - c1[centre - half], c2[centre + half] - c2[centre - half]
+    var = s2 / (2 * half) - (s1 / (2 * half)) ** 2
+    reference = np.sum(np.var(raw[: int(AUTHORS_INIT_S * 100) - 1], axis=0) ** 2)
+    static = np.zeros(n, dtype=np.int8)
+    static[centre] = np.sum(var**2, axis=1) < k * reference
+    edges = np.diff(static, prepend=0, append=0)
+    return np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)
+
+
+def authors_accept(means: np.ndarray) -> bool:
+    """The authors' test of a threshold's intervals: more than nine, and no two consecutive means
+    within 1 % of each other on every axis."""
+    if len(means) <= 9:
+        return False
+    close = np.abs(np.diff(means, axis=0)) / np.linalg.norm(means[1:], axis=1)[:, None] < 1e-2
+    return not bool(np.any(np.all(close, axis=1)))
+
+
 def authors_means(tmp_path: Path) -> np.ndarray:
     """(10, 3) raw means of the session over the authors' static intervals."""
     raw = sensor(read_mpu("example_data_calibration.csv", tmp_path), "accel").values
@@ -381,6 +416,50 @@ def test_mpu6050_held_out_gap_is_a_power_up_shift(mpu):
     rms = {label: float(np.sqrt(np.mean(np.square(v)))) for label, v in y_up.items()}
     assert max(rms.values()) < 0.25
     assert abs(rms["ours"] - rms["authors'"]) < 0.02
+
+
+def test_mpu6050_published_figure_is_the_best_of_its_own_thresholds(mpu):
+    """Where the authors' intervals come from, and how much of their figure is the threshold's.
+    Their detector (a 3 s window: the header's waiting time; reference: the first 36.5 s, the
+    header's initialization time; k x the sum of squared variances, every run kept) gives their
+    ten intervals at k = 13, the first k its test accepts (their rule keeps the lowest cost of
+    their LM fit; rerun, it is k = 13 of the 53 thresholds it evaluates, 13 to 70). The
+    6-parameter fit on the intervals of the next accepted thresholds scores 1.04 to 1.28 mg: 1.026
+    is the luck of one threshold (over all 53: 1.026 to 1.277, median 1.129), and ours lies
+    inside that spread. Honouring the declared initialization time would not reproduce their
+    intervals: its variance is 1.1 times our noise floor, and their intervals of 2 to 64 samples
+    are shorter than min_interval_s (a 2-sample mean carries 2.6 mg of noise, 5 times the
+    residual of the fit)."""
+    doc, chain, tmp_path = mpu
+    session = sensor(read_mpu("example_data_calibration.csv", tmp_path), "accel")
+    raw = session.values
+    held_out = []
+    for name in HELD_OUT:
+        table = read_mpu(name, tmp_path)
+        acc = sensor(table, "accel").values
+        held_out.append((table, acc, sensor(table, "gyro").values * NOMINAL_GYRO))
+
+    def figure(apply) -> float:
+        return float(np.mean([held_out_rms_mg(t, apply(a), g) for t, a, g in held_out]))
+
+    figures = {}
+    for k in range(2, 25):
+        starts, ends = authors_detection(raw, k)
+        means = np.array([raw[a:b].mean(axis=0) for a, b in zip(starts, ends, strict=True)])
+        if not authors_accept(means):
+            continue
+        if not figures:
+            assert k == 13
+            assert starts.tolist() == AUTHORS_STARTS and ends.tolist() == AUTHORS_ENDS
+        figures[k] = figure(am.fit_model(means, G, "6-parameter").params.apply)
+    assert figures[13] == pytest.approx(1.026, abs=2e-3)
+    others = [v for k, v in figures.items() if k != 13]
+    assert len(others) >= 8
+    ours = figure(chain[0].apply_values)
+    assert 1.04 < min(others) < ours < 1.25 < max(others)
+    floor = make_detector(session.t_ns, raw).reference
+    declared = make_detector(session.t_ns, raw, init_static_s=AUTHORS_INIT_S).reference
+    assert 1.0 < declared / floor < 1.2
 
 
 def test_mpu6050_held_out(mpu):
