@@ -11,6 +11,7 @@ renamed into ``[output] dir`` only when everything succeeded.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import sys
 from collections.abc import Callable, Iterator, Mapping, Sequence
@@ -23,10 +24,8 @@ import pyarrow as pa
 from imupipe.pipeline.atomic import OutputGuard, remove_stale_temps, staged_outputs
 from imupipe.pipeline.calibration_file import fitted_on
 from imupipe.pipeline.config import Config, load_config
-from imupipe.pipeline.corrected import write_corrected
 from imupipe.pipeline.exports import chosen as chosen_exports
 from imupipe.pipeline.exports import export_all
-from imupipe.pipeline.progress import progress_bar
 from imupipe.pipeline.signals import signals_deferred
 from imupipe.pipeline.summary import (
     StageSummary,
@@ -135,6 +134,25 @@ def output_guard(cfg: Config) -> OutputGuard:
     return guard
 
 
+class _Silent:
+    """The progress of a run nobody watches (quiet, or stderr not a terminal)."""
+
+    def advance(self, n: float = 1) -> None:
+        pass
+
+    def describe(self, text: str) -> None:
+        pass
+
+
+def _progress(total: int, quiet: bool) -> contextlib.AbstractContextManager[Any]:
+    """The run's progress bar; rich is imported only when a bar is shown (a terminal)."""
+    if quiet or not sys.stderr.isatty():
+        return contextlib.nullcontext(_Silent())
+    from imupipe.pipeline.progress import progress_bar
+
+    return progress_bar("imupipe run", total=total)
+
+
 def run(config: Config | str | Path, *, spawn: bool = False, quiet: bool = False) -> RunSummary:
     """Run a config end to end; returns what was written."""
     cfg = config if isinstance(config, Config) else load_config(config)
@@ -152,7 +170,7 @@ def run(config: Config | str | Path, *, spawn: bool = False, quiet: bool = False
                 print(f"imupipe: warning: [inputs.{name}] {w}", file=sys.stderr)
         return table
 
-    with progress_bar("imupipe run", total=n_steps, quiet=quiet) as bar:
+    with _progress(n_steps, quiet) as bar:
         for name in used:  # inputs only written (apply_to) are never held: streamed below
             bar.describe(f"reading {name}")
             raw[name] = read(name)
@@ -226,6 +244,8 @@ def run(config: Config | str | Path, *, spawn: bool = False, quiet: bool = False
             files += publish(summaries, recorder, cfg, out)
             counts: dict[str, dict[str, int]] = {}
             tables.release()
+            if cfg.output.apply_to:  # the MCAP writer: imported only when something is written
+                from imupipe.pipeline.corrected import write_corrected
             for name in cfg.output.apply_to:
                 bar.describe(f"writing {name}.mcap")
                 target = out_dir / f"{name}.mcap"

@@ -47,6 +47,7 @@ from imupipe.readers.spec import (
     InputSpec,
 )
 from imupipe.readers.table import make_table, sort_by_time
+from imupipe.readers.table_buffer import small_pages
 
 BLANK_CELLS = ["", " ", "  ", "   ", "\t"]
 """Cells that hold no value (pyarrow matches null values before trimming blanks)."""
@@ -292,7 +293,8 @@ class _Sensor:
 
 def _sensor(f: CsvFile, indices: list[int], factor: float) -> _Sensor:
     """Columns ``indices`` of ``f`` (loaded) into SI, with the rows that hold a sample."""
-    values = np.empty((f.rows, len(indices)), order="F")
+    with small_pages():  # filled once, in order: no huge-page compaction stall
+        values = np.empty((f.rows, len(indices)), order="F")
     masks = [f.floats(i, values[:, k]) for k, i in enumerate(indices)]
     if factor != 1.0:
         values *= factor

@@ -38,8 +38,12 @@ GRIDS: tuple[str, ...] = ("auto", "octave", "decade", "log", "all")
 BEND = 0.125
 """The ``auto`` grid refines an octave where the log-log slope of the curve changes by more
 than this (beyond twice its statistical scatter) at either end."""
-CHUNK = 1 << 16
+CHUNK = 1 << 17
 """Phase points processed at once (keeps the temporaries in cache and the memory small)."""
+DOT = 8192
+"""Points per BLAS dot product in :func:`_dot`: OpenBLAS computes a dot of more than 10,000
+points on every core, whose threads then spin and wait on one another on a busy machine; below
+that it runs on the calling thread, about four times faster than ``einsum``."""
 
 
 @dataclass(frozen=True)
@@ -130,6 +134,13 @@ def tau_grid(grid: str, max_m: int, points_per_decade: int = 10) -> np.ndarray:
 
 
 # -- sums of squared differences ------------------------------------------------------------------
+def _dot(a: np.ndarray, b: np.ndarray) -> float:
+    """sum(a * b) of two equal-length contiguous 1-D arrays, in BLAS dots of ``DOT`` points."""
+    if len(a) <= DOT:
+        return float(np.dot(a, b))
+    return float(sum(np.dot(a[i : i + DOT], b[i : i + DOT]) for i in range(0, len(a), DOT)))
+
+
 def _sumsq_lagged(x: np.ndarray, m: int, hadamard: bool, count: int) -> np.ndarray:
     """Per axis of ``x`` (k, N): sum_{i<count} of the squared second difference
     x[i+2m] - 2x[i+m] + x[i] (or third, ``hadamard``), streamed in cache-sized chunks. For
@@ -157,7 +168,7 @@ def _sumsq_lagged(x: np.ndarray, m: int, hadamard: bool, count: int) -> np.ndarr
                 np.add(r[a:b], r[a + 2 * m : b + 2 * m], out=d)
                 d -= r[a + m : b + m]
                 d -= r[a + m : b + m]
-            acc += float(np.einsum("i,i->", d, d))
+            acc += _dot(d, d)
         total[j] = acc
     return total
 
@@ -251,7 +262,7 @@ def deviation(
 def _lag1(z: np.ndarray) -> np.ndarray:
     """Lag-1 autocorrelation of each row of ``z`` (k, n) (its mean removed)."""
     z = z - z.mean(axis=1, keepdims=True)
-    return np.einsum("ij,ij->i", z[:, :-1], z[:, 1:]) / np.einsum("ij,ij->i", z, z)
+    return np.array([_dot(r[:-1], r[1:]) / _dot(r, r) for r in z])
 
 
 def _detrend2(z: np.ndarray) -> np.ndarray:
@@ -260,9 +271,12 @@ def _detrend2(z: np.ndarray) -> np.ndarray:
     t = np.linspace(-1.0, 1.0, z.shape[1])
     t2 = t * t
     t2 -= t2.mean()
-    out = z - z.mean(axis=1, keepdims=True)
+    out = np.array(z, dtype=np.float64)  # one gather of the decimated points, then in place
+    out -= out.mean(axis=1, keepdims=True)
     for p in (t, t2):
-        out -= (np.einsum("ij,j->i", out, p) / np.einsum("i,i->", p, p))[:, None] * p
+        pp = _dot(p, p)
+        for row in out:
+            row -= (_dot(row, p) / pp) * p
     return out
 
 
