@@ -10,6 +10,12 @@ Measured in one run, on the same files:
   MCAP, read / Imu-only read (goal: <= 1.20);
 - **peak memory**: VmHWM growth of a fresh process reading the file, over the decoded table.
 
+The messages carry what imupipe's writer writes for a table without orientation or covariances:
+orientation (0, 0, 0, 1), orientation covariance (-1, 0, ...), zero gyro and accel covariances
+(a driver's "unknown"). The reader leaves columns that are all zeros unwritten (their pages are
+never touched); ``--dense`` writes random orientations and covariances instead, so that every
+byte of the table is written.
+
 Each side runs ``--repeat`` times, interleaved (the 2-core machine is shared); the best wall time
 counts. CPU time is reported too: the whole process (all threads) and the reading thread alone.
 The reading thread is the critical path when the helper threads (decompression, page mapping)
@@ -17,7 +23,7 @@ find a free core; ``max(reading thread, process / 2)`` is what the read would ta
 cores, printed as the "idle estimate". ``--load K`` starts K busy processes for the run, to
 measure on a loaded machine on purpose.
 
-    python benchmarks/bench_read_limits.py [--n 1000000 5000000] [--repeat 3] [--load 0]
+    python benchmarks/bench_read_limits.py [--n 1000000 5000000] [--repeat 3] [--load 0] [--dense]
 """
 
 from __future__ import annotations
@@ -37,9 +43,10 @@ from bench_read_write import memory
 RATE_HZ = 400.0
 
 
-def make_table(n: int, temperature_hz: float | None = None):
+def make_table(n: int, temperature_hz: float | None = None, dense: bool = False):
     """n Imu messages at 400 Hz, random values, one frame_id; optionally a Temperature stream
-    at ``temperature_hz`` interleaved in time (its own rows, as a bag's messages are)."""
+    at ``temperature_hz`` interleaved in time (its own rows, as a bag's messages are);
+    ``dense``: random orientations and covariances too."""
     import pyarrow as pa
 
     from imupipe.readers.table import make_table as mk
@@ -49,11 +56,16 @@ def make_table(n: int, temperature_hz: float | None = None):
     gyro = rng.normal(0, 0.01, (n, 3))
     accel = rng.normal(0, 0.1, (n, 3)) + [0, 0, 9.81]
     if temperature_hz is None:
+        extra = {"frame_id": pa.array(np.full(n, "imu_link"))}
+        if dense:
+            extra.update({f"orientation_{a}": rng.normal(size=n) for a in "xyzw"})
+            for name in ("orientation_cov", "gyro_cov", "accel_cov"):
+                extra[name] = rng.normal(0, 1e-3, (n, 9))
         return mk(
             t,
             gyro=gyro,
             accel=accel,
-            extra={"frame_id": pa.array(np.full(n, "imu_link"))},
+            extra=extra,
             metadata={"topics": {"imu": "/imu/data"}},
         )
     m = int(n / RATE_HZ * temperature_hz)
@@ -142,16 +154,20 @@ def main() -> None:
     parser.add_argument("--repeat", type=int, default=3)
     parser.add_argument("--load", type=int, default=0, help="busy processes during the run")
     parser.add_argument("--keep", type=Path, default=None)
+    parser.add_argument(
+        "--dense", action="store_true", help="random orientations and covariances (Imu only)"
+    )
     args = parser.parse_args()
 
     from imupipe.pipeline.mcap_writer import write_mcap
 
     work = args.keep or Path(tempfile.mkdtemp(prefix="imupipe-limits-"))
     work.mkdir(parents=True, exist_ok=True)
+    kind = "imu_dense" if args.dense else "imu"
     for n in args.n:
-        if not (work / f"imu_{n}.mcap").exists():
-            write_mcap(work / f"imu_{n}.mcap", make_table(n))
-        if not (work / f"imu_temp_{n}.mcap").exists():
+        if not (work / f"{kind}_{n}.mcap").exists():
+            write_mcap(work / f"{kind}_{n}.mcap", make_table(n, dense=args.dense))
+        if not args.dense and not (work / f"imu_temp_{n}.mcap").exists():
             write_mcap(work / f"imu_temp_{n}.mcap", make_table(n, temperature_hz=1.0))
     burners = [multiprocessing.Process(target=_burn, daemon=True) for _ in range(args.load)]
     for p in burners:
@@ -159,21 +175,22 @@ def main() -> None:
     try:
         print(f"load average before: {os.getloadavg()[0]:.2f}; busy processes added: {args.load}")
         for n in args.n:
-            imu_only, multi = work / f"imu_{n}.mcap", work / f"imu_temp_{n}.mcap"
+            imu_only, multi = work / f"{kind}_{n}.mcap", work / f"imu_temp_{n}.mcap"
             runs: dict[str, list[tuple[float, float, float]]] = {"lim": [], "read": [], "multi": []}
             for _ in range(args.repeat):  # interleaved: the load changes under us
                 runs["lim"].append(timed(limit, imu_only))
                 runs["read"].append(timed(ours, imu_only))
-                runs["multi"].append(timed(ours, multi))
+                runs["multi"].append(timed(ours, imu_only if args.dense else multi))
             lim, read, mul = (min(r[0] for r in runs[k]) for k in ("lim", "read", "multi"))
             lim_cpu = min(r[1] for r in runs["lim"])
             idle = min(max(m, c / 2) for _, c, m in runs["read"])
             mem = memory(imu_only)
             growth = (mem["peak"] - mem["base"]) / mem["table"]
+            second = "Imu again" if args.dense else "+1 Hz Temperature"
             print(
-                f"{n:>9,} Imu ({imu_only.stat().st_size / 1e6:.0f} MB): limit {lim:.2f} s, "
+                f"{n:>9,} {kind} ({imu_only.stat().st_size / 1e6:.0f} MB): limit {lim:.2f} s, "
                 f"read {read:.2f} s -> {read / lim:.2f}x the limit (goal <= 2); idle estimate "
-                f"{idle:.2f} s -> {idle / lim_cpu:.2f}x; +1 Hz Temperature {mul:.2f} s -> "
+                f"{idle:.2f} s -> {idle / lim_cpu:.2f}x; {second} {mul:.2f} s -> "
                 f"{mul / read:.2f}x Imu-only (goal <= 1.20); peak growth "
                 f"{(mem['peak'] - mem['base']) / 1e6:.0f} MB = {growth:.2f}x the "
                 f"{mem['table'] / 1e6:.0f} MB table"

@@ -33,7 +33,14 @@ from mcap.data_stream import ReadDataStream
 from mcap.records import Channel, Schema, Statistics
 
 from imupipe.readers.cdr import at, even_step
-from imupipe.readers.compression import DECOMPRESS_THREADS, PREFETCH, decompress_chunk
+from imupipe.readers.compression import (
+    DECOMPRESS_THREADS,
+    DECOMPRESSORS,
+    PREFETCH,
+    BufferPool,
+    decompress_chunk,
+    decompress_into,
+)
 from imupipe.readers.errors import ReadError
 
 MAGIC = b"\x89MCAP0\r\n"
@@ -49,6 +56,11 @@ NEVER = 2**63 - 1
 MESSAGE_HEADER = 31
 """Bytes from a message record's opcode to its payload."""
 PSEUDO_CHUNK_BYTES = 1 << 20
+CHUNK_HEAD = 64
+POOLED_BYTES = 64 << 20
+"""Chunks up to this size are decompressed into buffers used again (:class:`BufferPool`)."""
+"""Bytes of a chunk record the reading thread reads (the fields before the records, for
+compression names of up to 20 characters)."""
 
 
 @dataclass(frozen=True)
@@ -76,9 +88,12 @@ class ChunkMessages:
     summary's chunk indexes, else assumed to be this chunk's start time (a log written in time
     order)."""
 
-    def records(self, channel_id: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    def records(
+        self, channel_id: int, copy: bool = True
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """(log_time, publish_time, payload start, payload length) of a channel's messages,
-        validated against the buffer."""
+        validated against the buffer. ``copy=False``: the times may be read-only views into the
+        chunk's buffer (for a caller that copies them at once)."""
         off = self.offsets.get(channel_id)
         if off is None or len(off) == 0:
             z = np.zeros(0, np.int64)
@@ -87,6 +102,28 @@ class ChunkMessages:
         if off[0] < 0 or off[-1] + MESSAGE_HEADER > len(buf):
             raise ReadError(f"{self.where}: message index points outside its chunk")
         step = even_step(off)  # records of one size, one after the other: strided views
+        n = len(off)
+        if step is not None and n > 1:
+            # one record header (opcode, length, channel: 11 bytes) for all, checked once
+            first = buf[int(off[0]) : int(off[0]) + 11].tobytes()
+            reclen = int.from_bytes(first[1:9], "little")
+            if (
+                first[0] == OP_MESSAGE
+                and int.from_bytes(first[9:11], "little") == channel_id
+                and reclen >= MESSAGE_HEADER - 9
+                and int(off[-1]) + 9 + reclen <= len(buf)
+                and bool(
+                    (at(buf, off, 0, "<u8", step) == int.from_bytes(first[:8], "little")).all()
+                )
+                and bool(
+                    (at(buf, off, 7, "<u4", step) == int.from_bytes(first[7:], "little")).all()
+                )
+            ):
+                log = at(buf, off, 15, "<i8", step)  # uint64 read as int64, as astype would
+                pub = at(buf, off, 23, "<i8", step)
+                if copy:
+                    log, pub = log.copy(), pub.copy()
+                return log, pub, off + MESSAGE_HEADER, np.full(n, reclen - (MESSAGE_HEADER - 9))
         reclen = at(buf, off, 1, "<u8", step).astype(np.int64)
         bad = (at(buf, off, 0, "u1", step) != OP_MESSAGE) | (
             at(buf, off, 9, "<u2", step) != channel_id
@@ -131,8 +168,8 @@ class McapFile:
         self, fh: io.BufferedReader, start: int, end: int, lazy: bool = False
     ) -> Iterator[tuple[int, int, bytes]]:
         """Top-level records between ``start`` and ``end``: (opcode, offset, body). ``lazy``:
-        a chunk's body is left unread but for its first 8 bytes (its start time); a worker
-        reads the rest (:meth:`_load_chunk`)."""
+        a chunk's body is left unread but for its first :data:`CHUNK_HEAD` bytes (its start
+        time, sizes, CRC and compression); a worker reads the rest (:meth:`_load_chunk`)."""
         pos = start
         fh.seek(pos)
         while pos < end:
@@ -151,7 +188,7 @@ class McapFile:
                     f"{self.path}: truncated MCAP (record at byte {pos} runs past the end of the file)"
                 )
             if lazy and opcode == OP_CHUNK:
-                body = fh.read(min(length, 8))
+                body = fh.read(min(length, CHUNK_HEAD))
                 fh.seek(pos + 9 + length)
             else:
                 body = fh.read(length)
@@ -241,14 +278,34 @@ class McapFile:
         self.channels = self._join(schemas, channels)
         self.counts = counts
 
-    def _load_chunk(self, fd: int, pos: int) -> np.ndarray:
-        """Read the chunk record at ``pos`` (thread-safe: ``pread``) and decompress it."""
+    def _load_chunk(self, fd: int, pos: int, head: bytes, out: np.ndarray | None) -> np.ndarray:
+        """Read the chunk record at ``pos`` and decompress it (thread-safe: ``pread``); into
+        ``out`` (of the chunk's uncompressed size, see :func:`_chunk_buffer`) when given."""
         try:
-            head = os.pread(fd, 9, pos)
-            body = os.pread(fd, int.from_bytes(head[1:9], "little"), pos + 9)
+            length = int.from_bytes(os.pread(fd, 9, pos)[1:9], "little")
+            if out is None:
+                return self._decompress(os.pread(fd, length, pos + 9), pos)
+            where = f"{self.path}: chunk at byte {pos}"
+            _, crc = struct.unpack_from("<QI", head, 16)
+            (clen,) = struct.unpack_from("<I", head, 28)
+            try:
+                compression = head[32 : 32 + clen].decode()
+            except UnicodeDecodeError:
+                raise ReadError(f"{where}: corrupt chunk header") from None
+            (dlen,) = struct.unpack_from("<Q", head, 32 + clen)
+            if 40 + clen + dlen > length:
+                raise ReadError(f"{where}: corrupt chunk (data length {dlen} past the record)")
+            if compression not in DECOMPRESSORS:
+                raise ReadError(f"{where}: unsupported chunk compression '{compression}'")
+            data = os.pread(fd, dlen, pos + 9 + 40 + clen)
         except OSError as exc:
             raise ReadError(f"{self.path}: cannot read: {exc.strerror or exc}") from None
-        return self._decompress(body, pos)
+        if len(data) != dlen:
+            raise ReadError(f"{where}: corrupt chunk (data length {dlen} past the record)")
+        raw = decompress_into(data, compression, out, where)
+        if crc and zlib.crc32(raw) != crc:
+            raise ReadError(f"{where}: chunk CRC mismatch (corrupt data)")
+        return raw
 
     def _decompress(self, body: bytes, pos: int) -> np.ndarray:
         where = f"{self.path}: chunk at byte {pos}"
@@ -282,6 +339,7 @@ class McapFile:
         Worker threads decompress (and CRC-check) the next :data:`PREFETCH` chunks while the
         caller decodes the current one (zstd, lz4 and zlib release the GIL)."""
         offsets, suffix_min = self._bounds()
+        pool = BufferPool()
         pending: ChunkMessages | None = None
         queue: collections.deque[ChunkMessages] = collections.deque()
         loose = bytearray()
@@ -304,7 +362,7 @@ class McapFile:
                     queue.append(pending)
                     pending = None
                 while len(queue) > PREFETCH or (queue and opcode != OP_CHUNK):
-                    yield _finished(queue.popleft())
+                    yield _finished(queue.popleft(), pool)
                 if opcode == OP_MESSAGE:
                     if len(body) < 22:
                         raise ReadError(f"{self.path}: corrupt message record at byte {pos}")
@@ -326,21 +384,40 @@ class McapFile:
                         bound = int(suffix_min[k]) if k < len(offsets) else NEVER
                     else:
                         bound = int.from_bytes(body[:8], "little") if len(body) >= 8 else 0
-                    future = worker.submit(self._load_chunk, fh.fileno(), pos)
+                    out = _chunk_buffer(body, pool)
+                    future = worker.submit(self._load_chunk, fh.fileno(), pos, body, out)
                     pending = ChunkMessages(future, {}, f"{self.path}: chunk at byte {pos}", bound)  # type: ignore[arg-type]
                 elif opcode == OP_DATA_END:
                     break
             if pending is not None:
                 queue.append(pending)
             while queue:
-                yield _finished(queue.popleft())
+                yield _finished(queue.popleft(), pool)
             if loose:
                 yield _loose_chunk(loose, loose_off, f"{self.path}: messages at the end")
 
 
-def _finished(chunk: ChunkMessages) -> ChunkMessages:
-    """The chunk with its decompressed buffer (waiting for the worker) and its offsets."""
+def _chunk_buffer(head: bytes, pool: BufferPool) -> np.ndarray | None:
+    """A buffer of ``pool`` for the chunk record whose body starts with ``head``; None when
+    its fields are not all in ``head`` or its sizes are implausible (a damaged file: the
+    chunk is then read as a whole and its errors named as they are)."""
+    if len(head) < 32:
+        return None
+    usize = int.from_bytes(head[16:24], "little")
+    clen = int.from_bytes(head[28:32], "little")
+    if 40 + clen > len(head):
+        return None
+    dlen = int.from_bytes(head[32 + clen : 40 + clen], "little")
+    if head[32 : 32 + clen] != b"zstd" or usize > min(POOLED_BYTES, 64 * dlen + 4096):
+        return None
+    return pool.take(usize)
+
+
+def _finished(chunk: ChunkMessages, pool: BufferPool) -> ChunkMessages:
+    """The chunk with its decompressed buffer (waiting for the worker) and its offsets; the
+    buffer goes back to ``pool`` (used again once nothing refers to it)."""
     chunk.buf = chunk.buf.result()  # type: ignore[attr-defined]
+    pool.give(chunk.buf)
     return _indexed_or_scanned(chunk)
 
 

@@ -95,7 +95,7 @@ class McapSource:
                 f"{where}: message encoding '{channel.message_encoding}' is not supported "
                 "(cdr or ros1)"
             )
-        log, pub, starts, lengths = chunk.records(cid)
+        log, pub, starts, lengths = chunk.records(cid, copy=False)
         return decode_piece(
             chunk.buf, starts, lengths, log, stream, channel.message_encoding, where, pub
         )

@@ -4,8 +4,10 @@ A new array's memory is mapped lazily: the first write to each 4 KiB page traps 
 which zeroes the page and maps it. Reading 1 M ``sensor_msgs/Imu`` messages writes ~300 MB of
 columns, ~73,000 page faults that cost as much as the copy they interrupt (0.22 s against
 0.025 s for the same copy into memory already mapped, measured on the 2-core test machine).
-Huge pages would make that cheaper but can stall for a second on memory compaction (see
-:func:`imupipe.readers.table_buffer.small_pages`).
+Huge pages cost more here, not less (see :func:`imupipe.readers.table_buffer.small_pages`);
+columns that stay all zeros are not written at all, so their pages are never mapped (see
+:meth:`imupipe.readers.table_buffer._Stream.add`: they are given to :meth:`Prefault.add` only
+once a value in them is not zero).
 
 :class:`Prefault` moves that kernel work off the reading thread: a helper thread asks the kernel
 to map the pages (``madvise(MADV_POPULATE_WRITE)``, Linux 5.14+, one call per block of rows),
@@ -54,13 +56,18 @@ def _populate(array: np.ndarray, lo: int, hi: int) -> bool:
 
 class Prefault:
     """Maps the pages of ``arrays`` (equal row counts) row block by row block, up to
-    :data:`AHEAD_ROWS` past the rows reported filled with :meth:`advance`. The thread ends at
-    :meth:`close`, when everything is mapped, or when this object is garbage collected."""
+    :data:`AHEAD_ROWS` past the rows reported filled with :meth:`advance`; arrays given later
+    with :meth:`add` from the row given on. The thread ends at :meth:`close`, when everything
+    is mapped, or when this object is garbage collected."""
 
     def __init__(self, arrays: list[np.ndarray]) -> None:
         self.arrays = arrays
         self.rows = len(arrays[0]) if arrays else 0
         self.filled = 0
+        self.woken = 0
+        """``filled`` when the thread was last woken."""
+        self.added: list[tuple[np.ndarray, int]] = []
+        """Arrays to map from a row on (given while the thread runs), for the thread to take."""
         self.closed = _madvise is None or self.rows == 0
         self.cond = threading.Condition()
         self.thread = None
@@ -71,10 +78,24 @@ class Prefault:
             self.thread.start()
 
     def advance(self, filled: int) -> None:
+        """The rows below ``filled`` are written: the thread maps ahead of them. It is woken
+        once per :data:`STEP_ROWS` rows (a wake-up per chunk cost more than it mapped)."""
+        if self.closed:
+            return
+        if filled < self.woken + STEP_ROWS and filled < self.rows:
+            self.filled = filled  # read under the lock when the thread next looks
+            return
+        with self.cond:
+            self.filled = self.woken = filled
+            self.cond.notify()
+
+    def add(self, array: np.ndarray, start: int) -> None:
+        """Map ``array`` (as many rows as the others) too, from row ``start`` on: the rows
+        before it stay as they are (untouched zeros stay unmapped)."""
         if self.closed:
             return
         with self.cond:
-            self.filled = filled
+            self.added.append((array, start))
             self.cond.notify()
 
     def close(self) -> None:
@@ -88,6 +109,7 @@ class Prefault:
 
 def _run(ref: weakref.ref, cond: threading.Condition) -> None:
     done = 0
+    arrays: list[np.ndarray] | None = None
     while True:
         with cond:
             while True:
@@ -95,13 +117,20 @@ def _run(ref: weakref.ref, cond: threading.Condition) -> None:
                 if owner is None or owner.closed or done >= owner.rows:
                     return
                 target = min(owner.rows, owner.filled + AHEAD_ROWS)
-                if done < target:
+                if done < target or owner.added:
                     break
                 del owner
                 cond.wait(0.2)
-            arrays, hi = owner.arrays, min(target, done + STEP_ROWS)
+            if arrays is None:
+                arrays = list(owner.arrays)
+            added, owner.added = owner.added, []
+            hi = min(target, done + STEP_ROWS)
             del owner
-        for array in arrays:
-            if not _populate(array, done, hi):
+        for array, start in added:  # catch up with the others
+            if start < done and not _populate(array, start, done):
                 return
-        done = hi
+            arrays.append(array)
+        for array in arrays:
+            if hi > done and not _populate(array, done, hi):
+                return
+        done = max(done, hi)

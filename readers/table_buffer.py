@@ -15,18 +15,23 @@ other streams' values are scattered into theirs. A log with a 1 Hz temperature t
 its IMU thus costs about what the IMU alone costs, whether the log interleaves the topics in its
 chunks or writes each topic in chunks of its own. A stream out of order is put in order with
 one permutation of the whole table.
+
+Columns are allocated zeroed by the kernel, page by page on first write: a value column in
+which every message so far carried zeros (unknown covariances, an Imu without orientation) is
+not written at all and costs neither a copy nor a page fault, until a message brings a value
+that is not zero.
 """
 
 from __future__ import annotations
 
 import contextlib
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
 
 import numpy as np
 import pyarrow as pa
 import pyarrow.compute as pc
 
-from imupipe.readers.decoded import Piece, absent_sensors
+from imupipe.readers.decoded import Piece, absent_sensors, repeat_string
 from imupipe.readers.prefault import Prefault
 from imupipe.readers.table import COV, SCHEMA, with_metadata
 from imupipe.readers.topics import COLUMNS, STREAM_TYPES
@@ -48,10 +53,13 @@ time stands in)."""
 def small_pages() -> Iterator[None]:
     """numpy allocations without its transparent-huge-page hint.
 
-    numpy asks the kernel for huge pages on large arrays; with the common THP setting
-    (``defrag = madvise``) the first touch of such an array can stall on memory compaction: a
-    fresh 1M-message read took 0.9 s instead of 0.4 s in a process that had already used a lot
-    of memory. Columns that are filled once, sequentially, gain nothing from huge pages."""
+    numpy asks the kernel for huge pages on large arrays. On the 2-core test machine (a VM
+    whose free 2 MiB blocks are reported to the host, ``page_reporting_order`` 9) a huge page
+    is such a block, whose first touch most likely faults it back in from the host: filling
+    364 MB cost 0.29-0.54 s of kernel time with huge pages (once 0.04 s) against 0.13-0.16 s with
+    4 KiB pages, with no compaction stall counted (``compact_stall`` 0); a fresh 1M-message read
+    once took 0.9 s instead of 0.4 s. Columns that are filled once, sequentially, gain nothing
+    from huge pages."""
     setter = getattr(getattr(np, "_core", None), "multiarray", None)
     setter = getattr(setter, "_set_madvise_hugepage", None)
     if setter is None:
@@ -85,7 +93,14 @@ class _Stream:
         covariance[0] = -1, see :func:`imupipe.readers.decoded.absent_sensors`): null there."""
         self.seen: set[str] = set()
         """The value columns the messages carried (a ULog has no covariances)."""
+        self.clean = {name for name, _, _ in COLUMNS[stream]}
+        """The value columns in which every message so far carried zeros, bit for bit (a
+        driver's unknown covariances): never written, so that their pages are never touched
+        (see :meth:`add`)."""
         self.frames: list[pa.Array] = []
+        self.one_frame: str | None = None
+        """The frame_id of every message so far, when the decoder said each piece had one and
+        they are the same (None: several or unknown)."""
         self.t_sorted = self.log_sorted = True
         self.last_t = self.last_log = -(2**63)
         self.end = 0
@@ -105,19 +120,28 @@ class _Stream:
         if end:
             for old, new in ((self.times, times), (self.columns, columns), (self.flags, flags)):
                 for name, column in new.items():
-                    column[:end] = old[name][:end]
+                    if name not in self.clean:  # a clean column is zeros: so is the new one
+                        column[:end] = old[name][:end]
         self.times, self.columns, self.flags = times, columns, flags
         self.capacity = capacity
         self.close()
         if capacity >= PREFAULT_ROWS:
-            self.prefault = Prefault([*times.values(), *columns.values()])
+            self.prefault = Prefault([*times.values(), *self._written(columns)])
             self.prefault.advance(end)
+
+    def _written(self, arrays: dict[str, np.ndarray]) -> list[np.ndarray]:
+        return [column for name, column in arrays.items() if name not in self.clean]
 
     def add_time(self, name: str) -> None:
         """Start keeping ``name`` (publish times): the messages so far get their log time."""
         if name not in self.times:
             self.time_names.append(name)
-            self.times[name] = self.log.copy()
+            with small_pages():
+                column = np.zeros(self.capacity, np.int64)
+            column[: self.end] = self.log[: self.end]
+            self.times[name] = column
+            if self.prefault is not None:
+                self.prefault.add(column, self.end)
 
     @property
     def t(self) -> np.ndarray:
@@ -134,11 +158,16 @@ class _Stream:
             self.prefault = None
 
     def arrays(self) -> list[np.ndarray]:
-        """Every per-row array (times, values, flags), for moving rows."""
-        return [*self.times.values(), *self.columns.values(), *self.flags.values()]
+        """Every per-row array that holds values (times, values, flags), for moving rows: the
+        clean columns are zeros wherever rows move."""
+        return [*self.times.values(), *self._written(self.columns), *self.flags.values()]
 
     def add(self, piece: Piece, t: np.ndarray, at: slice | np.ndarray | Runs | None = None) -> None:
-        """Append ``piece`` (``t``: its chosen times) at rows ``at`` (default: the next rows)."""
+        """Append ``piece`` (``t``: its chosen times) at rows ``at`` (default: the next rows).
+
+        A value column whose values are all zeros (bit for bit) so far is not written: its
+        memory came zeroed from the kernel, and pages never written are never mapped (a log
+        whose covariances are unknown fills 216 fewer bytes per Imu message)."""
         k = len(piece)
         if k == 0:
             return
@@ -158,7 +187,15 @@ class _Stream:
         for name in self.time_names[1:]:
             value = getattr(piece, TIME_COLUMNS[name])
             values[name] = piece.log if value is None else value
-        values.update(piece.columns)
+        first = _first_row(at)
+        for name, column in piece.columns.items():
+            if name in self.clean:
+                if _zeros_only(column):
+                    continue
+                self.clean.discard(name)
+                if self.prefault is not None:
+                    self.prefault.add(self.columns[name], first)
+            values[name] = column
         self.seen.update(piece.columns)
         if self.stream == "imu":
             for name, marked in absent_sensors(piece).items():
@@ -169,6 +206,8 @@ class _Stream:
         for run, rows in _runs(at):
             for name, column in values.items():
                 targets[name][rows] = column[run]
+        if self.m == 0 or piece.one_frame != self.one_frame:
+            self.one_frame = piece.one_frame if self.m == 0 else None
         self.frames.append(piece.frame)
         self.m += k
         last = at[-1][1] if isinstance(at, list) else at
@@ -179,11 +218,26 @@ class _Stream:
     def frame(self) -> pa.Array:
         if not self.frames:
             return pa.array([], pa.string())
+        if self.one_frame is not None and len(self.frames) > 1:
+            return repeat_string(self.one_frame, self.m)  # the same as joining them
         return self.frames[0] if len(self.frames) == 1 else pa.concat_arrays(self.frames)
 
 
 Runs = list[tuple[slice, slice]]
 """(values, rows) slice pairs: where runs of consecutive values go."""
+
+
+def _zeros_only(column: np.ndarray) -> bool:
+    """Every value of ``column`` (float64, any strides) is +0.0, bit for bit."""
+    bits = column.view(np.uint64)
+    return not bits[(0,) * bits.ndim] and not bits.max()  # max: no cast to bool
+
+
+def _first_row(at: slice | np.ndarray | Runs) -> int:
+    """The first row ``at`` writes."""
+    if isinstance(at, list):
+        at = at[0][1]
+    return at.start if isinstance(at, slice) else int(at[0])
 
 
 def _runs(at: slice | np.ndarray | Runs) -> list[tuple[slice, slice | np.ndarray]]:
@@ -506,16 +560,18 @@ class TableBuffer:
                         f"{where} topic {topics[st.stream]}: {dups} messages repeat the "
                         f"previous {self.time} stamp (kept)"
                     )
-        frames = [st.frame() for st in streams]
         # each stream's frame_id: its first message's (in the table's order; batches: log order)
         frame_ids = {
-            st.stream: f[0 if order is None else int(order[0])].as_py()
-            for st, f, order in zip(streams, frames, within, strict=True)
+            st.stream: st.one_frame
+            if st.one_frame is not None
+            else st.frame()[0 if order is None else int(order[0])].as_py()
+            for st, order in zip(streams, within, strict=True)
             if st.m
         }
         if in_order:
-            columns, times, frame = self._spread_all(streams, frames, n)
+            columns, times, frame = self._spread_all(streams, n)
         else:  # the batches of the streaming path: a stable sort by time, streams in order at ties
+            frames = [st.frame() for st in streams]
             columns, times, frame = self._gather(streams, within, frames, n, lexsort=not sort)
         self.streams = {}
         arrays: dict[str, pa.Array] = {"t_ns": pa.array(times.pop("t_ns"), pa.int64())}
@@ -562,7 +618,7 @@ class TableBuffer:
         return rows if np.array_equal(gaps, mine) else None
 
     def _spread_all(
-        self, streams: list[_Stream], frames: list[pa.Array], n: int
+        self, streams: list[_Stream], n: int
     ) -> tuple[dict[str, pa.Array], dict[str, np.ndarray], pa.Array]:
         """Columns of streams already in order, each message at its row of the merged order:
         the large stream's already there (gaps) or spread there in place."""
@@ -588,7 +644,7 @@ class TableBuffer:
         columns: dict[str, np.ndarray] = {name: c[:n] for name, c in big.columns.items()}
         flags = {name: c[:n] for name, c in big.flags.items()}
         if len(streams) == 1:
-            return self._arrays(streams, columns, None, flags), times, frames[0]
+            return self._arrays(streams, columns, None, flags), times, streams[0].frame()
         stream_of_row = np.full(n, large, np.uint8)
         for i, (st, at) in enumerate(zip(streams, rows, strict=True)):
             if i == large:
@@ -605,9 +661,7 @@ class TableBuffer:
                 flags[name] = np.zeros(n, bool)
                 flags[name][at] = flag[:m]
             stream_of_row[at] = i
-        if rows[large] is None:
-            rows[large] = self._rows()
-        frame = _frames(frames, rows, stream_of_row)  # type: ignore[arg-type]
+        frame = _frames(streams, rows, large, stream_of_row, self._rows)  # type: ignore[arg-type]
         return self._arrays(streams, columns, stream_of_row, flags), times, frame
 
     def _gather(
@@ -687,16 +741,30 @@ class TableBuffer:
         return out
 
 
-def _frames(frames: list[pa.Array], rows: list[np.ndarray], stream_of_row: np.ndarray) -> pa.Array:
-    """The frame_id column of streams whose messages go to ``rows``: a dictionary decode when
-    each stream has one frame_id (a sensor's usual case), else one take."""
+def _frames(
+    streams: list[_Stream],
+    rows: list[np.ndarray | None],
+    large: int,
+    stream_of_row: np.ndarray,
+    large_rows: Callable[[], np.ndarray],
+) -> pa.Array:
+    """The frame_id column of streams whose messages go to ``rows`` (``large_rows()`` for the
+    large stream's where ``rows`` has None): one repeated string when every message has the
+    same, a dictionary decode when each stream has one frame_id (a sensor's usual case), else
+    one take."""
+    ones = [st.one_frame for st in streams]
+    if None not in ones and len(set(ones)) == 1:
+        return repeat_string(ones[0], len(stream_of_row))  # type: ignore[arg-type]
+    frames = [st.frame() for st in streams]
     firsts = [frame[0] if len(frame) else None for frame in frames]
     if all(
-        first is None or pc.all(pc.equal(frame, first)).as_py()
-        for frame, first in zip(frames, firsts, strict=True)
+        one is not None or first is None or pc.all(pc.equal(frame, first)).as_py()
+        for frame, first, one in zip(frames, firsts, ones, strict=True)
     ):
         values = pa.array([f.as_py() if f is not None else "" for f in firsts], pa.string())
         return pa.DictionaryArray.from_arrays(stream_of_row.view(np.int8), values).cast(pa.string())
+    if rows[large] is None:
+        rows[large] = large_rows()
     source = np.empty(len(stream_of_row), np.int64)  # row -> message of the streams in turn
     start = 0
     for frame, at in zip(frames, rows, strict=True):

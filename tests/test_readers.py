@@ -535,3 +535,92 @@ def test_prefault_maps_a_bounded_distance_ahead_and_stops():
     gc.collect()
     thread.join(timeout=5)
     assert not thread.is_alive()
+
+
+def _bits(column: pa.ChunkedArray) -> np.ndarray:
+    """A float or fixed-size-list column's values as uint64 bits (nulls' slots included)."""
+    array = column.combine_chunks()
+    if isinstance(array, pa.FixedSizeListArray):
+        array = array.flatten()
+    if pa.types.is_floating(array.type):
+        return np.frombuffer(array.buffers()[1], np.uint64)[array.offset :][: len(array)]
+    return np.asarray(array.to_numpy(zero_copy_only=False))
+
+
+def test_mcap_fast_paths_read_what_the_general_ones_read(tmp_path, monkeypatch):
+    """The MCAP read's fast paths against its general ones (issue 17), bit for bit: columns
+    left unwritten while every message so far carried zeros (a covariance that turns non-zero
+    late, one that carries -0.0, which is not zero), one frame_id per chunk checked message by
+    message (two frame_ids of one length), decompression buffers used again, and batches that
+    keep views into chunks while later chunks are read."""
+    from imupipe.pipeline.mcap_writer import write_mcap
+    from imupipe.readers import decoded, table_buffer
+
+    rng = np.random.default_rng(17)
+    n = 30_000
+    t = T0 + np.arange(n, dtype=np.int64) * 2_500_000
+    gyro_cov = np.zeros((n, 9))
+    gyro_cov[20_000:20_010, 4] = 1e-3  # zeros, then values, then zeros again
+    accel_cov = np.zeros((n, 9))
+    accel_cov[25_000, 8] = -0.0
+    frames = np.full(n, "imu_a")
+    frames[rng.integers(0, n, 5)] = "imu_b"  # same length: the layout cannot tell them apart
+    table = make_table(
+        t,
+        gyro=rng.normal(size=(n, 3)),
+        accel=rng.normal(size=(n, 3)),
+        extra={
+            "frame_id": pa.array(frames),
+            "orientation_w": np.ones(n),
+            "gyro_cov": gyro_cov,
+            "accel_cov": accel_cov,
+        },
+        metadata={"topics": {"imu": "/imu"}},
+    )
+    path = tmp_path / "fast.mcap"
+    write_mcap(path, table, chunk_bytes=1 << 18)
+    spec = InputSpec(path=path)
+    fast, _ = read_input(spec)
+    batches = pa.concat_tables([b for b, _ in iter_input(spec, batch_rows=2_000)])
+    monkeypatch.setattr(decoded, "_uniform_cdr", lambda *args: None)
+    monkeypatch.setattr(table_buffer, "_zeros_only", lambda column: False)
+    general, _ = read_input(spec)
+    assert fast.schema == general.schema and fast.num_rows == n
+    for name in general.column_names:
+        if pa.types.is_string(general.schema.field(name).type):
+            assert fast.column(name).equals(general.column(name)), name
+            assert batches.column(name).equals(general.column(name)), name
+        else:
+            np.testing.assert_array_equal(_bits(fast.column(name)), _bits(general.column(name)))
+            np.testing.assert_array_equal(_bits(batches.column(name)), _bits(general.column(name)))
+    assert _bits(fast.column("accel_cov"))[25_000 * 9 + 8] == 1 << 63  # -0.0 kept
+    assert (fast.column("frame_id").to_numpy(zero_copy_only=False) == frames).all()
+
+
+@pytest.mark.parametrize("frames", [["imu_a"] * 6, ["imu_a", "imu_a", "imu_b", "imu_a"], [""] * 3])
+def test_uniform_cdr_decode_equals_the_general_decoder(frames):
+    """Evenly spaced CDR messages of one length: the few-call decoder gives what the general
+    one gives, and leaves a chunk whose frame_ids differ (same length) to it."""
+    from imupipe.readers import cdr, decoded
+
+    rng = np.random.default_rng(len(frames))
+    fields = {name: rng.normal(size=(1, c)) for name, c in cdr.FIELDS["sensor_msgs/msg/Imu"]}
+    rows = [
+        cdr.encode("sensor_msgs/msg/Imu", np.array([T0 + i]), f.encode(), fields)[0]
+        for i, f in enumerate(frames)
+    ]
+    buf = np.concatenate(rows)
+    size = len(rows[0])
+    starts = np.arange(len(rows), dtype=np.int64) * size
+    lengths = np.full(len(rows), size)
+    slots = [(first, count) for _, first, count in decoded.COLUMNS["imu"]]
+    stamp, frame, values = cdr.decode(buf, starts, lengths, "sensor_msgs/msg/Imu", "cdr", slots)
+    uniform = decoded._uniform_cdr(buf, starts, lengths, "sensor_msgs/msg/Imu", slots)
+    if len(set(frames)) > 1:
+        assert uniform is None
+        return
+    assert uniform is not None
+    np.testing.assert_array_equal(uniform[0], stamp)
+    assert uniform[1].equals(frame) and uniform[3] == frames[0]
+    for got, want in zip(uniform[2], values, strict=True):
+        np.testing.assert_array_equal(got, want)
