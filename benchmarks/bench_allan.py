@@ -18,7 +18,8 @@ Times are noisy on a shared machine: the load average is printed, and the ratios
 measured in the same run, interleaved) are what count.
 
 Usage: ``python benchmarks/bench_allan.py [--sizes 0.5e6 2.88e6 8e6] [--repeats 3]
-[--skip-run] [--skip-stage]``.
+[--skip-run] [--skip-stage] [--parts]`` (``--parts``: the CPU time of the stage's parts, per call:
+sample clock, motion check, phase, deviations, noise identification + EDF + bounds, fit).
 """
 
 from __future__ import annotations
@@ -47,6 +48,29 @@ from imupipe.stages.allan import AllanStage
 from imupipe.stages.base import StageContext
 
 n, repeats, rate = int(float(sys.argv[1])), int(sys.argv[2]), 400.0
+parts = {}
+if sys.argv[4:] == ["parts"]:  # CPU time of the stage's parts, per call
+    import imupipe.stages.allan as A
+    import imupipe.stages.allan_estimators as E
+
+    def timed(owner, name, label):
+        f = getattr(owner, name)
+
+        def g(*a, **k):
+            t = time.process_time()
+            try:
+                return f(*a, **k)
+            finally:
+                parts.setdefault(label, [0.0] * repeats)[r] += time.process_time() - t
+
+        setattr(owner, name, g)
+
+    for owner, name, label in (
+        (A, "sample_clock", "sample clock"), (A, "stillness", "motion check"),
+        (E, "rate_to_phase", "phase"), (E, "deviation_of_phase", "deviations"),
+        (E, "confidence", "noise id + EDF + bounds"), (A, "fit_allan", "fit"),
+    ):
+        timed(owner, name, label)
 rng = np.random.default_rng(0)
 t_ns = 1_700_000_000_000_000_000 + np.round(np.arange(n) * (1e9 / rate)).astype(np.int64)
 gyro = rng.standard_normal((n, 3)) * 0.01 + np.cumsum(rng.standard_normal((n, 3)), axis=0) * 1e-6
@@ -59,9 +83,11 @@ base = status_bytes("VmHWM")
 ours, peer, taus = [], [], 0
 for r in range(repeats):
     ctx = StageContext(name="allan", input_name="bench", quiet=True)
-    t = time.perf_counter()
+    t, cpu = time.perf_counter(), time.process_time()
     out = AllanStage(AllanStage.Options()).fit(table, ctx)
     ours.append(time.perf_counter() - t)
+    if parts:
+        parts.setdefault("whole stage", [0.0] * repeats)[r] = time.process_time() - cpu
     if r == 0:
         peak = status_bytes("VmHWM")
         taus = out.results["metrics"]["taus"]
@@ -70,8 +96,13 @@ for r in range(repeats):
     for c in columns:
         allantools.oadev(c, rate=rate, data_type="freq", taus="octave")
     peer.append(time.perf_counter() - t)
+    if parts:
+        cpu = time.process_time()
+        for c in columns:
+            allantools.oadev(c, rate=rate, data_type="freq", taus="octave")
+        parts.setdefault("allantools", [0.0] * repeats)[r] = time.process_time() - cpu
 print(json.dumps({"ours": ours, "peer": peer, "taus": taus, "table": table.nbytes,
-                  "growth": peak - base}))
+                  "growth": peak - base, "parts": parts}))
 """
 
 FLOOR_CHILD = """
@@ -138,11 +169,12 @@ def load() -> str:
     return f"load average {one:.2f} (1 min), {five:.2f} (5 min) on {os.cpu_count()} cores"
 
 
-def bench_stage(sizes: list[float], repeats: int) -> None:
+def bench_stage(sizes: list[float], repeats: int, parts: bool = False) -> None:
     print(f"1. allan stage alone vs allantools oadev(taus='octave'), 6 axes; {load()}")
     for n in sizes:
         proc = subprocess.run(
-            [sys.executable, "-c", STAGE_CHILD, str(n), str(repeats), HERE],
+            [sys.executable, "-c", STAGE_CHILD, str(n), str(repeats), HERE]
+            + (["parts"] if parts else []),
             capture_output=True,
             text=True,
         )
@@ -157,6 +189,10 @@ def bench_stage(sizes: list[float], repeats: int) -> None:
             f"imupipe/allantools s: {runs}; stage peak RSS growth {r['growth'] / 1e6:.0f} MB "
             f"= {r['growth'] / r['table']:.2f} x the {r['table'] / 1e6:.0f} MB table"
         )
+        if r["parts"]:  # the fastest of the repeats (after the first: page faults, imports)
+            best = min(range(1, repeats) or [0], key=lambda i: r["parts"]["whole stage"][i])
+            each = ", ".join(f"{k} {v[best] * 1e3:.1f}" for k, v in r["parts"].items())
+            print(f"     CPU ms in the fastest repeat: {each}")
 
 
 def bench_run(repeats: int) -> None:
@@ -233,9 +269,12 @@ def main() -> None:
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--skip-run", action="store_true", help="only the stage benchmark")
     p.add_argument("--skip-stage", action="store_true", help="only the run benchmark")
+    p.add_argument(
+        "--parts", action="store_true", help="also the CPU time of the stage's parts, per call"
+    )
     args = p.parse_args()
     if not args.skip_stage:
-        bench_stage(args.sizes, args.repeats)
+        bench_stage(args.sizes, args.repeats, args.parts)
     if not args.skip_run:
         bench_run(args.repeats)
 

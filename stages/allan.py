@@ -140,11 +140,12 @@ class AllanStage(Stage):
         series = self._samples(table, ctx)
         t_ns, data, clock = series.t_ns, series.data, series.clock
         rate_hz, duration, span = series.rate_hz, series.duration_s, series.span_s
-        static = self._check_static(t_ns, data, ctx)
-
+        gyro_means = [c.mean() for c in data["gyro"]]
+        static = self._check_static(t_ns, data, ctx, gyro_means)
+        # without lost samples the phase is of these same columns: each mean computed once
+        means = None if clock.n_lost else gyro_means + [c.mean() for c in data["accel"]]
         x = est.rate_to_phase(
-            [fill_lost(clock, c) for s in self.sensors for c in data[s]],
-            1.0 / rate_hz,
+            [fill_lost(clock, c) for s in self.sensors for c in data[s]], 1.0 / rate_hz, means
         )
         del data, series  # the phase (6, n + 1) is all the estimators need
         top = est.max_af(opts.kind, x.shape[1])
@@ -314,9 +315,13 @@ class AllanStage(Stage):
         return ImuSeries(t_ns, data, clock, rate_hz)
 
     def _check_static(
-        self, t_ns: np.ndarray, data: dict[str, list[np.ndarray]], ctx: StageContext
+        self,
+        t_ns: np.ndarray,
+        data: dict[str, list[np.ndarray]],
+        ctx: StageContext,
+        gyro_means: list[float] | None = None,
     ) -> bool:
-        still = stillness(t_ns, data["gyro"], data["accel"])
+        still = stillness(t_ns, data["gyro"], data["accel"], True, gyro_means)  # t increases
         static = still.static(self.options.motion_threshold)
         ctx.check(
             static,

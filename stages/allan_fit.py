@@ -47,7 +47,9 @@ is closest to the line's, within 0.25), B = min(sigma) / sqrt(2 ln2 / pi) (= min
 
 from __future__ import annotations
 
+import functools
 import itertools
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -126,6 +128,35 @@ def density_weights(taus: np.ndarray) -> np.ndarray:
     return np.minimum(np.diff(edges), 1.0)
 
 
+@functools.cache
+def _nnls():
+    """``nnls(a, b) -> x``: scipy's Lawson-Hanson NNLS (:func:`scipy.optimize.nnls`). Its compiled
+    core is called directly where this scipy has it (the same solution, bit for bit, without the
+    public wrapper's argument checks: a third of the fit's time went to them); else the public
+    function."""
+    from scipy.optimize import nnls  # scipy: loaded on first use (start-up)
+
+    def public(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        return nnls(a, b)[0]
+
+    try:
+        from scipy.optimize._slsqplib import nnls as core
+
+        x, _, info = core(np.eye(2), np.array([1.0, -1.0]), 6)  # the signature this code expects
+        if info != 1 or not np.array_equal(x, [1.0, 0.0]):
+            return public
+    except (ImportError, TypeError, ValueError):
+        return public
+
+    def direct(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+        x, _, info = core(a, b, 3 * a.shape[1])  # a C-contiguous float64, b float64 (ours)
+        if info == 3:
+            raise RuntimeError("Maximum number of iterations reached.")
+        return x
+
+    return direct
+
+
 def _solve(
     a: np.ndarray,
     target: np.ndarray,
@@ -143,73 +174,127 @@ def _solve(
     lower-envelope tangents and from their sum, and the better end point wins; with ``start``
     (a previous solution, for a profile) from that one only. (On 96 simulated curves x 16 subsets
     the first-order start was never beaten by the two others.)"""
-    from scipy.optimize import nnls  # scipy: loaded on first use (start-up)
+    return _Scaled(a, target, w).solve(iters, fixed, start)
 
-    sw = np.sqrt(w)
-    level = np.exp(target)
-    rel = a / level[:, None]
-    scale = 1.0 / rel.max(axis=0)
-    a_s = a * scale  # u = c / scale; u_k = 1 is term k's tangent to the curve from below
-    off = np.zeros(len(target)) if fixed is None else np.asarray(fixed, dtype=np.float64)
-    p = a.shape[1]
 
-    def cost(u: np.ndarray) -> float:
-        mu = a_s @ u + off
+class _Scaled:
+    """The columns ``a`` (t, p) of one log-space problem (``target``, weights ``w``), scaled so
+    that each term's largest share of the curve is 1: ``u = c / scale``, ``u_k = 1`` is term k's
+    tangent to the curve from below. Built once per set of terms and reused by every solve on it
+    (the profile of K solves the same columns at every K)."""
+
+    def __init__(self, a: np.ndarray, target: np.ndarray, w: np.ndarray) -> None:
+        self.target, self.w = target, w
+        self.sw = np.sqrt(w)
+        self.sw_col = self.sw[:, None]
+        self.level = np.exp(target)
+        self.rel = a / self.level[:, None]
+        self.scale = 1.0 / self.rel.max(axis=0)
+        self.a_s = a * self.scale
+
+    def evaluate(
+        self, u: np.ndarray, off: np.ndarray | None
+    ) -> tuple[float, np.ndarray, np.ndarray]:
+        """(cost, model variance mu, log residual r) at scaled coefficients ``u`` plus the fixed
+        variance ``off`` (None: none); cost inf where the model is not positive."""
+        mu = self.a_s @ u
+        if off is not None:
+            mu += off
         if not mu.min() > 0:
-            return np.inf
-        r = np.log(mu) - target
-        return float(r @ (w * r))
+            return np.inf, mu, mu
+        r = np.log(mu) - self.target
+        return float(r @ (self.w * r)), mu, r
 
-    def descend(u: np.ndarray) -> tuple[np.ndarray, float]:
-        f = cost(u)
+    def descend(
+        self, u: np.ndarray, off: np.ndarray | None, iters: int
+    ) -> tuple[np.ndarray, float]:
+        """Projected Gauss-Newton from ``u`` (>= 0): each step the NNLS solution of the
+        linearised residuals, halved until the cost falls; stops when a step gains less than
+        1e-9 of the cost. Each point's cost is evaluated once (its model and residual are the
+        next step's linearisation). A start where the model is not positive takes no step."""
+        nnls = _nnls()
+        sw, sw_col, a_s = self.sw, self.sw_col, self.a_s
+        f, mu, r = self.evaluate(u, off)
         for _ in range(iters):
-            mu = a_s @ u + off
+            if not math.isfinite(f):
+                break
             jac = a_s / mu[:, None]
-            new, _ = nnls(sw[:, None] * jac, sw * (jac @ u - (np.log(mu) - target)))
+            new = nnls(sw_col * jac, sw * (jac @ u - r))
             step = new - u
             lam = 1.0
-            while lam > 1e-6 and cost(u + lam * step) >= f:
+            while lam > 1e-6:
+                trial = u + step if lam == 1.0 else u + lam * step  # the same sum: 1.0 * s == s
+                ft, mu_t, r_t = self.evaluate(trial, off)
+                if not ft >= f:
+                    break
                 lam *= 0.5
             if lam <= 1e-6:
                 break
-            trial = u + lam * step
-            ft = cost(trial)
             done = f - ft <= 1e-9 * max(f, 1e-300)
-            u, f = trial, ft
+            u, f, mu, r = trial, ft, mu_t, r_t
             if done:
                 break
-        u = np.maximum(u, 0.0)
-        return u, cost(u)
+        if np.any(u < 0.0):  # never from non-negative steps; kept as the projection's guarantee
+            u = np.maximum(u, 0.0)
+            f = self.evaluate(u, off)[0]
+        return u, f
 
-    if start is not None:
-        starts = [np.maximum(np.asarray(start, dtype=np.float64) / scale, 1e-12)]
-    else:
-        first, _ = nnls(sw[:, None] * rel * scale, sw * np.maximum(1.0 - off / level, 0.0))
-        starts = [first] if np.any(first > 0) else [np.full(p, 1.0 / p), np.ones(p)]
-    u, f = min((descend(s0) for s0 in starts), key=lambda item: item[1])
-    return u * scale, f
+    def solve(
+        self, iters: int = 60, fixed: np.ndarray | None = None, start: np.ndarray | None = None
+    ) -> tuple[np.ndarray, float]:
+        """:func:`_solve` on these columns."""
+        # no fixed variance: none added (adding zeros changes no value)
+        off = None if fixed is None else np.asarray(fixed, dtype=np.float64)
+        p = self.a_s.shape[1]
+        if start is not None:
+            starts = [np.maximum(np.asarray(start, dtype=np.float64) / self.scale, 1e-12)]
+        else:
+            share = np.ones(len(self.target)) if off is None else 1.0 - off / self.level
+            first = _nnls()(self.sw_col * self.rel * self.scale, self.sw * np.maximum(share, 0.0))
+            starts = [first] if np.any(first > 0) else [np.full(p, 1.0 / p), np.ones(p)]
+        u, f = min((self.descend(s0, off, iters) for s0 in starts), key=lambda item: item[1])
+        return u * self.scale, f
 
 
 @dataclass(frozen=True)
 class _Problem:
     """One curve prepared for the log-space fit: ``taus``, bias-corrected ``target`` (ln of the
-    variance), weights ``w``."""
+    variance), weights ``w``. Each term's column and each set of terms' scaled columns are
+    computed once (``_cache``)."""
 
     taus: np.ndarray
     target: np.ndarray
     w: np.ndarray
+    _cache: dict = field(default_factory=dict, repr=False, compare=False)
+
+    def power(self, term: str) -> np.ndarray:
+        """``taus ** POWERS[term]``."""
+        key = ("power", term)
+        if key not in self._cache:
+            self._cache[key] = self.taus ** POWERS[term]
+        return self._cache[key]
 
     def columns(self, terms: list[str]) -> np.ndarray:
-        return np.column_stack([FACTORS[t] * self.taus ** POWERS[t] for t in terms])
+        return np.column_stack([FACTORS[t] * self.power(t) for t in terms])
+
+    def scaled(self, terms: list[str]) -> _Scaled:
+        key = tuple(terms)
+        if key not in self._cache:
+            self._cache[key] = _Scaled(self.columns(terms), self.target, self.w)
+        return self._cache[key]
 
     def solve(self, terms: list[str]) -> tuple[np.ndarray, float]:
         if not terms:
             return np.zeros(0), float(np.sum(self.w * self.target**2))
-        return _solve(self.columns(terms), self.target, self.w)
+        key = ("solve", tuple(terms))  # deterministic: the full set is solved twice otherwise
+        if key not in self._cache:
+            self._cache[key] = self.scaled(terms).solve()
+        c, cost = self._cache[key]
+        return c.copy(), cost
 
     def profile(self, terms: list[str], term: str, c_term: float, start: np.ndarray | None):
         """(c of the other terms, cost) with ``term``'s variance coefficient held at ``c_term``."""
-        fixed = c_term * FACTORS[term] * self.taus ** POWERS[term]
+        fixed = c_term * FACTORS[term] * self.power(term)
         others = [t for t in terms if t != term]
         if not others:
             mu = fixed
@@ -219,7 +304,7 @@ class _Problem:
                 else float(np.sum(self.w * (np.log(mu) - self.target) ** 2))
             )
             return np.zeros(0), cost
-        return _solve(self.columns(others), self.target, self.w, fixed=fixed, start=start, iters=30)
+        return self.scaled(others).solve(iters=30, fixed=fixed, start=start)
 
 
 PROFILE_DELTA = 2.0

@@ -40,26 +40,47 @@ class Stillness:
         )
 
 
+def second_starts(t_ns: np.ndarray) -> np.ndarray:
+    """The starts of the 1 s blocks of increasing stamps ``t_ns``: the same indices as
+    ``block_starts(t_ns, window_s=1.0)`` (each block's first sample; blocks without samples
+    skipped), found by bisection at each whole second from the first stamp instead of a
+    division per sample."""
+    n = len(t_ns)
+    if n == 0:
+        return np.zeros(0, dtype=np.int64)
+    width = 1_000_000_000
+    t0 = int(t_ns[0])
+    edges = t0 + width * np.arange(1, (int(t_ns[-1]) - t0) // width + 1, dtype=np.int64)
+    return np.unique(np.r_[0, np.searchsorted(t_ns, edges)]).astype(np.int64)
+
+
 def stillness(
     t_ns: np.ndarray,
     gyro: np.ndarray | Sequence[np.ndarray],
     accel: np.ndarray | Sequence[np.ndarray],
+    increasing: bool = False,
+    gyro_means: Sequence[float] | None = None,
 ) -> Stillness:
     """The motion figures of gyro rad/s and accel m/s^2 sampled at ``t_ns``: each (n, 3), or
-    three columns (n,) (no copy made either way)."""
+    three columns (n,) (no copy made either way). ``increasing``: the caller has checked that
+    time increases (the blocks are then found by bisection, :func:`second_starts`);
+    ``gyro_means``: the three gyro columns' ``mean()``, when the caller has them."""
     gyro = list(gyro.T) if isinstance(gyro, np.ndarray) else list(gyro)
     accel = list(accel.T) if isinstance(accel, np.ndarray) else list(accel)
-    starts = block_starts(t_ns, window_s=1.0)
+    starts = second_starts(t_ns) if increasing else block_starts(t_ns, window_s=1.0)
     first = block_means(t_ns, gyro[0], starts=starts)
     if not len(first.counts):
         return Stillness(Blocks(first.t_ns, np.zeros((0, 3)), first.counts, starts), 0.0, 0.0)
     counts = first.counts
     means = np.column_stack([first.means] + [np.add.reduceat(c, starts) / counts for c in gyro[1:]])
-    excursion = max(float(np.abs(means[:, k] - c.mean()).max()) for k, c in enumerate(gyro))
+    overall = [c.mean() for c in gyro] if gyro_means is None else gyro_means
+    excursion = max(float(np.abs(means[:, k] - overall[k]).max()) for k in range(len(gyro)))
     with np.errstate(over="ignore"):  # a damaged value's square is inf: not static
         norm = np.multiply(accel[0], accel[0])
+        square = np.empty_like(norm)
         for c in accel[1:]:
-            norm += c * c
+            np.multiply(c, c, out=square)
+            norm += square
     np.sqrt(norm, out=norm)
     spread = float(np.ptp(np.add.reduceat(norm, starts) / counts))
     return Stillness(Blocks(first.t_ns, means, counts, starts), excursion, spread)
