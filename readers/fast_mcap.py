@@ -57,10 +57,10 @@ MESSAGE_HEADER = 31
 """Bytes from a message record's opcode to its payload."""
 PSEUDO_CHUNK_BYTES = 1 << 20
 CHUNK_HEAD = 64
-POOLED_BYTES = 64 << 20
-"""Chunks up to this size are decompressed into buffers used again (:class:`BufferPool`)."""
 """Bytes of a chunk record the reading thread reads (the fields before the records, for
 compression names of up to 20 characters)."""
+POOLED_BYTES = 64 << 20
+"""Chunks up to this size are decompressed into buffers used again (:class:`BufferPool`)."""
 
 
 @dataclass(frozen=True)
@@ -286,43 +286,25 @@ class McapFile:
             if out is None:
                 return self._decompress(os.pread(fd, length, pos + 9), pos)
             where = f"{self.path}: chunk at byte {pos}"
-            _, crc = struct.unpack_from("<QI", head, 16)
-            (clen,) = struct.unpack_from("<I", head, 28)
-            try:
-                compression = head[32 : 32 + clen].decode()
-            except UnicodeDecodeError:
-                raise ReadError(f"{where}: corrupt chunk header") from None
-            (dlen,) = struct.unpack_from("<Q", head, 32 + clen)
-            if 40 + clen + dlen > length:
-                raise ReadError(f"{where}: corrupt chunk (data length {dlen} past the record)")
-            if compression not in DECOMPRESSORS:
-                raise ReadError(f"{where}: unsupported chunk compression '{compression}'")
-            data = os.pread(fd, dlen, pos + 9 + 40 + clen)
+            f = ChunkFields.of(head, where)
+            if f.data_start + f.data_length > length:
+                raise ReadError(f"{where}: {f.past_the_record}")
+            if f.compression not in DECOMPRESSORS:
+                raise ReadError(f"{where}: unsupported chunk compression '{f.compression}'")
+            data = os.pread(fd, f.data_length, pos + 9 + f.data_start)
         except OSError as exc:
             raise ReadError(f"{self.path}: cannot read: {exc.strerror or exc}") from None
-        if len(data) != dlen:
-            raise ReadError(f"{where}: corrupt chunk (data length {dlen} past the record)")
-        raw = decompress_into(data, compression, out, where)
-        if crc and zlib.crc32(raw) != crc:
-            raise ReadError(f"{where}: chunk CRC mismatch (corrupt data)")
-        return raw
+        if len(data) != f.data_length:
+            raise ReadError(f"{where}: {f.past_the_record}")
+        return f.checked(decompress_into(data, f.compression, out, where), where)
 
     def _decompress(self, body: bytes, pos: int) -> np.ndarray:
         where = f"{self.path}: chunk at byte {pos}"
-        try:
-            usize, crc = struct.unpack_from("<QI", body, 16)
-            (clen,) = struct.unpack_from("<I", body, 28)
-            compression = body[32 : 32 + clen].decode()
-            (dlen,) = struct.unpack_from("<Q", body, 32 + clen)
-        except (struct.error, UnicodeDecodeError):
-            raise ReadError(f"{where}: corrupt chunk header") from None
-        data = memoryview(body)[40 + clen : 40 + clen + dlen]
-        if len(data) != dlen:
-            raise ReadError(f"{where}: corrupt chunk (data length {dlen} past the record)")
-        raw = decompress_chunk(data, compression, usize, where)
-        if crc and zlib.crc32(raw) != crc:
-            raise ReadError(f"{where}: chunk CRC mismatch (corrupt data)")
-        return raw
+        f = ChunkFields.of(body, where)
+        data = memoryview(body)[f.data_start : f.data_start + f.data_length]
+        if len(data) != f.data_length:
+            raise ReadError(f"{where}: {f.past_the_record}")
+        return f.checked(decompress_chunk(data, f.compression, f.size, where), where)
 
     # -- chunks ----------------------------------------------------------------------------
     def _bounds(self) -> tuple[np.ndarray, np.ndarray]:
@@ -397,20 +379,52 @@ class McapFile:
                 yield _loose_chunk(loose, loose_off, f"{self.path}: messages at the end")
 
 
+@dataclass(frozen=True)
+class ChunkFields:
+    """The fields of a chunk record's body before its data: uncompressed ``size``, ``crc``
+    (0: none), ``compression``, and where the compressed data lies in the body."""
+
+    size: int
+    crc: int
+    compression: str
+    data_start: int
+    data_length: int
+
+    @classmethod
+    def of(cls, body: bytes, where: str) -> ChunkFields:
+        """The fields of ``body`` (the record's body, or at least its first bytes up to the
+        data); ReadError naming ``where`` when they cannot be read."""
+        try:
+            size, crc = struct.unpack_from("<QI", body, 16)
+            (clen,) = struct.unpack_from("<I", body, 28)
+            compression = body[32 : 32 + clen].decode()
+            (dlen,) = struct.unpack_from("<Q", body, 32 + clen)
+        except (struct.error, UnicodeDecodeError):
+            raise ReadError(f"{where}: corrupt chunk header") from None
+        return cls(size, crc, compression, 40 + clen, dlen)
+
+    @property
+    def past_the_record(self) -> str:
+        return f"corrupt chunk (data length {self.data_length} past the record)"
+
+    def checked(self, raw: np.ndarray, where: str) -> np.ndarray:
+        """``raw`` (the decompressed data), once its CRC is checked."""
+        if self.crc and zlib.crc32(raw) != self.crc:
+            raise ReadError(f"{where}: chunk CRC mismatch (corrupt data)")
+        return raw
+
+
 def _chunk_buffer(head: bytes, pool: BufferPool) -> np.ndarray | None:
     """A buffer of ``pool`` for the chunk record whose body starts with ``head``; None when
     its fields are not all in ``head`` or its sizes are implausible (a damaged file: the
     chunk is then read as a whole and its errors named as they are)."""
-    if len(head) < 32:
+    try:
+        f = ChunkFields.of(head, "")
+    except ReadError:
         return None
-    usize = int.from_bytes(head[16:24], "little")
-    clen = int.from_bytes(head[28:32], "little")
-    if 40 + clen > len(head):
+    if f.compression != "zstd" or f.size > min(POOLED_BYTES, 64 * f.data_length + 4096):
         return None
-    dlen = int.from_bytes(head[32 + clen : 40 + clen], "little")
-    if head[32 : 32 + clen] != b"zstd" or usize > min(POOLED_BYTES, 64 * dlen + 4096):
-        return None
-    return pool.take(usize)
+    return pool.take(f.size)
 
 
 def _finished(chunk: ChunkMessages, pool: BufferPool) -> ChunkMessages:
