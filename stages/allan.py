@@ -321,7 +321,7 @@ class AllanStage(Stage):
         ctx: StageContext,
         gyro_means: list[float] | None = None,
     ) -> bool:
-        still = stillness(t_ns, data["gyro"], data["accel"], True, gyro_means)  # t increases
+        still = stillness(t_ns, data["gyro"], data["accel"], increasing=True, gyro_means=gyro_means)
         static = still.static(self.options.motion_threshold)
         ctx.check(
             static,

@@ -40,34 +40,21 @@ class Stillness:
         )
 
 
-def second_starts(t_ns: np.ndarray) -> np.ndarray:
-    """The starts of the 1 s blocks of increasing stamps ``t_ns``: the same indices as
-    ``block_starts(t_ns, window_s=1.0)`` (each block's first sample; blocks without samples
-    skipped), found by bisection at each whole second from the first stamp instead of a
-    division per sample."""
-    n = len(t_ns)
-    if n == 0:
-        return np.zeros(0, dtype=np.int64)
-    width = 1_000_000_000
-    t0 = int(t_ns[0])
-    edges = t0 + width * np.arange(1, (int(t_ns[-1]) - t0) // width + 1, dtype=np.int64)
-    return np.unique(np.r_[0, np.searchsorted(t_ns, edges)]).astype(np.int64)
-
-
 def stillness(
     t_ns: np.ndarray,
     gyro: np.ndarray | Sequence[np.ndarray],
     accel: np.ndarray | Sequence[np.ndarray],
+    *,
     increasing: bool = False,
     gyro_means: Sequence[float] | None = None,
 ) -> Stillness:
     """The motion figures of gyro rad/s and accel m/s^2 sampled at ``t_ns``: each (n, 3), or
     three columns (n,) (no copy made either way). ``increasing``: the caller has checked that
-    time increases (the blocks are then found by bisection, :func:`second_starts`);
+    time increases (the blocks are then found by bisection, :func:`block_starts`);
     ``gyro_means``: the three gyro columns' ``mean()``, when the caller has them."""
     gyro = list(gyro.T) if isinstance(gyro, np.ndarray) else list(gyro)
     accel = list(accel.T) if isinstance(accel, np.ndarray) else list(accel)
-    starts = second_starts(t_ns) if increasing else block_starts(t_ns, window_s=1.0)
+    starts = block_starts(t_ns, window_s=1.0, increasing=increasing)
     first = block_means(t_ns, gyro[0], starts=starts)
     if not len(first.counts):
         return Stillness(Blocks(first.t_ns, np.zeros((0, 3)), first.counts, starts), 0.0, 0.0)

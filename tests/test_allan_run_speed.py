@@ -278,7 +278,7 @@ def test_stillness_with_the_stage_shortcuts_is_the_same():
     it already has) gives the same figures and blocks as the general one, with jitter, lost
     samples and a gap."""
     from imupipe.stages.blocks import block_starts
-    from imupipe.stages.stillness import second_starts, stillness
+    from imupipe.stages.stillness import stillness
 
     rng = np.random.default_rng(4)
     step = np.full(20_000, 2_500_000) + rng.integers(-400_000, 400_000, 20_000)
@@ -287,9 +287,11 @@ def test_stillness_with_the_stage_shortcuts_is_the_same():
     t_ns = 1_700_000_000_123_456_789 + np.r_[0, np.cumsum(step)]
     gyro = [rng.standard_normal(len(t_ns)) * 0.01 for _ in range(3)]
     accel = [rng.standard_normal(len(t_ns)) * 0.02 + g for g in (0.0, 0.0, 9.81)]
-    np.testing.assert_array_equal(second_starts(t_ns), block_starts(t_ns, window_s=1.0))
+    np.testing.assert_array_equal(
+        block_starts(t_ns, window_s=1.0, increasing=True), block_starts(t_ns, window_s=1.0)
+    )
     a = stillness(t_ns, gyro, accel)
-    b = stillness(t_ns, gyro, accel, True, [c.mean() for c in gyro])
+    b = stillness(t_ns, gyro, accel, increasing=True, gyro_means=[c.mean() for c in gyro])
     assert (a.excursion, a.accel_spread) == (b.excursion, b.accel_spread)
     for field in ("t_ns", "means", "counts", "starts"):
         np.testing.assert_array_equal(getattr(a.gyro_1s, field), getattr(b.gyro_1s, field))
