@@ -1,13 +1,15 @@
-"""Progress for long work: a rich bar on stderr when it is a terminal, silence otherwise."""
+"""Progress for long work: a rich bar on stderr when it is a terminal, silence otherwise
+(rich is imported only when a bar is shown: a quiet run does not pay for it)."""
 
 from __future__ import annotations
 
 import contextlib
 import sys
 from collections.abc import Iterator
+from typing import TYPE_CHECKING
 
-from rich.console import Console
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+if TYPE_CHECKING:
+    from rich.progress import Progress
 
 
 class Bar:
@@ -29,6 +31,9 @@ def progress_bar(description: str, total: float, *, quiet: bool = False) -> Iter
     if quiet or not sys.stderr.isatty():
         yield Bar(None, None)
         return
+    from rich.console import Console
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
     progress = Progress(
         TextColumn("{task.description}"),
         BarColumn(),

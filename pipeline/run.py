@@ -11,7 +11,6 @@ renamed into ``[output] dir`` only when everything succeeded.
 from __future__ import annotations
 
 import argparse
-import contextlib
 import json
 import sys
 from collections.abc import Callable, Iterator, Mapping, Sequence
@@ -26,6 +25,7 @@ from imupipe.pipeline.calibration_file import fitted_on
 from imupipe.pipeline.config import Config, load_config
 from imupipe.pipeline.exports import chosen as chosen_exports
 from imupipe.pipeline.exports import export_all
+from imupipe.pipeline.progress import progress_bar
 from imupipe.pipeline.signals import signals_deferred
 from imupipe.pipeline.summary import (
     StageSummary,
@@ -134,25 +134,6 @@ def output_guard(cfg: Config) -> OutputGuard:
     return guard
 
 
-class _Silent:
-    """The progress of a run nobody watches (quiet, or stderr not a terminal)."""
-
-    def advance(self, n: float = 1) -> None:
-        pass
-
-    def describe(self, text: str) -> None:
-        pass
-
-
-def _progress(total: int, quiet: bool) -> contextlib.AbstractContextManager[Any]:
-    """The run's progress bar; rich is imported only when a bar is shown (a terminal)."""
-    if quiet or not sys.stderr.isatty():
-        return contextlib.nullcontext(_Silent())
-    from imupipe.pipeline.progress import progress_bar
-
-    return progress_bar("imupipe run", total=total)
-
-
 def run(config: Config | str | Path, *, spawn: bool = False, quiet: bool = False) -> RunSummary:
     """Run a config end to end; returns what was written."""
     cfg = config if isinstance(config, Config) else load_config(config)
@@ -170,7 +151,7 @@ def run(config: Config | str | Path, *, spawn: bool = False, quiet: bool = False
                 print(f"imupipe: warning: [inputs.{name}] {w}", file=sys.stderr)
         return table
 
-    with _progress(n_steps, quiet) as bar:
+    with progress_bar("imupipe run", total=n_steps, quiet=quiet) as bar:
         for name in used:  # inputs only written (apply_to) are never held: streamed below
             bar.describe(f"reading {name}")
             raw[name] = read(name)
