@@ -1,5 +1,5 @@
 """What a run shows, declared once by the stages and drawn twice: in ``recording.rrd`` (Rerun)
-and in ``report.html`` (matplotlib).
+and in ``report.html`` (inline SVG, :mod:`imupipe.pipeline.svg_plot`).
 
 A stage says *what* it shows (a signal, its SI unit, the names of its lines, the kind of plot);
 :class:`Figures` keeps it as :class:`Plot` objects, one per plot, in the order they were first

@@ -13,7 +13,6 @@ a model) lie beneath the data points, fitted curves over them.
 
 from __future__ import annotations
 
-import math
 from typing import Any
 
 import numpy as np
@@ -21,6 +20,7 @@ import rerun as rr
 import rerun.blueprint as rrb
 
 from imupipe.pipeline.figures import Plot
+from imupipe.pipeline.plot_layout import Axis, strips
 
 W, H = 160.0, 100.0
 """The plot area, in scene units."""
@@ -35,105 +35,6 @@ POINT_RADIUS = -2.0
 GUIDE_RADIUS = -1.0
 # bands and guide lines (model terms) beneath the data, fitted lines over it
 BAND_ORDER, GUIDE_ORDER, POINT_ORDER, LINE_ORDER = 10.0, 15.0, 20.0, 30.0
-
-
-def nice_ticks(lo: float, hi: float, n: int = 5) -> np.ndarray:
-    """Round tick values (steps of 1, 2, 2.5 or 5 x 10^k) covering [lo, hi]: of the steps
-    giving 3 to n + 2 intervals, the one that pads the range least (then the larger step)."""
-    if not (np.isfinite(lo) and np.isfinite(hi)):
-        return np.array([0.0, 1.0])
-    if hi <= lo:
-        pad = abs(lo) * 0.1 or 1.0
-        lo, hi = lo - pad, hi + pad
-    mag = 10.0 ** math.floor(math.log10((hi - lo) / n))
-    best = None
-    for step in (m * mag for m in (0.5, 1, 2, 2.5, 5, 10, 20)):
-        # data a hair past a round value (-40.006 degC) does not add a whole step
-        first = math.floor(lo / step + 0.02) * step
-        last = math.ceil(hi / step - 0.02) * step
-        count = round((last - first) / step)
-        if 3 <= count <= n + 2 and (best is None or (last - first, -step) < best[0]):
-            best = ((last - first, -step), first, step, count)
-    if best is None:
-        return np.array([lo, hi])
-    _, first, step, count = best
-    return first + step * np.arange(count + 1)
-
-
-def _fmt_sci(v: float, digits: int) -> str:
-    if v == 0:
-        return "0"
-    mantissa, exponent = f"{v:.{digits - 1}e}".split("e")
-    if "." in mantissa:
-        mantissa = mantissa.rstrip("0").rstrip(".")
-    return f"{mantissa}e{int(exponent)}"
-
-
-def tick_labels(ticks: np.ndarray) -> list[str]:
-    """Labels of linear ticks: as many decimals as the step needs (scientific notation for very
-    small or large values, with as many digits as keep the labels distinct)."""
-    step = float(np.min(np.diff(ticks))) if len(ticks) > 1 else 1.0
-    if float(np.max(np.abs(ticks))) >= 1e5 or step < 1e-4:
-        for digits in range(1, 6):
-            labels = [_fmt_sci(v, digits) for v in ticks]
-            if len(set(labels)) == len(labels):
-                break
-        return labels
-    decimals = max(0, -math.floor(math.log10(step) + 1e-9))
-    if abs(step * 10**decimals - round(step * 10**decimals)) > 1e-6:
-        decimals += 1
-    return [
-        f"{v:.{decimals}f}".replace("-0." + "0" * decimals, "0." + "0" * decimals) for v in ticks
-    ]
-
-
-def pow10_label(k: int) -> str:
-    if 0 <= k <= 4:
-        return f"{10**k}"
-    if -3 <= k < 0:
-        return f"{10.0**k:.{-k}f}"
-    return f"1e{k}"
-
-
-class Axis:
-    """Maps data values to [0, 1] along one axis (linear, or log10), with its ticks."""
-
-    def __init__(self, values: list[np.ndarray], log: bool) -> None:
-        data = np.concatenate([np.ravel(v) for v in values]) if values else np.zeros(0)
-        data = data[np.isfinite(data)]
-        self.log = log
-        if log:
-            data = data[data > 0]
-            if len(data) == 0:
-                data = np.array([1.0, 10.0])
-            a = math.floor(math.log10(data.min()))
-            b = max(math.ceil(math.log10(data.max())), a + 1)
-            self.lo, self.hi = float(a), float(b)
-            ks = np.arange(a, b + 1, 1 if b - a <= 7 else 2)
-            self.ticks = 10.0**ks
-            self.labels = [pow10_label(int(k)) for k in ks]
-        else:
-            if len(data) == 0:
-                data = np.array([0.0, 1.0])
-            self.ticks = nice_ticks(float(data.min()), float(data.max()))
-            self.lo, self.hi = float(self.ticks[0]), float(self.ticks[-1])
-            self.labels = tick_labels(self.ticks)
-
-    def __call__(self, v: np.ndarray) -> np.ndarray:
-        v = np.asarray(v, dtype=np.float64)
-        if self.log:
-            with np.errstate(divide="ignore", invalid="ignore"):
-                v = np.where(v > 0, np.log10(np.where(v > 0, v, 1.0)), np.nan)
-        return (v - self.lo) / (self.hi - self.lo)
-
-
-def _strips(x: np.ndarray, y: np.ndarray) -> list[np.ndarray]:
-    """Plot-coordinate polylines of one curve, broken where a value is missing."""
-    ok = np.isfinite(x) & np.isfinite(y)
-    pts = np.column_stack([x * W, (1.0 - y) * H])
-    breaks = np.flatnonzero(np.diff(ok.astype(np.int8)) != 0) + 1
-    pieces = zip(np.split(pts, breaks), np.split(ok, breaks), strict=True)
-    return [seg for seg, good in pieces if len(seg) > 1 and good[0]]
 
 
 def right_margin(plot: Plot) -> float:
@@ -154,9 +55,9 @@ def _series(plot: Plot, xa: Axis, ya: Axis) -> tuple[list, list[tuple[str, tuple
     for s in plot.series:
         x = xa(s.x)
         if s.style == "band":
-            strips = _strips(x, ya(s.values[:, 0])) + _strips(x, ya(s.values[:, 1]))
+            edges = strips(x, ya(s.values[:, 0]), W, H) + strips(x, ya(s.values[:, 1]), W, H)
             band = rr.LineStrips2D(
-                strips,
+                edges,
                 colors=[s.colors[0]],
                 radii=BAND_RADIUS,
                 labels=[s.names[0]],
@@ -178,16 +79,16 @@ def _series(plot: Plot, xa: Axis, ya: Axis) -> tuple[list, list[tuple[str, tuple
             )
             out.append((s.entity, points))
         else:
-            strips, cols, labels = [], [], []
+            pieces, cols, labels = [], [], []
             for j, name in enumerate(s.names):
-                parts = _strips(x, ya(s.values[:, j]))
-                strips += parts
+                parts = strips(x, ya(s.values[:, j]), W, H)
+                pieces += parts
                 cols += [s.colors[j]] * len(parts)
                 labels += [name] * len(parts)
                 legend.append((name, s.colors[j]))
             guide = s.style == "guide"
             lines = rr.LineStrips2D(
-                strips,
+                pieces,
                 colors=cols,
                 radii=GUIDE_RADIUS if guide else LINE_RADIUS,
                 labels=labels,
