@@ -35,9 +35,10 @@ from imupipe.pipeline.summary import (
     summarise,
 )
 from imupipe.pipeline.version import VERSION
-from imupipe.readers.dispatch import read_input
+from imupipe.pipeline.warm_imports import WarmImports
+from imupipe.readers.dispatch import read_input, reader_for
 from imupipe.stages.base import StageContext
-from imupipe.stages.registry import stage_class
+from imupipe.stages.registry import stage_class, stage_modules
 from imupipe.stages.steps import Step, apply_chain
 
 
@@ -114,7 +115,7 @@ def publish(summaries: Sequence[StageSummary], recorder: Any, cfg: Any, out: Any
     recorder.document(None, run_markdown(summaries, f"imupipe run {cfg.path.name}"))
     if not cfg.output.report:
         return []
-    from imupipe.pipeline.report import write_report  # matplotlib: imported only when needed
+    from imupipe.pipeline.report import write_report  # imported only when a report is written
 
     target = cfg.output.dir / "report.html"
     write_report(out.path(target), summaries, recorder.figures, cfg)
@@ -132,6 +133,16 @@ def output_guard(cfg: Config) -> OutputGuard:
         guard.check(name)
     guard.probe()
     return guard
+
+
+def warm_modules(cfg: Config) -> list[str]:
+    """What a run imports after reading its inputs, imported while it reads them
+    (:mod:`imupipe.pipeline.warm_imports`): Rerun (the recorder's module imports it, also when
+    it records nothing), and each stage's modules."""
+    modules = ["rerun", "rerun.blueprint"]
+    for st in cfg.stages:
+        modules += [m for m in stage_modules(st.type) if m not in modules]
+    return modules
 
 
 def run(config: Config | str | Path, *, spawn: bool = False, quiet: bool = False) -> RunSummary:
@@ -152,10 +163,13 @@ def run(config: Config | str | Path, *, spawn: bool = False, quiet: bool = False
         return table
 
     with progress_bar("imupipe run", total=n_steps, quiet=quiet) as bar:
-        for name in used:  # inputs only written (apply_to) are never held: streamed below
-            bar.describe(f"reading {name}")
-            raw[name] = read(name)
-            bar.advance()
+        for name in used:  # the readers' modules, before a second thread imports alongside
+            reader_for(cfg.inputs[name])
+        with WarmImports(warm_modules(cfg)):
+            for name in used:  # inputs only written (apply_to) are never held: streamed below
+                bar.describe(f"reading {name}")
+                raw[name] = read(name)
+                bar.advance()
 
         tables = CorrectedTables(raw, list(cfg.inputs), read)
         results: dict[str, Any] = {}

@@ -94,10 +94,16 @@ def _load(spec: InputSpec, fmt: str, target: str) -> Callable:
         raise ReadError(f"{spec.path}: reading {fmt} logs is not supported yet") from None
 
 
+def reader_for(spec: InputSpec) -> Callable[[InputSpec], tuple[pa.Table, list[str]]]:
+    """The reader of ``spec``'s format, its module imported (ReadError when the file is missing
+    or its format unknown)."""
+    fmt = detect_format(Path(spec.path))
+    return _load(spec, fmt, READERS[fmt])
+
+
 def read_input(spec: InputSpec) -> tuple[pa.Table, list[str]]:
     """Read one input into the common table; returns (table, warnings)."""
-    fmt = detect_format(Path(spec.path))
-    return _load(spec, fmt, READERS[fmt])(spec)
+    return reader_for(spec)(spec)
 
 
 def iter_input(

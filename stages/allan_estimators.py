@@ -27,6 +27,9 @@ from __future__ import annotations
 
 import functools
 import math
+import os
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Literal
 
@@ -40,6 +43,9 @@ BEND = 0.125
 than this (beyond twice its statistical scatter) at either end."""
 CHUNK = 1 << 17
 """Phase points processed at once (keeps the temporaries in cache and the memory small)."""
+PARALLEL_POINTS = 1 << 20
+"""Points per axis from which :func:`each_axis` runs the axes on several threads (each axis then
+takes milliseconds or more: below, starting the threads costs more than it saves)."""
 DOT = 8192
 """Points per BLAS dot product in :func:`_dot`: OpenBLAS computes a dot of more than 10,000
 points on every core, whose threads then spin and wait on one another on a busy machine; below
@@ -87,11 +93,37 @@ def rate_to_phase(y: np.ndarray, tau0: float, means: list[float] | None = None) 
         means = [c.mean() for c in columns]
     x = np.empty((len(columns), len(columns[0]) + 1))
     x[:, 0] = 0.0
-    for row, col, mean in zip(x, columns, means, strict=True):
-        np.subtract(col, mean, out=row[1:])
+
+    def one_axis(j: int) -> None:
+        row = x[j]
+        np.subtract(columns[j], means[j], out=row[1:])
         np.cumsum(row[1:], out=row[1:])
         row[1:] *= tau0
+
+    each_axis(one_axis, len(columns), x.shape[1])
     return x
+
+
+def each_axis(work: Callable[[int], None], k: int, n: int) -> None:
+    """``work(j)`` for each axis j < k of series of ``n`` points: on as many threads as the
+    process has cores when the series are long (:data:`PARALLEL_POINTS`; numpy's loops and
+    BLAS release the GIL), else in turn. ``work`` writes only its own axis's results, so they
+    are the same, bit for bit, either way."""
+    workers = min(k, usable_cores()) if n >= PARALLEL_POINTS else 1
+    if workers < 2:
+        for j in range(k):
+            work(j)
+        return
+    with ThreadPoolExecutor(workers) as pool:
+        list(pool.map(work, range(k)))
+
+
+def usable_cores() -> int:
+    """The cores this process may run on (its CPU affinity: a container's or a job's share)."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not Linux
+        return os.cpu_count() or 1
 
 
 def as_phase(x: np.ndarray) -> np.ndarray:
@@ -270,7 +302,7 @@ def deviation_of_phase(
     Axis by axis, every factor of one axis before the next: one axis's phase (4 MB at 0.5 M
     points) stays in the cache over all its factors, where factor by factor over all axes each
     pass read all of them from memory again (a fifth of the time at 0.5 M points). Each sum is
-    the same either way."""
+    the same either way. Long series run their axes on several threads (:func:`each_axis`)."""
     n = x.shape[1]
     top = max_af(kind, n)
     m = tau_grid("octave", top) if m is None else np.asarray(m, dtype=np.int64)
@@ -278,12 +310,15 @@ def deviation_of_phase(
     ext = _reflect(x) if kind == "totdev" else None
     dev = np.empty((len(m), len(x)))
     counts = np.empty(len(m), dtype=np.int64)
-    for j in range(len(x)):
+
+    def one_axis(j: int) -> None:
         row = x[j : j + 1]
         row_ext = None if ext is None else ext[j : j + 1]
         for i, mi in enumerate(m):
             var, counts[i] = _variance_at(kind, row, int(mi), tau0, row_ext)
             dev[i, j] = np.sqrt(var[0])
+
+    each_axis(one_axis, len(x), n)
     return Deviation(kind, m * tau0, m, dev, counts, tau0, n)
 
 

@@ -18,6 +18,17 @@ STAGE_TYPES: dict[str, str] = {
 }
 
 
+FIRST_USE_IMPORTS: dict[str, tuple[str, ...]] = {"allan": ("scipy.special", "scipy.optimize")}
+"""Stage type -> the heavy modules its stage imports on first use rather than at the top of its
+module (the ``allan`` stage loads scipy only when it fits)."""
+
+
+def stage_modules(type_name: str) -> list[str]:
+    """The modules a stage of ``type_name`` imports to run: its own module, then those it loads
+    on first use (:data:`FIRST_USE_IMPORTS`); KeyError when the type is unknown."""
+    return [STAGE_TYPES[type_name].split(":")[0], *FIRST_USE_IMPORTS.get(type_name, ())]
+
+
 def stage_class(type_name: str) -> type[Stage]:
     """The class of stage ``type_name`` (KeyError when unknown)."""
     module, name = STAGE_TYPES[type_name].split(":")

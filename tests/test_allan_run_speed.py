@@ -77,6 +77,35 @@ def test_deviation_axis_by_axis_is_factor_by_factor(kind):
     np.testing.assert_array_equal(dev.dev, _straight_deviation(x, 0.01, kind, dev.m))
 
 
+@pytest.mark.parametrize("kind", ["oadev", "totdev"])
+def test_axes_on_threads_are_the_axes_in_turn(monkeypatch, kind):
+    """Phase and deviation with each axis on a thread of its own (two, whatever this machine
+    has) are the serial results, bit for bit."""
+    rng = np.random.default_rng(6)
+    y = rng.standard_normal((est.CHUNK + 999, 4)) + [0.1, -2.0, 3.0, 0.0]
+    m = est.tau_grid("log", est.max_af(kind, len(y) + 1), 5)
+    threads = set()
+    pool_map = est.ThreadPoolExecutor.map
+
+    def spy(pool, fn, *its):
+        threads.add(pool._max_workers)
+        return pool_map(pool, fn, *its)
+
+    monkeypatch.setattr(est.ThreadPoolExecutor, "map", spy)
+    monkeypatch.setattr(est, "PARALLEL_POINTS", 1 << 40)
+    x = est.rate_to_phase(y, 0.01)
+    dev = est.deviation_of_phase(x, 0.01, kind, m)
+    assert not threads
+    monkeypatch.setattr(est, "PARALLEL_POINTS", 1)
+    monkeypatch.setattr(est, "usable_cores", lambda: 2)
+    x2 = est.rate_to_phase(y, 0.01)
+    dev2 = est.deviation_of_phase(x2, 0.01, kind, m)
+    assert threads == {2}
+    np.testing.assert_array_equal(x2, x)
+    np.testing.assert_array_equal(dev2.dev, dev.dev)
+    np.testing.assert_array_equal(dev2.n, dev.n)
+
+
 @pytest.mark.parametrize("n", [2, 30, est.DOT - 1, est.DOT, est.DOT + 1, 3 * est.DOT + 5])
 def test_row_dots_are_the_dots_of_each_row(n):
     rng = np.random.default_rng(n)

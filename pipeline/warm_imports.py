@@ -1,0 +1,63 @@
+"""Import on a second thread, while the inputs are read, the modules a run imports next.
+
+A run reads its inputs first (pyarrow's parse and the log readers spend most of that time in
+compiled code, without the GIL), then imports what it had no need of until then: Rerun for the
+recording (about 0.25 s) and scipy for the stages' solvers (about 0.22 s, loaded by the
+``allan`` stage on first use). :class:`WarmImports` imports those on a daemon thread during the
+read, so that the main thread finds them loaded; on a machine with a core to spare the run ends
+that much sooner, on a busy one it costs nothing but the same import done elsewhere.
+
+Safety: two threads importing at once can deadlock only on a cycle of modules each holds and
+the other needs. The modules warmed here (Rerun, scipy and what they pull in: the standard
+library, numpy's submodules) are not what a reader imports while the thread runs (pyarrow, the
+format libraries, imupipe's readers), and the main thread :meth:`~WarmImports.wait` s for the
+thread before it imports any of them itself. A module that fails to import on the thread is
+left to fail again, with its own message, where the main thread imports it.
+"""
+
+from __future__ import annotations
+
+import importlib
+import threading
+from collections.abc import Sequence
+from types import TracebackType
+
+
+class WarmImports:
+    """``with WarmImports(modules):`` imports ``modules`` in order on a daemon thread and waits
+    for it when the block ends (also when it ends on an exception)."""
+
+    def __init__(self, modules: Sequence[str]) -> None:
+        self.modules = list(modules)
+        self.failed: list[str] = []
+        """The modules whose import raised on the thread (the main thread's import re-raises)."""
+        self._thread: threading.Thread | None = None
+
+    def _run(self) -> None:
+        for name in self.modules:
+            try:
+                importlib.import_module(name)
+            except Exception:  # noqa: BLE001  (the main thread's own import reports it)
+                self.failed.append(name)
+
+    def __enter__(self) -> WarmImports:
+        if self.modules:
+            self._thread = threading.Thread(
+                target=self._run, name="imupipe-warm-imports", daemon=True
+            )
+            self._thread.start()
+        return self
+
+    def wait(self) -> None:
+        """Return once every module has been imported (or has failed to)."""
+        if self._thread is not None:
+            self._thread.join()
+            self._thread = None
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.wait()

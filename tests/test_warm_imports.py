@@ -1,0 +1,82 @@
+"""The run imports what it needs next on a second thread while it reads its inputs
+(:mod:`imupipe.pipeline.warm_imports`): the list must cover what the stages import on first use,
+and a failed import must still fail, with its own message, where the run makes it."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import threading
+
+import pytest
+
+from imupipe.pipeline.config import load_config
+from imupipe.pipeline.run import warm_modules
+from imupipe.pipeline.warm_imports import WarmImports
+from imupipe.stages.registry import STAGE_TYPES, stage_modules
+
+FIT_AFTER_WARMING = """
+import sys
+import numpy as np
+from imupipe.stages.registry import stage_modules
+import importlib
+for name in stage_modules("allan"):
+    importlib.import_module(name)
+before = {m for m in sys.modules if m.startswith("scipy")}
+from imupipe.readers.table import make_table
+from imupipe.stages.allan import AllanStage
+from imupipe.stages.base import StageContext
+rng = np.random.default_rng(0)
+n = 20_000
+t = 1_700_000_000_000_000_000 + np.arange(n, dtype=np.int64) * 10_000_000
+table = make_table(t, gyro=rng.standard_normal((n, 3)) * 1e-3,
+                   accel=rng.standard_normal((n, 3)) * 1e-2 + [0, 0, 9.81])
+AllanStage(AllanStage.Options()).fit(table, StageContext(name="a", input_name="s", quiet=True))
+print(sorted({m for m in sys.modules if m.startswith("scipy")} - before))
+"""
+
+
+def test_the_allan_stage_imports_nothing_of_scipy_the_warm_list_left_out():
+    """Run in a fresh interpreter: after importing ``stage_modules("allan")`` a whole fit loads
+    no further scipy module (one it did would be imported on the main thread, not warmed)."""
+    done = subprocess.run(
+        [sys.executable, "-c", FIT_AFTER_WARMING], capture_output=True, text=True, timeout=120
+    )
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.strip() == "[]"
+
+
+def test_every_stage_type_names_its_module_first():
+    for type_name, target in STAGE_TYPES.items():
+        assert stage_modules(type_name)[0] == target.split(":")[0]
+
+
+def test_a_run_warms_rerun_and_its_stages(tmp_path):
+    (tmp_path / "s.csv").write_text("t,gx\n0,0\n")
+    cfg = tmp_path / "cfg.toml"
+    cfg.write_text(
+        '[inputs.s]\npath = "s.csv"\n[[stages]]\ntype = "allan"\n[[stages]]\ntype = "average"\n'
+        '[[stages]]\ntype = "allan"\nname = "again"\n[output]\ndir = "out"\n'
+    )
+    assert warm_modules(load_config(cfg)) == [
+        "rerun",
+        "rerun.blueprint",
+        "imupipe.stages.allan",
+        "scipy.special",
+        "scipy.optimize",
+        "imupipe.stages.average",
+    ]
+
+
+def test_a_module_that_fails_on_the_thread_fails_again_where_it_is_imported():
+    with WarmImports(["json", "imupipe_no_such_module"]) as warm:
+        pass
+    assert warm.failed == ["imupipe_no_such_module"]
+    with pytest.raises(ModuleNotFoundError, match="imupipe_no_such_module"):
+        import imupipe_no_such_module  # noqa: F401
+
+
+def test_the_block_waits_for_the_thread_even_when_it_ends_on_an_error():
+    with pytest.raises(RuntimeError), WarmImports(["json"]):
+        raise RuntimeError("a read failed")
+    assert not [t for t in threading.enumerate() if t.name == "imupipe-warm-imports"]
