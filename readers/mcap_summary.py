@@ -81,9 +81,9 @@ def topic_summary(path: Path) -> dict[str, TopicSummary] | None:
     from mcap.reader import make_reader
 
     with open(path, "rb") as f:
-        try:
+        try:  # OSError: a file shorter than the footer, which the reader seeks back over
             summary = make_reader(f).get_summary()
-        except (McapError, struct.error, ValueError, EOFError, KeyError):
+        except (McapError, struct.error, ValueError, EOFError, KeyError, OSError):
             return None
         if summary is None or summary.statistics is None:
             return None

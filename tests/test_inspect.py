@@ -76,6 +76,17 @@ def test_inspect_missing_file_is_one_line(tmp_path):
     ]
 
 
+@pytest.mark.parametrize("size", [4, 10, 22, 45])
+def test_inspect_of_an_mcap_cut_shorter_than_its_footer_is_one_line(logs, tmp_path, size):
+    """A file cut before its footer's length (the summary reader seeks back past its start)."""
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes((logs / "log.mcap").read_bytes()[:size])
+    proc = run_cli("inspect", cut)
+    assert proc.returncode == 2
+    [line] = proc.stderr.strip().splitlines()
+    assert line.startswith(f"imupipe: error: {cut}")
+
+
 def test_csv_of_another_layout_shows_its_columns_and_reads_with_a_mapping(tmp_path, cli):
     """A CSV not in imupipe's own layout (the MPU-6050's metadata lines, ax..gz in counts):
     inspect shows its layout instead of failing, and reads it with --config's [csv] mapping."""
