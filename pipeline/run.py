@@ -145,8 +145,16 @@ def warm_modules(cfg: Config) -> list[str]:
     return modules
 
 
-def run(config: Config | str | Path, *, spawn: bool = False, quiet: bool = False) -> RunSummary:
-    """Run a config end to end; returns what was written."""
+def run(
+    config: Config | str | Path,
+    *,
+    spawn: bool = False,
+    quiet: bool = False,
+    one_shot: bool = False,
+) -> RunSummary:
+    """Run a config end to end; returns what was written. ``one_shot``: the process ends with
+    the run (the command line): the modules imported are frozen for the garbage collector
+    (:class:`~imupipe.pipeline.warm_imports.WarmImports`)."""
     cfg = config if isinstance(config, Config) else load_config(config)
     out_dir = cfg.output.dir
     guard = output_guard(cfg)
@@ -165,7 +173,7 @@ def run(config: Config | str | Path, *, spawn: bool = False, quiet: bool = False
     with progress_bar("imupipe run", total=n_steps, quiet=quiet) as bar:
         for name in used:  # the readers' modules, before a second thread imports alongside
             reader_for(cfg.inputs[name])
-        with WarmImports(warm_modules(cfg)):
+        with WarmImports(warm_modules(cfg), freeze=one_shot):
             for name in used:  # inputs only written (apply_to) are never held: streamed below
                 bar.describe(f"reading {name}")
                 raw[name] = read(name)
@@ -278,7 +286,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
-    summary = run(args.config, spawn=args.spawn, quiet=args.quiet)
+    summary = run(args.config, spawn=args.spawn, quiet=args.quiet, one_shot=True)
     if not args.quiet:
         from imupipe.pipeline.summary import print_summary
 

@@ -17,6 +17,7 @@ left to fail again, with its own message, where the main thread imports it.
 
 from __future__ import annotations
 
+import gc
 import importlib
 import threading
 from collections.abc import Sequence
@@ -25,20 +26,36 @@ from types import TracebackType
 
 class WarmImports:
     """``with WarmImports(modules):`` imports ``modules`` in order on a daemon thread and waits
-    for it when the block ends (also when it ends on an exception)."""
+    for it when the block ends (also when it ends on an exception).
 
-    def __init__(self, modules: Sequence[str]) -> None:
+    ``freeze`` (for a process that runs once, the command line): the cyclic garbage collector is
+    paused while the modules load and every object it tracks is then frozen (:func:`gc.freeze`):
+    the hundreds of thousands of objects Rerun and scipy define live as long as the process, and
+    the collector no longer scans them. Measured on a 2 h Allan run: the collections during the
+    run 0.08-0.12 s (238 of them) -> 0.01 s (77), a full collection at the end 0.02-0.03 s -> 0."""
+
+    def __init__(self, modules: Sequence[str], *, freeze: bool = False) -> None:
         self.modules = list(modules)
+        self.freeze = freeze
         self.failed: list[str] = []
         """The modules whose import raised on the thread (the main thread's import re-raises)."""
         self._thread: threading.Thread | None = None
 
     def _run(self) -> None:
-        for name in self.modules:
-            try:
-                importlib.import_module(name)
-            except Exception:  # noqa: BLE001  (the main thread's own import reports it)
-                self.failed.append(name)
+        paused = self.freeze and gc.isenabled()
+        if paused:
+            gc.disable()
+        try:
+            for name in self.modules:
+                try:
+                    importlib.import_module(name)
+                except Exception:  # noqa: BLE001  (the main thread's own import reports it)
+                    self.failed.append(name)
+        finally:
+            if self.freeze:
+                gc.freeze()
+            if paused:
+                gc.enable()
 
     def __enter__(self) -> WarmImports:
         if self.modules:

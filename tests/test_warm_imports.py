@@ -80,3 +80,20 @@ def test_the_block_waits_for_the_thread_even_when_it_ends_on_an_error():
     with pytest.raises(RuntimeError), WarmImports(["json"]):
         raise RuntimeError("a read failed")
     assert not [t for t in threading.enumerate() if t.name == "imupipe-warm-imports"]
+
+
+def test_a_one_shot_process_freezes_what_it_imported_and_collects_again():
+    import gc
+
+    assert gc.isenabled()
+    before = gc.get_freeze_count()
+    try:
+        with WarmImports(["json"], freeze=True):
+            pass
+        assert gc.isenabled()
+        assert gc.get_freeze_count() > before
+    finally:
+        gc.unfreeze()
+    with WarmImports(["json"]):
+        pass
+    assert gc.get_freeze_count() == 0
