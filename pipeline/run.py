@@ -137,12 +137,17 @@ def output_guard(cfg: Config) -> OutputGuard:
 
 def warm_modules(cfg: Config) -> list[str]:
     """What a run imports after reading its inputs, imported while it reads them
-    (:mod:`imupipe.pipeline.warm_imports`): Rerun (the recorder's module imports it, also when
-    it records nothing), and each stage's modules."""
-    modules = ["rerun", "rerun.blueprint"]
+    (:mod:`imupipe.pipeline.warm_imports`): each stage's modules, the recorder's (with Rerun:
+    imported also when nothing is recorded), the report's and the exporters' asked for (else the
+    default ones: PX4's, added for a ULog, loads when needed)."""
+    modules: list[str] = []
     for st in cfg.stages:
         modules += [m for m in stage_modules(st.type) if m not in modules]
-    return modules
+    modules.append("imupipe.pipeline.recording")
+    if cfg.output.report:
+        modules.append("imupipe.pipeline.report")
+    exporters = chosen_exports({}, cfg.output.exports)  # the chain is not known yet
+    return modules + [f"imupipe.pipeline.exports.{n}" for n in exporters]
 
 
 def run(

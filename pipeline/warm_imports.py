@@ -2,17 +2,19 @@
 
 A run reads its inputs first (pyarrow's parse and the log readers spend most of that time in
 compiled code, without the GIL), then imports what it had no need of until then: Rerun for the
-recording (about 0.25 s) and scipy for the stages' solvers (about 0.22 s, loaded by the
-``allan`` stage on first use). :class:`WarmImports` imports those on a daemon thread during the
-read, so that the main thread finds them loaded; on a machine with a core to spare the run ends
-that much sooner, on a busy one it costs nothing but the same import done elsewhere.
+recording (about 0.25 s), scipy for the stages' solvers (about 0.22 s, loaded by the ``allan``
+stage on first use), the report's and the exporters' modules. :class:`WarmImports` imports
+those on a daemon thread during the read, so that the main thread finds them loaded; on a
+machine with a core to spare the run ends that much sooner, on a busy one it costs nothing but
+the same import done elsewhere.
 
 Safety: two threads importing at once can deadlock only on a cycle of modules each holds and
-the other needs. The modules warmed here (Rerun, scipy and what they pull in: the standard
-library, numpy's submodules) are not what a reader imports while the thread runs (pyarrow, the
-format libraries, imupipe's readers), and the main thread :meth:`~WarmImports.wait` s for the
-thread before it imports any of them itself. A module that fails to import on the thread is
-left to fail again, with its own message, where the main thread imports it.
+the other needs. The modules warmed here (the stages', the recorder's, the report's and the
+exporters', with Rerun, scipy and PyYAML: the standard library, numpy's submodules) are none of
+what the read imports (the readers' modules, imported before the thread starts, pyarrow and the
+format libraries), and the main thread :meth:`~WarmImports.wait` s for the thread before it
+imports any of them itself. A module that fails to import on the thread is left to fail again,
+with its own message, where the main thread imports it.
 """
 
 from __future__ import annotations

@@ -51,7 +51,7 @@ def test_every_stage_type_names_its_module_first():
         assert stage_modules(type_name)[0] == target.split(":")[0]
 
 
-def test_a_run_warms_rerun_and_its_stages(tmp_path):
+def test_a_run_warms_its_stages_recorder_report_and_exporters(tmp_path):
     (tmp_path / "s.csv").write_text("t,gx\n0,0\n")
     cfg = tmp_path / "cfg.toml"
     cfg.write_text(
@@ -59,12 +59,22 @@ def test_a_run_warms_rerun_and_its_stages(tmp_path):
         '[[stages]]\ntype = "allan"\nname = "again"\n[output]\ndir = "out"\n'
     )
     assert warm_modules(load_config(cfg)) == [
-        "rerun",
-        "rerun.blueprint",
         "imupipe.stages.allan",
         "scipy.special",
         "scipy.optimize",
         "imupipe.stages.average",
+        "imupipe.pipeline.recording",
+        "imupipe.pipeline.report",
+        "imupipe.pipeline.exports.kalibr",
+        "imupipe.pipeline.exports.imu_utils",
+        "imupipe.pipeline.exports.vins",
+        "imupipe.pipeline.exports.openvins",
+    ]
+    cfg.write_text(cfg.read_text() + 'report = false\nexports = ["px4"]\n')
+    assert warm_modules(load_config(cfg))[-3:] == [
+        "imupipe.pipeline.recording",
+        "imupipe.pipeline.exports.kalibr",
+        "imupipe.pipeline.exports.px4",
     ]
 
 
