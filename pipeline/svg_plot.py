@@ -5,8 +5,9 @@ Sizes are in px of the viewBox (640 x 340 per plot, 1280 x 340 for a ``3d`` plot
 the width of the page (``width="100%"``); fonts in px, a system sans-serif. The axes are laid out
 by :mod:`imupipe.pipeline.plot_layout`, as in the recording's 2D plots. What is drawn:
 
-- ``time``: the signals against time since the first sample, in s, min or h by the span; the
-  x title says since when (a date for a wall-clock log, else the time on the log's own clock);
+- ``time``: the signals against time since the first sample, in s, min or h by the span, the
+  axis ending at the last sample (not rounded up to a tick); the x title says since when (a
+  date for a wall-clock log, else the time on the log's own clock);
 - ``xy``: curves on linear or log axes; confidence bands (fill, 30 % opaque) beneath, model
   terms (guides) dashed, measured values as dots, fitted curves as lines; log axes labelled in
   plain text (``10\u207b\u00b3``), at 2 and 5 times the powers of ten too on an axis spanning
@@ -325,7 +326,8 @@ def _draw_2d(plot: Plot) -> list[str] | None:
     if plot.kind == "time":
         t0, scale, x_title = time_axis(plot)  # type: ignore[misc]
         xs = [(s.x - t0) * (1e-9 / scale) for s in series]
-        xa = Axis(xs, False)
+        end = max(float(x[-1]) for x in xs)  # from the first sample to the last, no round-up
+        xa = Axis.within(0.0, end) if end > 0 else Axis(xs, False)
     elif plot.kind == "bars":
         xs, x_title = [np.asarray(s.x, dtype=np.float64) for s in series], plot.x_label
         xa = _integer_axis(xs)
