@@ -376,3 +376,18 @@ def test_a_log_on_its_own_clock_is_shown_as_durations_not_1970(tmp_path, t0, kin
     drawn = ET.fromstring(svg(next(iter(rec.figures.plots.values()))))
     titles = [e.text for e in drawn.iter("{http://www.w3.org/2000/svg}text")]
     assert [t for t in titles if t.startswith("time since")] == [label]
+
+
+def test_a_cloud_far_from_the_origin_gets_the_points_of_the_same_cloud_at_it():
+    """A raw magnetometer tumble (centre ~6000 counts, radius ~1000) is drawn with points sized
+    by its own spread, not by its distance from the origin (points 6x too large before)."""
+    from imupipe.pipeline.recording import cloud_radius
+
+    rng = np.random.default_rng(3)
+    d = rng.standard_normal((5000, 3))
+    sphere = 1000.0 * d / np.linalg.norm(d, axis=1, keepdims=True)
+    at_origin = cloud_radius(sphere)
+    assert at_origin == pytest.approx(8.0, rel=0.05)  # the median of a sampled sphere: ~0
+    assert cloud_radius(sphere + [6159.0, 252.0, 3447.0]) == pytest.approx(at_origin, rel=0.01)
+    with_nan = np.vstack([sphere, [[np.nan, 0.0, 0.0]]])
+    assert cloud_radius(with_nan) == pytest.approx(at_origin, rel=0.01)
