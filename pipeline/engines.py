@@ -52,6 +52,7 @@ from typing import Any
 from imupipe.pipeline.convert_options import ENGINES
 from imupipe.pipeline.errors import ConfigError, ImupipeError
 from imupipe.pipeline.signals import Terminated
+from imupipe.stages.cores import usable_cores
 
 STOP_GRACE_S = 5.0
 """How long stopped workers get to remove their temporary files before they are killed."""
@@ -112,14 +113,6 @@ def guarded(fn: Callable[[Any], Any], task: Any) -> _Attempt:
             _WorkerState.busy = False
             if _WorkerState.orphaned:
                 os._exit(0)  # nobody will take the result: the driver is gone
-
-
-def default_jobs() -> int:
-    """The CPUs this process may use."""
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except AttributeError:  # pragma: no cover - not Linux
-        return max(1, os.cpu_count() or 1)
 
 
 SINGLE_THREADED = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
@@ -307,7 +300,7 @@ def run_local(
     suspects, uncharged, and are run again one at a time until the culprit is found.
     """
     tracker = _Tracker(tasks, retries, on_done)
-    jobs = max(1, min(jobs or default_jobs(), len(tasks) or 1))
+    jobs = max(1, min(jobs or usable_cores(), len(tasks) or 1))
     ctx = mp.get_context("forkserver")
     _start_forkserver(ctx, [fn.__module__, *preload])
     suspects: deque[int] = deque()

@@ -27,13 +27,14 @@ from __future__ import annotations
 
 import functools
 import math
-import os
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Literal
 
 import numpy as np
+
+from imupipe.stages.cores import usable_cores
 
 Kind = Literal["oadev", "adev", "mdev", "hdev", "ohdev", "totdev"]
 KINDS: tuple[str, ...] = ("oadev", "adev", "mdev", "hdev", "ohdev", "totdev")
@@ -116,14 +117,6 @@ def each_axis(work: Callable[[int], None], k: int, n: int) -> None:
         return
     with ThreadPoolExecutor(workers) as pool:
         list(pool.map(work, range(k)))
-
-
-def usable_cores() -> int:
-    """The cores this process may run on (its CPU affinity: a container's or a job's share)."""
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:  # not Linux
-        return os.cpu_count() or 1
 
 
 def as_phase(x: np.ndarray) -> np.ndarray:
