@@ -114,7 +114,7 @@ import imupipe.pipeline.run, imupipe.pipeline.report, imupipe.stages.allan
 t2 = time.perf_counter()
 import rerun, imupipe.pipeline.recording
 t3 = time.perf_counter()
-import scipy.special, scipy.optimize
+import scipy.special
 t4 = time.perf_counter()
 import pyarrow.csv
 pyarrow.csv.read_csv(sys.argv[1])
@@ -131,6 +131,7 @@ import sys, time
 t0 = time.perf_counter()
 sys.path.insert(0, sys.argv[2])
 from proc_memory import status_bytes
+import imupipe.pipeline.cli as C
 import imupipe.pipeline.run as R
 from imupipe.stages.allan import AllanStage
 parts = {"imports": time.perf_counter() - t0}
@@ -150,7 +151,7 @@ def timed(owner, name, label):
 timed(R, "read_input", "read")
 timed(AllanStage, "fit", "stage")
 timed(R, "publish", "report")
-R.run(sys.argv[1], quiet=True)
+C.main(["run", sys.argv[1], "--quiet"])  # as on the command line (one run per process)
 total = time.perf_counter() - t0
 parts["rest"] = total - sum(parts.values())
 print(total)

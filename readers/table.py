@@ -145,11 +145,13 @@ def make_table(
     valid = dict(valid or {})
     given = {"gyro": gyro, "accel": accel, "mag": mag, "temperature": temperature}
     arrays: list[pa.Array] = [pa.array(t_ns, pa.int64())]
+    empty: pa.Array | None = None
     for sensor, cols in SENSOR_COLUMNS.items():
         values = given[sensor]
         stream = STREAM_OF_SENSOR[sensor]
         if values is None:
-            arrays += [pa.nulls(n, pa.float64()) for _ in cols]
+            empty = null_floats(n) if empty is None else empty
+            arrays += [empty] * len(cols)
             continue
         values = np.asarray(values, dtype=np.float64).reshape(n, len(cols))
         mask = valid.get(sensor, valid.get(stream))
@@ -160,6 +162,16 @@ def make_table(
         field = OPTIONAL_FIELDS.field(name)
         table = table.append_column(field, _as_arrow(column, field.type))
     return with_metadata(table, metadata or {})
+
+
+def null_floats(n: int) -> pa.Array:
+    """An all-null float64 array of ``n`` rows whose buffers are never written: numpy's zeroed
+    allocation (``calloc``) leaves the pages unmapped until read, where ``pa.nulls`` fills them
+    (0.05 s for each 2.88 M-row column of an absent sensor, 4 of them in a gyro+accel CSV).
+    Arrays are immutable: one serves every absent column of a table."""
+    validity = pa.py_buffer(np.zeros((n + 7) // 8, dtype=np.uint8))
+    data = pa.py_buffer(np.zeros(n, dtype=np.float64))
+    return pa.Array.from_buffers(pa.float64(), n, [validity, data], null_count=n)
 
 
 def _as_arrow(column: pa.Array | np.ndarray, typ: pa.DataType) -> pa.Array:

@@ -33,7 +33,7 @@ import pyarrow.compute as pc
 
 from imupipe.readers.decoded import Piece, absent_sensors, repeat_string
 from imupipe.readers.prefault import Prefault
-from imupipe.readers.table import COV, SCHEMA, with_metadata
+from imupipe.readers.table import COV, SCHEMA, null_floats, with_metadata
 from imupipe.readers.topics import COLUMNS, STREAM_TYPES
 
 SPREAD_ROWS = 1 << 15
@@ -578,7 +578,7 @@ class TableBuffer:
         extra: dict[str, pa.Array] = {}
         for name, array in columns.items():
             (arrays if name in SCHEMA.names else extra)[name] = array
-        empty = pa.nulls(n, pa.float64())
+        empty = null_floats(n)
         fields = list(SCHEMA) + [pa.field(name, pa.int64()) for name in times]
         fields.append(pa.field("frame_id", pa.string()))
         values = [arrays.get(f.name, empty) for f in SCHEMA]

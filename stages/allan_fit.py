@@ -19,8 +19,8 @@ the random walk lives). A relative model error ``model_error`` (default 5 % of t
 added to every point's variance, so that the short taus, with their enormous EDF, cannot let a
 feature the five terms do not describe (anti-alias filters, Gauss-Markov roll-offs) dictate the
 whole fit. The non-negative log-space least squares is solved by projected
-Gauss-Newton: each step is a non-negative least-squares problem (``scipy.optimize.nnls``) of the
-linearised residuals, with step halving. Terms the data does not support are left out by best-subset
+Gauss-Newton: each step is a non-negative least-squares problem (:func:`imupipe.stages.nnls.nnls`,
+every active set of the few terms solved at once) of the linearised residuals, with step halving. Terms the data does not support are left out by best-subset
 selection: every subset of the requested terms is fitted and the one with the least
 ``cost + penalty * terms`` wins (an information criterion; ``penalty`` default 10), with the
 weights thinned to about one independent point per octave of tau (overlapping estimates at
@@ -47,12 +47,13 @@ is closest to the line's, within 0.25), B = min(sigma) / sqrt(2 ln2 / pi) (= min
 
 from __future__ import annotations
 
-import functools
 import itertools
 import math
 from dataclasses import dataclass, field
 
 import numpy as np
+
+from imupipe.stages.nnls import nnls
 
 TERMS: tuple[str, ...] = ("Q", "N", "B", "K", "R")
 POWERS: dict[str, int] = {"Q": -2, "N": -1, "B": 0, "K": 1, "R": 2}
@@ -128,35 +129,6 @@ def density_weights(taus: np.ndarray) -> np.ndarray:
     return np.minimum(np.diff(edges), 1.0)
 
 
-@functools.cache
-def _nnls():
-    """``nnls(a, b) -> x``: scipy's Lawson-Hanson NNLS (:func:`scipy.optimize.nnls`). Its compiled
-    core is called directly where this scipy has it (the same solution, bit for bit, without the
-    public wrapper's argument checks: a third of the fit's time went to them); else the public
-    function."""
-    from scipy.optimize import nnls  # scipy: loaded on first use (start-up)
-
-    def public(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-        return nnls(a, b)[0]
-
-    try:
-        from scipy.optimize._slsqplib import nnls as core
-
-        x, _, info = core(np.eye(2), np.array([1.0, -1.0]), 6)  # the signature this code expects
-        if info != 1 or not np.array_equal(x, [1.0, 0.0]):
-            return public
-    except (ImportError, TypeError, ValueError):
-        return public
-
-    def direct(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-        x, _, info = core(a, b, 3 * a.shape[1])  # a C-contiguous float64, b float64 (ours)
-        if info == 3:
-            raise RuntimeError("Maximum number of iterations reached.")
-        return x
-
-    return direct
-
-
 def _solve(
     a: np.ndarray,
     target: np.ndarray,
@@ -212,7 +184,6 @@ class _Scaled:
         linearised residuals, halved until the cost falls; stops when a step gains less than
         1e-9 of the cost. Each point's cost is evaluated once (its model and residual are the
         next step's linearisation). A start where the model is not positive takes no step."""
-        nnls = _nnls()
         sw, sw_col, a_s = self.sw, self.sw_col, self.a_s
         f, mu, r = self.evaluate(u, off)
         for _ in range(iters):
@@ -250,7 +221,7 @@ class _Scaled:
             starts = [np.maximum(np.asarray(start, dtype=np.float64) / self.scale, 1e-12)]
         else:
             share = np.ones(len(self.target)) if off is None else 1.0 - off / self.level
-            first = _nnls()(self.sw_col * self.rel * self.scale, self.sw * np.maximum(share, 0.0))
+            first = nnls(self.sw_col * self.rel * self.scale, self.sw * np.maximum(share, 0.0))
             starts = [first] if np.any(first > 0) else [np.full(p, 1.0 / p), np.ones(p)]
         u, f = min((self.descend(s0, off, iters) for s0 in starts), key=lambda item: item[1])
         return u * self.scale, f

@@ -75,6 +75,21 @@ def block_means(
         return Blocks(t_ns, values2[:0], np.zeros(0, np.int64), starts)
     counts = np.diff(np.r_[starts, len(t_ns)])
     means = np.add.reduceat(values2, starts, axis=0) / counts[:, None]
-    rel = (t_ns - t_ns[0]).astype(np.float64)
-    centres = t_ns[0] + np.round(np.add.reduceat(rel, starts) / counts).astype(np.int64)
-    return Blocks(centres, means[:, 0] if squeeze else means, counts, starts)
+    return Blocks(
+        block_centres(t_ns, starts, counts), means[:, 0] if squeeze else means, counts, starts
+    )
+
+
+def block_centres(t_ns: np.ndarray, starts: np.ndarray, counts: np.ndarray) -> np.ndarray:
+    """The mean time of each block (int64 ns, rounded to the nearest ns), relative to the first
+    sample. The sums of ``t - t[0]`` are taken in int64 without making ``t - t[0]``: numpy's
+    integer sums wrap modulo 2^64, so ``sum(t) - count * t[0]`` is the exact relative sum whenever
+    that fits in an int64 (checked: span x longest block < 2^62); else in float64. (The float
+    copy of a 2.88 M-sample time column cost 0.02-0.05 s of first-touch page faults per call.)"""
+    t0 = t_ns[0]
+    span = int(t_ns.max()) - int(t_ns.min())
+    if span * int(counts.max()) < 1 << 62:
+        rel = np.add.reduceat(t_ns, starts) - counts * t0  # exact modulo 2^64: the true sum
+        return t0 + np.round(rel / counts).astype(np.int64)
+    rel_f = (t_ns - t0).astype(np.float64)
+    return t0 + np.round(np.add.reduceat(rel_f, starts) / counts).astype(np.int64)

@@ -4,8 +4,8 @@ a quiet run that writes no corrected MCAP imports neither rich (the progress bar
 writer. The stage's fast paths against the straightforward computations they replace: the
 deviations axis by axis (the same sums, bit for bit), every row's dots in one call, the noise
 identification in reused memory with its autocorrelations from sums (the same alphas), the fit's
-Gauss-Newton with each cost evaluated once and scipy's NNLS core called directly (the same
-coefficients, bit for bit), the motion check's blocks by bisection. The times themselves:
+Gauss-Newton with each cost evaluated once (the same coefficients, bit for bit; its NNLS against
+scipy's in ``test_nnls.py``), the motion check's blocks by bisection. The times themselves:
 ``benchmarks/bench_allan.py``."""
 
 from __future__ import annotations
@@ -200,9 +200,9 @@ def test_noise_work_decimation_is_a_slice_of_the_phase():
 
 
 def _straight_solve(a, target, w, iters=60, fixed=None, start=None):
-    """The projected Gauss-Newton of ``allan_fit._solve`` as written before: the public
-    ``scipy.optimize.nnls``, every cost evaluated afresh."""
-    from scipy.optimize import nnls
+    """The projected Gauss-Newton of ``allan_fit._solve`` as written before: every cost
+    evaluated afresh (the same NNLS, :func:`imupipe.stages.nnls.nnls`)."""
+    from imupipe.stages.nnls import nnls
 
     sw = np.sqrt(w)
     level = np.exp(target)
@@ -224,7 +224,7 @@ def _straight_solve(a, target, w, iters=60, fixed=None, start=None):
         for _ in range(iters):
             mu = a_s @ u + off
             jac = a_s / mu[:, None]
-            new, _ = nnls(sw[:, None] * jac, sw * (jac @ u - (np.log(mu) - target)))
+            new = nnls(sw[:, None] * jac, sw * (jac @ u - (np.log(mu) - target)))
             step = new - u
             lam = 1.0
             while lam > 1e-6 and cost(u + lam * step) >= f:
@@ -243,7 +243,7 @@ def _straight_solve(a, target, w, iters=60, fixed=None, start=None):
     if start is not None:
         starts = [np.maximum(np.asarray(start, dtype=np.float64) / scale, 1e-12)]
     else:
-        first, _ = nnls(sw[:, None] * rel * scale, sw * np.maximum(1.0 - off / level, 0.0))
+        first = nnls(sw[:, None] * rel * scale, sw * np.maximum(1.0 - off / level, 0.0))
         starts = [first] if np.any(first > 0) else [np.full(p, 1.0 / p), np.ones(p)]
     u, f = min((descend(s0) for s0 in starts), key=lambda item: item[1])
     return u * scale, f
@@ -272,9 +272,9 @@ def _fit_problems():
 
 
 def test_gauss_newton_is_the_straightforward_one_bit_for_bit():
-    """``_solve`` (scaled columns built once, each cost evaluated once, scipy's NNLS core
-    called directly) against the straightforward loop with the public ``nnls``: the same
-    coefficients and cost, bit for bit, on every subset of the terms and on profile solves."""
+    """``_solve`` (scaled columns built once, each cost evaluated once) against the
+    straightforward loop: the same coefficients and cost, bit for bit, on every subset of the
+    terms and on profile solves."""
     from imupipe.stages import allan_fit as fit
 
     count = 0
@@ -287,19 +287,6 @@ def test_gauss_newton_is_the_straightforward_one_bit_for_bit():
         assert got[1] == want[1]
         count += 1
     assert count > 250
-
-
-def test_nnls_core_is_scipys_nnls():
-    from scipy.optimize import nnls
-
-    from imupipe.stages.allan_fit import _nnls
-
-    rng = np.random.default_rng(2)
-    for p in range(1, 6):
-        for _ in range(40):
-            a = rng.random((20, p)) * np.exp(rng.normal(0, 2, p))
-            b = rng.standard_normal(20)
-            np.testing.assert_array_equal(_nnls()(a, b), nnls(a, b)[0])
 
 
 def test_stillness_with_the_stage_shortcuts_is_the_same():

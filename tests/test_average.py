@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from imupipe.stages.blocks import block_means
+from imupipe.stages.blocks import block_centres, block_means
 
 
 def imudatasum(values: np.ndarray, window: int) -> np.ndarray:
@@ -36,3 +36,24 @@ def test_window_seconds_uses_timestamps():
     blocks = block_means(t, v, window_s=1.0)
     np.testing.assert_array_equal(blocks.counts, [3, 2, 1])
     np.testing.assert_allclose(blocks.means, [1.0, 3.5, 5.0])
+
+
+@pytest.mark.parametrize(
+    ("step_max", "window"),
+    [(5_000_000, 1440), (10, 3), (1 << 44, 5000)],  # the last: span x block >= 2^62, float path
+)
+def test_block_centres_are_exact_means_of_the_times(step_max, window):
+    """The int64 path (wrapping sums of the absolute times) and the float fallback both give the
+    mean time of each block, rounded to the ns, as exact integer arithmetic does."""
+    rng = np.random.default_rng(7)
+    n = 20_000
+    t = 1_700_000_000_000_000_000 + np.cumsum(rng.integers(1, step_max, n)).astype(np.int64)
+    starts = np.arange(0, n, window)
+    counts = np.diff(np.r_[starts, n])
+    got = block_centres(t, starts, counts)
+    want = [
+        int(t[0]) + round(sum(int(x) - int(t[0]) for x in t[s : s + k]) / k)
+        for s, k in zip(starts, counts, strict=True)
+    ]
+    tol = 0 if step_max < 1 << 40 else 1e-12 * (int(t[-1]) - int(t[0]))  # float64 rounding
+    assert np.abs(got - np.array(want)).max() <= tol

@@ -61,7 +61,6 @@ def test_a_run_warms_its_stages_recorder_report_and_exporters(tmp_path):
     assert warm_modules(load_config(cfg)) == [
         "imupipe.stages.allan",
         "scipy.special",
-        "scipy.optimize",
         "imupipe.stages.average",
         "imupipe.pipeline.recording",
         "imupipe.pipeline.report",
