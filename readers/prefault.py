@@ -60,9 +60,10 @@ class Prefault:
     with :meth:`add` from the row given on. The thread ends at :meth:`close`, when everything
     is mapped, or when this object is garbage collected."""
 
-    def __init__(self, arrays: list[np.ndarray]) -> None:
+    def __init__(self, arrays: list[np.ndarray], rows: int | None = None) -> None:
         self.arrays = arrays
-        self.rows = len(arrays[0]) if arrays else 0
+        self.rows = len(arrays[0]) if arrays else rows or 0
+        """The arrays' rows (``rows``: for arrays all given later, with :meth:`add`)."""
         self.filled = 0
         self.woken = 0
         """``filled`` when the thread was last woken."""

@@ -350,8 +350,10 @@ class TableBuffer:
                 if s != self.large
                 for name, _, count in COLUMNS[s]
             }
-            if total >= PREFAULT_ROWS:
-                self.full_prefault = Prefault(list(self.full.values()))
+            if total >= PREFAULT_ROWS:  # each column once a message carries a value in it
+                self.full_prefault = Prefault([], rows=total)
+        self.full_mapped: set[str] = set()
+        """The columns of :attr:`full` given to the prefault thread."""
 
     def _t(self, piece: Piece) -> np.ndarray:
         return piece.stamp if self.time == "header" else piece.log
@@ -374,6 +376,11 @@ class TableBuffer:
         st = self.streams[s]
         t = self._t(piece)
         st.add(piece, t)
+        if self.full_prefault is not None:  # a clean column (zeros so far) is never mapped
+            for name in self.full.keys() - st.clean - self.full_mapped:
+                if name in st.columns:
+                    self.full_prefault.add(self.full[name], 0)
+                    self.full_mapped.add(name)
         if not self.gapped:
             return
         if not st.t_sorted:
@@ -655,7 +662,9 @@ class TableBuffer:
             for name, _, count in COLUMNS[st.stream]:
                 full = self.full.pop(name, None)
                 full = full[:n] if full is not None and len(full) >= n else _zeros(n, count)
-                full[at] = st.columns.pop(name)[:m]
+                values = st.columns.pop(name)[:m]
+                if name not in st.clean:  # else zeros already, its pages never touched
+                    full[at] = values
                 columns[name] = full
             for name, flag in st.flags.items():
                 flags[name] = np.zeros(n, bool)
@@ -702,7 +711,8 @@ class TableBuffer:
                     columns[name] = values[perm]
                 else:
                     full = _zeros(n, count)
-                    full[at] = values[perm[at] - start[i]]
+                    if name not in st.clean:  # else zeros already, its pages never touched
+                        full[at] = values[perm[at] - start[i]]
                     columns[name] = full
             for name, flag in st.flags.items():
                 flags[name] = np.zeros(n, bool)
