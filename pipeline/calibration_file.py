@@ -27,6 +27,7 @@ checked by :func:`imupipe.stages.steps.steps_from_json` (known sensor and kind, 
 from __future__ import annotations
 
 import json
+import math
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -70,6 +71,25 @@ def fitted_on(input_name: str, spec: InputSpec, table: pa.Table) -> dict[str, An
             rates[stream] = (len(stamps) - 1) / span
     out["rate_hz"] = rates
     return out
+
+
+def calibration_json(doc: Mapping[str, Any]) -> str:
+    """``doc`` as the text of a ``calibration.json``: standard JSON (RFC 8259), so a float that
+    is not finite (a metric of a fit that overflowed, accepted with ``accept_failed_checks``) is
+    written as ``null``, not as Python's ``Infinity`` or ``NaN``, which strict readers refuse.
+    Chain entries never hold one (:func:`check_calibration` requires finite numbers)."""
+    return json.dumps(_finite(doc), indent=2, allow_nan=False) + "\n"
+
+
+def _finite(value: Any) -> Any:
+    """``value`` with every non-finite float (at any depth) replaced by None."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, Mapping):
+        return {k: _finite(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_finite(v) for v in value]
+    return value
 
 
 def _depth(value: Any) -> int:

@@ -26,7 +26,6 @@ checks it (:func:`imupipe.pipeline.calibration_file.check_calibration`) before i
 from __future__ import annotations
 
 import argparse
-import json
 import re
 import sys
 from pathlib import Path
@@ -35,7 +34,11 @@ from typing import Any
 import numpy as np
 
 from imupipe.pipeline.atomic import staged_outputs
-from imupipe.pipeline.calibration_file import check_calibration, load_calibration
+from imupipe.pipeline.calibration_file import (
+    calibration_json,
+    check_calibration,
+    load_calibration,
+)
 from imupipe.pipeline.errors import ConfigError
 from imupipe.pipeline.version import VERSION
 from imupipe.readers.spec import ACCEL_UNITS, GYRO_UNITS, MAG_UNITS
@@ -206,7 +209,7 @@ def import_calibration(
     }
     check_calibration(doc, str(out))
     with staged_outputs() as staged:
-        staged.write_text(Path(out), json.dumps(doc, indent=2) + "\n")
+        staged.write_text(Path(out), calibration_json(doc))
     return doc, notes
 
 

@@ -25,7 +25,6 @@ per message except for carried-over messages, which arrive as Python objects any
 from __future__ import annotations
 
 import bisect
-import json
 import struct
 import time
 import zlib
@@ -53,6 +52,7 @@ from mcap.records import (
     SummaryOffset,
 )
 
+from imupipe.pipeline.calibration_file import calibration_json
 from imupipe.readers import cdr
 from imupipe.readers.spec import RawMessage
 from imupipe.readers.table import metadata, sensor, sensor_mask, stream_mask
@@ -555,7 +555,7 @@ class McapTableWriter:
                 log_time=now,
                 name="calibration.json",
                 media_type="application/json",
-                data=json.dumps(self.calibration, indent=2).encode(),
+                data=calibration_json(self.calibration).encode(),
             )
             offset = self._fh.tell()
             length = self._write_record(att)

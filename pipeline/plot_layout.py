@@ -24,12 +24,16 @@ def nice_ticks(lo: float, hi: float, n: int = 5) -> np.ndarray:
     if hi <= lo:
         pad = abs(lo) * 0.1 or 1.0
         lo, hi = lo - pad, hi + pad
+    if not np.isfinite(hi - lo):  # a span past float64's range (cells of 1e308): the ends
+        return np.array([lo, hi])
     mag = 10.0 ** math.floor(math.log10((hi - lo) / n))
     best = None
     for step in (m * mag for m in (0.5, 1, 2, 2.5, 5, 10, 20)):
         # data a hair past a round value (-40.006 degC) does not add a whole step
         first = math.floor(lo / step + 0.02) * step
         last = math.ceil(hi / step - 0.02) * step
+        if not math.isfinite(last - first):  # near float64's largest values
+            continue
         count = round((last - first) / step)
         if 3 <= count <= n + 2 and (best is None or (last - first, -step) < best[0]):
             best = ((last - first, -step), first, step, count)
@@ -51,7 +55,8 @@ def _fmt_sci(v: float, digits: int) -> str:
 def tick_labels(ticks: np.ndarray) -> list[str]:
     """Labels of linear ticks: as many decimals as the step needs (scientific notation for very
     small or large values, with as many digits as keep the labels distinct)."""
-    step = float(np.min(np.diff(ticks))) if len(ticks) > 1 else 1.0
+    with np.errstate(over="ignore"):  # ends near float64's limit: an infinite step
+        step = float(np.min(np.diff(ticks))) if len(ticks) > 1 else 1.0
     if float(np.max(np.abs(ticks))) >= 1e5 or step < 1e-4:
         for digits in range(1, 6):
             labels = [_fmt_sci(v, digits) for v in ticks]
@@ -91,6 +96,11 @@ def pow10_text(value: float) -> str:
     return power if abs(mantissa - 1.0) < 1e-6 else f"{mantissa:.3g}\u00d7{power}"
 
 
+SPAN_LIMIT = float(np.finfo(np.float64).max) / 4
+"""Data drawn on a linear axis is clipped to +-this, so that the axis's span, padded, stays a
+finite float64 (a CSV cell of 1e308 is a number)."""
+
+
 class Axis:
     """Maps data values to [0, 1] along one axis (linear, or log10), with its ticks.
 
@@ -99,7 +109,7 @@ class Axis:
 
     def __init__(self, values: list[np.ndarray], log: bool) -> None:
         data = np.concatenate([np.ravel(v) for v in values]) if values else np.zeros(0)
-        data = data[np.isfinite(data)]
+        data = np.clip(data[np.isfinite(data)], -SPAN_LIMIT, SPAN_LIMIT)
         self.log = log
         if log:
             data = data[data > 0]

@@ -11,7 +11,6 @@ renamed into ``[output] dir`` only when everything succeeded.
 from __future__ import annotations
 
 import argparse
-import json
 import sys
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -21,7 +20,7 @@ from typing import Any
 import pyarrow as pa
 
 from imupipe.pipeline.atomic import OutputGuard, remove_stale_temps, staged_outputs
-from imupipe.pipeline.calibration_file import fitted_on
+from imupipe.pipeline.calibration_file import calibration_json, fitted_on
 from imupipe.pipeline.config import Config, load_config
 from imupipe.pipeline.exports import chosen as chosen_exports
 from imupipe.pipeline.exports import export_all
@@ -244,7 +243,7 @@ def run(
             noted = [name for name, rep in report.items() if rep.get("notes")]
             if noted and not quiet:
                 print(exports_note(noted), file=sys.stderr)
-            out.write_text(out_dir / "calibration.json", json.dumps(doc, indent=2) + "\n")
+            out.write_text(out_dir / "calibration.json", calibration_json(doc))
             files.append(out_dir / "calibration.json")
             for fname, text in exported.items():
                 out.write_text(out_dir / fname, text)

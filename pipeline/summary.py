@@ -84,6 +84,8 @@ def fmt_pm(value: Any, sigma: Any) -> str:
     if sigma is None or not isinstance(sigma, (int, float)) or not sigma > 0:
         return fmt(value)
     value = float(value)
+    if not math.isfinite(sigma) or not math.isfinite(value):
+        return f"{fmt(value)} ± {fmt(float(sigma))}"
     last = math.floor(math.log10(sigma)) - 1  # decimal position of sigma's second digit
     if 1e-3 <= abs(value) < 1e6 and last >= -9:
         decimals = max(0, -last)

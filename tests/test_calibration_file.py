@@ -135,3 +135,27 @@ def test_run_records_where_each_step_was_fitted(tmp_path):
     assert where["rate_hz"]["imu"] == pytest.approx(100.0, rel=1e-6)
     assert set(where["frame_id"]) == {"imu", "temperature"}
     assert steps[0].to_json()["fitted_on"] == where  # kept through a load
+
+
+def test_calibration_json_is_standard_json():
+    """Non-finite floats (a fit's metric that overflowed) are written as null, at any depth;
+    the text parses with a strict reader and loads back."""
+    import math
+
+    from imupipe.pipeline.calibration_file import calibration_json, parse_calibration
+
+    doc = {
+        "chain": [],
+        "results": {"s": {"metrics": {"std": [math.inf, -math.inf, 1.5], "rms": math.nan}}},
+        "tuple": (1.0, math.nan),
+    }
+    text = calibration_json(doc)
+
+    def refuse(constant):
+        raise ValueError(constant)
+
+    strict = json.loads(text, parse_constant=refuse)
+    assert strict["results"]["s"]["metrics"] == {"std": [None, None, 1.5], "rms": None}
+    assert strict["tuple"] == [1.0, None]
+    assert parse_calibration(text, "x")["chain"] == []
+    assert doc["results"]["s"]["metrics"]["std"][0] == math.inf  # the document is not changed

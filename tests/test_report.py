@@ -371,3 +371,18 @@ def test_a_plot_with_nothing_to_draw_is_left_out():
         svg(_plot("xy", [Series("/s/a", ["a"], [(0, 0, 0)], np.zeros(0), np.zeros((0, 1)))]))
         is None
     )
+
+
+def test_axes_of_values_near_the_float64_limit():
+    """Cells of 1e308 are numbers: the axis of such a curve (span past float64's range) has
+    finite ends and ticks, increasing, and every value maps into [0, 1]."""
+    from imupipe.pipeline.plot_layout import Axis, nice_ticks, tick_labels
+
+    for lo, hi in ((-1e308, 1e308), (0.0, 1.7e308), (-1.7e308, -1e307), (1e308, 1e308)):
+        ticks = nice_ticks(lo, hi)
+        assert np.isfinite(ticks).all() and (ticks[1:] > ticks[:-1]).all(), (lo, hi, ticks)
+        assert len(tick_labels(ticks)) == len(ticks)
+        axis = Axis([np.array([lo, hi, np.inf, np.nan])], log=False)
+        axis.pad(0.05)
+        assert np.isfinite([axis.lo, axis.hi]).all() and axis.hi > axis.lo
+        assert len(axis.labels) == len(axis.ticks) >= 2
