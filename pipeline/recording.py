@@ -181,7 +181,8 @@ class Recorder:
         colors = colors_for(names, colors)
         t_ns, values = decimate(t_ns, values, self.max_points)  # then scaled: fewer points
         if factor != 1.0:
-            values = values * factor
+            with np.errstate(over="ignore"):  # a damaged 1e308 cell: inf, not drawn
+                values = values * factor
         kept_t, kept = decimate(t_ns, values, self.figures.keep_points)
         fig.series.append(
             Series(entity, list(names), colors, kept_t, kept, "points" if points else "line")

@@ -293,11 +293,23 @@ def sensor(table: pa.Table, name: str) -> SensorData:
     return SensorData(t_ns=t_ns, values=np.column_stack(columns), rows=idx)
 
 
-def finite(data: SensorData) -> tuple[SensorData, int]:
-    """The samples of ``data`` whose values are all finite, and how many were not (NaN, Inf).
+MAX_MAGNITUDE = 1e100
+"""The largest magnitude a sample may have to enter a fit. No sensor reports beyond it in SI
+units (a damaged cell reads 1e308), and the square of such a value overflows the sums of a
+least-squares fit; like NaN and Inf it is left out of fits, and written back as it came."""
 
-    Stages fit on the finite samples only; writers keep every sample as it came."""
-    ok = np.isfinite(data.values).all(axis=1)
+
+def usable(values: np.ndarray) -> np.ndarray:
+    """Elementwise: finite and within +-:data:`MAX_MAGNITUDE` (False for NaN and Inf)."""
+    return np.abs(values) <= MAX_MAGNITUDE
+
+
+def finite(data: SensorData) -> tuple[SensorData, int]:
+    """The samples of ``data`` whose values are all :func:`usable`, and how many were not (NaN,
+    Inf, or beyond :data:`MAX_MAGNITUDE`).
+
+    Stages fit on these samples only; writers keep every sample as it came."""
+    ok = usable(data.values).all(axis=1)
     bad = int(len(ok) - np.count_nonzero(ok))
     if bad == 0:
         return data, 0

@@ -45,7 +45,7 @@ from typing import Any, Literal
 import numpy as np
 import pyarrow as pa
 
-from imupipe.readers.table import SENSOR_UNITS, SensorData, has_stream, sensor_columns
+from imupipe.readers.table import SENSOR_UNITS, SensorData, has_stream, sensor_columns, usable
 from imupipe.stages import allan_estimators as est
 from imupipe.stages.allan_fit import TERMS, AllanFit, fit_allan, slope_readings, term_variance
 from imupipe.stages.base import Stage, StageContext, StageOutput
@@ -266,9 +266,9 @@ class AllanStage(Stage):
             )
             t_ns, cols = t_ns[keep], [c[keep] for c in cols]
             number = np.flatnonzero(keep)
-        # one sum per column tells whether any value is NaN or Inf (no mask)
-        if not all(np.isfinite(c.sum()) for c in cols):
-            ok = np.logical_and.reduce([np.isfinite(c) for c in cols])
+        # one reduction per column tells whether any value is NaN, Inf or huge (no mask)
+        if not all(usable(c.min()) and usable(c.max()) for c in cols):
+            ok = np.logical_and.reduce([usable(c) for c in cols])
             rows = np.arange(len(t_ns)) if number is None else number
             both = SensorData(t_ns, np.column_stack(cols), rows)
             number = ctx.finite(both, "IMU (gyro and accel)", minimum=3).rows

@@ -18,9 +18,10 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
+import numpy as np
 import pyarrow as pa
 
-from imupipe.readers.table import SensorData, finite
+from imupipe.readers.table import MAX_MAGNITUDE, SensorData, finite
 from imupipe.stages.errors import FitError
 from imupipe.stages.steps import Step
 
@@ -83,12 +84,15 @@ class StageContext:
         self.warn(f"{message} (accepted: accept_failed_checks = true)")
 
     def finite(self, data: SensorData, what: str, minimum: int = 1) -> SensorData:
-        """``data`` without its non-finite samples (NaN, Inf), with one warning that counts them
-        (``6990 of 13964 magnetometer samples are NaN or Inf; fitted on 6974``); a stage error
-        when fewer than ``minimum`` remain."""
+        """``data`` without its samples that cannot enter a fit (NaN, Inf, or beyond
+        :data:`~imupipe.readers.table.MAX_MAGNITUDE`), with one warning that counts them (``6990
+        of 13964 magnetometer samples are NaN or Inf; fitted on 6974``); a stage error when
+        fewer than ``minimum`` remain."""
         kept, bad = finite(data)
         if bad:
-            self.warn(f"{bad} of {len(data)} {what} samples are NaN or Inf; fitted on {len(kept)}")
+            huge = int(np.count_nonzero(np.isfinite(data.values).all(axis=1))) - len(kept)
+            kind = "NaN or Inf" if not huge else f"NaN, Inf or beyond {MAX_MAGNITUDE:g}"
+            self.warn(f"{bad} of {len(data)} {what} samples are {kind}; fitted on {len(kept)}")
         if len(kept) < minimum:
             raise self.fail(
                 f"{len(kept)} finite {what} samples of {len(data)}; the fit needs at least {minimum}"

@@ -94,11 +94,12 @@ class LinearStep(Step):
         Summed term by term (not a matrix product, whose summation order BLAS may choose by the
         array's shape), so a sample's result does not depend on the batch it is corrected in:
         a log converted in batches equals the log corrected whole, bit for bit."""
-        d = np.asarray(values, dtype=np.float64) - self.offset
         m = self.matrix
-        out = np.empty_like(d)
-        for i in range(3):
-            out[:, i] = m[i, 0] * d[:, 0] + m[i, 1] * d[:, 1] + m[i, 2] * d[:, 2]
+        with np.errstate(over="ignore", invalid="ignore"):  # damaged samples (Inf, 1e308)
+            d = np.asarray(values, dtype=np.float64) - self.offset
+            out = np.empty_like(d)
+            for i in range(3):
+                out[:, i] = m[i, 0] * d[:, 0] + m[i, 1] * d[:, 1] + m[i, 2] * d[:, 2]
         return out
 
     def apply(self, table: pa.Table) -> pa.Table:

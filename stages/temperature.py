@@ -39,7 +39,7 @@ from typing import Any, Literal
 import numpy as np
 import pyarrow as pa
 
-from imupipe.readers.table import SENSOR_UNITS, has_stream, sensor
+from imupipe.readers.table import SENSOR_UNITS, has_stream, sensor, usable
 from imupipe.stages import thermal_models as tm
 from imupipe.stages.base import Stage, StageContext, StageOutput
 from imupipe.stages.stepwise import candidate_terms, stepwise
@@ -183,7 +183,7 @@ class TemperatureStage(Stage):
         data = sensor(table, o.sensor)
         what = {"gyro": "gyroscope", "accel": "accelerometer"}[o.sensor]
         ctx.finite(data, f"{what} ({input_name})", minimum=2)
-        finite = np.isfinite(data.values).all(axis=1)
+        finite = usable(data.values).all(axis=1)
         channels = ["temperature"]
         if len(temperature_samples(table, "ambient_temperature")[0]):
             channels.append("ambient_temperature")

@@ -24,7 +24,14 @@ from typing import Any, ClassVar
 import numpy as np
 import pyarrow as pa
 
-from imupipe.readers.table import has_stream, metadata, replace_sensor, sensor, stream_mask
+from imupipe.readers.table import (
+    has_stream,
+    metadata,
+    replace_sensor,
+    sensor,
+    stream_mask,
+    usable,
+)
 from imupipe.stages import thermal_models as tm
 from imupipe.stages.errors import CalibrationError
 from imupipe.stages.steps import Step
@@ -39,7 +46,8 @@ CHANNEL_COLUMN = {"T": "temperature", "Ta": "ambient_temperature"}
 
 
 def temperature_samples(table: pa.Table, column: str) -> tuple[np.ndarray, np.ndarray]:
-    """(stamps, values) of the finite samples of ``temperature`` or ``ambient_temperature``."""
+    """(stamps, values) of the usable samples (:func:`~imupipe.readers.table.usable`: finite,
+    not a damaged 1e308) of ``temperature`` or ``ambient_temperature``."""
     if column not in table.column_names or len(table) == 0:
         return np.zeros(0, np.int64), np.zeros(0)
     if column == "temperature":
@@ -50,7 +58,7 @@ def temperature_samples(table: pa.Table, column: str) -> tuple[np.ndarray, np.nd
     else:
         t = table.column("t_ns").to_numpy()
         v = table.column(column).to_numpy(zero_copy_only=False).astype(np.float64)
-    ok = np.isfinite(v)
+    ok = usable(v)
     return t[ok], v[ok]
 
 
