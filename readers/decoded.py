@@ -98,8 +98,8 @@ def _uniform_cdr(
     """What :func:`imupipe.readers.cdr.decode` gives (and the one frame_id), in a few numpy
     calls for the common case: little-endian CDR payloads of one length, evenly spaced (one
     channel's records one after the other), all with the same encapsulation header, string
-    length and frame_id, so that every field lies at one offset. None for anything else (the general decoder then
-    decodes it, or names what is wrong with it)."""
+    length and frame_id, so that every field lies at one offset. None for anything else (the
+    general decoder then decodes it, or names what is wrong with it)."""
     n = len(starts)
     step = even_step(starts)
     if step is None or not n:

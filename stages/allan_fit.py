@@ -18,13 +18,13 @@ inverse variances and the bias is removed from the targets (it matters at the lo
 the random walk lives). A relative model error ``model_error`` (default 5 % of the deviation) is
 added to every point's variance, so that the short taus, with their enormous EDF, cannot let a
 feature the five terms do not describe (anti-alias filters, Gauss-Markov roll-offs) dictate the
-whole fit. The non-negative log-space least squares is solved by projected
-Gauss-Newton: each step is a non-negative least-squares problem (:func:`imupipe.stages.nnls.nnls`,
-every active set of the few terms solved at once) of the linearised residuals, with step halving. Terms the data does not support are left out by best-subset
-selection: every subset of the requested terms is fitted and the one with the least
-``cost + penalty * terms`` wins (an information criterion; ``penalty`` default 10), with the
-weights thinned to about one independent point per octave of tau (overlapping estimates at
-nearby taus are strongly correlated, a denser grid must not make spurious terms significant);
+whole fit. The non-negative log-space least squares is solved by projected Gauss-Newton: each
+step is a non-negative least-squares problem of the linearised residuals
+(:func:`imupipe.stages.nnls.nnls`), with step halving. Terms the data does not support are left
+out by best-subset selection: every subset of the requested terms is fitted and the one with
+the least ``cost + penalty * terms`` wins (an information criterion; ``penalty`` default 10),
+with the weights thinned to about one independent point per octave of tau (overlapping estimates
+at nearby taus are strongly correlated, a denser grid must not make spurious terms significant);
 left-out terms are exactly zero. The rate ramp R pays the penalty twice: over a few hours one
 realisation of a rate random walk often looks like a ramp, and a stochastic K is the better
 default explanation unless the ramp clearly fits better.
