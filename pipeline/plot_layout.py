@@ -164,7 +164,8 @@ class Axis:
         if self.log:
             with np.errstate(divide="ignore", invalid="ignore"):
                 v = np.where(v > 0, np.log10(np.where(v > 0, v, 1.0)), np.nan)
-        return (v - self.lo) / (self.hi - self.lo)
+        with np.errstate(over="ignore"):  # past float64's range (a 1e308 cell): inf, not drawn
+            return (v - self.lo) / (self.hi - self.lo)
 
 
 def runs(ok: np.ndarray) -> list[slice]:

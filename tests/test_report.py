@@ -378,7 +378,13 @@ def test_axes_of_values_near_the_float64_limit():
     finite ends and ticks, increasing, and every value maps into [0, 1]."""
     from imupipe.pipeline.plot_layout import Axis, nice_ticks, tick_labels
 
-    for lo, hi in ((-1e308, 1e308), (0.0, 1.7e308), (-1.7e308, -1e307), (1e308, 1e308)):
+    for lo, hi in (
+        (-1e308, 1e308),
+        (0.0, 1.7e308),
+        (-1.7e308, -1e307),
+        (1e308, 1e308),
+        (-1.0, 1.79e308),
+    ):
         ticks = nice_ticks(lo, hi)
         assert np.isfinite(ticks).all() and (ticks[1:] > ticks[:-1]).all(), (lo, hi, ticks)
         assert len(tick_labels(ticks)) == len(ticks)
@@ -386,3 +392,5 @@ def test_axes_of_values_near_the_float64_limit():
         axis.pad(0.05)
         assert np.isfinite([axis.lo, axis.hi]).all() and axis.hi > axis.lo
         assert len(axis.labels) == len(axis.ticks) >= 2
+        fractions = axis(np.array([lo, hi, 0.0]))  # beyond the padded axis: inf, not drawn
+        assert not np.isnan(fractions).any()
