@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import ctypes
 import ctypes.util
+import errno
 import sys
 import threading
 import weakref
@@ -45,13 +46,23 @@ if sys.platform.startswith("linux"):
         _madvise = None
 
 
-def _populate(array: np.ndarray, lo: int, hi: int) -> bool:
-    """Map the pages of rows ``lo:hi`` of ``array`` (C-contiguous); False if the kernel cannot."""
+def _populate(array: np.ndarray, lo: int, hi: int) -> int:
+    """Map the pages of rows ``lo:hi`` of ``array`` (C-contiguous): 0, or the kernel's errno
+    (a call interrupted is tried again, up to three times)."""
     row = array.strides[0] if array.ndim else array.itemsize
     start = array.ctypes.data + lo * row
     end = array.ctypes.data + hi * row
     base = start & ~(PAGE - 1)
-    return end <= base or _madvise(base, end - base, MADV_POPULATE_WRITE) == 0  # type: ignore[misc]
+    if end <= base:
+        return 0
+    error = 0
+    for _ in range(3):
+        if _madvise(base, end - base, MADV_POPULATE_WRITE) == 0:  # type: ignore[misc]
+            return 0
+        error = ctypes.get_errno()
+        if error not in (errno.EINTR, errno.EAGAIN):
+            break
+    return error
 
 
 class Prefault:
@@ -70,6 +81,9 @@ class Prefault:
         self.added: list[tuple[np.ndarray, int]] = []
         """Arrays to map from a row on (given while the thread runs), for the thread to take."""
         self.closed = _madvise is None or self.rows == 0
+        self.error = 0
+        """The errno with which the kernel refused to map pages (the thread then stopped; the
+        reader maps them itself, as without this helper), or 0."""
         self.cond = threading.Condition()
         self.thread = None
         if not self.closed:
@@ -128,10 +142,19 @@ def _run(ref: weakref.ref, cond: threading.Condition) -> None:
             hi = min(target, done + STEP_ROWS)
             del owner
         for array, start in added:  # catch up with the others
-            if start < done and not _populate(array, start, done):
-                return
+            error = _populate(array, start, done) if start < done else 0
+            if error:
+                return _failed(ref, error)
             arrays.append(array)
         for array in arrays:
-            if hi > done and not _populate(array, done, hi):
-                return
+            error = _populate(array, done, hi) if hi > done else 0
+            if error:
+                return _failed(ref, error)
         done = max(done, hi)
+
+
+def _failed(ref: weakref.ref, error: int) -> None:
+    """Record on the owner (if it is still there) why the thread stopped."""
+    owner = ref()
+    if owner is not None:
+        owner.error = error

@@ -7,6 +7,13 @@ import sys
 from pathlib import Path
 
 import pytest
+from hypothesis import settings
+
+settings.register_profile("default", derandomize=True)
+settings.register_profile("explore", derandomize=False)
+settings.load_profile("default")
+"""Hypothesis draws the same examples on every run of the suite (a CI result can be reproduced);
+``--hypothesis-profile=explore`` draws new ones each run, to look for new faults."""
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED = REPO.parent / "shared" / "data"

@@ -1,13 +1,32 @@
-"""Test helpers: decode an MCAP with the mcap library's ROS 2 decoder; read Rerun recordings."""
+"""Test helpers: decode an MCAP with the mcap library's ROS 2 decoder; read Rerun recordings;
+see which pages of memory are mapped."""
 
 from __future__ import annotations
 
 import collections
+import ctypes
+import ctypes.util
+import mmap
 from pathlib import Path
 
 import numpy as np
 from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
+
+
+def resident(address: int, size: int) -> float:
+    """The share of the whole pages in ``[address, address + size)`` that are mapped (Linux
+    ``mincore``): memory written, or mapped ahead, against the kernel's untouched zeros."""
+    libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
+    libc.mincore.argtypes = [ctypes.c_void_p, ctypes.c_size_t, ctypes.c_char_p]
+    page = mmap.PAGESIZE
+    start = -(-address // page) * page
+    stop = (address + size) // page * page
+    if stop <= start:
+        return 0.0
+    vec = ctypes.create_string_buffer((stop - start) // page)
+    assert libc.mincore(start, stop - start, vec) == 0, ctypes.get_errno()
+    return float((np.frombuffer(vec.raw, np.uint8) & 1).mean())
 
 
 def decode_mcap(path: str | Path) -> dict[str, list]:

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import ctypes
 import ctypes.util
-import mmap
 import subprocess
 import sys
 from pathlib import Path
@@ -19,24 +18,19 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from helpers import resident
+
 REPO = Path(__file__).resolve().parents[1]
 
 pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="mincore: Linux")
 
 
-def resident(column) -> float:
+def resident_column(column) -> float:
     """The share of the whole pages under an Arrow column's values that are mapped."""
     assert column.num_chunks == 1
     chunk = column.chunk(0)
     buffer = (chunk.values if hasattr(chunk, "values") else chunk).buffers()[1]  # no copy
-    libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
-    libc.mincore.argtypes = [ctypes.c_void_p, ctypes.c_size_t, ctypes.c_char_p]
-    page = mmap.PAGESIZE
-    start = buffer.address // page * page + page
-    stop = (buffer.address + buffer.size) // page * page
-    vec = ctypes.create_string_buffer((stop - start) // page)
-    assert libc.mincore(start, stop - start, vec) == 0, ctypes.get_errno()
-    return float((np.frombuffer(vec.raw, np.uint8) & 1).mean())
+    return resident(buffer.address, buffer.size)
 
 
 def check(path: Path) -> None:
@@ -55,10 +49,10 @@ def check(path: Path) -> None:
     write_mcap(path, make_table(n, temperature_hz=1.0))
     table, _ = read_mcap(InputSpec(path=path))
     assert table.num_rows > n  # the temperature rows among the Imu ones
-    assert resident(table.column("temperature")) > 0.9  # a value every 401 rows: every page
-    assert resident(table.column("gyro_x")) > 0.9
+    assert resident_column(table.column("temperature")) > 0.9  # a value every 401 rows: every page
+    assert resident_column(table.column("gyro_x")) > 0.9
     for name in ("temperature_var", "orientation_x", "gyro_cov"):
-        assert resident(table.column(name)) < 0.05, name  # before anything reads them
+        assert resident_column(table.column(name)) < 0.05, name  # before anything reads them
         chunk = table.column(name).chunk(0)
         values = chunk.values if hasattr(chunk, "values") else chunk
         assert not np.any(values.fill_null(0.0).to_numpy(zero_copy_only=False)), name
