@@ -78,7 +78,9 @@ def fmt(value: Any, digits: int = 5) -> str:
 
 
 def fmt_pm(value: Any, sigma: Any) -> str:
-    """``value ± sigma``, the value rounded to the second significant digit of ``sigma``."""
+    """``value ± sigma``, the value rounded to the second significant digit of ``sigma``; a
+    sigma below 0.001 in powers of ten (``1.0199964 ± 6.8e-6``: no zeros to count, and a table
+    of three such cells fits beside the plots)."""
     if value is None:
         return "-"
     if sigma is None or not isinstance(sigma, (int, float)) or not sigma > 0:
@@ -89,10 +91,18 @@ def fmt_pm(value: Any, sigma: Any) -> str:
     last = math.floor(math.log10(sigma)) - 1  # decimal position of sigma's second digit
     if 1e-3 <= abs(value) < 1e6 and last >= -9:
         decimals = max(0, -last)
-        return f"{value:.{decimals}f} ± {sigma:.{decimals}f}"
+        if decimals <= 4:
+            return f"{value:.{decimals}f} ± {sigma:.{decimals}f}"
+        return f"{value:.{decimals}f} ± {_exp(sigma)}"
     top = math.floor(math.log10(abs(value))) if value else last + 1
     mantissa, exponent = f"{value:.{max(0, top - last)}e}".split("e")
-    return f"{mantissa}e{int(exponent)} ± {sigma:.1e}".replace("e-0", "e-").replace("e+0", "e")
+    return f"{mantissa}e{int(exponent)} ± {_exp(sigma)}"
+
+
+def _exp(sigma: float) -> str:
+    """``sigma`` to two significant digits in powers of ten: ``6.8e-6``, ``2.5e7``."""
+    mantissa, exponent = f"{sigma:.1e}".split("e")
+    return f"{mantissa}e{int(exponent)}"
 
 
 def _get(d: Any, *keys: str, default: Any = None) -> Any:

@@ -20,10 +20,13 @@ from imupipe.pipeline.summary import (
 
 
 def test_value_rounded_to_its_uncertainty():
-    assert fmt_pm(0.0100598090, 2.0018e-6) == "0.0100598 ± 0.0000020"
-    assert fmt_pm(1.0199966606, 6.855e-6) == "1.0199967 ± 0.0000069"
+    assert fmt_pm(0.0100598090, 2.0018e-6) == "0.0100598 ± 2.0e-6"
+    assert fmt_pm(1.0199966606, 6.855e-6) == "1.0199967 ± 6.9e-6"
     assert fmt_pm(4.0609, 0.0117) == "4.061 ± 0.012"
     assert fmt_pm(-8.68e-5, 3.1e-6) == "-8.68e-5 ± 3.1e-6"
+    assert fmt_pm(0.5, 0.0012) == "0.5000 ± 0.0012"  # four decimals: still written out
+    assert fmt_pm(0.002413, 1.5e-7) == "0.00241300 ± 1.5e-7"
+    assert fmt_pm(2.0e7, 3.0e5) == "2.000e7 ± 3.0e5"
     assert fmt_pm(5.0, None) == "5"  # no uncertainty: 5 significant digits
     assert fmt(1.7132e-4, 3) == "1.71e-4"
     assert fmt(None) == "-"
@@ -48,13 +51,13 @@ def test_stage_summary_holds_values_units_uncertainty_and_warnings():
     (s,) = summarise({"gyro_bias": GYRO_BIAS})
     assert s.rows[0].name == "bias" and s.rows[0].unit == "rad/s"
     assert s.rows[0].cells == [
-        "0.0100598 ± 0.0000020",
-        "-0.0198318 ± 0.0000020",
-        "0.0050606 ± 0.0000020",
+        "0.0100598 ± 2.0e-6",
+        "-0.0198318 ± 2.0e-6",
+        "0.0050606 ± 2.0e-6",
     ]
     assert s.warnings == ["the IMU moved"] and s.status == "1 warning(s)"
     md = stage_markdown(s)
-    assert "| bias (rad/s) | 0.0100598 ± 0.0000020 |" in md
+    assert "| bias (rad/s) | 0.0100598 ± 2.0e-6 |" in md
     assert "**Warnings**" in md and "- the IMU moved" in md
     assert "What to look at." in md
 
@@ -158,7 +161,7 @@ def test_terminal_table():
     print_summary(summarise({"gyro_bias": GYRO_BIAS}), Console(file=buf, width=120))
     text = buf.getvalue()
     assert "gyro_bias (gyro_bias on static): 1 warning(s)" in text
-    assert "bias (rad/s)" in text and "0.0100598 ± 0.0000020" in text
+    assert "bias (rad/s)" in text and "0.0100598 ± 2.0e-6" in text
     assert "warning: the IMU moved" in text
 
 
