@@ -73,6 +73,11 @@ def fmt(value: Any, digits: int = 5) -> str:
         return "0"
     if 1e-3 <= abs(value) < 1e6:
         return f"{value:.{digits}g}"
+    return sci(value, digits)
+
+
+def sci(value: float, digits: int) -> str:
+    """``value`` with ``digits`` significant digits in powers of ten: ``1.71e-4``, ``3.0e5``."""
     mantissa, exponent = f"{value:.{digits - 1}e}".split("e")
     return f"{mantissa}e{int(exponent)}"
 
@@ -93,16 +98,9 @@ def fmt_pm(value: Any, sigma: Any) -> str:
         decimals = max(0, -last)
         if decimals <= 4:
             return f"{value:.{decimals}f} ± {sigma:.{decimals}f}"
-        return f"{value:.{decimals}f} ± {_exp(sigma)}"
+        return f"{value:.{decimals}f} ± {sci(sigma, 2)}"
     top = math.floor(math.log10(abs(value))) if value else last + 1
-    mantissa, exponent = f"{value:.{max(0, top - last)}e}".split("e")
-    return f"{mantissa}e{int(exponent)} ± {_exp(sigma)}"
-
-
-def _exp(sigma: float) -> str:
-    """``sigma`` to two significant digits in powers of ten: ``6.8e-6``, ``2.5e7``."""
-    mantissa, exponent = f"{sigma:.1e}".split("e")
-    return f"{mantissa}e{int(exponent)}"
+    return f"{sci(value, max(0, top - last) + 1)} ± {sci(sigma, 2)}"
 
 
 def _get(d: Any, *keys: str, default: Any = None) -> Any:

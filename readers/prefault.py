@@ -47,8 +47,11 @@ if sys.platform.startswith("linux"):
 
 
 def _populate(array: np.ndarray, lo: int, hi: int) -> int:
-    """Map the pages of rows ``lo:hi`` of ``array`` (C-contiguous): 0, or the kernel's errno
-    (a call interrupted is tried again, up to three times)."""
+    """Map the pages of rows ``lo:hi`` of ``array`` (C-contiguous): 0 (nothing to map when
+    ``hi <= lo``), or the kernel's errno (a call interrupted is tried again, up to three
+    times)."""
+    if hi <= lo:
+        return 0
     row = array.strides[0] if array.ndim else array.itemsize
     start = array.ctypes.data + lo * row
     end = array.ctypes.data + hi * row
@@ -142,12 +145,12 @@ def _run(ref: weakref.ref, cond: threading.Condition) -> None:
             hi = min(target, done + STEP_ROWS)
             del owner
         for array, start in added:  # catch up with the others
-            error = _populate(array, start, done) if start < done else 0
+            error = _populate(array, start, done)
             if error:
                 return _failed(ref, error)
             arrays.append(array)
         for array in arrays:
-            error = _populate(array, done, hi) if hi > done else 0
+            error = _populate(array, done, hi)
             if error:
                 return _failed(ref, error)
         done = max(done, hi)
