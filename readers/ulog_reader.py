@@ -10,7 +10,7 @@ pyulog's ``ulog2csv`` names its files.
 
 | stream | topics (first default) | fields |
 |---|---|---|
-| ``imu`` | ``sensor_combined`` (PX4's primary IMU, *already corrected* by PX4's ``CAL_*``), or a raw ``sensor_gyro[_N]`` instance with its ``sensor_accel`` (same ``device_id``) | ``gyro_rad``, ``accelerometer_m_s2``; or ``x, y, z`` of each |
+| ``imu`` | ``sensor_combined`` (PX4's primary IMU, *already corrected* by PX4's ``CAL_*``); ``vehicle_imu[_N]`` (every IMU PX4 integrates, corrected, delta angle and velocity over their interval); or a raw ``sensor_gyro[_N]`` instance with its ``sensor_accel`` partner (see :func:`accel_partner`) | ``gyro_rad``, ``accelerometer_m_s2``; ``delta_angle / delta_angle_dt``, ``delta_velocity / delta_velocity_dt``; or ``x, y, z`` of each |
 | ``mag`` | ``vehicle_magnetometer`` (corrected), old firmware's ``sensor_combined.magnetometer_ga``, or a raw ``sensor_mag[_N]`` | gauss -> tesla (x 1e-4) |
 | ``temperature`` | the ``temperature`` of the IMU's own ``sensor_gyro`` instance, or any ``sensor_gyro``/``sensor_accel``/``sensor_mag``/``sensor_baro`` instance, or old firmware's ``sensor_combined.baro_temp_celcius`` | degC |
 
@@ -77,12 +77,20 @@ READ_TOPICS = (
     "vehicle_magnetometer",
     "sensor_baro",
     "sensor_selection",
+    "vehicle_imu",
 )
 """The topics a read parses (pyulog skips the payload of every other topic)."""
 PARAMETER_PREFIXES = ("CAL_", "TC_", "SENS_BOARD_")
 """Parameters kept in the table's metadata (calibration, thermal compensation, board rotation)."""
 TEMPERATURE_TOPICS = ("sensor_gyro", "sensor_accel", "sensor_mag", "sensor_baro")
-CALIBRATED_TOPICS = ("sensor_combined", "vehicle_magnetometer")
+VEHICLE_IMU_FIELDS = (
+    "delta_angle[0]",
+    "delta_velocity[0]",
+    "delta_angle_dt",
+    "delta_velocity_dt",
+)
+"""The ``vehicle_imu`` fields a read needs."""
+CALIBRATED_TOPICS = ("sensor_combined", "vehicle_imu", "vehicle_magnetometer")
 """Topics PX4 publishes after applying its ``CAL_*`` (and thermal) corrections."""
 
 
@@ -223,21 +231,48 @@ def _old_combined(f: UlogFile, prefix: str) -> Instance | None:
     return inst if bool(np.any(rel != RELATIVE_INVALID)) else None
 
 
+def _imu_pairs(f: UlogFile) -> dict[int, int]:
+    """Gyro device id -> accel device id, as PX4 paired them in ``vehicle_imu`` (every
+    message of every instance; a pair with a zero id is no pair)."""
+    pairs: dict[int, int] = {}
+    for imu in f.named("vehicle_imu"):
+        if not imu.has("gyro_device_id", "accel_device_id"):
+            continue
+        both = np.column_stack(
+            [imu.data["gyro_device_id"].astype(np.int64), imu.data["accel_device_id"]]
+        )
+        for gyro_id, accel_id in np.unique(both, axis=0):
+            if gyro_id and accel_id:
+                pairs.setdefault(int(gyro_id), int(accel_id))
+    return pairs
+
+
 def accel_partner(f: UlogFile, gyro: Instance) -> Instance | None:
-    """The ``sensor_accel`` instance of the same device as a ``sensor_gyro`` instance (same
-    ``device_id``; else the same instance number)."""
+    """The ``sensor_accel`` instance PX4 pairs with a ``sensor_gyro`` instance.
+
+    PX4's ``sensors`` module builds ``VehicleIMU(i, accel_index=i, gyro_index=i)``: instance
+    *i* of ``sensor_accel`` with instance *i* of ``sensor_gyro``
+    (``src/modules/sensors/sensors.cpp``, ``InitializeVehicleIMU``), and ``vehicle_imu``
+    records the pair's ``accel_device_id`` and ``gyro_device_id``. The partner is, in order:
+    the accel of the device ``vehicle_imu`` pairs with the gyro's device (an accelerometer and
+    a gyroscope of one chip are two devices, e.g. a BMI055); the accel of the same device id;
+    the accel of the same instance number.
+    """
     accels = f.named("sensor_accel")
     dev = gyro.device_id()
-    for acc in accels:
-        if dev is not None and acc.device_id() == dev:
-            return acc
+    wanted = [_imu_pairs(f).get(dev), dev] if dev is not None else []
+    for want in wanted:
+        for acc in accels:
+            if want is not None and acc.device_id() == want:
+                return acc
     same = [a for a in accels if a.instance == gyro.instance]
-    return same[0] if same and dev is None else None
+    return same[0] if same else None
 
 
 def candidates(f: UlogFile) -> dict[str, list[str]]:
     """Stream -> the topic instances that can fill it, defaults first."""
     imu = [k for k in ("sensor_combined",) if k in f.instances]
+    imu += [v.key for v in f.named("vehicle_imu") if v.has(*VEHICLE_IMU_FIELDS)]
     imu += [g.key for g in f.named("sensor_gyro") if accel_partner(f, g) is not None]
     mag = [v.key for v in f.named("vehicle_magnetometer")]
     mag += ["sensor_combined"] if _old_combined(f, "magnetometer") else []
@@ -259,6 +294,18 @@ def _selected_gyro_device(f: UlogFile) -> int | None:
     return int(prime) if prime else None
 
 
+def _imu_gyro_device(f: UlogFile, key: str) -> int | None:
+    """The gyro device of an IMU topic instance: its own ``device_id`` (``sensor_gyro``), the
+    first ``gyro_device_id`` (``vehicle_imu``) or the gyro PX4 selected (``sensor_combined``)."""
+    inst = f.instances[key]
+    if inst.name == "sensor_combined":
+        return _selected_gyro_device(f)
+    if inst.name == "vehicle_imu":
+        ids = inst.data.get("gyro_device_id")
+        return int(ids[0]) if ids is not None and len(ids) else None
+    return inst.device_id()
+
+
 def choose_topics(spec: InputSpec, f: UlogFile) -> tuple[dict[str, str], list[str]]:
     """Stream -> topic instance, from the spec's topic settings and the log (see the module
     docstring); returns (choice, warnings). A setting naming a topic that cannot fill its
@@ -278,18 +325,19 @@ def choose_topics(spec: InputSpec, f: UlogFile) -> tuple[dict[str, str], list[st
             )
         chosen[stream] = wanted
     if "imu" not in chosen:
-        raw = [k for k in cands["imu"] if k != "sensor_combined"]
+        raw = [k for k in cands["imu"] if f.instances[k].name == "sensor_gyro"]
+        integrated = [k for k in cands["imu"] if f.instances[k].name == "vehicle_imu"]
         if "sensor_combined" in cands["imu"]:
             chosen["imu"] = "sensor_combined"
-        elif len(raw) == 1:
-            chosen["imu"] = raw[0]
-        elif raw:
+        elif len(raw) == 1 or (not raw and len(integrated) == 1):
+            chosen["imu"] = (raw or integrated)[0]
+        elif raw or integrated:
             raise ReadError(
-                f"{f.path}: several IMU instances ({', '.join(raw)}); set imu_topic in "
-                f"[inputs.{spec.name}]"
+                f"{f.path}: several IMU instances ({', '.join(raw + integrated)}); set "
+                f"imu_topic in [inputs.{spec.name}]"
             )
     imu = chosen.get("imu")
-    raw_imu = imu is not None and imu != "sensor_combined"
+    raw_imu = imu is not None and f.instances[imu].name == "sensor_gyro"
     if "mag" not in chosen:
         if raw_imu:
             pick = [k for k in cands["mag"] if k.startswith("sensor_mag")]
@@ -303,7 +351,7 @@ def choose_topics(spec: InputSpec, f: UlogFile) -> tuple[dict[str, str], list[st
                 f"set mag_topic in [inputs.{spec.name}]"
             )
     if "temperature" not in chosen and imu is not None:
-        device = f.instances[imu].device_id() if raw_imu else _selected_gyro_device(f)
+        device = _imu_gyro_device(f, imu)
         own = [
             g.key
             for g in f.named("sensor_gyro")
@@ -362,8 +410,36 @@ def _pair(gyro_t: np.ndarray, accel_t: np.ndarray) -> np.ndarray:
     return out
 
 
+def _vehicle_imu_rates(inst: Instance, warnings: list[str]) -> tuple[np.ndarray, np.ndarray]:
+    """(gyro rad/s, accel m/s^2) of ``vehicle_imu``: ``delta_angle`` (rad) over
+    ``delta_angle_dt`` and ``delta_velocity`` (m/s) over ``delta_velocity_dt`` (both
+    microseconds, ``msg/VehicleImu.msg``): the mean rate and specific force over the
+    integration interval that ends at ``timestamp_sample``. A zero interval gives NaN
+    (counted in a warning)."""
+    rates = []
+    for delta, dt_field in (
+        ("delta_angle", "delta_angle_dt"),
+        ("delta_velocity", "delta_velocity_dt"),
+    ):
+        dt = inst.data[dt_field].astype(np.float64) * 1e-6
+        with np.errstate(divide="ignore", invalid="ignore"):
+            value = inst.vector(*(f"{delta}[{i}]" for i in range(3))) / dt[:, None]
+        empty = dt <= 0
+        value[empty] = np.nan
+        if empty.any():
+            warnings.append(
+                f"topic {inst.key}: {int(empty.sum())} messages with {dt_field} = 0 (read as NaN)"
+            )
+        rates.append(value)
+    return rates[0], rates[1]
+
+
 def _imu_piece(f: UlogFile, key: str, time: str, warnings: list[str]) -> Piece:
     inst = f.instances[key]
+    if inst.name == "vehicle_imu":
+        stamp, log = inst.stamps(time)
+        gyro, accel = _vehicle_imu_rates(inst, warnings)
+        return _piece(stamp, log, {**_xyz("gyro", gyro), **_xyz("accel", accel)})
     if key == "sensor_combined":
         stamp, log = inst.stamps(time)
         gyro = inst.vector(*(f"gyro_rad[{i}]" for i in range(3)))
@@ -445,8 +521,8 @@ def _device_id(f: UlogFile, stream: str, key: str) -> int | None:
     inst = f.instances[key]
     if inst.device_id() is not None:
         return inst.device_id()
-    if stream == "imu" and key == "sensor_combined":
-        return _selected_gyro_device(f)
+    if stream == "imu":
+        return _imu_gyro_device(f, key)
     if stream == "mag" and inst.name != "sensor_mag":
         prime = f.ulog.initial_parameters.get("CAL_MAG_PRIME")
         return int(prime) if prime else None

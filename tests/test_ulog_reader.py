@@ -263,3 +263,87 @@ def test_damaged_ulog_is_an_imupipe_error_or_reads(tmp_path, cut, flips):
     for read in (lambda: read_input(InputSpec(path=path)), lambda: inspect(InputSpec(path=path))):
         with contextlib.suppress(ImupipeError):
             read()
+
+
+PIXHAWK6C = TEST_DATA / "px4_ulog" / "pixhawk6c_bmi055.ulg"
+"""A Pixhawk 6C log whose instance-0 gyro (0x42000a) and accel (0x41000a) are two devices of
+one BMI055; the fixture's README."""
+
+
+def test_two_device_chip_is_paired_as_px4_pairs_it():
+    ulog = ULog(str(PIXHAWK6C))
+    gyro = ulog.get_dataset("sensor_gyro", 0).data
+    accel = ulog.get_dataset("sensor_accel", 0).data
+    pair = ulog.get_dataset("vehicle_imu", 0).data
+    assert int(gyro["device_id"][0]) != int(accel["device_id"][0])
+    assert int(pair["accel_device_id"][0]) == int(accel["device_id"][0])
+    table, warnings = _read(PIXHAWK6C, imu_topic="sensor_gyro")
+    imu = sensor(table, "gyro")
+    assert np.array_equal(imu.values, _xyz(gyro, "xyz"))
+    # each gyro sample with the accel sample nearest in timestamp_sample (this log samples
+    # the raw topics at about 1 Hz, the two devices at different instants: warned about)
+    near = np.abs(
+        gyro["timestamp_sample"].astype(np.int64)[:, None]
+        - accel["timestamp_sample"].astype(np.int64)[None, :]
+    ).argmin(axis=1)
+    got = sensor(table, "accel").values
+    paired = ~np.isnan(got[:, 0])
+    assert paired.sum() >= 4
+    assert np.array_equal(got[paired], _xyz(accel, "xyz")[near[paired]])
+    assert any("paired by nearest timestamp_sample" in w for w in warnings)
+    assert metadata(table)["device_id"]["imu"] == 0x42000A
+
+
+def test_same_instance_without_vehicle_imu(monkeypatch):
+    """Without vehicle_imu, PX4's own rule: accel instance i with gyro instance i."""
+    from imupipe.readers import ulog_reader
+
+    monkeypatch.setattr(
+        ulog_reader, "READ_TOPICS", tuple(t for t in ulog_reader.READ_TOPICS if t != "vehicle_imu")
+    )
+    table, _ = _read(PIXHAWK6C, imu_topic="sensor_gyro")
+    accel = ULog(str(PIXHAWK6C)).get_dataset("sensor_accel", 0).data
+    got = sensor(table, "accel").values
+    assert np.isin(got[~np.isnan(got[:, 0]), 0], accel["x"].astype(np.float64)).all()
+
+
+@pytest.mark.parametrize("path", [PIXHAWK6C, SMALL])
+def test_every_vehicle_imu_instance_as_rates(path):
+    ulog = ULog(str(path))
+    instances = [d for d in ulog.data_list if d.name == "vehicle_imu"]
+    assert len(instances) >= 2
+    for d in instances:
+        key = "vehicle_imu" if d.multi_id == 0 else f"vehicle_imu_{d.multi_id}"
+        table, _ = _read(path, imu_topic=key)
+        ref = d.data
+        dt_a = ref["delta_angle_dt"].astype(np.float64) * 1e-6  # microseconds (VehicleImu.msg)
+        dt_v = ref["delta_velocity_dt"].astype(np.float64) * 1e-6
+        gyro, accel = sensor(table, "gyro"), sensor(table, "accel")
+        assert np.array_equal(gyro.t_ns, ref["timestamp_sample"].astype(np.int64) * 1000)
+        assert np.allclose(gyro.values, _xyz(ref, "delta_angle[{}]") / dt_a[:, None], rtol=1e-12)
+        assert np.allclose(
+            accel.values, _xyz(ref, "delta_velocity[{}]") / dt_v[:, None], rtol=1e-12
+        )
+        # a corrected IMU at rest-ish on the ground: |a| near g
+        assert 8.0 < np.median(np.linalg.norm(accel.values, axis=1)) < 11.5
+        meta = metadata(table)
+        assert meta["px4"]["calibrated"]["imu"] is True
+        assert meta["device_id"]["imu"] == int(ref["gyro_device_id"][0])
+        # the temperature of the gyro device vehicle_imu integrates
+        gyros = {
+            int(g.data["device_id"][0]): g.multi_id
+            for g in ulog.data_list
+            if g.name == "sensor_gyro"
+        }
+        want = gyros[int(ref["gyro_device_id"][0])]
+        assert meta["topics"]["temperature"].startswith(
+            "sensor_gyro" if want == 0 else f"sensor_gyro_{want}"
+        )
+
+
+def test_every_ulog_imu_is_a_candidate():
+    info = json.loads(run_cli("inspect", PIXHAWK6C, "--json").stdout)
+    for key in ("vehicle_imu", "vehicle_imu_1", "sensor_gyro", "sensor_gyro_1"):
+        text = run_cli("inspect", PIXHAWK6C, "--imu-topic", key).stdout
+        assert f"stream imu: {key} (" in text, text
+    assert info["streams"]["imu"]["topic"] == "sensor_combined"
