@@ -43,7 +43,7 @@ MAX_BYTES = 64 * 1024 * 1024
 """A calibration larger than this is refused (a real one is a few kB to a few MB)."""
 MAX_DEPTH = 64
 """Deepest JSON nesting accepted (a calibration nests about 6 deep)."""
-PROVENANCE_KEYS = ("topics", "frame_id", "instance", "device_id", "px4")
+PROVENANCE_KEYS = ("topics", "frame_id", "instance", "device_id", "px4", "ardupilot")
 """Table metadata keys copied into ``fitted_on`` when present."""
 
 

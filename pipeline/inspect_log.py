@@ -92,7 +92,7 @@ def inspect(spec: InputSpec) -> dict[str, Any]:
     described = _from_summary(path) if fmt == "mcap" else None
     types, topics = described if described is not None else _from_messages(spec)
     out: dict[str, Any] = {"path": str(path), "format": fmt, "topics": topics, "streams": {}}
-    if fmt == "ulog":
+    if fmt in ("ulog", "dataflash"):
         return _ulog(spec, out)
     try:
         chosen = select_topics(path, spec, types)
@@ -151,9 +151,14 @@ def _from_messages(spec: InputSpec) -> tuple[dict[str, str], dict[str, Any]]:
 
 
 def _ulog(spec: InputSpec, out: dict[str, Any]) -> dict[str, Any]:
-    """The ULog part of :func:`inspect`: instances, chosen streams, PX4's calibration."""
+    """The ULog (and ArduPilot DataFlash) part of :func:`inspect`: instances, chosen streams,
+    the autopilot's calibration."""
     from imupipe.readers.table import SENSOR_COLUMNS, STREAM_OF_SENSOR
-    from imupipe.readers.ulog_reader import describe
+
+    if out["format"] == "dataflash":
+        from imupipe.readers.dataflash_reader import describe
+    else:
+        from imupipe.readers.ulog_reader import describe
 
     info = describe(spec)
     for key, inst in info["instances"].items():
@@ -177,6 +182,7 @@ def _ulog(spec: InputSpec, out: dict[str, Any]) -> dict[str, Any]:
     out["columns"] = columns
     out["warnings"] = info["warnings"]
     out["parameters"] = info["parameters"]
+    out["parameters_of"] = info.get("parameters_of", "PX4")
     return out
 
 
@@ -244,7 +250,8 @@ def render(info: dict[str, Any]) -> str:
         if v.get("device_id") is not None:
             extra += f", device id {v['device_id']}"
         if "px4_calibrated" in v:
-            extra += ", already calibrated by PX4" if v["px4_calibrated"] else ", raw"
+            by = info.get("parameters_of", "PX4")
+            extra += f", already calibrated by {by}" if v["px4_calibrated"] else ", raw"
         lines.append(f"stream {stream}: {source} ({v['count']} samples{extra})")
     if info["columns"]:
         lines.append("columns filled: " + ", ".join(info["columns"]))
@@ -259,7 +266,7 @@ def render(info: dict[str, Any]) -> str:
         lines.append("file columns: " + ", ".join(lay["file_columns"]))
     if info.get("parameters"):
         lines.append(
-            "PX4 parameters: "
+            f"{info.get('parameters_of', 'PX4')} parameters: "
             + ", ".join(
                 f"{k}={v:.6g}" if isinstance(v, float) else f"{k}={v}"
                 for k, v in info["parameters"].items()

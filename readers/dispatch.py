@@ -23,6 +23,7 @@ READERS: dict[str, str] = {
     "ros1": "imupipe.readers.ros1_reader:read_ros1",
     "ros2": "imupipe.readers.ros2_reader:read_ros2",
     "ulog": "imupipe.readers.ulog_reader:read_ulog",
+    "dataflash": "imupipe.readers.dataflash_reader:read_dataflash",
 }
 """Format -> "module:function(spec) -> (table, warnings)"."""
 
@@ -49,13 +50,14 @@ SOURCES: dict[str, str] = {
     "ros1": "imupipe.readers.ros1_reader:bag_sources",
     "ros2": "imupipe.readers.ros2_reader:bag2_sources",
     "ulog": "imupipe.readers.ulog_reader:ulog_sources",
+    "dataflash": "imupipe.readers.dataflash_reader:dataflash_sources",
 }
 """Format -> "module:function(path) -> [LogSource]": the files of a binary log, for ``inspect``."""
 
 
 def detect_format(path: Path) -> str:
-    """``csv``, ``mcap``, ``ros1``, ``ros2`` or ``ulog`` for a path; ReadError when unknown or
-    missing."""
+    """``csv``, ``mcap``, ``ros1``, ``ros2``, ``ulog`` or ``dataflash`` (ArduPilot ``.bin``) for
+    a path; ReadError when unknown or missing."""
     if not path.exists():
         raise ReadError(f"{path}: no such file or folder")
     if path.is_dir():
@@ -78,9 +80,11 @@ def detect_format(path: Path) -> str:
         return "ros2"
     if suffix == ".ulg":
         return "ulog"
+    if suffix == ".bin":
+        return "dataflash"
     raise ReadError(
-        f"{path}: unknown log format '{suffix}' (expected .csv, .mcap, .bag, .db3, .ulg or a ROS 2 "
-        "bag folder)"
+        f"{path}: unknown log format '{suffix}' (expected .csv, .mcap, .bag, .db3, .ulg, .bin or "
+        "a ROS 2 bag folder)"
     )
 
 
@@ -139,5 +143,5 @@ def log_sources(spec: InputSpec) -> list[LogSource]:
     """The sources of a binary input (MCAP, ROS 1 bag(s), ROS 2 bag, ULog)."""
     fmt = detect_format(Path(spec.path))
     if fmt not in SOURCES:
-        raise ReadError(f"{spec.path}: not a binary log (MCAP, ROS bag or ULog)")
+        raise ReadError(f"{spec.path}: not a binary log (MCAP, ROS bag, ULog or DataFlash)")
     return list(_load(spec, fmt, SOURCES[fmt])(Path(spec.path)))
