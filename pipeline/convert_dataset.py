@@ -33,6 +33,7 @@ UNITS: dict[str, str] = {
     **{f"{s}_{a}": SENSOR_UNITS[s] for s in ("gyro", "accel", "mag") for a in "xyz"},
     "temperature": SENSOR_UNITS["temperature"],
     "ambient_temperature": SENSOR_UNITS["temperature"],
+    "pressure": "Pa",
     "orientation_x": "1",
     "orientation_y": "1",
     "orientation_z": "1",

@@ -31,6 +31,9 @@ SI):
 | ``mag`` | ``MAG[_N]``, ``MAG2``, ``MAG3`` | ``MagX..Z`` milligauss (x 1e-7 to tesla) |
 | ``temperature`` | the IMU's own ``T``/``Temp`` (degC), or a ``BARO[_N]``/``BAR2``/``BAR3`` ``Temp`` | degC |
 
+A barometer read as the temperature stream also fills the optional ``pressure`` column (its
+``Press``, Pa) on the same rows.
+
 Both ArduPilot's ``IMU`` and ``MAG`` values are *already corrected* by its own calibration
 (``INS_*OFFS``/``INS_*SCAL``, ``COMPASS_OFS*``...; the board orientation applied): the table's
 metadata says so (``ardupilot.calibrated``), as for PX4's ``sensor_combined``.
@@ -58,7 +61,7 @@ import pyarrow as pa
 from imupipe.readers.decoded import Piece
 from imupipe.readers.errors import ReadError
 from imupipe.readers.spec import InputSpec
-from imupipe.readers.table import metadata, with_metadata
+from imupipe.readers.table import metadata, with_metadata, with_stream_column
 from imupipe.readers.table_buffer import assemble
 from imupipe.readers.topics import TOPIC_KEYS
 
@@ -519,6 +522,20 @@ def read_dataflash(spec: InputSpec) -> tuple[pa.Table, list[str]]:
         where=str(spec.path),
         warnings=warnings,
     )
+    baro = chosen.get("temperature")
+    if (
+        baro is not None
+        and f.instances[baro].name in BARO_NAMES
+        and _has(f, f.instances[baro], "Press")
+    ):
+        inst = f.instances[baro]
+        table = with_stream_column(
+            table,
+            "temperature",
+            "pressure",
+            pieces["temperature"].stamp,
+            f.field(inst.name, "Press", inst.rows),  # Pa (LogStructure.h units: P)
+        )
     meta = metadata(table)
     meta.pop("frame_id", None)  # a DataFlash log names no frames
     meta["instance"] = {s: f.instances[k].instance for s, k in chosen.items()}

@@ -27,6 +27,7 @@ message (absent or null: the writer uses ROS defaults):
 | ``temperature_var`` | float64 | sensor_msgs/Temperature variance |
 | ``label`` | string | a CSV's segment label (csv ``label`` key), e.g. a calibration pose name |
 | ``ambient_temperature`` | float64 | degC, the air (chamber) temperature around the IMU (csv ``ambient_temperature`` key); null where absent |
+| ``pressure`` | float64 | Pa, a barometer's static pressure, on the ``temperature`` rows read from a barometer (ULog ``sensor_baro``, DataFlash ``BARO``: the temperature stream carries the barometer's own temperature); null elsewhere |
 
 **Streams.** Each sensor has its own validity (the first column of the sensor is valid). A row
 belongs to the ``imu`` stream where gyro *or* accel is valid, to the ``mag`` stream where
@@ -115,6 +116,7 @@ OPTIONAL_FIELDS = pa.schema(
         pa.field("temperature_var", pa.float64()),
         pa.field("label", pa.string()),
         pa.field("ambient_temperature", pa.float64()),
+        pa.field("pressure", pa.float64()),
     ]
 )
 
@@ -222,6 +224,32 @@ def stream_mask(table: pa.Table, stream: str) -> np.ndarray:
             return np.ones(len(table), dtype=bool)
         mask |= valid
     return mask
+
+
+def with_stream_column(
+    table: pa.Table, stream: str, name: str, t_ns: np.ndarray, values: np.ndarray
+) -> pa.Table:
+    """``table`` with the optional column ``name`` (float64, see :data:`OPTIONAL_FIELDS`)
+    holding ``values`` on the rows of ``stream`` and null elsewhere.
+
+    ``values`` and ``t_ns`` are one per message of the stream in the order the reader decoded
+    them; the table holds a stream's messages sorted stably by ``t_ns``, so the values go to
+    the rows in that order. ValueError when the rows do not match ``t_ns``.
+    """
+    rows = np.flatnonzero(stream_mask(table, stream))
+    order = np.argsort(np.asarray(t_ns, dtype=np.int64), kind="stable")
+    stamps = table.column("t_ns").to_numpy()[rows]
+    if len(rows) != len(order) or not np.array_equal(stamps, np.asarray(t_ns)[order]):
+        raise ValueError(f"the {stream} rows do not match the {len(order)} stamps given")
+    full = np.zeros(len(table), dtype=np.float64)
+    full[rows] = np.asarray(values, dtype=np.float64)[order]
+    valid = np.zeros(len(table), dtype=bool)
+    valid[rows] = True
+    field = OPTIONAL_FIELDS.field(name)
+    column = pa.array(full, pa.float64(), mask=~valid)
+    if name in table.column_names:
+        return table.set_column(table.column_names.index(name), field, column)
+    return table.append_column(field, column)
 
 
 def has_sensor(table: pa.Table, name: str) -> bool:

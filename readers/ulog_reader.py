@@ -14,6 +14,9 @@ pyulog's ``ulog2csv`` names its files.
 | ``mag`` | ``vehicle_magnetometer`` (corrected), old firmware's ``sensor_combined.magnetometer_ga``, or a raw ``sensor_mag[_N]`` | gauss -> tesla (x 1e-4) |
 | ``temperature`` | the ``temperature`` of the IMU's own ``sensor_gyro`` instance, or any ``sensor_gyro``/``sensor_accel``/``sensor_mag``/``sensor_baro`` instance, or old firmware's ``sensor_combined.baro_temp_celcius`` | degC |
 
+A ``sensor_baro`` instance read as the temperature stream also fills the optional ``pressure``
+column (Pa; :func:`baro_pascal`) on the same rows.
+
 Defaults: ``imu_topic`` unset takes ``sensor_combined`` when logged, else the only
 ``sensor_gyro`` instance (several: an error naming them). ``mag_topic`` unset takes the
 magnetometer that matches the IMU's kind (corrected ``vehicle_magnetometer`` or old
@@ -58,7 +61,7 @@ import pyarrow as pa
 from imupipe.readers.decoded import Piece
 from imupipe.readers.errors import ReadError
 from imupipe.readers.spec import InputSpec
-from imupipe.readers.table import metadata, with_metadata
+from imupipe.readers.table import metadata, with_metadata, with_stream_column
 from imupipe.readers.table_buffer import assemble
 from imupipe.readers.topics import TOPIC_KEYS
 
@@ -544,6 +547,17 @@ def _calibrated(f: UlogFile, chosen: Mapping[str, str]) -> dict[str, bool]:
     }
 
 
+MILLIBAR_BELOW = 2000.0
+"""A ``sensor_baro.pressure`` median below this is millibar (PX4 up to v1.12 logged millibar,
+later firmware pascal; Earth's air pressure is 30-110 kPa, so the ranges never overlap)."""
+
+
+def baro_pascal(baro: Instance) -> np.ndarray:
+    """A ``sensor_baro`` instance's pressure in Pa (millibar x 100 for older firmware)."""
+    p = baro.data["pressure"].astype(np.float64)
+    return p * 100.0 if len(p) and np.nanmedian(p) < MILLIBAR_BELOW else p
+
+
 def output_topic(stream: str, inst: Instance) -> str:
     """The table's (and the corrected MCAP's) topic name of a stream read from ``inst``: the
     instance's key, with ``/temperature`` (or ``/magnetometer`` for old firmware's
@@ -583,6 +597,11 @@ def read_ulog(spec: InputSpec) -> tuple[pa.Table, list[str]]:
         where=str(spec.path),
         warnings=warnings,
     )
+    baro = f.instances.get(chosen.get("temperature", ""))
+    if baro is not None and baro.name == "sensor_baro" and baro.has("pressure"):
+        table = with_stream_column(
+            table, "temperature", "pressure", pieces["temperature"].stamp, baro_pascal(baro)
+        )
     meta = metadata(table)
     meta.pop("frame_id", None)  # a ULog names no frames
     meta["instance"] = {s: f.instances[k].instance for s, k in chosen.items()}

@@ -180,7 +180,9 @@ def test_synthetic_is_dfreaders(synthetic):
     assert _same_as_dfreader(path) > 10_000
 
 
-@pytest.mark.parametrize("name", FLIGHTS)
+@pytest.mark.parametrize(
+    "name", [pytest.param(n, marks=pytest.mark.slow) for n in FLIGHTS[:3]] + [FLIGHTS[3]]
+)
 def test_real_logs_value_for_value(name):
     """Every field of every record of the real logs equals DFReader's (counts too)."""
     path = shared_path("logs", "ardupilot_flights", name)
@@ -217,6 +219,9 @@ def test_baro_temperature_and_choice_errors(synthetic):
     path, _ = synthetic
     table, _ = read_input(InputSpec(path=path, imu_topic="IMU", temperature_topic="BARO"))
     assert np.all(sensor(table, "temperature").values == 25.5)  # int16 centi-degC
+    pressure = table.column("pressure").to_numpy(zero_copy_only=False)
+    rows = ~np.isnan(table.column("temperature").to_numpy(zero_copy_only=False))
+    assert np.all(pressure[rows] == 101325.0) and np.isnan(pressure[~rows]).all()  # Pa
     with pytest.raises(ReadError, match="several IMU instances \\(IMU, IMU_1\\)"):
         read_input(InputSpec(path=path))
     with pytest.raises(ReadError, match="imu_topic 'IMU2' is not in the log.*IMU, IMU_1"):

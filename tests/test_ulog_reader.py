@@ -347,3 +347,21 @@ def test_every_ulog_imu_is_a_candidate():
         text = run_cli("inspect", PIXHAWK6C, "--imu-topic", key).stdout
         assert f"stream imu: {key} (" in text, text
     assert info["streams"]["imu"]["topic"] == "sensor_combined"
+
+
+@pytest.mark.parametrize(
+    "path, key, scale", [(SMALL, "sensor_baro_1", 100.0), (PIXHAWK6C, "sensor_baro", 1.0)]
+)
+def test_baro_pressure_and_temperature(path, key, scale):
+    """A barometer as the temperature stream fills ``pressure`` (Pa) on the same rows: PX4
+    v1.11 (SMALL) logged millibar, v1.13 (PIXHAWK6C) pascal."""
+    multi = int(key.rsplit("_", 1)[1]) if key[-1].isdigit() else 0
+    ref = ULog(str(path)).get_dataset("sensor_baro", multi).data
+    table, _ = _read(path, temperature_topic=key)
+    temp = sensor(table, "temperature")
+    assert np.array_equal(temp.values[:, 0], ref["temperature"].astype(np.float64))
+    rows = np.flatnonzero(~np.isnan(table.column("temperature").to_numpy(zero_copy_only=False)))
+    pressure = table.column("pressure").to_numpy(zero_copy_only=False)
+    assert np.array_equal(pressure[rows], ref["pressure"].astype(np.float64) * scale)
+    assert table.column("pressure").null_count == len(table) - len(rows)
+    assert 9e4 < np.median(pressure[rows]) < 1.1e5
