@@ -111,6 +111,8 @@ OLD_STYLE_INSTANCE = {"IMU2": 1, "IMU3": 2, "MAG2": 1, "MAG3": 2, "BAR2": 1, "BA
 GYRO = ("GyrX", "GyrY", "GyrZ")
 ACCEL = ("AccX", "AccY", "AccZ")
 MAG = ("MagX", "MagY", "MagZ")
+NUMERIC = "bBghHiIfdcCeELMqQ"
+"""Format characters of one number (what a stream's fields and an instance field must be)."""
 TEMPERATURE_FIELDS = ("T", "Temp")
 """An ``IMU`` message's temperature (``T`` since 3.5, ``Temp`` before); a ``BARO``'s ``Temp``."""
 
@@ -125,6 +127,12 @@ class Format:
     length: int
     format: str
     columns: tuple[str, ...]
+
+    def numeric(self, *columns: str) -> bool:
+        """Whether every one of ``columns`` is a field holding one number."""
+        return all(
+            c in self.columns and self.format[self.columns.index(c)] in NUMERIC for c in columns
+        )
 
     def dtype(self) -> np.dtype | None:
         """The payload's structured dtype; None when the format is unknown or does not add up
@@ -248,7 +256,10 @@ class DataFlashLog:
         self.offsets, self.types, self.formats, self.end = record_offsets(self.buf)
         if not len(self.offsets) or len(self.formats) < 2:
             raise ReadError(f"{self.path}: not an ArduPilot DataFlash log (no FMT records found)")
-        self.by_name = {f.name: f for f in self.formats.values()}
+        self.by_name: dict[str, Format] = {}
+        """Message name -> its format (a name defined twice: the first type)."""
+        for fmt in self.formats.values():
+            self.by_name.setdefault(fmt.name, fmt)
         self._records: dict[str, np.ndarray] = {}
         self.instances = self._instances()
 
@@ -289,14 +300,15 @@ class DataFlashLog:
         if code in FIELD_SCALES:
             return values.astype(np.float64) / (1 / FIELD_SCALES[code])
         if values.dtype.kind in "iuf" and values.ndim == 1:
-            return values.astype(np.float64)
+            with np.errstate(invalid="ignore"):  # a float16 NaN of a damaged record
+                return values.astype(np.float64)
         return values
 
     def time_ns(self, name: str, rows: np.ndarray | None = None) -> np.ndarray | None:
         """``TimeUS`` (or old ``TimeMS``) of message ``name`` as int64 ns; None without one."""
         fmt = self.by_name[name]
         for column, scale in (("TimeUS", 1000), ("TimeMS", 1_000_000)):
-            if column in fmt.columns:
+            if fmt.numeric(column):
                 t = self.records(name)[column].astype(np.int64) * scale
                 return t if rows is None else t[rows]
         return None
@@ -307,9 +319,9 @@ class DataFlashLog:
         present = np.unique(self.types)
         for t in present.tolist():
             fmt = self.formats[t]
-            if fmt.dtype() is None:
+            if fmt.dtype() is None or self.by_name[fmt.name] is not fmt:
                 continue
-            if "I" in fmt.columns and fmt.name != "FMT":
+            if fmt.numeric("I") and fmt.name != "FMT":
                 ids = self.records(fmt.name)["I"].astype(np.int64)
                 for i in np.unique(ids).tolist():
                     inst = Instance(fmt.name, int(i), np.flatnonzero(ids == i))
@@ -345,7 +357,12 @@ class DataFlashLog:
     # -- what the log says about itself --------------------------------------------------------
     def parameters(self) -> dict[str, float]:
         """Every ``PARM`` name with its first value in the log (the value at start)."""
-        if "PARM" not in self.by_name or "PARM" not in self.topic_types().values():
+        fmt = self.by_name.get("PARM")
+        if fmt is None or "PARM" not in self.topic_types().values():
+            return {}
+        if not fmt.numeric("Value") or "Name" not in fmt.columns:
+            return {}
+        if fmt.format[fmt.columns.index("Name")] not in "nNZ":
             return {}
         names = self.records("PARM")["Name"]
         values = self.field("PARM", "Value")
@@ -354,7 +371,10 @@ class DataFlashLog:
 
     def firmware(self) -> str | None:
         """The first ``MSG`` text naming the vehicle firmware (``ArduCopter V3.3-dev``)."""
-        if "MSG" not in self.topic_types().values():
+        fmt = self.by_name.get("MSG")
+        if fmt is None or "MSG" not in self.topic_types().values() or "Message" not in fmt.columns:
+            return None
+        if fmt.format[fmt.columns.index("Message")] not in "nNZ":
             return None
         for raw in self.records("MSG")["Message"][:20]:
             text = _text(raw)
@@ -383,12 +403,13 @@ class Instance:
 
 
 def _has(f: DataFlashLog, inst: Instance, *columns: str) -> bool:
-    return all(c in f.by_name[inst.name].columns for c in columns)
+    """Whether the instance's message has the numeric ``columns`` and a time."""
+    fmt = f.by_name[inst.name]
+    return fmt.numeric(*columns) and (fmt.numeric("TimeUS") or fmt.numeric("TimeMS"))
 
 
 def _temperature_field(f: DataFlashLog, inst: Instance) -> str | None:
-    cols = f.by_name[inst.name].columns
-    return next((c for c in TEMPERATURE_FIELDS if c in cols), None)
+    return next((c for c in TEMPERATURE_FIELDS if _has(f, inst, c)), None)
 
 
 def candidates(f: DataFlashLog) -> dict[str, list[str]]:

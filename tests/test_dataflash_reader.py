@@ -5,17 +5,22 @@ names, ``inspect``, ``run`` and ``convert``, and damaged files."""
 
 from __future__ import annotations
 
+import contextlib
 import json
+import os
 import struct
 from pathlib import Path
 
 import numpy as np
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 from pymavlink import DFReader
 
+from imupipe.pipeline.inspect_log import inspect
 from imupipe.readers.dataflash_reader import DataFlashLog, record_offsets
 from imupipe.readers.dispatch import detect_format, read_input
-from imupipe.readers.errors import ReadError
+from imupipe.readers.errors import ImupipeError, ReadError
 from imupipe.readers.spec import InputSpec
 from imupipe.readers.table import counts, metadata, sensor
 
@@ -349,3 +354,30 @@ def test_record_walk_skips_false_headers():
     offsets, types, _, end = record_offsets(np.frombuffer(log, dtype=np.uint8))
     assert types.tolist() == [128, 140, 140, 140]
     assert end == len(log)
+
+
+@settings(
+    max_examples=20,
+    derandomize="IMUPIPE_FUZZ_EXAMPLES" not in os.environ,
+    deadline=10000,
+    suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow],
+)
+@given(
+    cut=st.floats(0.0, 1.0),
+    flips=st.lists(st.tuples(st.floats(0.0, 0.2), st.integers(1, 255)), max_size=20),
+)
+def test_damaged_log_is_an_imupipe_error_or_reads(synthetic, cut, flips):
+    """Truncations and byte flips (mostly in the FMT records at the start): read_input and
+    inspect give a table or one ImupipeError."""
+    path, _ = synthetic
+    data = bytearray(path.read_bytes())
+    for where, xor in flips:
+        data[min(int(where * len(data)), len(data) - 1)] ^= xor
+    if cut < 0.5:
+        data = data[: int(cut * 2 * len(data))]
+    damaged = path.with_name("damaged.bin")
+    damaged.write_bytes(bytes(data))
+    for spec in (InputSpec(path=damaged), InputSpec(path=damaged, imu_topic="IMU")):
+        for read in (read_input, inspect):
+            with contextlib.suppress(ImupipeError):
+                read(spec)
