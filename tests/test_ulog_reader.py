@@ -365,3 +365,48 @@ def test_baro_pressure_and_temperature(path, key, scale):
     assert np.array_equal(pressure[rows], ref["pressure"].astype(np.float64) * scale)
     assert table.column("pressure").null_count == len(table) - len(rows)
     assert 9e4 < np.median(pressure[rows]) < 1.1e5
+
+
+ULOGS = {
+    "sample.ulg": lambda: shared_path("logs", "px4_ulog", "sample.ulg"),
+    "sample_log_small.ulg": lambda: SMALL,
+    "sample_logging_tagged_and_default_params.ulg": lambda: shared_path(
+        "logs", "px4_ulog", "sample_logging_tagged_and_default_params.ulg"
+    ),
+    "pixhawk6c_bmi055.ulg": lambda: PIXHAWK6C,
+}
+"""pyulog's test logs (BSD-3) and the MCAP project's Pixhawk 6C fixture (MIT)."""
+
+
+@pytest.mark.parametrize("name", list(ULOGS))
+def test_every_imu_of_every_log_is_pyulogs(name):
+    """Every IMU candidate of each log, value for value against pyulog: sensor_combined,
+    vehicle_imu[_N] (delta over dt), sensor_gyro[_N] with its partner's accel samples."""
+    from imupipe.readers.ulog_reader import UlogFile, accel_partner, candidates
+
+    path = ULOGS[name]()
+    f = UlogFile(path)
+    imus = candidates(f)["imu"]
+    assert imus
+    for key in imus:
+        inst = f.instances[key]
+        table, _ = _read(path, imu_topic=key)
+        gyro, accel = sensor(table, "gyro"), sensor(table, "accel")
+        ref = inst.data
+        if inst.name == "sensor_combined":
+            want_g, want_a = _xyz(ref, "gyro_rad[{}]"), _xyz(ref, "accelerometer_m_s2[{}]")
+        elif inst.name == "vehicle_imu":
+            want_g = _xyz(ref, "delta_angle[{}]") / (ref["delta_angle_dt"][:, None] * 1e-6)
+            want_a = _xyz(ref, "delta_velocity[{}]") / (ref["delta_velocity_dt"][:, None] * 1e-6)
+        else:
+            partner = accel_partner(f, inst)
+            want_g, want_a = _xyz(ref, "xyz"), _xyz(partner.data, "xyz")
+        t = ref["timestamp_sample" if "timestamp_sample" in ref else "timestamp"]
+        order = np.argsort(t, kind="stable")
+        assert np.array_equal(gyro.t_ns, t[order].astype(np.int64) * 1000), key
+        assert np.allclose(gyro.values, want_g[order], rtol=1e-12, atol=0), key
+        if inst.name == "sensor_gyro":  # each paired accel sample is one of the partner's
+            got = accel.values[~np.isnan(accel.values[:, 0])]
+            assert len(got) and all(any(np.array_equal(g, w) for w in want_a) for g in got), key
+        else:
+            assert np.allclose(accel.values, want_a[order], rtol=1e-12, atol=0), key
