@@ -139,14 +139,23 @@ def _from_messages(spec: InputSpec) -> tuple[dict[str, str], dict[str, Any]]:
 
     types: dict[str, str] = {}
     times: dict[str, list[np.ndarray]] = {}
+    untimed: dict[str, int] = {}
     for src in log_sources(spec):
-        types.update(src.topic_types())
-        for topic, t in src.topic_times().items():
+        src_types = src.topic_types()
+        types.update(src_types)
+        src_times = src.topic_times()
+        for topic, t in src_times.items():
             times.setdefault(topic, []).append(t)
+        if set(src_types) - set(src_times):  # counted only when some topic has no times
+            for topic, n in (src.topic_counts() or {}).items():
+                untimed[topic] = untimed.get(topic, 0) + n
     topics = {}
     for topic in sorted(types):
-        t = np.concatenate(times[topic]) if topic in times else np.zeros(0, np.int64)
-        topics[topic] = {"type": normalize_type(types[topic]), **_span(t)}
+        if topic in times:
+            span = _span(np.concatenate(times[topic]))
+        else:  # a message without a time (an old DataFlash PARM): its count alone
+            span = {**_counted(0, None, None), "count": untimed.get(topic, 0)}
+        topics[topic] = {"type": normalize_type(types[topic]), **span}
     return types, topics
 
 

@@ -381,3 +381,12 @@ def test_damaged_log_is_an_imupipe_error_or_reads(synthetic, cut, flips):
         for read in (read_input, inspect):
             with contextlib.suppress(ImupipeError):
                 read(spec)
+
+
+def test_inspect_counts_messages_without_time():
+    """Copter 3.3's PARM has no TimeMS: inspect still gives its count."""
+    path = shared_path("logs", "ardupilot_flights", "erle_pxf_118/118.BIN")
+    info = json.loads(run_cli("inspect", path, "--json").stdout)
+    assert info["topics"]["PARM"]["count"] == 395 and info["topics"]["PARM"]["rate_hz"] is None
+    assert info["topics"]["IMU"]["count"] == 12198
+    assert info["streams"]["imu"]["topic"] == "IMU"
