@@ -151,6 +151,15 @@ def _text(raw: bytes) -> str:
     return raw.split(b"\0", 1)[0].decode("ascii", "replace")
 
 
+def _payloads(buf: np.ndarray, offsets: np.ndarray, size: int, dtype: np.dtype) -> np.ndarray:
+    """The ``size``-byte payloads of the records at ``offsets`` as a structured array: a
+    sliding-window view of the file, fancy-indexed by record (copies the payload bytes only)."""
+    windows = np.lib.stride_tricks.sliding_window_view(buf, size) if size else None
+    if windows is None or not len(offsets):
+        return np.zeros(len(offsets), dtype=dtype)
+    return np.ascontiguousarray(windows[offsets + 3]).view(dtype).reshape(-1)
+
+
 def _candidates(buf: np.ndarray) -> np.ndarray:
     """Offsets of every ``0xA3 0x95`` pair that leaves room for a type byte."""
     if len(buf) < 3:
@@ -174,8 +183,7 @@ def _formats_at(buf: np.ndarray, offsets: np.ndarray) -> dict[int, Format]:
     offsets = offsets[offsets <= end]
     if not len(offsets):
         return formats
-    rows = buf[offsets[:, None] + np.arange(3, 3 + FMT_DTYPE.itemsize)]
-    recs = np.ascontiguousarray(rows).view(FMT_DTYPE).reshape(-1)
+    recs = _payloads(buf, offsets, FMT_DTYPE.itemsize, FMT_DTYPE)
     for rec in recs:  # one per message type: tens, not per sample
         t = int(rec["type"])
         if t in formats or int(rec["length"]) < 3:
@@ -285,8 +293,7 @@ class DataFlashLog:
             if fmt is None or dtype is None:
                 raise ReadError(f"{self.path}: message {name} has no decodable FMT definition")
             at = self.offsets[self.types == fmt.type]
-            rows = self.buf[at[:, None] + np.arange(3, fmt.length)]
-            self._records[name] = np.ascontiguousarray(rows).view(dtype).reshape(-1)
+            self._records[name] = _payloads(self.buf, at, fmt.length - 3, dtype)
         return self._records[name]
 
     def field(self, name: str, column: str, rows: np.ndarray | None = None) -> np.ndarray:
