@@ -263,7 +263,10 @@ class DataFlashLog:
             raise ReadError(f"{self.path}: cannot be read ({exc.strerror})") from None
         self.offsets, self.types, self.formats, self.end = record_offsets(self.buf)
         if not len(self.offsets) or len(self.formats) < 2:
-            raise ReadError(f"{self.path}: not an ArduPilot DataFlash log (no FMT records found)")
+            raise ReadError(
+                f"{self.path}: not an ArduPilot DataFlash log, or cut before its first whole "
+                "record (no FMT record found)"
+            )
         self.by_name: dict[str, Format] = {}
         """Message name -> its format (a name defined twice: the first type)."""
         for fmt in self.formats.values():

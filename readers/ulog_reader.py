@@ -599,9 +599,9 @@ def read_ulog(spec: InputSpec) -> tuple[pa.Table, list[str]]:
     )
     baro = f.instances.get(chosen.get("temperature", ""))
     if baro is not None and baro.name == "sensor_baro" and baro.has("pressure"):
-        table = with_stream_column(
-            table, "temperature", "pressure", pieces["temperature"].stamp, baro_pascal(baro)
-        )
+        piece = pieces["temperature"]
+        t = piece.log if spec.time == "log" else piece.stamp  # the table's t_ns
+        table = with_stream_column(table, "temperature", "pressure", t, baro_pascal(baro))
     meta = metadata(table)
     meta.pop("frame_id", None)  # a ULog names no frames
     meta["instance"] = {s: f.instances[k].instance for s, k in chosen.items()}

@@ -365,6 +365,10 @@ def test_baro_pressure_and_temperature(path, key, scale):
     assert np.array_equal(pressure[rows], ref["pressure"].astype(np.float64) * scale)
     assert table.column("pressure").null_count == len(table) - len(rows)
     assert 9e4 < np.median(pressure[rows]) < 1.1e5
+    table, _ = _read(path, temperature_topic=key, time="log")  # rows at the publication time
+    assert np.array_equal(
+        table.column("pressure").drop_null().to_numpy(), ref["pressure"].astype(np.float64) * scale
+    )
 
 
 ULOGS = {
