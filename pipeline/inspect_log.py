@@ -8,7 +8,9 @@ stream would be read from (the same choice ``imupipe run`` makes, so an ambiguou
 with its candidates) and the common-table columns that would be filled. For a PX4 ULog: every
 topic instance (``sensor_gyro_1`` is instance 1) with its uORB message, instance and device id,
 the streams a read would fill, whether PX4 had already calibrated them, and the log's ``CAL_*``
-and ``TC_*`` parameters. For CSV: the columns mapped with the default mapping, samples per
+and ``TC_*`` parameters; for an ArduPilot DataFlash log the same: every message instance
+(``IMU_1``, ``IMU2``), the streams, and its calibration parameters (``INS_*``, ``COMPASS_*``).
+For CSV: the columns mapped with the default mapping, samples per
 stream, rate and span.
 """
 

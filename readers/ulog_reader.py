@@ -31,9 +31,10 @@ them as nanoseconds since boot (x 1000), not wall time. The header time is ``tim
 where the topic has it (the sensor's sampling instant), else ``timestamp``; the log time is
 ``timestamp`` (publication). A ``sensor_combined`` row keeps PX4's pairing of gyro and accel
 (the accel's ``accelerometer_timestamp_relative`` offset, 0 in the logs tested, is not applied
-to the row's stamp). A raw gyro sample is paired with the accel sample of the same
-device nearest in ``timestamp_sample`` (within half a gyro period; PX4's FIFO drivers stamp both
-identically); a gyro sample without a partner keeps NaN accel (counted in a warning), an accel
+to the row's stamp). A raw gyro sample is paired with the sample of its accelerometer
+(:func:`accel_partner`: PX4's own pairing) nearest in ``timestamp_sample`` (within half a gyro
+period; PX4's FIFO drivers stamp a chip's two sensors identically); a ``vehicle_imu`` row is
+stamped at its ``timestamp_sample``, the end of its integration interval; a gyro sample without a partner keeps NaN accel (counted in a warning), an accel
 sample without a partner is not read (counted).
 
 **Metadata** (besides the common keys): ``instance`` (stream -> ``multi_id``), ``device_id``
