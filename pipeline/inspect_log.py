@@ -186,7 +186,8 @@ def _ulog(spec: InputSpec, out: dict[str, Any]) -> dict[str, Any]:
             "device_id": info["device_id"][stream],
         }
         if stream in info["calibrated"]:
-            out["streams"][stream]["px4_calibrated"] = info["calibrated"][stream]
+            autopilot = info.get("parameters_of", "PX4").lower()
+            out["streams"][stream][f"{autopilot}_calibrated"] = info["calibrated"][stream]
         columns += [
             c for s, cols in SENSOR_COLUMNS.items() if STREAM_OF_SENSOR[s] == stream for c in cols
         ]
@@ -260,9 +261,10 @@ def render(info: dict[str, Any]) -> str:
         extra = "" if "rate_hz" not in v or v["rate_hz"] is None else f", {v['rate_hz']:.2f} Hz"
         if v.get("device_id") is not None:
             extra += f", device id {v['device_id']}"
-        if "px4_calibrated" in v:
-            by = info.get("parameters_of", "PX4")
-            extra += f", already calibrated by {by}" if v["px4_calibrated"] else ", raw"
+        for by in ("PX4", "ArduPilot"):
+            if f"{by.lower()}_calibrated" in v:
+                done = v[f"{by.lower()}_calibrated"]
+                extra += f", already calibrated by {by}" if done else ", raw"
         lines.append(f"stream {stream}: {source} ({v['count']} samples{extra})")
     if info["columns"]:
         lines.append("columns filled: " + ", ".join(info["columns"]))

@@ -42,8 +42,8 @@ ITERATORS: dict[str, str] = {
     "ros2": "imupipe.readers.ros2_reader:iter_ros2",
 }
 """Format -> "module:function(spec, batch_rows) -> Iterator[(table, [RawMessage])]": bounded
-memory batches (formats absent here are read whole and yielded as one batch: CSV, and ULog,
-which pyulog reads whole)."""
+memory batches (formats absent here are read whole and yielded as one batch: CSV, ULog, which
+pyulog reads whole, and DataFlash)."""
 
 SOURCES: dict[str, str] = {
     "mcap": "imupipe.readers.mcap_reader:mcap_sources",

@@ -256,6 +256,7 @@ def test_inspect_lists_instances(synthetic):
     assert info["topics"]["IMU_1"]["count"] == 1200
     assert info["topics"]["IMU_1"]["rate_hz"] == pytest.approx(400, rel=1e-3)
     assert info["streams"]["imu"]["topic"] == "IMU_1"
+    assert info["streams"]["imu"]["ardupilot_calibrated"] is True
     assert info["parameters"]["INS_GYROFFS_X"] == pytest.approx(0.0125)
     text = run_cli("inspect", path, "--imu-topic", "IMU").stdout
     assert "stream imu: IMU (1200 samples, already calibrated by ArduPilot)" in text
