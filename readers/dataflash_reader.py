@@ -160,11 +160,19 @@ def _payloads(buf: np.ndarray, offsets: np.ndarray, size: int, dtype: np.dtype) 
     return np.ascontiguousarray(windows[offsets + 3]).view(dtype).reshape(-1)
 
 
+SCAN_BLOCK = 1 << 24
+"""Bytes scanned for headers at a time (bounds the scan's temporary masks to a few x 16 MiB)."""
+
+
 def _candidates(buf: np.ndarray) -> np.ndarray:
     """Offsets of every ``0xA3 0x95`` pair that leaves room for a type byte."""
-    if len(buf) < 3:
-        return np.zeros(0, dtype=np.int64)
-    return np.flatnonzero((buf[:-2] == HEAD[0]) & (buf[1:-1] == HEAD[1])).astype(np.int64)
+    n = len(buf) - 2
+    found = [np.zeros(0, dtype=np.int64)]
+    for start in range(0, max(n, 0), SCAN_BLOCK):  # blocks of the file, not records
+        stop = min(start + SCAN_BLOCK, n)
+        hit = (buf[start:stop] == HEAD[0]) & (buf[start + 1 : stop + 1] == HEAD[1])
+        found.append(np.flatnonzero(hit).astype(np.int64) + start)
+    return np.concatenate(found)
 
 
 def _formats_at(buf: np.ndarray, offsets: np.ndarray) -> dict[int, Format]:

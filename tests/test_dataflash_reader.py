@@ -391,3 +391,16 @@ def test_inspect_counts_messages_without_time():
     assert info["topics"]["PARM"]["count"] == 395 and info["topics"]["PARM"]["rate_hz"] is None
     assert info["topics"]["IMU"]["count"] == 12198
     assert info["streams"]["imu"]["topic"] == "IMU"
+
+
+def test_header_scan_across_blocks(synthetic, monkeypatch):
+    """The header scan runs in blocks: a header split by a block boundary is still found."""
+    from imupipe.readers import dataflash_reader
+
+    path, _ = synthetic
+    buf = np.fromfile(path, dtype=np.uint8)
+    whole = record_offsets(buf)
+    monkeypatch.setattr(dataflash_reader, "SCAN_BLOCK", 997)
+    blocks = record_offsets(buf)
+    assert np.array_equal(whole[0], blocks[0]) and np.array_equal(whole[1], blocks[1])
+    assert whole[3] == blocks[3]
