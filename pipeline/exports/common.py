@@ -1,7 +1,13 @@
 """What the exporters share: the noise figures of an ``allan`` stage, the chain of one sensor
 composed into one raw-domain model, the IMU intrinsics in Kalibr's form, and the serializers.
 
-**Composition** (:func:`sensor_model`). The chain's steps of one sensor, in order, become
+**Devices** (:func:`device_models`). The chain's entries of a sensor are grouped by the device
+they were fitted on (:func:`imupipe.pipeline.calibration_file.device_key`: ``device_id``, else
+the log's ``instance``; entries naming neither are one unnamed device), in the order the devices
+first appear. Steps of one device compose; steps of different devices never do: each device is
+one :class:`SensorModel`, which the autopilot exports put in its own parameter slot.
+
+**Composition** (:func:`sensor_model`). The chain's steps of one device's sensor, in order, become
 
     corrected = M @ (raw - o - b(T)),   b(T) = sum_k C[:, k] (T - Tref)^k  (k <= 3, clamped T)
 
@@ -31,6 +37,8 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+
+from imupipe.pipeline.calibration_file import device, device_key
 
 AXES = ("x", "y", "z")
 POLY_TERMS = ("1", "T", "T^2", "T^3")
@@ -136,9 +144,9 @@ class Thermal:
 
 @dataclass
 class SensorModel:
-    """One sensor's chain composed (see the module docstring): ``corrected = matrix @ (raw -
-    offset - thermal(T))``; ``entries`` are the chain entries used, ``issues`` what could not
-    be composed (left out)."""
+    """One device's sensor chain composed (see the module docstring): ``corrected = matrix @
+    (raw - offset - thermal(T))``; ``entries`` are the chain entries used, ``issues`` what could
+    not be composed (left out), ``device`` the device (:func:`entry_device`)."""
 
     sensor: str
     matrix: np.ndarray
@@ -146,6 +154,17 @@ class SensorModel:
     thermal: Thermal | None
     entries: list[dict[str, Any]]
     issues: list[str]
+    device: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def linear(self) -> bool:
+        """Whether a linear step (offset, and a matrix) was estimated."""
+        return any(e.get("kind", "linear") == "linear" for e in self.entries)
+
+    @property
+    def scaled(self) -> bool:
+        """Whether a step estimated a matrix other than the identity."""
+        return bool(np.abs(self.matrix - np.eye(3)).max() > 0)
 
     @property
     def fitted_on(self) -> dict[str, Any]:
@@ -173,12 +192,32 @@ def _thermal(entry: Mapping[str, Any]) -> Thermal | str:
     return Thermal(float(entry["tref"]), coef, (float(lo), float(hi)))
 
 
+def entry_device(entry: Mapping[str, Any]) -> dict[str, Any]:
+    """The device of a chain entry: its ``device``, else derived from its ``fitted_on``."""
+    if isinstance(entry.get("device"), Mapping):
+        return {**device(entry.get("fitted_on"), entry["sensor"]), **entry["device"]}
+    return device(entry.get("fitted_on"), entry["sensor"])
+
+
+def device_models(doc: Mapping[str, Any], sensor: str) -> list[SensorModel]:
+    """One composed model per device of ``sensor`` (module docstring), in the order the devices
+    first appear in the chain."""
+    groups: dict[tuple[Any, ...], list[dict[str, Any]]] = {}
+    for e in doc.get("chain", []):
+        if e.get("sensor") == sensor:
+            groups.setdefault(device_key(entry_device(e)), []).append(e)
+    return [_compose(sensor, entries) for entries in groups.values()]
+
+
 def sensor_model(doc: Mapping[str, Any], sensor: str) -> SensorModel | None:
-    """The chain of ``sensor`` composed into one raw-domain model; None when no step corrects
-    it."""
-    entries = [e for e in doc.get("chain", []) if e.get("sensor") == sensor]
-    if not entries:
-        return None
+    """The model of ``sensor``'s first device (:func:`device_models`); None when no step
+    corrects it."""
+    models = device_models(doc, sensor)
+    return models[0] if models else None
+
+
+def _compose(sensor: str, entries: list[dict[str, Any]]) -> SensorModel:
+    """The entries of one device's sensor composed (module docstring)."""
     m, o = np.eye(3), np.zeros(3)
     thermal: Thermal | None = None
     issues: list[str] = []
@@ -200,7 +239,8 @@ def sensor_model(doc: Mapping[str, Any], sensor: str) -> SensorModel | None:
             thermal = Thermal(t.tref, minv @ t.coefficients, t.t_range)
         else:
             issues.append(f"a '{kind}' step: not mapped")
-    return SensorModel(sensor, m, o, thermal, entries, issues)
+    dev = entry_device(entries[0])
+    return SensorModel(sensor, m, o, thermal, entries, issues, dev)
 
 
 def off_diagonal(m: np.ndarray) -> float:
