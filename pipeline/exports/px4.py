@@ -136,12 +136,14 @@ def targets(models: list[SensorModel], out: Export) -> list[Target | None]:
         k = _slot(f"TC_{tc}", "_ID", dev, params, taken_tc, n)
         k = n if k is None else k
         taken_tc.add(k)
-        if dev is None:
+        ids = [f"CAL_{cal}{n}_ID"] if model.linear else []
+        ids += [f"TC_{tc}{k}_ID"] if model.thermal is not None and model.sensor in TC else []
+        if dev is None and ids:
             out.note(
                 FNAME,
-                f"{model.sensor}: the input names no PX4 device, so CAL_{cal}{n}_ID (and "
-                f"TC_{tc}{k}_ID) is not written; PX4 applies a slot only to the device whose "
-                "id it holds: set it",
+                f"{model.sensor}: the input names no PX4 device, so {' and '.join(ids)} "
+                f"{'is' if len(ids) == 1 else 'are'} not written; PX4 applies a slot only to "
+                "the device whose id it holds: set it",
             )
         found.append(Target(n, k, dev, params, bool((px4.get("calibrated") or {}).get(stream))))
     return found
