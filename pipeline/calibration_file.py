@@ -11,7 +11,8 @@ the common table the stage fitted on (the readers put ``source``, ``format``, ``
      "t_start_ns": ..., "t_end_ns": ..., "rate_hz": {"imu": 199.9},
      "px4": {"calibrated": {"imu": false}, "parameters": {"CAL_GYRO1_XOFF": ...}}}
 
-``instance``, ``device_id`` and ``px4`` appear only where the log has them (PX4 ULog);
+``instance``, ``device_id`` and ``px4`` appear only where the log has them (PX4 ULog; a
+DataFlash log's parameters under ``ardupilot.parameters``);
 ``px4.parameters`` keeps the log's ``CAL_*``/``TC_*``/``SENS_BOARD_*`` values, which the PX4
 export needs when the data were already corrected by PX4. A step imported from another tool
 (``imupipe import``) has ``{"input": null, "path": <its file>, "format": <the tool>}``.
@@ -54,7 +55,7 @@ MAX_BYTES = 64 * 1024 * 1024
 """A calibration larger than this is refused (a real one is a few kB to a few MB)."""
 MAX_DEPTH = 64
 """Deepest JSON nesting accepted (a calibration nests about 6 deep)."""
-PROVENANCE_KEYS = ("topics", "frame_id", "instance", "device_id", "px4")
+PROVENANCE_KEYS = ("topics", "frame_id", "instance", "device_id", "px4", "ardupilot")
 """Table metadata keys copied into ``fitted_on`` when present."""
 DEVICE_KEYS = (("topics", "topic"), ("instance", "instance"), ("device_id", "device_id"))
 """(``fitted_on`` key, device key): the stream's value of each names the device."""
@@ -169,7 +170,9 @@ class OnDevice(Step):
 
     @classmethod
     def from_json(cls, entry: dict[str, Any]) -> Step:
-        raise NotImplementedError("an OnDevice step is made by on_device, never read")
+        """The entry's own step (its ``kind``) on the entry's device."""
+        (step,) = steps_from_json([entry])
+        return cls(step, device(entry.get("fitted_on"), step.sensor) | entry.get("device", {}))
 
 
 def on_device(
