@@ -46,6 +46,7 @@ noted (PX4 applies a slot only to the device whose id it holds).
 
 from __future__ import annotations
 
+import textwrap
 from dataclasses import dataclass
 from typing import Any
 
@@ -338,12 +339,12 @@ def export(doc: dict[str, Any], complete: bool = False) -> Export:
             out.note(
                 FNAME, "the input carries no PX4 parameters: only the estimated ones are written"
             )
-        comments += [
-            "Only what imupipe estimated; loading it leaves every other parameter of the vehicle",
-            "as it is, among them: "
-            + (", ".join(alone) if alone else "(none of these slots)")
-            + ".",
-        ]
+        listed = ", ".join(alone) if alone else "(none in these slots)"
+        comments += textwrap.wrap(
+            "Only what imupipe estimated: loading it leaves every other parameter of the "
+            f"vehicle as it is, among them {listed}.",
+            width=92,
+        )
     comments += ["", "Vehicle-Id Component-Id Name Value Type"]
     table = [
         (1, 1, name, number(value) if kind == REAL32 else int(value), kind)
