@@ -195,6 +195,12 @@ def on_device(
     return out
 
 
+def applying(steps: Sequence[Step], table: pa.Table) -> list[Step]:
+    """The steps that apply to ``table``'s device (every step that is not an :class:`OnDevice`
+    of another device)."""
+    return [s for s in steps if not isinstance(s, OnDevice) or s.applies(table)]
+
+
 def calibration_json(doc: Mapping[str, Any]) -> str:
     """``doc`` as the text of a ``calibration.json``: standard JSON (RFC 8259), so a float that
     is not finite (a metric of a fit that overflowed, accepted with ``accept_failed_checks``) is

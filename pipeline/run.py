@@ -20,7 +20,7 @@ from typing import Any
 import pyarrow as pa
 
 from imupipe.pipeline.atomic import OutputGuard, remove_stale_temps, staged_outputs
-from imupipe.pipeline.calibration_file import calibration_json, fitted_on, on_device
+from imupipe.pipeline.calibration_file import applying, calibration_json, fitted_on, on_device
 from imupipe.pipeline.config import Config, load_config
 from imupipe.pipeline.exports import chosen as chosen_exports
 from imupipe.pipeline.exports import export_all
@@ -206,7 +206,8 @@ def run(
                     accept_failed_checks=st.accept_failed_checks,
                 )
                 sensors = stage.sensors_for(st.options)
-                recorder.sensors(st.name, table, sensors, input_name=st.input, chain=tables.chain)
+                mine = applying(tables.chain, table)  # the steps of this input's devices
+                recorder.sensors(st.name, table, sensors, input_name=st.input, chain=mine)
                 output = stage.fit(table, ctx)
                 where = fitted_on(st.input, cfg.inputs[st.input], table)
                 if output.steps:  # each applies to its own device's data only

@@ -435,3 +435,34 @@ def test_compass_scale_and_second_compass():
     assert float(rows["COMPASS_DIA_X"]) == pytest.approx(1.1)
     p = qgc_params(files["px4_calibration.params"])
     assert p["CAL_MAG1_ID"] == 666 and p["CAL_MAG1_XSCALE"] == pytest.approx(1.02)
+
+
+def test_convert_applies_each_devices_own_steps(two_biases, tmp_path):
+    """imupipe convert of instance 1 with the two-device calibration: only device 1's bias is
+    subtracted, and the provenance check (refuse) compares it only with device 1's entry."""
+    d, truth, doc, _, _ = two_biases
+    (tmp_path / "read.toml").write_text('imu_topic = "sensor_gyro_1"\n')
+    proc = run_cli(
+        "convert",
+        d / "board.ulg",
+        "--calibration",
+        d / "out" / "calibration.json",
+        "--config",
+        tmp_path / "read.toml",
+        "--out",
+        tmp_path / "conv",
+        "--on-mismatch",
+        "refuse",
+        "--jobs",
+        "1",
+        "--quiet",
+    )
+    assert proc.returncode == 0, proc.stderr
+    raw, _ = read_input(InputSpec(path=d / "board.ulg", imu_topic="sensor_gyro_1"))
+    out, _ = read_input(InputSpec(path=tmp_path / "conv" / "board.mcap"))
+    (entry,) = [
+        e for e in doc["chain"] if e["device"]["device_id"] == truth["imus"][1]["device_id"]
+    ]
+    np.testing.assert_allclose(
+        sensor(out, "gyro").values, sensor(raw, "gyro").values - entry["offset"], atol=1e-12
+    )

@@ -7,7 +7,7 @@ the log's ``instance``; entries naming neither are one unnamed device), in the o
 first appear. Steps of one device compose; steps of different devices never do: each device is
 one :class:`SensorModel`, which the autopilot exports put in its own parameter slot.
 
-**Composition** (:func:`sensor_model`). The chain's steps of one device's sensor, in order, become
+**Composition** (:func:`device_models`). The chain's steps of one device's sensor, in order, become
 
     corrected = M @ (raw - o - b(T)),   b(T) = sum_k C[:, k] (T - Tref)^k  (k <= 3, clamped T)
 
@@ -209,10 +209,18 @@ def device_models(doc: Mapping[str, Any], sensor: str) -> list[SensorModel]:
     return [_compose(sensor, entries) for entries in groups.values()]
 
 
-def sensor_model(doc: Mapping[str, Any], sensor: str) -> SensorModel | None:
-    """The model of ``sensor``'s first device (:func:`device_models`); None when no step
-    corrects it."""
+def single_device(
+    doc: Mapping[str, Any], sensor: str, out: Export, fname: str
+) -> SensorModel | None:
+    """The first device's model of ``sensor``, for a file that describes one IMU (Kalibr,
+    OpenVINS); the other devices are noted as left out."""
     models = device_models(doc, sensor)
+    for m in models[1:]:
+        out.note(
+            fname,
+            f"{sensor}: the file describes one IMU; the chain of device "
+            f"{m.device.get('device_id', m.device.get('topic', '?'))} is left out",
+        )
     return models[0] if models else None
 
 
