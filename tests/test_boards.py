@@ -466,3 +466,19 @@ def test_convert_applies_each_devices_own_steps(two_biases, tmp_path):
     np.testing.assert_allclose(
         sensor(out, "gyro").values, sensor(raw, "gyro").values - entry["offset"], atol=1e-12
     )
+
+
+def test_mag_thermal_model_maps_to_tc_m():
+    """A magnetometer temperature model: TC_M0_* in gauss (PX4's Magnetometer: raw - thermal
+    - OFF, then the soft iron), with its id."""
+    coef = np.array(COEF_B) * 1e-6  # tesla
+    doc = _doc([(_temperature("mag", coef, 0.0, 40.0), {"device_id": {"mag": 777}})])
+    files, report = export_all(doc, ["px4"])
+    p = qgc_params(files["px4_calibration.params"])
+    assert p["TC_M_ENABLE"] == 1 and p["TC_M0_ID"] == 777
+    temp = np.linspace(-5.0, 45.0, 20)
+    true = np.array(
+        [np.polynomial.polynomial.polyval(np.clip(temp, 0, 40) - 25.0, c) for c in coef]
+    )
+    np.testing.assert_allclose(_px4_tc(p, "TC_M", 0, temp), true.T * 1e4, atol=1e-12)
+    assert not [k for k in p if k.startswith("CAL_MAG")]

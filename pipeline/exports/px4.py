@@ -32,7 +32,8 @@ off-diagonal part is left out (noted with its size). PX4 v1.11 and later have no
 (the ``CAL_GYROn_*SCALE`` of older firmware is written only when the log had it). The
 magnetometer's soft iron maps to SCALE/ODIAG when symmetric (imupipe's ellipsoid fits are). A
 temperature model maps to ``TC_*`` when it is a polynomial of order <= 3 in T; rate, ambient,
-piecewise and scale-factor terms do not (noted, left out). The mag has no TC export.
+piecewise and scale-factor terms do not (noted, left out). A magnetometer temperature model maps
+to ``TC_Mn_*`` in gauss (firmware with magnetometer thermal compensation, ``TC_M_ENABLE``).
 
 **Data PX4 had already corrected.** ``sensor_combined`` and ``vehicle_magnetometer`` hold data
 PX4 corrected with the log's own parameters (``fitted_on.px4.calibrated``). The chain fitted on
@@ -66,7 +67,7 @@ from imupipe.pipeline.exports.common import (
 
 FNAME = "px4_calibration.params"
 CAL = {"accel": "ACC", "gyro": "GYRO", "mag": "MAG"}
-TC = {"accel": "A", "gyro": "G"}
+TC = {"accel": "A", "gyro": "G", "mag": "M"}
 STREAM = {"accel": "imu", "gyro": "imu", "mag": "mag"}
 INT32, REAL32 = 6, 9
 """MAVLink ``MAV_PARAM_TYPE`` of the rows (the last column)."""
@@ -126,7 +127,7 @@ def targets(models: list[SensorModel], out: Export) -> list[Target | None]:
         params = _log_parameters(model)
         dev = model.device.get("device_id")
         dev = None if dev is None else int(dev)
-        cal, tc = CAL[model.sensor], TC.get(model.sensor, "M")
+        cal, tc = CAL[model.sensor], TC[model.sensor]
         instance = model.device.get("instance")
         n = _slot(f"CAL_{cal}", "_ID", dev, params, taken, instance)
         if n is None:
@@ -138,7 +139,7 @@ def targets(models: list[SensorModel], out: Export) -> list[Target | None]:
         k = n if k is None else k
         taken_tc.add(k)
         ids = [f"CAL_{cal}{n}_ID"] if model.linear else []
-        ids += [f"TC_{tc}{k}_ID"] if model.thermal is not None and model.sensor in TC else []
+        ids += [f"TC_{tc}{k}_ID"] if model.thermal is not None else []
         if dev is None and ids:
             out.note(
                 FNAME,
@@ -175,8 +176,8 @@ def _compose_with_log(model: SensorModel, t: Target, out: Export) -> SensorModel
     thermal = model.thermal
     if thermal is not None:
         thermal = type(thermal)(thermal.tref, sinv @ thermal.coefficients, thermal.t_range)
-    tc = TC.get(model.sensor)
-    if tc and p.get(f"TC_{tc}_ENABLE") == 1:
+    tc = TC[model.sensor]
+    if p.get(f"TC_{tc}_ENABLE") == 1:
         out.note(
             FNAME,
             f"{model.sensor}: the log's data were also thermally compensated by PX4 "
@@ -191,6 +192,7 @@ def _compose_with_log(model: SensorModel, t: Target, out: Export) -> SensorModel
         thermal,
         model.entries,
         model.issues,
+        model.device,
     )
 
 
@@ -252,10 +254,14 @@ def rows_for(model: SensorModel, t: Target, out: Export) -> list[Row]:
 def thermal_rows(model: SensorModel, t: Target, out: Export) -> list[Row]:
     th = model.thermal
     assert th is not None
-    letter = TC.get(model.sensor)
-    if letter is None:
-        out.note(FNAME, f"{model.sensor}: PX4 thermal compensation of this sensor is not exported")
-        return []
+    letter = TC[model.sensor]
+    unit = GAUSS_PER_TESLA if model.sensor == "mag" else 1.0
+    if model.sensor == "mag":
+        out.note(
+            FNAME,
+            "mag: TC_M* (gauss) is read by PX4 firmware that has magnetometer thermal "
+            "compensation (TC_M_ENABLE); older firmware ignores these rows",
+        )
     prefix = f"TC_{letter}{t.tc}"
     rows: list[Row] = [(f"TC_{letter}_ENABLE", 1, INT32)]
     if t.device is not None:
@@ -263,11 +269,14 @@ def thermal_rows(model: SensorModel, t: Target, out: Export) -> list[Row]:
     rows += [(f"{prefix}_TREF", th.tref, REAL32)]
     rows += [(f"{prefix}_TMIN", th.t_range[0], REAL32), (f"{prefix}_TMAX", th.t_range[1], REAL32)]
     rows += [
-        (f"{prefix}_X{k}_{i}", th.coefficients[i, k], REAL32) for k in range(4) for i in range(3)
+        (f"{prefix}_X{k}_{i}", th.coefficients[i, k] * unit, REAL32)
+        for k in range(4)
+        for i in range(3)
     ]
     temp = model.fitted_on.get("topics", {}).get("temperature")
     devices = model.fitted_on.get("device_id") or {}
-    if devices.get("temperature") is None or devices.get("temperature") != devices.get("imu"):
+    own = devices.get(STREAM[model.sensor])
+    if devices.get("temperature") is None or devices.get("temperature") != own:
         out.note(
             FNAME,
             f"{model.sensor}: the temperature model was fitted against {temp or 'a temperature'}"
@@ -280,7 +289,12 @@ def thermal_rows(model: SensorModel, t: Target, out: Export) -> list[Row]:
 FAMILIES = {
     "accel": (("CAL_ACC{n}_", "OFF"), ("CAL_ACC{n}_", "SCALE"), ("TC_A{k}_", "")),
     "gyro": (("CAL_GYRO{n}_", "OFF"), ("TC_G{k}_", "")),
-    "mag": (("CAL_MAG{n}_", "OFF"), ("CAL_MAG{n}_", "SCALE"), ("CAL_MAG{n}_", "ODIAG")),
+    "mag": (
+        ("CAL_MAG{n}_", "OFF"),
+        ("CAL_MAG{n}_", "SCALE"),
+        ("CAL_MAG{n}_", "ODIAG"),
+        ("TC_M{k}_", ""),
+    ),
 }
 """(prefix, suffix) of the parameter families of a device's slots, for the header's list of
 what the file leaves alone."""
