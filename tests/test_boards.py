@@ -280,8 +280,7 @@ def test_each_cal_gyro_is_its_own_devices_bias(two_biases):
         i = truth["imus"].index(imu)  # no ArduPilot ids in a PX4 log: slot = instance
         name = "INS_GYROFFS" if i == 0 else f"INS_GYR{i + 1}OFFS"
         assert [ardu[f"{name}_{a}"] for a in "XYZ"] == pytest.approx(entry["offset"])
-        id_name = "INS_GYR_ID" if i == 0 else f"INS_GYR{i + 1}_ID"
-        assert ardu[id_name] == imu["device_id"]
+    assert not [k for k in ardu if k.endswith("_ID")]  # PX4 ids are not ArduPilot's
     assert not [k for k in px4 if k.startswith(("CAL_ACC", "TC_"))]
     assert not [k for k in ardu if k.startswith(("INS_ACC", "INS_TCAL"))]
 
@@ -345,6 +344,8 @@ def test_steps_of_two_devices_never_compose(tmp_path):
     lin_a = LinearStep("accel_calibration", "accel", np.diag([1.01, 0.98, 1.02]), [0.1, -0.2, 0.05])
     lin_b = LinearStep("accel_calibration", "accel", np.diag([0.99, 1.03, 0.97]), [-0.3, 0.1, 0.2])
     a, b = _dev(111, 0), _dev(222, 1)
+    for where in (a, b):  # an ArduPilot log's own ids: IMU 1 is device 222, IMU 2 is 111
+        where["ardupilot"] = {"parameters": {"INS_ACC_ID": 222, "INS_ACC2_ID": 111}}
     doc = _doc(
         [
             (lin_a, a),
@@ -371,7 +372,8 @@ def test_steps_of_two_devices_never_compose(tmp_path):
         np.testing.assert_allclose(
             (raw - _px4_tc(p, "TC_A", k, temp) - off) * scale, ours, atol=1e-9
         )
-        i, s = k + 1, "" if k == 0 else str(k + 1)
+        i = 2 - k  # the ArduPilot slots follow the log's INS_ACC*_ID
+        s = "" if i == 1 else str(i)
         c = np.array([[ardu[f"INS_TCAL{i}_ACC{j}_{x}"] for j in (1, 2, 3)] for x in "XYZ"]) * 1e-6
 
         def poly(t, i=i, c=c):
@@ -415,24 +417,27 @@ def test_no_device_named_notes_the_tc_id():
 
 
 def test_compass_scale_and_second_compass():
-    """Two magnetometers: COMPASS_OFS/DIA/ODI and COMPASS_OFS2/DIA2/ODI2 by device, each with
-    COMPASS_SCALE* = 1 (ArduPilot multiplies by it)."""
+    """Two magnetometers of an ArduPilot log: COMPASS_OFS/DIA/ODI and COMPASS_OFS2/DIA2/ODI2 by
+    the log's COMPASS_DEV_ID*, each with COMPASS_SCALE* = 1 (ArduPilot multiplies by it)."""
     w = np.array([[1.1, 0.02, -0.01], [0.02, 0.95, 0.03], [-0.01, 0.03, 1.05]])
     m1 = LinearStep("mag_calibration", "mag", w, [12e-6, -30e-6, 8e-6])
     m2 = LinearStep("mag_calibration", "mag", np.eye(3) * 1.02, [1e-6, 2e-6, 3e-6])
+    logged = {"parameters": {"COMPASS_DEV_ID": 666, "COMPASS_DEV_ID2": 555}}
     doc = _doc(
         [
-            (m1, {"device_id": {"mag": 555}, "instance": {"mag": 0}}),
-            (m2, {"device_id": {"mag": 666}, "instance": {"mag": 1}}),
+            (m1, {"device_id": {"mag": 555}, "instance": {"mag": 0}, "ardupilot": logged}),
+            (m2, {"device_id": {"mag": 666}, "instance": {"mag": 1}, "ardupilot": logged}),
         ]
     )
     files, _ = export_all(doc, ["ardupilot", "px4"])
     text = files["ardupilot_calibration.param"]
     rows = dict(line.split(",") for line in text.splitlines() if not line.startswith("#"))
-    assert float(rows["COMPASS_SCALE"]) == 1.0 and float(rows["COMPASS_SCALE2"]) == 1.0
-    assert float(rows["COMPASS_DEV_ID"]) == 555 and float(rows["COMPASS_DEV_ID2"]) == 666
-    assert float(rows["COMPASS_OFS2_Z"]) == pytest.approx(-3e-6 * 1e7)
-    assert float(rows["COMPASS_DIA_X"]) == pytest.approx(1.1)
+    rows = {k: float(v) for k, v in rows.items()}
+    assert rows["COMPASS_SCALE"] == 1.0 and rows["COMPASS_SCALE2"] == 1.0
+    assert rows["COMPASS_DEV_ID"] == 666 and rows["COMPASS_DEV_ID2"] == 555
+    assert rows["COMPASS_OFS_Z"] == pytest.approx(-3e-6 * 1e7)
+    assert rows["COMPASS_DIA2_X"] == pytest.approx(1.1)
+    assert rows["COMPASS_ODI2_Z"] == pytest.approx(0.03)
     p = qgc_params(files["px4_calibration.params"])
     assert p["CAL_MAG1_ID"] == 666 and p["CAL_MAG1_XSCALE"] == pytest.approx(1.02)
 

@@ -23,6 +23,9 @@ IMU's accel and gyro: written once, the intersection of both fitted ranges (note
 differ). ``COMPASS_SCALE*`` is 1 (the whole soft iron is in ``DIA``/``ODI``; ArduPilot
 multiplies by it after the offsets, ``correct_field``).
 
+``INS_*_ID``/``COMPASS_DEV_ID*`` are written only from an ArduPilot log (PX4 numbers device
+types differently).
+
 **Only what was estimated**: offsets (and ``*_ID``) when a linear step was fitted, the accel
 scale when a matrix was, ``INS_TCALi_*`` when a temperature step was. A temperature model
 without a linear step writes only the ``INS_TCALi_*`` shape (``c1..c3``): ArduPilot corrects
@@ -77,13 +80,25 @@ def id_name(sensor: str, i: int) -> str:
     return f"COMPASS_DEV_ID{_s(i)}" if sensor == "mag" else f"INS_{SHORT[sensor]}{_s(i)}_ID"
 
 
+def log_parameters(model: SensorModel) -> dict[str, Any]:
+    """The ArduPilot parameters of the log the model was fitted on (empty for other logs)."""
+    return (model.fitted_on.get("ardupilot") or {}).get("parameters") or {}
+
+
+def ardupilot_id(model: SensorModel) -> int | None:
+    """The device's id as ArduPilot numbers it: only from an ArduPilot log (a PX4 device id
+    differs in its device-type byte, so it is never written into ``INS_*_ID``)."""
+    dev = model.device.get("device_id")
+    return int(dev) if dev is not None and log_parameters(model) else None
+
+
 def slots(models: list[SensorModel], out: Export) -> list[int | None]:
     """Each device's slot (module docstring); None when none is left (noted)."""
     found: list[int | None] = []
     taken: set[int] = set()
     for model in models:
-        params = (model.fitted_on.get("ardupilot") or {}).get("parameters") or {}
-        dev = model.device.get("device_id")
+        params = log_parameters(model)
+        dev = ardupilot_id(model)
         ids = [params.get(id_name(model.sensor, i)) for i in range(SLOTS)]
         match = [i for i in range(SLOTS) if i not in taken and dev is not None and ids[i] == dev]
         free = [i for i in range(SLOTS) if i not in taken and not ids[i]]
@@ -131,9 +146,9 @@ def imu_rows(
             f"model was fitted against {temp or 'the temperature stream'}",
         )
     if model.linear:
-        dev = model.device.get("device_id")
+        dev = ardupilot_id(model)
         if dev is not None:
-            rows.append((id_name(model.sensor, i), int(dev)))
+            rows.append((id_name(model.sensor, i), dev))
         rows += [(f"{offs}_{a}", offset[j]) for j, a in enumerate("XYZ")]
     if not model.scaled:
         return rows, th.t_range if th is not None else None
@@ -168,9 +183,9 @@ def mag_rows(model: SensorModel, i: int, out: Export) -> list[Row]:
     rows: list[Row] = []
     if not model.linear:
         return rows
-    dev = model.device.get("device_id")
+    dev = ardupilot_id(model)
     if dev is not None:
-        rows.append((id_name("mag", i), int(dev)))
+        rows.append((id_name("mag", i), dev))
     ofs = -model.offset * MILLIGAUSS_PER_TESLA
     rows += [(f"COMPASS_OFS{_s(i)}_{a}", ofs[j]) for j, a in enumerate("XYZ")]
     if model.scaled:
@@ -218,7 +233,7 @@ def export(doc: dict[str, Any], complete: bool = False) -> Export:
                 continue
             for issue in model.issues:
                 out.note(FNAME, f"{sensor}: {issue}")
-            logged.update((model.fitted_on.get("ardupilot") or {}).get("parameters") or {})
+            logged.update(log_parameters(model))
             if sensor == "mag":
                 rows += mag_rows(model, i, out)
                 continue
