@@ -387,22 +387,44 @@ def test_steps_of_two_devices_never_compose(tmp_path):
         assert ardu[f"INS_ACC{s}_ID"] == dev
 
 
-def test_shared_tcal_range_written_once_and_noted():
+def test_shared_tcal_range_written_once_and_noted(tmp_path):
     """Accel and gyro of one IMU fitted over different ranges: INS_TCAL1_TMIN/TMAX once, the
-    range both cover, with a note."""
+    range both cover, with a note; ArduPilot's formula (temperature and CALTEMP clamped to it)
+    reproduces imupipe's accel correction over that range."""
     d = _dev(111, 0)
+    lin = LinearStep("accel_calibration", "accel", np.diag([1.01, 0.98, 1.02]), [0.1, -0.2, 0.05])
     doc = _doc(
         [
             (_temperature("accel", COEF_A, 5.0, 60.0), d),
-            (_temperature("gyro", np.array(COEF_B) * 1e-2, 8.0, 55.0), d),
+            (lin, d),
+            (_temperature("gyro", np.array(COEF_B) * 1e-2, 30.0, 55.0), d),
         ]
     )
     files, report = export_all(doc, ["ardupilot"])
-    lines = files["ardupilot_calibration.param"].splitlines()
-    assert [ln for ln in lines if ln.startswith("INS_TCAL1_TMIN")] == ["INS_TCAL1_TMIN,8.0"]
+    text = files["ardupilot_calibration.param"]
+    lines = text.splitlines()
+    assert [ln for ln in lines if ln.startswith("INS_TCAL1_TMIN")] == ["INS_TCAL1_TMIN,30.0"]
     assert [ln for ln in lines if ln.startswith("INS_TCAL1_TMAX")] == ["INS_TCAL1_TMAX,55.0"]
     notes = " ".join(report["ardupilot_calibration.param"]["notes"])
     assert "different temperatures" in notes
+    (tmp_path / "ap.param").write_text(text)
+    a = mavparm(tmp_path / "ap.param")
+    assert 30.0 <= a["INS_ACC1_CALTEMP"] <= 55.0  # the accel's Tref, 25, clamped to the range
+    n = 100
+    temp = np.linspace(30.0, 55.0, n)
+    raw = np.random.default_rng(3).normal(size=(n, 3)) + [0, 0, 9.8]
+    table = make_table(np.arange(n, dtype=np.int64) * 10**7, accel=raw, temperature=temp)
+    ours = sensor(apply_chain(table, steps_from_json(doc["chain"][:2])), "accel").values
+    c = np.array([[a[f"INS_TCAL1_ACC{j}_{x}"] for j in (1, 2, 3)] for x in "XYZ"]) * 1e-6
+
+    def poly(t):
+        dd = np.clip(t, a["INS_TCAL1_TMIN"], a["INS_TCAL1_TMAX"]) - 35.0
+        return (np.atleast_1d(dd)[:, None] ** np.arange(1, 4)) @ c.T
+
+    tcal = poly(temp) - poly(np.array([a["INS_ACC1_CALTEMP"]]))
+    off = np.array([a[f"INS_ACCOFFS_{x}"] for x in "XYZ"])
+    scal = np.array([a[f"INS_ACCSCAL_{x}"] for x in "XYZ"])
+    np.testing.assert_allclose((raw - tcal - off) * scal, ours, atol=1e-6)
 
 
 def test_no_device_named_notes_the_tc_id():

@@ -113,10 +113,10 @@ def slots(models: list[SensorModel], out: Export) -> list[int | None]:
 
 
 def imu_rows(
-    model: SensorModel, i: int, out: Export
-) -> tuple[list[Row], tuple[float, float] | None]:
-    """The rows of IMU slot ``i``'s accel or gyro, and the fitted temperature range (for the
-    shared ``INS_TCALi_TMIN``/``TMAX``)."""
+    model: SensorModel, i: int, out: Export, shared: tuple[float, float] | None
+) -> list[Row]:
+    """The rows of IMU slot ``i``'s accel or gyro; ``shared``: the slot's ``INS_TCALi_TMIN``/
+    ``TMAX`` (ArduPilot clamps both the temperature and ``CALTEMP`` to it)."""
     short = SHORT[model.sensor]
     offs = f"INS_{short}{_s(i)}OFFS" if model.sensor == "accel" or i else "INS_GYROFFS"
     m, offset = model.matrix, model.offset.copy()
@@ -125,7 +125,7 @@ def imu_rows(
     if th is not None:
         coef = th.about(TCAL_REFERENCE)
         if model.linear:
-            tcal = float(np.clip(th.tref, *th.t_range))
+            tcal = float(np.clip(th.tref, *(shared or th.t_range)))
             offset = offset + th.at(tcal)
             rows += [(f"INS_{short}{i + 1}_CALTEMP", tcal)]
         else:
@@ -151,7 +151,7 @@ def imu_rows(
             rows.append((id_name(model.sensor, i), dev))
         rows += [(f"{offs}_{a}", offset[j]) for j, a in enumerate("XYZ")]
     if not model.scaled:
-        return rows, th.t_range if th is not None else None
+        return rows
     diag = np.diag(m)
     off = off_diagonal(m)
     if off > RELATIVE_TOLERANCE:
@@ -174,7 +174,7 @@ def imu_rows(
             f"gyro: ArduPilot has no gyro scale; the scale "
             f"{np.round(diag, 6).tolist()} is left out",
         )
-    return rows, th.t_range if th is not None else None
+    return rows
 
 
 def mag_rows(model: SensorModel, i: int, out: Export) -> list[Row]:
@@ -196,21 +196,26 @@ def mag_rows(model: SensorModel, i: int, out: Export) -> list[Row]:
     return rows
 
 
-def tcal_rows(ranges: dict[int, list[tuple[float, float]]], out: Export) -> list[Row]:
-    """``INS_TCALi_ENABLE``/``TMIN``/``TMAX`` once per IMU slot: the intersection of its
-    sensors' fitted ranges."""
-    rows: list[Row] = []
-    for i, found in sorted(ranges.items()):
-        lo, hi = max(r[0] for r in found), min(r[1] for r in found)
-        if len({tuple(r) for r in found}) > 1:
+def shared_ranges(
+    placed: list[tuple[SensorModel, int]], out: Export
+) -> dict[int, tuple[float, float]]:
+    """IMU slot -> its ``INS_TCALi_TMIN``/``TMAX``: the range every thermal model of the slot
+    covers (noted when the accel's and the gyro's differ)."""
+    found: dict[int, list[tuple[float, float]]] = {}
+    for model, i in placed:
+        if model.thermal is not None:
+            found.setdefault(i, []).append(model.thermal.t_range)
+    shared = {}
+    for i, ranges in sorted(found.items()):
+        lo, hi = max(r[0] for r in ranges), min(r[1] for r in ranges)
+        if len(set(ranges)) > 1:
             out.note(
                 FNAME,
                 f"IMU {i + 1}: accel and gyro were fitted over different temperatures; "
                 f"INS_TCAL{i + 1}_TMIN/TMAX hold the range both cover, {lo:.3g}..{hi:.3g} degC",
             )
-        rows += [(f"INS_TCAL{i + 1}_ENABLE", 1.0)]
-        rows += [(f"INS_TCAL{i + 1}_TMIN", lo), (f"INS_TCAL{i + 1}_TMAX", hi)]
-    return rows
+        shared[i] = (lo, hi)
+    return shared
 
 
 def export(doc: dict[str, Any], complete: bool = False) -> Export:
@@ -218,8 +223,8 @@ def export(doc: dict[str, Any], complete: bool = False) -> Export:
     slot; ``complete``: merged over the log's own parameters (a DataFlash log's)."""
     out = Export()
     rows: list[Row] = []
-    ranges: dict[int, list[tuple[float, float]]] = {}
     logged: dict[str, Any] = {}
+    placed: list[tuple[SensorModel, int]] = []
     for sensor in ("accel", "gyro", "mag"):
         models = []
         for model in device_models(doc, sensor):
@@ -228,20 +233,19 @@ def export(doc: dict[str, Any], complete: bool = False) -> Export:
                 out.note(FNAME, f"{sensor}: fitted on data PX4 had already corrected; not written")
                 continue
             models.append(model)
-        for model, i in zip(models, slots(models, out), strict=True):
-            if i is None:
-                continue
-            for issue in model.issues:
-                out.note(FNAME, f"{sensor}: {issue}")
-            logged.update(log_parameters(model))
-            if sensor == "mag":
-                rows += mag_rows(model, i, out)
-                continue
-            mine, t_range = imu_rows(model, i, out)
-            rows += mine
-            if t_range is not None:
-                ranges.setdefault(i, []).append(t_range)
-    rows += tcal_rows(ranges, out)
+        placed += [(m, i) for m, i in zip(models, slots(models, out), strict=True) if i is not None]
+    shared = shared_ranges([(m, i) for m, i in placed if m.sensor != "mag"], out)
+    for model, i in placed:
+        for issue in model.issues:
+            out.note(FNAME, f"{model.sensor}: {issue}")
+        logged.update(log_parameters(model))
+        if model.sensor == "mag":
+            rows += mag_rows(model, i, out)
+        else:
+            rows += imu_rows(model, i, out, shared.get(i))
+    for i, (lo, hi) in shared.items():
+        rows += [(f"INS_TCAL{i + 1}_ENABLE", 1.0)]
+        rows += [(f"INS_TCAL{i + 1}_TMIN", lo), (f"INS_TCAL{i + 1}_TMAX", hi)]
     if not rows:
         return out
     comments = [
