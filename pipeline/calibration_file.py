@@ -21,8 +21,8 @@ export needs when the data were already corrected by PX4. A step imported from a
 ``fitted_on`` for the step's stream: ``{"stream": "imu", "topic": "sensor_gyro_1",
 "instance": 1, "device_id": 3670050, "frame_id": ...}`` (keys present where known). Two
 entries are of different devices when both name a ``device_id`` and they differ, else when
-both name an ``instance`` (of the same log format) and they differ (:func:`device_key`); an
-entry that names neither (CSV, ROS) is of the one unnamed device. Steps of one device compose;
+both name an ``instance`` and they differ (:func:`same_device`); an entry that names neither
+(CSV, ROS, a step imported from another tool) may be of any device and applies to every one. Steps of one device compose;
 a step is never applied to another device's data (:class:`OnDevice`): in ``run``, a stage on
 ``sensor_gyro_1`` fits on data corrected only by ``sensor_gyro_1``'s earlier steps.
 

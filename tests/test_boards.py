@@ -509,3 +509,17 @@ def test_mag_thermal_model_maps_to_tc_m():
     )
     np.testing.assert_allclose(_px4_tc(p, "TC_M", 0, temp), true.T * 1e4, atol=1e-12)
     assert not [k for k in p if k.startswith("CAL_MAG")]
+
+
+def test_a_step_naming_no_device_composes_with_every_device():
+    """A step without a device (imported from another tool) applies to every device in run and
+    convert, so each device's slot composes it: CAL_GYROn_*OFF = own bias + the common one."""
+    common = LinearStep("import", "gyro", np.eye(3), [1e-3, 2e-3, 3e-3])
+    b0 = LinearStep("gyro_bias", "gyro", np.eye(3), [1e-4, 0.0, 0.0])
+    b1 = LinearStep("gyro_bias", "gyro", np.eye(3), [0.0, 1e-4, 0.0])
+    doc = _doc([(b0, _dev(111, 0)), (common, {"format": "kalibr"}), (b1, _dev(222, 1))])
+    files, _ = export_all(doc, ["px4"])
+    p = qgc_params(files["px4_calibration.params"])
+    assert [p[f"CAL_GYRO0_{a}OFF"] for a in "XYZ"] == pytest.approx([1.1e-3, 2e-3, 3e-3])
+    assert [p[f"CAL_GYRO1_{a}OFF"] for a in "XYZ"] == pytest.approx([1e-3, 2.1e-3, 3e-3])
+    assert (p["CAL_GYRO0_ID"], p["CAL_GYRO1_ID"]) == (111, 222)

@@ -2,9 +2,10 @@
 composed into one raw-domain model, the IMU intrinsics in Kalibr's form, and the serializers.
 
 **Devices** (:func:`device_models`). The chain's entries of a sensor are grouped by the device
-they were fitted on (:func:`imupipe.pipeline.calibration_file.device_key`: ``device_id``, else
-the log's ``instance``; entries naming neither are one unnamed device), in the order the devices
-first appear. Steps of one device compose; steps of different devices never do: each device is
+they were fitted on (:func:`imupipe.pipeline.calibration_file.same_device`: ``device_id``, else
+the log's ``instance``), in the order the devices first appear. An entry that names neither (a
+CSV or ROS input, a step imported from another tool) belongs to every device, as ``run`` and
+``convert`` apply it to every device's data. Steps of one device compose; steps of different devices never do: each device is
 one :class:`SensorModel`, which the autopilot exports put in its own parameter slot.
 
 **Composition** (:func:`device_models`). The chain's steps of one device's sensor, in order, become
@@ -38,7 +39,7 @@ from typing import Any
 
 import numpy as np
 
-from imupipe.pipeline.calibration_file import device, device_key
+from imupipe.pipeline.calibration_file import device, device_key, same_device
 
 AXES = ("x", "y", "z")
 POLY_TERMS = ("1", "T", "T^2", "T^3")
@@ -202,11 +203,24 @@ def entry_device(entry: Mapping[str, Any]) -> dict[str, Any]:
 def device_models(doc: Mapping[str, Any], sensor: str) -> list[SensorModel]:
     """One composed model per device of ``sensor`` (module docstring), in the order the devices
     first appear in the chain."""
-    groups: dict[tuple[Any, ...], list[dict[str, Any]]] = {}
-    for e in doc.get("chain", []):
-        if e.get("sensor") == sensor:
-            groups.setdefault(device_key(entry_device(e)), []).append(e)
-    return [_compose(sensor, entries) for entries in groups.values()]
+    entries = [e for e in doc.get("chain", []) if e.get("sensor") == sensor]
+    devices = [entry_device(e) for e in entries]
+    unnamed = [i for i, d in enumerate(devices) if device_key(d) == ("unnamed",)]
+    groups: list[tuple[dict[str, Any], list[int]]] = []
+    for i, dev in enumerate(devices):
+        if i in unnamed:
+            continue
+        group = next((g for rep, g in groups if same_device(rep, dev)), None)
+        if group is None:
+            groups.append((dev, [i]))
+        else:
+            group.append(i)
+    if not groups:
+        return [_compose(sensor, entries, devices[0])] if entries else []
+    return [
+        _compose(sensor, [entries[i] for i in sorted(members + unnamed)], rep)
+        for rep, members in groups
+    ]
 
 
 def single_device(
@@ -224,7 +238,7 @@ def single_device(
     return models[0] if models else None
 
 
-def _compose(sensor: str, entries: list[dict[str, Any]]) -> SensorModel:
+def _compose(sensor: str, entries: list[dict[str, Any]], dev: dict[str, Any]) -> SensorModel:
     """The entries of one device's sensor composed (module docstring)."""
     m, o = np.eye(3), np.zeros(3)
     thermal: Thermal | None = None
@@ -247,7 +261,6 @@ def _compose(sensor: str, entries: list[dict[str, Any]]) -> SensorModel:
             thermal = Thermal(t.tref, minv @ t.coefficients, t.t_range)
         else:
             issues.append(f"a '{kind}' step: not mapped")
-    dev = entry_device(entries[0])
     return SensorModel(sensor, m, o, thermal, entries, issues, dev)
 
 
