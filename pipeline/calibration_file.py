@@ -106,14 +106,18 @@ def device(where: Mapping[str, Any] | None, sensor: str) -> dict[str, Any]:
     return out
 
 
+UNNAMED: tuple[str] = ("unnamed",)
+"""The key of an entry that names no device (it may be any)."""
+
+
 def device_key(dev: Mapping[str, Any]) -> tuple[Any, ...]:
     """What tells devices apart (module docstring): ``("device_id", id)``, else
-    ``("instance", format, n)``, else ``("unnamed",)``."""
+    ``("instance", n)``, else :data:`UNNAMED`."""
     if dev.get("device_id") is not None:
         return ("device_id", int(dev["device_id"]))
     if dev.get("instance") is not None:
-        return ("instance", dev.get("format"), int(dev["instance"]))
-    return ("unnamed",)
+        return ("instance", int(dev["instance"]))
+    return UNNAMED
 
 
 def same_device(a: Mapping[str, Any], b: Mapping[str, Any]) -> bool:
@@ -190,7 +194,7 @@ def on_device(
     out: list[Step] = []
     for s, dev in zip(steps, devices, strict=True):
         same = [d for t, d in zip(steps, devices, strict=True) if t.sensor == s.sensor]
-        one = len({device_key(d) for d in same}) <= 1
+        one = len({device_key(d) for d in same} - {UNNAMED}) <= 1
         out.append(OnDevice(s, dev, lenient and one, tuple(same)))
     return out
 

@@ -19,7 +19,7 @@ from __future__ import annotations
 from collections.abc import Mapping, Sequence
 from typing import Any
 
-from imupipe.pipeline.calibration_file import device, device_key, same_device
+from imupipe.pipeline.calibration_file import UNNAMED, device, device_key, same_device
 from imupipe.pipeline.errors import ImupipeError
 
 COMPARED = ("topics", "frame_id", "instance", "device_id")
@@ -52,6 +52,7 @@ def mismatches(chain: Sequence[Mapping[str, Any]], log_meta: Mapping[str, Any]) 
     for i, where in fitted_on(chain):
         sensor = chain[i]["sensor"]
         devices.setdefault(sensor, set()).add(device_key(device(where, sensor)))
+    devices = {k: v - {UNNAMED} for k, v in devices.items()}
     for i, where in fitted_on(chain):
         sensor = chain[i]["sensor"]
         if len(devices[sensor]) > 1 and not same_device(

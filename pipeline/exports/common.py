@@ -39,7 +39,7 @@ from typing import Any
 
 import numpy as np
 
-from imupipe.pipeline.calibration_file import device, device_key, same_device
+from imupipe.pipeline.calibration_file import UNNAMED, device, device_key, same_device
 
 AXES = ("x", "y", "z")
 POLY_TERMS = ("1", "T", "T^2", "T^3")
@@ -205,7 +205,7 @@ def device_models(doc: Mapping[str, Any], sensor: str) -> list[SensorModel]:
     first appear in the chain."""
     entries = [e for e in doc.get("chain", []) if e.get("sensor") == sensor]
     devices = [entry_device(e) for e in entries]
-    unnamed = [i for i, d in enumerate(devices) if device_key(d) == ("unnamed",)]
+    unnamed = [i for i, d in enumerate(devices) if device_key(d) == UNNAMED]
     groups: list[tuple[dict[str, Any], list[int]]] = []
     for i, dev in enumerate(devices):
         if i in unnamed:
