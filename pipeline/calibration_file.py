@@ -22,9 +22,10 @@ export needs when the data were already corrected by PX4. A step imported from a
 "instance": 1, "device_id": 3670050, "frame_id": ...}`` (keys present where known). Two
 entries are of different devices when both name a ``device_id`` and they differ, else when
 both name an ``instance`` and they differ (:func:`same_device`); an entry that names neither
-(CSV, ROS, a step imported from another tool) may be of any device and applies to every one. Steps of one device compose;
-a step is never applied to another device's data (:class:`OnDevice`): in ``run``, a stage on
-``sensor_gyro_1`` fits on data corrected only by ``sensor_gyro_1``'s earlier steps.
+(CSV, ROS, a step imported from another tool) may be of any device and applies to every one.
+Steps of one device compose; a step is never applied to another device's data
+(:class:`OnDevice`): in ``run``, a stage on ``sensor_gyro_1`` fits on data corrected only by
+``sensor_gyro_1``'s earlier steps.
 
 **Loading** (:func:`load_calibration`): the file must be under :data:`MAX_BYTES`, UTF-8 JSON
 nested at most :data:`MAX_DEPTH` deep, an object with a ``chain`` list; every chain entry is
@@ -121,8 +122,8 @@ def device_key(dev: Mapping[str, Any]) -> tuple[Any, ...]:
 
 
 def same_device(a: Mapping[str, Any], b: Mapping[str, Any]) -> bool:
-    """Whether two devices may be the same: false only when both name a ``device_id`` that
-    differs, or neither does and both name a different ``instance``."""
+    """Whether two devices may be the same: by ``device_id`` when both name one, else by
+    ``instance`` when both name one, else true (a device not named may be any)."""
     if a.get("device_id") is not None and b.get("device_id") is not None:
         return int(a["device_id"]) == int(b["device_id"])
     if a.get("instance") is not None and b.get("instance") is not None:
