@@ -43,6 +43,7 @@ data PX4 had already corrected (a ULog's ``sensor_combined``) is left out.
 
 from __future__ import annotations
 
+import textwrap
 from typing import Any
 
 import numpy as np
@@ -52,6 +53,7 @@ from imupipe.pipeline.exports.common import (
     Export,
     SensorModel,
     device_models,
+    left_alone,
     number,
     off_diagonal,
     params_text,
@@ -177,6 +179,16 @@ def imu_rows(
     return rows
 
 
+def families(sensor: str, i: int) -> list[tuple[str, str]]:
+    """The parameter families of IMU or compass slot ``i`` (for the header's list)."""
+    if sensor == "mag":
+        return [(f"COMPASS_{k}{_s(i)}_", "") for k in ("OFS", "DIA", "ODI")]
+    short = SHORT[sensor]
+    offs = f"INS_{short}{_s(i)}OFFS_" if sensor == "accel" or i else "INS_GYROFFS_"
+    out = [(offs, ""), (f"INS_{short}{i + 1}_CALTEMP", ""), (f"INS_TCAL{i + 1}_{short}", "")]
+    return out + ([(f"INS_ACC{_s(i)}SCAL_", "")] if sensor == "accel" else [])
+
+
 def mag_rows(model: SensorModel, i: int, out: Export) -> list[Row]:
     if model.thermal is not None:
         out.note(FNAME, "mag: ArduPilot has no compass temperature model; left out")
@@ -235,14 +247,17 @@ def export(doc: dict[str, Any], complete: bool = False) -> Export:
             models.append(model)
         placed += [(m, i) for m, i in zip(models, slots(models, out), strict=True) if i is not None]
     shared = shared_ranges([(m, i) for m, i in placed if m.sensor != "mag"], out)
+    alone: list[str] = []
     for model, i in placed:
         for issue in model.issues:
             out.note(FNAME, f"{model.sensor}: {issue}")
         logged.update(log_parameters(model))
         if model.sensor == "mag":
-            rows += mag_rows(model, i, out)
+            mine = mag_rows(model, i, out)
         else:
-            rows += imu_rows(model, i, out, shared.get(i))
+            mine = imu_rows(model, i, out, shared.get(i))
+        rows += mine
+        alone += left_alone([r[0] for r in mine], families(model.sensor, i))
     for i, (lo, hi) in shared.items():
         rows += [(f"INS_TCAL{i + 1}_ENABLE", 1.0)]
         rows += [(f"INS_TCAL{i + 1}_TMIN", lo), (f"INS_TCAL{i + 1}_TMAX", hi)]
@@ -259,10 +274,12 @@ def export(doc: dict[str, Any], complete: bool = False) -> Export:
     else:
         if complete:
             out.note(FNAME, "the input carries no ArduPilot parameters: only the estimated ones")
-        comments += [
-            "Only what imupipe estimated; loading it leaves every other parameter of the vehicle",
-            "as it is (offsets, scales, INS_*_CALTEMP and INS_TCAL* not listed here).",
-        ]
+        listed = ", ".join(alone) if alone else "(none in these slots)"
+        comments += textwrap.wrap(
+            "Only what imupipe estimated: loading it leaves every other parameter of the "
+            f"vehicle as it is, among them {listed}.",
+            width=92,
+        )
     out.files[FNAME] = params_text(
         [(name, number(value)) for name, value in rows], comments, delimiter=","
     )

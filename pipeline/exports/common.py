@@ -264,6 +264,18 @@ def _compose(sensor: str, entries: list[dict[str, Any]], dev: dict[str, Any]) ->
     return SensorModel(sensor, m, o, thermal, entries, issues, dev)
 
 
+def left_alone(names: Iterable[str], families: Iterable[tuple[str, str]]) -> list[str]:
+    """The parameter families (prefix, suffix) no name in ``names`` belongs to, written
+    ``prefix*suffix`` (``CAL_ACC0_*SCALE``; a prefix not ending in ``_`` is a whole name):
+    what a parameter file leaves as the vehicle has it."""
+    names = list(names)
+    return [
+        f"{prefix}*{suffix}" if prefix.endswith("_") else prefix + suffix
+        for prefix, suffix in families
+        if not any(n.startswith(prefix) and n.endswith(suffix) for n in names)
+    ]
+
+
 def off_diagonal(m: np.ndarray) -> float:
     """The largest off-diagonal element of ``m`` relative to its mean absolute diagonal."""
     return float(np.abs(m - np.diag(np.diag(m))).max() / np.abs(np.diag(m)).mean())

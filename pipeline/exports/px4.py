@@ -59,6 +59,7 @@ from imupipe.pipeline.exports.common import (
     Export,
     SensorModel,
     device_models,
+    left_alone,
     number,
     off_diagonal,
     params_text,
@@ -300,15 +301,9 @@ FAMILIES = {
 what the file leaves alone."""
 
 
-def left_alone(sensor: str, t: Target, rows: list[Row]) -> list[str]:
-    """The families of the device's slots that ``rows`` do not write (``CAL_ACC0_*OFF``)."""
-    names = [r[0] for r in rows]
-    out = []
-    for prefix, suffix in FAMILIES[sensor]:
-        head = prefix.format(n=t.n, k=t.tc)
-        if not any(name.startswith(head) and name.endswith(suffix) for name in names):
-            out.append(f"{head}*{suffix}")
-    return out
+def families(sensor: str, t: Target) -> list[tuple[str, str]]:
+    """The parameter families of the device's slots (for the header's list)."""
+    return [(prefix.format(n=t.n, k=t.tc), suffix) for prefix, suffix in FAMILIES[sensor]]
 
 
 def export(doc: dict[str, Any], complete: bool = False) -> Export:
@@ -325,7 +320,7 @@ def export(doc: dict[str, Any], complete: bool = False) -> Export:
                 continue
             mine = rows_for(model, t, out)
             rows += mine
-            alone += left_alone(sensor, t, mine)
+            alone += left_alone([r[0] for r in mine], families(sensor, t))
             logged.update(t.params)
     if not rows:
         return out
