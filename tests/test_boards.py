@@ -173,6 +173,8 @@ def test_temperature_only_file_keeps_the_vehicles_calibration(warm_up):
     assert "CAL_ACC1_*SCALE" in text and "leaves every other parameter" in text
     assert not [k for k in ardu if "OFFS" in k or "SCAL" in k or "CALTEMP" in k]
     assert {"INS_TCAL1_TMIN", "INS_TCAL2_TMIN", "INS_TCAL1_TMAX", "INS_TCAL2_TMAX"} <= set(ardu)
+    header = (warm_up[0] / "out" / "ardupilot_calibration.param").read_text()
+    assert "INS_ACC2SCAL_*" in header and "INS_ACC1_CALTEMP," in header
 
 
 def test_px4_formula_reproduces_imupipe_for_both_devices(warm_up):
