@@ -11,10 +11,21 @@ the common table the stage fitted on (the readers put ``source``, ``format``, ``
      "t_start_ns": ..., "t_end_ns": ..., "rate_hz": {"imu": 199.9},
      "px4": {"calibrated": {"imu": false}, "parameters": {"CAL_GYRO1_XOFF": ...}}}
 
-``instance``, ``device_id`` and ``px4`` appear only where the log has them (PX4 ULog);
+``instance``, ``device_id`` and ``px4`` appear only where the log has them (PX4 ULog; a
+DataFlash log's parameters under ``ardupilot.parameters``);
 ``px4.parameters`` keeps the log's ``CAL_*``/``TC_*``/``SENS_BOARD_*`` values, which the PX4
 export needs when the data were already corrected by PX4. A step imported from another tool
 (``imupipe import``) has ``{"input": null, "path": <its file>, "format": <the tool>}``.
+
+**Device.** Every chain entry also names the device it corrects (:func:`device`), taken from
+``fitted_on`` for the step's stream: ``{"stream": "imu", "topic": "sensor_gyro_1",
+"instance": 1, "device_id": 3670050, "frame_id": ...}`` (keys present where known). Two
+entries are of different devices when both name a ``device_id`` and they differ, else when
+both name an ``instance`` and they differ (:func:`same_device`); an entry that names neither
+(CSV, ROS, a step imported from another tool) may be of any device and applies to every one.
+Steps of one device compose; a step is never applied to another device's data
+(:class:`OnDevice`): in ``run``, a stage on ``sensor_gyro_1`` fits on data corrected only by
+``sensor_gyro_1``'s earlier steps.
 
 **Loading** (:func:`load_calibration`): the file must be under :data:`MAX_BYTES`, UTF-8 JSON
 nested at most :data:`MAX_DEPTH` deep, an object with a ``chain`` list; every chain entry is
@@ -28,14 +39,16 @@ from __future__ import annotations
 
 import json
 import math
-from collections.abc import Mapping
+from collections.abc import Iterable, Iterator, Mapping, Sequence
+from dataclasses import dataclass
+from itertools import chain as chained
 from pathlib import Path
-from typing import Any
+from typing import Any, ClassVar
 
 import pyarrow as pa
 
 from imupipe.readers.spec import InputSpec
-from imupipe.readers.table import STREAMS, metadata, stream_mask
+from imupipe.readers.table import STREAM_OF_SENSOR, STREAMS, metadata, stream_mask
 from imupipe.stages.errors import CalibrationError
 from imupipe.stages.steps import Step, steps_from_json
 
@@ -45,6 +58,8 @@ MAX_DEPTH = 64
 """Deepest JSON nesting accepted (a calibration nests about 6 deep)."""
 PROVENANCE_KEYS = ("topics", "frame_id", "instance", "device_id", "px4", "ardupilot")
 """Table metadata keys copied into ``fitted_on`` when present."""
+DEVICE_KEYS = (("topics", "topic"), ("instance", "instance"), ("device_id", "device_id"))
+"""(``fitted_on`` key, device key): the stream's value of each names the device."""
 
 
 def fitted_on(input_name: str, spec: InputSpec, table: pa.Table) -> dict[str, Any]:
@@ -71,6 +86,124 @@ def fitted_on(input_name: str, spec: InputSpec, table: pa.Table) -> dict[str, An
             rates[stream] = (len(stamps) - 1) / span
     out["rate_hz"] = rates
     return out
+
+
+def device(where: Mapping[str, Any] | None, sensor: str) -> dict[str, Any]:
+    """The device ``sensor`` was fitted on, from a ``fitted_on`` record or a table's metadata
+    (same keys): ``stream`` and, where known, ``topic``, ``instance``, ``device_id`` (a
+    per-sensor value, ``device_id.gyro``, wins over the stream's), ``frame_id`` and
+    ``format``."""
+    stream = STREAM_OF_SENSOR[sensor]
+    where = where or {}
+    out: dict[str, Any] = {"stream": stream}
+    for key, name in (*DEVICE_KEYS, ("frame_id", "frame_id")):
+        per = where.get(key)
+        if isinstance(per, Mapping):
+            value = per.get(sensor, per.get(stream))
+            if value is not None:
+                out[name] = value
+    if where.get("format"):
+        out["format"] = where["format"]
+    return out
+
+
+UNNAMED: tuple[str] = ("unnamed",)
+"""The key of an entry that names no device (it may be any)."""
+
+
+def device_key(dev: Mapping[str, Any]) -> tuple[Any, ...]:
+    """What tells devices apart (module docstring): ``("device_id", id)``, else
+    ``("instance", n)``, else :data:`UNNAMED`."""
+    if dev.get("device_id") is not None:
+        return ("device_id", int(dev["device_id"]))
+    if dev.get("instance") is not None:
+        return ("instance", int(dev["instance"]))
+    return UNNAMED
+
+
+def same_device(a: Mapping[str, Any], b: Mapping[str, Any]) -> bool:
+    """Whether two devices may be the same: by ``device_id`` when both name one, else by
+    ``instance`` when both name one, else true (a device not named may be any)."""
+    if a.get("device_id") is not None and b.get("device_id") is not None:
+        return int(a["device_id"]) == int(b["device_id"])
+    if a.get("instance") is not None and b.get("instance") is not None:
+        return int(a["instance"]) == int(b["instance"])
+    return True
+
+
+@dataclass
+class OnDevice(Step):
+    """``step``, applied only to data of its own ``device`` (see the module docstring); its
+    chain entry is the step's own (with ``device`` added). ``lenient``: data of a device the
+    calibration does not know at all (another board's log) are corrected anyway, as before
+    devices were recorded (``convert`` of a one-device calibration: the provenance check
+    reports the difference)."""
+
+    kind: ClassVar[str] = "on_device"
+    step: Step
+    device: dict[str, Any]
+    lenient: bool = False
+    known: tuple[dict[str, Any], ...] = ()
+
+    @property
+    def type(self) -> str:  # type: ignore[override]
+        return self.step.type
+
+    @property
+    def sensor(self) -> str:  # type: ignore[override]
+        return self.step.sensor
+
+    def applies(self, table: pa.Table) -> bool:
+        theirs = device(metadata(table), self.sensor)
+        if same_device(self.device, theirs):
+            return True
+        return self.lenient and not any(same_device(k, theirs) for k in self.known)
+
+    def apply(self, table: pa.Table) -> pa.Table:
+        return self.step.apply(table) if self.applies(table) else table
+
+    def apply_stream(self, batches: Iterable[pa.Table]) -> Iterator[pa.Table]:
+        it = iter(batches)
+        first = next(it, None)
+        if first is None:
+            return
+        rest = chained([first], it)
+        yield from (self.step.apply_stream(rest) if self.applies(first) else rest)
+
+    def to_json(self) -> dict[str, Any]:
+        return {**self.step.to_json(), "device": self.device}
+
+    @classmethod
+    def from_json(cls, entry: dict[str, Any]) -> Step:
+        """The entry's own step (its ``kind``) on the entry's device."""
+        (step,) = steps_from_json([entry])
+        return cls(step, device(entry.get("fitted_on"), step.sensor) | entry.get("device", {}))
+
+
+def on_device(
+    steps: Sequence[Step], entries: Sequence[Mapping[str, Any]], lenient: bool = False
+) -> list[Step]:
+    """``steps`` each wrapped in :class:`OnDevice` with the device of its chain entry
+    (``entries[i]``: a chain entry with ``device`` or ``fitted_on``, or a ``fitted_on``
+    record); ``lenient`` only where the chain names one device per sensor."""
+    devices = [
+        dict(e["device"])
+        if isinstance(e.get("device"), Mapping)
+        else device(e.get("fitted_on", e), s.sensor)
+        for s, e in zip(steps, entries, strict=True)
+    ]
+    out: list[Step] = []
+    for s, dev in zip(steps, devices, strict=True):
+        same = [d for t, d in zip(steps, devices, strict=True) if t.sensor == s.sensor]
+        one = len({device_key(d) for d in same} - {UNNAMED}) <= 1
+        out.append(OnDevice(s, dev, lenient and one, tuple(same)))
+    return out
+
+
+def applying(steps: Sequence[Step], table: pa.Table) -> list[Step]:
+    """The steps that apply to ``table``'s device (every step that is not an :class:`OnDevice`
+    of another device)."""
+    return [s for s in steps if not isinstance(s, OnDevice) or s.applies(table)]
 
 
 def calibration_json(doc: Mapping[str, Any]) -> str:

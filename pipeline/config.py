@@ -31,7 +31,7 @@ from imupipe.stages.registry import STAGE_TYPES, stage_class
 
 INPUT_KEYS = {"path", "imu_topic", "mag_topic", "temperature_topic", "time", "csv"}
 CSV_KEYS = {f.name for f in dataclasses.fields(CsvMapping)} - {"required"}
-OUTPUT_KEYS = {"dir", "apply_to", "rerun", "rerun_max_points", "report", "exports"}
+OUTPUT_KEYS = {"dir", "apply_to", "rerun", "rerun_max_points", "report", "exports", "params"}
 TOP_KEYS = {"inputs", "stages", "output"}
 
 INPUT_NAME = re.compile(r"^\w[\w.-]*$")
@@ -65,6 +65,9 @@ class OutputConfig:
     """The files for other tools to write (names of :data:`EXPORTERS`); None: the ROS and VIO
     ones (Kalibr, imu_utils, VINS, OpenVINS), plus PX4's when a step was fitted on a PX4 log.
     Kalibr's ``imu.yaml`` is written whenever an ``allan`` stage ran."""
+    params: str = "estimated"
+    """The autopilot parameter files (PX4, ArduPilot): ``"estimated"`` holds only what the stages
+    fitted; ``"complete"`` merges it over the log's own calibration parameters."""
 
 
 @dataclass
@@ -375,6 +378,9 @@ def load_config(path: str | Path) -> Config:
         not isinstance(exports, list) or not all(e in EXPORTERS for e in exports)
     ):
         raise ConfigError(f"{path}: [output].exports must be a list of: {', '.join(EXPORTERS)}")
+    params = out_raw.get("params", "estimated")
+    if params not in ("estimated", "complete"):
+        raise ConfigError(f'{path}: [output].params must be "estimated" or "complete"')
     output = OutputConfig(
         dir=out_dir,
         apply_to=apply_to,
@@ -382,5 +388,6 @@ def load_config(path: str | Path) -> Config:
         rerun_max_points=max_points,
         report=report,
         exports=exports,
+        params=params,
     )
     return Config(path=path, inputs=inputs, stages=stages, output=output, raw=raw)

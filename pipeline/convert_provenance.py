@@ -19,6 +19,7 @@ from __future__ import annotations
 from collections.abc import Mapping, Sequence
 from typing import Any
 
+from imupipe.pipeline.calibration_file import UNNAMED, device, device_key, same_device
 from imupipe.pipeline.errors import ImupipeError
 
 COMPARED = ("topics", "frame_id", "instance", "device_id")
@@ -42,9 +43,22 @@ def fitted_on(chain: Sequence[Mapping[str, Any]]) -> list[tuple[int, Mapping[str
 
 def mismatches(chain: Sequence[Mapping[str, Any]], log_meta: Mapping[str, Any]) -> list[str]:
     """One line per difference between the chain's ``fitted_on`` records and a log's metadata
-    (``topics``, ``frame_id``, ``instance``: stream -> value), where both sides name a value."""
+    (``topics``, ``frame_id``, ``instance``: stream -> value), where both sides name a value.
+    A chain of several devices of a sensor (two PX4 IMUs) is compared only by the entries of the
+    log's device: the others are not applied to it
+    (:class:`~imupipe.pipeline.calibration_file.OnDevice`)."""
     found = []
+    devices: dict[str, set[tuple[Any, ...]]] = {}
     for i, where in fitted_on(chain):
+        sensor = chain[i]["sensor"]
+        devices.setdefault(sensor, set()).add(device_key(device(where, sensor)))
+    devices = {k: v - {UNNAMED} for k, v in devices.items()}
+    for i, where in fitted_on(chain):
+        sensor = chain[i]["sensor"]
+        if len(devices[sensor]) > 1 and not same_device(
+            device(where, sensor), device(log_meta, sensor)
+        ):
+            continue  # another device's step: not applied to this log
         for key in COMPARED:
             ours, theirs = where.get(key), log_meta.get(key)
             if not isinstance(ours, Mapping) or not isinstance(theirs, Mapping):

@@ -29,6 +29,7 @@ from typing import Any
 import pyarrow as pa
 
 from imupipe.pipeline.atomic import staged_outputs
+from imupipe.pipeline.calibration_file import on_device
 from imupipe.pipeline.convert_dataset import dataset_table
 from imupipe.pipeline.convert_done import existing_output, input_size
 from imupipe.pipeline.convert_plan import LogTask
@@ -161,7 +162,8 @@ def _convert_log(task: LogTask) -> LogStats:
     if found is not None:
         status, written = "skipped", found
     else:
-        steps = steps_from_json(task.calibration["chain"])
+        chain = task.calibration["chain"]
+        steps = on_device(steps_from_json(chain), chain, lenient=True)  # each on its device
         mode = "streamed"
         expected = input_counts(src, fmt)
         doc = {

@@ -20,7 +20,7 @@ from typing import Any
 import pyarrow as pa
 
 from imupipe.pipeline.atomic import OutputGuard, remove_stale_temps, staged_outputs
-from imupipe.pipeline.calibration_file import calibration_json, fitted_on
+from imupipe.pipeline.calibration_file import applying, calibration_json, fitted_on, on_device
 from imupipe.pipeline.config import Config, load_config
 from imupipe.pipeline.exports import chosen as chosen_exports
 from imupipe.pipeline.exports import export_all
@@ -206,11 +206,12 @@ def run(
                     accept_failed_checks=st.accept_failed_checks,
                 )
                 sensors = stage.sensors_for(st.options)
-                recorder.sensors(st.name, table, sensors, input_name=st.input, chain=tables.chain)
+                mine = applying(tables.chain, table)  # the steps of this input's devices
+                recorder.sensors(st.name, table, sensors, input_name=st.input, chain=mine)
                 output = stage.fit(table, ctx)
                 where = fitted_on(st.input, cfg.inputs[st.input], table)
-                if output.steps:
-                    tables.extend(output.steps)
+                if output.steps:  # each applies to its own device's data only
+                    tables.extend(on_device(output.steps, [where] * len(output.steps)))
                     fitted.extend([where] * len(output.steps))
                     fixed = [n for n in sensors if any(s.sensor == n for s in output.steps)]
                     recorder.sensors(
@@ -237,7 +238,11 @@ def run(
                 bar.advance()
 
             doc = calibration_document(tables.chain, results, fitted)
-            exported, report = export_all(doc, chosen_exports(doc, cfg.output.exports))
+            exported, report = export_all(
+                doc,
+                chosen_exports(doc, cfg.output.exports),
+                complete=cfg.output.params == "complete",
+            )
             if report:  # what each tool's file leaves out: in the document, and one line
                 doc["exports"] = report
             noted = [name for name, rep in report.items() if rep.get("notes")]

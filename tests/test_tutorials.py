@@ -144,3 +144,39 @@ def test_px4_ulog(tmp_path):
     bias = json.loads((tmp_path / "out_px4" / "calibration.json").read_text())
     bias = bias["results"]["gyro_bias"]["bias"]
     assert [round(b, 5) for b in bias] == [0.01737, -0.00013, -0.00556]
+
+
+def test_px4_thermal_calibration(tmp_path):
+    """The PX4 thermal tutorial: both IMUs' TC_G/TC_A in their devices' slots with the quoted
+    figures, the quoted fit of the second gyro, the quoted header, no CAL_ACC/CAL_GYRO line."""
+    page = "px4-thermal-calibration.md"
+    run_commands(blocks(page, "bash")[0], tmp_path)
+    (tmp_path / "thermal.toml").write_text(blocks(page, "toml")[0])
+    proc = run_cli("run", "thermal.toml", cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    quoted_fit = blocks(page, "text")[1].strip().splitlines()
+    printed = [line.rstrip() for line in proc.stdout.splitlines()]
+    start = printed.index(next(p for p in printed if p.startswith(quoted_fit[0])))
+    assert printed[start + 1 : start + len(quoted_fit)] == quoted_fit[1:]
+    text = (tmp_path / "out_thermal" / "px4_calibration.params").read_text()
+    quoted = blocks(page, "text")[2].strip().splitlines()
+    header = [line for line in quoted if line.startswith("#")]
+    assert "\n".join(header) in text
+    rows = {}
+    for line in text.splitlines():
+        if not line.startswith("#") and line.strip():
+            _, _, name, value, _ = line.split("\t")
+            rows[name] = float(value)
+    for line in quoted:
+        if line.startswith("#"):
+            continue
+        _, _, name, value, _ = line.split("\t")
+        digits = len(value.split(".")[1]) if "." in value else 0
+        assert round(rows[name], digits) == float(value), name
+    assert not [n for n in rows if n.startswith(("CAL_ACC", "CAL_GYRO"))]
+    assert {n for n in rows if n.endswith("_ID")} == {
+        "TC_A0_ID",
+        "TC_A1_ID",
+        "TC_G0_ID",
+        "TC_G1_ID",
+    }

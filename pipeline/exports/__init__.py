@@ -10,8 +10,8 @@ what did not map) and writes a file only when the stages that fill it ran:
 | ``vins_imu.yaml`` | VINS-Mono/VINS-Fusion noise block (``%YAML:1.0``, OpenCV) | an ``allan`` stage ran |
 | ``kalibr_imu_intrinsics.yaml`` | Kalibr's ``scale-misalignment`` IMU model | accel or gyro scale/misalignment fitted |
 | ``kalibr_imu_chain.yaml`` | OpenVINS ``imu0`` (noise + ``Tw``, ``R_IMUtoGYRO``, ``Ta``, ``R_IMUtoACC``, ``Tg``) | an ``allan`` stage ran |
-| ``px4_calibration.params`` | PX4 ``CAL_*`` and ``TC_*`` (QGroundControl's ``.params``) | an accel, gyro, mag or temperature step maps |
-| ``ardupilot_calibration.param`` | ArduPilot ``INS_*``, ``COMPASS_*``, ``INS_TCAL*`` (Mission Planner's ``.param``) | the same |
+| ``px4_calibration.params`` | PX4 ``CAL_*`` and ``TC_*`` (QGroundControl's ``.params``), one slot per device | an accel, gyro, mag or temperature step maps |
+| ``ardupilot_calibration.param`` | ArduPilot ``INS_*``, ``COMPASS_*``, ``INS_TCAL*`` (Mission Planner's ``.param``), one slot per device | the same |
 
 Every file is produced by a serializer (PyYAML's ``safe_dump``, the ``csv`` module): no value of
 the document reaches a file by string formatting. The model mappings are in each module's
@@ -43,17 +43,25 @@ def chosen(doc: dict[str, Any], asked: list[str] | None) -> list[str]:
     return [name for name in EXPORTERS if name in DEFAULT or (name == "px4" and px4)]
 
 
+PARAMETER_FILES: tuple[str, ...] = ("px4", "ardupilot")
+"""The exporters of autopilot parameter files: only the estimated parameters, or (``complete``)
+merged over the log's own."""
+
+
 def export_all(
-    doc: dict[str, Any], names: list[str] | None = None
+    doc: dict[str, Any], names: list[str] | None = None, complete: bool = False
 ) -> tuple[dict[str, str], dict[str, dict[str, Any]]]:
     """The exports ``names`` (default: every exporter) of a calibration document: (file name ->
     text, file name -> report). A report has ``notes`` (what was left out or approximated) and
     facts such as the frame rotation of Kalibr's intrinsics; ``run`` keeps the reports in
-    ``calibration.json`` under ``exports``."""
+    ``calibration.json`` under ``exports``. ``complete``: the autopilot parameter files hold the
+    log's own calibration parameters too (``[output] params = "complete"``)."""
     files: dict[str, str] = {}
     report: dict[str, dict[str, Any]] = {}
     for name in EXPORTERS if names is None else names:
-        out: Export = importlib.import_module(f"imupipe.pipeline.exports.{name}").export(doc)
+        module = importlib.import_module(f"imupipe.pipeline.exports.{name}")
+        extra = {"complete": complete} if name in PARAMETER_FILES else {}
+        out: Export = module.export(doc, **extra)
         files.update(out.files)
         for fname in set(out.notes) | set(out.info):
             entry = report.setdefault(fname, {})

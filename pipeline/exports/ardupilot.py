@@ -12,20 +12,38 @@ ArduPilot corrects (ArduPilot ``libraries/AP_InertialSensor/AP_InertialSensor_Ba
     mag:   W (raw + COMPASS_OFS_{X,Y,Z}),  W symmetric: diagonal COMPASS_DIA_*,
            off-diagonal COMPASS_ODI_{X,Y,Z} = W01, W02, W12                            milligauss
 
-(the second and third IMU/compass use ``INS_ACC2OFFS_*``, ``COMPASS_OFS2_*``, ...; this file
-writes the first). imupipe's composed chain (:func:`imupipe.pipeline.exports.common.sensor_model`)
-maps: offsets exactly (ArduPilot's compass offset is added, so ``COMPASS_OFS = -offset``, in
+**One slot per device** (:func:`imupipe.pipeline.exports.common.device_models`): IMU ``i`` (1 to
+3) is ``INS_ACC*``/``INS_GYR*`` (``INS_ACCOFFS_*``, ``INS_ACC2OFFS_*``, ``INS_ACC3OFFS_*``;
+``INS_GYROFFS_*``, ``INS_GYR2OFFS_*``; ``INS_ACCi_CALTEMP``; ``INS_TCALi_*``), compass ``i`` is
+``COMPASS_OFS*``/``DIA*``/``ODI*``/``SCALE*`` (``COMPASS_OFS_*``, ``COMPASS_OFS2_*``...). The
+slot is the one whose ``INS_ACC*_ID``/``INS_GYR*_ID``/``COMPASS_DEV_ID*`` in the log's parameters
+(``fitted_on.ardupilot.parameters``, a DataFlash log's) holds the device's id, else the device's
+instance when free, else the first free one. ``INS_TCALi_TMIN``/``TMAX`` are shared by the
+IMU's accel and gyro: written once, the intersection of both fitted ranges (noted when they
+differ). ``COMPASS_SCALE*`` is 1 (the whole soft iron is in ``DIA``/``ODI``; ArduPilot
+multiplies by it after the offsets, ``correct_field``).
+
+``INS_*_ID``/``COMPASS_DEV_ID*`` are written only from an ArduPilot log (PX4 numbers device
+types differently).
+
+**Only what was estimated**: offsets (and ``*_ID``) when a linear step was fitted, the accel
+scale when a matrix was, ``INS_TCALi_*`` when a temperature step was. A temperature model
+without a linear step writes only the ``INS_TCALi_*`` shape (``c1..c3``): ArduPilot corrects
+relative to ``INS_*i_CALTEMP``, the temperature of the vehicle's own offsets, which stay.
+
+imupipe's composed chain maps: offsets exactly (ArduPilot's compass offset is added, so ``COMPASS_OFS = -offset``, in
 milligauss); the accelerometer scale from the diagonal (no misalignment in ArduPilot: the
 off-diagonal part is left out, noted); no gyro scale in ArduPilot (noted); the soft iron when
 symmetric. A temperature polynomial of order <= 3 in T maps exactly: it is re-expanded about
-35 degC, its value at the calibration temperature (Tref clamped to the fitted range) goes into
-the offset and ``INS_ACC1_CALTEMP``/``INS_GYR1_CALTEMP`` is that temperature. Models with
+35 degC; with a linear step, its value at the calibration temperature (Tref clamped to the fitted
+range) goes into the offset and ``INS_ACCi_CALTEMP``/``INS_GYRi_CALTEMP`` is that temperature. Models with
 rate, ambient, piecewise or scale-factor terms do not map (noted, left out). A sensor fitted on
 data PX4 had already corrected (a ULog's ``sensor_combined``) is left out.
 """
 
 from __future__ import annotations
 
+import textwrap
 from typing import Any
 
 import numpy as np
@@ -34,10 +52,11 @@ from imupipe.pipeline.exports.common import (
     RELATIVE_TOLERANCE,
     Export,
     SensorModel,
+    device_models,
+    left_alone,
     number,
     off_diagonal,
     params_text,
-    sensor_model,
     soft_iron,
 )
 
@@ -47,25 +66,80 @@ TCAL_REFERENCE = 35.0
 TCAL_SCALE = 1e6
 """ArduPilot stores the ``INS_TCAL`` coefficients multiplied by this (``SCALE_FACTOR``)."""
 MILLIGAUSS_PER_TESLA = 1e7
-NAMES = {"accel": ("INS_ACCOFFS", "INS_ACCSCAL", "ACC"), "gyro": ("INS_GYROFFS", None, "GYR")}
+SLOTS = 3
+"""ArduPilot's IMUs (and compasses) with parameters of this form."""
+SHORT = {"accel": "ACC", "gyro": "GYR", "mag": "COMPASS"}
+
+Row = tuple[str, float]
 
 
-def imu_rows(model: SensorModel, out: Export) -> list[tuple[str, float]]:
-    offs, scal, short = NAMES[model.sensor]
+def _s(i: int) -> str:
+    """The parameter names' instance part: ``""`` for the first, ``"2"``, ``"3"``."""
+    return "" if i == 0 else str(i + 1)
+
+
+def id_name(sensor: str, i: int) -> str:
+    return f"COMPASS_DEV_ID{_s(i)}" if sensor == "mag" else f"INS_{SHORT[sensor]}{_s(i)}_ID"
+
+
+def log_parameters(model: SensorModel) -> dict[str, Any]:
+    """The ArduPilot parameters of the log the model was fitted on (empty for other logs)."""
+    return (model.fitted_on.get("ardupilot") or {}).get("parameters") or {}
+
+
+def ardupilot_id(model: SensorModel) -> int | None:
+    """The device's id as ArduPilot numbers it: only from an ArduPilot log (a PX4 device id
+    differs in its device-type byte, so it is never written into ``INS_*_ID``)."""
+    dev = model.device.get("device_id")
+    return int(dev) if dev is not None and log_parameters(model) else None
+
+
+def slots(models: list[SensorModel], out: Export) -> list[int | None]:
+    """Each device's slot (module docstring); None when none is left (noted)."""
+    found: list[int | None] = []
+    taken: set[int] = set()
+    for model in models:
+        params = log_parameters(model)
+        dev = ardupilot_id(model)
+        ids = [params.get(id_name(model.sensor, i)) for i in range(SLOTS)]
+        match = [i for i in range(SLOTS) if i not in taken and dev is not None and ids[i] == dev]
+        free = [i for i in range(SLOTS) if i not in taken and not ids[i]]
+        prefer = model.device.get("instance")
+        slot = match[0] if match else (prefer if prefer in free else (free or [None])[0])
+        if slot is None:
+            out.note(FNAME, f"{model.sensor}: no slot left for device {dev}; not written")
+        else:
+            taken.add(slot)
+        found.append(slot)
+    return found
+
+
+def imu_rows(
+    model: SensorModel, i: int, out: Export, shared: tuple[float, float] | None
+) -> list[Row]:
+    """The rows of IMU slot ``i``'s accel or gyro; ``shared``: the slot's ``INS_TCALi_TMIN``/
+    ``TMAX`` (ArduPilot clamps both the temperature and ``CALTEMP`` to it)."""
+    short = SHORT[model.sensor]
+    offs = f"INS_{short}{_s(i)}OFFS" if model.sensor == "accel" or i else "INS_GYROFFS"
     m, offset = model.matrix, model.offset.copy()
-    rows: list[tuple[str, float]] = []
+    rows: list[Row] = []
     th = model.thermal
     if th is not None:
-        tcal = float(np.clip(th.tref, *th.t_range))
-        offset = offset + th.at(tcal)
         coef = th.about(TCAL_REFERENCE)
-        rows += [("INS_TCAL1_ENABLE", 1.0)]
-        rows += [("INS_TCAL1_TMIN", th.t_range[0]), ("INS_TCAL1_TMAX", th.t_range[1])]
-        rows += [(f"INS_{short}1_CALTEMP", tcal)]
+        if model.linear:
+            tcal = float(np.clip(th.tref, *(shared or th.t_range)))
+            offset = offset + th.at(tcal)
+            rows += [(f"INS_{short}{i + 1}_CALTEMP", tcal)]
+        else:
+            out.note(
+                FNAME,
+                f"{model.sensor}: a temperature model without offsets: INS_TCAL{i + 1} holds "
+                f"its shape; the vehicle's own INS_{short}{i + 1}_CALTEMP and offsets stay",
+            )
         rows += [
-            (f"INS_TCAL1_{short}{k}_{a}", coef[i, k] * TCAL_SCALE)
+            (f"INS_TCAL{i + 1}_{short}{k}_{a}", coef[j, k] * TCAL_SCALE)
             for k in (1, 2, 3)
-            for i, a in enumerate("XYZ")
+            for j, a in enumerate("XYZ")
         ]
         temp = model.fitted_on.get("topics", {}).get("temperature")
         out.note(
@@ -73,7 +147,13 @@ def imu_rows(model: SensorModel, out: Export) -> list[tuple[str, float]]:
             f"{model.sensor}: ArduPilot compensates against the IMU's own temperature; the "
             f"model was fitted against {temp or 'the temperature stream'}",
         )
-    rows += [(f"{offs}_{a}", offset[i]) for i, a in enumerate("XYZ")]
+    if model.linear:
+        dev = ardupilot_id(model)
+        if dev is not None:
+            rows.append((id_name(model.sensor, i), dev))
+        rows += [(f"{offs}_{a}", offset[j]) for j, a in enumerate("XYZ")]
+    if not model.scaled:
+        return rows
     diag = np.diag(m)
     off = off_diagonal(m)
     if off > RELATIVE_TOLERANCE:
@@ -82,8 +162,8 @@ def imu_rows(model: SensorModel, out: Export) -> list[tuple[str, float]]:
             f"{model.sensor}: ArduPilot has no misalignment terms; the off-diagonal "
             f"part of the matrix (up to {off:.2g} of its diagonal) is left out",
         )
-    if scal is not None:
-        rows += [(f"{scal}_{a}", diag[i]) for i, a in enumerate("XYZ")]
+    if model.sensor == "accel":
+        rows += [(f"INS_ACC{_s(i)}SCAL_{a}", diag[j]) for j, a in enumerate("XYZ")]
         if np.any(np.abs(diag - 1.0) > 0.2):
             out.note(
                 FNAME,
@@ -99,39 +179,107 @@ def imu_rows(model: SensorModel, out: Export) -> list[tuple[str, float]]:
     return rows
 
 
-def mag_rows(model: SensorModel, out: Export) -> list[tuple[str, float]]:
+def families(sensor: str, i: int) -> list[tuple[str, str]]:
+    """The parameter families of IMU or compass slot ``i`` (for the header's list)."""
+    if sensor == "mag":
+        return [(f"COMPASS_{k}{_s(i)}_", "") for k in ("OFS", "DIA", "ODI")]
+    short = SHORT[sensor]
+    offs = f"INS_{short}{_s(i)}OFFS_" if sensor == "accel" or i else "INS_GYROFFS_"
+    out = [(offs, ""), (f"INS_{short}{i + 1}_CALTEMP", ""), (f"INS_TCAL{i + 1}_{short}", "")]
+    return out + ([(f"INS_ACC{_s(i)}SCAL_", "")] if sensor == "accel" else [])
+
+
+def mag_rows(model: SensorModel, i: int, out: Export) -> list[Row]:
     if model.thermal is not None:
         out.note(FNAME, "mag: ArduPilot has no compass temperature model; left out")
-    diag, off = soft_iron(model.matrix, out, FNAME)
+    rows: list[Row] = []
+    if not model.linear:
+        return rows
+    dev = ardupilot_id(model)
+    if dev is not None:
+        rows.append((id_name("mag", i), dev))
     ofs = -model.offset * MILLIGAUSS_PER_TESLA
-    rows = [(f"COMPASS_OFS_{a}", ofs[i]) for i, a in enumerate("XYZ")]
-    rows += [(f"COMPASS_DIA_{a}", diag[i]) for i, a in enumerate("XYZ")]
-    rows += [(f"COMPASS_ODI_{a}", off[i]) for i, a in enumerate("XYZ")]
+    rows += [(f"COMPASS_OFS{_s(i)}_{a}", ofs[j]) for j, a in enumerate("XYZ")]
+    if model.scaled:
+        diag, off = soft_iron(model.matrix, out, FNAME)
+        rows += [(f"COMPASS_DIA{_s(i)}_{a}", diag[j]) for j, a in enumerate("XYZ")]
+        rows += [(f"COMPASS_ODI{_s(i)}_{a}", off[j]) for j, a in enumerate("XYZ")]
+        rows += [(f"COMPASS_SCALE{_s(i)}", 1.0)]
     return rows
 
 
-def export(doc: dict[str, Any]) -> Export:
+def shared_ranges(
+    placed: list[tuple[SensorModel, int]], out: Export
+) -> dict[int, tuple[float, float]]:
+    """IMU slot -> its ``INS_TCALi_TMIN``/``TMAX``: the range every thermal model of the slot
+    covers (noted when the accel's and the gyro's differ)."""
+    found: dict[int, list[tuple[float, float]]] = {}
+    for model, i in placed:
+        if model.thermal is not None:
+            found.setdefault(i, []).append(model.thermal.t_range)
+    shared = {}
+    for i, ranges in sorted(found.items()):
+        lo, hi = max(r[0] for r in ranges), min(r[1] for r in ranges)
+        if len(set(ranges)) > 1:
+            out.note(
+                FNAME,
+                f"IMU {i + 1}: accel and gyro were fitted over different temperatures; "
+                f"INS_TCAL{i + 1}_TMIN/TMAX hold the range both cover, {lo:.3g}..{hi:.3g} degC",
+            )
+        shared[i] = (lo, hi)
+    return shared
+
+
+def export(doc: dict[str, Any], complete: bool = False) -> Export:
+    """``ardupilot_calibration.param``: the estimated parameters of every device in its own
+    slot; ``complete``: merged over the log's own parameters (a DataFlash log's)."""
     out = Export()
-    rows: list[tuple[str, float]] = []
+    rows: list[Row] = []
+    logged: dict[str, Any] = {}
+    placed: list[tuple[SensorModel, int]] = []
     for sensor in ("accel", "gyro", "mag"):
-        model = sensor_model(doc, sensor)
-        if model is None:
-            continue
-        stream = "mag" if sensor == "mag" else "imu"
-        if ((model.fitted_on.get("px4") or {}).get("calibrated") or {}).get(stream):
-            out.note(FNAME, f"{sensor}: fitted on data PX4 had already corrected; not written")
-            continue
+        models = []
+        for model in device_models(doc, sensor):
+            stream = "mag" if sensor == "mag" else "imu"
+            if ((model.fitted_on.get("px4") or {}).get("calibrated") or {}).get(stream):
+                out.note(FNAME, f"{sensor}: fitted on data PX4 had already corrected; not written")
+                continue
+            models.append(model)
+        placed += [(m, i) for m, i in zip(models, slots(models, out), strict=True) if i is not None]
+    shared = shared_ranges([(m, i) for m, i in placed if m.sensor != "mag"], out)
+    alone: list[str] = []
+    for model, i in placed:
         for issue in model.issues:
-            out.note(FNAME, f"{sensor}: {issue}")
-        rows += mag_rows(model, out) if sensor == "mag" else imu_rows(model, out)
+            out.note(FNAME, f"{model.sensor}: {issue}")
+        logged.update(log_parameters(model))
+        if model.sensor == "mag":
+            mine = mag_rows(model, i, out)
+        else:
+            mine = imu_rows(model, i, out, shared.get(i))
+        rows += mine
+        alone += left_alone([r[0] for r in mine], families(model.sensor, i))
+    for i, (lo, hi) in shared.items():
+        rows += [(f"INS_TCAL{i + 1}_ENABLE", 1.0)]
+        rows += [(f"INS_TCAL{i + 1}_TMIN", lo), (f"INS_TCAL{i + 1}_TMAX", hi)]
     if not rows:
         return out
-    tcal = [r for r in rows if r[0] == "INS_TCAL1_ENABLE"]
-    rows = [r for r in rows if r[0] != "INS_TCAL1_ENABLE"] + tcal[:1]
     comments = [
-        "ArduPilot calibration parameters from imupipe, for IMU 1 and compass 1 (load in",
+        "ArduPilot calibration parameters from imupipe, one slot per IMU and compass (load in",
         "Mission Planner: Config, Full Parameter List, Load from file; or MAVProxy param load).",
     ]
+    if complete and logged:
+        ours = {r[0] for r in rows}
+        rows += [(k, v) for k, v in sorted(logged.items()) if k not in ours]
+        comments += ["Complete: the log's own parameters, with the ones imupipe estimated."]
+    else:
+        if complete:
+            out.note(FNAME, "the input carries no ArduPilot parameters: only the estimated ones")
+        listed = ", ".join(alone) if alone else "(none in these slots)"
+        comments += textwrap.wrap(
+            "Only what imupipe estimated: loading it leaves every other parameter of the "
+            f"vehicle as it is, among them {listed}.",
+            width=92,
+        )
     out.files[FNAME] = params_text(
         [(name, number(value)) for name, value in rows], comments, delimiter=","
     )

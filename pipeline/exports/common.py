@@ -1,7 +1,14 @@
 """What the exporters share: the noise figures of an ``allan`` stage, the chain of one sensor
 composed into one raw-domain model, the IMU intrinsics in Kalibr's form, and the serializers.
 
-**Composition** (:func:`sensor_model`). The chain's steps of one sensor, in order, become
+**Devices** (:func:`device_models`). The chain's entries of a sensor are grouped by the device
+they were fitted on (:func:`imupipe.pipeline.calibration_file.same_device`: ``device_id``, else
+the log's ``instance``), in the order the devices first appear. An entry that names neither (a
+CSV or ROS input, a step imported from another tool) belongs to every device, as ``run`` and
+``convert`` apply it to every device's data. Steps of one device compose; steps of different devices never do: each device is
+one :class:`SensorModel`, which the autopilot exports put in its own parameter slot.
+
+**Composition** (:func:`device_models`). The chain's steps of one device's sensor, in order, become
 
     corrected = M @ (raw - o - b(T)),   b(T) = sum_k C[:, k] (T - Tref)^k  (k <= 3, clamped T)
 
@@ -31,6 +38,8 @@ from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
+
+from imupipe.pipeline.calibration_file import UNNAMED, device, device_key, same_device
 
 AXES = ("x", "y", "z")
 POLY_TERMS = ("1", "T", "T^2", "T^3")
@@ -136,9 +145,9 @@ class Thermal:
 
 @dataclass
 class SensorModel:
-    """One sensor's chain composed (see the module docstring): ``corrected = matrix @ (raw -
-    offset - thermal(T))``; ``entries`` are the chain entries used, ``issues`` what could not
-    be composed (left out)."""
+    """One device's sensor chain composed (see the module docstring): ``corrected = matrix @
+    (raw - offset - thermal(T))``; ``entries`` are the chain entries used, ``issues`` what could
+    not be composed (left out), ``device`` the device (:func:`entry_device`)."""
 
     sensor: str
     matrix: np.ndarray
@@ -146,6 +155,17 @@ class SensorModel:
     thermal: Thermal | None
     entries: list[dict[str, Any]]
     issues: list[str]
+    device: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def linear(self) -> bool:
+        """Whether a linear step (offset, and a matrix) was estimated."""
+        return any(e.get("kind", "linear") == "linear" for e in self.entries)
+
+    @property
+    def scaled(self) -> bool:
+        """Whether a step estimated a matrix other than the identity."""
+        return bool(np.abs(self.matrix - np.eye(3)).max() > 0)
 
     @property
     def fitted_on(self) -> dict[str, Any]:
@@ -173,12 +193,53 @@ def _thermal(entry: Mapping[str, Any]) -> Thermal | str:
     return Thermal(float(entry["tref"]), coef, (float(lo), float(hi)))
 
 
-def sensor_model(doc: Mapping[str, Any], sensor: str) -> SensorModel | None:
-    """The chain of ``sensor`` composed into one raw-domain model; None when no step corrects
-    it."""
+def entry_device(entry: Mapping[str, Any]) -> dict[str, Any]:
+    """The device of a chain entry: its ``device``, else derived from its ``fitted_on``."""
+    if isinstance(entry.get("device"), Mapping):
+        return {**device(entry.get("fitted_on"), entry["sensor"]), **entry["device"]}
+    return device(entry.get("fitted_on"), entry["sensor"])
+
+
+def device_models(doc: Mapping[str, Any], sensor: str) -> list[SensorModel]:
+    """One composed model per device of ``sensor`` (module docstring), in the order the devices
+    first appear in the chain."""
     entries = [e for e in doc.get("chain", []) if e.get("sensor") == sensor]
-    if not entries:
-        return None
+    devices = [entry_device(e) for e in entries]
+    unnamed = [i for i, d in enumerate(devices) if device_key(d) == UNNAMED]
+    groups: list[tuple[dict[str, Any], list[int]]] = []
+    for i, dev in enumerate(devices):
+        if i in unnamed:
+            continue
+        group = next((g for rep, g in groups if same_device(rep, dev)), None)
+        if group is None:
+            groups.append((dev, [i]))
+        else:
+            group.append(i)
+    if not groups:
+        return [_compose(sensor, entries, devices[0])] if entries else []
+    return [
+        _compose(sensor, [entries[i] for i in sorted(members + unnamed)], rep)
+        for rep, members in groups
+    ]
+
+
+def single_device(
+    doc: Mapping[str, Any], sensor: str, out: Export, fname: str
+) -> SensorModel | None:
+    """The first device's model of ``sensor``, for a file that describes one IMU (Kalibr,
+    OpenVINS); the other devices are noted as left out."""
+    models = device_models(doc, sensor)
+    for m in models[1:]:
+        out.note(
+            fname,
+            f"{sensor}: the file describes one IMU; the chain of device "
+            f"{m.device.get('device_id', m.device.get('topic', '?'))} is left out",
+        )
+    return models[0] if models else None
+
+
+def _compose(sensor: str, entries: list[dict[str, Any]], dev: dict[str, Any]) -> SensorModel:
+    """The entries of one device's sensor composed (module docstring)."""
     m, o = np.eye(3), np.zeros(3)
     thermal: Thermal | None = None
     issues: list[str] = []
@@ -200,7 +261,19 @@ def sensor_model(doc: Mapping[str, Any], sensor: str) -> SensorModel | None:
             thermal = Thermal(t.tref, minv @ t.coefficients, t.t_range)
         else:
             issues.append(f"a '{kind}' step: not mapped")
-    return SensorModel(sensor, m, o, thermal, entries, issues)
+    return SensorModel(sensor, m, o, thermal, entries, issues, dev)
+
+
+def left_alone(names: Iterable[str], families: Iterable[tuple[str, str]]) -> list[str]:
+    """The parameter families (prefix, suffix) no name in ``names`` belongs to, written
+    ``prefix*suffix`` (``CAL_ACC0_*SCALE``; a prefix not ending in ``_`` is a whole name):
+    what a parameter file leaves as the vehicle has it."""
+    names = list(names)
+    return [
+        f"{prefix}*{suffix}" if prefix.endswith("_") else prefix + suffix
+        for prefix, suffix in families
+        if not any(n.startswith(prefix) and n.endswith(suffix) for n in names)
+    ]
 
 
 def off_diagonal(m: np.ndarray) -> float:

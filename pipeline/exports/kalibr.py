@@ -32,7 +32,7 @@ from imupipe.pipeline.exports.common import (
     kalibr_intrinsics,
     noise,
     rate_hz,
-    sensor_model,
+    single_device,
     yaml_text,
 )
 
@@ -78,7 +78,8 @@ def noise_yaml(name: str, results: dict[str, Any]) -> str:
 
 
 def intrinsics_yaml(doc: dict[str, Any], out: Export, fname: str) -> str | None:
-    accel, gyro = sensor_model(doc, "accel"), sensor_model(doc, "gyro")
+    accel = single_device(doc, "accel", out, fname)
+    gyro = single_device(doc, "gyro", out, fname)
     if not any(m is not None and any(m.fitted(t) for t in INTRINSIC_TYPES) for m in (accel, gyro)):
         return None
     k = kalibr_intrinsics(

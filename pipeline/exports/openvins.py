@@ -29,7 +29,7 @@ from imupipe.pipeline.exports.common import (
     imu_topic,
     kalibr_intrinsics,
     rate_hz,
-    sensor_model,
+    single_device,
     yaml_text,
 )
 from imupipe.pipeline.exports.kalibr import noise_block
@@ -43,7 +43,8 @@ def export(doc: dict[str, Any]) -> Export:
     if first is None:
         return out
     name, res = first
-    accel, gyro = sensor_model(doc, "accel"), sensor_model(doc, "gyro")
+    accel = single_device(doc, "accel", out, FNAME)
+    gyro = single_device(doc, "gyro", out, FNAME)
     k = kalibr_intrinsics(
         None if accel is None else accel.matrix, None if gyro is None else gyro.matrix
     )

@@ -12,14 +12,28 @@ PX4 corrects each sensor (PX4-Autopilot ``src/lib/sensor_calibration``, ``Correc
 enabled by ``TC_A_ENABLE``/``TC_G_ENABLE``. ``R`` is the board rotation. A slot ``n`` applies to
 the device whose id ``CAL_*n_ID`` (``TC_*n_ID``) holds.
 
-imupipe's chain of a sensor, composed (:func:`imupipe.pipeline.exports.common.sensor_model`),
-maps as follows. Offsets map exactly (sign: PX4 subtracts them, as imupipe's ``offset``). The
+**One slot per device.** The chain of each device (:func:`imupipe.pipeline.exports.common.device_models`: steps of one device compose, of different devices never) goes to its own slot:
+``CAL_*n`` is the slot whose ``CAL_*n_ID`` in the log holds the device's id, else the slot of the
+device's instance when the log leaves it free, else the first free one; ``TC_*k`` likewise by
+``TC_*k_ID``, else ``k = n``. PX4 applies a slot to the device whose id it holds, whatever ``n``
+(``TemperatureCompensation::set_sensor_id``, ``Accelerometer::set_device_id``).
+
+**Only what was estimated.** A device's ``CAL_*n_*OFF`` (and ``CAL_*n_ID``) are written when a
+linear step (an offset) was fitted, ``*SCALE``/``ODIAG`` when a step fitted a matrix other than
+the identity, ``TC_*k_*`` when a temperature step was fitted: a temperature-only run writes no
+``CAL_ACC*`` line, so loading it keeps the vehicle's accelerometer calibration. The header lists
+the families of the written slots that the file leaves alone. ``complete`` (``[output] params =
+"complete"``) merges the estimated parameters over the log's own ``CAL_*``/``TC_*``/
+``SENS_BOARD_*`` (a ULog carries them), a file that can replace the vehicle's calibration set.
+
+Each device's composed chain maps as follows. Offsets map exactly (sign: PX4 subtracts them, as imupipe's ``offset``). The
 accelerometer's scale maps from the diagonal; PX4 has no accelerometer misalignment, so the
 off-diagonal part is left out (noted with its size). PX4 v1.11 and later have no gyro scale
 (the ``CAL_GYROn_*SCALE`` of older firmware is written only when the log had it). The
 magnetometer's soft iron maps to SCALE/ODIAG when symmetric (imupipe's ellipsoid fits are). A
 temperature model maps to ``TC_*`` when it is a polynomial of order <= 3 in T; rate, ambient,
-piecewise and scale-factor terms do not (noted, left out). The mag has no TC export.
+piecewise and scale-factor terms do not (noted, left out). A magnetometer temperature model maps
+to ``TC_Mn_*`` in gauss (firmware with magnetometer thermal compensation, ``TC_M_ENABLE``).
 
 **Data PX4 had already corrected.** ``sensor_combined`` and ``vehicle_magnetometer`` hold data
 PX4 corrected with the log's own parameters (``fitted_on.px4.calibrated``). The chain fitted on
@@ -27,11 +41,13 @@ them is composed with those parameters (PX4's ``BiasCorrectedSensorOffset``: new
 offset + bias / scale), so the file replaces the log's calibration; this needs no board
 rotation (``SENS_BOARD_ROT = 0``), else the sensor is left out with a note. The slot is the one
 whose ``CAL_*n_ID`` is the fitted device (``fitted_on.device_id``); for a log that names no PX4
-device (CSV, ROS), slot 0 without ``*_ID``, noted.
+device (CSV, ROS), the slots in the order of the devices without ``CAL_*_ID``/``TC_*_ID``,
+noted (PX4 applies a slot only to the device whose id it holds).
 """
 
 from __future__ import annotations
 
+import textwrap
 from dataclasses import dataclass
 from typing import Any
 
@@ -42,53 +58,98 @@ from imupipe.pipeline.exports.common import (
     RELATIVE_TOLERANCE,
     Export,
     SensorModel,
+    device_models,
+    left_alone,
     number,
     off_diagonal,
     params_text,
-    sensor_model,
     soft_iron,
 )
 
 FNAME = "px4_calibration.params"
 CAL = {"accel": "ACC", "gyro": "GYRO", "mag": "MAG"}
-TC = {"accel": "A", "gyro": "G"}
+TC = {"accel": "A", "gyro": "G", "mag": "M"}
 STREAM = {"accel": "imu", "gyro": "imu", "mag": "mag"}
 INT32, REAL32 = 6, 9
 """MAVLink ``MAV_PARAM_TYPE`` of the rows (the last column)."""
 GAUSS_PER_TESLA = 1e4
 
 
+SLOTS = 4
+"""PX4's slots per sensor kind (``CAL_ACC0..3``, ``TC_A0..3``)."""
+
+
 @dataclass
 class Target:
-    """Where a sensor goes: PX4's slot ``n``, the device id (None: unknown), the log's
-    parameters and whether PX4 had corrected the fitted data."""
+    """Where one device's sensor goes: PX4's ``CAL_*n`` slot ``n`` and ``TC_*n`` slot ``tc``,
+    the device id (None: unknown), the log's parameters and whether PX4 had corrected the
+    fitted data."""
 
     n: int
+    tc: int
     device: int | None
     params: dict[str, Any]
     calibrated: bool
 
 
-def target(model: SensorModel, out: Export) -> Target:
-    prov = model.fitted_on
-    stream = STREAM[model.sensor]
-    px4 = prov.get("px4") or {}
-    params = px4.get("parameters") or {}
-    device = (prov.get("device_id") or {}).get(stream)
-    cal = CAL[model.sensor]
-    slots = [k for k in range(4) if device is not None and params.get(f"CAL_{cal}{k}_ID") == device]
-    if slots:
-        n = slots[0]
-    else:
-        free = [k for k in range(4) if not params.get(f"CAL_{cal}{k}_ID")]
-        n = free[0] if (device is not None and free) else 0
-    if device is None:
-        out.note(
-            FNAME,
-            f"{model.sensor}: the input names no PX4 device, so CAL_{cal}{n}_ID is not written; "
-            f"PX4 applies slot {n} only to the device whose id it holds: set it",
-        )
-    return Target(n, device, params, bool((px4.get("calibrated") or {}).get(stream)))
+def _log_parameters(model: SensorModel) -> dict[str, Any]:
+    return (model.fitted_on.get("px4") or {}).get("parameters") or {}
+
+
+def _slot(
+    prefix: str,
+    suffix: str,
+    device: int | None,
+    params: dict[str, Any],
+    taken: set[int],
+    prefer: int | None,
+) -> int | None:
+    """The slot ``k`` whose ``<prefix>k<suffix>`` holds ``device``; else ``prefer`` when that slot
+    is free, else the first free one (no id in the log, not taken by another device)."""
+    if device is not None:
+        for k in range(SLOTS):
+            if k not in taken and params.get(f"{prefix}{k}{suffix}") == device:
+                return k
+    free = [k for k in range(SLOTS) if k not in taken and not params.get(f"{prefix}{k}{suffix}")]
+    if prefer is not None and prefer in free:
+        return prefer
+    return free[0] if free else None
+
+
+def targets(models: list[SensorModel], out: Export) -> list[Target | None]:
+    """The slots of every device of one sensor (module docstring: slot rules); None: no slot
+    left (noted)."""
+    found: list[Target | None] = []
+    taken: set[int] = set()
+    taken_tc: set[int] = set()
+    for model in models:
+        stream = STREAM[model.sensor]
+        px4 = model.fitted_on.get("px4") or {}
+        params = _log_parameters(model)
+        dev = model.device.get("device_id")
+        dev = None if dev is None else int(dev)
+        cal, tc = CAL[model.sensor], TC[model.sensor]
+        instance = model.device.get("instance")
+        n = _slot(f"CAL_{cal}", "_ID", dev, params, taken, instance)
+        if n is None:
+            out.note(FNAME, f"{model.sensor}: no CAL_{cal} slot left for device {dev}; not written")
+            found.append(None)
+            continue
+        taken.add(n)
+        k = _slot(f"TC_{tc}", "_ID", dev, params, taken_tc, n)
+        k = n if k is None else k
+        taken_tc.add(k)
+        ids = [f"CAL_{cal}{n}_ID"] if model.linear else []
+        ids += [f"TC_{tc}{k}_ID"] if model.thermal is not None else []
+        if dev is None and ids:
+            out.note(
+                FNAME,
+                f"{model.sensor}: the input names no PX4 device, so {' and '.join(ids)} "
+                f"{'is' if len(ids) == 1 else 'are'} not written; PX4 applies a slot only to "
+                "the device whose id it holds: set it",
+            )
+        found.append(Target(n, k, dev, params, bool((px4.get("calibrated") or {}).get(stream))))
+    return found
 
 
 def _compose_with_log(model: SensorModel, t: Target, out: Export) -> SensorModel | None:
@@ -116,8 +177,8 @@ def _compose_with_log(model: SensorModel, t: Target, out: Export) -> SensorModel
     thermal = model.thermal
     if thermal is not None:
         thermal = type(thermal)(thermal.tref, sinv @ thermal.coefficients, thermal.t_range)
-    tc = TC.get(model.sensor)
-    if tc and p.get(f"TC_{tc}_ENABLE") == 1:
+    tc = TC[model.sensor]
+    if p.get(f"TC_{tc}_ENABLE") == 1:
         out.note(
             FNAME,
             f"{model.sensor}: the log's data were also thermally compensated by PX4 "
@@ -132,13 +193,18 @@ def _compose_with_log(model: SensorModel, t: Target, out: Export) -> SensorModel
         thermal,
         model.entries,
         model.issues,
+        model.device,
     )
 
 
-def rows_for(model: SensorModel, out: Export) -> list[tuple[str, float | int, int]]:
-    """(name, value, type) rows of one sensor."""
-    t = target(model, out)
+Row = tuple[str, float | int, int]
+
+
+def rows_for(model: SensorModel, t: Target, out: Export) -> list[Row]:
+    """(name, value, type) rows of one device's sensor: only what its steps estimated (module
+    docstring)."""
     cal = CAL[model.sensor]
+    linear, scaled = model.linear, model.scaled
     if t.calibrated:
         composed = _compose_with_log(model, t, out)
         if composed is None:
@@ -147,17 +213,18 @@ def rows_for(model: SensorModel, out: Export) -> list[tuple[str, float | int, in
     for issue in model.issues:
         out.note(FNAME, f"{model.sensor}: {issue}")
     m, n = model.matrix, t.n
-    rows: list[tuple[str, float | int, int]] = []
-    if t.device is not None:
-        rows.append((f"CAL_{cal}{n}_ID", int(t.device), INT32))
-    offset = model.offset * (GAUSS_PER_TESLA if model.sensor == "mag" else 1.0)
-    rows += [(f"CAL_{cal}{n}_{a}OFF", offset[i], REAL32) for i, a in enumerate("XYZ")]
+    rows: list[Row] = []
+    if linear:
+        if t.device is not None:
+            rows.append((f"CAL_{cal}{n}_ID", int(t.device), INT32))
+        offset = model.offset * (GAUSS_PER_TESLA if model.sensor == "mag" else 1.0)
+        rows += [(f"CAL_{cal}{n}_{a}OFF", offset[i], REAL32) for i, a in enumerate("XYZ")]
     diag = np.diag(m)
-    if model.sensor == "mag":
+    if scaled and model.sensor == "mag":
         diag_s, off_s = soft_iron(m, out, FNAME)
         rows += [(f"CAL_MAG{n}_{a}SCALE", diag_s[i], REAL32) for i, a in enumerate("XYZ")]
         rows += [(f"CAL_MAG{n}_{a}ODIAG", off_s[i], REAL32) for i, a in enumerate("XYZ")]
-    else:
+    elif scaled:
         off = off_diagonal(m)
         if off > RELATIVE_TOLERANCE:
             out.note(
@@ -174,7 +241,7 @@ def rows_for(model: SensorModel, out: Export) -> list[tuple[str, float | int, in
                 f"gyro: PX4 (v1.11 and later) has no gyro scale; the scale "
                 f"{np.round(diag, 6).tolist()} is left out",
             )
-    if np.abs(diag).mean() < 0.2 or np.abs(diag).mean() > 5:
+    if scaled and (np.abs(diag).mean() < 0.2 or np.abs(diag).mean() > 5):
         out.note(
             FNAME,
             f"{model.sensor}: scale about {np.abs(diag).mean():.3g}: PX4 expects "
@@ -185,25 +252,32 @@ def rows_for(model: SensorModel, out: Export) -> list[tuple[str, float | int, in
     return rows
 
 
-def thermal_rows(model: SensorModel, t: Target, out: Export) -> list[tuple[str, float | int, int]]:
+def thermal_rows(model: SensorModel, t: Target, out: Export) -> list[Row]:
     th = model.thermal
     assert th is not None
-    letter = TC.get(model.sensor)
-    if letter is None:
-        out.note(FNAME, f"{model.sensor}: PX4 thermal compensation of this sensor is not exported")
-        return []
-    prefix = f"TC_{letter}{t.n}"
-    rows: list[tuple[str, float | int, int]] = [(f"TC_{letter}_ENABLE", 1, INT32)]
+    letter = TC[model.sensor]
+    unit = GAUSS_PER_TESLA if model.sensor == "mag" else 1.0
+    if model.sensor == "mag":
+        out.note(
+            FNAME,
+            "mag: TC_M* (gauss) is read by PX4 firmware that has magnetometer thermal "
+            "compensation (TC_M_ENABLE); older firmware ignores these rows",
+        )
+    prefix = f"TC_{letter}{t.tc}"
+    rows: list[Row] = [(f"TC_{letter}_ENABLE", 1, INT32)]
     if t.device is not None:
         rows.append((f"{prefix}_ID", int(t.device), INT32))
     rows += [(f"{prefix}_TREF", th.tref, REAL32)]
     rows += [(f"{prefix}_TMIN", th.t_range[0], REAL32), (f"{prefix}_TMAX", th.t_range[1], REAL32)]
     rows += [
-        (f"{prefix}_X{k}_{i}", th.coefficients[i, k], REAL32) for k in range(4) for i in range(3)
+        (f"{prefix}_X{k}_{i}", th.coefficients[i, k] * unit, REAL32)
+        for k in range(4)
+        for i in range(3)
     ]
     temp = model.fitted_on.get("topics", {}).get("temperature")
     devices = model.fitted_on.get("device_id") or {}
-    if devices.get("temperature") is None or devices.get("temperature") != devices.get("imu"):
+    own = devices.get(STREAM[model.sensor])
+    if devices.get("temperature") is None or devices.get("temperature") != own:
         out.note(
             FNAME,
             f"{model.sensor}: the temperature model was fitted against {temp or 'a temperature'}"
@@ -213,21 +287,74 @@ def thermal_rows(model: SensorModel, t: Target, out: Export) -> list[tuple[str, 
     return rows
 
 
-def export(doc: dict[str, Any]) -> Export:
+FAMILIES = {
+    "accel": (("CAL_ACC{n}_", "OFF"), ("CAL_ACC{n}_", "SCALE"), ("TC_A{k}_", "")),
+    "gyro": (("CAL_GYRO{n}_", "OFF"), ("TC_G{k}_", "")),
+    "mag": (
+        ("CAL_MAG{n}_", "OFF"),
+        ("CAL_MAG{n}_", "SCALE"),
+        ("CAL_MAG{n}_", "ODIAG"),
+        ("TC_M{k}_", ""),
+    ),
+}
+"""(prefix, suffix) of the parameter families of a device's slots, for the header's list of
+what the file leaves alone."""
+
+
+def families(sensor: str, t: Target) -> list[tuple[str, str]]:
+    """The parameter families of the device's slots (for the header's list)."""
+    return [(prefix.format(n=t.n, k=t.tc), suffix) for prefix, suffix in FAMILIES[sensor]]
+
+
+def export(doc: dict[str, Any], complete: bool = False) -> Export:
+    """``px4_calibration.params``: the estimated parameters of every device in its own slot;
+    ``complete``: merged over the log's own ``CAL_*``/``TC_*``/``SENS_BOARD_*`` parameters."""
     out = Export()
-    rows: list[tuple[str, float | int, int]] = []
+    rows: list[Row] = []
+    alone: list[str] = []
+    logged: dict[str, Any] = {}
     for sensor in CAL:
-        model = sensor_model(doc, sensor)
-        if model is not None:
-            rows += rows_for(model, out)
+        models = device_models(doc, sensor)
+        for model, t in zip(models, targets(models, out), strict=True):
+            if t is None:
+                continue
+            mine = rows_for(model, t, out)
+            rows += mine
+            alone += left_alone([r[0] for r in mine], families(sensor, t))
+            logged.update(t.params)
     if not rows:
         return out
+    seen: dict[str, Row] = {}
+    for row in rows:  # TC_*_ENABLE once
+        seen.setdefault(row[0], row)
+    rows = list(seen.values())
     comments = [
         "PX4 calibration parameters from imupipe (load in QGroundControl: Parameters, Tools,",
         "Load from file). corrected = (raw - thermal(T) - OFF) * SCALE, SI units (mag: gauss).",
-        "",
-        "Vehicle-Id Component-Id Name Value Type",
     ]
+    if complete and logged:
+        ours = {r[0] for r in rows}
+        rows += [
+            (name, value, INT32 if isinstance(value, int) else REAL32)
+            for name, value in sorted(logged.items())
+            if name not in ours
+        ]
+        comments += [
+            "Complete: the log's own CAL_*, TC_* and SENS_BOARD_* parameters, with the ones",
+            "imupipe estimated in their place.",
+        ]
+    else:
+        if complete:
+            out.note(
+                FNAME, "the input carries no PX4 parameters: only the estimated ones are written"
+            )
+        listed = ", ".join(alone) if alone else "(none in these slots)"
+        comments += textwrap.wrap(
+            "Only what imupipe estimated: loading it leaves every other parameter of the "
+            f"vehicle as it is, among them {listed}.",
+            width=92,
+        )
+    comments += ["", "Vehicle-Id Component-Id Name Value Type"]
     table = [
         (1, 1, name, number(value) if kind == REAL32 else int(value), kind)
         for name, value, kind in rows

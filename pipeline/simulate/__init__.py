@@ -3,6 +3,9 @@
 Each scenario module exposes ``DEFAULTS`` (parameter -> default value, SI units) and
 ``simulate(params, rng) -> (table, truth)``. The log is written by the file's suffix (``.csv``,
 ``.mcap``, ``.bag``, ``.db3`` or a folder for a ROS 2 bag) and the truth as ``<FILE>.truth.json``.
+A scenario of several devices (``board``: a PX4 flight controller's IMUs and barometer) returns
+a :class:`~imupipe.pipeline.ulog_writer.UlogData` instead of a table and names the suffixes it
+is written in (``WRITES``: ``.ulg``).
 Parameters are set with ``--set key=value`` (values parsed as JSON, e.g. ``--set gyro_N=[1e-4,1e-4,2e-4]``).
 """
 
@@ -27,6 +30,7 @@ SCENARIOS: dict[str, str] = {
     "mag": "imupipe.pipeline.simulate.mag",
     "thermal": "imupipe.pipeline.simulate.thermal",
     "thermal_soak": "imupipe.pipeline.simulate.thermal_soak",
+    "board": "imupipe.pipeline.simulate.board",
 }
 
 WRITERS: dict[str, str] = {
@@ -35,6 +39,7 @@ WRITERS: dict[str, str] = {
     ".bag": "imupipe.pipeline.bag_writer:write_ros1_bag",
     ".db3": "imupipe.pipeline.bag_writer:write_ros2_bag",
     "": "imupipe.pipeline.bag_writer:write_ros2_bag",
+    ".ulg": "imupipe.pipeline.ulog_writer:write_ulog",
 }
 """Suffix -> "module:function(path, table)"; no suffix means a ROS 2 bag folder."""
 
@@ -64,17 +69,20 @@ def simulate(
     return table, {"scenario": name, "seed": seed, "params": params, **truth}
 
 
-def write_log(path: Path, table: pa.Table) -> None:
-    """Write ``table`` to ``path`` in the format its suffix names (atomically)."""
+def write_log(path: Path, table: Any) -> None:
+    """Write ``table`` (a scenario's log: a table, or a board's ``UlogData``) to ``path`` in the
+    format its suffix names (atomically)."""
+    from imupipe.pipeline.ulog_writer import UlogData
+
     suffix = path.suffix.lower()
-    if suffix not in WRITERS:
-        raise ConfigError(
-            f"{path}: unknown output format '{suffix}' (use {', '.join(s for s in WRITERS if s)})"
-        )
+    board = isinstance(table, UlogData)
+    if suffix not in WRITERS or board != (suffix == ".ulg"):
+        known = ".ulg" if board else ", ".join(s for s in WRITERS if s and s != ".ulg")
+        raise ConfigError(f"{path}: unknown output format '{suffix}' for this log (use {known})")
     module, fn = WRITERS[suffix].split(":")
     writer = getattr(importlib.import_module(module), fn)
     with staged_outputs() as out:
-        writer(out.path(path) if suffix in (".csv", ".mcap") else path, table)
+        writer(out.path(path) if suffix in (".csv", ".mcap", ".ulg") else path, table)
 
 
 def _parse_set(items: list[str]) -> dict[str, Any]:
@@ -94,7 +102,10 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("simulate", help="write a synthetic log with a known truth")
     p.add_argument("scenario", help=f"one of: {', '.join(SCENARIOS)}")
     p.add_argument(
-        "--out", type=Path, required=True, help="output log (.csv, .mcap, .bag, .db3, folder)"
+        "--out",
+        type=Path,
+        required=True,
+        help="output log (.csv, .mcap, .bag, .db3, folder; board: .ulg)",
     )
     p.add_argument("--rate", type=float, help="sample rate, Hz")
     p.add_argument("--duration", type=float, help="duration, s")
