@@ -223,7 +223,9 @@ def write(records: Sequence[Record], features: set[str] | frozenset[str]) -> byt
             offset = len(out)
             out += record(METADATA, metadata_body(r), pad)
             if "mdx" in features:
-                metadata_index.append(struct.pack("<QQ", offset, len(out) - offset) + _string(r.name))
+                metadata_index.append(
+                    struct.pack("<QQ", offset, len(out) - offset) + _string(r.name)
+                )
     if chunk is not None:
         raw = bytes(chunk.buf)
         start = len(out)

@@ -18,14 +18,15 @@ import hashlib
 from collections import Counter
 from pathlib import Path
 
+import mcap_conformance as mc
 import numpy as np
 import pytest
-from conftest import TEST_DATA
 
-import mcap_conformance as mc
 from imupipe.pipeline.inspect_log import inspect
 from imupipe.readers.mcap_reader import McapSource
 from imupipe.readers.spec import InputSpec
+
+from conftest import TEST_DATA
 
 DATA = TEST_DATA / "mcap_conformance"
 
