@@ -136,3 +136,58 @@ def test_whole_suite_reads_as_the_reference(suite):
     """All 416 files: topics, types, messages and inspect's counts and times as the reference."""
     wrong = {fname: why for fname, path in sorted(suite.items()) if (why := disagreement(path))}
     assert not wrong, f"{len(wrong)} of {len(suite)} files differ: {dict(list(wrong.items())[:5])}"
+
+
+def imu_records() -> tuple[mc.Record, ...]:
+    """Ten ``sensor_msgs/msg/Imu`` messages on two channels of ``/imu`` (log times out of
+    order, as the suite's TenMessages) and two Temperature messages on ``/temp``."""
+    from mcap_ros2._dynamic import serialize_dynamic
+
+    from imupipe.pipeline.mcap_writer import msgdef
+
+    rng = np.random.default_rng(3)
+    records: list[mc.Record] = []
+    encoders = {}
+    for sid, typ in ((1, "sensor_msgs/msg/Imu"), (2, "sensor_msgs/msg/Temperature")):
+        records.append(mc.Schema(sid, typ, "ros2msg", msgdef(typ).encode()))
+        encoders[sid] = serialize_dynamic(typ, msgdef(typ))[typ]
+    records += [mc.Channel(1, 1, "/imu", "cdr"), mc.Channel(2, 1, "/imu", "cdr")]
+    records.append(mc.Channel(3, 2, "/temp", "cdr"))
+    for seq, t in enumerate([0, 2, 1, 3, 3, 5, 4, 7, 8, 9, 6, 10]):
+        stamp = 10**18 + 10**6 * seq
+        header = {"stamp": {"sec": stamp // 10**9, "nanosec": stamp % 10**9}, "frame_id": "f"}
+        if seq < 10:
+            v = rng.normal(size=10).tolist()
+            fields = {
+                "header": header,
+                "orientation": dict(zip("xyzw", v[:4], strict=True)),
+                "angular_velocity": dict(zip("xyz", v[4:7], strict=True)),
+                "linear_acceleration": dict(zip("xyz", v[7:], strict=True)),
+                **{
+                    f"{n}_covariance": rng.uniform(0.1, 1, 9).tolist()
+                    for n in ("orientation", "angular_velocity", "linear_acceleration")
+                },
+            }
+            cid, data = 1 + seq % 2, encoders[1](fields)
+        else:
+            cid, data = (
+                3,
+                encoders[2]({"header": header, "temperature": 20.0 + seq, "variance": 0.5}),
+            )
+        records.append(mc.Message(cid, seq, 10**18 + t, 10**18 + t, data))
+    return tuple(records)
+
+
+def test_every_layout_of_imu_messages_runs_and_converts(tmp_path):
+    """The suite's feature combinations around Imu and Temperature messages (two channels on
+    the Imu topic): ``run``'s read, ``convert``'s batches and ``inspect`` as ``mcap_ros2``
+    decodes them, for every layout (padded records, no summary, summaries without channels or
+    schemas, unchunked)."""
+    from test_mcap_writer_options import check
+
+    layouts = list(mc.variants({"ImuMessages": imu_records()}))
+    assert len(layouts) == 154  # as many as the suite writes of TenMessages
+    for fname, data in layouts:
+        path = tmp_path / fname
+        path.write_bytes(data)
+        check(path)
