@@ -52,7 +52,7 @@ from imupipe.readers.compression import (
     decompress_into,
 )
 from imupipe.readers.errors import ReadError
-from imupipe.readers.mcap_summary import complete
+from imupipe.readers.mcap_summary import complete, defined
 
 MAGIC = b"\x89MCAP0\r\n"
 OP_HEADER, OP_FOOTER, OP_SCHEMA, OP_CHANNEL, OP_MESSAGE = 0x01, 0x02, 0x03, 0x04, 0x05
@@ -239,8 +239,8 @@ class McapFile:
                     self._collect(opcode, body)
         if stats:
             self.counts = dict(stats[0].channel_message_counts)
-        channels = {cid: c.schema_id for cid, c in self._channels.items()}
-        if complete(stats[0] if stats else None, channels, self._schemas, indexed):
+        schema_of = {cid: c.schema_id for cid, c in self._channels.items()}
+        if complete(stats[0] if stats else None, schema_of, self._schemas, indexed):
             return None
         needed = set(self.counts or ()) | {cid for ids in indexed for cid in ids}
         needed |= {
@@ -308,13 +308,9 @@ class McapFile:
         self.channels = out
 
     def _defined(self, needed: set[int]) -> bool:
-        return all(
-            cid in self._channels
-            and (
-                self._channels[cid].schema_id in self._schemas or not self._channels[cid].schema_id
-            )
-            for cid in needed
-        )
+        """Whether the records gathered so far define every channel of ``needed``."""
+        schema_of = {cid: c.schema_id for cid, c in self._channels.items()}
+        return defined(needed, schema_of, self._schemas)
 
     def _first_pass(self, needed: set[int]) -> None:
         """Schema and Channel records from the data section (top-level and inside chunks),

@@ -191,3 +191,21 @@ def test_every_layout_of_imu_messages_runs_and_converts(tmp_path):
         path = tmp_path / fname
         path.write_bytes(data)
         check(path)
+
+
+@pytest.mark.parametrize("features", [frozenset(), frozenset({"ch", "mx", "st", "chx"})])
+def test_message_on_a_channel_never_defined_is_one_line(tmp_path, cli, features):
+    """A message whose channel no record defines (invalid by the specification: "A Channel
+    record must occur at least once in the file prior to any message referring to its channel
+    ID") is refused by ``inspect`` with one line naming the file, exit 2."""
+    path = tmp_path / "undefined.mcap"
+    records = (*INPUT_EXAMPLE, mc.Message(7, 0, 5, 5, b"\x01"))
+    path.write_bytes(mc.write(records, features))
+    done = cli("inspect", path)
+    assert done.returncode == 2
+    assert done.stdout == ""
+    (line,) = done.stderr.strip().splitlines()
+    assert str(path) in line and "message on channel 7, which the file never defines" in line
+
+
+INPUT_EXAMPLE = mc.INPUTS["OneMessage"]
