@@ -67,17 +67,24 @@ def complete(
 ) -> bool:
     """Whether the summary's Channel records (``channels``: id -> schema id) can be taken as the
     file's: ``stats`` (the Statistics record, None without) counts no more channels than it
-    holds, and every channel the summary says has messages (those ``stats`` counts messages on,
-    when its counts add up to its message count; those the chunk indexes list, ``indexed``: the
-    channel ids of each, when each lists some) is defined with its schema (:func:`defined`).
-    False when the summary has neither statistics nor chunk indexes: it cannot tell.
+    holds, and every channel the summary holds or says has messages (those ``stats`` counts
+    messages on, when its counts add up to its message count; those the chunk indexes list,
+    ``indexed``: the channel ids of each) is defined with its schema (:func:`defined`). False
+    when the summary names no channel at all (no Channel record, no usable statistics, no
+    chunk index listing one): it cannot tell.
+
+    A summary whose Channel records are all it says of the channels (no statistics, chunk
+    indexes without message indexes) is taken at its word: writers repeat all their channels
+    or none. Should it hold too few, the messages of the others are still read
+    (:meth:`imupipe.readers.fast_mcap.McapFile.channel`); only a topic it never names cannot be
+    chosen as a stream.
 
     The specification asks for more ("When using a Statistics record with a non-empty
     channel_message_counts, the Summary Data section MUST contain a copy of all Channel
     records"), but files without it are read by the reference readers (the conformance suite's
     ``TenMessages-st.mcap``), so they are read here too."""
-    needed: set[int] = set()
-    told = False
+    needed: set[int] = set(channels)
+    told = bool(channels)
     if stats is not None:
         counts = stats.channel_message_counts
         if stats.channel_count > len(channels):
@@ -85,11 +92,9 @@ def complete(
         if sum(counts.values()) == stats.message_count:
             needed.update(cid for cid, n in counts.items() if n)
             told = True
-    indexed = list(indexed)
     for ids in indexed:
         needed.update(ids)
-    if indexed and all(indexed):  # a chunk index without message indexes names no channel
-        told = True
+        told = told or bool(ids)
     return told and defined(needed, channels, schemas)
 
 
@@ -157,6 +162,8 @@ def topic_summary(path: Path) -> dict[str, TopicSummary] | None:
         counts = stats.channel_message_counts
         indexes = summary.chunk_indexes
         channels = {cid: c.schema_id for cid, c in summary.channels.items()}
+        if sum(counts.values()) != stats.message_count:
+            return None  # per-channel counts that do not add up
         if not complete(stats, channels, summary.schemas):
             return None  # the summary does not define every channel with messages
         if stats.message_count and _indexed_messages(indexes) != stats.message_count:

@@ -177,6 +177,21 @@ def assert_same(got: dict, want: dict) -> None:
             np.testing.assert_array_equal(values, want[stream][name], err_msg=f"{stream}.{name}")
 
 
+WRITER_DEFAULTS = {
+    "chunked": True,
+    "compression": "ZSTD",
+    "chunk_size": 1 << 20,
+    "repeat_channels": True,
+    "repeat_schemas": True,
+    "statistics": True,
+    "indexes": "all",
+    "summary_offsets": True,
+    "shuffle": False,
+    "split": False,
+}
+"""The Writer's own defaults, messages in time order on one channel per topic."""
+
+
 def layouts() -> st.SearchStrategy[dict]:
     """The Writer's options, and how the messages are laid out."""
     return st.fixed_dictionaries(
@@ -212,55 +227,39 @@ def check(path: Path) -> None:
             assert described["topics"][topic]["end_ns"] == int(want[stream]["log_time_ns"].max())
 
 
-@settings(
-    max_examples=40, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
-)
-@given(
-    options=layouts(),
-    n_imu=st.integers(1, 40),
-    n_temp=st.integers(0, 6),
-    seed=st.integers(0, 2**32 - 1),
-)
-def test_writer_options_read_as_mcap_ros2_decodes(tmp_path, options, n_imu, n_temp, seed):
-    data, _ = write(options, n_imu, n_temp, seed)
-    path = tmp_path / "log.mcap"
-    path.write_bytes(data)
-    check(path)
+def differential(examples: int, most_imu: int, most_temp: int):
+    """The property test: ``examples`` drawn layouts of up to ``most_imu`` Imu and
+    ``most_temp`` Temperature messages, each read by imupipe as ``mcap_ros2`` decodes it."""
+
+    @settings(
+        max_examples=examples,
+        deadline=None,
+        suppress_health_check=[HealthCheck.function_scoped_fixture],
+    )
+    @given(
+        options=layouts(),
+        n_imu=st.integers(1, most_imu),
+        n_temp=st.integers(0, most_temp),
+        seed=st.integers(0, 2**32 - 1),
+    )
+    def test(tmp_path, options, n_imu, n_temp, seed):
+        data, _ = write(options, n_imu, n_temp, seed)
+        path = tmp_path / "log.mcap"
+        path.write_bytes(data)
+        check(path)
+
+    return test
 
 
-@pytest.mark.slow
-@settings(
-    max_examples=400, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture]
-)
-@given(
-    options=layouts(),
-    n_imu=st.integers(1, 400),
-    n_temp=st.integers(0, 30),
-    seed=st.integers(0, 2**32 - 1),
-)
-def test_writer_options_read_as_mcap_ros2_decodes_more(tmp_path, options, n_imu, n_temp, seed):
-    data, _ = write(options, n_imu, n_temp, seed)
-    path = tmp_path / "log.mcap"
-    path.write_bytes(data)
-    check(path)
+test_writer_options_read_as_mcap_ros2_decodes = differential(40, 40, 6)
+test_writer_options_read_as_mcap_ros2_decodes_more = pytest.mark.slow(differential(400, 400, 30))
 
 
 def test_summary_without_channels_runs_and_converts(tmp_path, cli):
     """Issue 24: ``Writer(repeat_channels=False)`` (statistics on, the library's defaults
     otherwise) wrote a file whose Imu topic ``run`` did not find and whose index ``convert``
     called corrupt. Now: ``inspect`` lists it, ``run``'s read and ``convert`` take every message."""
-    options = dict(
-        chunked=True,
-        compression="ZSTD",
-        chunk_size=2000,
-        repeat_channels=False,
-        repeat_schemas=True,
-        statistics=True,
-        indexes="all",
-        summary_offsets=True,
-        shuffle=False,
-        split=False,
-    )
+    options = {**WRITER_DEFAULTS, "chunk_size": 2000, "repeat_channels": False}
     data, messages = write(options, 50, 3, seed=1)
     logs = tmp_path / "logs"
     logs.mkdir()
@@ -290,3 +289,35 @@ def test_summary_without_channels_runs_and_converts(tmp_path, cli):
     with open(tmp_path / "out" / "log.mcap", "rb") as fh:
         stats = make_reader(fh).get_summary().statistics
     assert stats.message_count == len(messages)
+
+
+def test_summary_without_channels_costs_one_chunk(tmp_path, monkeypatch):
+    """The channels a summary counts messages on but does not define are looked for in the data
+    section only until they are found: the first chunk of a many-chunk file, here."""
+    from imupipe.readers import fast_mcap
+
+    options = {
+        **WRITER_DEFAULTS,
+        "compression": "LZ4",
+        "chunk_size": 2000,
+        "repeat_channels": False,
+        "repeat_schemas": False,
+        "split": True,
+    }
+    data, _ = write(options, 400, 5, seed=2)
+    path = tmp_path / "log.mcap"
+    path.write_bytes(data)
+    decompressed = []
+    original = fast_mcap.McapFile._decompress
+    monkeypatch.setattr(
+        fast_mcap.McapFile,
+        "_decompress",
+        lambda self, body, pos: decompressed.append(pos) or original(self, body, pos),
+    )
+    opened = fast_mcap.McapFile(path)
+    assert {c.topic: c.schema_name for c in opened.channels.values()} == {
+        "/imu": IMU,
+        "/temp": TEMP,
+    }
+    assert len(decompressed) == 1
+    assert len(fast_mcap.McapFile(path).chunk_starts) > 20  # a many-chunk file
