@@ -26,13 +26,20 @@ class VerifyError(ImupipeError):
 
 def mcap_summary(path: Path) -> tuple[dict[str, int], dict[str, Any] | None] | None:
     """(messages per topic, the attached calibration.json) of a finished MCAP; None when the file
-    has no summary (unfinished, or written without one)."""
+    has no summary (unfinished, or written without one) or one that does not name the topic of
+    every channel it counts messages on (:func:`imupipe.readers.mcap_summary.complete`: every
+    summary record is optional)."""
     from mcap.reader import make_reader
+
+    from imupipe.readers.mcap_summary import complete
 
     with open(path, "rb") as fh:
         reader = make_reader(fh)
         summary = reader.get_summary()
         if summary is None or summary.statistics is None:
+            return None
+        channels = {cid: 0 for cid in summary.channels}  # topics are all it takes: no schema
+        if not complete(summary.statistics, channels, ()):
             return None
         per_topic: collections.Counter[str] = collections.Counter()
         for cid, n in summary.statistics.channel_message_counts.items():

@@ -7,9 +7,19 @@ the decompressed chunk; a message record is ``opcode 0x05, uint64 length, uint16
 uint32 sequence, uint64 log_time, uint64 publish_time, payload`` so the payload of message ``i``
 starts at ``offset + 31`` and is ``length - 22`` bytes long. All of that is gathered with numpy.
 
+Which messages exist is decided by the data section alone: every Message record in it, inside
+chunks or not, is read. The summary section (every record of it optional) gives what it has:
+the channels and schemas when it defines every channel it says has messages
+(:func:`imupipe.readers.mcap_summary.complete`), the chunk start times (chunk indexes) and the
+message counts (statistics, used to size the table). When it does not, the Schema and Channel
+records are gathered from the data section first (top-level or inside chunks; the pass stops
+once the channels the summary names are all found, and reads the whole data section when the
+summary names none). A message on a channel still unknown when it is read (a summary that
+named too few) has its Channel record looked for in its chunk, then in the whole data section.
+
 Fallbacks: a chunk without message indexes (writers that omit them; foxglove/mcap#1735) is
-scanned record by record; messages outside chunks are gathered into pseudo-chunks; channels are
-taken from the summary section, or from a first pass over the file when it has none.
+scanned record by record; messages outside chunks are gathered into pseudo-chunks. Bytes past
+the fields a record is known to have (the specification lets records grow) are skipped.
 
 Every inconsistency (bad magic, a record running past the end of the file, a failed
 decompression or CRC, an index pointing outside its chunk) is a :class:`ReadError` naming the
@@ -42,6 +52,7 @@ from imupipe.readers.compression import (
     decompress_into,
 )
 from imupipe.readers.errors import ReadError
+from imupipe.readers.mcap_summary import complete, defined
 
 MAGIC = b"\x89MCAP0\r\n"
 OP_HEADER, OP_FOOTER, OP_SCHEMA, OP_CHANNEL, OP_MESSAGE = 0x01, 0x02, 0x03, 0x04, 0x05
@@ -145,13 +156,18 @@ class McapFile:
     path: Path
     channels: dict[int, ChannelInfo] = field(default_factory=dict)
     counts: dict[int, int] | None = None
-    """Messages per channel id from the Statistics record (None when the file has none)."""
+    """Messages per channel id: from the Statistics record, or counted by a pass over the data
+    section (None when neither)."""
     profile: str = ""
     chunk_starts: list[tuple[int, int]] = field(default_factory=list)
     """(file offset, message start time) of every chunk, from the summary's chunk indexes."""
 
     def __post_init__(self) -> None:
         self.path = Path(self.path)
+        self._schemas: dict[int, Schema] = {}
+        self._channels: dict[int, Channel] = {}
+        self._scanned = False
+        """Whether the whole data section has been read for Schema and Channel records."""
         try:
             self.size = self.path.stat().st_size
             with open(self.path, "rb") as fh:
@@ -160,8 +176,10 @@ class McapFile:
             raise ReadError(f"{self.path}: cannot read: {exc.strerror or exc}") from None
         if head != MAGIC:
             raise ReadError(f"{self.path}: not an MCAP file (bad magic bytes)")
-        if not self._read_summary():
-            self._first_pass()
+        needed = self._read_summary()
+        if needed is not None:
+            self._first_pass(needed)
+        self._join()
 
     # -- records ---------------------------------------------------------------------------
     def _records(
@@ -195,54 +213,90 @@ class McapFile:
             yield opcode, pos, body
             pos += 9 + length
 
-    def _read_summary(self) -> bool:
-        """Channels and statistics from the summary section; False when there is none."""
+    def _read_summary(self) -> set[int] | None:
+        """Channels, schemas, statistics and chunk indexes from the summary section. Returns
+        None when its channels are the file's (:func:`~imupipe.readers.mcap_summary.complete`),
+        else the ids of the channels it says have messages (empty: it names none), which the
+        data section must then define (:meth:`_first_pass`)."""
         if self.size < 8 + 9 + 20 + 8:
             raise ReadError(f"{self.path}: truncated MCAP ({self.size} bytes)")
+        stats: list[Statistics] = []
+        indexed: list[list[int]] = []
         with open(self.path, "rb") as fh:
             fh.seek(self.size - 37)
             tail = fh.read(37)
             if tail[-8:] != MAGIC or tail[0] != OP_FOOTER:
-                return False
+                return set()
             summary_start = int.from_bytes(tail[9:17], "little")
             if summary_start == 0 or summary_start > self.size - 37:
-                return False
-            schemas: dict[int, Schema] = {}
-            channels: dict[int, Channel] = {}
+                return set()
             for opcode, _pos, body in self._records(fh, summary_start, self.size - 37):
-                self._collect(opcode, body, schemas, channels)
-            self.channels = self._join(schemas, channels)
-            return bool(self.channels) or self.counts is not None
+                if opcode == OP_STATISTICS:
+                    stats.append(self._read_record(Statistics, opcode, body))
+                elif opcode == OP_CHUNK_INDEX:
+                    indexed.append(self._chunk_index(body))
+                else:
+                    self._collect(opcode, body)
+        if stats:
+            self.counts = dict(stats[0].channel_message_counts)
+        schema_of = {cid: c.schema_id for cid, c in self._channels.items()}
+        if complete(stats[0] if stats else None, schema_of, self._schemas, indexed):
+            return None
+        needed = set(self.counts or ()) | {cid for ids in indexed for cid in ids}
+        needed |= {
+            cid for cid, c in self._channels.items() if c.schema_id not in (0, *self._schemas)
+        }
+        return {cid for cid in needed if (self.counts or {}).get(cid, 1)}
 
-    def _collect(
-        self, opcode: int, body: bytes, schemas: dict[int, Schema], channels: dict[int, Channel]
-    ) -> None:
+    def _chunk_index(self, body: bytes) -> list[int]:
+        """Record a chunk index's chunk (offset, start time); returns the channel ids it lists."""
         try:
-            stream = ReadDataStream(io.BytesIO(body))
-            if opcode == OP_SCHEMA:
-                s = Schema.read(stream)
-                schemas[s.id] = s
-            elif opcode == OP_CHANNEL:
-                c = Channel.read(stream)
-                channels[c.id] = c
-            elif opcode == OP_STATISTICS:
-                self.counts = dict(Statistics.read(stream).channel_message_counts)
-            elif opcode == OP_HEADER:
-                self.profile = stream.read_prefixed_string()
-            elif opcode == OP_CHUNK_INDEX:
-                start, _end, offset = struct.unpack_from("<QQQ", body, 0)
-                self.chunk_starts.append((offset, start))
-        except (struct.error, UnicodeDecodeError, Exception) as exc:  # noqa: BLE001
+            start, _end, offset, _length, size = struct.unpack_from("<QQQQI", body, 0)
+            if size % 10 or 36 + size > len(body):
+                raise struct.error("message index offsets past the record")
+            ids = np.frombuffer(body, "<u2", count=size // 2, offset=36)[::5]
+        except (struct.error, ValueError) as exc:
+            raise ReadError(
+                f"{self.path}: corrupt MCAP record (opcode {OP_CHUNK_INDEX:#x}): {exc}"
+            ) from None
+        self.chunk_starts.append((offset, start))
+        return ids.tolist()
+
+    def _read_record(self, kind: type, opcode: int, body: bytes):  # noqa: ANN202
+        """``kind.read`` of a record's body (the mcap library's record classes read the fields
+        they know and leave the rest); ReadError naming the file when it cannot."""
+        try:
+            return kind.read(ReadDataStream(io.BytesIO(body)))
+        except Exception as exc:  # noqa: BLE001 - any failure to parse is a corrupt record
             raise ReadError(
                 f"{self.path}: corrupt MCAP record (opcode {opcode:#x}): {exc}"
             ) from None
 
-    def _join(
-        self, schemas: dict[int, Schema], channels: dict[int, Channel]
-    ) -> dict[int, ChannelInfo]:
+    def _collect(self, opcode: int, body: bytes) -> bool:
+        """Keep a Schema or Channel record (a schema of id 0 is invalid and ignored, as the
+        specification says); True when it was one of them."""
+        if opcode == OP_SCHEMA:
+            s = self._read_record(Schema, opcode, body)
+            if s.id:
+                self._schemas[s.id] = s
+        elif opcode == OP_CHANNEL:
+            c = self._read_record(Channel, opcode, body)
+            self._channels[c.id] = c
+        elif opcode == OP_HEADER:
+            try:
+                self.profile = ReadDataStream(io.BytesIO(body)).read_prefixed_string()
+            except Exception:  # noqa: BLE001 - the profile is informative only
+                self.profile = ""
+            return False
+        else:
+            return False
+        return True
+
+    def _join(self) -> None:
+        """:attr:`channels` from the Schema and Channel records gathered so far."""
         out = {}
-        for c in channels.values():
-            s = schemas.get(c.schema_id)
+        for c in self._channels.values():
+            s = self._schemas.get(c.schema_id)
             out[c.id] = ChannelInfo(
                 c.id,
                 c.topic,
@@ -251,32 +305,62 @@ class McapFile:
                 s.encoding if s else "",
                 bytes(s.data) if s else b"",
             )
-        return out
+        self.channels = out
 
-    def _first_pass(self) -> None:
-        """No summary: collect schemas and channels from the whole data section."""
-        schemas: dict[int, Schema] = {}
-        channels: dict[int, Channel] = {}
+    def _defined(self, needed: set[int]) -> bool:
+        """Whether the records gathered so far define every channel of ``needed``."""
+        schema_of = {cid: c.schema_id for cid, c in self._channels.items()}
+        return defined(needed, schema_of, self._schemas)
+
+    def _first_pass(self, needed: set[int]) -> None:
+        """Schema and Channel records from the data section (top-level and inside chunks),
+        until every channel of ``needed`` is defined with its schema; with ``needed`` empty,
+        from the whole data section, counting the messages of each channel too."""
         counts: dict[int, int] = {}
         with open(self.path, "rb") as fh:
             for opcode, pos, body in self._records(fh, 8, self.size):
                 if opcode == OP_CHUNK:
                     buf = self._decompress(body, pos)
                     for op, start, end in scan_records(buf, f"{self.path}: chunk at byte {pos}"):
-                        if op in (OP_SCHEMA, OP_CHANNEL):
-                            self._collect(op, bytes(buf[start:end]), schemas, channels)
-                        elif op == OP_MESSAGE:
+                        if op == OP_MESSAGE:
                             cid = int.from_bytes(bytes(buf[start : start + 2]), "little")
                             counts[cid] = counts.get(cid, 0) + 1
-                elif opcode in (OP_SCHEMA, OP_CHANNEL, OP_HEADER):
-                    self._collect(opcode, body, schemas, channels)
+                        else:
+                            self._collect(op, bytes(buf[start:end]))
                 elif opcode == OP_MESSAGE and len(body) >= 2:
                     cid = int.from_bytes(body[:2], "little")
                     counts[cid] = counts.get(cid, 0) + 1
                 elif opcode == OP_DATA_END:
+                    self._scanned = True
                     break
-        self.channels = self._join(schemas, channels)
-        self.counts = counts
+                else:
+                    self._collect(opcode, body)
+                if needed and self._defined(needed):
+                    return
+            else:
+                self._scanned = True
+        if not needed:
+            self.counts = counts
+
+    def channel(self, cid: int, chunk: ChunkMessages) -> ChannelInfo:
+        """The channel of id ``cid``, on which ``chunk`` holds messages: looked for in the
+        chunk's own records, then in the whole data section, when not known yet; ReadError
+        when the file never defines it."""
+        found = self.channels.get(cid)
+        if found is not None:
+            return found
+        if len(chunk.buf):
+            for op, start, end in scan_records(chunk.buf, chunk.where):
+                if op in (OP_SCHEMA, OP_CHANNEL):
+                    self._collect(op, chunk.buf[start:end].tobytes())
+        if cid not in self._channels and not self._scanned:
+            self._first_pass({cid})
+        self._join()
+        if cid not in self.channels:
+            raise ReadError(
+                f"{chunk.where}: message on channel {cid}, which the file never defines"
+            )
+        return self.channels[cid]
 
     def _load_chunk(self, fd: int, pos: int, head: bytes, out: np.ndarray | None) -> np.ndarray:
         """Read the chunk record at ``pos`` and decompress it (thread-safe: ``pread``); into
@@ -360,7 +444,10 @@ class McapFile:
                 if loose:
                     yield _loose_chunk(loose, loose_off, f"{self.path}: messages before byte {pos}")
                     loose, loose_off = bytearray(), {}
-                if opcode == OP_CHUNK:
+                if opcode in (OP_SCHEMA, OP_CHANNEL):
+                    if self._collect(opcode, body):
+                        self._join()
+                elif opcode == OP_CHUNK:
                     k = int(np.searchsorted(offsets, pos, side="right"))
                     if len(offsets):
                         bound = int(suffix_min[k]) if k < len(offsets) else NEVER

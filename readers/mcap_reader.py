@@ -60,29 +60,30 @@ class McapSource:
         times: dict[str, list[np.ndarray]] = {}
         for chunk in self.file.chunks():
             for cid in chunk.offsets:
-                channel = self.file.channels.get(cid)
-                if channel is not None:
-                    times.setdefault(channel.topic, []).append(chunk.records(cid)[0])
+                topic = self.file.channel(cid, chunk).topic
+                times.setdefault(topic, []).append(chunk.records(cid)[0])
         return {t: np.concatenate(v) for t, v in times.items()}
 
     def chunks(
         self, streams: dict[str, str], carry: bool, decode: bool = True
     ) -> Iterator[tuple[dict[str, Piece], list[RawMessage], int]]:
         by_topic = {topic: stream for stream, topic in streams.items()}
-        chosen = {
-            cid: by_topic[c.topic] for cid, c in self.file.channels.items() if c.topic in by_topic
-        }
+        stream_of: dict[int, str | None] = {}  # channel id -> its stream (None: carried over)
         converters: dict[int, object] = {}
         for chunk in self.file.chunks():
+            for cid in chunk.offsets:
+                if cid not in stream_of:
+                    stream_of[cid] = by_topic.get(self.file.channel(cid, chunk).topic)
             pieces: dict[str, list[Piece]] = {}
             if decode:
-                for cid, stream in chosen.items():
-                    if cid in chunk.offsets:
+                for cid in chunk.offsets:
+                    stream = stream_of[cid]
+                    if stream is not None:
                         pieces.setdefault(stream, []).append(self._decode(chunk, cid, stream))
             raw: list[RawMessage] = []
             if carry:
                 for cid in sorted(chunk.offsets):
-                    if cid not in chosen:
+                    if stream_of[cid] is None:
                         raw.extend(self._raw(chunk, cid, converters))
                 raw.sort(key=lambda m: m.log_time)
             yield {s: concat(p, s) for s, p in pieces.items()}, raw, chunk.bound
@@ -103,11 +104,7 @@ class McapSource:
     def _raw(
         self, chunk: ChunkMessages, cid: int, converters: dict[int, object]
     ) -> list[RawMessage]:
-        channel = self.file.channels.get(cid)
-        if channel is None:
-            raise ReadError(
-                f"{chunk.where}: message on channel {cid}, which the file never defines"
-            )
+        channel = self.file.channel(cid, chunk)
         log, pub, starts, lengths = chunk.records(cid)
         schema_name, schema_encoding, schema_data = (
             channel.schema_name,
