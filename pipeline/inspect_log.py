@@ -90,8 +90,11 @@ def inspect(spec: InputSpec) -> dict[str, Any]:
         }
 
     described = _from_summary(path) if fmt == "mcap" else None
-    types, topics = described if described is not None else _from_messages(spec)
+    warnings: list[str] = []
+    types, topics = described if described is not None else _from_messages(spec, warnings)
     out: dict[str, Any] = {"path": str(path), "format": fmt, "topics": topics, "streams": {}}
+    if warnings:
+        out["warnings"] = warnings
     if fmt == "ulog":
         return _ulog(spec, out)
     try:
@@ -131,8 +134,11 @@ def _from_summary(path: Path) -> tuple[dict[str, str], dict[str, Any]] | None:
     return types, topics
 
 
-def _from_messages(spec: InputSpec) -> tuple[dict[str, str], dict[str, Any]]:
-    """(topic -> type, topic -> entry) from the log times of every message of the log."""
+def _from_messages(
+    spec: InputSpec, warnings: list[str]
+) -> tuple[dict[str, str], dict[str, Any]]:
+    """(topic -> type, topic -> entry) from the log times of every message of the log; the
+    sources' warnings (an unindexed bag read by scanning) are appended to ``warnings``."""
     import numpy as np
 
     from imupipe.readers.dispatch import log_sources
@@ -140,6 +146,7 @@ def _from_messages(spec: InputSpec) -> tuple[dict[str, str], dict[str, Any]]:
     types: dict[str, str] = {}
     times: dict[str, list[np.ndarray]] = {}
     for src in log_sources(spec):
+        warnings += getattr(src, "warnings", ())
         types.update(src.topic_types())
         for topic, t in src.topic_times().items():
             times.setdefault(topic, []).append(t)

@@ -1,0 +1,354 @@
+"""Issue 24 (items 3 and 4): every ROS 2 and ROS 1 bag layout rosbag2 / rosbag write, read by
+imupipe as ``rosbags``' ``AnyReader`` reads it.
+
+The bags are written by rosbags' own writers (``tests/bag_variants.py``): ROS 2 with sqlite3 and
+mcap storage, uncompressed and zstd-compressed per file and per message, the metadata rewritten
+as every version rosbag2 wrote (1 to 9), split bags; ROS 1 with uncompressed, bz2 and lz4
+chunks, indexed and unindexed (its index cut off, as an interrupted recording leaves it), and
+the rosbag.js fixture of a bag without messages. For each, the differential check
+(:func:`agree`): the same topics, types and counts as ``inspect`` lists them, every message's log
+time and payload (carried over: ROS 2 bytes for bytes, ROS 1 converted to CDR field for field),
+and the Imu / MagneticField values of the table, value for value.
+"""
+
+from __future__ import annotations
+
+import collections
+import json
+import shutil
+from pathlib import Path
+
+import bag_variants as bv
+import numpy as np
+import pytest
+
+from imupipe.pipeline.convert_verify import input_counts
+from imupipe.pipeline.inspect_log import inspect
+from imupipe.readers.dispatch import detect_format, log_sources, read_input
+from imupipe.readers.errors import ReadError
+from imupipe.readers.spec import InputSpec
+
+from conftest import run_cli
+
+SHARED = Path(__file__).resolve().parents[2] / "shared" / "data" / "logs" / "peer_fixtures"
+DATA = Path(__file__).parent / "data" / "rosbag_peers"
+
+
+def _plain(value):
+    """A rosbags message as nested lists / dicts of numbers (the ROS 1 ``seq`` left out)."""
+    if hasattr(value, "__dataclass_fields__"):
+        return {
+            k: _plain(getattr(value, k))
+            for k in value.__dataclass_fields__
+            if k not in ("seq", "__msgtype__")
+        }
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    if isinstance(value, list | tuple):
+        return [_plain(v) for v in value]
+    return value
+
+
+def reference(path: Path) -> dict:
+    """What rosbags' AnyReader reads: topic -> (type, [(log ns, plain message, raw bytes)])."""
+    from rosbags.highlevel import AnyReader
+
+    paths = sorted(path.glob("*.bag")) if path.is_dir() and detect_format(path) == "ros1" else [path]
+    out: dict = {}
+    with AnyReader(paths) as reader:
+        for conn in reader.connections:
+            out.setdefault(conn.topic, (conn.msgtype, []))
+        for conn, t, raw in reader.messages():
+            msg = reader.deserialize(raw, conn.msgtype)
+            out[conn.topic][1].append((t, _plain(msg), bytes(raw)))
+    return out
+
+
+def ours(path: Path) -> tuple[dict, dict]:
+    """(inspect's topics, topic -> [(log ns, plain message, CDR bytes)]) as imupipe reads them:
+    every message of every topic, carried over (ROS 1 converted to ROS 2 CDR)."""
+    from rosbags.typesys import Stores, get_typestore
+
+    store = get_typestore(Stores.ROS2_HUMBLE)
+    spec = InputSpec(path=path)
+    listed = inspect(spec)["topics"]
+    messages: dict = collections.defaultdict(list)
+    sources = log_sources(spec)
+    for src in sorted(sources, key=lambda s: s.first_time()):
+        for _, raw, _ in src.chunks({}, carry=True, decode=False):
+            for m in raw:
+                msg = store.deserialize_cdr(m.data, m.schema_name)
+                messages[m.topic].append((m.log_time, _plain(msg), m.data))
+    return listed, messages
+
+
+def agree(path: Path) -> None:
+    """imupipe reads ``path`` as rosbags' AnyReader does (see the module docstring)."""
+    ref = reference(path)
+    listed, got = ours(path)
+    ros1 = detect_format(path) == "ros1"
+    assert sorted(listed) == sorted(ref), path
+    for topic, (typ, msgs) in ref.items():
+        assert listed[topic]["type"] == typ, (path, topic)
+        assert listed[topic]["count"] == len(msgs), (path, topic)
+        mine = sorted(got[topic], key=lambda m: m[0])
+        theirs = sorted(msgs, key=lambda m: m[0])
+        assert [m[0] for m in mine] == [m[0] for m in theirs], (path, topic)
+        assert [m[1] for m in mine] == [m[1] for m in theirs], (path, topic)
+        if not ros1:
+            assert [m[2] for m in mine] == [m[2] for m in theirs], (path, topic)
+    sensors = {t for t, (typ, m) in ref.items() if typ == "sensor_msgs/msg/Imu" and m}
+    if sensors:
+        _table_agrees(path, ref)
+
+
+def _table_agrees(path: Path, ref: dict) -> None:
+    """The common table's Imu (and MagneticField) values equal the messages rosbags reads."""
+    table, _ = read_input(InputSpec(path=path))
+    imu = [m for t, (typ, ms) in ref.items() if typ == "sensor_msgs/msg/Imu" for m in ms]
+    rows = table.filter(table.column("gyro_x").is_valid())
+    imu.sort(key=lambda m: (m[1]["header"]["stamp"]["sec"], m[1]["header"]["stamp"]["nanosec"]))
+    stamp = [m[1]["header"]["stamp"]["sec"] * 10**9 + m[1]["header"]["stamp"]["nanosec"] for m in imu]
+    np.testing.assert_array_equal(rows.column("t_ns").to_numpy(), stamp)
+    np.testing.assert_array_equal(rows.column("log_time_ns").to_numpy(), [m[0] for m in imu])
+    for col, field in (("gyro", "angular_velocity"), ("accel", "linear_acceleration")):
+        want = np.array([[m[1][field][a] for a in "xyz"] for m in imu])
+        got = np.stack([rows.column(f"{col}_{a}").to_numpy() for a in "xyz"], axis=1)
+        np.testing.assert_array_equal(got, want)
+    mags = [m for t, (typ, ms) in ref.items() if typ == "sensor_msgs/msg/MagneticField" for m in ms]
+    if mags and "mag_x" in table.column_names:
+        rows = table.filter(table.column("mag_x").is_valid())
+        mags.sort(key=lambda m: m[0])
+        want = np.array([[m[1]["magnetic_field"][a] for a in "xyz"] for m in mags])
+        got = np.stack([rows.column(f"mag_{a}").to_numpy() for a in "xyz"], axis=1)
+        np.testing.assert_array_equal(got, want)
+
+
+# ---------------------------------------------------------------- the bags written by rosbags
+
+
+@pytest.fixture(scope="module")
+def ros2_bags(tmp_path_factory) -> dict[str, Path]:
+    d = tmp_path_factory.mktemp("ros2")
+    bags = {}
+    for storage, mode in bv.ROS2_VARIANTS:
+        bags[f"{storage}-{mode}"] = bv.write_ros2(d / f"{storage}_{mode}", storage, mode)
+    for version in range(1, 9):
+        for key in ("sqlite3-none", "mcap-message"):
+            if version < 3 and key.endswith("message"):
+                continue  # compression came with version 3
+            name = f"{key}-v{version}"
+            bags[name] = bv.with_version(bags[key], d / name.replace("-", "_"), version)
+    for storage, mode in (("sqlite3", "file"), ("mcap", "message"), ("mcap", "file")):
+        parts = [
+            bv.write_ros2(d / f"part{k}_{storage}_{mode}", storage, mode, n=120, seed=k + 5)
+            for k in range(3)
+        ]
+        bags[f"{storage}-{mode}-split"] = bv.split(parts, d / f"split_{storage}_{mode}")
+    return bags
+
+
+@pytest.fixture(scope="module")
+def ros1_bags(tmp_path_factory) -> dict[str, Path]:
+    d = tmp_path_factory.mktemp("ros1")
+    bags = {}
+    for comp in bv.ROS1_VARIANTS:
+        bags[comp] = bv.write_ros1(d / f"{comp}.bag", comp)
+    return bags
+
+
+def unindexed(bag: Path, dst: Path, cut: int = 0) -> Path:
+    """``bag`` as an interrupted recording leaves it: ``index_pos`` 0, no index section, and
+    ``cut`` more bytes cut off its end."""
+    data = bytearray(bag.read_bytes())
+    at = data.index(b"index_pos=") + len(b"index_pos=")
+    index_pos = int.from_bytes(data[at : at + 8], "little")
+    data[at : at + 8] = bytes(8)
+    dst.write_bytes(bytes(data[: index_pos - cut]))
+    return dst
+
+
+@pytest.mark.parametrize("mode", ["none", "file", "message"])
+@pytest.mark.parametrize("storage", ["sqlite3", "mcap"])
+def test_ros2_compression_agrees_with_rosbags(ros2_bags, storage, mode):
+    agree(ros2_bags[f"{storage}-{mode}"])
+
+
+@pytest.mark.parametrize("version", range(1, 9))
+def test_ros2_every_metadata_version_agrees_with_rosbags(ros2_bags, version):
+    for key in ("sqlite3-none", "mcap-message"):
+        name = f"{key}-v{version}"
+        if name in ros2_bags:
+            agree(ros2_bags[name])
+
+
+@pytest.mark.parametrize("key", ["sqlite3-file", "mcap-message", "mcap-file"])
+def test_ros2_split_bags_agree_with_rosbags(ros2_bags, key):
+    bag = ros2_bags[f"{key}-split"]
+    assert len(log_sources(InputSpec(path=bag))) == 3
+    agree(bag)
+
+
+@pytest.mark.parametrize("comp", bv.ROS1_VARIANTS)
+def test_ros1_chunk_compression_agrees_with_rosbags(ros1_bags, comp):
+    agree(ros1_bags[comp])
+
+
+@pytest.mark.parametrize("comp", bv.ROS1_VARIANTS)
+def test_ros1_unindexed_bag_reads_as_its_indexed_original(ros1_bags, comp, tmp_path):
+    """rosbags refuses an unindexed bag; imupipe scans it, warns, and reads every message of
+    the original (that rosbags reads)."""
+    bag = unindexed(ros1_bags[comp], tmp_path / "unindexed.bag")
+    with pytest.raises(Exception, match="not indexed"):
+        reference(bag)
+    ref = reference(ros1_bags[comp])
+    listed, got = ours(bag)
+    assert {t: e["count"] for t, e in listed.items()} == {t: len(m) for t, (_, m) in ref.items()}
+    for topic, (_, msgs) in ref.items():
+        assert [m[:2] for m in got[topic]] == [m[:2] for m in msgs], topic
+    table, warnings = read_input(InputSpec(path=bag))
+    assert any("not indexed" in w and "scanning" in w for w in warnings), warnings
+    want, _ = read_input(InputSpec(path=ros1_bags[comp]))
+    assert table.equals(want)
+    assert input_counts(bag, "ros1") is None  # convert counts what it reads
+
+
+@pytest.mark.parametrize("comp", bv.ROS1_VARIANTS)
+def test_ros1_cut_off_recording_keeps_the_messages_before_the_cut(ros1_bags, comp, tmp_path):
+    """An unindexed bag cut inside its last chunk: the chunks before it are read, the cut is
+    warned about; cut just after the last chunk (its IndexData gone), the chunk is walked."""
+    full = reference(ros1_bags[comp])
+    data = ros1_bags[comp].read_bytes()
+    at = data.index(b"index_pos=") + len(b"index_pos=")
+    index_pos = int.from_bytes(data[at : at + 8], "little")
+    # the last chunk record starts at the last b"op=\x05" header before the index
+    last_chunk = data.rfind(b"op=\x05", 0, index_pos)
+    last_chunk = data.rfind(b"compression=", 0, last_chunk + 1) - 4 - 4
+    for cut in (3000, 50):
+        bag = unindexed(ros1_bags[comp], tmp_path / f"cut{cut}.bag", cut=cut)
+        listed, got = ours(bag)
+        table, warnings = read_input(InputSpec(path=bag))
+        assert any("cut off" in w for w in warnings), warnings
+        for topic, (_, msgs) in full.items():
+            mine = [m[:2] for m in got.get(topic, [])]
+            assert mine == [m[:2] for m in msgs[: len(mine)]], topic  # a prefix, in order
+            assert listed[topic]["count"] == len(mine)
+        n = sum(len(v) for v in got.values())
+        total = sum(len(m) for _, m in full.values())
+        # a 50-byte cut loses only IndexData records: the last chunk is walked, nothing lost
+        assert (n == total) if cut == 50 else (0 < n < total), (cut, n, total)
+    del last_chunk
+
+
+def test_ros1_bag_without_messages_is_empty_not_truncated():
+    """rosbag.js's ``no-messages.bag`` fixture (Apache-2.0, tests/data/rosbag_peers): its index
+    position is the end of the file. rosbags reads it as empty; so does imupipe."""
+    bag = DATA / "rosbagjs_no-messages.bag"
+    agree(bag)
+    assert inspect(InputSpec(path=bag))["topics"] == {}
+    assert input_counts(bag, "ros1") == {}
+    proc = run_cli("inspect", bag)
+    assert proc.returncode == 0, proc.stderr
+    assert "topics: none" in proc.stdout
+    with pytest.raises(ReadError, match="no sensor_msgs/Imu.*topics: none"):
+        read_input(InputSpec(path=bag))  # what ``run`` says of it: nothing to calibrate
+
+
+# ---------------------------------------------------------------- one rule for every command
+
+
+def test_metadata_version_10_is_accepted_by_inspect_run_and_convert(ros2_bags, tmp_path):
+    """rosbag2 reads a metadata version by the fields it has, with no upper limit: so do
+    ``inspect``, ``run`` and ``convert`` (rosbags refuses versions above 9)."""
+    v9 = ros2_bags["sqlite3-message"]
+    bag = bv.with_version(v9, tmp_path / "v10", 10)
+    spec = InputSpec(path=bag)
+    assert inspect(spec)["topics"] == inspect(InputSpec(path=v9))["topics"]
+    assert read_input(spec)[0].equals(read_input(InputSpec(path=v9))[0])
+    assert input_counts(bag, "ros2") == input_counts(v9, "ros2") == {
+        "/imu/data": 300, "/imu/mag": 75, "/chatter": 43,
+    }  # fmt: skip
+    cal = tmp_path / "calibration.json"
+    chain = [{"type": "gyro_calibration", "sensor": "gyro", "kind": "linear",
+              "matrix": np.eye(3).tolist(), "offset": [0.01, 0.0, 0.0]}]  # fmt: skip
+    cal.write_text(json.dumps({"imupipe_version": "test", "chain": chain, "results": {}}))
+    for name in ("v10", "file"):
+        src = bag if name == "v10" else ros2_bags["mcap-file"]
+        proc = run_cli("convert", "--calibration", cal, "--out", tmp_path / f"out_{name}", src)
+        assert proc.returncode == 0, proc.stderr
+        from helpers import decode_mcap
+
+        out = decode_mcap(tmp_path / f"out_{name}" / f"{src.name}.mcap")
+        assert {t: len(m) for t, m in out.items()} == {
+            "/imu/data": 300, "/imu/mag": 75, "/chatter": 43,
+        }  # fmt: skip
+
+
+@pytest.mark.parametrize("mode", ["file", "message"])
+def test_ros2_zstd_bags_stream_in_batches(ros2_bags, mode, monkeypatch):
+    """``convert``'s bounded-memory batches of a compressed bag hold every message once."""
+    from imupipe.readers import ros2_reader
+    from imupipe.readers.dispatch import iter_input
+
+    monkeypatch.setattr(ros2_reader, "BLOCK_ROWS", 64)
+    bag = ros2_bags[f"sqlite3-{mode}"]
+    table, _ = read_input(InputSpec(path=bag))
+    batches = list(iter_input(InputSpec(path=bag), batch_rows=50))
+    assert len(batches) > 2
+    assert sum(t.num_rows for t, _ in batches) == table.num_rows
+    assert sum(len(raw) for _, raw in batches) == 43
+
+
+# ---------------------------------------------------------------- bad input: one line
+
+
+def _bad(bag: Path, named: Path, match: str, listed: bool = False) -> None:
+    """Reading ``bag`` is one ReadError line naming ``named``; ``inspect`` exits 2 with it
+    (``listed``: inspect, which reads no payload, still lists the topics)."""
+    with pytest.raises(ReadError, match=match) as info:
+        read_input(InputSpec(path=bag))
+    assert str(named) in str(info.value) and "\n" not in str(info.value)
+    proc = run_cli("inspect", bag)
+    if listed:
+        assert proc.returncode == 0, proc.stderr
+        return
+    assert proc.returncode == 2, proc.stderr
+    assert proc.stderr.count("\n") == 1 and match.split("(")[0] in proc.stderr, proc.stderr
+
+
+@pytest.mark.parametrize("storage", ["sqlite3", "mcap"])
+def test_truncated_zstd_file_is_one_line(ros2_bags, storage, tmp_path):
+    bag = tmp_path / "bag"
+    shutil.copytree(ros2_bags[f"{storage}-file"], bag)
+    (f,) = bag.glob("*.zstd")
+    f.write_bytes(f.read_bytes()[:-100])
+    _bad(bag, f, "truncated zstd file")
+    f.write_bytes(b"not a zstd frame" * 20)
+    _bad(bag, f, "corrupt zstd file")
+
+
+def test_corrupt_zstd_message_is_one_line(ros2_bags, tmp_path):
+    import sqlite3
+
+    bag = tmp_path / "bag"
+    shutil.copytree(ros2_bags["sqlite3-message"], bag)
+    (db,) = bag.glob("*.db3")
+    with sqlite3.connect(db) as con:
+        con.execute("UPDATE messages SET data = substr(data, 1, 10) WHERE id = 5")
+    _bad(bag, db, "zstd", listed=True)
+
+
+def test_bad_metadata_is_one_line(ros2_bags, tmp_path):
+    bag = tmp_path / "bag"
+    shutil.copytree(ros2_bags["sqlite3-message"], bag)
+    meta = bag / "metadata.yaml"
+    text = meta.read_text()
+    meta.write_text(text.replace("compression_format: zstd", "compression_format: lz4"))
+    _bad(bag, meta, "compression format 'lz4' is not supported")
+    meta.write_text(text.replace("storage_identifier: sqlite3", "storage_identifier: hdf5"))
+    _bad(bag, meta, "storage 'hdf5' is not supported")
+    meta.write_text(text)
+    (db,) = bag.glob("*.db3")
+    db.unlink()
+    with pytest.raises(ReadError, match="storage file .* is missing"):
+        read_input(InputSpec(path=bag))
