@@ -135,10 +135,12 @@ def _from_summary(path: Path) -> tuple[dict[str, str], dict[str, Any]] | None:
 
 
 def _from_messages(
-    spec: InputSpec, warnings: list[str]
+    spec: InputSpec, warnings: list[str] | None = None
 ) -> tuple[dict[str, str], dict[str, Any]]:
     """(topic -> type, topic -> entry) from the log times of every message of the log; the
     sources' warnings (an unindexed bag read by scanning) are appended to ``warnings``."""
+    if warnings is None:
+        warnings = []
     import numpy as np
 
     from imupipe.readers.dispatch import log_sources
