@@ -158,6 +158,11 @@ class Ros1Bag:
                 op, fields, _ = self._record(fh)
                 if op != OP_BAG_HEADER:
                     raise ReadError(f"{self.path}: corrupt bag (no bag header record)")
+                encryptor = fields.get("encryptor", b"").decode(errors="replace")
+                if encryptor:
+                    raise ReadError(
+                        f"{self.path}: encrypted bag ({encryptor}) is not supported"
+                    )
                 index_pos = int.from_bytes(fields.get("index_pos", b"\0" * 8)[:8], "little")
                 chunk_count = int.from_bytes(fields.get("chunk_count", b"\0" * 4)[:4], "little")
                 self.connections: dict[int, Connection] = {}

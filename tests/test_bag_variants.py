@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import collections
 import json
+import re
 import shutil
 from pathlib import Path
 
@@ -309,6 +310,25 @@ def test_rosbag2_own_test_bags_agree_with_rosbags(bag):
     agree(bag)
 
 
+def test_encrypted_ros1_bag_is_refused_in_one_line(tmp_path):
+    """A bag whose header names an ``encryptor`` (rosbag's AES encryption), as rosbags refuses it."""
+
+    def field(name: bytes, value: bytes) -> bytes:
+        return len(name + b"=" + value).to_bytes(4, "little") + name + b"=" + value
+
+    header = b"".join([
+        field(b"op", b"\x03"), field(b"index_pos", bytes(8)), field(b"conn_count", bytes(4)),
+        field(b"chunk_count", bytes(4)), field(b"encryptor", b"rosbag/AesCbcEncryptor"),
+    ])  # fmt: skip
+    bag = tmp_path / "secret.bag"
+    padding = bytes(4096 - len(header))
+    bag.write_bytes(
+        b"#ROSBAG V2.0\n" + len(header).to_bytes(4, "little") + header
+        + len(padding).to_bytes(4, "little") + padding
+    )  # fmt: skip
+    _bad(bag, bag, "encrypted bag .rosbag/AesCbcEncryptor. is not supported")
+
+
 # ---------------------------------------------------------------- one rule for every command
 
 
@@ -368,7 +388,7 @@ def _bad(bag: Path, named: Path, match: str, listed: bool = False) -> None:
         assert proc.returncode == 0, proc.stderr
         return
     assert proc.returncode == 2, proc.stderr
-    assert proc.stderr.count("\n") == 1 and match.split("(")[0] in proc.stderr, proc.stderr
+    assert proc.stderr.count("\n") == 1 and re.search(match, proc.stderr), proc.stderr
 
 
 @pytest.mark.parametrize("storage", ["sqlite3", "mcap"])
