@@ -218,10 +218,10 @@ class Bag2Mcap(McapSource):
     format = "ros2"
 
     def __init__(self, path: Path, *, shown: Path | None = None, zstd_messages: bool = False):
-        self._real = Path(path)
+        self._real, self._shown = Path(path), Path(shown or path)
         with self._named():
             super().__init__(path)
-        self.path = Path(shown or path)
+        self.path = self._shown
         self.zstd_messages = zstd_messages
 
     @contextlib.contextmanager
@@ -230,9 +230,9 @@ class Bag2Mcap(McapSource):
         try:
             yield
         except ReadError as exc:
-            if self.path == self._real:
+            if self._shown == self._real:
                 raise
-            raise ReadError(str(exc).replace(str(self._real), str(self.path))) from None
+            raise ReadError(str(exc).replace(str(self._real), str(self._shown))) from None
 
     def first_time(self) -> int:
         with self._named():

@@ -440,6 +440,15 @@ def test_truncated_zstd_file_is_one_line(ros2_bags, storage, tmp_path):
     _bad(bag, f, "truncated zstd file")
     f.write_bytes(b"not a zstd frame" * 20)
     _bad(bag, f, "corrupt zstd file")
+    # whole zstd, of a storage file cut in half: the storage's own error, naming the .zstd
+    import zstandard
+
+    with zstandard.ZstdDecompressor().stream_reader(
+        (ros2_bags[f"{storage}-file"] / f.name).read_bytes()
+    ) as reader:
+        plain = reader.read()
+    f.write_bytes(zstandard.ZstdCompressor().compress(plain[: len(plain) // 2]))
+    _bad(bag, f, "truncated|corrupt")
 
 
 def test_corrupt_zstd_message_is_one_line(ros2_bags, tmp_path):
