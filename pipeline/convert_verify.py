@@ -51,12 +51,15 @@ def mcap_counts(path: Path) -> dict[str, int] | None:
     return None if summary is None else summary[0]
 
 
-def input_counts(path: Path, fmt: str) -> dict[str, int] | None:
+def input_counts(
+    path: Path, fmt: str, warnings: list[str] | None = None
+) -> dict[str, int] | None:
     """Messages per topic from the log's own index, without reading the messages; None for CSV and
     for logs that have no index (then the counts read are the reference). ROS bags are opened by
     imupipe's own readers, so that ``convert`` accepts exactly what ``inspect`` and ``run`` do:
     a ROS 2 bag's ``metadata.yaml`` (:func:`imupipe.readers.ros2_reader.bag2_counts`), a ROS 1
-    bag's index (None for an unindexed bag)."""
+    bag's index (None for an unindexed bag, whose scanning warning is appended to
+    ``warnings``)."""
     try:
         if fmt == "mcap":
             return mcap_counts(path)
@@ -68,11 +71,12 @@ def input_counts(path: Path, fmt: str) -> dict[str, int] | None:
             from imupipe.readers.ros1_reader import bag_sources
 
             per_topic: collections.Counter[str] = collections.Counter()
-            for bag in bag_sources(path):
-                if not bag.indexed:
-                    return None
+            bags = bag_sources(path)
+            for bag in bags:
+                if warnings is not None:  # convert names the input itself
+                    warnings += [w.removeprefix(f"{path}: ") for w in bag.warnings]
                 per_topic.update(bag.topic_counts())
-            return dict(per_topic)
+            return dict(per_topic) if all(bag.indexed for bag in bags) else None
     except ImupipeError:
         raise
     except Exception as exc:  # noqa: BLE001 - any failure to open the index is a bad log

@@ -163,7 +163,7 @@ def _convert_log(task: LogTask) -> LogStats:
     else:
         steps = steps_from_json(task.calibration["chain"])
         mode = "streamed"
-        expected = input_counts(src, fmt)
+        expected = input_counts(src, fmt, warnings)
         doc = {
             **task.calibration,
             "conversion": {

@@ -256,7 +256,9 @@ def test_ros1_unindexed_bag_reads_as_its_indexed_original(ros1_bags, comp, tmp_p
     assert any("not indexed" in w and "scanning" in w for w in warnings), warnings
     want, _ = read_input(InputSpec(path=ros1_bags[comp]))
     assert table.equals(want)
-    assert input_counts(bag, "ros1") is None  # convert counts what it reads
+    said: list[str] = []
+    assert input_counts(bag, "ros1", said) is None  # convert counts what it reads, and warns
+    assert len(said) == 1 and said[0].startswith("the bag is not indexed"), said
 
 
 @pytest.mark.parametrize("comp", bv.ROS1_VARIANTS)
