@@ -40,6 +40,7 @@ from imupipe.readers.spec import InputSpec, RawMessage
 from imupipe.readers.topics import normalize_type
 
 BLOCK_ROWS = 50_000
+ZSTD_MAGIC = b"\x28\xb5\x2f\xfd"
 CORRUPT = (sqlite3.DatabaseError, TypeError, ValueError, AttributeError, OverflowError)
 """What a damaged sqlite3 file raises (bad pages, or cells of the wrong type)."""
 
@@ -98,6 +99,13 @@ class Sqlite3Bag:
                 ):
                     if enc == "ros2msg" and text:
                         self.defs[str(typ)] = str(text).encode()
+
+    def sniff_zstd(self) -> bool:
+        """Whether the first message's payload is a zstd frame (magic ``28 b5 2f fd``), for a
+        file without ``metadata.yaml`` to say so; a CDR payload starts with a zero byte."""
+        with _guard(self.path):
+            row = self._db.execute("SELECT data FROM messages LIMIT 1").fetchone()
+        return row is not None and bytes(row[0][:4]) == ZSTD_MAGIC
 
     def topic_types(self) -> dict[str, str]:
         return {name: typ for name, typ, _ in self.topics.values()}
@@ -351,14 +359,19 @@ def bag2_counts(path: Path) -> dict[str, int] | None:
 
 
 def _storage_source(
-    path: Path, storage: str, shown: Path | None, zstd_messages: bool
+    path: Path, storage: str, shown: Path | None, zstd_messages: bool | None
 ) -> LogSource:
+    """The source of one storage file; ``zstd_messages`` None: not known (no
+    ``metadata.yaml``), told by the payloads for sqlite3 (:meth:`Sqlite3Bag.sniff_zstd`)."""
     if storage == "mcap":
-        return Bag2Mcap(path, shown=shown, zstd_messages=zstd_messages)
-    return Sqlite3Bag(path, shown=shown, zstd_messages=zstd_messages)
+        return Bag2Mcap(path, shown=shown, zstd_messages=bool(zstd_messages))
+    bag = Sqlite3Bag(path, shown=shown, zstd_messages=bool(zstd_messages))
+    if zstd_messages is None:
+        bag.zstd_messages = bag.sniff_zstd()
+    return bag
 
 
-def _inflated_source(path: Path, storage: str) -> LogSource:
+def _inflated_source(path: Path, storage: str, zstd_messages: bool | None) -> LogSource:
     """A file-compressed storage file (``x.db3.zstd``) decompressed to a temporary folder that
     is removed when the source is (or at exit)."""
     tmp = tempfile.TemporaryDirectory(prefix="imupipe-bag-")
@@ -373,31 +386,42 @@ def _inflated_source(path: Path, storage: str) -> LogSource:
     except ReadError:
         tmp.cleanup()
         raise
-    src = _storage_source(plain, storage, path, False)
+    src = _storage_source(plain, storage, path, zstd_messages)
     src._tmp = tmp  # type: ignore[attr-defined] - the folder lives as long as the source
     return src
 
 
+PATTERNS = ("*.db3", "*.mcap", "*.db3.zstd", "*.mcap.zstd")
+"""The storage files of a bag folder without ``metadata.yaml``."""
+
+
 def bag2_sources(path: Path) -> list[LogSource]:
-    """The storage files of a ROS 2 bag folder (as its ``metadata.yaml`` lists them, else its
-    ``*.db3`` and ``*.mcap``), or a bare ``.db3`` / ``.mcap``."""
+    """The storage files of a ROS 2 bag folder (as its ``metadata.yaml`` lists them, else
+    :data:`PATTERNS`), or a bare ``.db3`` / ``.mcap`` / ``.db3.zstd`` / ``.mcap.zstd``. Without
+    ``metadata.yaml`` a ``.zstd`` file is decompressed whole (rosbag2's file compression) and a
+    sqlite3 file's payloads are taken as zstd frames when they start with zstd's magic number
+    (rosbag2's message compression; a CDR payload starts with a zero byte)."""
     path = Path(path)
     if path.is_dir() and (path / "metadata.yaml").exists():
         meta = read_metadata(path)
         if meta.compression == "file":
-            return [_inflated_source(f, meta.storage) for f in meta.files]
+            return [_inflated_source(f, meta.storage, False) for f in meta.files]
         zstd = meta.compression == "message"
         return [_storage_source(f, meta.storage, None, zstd) for f in meta.files]
     if path.is_dir():
-        files = sorted(path.glob("*.db3")) + sorted(path.glob("*.mcap"))
+        files = [f for pattern in PATTERNS for f in sorted(path.glob(pattern))]
         if not files:
             raise ReadError(f"{path}: the ROS 2 bag folder holds no .db3 or .mcap file")
     else:
         files = [path]
-    return [
-        _storage_source(f, "mcap" if f.suffix == ".mcap" else "sqlite3", None, False)
-        for f in files
-    ]
+    sources = []
+    for f in files:
+        storage = "mcap" if f.name.endswith((".mcap", ".mcap.zstd")) else "sqlite3"
+        if f.suffix == ".zstd":
+            sources.append(_inflated_source(f, storage, None))
+        else:
+            sources.append(_storage_source(f, storage, None, None))
+    return sources
 
 
 def read_ros2(spec: InputSpec) -> tuple[pa.Table, list[str]]:

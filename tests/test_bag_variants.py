@@ -352,6 +352,26 @@ def test_real_ros1_bags_agree_with_rosbags(name):
     agree(bag)
 
 
+@pytest.mark.parametrize("key", ["sqlite3-file", "sqlite3-message", "mcap-file"])
+def test_ros2_storage_files_alone_read_as_their_bag(ros2_bags, key, tmp_path):
+    """A storage file given alone, or a folder without ``metadata.yaml``: a ``.db3.zstd`` /
+    ``.mcap.zstd`` is decompressed, a sqlite3 file whose payloads are zstd frames is read as
+    message-compressed (its first payload tells): the same as the bag."""
+    bag = ros2_bags[key]
+    (storage,) = [f for f in bag.iterdir() if f.name != "metadata.yaml"]
+    bare = tmp_path / "bare"
+    bare.mkdir()
+    shutil.copy(storage, bare / storage.name)
+    want, _ = read_input(InputSpec(path=bag))
+    _, want_raw = ours(bag)
+    for path in (bare / storage.name, bare):
+        assert detect_format(path) == "ros2"
+        got, _ = read_input(InputSpec(path=path))
+        assert got.equals(want)
+        _, raw = ours(path)
+        assert raw == want_raw
+
+
 # ---------------------------------------------------------------- one rule for every command
 
 
