@@ -13,8 +13,10 @@ read by scanning (:meth:`Ros1Bag._scan`, with a warning): the chunk records one 
 and the ``IndexData`` records that follow each; the connection records, which such a bag holds
 only inside its chunks, are found by walking the records between the indexed messages of the
 chunks that bring a new connection; a chunk without ``IndexData`` after it is walked record by
-record. A record cut off by the end of the file ends the scan (with a warning): the messages
-before it are read.
+record. The chunk an interrupted ``rosbag record`` was writing (its header still has the
+place-holder sizes 0, its records run to the end of the file) is decompressed as far as its
+bytes go and walked up to its last complete record. A record cut off by the end of the file
+ends the scan (with a warning): the messages before it are read.
 
 Messages of every other topic are carried over converted to ROS 2 CDR the way
 ``rosbags-convert`` does it (:func:`ros2_converter`).
@@ -22,11 +24,12 @@ Messages of every other topic are carried over converted to ROS 2 CDR the way
 
 from __future__ import annotations
 
+import bz2
 import collections
 import io
 import struct
 from collections.abc import Callable, Iterator
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -170,6 +173,9 @@ class Ros1Bag:
                 self.walked: dict[int, dict[int, tuple[np.ndarray, np.ndarray]]] = {}
                 """Chunk position -> its index, for the chunks of an unindexed bag that have no
                 ``IndexData`` records (found by walking the chunk)."""
+                self.open_buffers: dict[int, np.ndarray] = {}
+                """Chunk position -> what decompressed of the chunk an interrupted recording
+                left open (an unindexed bag's last)."""
                 self.warnings: list[str] = []
                 self.indexed = index_pos != 0
                 if not self.indexed:
@@ -215,7 +221,7 @@ class Ros1Bag:
         """Chunk infos and connections of an unindexed bag, from its records (see the module
         docstring). Only the chunks that bring a new connection, or have no ``IndexData``, are
         decompressed here."""
-        cut = None
+        cut = opened = None
         chunks: list[tuple[int, dict[str, bytes], int, int]] = []
         """(position, header fields, data position, data length) of each chunk record."""
         indexes: list[dict[int, tuple[np.ndarray, np.ndarray]]] = []
@@ -225,6 +231,9 @@ class Ros1Bag:
                 op, fields, data_pos, data_len = self._head(fh)
             except _CutOff:
                 cut = pos
+                break
+            if op == OP_CHUNK and data_len == 0 and data_pos < self.size:
+                opened = (pos, fields, data_pos)  # the chunk rosbag was writing: to the end
                 break
             if op == OP_CHUNK:
                 chunks.append((pos, fields, data_pos, data_len))
@@ -240,7 +249,7 @@ class Ros1Bag:
             indexes[-1] = {}  # the file ends in the last chunk's IndexData: walk the chunk
         self.warnings.append(
             f"{self.path}: the bag is not indexed (an interrupted recording?): read by scanning "
-            f"its {len(chunks)} chunks"
+            f"its {len(chunks) + (opened is not None)} chunks"
             + (f"; it is cut off at byte {cut}, the record there is skipped" if cut is not None else "")
         )
         for (pos, fields, data_pos, data_len), index in zip(chunks, indexes, strict=True):
@@ -257,15 +266,53 @@ class Ros1Bag:
             elif new:
                 assert buf is not None
                 self._walk_gaps(buf, index, where)
-            starts = [int(log.min()) for log, _ in index.values() if len(log)]
-            counts = {c: len(log) for c, (log, _) in index.items()}
-            self.chunk_infos.append((pos, min(starts, default=0), counts))
+            self._chunk_info(pos, index)
+        if opened is not None:
+            self._open_chunk(fh, *opened)
 
-    def _walk(self, buf: np.ndarray, where: str) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+    def _chunk_info(self, pos: int, index: dict[int, tuple[np.ndarray, np.ndarray]]) -> None:
+        starts = [int(log.min()) for log, _ in index.values() if len(log)]
+        counts = {c: len(log) for c, (log, _) in index.items()}
+        self.chunk_infos.append((pos, min(starts, default=0), counts))
+
+    def _open_chunk(self, fh: io.BufferedReader, pos: int, fields: dict[str, bytes], at: int) -> None:
+        """The chunk an interrupted ``rosbag record`` was writing: its header still has the
+        place-holder sizes (0) and its records, compressed or not, run to the end of the file.
+        What decompresses of it is walked up to its last complete record."""
+        where = f"{self.path}: chunk at byte {pos} (not closed)"
+        compression = fields.get("compression", b"none").decode(errors="replace")
+        fh.seek(at)
+        data = fh.read()
+        try:
+            if compression == "bz2":
+                data = bz2.BZ2Decompressor().decompress(data)
+            elif compression == "lz4":
+                import lz4.frame
+
+                data = lz4.frame.LZ4FrameDecompressor().decompress(data)
+            elif compression not in ("none", ""):
+                raise ReadError(f"{where}: unsupported chunk compression '{compression}'")
+        except (OSError, EOFError, RuntimeError, ValueError) as exc:
+            self.warnings.append(f"{where}: cannot be decompressed ({exc}): skipped")
+            return
+        buf = np.frombuffer(data, np.uint8)
+        index = self._walk(buf, where, partial=True)
+        n = sum(len(log) for log, _ in index.values())
+        self.warnings.append(
+            f"{self.path}: the last chunk (at byte {pos}) was not closed (the recording stopped "
+            f"while writing it): its {n} complete messages are read"
+        )
+        self.walked[pos], self.open_buffers[pos] = index, buf
+        self._chunk_info(pos, index)
+
+    def _walk(
+        self, buf: np.ndarray, where: str, partial: bool = False
+    ) -> dict[int, tuple[np.ndarray, np.ndarray]]:
         """Every record of a chunk without ``IndexData``, one by one: the connection records
-        are taken, and the index (connection -> log times, record offsets) of the messages."""
+        are taken, and the index (connection -> log times, record offsets) of the messages
+        (``partial``: up to the last complete record)."""
         found: dict[int, tuple[list[int], list[int]]] = {}
-        for pos, op, fields, data in _records(buf, 0, where):
+        for pos, op, fields, data in _records(buf, 0, where, partial=partial):
             if op == OP_CONNECTION:
                 self._connection(fields, data)
             elif op == OP_MSG:
@@ -367,7 +414,11 @@ class Ros1Bag:
                 op, fields, data = self._record(fh)
                 if op != OP_CHUNK:
                     raise ReadError(f"{where}: the index points at a record that is not a chunk")
-                future = worker.submit(self._decompress, fields, data, where)
+                if pos in self.open_buffers:  # decompressed (what could be) by the scan
+                    future: Future = Future()
+                    future.set_result(self.open_buffers[pos])
+                else:
+                    future = worker.submit(self._decompress, fields, data, where)
                 if pos in self.walked:
                     index = self.walked[pos]
                 else:
@@ -472,23 +523,25 @@ def _index_entries(
 
 
 def _records(
-    buf: np.ndarray, pos: int, where: str, stop: set[int] | None = None
+    buf: np.ndarray, pos: int, where: str, stop: set[int] | None = None, partial: bool = False
 ) -> Iterator[tuple[int, int, dict[str, bytes], bytes]]:
     """(position, op, header fields, data) of the records of a decompressed chunk from ``pos``
-    on, up to its end or a position in ``stop``."""
+    on, up to its end or a position in ``stop`` (``partial``: a record that runs past the end
+    ends the walk instead of being an error)."""
     raw = memoryview(buf)
     size = len(buf)
     while pos < size and (stop is None or pos not in stop):
-        if pos + 4 > size:
-            raise ReadError(f"{where}: record at byte {pos} of the chunk runs past its end")
-        hl = int.from_bytes(raw[pos : pos + 4], "little")
-        if pos + 8 + hl > size:
+        end = size + 1  # a record whose lengths themselves are cut off runs past the end
+        if pos + 4 <= size:
+            hl = int.from_bytes(raw[pos : pos + 4], "little")
+            if pos + 8 + hl <= size:
+                dl = int.from_bytes(raw[pos + 4 + hl : pos + 8 + hl], "little")
+                end = pos + 8 + hl + dl
+        if end > size:
+            if partial:
+                return
             raise ReadError(f"{where}: record at byte {pos} of the chunk runs past its end")
         fields = _fields(bytes(raw[pos + 4 : pos + 4 + hl]), where)
-        dl = int.from_bytes(raw[pos + 4 + hl : pos + 8 + hl], "little")
-        end = pos + 8 + hl + dl
-        if end > size:
-            raise ReadError(f"{where}: record at byte {pos} of the chunk runs past its end")
         yield pos, fields.get("op", b"\xff")[0], fields, bytes(raw[pos + 8 + hl : end])
         pos = end
 

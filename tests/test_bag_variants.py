@@ -288,6 +288,50 @@ def test_ros1_cut_off_recording_keeps_the_messages_before_the_cut(ros1_bags, com
     del last_chunk
 
 
+def interrupted(bag: Path, dst: Path, cut: int = 0) -> Path:
+    """``bag`` as ``rosbag record`` leaves it when stopped while writing its last chunk: no
+    index, the bag header's ``index_pos`` 0, the last chunk's header with the place-holder sizes
+    (0) rosbag writes when it opens a chunk, its records (compressed or not) to the end of the
+    file, no IndexData after it; and ``cut`` more bytes cut off."""
+    from imupipe.readers.ros1_reader import Ros1Bag, _fields
+
+    data = bag.read_bytes()
+    last = max(pos for pos, _, _ in Ros1Bag(bag).chunk_infos)
+    hl = int.from_bytes(data[last : last + 4], "little")
+    fields = _fields(data[last + 4 : last + 4 + hl], "test")
+    dl = int.from_bytes(data[last + 4 + hl : last + 8 + hl], "little")
+    fields["size"] = bytes(4)
+    header = b"".join(
+        len(k.encode() + b"=" + v).to_bytes(4, "little") + k.encode() + b"=" + v
+        for k, v in fields.items()
+    )
+    body = data[last + 8 + hl : last + 8 + hl + dl]
+    out = bytearray(data[:last] + len(header).to_bytes(4, "little") + header + bytes(4) + body)
+    at = out.index(b"index_pos=") + len(b"index_pos=")
+    out[at : at + 8] = bytes(8)
+    dst.write_bytes(bytes(out[: len(out) - cut]))
+    return dst
+
+
+@pytest.mark.parametrize("comp", bv.ROS1_VARIANTS)
+def test_ros1_recording_stopped_inside_a_chunk(ros1_bags, comp, tmp_path):
+    """The chunk rosbag was writing is read up to its last complete record (whole, when its
+    bytes all reached the file), with a warning; every chunk before it as usual."""
+    full = reference(ros1_bags[comp])
+    total = sum(len(m) for _, m in full.values())
+    for cut in (0, 300):
+        bag = interrupted(ros1_bags[comp], tmp_path / f"open{cut}.bag", cut)
+        listed, got = ours(bag)
+        _, warnings = read_input(InputSpec(path=bag))
+        assert any("was not closed" in w for w in warnings), warnings
+        for topic, (_, msgs) in full.items():
+            mine = [m[:2] for m in got.get(topic, [])]
+            assert mine == [m[:2] for m in msgs[: len(mine)]], topic  # a prefix, in order
+            assert listed[topic]["count"] == len(mine)
+        n = sum(len(v) for v in got.values())
+        assert (n == total) if cut == 0 else (total - 40 < n < total), (comp, cut, n, total)
+
+
 def test_ros1_bag_without_messages_is_empty_not_truncated():
     """rosbag.js's ``no-messages.bag`` fixture (Apache-2.0, tests/data/rosbag_peers): its index
     position is the end of the file. rosbags reads it as empty; so does imupipe."""
