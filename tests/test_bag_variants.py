@@ -22,11 +22,13 @@ from pathlib import Path
 import bag_variants as bv
 import numpy as np
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 from imupipe.pipeline.convert_verify import input_counts
 from imupipe.pipeline.inspect_log import inspect
 from imupipe.readers.dispatch import detect_format, log_sources, read_input
-from imupipe.readers.errors import ReadError
+from imupipe.readers.errors import ImupipeError, ReadError
 from imupipe.readers.ros2_reader import read_metadata
 from imupipe.readers.spec import InputSpec
 from imupipe.readers.topics import normalize_type
@@ -481,6 +483,51 @@ def test_file_compressed_bag_leaves_no_temporary_file(ros2_bags, tmp_path, monke
 
 
 # ---------------------------------------------------------------- bad input: one line
+
+
+@pytest.fixture(scope="module")
+def damaged_seeds(ros1_bags, ros2_bags, tmp_path_factory) -> dict[str, bytes]:
+    """The layouts added here, small, as bytes to damage: unindexed and interrupted ROS 1
+    bags, a bare message-compressed .db3 and a bare .db3.zstd."""
+    d = tmp_path_factory.mktemp("seeds")
+    small = bv.write_ros1(d / "small.bag", "lz4", n=60)
+    out = {
+        "unindexed.bag": unindexed(small, d / "u.bag").read_bytes(),
+        "open.bag": interrupted(bv.write_ros1(d / "s2.bag", "none", n=60), d / "o.bag").read_bytes(),
+    }
+    for key, name in (("sqlite3-message", "message.db3"), ("sqlite3-file", "file.db3.zstd")):
+        (f,) = [x for x in ros2_bags[key].iterdir() if x.name != "metadata.yaml"]
+        out[name] = f.read_bytes()
+    return out
+
+
+@pytest.mark.parametrize("name", ["unindexed.bag", "open.bag", "message.db3", "file.db3.zstd"])
+@settings(
+    max_examples=25,
+    derandomize=True,
+    deadline=5000,
+    suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow],
+)
+@given(
+    cut=st.floats(0.0, 1.0),
+    flips=st.lists(st.tuples(st.floats(0.0, 1.0), st.integers(1, 255)), max_size=6),
+)
+def test_damaged_bags_are_read_or_one_line(damaged_seeds, tmp_path, name, cut, flips):
+    """Truncated and flipped copies: read, or refused with one ReadError line (never a crash)."""
+    from imupipe.readers.dispatch import carry_over
+
+    data = bytearray(damaged_seeds[name])
+    for where, xor in flips:
+        data[min(int(where * len(data)), len(data) - 1)] ^= xor
+    if cut < 0.5:
+        data = data[: int(cut * 2 * len(data))]
+    path = tmp_path / name
+    path.write_bytes(bytes(data))
+    for fn in (read_input, carry_over, inspect):
+        try:
+            fn(InputSpec(path=path))
+        except ImupipeError as exc:
+            assert "\n" not in str(exc)
 
 
 def _bad(bag: Path, named: Path, match: str, listed: bool = False) -> None:
