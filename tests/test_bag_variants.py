@@ -416,6 +416,9 @@ def test_ros2_storage_files_alone_read_as_their_bag(ros2_bags, key, tmp_path):
         assert got.equals(want)
         _, raw = ours(path)
         assert raw == want_raw
+    from imupipe.pipeline.convert_plan import find_logs
+
+    assert find_logs([tmp_path], tmp_path / "out") == [(bare, Path("bare"))]  # convert finds it
 
 
 # ---------------------------------------------------------------- one rule for every command
