@@ -1,8 +1,9 @@
 """Planning a conversion: find the logs under the arguments and give each its output paths.
 
 Folders are searched recursively for ``.mcap`` files, ROS 1 ``.bag`` files and ROS 2 bag folders
-(a folder holding ``metadata.yaml`` or a ``.db3``), and ``.csv`` files when ``--config`` is given;
-names starting with a dot and the output folder itself are skipped. Each log becomes
+(a folder holding ``metadata.yaml``, a ``.db3`` or a ``.db3.zstd`` / ``.mcap.zstd``), and
+``.csv`` files when ``--config`` is given; names starting with a dot and the output folder
+itself are skipped. Each log becomes
 ``DIR/<stem>.mcap`` (a log found inside a folder argument keeps its sub-folder:
 ``LOG/robot1/a.mcap`` -> ``DIR/robot1/a.mcap``) and, with ``--parquet``,
 ``DIR/parquet/<stem>.parquet``. The plan is checked before anything is written:
@@ -50,7 +51,12 @@ class LogTask:
 
 
 def is_ros2_bag_dir(path: Path) -> bool:
-    return path.is_dir() and ((path / "metadata.yaml").exists() or any(path.glob("*.db3")))
+    """A folder with ``metadata.yaml``, or sqlite3 storage files (``.db3``, rosbag2's
+    file-compressed ``.db3.zstd`` / ``.mcap.zstd``) without it."""
+    return path.is_dir() and (
+        (path / "metadata.yaml").exists()
+        or any(any(path.glob(p)) for p in ("*.db3", "*.db3.zstd", "*.mcap.zstd"))
+    )
 
 
 def find_logs(args: Sequence[Path], out_dir: Path, *, csv: bool = False) -> list[tuple[Path, Path]]:

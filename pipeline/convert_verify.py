@@ -1,8 +1,9 @@
 """Verification of a converted log: the written file holds the input's messages, topic for topic.
 
 The reference is the input's own index, read without reading the messages (MCAP summary
-statistics, the ROS 1 bag index, ROS 2 ``metadata.yaml``); for CSV and unindexed logs, the
-messages read. The written file's counts come from its own summary.
+statistics, the ROS 1 bag index, ROS 2 ``metadata.yaml``, each read as ``inspect`` and ``run``
+read it); for CSV and unindexed logs, the messages read. The written file's counts come from its
+own summary.
 """
 
 from __future__ import annotations
@@ -57,23 +58,32 @@ def mcap_counts(path: Path) -> dict[str, int] | None:
     return None if summary is None else summary[0]
 
 
-def input_counts(path: Path, fmt: str) -> dict[str, int] | None:
+def input_counts(
+    path: Path, fmt: str, warnings: list[str] | None = None
+) -> dict[str, int] | None:
     """Messages per topic from the log's own index, without reading the messages; None for CSV and
-    for logs that have no index (then the counts read are the reference)."""
+    for logs that have no index (then the counts read are the reference). ROS bags are opened by
+    imupipe's own readers, so that ``convert`` accepts exactly what ``inspect`` and ``run`` do:
+    a ROS 2 bag's ``metadata.yaml`` (:func:`imupipe.readers.ros2_reader.bag2_counts`), a ROS 1
+    bag's index (None for an unindexed bag, whose scanning warning is appended to
+    ``warnings``)."""
     try:
         if fmt == "mcap":
             return mcap_counts(path)
-        if fmt in ("ros1", "ros2"):
-            from rosbags.rosbag1 import Reader as Ros1Reader
-            from rosbags.rosbag2 import Reader as Ros2Reader
+        if fmt == "ros2":
+            from imupipe.readers.ros2_reader import bag2_counts
 
-            if fmt == "ros2" and not (path.is_dir() and (path / "metadata.yaml").exists()):
-                return None
+            return bag2_counts(path)
+        if fmt == "ros1":
+            from imupipe.readers.ros1_reader import bag_sources
+
             per_topic: collections.Counter[str] = collections.Counter()
-            with (Ros1Reader if fmt == "ros1" else Ros2Reader)(path) as reader:
-                for conn in reader.connections:
-                    per_topic[conn.topic] += conn.msgcount
-            return dict(per_topic)
+            bags = bag_sources(path)
+            for bag in bags:
+                if warnings is not None:  # convert names the input itself
+                    warnings += [w.removeprefix(f"{path}: ") for w in bag.warnings]
+                per_topic.update(bag.topic_counts())
+            return dict(per_topic) if all(bag.indexed for bag in bags) else None
     except ImupipeError:
         raise
     except Exception as exc:  # noqa: BLE001 - any failure to open the index is a bad log

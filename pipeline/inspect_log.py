@@ -92,8 +92,11 @@ def inspect(spec: InputSpec) -> dict[str, Any]:
         }
 
     described = _from_summary(path) if fmt == "mcap" else None
-    types, topics = described if described is not None else _from_messages(spec)
+    warnings: list[str] = []
+    types, topics = described if described is not None else _from_messages(spec, warnings)
     out: dict[str, Any] = {"path": str(path), "format": fmt, "topics": topics, "streams": {}}
+    if warnings:
+        out["warnings"] = warnings
     if fmt in ("ulog", "dataflash"):
         return _ulog(spec, out)
     try:
@@ -133,8 +136,13 @@ def _from_summary(path: Path) -> tuple[dict[str, str], dict[str, Any]] | None:
     return types, topics
 
 
-def _from_messages(spec: InputSpec) -> tuple[dict[str, str], dict[str, Any]]:
-    """(topic -> type, topic -> entry) from the log times of every message of the log."""
+def _from_messages(
+    spec: InputSpec, warnings: list[str] | None = None
+) -> tuple[dict[str, str], dict[str, Any]]:
+    """(topic -> type, topic -> entry) from the log times of every message of the log; the
+    sources' warnings (an unindexed bag read by scanning) are appended to ``warnings``."""
+    if warnings is None:
+        warnings = []
     import numpy as np
 
     from imupipe.readers.dispatch import log_sources
@@ -143,6 +151,7 @@ def _from_messages(spec: InputSpec) -> tuple[dict[str, str], dict[str, Any]]:
     times: dict[str, list[np.ndarray]] = {}
     untimed: dict[str, int] = {}
     for src in log_sources(spec):
+        warnings += getattr(src, "warnings", ())
         src_types = src.topic_types()
         types.update(src_types)
         src_times = src.topic_times()

@@ -11,6 +11,7 @@ from __future__ import annotations
 import bz2
 import sys
 import threading
+from pathlib import Path
 
 import numpy as np
 
@@ -123,3 +124,76 @@ class BufferPool:
             self.spent.append(base)
             if len(self.spent) > self.KEEP:
                 del self.spent[0]
+
+
+def inflate_messages(
+    buf: np.ndarray | bytes, starts: np.ndarray, lengths: np.ndarray, where: str
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Decompress messages that are each one zstd frame (rosbag2's ``compression_mode: message``)
+    lying at ``buf[starts[i] : starts[i] + lengths[i]]``: returns ``(buffer, starts, lengths)``
+    of the decompressed payloads, one after the other in one uint8 buffer.
+
+    zstandard's ``multi_decompress_to_buffer`` decompresses all of them in C (worker threads,
+    no Python call per message) when every frame states its content size, as rosbag2's and
+    rosbags' one-shot compressors write it; frames without one are decompressed one by one.
+    A payload that is not a whole zstd frame is a :class:`ReadError` naming ``where``."""
+    import zstandard
+
+    n = len(starts)
+    if n == 0:
+        return np.zeros(0, np.uint8), np.zeros(0, np.int64), np.zeros(0, np.int64)
+    starts = np.asarray(starts, np.int64)
+    lengths = np.asarray(lengths, np.int64)
+    dctx = zstandard.ZstdDecompressor()
+    segments = np.stack([starts, lengths], axis=1).astype("<u8")
+    try:
+        frames = zstandard.BufferWithSegments(buf, segments)
+        out = dctx.multi_decompress_to_buffer(frames, threads=DECOMPRESS_THREADS)
+        parts: list = [out[i] for i in range(len(out))]
+    except Exception:  # noqa: BLE001 - frames without a content size, or damaged: one by one
+        parts = _inflate_each(dctx, buf, starts, lengths, where)
+    sizes = np.fromiter(map(len, parts), np.int64, len(parts))
+    out_starts = np.zeros(n, np.int64)
+    np.cumsum(sizes[:-1], out=out_starts[1:])
+    return np.frombuffer(b"".join(parts), np.uint8), out_starts, sizes
+
+
+def _inflate_each(
+    dctx: object, buf: np.ndarray | bytes, starts: np.ndarray, lengths: np.ndarray, where: str
+) -> list[bytes]:
+    """:func:`inflate_messages` one frame at a time (frames that do not state their size)."""
+    view = memoryview(buf if isinstance(buf, bytes) else np.ascontiguousarray(buf)).cast("B")
+    parts = []
+    for i, (s, k) in enumerate(zip(starts.tolist(), lengths.tolist(), strict=True)):
+        obj = dctx.decompressobj()  # type: ignore[attr-defined]
+        try:
+            parts.append(obj.decompress(view[s : s + k]))
+        except Exception as exc:  # noqa: BLE001 - any decompressor failure
+            raise ReadError(
+                f"{where}: message {i} is not a valid zstd frame, though the bag says its "
+                f"messages are zstd-compressed ({exc})"
+            ) from None
+        if not obj.eof:
+            raise ReadError(f"{where}: message {i} is a cut-off zstd frame")
+    return parts
+
+
+def inflate_file(src: Path, dst: Path, block: int = 1 << 20) -> None:
+    """Decompress the zstd file ``src`` (rosbag2's ``compression_mode: file``) to ``dst``,
+    streaming ``block`` bytes at a time (Python's ``compression.zstd``, its backport before
+    3.14): memory stays at a block and the decompressor's window whatever the size of the file.
+    A cut-off or damaged file is a :class:`ReadError` naming ``src``; a ``dst`` that cannot be
+    written raises :class:`OSError`."""
+    if sys.version_info >= (3, 14):
+        from compression import zstd
+    else:
+        from backports import zstd
+
+    try:
+        with zstd.open(src, "rb") as fin, open(dst, "wb") as fout:
+            while data := fin.read(block):
+                fout.write(data)
+    except EOFError:
+        raise ReadError(f"{src}: truncated zstd file (it ends inside a compressed frame)") from None
+    except zstd.ZstdError as exc:
+        raise ReadError(f"{src}: corrupt zstd file ({exc})") from None

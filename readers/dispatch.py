@@ -61,7 +61,9 @@ def detect_format(path: Path) -> str:
     if not path.exists():
         raise ReadError(f"{path}: no such file or folder")
     if path.is_dir():
-        if (path / "metadata.yaml").exists() or any(path.glob("*.db3")) or any(path.glob("*.mcap")):
+        if (path / "metadata.yaml").exists() or any(
+            any(path.glob(p)) for p in ("*.db3", "*.mcap", "*.db3.zstd", "*.mcap.zstd")
+        ):
             return "ros2"
         if any(path.glob("*.bag")):
             return "ros1"
@@ -76,15 +78,15 @@ def detect_format(path: Path) -> str:
         return "mcap"
     if suffix == ".bag":
         return "ros1"
-    if suffix == ".db3":
-        return "ros2"
+    if suffix == ".db3" or path.name.lower().endswith((".db3.zstd", ".mcap.zstd")):
+        return "ros2"  # a bare ROS 2 storage file, or one that rosbag2 compressed whole
     if suffix == ".ulg":
         return "ulog"
     if suffix == ".bin":
         return "dataflash"
     raise ReadError(
-        f"{path}: unknown log format '{suffix}' (expected .csv, .mcap, .bag, .db3, .ulg, .bin or "
-        "a ROS 2 bag folder)"
+        f"{path}: unknown log format '{suffix}' (expected .csv, .mcap, .bag, .db3, .db3.zstd, .ulg, "
+        ".bin or a ROS 2 bag folder)"
     )
 
 

@@ -2,11 +2,21 @@
 
 A bag record is ``uint32 header_len, header (uint32-length-prefixed name=value fields), uint32
 data_len, data``. The reader takes the connections and chunk infos from the index section at
-``index_pos`` (an unindexed bag, e.g. an interrupted recording, is an error: ``rosbag reindex``
-repairs it), then reads each chunk, decompresses it, and takes the ``IndexData`` records that
+``index_pos``, then reads each chunk, decompresses it, and takes the ``IndexData`` records that
 follow it: per connection, ``(uint32 sec, uint32 nsec, uint32 offset)`` of every message data
 record in the decompressed chunk. The message payloads are then located and decoded with numpy
 (:func:`imupipe.readers.cdr.decode` with the ``ros1`` wire format).
+
+A bag without messages (no chunk; its index may end the file) is valid and empty. An unindexed
+bag (``index_pos`` 0: a recording that was interrupted before ``rosbag`` wrote its index) is
+read by scanning (:meth:`Ros1Bag._scan`, with a warning): the chunk records one after the other
+and the ``IndexData`` records that follow each; the connection records, which such a bag holds
+only inside its chunks, are found by walking the records between the indexed messages of the
+chunks that bring a new connection; a chunk without ``IndexData`` after it is walked record by
+record. The chunk an interrupted ``rosbag record`` was writing (its header still has the
+place-holder sizes 0, its records run to the end of the file) is decompressed as far as its
+bytes go and walked up to its last complete record. A record cut off by the end of the file
+ends the scan (with a warning): the messages before it are read.
 
 Messages of every other topic are carried over converted to ROS 2 CDR the way
 ``rosbags-convert`` does it (:func:`ros2_converter`).
@@ -14,11 +24,12 @@ Messages of every other topic are carried over converted to ROS 2 CDR the way
 
 from __future__ import annotations
 
+import bz2
 import collections
 import io
 import struct
 from collections.abc import Callable, Iterator
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -150,43 +161,204 @@ class Ros1Bag:
                 op, fields, _ = self._record(fh)
                 if op != OP_BAG_HEADER:
                     raise ReadError(f"{self.path}: corrupt bag (no bag header record)")
-                index_pos = int.from_bytes(fields.get("index_pos", b"\0" * 8)[:8], "little")
-                if index_pos == 0:
+                encryptor = fields.get("encryptor", b"").decode(errors="replace")
+                if encryptor:
                     raise ReadError(
-                        f"{self.path}: the bag is not indexed (interrupted recording?); "
-                        "run `rosbag reindex` first"
+                        f"{self.path}: encrypted bag ({encryptor}) is not supported"
                     )
-                if index_pos >= self.size:
+                index_pos = int.from_bytes(fields.get("index_pos", b"\0" * 8)[:8], "little")
+                chunk_count = int.from_bytes(fields.get("chunk_count", b"\0" * 4)[:4], "little")
+                self.connections: dict[int, Connection] = {}
+                self.chunk_infos: list[tuple[int, int, dict[int, int]]] = []
+                self.walked: dict[int, dict[int, tuple[np.ndarray, np.ndarray]]] = {}
+                """Chunk position -> its index, for the chunks of an unindexed bag that have no
+                ``IndexData`` records (found by walking the chunk)."""
+                self.open_buffers: dict[int, np.ndarray] = {}
+                """Chunk position -> what decompressed of the chunk an interrupted recording
+                left open (an unindexed bag's last)."""
+                self.warnings: list[str] = []
+                self.indexed = index_pos != 0
+                if not self.indexed:
+                    self._scan(fh)
+                elif index_pos > self.size or (index_pos == self.size and chunk_count):
                     raise ReadError(
                         f"{self.path}: truncated bag (index at byte {index_pos} is past the end)"
                     )
-                self.connections: dict[int, Connection] = {}
-                self.chunk_infos: list[tuple[int, int, dict[int, int]]] = []
-                fh.seek(index_pos)
-                while fh.tell() < self.size:
-                    op, fields, data = self._record(fh)
-                    if op == OP_CONNECTION:
-                        where = f"{self.path}: connection record"
-                        conn = _u32(fields, "conn", where)
-                        info = _fields(data, where)
-                        self.connections[conn] = Connection(
-                            conn,
-                            fields.get("topic", b"").decode(errors="replace"),
-                            normalize_type(info.get("type", b"").decode(errors="replace")),
-                            info.get("message_definition", b"").decode(errors="replace"),
-                        )
-                    elif op == OP_CHUNK_INFO:
-                        where = f"{self.path}: chunk info record"
-                        pos = int.from_bytes(fields.get("chunk_pos", b"")[:8], "little")
-                        start = fields.get("start_time", b"\0" * 8)
-                        t0 = int.from_bytes(start[:4], "little") * 10**9 + int.from_bytes(
-                            start[4:8], "little"
-                        )
-                        pairs = np.frombuffer(data[: len(data) // 8 * 8], "<u4").reshape(-1, 2)
-                        self.chunk_infos.append((pos, t0, {int(c): int(n) for c, n in pairs}))
+                else:
+                    self._read_index(fh, index_pos)
         except OSError as exc:
             raise ReadError(f"{self.path}: cannot read: {exc.strerror or exc}") from None
         self.chunk_infos.sort()
+
+    def _read_index(self, fh: io.BufferedReader, index_pos: int) -> None:
+        """The connections and chunk infos of the index section at ``index_pos``."""
+        fh.seek(index_pos)
+        while fh.tell() < self.size:
+            op, fields, data = self._record(fh)
+            if op == OP_CONNECTION:
+                self._connection(fields, data)
+            elif op == OP_CHUNK_INFO:
+                pos = int.from_bytes(fields.get("chunk_pos", b"")[:8], "little")
+                start = fields.get("start_time", b"\0" * 8)
+                t0 = int.from_bytes(start[:4], "little") * 10**9 + int.from_bytes(
+                    start[4:8], "little"
+                )
+                pairs = np.frombuffer(data[: len(data) // 8 * 8], "<u4").reshape(-1, 2)
+                self.chunk_infos.append((pos, t0, {int(c): int(n) for c, n in pairs}))
+
+    def _connection(self, fields: dict[str, bytes], data: bytes) -> None:
+        where = f"{self.path}: connection record"
+        conn = _u32(fields, "conn", where)
+        info = _fields(data, where)
+        self.connections[conn] = Connection(
+            conn,
+            fields.get("topic", b"").decode(errors="replace"),
+            normalize_type(info.get("type", b"").decode(errors="replace")),
+            info.get("message_definition", b"").decode(errors="replace"),
+        )
+
+    def _scan(self, fh: io.BufferedReader) -> None:
+        """Chunk infos and connections of an unindexed bag, from its records (see the module
+        docstring). Only the chunks that bring a new connection, or have no ``IndexData``, are
+        decompressed here."""
+        cut = opened = None
+        chunks: list[tuple[int, dict[str, bytes], int, int]] = []
+        """(position, header fields, data position, data length) of each chunk record."""
+        indexes: list[dict[int, tuple[np.ndarray, np.ndarray]]] = []
+        while fh.tell() < self.size:
+            pos = fh.tell()
+            try:
+                op, fields, data_pos, data_len = self._head(fh)
+            except _CutOff:
+                cut = pos
+                break
+            if op == OP_CHUNK and data_len == 0 and data_pos < self.size:
+                opened = (pos, fields, data_pos)  # the chunk rosbag was writing: to the end
+                break
+            if op == OP_CHUNK:
+                chunks.append((pos, fields, data_pos, data_len))
+                indexes.append({})
+            elif op == OP_INDEX and chunks:
+                where = f"{self.path}: index data record at byte {pos}"
+                conn, log, off = _index_entries(fields, fh.read(data_len), where)
+                indexes[-1][conn] = (log, off)
+            elif op == OP_CONNECTION:
+                self._connection(fields, fh.read(data_len))
+            fh.seek(data_pos + data_len)
+        if cut is not None and chunks:
+            indexes[-1] = {}  # the file ends in the last chunk's IndexData: walk the chunk
+        self.warnings.append(
+            f"{self.path}: the bag is not indexed (an interrupted recording?): read by scanning "
+            f"its {len(chunks) + (opened is not None)} chunks"
+            + (f"; it is cut off at byte {cut}, the record there is skipped" if cut is not None else "")
+        )
+        for (pos, fields, data_pos, data_len), index in zip(chunks, indexes, strict=True):
+            where = f"{self.path}: chunk at byte {pos}"
+            new = [c for c in index if c not in self.connections]
+            if index and not new:
+                buf = None
+            else:
+                fh.seek(data_pos)
+                buf = self._decompress(fields, fh.read(data_len), where)
+            if not index:
+                assert buf is not None
+                index = self.walked[pos] = self._walk(buf, where)
+            elif new:
+                assert buf is not None
+                self._walk_gaps(buf, index, where)
+            self._chunk_info(pos, index)
+        if opened is not None:
+            self._open_chunk(fh, *opened)
+
+    def _chunk_info(self, pos: int, index: dict[int, tuple[np.ndarray, np.ndarray]]) -> None:
+        starts = [int(log.min()) for log, _ in index.values() if len(log)]
+        counts = {c: len(log) for c, (log, _) in index.items()}
+        self.chunk_infos.append((pos, min(starts, default=0), counts))
+
+    def _open_chunk(self, fh: io.BufferedReader, pos: int, fields: dict[str, bytes], at: int) -> None:
+        """The chunk an interrupted ``rosbag record`` was writing: its header still has the
+        place-holder sizes (0) and its records, compressed or not, run to the end of the file.
+        What decompresses of it is walked up to its last complete record."""
+        where = f"{self.path}: chunk at byte {pos} (not closed)"
+        compression = fields.get("compression", b"none").decode(errors="replace")
+        fh.seek(at)
+        data = fh.read()
+        try:
+            if compression == "bz2":
+                data = bz2.BZ2Decompressor().decompress(data)
+            elif compression == "lz4":
+                import lz4.frame
+
+                data = lz4.frame.LZ4FrameDecompressor().decompress(data)
+            elif compression not in ("none", ""):
+                raise ReadError(f"{where}: unsupported chunk compression '{compression}'")
+        except (OSError, EOFError, RuntimeError, ValueError) as exc:
+            self.warnings.append(f"{where}: cannot be decompressed ({exc}): skipped")
+            return
+        buf = np.frombuffer(data, np.uint8)
+        index = self._walk(buf, where, partial=True)
+        n = sum(len(log) for log, _ in index.values())
+        self.warnings.append(
+            f"{self.path}: the last chunk (at byte {pos}) was not closed (the recording stopped "
+            f"while writing it): its {n} complete messages are read"
+        )
+        self.walked[pos], self.open_buffers[pos] = index, buf
+        self._chunk_info(pos, index)
+
+    def _walk(
+        self, buf: np.ndarray, where: str, partial: bool = False
+    ) -> dict[int, tuple[np.ndarray, np.ndarray]]:
+        """Every record of a chunk without ``IndexData``, one by one: the connection records
+        are taken, and the index (connection -> log times, record offsets) of the messages
+        (``partial``: up to the last complete record)."""
+        found: dict[int, tuple[list[int], list[int]]] = {}
+        for pos, op, fields, data in _records(buf, 0, where, partial=partial):
+            if op == OP_CONNECTION:
+                self._connection(fields, data)
+            elif op == OP_MSG:
+                conn = _u32(fields, "conn", where)
+                stamp = fields.get("time", b"")
+                if len(stamp) < 8:
+                    raise ReadError(f"{where}: message record lacks field 'time'")
+                t = int.from_bytes(stamp[:4], "little") * 10**9 + int.from_bytes(
+                    stamp[4:8], "little"
+                )
+                logs, offs = found.setdefault(conn, ([], []))
+                logs.append(t)
+                offs.append(pos)
+        return {c: (np.asarray(t, np.int64), np.asarray(o, np.int64)) for c, (t, o) in found.items()}
+
+    def _walk_gaps(
+        self, buf: np.ndarray, index: dict[int, tuple[np.ndarray, np.ndarray]], where: str
+    ) -> None:
+        """The connection records of a chunk whose messages are indexed: walked from each place
+        that is not an indexed message (the chunk's start, the end of each message) up to the
+        next message."""
+        off = np.sort(np.concatenate([o for _, o in index.values()]))
+        chunk = BagChunk(buf, {0: (np.zeros(len(off), np.int64), off)}, where, 0)
+        _, start, length = chunk.payloads(0)
+        ends = start + length
+        known = set(off.tolist())
+        for gap in sorted({0, *ends.tolist()} - known):
+            for _, op, fields, data in _records(buf, gap, where, stop=known):
+                if op == OP_CONNECTION:
+                    self._connection(fields, data)
+
+    def _head(self, fh: io.BufferedReader) -> tuple[int, dict[str, bytes], int, int]:
+        """(op, header fields, data position, data length) of the record at the file position,
+        leaving the file there; :class:`_CutOff` when the file ends inside it."""
+        pos = fh.tell()
+        head = fh.read(4)
+        if len(head) < 4:
+            raise _CutOff
+        (hl,) = struct.unpack("<I", head)
+        if pos + 8 + hl > self.size:
+            raise _CutOff
+        fields = _fields(fh.read(hl), f"{self.path}: record at byte {pos}")
+        (dl,) = struct.unpack("<I", fh.read(4))
+        if fh.tell() + dl > self.size:
+            raise _CutOff
+        return fields.get("op", b"\xff")[0], fields, fh.tell(), dl
 
     def _record(self, fh: io.BufferedReader) -> tuple[int, dict[str, bytes], bytes]:
         pos = fh.tell()
@@ -242,19 +414,21 @@ class Ros1Bag:
                 op, fields, data = self._record(fh)
                 if op != OP_CHUNK:
                     raise ReadError(f"{where}: the index points at a record that is not a chunk")
-                future = worker.submit(self._decompress, fields, data, where)
-                index: dict[int, tuple[np.ndarray, np.ndarray]] = {}
-                for _ in range(len(counts)):
-                    op, fields, data = self._record(fh)
-                    if op != OP_INDEX:
-                        raise ReadError(f"{where}: index data missing after the chunk")
-                    conn = _u32(fields, "conn", where)
-                    count = _u32(fields, "count", where)
-                    if len(data) < 12 * count:
-                        raise ReadError(f"{where}: index data of connection {conn} is cut off")
-                    entries = np.frombuffer(data, "<u4", count=3 * count).reshape(-1, 3)
-                    log = entries[:, 0].astype(np.int64) * 1_000_000_000 + entries[:, 1]
-                    index[conn] = (log, entries[:, 2].astype(np.int64))
+                if pos in self.open_buffers:  # decompressed (what could be) by the scan
+                    future: Future = Future()
+                    future.set_result(self.open_buffers[pos])
+                else:
+                    future = worker.submit(self._decompress, fields, data, where)
+                if pos in self.walked:
+                    index = self.walked[pos]
+                else:
+                    index = {}
+                    for _ in range(len(counts)):
+                        op, fields, data = self._record(fh)
+                        if op != OP_INDEX:
+                            raise ReadError(f"{where}: index data missing after the chunk")
+                        conn, log, off = _index_entries(fields, data, where)
+                        index[conn] = (log, off)
                 queue.append(BagChunk(future, index, where, int(bound)))  # type: ignore[arg-type]
                 if len(queue) > PREFETCH:
                     yield _decompressed(queue.popleft())
@@ -329,6 +503,47 @@ class Ros1Bag:
                 ) from None
             out.append(RawMessage(conn.topic, name, "ros2msg", schema, "cdr", data, lt, lt))
         return out
+
+
+class _CutOff(Exception):
+    """The file ends inside a record (an unindexed bag's last record)."""
+
+
+def _index_entries(
+    fields: dict[str, bytes], data: bytes, where: str
+) -> tuple[int, np.ndarray, np.ndarray]:
+    """(connection, log times ns, record offsets) of an ``IndexData`` record."""
+    conn = _u32(fields, "conn", where)
+    count = _u32(fields, "count", where)
+    if len(data) < 12 * count:
+        raise ReadError(f"{where}: index data of connection {conn} is cut off")
+    entries = np.frombuffer(data, "<u4", count=3 * count).reshape(-1, 3)
+    log = entries[:, 0].astype(np.int64) * 1_000_000_000 + entries[:, 1]
+    return conn, log, entries[:, 2].astype(np.int64)
+
+
+def _records(
+    buf: np.ndarray, pos: int, where: str, stop: set[int] | None = None, partial: bool = False
+) -> Iterator[tuple[int, int, dict[str, bytes], bytes]]:
+    """(position, op, header fields, data) of the records of a decompressed chunk from ``pos``
+    on, up to its end or a position in ``stop`` (``partial``: a record that runs past the end
+    ends the walk instead of being an error)."""
+    raw = memoryview(buf)
+    size = len(buf)
+    while pos < size and (stop is None or pos not in stop):
+        end = size + 1  # a record whose lengths themselves are cut off runs past the end
+        if pos + 4 <= size:
+            hl = int.from_bytes(raw[pos : pos + 4], "little")
+            if pos + 8 + hl <= size:
+                dl = int.from_bytes(raw[pos + 4 + hl : pos + 8 + hl], "little")
+                end = pos + 8 + hl + dl
+        if end > size:
+            if partial:
+                return
+            raise ReadError(f"{where}: record at byte {pos} of the chunk runs past its end")
+        fields = _fields(bytes(raw[pos + 4 : pos + 4 + hl]), where)
+        yield pos, fields.get("op", b"\xff")[0], fields, bytes(raw[pos + 8 + hl : end])
+        pos = end
 
 
 def _decompressed(chunk: BagChunk) -> BagChunk:

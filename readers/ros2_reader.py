@@ -7,27 +7,40 @@
   the ``timestamp`` column. Other topics are carried over unchanged (CDR) with the schema text
   from the bag's ``message_definitions`` table, else rosbags' ROS 2 Humble definition.
 
-A folder's storage files (``*.db3``, ``*.mcap``) are joined in the order of their first message.
+A bag folder is read as its ``metadata.yaml`` describes it (:func:`read_metadata`: every
+metadata version rosbag2 writes, 1 to 9, and later ones by the same fields, as rosbag2 itself
+reads them): its storage files (``relative_file_paths``, split bags joined in the order of their
+first message), sqlite3 or mcap storage, and rosbag2's compression (zstd, the only format
+rosbag2 offers): ``compression_mode: file`` (each storage file one zstd stream, ``*.db3.zstd``,
+``*.mcap.zstd``) is decompressed, streaming, to a temporary file that lives as long as the
+source; ``compression_mode: message`` (each payload one zstd frame) is decompressed chunk by
+chunk (:func:`imupipe.readers.compression.inflate_messages`). A folder without
+``metadata.yaml`` is read from its ``*.db3`` / ``*.mcap`` files, uncompressed.
 """
 
 from __future__ import annotations
 
 import contextlib
 import sqlite3
+import tempfile
 from collections.abc import Iterator
-from pathlib import Path
+from dataclasses import dataclass, field
+from pathlib import Path, PurePath
 
 import numpy as np
 import pyarrow as pa
 
+from imupipe.readers.compression import inflate_file, inflate_messages
 from imupipe.readers.decoded import Piece, decode_piece
 from imupipe.readers.errors import ReadError
+from imupipe.readers.fast_mcap import ChunkMessages
 from imupipe.readers.mcap_reader import McapSource
 from imupipe.readers.sources import LogSource, carry_sources, iter_sources, read_sources
 from imupipe.readers.spec import InputSpec, RawMessage
 from imupipe.readers.topics import normalize_type
 
 BLOCK_ROWS = 50_000
+ZSTD_MAGIC = b"\x28\xb5\x2f\xfd"
 CORRUPT = (sqlite3.DatabaseError, TypeError, ValueError, AttributeError, OverflowError)
 """What a damaged sqlite3 file raises (bad pages, or cells of the wrong type)."""
 
@@ -57,16 +70,22 @@ class Sqlite3Bag:
 
     format = "ros2"
 
-    def __init__(self, path: str | Path) -> None:
-        self.path = Path(path)
+    def __init__(
+        self, path: str | Path, *, shown: Path | None = None, zstd_messages: bool = False
+    ) -> None:
+        """``path``: the sqlite3 file; ``shown``: the file named in errors (the bag's own
+        ``.db3.zstd`` when ``path`` is its decompressed copy); ``zstd_messages``: each payload
+        is one zstd frame (``compression_mode: message``)."""
+        self.path = Path(shown or path)
+        self.zstd_messages = zstd_messages
         try:
-            with open(self.path, "rb") as fh:
+            with open(path, "rb") as fh:
                 if not fh.read(16).startswith(b"SQLite format 3"):
                     raise ReadError(f"{self.path}: not a ROS 2 sqlite3 bag (not an SQLite file)")
         except OSError as exc:
             raise ReadError(f"{self.path}: cannot read: {exc.strerror or exc}") from None
         with _guard(self.path):
-            self._db = sqlite3.connect(f"file:{self.path}?mode=ro&immutable=1", uri=True)
+            self._db = sqlite3.connect(f"file:{path}?mode=ro&immutable=1", uri=True)
             rows = self._db.execute("SELECT id, name, type, serialization_format FROM topics")
             self.topics = {
                 int(tid): (str(name), normalize_type(str(typ)), str(fmt))
@@ -80,6 +99,13 @@ class Sqlite3Bag:
                 ):
                     if enc == "ros2msg" and text:
                         self.defs[str(typ)] = str(text).encode()
+
+    def sniff_zstd(self) -> bool:
+        """Whether the first message's payload is a zstd frame (magic ``28 b5 2f fd``), for a
+        file without ``metadata.yaml`` to say so; a CDR payload starts with a zero byte."""
+        with _guard(self.path):
+            row = self._db.execute("SELECT data FROM messages LIMIT 1").fetchone()
+        return row is not None and bytes(row[0][:4]) == ZSTD_MAGIC
 
     def topic_types(self) -> dict[str, str]:
         return {name: typ for name, typ, _ in self.topics.values()}
@@ -154,7 +180,11 @@ class Sqlite3Bag:
                 if schema is None:
                     schema = self.defs[typ] = _schema_text(typ)
                 lt = int(log[i])
-                raw.append(RawMessage(name, typ, "ros2msg", schema, fmt, bytes(datas[i]), lt, lt))
+                data = bytes(datas[i])
+                if self.zstd_messages:
+                    where = f"{self.path}: topic '{name}' at log time {lt}"
+                    data = inflate_messages(data, [0], [len(data)], where)[0].tobytes()
+                raw.append(RawMessage(name, typ, "ros2msg", schema, fmt, data, lt, lt))
         return pieces, raw, int(log[-1])
 
     def _decode(self, datas: list[bytes], log: np.ndarray, tid: int, stream: str) -> Piece:
@@ -162,26 +192,235 @@ class Sqlite3Bag:
         starts = np.concatenate([[0], np.cumsum(lengths)[:-1]]).astype(np.int64)
         buf = np.frombuffer(b"".join(datas), np.uint8)
         where = f"{self.path}: topic '{self.topics[tid][0]}'"
+        if self.zstd_messages:
+            buf, starts, lengths = inflate_messages(buf, starts, lengths, where)
         return decode_piece(buf, starts, lengths, log, stream, "cdr", where)
 
 
-def bag2_sources(path: Path) -> list[LogSource]:
-    """The storage files of a ROS 2 bag folder, or a bare ``.db3`` / ``.mcap``."""
+class _Inflated:
+    """A chunk of an MCAP storage file whose payloads are zstd frames, seen with its payloads
+    decompressed (``records`` and ``buf`` as :class:`~imupipe.readers.fast_mcap.ChunkMessages`
+    has them), one channel at a time."""
+
+    def __init__(self, chunk: ChunkMessages, where: str) -> None:
+        self.chunk, self.where, self.offsets = chunk, where, chunk.offsets
+        self.buf = chunk.buf
+        self._cid: int | None = None
+        self._records: tuple[np.ndarray, ...] = ()
+
+    def records(
+        self, channel_id: int, copy: bool = True
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        if channel_id != self._cid:
+            log, pub, starts, lengths = self.chunk.records(channel_id)
+            self.buf, starts, lengths = inflate_messages(self.chunk.buf, starts, lengths, self.where)
+            self._cid, self._records = channel_id, (log, pub, starts, lengths)
+        return self._records  # type: ignore[return-value]
+
+
+class Bag2Mcap(McapSource):
+    """One MCAP storage file of a ROS 2 bag: an :class:`McapSource` whose errors name the bag's
+    own file (``shown``: its ``.mcap.zstd`` when this is the decompressed copy) and whose
+    payloads may each be one zstd frame (``compression_mode: message``)."""
+
+    format = "ros2"
+
+    def __init__(self, path: Path, *, shown: Path | None = None, zstd_messages: bool = False):
+        self._real, self._shown = Path(path), Path(shown or path)
+        with self._named():
+            super().__init__(path)
+        self.path = self._shown
+        self.zstd_messages = zstd_messages
+
+    @contextlib.contextmanager
+    def _named(self) -> Iterator[None]:
+        """Errors of the decompressed copy name the bag's own file."""
+        try:
+            yield
+        except ReadError as exc:
+            if self._shown == self._real:
+                raise
+            raise ReadError(str(exc).replace(str(self._real), str(self._shown))) from None
+
+    def first_time(self) -> int:
+        with self._named():
+            return super().first_time()
+
+    def topic_times(self) -> dict[str, np.ndarray]:
+        with self._named():
+            return super().topic_times()
+
+    def chunks(
+        self, streams: dict[str, str], carry: bool, decode: bool = True
+    ) -> Iterator[tuple[dict[str, Piece], list[RawMessage], int]]:
+        with self._named():
+            yield from super().chunks(streams, carry, decode)
+
+    def _decode(self, chunk: ChunkMessages, cid: int, stream: str) -> Piece:
+        if self.zstd_messages:
+            where = f"{self.path}: topic '{self.file.channels[cid].topic}'"
+            chunk = _Inflated(chunk, where)  # type: ignore[assignment]
+        return super()._decode(chunk, cid, stream)
+
+    def _raw(self, chunk: ChunkMessages, cid: int, converters: dict[int, object]) -> list:
+        if self.zstd_messages:
+            channel = self.file.channels.get(cid)
+            where = f"{self.path}: topic '{channel.topic if channel else cid}'"
+            chunk = _Inflated(chunk, where)  # type: ignore[assignment]
+        return super()._raw(chunk, cid, converters)
+
+
+STORAGES = ("sqlite3", "mcap")
+"""The storage plugins whose files are read (rosbag2's two)."""
+COMPRESSION_MODES = ("", "none", "file", "message")
+"""rosbag2's compression modes (``storage``, MCAP's own chunk compression, is written as none)."""
+
+
+@dataclass
+class Bag2Metadata:
+    """What a rosbag2 ``metadata.yaml`` says about reading the bag (:func:`read_metadata`)."""
+
+    folder: Path
+    version: int
+    storage: str
+    """``sqlite3`` or ``mcap``."""
+    files: list[Path]
+    """The storage files, in the order listed (split bags)."""
+    compression: str
+    """``""``, ``file`` or ``message`` (always zstd)."""
+    counts: dict[str, int] = field(default_factory=dict)
+    """Topic -> message count (``topics_with_message_count``)."""
+
+
+def read_metadata(folder: Path) -> Bag2Metadata:
+    """The bag folder's ``metadata.yaml``: the one rule by which ``inspect``, ``run`` and
+    ``convert`` accept a ROS 2 bag.
+
+    Every version rosbag2 writes (1 to 9; rosbag2 reads a version by the fields it has, with no
+    upper limit, and so does this): ``relative_file_paths`` (only the file name is used: before
+    version 4 the paths included the bag folder), ``storage_identifier`` (sqlite3 or mcap),
+    ``compression_mode`` / ``compression_format`` (from version 3; zstd) and
+    ``topics_with_message_count``. A ReadError names what is missing or not supported."""
+    import yaml
+
+    where = folder / "metadata.yaml"
+    try:
+        doc = yaml.safe_load(where.read_text(encoding="utf-8"))
+    except OSError as exc:
+        raise ReadError(f"{where}: cannot read: {exc.strerror or exc}") from None
+    except (yaml.YAMLError, UnicodeDecodeError) as exc:
+        what = " ".join(str(exc).split())
+        raise ReadError(f"{where}: not a rosbag2 metadata file ({what})") from None
+    info = doc.get("rosbag2_bagfile_information") if isinstance(doc, dict) else None
+    if not isinstance(info, dict):
+        raise ReadError(f"{where}: not a rosbag2 metadata file (no rosbag2_bagfile_information)")
+    try:
+        version = int(info["version"])
+        storage = str(info["storage_identifier"])
+        names = [str(PurePath(str(p)).name) for p in info["relative_file_paths"]]
+        topics = info.get("topics_with_message_count") or []
+        counts: dict[str, int] = {}
+        for entry in topics:
+            name = str(entry["topic_metadata"]["name"])
+            counts[name] = counts.get(name, 0) + int(entry.get("message_count", 0))
+    except KeyError as exc:
+        raise ReadError(f"{where}: the rosbag2 metadata lacks {exc}") from None
+    except (TypeError, ValueError, AttributeError) as exc:
+        raise ReadError(f"{where}: invalid rosbag2 metadata ({exc})") from None
+    if version < 1:
+        raise ReadError(f"{where}: invalid rosbag2 metadata version {version}")
+    if storage not in STORAGES:
+        raise ReadError(f"{where}: storage '{storage}' is not supported (sqlite3 or mcap)")
+    mode = str(info.get("compression_mode") or "").lower() if version >= 3 else ""
+    fmt = str(info.get("compression_format") or "").lower() if version >= 3 else ""
+    if mode not in COMPRESSION_MODES:
+        raise ReadError(f"{where}: unknown compression mode '{mode}' (file or message)")
+    mode = "" if mode == "none" else mode
+    if mode and fmt != "zstd":
+        raise ReadError(
+            f"{where}: compression format '{fmt}' is not supported (rosbag2 compresses with zstd)"
+        )
+    files = [folder / n for n in names]
+    if not files:
+        raise ReadError(f"{where}: the bag lists no storage file")
+    for f in files:
+        if not f.is_file():
+            raise ReadError(f"{folder}: the bag's storage file {f.name} is missing")
+    return Bag2Metadata(folder, version, storage, files, mode, counts)
+
+
+def bag2_counts(path: Path) -> dict[str, int] | None:
+    """Messages per topic as the bag's ``metadata.yaml`` states them (None without one): the
+    reference ``convert`` checks its output against."""
     path = Path(path)
+    if not (path.is_dir() and (path / "metadata.yaml").exists()):
+        return None
+    return read_metadata(path).counts
+
+
+def _storage_source(
+    path: Path, storage: str, shown: Path | None, zstd_messages: bool | None
+) -> LogSource:
+    """The source of one storage file; ``zstd_messages`` None: not known (no
+    ``metadata.yaml``), told by the payloads for sqlite3 (:meth:`Sqlite3Bag.sniff_zstd`)."""
+    if storage == "mcap":
+        return Bag2Mcap(path, shown=shown, zstd_messages=bool(zstd_messages))
+    bag = Sqlite3Bag(path, shown=shown, zstd_messages=bool(zstd_messages))
+    if zstd_messages is None:
+        bag.zstd_messages = bag.sniff_zstd()
+    return bag
+
+
+def _inflated_source(path: Path, storage: str, zstd_messages: bool | None) -> LogSource:
+    """A file-compressed storage file (``x.db3.zstd``) decompressed to a temporary folder that
+    is removed when the source is (or at exit)."""
+    tmp = tempfile.TemporaryDirectory(prefix="imupipe-bag-")
+    plain = Path(tmp.name) / (path.name[: -len(".zstd")] if path.suffix == ".zstd" else path.name)
+    try:
+        inflate_file(path, plain)
+    except OSError as exc:
+        tmp.cleanup()
+        raise ReadError(
+            f"{path}: cannot decompress to {tmp.name}: {exc.strerror or exc}"
+        ) from None
+    except ReadError:
+        tmp.cleanup()
+        raise
+    src = _storage_source(plain, storage, path, zstd_messages)
+    src._tmp = tmp  # type: ignore[attr-defined] - the folder lives as long as the source
+    return src
+
+
+PATTERNS = ("*.db3", "*.mcap", "*.db3.zstd", "*.mcap.zstd")
+"""The storage files of a bag folder without ``metadata.yaml``."""
+
+
+def bag2_sources(path: Path) -> list[LogSource]:
+    """The storage files of a ROS 2 bag folder (as its ``metadata.yaml`` lists them, else
+    :data:`PATTERNS`), or a bare ``.db3`` / ``.mcap`` / ``.db3.zstd`` / ``.mcap.zstd``. Without
+    ``metadata.yaml`` a ``.zstd`` file is decompressed whole (rosbag2's file compression) and a
+    sqlite3 file's payloads are taken as zstd frames when they start with zstd's magic number
+    (rosbag2's message compression; a CDR payload starts with a zero byte)."""
+    path = Path(path)
+    if path.is_dir() and (path / "metadata.yaml").exists():
+        meta = read_metadata(path)
+        if meta.compression == "file":
+            return [_inflated_source(f, meta.storage, False) for f in meta.files]
+        zstd = meta.compression == "message"
+        return [_storage_source(f, meta.storage, None, zstd) for f in meta.files]
     if path.is_dir():
-        files = sorted(path.glob("*.db3")) + sorted(path.glob("*.mcap"))
+        files = [f for pattern in PATTERNS for f in sorted(path.glob(pattern))]
         if not files:
             raise ReadError(f"{path}: the ROS 2 bag folder holds no .db3 or .mcap file")
     else:
         files = [path]
-    sources: list[LogSource] = []
+    sources = []
     for f in files:
-        if f.suffix == ".mcap":
-            src = McapSource(f)
-            src.format = "ros2"
-            sources.append(src)
+        storage = "mcap" if f.name.endswith((".mcap", ".mcap.zstd")) else "sqlite3"
+        if f.suffix == ".zstd":
+            sources.append(_inflated_source(f, storage, None))
         else:
-            sources.append(Sqlite3Bag(f))
+            sources.append(_storage_source(f, storage, None, None))
     return sources
 
 

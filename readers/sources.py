@@ -33,6 +33,8 @@ NEVER = 2**63 - 1
 class LogSource(Protocol):
     path: Path
     format: str
+    # optional: ``warnings``, a list of lines about how the file was read (an unindexed ROS 1
+    # bag read by scanning), reported by read_sources and inspect
 
     def topic_types(self) -> dict[str, str]:
         """Topic -> message type as written in the file."""
@@ -93,7 +95,7 @@ def read_sources(spec: InputSpec, sources: Sequence[LogSource]) -> tuple[pa.Tabl
             for stream, piece in pieces.items():
                 total[stream] += len(piece)
     _check_empty(spec, streams, total)
-    warnings: list[str] = []
+    warnings: list[str] = [w for src in sources for w in getattr(src, "warnings", ())]
     table = buffer.table(
         sort=True,
         source=str(spec.path),
