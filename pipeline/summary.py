@@ -233,9 +233,20 @@ def _accel_calibration(r: dict[str, Any], s: StageSummary) -> None:
     _row(s.rows, "bias", bias, s.unit("accel", "m/s^2"))
     res = m.get("residual_mg", {})
     if "means_rms" in res:
-        text = _residual(res["means_rms"], res.get("means_max"), res.get("start_means_rms"), "mg")
+        text = _residual(res["means_rms"], res.get("means_max"), res.get("raw_means_rms"), "mg")
         s.quality.append(("residual |a| - g of the pose means", text))
+        if res.get("start_means_rms") is not None:
+            s.quality.append(
+                (
+                    "residual |a| - g of the start (sphere centre, one scale)",
+                    f"{fmt(res['start_means_rms'], 3)} mg rms",
+                )
+            )
         s.headline = f"residual {fmt(res['means_rms'], 3)} mg rms over {m.get('poses', '?')} poses"
+    if m.get("error_95_mg") is not None:
+        s.quality.append(
+            ("error over all orientations (95 % bound)", f"{fmt(m['error_95_mg'], 3)} mg rms")
+        )
     if "samples_rms" in res:
         s.quality.append(
             ("residual |a| - g of every still sample", f"{fmt(res['samples_rms'], 3)} mg rms")
