@@ -187,7 +187,10 @@ def test_six_faces_only_chooses_six_parameters_and_says_why():
     ctx = StageContext(name="accel", input_name="sim", quiet=True)
     out = fit(table, ctx)
     assert out.results["model"]["chosen"] == "6-parameter"
-    assert "best prediction of left-out poses and of all orientations" in out.results["model"]["reason"]
+    assert (
+        "best prediction of left-out poses and of all orientations"
+        in out.results["model"]["reason"]
+    )
     assert any(w.startswith("misalignment not fitted") for w in ctx.warnings)
     assert out.results["misalignment_rad"] == {"yz": 0.0, "zy": 0.0, "zx": 0.0}
     np.testing.assert_allclose(np.diag(out.step.matrix), truth["accel"]["scale"], rtol=2e-3)

@@ -530,7 +530,9 @@ dir = "out"
     six = json.loads((tmp_path / "out" / "calibration.json").read_text())
     # the 6-parameter fit of the six faces is the six-position answer (to second order in the
     # faces' tilt)
-    np.testing.assert_allclose(fitted["scale"], six["results"]["accel_calibration"]["scale"], rtol=2e-3)
+    np.testing.assert_allclose(
+        fitted["scale"], six["results"]["accel_calibration"]["scale"], rtol=2e-3
+    )
     assert six["results"]["accel_calibration"]["metrics"]["residual_mg"]["means_rms"] < 0.5
 
     folder = shared_path("calib", "imucal_ferraris")
