@@ -189,6 +189,7 @@ class AllanStage(Stage):
         }
         fits: dict[tuple[str, int], AllanFit] = {}
         disagreements: list[str] = []
+        unresolved: list[str] = []
         for col, (name, i) in enumerate((s, i) for s in self.sensors for i in range(3)):
             f = fit_allan(
                 fdev.taus,
@@ -218,7 +219,10 @@ class AllanStage(Stage):
                 "tau_at_min_s": float(fdev.taus[int(np.argmin(fdev.dev[:, col]))]),
                 "K_range_68": list(f.ranges["K"]) if "K" in f.ranges else None,
                 "K_upper_68": k_upper(f, fdev.taus, fconf.hi[:, col]),
+                "N_upper": n_upper(fdev.taus, fdev.dev[:, col]),
             }
+            if not f.params["N"] > 0:
+                unresolved.append(f"{name} {AXES[i]}")
             if disagree:
                 disagreements.append(f"{name} {AXES[i]} ({', '.join(disagree)})")
         if disagreements:
@@ -226,6 +230,14 @@ class AllanStage(Stage):
                 f"the IEEE slope readings differ from the fit by more than "
                 f"{opts.slope_tolerance:.0%} on {'; '.join(disagreements)} (slope_readings in "
                 "the metrics)"
+            )
+        if unresolved:
+            ctx.warn(
+                f"white noise not resolved on {', '.join(unresolved)} (the shortest tau, "
+                f"{fdev.taus[0]:.3g} s, is already dominated by slower noise: low-pass filtered or "
+                "decimated data?): the exports write the upper bound N_upper from the shortest "
+                "taus instead of a zero; record at the sensor's full rate without filtering to "
+                "measure N"
             )
         results["metrics"] = metrics
         self._record(ctx, dev, conf, fits, fdev)
@@ -382,6 +394,20 @@ class AllanStage(Stage):
 
 
 # -- artifacts ---------------------------------------------------------------------------------
+N_UPPER_SPAN = 4.0
+"""The taus up to this many times the shortest give :func:`n_upper`."""
+
+
+def n_upper(taus: np.ndarray, dev: np.ndarray) -> float:
+    """Upper bound of the white-noise density N (per sqrt(Hz)) from the shortest taus: every term
+    of the Allan variance is positive, so ``N^2 / tau <= sigma^2(tau)`` and ``N <= sigma(tau)
+    sqrt(tau)``. The largest of these over the taus up to :data:`N_UPPER_SPAN` times the
+    shortest: a low-pass filter lowers sigma at the very shortest tau below the white noise's
+    line, so the bound is taken where the filter no longer does."""
+    near = taus <= N_UPPER_SPAN * taus[0]
+    return float(np.max(dev[near] * np.sqrt(taus[near])))
+
+
 def k_upper(fit: AllanFit, taus: np.ndarray, hi: np.ndarray) -> float:
     """An upper bound of the random-walk density K: the upper end of the fit's 68 % profile
     interval of K (:func:`imupipe.stages.allan_fit.profile_interval`: the other fitted terms

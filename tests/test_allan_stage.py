@@ -297,3 +297,35 @@ def test_analysis_only_run_writes_no_corrected_copy(tmp_path):
         "vins_imu.yaml",
     ]
     assert (tmp_path / "listed" / "static.mcap").stat().st_size > 0
+
+
+def test_white_noise_not_resolved_is_exported_as_its_upper_bound_never_zero():
+    """Issue 25: a recording at 10 Hz whose shortest tau is already dominated by bias instability
+    (a phone's decimated log): the fit resolves no N; imu.yaml and the imu_utils layout get the
+    upper bound sigma(tau) sqrt(tau) from the shortest taus (at or above the truth), never 0.0,
+    with a warning and a comment saying so."""
+    from imupipe.pipeline.exports.imu_utils import imu_utils_doc
+    from imupipe.pipeline.exports.kalibr import noise_yaml
+
+    p = {
+        "rate_hz": 10.0,
+        "duration_s": 3600.0,
+        "gyro_N": [1e-4] * 3,
+        "gyro_B": [1e-3] * 3,
+        "gyro_K": [0.0] * 3,
+        "accel_N": [1e-3] * 3,
+        "accel_B": [1e-2] * 3,
+        "accel_K": [0.0] * 3,
+    }
+    table, _ = simulate("static", p, seed=1)
+    ctx = StageContext(name="allan", input_name="s", quiet=True)
+    results = AllanStage(AllanStage.Options()).fit(table, ctx).results
+    results["type"] = "allan"
+    assert any(w.startswith("white noise not resolved") for w in ctx.warnings)
+    text = noise_yaml("allan", results)
+    doc = yaml.safe_load(text)
+    for prefix, truth in (("gyroscope", 1e-4), ("accelerometer", 1e-3)):
+        assert truth <= doc[f"{prefix}_noise_density"] <= 5 * truth
+    assert "UPPER BOUND from the shortest taus" in text
+    layout = imu_utils_doc(results)
+    assert all(row["gyr_n"] > 0 for row in layout["Gyr"].values() if isinstance(row, dict))
