@@ -121,7 +121,8 @@ class GyroCalibrationStage(Stage):
                 f"gravity-direction residual {residual:.3g} deg RMS over "
                 f"{results['metrics']['transitions']} motions > {MAX_DIRECTION_RESIDUAL_DEG:g} "
                 "deg: the calibrated gyro does not carry one pose onto the next (motion inside "
-                "the static intervals, a wrong clock, or an uncalibrated accelerometer)",
+                "the static intervals, a wrong clock, or an uncalibrated accelerometer; hold each "
+                "pose still for 2 s or more)",
             )
             scale, std = results["scale"], results["standard_errors"]["scale"]
             worst = int(np.argmax(np.abs(std) / np.abs(scale)))
