@@ -337,8 +337,10 @@ class AllanStage(Stage):
         static = still.static(self.options.motion_threshold)
         ctx.check(
             static,
-            f"the data does not look static: {still.describe(self.options.motion_threshold)}: an "
-            "Allan deviation of a moving IMU measures the motion, not the noise",
+            f"the data does not look static: {still.describe(self.options.motion_threshold)}: "
+            "motion, or a jump of the bias (a knock, a power event); an Allan deviation of either "
+            "measures it, not the noise: record the IMU untouched, or give the still part as "
+            "interval",
         )
         return static
 

@@ -81,9 +81,15 @@ CASES: list[tuple[str, dict[str, Any], dict[str, Any], bool]] = [
         True,
     ),
     (
-        "2 h at 100 Hz, a bias step of 20 sigma at half time",
+        "2 h at 100 Hz, a bias step of 20 sample sigmas at half time",
         {"duration_s": 2 * HOUR, "rate_hz": 100.0},
         {"step": 20.0},
+        False,
+    ),
+    (
+        "2 h at 100 Hz, a bias step of 1 sample sigma at half time",
+        {"duration_s": 2 * HOUR, "rate_hz": 100.0},
+        {"step": 1.0},
         False,
     ),
 ]
@@ -168,7 +174,8 @@ def rows_for(case: str, params: dict[str, Any], post: dict[str, Any], seed: int)
         }
 
     label = f"{case} (seed {seed})"
-    rows = [judge(FAMILY, f"gyro N: {label}", fit)]
+    causes = (r"jump of the bias",) if "step" in post else ()
+    rows = [judge(FAMILY, f"gyro N: {label}", fit, causes)]
     if "results" in state:
         rows.append(judge(FAMILY, f"accel N: {label}", lambda: judge_n("accel")))
         rows.append(judge(FAMILY, f"gyro K: {label}", lambda: judge_k("gyro")))

@@ -66,7 +66,7 @@ CASES: list[tuple[str, dict[str, Any], tuple[str, ...], bool]] = [
     (
         "18 poses, 1 s holds",
         {"pose_s": 1.0},
-        (*FEW, r"gravity-direction residual .* motion inside the static intervals"),
+        (*FEW, r"gravity-direction residual .*motion inside the static intervals"),
         False,
     ),
     ("18 poses, 2 s holds", {"pose_s": 2.0}, (), True),
