@@ -48,6 +48,16 @@ def summary(rows: list[dict]) -> str:
     )
     parts = [f"{len(rows)} cases: " + ", ".join(f"{v} {n}" for v, n in counts.items())]
     parts.append(f"truth inside the stated 95 % interval: {cover}")
+    for family in dict.fromkeys(r["family"] for r in rows):
+        mine = [r for r in rows if r["family"] == family]
+        n = {v: sum(r["verdict"] == v for r in mine) for v in VERDICTS}
+        cov = [r["covered"] for r in mine if r["covered"] is not None]
+        parts.append(
+            f"  {family}: {len(mine)} cases, within tolerance {n['within tolerance']}, "
+            f"right-cause refusal {n['right-cause refusal']}, "
+            f"wrong {n['wrong answer'] + n['wrong-cause refusal']}; covered "
+            + (f"{sum(cov)} of {len(cov)}" if cov else "-")
+        )
     return "\n".join(parts)
 
 

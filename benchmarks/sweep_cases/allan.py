@@ -46,6 +46,21 @@ BUMP = {"gyro_B": [3.0e-5] * 3, "accel_B": [2.0e-4] * 3}
 
 CASES: list[tuple[str, dict[str, Any], dict[str, Any], bool]] = [
     # (case, simulation parameters over MEMS, post-processing, in the quick subset)
+    (
+        "1 h at 10 Hz, white noise under the bias instability (a phone's stream)",
+        {
+            "duration_s": HOUR,
+            "rate_hz": 10.0,
+            "gyro_N": [1e-4] * 3,
+            "gyro_B": [1e-3] * 3,
+            "gyro_K": [1e-6] * 3,
+            "accel_N": [1e-3] * 3,
+            "accel_B": [1e-2] * 3,
+            "accel_K": [1e-5] * 3,
+        },
+        {},
+        True,
+    ),
     ("0.5 h at 100 Hz", {"duration_s": 0.5 * HOUR, "rate_hz": 100.0}, {}, True),
     ("0.5 h at 1000 Hz", {"duration_s": 0.5 * HOUR, "rate_hz": 1000.0}, {}, False),
     ("2 h at 400 Hz", {"duration_s": 2 * HOUR, "rate_hz": 400.0}, {}, False),
