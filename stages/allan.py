@@ -27,7 +27,9 @@ warning), and a gap longer than ``max_gap`` periods cuts the recording: the devi
 longest stretch without one (a warning). Time not increasing, or a recording too short to give
 the fit more taus than terms, is an error; motion (1 s gyro means further than
 ``motion_threshold`` from the mean, or accel-norm 1 s means spreading more than 0.05 g) is a
-failed check (``accept_failed_checks = true`` fits anyway); under two hours is a warning.
+failed check (``accept_failed_checks = true`` fits anyway), and so is a jump of the gyro bias
+(:func:`bias_jump`: a knock or a power event, whose Allan deviation reads as a random walk);
+under two hours is a warning.
 
 Tau grid (``taus``): ``auto`` (default) computes the octave grid, then refines to thirds of an
 octave where the curve bends (the transitions between noise types, where the slope readings and
@@ -342,6 +344,17 @@ class AllanStage(Stage):
             "measures it, not the noise: record the IMU untouched, or give the still part as "
             "interval",
         )
+        if static:
+            jump = bias_jump(still.gyro_1s.means)
+            if jump is not None:
+                ratio, block, size = jump
+                ctx.check(
+                    ratio <= JUMP_RATIO,
+                    f"the gyro bias jumps by {size:.3g} rad/s about {block} s into the recording "
+                    f"({ratio:.3g} times the scatter of {JUMP_WINDOW_S} s means, > {JUMP_RATIO:g}):"
+                    " a knock or a power event; its Allan deviation reads as a random walk many "
+                    "times the sensor's: give the part before or after it as interval",
+                )
         return static
 
     # -- Rerun -------------------------------------------------------------------------------
@@ -396,6 +409,37 @@ class AllanStage(Stage):
 
 
 # -- artifacts ---------------------------------------------------------------------------------
+JUMP_WINDOW_S = 10
+"""s: a bias jump is the difference of the gyro's means over this long before and after each
+second (:func:`bias_jump`)."""
+JUMP_RATIO = 8.0
+"""The largest such difference, in robust standard deviations of all of them, still taken as
+noise: white, flicker and random-walk noise give about 4 (simulated two hours at 100 Hz, with
+and without bias instability); a step of one sample's noise at 100 Hz gives 25, of a fifth of it
+6 to 7 (not caught: it reads as a random walk about twice the truth's)."""
+
+
+def bias_jump(means: np.ndarray) -> tuple[float, int, float] | None:
+    """The largest jump of the gyro bias: ``D_i`` = mean of the 1 s means ``means`` (m, 3) over
+    the :data:`JUMP_WINDOW_S` seconds after second ``i`` minus that over the seconds before;
+    returns (largest ``|D_i - median|`` over the axes in units of ``1.4826 MAD``, its second,
+    its size rad/s), or None when the recording is too short or the means do not vary."""
+    w = JUMP_WINDOW_S
+    if len(means) < 4 * w:
+        return None
+    c = np.vstack([np.zeros((1, means.shape[1])), np.cumsum(means, axis=0)])
+    after = (c[2 * w :] - c[w:-w]) / w
+    before = (c[w:-w] - c[: -2 * w]) / w
+    d = after - before
+    dev = np.abs(d - np.median(d, axis=0))
+    scale = 1.4826 * np.median(dev, axis=0)
+    if not np.all(scale > 0):
+        return None
+    z = dev / scale
+    i, axis = np.unravel_index(int(np.argmax(z)), z.shape)
+    return float(z[i, axis]), int(i + w), float(d[i, axis])
+
+
 N_UPPER_SPAN = 4.0
 """The taus up to this many times the shortest give :func:`n_upper`."""
 

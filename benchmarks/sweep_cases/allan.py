@@ -189,7 +189,7 @@ def rows_for(case: str, params: dict[str, Any], post: dict[str, Any], seed: int)
         }
 
     label = f"{case} (seed {seed})"
-    causes = (r"jump of the bias",) if "step" in post else ()
+    causes = (r"jump of the bias", r"gyro bias jumps") if "step" in post else ()
     rows = [judge(FAMILY, f"gyro N: {label}", fit, causes)]
     if "results" in state:
         rows.append(judge(FAMILY, f"accel N: {label}", lambda: judge_n("accel")))
