@@ -6,10 +6,12 @@ implements it).
 Static intervals are detected automatically (:mod:`imupipe.stages.static_detector`): the
 threshold is ``k`` times the noise floor of the log itself (or, with ``init_static_s``, imu_tk's
 variance of an initial rest), and every ``k`` of ``thresholds`` is tried. At each ``k`` the
-candidate models are fitted on the interval means and the one with the lowest AICc is kept
-(:func:`imupipe.stages.accel_models.choose_model`); the ``k`` whose kept model has the smallest
-*predicted error* (the RMS over all orientations of the calibrated |a|'s standard deviation, mg)
-wins: the threshold that gives the best-determined calibration. Then ``method``:
+candidate models are fitted on the pose means and the one predicting left-out poses and all
+orientations best is kept (:func:`imupipe.stages.accel_models.choose_model`); among the ``k``
+whose kept model can be checked (:func:`checkable`), the one with the smallest *predicted error*
+(the RMS over all orientations of the calibrated |a|'s standard deviation, mg) wins: the
+threshold that gives the best-determined calibration. Holds of 1 to 2 s: when no ``k`` gives a
+fit that can be checked, every sample of a quiet window is taken as static. Then ``method``:
 
 - ``lm``: the chosen model ``a = S K (a_t - b)`` (:mod:`imupipe.stages.accel_models`; 9
   parameters, or 6 without the three misalignment angles) by scipy's Levenberg-Marquardt.
