@@ -430,6 +430,9 @@ class AccelCalibrationStage(Stage):
         predicted = found.fit.predicted_error_mg()
         spare = len(means) - found.fit.n_params
         can_check = checkable(found.fit)
+        most = max(int(am.MODEL_FREE[c.name].sum()) for c in found.candidates)
+        if o.misalignment == "auto" and o.method != "six_position":
+            most = int(am.MODEL_FREE["9-parameter"].sum())  # what a misaligned sensor needs
         if can_check and spare < MIN_SPARE_POSES:
             ctx.warn(
                 f"{len(means)} poses for {found.fit.n_params} parameters leave {spare} degree(s) "
@@ -446,8 +449,8 @@ class AccelCalibrationStage(Stage):
             (
                 f"pose coverage: {len(means)} poses for {found.fit.n_params} parameters leave "
                 f"{max(spare, 0)} degree(s) of freedom, too few to check the fit ({found.reason}); "
-                f"record at least {found.fit.n_params + MIN_SPARE_POSES} poses spread over the "
-                "sphere (methods six_position and ferraris fit exactly the six faces)"
+                f"record at least {most + MIN_SPARE_POSES} poses spread over the sphere, or the "
+                "six faces only (methods six_position and ferraris fit exactly the six faces)"
             )
             if not (can_check and np.isfinite(predicted))
             else (

@@ -57,6 +57,8 @@ CASES: list[tuple[str, dict[str, Any], tuple[str, ...], bool]] = [
         (),
         False,
     ),
+    ("7 poses (six faces and one more)", {"n_poses": 7}, FEW, False),
+    ("8 poses", {"n_poses": 8}, FEW, False),
     ("9 poses", {"n_poses": 9}, (r"pose coverage: .*misaligned",), True),
     ("10 poses", {"n_poses": 10}, FEW, False),
     ("12 poses", {"n_poses": 12}, (), True),
