@@ -269,8 +269,15 @@ def _gyro_calibration(r: dict[str, Any], s: StageSummary) -> None:
     _row(s.rows, "bias", _vector(r.get("bias")), s.unit("gyro", "rad/s"))
     res = m.get("gravity_direction_residual_deg", {})
     if "rms" in res:
-        text = _residual(res["rms"], res.get("max"), res.get("start_rms"), "deg")
+        text = _residual(res["rms"], res.get("max"), res.get("raw_rms"), "deg")
         s.quality.append(("gravity direction after each rotation", text))
+        if res.get("start_rms") is not None:
+            s.quality.append(
+                (
+                    "gravity direction, start (bias removed, one scale)",
+                    f"{fmt(res['start_rms'], 3)} deg rms",
+                )
+            )
         s.headline = f"gravity direction residual {fmt(res['rms'], 3)} deg rms over {m.get('transitions', '?')} rotations"
     if "condition_number" in m:
         s.quality.append(("condition number", fmt(m["condition_number"], 3)))

@@ -202,6 +202,10 @@ class GyroCalibrationStage(Stage):
                     "rms": rms(after),
                     "max": float(after.max()),
                     "start_rms": rms(before),
+                    # the raw gyro (no bias removed, unit scale) where it is in rad/s already
+                    "raw_rms": rms(moves.angles_deg(np.eye(3), np.zeros(3)))
+                    if 0.8 <= fit["start_scale"] <= 1.25
+                    else None,
                 },
                 "start_scale": fit["start_scale"],
                 "condition_number": chosen.condition_number(),
