@@ -233,9 +233,20 @@ def _accel_calibration(r: dict[str, Any], s: StageSummary) -> None:
     _row(s.rows, "bias", bias, s.unit("accel", "m/s^2"))
     res = m.get("residual_mg", {})
     if "means_rms" in res:
-        text = _residual(res["means_rms"], res.get("means_max"), res.get("start_means_rms"), "mg")
+        text = _residual(res["means_rms"], res.get("means_max"), res.get("raw_means_rms"), "mg")
         s.quality.append(("residual |a| - g of the pose means", text))
+        if res.get("start_means_rms") is not None:
+            s.quality.append(
+                (
+                    "residual |a| - g of the start (sphere centre, one scale)",
+                    f"{fmt(res['start_means_rms'], 3)} mg rms",
+                )
+            )
         s.headline = f"residual {fmt(res['means_rms'], 3)} mg rms over {m.get('poses', '?')} poses"
+    if m.get("error_95_mg") is not None:
+        s.quality.append(
+            ("error over all orientations (95 % bound)", f"{fmt(m['error_95_mg'], 3)} mg rms")
+        )
     if "samples_rms" in res:
         s.quality.append(
             ("residual |a| - g of every still sample", f"{fmt(res['samples_rms'], 3)} mg rms")
@@ -258,8 +269,15 @@ def _gyro_calibration(r: dict[str, Any], s: StageSummary) -> None:
     _row(s.rows, "bias", _vector(r.get("bias")), s.unit("gyro", "rad/s"))
     res = m.get("gravity_direction_residual_deg", {})
     if "rms" in res:
-        text = _residual(res["rms"], res.get("max"), res.get("start_rms"), "deg")
+        text = _residual(res["rms"], res.get("max"), res.get("raw_rms"), "deg")
         s.quality.append(("gravity direction after each rotation", text))
+        if res.get("start_rms") is not None:
+            s.quality.append(
+                (
+                    "gravity direction, start (bias removed, one scale)",
+                    f"{fmt(res['start_rms'], 3)} deg rms",
+                )
+            )
         s.headline = f"gravity direction residual {fmt(res['rms'], 3)} deg rms over {m.get('transitions', '?')} rotations"
     if "condition_number" in m:
         s.quality.append(("condition number", fmt(m["condition_number"], 3)))

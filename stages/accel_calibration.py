@@ -6,10 +6,12 @@ implements it).
 Static intervals are detected automatically (:mod:`imupipe.stages.static_detector`): the
 threshold is ``k`` times the noise floor of the log itself (or, with ``init_static_s``, imu_tk's
 variance of an initial rest), and every ``k`` of ``thresholds`` is tried. At each ``k`` the
-candidate models are fitted on the interval means and the one with the lowest AICc is kept
-(:func:`imupipe.stages.accel_models.choose_model`); the ``k`` whose kept model has the smallest
-*predicted error* (the RMS over all orientations of the calibrated |a|'s standard deviation, mg)
-wins: the threshold that gives the best-determined calibration. Then ``method``:
+candidate models are fitted on the pose means and the one predicting left-out poses and all
+orientations best is kept (:func:`imupipe.stages.accel_models.choose_model`); among the ``k``
+whose kept model can be checked (:func:`checkable`), the one with the smallest *predicted error*
+(the RMS over all orientations of the calibrated |a|'s standard deviation, mg) wins: the
+threshold that gives the best-determined calibration. Holds of 1 to 2 s: when no ``k`` gives a
+fit that can be checked, every sample of a quiet window is taken as static. Then ``method``:
 
 - ``lm``: the chosen model ``a = S K (a_t - b)`` (:mod:`imupipe.stages.accel_models`; 9
   parameters, or 6 without the three misalignment angles) by scipy's Levenberg-Marquardt.
@@ -25,7 +27,10 @@ wins: the threshold that gives the best-determined calibration. Then ``method``:
 model; ``true`` or ``false`` forces one. The start of lm and frank_wolfe comes from the data
 (bias = sphere centre of the static means, scale = g / their median radius), so raw counts need
 no hand-made guess. Output ``matrix``/``offset`` are SI: ``a [m/s^2] = matrix @ (raw - offset)``.
-Metrics in mg (1 mg = 9.80665e-3 m/s^2) are | |a| - g | over the static intervals.
+Metrics in mg (1 mg = 9.80665e-3 m/s^2) are | |a| - g | over the static intervals:
+``raw_means_rms`` of the raw pose means (before calibration; None for raw counts),
+``start_means_rms`` of the data-derived start, ``means_rms`` after calibration; ``error_95_mg``
+is the 95 % bound of the calibrated | |a| - g | RMS over all orientations.
 
 Quality checks (``ctx.check``; ``accept_failed_checks = true`` keeps a fit that fails them):
 the residual over the pose means must stay within :data:`NOISE_FACTOR` times the noise of one
@@ -86,6 +91,15 @@ def rms(x: np.ndarray) -> float:
     return float(np.sqrt(np.mean(np.square(x)))) if len(x) else float("nan")
 
 
+def raw_residual_mg(means: np.ndarray, g: float) -> float | None:
+    """| |a| - g | RMS (mg) of the raw pose means, where they are in m/s^2 (their median norm
+    within 20 % of g); None for raw counts, which have no such figure."""
+    norm = np.linalg.norm(means, axis=1)
+    if not abs(float(np.median(norm)) / g - 1) <= 0.2:
+        return None
+    return rms(norm_residual_mg(means, g))
+
+
 def norm_residual_mg(values: np.ndarray, g: float) -> np.ndarray:
     """| |a| - g | per row of ``values`` (n, 3) m/s^2, in mg (signed)."""
     return (np.linalg.norm(values, axis=1) - g) / am.MG
@@ -109,7 +123,7 @@ class StaticSetup:
     for more than this fraction of its length)."""
     misalignment: Literal["auto"] | bool = "auto"
     """Fit the three misalignment angles (true), not (false: 6 parameters, scale and bias), or
-    let the poses decide by AICc ("auto")."""
+    let the poses decide by the prediction of left-out poses ("auto")."""
 
 
 @dataclass
@@ -147,7 +161,10 @@ def detect_intervals(
 ) -> Detection:
     """Static intervals and the accelerometer model fitted on their means: for every ``k`` of
     ``setup.thresholds`` the candidate ``models`` (default by ``setup.misalignment``) are fitted
-    and the AICc-best kept; the ``k`` whose kept model has the smallest predicted error wins."""
+    and the one predicting left-out poses best is kept; the ``k`` whose kept model can be checked
+    and has the smallest predicted error wins. Where no ``k`` gives a fit that can be checked
+    (holds of 1 to 2 s, shorter than a window plus ``min_interval_s``), the detection runs again
+    with every sample of a quiet window static (:meth:`Detector.detect`'s ``whole_windows``)."""
     if setup.noise_quantile <= 0 or setup.noise_quantile >= 1:
         raise FitError(f"noise_quantile must be in (0, 1), got {setup.noise_quantile}")
     if setup.init_static_s is not None and setup.init_static_s <= 0:
@@ -166,51 +183,107 @@ def detect_intervals(
         models = MISALIGNMENT_MODELS[str(setup.misalignment).lower()]
     need = min(int(am.MODEL_FREE[m].sum()) for m in models)
     table: dict[str, Any] = {}
-    best: tuple[float, float, Detection] | None = None
-    for k in setup.thresholds:
-        intervals = detector.detect(k)
-        row: dict[str, Any] = {"intervals": len(intervals)}
-        table[f"{k:g}"] = row
-        if len(intervals) < need:
-            continue
-        poses = group_poses(intervals, accel)
-        row["poses"] = len(poses)
-        if len(poses) < need:
-            continue
-        means = poses.means(accel)
-        try:
-            start = am.initial_guess(means, g)
-            fits = [
-                am.fit_model(means, g, m, start)
-                for m in models
-                if len(means) >= am.MODEL_FREE[m].sum()
-            ]
-        except (FitError, np.linalg.LinAlgError, ValueError):
-            continue
-        chosen, reason = am.choose_model(fits, models)
-        score = chosen.predicted_error_mg()
-        row.update({"model": chosen.name, "predicted_error_mg": am.finite_or_none(score)})
-        if best is None or score < best[0]:
-            best = (score, k, Detection(poses, chosen, reason, fits, {}))
+    best: tuple[tuple[int, float], float, bool, Detection] | None = None
+    for whole in (False, True):
+        if best is not None and best[0][0] == 0:
+            break
+        for k in setup.thresholds:
+            intervals = detector.detect(k, whole_windows=whole)
+            row: dict[str, Any] = {"intervals": len(intervals)}
+            table[f"{k:g}" + (" (whole windows)" if whole else "")] = row
+            if len(intervals) < need:
+                continue
+            poses = group_poses(intervals, accel)
+            row["poses"] = len(poses)
+            if len(poses) < need:
+                continue
+            means = poses.means(accel)
+            try:
+                start = am.initial_guess(means, g)
+                noise = pose_mean_noise(poses, accel, start, g)
+                fits = [
+                    am.fit_model(means, g, m, start, noise)
+                    for m in models
+                    if len(means) >= am.MODEL_FREE[m].sum()
+                ]
+            except (FitError, np.linalg.LinAlgError, ValueError):
+                continue
+            chosen, reason = am.choose_model(fits, models)
+            predicted = chosen.predicted_error_mg()
+            # a threshold whose fit can be checked beats one whose cannot, whatever the figures
+            score = (0 if checkable(chosen) else 1, predicted)
+            row.update({"model": chosen.name, "predicted_error_mg": am.finite_or_none(predicted)})
+            if best is None or score < best[0]:
+                best = (score, k, whole, Detection(poses, chosen, reason, fits, {}))
     if best is None:
         found = ", ".join(f"k={k}: {row['intervals']}" for k, row in table.items())
         raise FitError(
             f"too few static poses: need at least {need}, found {found} intervals "
             "(hold the IMU still longer in more poses, or lower min_interval_s)"
         )
-    score, k, chosen = best
+    _, k, whole, chosen = best
     chosen.report = {
         **detector.describe(k),
+        "whole_windows": whole,
         "window_s": setup.window_s,
         "min_interval_s": setup.min_interval_s,
         "noise_sigma_per_axis": detector_noise(detector),
         "rule": (
             "the k whose intervals give the smallest predicted calibration error over all "
-            "orientations (its model chosen by AICc)"
+            "orientations, among those leaving a fit that can be checked (its model chosen by "
+            "the prediction of left-out poses)"
         ),
         "candidates": table,
     }
     return chosen
+
+
+def six_faces(means: np.ndarray, max_angle_deg: float = 30.0) -> bool:
+    """Whether the poses are the six faces (each axis up and down, every pose within
+    ``max_angle_deg`` of one): the session PX4 and ArduPilot record, which determines scale and
+    bias exactly and cannot see misalignment."""
+    centred = means - am.sphere_centre(means)
+    unit = centred / np.maximum(np.linalg.norm(centred, axis=1), 1e-300)[:, None]
+    cos_max = np.cos(np.radians(max_angle_deg))
+    near = np.abs(unit).max(axis=1) >= cos_max
+    faces = {(int(np.argmax(np.abs(u))), bool(u[np.argmax(np.abs(u))] > 0)) for u in unit[near]}
+    return bool(near.all()) and len(faces) == 6
+
+
+def checkable(fit: am.ModelFit) -> bool:
+    """Whether a fit's residual can check it: :data:`MIN_SPARE_POSES` spare poses, or one or two
+    whose residual agrees with the measured noise of a pose mean (the noise is then known, not
+    taken from those few degrees of freedom), or a 6-parameter fit of the six faces (exact; what
+    the six-position method computes)."""
+    if fit.dof >= MIN_SPARE_POSES:
+        return True
+    noise = fit.mean_noise
+    rms_fit = float(np.sqrt(fit.rss / fit.dof)) if fit.dof > 0 else float("inf")
+    if fit.dof >= 1 and noise > 0 and rms_fit <= am.ADEQUATE_FACTOR * noise:
+        return True
+    return fit.name == "6-parameter" and six_faces(fit.problem.samples)
+
+
+def pose_mean_noise(poses: Poses, accel: np.ndarray, start: am.NineParams, g: float) -> float:
+    """Noise of one pose mean along gravity, as a fraction of g, measured on the poses: the
+    difference of the two halves of each still interval, along its mean direction, is twice a
+    half's noise; a pose's mean averages its intervals. Drift and tremor slower than a hold are
+    partly seen, white noise fully."""
+    iv = poses.intervals
+    half = iv.lengths // 2
+    first = Intervals(iv.start, iv.start + half)
+    second = Intervals(iv.start + half, iv.start + 2 * half)
+    ok = half > 0
+    if not ok.any():
+        return 0.0
+    centred = iv.means(accel) - start.bias
+    unit = centred / np.maximum(np.linalg.norm(centred, axis=1), 1e-300)[:, None]
+    diff = np.einsum("ij,ij->i", first.means(accel) - second.means(accel), unit)
+    # var(half mean) = diff^2 / 2; the interval mean averages two halves: diff^2 / 4
+    var = np.where(ok, diff**2 / 4, 0.0) * float(np.mean(start.scale)) ** 2
+    count = np.bincount(poses.group, weights=ok.astype(float))
+    per_pose = np.bincount(poses.group, weights=var) / np.maximum(count, 1) ** 2
+    return float(np.sqrt(np.mean(per_pose[count > 0]))) / g
 
 
 def detector_noise(detector: Detector) -> float:
@@ -292,6 +365,7 @@ class AccelCalibrationStage(Stage):
             "means_rms": rms(per_pose),
             "means_max": float(np.abs(per_pose).max()),
             "samples_rms": rms(per_sample),
+            "raw_means_rms": raw_residual_mg(means, g),
             "start_means_rms": rms(norm_residual_mg(found.fit.problem.start.apply(means), g)),
             "noise_per_sample": noise_mg,
         }
@@ -302,12 +376,15 @@ class AccelCalibrationStage(Stage):
             "threshold": found.report,
             "residual_mg": residual,
             "predicted_error_mg": am.finite_or_none(found.fit.predicted_error_mg()),
+            "error_95_mg": am.finite_or_none(found.fit.error_95_mg()),
+            "pose_mean_noise_mg": found.fit.mean_noise * g / am.MG,
         }
         if solver:
             metrics["solver"] = solver
         results: dict[str, Any] = {"method": o.method}
         if problem is not None:
-            unc = am.uncertainty(problem, problem_x(problem, params))
+            sigma2 = found.fit.sigma2 if problem is found.fit.problem else None
+            unc = am.uncertainty(problem, problem_x(problem, params), sigma2)
             metrics["uncertainty"] = unc
             loo = found.fit.leave_one_out_mg()
             results["model"] = {
@@ -340,21 +417,42 @@ class AccelCalibrationStage(Stage):
             residual["means_rms"] <= NOISE_FACTOR * noise_mg,
             f"residual far above the noise: | |a| - g | RMS over the pose means "
             f"{residual['means_rms']:.3g} mg > {NOISE_FACTOR:g} x the noise of one still sample "
-            f"({noise_mg:.3g} mg): motion in the static intervals, a wrong gravity, or a sensor "
-            "the model does not fit",
+            f"({noise_mg:.3g} mg): "
+            + (
+                "the 6-parameter model does not fit these poses (a misaligned sensor: record 12 "
+                "or more poses spread over the sphere for the 9-parameter model, or six faces "
+                "only)"
+                if model == "6-parameter" and len(found.candidates) == 1
+                else "motion in the static intervals, a wrong gravity, or a sensor the model "
+                "does not fit"
+            ),
         )
         predicted = found.fit.predicted_error_mg()
         spare = len(means) - found.fit.n_params
-        checkable = spare >= MIN_SPARE_POSES
+        can_check = checkable(found.fit)
+        most = max(int(am.MODEL_FREE[c.name].sum()) for c in found.candidates)
+        if o.misalignment == "auto" and o.method != "six_position":
+            most = int(am.MODEL_FREE["9-parameter"].sum())  # what a misaligned sensor needs
+        if can_check and spare < MIN_SPARE_POSES:
+            ctx.warn(
+                f"{len(means)} poses for {found.fit.n_params} parameters leave {spare} degree(s) "
+                "of freedom: "
+                + (
+                    "the six faces determine scale and bias exactly and nothing checks them; "
+                    "record a few tilted poses to check the fit"
+                    if spare == 0
+                    else "the fit is checked against the measured noise of a pose mean only"
+                )
+            )
         ctx.check(
-            (checkable and predicted <= MAX_PREDICTED_ERROR_MG) or o.method == "six_position",
+            (can_check and predicted <= MAX_PREDICTED_ERROR_MG) or o.method == "six_position",
             (
                 f"pose coverage: {len(means)} poses for {found.fit.n_params} parameters leave "
-                f"{max(spare, 0)} degree(s) of freedom (at least {MIN_SPARE_POSES} are needed): "
-                "the fit cannot be checked; record more poses (methods six_position and ferraris "
-                "fit exactly the six faces)"
+                f"{max(spare, 0)} degree(s) of freedom, too few to check the fit ({found.reason}); "
+                f"record at least {most + MIN_SPARE_POSES} poses spread over the sphere, or the "
+                "six faces only (methods six_position and ferraris fit exactly the six faces)"
             )
-            if not (checkable and np.isfinite(predicted))
+            if not (can_check and np.isfinite(predicted))
             else (
                 f"pose coverage: the {len(means)} poses leave the calibration undetermined "
                 f"(predicted error over all orientations {predicted:.3g} mg > "

@@ -20,13 +20,25 @@ Both solvers work on the same normalised unknowns ``x`` (9,) around a data-deriv
 Residuals are ``(|a| - g) / g`` (dimensionless).
 
 **Model choice** (:func:`fit_model`, :func:`choose_model`): the 9- and the 6-parameter model are
-both fitted; the one with the lower corrected Akaike information criterion (Hurvich and Tsai,
-Biometrika 1989) ``AICc = n ln(RSS / n) + 2K + 2K(K + 1) / (n - K - 1)`` (``n`` poses, ``K`` =
-parameters + 1 for the noise variance; infinite where ``n <= K + 1``) is kept. Each fit also
-reports its parameters' standard errors (``sigma^2 (J^T J)^-1``, ``sigma^2 = RSS / (n - p)``), its
-*predicted error*: the RMS over 200 directions evenly spread on the sphere (a Fibonacci lattice)
-of the standard deviation of the calibrated | |a| - g | that those standard errors imply, in
-mg -- what the poses leave undetermined -- and its leave-one-pose-out prediction errors.
+both fitted and judged by *prediction*: each pose's | |a| - g | predicted by the model fitted on
+the other poses (leave-one-pose-out, by the exact-for-linear PRESS formula ``r_i / (1 - h_ii)``,
+``h`` the hat matrix of the Jacobian: Allen, Technometrics 1974), combined with the predicted
+error over all orientations (below) as ``sqrt(PRESS_rms^2 + predicted^2)``: the model with the
+smaller expected error of a new orientation is kept. Where the 9-parameter model cannot be judged (9 poses: every
+``h_ii = 1``), the 6-parameter model is kept if its residual is within
+:data:`ADEQUATE_FACTOR` times the noise of a pose mean, and the 9-parameter model otherwise
+(then nothing is left to check it, and the stage says so). The corrected Akaike criterion
+(Hurvich and Tsai, Biometrika 1989), used before, estimates the noise from the residual itself:
+at 12 poses its penalty (108 for 9 parameters, 29 for 6) outweighs a residual a thousand times
+smaller, and it chose the wrong model; it is still reported.
+
+Each fit also reports its parameters' standard errors (``sigma^2 (J^T J)^-1``, ``sigma^2 =
+max(RSS / (n - p), s_m^2)`` with ``s_m`` the noise of one pose mean measured on the poses
+themselves: the two halves of each still interval), its *predicted error*: the RMS over 200
+directions evenly spread on the sphere (a Fibonacci lattice) of the standard deviation of the
+calibrated | |a| - g | that those standard errors imply, in mg -- what the poses leave
+undetermined --, and the 95 % bound of that RMS error (:meth:`ModelFit.error_95_mg`; where the
+poses cannot see misalignment, it includes misalignment angles of :data:`ANGLE_PRIOR_RAD`).
 """
 
 from __future__ import annotations
@@ -302,9 +314,10 @@ def solve_frank_wolfe_enlarging(
     return sol
 
 
-def uncertainty(problem: NormProblem, x: np.ndarray) -> dict[str, Any]:
+def uncertainty(problem: NormProblem, x: np.ndarray, sigma2: float | None = None) -> dict[str, Any]:
     """Parameter standard deviations from ``sigma^2 (J^T J)^-1`` (sigma^2 = residual variance per
-    degree of freedom) and the condition number of the column-normalised Jacobian."""
+    degree of freedom, or ``sigma2`` when given: :attr:`ModelFit.sigma2`) and the condition
+    number of the column-normalised Jacobian."""
     free = problem.free
     jac = problem.jacobian(x)[:, free]
     r = problem.residual(x)
@@ -314,9 +327,10 @@ def uncertainty(problem: NormProblem, x: np.ndarray) -> dict[str, Any]:
     sv = np.linalg.svd(jac / norms, compute_uv=False)
     cond = float(sv[0] / sv[-1]) if sv[-1] > 0 else float("inf")
     out: dict[str, Any] = {"condition_number": cond, "degrees_of_freedom": dof}
-    if dof <= 0 or not np.isfinite(cond):
+    if sigma2 is None:
+        sigma2 = float(r @ r) / dof if dof > 0 else 0.0
+    if not sigma2 > 0 or not np.isfinite(cond):
         return out
-    sigma2 = float(r @ r) / dof
     cov = np.linalg.pinv(jac.T @ jac) * sigma2
     std = np.zeros(9)
     std[free] = np.sqrt(np.maximum(np.diag(cov), 0))
@@ -384,6 +398,16 @@ def fibonacci_sphere(n: int = 200) -> np.ndarray:
 
 
 SPHERE = fibonacci_sphere()
+ADEQUATE_FACTOR = 3.0
+"""With 9 poses (the 9-parameter model cannot be judged by prediction), the 6-parameter model is
+kept while its | |a| - g | RMS is at most this many times the noise of a pose mean."""
+ANGLE_PRIOR_RAD = 0.01
+"""rad: standard deviation of the misalignment angles a 6-parameter answer assumes where its
+poses cannot see them (the six faces): cross-axis sensitivity of +-2 % (95 %), the datasheet
+figure of MEMS accelerometers (ADXL355 +-1 %, BMI088 +-1 %, ICM-42688 +-2 %)."""
+ERROR_DRAWS = 4000
+"""Monte Carlo draws behind :meth:`ModelFit.error_95_mg` (fixed seed: the same data give the
+same bound)."""
 
 
 @dataclass
@@ -393,6 +417,11 @@ class ModelFit:
     name: str
     problem: NormProblem
     solution: Solution
+    mean_noise: float = 0.0
+    """Noise of one pose mean along gravity, fraction of g (0: unknown)."""
+    angles_unseen: bool = False
+    """The poses cannot see misalignment (a 6-parameter fit where the 9-parameter one cannot be
+    judged): :meth:`error_95_mg` adds angles of :data:`ANGLE_PRIOR_RAD`."""
 
     @property
     def params(self) -> NineParams:
@@ -419,25 +448,89 @@ class ModelFit:
     def covariance(self) -> np.ndarray | None:
         """Covariance of the free normalised unknowns, ``sigma^2 (J^T J)^-1`` (None without
         degrees of freedom)."""
-        dof = len(self.problem.samples) - self.n_params
-        if dof <= 0:
+        sigma2 = self.sigma2
+        if not sigma2 > 0:
             return None
         jac = self.problem.jacobian(self.solution.x)[:, self.problem.free]
-        return np.linalg.pinv(jac.T @ jac) * (self.rss / dof)
+        return np.linalg.pinv(jac.T @ jac) * sigma2
+
+    @property
+    def dof(self) -> int:
+        return len(self.problem.samples) - self.n_params
+
+    @property
+    def sigma2(self) -> float:
+        """Variance of one pose's residual (fraction of g squared): the residual variance per
+        degree of freedom, never below the measured noise of a pose mean (0: undetermined)."""
+        fitted = self.rss / self.dof if self.dof > 0 else 0.0
+        return max(fitted, self.mean_noise**2) if self.dof > 0 or self.mean_noise > 0 else 0.0
+
+    def press_mg(self) -> np.ndarray:
+        """Each pose's | |a| - g | (mg) predicted by the model fitted on the other poses,
+        linearised (PRESS: ``r_i / (1 - h_ii)``); infinite where a pose alone determines a
+        parameter (``h_ii = 1``)."""
+        jac = self.problem.jacobian(self.solution.x)[:, self.problem.free]
+        r = self.residual_mg
+        q, _ = np.linalg.qr(jac)
+        h = np.sum(q * q, axis=1)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            out = np.where(h < 1 - 1e-9, r / (1 - h), np.inf)
+        return out
+
+    def expected_error_mg(self) -> float:
+        """What the model choice minimises: ``sqrt(PRESS_rms^2 + predicted^2)`` (mg), the misfit a
+        left-out pose sees plus the spread the poses leave over all orientations (a model of 9
+        parameters on 10 poses can predict its poses and still leave most orientations
+        undetermined)."""
+        return float(np.hypot(self.press_rms_mg(), self.predicted_error_mg()))
+
+    def press_rms_mg(self) -> float:
+        """RMS of :meth:`press_mg` (infinite where a pose is not predicted)."""
+        p = self.press_mg()
+        return float(np.sqrt(np.mean(p**2))) if np.all(np.isfinite(p)) else float("inf")
+
+    def sphere_jacobian(self) -> np.ndarray:
+        """(200, 9) derivative of the calibrated | |a| - g | (fraction of g) over the sphere with
+        respect to the normalised unknowns."""
+        p = self.params
+        raw = (self.problem.g * SPHERE) @ np.linalg.inv(p.matrix).T + p.bias
+        on_sphere = NormProblem(raw, self.problem.g, self.problem.start, self.problem.free)
+        return on_sphere.jacobian(self.solution.x)
+
+    def error_95_mg(self) -> float:
+        """95 % bound (mg) of the RMS over the sphere of the calibrated | |a| - g | error:
+        the 95th percentile over :data:`ERROR_DRAWS` draws of the unknowns from their covariance
+        (its variance drawn from its scaled inverse chi-square where it comes from the residual
+        of few degrees of freedom), plus unseen misalignment (:attr:`angles_unseen`)."""
+        cov = self.covariance()
+        if cov is None:
+            return float("inf")
+        try:
+            jac = self.sphere_jacobian()
+        except np.linalg.LinAlgError:
+            return float("inf")
+        rng = np.random.default_rng(0)
+        free = self.problem.free
+        chol = np.linalg.cholesky(cov + 1e-30 * np.eye(len(cov)))
+        dx = rng.standard_normal((ERROR_DRAWS, len(cov))) @ chol.T
+        if self.dof > 0 and self.rss / self.dof >= self.mean_noise**2:
+            dx *= np.sqrt(self.dof / rng.chisquare(self.dof, ERROR_DRAWS))[:, None]
+        err = dx @ jac[:, free].T
+        if self.angles_unseen:
+            angles = rng.normal(0.0, ANGLE_PRIOR_RAD, (ERROR_DRAWS, 3))
+            err = err + angles @ jac[:, 3:6].T
+        rms_draws = np.sqrt(np.mean(err**2, axis=1))
+        return float(np.quantile(rms_draws, 0.95) * self.problem.g / MG)
 
     def predicted_error_mg(self) -> float:
         """RMS over the sphere of the standard deviation of the calibrated | |a| - g | (mg)."""
         cov = self.covariance()
         if cov is None:
             return float("inf")
-        p = self.params
         try:
-            inverse = np.linalg.inv(p.matrix)
+            jac = self.sphere_jacobian()[:, self.problem.free]
         except np.linalg.LinAlgError:  # a scale or angle fitted to nothing: undetermined
             return float("inf")
-        raw = (self.problem.g * SPHERE) @ inverse.T + p.bias
-        on_sphere = NormProblem(raw, self.problem.g, self.problem.start, self.problem.free)
-        jac = on_sphere.jacobian(self.solution.x)[:, self.problem.free]
         var = np.einsum("ij,jk,ik->i", jac, cov, jac)
         return float(np.sqrt(np.mean(var)) * self.problem.g / MG)
 
@@ -468,6 +561,7 @@ class ModelFit:
             "parameters": self.n_params,
             "aicc": float(aicc) if np.isfinite(aicc) else None,
             "residual_mg_rms": float(np.sqrt(np.mean(r**2))),
+            "leave_one_pose_out_mg_rms": finite_or_none(self.press_rms_mg()),
             "predicted_error_mg": finite_or_none(self.predicted_error_mg()),
         }
 
@@ -492,43 +586,66 @@ def finite_or_none(value: float) -> float | None:
     return float(value) if np.isfinite(value) else None
 
 
-def fit_model(means: np.ndarray, g: float, name: str, start: NineParams | None = None) -> ModelFit:
-    """Fit the model ``name`` (a key of :data:`MODEL_FREE`) on the pose means by LM."""
+def fit_model(
+    means: np.ndarray,
+    g: float,
+    name: str,
+    start: NineParams | None = None,
+    mean_noise: float = 0.0,
+) -> ModelFit:
+    """Fit the model ``name`` (a key of :data:`MODEL_FREE`) on the pose means by LM;
+    ``mean_noise``: the noise of one pose mean along gravity (fraction of g)."""
     start = start if start is not None else initial_guess(means, g)
     problem = NormProblem(means, g, start, MODEL_FREE[name].copy())
     if len(means) < problem.free.sum():
         raise FitError(
             f"{len(means)} static intervals: the {name} model needs at least {problem.free.sum()}"
         )
-    return ModelFit(name, problem, solve_lm(problem))
+    return ModelFit(name, problem, solve_lm(problem), mean_noise)
 
 
 def choose_model(fits: list[ModelFit], asked: Sequence[str] = ()) -> tuple[ModelFit, str]:
-    """The fit with the lowest AICc, and the reason in one sentence. ``asked``: the models the
-    options allowed; one of them missing from ``fits`` had more parameters than poses."""
-    best = min(fits, key=lambda f: (f.aicc, f.n_params))
+    """The model that predicts left-out poses best (see the module docstring), and the reason in
+    one sentence. ``asked``: the models the options allowed; one of them missing from ``fits``
+    had more parameters than poses."""
+    n = len(fits[0].problem.samples)
     if len(fits) == 1:
-        n = len(best.problem.samples)
+        best = fits[0]
         short = [
             f"the {m} model needs at least {int(MODEL_FREE[m].sum())}"
             for m in asked
             if m not in {f.name for f in fits}
         ]
+        best.angles_unseen = best.name == "6-parameter" and bool(short)
         if short:
             return best, f"{n} poses: " + "; ".join(short)
         return best, f"the {best.name} model was asked for"
-    others = [f for f in fits if f is not best]
-    if not np.isfinite(best.aicc):
-        return best, (
-            f"no model has enough poses for an information criterion ({len(best.problem.samples)} "
-            f"poses); the {best.name} model has the fewest parameters"
-        )
+    judged = [f for f in fits if np.isfinite(f.press_rms_mg())]
     figures = "; ".join(
-        f"{f.name}: AICc {fmt_criterion(f.aicc)}, residual {f.summary()['residual_mg_rms']:.3g} "
-        f"mg, predicted error {_fmt_mg(f.predicted_error_mg())}"
-        for f in [best, *others]
+        f"{f.name}: leave-one-pose-out {_fmt_mg(f.press_rms_mg())}, predicted error over all "
+        f"orientations {_fmt_mg(f.predicted_error_mg())}, residual "
+        f"{f.summary()['residual_mg_rms']:.3g} mg"
+        for f in sorted(fits, key=lambda f: f.expected_error_mg())
     )
-    return best, f"lowest AICc ({figures})"
+    if len(judged) == len(fits):
+        best = min(fits, key=lambda f: (f.expected_error_mg(), f.n_params))
+        return best, f"best prediction of left-out poses and of all orientations ({figures})"
+    small = min(fits, key=lambda f: f.n_params)
+    large = max(fits, key=lambda f: f.n_params)
+    noise_mg = small.mean_noise * small.problem.g / MG
+    residual = small.summary()["residual_mg_rms"]
+    if noise_mg > 0 and residual <= ADEQUATE_FACTOR * noise_mg:
+        small.angles_unseen = True
+        return small, (
+            f"{n} poses cannot judge the {large.name} model by prediction; the {small.name} "
+            f"model's residual {residual:.3g} mg is within {ADEQUATE_FACTOR:g} x the noise of a "
+            f"pose mean ({noise_mg:.3g} mg)"
+        )
+    return large, (
+        f"the {small.name} model leaves {residual:.3g} mg against a pose-mean noise of "
+        f"{noise_mg:.3g} mg (the sensor is misaligned); the {large.name} model fits the {n} "
+        "poses exactly, with nothing left to check it"
+    )
 
 
 def _fmt_mg(value: float) -> str:

@@ -27,7 +27,9 @@ warning), and a gap longer than ``max_gap`` periods cuts the recording: the devi
 longest stretch without one (a warning). Time not increasing, or a recording too short to give
 the fit more taus than terms, is an error; motion (1 s gyro means further than
 ``motion_threshold`` from the mean, or accel-norm 1 s means spreading more than 0.05 g) is a
-failed check (``accept_failed_checks = true`` fits anyway); under two hours is a warning.
+failed check (``accept_failed_checks = true`` fits anyway), and so is a jump of the gyro bias
+(:func:`bias_jump`: a knock or a power event, whose Allan deviation reads as a random walk);
+under two hours is a warning.
 
 Tau grid (``taus``): ``auto`` (default) computes the octave grid, then refines to thirds of an
 octave where the curve bends (the transitions between noise types, where the slope readings and
@@ -189,6 +191,7 @@ class AllanStage(Stage):
         }
         fits: dict[tuple[str, int], AllanFit] = {}
         disagreements: list[str] = []
+        unresolved: list[str] = []
         for col, (name, i) in enumerate((s, i) for s in self.sensors for i in range(3)):
             f = fit_allan(
                 fdev.taus,
@@ -218,7 +221,10 @@ class AllanStage(Stage):
                 "tau_at_min_s": float(fdev.taus[int(np.argmin(fdev.dev[:, col]))]),
                 "K_range_68": list(f.ranges["K"]) if "K" in f.ranges else None,
                 "K_upper_68": k_upper(f, fdev.taus, fconf.hi[:, col]),
+                "N_upper": n_upper(fdev.taus, fdev.dev[:, col]),
             }
+            if not f.params["N"] > 0:
+                unresolved.append(f"{name} {AXES[i]}")
             if disagree:
                 disagreements.append(f"{name} {AXES[i]} ({', '.join(disagree)})")
         if disagreements:
@@ -226,6 +232,14 @@ class AllanStage(Stage):
                 f"the IEEE slope readings differ from the fit by more than "
                 f"{opts.slope_tolerance:.0%} on {'; '.join(disagreements)} (slope_readings in "
                 "the metrics)"
+            )
+        if unresolved:
+            ctx.warn(
+                f"white noise not resolved on {', '.join(unresolved)} (the shortest tau, "
+                f"{fdev.taus[0]:.3g} s, is already dominated by slower noise: low-pass filtered or "
+                "decimated data?): the exports write the upper bound N_upper from the shortest "
+                "taus instead of a zero; record at the sensor's full rate without filtering to "
+                "measure N"
             )
         results["metrics"] = metrics
         self._record(ctx, dev, conf, fits, fdev)
@@ -325,9 +339,22 @@ class AllanStage(Stage):
         static = still.static(self.options.motion_threshold)
         ctx.check(
             static,
-            f"the data does not look static: {still.describe(self.options.motion_threshold)}: an "
-            "Allan deviation of a moving IMU measures the motion, not the noise",
+            f"the data does not look static: {still.describe(self.options.motion_threshold)}: "
+            "motion, or a jump of the bias (a knock, a power event); an Allan deviation of either "
+            "measures it, not the noise: record the IMU untouched, or give the still part as "
+            "interval",
         )
+        if static:
+            jump = bias_jump(still.gyro_1s.means)
+            if jump is not None:
+                ratio, block, size = jump
+                ctx.check(
+                    ratio <= JUMP_RATIO,
+                    f"the gyro bias jumps by {size:.3g} rad/s about {block} s into the recording "
+                    f"({ratio:.3g} times the scatter of {JUMP_WINDOW_S} s means, > {JUMP_RATIO:g}):"
+                    " a knock or a power event; its Allan deviation reads as a random walk many "
+                    "times the sensor's: give the part before or after it as interval",
+                )
         return static
 
     # -- Rerun -------------------------------------------------------------------------------
@@ -382,6 +409,51 @@ class AllanStage(Stage):
 
 
 # -- artifacts ---------------------------------------------------------------------------------
+JUMP_WINDOW_S = 10
+"""s: a bias jump is the difference of the gyro's means over this long before and after each
+second (:func:`bias_jump`)."""
+JUMP_RATIO = 8.0
+"""The largest such difference, in robust standard deviations of all of them, still taken as
+noise: white, flicker and random-walk noise give about 4 (simulated two hours at 100 Hz, with
+and without bias instability); a step of one sample's noise at 100 Hz gives 25, of a fifth of it
+6 to 7 (not caught: it reads as a random walk about twice the truth's)."""
+
+
+def bias_jump(means: np.ndarray) -> tuple[float, int, float] | None:
+    """The largest jump of the gyro bias: ``D_i`` = mean of the 1 s means ``means`` (m, 3) over
+    the :data:`JUMP_WINDOW_S` seconds after second ``i`` minus that over the seconds before;
+    returns (largest ``|D_i - median|`` over the axes in units of ``1.4826 MAD``, its second,
+    its size rad/s), or None when the recording is too short or the means do not vary."""
+    w = JUMP_WINDOW_S
+    if len(means) < 4 * w:
+        return None
+    c = np.vstack([np.zeros((1, means.shape[1])), np.cumsum(means, axis=0)])
+    after = (c[2 * w :] - c[w:-w]) / w
+    before = (c[w:-w] - c[: -2 * w]) / w
+    d = after - before
+    dev = np.abs(d - np.median(d, axis=0))
+    scale = 1.4826 * np.median(dev, axis=0)
+    if not np.all(scale > 0):
+        return None
+    z = dev / scale
+    i, axis = np.unravel_index(int(np.argmax(z)), z.shape)
+    return float(z[i, axis]), int(i + w), float(d[i, axis])
+
+
+N_UPPER_SPAN = 4.0
+"""The taus up to this many times the shortest give :func:`n_upper`."""
+
+
+def n_upper(taus: np.ndarray, dev: np.ndarray) -> float:
+    """Upper bound of the white-noise density N (per sqrt(Hz)) from the shortest taus: every term
+    of the Allan variance is positive, so ``N^2 / tau <= sigma^2(tau)`` and ``N <= sigma(tau)
+    sqrt(tau)``. The largest of these over the taus up to :data:`N_UPPER_SPAN` times the
+    shortest: a low-pass filter lowers sigma at the very shortest tau below the white noise's
+    line, so the bound is taken where the filter no longer does."""
+    near = taus <= N_UPPER_SPAN * taus[0]
+    return float(np.max(dev[near] * np.sqrt(taus[near])))
+
+
 def k_upper(fit: AllanFit, taus: np.ndarray, hi: np.ndarray) -> float:
     """An upper bound of the random-walk density K: the upper end of the fit's 68 % profile
     interval of K (:func:`imupipe.stages.allan_fit.profile_interval`: the other fitted terms

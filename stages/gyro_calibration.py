@@ -121,7 +121,8 @@ class GyroCalibrationStage(Stage):
                 f"gravity-direction residual {residual:.3g} deg RMS over "
                 f"{results['metrics']['transitions']} motions > {MAX_DIRECTION_RESIDUAL_DEG:g} "
                 "deg: the calibrated gyro does not carry one pose onto the next (motion inside "
-                "the static intervals, a wrong clock, or an uncalibrated accelerometer)",
+                "the static intervals, a wrong clock, or an uncalibrated accelerometer; hold each "
+                "pose still for 2 s or more)",
             )
             scale, std = results["scale"], results["standard_errors"]["scale"]
             worst = int(np.argmax(np.abs(std) / np.abs(scale)))
@@ -201,6 +202,10 @@ class GyroCalibrationStage(Stage):
                     "rms": rms(after),
                     "max": float(after.max()),
                     "start_rms": rms(before),
+                    # the raw gyro (no bias removed, unit scale) where it is in rad/s already
+                    "raw_rms": rms(moves.angles_deg(np.eye(3), np.zeros(3)))
+                    if 0.8 <= fit["start_scale"] <= 1.25
+                    else None,
                 },
                 "start_scale": fit["start_scale"],
                 "condition_number": chosen.condition_number(),

@@ -161,6 +161,17 @@ def moving_variance_norm(values: np.ndarray, window: int) -> np.ndarray:
     return out
 
 
+def dilate(mask: np.ndarray, half: int) -> np.ndarray:
+    """``mask`` widened by ``half`` samples on each side of every True run (a sample is True
+    when any sample within ``half`` of it is)."""
+    count = np.cumsum(np.r_[0, mask.astype(np.int64)])
+    n = len(mask)
+    idx = np.arange(n)
+    hi = np.minimum(idx + half + 1, n)
+    lo = np.maximum(idx - half, 0)
+    return (count[hi] - count[lo]) > 0
+
+
 def runs(mask: np.ndarray, min_length: int) -> Intervals:
     """The runs of True in ``mask`` at least ``min_length`` long."""
     edges = np.diff(np.r_[0, mask.astype(np.int8), 0])
@@ -181,9 +192,17 @@ class Detector:
     min_samples: int
     source: str
     """How ``reference`` was obtained (one sentence for the results)."""
+    half_window: int = 0
+    """Samples each window reaches beyond its centre."""
 
-    def detect(self, k: float) -> Intervals:
-        return runs(self.variance < k * self.reference, self.min_samples)
+    def detect(self, k: float, whole_windows: bool = False) -> Intervals:
+        """The static intervals at threshold ``k``: the centres of the quiet windows (imu_tk's
+        rule), or with ``whole_windows`` every sample of a quiet window (a hold of L s gives an
+        interval of L s, not L minus one window: holds of 1 to 2 s survive a 1 s window)."""
+        quiet = self.variance < k * self.reference
+        if whole_windows and self.half_window > 0:
+            quiet = dilate(quiet, self.half_window)
+        return runs(quiet, self.min_samples)
 
     def describe(self, k: float) -> dict[str, Any]:
         """The threshold as the results report it."""
@@ -235,7 +254,13 @@ def make_detector(
             "the accelerometer does not vary at all where it is still (quantised to a constant?): "
             "no noise floor to set the static threshold"
         )
-    return Detector(variance, reference, int(round(min_interval_s * rate)), source)
+    return Detector(
+        variance,
+        reference,
+        int(round(min_interval_s * rate)),
+        source,
+        half_window=window // 2,
+    )
 
 
 @dataclass(frozen=True)

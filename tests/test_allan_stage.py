@@ -10,7 +10,7 @@ import pytest
 import yaml
 
 from imupipe.pipeline.simulate import simulate, write_log
-from imupipe.readers.table import make_table
+from imupipe.readers.table import make_table, sensor
 from imupipe.stages.allan import AllanStage
 from imupipe.stages.base import StageContext
 
@@ -234,7 +234,7 @@ def test_motion_is_a_failed_check():
     out = stage.fit(make_table(t_ns, gyro=gyro, accel=accel), ctx)
     assert out.results["metrics"]["static"] is False
     assert any("does not look static" in w and "accepted" in w for w in ctx.warnings)
-    assert "measures the motion, not the noise" in ctx.failed_checks[0]
+    assert "measures it, not the noise" in ctx.failed_checks[0]
 
 
 def test_cli_error_is_one_line(tmp_path):
@@ -297,3 +297,54 @@ def test_analysis_only_run_writes_no_corrected_copy(tmp_path):
         "vins_imu.yaml",
     ]
     assert (tmp_path / "listed" / "static.mcap").stat().st_size > 0
+
+
+def test_white_noise_not_resolved_is_exported_as_its_upper_bound_never_zero():
+    """Issue 25: a recording at 10 Hz whose shortest tau is already dominated by bias instability
+    (a phone's decimated log): the fit resolves no N; imu.yaml and the imu_utils layout get the
+    upper bound sigma(tau) sqrt(tau) from the shortest taus (at or above the truth), never 0.0,
+    with a warning and a comment saying so."""
+    from imupipe.pipeline.exports.imu_utils import imu_utils_doc
+    from imupipe.pipeline.exports.kalibr import noise_yaml
+
+    p = {
+        "rate_hz": 10.0,
+        "duration_s": 3600.0,
+        "gyro_N": [1e-4] * 3,
+        "gyro_B": [1e-3] * 3,
+        "gyro_K": [0.0] * 3,
+        "accel_N": [1e-3] * 3,
+        "accel_B": [1e-2] * 3,
+        "accel_K": [0.0] * 3,
+    }
+    table, _ = simulate("static", p, seed=1)
+    ctx = StageContext(name="allan", input_name="s", quiet=True)
+    results = AllanStage(AllanStage.Options()).fit(table, ctx).results
+    results["type"] = "allan"
+    assert any(w.startswith("white noise not resolved") for w in ctx.warnings)
+    text = noise_yaml("allan", results)
+    doc = yaml.safe_load(text)
+    for prefix, truth in (("gyroscope", 1e-4), ("accelerometer", 1e-3)):
+        assert truth <= doc[f"{prefix}_noise_density"] <= 5 * truth
+    assert "UPPER BOUND from the shortest taus" in text
+    layout = imu_utils_doc(results)
+    assert all(row["gyr_n"] > 0 for row in layout["Gyr"].values() if isinstance(row, dict))
+
+
+def test_a_jump_of_the_bias_is_refused_not_read_as_a_random_walk():
+    """Issue 25's sweep: a gyro bias step of one sample's noise (2.5e-3 rad/s at 100 Hz, below
+    the motion threshold) at half time made K ten times the truth; it is a failed check naming
+    the jump, where it is and what to do. Without the step the same recording passes."""
+    from imupipe.pipeline.errors import FitError
+
+    p = {"duration_s": 1200.0, "rate_hz": 100.0, "gyro_N": [2.5e-4] * 3}
+    table, _ = simulate("static", p, seed=3)
+    gyro = sensor(table, "gyro").values.copy()
+    t_ns = sensor(table, "gyro").t_ns
+    accel = sensor(table, "accel").values
+    ctx = StageContext(name="allan", input_name="s", quiet=True)
+    AllanStage(AllanStage.Options()).fit(table, ctx)  # no jump: no failed check
+    gyro[len(gyro) // 2 :, 0] += 2.5e-3
+    stepped = make_table(t_ns, gyro=gyro, accel=accel)
+    with pytest.raises(FitError, match=r"the gyro bias jumps by 0\.002[4-7]\d* rad/s about 600 s"):
+        AllanStage(AllanStage.Options()).fit(stepped, ctx)

@@ -99,8 +99,10 @@ def test_multi_position_session(tmp_path):
     assert round(m["residual_mg"]["means_rms"], 3) == 0.099
     assert round(m["residual_mg"]["samples_rms"], 2) == 0.82
     assert round(m["residual_mg"]["noise_per_sample"], 2) == 0.75
-    assert "9-parameter: AICc -672.8, residual 0.0988 mg" in accel["model"]["reason"]
-    assert "6-parameter: AICc -413.5, residual 3.44 mg" in accel["model"]["reason"]
+    assert "9-parameter: leave-one-pose-out 0.1469 mg" in accel["model"]["reason"]
+    assert "6-parameter: leave-one-pose-out 3.984 mg" in accel["model"]["reason"]
+    assert m["residual_mg"]["raw_means_rms"] is None  # raw counts: no "before calibration"
+    assert round(m["error_95_mg"], 3) == 0.266
     assert round(1e3 * accel["misalignment_rad"]["zx"], 2) == 21.23
     g = gyro["metrics"]
     assert gyro["model"]["chosen"] == "9-parameter" and g["transitions"] == 37

@@ -82,6 +82,9 @@ class Noise:
     random_walk: float
     random_walk_axis: str
     k_bound: bool
+    n_bound: bool = False
+    """The fit resolved no white noise on that axis: ``density`` is the upper bound from the
+    shortest taus (``N_upper``), never a zero."""
 
 
 def noise(results: Mapping[str, Any], sensor: str) -> Noise | None:
@@ -90,14 +93,21 @@ def noise(results: Mapping[str, Any], sensor: str) -> Noise | None:
     if sensor not in results:
         return None
     per_axis = results[sensor]
-    n_axis = max(AXES, key=lambda a: per_axis[a]["N"])
+    bounds = results.get("metrics", {}).get(sensor, {})
+    density = {
+        a: (float(per_axis[a]["N"]), False)
+        if per_axis[a]["N"] > 0 or "N_upper" not in bounds.get(a, {})
+        else (float(bounds[a]["N_upper"]), True)
+        for a in AXES
+    }
+    n_axis = max(AXES, key=lambda a: density[a][0])
     k_axis = max(AXES, key=lambda a: per_axis[a]["K"])
     k, bound = float(per_axis[k_axis]["K"]), False
     if k == 0.0:
         upper = results["metrics"][sensor]
         k_axis = max(AXES, key=lambda a: upper[a]["K_upper_68"])
         k, bound = float(upper[k_axis]["K_upper_68"]), True
-    return Noise(float(per_axis[n_axis]["N"]), n_axis, k, k_axis, bound)
+    return Noise(density[n_axis][0], n_axis, k, k_axis, bound, density[n_axis][1])
 
 
 def first_allan(doc: Mapping[str, Any]) -> tuple[str, dict[str, Any]] | None:

@@ -25,6 +25,8 @@ COMMENTS = [
     "    Allan deviation, i.e. bias instability 0.664 B, in rad/s): that is gyr_b / acc_b",
     "    here, the bias instability B itself (rad/s, m/s^2).",
     "  avg-axis: the mean of the three axes.",
+    "  gyr_n / acc_n: where the fit resolved no white noise, the upper bound from the shortest",
+    "    taus (N_upper in calibration.json), never a zero.",
 ]
 
 
@@ -34,6 +36,12 @@ def imu_utils_doc(results: dict[str, Any]) -> dict[str, Any]:
         if sensor not in results:
             continue
         values = {t: [float(results[sensor][a][t]) for a in AXES] for t in ("N", "K", "B")}
+        # a white noise the fit did not resolve is written as its upper bound, never a zero
+        bounds = results.get("metrics", {}).get(sensor, {})
+        values["N"] = [
+            n if n > 0 else float(bounds.get(a, {}).get("N_upper", n))
+            for n, a in zip(values["N"], AXES, strict=True)
+        ]
         block: dict[str, Any] = {"unit": f" {unit}"}
         rows = [("avg-axis", {t: float(np.mean(v)) for t, v in values.items()})]
         rows += [(f"{a}-axis", {t: v[i] for t, v in values.items()}) for i, a in enumerate(AXES)]

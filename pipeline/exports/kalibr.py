@@ -56,8 +56,13 @@ def noise_block(results: dict[str, Any]) -> tuple[dict[str, Any], list[str]]:
             if n.k_bound
             else "the largest"
         )
+        density_how = (
+            "white noise not resolved: UPPER BOUND from the shortest taus"
+            if n.n_bound
+            else "the largest"
+        )
         comments.append(
-            f"{prefix}_noise_density: axis {n.density_axis} (the largest); "
+            f"{prefix}_noise_density: axis {n.density_axis} ({density_how}); "
             f"{prefix}_random_walk: axis {n.random_walk_axis} ({how})"
         )
     return data, comments

@@ -7,7 +7,8 @@ a rotation of ``move_s`` seconds about a fixed body axis (smooth profile ``theta
 cos(pi t / move_s)) / 2``) into the next pose, and ``pose_s`` seconds at rest there. With
 ``faces = true`` poses 1..5 complete the six faces (+-x, +-y, +-z up); the others are uniformly
 random orientations (from the seed), or with ``only_faces = true`` the six faces again and again,
-each tilted by a random angle of up to ``face_tilt_deg`` (a six-face session like the T265's).
+each tilted by a random angle of up to ``face_tilt_deg`` (a six-face session like the T265's);
+``cluster_deg > 0``: every pose within that angle of z up (clustered poses, a session on a desk).
 The IMU rotates about its own origin (no linear acceleration).
 
 Error model, the inverse of imupipe's calibration models (so a perfect fit returns the truth)::
@@ -53,6 +54,7 @@ DEFAULTS: dict[str, Any] = {
     "faces": True,
     "only_faces": False,
     "face_tilt_deg": 2.0,
+    "cluster_deg": 0.0,
     "accel_scale": [1.02, 0.985, 1.01],
     "accel_misalignment": [0.004, -0.006, 0.008],
     "accel_bias": [0.15, -0.10, 0.20],
@@ -91,6 +93,16 @@ def pose_rotations(p: dict[str, Any], rng: np.random.Generator) -> Rotation:
             / np.linalg.norm(tilt, axis=1, keepdims=True)
         )
         return faces * Rotation.from_rotvec(tilt)
+    if p["cluster_deg"] > 0:  # every pose within cluster_deg of z up (a session on a desk)
+        tilt = rng.normal(size=(n, 3))
+        tilt[:, 2] = 0.0
+        tilt *= (
+            np.radians(p["cluster_deg"])
+            * np.sqrt(rng.uniform(size=(n, 1)))
+            / np.linalg.norm(tilt, axis=1, keepdims=True)
+        )
+        yaw = np.column_stack([np.zeros((n, 2)), rng.uniform(0, 2 * np.pi, n)])
+        return Rotation.from_rotvec(tilt) * Rotation.from_rotvec(yaw)
     rest = Rotation.random(n - len(rots), random_state=rng)
     return Rotation.concatenate([*rots, rest]) if n > len(rots) else Rotation.concatenate(rots)
 

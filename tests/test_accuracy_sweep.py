@@ -1,0 +1,42 @@
+"""Issue 25: the accuracy sweep's CI subset (``benchmarks/accuracy_sweep.py --quick``), one test
+per family module of ``benchmarks/sweep_cases/``: every case an answer within the tolerance the
+stage states, or a refusal naming the true cause; never a wrong answer or a wrong-cause refusal."""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO / "benchmarks"))
+
+import accuracy_sweep  # noqa: E402
+from sweep_cases import VERDICTS, WRONG, modules  # noqa: E402
+
+KEYS = {"family", "case", "outcome", "verdict", "error", "stated", "covered"}
+
+
+@pytest.mark.parametrize("module", modules(), ids=lambda m: m.__name__.rsplit(".", 1)[-1])
+def test_quick_sweep_has_no_wrong_answer_and_no_wrong_cause_refusal(module):
+    rows = module.run(quick=True)
+    assert rows, f"{module.FAMILY}: no cases in the quick subset"
+    for row in rows:
+        assert set(row) == KEYS, row
+        assert row["family"] == module.FAMILY
+        assert row["verdict"] in VERDICTS
+        assert row["outcome"] in ("answer", "refused")
+        assert (row["outcome"] == "refused") == ("refusal" in row["verdict"])
+        assert row["covered"] in (True, False, None)
+    wrong = [f"{r['case']}: {r['verdict']}: {r['error']}" for r in rows if r["verdict"] in WRONG]
+    assert not wrong, "\n".join(wrong)
+
+
+def test_driver_prints_one_table_the_counts_and_the_coverage(capsys):
+    code = accuracy_sweep.main(["--quick", "--family", "magnetometer"])
+    out = capsys.readouterr().out
+    assert code == 0
+    assert out.splitlines()[0].split()[:4] == ["family", "case", "outcome", "verdict"]
+    assert "wrong answer 0, wrong-cause refusal 0" in out
+    assert "truth inside the stated 95 % interval" in out
