@@ -561,3 +561,11 @@ class Prepared:
     keep: np.ndarray
     pairs: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
     """Turntable runs per turned axis: (temperature degC, scale factor) of each +/-rate pair."""
+    moving: int = 0
+    """Complete blocks left out because less than half their samples were still."""
+    accel: np.ndarray | None = None
+    """(m, 3) mean specific force of each kept block's still samples (m/s^2), when the log has
+    an accelerometer: the orientation of the IMU."""
+    noise: np.ndarray | None = None
+    """(m, 3) the variance of each block mean from noise (SI^2; NaN where a block's halves
+    cannot be compared)."""
