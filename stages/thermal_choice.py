@@ -199,7 +199,11 @@ def held_out(
         nan = np.full(bias.shape[1], np.nan)
         return HeldOut(nan, nan.copy(), 0)
     if noise is not None:
-        done &= np.isfinite(noise).all(axis=1)
+        judged = np.isfinite(noise).all(axis=1)
+        if (done & judged).any():
+            done &= judged
+        else:  # blocks of one sample: no noise to take out
+            noise = None
     wd = w[done]
 
     def rms(p: np.ndarray) -> np.ndarray:

@@ -6,6 +6,7 @@ wrong answer, no refusal that blames the wrong cause."""
 from __future__ import annotations
 
 import importlib.util
+import sys
 
 from conftest import REPO
 
@@ -14,6 +15,7 @@ def load_family():
     path = REPO / "benchmarks" / "sweep_cases" / "thermal.py"
     spec = importlib.util.spec_from_file_location("sweep_case_thermal", path)
     module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # its dataclasses look their module up
     spec.loader.exec_module(module)
     return module
 
