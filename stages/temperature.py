@@ -25,6 +25,16 @@ identified, and the fit falls back to the terms in T with a warning naming what 
 Unless ``order`` is given, the polynomial order (0..3) and whether the rate term enters are chosen
 per axis by the small-sample Akaike criterion.
 
+What enters and what is applied (issue 25, :mod:`imupipe.stages.thermal_choice`): only still
+samples enter the blocks (the static-interval detector on the gyro and the accelerometer), so
+handling between soaks never enters the fit. The default ``model = "auto"`` fits ``poly``,
+``lag`` (where heating and cooling identify it) and ``piecewise`` on all segments of the log but
+one and predicts that one, in turn; the model with the lowest held-out error wins (poly unless
+another is 10 % better), and ``results.choice`` says which and why. Every fit states the bias it
+leaves on another log like this one (``remaining_rms`` with a 95 % interval), and is refused (a
+failed quality check, one line with the figures) when it does not predict the held-out segments
+better than no compensation on every axis, or when the still periods hold several orientations.
+
 The correction (:class:`~imupipe.stages.temperature_step.TemperatureStep`) recomputes the
 variables the same way on any log, clamps temperatures to the fitted range and warns when a
 sample lies more than 0.5 degC outside it; rates outside the fitted range are extrapolated, with

@@ -3,8 +3,9 @@ orientations, and the held-out prediction that chooses the model and checks it.
 
 - **Still samples** (:func:`still_samples`): the static-interval detector of the multi-position
   stages (:func:`imupipe.stages.static_detector.make_detector`, the windowed variance against the
-  log's own noise floor) run on the accelerometer and on the gyroscope; a sample is still where
-  both are below ``k`` times their floor. Handling, taps and moves between soaks never enter the
+  log's own noise floor) run on the accelerometer and on the gyroscope (on means of consecutive
+  samples at about 50 Hz for faster logs); a sample is still where both are below ``k`` times
+  their floor. Handling, taps and moves between soaks never enter the
   thermal fit: a block's bias is the mean of its still samples.
 - **Segments** (:func:`segment_labels`): the runs of still blocks between handling (or between
   excluded blocks), merged in time order to at most :data:`MAX_SEGMENTS` of similar size; a log
@@ -47,6 +48,8 @@ from imupipe.stages.static_detector import make_detector
 
 STILL_K = 10.0
 """A sample is still where the windowed variance is under this many times the noise floor."""
+DETECT_HZ = 50.0
+"""Logs faster than this are judged on means of consecutive samples at about this rate."""
 STILL_WINDOW_SAMPLES = 10
 """The variance window is 1 s, or this many samples when the log is slower (1 Hz tags)."""
 MIN_STILL_SHARE = 0.5
@@ -66,8 +69,15 @@ def still_samples(t_ns: np.ndarray, signals: list[np.ndarray], k: float) -> np.n
     Samples within half a window of the log's ends take the verdict of the nearest judged one."""
     if len(t_ns) < 3 or t_ns[-1] <= t_ns[0]:
         return None
+    full_t = t_ns
     rate = (len(t_ns) - 1) / (float(t_ns[-1] - t_ns[0]) * 1e-9)
     window_s = max(1.0, STILL_WINDOW_SAMPLES / rate)
+    # faster logs are judged on means of q samples (at most DETECT_HZ): handling is slow motion
+    q = max(1, int(rate // DETECT_HZ))
+    n = (len(t_ns) // q) * q
+    if q > 1 and n >= 3 * q:
+        t_ns = t_ns[:n:q]
+        signals = [v[:n].reshape(-1, q, v.shape[1]).mean(axis=1) for v in signals]
     still: np.ndarray | None = None
     for values in signals:
         try:
@@ -82,6 +92,9 @@ def still_samples(t_ns: np.ndarray, signals: list[np.ndarray], k: float) -> np.n
         nearest = idx[np.clip(np.searchsorted(idx, np.arange(len(ok))), 0, len(idx) - 1)]
         ok = ok[nearest]
         still = ok if still is None else (still & ok)
+    if still is not None and q > 1:
+        full = np.repeat(still, q)
+        still = np.r_[full, np.full(len(full_t) - len(full), full[-1])]
     return still
 
 
