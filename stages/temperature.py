@@ -544,8 +544,9 @@ class TemperatureStage(Stage):
         if no_rate is not None:
             note = (
                 f"the lag and dT cannot be identified: {no_rate}; chose among a polynomial and "
-                "the piecewise-linear bias in T (heat and cool the IMU over a common range, at "
-                "several rates, to fit them)"
+                "the piecewise-linear bias in T, which hold at the rates fitted: a lag this log "
+                "cannot show adds error at other rates (heat and cool the IMU over a common "
+                "range, at several rates, to fit them)"
             )
             ctx.warn(note)
             notes.append(note)

@@ -66,7 +66,8 @@ different orientations of the IMU."""
 def still_samples(t_ns: np.ndarray, signals: list[np.ndarray], k: float) -> np.ndarray | None:
     """(n,) True where every signal in ``signals`` (each (n, 3), finite rows) is still; None
     when no signal has a noise floor to judge by (quantised to a constant: everything is still).
-    Samples within half a window of the log's ends take the verdict of the nearest judged one."""
+    Samples within half a window of the log's ends, or of a gap in the stamps, take the verdict of
+    the nearest judged one (all of them, when no window is judged)."""
     if len(t_ns) < 3 or t_ns[-1] <= t_ns[0]:
         return None
     full_t = t_ns
@@ -78,13 +79,21 @@ def still_samples(t_ns: np.ndarray, signals: list[np.ndarray], k: float) -> np.n
     if q > 1 and n >= 3 * q:
         t_ns = t_ns[:n:q]
         signals = [v[:n].reshape(-1, q, v.shape[1]).mean(axis=1) for v in signals]
+    # windows across a gap in the stamps (a logger's bursts) mix two stretches: not judged
+    steps = np.diff(t_ns)
+    gap = np.r_[False, steps > max(2.0 * float(np.median(steps)), 0.25 * window_s * 1e9)]
+    rate_judged = (len(t_ns) - 1) / (float(t_ns[-1] - t_ns[0]) * 1e-9)
+    half = max(int(round(window_s * rate_judged)), 3) // 2
+    gaps = np.r_[0, np.cumsum(gap)]
+    i = np.arange(len(t_ns))
+    across = gaps[np.minimum(i + half + 1, len(t_ns))] - gaps[np.maximum(i - half + 1, 0)] > 0
     still: np.ndarray | None = None
     for values in signals:
         try:
             detector = make_detector(t_ns, values, window_s=window_s, min_interval_s=0.0)
         except FitError:
             continue
-        judged = np.isfinite(detector.variance)
+        judged = np.isfinite(detector.variance) & ~across
         if not judged.any():
             continue
         ok = detector.variance < k * detector.reference
