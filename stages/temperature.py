@@ -194,12 +194,12 @@ class TemperatureStage(Stage):
         turning are left out of the bias fit."""
         scale_order: int = 2
         """Polynomial order of the scale factor in T - Tref."""
-        still_threshold: float | None = field(default=tc.STILL_K, metadata={"min": 1.0})
+        still_threshold: float = field(default=tc.STILL_K, metadata={"min": 0.0})
         """Only still samples enter the fit: a sample is still where the windowed variance of
         the accelerometer and of the gyroscope (1 s, or 10 samples on slower logs) is below this
         many times its noise floor (the static-interval detector of the multi-position stages);
         handling and moves between soaks are left out, and a block enters when half its samples
-        are still. ``null``: every sample enters (as before issue 25)."""
+        are still. 0: every sample enters (as before issue 25)."""
 
     @classmethod
     def sensors_for(cls, options: Any) -> tuple[str, ...]:
@@ -313,10 +313,10 @@ class TemperatureStage(Stage):
 
     def _still(self, table: pa.Table, data: Any, finite: np.ndarray) -> np.ndarray | None:
         """(n,) the still samples (:func:`~imupipe.stages.thermal_choice.still_samples` on the
-        gyro and the accelerometer), or None when not judged (``still_threshold = null``, a
+        gyro and the accelerometer), or None when not judged (``still_threshold = 0``, a
         turntable log, or no noise floor)."""
         o = self.options
-        if o.still_threshold is None or o.turntable_rate is not None:
+        if not o.still_threshold or o.turntable_rate is not None:
             return None
         signals = []
         for name in ("gyro", "accel"):

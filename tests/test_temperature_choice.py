@@ -107,7 +107,7 @@ def test_handling_is_left_out_of_the_fit(family):
         assert b["rms_after"] < 1.2 * a["rms_after"], (axis, a["rms_after"], b["rms_after"])
     # without the still-sample detection the handling ruins the fit
     with pytest.raises(FitError, match="does not predict held-out segments better"):
-        fit(handled, still_threshold=None)
+        fit(handled, still_threshold=0)
 
 
 def test_a_fit_that_does_not_beat_no_compensation_is_refused(family):

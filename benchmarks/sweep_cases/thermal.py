@@ -6,8 +6,9 @@ orientation changes, gaps and drifts the simulator does not make) and a *check* 
 same sensor (same truth, another seed: the next session a user would correct). The stage fits
 the first with default options (gyro); then
 
-- an **answer** is judged on the check log, simulated without gyro noise: per axis the RMS of
-  the corrected 10 s block means minus the true output (the bias the correction leaves, the
+- an **answer** is judged on the check log, simulated without sensor noise: per axis the RMS of
+  the corrected 10 s block means minus the true output (accelerometer: minus their mean, since
+  one orientation cannot tell a constant bias from a tilt) (the bias the correction leaves, the
   quantity the stage states as ``remaining_rms``). It is *within tolerance* when that RMS is at
   most the upper end of the stage's stated 95 % interval (``remaining_rms_95``, which holds on
   the three axes at once) on every axis, else a *wrong answer* (a confident claim the data do
@@ -57,6 +58,8 @@ class Case:
     """Post-processing of both logs (handling, orientation changes, gaps, drift)."""
     check_params: dict[str, Any] = field(default_factory=dict)
     """Overrides for the check log (default: the fit log's program, another seed)."""
+    sensor: str = "gyro"
+    """The sensor fitted (``accel``: the true output is gravity, z up)."""
     cause: tuple[str, ...] = ()
     """Words a refusal must hold to name the true cause and what to record (empty: an answer is
     expected, and any refusal blames a wrong cause)."""
@@ -334,6 +337,28 @@ CASES = [
         cause=("spans only", "heat or cool"),
     ),  # fmt: skip
     Case(
+        "accel, cycles 1 + 0.5 degC/min, 2 Hz",
+        {"rate_hz": 2.0, "heating_rates": [1.0, 0.5]},
+        sensor="accel",
+    ),
+    Case(
+        "accel, lag 200 s, short cycles, 1 Hz",
+        {
+            **SHORT,
+            "rate_hz": 1.0,
+            "heating_rates": [1.0, 0.5],
+            "element_lag_s": 200.0,
+            "accel_rate_coef": ZERO_RATE,
+        },
+        sensor="accel",
+    ),  # fmt: skip
+    Case(
+        "accel, handling between soaks, one orientation, 1 Hz",
+        {**SHORT, "rate_hz": 1.0, "heating_rates": [1.0, 0.5], "soak_step": 10.0},
+        sensor="accel",
+        edit=handling(4, turn=False),
+    ),
+    Case(
         "gaps: 5 s every 60 s, 50 Hz",
         {**SHORT, "gyro_poly": SHORT_POLY, "rate_hz": 50.0, "heating_rates": [2.0, 1.0]},
         edit=bursts(5.0, 60.0),
@@ -362,14 +387,19 @@ CASES = [
 ]
 
 
-def _block_rms(table: pa.Table, reference: np.ndarray) -> np.ndarray:
-    """Per axis RMS of the 10 s block means (complete blocks) of the gyro minus ``reference``."""
+def _block_rms(
+    table: pa.Table, reference: np.ndarray, name: str = "gyro", mean: bool = False
+) -> np.ndarray:
+    """Per axis RMS of the 10 s block means (complete blocks) of sensor ``name`` minus
+    ``reference`` (``mean``: their mean instead)."""
     from imupipe.readers.table import sensor
     from imupipe.stages.blocks import block_means
 
-    g = sensor(table, "gyro")
+    g = sensor(table, name)
     blocks = block_means(g.t_ns, g.values - reference, window_s=10.0)
     full = blocks.counts >= 0.9 * np.median(blocks.counts)
+    if mean:
+        return blocks.means[full].mean(axis=0)
     return np.sqrt(np.mean(blocks.means[full] ** 2, axis=0))
 
 
@@ -388,14 +418,14 @@ def judge(case: Case, seed: int = 0) -> dict[str, Any]:
     from imupipe.stages.temperature import TemperatureStage
 
     fit_log, _ = simulate("thermal", case.params, seed=100 + seed)
-    # the check log without gyro noise: what the correction leaves is the calibration's error
-    check = {**case.params, **case.check_params, "gyro_N": [0.0, 0.0, 0.0]}
+    # the check log without sensor noise: what the correction leaves is the calibration's error
+    check = {**case.params, **case.check_params, f"{case.sensor}_N": [0.0, 0.0, 0.0]}
     check_log, _ = simulate("thermal", check, seed=200 + seed)
     if case.edit is not None:
         fit_log = case.edit(fit_log, np.random.default_rng(300 + seed))
         check_log = case.edit(check_log, np.random.default_rng(400 + seed))
     row: dict[str, Any] = {"family": FAMILY, "case": case.name}
-    stage = TemperatureStage(TemperatureStage.Options())
+    stage = TemperatureStage(TemperatureStage.Options(sensor=case.sensor))
     ctx = StageContext(name="temperature", input_name="fit", quiet=True)
     try:
         out = stage.fit(fit_log, ctx)
@@ -408,18 +438,24 @@ def judge(case: Case, seed: int = 0) -> dict[str, Any]:
         return row
     metrics = out.results["metrics"]
     corrected = out.step.apply(_still_rows(check_log))
-    truth = _block_rms(corrected, np.zeros(3))
+    reference = np.zeros(3)
+    if case.sensor == "accel":
+        # one orientation cannot tell a constant accel bias from a tilt (the stage's reference
+        # is gravity along the mean): the accel is judged on what varies, about its mean
+        reference = _block_rms(corrected, np.zeros(3), "accel", mean=True)
+    truth = _block_rms(corrected, reference, case.sensor)
     lo = np.array([metrics[a]["remaining_rms_95"][0] for a in "xyz"])
     hi = np.array([metrics[a]["remaining_rms_95"][1] for a in "xyz"])
     within = bool((truth <= hi).all())
     # where the case's truth cannot be fitted (a cause listed), any answer is wrong
     verdict = "within tolerance" if within and not case.cause else "wrong answer"
     worst = int(np.argmax(truth / hi))
+    scale, unit = (1e3, "mrad/s") if case.sensor == "gyro" else (1e3 / G, "mg")
     row.update(
         outcome="answer",
         verdict=verdict,
-        error=f"{truth[worst] * 1e3:.3g} mrad/s ({'xyz'[worst]}; max of {', '.join(f'{v * 1e3:.3g}' for v in truth)})",
-        stated=f"<= {hi[worst] * 1e3:.3g} mrad/s (95 % [{lo[worst] * 1e3:.3g}, {hi[worst] * 1e3:.3g}])",
+        error=f"{truth[worst] * scale:.3g} {unit} ({'xyz'[worst]}; max of {', '.join(f'{v * scale:.3g}' for v in truth)})",
+        stated=f"<= {hi[worst] * scale:.3g} {unit} (95 % [{lo[worst] * scale:.3g}, {hi[worst] * scale:.3g}])",
         covered=bool(((truth >= lo) & (truth <= hi)).all()),
         model=out.results["model"],
         reduction=[
