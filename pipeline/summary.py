@@ -351,6 +351,8 @@ def _temperature(r: dict[str, Any], s: StageSummary) -> None:
             _vector([_get(m, a, "held_out_baseline") for a in AXES]),
             unit,
         )
+        upper = [_get(m, a, "remaining_rms_95", default=[None, None])[1] for a in AXES]
+        _row(s.rows, "remaining bias rms, 95 % upper", _vector(upper), unit)
     after = [_get(m, a, "rms_after") for a in AXES]
     if all(isinstance(v, (int, float)) for v in after):
         s.headline = f"{r.get('sensor', '')} bias rms after {fmt(max(after), 3)} {unit}"

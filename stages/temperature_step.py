@@ -292,11 +292,14 @@ class TemperatureStep(ThermalStep):
         for name, far in stats.outside.items():
             if far:
                 lo, hi = self.ranges[name]
-                what = "clamped to" if name in tm.TEMPERATURES else "extrapolated beyond"
                 seen = stats.seen[name]
+                what, unit, k = "clamped to", "degC", 1.0
+                if name not in tm.TEMPERATURES:  # a rate: shown in degC/min, as everywhere
+                    what, unit, k = "extrapolated beyond", "degC/min", 60.0
                 notes.append(
-                    f"{name} {what} the fitted range [{lo:.4g}, {hi:.4g}] at {far} of "
-                    f"{stats.total} samples (seen {seen[0]:.4g}..{seen[1]:.4g})"
+                    f"{name} {what} the fitted range [{k * lo:.4g}, {k * hi:.4g}] {unit} at "
+                    f"{far} of {stats.total} samples (seen {k * seen[0]:.4g}..{k * seen[1]:.4g} "
+                    f"{unit})"
                 )
         return "; ".join(notes) or None
 

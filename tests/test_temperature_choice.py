@@ -53,6 +53,10 @@ def test_default_chooses_the_lag_by_held_out_prediction(lagging):
     reduction = np.array([auto.results["metrics"]["validate"][a]["reduction"] for a in "xyz"])
     before = np.array([poly.results["metrics"]["validate"][a]["reduction"] for a in "xyz"])
     assert (reduction >= 25).all() and (before < 10).all(), (reduction, before)
+    # applied to the faster cycle, the rates leave the fitted range: said in degC/min
+    auto.step.apply(val)
+    (note,) = [w for w in auto.step.warnings if "dTs extrapolated beyond" in w]
+    assert "] degC/min at " in note and " degC/min)" in note, note
     # the stated remaining bias and its interval, per axis
     for axis in "xyz":
         m = auto.results["metrics"][axis]
