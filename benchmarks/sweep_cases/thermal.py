@@ -171,6 +171,9 @@ def quantised(step: float) -> Callable[[pa.Table, np.random.Generator], pa.Table
 
 
 ZERO_RATE = [0.0, 0.0, 0.0]
+TACTICAL = {"gyro_N": [2e-6] * 3, "temperature_noise": 0.002}
+"""A tactical-grade gyro (white noise 100x below the consumer default) and a finer sensor: the
+model's own error, not the noise, sets what is left."""
 CASES = [
     Case("lag 0 s, cycles 1 + 0.5 degC/min, 2 Hz", {"rate_hz": 2.0, "heating_rates": [1.0, 0.5]}),
     Case(
@@ -335,6 +338,42 @@ CASES = [
         },
         quick=True,
         cause=("spans only", "heat or cool"),
+    ),  # fmt: skip
+    Case(
+        "tactical noise, kinked bias, 1 Hz",
+        {
+            **SHORT,
+            **TACTICAL,
+            "rate_hz": 1.0,
+            "heating_rates": [1.0, 0.5],
+            "gyro_poly": [[0, 0, 0, 0]] * 3,
+            "gyro_rate_coef": ZERO_RATE,
+        },
+        edit=kinked,
+    ),  # fmt: skip
+    Case(
+        "tactical noise, temperature quantised to 0.5 degC, lag 100 s, 1 Hz",
+        {
+            **SHORT,
+            **TACTICAL,
+            "gyro_poly": SHORT_POLY,
+            "rate_hz": 1.0,
+            "heating_rates": [1.0, 0.5],
+            "element_lag_s": 100.0,
+            "gyro_rate_coef": ZERO_RATE,
+        },
+        edit=quantised(0.5),
+    ),  # fmt: skip
+    Case(
+        "tactical noise, lag 200 s, check at 2 degC/min, 2 Hz",
+        {
+            **TACTICAL,
+            "rate_hz": 2.0,
+            "heating_rates": [1.0, 0.5],
+            "element_lag_s": 200.0,
+            "gyro_rate_coef": ZERO_RATE,
+        },
+        check_params={"heating_rates": [2.0]},
     ),  # fmt: skip
     Case(
         "accel, cycles 1 + 0.5 degC/min, 2 Hz",
