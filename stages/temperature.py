@@ -33,7 +33,8 @@ one and predicts that one, in turn; the model with the lowest held-out error win
 another is 10 % better), and ``results.choice`` says which and why. Every fit states the bias it
 leaves on another log like this one (``remaining_rms`` with a 95 % interval), and is refused (a
 failed quality check, one line with the figures) when it does not predict the held-out segments
-better than no compensation on every axis, or when the still periods hold several orientations.
+better than no compensation (worse by more than 10 % on an axis, or not 10 % better on any), or
+when the still periods hold several orientations.
 
 The correction (:class:`~imupipe.stages.temperature_step.TemperatureStep`) recomputes the
 variables the same way on any log, clamps temperatures to the fitted range and warns when a
@@ -73,6 +74,10 @@ MAX_AUTO_ORDER = 3
 """Highest polynomial order tried when the order is chosen by the data."""
 MIN_DIRECTION_SHARE = 0.1
 """Heating and cooling must each hold this share of the blocks ..."""
+HELD_OUT_MARGIN = 0.1
+"""The fit is refused when its held-out RMS exceeds no compensation's by more than this share on
+an axis, or is not below it by this share on any axis (an axis without a temperature
+dependence reads about 1: equal, not a failure)."""
 SWITCH_MARGIN = 0.9
 """``model = "auto"``: lag or piecewise replaces poly when its held-out error (geometric mean over
 the axes, relative to no compensation) is below this share of poly's."""
@@ -677,14 +682,22 @@ class TemperatureStage(Stage):
             )
         if held.segments < 2 or not np.isfinite(held.rms).all():
             return
-        worse = [a for i, a in enumerate(AXES) if not held.rms[i] < held.baseline[i]]
+        ratio = held.ratio
+        worse = [a for i, a in enumerate(AXES) if ratio[i] > 1.0 + HELD_OUT_MARGIN]
+        better = [a for i, a in enumerate(AXES) if ratio[i] < 1.0 - HELD_OUT_MARGIN]
+        where = (
+            f"worse than no compensation on {', '.join(worse)}"
+            if worse
+            else "no better than no compensation on any axis"
+        )
         ctx.check(
-            not worse,
-            f"the temperature fit does not predict held-out segments better than no compensation "
-            f"on {', '.join(worse)} (held-out RMS over {held.segments} segments: {figures} {unit} "
-            "without compensation): the bias does not follow the temperature there (drift, "
-            "steps, or changes the temperature does not explain); record a ramp that heats and "
-            "cools the still IMU over 10 degC or more, in one orientation",
+            not worse and bool(better),
+            f"the temperature fit predicts held-out segments {where} (held-out RMS over "
+            f"{held.segments} segments: {figures} {unit} without compensation; "
+            f"{HELD_OUT_MARGIN:.0%} either way counts as equal): the bias does not follow the "
+            "temperature there (drift, steps, or changes the temperature does not explain); "
+            "record a ramp that heats and cools the still IMU over 10 degC or more, in one "
+            "orientation",
         )
 
     def _fallback(self, no_rate: str | None, ctx: StageContext) -> tuple[str, bool, list[str]]:
