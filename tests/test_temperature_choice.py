@@ -128,7 +128,9 @@ def test_a_fit_that_does_not_beat_no_compensation_is_refused(family):
 
 
 def test_refused_run_writes_nothing(family, tmp_path):
-    write_log(tmp_path / "tag.csv", tag_log(family, seed=1))
+    case = next(c for c in family.CASES if c.name.startswith("orientation changes"))
+    table, _ = simulate("thermal", case.params, seed=1)
+    write_log(tmp_path / "tag.csv", case.edit(table, np.random.default_rng(1)))
     (tmp_path / "cfg.toml").write_text(
         '[inputs.tag]\npath = "tag.csv"\n\n[[stages]]\ntype = "temperature"\n\n'
         '[output]\ndir = "out"\n'
