@@ -356,8 +356,21 @@ def _temperature(r: dict[str, Any], s: StageSummary) -> None:
         lo, hi = r["temperature_range"]
         s.quality.append(("temperature range", f"{fmt(lo, 3)} .. {fmt(hi, 3)} degC"))
     if "rate_range" in r:
-        lo, hi = r["rate_range"]
-        s.quality.append(("rate range", f"{fmt(lo * 60, 3)} .. {fmt(hi * 60, 3)} degC/min"))
+        lo, hi = r["rate_range"]  # degC/min
+        s.quality.append(("rate range", f"{fmt(lo, 3)} .. {fmt(hi, 3)} degC/min"))
+    if isinstance(r.get("choice"), dict) and r["choice"].get("reason"):
+        s.quality.append(("model choice", str(r["choice"]["reason"])))
+    held = [_get(m, a, "held_out_rms") for a in AXES]
+    if all(isinstance(v, (int, float)) for v in held):
+        _row(s.rows, "held-out rms (model)", _vector(held), unit)
+        _row(
+            s.rows,
+            "held-out rms (no compensation)",
+            _vector([_get(m, a, "held_out_baseline") for a in AXES]),
+            unit,
+        )
+        upper = [_get(m, a, "remaining_rms_95", default=[None, None])[1] for a in AXES]
+        _row(s.rows, "remaining bias rms, 95 % upper", _vector(upper), unit)
     after = [_get(m, a, "rms_after") for a in AXES]
     if all(isinstance(v, (int, float)) for v in after):
         s.headline = f"{r.get('sensor', '')} bias rms after {fmt(max(after), 3)} {unit}"

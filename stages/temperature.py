@@ -25,6 +25,17 @@ identified, and the fit falls back to the terms in T with a warning naming what 
 Unless ``order`` is given, the polynomial order (0..3) and whether the rate term enters are chosen
 per axis by the small-sample Akaike criterion.
 
+What enters and what is applied (issue 25, :mod:`imupipe.stages.thermal_choice`): only still
+samples enter the blocks (the static-interval detector on the gyro and the accelerometer), so
+handling between soaks never enters the fit. The default ``model = "auto"`` fits ``poly``,
+``lag`` (where heating and cooling identify it) and ``piecewise`` on all segments of the log but
+one and predicts that one, in turn; the model with the lowest held-out error wins (poly unless
+another is 10 % better), and ``results.choice`` says which and why. Every fit states the bias it
+leaves on another log like this one (``remaining_rms`` with a 95 % interval), and is refused (a
+failed quality check, one line with the figures) when it does not predict the held-out segments
+better than no compensation (worse by more than 10 % on an axis, or not 10 % better on any), or
+when the still periods hold several orientations.
+
 The correction (:class:`~imupipe.stages.temperature_step.TemperatureStep`) recomputes the
 variables the same way on any log, clamps temperatures to the fitted range and warns when a
 sample lies more than 0.5 degC outside it; rates outside the fitted range are extrapolated, with
@@ -33,13 +44,14 @@ a warning.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 from typing import Any, Literal
 
 import numpy as np
 import pyarrow as pa
 
 from imupipe.readers.table import SENSOR_UNITS, has_stream, sensor, usable
+from imupipe.stages import thermal_choice as tc
 from imupipe.stages import thermal_models as tm
 from imupipe.stages.base import Stage, StageContext, StageOutput
 from imupipe.stages.stepwise import candidate_terms, stepwise
@@ -62,6 +74,13 @@ MAX_AUTO_ORDER = 3
 """Highest polynomial order tried when the order is chosen by the data."""
 MIN_DIRECTION_SHARE = 0.1
 """Heating and cooling must each hold this share of the blocks ..."""
+HELD_OUT_MARGIN = 0.1
+"""The fit is refused when its held-out RMS exceeds no compensation's by more than this share on
+an axis, or is not below it by this share on any axis (an axis without a temperature
+dependence reads about 1: equal, not a failure)."""
+SWITCH_MARGIN = 0.9
+"""``model = "auto"``: lag or piecewise replaces poly when its held-out error (geometric mean over
+the axes, relative to no compensation) is below this share of poly's."""
 MIN_OVERLAP = 0.25
 """... over temperature ranges that overlap by this share of the span, for a rate term or a lag
 to be identifiable (at one temperature, two rates)."""
@@ -77,19 +96,36 @@ def bin_weights(temp: np.ndarray, direction: np.ndarray, width: float) -> np.nda
     return w * (len(w) / w.sum())
 
 
-def directions_identify_rate(temp: np.ndarray, direction: np.ndarray) -> str | None:
+def directions_identify_rate(
+    temp: np.ndarray, direction: np.ndarray, rate: np.ndarray | None = None
+) -> str | None:
     """None when heating and cooling both cover a common temperature range (see
-    ``MIN_DIRECTION_SHARE``, ``MIN_OVERLAP``), else why not (for the warning)."""
+    ``MIN_DIRECTION_SHARE``, ``MIN_OVERLAP``), else why not (for the warning), in words that
+    match the data: ``only`` when no block goes the other way, else how many do, with the rate
+    range (``rate``: the blocks' degC/s, shown in degC/min)."""
     n = len(temp)
     span = float(np.ptp(temp)) if n else 0.0
     heat, cool = temp[direction > 0], temp[direction < 0]
+    rates = (
+        ""
+        if rate is None or not len(rate)
+        else f", at {60 * float(rate.min()):.3g}..{60 * float(rate.max()):.3g} degC/min"
+    )
     if len(heat) < MIN_DIRECTION_SHARE * n or len(cool) < MIN_DIRECTION_SHARE * n:
         if len(heat) < MIN_DIRECTION_SHARE * n and len(cool) < MIN_DIRECTION_SHARE * n:
-            return "the temperature is held (soaks), not ramped"
+            return (
+                f"the temperature is held (soaks), not ramped ({len(heat)} heating and "
+                f"{len(cool)} cooling blocks of {n}){rates}"
+            )
         falls = len(cool) >= len(heat)
         start, end = (temp.max(), temp.min()) if falls else (temp.min(), temp.max())
+        other = len(heat) if falls else len(cool)
+        word = "falls" if falls else "rises"
+        if other == 0:
+            return f"the temperature only {word} ({start:.4g} -> {end:.4g} degC){rates}"
         return (
-            f"the temperature only {'falls' if falls else 'rises'} ({start:.4g} -> {end:.4g} degC)"
+            f"the temperature mostly {word} ({start:.4g} -> {end:.4g} degC; {other} of {n} "
+            f"blocks go the other way, under {MIN_DIRECTION_SHARE:.0%}){rates}"
         )
     overlap = min(heat.max(), cool.max()) - max(heat.min(), cool.min())
     if overlap < MIN_OVERLAP * span:
@@ -108,8 +144,13 @@ class TemperatureStage(Stage):
     class Options:
         sensor: Literal["gyro", "accel"] = "gyro"
         """Which sensor to compensate (every axis)."""
-        model: Literal["poly", "lag", "six_term", "piecewise", "stepwise"] = "poly"
-        """The bias model: ``poly`` (a polynomial in T, its order and the ``dT`` term chosen by
+        model: Literal["auto", "poly", "lag", "six_term", "piecewise", "stepwise"] = "auto"
+        """The bias model. ``auto`` (default): the one of ``poly``, ``lag`` and ``piecewise``
+        that predicts held-out segments of the log best (``lag`` only where heating and cooling
+        identify it; another model replaces ``poly`` only when its held-out error, geometric
+        mean over the axes, is at least 10 % lower); the choice and its figures are in
+        ``results.choice``. ``rate_terms`` or ``turntable_rate`` given with ``auto`` mean
+        ``poly``, ``lag_s`` means ``lag``. Or one named: ``poly`` (a polynomial in T, its order and the ``dT`` term chosen by
         AICc), ``lag`` (a polynomial in the sensing element's temperature Ts, a first-order lag
         of T whose time constant is fitted), ``six_term`` (``a1 T^2 + a2 T + a3 dT^2 + a4 dT +
         a5 T dT + a6``, the MATLAB example of the temperature-calibration method), ``piecewise``
@@ -158,6 +199,12 @@ class TemperatureStage(Stage):
         turning are left out of the bias fit."""
         scale_order: int = 2
         """Polynomial order of the scale factor in T - Tref."""
+        still_threshold: float = field(default=tc.STILL_K, metadata={"min": 0.0})
+        """Only still samples enter the fit: a sample is still where the windowed variance of
+        the accelerometer and of the gyroscope (1 s, or 10 samples on slower logs) is below this
+        many times its noise floor (the static-interval detector of the multi-position stages);
+        handling and moves between soaks are left out, and a block enters when half its samples
+        are still. 0: every sample enters (as before issue 25)."""
 
     @classmethod
     def sensors_for(cls, options: Any) -> tuple[str, ...]:
@@ -194,14 +241,37 @@ class TemperatureStage(Stage):
         b = track.blocks
         ids = v.block - b.id[0]
         m = len(b)
-        n_finite = np.bincount(ids, weights=finite, minlength=m)
-        sums = np.column_stack(
-            [
-                np.bincount(ids, weights=np.where(finite, data.values[:, i], 0.0), minlength=m)
-                for i in range(3)
-            ]
-        )
-        keep = b.complete(blocking) & (n_finite >= 0.5 * b.count)
+
+        def block_sums(mask: np.ndarray, values: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            """Per block: the samples in ``mask`` and their sums (m, 3)."""
+            count = np.bincount(ids, weights=mask, minlength=m)
+            sums = np.column_stack(
+                [np.bincount(ids, weights=np.where(mask, c, 0.0), minlength=m) for c in values.T]
+            )
+            return count, sums
+
+        n_finite, sums = block_sums(finite, data.values)
+        complete = b.complete(blocking) & (n_finite >= 0.5 * b.count)
+        still = self._still(table, data, finite)
+        keep, moving = complete, 0
+        if still is not None:
+            finite = finite & still
+            n_finite, sums = block_sums(finite, data.values)
+            keep = complete & (n_finite >= tc.MIN_STILL_SHARE * b.count)
+            moving = int(np.count_nonzero(complete & ~keep))
+        # the noise of a block mean: its two halves' means differ by noise alone (drift inside
+        # a block is far smaller), E[(m1 - m2)^2] / 4 = var(mean), correlated noise included
+        first = data.t_ns < b.centre[ids]
+        n1, s1 = block_sums(finite & first, data.values)
+        n2, s2 = block_sums(finite & ~first, data.values)
+        noise = (s1 / np.maximum(n1, 1)[:, None] - s2 / np.maximum(n2, 1)[:, None]) ** 2 / 4
+        noise[(n1 == 0) | (n2 == 0)] = np.nan
+        accel_means = None
+        acc = sensor(table, "accel").values if o.sensor == "gyro" else data.values
+        acc_ok = finite & usable(acc).all(axis=1)
+        if acc_ok.any():
+            n_acc, acc_sums = block_sums(acc_ok, acc)
+            accel_means = acc_sums / np.maximum(n_acc, 1)[:, None]
         pairs: dict[str, tuple[np.ndarray, np.ndarray]] = {}
         if o.turntable_rate is not None:
             rate = float(o.turntable_rate)
@@ -241,7 +311,28 @@ class TemperatureStage(Stage):
             temp_all=b.temps[:, 0],
             keep=keep_idx,
             pairs=pairs,
+            moving=moving,
+            accel=None if accel_means is None else accel_means[keep_idx],
+            noise=noise[keep_idx],
         )
+
+    def _still(self, table: pa.Table, data: Any, finite: np.ndarray) -> np.ndarray | None:
+        """(n,) the still samples (:func:`~imupipe.stages.thermal_choice.still_samples` on the
+        gyro and the accelerometer), or None when not judged (``still_threshold = 0``, a
+        turntable log, or no noise floor)."""
+        o = self.options
+        if not o.still_threshold or o.turntable_rate is not None:
+            return None
+        signals = []
+        for name in ("gyro", "accel"):
+            values = data.values if name == o.sensor else sensor(table, name).values
+            ok = usable(values).all(axis=1)
+            if np.count_nonzero(ok) < 3:
+                continue
+            if not ok.all():
+                values = np.where(ok[:, None], values, np.median(values[ok], axis=0))
+            signals.append(values)
+        return tc.still_samples(data.t_ns, signals, float(o.still_threshold))
 
     def _reference(self, means: np.ndarray) -> np.ndarray:
         if self.options.reference is not None:
@@ -304,6 +395,11 @@ class TemperatureStage(Stage):
             )
 
     def fit(self, table: pa.Table, ctx: StageContext) -> StageOutput:
+        if self.options.model == "auto":  # options that name a model's own terms name the model
+            if self.options.lag_s is not None:
+                self.options = replace(self.options, model="lag")
+            elif self.options.rate_terms is not None or self.options.turntable_rate is not None:
+                self.options = replace(self.options, model="poly")
         o = self.options
         self.check_options(ctx)
         prep = self.prepare(table, ctx, ctx.input_name)
@@ -321,21 +417,37 @@ class TemperatureStage(Stage):
             )
         tref = o.tref if o.tref is not None else (0.0 if o.model == "six_term" else (lo + hi) / 2)
         weights = self.weights(prep)
-        rel = self._relative(prep.variables, tref)
-        no_rate = directions_identify_rate(temp, prep.direction)
-        model, lag, notes = self._fallback(no_rate, ctx)
+        no_rate = directions_identify_rate(temp, prep.direction, prep.variables["dT"])
+        labels = tc.segment_labels(prep.keep)
+        if prep.moving:
+            ctx.warn(
+                f"{prep.moving} of {prep.moving + len(prep.keep)} complete blocks were left out: "
+                "less than half their samples still (handling or motion; still_threshold = "
+                f"{o.still_threshold:g})"
+            )
+        choice: dict[str, Any] | None = None
+        if o.model == "auto":
+            model, lag, notes, choice, cached = self._choose(
+                prep, weights, tref, no_rate, labels, ctx
+            )
+        else:
+            model, lag, notes = self._fallback(no_rate, ctx)
+            cached = None
         knots = tm.segment_knots(lo, hi, o.segment_width) if model == "piecewise" else None
-        if no_rate is not None:
-            rel = {k: v for k, v in rel.items() if k in ("T", "Ta")}
         ranges = {k: [float(v.min()), float(v.max())] for k, v in prep.variables.items()}
-        selection: dict[str, Any] = {}
-        lag_info: dict[str, Any] | None = None
-        lag_s = None
+        if cached is not None:
+            rel, lag_s, lag_info = cached
+        else:
+            rel, lag_s, lag_info = self._variables(prep, weights, tref, no_rate, lag, ctx)
         if lag:
-            lag_s, lag_info, rel = self._fit_lag(prep, weights, tref, ctx)
             for name in ("Ts", "dTs"):
                 value = rel[name] + (tref if name == "Ts" else 0.0)
                 ranges[name] = [float(value.min()), float(value.max())]
+        selection: dict[str, Any] = {}
+        if choice is not None:
+            held = choice.pop("_held")
+        else:
+            held = self._held_out(model, rel, prep.bias, weights, labels, tref, prep.noise)
         axes = []
         for i, axis in enumerate(AXES):
             terms, coef, info = self._fit_axis(model, rel, prep.bias[:, i], weights, knots, tref)
@@ -366,7 +478,7 @@ class TemperatureStage(Stage):
             "model": model,
             "tref": float(tref),
             "temperature_range": [lo, hi],
-            "rate_range": ranges["dT"],
+            "rate_range": [60.0 * ranges["dT"][0], 60.0 * ranges["dT"][1]],
             "blocks": len(prep.t_ns),
             "terms": {ax: step.axes[i]["terms"] for i, ax in enumerate(AXES)},
             "coefficients": {
@@ -374,6 +486,11 @@ class TemperatureStage(Stage):
             },
             "metrics": self.metrics(prep.bias, prep.bias - fitted),
         }
+        self._held_out_metrics(results["metrics"], held)
+        if choice is not None:
+            results["choice"] = choice
+        if prep.moving:
+            results["moving_blocks"] = prep.moving
         if notes:
             results["fallback"] = notes
         if lag_info is not None:
@@ -382,6 +499,7 @@ class TemperatureStage(Stage):
             results["selection"] = selection
         if step.scale is not None:
             results["scale"] = self._scale_metrics(prep, step)
+        self._check_held_out(held, prep, ctx)
         if o.validate is not None:
             results["metrics"]["validate"] = self._validate(step, ctx)
         artifacts = {}
@@ -392,6 +510,195 @@ class TemperatureStage(Stage):
 
             record_fit(ctx, prep, step, fitted, rel, lag_info)
         return StageOutput(results=results, step=step, artifacts=artifacts)
+
+    def _variables(
+        self,
+        prep: Prepared,
+        weights: np.ndarray,
+        tref: float,
+        no_rate: str | None,
+        lag: bool,
+        ctx: StageContext,
+        strict: bool = True,
+    ) -> tuple[dict[str, np.ndarray], float | None, dict[str, Any] | None]:
+        """The fit's variables relative to ``tref`` (without the rates when ``no_rate``), with
+        the lag's Ts, dTs when ``lag``: (variables, lag s, lag results)."""
+        rel = self._relative(prep.variables, tref)
+        if no_rate is not None:
+            rel = {k: v for k, v in rel.items() if k in ("T", "Ta")}
+        if not lag:
+            return rel, None, None
+        lag_s, lag_info, rel = self._fit_lag(prep, weights, tref, ctx, strict)
+        return rel, lag_s, lag_info
+
+    def _choose(
+        self,
+        prep: Prepared,
+        weights: np.ndarray,
+        tref: float,
+        no_rate: str | None,
+        labels: np.ndarray,
+        ctx: StageContext,
+    ) -> tuple[str, bool, list[str], dict[str, Any], Any]:
+        """``model = "auto"``: poly, lag (where heating and cooling identify it) and piecewise,
+        each predicting every held-out segment from the others; the lowest geometric-mean
+        held-out error wins, poly unless another is ``SWITCH_MARGIN`` better. Returns (model,
+        lag fitted, notes, results.choice with the chosen HeldOut under ``_held``, the chosen
+        model's (variables, lag s, lag results))."""
+        notes: list[str] = []
+        if no_rate is not None:
+            note = (
+                f"the lag and dT cannot be identified: {no_rate}; chose among a polynomial and "
+                "the piecewise-linear bias in T, which hold at the rates fitted: a lag this log "
+                "cannot show adds error at other rates (heat and cool the IMU over a common "
+                "range, at several rates, to fit them)"
+            )
+            ctx.warn(note)
+            notes.append(note)
+        plain = self._variables(prep, weights, tref, no_rate, False, ctx)
+        tried: dict[str, tuple[tc.HeldOut, Any]] = {}
+        for model in ("poly", "piecewise"):
+            tried[model] = (
+                self._held_out(model, plain[0], prep.bias, weights, labels, tref, prep.noise),
+                plain,
+            )
+        skipped = None
+        if no_rate is None:
+            lagged = self._variables(prep, weights, tref, None, True, ctx, strict=False)
+            info = lagged[2] or {}
+            if info.get("at_bound"):
+                skipped = (
+                    f"lag not tried: its time constant sits at the {info['at_bound']} end of "
+                    f"the search ({lagged[1]:.4g} s)"
+                )
+            else:
+                held = self._held_out(
+                    "lag", lagged[0], prep.bias, weights, labels, tref, prep.noise
+                )
+                tried["lag"] = (held, lagged)
+        scores = {m: h.score for m, (h, _) in tried.items()}
+        best = min(scores, key=lambda m: scores[m])
+        if best != "poly" and not scores[best] < SWITCH_MARGIN * scores["poly"]:
+            best = "poly"
+        held, cached = tried[best]
+        figures = ", ".join(f"{m} {scores[m]:.3g}" for m in tried)
+        why = (
+            f"{best} predicts the {held.segments} held-out segments best: held-out RMS / no "
+            f"compensation's, geometric mean over the axes, {figures}"
+        )
+        if best == "poly" and len(tried) > 1:
+            why += f" (another model replaces poly only when {1 - SWITCH_MARGIN:.0%} lower)"
+        if skipped:
+            why += f"; {skipped}"
+        choice: dict[str, Any] = {
+            "model": best,
+            "reason": why,
+            "segments": held.segments,
+            "scores": scores,
+            "held_out_rms": {
+                m: {a: float(h.rms[i]) for i, a in enumerate(AXES)} for m, (h, _) in tried.items()
+            },
+            "baseline_rms": {a: float(held.baseline[i]) for i, a in enumerate(AXES)},
+            "_held": held,
+        }
+        return best, best == "lag", notes, choice, cached
+
+    def _held_out(
+        self,
+        model: str,
+        rel: dict[str, np.ndarray],
+        bias: np.ndarray,
+        w: np.ndarray,
+        labels: np.ndarray,
+        tref: float,
+        noise: np.ndarray | None = None,
+    ) -> tc.HeldOut:
+        """Leave-one-segment-out prediction of the block bias by ``model`` on ``rel``
+        (:func:`~imupipe.stages.thermal_choice.held_out`): temperatures clamped to the training
+        blocks' range, the piecewise knots over it; a lag's time constant stays the one fitted
+        on every block."""
+        width = self.options.segment_width
+
+        def fit_predict(train: np.ndarray, test: np.ndarray) -> np.ndarray:
+            tr = {k: v[train] for k, v in rel.items()}
+            te = {k: v[test] for k, v in rel.items()}
+            for name in tm.TEMPERATURES:
+                if name in te:
+                    te[name] = np.clip(te[name], tr[name].min(), tr[name].max())
+            t_lo, t_hi = float(tr["T"].min()), float(tr["T"].max())
+            out = np.empty((int(np.count_nonzero(test)), bias.shape[1]))
+            knots = None
+            if model == "piecewise":
+                if t_hi - t_lo <= 1e-9:
+                    out[:] = (w[train] @ bias[train]) / w[train].sum()
+                    return out
+                knots = tm.segment_knots(t_lo + tref, t_hi + tref, width)
+            for i in range(bias.shape[1]):
+                terms, coef, _ = self._fit_axis(model, tr, bias[train, i], w[train], knots, tref)
+                out[:, i] = tm.evaluate(terms, coef, te, None if knots is None else knots - tref)
+            return out
+
+        return tc.held_out(fit_predict, bias, w, labels, rel["T"], noise)
+
+    @staticmethod
+    @staticmethod
+    def _held_out_metrics(metrics: dict[str, Any], held: tc.HeldOut) -> None:
+        """Per axis (SI): ``held_out_rms`` the model's error on held-out segments,
+        ``held_out_baseline`` no compensation's; ``remaining_rms`` the bias the correction
+        leaves (block-mean noise taken out) and ``remaining_rms_95`` its 95 % interval (the
+        three axes at once), on another log like this one."""
+        for i, axis in enumerate(AXES):
+            if not np.isfinite(held.rms[i]):
+                continue
+            metrics[axis]["held_out_rms"] = float(held.rms[i])
+            metrics[axis]["held_out_baseline"] = float(held.baseline[i])
+            remaining, interval = held.remaining(i)
+            if np.isfinite(remaining):
+                metrics[axis]["remaining_rms"] = remaining
+                metrics[axis]["remaining_rms_95"] = interval
+        metrics["held_out_segments"] = held.segments
+        metrics["held_out_blocks"] = held.blocks
+
+    def _check_held_out(self, held: tc.HeldOut, prep: Prepared, ctx: StageContext) -> None:
+        """The quality checks on what the fit may be applied to: one orientation, and a
+        correction that predicts held-out segments better than no compensation on every axis."""
+        unit = SENSOR_UNITS[self.options.sensor]
+        figures = ", ".join(
+            f"{a} {held.rms[i]:.3g} vs {held.baseline[i]:.3g}" for i, a in enumerate(AXES)
+        )
+        if prep.accel is not None and len(prep.accel):
+            runs = np.r_[0, np.cumsum(np.diff(prep.keep) > 1)]
+            counts = np.bincount(runs)
+            means = np.column_stack([np.bincount(runs, weights=c) for c in prep.accel.T])
+            spread = tc.orientation_spread(means / counts[:, None])
+            ctx.check(
+                spread <= tc.ORIENTATION_DEG,
+                f"the IMU was turned between its still periods (their gravity directions differ "
+                f"by up to {spread:.3g} deg from their mean): the {self.options.sensor} bias "
+                "changes with orientation (g-sensitivity, gravity itself) as well as with "
+                "temperature, and a temperature fit across orientations takes one for the other "
+                f"(held-out RMS {figures} {unit} without compensation); record the thermal log "
+                "in one fixed orientation, or give each orientation's part as its own input",
+            )
+        if held.segments < 2 or not np.isfinite(held.rms).all():
+            return
+        ratio = held.ratio
+        worse = [a for i, a in enumerate(AXES) if ratio[i] > 1.0 + HELD_OUT_MARGIN]
+        better = [a for i, a in enumerate(AXES) if ratio[i] < 1.0 - HELD_OUT_MARGIN]
+        where = (
+            f"worse than no compensation on {', '.join(worse)}"
+            if worse
+            else "no better than no compensation on any axis"
+        )
+        ctx.check(
+            not worse and bool(better),
+            f"the temperature fit predicts held-out segments {where} (held-out RMS over "
+            f"{held.segments} segments: {figures} {unit} without compensation; "
+            f"{HELD_OUT_MARGIN:.0%} either way counts as equal): the bias does not follow the "
+            "temperature there (drift, steps, or changes the temperature does not explain); "
+            "record a ramp that heats and cools the still IMU over 10 degC or more, in one "
+            "orientation",
+        )
 
     def _fallback(self, no_rate: str | None, ctx: StageContext) -> tuple[str, bool, list[str]]:
         """The model the data support: (model, whether the lag is fitted, what was dropped)."""
@@ -469,10 +776,12 @@ class TemperatureStage(Stage):
         return choice.terms, choice.coef, {"aicc": choice.scores}
 
     def _fit_lag(
-        self, prep: Prepared, w: np.ndarray, tref: float, ctx: StageContext
+        self, prep: Prepared, w: np.ndarray, tref: float, ctx: StageContext, strict: bool = True
     ) -> tuple[float, dict[str, Any], dict[str, np.ndarray]]:
         """The sensing element's time constant (given, or fitted on every axis at once with the
-        richest candidate model), and the variables with Ts, dTs at it."""
+        richest candidate model), and the variables with Ts, dTs at it. ``strict = False``
+        (the ``auto`` choice): a time constant at an end of the search is reported in the
+        results' ``at_bound``, not warned about or refused."""
         o = self.options
         spacing = (
             float(np.median(np.diff(prep.centre_all))) * 1e-9 if len(prep.centre_all) > 1 else 1.0
@@ -496,13 +805,15 @@ class TemperatureStage(Stage):
                 "search_s": list(bounds),
                 "profile": {"lag_s": fit.taus.tolist(), "cost": fit.costs.tolist()},
             }
-            if fit.at_bound == "low":
+            if not strict:
+                info["at_bound"] = fit.at_bound
+            elif fit.at_bound == "low":
                 ctx.warn(
                     f"the sensing element's time constant is at or below the block spacing "
                     f"({tau:.3g} s): no lag is resolved, the model is a polynomial in T with dT"
                 )
             ctx.check(
-                fit.at_bound != "high",
+                not strict or fit.at_bound != "high",
                 f"the sensing element's time constant sits at the top of the search "
                 f"({tau:.4g} s of {bounds[1]:.3g} s): the data do not pin it down",
             )

@@ -292,11 +292,14 @@ class TemperatureStep(ThermalStep):
         for name, far in stats.outside.items():
             if far:
                 lo, hi = self.ranges[name]
-                what = "clamped to" if name in tm.TEMPERATURES else "extrapolated beyond"
                 seen = stats.seen[name]
+                what, unit, k = "clamped to", "degC", 1.0
+                if name not in tm.TEMPERATURES:  # a rate: shown in degC/min, as everywhere
+                    what, unit, k = "extrapolated beyond", "degC/min", 60.0
                 notes.append(
-                    f"{name} {what} the fitted range [{lo:.4g}, {hi:.4g}] at {far} of "
-                    f"{stats.total} samples (seen {seen[0]:.4g}..{seen[1]:.4g})"
+                    f"{name} {what} the fitted range [{k * lo:.4g}, {k * hi:.4g}] {unit} at "
+                    f"{far} of {stats.total} samples (seen {k * seen[0]:.4g}..{k * seen[1]:.4g} "
+                    f"{unit})"
                 )
         return "; ".join(notes) or None
 
@@ -561,3 +564,11 @@ class Prepared:
     keep: np.ndarray
     pairs: dict[str, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)
     """Turntable runs per turned axis: (temperature degC, scale factor) of each +/-rate pair."""
+    moving: int = 0
+    """Complete blocks left out because less than half their samples were still."""
+    accel: np.ndarray | None = None
+    """(m, 3) mean specific force of each kept block's still samples (m/s^2), when the log has
+    an accelerometer: the orientation of the IMU."""
+    noise: np.ndarray | None = None
+    """(m, 3) the variance of each block mean from noise (SI^2; NaN where a block's halves
+    cannot be compared)."""
