@@ -246,6 +246,12 @@ def export(doc: dict[str, Any], complete: bool = False) -> Export:
                 continue
             models.append(model)
         placed += [(m, i) for m, i in zip(models, slots(models, out), strict=True) if i is not None]
+    if any(e.get("kind") == "baro_temperature" for e in doc.get("chain", [])):
+        out.note(
+            FNAME,
+            "baro: ArduPilot has no barometer temperature polynomial (PX4's TC_B*); the "
+            "barometer model is not written",
+        )
     shared = shared_ranges([(m, i) for m, i in placed if m.sensor != "mag"], out)
     alone: list[str] = []
     for model, i in placed:
