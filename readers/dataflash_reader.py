@@ -449,13 +449,15 @@ def candidates(f: DataFlashLog) -> dict[str, list[str]]:
 def choose_topics(spec: InputSpec, f: DataFlashLog) -> tuple[dict[str, str], list[str]]:
     """Stream -> instance key, from the spec's topic settings and the log; returns (choice,
     warnings). Defaults: the only IMU instance (several: an error naming them), the only
-    magnetometer (several: left out with a warning), the chosen IMU's own temperature."""
+    magnetometer (several: left out with a warning), the chosen IMU's own temperature. A key set
+    to ``""`` leaves its stream out."""
     cands = candidates(f)
     chosen: dict[str, str] = {}
     warnings: list[str] = []
+    off = {s for s, key in TOPIC_KEYS.items() if getattr(spec, key) == ""}
     for stream, key in TOPIC_KEYS.items():
         wanted = getattr(spec, key)
-        if wanted is None:
+        if wanted is None or stream in off:
             continue
         if wanted not in cands[stream]:
             where = "is not in the log" if wanted not in f.instances else "cannot fill it"
@@ -464,14 +466,14 @@ def choose_topics(spec: InputSpec, f: DataFlashLog) -> tuple[dict[str, str], lis
                 f"{', '.join(cands[stream]) or 'none'}"
             )
         chosen[stream] = wanted
-    if "imu" not in chosen and cands["imu"]:
+    if "imu" not in chosen and cands["imu"] and "imu" not in off:
         if len(cands["imu"]) > 1:
             raise ReadError(
                 f"{f.path}: several IMU instances ({', '.join(cands['imu'])}); set imu_topic in "
                 f"[inputs.{spec.name}]"
             )
         chosen["imu"] = cands["imu"][0]
-    if "mag" not in chosen and cands["mag"]:
+    if "mag" not in chosen and cands["mag"] and "mag" not in off:
         if len(cands["mag"]) == 1:
             chosen["mag"] = cands["mag"][0]
         else:
@@ -603,6 +605,25 @@ def dataflash_sources(path: Path) -> list[DataFlashLog]:
 CALIBRATION_PREFIXES = ("INS_", "COMPASS_", "AHRS_ORIENTATION", "AHRS_TRIM", "BARO", "TCAL")
 """The parameters kept in the table's metadata and shown by ``inspect``: IMU and compass
 calibration, board orientation and trim, barometer, temperature calibration."""
+
+
+def raw_instances(path: Path) -> dict[str, list[str]]:
+    """Kind -> the log's sensor instances (instance order): ``imu`` the ``IMU`` instances with
+    gyro and accel, ``mag`` the ``MAG`` ones, ``baro`` the ``BARO`` ones with a temperature and
+    a pressure, ``temperature`` those with a temperature; the names the topic keys take."""
+    f = DataFlashLog(path)
+    cands = candidates(f)
+    baro = [
+        k
+        for k in cands["temperature"]
+        if f.instances[k].name in BARO_NAMES and _has(f, f.instances[k], "Press")
+    ]
+    return {
+        "imu": cands["imu"],
+        "mag": cands["mag"],
+        "baro": baro,
+        "temperature": cands["temperature"],
+    }
 
 
 def calibration_parameters(f: DataFlashLog) -> dict[str, float]:
