@@ -42,7 +42,9 @@ metadata says so (``ardupilot.calibrated``), as for PX4's ``sensor_combined``.
 kept as nanoseconds since boot; a DataFlash record has one time, so ``time = "header"`` and
 ``time = "log"`` read the same.
 
-**Metadata** (besides the common keys): ``instance`` (stream -> instance number) and
+**Metadata** (besides the common keys): ``instance`` (stream -> instance number),
+``device_id`` (stream or sensor -> the device id the log's parameters give its instance,
+:func:`device_ids`) and
 ``ardupilot``: ``calibrated`` (stream -> true), ``parameters`` (the log's ``PARM`` values at
 start, the first of each name, of the calibration-related ones: :data:`CALIBRATION_PREFIXES`;
 :meth:`DataFlashLog.parameters` gives them all) and ``firmware`` (the first ``MSG`` text that
@@ -580,9 +582,13 @@ def read_dataflash(spec: InputSpec) -> tuple[pa.Table, list[str]]:
     meta = metadata(table)
     meta.pop("frame_id", None)  # a DataFlash log names no frames
     meta["instance"] = {s: f.instances[k].instance for s, k in chosen.items()}
+    params = calibration_parameters(f)
+    devices = device_ids(f, chosen, params)
+    if devices:
+        meta["device_id"] = devices
     meta["ardupilot"] = {
         "calibrated": {s: True for s in chosen if s != "temperature"},
-        "parameters": calibration_parameters(f),
+        "parameters": params,
         "firmware": f.firmware(),
     }
     others = sorted(set(f.instances) - set(chosen.values()))
@@ -595,6 +601,44 @@ def read_dataflash(spec: InputSpec) -> tuple[pa.Table, list[str]]:
             f"(they have no ROS message type; imupipe inspect lists them): {shown}"
         )
     return with_metadata(table, meta), warnings
+
+
+def _suffix(instance: int) -> str:
+    """ArduPilot's parameter names' instance part: ``""`` for the first, ``"2"``, ``"3"``."""
+    return "" if instance == 0 else str(instance + 1)
+
+
+def device_ids(
+    f: DataFlashLog, chosen: dict[str, str], params: dict[str, float]
+) -> dict[str, int]:
+    """Stream (or sensor) -> device id, from the log's own parameters: IMU instance ``n`` is
+    the IMU of ``INS_GYR{n}_ID`` (``imu``, ``gyro``) and ``INS_ACC{n}_ID`` (``accel``), compass
+    ``n`` of ``COMPASS_DEV_ID{n}``, barometer ``n`` of ``BARO{n+1}_DEVID`` (ArduPilot numbers
+    its sensors' parameter slots by instance); a temperature read from an IMU or barometer is
+    that device's. Ids that are zero or not logged are left out."""
+    found: dict[str, int] = {}
+
+    def put(key: str, name: str) -> None:
+        value = params.get(name)
+        if value:
+            found[key] = int(value)
+
+    for stream, key in chosen.items():
+        inst = f.instances[key]
+        s = _suffix(inst.instance)
+        if inst.name in IMU_NAMES:
+            targets = {"imu": f"INS_GYR{s}_ID", "accel": f"INS_ACC{s}_ID"}
+            if stream == "temperature":
+                targets = {"temperature": f"INS_GYR{s}_ID"}
+            elif "temperature" not in chosen or chosen["temperature"] == key:
+                targets["temperature"] = f"INS_GYR{s}_ID"
+            for k, name in targets.items():
+                put(k, name)
+        elif inst.name in MAG_NAMES:
+            put(stream, f"COMPASS_DEV_ID{s}")
+        elif inst.name in BARO_NAMES:
+            put(stream, f"BARO{inst.instance + 1}_DEVID")
+    return found
 
 
 def dataflash_sources(path: Path) -> list[DataFlashLog]:

@@ -370,7 +370,16 @@ def export(doc: dict[str, Any], complete: bool = False) -> Export:
     alone: list[str] = []
     logged: dict[str, Any] = {}
     for sensor in CAL:
-        models = device_models(doc, sensor)
+        models = []
+        for model in device_models(doc, sensor):
+            if ((model.fitted_on.get("ardupilot") or {}).get("calibrated") or {}).get(
+                STREAM[sensor]
+            ):
+                out.note(
+                    FNAME, f"{sensor}: fitted on data ArduPilot had already corrected; not written"
+                )
+                continue
+            models.append(model)
         for model, t in zip(models, targets(models, out), strict=True):
             if t is None:
                 continue
