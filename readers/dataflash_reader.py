@@ -608,9 +608,7 @@ def _suffix(instance: int) -> str:
     return "" if instance == 0 else str(instance + 1)
 
 
-def device_ids(
-    f: DataFlashLog, chosen: dict[str, str], params: dict[str, float]
-) -> dict[str, int]:
+def device_ids(f: DataFlashLog, chosen: dict[str, str], params: dict[str, float]) -> dict[str, int]:
     """Stream (or sensor) -> device id, from the log's own parameters: IMU instance ``n`` is
     the IMU of ``INS_GYR{n}_ID`` (``imu``, ``gyro``) and ``INS_ACC{n}_ID`` (``accel``), compass
     ``n`` of ``COMPASS_DEV_ID{n}``, barometer ``n`` of ``BARO{n+1}_DEVID`` (ArduPilot numbers

@@ -50,7 +50,9 @@ ACCEL_TOL = 0.2e-3
 """m/s^2: the same for the accelerometer's temperature-driven part (both remove a constant)."""
 
 
-BARO_INPUT = '[inputs.baro]\npath = "board.ulg"\nimu_topic = ""\ntemperature_topic = "sensor_baro"\n'
+BARO_INPUT = (
+    '[inputs.baro]\npath = "board.ulg"\nimu_topic = ""\ntemperature_topic = "sensor_baro"\n'
+)
 BARO_STAGE = '[[stages]]\nname = "baro"\ntype = "baro_temperature"\ninput = "baro"\n'
 BARO_TOL = 1.0
 """Pa: the TC_B curves of imupipe and PX4's script over the logged range."""
