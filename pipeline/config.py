@@ -29,7 +29,7 @@ from imupipe.readers.spec import (
 )
 from imupipe.stages.registry import STAGE_TYPES, stage_class
 
-INPUT_KEYS = {"path", "imu_topic", "mag_topic", "temperature_topic", "time", "csv"}
+INPUT_KEYS = {"path", "imu_topic", "mag_topic", "temperature_topic", "time", "csv", "instances"}
 CSV_KEYS = {f.name for f in dataclasses.fields(CsvMapping)} - {"required"}
 OUTPUT_KEYS = {"dir", "apply_to", "rerun", "rerun_max_points", "report", "exports", "params"}
 TOP_KEYS = {"inputs", "stages", "output"}
@@ -77,6 +77,9 @@ class Config:
     stages: list[StageConfig]
     output: OutputConfig
     raw: dict[str, Any] = field(default_factory=dict)
+    instances: dict[str, str | list[str]] = field(default_factory=dict)
+    """Input name -> its ``instances`` key (``"all"`` or topic keys): the stages on that input
+    run once per raw sensor instance of the log (:mod:`imupipe.pipeline.instances`)."""
 
 
 def _check_keys(where: str, table: dict[str, Any], allowed: set[str]) -> None:
@@ -295,6 +298,20 @@ def load_config(path: str | Path) -> Config:
         name: parse_input(name, value, base, f"{path}: [inputs.{name}]")
         for name, value in inputs_raw.items()
     }
+    instances: dict[str, str | list[str]] = {}
+    for name, value in inputs_raw.items():
+        each = value.get("instances") if isinstance(value, dict) else None
+        if each is None:
+            continue
+        if not (
+            each == "all"
+            or (isinstance(each, list) and each and all(isinstance(k, str) for k in each))
+        ):
+            raise ConfigError(
+                f'{path}: [inputs.{name}].instances: "all" or a list of topic instances '
+                '(["sensor_gyro", "sensor_gyro_1"])'
+            )
+        instances[name] = each
 
     stages_raw = raw.get("stages", [])
     if not isinstance(stages_raw, list):
@@ -390,4 +407,6 @@ def load_config(path: str | Path) -> Config:
         exports=exports,
         params=params,
     )
-    return Config(path=path, inputs=inputs, stages=stages, output=output, raw=raw)
+    return Config(
+        path=path, inputs=inputs, stages=stages, output=output, raw=raw, instances=instances
+    )

@@ -24,6 +24,7 @@ from imupipe.pipeline.calibration_file import applying, calibration_json, fitted
 from imupipe.pipeline.config import Config, load_config
 from imupipe.pipeline.exports import chosen as chosen_exports
 from imupipe.pipeline.exports import export_all
+from imupipe.pipeline.instances import expand_instances
 from imupipe.pipeline.progress import progress_bar
 from imupipe.pipeline.signals import signals_deferred
 from imupipe.pipeline.summary import (
@@ -160,7 +161,7 @@ def run(
     """Run a config end to end; returns what was written. ``one_shot``: the process ends with
     the run (the command line): the modules imported are frozen for the garbage collector
     (:class:`~imupipe.pipeline.warm_imports.WarmImports`)."""
-    cfg = config if isinstance(config, Config) else load_config(config)
+    cfg = expand_instances(config if isinstance(config, Config) else load_config(config))
     out_dir = cfg.output.dir
     guard = output_guard(cfg)
     remove_stale_temps(out_dir)

@@ -42,7 +42,9 @@ metadata says so (``ardupilot.calibrated``), as for PX4's ``sensor_combined``.
 kept as nanoseconds since boot; a DataFlash record has one time, so ``time = "header"`` and
 ``time = "log"`` read the same.
 
-**Metadata** (besides the common keys): ``instance`` (stream -> instance number) and
+**Metadata** (besides the common keys): ``instance`` (stream -> instance number),
+``device_id`` (stream or sensor -> the device id the log's parameters give its instance,
+:func:`device_ids`) and
 ``ardupilot``: ``calibrated`` (stream -> true), ``parameters`` (the log's ``PARM`` values at
 start, the first of each name, of the calibration-related ones: :data:`CALIBRATION_PREFIXES`;
 :meth:`DataFlashLog.parameters` gives them all) and ``firmware`` (the first ``MSG`` text that
@@ -449,13 +451,15 @@ def candidates(f: DataFlashLog) -> dict[str, list[str]]:
 def choose_topics(spec: InputSpec, f: DataFlashLog) -> tuple[dict[str, str], list[str]]:
     """Stream -> instance key, from the spec's topic settings and the log; returns (choice,
     warnings). Defaults: the only IMU instance (several: an error naming them), the only
-    magnetometer (several: left out with a warning), the chosen IMU's own temperature."""
+    magnetometer (several: left out with a warning), the chosen IMU's own temperature. A key set
+    to ``""`` leaves its stream out."""
     cands = candidates(f)
     chosen: dict[str, str] = {}
     warnings: list[str] = []
+    off = {s for s, key in TOPIC_KEYS.items() if getattr(spec, key) == ""}
     for stream, key in TOPIC_KEYS.items():
         wanted = getattr(spec, key)
-        if wanted is None:
+        if wanted is None or stream in off:
             continue
         if wanted not in cands[stream]:
             where = "is not in the log" if wanted not in f.instances else "cannot fill it"
@@ -464,14 +468,14 @@ def choose_topics(spec: InputSpec, f: DataFlashLog) -> tuple[dict[str, str], lis
                 f"{', '.join(cands[stream]) or 'none'}"
             )
         chosen[stream] = wanted
-    if "imu" not in chosen and cands["imu"]:
+    if "imu" not in chosen and cands["imu"] and "imu" not in off:
         if len(cands["imu"]) > 1:
             raise ReadError(
                 f"{f.path}: several IMU instances ({', '.join(cands['imu'])}); set imu_topic in "
                 f"[inputs.{spec.name}]"
             )
         chosen["imu"] = cands["imu"][0]
-    if "mag" not in chosen and cands["mag"]:
+    if "mag" not in chosen and cands["mag"] and "mag" not in off:
         if len(cands["mag"]) == 1:
             chosen["mag"] = cands["mag"][0]
         else:
@@ -578,9 +582,13 @@ def read_dataflash(spec: InputSpec) -> tuple[pa.Table, list[str]]:
     meta = metadata(table)
     meta.pop("frame_id", None)  # a DataFlash log names no frames
     meta["instance"] = {s: f.instances[k].instance for s, k in chosen.items()}
+    params = calibration_parameters(f)
+    devices = device_ids(f, chosen, params)
+    if devices:
+        meta["device_id"] = devices
     meta["ardupilot"] = {
         "calibrated": {s: True for s in chosen if s != "temperature"},
-        "parameters": calibration_parameters(f),
+        "parameters": params,
         "firmware": f.firmware(),
     }
     others = sorted(set(f.instances) - set(chosen.values()))
@@ -595,6 +603,42 @@ def read_dataflash(spec: InputSpec) -> tuple[pa.Table, list[str]]:
     return with_metadata(table, meta), warnings
 
 
+def _suffix(instance: int) -> str:
+    """ArduPilot's parameter names' instance part: ``""`` for the first, ``"2"``, ``"3"``."""
+    return "" if instance == 0 else str(instance + 1)
+
+
+def device_ids(f: DataFlashLog, chosen: dict[str, str], params: dict[str, float]) -> dict[str, int]:
+    """Stream (or sensor) -> device id, from the log's own parameters: IMU instance ``n`` is
+    the IMU of ``INS_GYR{n}_ID`` (``imu``, ``gyro``) and ``INS_ACC{n}_ID`` (``accel``), compass
+    ``n`` of ``COMPASS_DEV_ID{n}``, barometer ``n`` of ``BARO{n+1}_DEVID`` (ArduPilot numbers
+    its sensors' parameter slots by instance); a temperature read from an IMU or barometer is
+    that device's. Ids that are zero or not logged are left out."""
+    found: dict[str, int] = {}
+
+    def put(key: str, name: str) -> None:
+        value = params.get(name)
+        if value:
+            found[key] = int(value)
+
+    for stream, key in chosen.items():
+        inst = f.instances[key]
+        s = _suffix(inst.instance)
+        if inst.name in IMU_NAMES:
+            targets = {"imu": f"INS_GYR{s}_ID", "accel": f"INS_ACC{s}_ID"}
+            if stream == "temperature":
+                targets = {"temperature": f"INS_GYR{s}_ID"}
+            elif "temperature" not in chosen or chosen["temperature"] == key:
+                targets["temperature"] = f"INS_GYR{s}_ID"
+            for k, name in targets.items():
+                put(k, name)
+        elif inst.name in MAG_NAMES:
+            put(stream, f"COMPASS_DEV_ID{s}")
+        elif inst.name in BARO_NAMES:
+            put(stream, f"BARO{inst.instance + 1}_DEVID")
+    return found
+
+
 def dataflash_sources(path: Path) -> list[DataFlashLog]:
     """The one source of a DataFlash log (the ``log_sources`` entry)."""
     return [DataFlashLog(path)]
@@ -603,6 +647,25 @@ def dataflash_sources(path: Path) -> list[DataFlashLog]:
 CALIBRATION_PREFIXES = ("INS_", "COMPASS_", "AHRS_ORIENTATION", "AHRS_TRIM", "BARO", "TCAL")
 """The parameters kept in the table's metadata and shown by ``inspect``: IMU and compass
 calibration, board orientation and trim, barometer, temperature calibration."""
+
+
+def raw_instances(path: Path) -> dict[str, list[str]]:
+    """Kind -> the log's sensor instances (instance order): ``imu`` the ``IMU`` instances with
+    gyro and accel, ``mag`` the ``MAG`` ones, ``baro`` the ``BARO`` ones with a temperature and
+    a pressure, ``temperature`` those with a temperature; the names the topic keys take."""
+    f = DataFlashLog(path)
+    cands = candidates(f)
+    baro = [
+        k
+        for k in cands["temperature"]
+        if f.instances[k].name in BARO_NAMES and _has(f, f.instances[k], "Press")
+    ]
+    return {
+        "imu": cands["imu"],
+        "mag": cands["mag"],
+        "baro": baro,
+        "temperature": cands["temperature"],
+    }
 
 
 def calibration_parameters(f: DataFlashLog) -> dict[str, float]:

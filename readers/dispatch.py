@@ -55,6 +55,26 @@ SOURCES: dict[str, str] = {
 """Format -> "module:function(path) -> [LogSource]": the files of a binary log, for ``inspect``."""
 
 
+INSTANCES: dict[str, str] = {
+    "ulog": "imupipe.readers.ulog_reader:raw_instances",
+    "dataflash": "imupipe.readers.dataflash_reader:raw_instances",
+}
+"""Format -> "module:function(path) -> {kind: [instance key]}": the raw sensor instances of a
+log with several (``imu``, ``mag``, ``baro``), named as the topic keys take them."""
+
+
+def raw_instances(spec: InputSpec) -> dict[str, list[str]]:
+    """The raw sensor instances of ``spec``'s log by kind (``imu``, ``mag``, ``baro``);
+    ReadError for a format without instances (CSV, ROS)."""
+    fmt = detect_format(Path(spec.path))
+    if fmt not in INSTANCES:
+        raise ReadError(
+            f"{spec.path}: a {fmt} input has no sensor instances to list (ULog and DataFlash "
+            "logs have)"
+        )
+    return _load(spec, fmt, INSTANCES[fmt])(Path(spec.path))
+
+
 def detect_format(path: Path) -> str:
     """``csv``, ``mcap``, ``ros1``, ``ros2``, ``ulog`` or ``dataflash`` (ArduPilot ``.bin``) for
     a path; ReadError when unknown or missing."""

@@ -317,9 +317,10 @@ def choose_topics(spec: InputSpec, f: UlogFile) -> tuple[dict[str, str], list[st
     cands = candidates(f)
     chosen: dict[str, str] = {}
     warnings: list[str] = []
+    off = {s for s, key in TOPIC_KEYS.items() if getattr(spec, key) == ""}
     for stream, key in TOPIC_KEYS.items():
         wanted = getattr(spec, key)
-        if wanted is None:
+        if wanted is None or stream in off:
             continue
         if wanted not in cands[stream]:
             where = "is not in the log" if wanted not in f.instances else "cannot fill it"
@@ -328,7 +329,7 @@ def choose_topics(spec: InputSpec, f: UlogFile) -> tuple[dict[str, str], list[st
                 f"{', '.join(cands[stream]) or 'none'}"
             )
         chosen[stream] = wanted
-    if "imu" not in chosen:
+    if "imu" not in chosen and "imu" not in off:
         raw = [k for k in cands["imu"] if f.instances[k].name == "sensor_gyro"]
         integrated = [k for k in cands["imu"] if f.instances[k].name == "vehicle_imu"]
         if "sensor_combined" in cands["imu"]:
@@ -342,7 +343,7 @@ def choose_topics(spec: InputSpec, f: UlogFile) -> tuple[dict[str, str], list[st
             )
     imu = chosen.get("imu")
     raw_imu = imu is not None and f.instances[imu].name == "sensor_gyro"
-    if "mag" not in chosen:
+    if "mag" not in chosen and "mag" not in off:
         if raw_imu:
             pick = [k for k in cands["mag"] if k.startswith("sensor_mag")]
         else:
@@ -354,7 +355,7 @@ def choose_topics(spec: InputSpec, f: UlogFile) -> tuple[dict[str, str], list[st
                 f"magnetometer not read: several candidates ({', '.join(cands['mag'])}); "
                 f"set mag_topic in [inputs.{spec.name}]"
             )
-    if "temperature" not in chosen and imu is not None:
+    if "temperature" not in chosen and imu is not None and "temperature" not in off:
         device = _imu_gyro_device(f, imu)
         own = [
             g.key
@@ -635,6 +636,24 @@ def read_ulog(spec: InputSpec) -> tuple[pa.Table, list[str]]:
 def ulog_sources(path: Path) -> list[UlogFile]:
     """The one source of a ULog file, every topic parsed (the ``log_sources`` entry)."""
     return [UlogFile(path)]
+
+
+RAW_INSTANCE_TOPICS = ("sensor_gyro", "sensor_accel", "sensor_mag", "sensor_baro", "vehicle_imu")
+"""The topics parsed to list a log's raw sensor instances (``vehicle_imu``: PX4's pairing)."""
+
+
+def raw_instances(path: Path) -> dict[str, list[str]]:
+    """Kind -> the log's raw sensor instances, in instance order: ``imu`` the ``sensor_gyro``
+    instances with an accelerometer partner (:func:`accel_partner`), ``mag`` the ``sensor_mag``
+    instances, ``baro`` the ``sensor_baro`` instances that log a pressure, ``temperature`` the
+    instances with a temperature; the names the topic keys take (``imu_topic``, ``mag_topic``, ``temperature_topic``)."""
+    f = UlogFile(path, RAW_INSTANCE_TOPICS)
+    return {
+        "imu": [g.key for g in f.named("sensor_gyro") if accel_partner(f, g) is not None],
+        "mag": [m.key for m in f.named("sensor_mag")],
+        "baro": [b.key for b in f.named("sensor_baro") if b.has("pressure", "temperature")],
+        "temperature": candidates(f)["temperature"],
+    }
 
 
 def describe(spec: InputSpec) -> dict[str, Any]:

@@ -15,6 +15,7 @@ STAGE_TYPES: dict[str, str] = {
     "mag_calibration": "imupipe.stages.mag_calibration:MagCalibrationStage",
     "temperature": "imupipe.stages.temperature:TemperatureStage",
     "thermal_soak": "imupipe.stages.thermal_soak:ThermalSoakStage",
+    "baro_temperature": "imupipe.stages.baro_temperature:BaroTemperatureStage",
 }
 
 

@@ -50,6 +50,14 @@ ACCEL_TOL = 0.2e-3
 """m/s^2: the same for the accelerometer's temperature-driven part (both remove a constant)."""
 
 
+BARO_INPUT = (
+    '[inputs.baro]\npath = "board.ulg"\nimu_topic = ""\ntemperature_topic = "sensor_baro"\n'
+)
+BARO_STAGE = '[[stages]]\nname = "baro"\ntype = "baro_temperature"\ninput = "baro"\n'
+BARO_TOL = 1.0
+"""Pa: the TC_B curves of imupipe and PX4's script over the logged range."""
+
+
 def _stages(stype: str, sensors: list[str], extra: str = "") -> str:
     text = ""
     for i in (0, 1):
@@ -81,6 +89,7 @@ def warm_up(tmp_path_factory):
     log, truth = simulate("board", WARM_UP, seed=26)
     write_log(d / "board.ulg", log)
     body = _stages("temperature", ["gyro", "accel"], "order = 3\nrate_terms = []\n")
+    body = BARO_INPUT + body + BARO_STAGE
     doc, px4, ardu = _run(d, body)
     return d, truth, doc, px4, ardu, (d / "out" / "px4_calibration.params").read_text()
 
@@ -215,7 +224,8 @@ def test_ardupilot_formula_reproduces_imupipe_for_both_devices(warm_up):
 
 def test_px4s_script_agrees(warm_up, tmp_path):
     """PX4's Tools/process_sensor_caldata.py on the same log: every TC curve of both devices
-    within 0.05 mrad/s (gyro) and 0.2 mm/s^2 (accel, temperature-driven part)."""
+    within 0.05 mrad/s (gyro) and 0.2 mm/s^2 (accel, temperature-driven part), the
+    barometer's TC_B within 1 Pa."""
     script = os.environ.get("PX4_PROCESS_SENSOR_CALDATA")
     if not script or not Path(script).is_file():
         pytest.skip(
@@ -245,6 +255,17 @@ def test_px4s_script_agrees(warm_up, tmp_path):
             if prefix == "TC_A":
                 err -= err.mean(axis=0)
             assert np.abs(err).max() < tol, (prefix, dev, np.abs(err).max())
+    k = _slot(px4, "TC_B", theirs["TC_B0_ID"])
+    lo = max(px4[f"TC_B{k}_TMIN"], theirs["TC_B0_TMIN"])
+    hi = min(px4[f"TC_B{k}_TMAX"], theirs["TC_B0_TMAX"])
+    temp = np.linspace(lo, hi, 100)
+
+    def tc_b(p: dict, n: int) -> np.ndarray:
+        x = np.clip(temp, p[f"TC_B{n}_TMIN"], p[f"TC_B{n}_TMAX"]) - p[f"TC_B{n}_TREF"]
+        return np.polynomial.polynomial.polyval(x, [p[f"TC_B{n}_X{j}"] for j in range(6)])
+
+    err = np.abs(tc_b(px4, k) - tc_b(theirs, 0)).max()
+    assert err < BARO_TOL, err
 
 
 # -- offsets of two devices ----------------------------------------------------------------------

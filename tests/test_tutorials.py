@@ -149,8 +149,9 @@ def test_px4_ulog(tmp_path):
 
 
 def test_px4_thermal_calibration(tmp_path):
-    """The PX4 thermal tutorial: both IMUs' TC_G/TC_A in their devices' slots with the quoted
-    figures, the quoted fit of the second gyro, the quoted header, no CAL_ACC/CAL_GYRO line."""
+    """The PX4 thermal tutorial (one input with instances = "all"): both IMUs' TC_G/TC_A and the
+    barometer's TC_B0 in their devices' slots with the quoted figures, the quoted fit of the
+    second gyro, the quoted header, no CAL_ACC/CAL_GYRO line, the quoted barometer figures."""
     page = "px4-thermal-calibration.md"
     run_commands(blocks(page, "bash")[0], tmp_path)
     (tmp_path / "thermal.toml").write_text(blocks(page, "toml")[0])
@@ -181,4 +182,9 @@ def test_px4_thermal_calibration(tmp_path):
         "TC_A1_ID",
         "TC_G0_ID",
         "TC_G1_ID",
+        "TC_B0_ID",
     }
+    doc = json.loads((tmp_path / "out_thermal" / "calibration.json").read_text())
+    baro = doc["results"]["baro_sensor_baro"]["metrics"]
+    assert round(baro["correction_span_pa"]) == 196
+    assert round(baro["residual_rms_pa"]) == 1

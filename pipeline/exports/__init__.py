@@ -35,12 +35,18 @@ DEFAULT: tuple[str, ...] = ("kalibr", "imu_utils", "vins", "openvins")
 
 def chosen(doc: dict[str, Any], asked: list[str] | None) -> list[str]:
     """The exporters to run: ``asked`` (``[output] exports``), else :data:`DEFAULT` plus ``px4``
-    when a chain step was fitted on a PX4 log. Kalibr's noise file ``imu.yaml`` is written
-    whenever an ``allan`` stage ran, whatever was asked."""
+    when a chain step was fitted on a PX4 log (``ulog``) and ``ardupilot`` when one was fitted
+    on an ArduPilot log (``dataflash``). Kalibr's noise file ``imu.yaml`` is written whenever
+    an ``allan`` stage ran, whatever was asked."""
     if asked is not None:
         return [name for name in EXPORTERS if name in asked or name == "kalibr"]
-    px4 = any((e.get("fitted_on") or {}).get("format") == "ulog" for e in doc.get("chain", []))
-    return [name for name in EXPORTERS if name in DEFAULT or (name == "px4" and px4)]
+    formats = {(e.get("fitted_on") or {}).get("format") for e in doc.get("chain", [])}
+    autopilots = {name for name, fmt in AUTOPILOT_FORMATS.items() if fmt in formats}
+    return [name for name in EXPORTERS if name in DEFAULT or name in autopilots]
+
+
+AUTOPILOT_FORMATS = {"px4": "ulog", "ardupilot": "dataflash"}
+"""Autopilot exporter -> the log format (``imupipe.readers.dispatch``) that makes it a default."""
 
 
 PARAMETER_FILES: tuple[str, ...] = ("px4", "ardupilot")

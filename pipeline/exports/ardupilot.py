@@ -39,6 +39,11 @@ symmetric. A temperature polynomial of order <= 3 in T maps exactly: it is re-ex
 range) goes into the offset and ``INS_ACCi_CALTEMP``/``INS_GYRi_CALTEMP`` is that temperature. Models with
 rate, ambient, piecewise or scale-factor terms do not map (noted, left out). A sensor fitted on
 data PX4 had already corrected (a ULog's ``sensor_combined``) is left out.
+
+**Data ArduPilot had already corrected** (a DataFlash log's ``IMU`` and ``MAG``): the chain is
+composed with the log's own ``INS_*OFFS``/``INS_ACC*SCAL``/``COMPASS_*`` (:func:`compose_with_log`),
+so the file holds the vehicle's new calibration, in the slot of the device (the reader gives
+each instance the id of its ``INS_*_ID``/``COMPASS_DEV_ID*``).
 """
 
 from __future__ import annotations
@@ -115,10 +120,15 @@ def slots(models: list[SensorModel], out: Export) -> list[int | None]:
 
 
 def imu_rows(
-    model: SensorModel, i: int, out: Export, shared: tuple[float, float] | None
+    model: SensorModel,
+    i: int,
+    out: Export,
+    shared: tuple[float, float] | None,
+    scaled: bool | None = None,
 ) -> list[Row]:
     """The rows of IMU slot ``i``'s accel or gyro; ``shared``: the slot's ``INS_TCALi_TMIN``/
-    ``TMAX`` (ArduPilot clamps both the temperature and ``CALTEMP`` to it)."""
+    ``TMAX`` (ArduPilot clamps both the temperature and ``CALTEMP`` to it); ``scaled``: whether
+    a stage estimated a matrix (default: the model's own)."""
     short = SHORT[model.sensor]
     offs = f"INS_{short}{_s(i)}OFFS" if model.sensor == "accel" or i else "INS_GYROFFS"
     m, offset = model.matrix, model.offset.copy()
@@ -152,7 +162,7 @@ def imu_rows(
         if dev is not None:
             rows.append((id_name(model.sensor, i), dev))
         rows += [(f"{offs}_{a}", offset[j]) for j, a in enumerate("XYZ")]
-    if not model.scaled:
+    if not (model.scaled if scaled is None else scaled):
         return rows
     diag = np.diag(m)
     off = off_diagonal(m)
@@ -189,7 +199,7 @@ def families(sensor: str, i: int) -> list[tuple[str, str]]:
     return out + ([(f"INS_ACC{_s(i)}SCAL_", "")] if sensor == "accel" else [])
 
 
-def mag_rows(model: SensorModel, i: int, out: Export) -> list[Row]:
+def mag_rows(model: SensorModel, i: int, out: Export, scaled: bool | None = None) -> list[Row]:
     if model.thermal is not None:
         out.note(FNAME, "mag: ArduPilot has no compass temperature model; left out")
     rows: list[Row] = []
@@ -200,12 +210,82 @@ def mag_rows(model: SensorModel, i: int, out: Export) -> list[Row]:
         rows.append((id_name("mag", i), dev))
     ofs = -model.offset * MILLIGAUSS_PER_TESLA
     rows += [(f"COMPASS_OFS{_s(i)}_{a}", ofs[j]) for j, a in enumerate("XYZ")]
-    if model.scaled:
+    if model.scaled if scaled is None else scaled:
         diag, off = soft_iron(model.matrix, out, FNAME)
         rows += [(f"COMPASS_DIA{_s(i)}_{a}", diag[j]) for j, a in enumerate("XYZ")]
         rows += [(f"COMPASS_ODI{_s(i)}_{a}", off[j]) for j, a in enumerate("XYZ")]
         rows += [(f"COMPASS_SCALE{_s(i)}", 1.0)]
     return rows
+
+
+def ardupilot_corrected(model: SensorModel) -> bool:
+    """Whether the model was fitted on data ArduPilot had already corrected (a DataFlash log's
+    ``IMU``/``MAG``: ``fitted_on.ardupilot.calibrated``)."""
+    stream = "mag" if model.sensor == "mag" else "imu"
+    return bool(((model.fitted_on.get("ardupilot") or {}).get("calibrated") or {}).get(stream))
+
+
+def _vector(p: dict[str, Any], name: str, default: float) -> np.ndarray:
+    values = [p.get(f"{name}_{a}", default) for a in "XYZ"]
+    return np.array([default if v is None else float(v) for v in values])
+
+
+def compose_with_log(model: SensorModel, i: int, out: Export) -> SensorModel | None:
+    """The model in ArduPilot's raw (sensor-frame) domain when it was fitted on data ArduPilot
+    had corrected with the log's own parameters (module docstring: the logged ``IMU`` is
+    ``S (raw - tcal(T) - OFFS)``, the logged ``MAG`` is ``COMPASS_SCALE W (raw + OFS)``):
+    ``M (logged - o - b(T))`` becomes ``M S (raw - (OFFS + S^-1 o) - S^-1 b(T))``, so the
+    file replaces the log's calibration. Needs no board rotation (``AHRS_ORIENTATION = 0``) and,
+    for a compass, no ``COMPASS_ORIENT``; else the sensor is left out with a note. A thermal
+    model on data the log had already compensated (``INS_TCALi_ENABLE = 1``) is left out."""
+    p = log_parameters(model)
+    sensor, s = model.sensor, _s(i)
+    rot = p.get("AHRS_ORIENTATION", 0) or 0
+    orient = p.get(f"COMPASS_ORIENT{s}", 0) or 0 if sensor == "mag" else 0
+    if rot or orient:
+        out.note(
+            FNAME,
+            f"{sensor}: fitted on data ArduPilot had rotated (AHRS_ORIENTATION = {rot:g}"
+            + (f", COMPASS_ORIENT{s} = {orient:g}" if sensor == "mag" else "")
+            + "); not written",
+        )
+        return None
+    thermal = model.thermal
+    if sensor == "mag":
+        w = np.diag(_vector(p, f"COMPASS_DIA{s}", 1.0))
+        if not np.any(np.diag(w)):
+            w = np.eye(3)  # ArduPilot reads an all-zero diagonal as the identity
+        odi = _vector(p, f"COMPASS_ODI{s}", 0.0)
+        for (a, b), value in zip(((0, 1), (0, 2), (1, 2)), odi, strict=True):
+            w[a, b] = w[b, a] = value
+        w = w * float(p.get(f"COMPASS_SCALE{s}") or 1.0)
+        old = -_vector(p, f"COMPASS_OFS{s}", 0.0) / MILLIGAUSS_PER_TESLA
+    else:
+        short = SHORT[sensor]
+        offs = f"INS_{short}{s}OFFS" if sensor == "accel" or i else "INS_GYROFFS"
+        old = _vector(p, offs, 0.0)
+        scale = _vector(p, f"INS_ACC{s}SCAL", 1.0) if sensor == "accel" else np.ones(3)
+        w = np.diag(np.where(scale == 0.0, 1.0, scale))
+        if thermal is not None and p.get(f"INS_TCAL{i + 1}_ENABLE") == 1:
+            out.note(
+                FNAME,
+                f"{sensor}: the log's data were already thermally compensated by ArduPilot "
+                f"(INS_TCAL{i + 1}_ENABLE = 1): keep its INS_TCAL{i + 1}; the fitted "
+                "temperature model is not written",
+            )
+            thermal = None
+    winv = np.linalg.inv(w)
+    if thermal is not None:
+        thermal = type(thermal)(thermal.tref, winv @ thermal.coefficients, thermal.t_range)
+    return SensorModel(
+        sensor,
+        model.matrix @ w,
+        old + winv @ model.offset,
+        thermal,
+        model.entries,
+        model.issues,
+        model.device,
+    )
 
 
 def shared_ranges(
@@ -246,16 +326,31 @@ def export(doc: dict[str, Any], complete: bool = False) -> Export:
                 continue
             models.append(model)
         placed += [(m, i) for m, i in zip(models, slots(models, out), strict=True) if i is not None]
-    shared = shared_ranges([(m, i) for m, i in placed if m.sensor != "mag"], out)
-    alone: list[str] = []
+    if any(e.get("kind") == "baro_temperature" for e in doc.get("chain", [])):
+        out.note(
+            FNAME,
+            "baro: ArduPilot has no barometer temperature polynomial (PX4's TC_B*); the "
+            "barometer model is not written",
+        )
+    composed: list[tuple[SensorModel, int, bool]] = []
     for model, i in placed:
+        scaled = model.scaled  # what the stages estimated, before the log's own is composed
+        if ardupilot_corrected(model):
+            found = compose_with_log(model, i, out)
+            if found is None:
+                continue
+            model = found
+        composed.append((model, i, scaled))
+    shared = shared_ranges([(m, i) for m, i, _ in composed if m.sensor != "mag"], out)
+    alone: list[str] = []
+    for model, i, scaled in composed:
         for issue in model.issues:
             out.note(FNAME, f"{model.sensor}: {issue}")
         logged.update(log_parameters(model))
         if model.sensor == "mag":
-            mine = mag_rows(model, i, out)
+            mine = mag_rows(model, i, out, scaled)
         else:
-            mine = imu_rows(model, i, out, shared.get(i))
+            mine = imu_rows(model, i, out, shared.get(i), scaled)
         rows += mine
         alone += left_alone([r[0] for r in mine], families(model.sensor, i))
     for i, (lo, hi) in shared.items():

@@ -53,12 +53,14 @@ from typing import Any
 
 import numpy as np
 
+from imupipe.pipeline.calibration_file import same_device
 from imupipe.pipeline.exports.common import (
     OFF_DIAGONAL,
     RELATIVE_TOLERANCE,
     Export,
     SensorModel,
     device_models,
+    entry_device,
     left_alone,
     number,
     off_diagonal,
@@ -306,6 +308,60 @@ def families(sensor: str, t: Target) -> list[tuple[str, str]]:
     return [(prefix.format(n=t.n, k=t.tc), suffix) for prefix, suffix in FAMILIES[sensor]]
 
 
+BARO_KIND = "baro_temperature"
+"""The chain entries of barometer temperature models (:mod:`imupipe.stages.baro_temperature`)."""
+
+
+def baro_rows(doc: dict[str, Any], out: Export) -> tuple[list[Row], list[str], dict[str, Any]]:
+    """(rows, families left alone, the log's parameters) of every barometer's ``TC_Bk_*``:
+    ``offset = sum X_k (clamp(T) - TREF)^k``, Pa, one slot per device by ``TC_Bk_ID`` (module
+    docstring: slot rules, as ``TC_*``); ``TC_Bk_SCL = 1`` where the log has that parameter
+    (PX4 up to v1.11 multiplies the corrected pressure by it)."""
+    rows: list[Row] = []
+    alone: list[str] = []
+    logged: dict[str, Any] = {}
+    taken: set[int] = set()
+    seen: list[dict[str, Any]] = []
+    for entry in doc.get("chain", []):
+        if entry.get("kind") != BARO_KIND:
+            continue
+        where = entry.get("fitted_on") or {}
+        dev = entry_device(entry)
+        if any(same_device(dev, other) for other in seen):
+            out.note(FNAME, "baro: a second barometer temperature step of one device: not mapped")
+            continue
+        seen.append(dev)
+        params = (where.get("px4") or {}).get("parameters") or {}
+        device_id = dev.get("device_id")
+        device_id = None if device_id is None else int(device_id)
+        k = _slot("TC_B", "_ID", device_id, params, taken, dev.get("instance"))
+        if k is None:
+            out.note(FNAME, f"baro: no TC_B slot left for device {device_id}; not written")
+            continue
+        taken.add(k)
+        prefix = f"TC_B{k}"
+        mine: list[Row] = [("TC_B_ENABLE", 1, INT32)]
+        if device_id is not None:
+            mine.append((f"{prefix}_ID", device_id, INT32))
+        else:
+            out.note(
+                FNAME,
+                f"baro: the input names no PX4 device, so {prefix}_ID is not written; PX4 "
+                "applies a slot only to the device whose id it holds: set it",
+            )
+        lo, hi = entry["range"]
+        mine += [(f"{prefix}_TREF", float(entry["tref"]), REAL32)]
+        mine += [(f"{prefix}_TMIN", float(lo), REAL32), (f"{prefix}_TMAX", float(hi), REAL32)]
+        coef = list(entry["coefficients"]) + [0.0] * (6 - len(entry["coefficients"]))
+        mine += [(f"{prefix}_X{j}", float(c), REAL32) for j, c in enumerate(coef)]
+        if f"{prefix}_SCL" in params:
+            mine.append((f"{prefix}_SCL", 1.0, REAL32))
+        rows += mine
+        alone += left_alone([r[0] for r in mine], [(f"{prefix}_", "")])
+        logged.update(params)
+    return rows, alone, logged
+
+
 def export(doc: dict[str, Any], complete: bool = False) -> Export:
     """``px4_calibration.params``: the estimated parameters of every device in its own slot;
     ``complete``: merged over the log's own ``CAL_*``/``TC_*``/``SENS_BOARD_*`` parameters."""
@@ -314,7 +370,16 @@ def export(doc: dict[str, Any], complete: bool = False) -> Export:
     alone: list[str] = []
     logged: dict[str, Any] = {}
     for sensor in CAL:
-        models = device_models(doc, sensor)
+        models = []
+        for model in device_models(doc, sensor):
+            if ((model.fitted_on.get("ardupilot") or {}).get("calibrated") or {}).get(
+                STREAM[sensor]
+            ):
+                out.note(
+                    FNAME, f"{sensor}: fitted on data ArduPilot had already corrected; not written"
+                )
+                continue
+            models.append(model)
         for model, t in zip(models, targets(models, out), strict=True):
             if t is None:
                 continue
@@ -322,6 +387,10 @@ def export(doc: dict[str, Any], complete: bool = False) -> Export:
             rows += mine
             alone += left_alone([r[0] for r in mine], families(sensor, t))
             logged.update(t.params)
+    baro, baro_alone, baro_logged = baro_rows(doc, out)
+    rows += baro
+    alone += baro_alone
+    logged.update(baro_logged)
     if not rows:
         return out
     seen: dict[str, Row] = {}

@@ -16,9 +16,10 @@ and its own thermal bias, per axis, with ``x = T_i - tref`` (degC)::
 
 (``<sensor>_poly[i]`` = [[c0, c1, c2, c3] per axis]; PX4's body frame is forward-right-down,
 so a level board reads ``-gravity`` on z.) The barometer (``sensor_baro`` instance 0, with
-``baro``) reads ``pressure + baro_poly(T_b - tref)`` Pa (``baro_poly`` [c0 .. c5]) at its own
-temperature ``T_b`` (the first IMU's warm-up plus ``baro_offset`` degC), written in hPa (mbar) as
-PX4 v1.11 does. Every temperature carries white noise of std ``temperature_noise``. Stamps are
+``baro``) reads ``pressure + baro_poly(T_b - tref)`` Pa (``baro_poly`` [c0 .. c5], the known
+thermal pressure error that PX4's ``TC_B*`` compensate) plus white noise of std ``baro_noise``
+Pa, at its own temperature ``T_b`` (the first IMU's warm-up plus ``baro_offset`` degC), written
+in hPa (mbar) as PX4 v1.11 does. Every temperature carries white noise of std ``temperature_noise``. Stamps are
 microseconds since boot from ``boot_s``; gyro and accel of one IMU share their
 ``timestamp_sample`` (PX4's FIFO drivers stamp both alike).
 
@@ -90,6 +91,7 @@ DEFAULTS: dict[str, Any] = {
     "baro_offset": -3.0,
     "pressure": 101325.0,
     "baro_poly": [0.0, 4.0, -0.05, 1.0e-3, 0.0, 0.0],
+    "baro_noise": 1.0,
     "parameters": {},
 }
 
@@ -161,6 +163,7 @@ def simulate(p: dict[str, Any], rng: np.random.Generator) -> tuple[UlogData, dic
         temp = temp + float(p["baro_offset"])
         poly = np.asarray(p["baro_poly"], dtype=np.float64)
         pa_ = float(p["pressure"]) + np.polynomial.polynomial.polyval(temp - tref, poly)
+        pa_ = pa_ + rng.standard_normal(nb) * float(p["baro_noise"])
         bstamp = boot_us + np.round(tb * 1e6).astype(np.int64) + 300
         measured = temp + rng.standard_normal(nb) * float(p["temperature_noise"])
         data = {"timestamp": bstamp + 50, "timestamp_sample": bstamp}
