@@ -5,9 +5,10 @@ figures; rate and direction warnings match the data (degC/min)."""
 
 from __future__ import annotations
 
+import sys
+
 import numpy as np
 import pytest
-from test_sweep_thermal import load_family
 
 from imupipe.pipeline.errors import FitError
 from imupipe.pipeline.simulate import simulate, write_log
@@ -15,7 +16,9 @@ from imupipe.readers.table import make_table
 from imupipe.stages.base import StageContext
 from imupipe.stages.temperature import TemperatureStage
 
-from conftest import run_cli
+from conftest import REPO, run_cli
+
+sys.path.insert(0, str(REPO / "benchmarks"))
 
 LAG = {"rate_hz": 2.0, "element_lag_s": 200.0, "gyro_rate_coef": [0.0] * 3, "ambient": False}
 
@@ -29,7 +32,9 @@ def fit(table, held_out=None, **options):
 
 @pytest.fixture(scope="module")
 def family():
-    return load_family()
+    from sweep_cases import thermal
+
+    return thermal
 
 
 @pytest.fixture(scope="module")
