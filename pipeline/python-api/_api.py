@@ -37,7 +37,7 @@ from imupipe.pipeline.inspect_log import inspect as inspect_log
 from imupipe.pipeline.inspect_log import render as render_inspection
 from imupipe.pipeline.run import RunSummary, calibration_document
 from imupipe.pipeline.run import run as run_config
-from imupipe.pipeline.summary import StageSummary, print_summary, summarise
+from imupipe.pipeline.summary import StageSummary, print_summary, raw_count_sensors, summarise
 from imupipe.readers.dispatch import read_input
 from imupipe.readers.errors import ImupipeError
 from imupipe.readers.spec import InputSpec
@@ -236,6 +236,9 @@ class StageResult:
     type: str
     results: dict[str, Any]
     steps: list[Step] = field(default_factory=list)
+    counts: frozenset[str] = frozenset()
+    """Sensors whose input was read in raw counts (``<sensor>_unit = "raw"``): their offsets
+    are in counts, and the tables say so."""
 
     @property
     def values(self) -> dict[str, Any]:
@@ -272,7 +275,9 @@ class StageResult:
         return Calibration.from_results(self)
 
     def summary(self) -> StageSummary:
-        return summarise({self.name: self.results})[0]
+        """The summary ``imupipe run`` prints and the report shows."""
+        counts = {str(self.results.get("input")): set(self.counts)}
+        return summarise({self.name: self.results}, counts)[0]
 
     def __repr__(self) -> str:
         return _text([self.summary()])
@@ -330,7 +335,9 @@ def fit_stage(
     if ctx.failed_checks:
         results["failed_checks"] = ctx.failed_checks
     _warn(ctx.warnings, stage_name, stacklevel=3)  # the user -> imupipe.allan -> here
-    return StageResult(stage_name, type_name, results, output.steps)
+    units = metadata(table).get("units", {})
+    raw = frozenset(s for s, unit in units.items() if unit == "raw")
+    return StageResult(stage_name, type_name, results, output.steps, raw)
 
 
 @dataclass
@@ -345,6 +352,8 @@ class Calibration:
 
     document: dict[str, Any]
     steps: list[Step]
+    fitted: dict[str, StageResult] = field(default_factory=dict, repr=False)
+    """The stage results it was made from (:meth:`from_results`), by stage name."""
 
     @classmethod
     def load(cls, path: str | os.PathLike[str]) -> Calibration:
@@ -360,7 +369,8 @@ class Calibration:
         ``a = imupipe.accel_calibration(b.apply(t))``, ``Calibration.from_results(b, a)``)."""
         chain = [step for r in results for step in r.steps]
         fitted = [r.results.get("fitted_on") for r in results for _ in r.steps]
-        return cls(calibration_document(chain, {r.name: r.results for r in results}, fitted), chain)
+        doc = calibration_document(chain, {r.name: r.results for r in results}, fitted)
+        return cls(doc, chain, {r.name: r for r in results})
 
     def apply(self, table: pa.Table) -> pa.Table:
         """``table`` corrected by every step of the chain, in order."""
@@ -376,6 +386,8 @@ class Calibration:
     @property
     def results(self) -> dict[str, StageResult]:
         """The stage results recorded with the chain, by stage name."""
+        if self.fitted:
+            return dict(self.fitted)
         return {
             name: StageResult(name, str(r.get("type", "?")), r, [])
             for name, r in self.document.get("results", {}).items()
@@ -393,8 +405,8 @@ class Calibration:
 
     def __repr__(self) -> str:
         head = f"Calibration: {len(self.steps)} step(s)\n" + "\n".join(self._chain_lines())
-        results = self.document.get("results", {})
-        return head + ("\n\n" + _text(summarise(results)) if results else "\n")
+        summaries = [r.summary() for r in self.results.values()]
+        return head + ("\n\n" + _text(summaries) if summaries else "\n")
 
     def _repr_html_(self) -> str:
         import html
@@ -402,7 +414,7 @@ class Calibration:
         from imupipe.pipeline.report import stage_html
 
         items = "".join(f"<li>{html.escape(line[3:])}</li>" for line in self._chain_lines())
-        body = "".join(stage_html(s) for s in summarise(self.document.get("results", {})))
+        body = "".join(stage_html(r.summary()) for r in self.results.values())
         return f"<p><b>Calibration</b>: {len(self.steps)} step(s)</p><ol>{items}</ol>{body}"
 
 
@@ -420,14 +432,14 @@ class RunResult:
 
     def __repr__(self) -> str:
         files = "\n".join(str(p) for p in self.files)
-        return _text(summarise({n: s.results for n, s in self.stages.items()})) + files + "\n"
+        return _text([s.summary() for s in self.stages.values()]) + files + "\n"
 
     def _repr_html_(self) -> str:
         import html
 
         from imupipe.pipeline.report import overview_html, stage_html
 
-        summaries = summarise({n: s.results for n, s in self.stages.items()})
+        summaries = [s.summary() for s in self.stages.values()]
         files = "".join(f"<li>{html.escape(str(p))}</li>" for p in self.files)
         return (
             overview_html(summaries)
@@ -459,10 +471,14 @@ def run(
     no progress bar and no warnings on stderr (the stages' warnings are in the results either
     way); ``spawn``: also stream the recording to a Rerun viewer.
     """
-    summary: RunSummary = run_config(load_run_config(config), quiet=quiet, spawn=spawn)
+    cfg = load_run_config(config)
+    summary: RunSummary = run_config(cfg, quiet=quiet, spawn=spawn)
     doc = summary.calibration
     steps = check_calibration(doc, str(summary.out_dir / "calibration.json"))
     stages = Calibration(doc, steps).results
+    raw = raw_count_sensors(cfg.inputs)
+    for result in stages.values():
+        result.counts = frozenset(raw.get(str(result.results.get("input")), ()))
     # each step to the stage that fitted it, where its type says which (one stage of that type)
     types = [s.type for s in stages.values()]
     for step, entry in zip(steps, doc["chain"], strict=True):
