@@ -232,3 +232,25 @@ def test_notebook_example_runs() -> None:
         if "text/html" in out.get("data", {})
     ]
     assert any("<table>" in page for page in html)  # results shown as tables
+
+
+@pytest.mark.slow
+def test_wheel_holds_each_module_once(tmp_path: Path) -> None:
+    """The built wheel has the root package's files under ``imupipe/`` and nowhere else (not
+    under ``imupipe/pipeline/python-api/``), with ``py.typed``."""
+    import zipfile
+
+    done = subprocess.run(
+        [sys.executable, "-m", "pip", "wheel", str(REPO), "-w", str(tmp_path), "--no-deps", "-q"],
+        capture_output=True, text=True, timeout=600,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr[-2000:]
+    (wheel,) = tmp_path.glob("imupipe-*.whl")
+    names = zipfile.ZipFile(wheel).namelist()
+    root = sorted(n for n in names if n.count("/") == 1 and n.startswith("imupipe/"))
+    assert root == [
+        f"imupipe/{f}" for f in ("__init__.py", "_api.py", "_codegen.py", "_stages.py", "py.typed")
+    ]
+    assert not [n for n in names if "python-api" in n]
+    stems = [n.rsplit("/", 1)[-1] for n in names if n.endswith(".py") and "/" in n]
+    assert stems.count("_api.py") == 1

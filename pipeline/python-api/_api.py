@@ -242,18 +242,26 @@ class StageResult:
 
     @property
     def values(self) -> dict[str, Any]:
+        """The fitted values: the results without the metrics, the uncertainties and the bookkeeping
+        (:data:`BOOKKEEPING`); SI units (raw counts where :attr:`counts` says so)."""
         return {k: v for k, v in self.results.items() if k not in BOOKKEEPING}
 
     @property
     def uncertainties(self) -> dict[str, Any]:
+        """The uncertainties the stage reported, by their place in the results: its
+        ``standard_errors`` and every metric named ``*_std``, ``*_std_error``, ``*_range_68``,
+        ``*_upper_68`` or ``uncertainty`` (``metrics.gyro.x.K_range_68``)."""
         return _uncertainties(self.results)
 
     @property
     def metrics(self) -> dict[str, Any]:
+        """The quality figures (``results["metrics"]``: residuals, sample counts, the model
+        chosen and why)."""
         return dict(self.results.get("metrics", {}))
 
     @property
     def warnings(self) -> list[str]:
+        """What the stage warned about (also issued as :class:`ImupipeWarning`)."""
         return list(self.results.get("warnings", []))
 
     @property
