@@ -132,6 +132,17 @@ def test_same_values_as_imupipe_run(static, tmp_path: Path) -> None:
     assert any(k.endswith("K_range_68") for k in result.uncertainties)
 
 
+def test_inspect_says_what_the_command_says(static) -> None:
+    path, _ = static
+    shown = imupipe.inspect(path)
+    proc = run_cli("inspect", path, "--json")
+    assert proc.returncode == 0, proc.stderr
+    assert shown.info == json.loads(proc.stdout)
+    assert shown["streams"]["imu"]["count"] == 12000  # 60 s at 200 Hz
+    assert repr(shown) == run_cli("inspect", path).stdout.rstrip("\n")
+    assert repr(shown).splitlines()[0] in shown._repr_html_()
+
+
 def test_read_errors_and_warnings(tmp_path: Path) -> None:
     with pytest.raises(imupipe.ImupipeError, match=r"imupipe.read\('none.csv'\).path: no such"):
         imupipe.read("none.csv")
@@ -172,6 +183,12 @@ def test_calibration_round_trip_and_run_from_a_dict(
     assert run.stages["gyro_bias"].values["bias"] == bias.values["bias"]
     assert run.stages["gyro_bias"].step is not None
     assert "gyro_bias (gyro_bias on s): ok" in repr(run) and "<table>" in run._repr_html_()
+    (tmp_path / "cfg.toml").write_text(
+        f'[inputs.s]\npath = "{path}"\n[[stages]]\ntype = "gyro_bias"\n'
+        '[output]\ndir = "out_toml"\nrerun = false\nreport = false\n'
+    )
+    from_file = imupipe.run(tmp_path / "cfg.toml")
+    assert from_file.calibration.document["chain"] == run.calibration.document["chain"]
     with pytest.raises(imupipe.ImupipeError, match=r"<dict>: stages\[0\].type: unknown stage"):
         imupipe.run({"inputs": config["inputs"], "stages": [{"type": "allen"}]})
     with pytest.raises(imupipe.ImupipeError, match="not valid JSON"):
