@@ -12,6 +12,7 @@
 from __future__ import annotations
 
 import dataclasses
+import importlib
 import inspect
 import json
 import os
@@ -49,6 +50,11 @@ def test_import_is_light_and_every_name_resolves() -> None:
         assert getattr(imupipe, name) is not None, name
     with pytest.raises(AttributeError, match="no attribute 'nope'"):
         _ = imupipe.nope
+    # the root package's folder (pipeline/python-api/) is reachable from imupipe.pipeline's
+    # folder in a source tree, but never imported under a second name
+    with pytest.raises(ImportError, match="is the package 'imupipe'"):
+        importlib.import_module("imupipe.pipeline.python-api._api")
+    assert "imupipe.pipeline.python-api._api" not in sys.modules
 
 
 def test_one_function_per_stage_type_with_its_options_as_keywords() -> None:

@@ -29,6 +29,9 @@ from __future__ import annotations
 import importlib
 from typing import TYPE_CHECKING, Any
 
+if __name__ != "imupipe":  # the folder reached by another name (importlib, a source tree)
+    raise ImportError(f"{__name__}: this folder is the package 'imupipe'; import imupipe")
+
 if TYPE_CHECKING:  # what editors and type checkers see; loaded lazily at run time (below)
     from imupipe._api import (
         Calibration,
