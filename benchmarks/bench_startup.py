@@ -2,7 +2,7 @@
 ``imupipe inspect small.mcap``).
 
 Prints, best of N runs each (wall time of the whole process): a bare ``python -c pass`` (the
-floor), ``imupipe --help``, ``imupipe convert --help`` and ``imupipe inspect`` on a 2 s MCAP;
+floor), ``import imupipe`` (the Python API: issue 29), ``imupipe --help``, ``imupipe convert --help`` and ``imupipe inspect`` on a 2 s MCAP;
 inspect's topic figures from the MCAP summary against the same from every message's log time
 (what a file without a summary takes), each a fresh process; the peak RSS of the ``inspect``
 process; then the slowest imports of the ``inspect`` run (``python -X importtime``), cumulative.
@@ -76,6 +76,7 @@ def main() -> None:
         floor = best([sys.executable, "-c", "pass"], args.runs)
         print(f"python -c pass              {floor:6.3f} s (the floor)")
         for label, cmd in [
+            ("import imupipe", [sys.executable, "-c", "import imupipe"]),
             ("imupipe --help", [*CLI, "--help"]),
             ("imupipe convert --help", [*CLI, "convert", "--help"]),
             ("imupipe inspect small.mcap", [*CLI, "inspect", str(log)]),

@@ -282,7 +282,14 @@ def load_config(path: str | Path) -> Config:
         raw = tomllib.loads(text)
     except tomllib.TOMLDecodeError as exc:
         raise ConfigError(f"{path}: not valid TOML: {exc}") from None
-    base = path.resolve().parent
+    return parse_config(raw, path, path.resolve().parent)
+
+
+def parse_config(raw: dict[str, Any], path: Path, base: Path) -> Config:
+    """Validate a config already parsed (a TOML file's tables, or the dict given to
+    ``imupipe.run``): ``path`` names it in messages, relative paths are taken from ``base``."""
+    if not isinstance(raw, dict):
+        raise ConfigError(f"{path}: a config is a table of tables (inputs, stages, output)")
     _check_keys(str(path), raw, TOP_KEYS)
 
     inputs_raw = raw.get("inputs")

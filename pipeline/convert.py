@@ -85,7 +85,13 @@ def convert(
     dashboard: bool = False,
     on_mismatch: str = "warn",
 ) -> ConvertSummary:
-    """Convert every log under ``logs`` into ``out_dir``; see the module docstring.
+    """Convert every log under ``logs`` (files or folders) into ``out_dir``: each log read,
+    corrected by the chain of ``calibration`` (a ``calibration.json``) and written as MCAP (or a
+    Parquet dataset with ``parquet``), resuming where an interrupted conversion stopped (see the
+    module docstring). The keywords are the options of ``imupipe convert``: ``config`` (a TOML
+    file whose ``[inputs.NAME]`` settings say how to read the logs), ``engine`` (``local`` or
+    ``ray``), ``jobs``, ``address``, ``retries``, ``force``, ``batch_rows``, ``on_mismatch``
+    (``warn`` or ``refuse``: a log from another sensor than the calibration's).
 
     Raises :class:`~imupipe.pipeline.errors.ImupipeError` before anything is written when the
     plan is wrong (no logs, an output over an input or outside ``out_dir``, an output folder

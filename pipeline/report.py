@@ -64,10 +64,10 @@ def render(
         + "".join(f'<a href="#{_id(s.name)}">{html.escape(s.name)}</a>' for s in summaries)
         + "</nav>",
         "<h2>Summary</h2>",
-        _overview(summaries),
+        overview_html(summaries),
     ]
     for s in summaries:
-        parts.append(_stage(s, [p for p in figures.of_stage(s.name)]))
+        parts.append(stage_html(s, [p for p in figures.of_stage(s.name)]))
     parts.append("</body></html>")
     return "\n".join(parts)
 
@@ -80,7 +80,8 @@ def _status_class(s: StageSummary) -> str:
     return "status-fail" if s.failed_checks else "status-warn" if s.warnings else "status-ok"
 
 
-def _overview(summaries: Sequence[StageSummary]) -> str:
+def overview_html(summaries: Sequence[StageSummary]) -> str:
+    """The table of the stages (name, type, input, result, status) that opens the report."""
     rows = "".join(
         f'<tr><td><a href="#{_id(s.name)}">{html.escape(s.name)}</a></td>'
         f"<td>{html.escape(s.type)}</td><td>{html.escape(s.input)}</td>"
@@ -94,7 +95,9 @@ def _overview(summaries: Sequence[StageSummary]) -> str:
     )
 
 
-def _stage(s: StageSummary, plots: list[Plot]) -> str:
+def stage_html(s: StageSummary, plots: Sequence[Plot] = ()) -> str:
+    """A stage's section of the report: its summary table, quality figures, warnings and
+    ``plots`` (also what a stage result shows in Jupyter: ``imupipe.StageResult``)."""
     out = [
         f'<h2 id="{_id(s.name)}">{html.escape(s.name)} '
         f'<small class="{_status_class(s)}">({html.escape(s.type)} on {html.escape(s.input)}: '

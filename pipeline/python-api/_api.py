@@ -1,0 +1,497 @@
+"""What ``import imupipe`` offers, written over the pipeline's own functions.
+
+Every internal module the public API stands on is imported here, at the top of this one module
+(the stage functions of :mod:`imupipe._stages` call :func:`fit_stage`), so that a later move of
+an internal module changes one import block. The command line and this API share those
+functions: ``imupipe run`` and :func:`run` both call :func:`imupipe.pipeline.run.run`,
+``imupipe inspect`` and :func:`inspect` both call :func:`imupipe.pipeline.inspect_log.inspect`,
+``imupipe convert`` and :func:`convert` both call :func:`imupipe.pipeline.convert.convert`.
+
+This module is imported on first use of a public name (``import imupipe`` alone loads none of
+it: no numpy, no pyarrow).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import io
+import os
+import warnings
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+import pyarrow as pa
+
+from imupipe.pipeline.atomic import atomic_path
+from imupipe.pipeline.calibration_file import (
+    calibration_json,
+    check_calibration,
+    fitted_on,
+    load_calibration,
+)
+from imupipe.pipeline.config import Config, build_options, load_config, parse_config, parse_input
+from imupipe.pipeline.convert import ConvertSummary, convert
+from imupipe.pipeline.inspect_log import inspect as inspect_log
+from imupipe.pipeline.inspect_log import render as render_inspection
+from imupipe.pipeline.run import RunSummary, calibration_document
+from imupipe.pipeline.run import run as run_config
+from imupipe.pipeline.summary import StageSummary, print_summary, raw_count_sensors, summarise
+from imupipe.readers.dispatch import read_input
+from imupipe.readers.errors import ImupipeError
+from imupipe.readers.spec import InputSpec
+from imupipe.readers.table import metadata
+from imupipe.stages.base import StageContext
+from imupipe.stages.registry import stage_class
+from imupipe.stages.steps import Step, apply_chain
+
+__all__ = [
+    "Calibration",
+    "ConvertSummary",
+    "ImupipeError",
+    "ImupipeWarning",
+    "Inspection",
+    "RunResult",
+    "StageResult",
+    "convert",
+    "fit_stage",
+    "inspect",
+    "read",
+    "run",
+]
+
+BOOKKEEPING = (
+    "type",
+    "input",
+    "metrics",
+    "standard_errors",
+    "warnings",
+    "failed_checks",
+    "fitted_on",
+)
+"""Keys of a stage's results that are not fitted values (see :attr:`StageResult.values`)."""
+UNCERTAINTY_SUFFIXES = ("_std", "_std_error", "_range_68", "_upper_68", "uncertainty")
+"""Metric names that hold an uncertainty (see :attr:`StageResult.uncertainties`)."""
+
+
+class ImupipeWarning(UserWarning):
+    """A warning of a reader or a stage (the line ``imupipe run`` prints as ``imupipe: warning:
+    ...``), issued with :func:`warnings.warn`: shown in a notebook, caught with
+    ``warnings.catch_warnings(record=True)``, turned into errors with
+    ``warnings.simplefilter("error", imupipe.ImupipeWarning)``."""
+
+
+def _warn(messages: Sequence[str], where: str, stacklevel: int) -> None:
+    """Issue ``messages`` as :class:`ImupipeWarning`; ``stacklevel`` counts from the caller of
+    this function (2: the caller's caller, the user's line)."""
+    for message in messages:
+        warnings.warn(f"[{where}] {message}", ImupipeWarning, stacklevel=stacklevel + 1)
+
+
+def _text(summaries: Sequence[StageSummary]) -> str:
+    """The terminal summary of ``imupipe run`` (:func:`~imupipe.pipeline.summary.print_summary`)
+    as plain text."""
+    from rich.console import Console
+
+    buffer = io.StringIO()
+    console = Console(file=buffer, width=110, color_system=None, force_terminal=False)
+    print_summary(summaries, console)
+    return buffer.getvalue().rstrip() + "\n"
+
+
+def _input_raw(path: str | os.PathLike[str], options: Mapping[str, Any]) -> dict[str, Any]:
+    """An ``[inputs.NAME]`` table from keyword arguments (None: the key is left out)."""
+    raw: dict[str, Any] = {"path": os.fspath(path)}
+    for key, value in options.items():
+        if value is not None:
+            raw[key] = dict(value) if key == "csv" else value
+    return raw
+
+
+def input_spec(path: str | os.PathLike[str], where: str, **options: Any) -> InputSpec:
+    """The input ``path`` with the keys of an ``[inputs.NAME]`` table, checked as the config
+    checks them (:func:`imupipe.pipeline.config.parse_input`; relative paths from the current
+    folder); a :class:`~imupipe.pipeline.errors.ConfigError` naming ``where`` and the key."""
+    return parse_input("input", _input_raw(path, options), Path.cwd(), where)
+
+
+def read(
+    path: str | os.PathLike[str],
+    *,
+    imu_topic: str | None = None,
+    mag_topic: str | None = None,
+    temperature_topic: str | None = None,
+    time: Literal["header", "log"] = "header",
+    csv: Mapping[str, Any] | None = None,
+) -> pa.Table:
+    """Read a log (CSV, MCAP, ROS 1 or ROS 2 bag, PX4 ULog, ArduPilot DataFlash) into the common
+    table: a ``pyarrow.Table`` with ``t_ns`` (int64 ns) and the SI columns ``gyro_x`` (rad/s),
+    ``accel_x`` (m/s^2), ``mag_x`` (T), ``temperature`` (degC)... (see the reference page "The
+    common table").
+
+    The keywords are the keys of a config's ``[inputs.NAME]`` table, with the same checks
+    (``csv`` is the ``[inputs.NAME.csv]`` mapping as a dict: ``csv={"time": 0, "time_unit":
+    "s", "accel": [1, 2, 3]}``). The reader's warnings (a topic chosen among several, stamps out
+    of order) are issued as :class:`ImupipeWarning`. Raises :class:`ImupipeError` (one line
+    naming the file and what is wrong) when the log cannot be read.
+    """
+    where = f"imupipe.read({os.fspath(path)!r})"
+    spec = input_spec(
+        path,
+        where,
+        imu_topic=imu_topic,
+        mag_topic=mag_topic,
+        temperature_topic=temperature_topic,
+        time=time,
+        csv=csv,
+    )
+    table, found = read_input(spec)
+    _warn(found, where, stacklevel=2)
+    return table
+
+
+@dataclass
+class Inspection:
+    """What a log holds (``imupipe inspect``): :attr:`info` is the dict ``imupipe inspect
+    --json`` prints; the text and the notebook show what ``imupipe inspect`` prints."""
+
+    info: dict[str, Any]
+
+    def __getitem__(self, key: str) -> Any:
+        return self.info[key]
+
+    def __repr__(self) -> str:
+        return render_inspection(self.info)
+
+    def _repr_html_(self) -> str:
+        import html
+
+        return f"<pre>{html.escape(render_inspection(self.info))}</pre>"
+
+
+def inspect(
+    path: str | os.PathLike[str],
+    *,
+    imu_topic: str | None = None,
+    mag_topic: str | None = None,
+    temperature_topic: str | None = None,
+    time: Literal["header", "log"] = "header",
+    csv: Mapping[str, Any] | None = None,
+) -> Inspection:
+    """What a log holds and what :func:`read` would take from it: topics, message types,
+    counts, rates, time spans, the topic each stream is read from and the columns filled (for
+    a PX4 ULog or a DataFlash log also the autopilot's calibration parameters). Same keywords
+    as :func:`read`."""
+    spec = input_spec(
+        path,
+        f"imupipe.inspect({os.fspath(path)!r})",
+        imu_topic=imu_topic,
+        mag_topic=mag_topic,
+        temperature_topic=temperature_topic,
+        time=time,
+        csv=csv,
+    )
+    return Inspection(inspect_log(spec))
+
+
+def _uncertainties(results: Mapping[str, Any]) -> dict[str, Any]:
+    """The uncertainties a stage reported: its ``standard_errors`` and every metric whose name
+    says it is one (:data:`UNCERTAINTY_SUFFIXES`), keyed by their path in the results
+    (``metrics.gyro.x.K_range_68``)."""
+    found: dict[str, Any] = {}
+    if "standard_errors" in results:
+        found["standard_errors"] = results["standard_errors"]
+
+    def walk(value: Any, path: str) -> None:
+        if not isinstance(value, Mapping):
+            return
+        for key, inner in value.items():
+            where = f"{path}.{key}"
+            if str(key).endswith(UNCERTAINTY_SUFFIXES):
+                found[where] = inner
+            else:
+                walk(inner, where)
+
+    walk(results.get("metrics", {}), "metrics")
+    return found
+
+
+@dataclass
+class StageResult:
+    """The result of one stage: what ``calibration.json`` records under ``results.<name>``, with
+    the correction it adds to the chain.
+
+    - :attr:`values`: the fitted values (``bias``, ``scale``, the Allan coefficients...), SI;
+    - :attr:`uncertainties`: their standard errors and ranges;
+    - :attr:`metrics`: the quality figures;
+    - :attr:`warnings`: what the stage warned about;
+    - :attr:`step` / :attr:`steps`: the correction (None / ``[]`` for an analysis stage);
+      :meth:`apply` applies it, :meth:`calibration` makes a :class:`Calibration` of it.
+
+    Shown as the table ``imupipe run`` prints (``repr``) and as the report's section in Jupyter.
+    """
+
+    name: str
+    type: str
+    results: dict[str, Any]
+    steps: list[Step] = field(default_factory=list)
+    counts: frozenset[str] = frozenset()
+    """Sensors whose input was read in raw counts (``<sensor>_unit = "raw"``): their offsets
+    are in counts, and the tables say so."""
+
+    @property
+    def values(self) -> dict[str, Any]:
+        """The fitted values: the results without the metrics, the uncertainties and the bookkeeping
+        (:data:`BOOKKEEPING`); SI units (raw counts where :attr:`counts` says so)."""
+        return {k: v for k, v in self.results.items() if k not in BOOKKEEPING}
+
+    @property
+    def uncertainties(self) -> dict[str, Any]:
+        """The uncertainties the stage reported, by their place in the results: its
+        ``standard_errors`` and every metric named ``*_std``, ``*_std_error``, ``*_range_68``,
+        ``*_upper_68`` or ``uncertainty`` (``metrics.gyro.x.K_range_68``)."""
+        return _uncertainties(self.results)
+
+    @property
+    def metrics(self) -> dict[str, Any]:
+        """The quality figures (``results["metrics"]``: residuals, sample counts, the model
+        chosen and why)."""
+        return dict(self.results.get("metrics", {}))
+
+    @property
+    def warnings(self) -> list[str]:
+        """What the stage warned about (also issued as :class:`ImupipeWarning`)."""
+        return list(self.results.get("warnings", []))
+
+    @property
+    def failed_checks(self) -> list[str]:
+        """Quality checks that failed and were kept with ``accept_failed_checks=True``."""
+        return list(self.results.get("failed_checks", []))
+
+    @property
+    def step(self) -> Step | None:
+        """The correction step (the first, when one fit corrects several sensors)."""
+        return self.steps[0] if self.steps else None
+
+    def apply(self, table: pa.Table) -> pa.Table:
+        """``table`` with this stage's correction applied (unchanged for an analysis stage)."""
+        return apply_chain(table, self.steps)
+
+    def calibration(self) -> Calibration:
+        """This result alone as a calibration (see :meth:`Calibration.from_results`)."""
+        return Calibration.from_results(self)
+
+    def summary(self) -> StageSummary:
+        """The summary ``imupipe run`` prints and the report shows."""
+        counts = {str(self.results.get("input")): set(self.counts)}
+        return summarise({self.name: self.results}, counts)[0]
+
+    def __repr__(self) -> str:
+        return _text([self.summary()])
+
+    def _repr_html_(self) -> str:
+        from imupipe.pipeline.report import stage_html
+
+        return stage_html(self.summary())
+
+
+def fit_stage(
+    type_name: str,
+    table: pa.Table,
+    options: Mapping[str, Any],
+    *,
+    name: str | None = None,
+    accept_failed_checks: bool = False,
+) -> StageResult:
+    """Fit a stage of type ``type_name`` on ``table`` (a common table, e.g. from :func:`read`).
+
+    ``options`` are the stage's config keys, checked as the config checks them (names, types,
+    ranges); a None value of a key whose default is a list or table keeps that default. What
+    the stage warns about is in the result and issued as :class:`ImupipeWarning`; a fit that
+    fails its own quality check raises :class:`ImupipeError` unless ``accept_failed_checks``.
+    The stage functions (``imupipe.allan``, ...) call this.
+    """
+    if not isinstance(table, pa.Table):
+        raise TypeError(f"imupipe.{type_name}(): table must be a pyarrow.Table (from imupipe.read)")
+    cls = stage_class(type_name)
+    factory = {
+        f.name
+        for f in dataclasses.fields(cls.Options)
+        if f.default_factory is not dataclasses.MISSING
+    }
+    given = {k: v for k, v in options.items() if not (v is None and k in factory)}
+    given = {k: list(v) if isinstance(v, tuple) else v for k, v in given.items()}
+    stage_name = name or type_name
+    opts = build_options(cls.Options, given, f"imupipe.{type_name}()")
+    ctx = StageContext(
+        name=stage_name,
+        input_name="table",
+        tables={"table": table},
+        quiet=True,
+        accept_failed_checks=accept_failed_checks,
+    )
+    output = cls(opts).fit(table, ctx)
+    source = metadata(table).get("source")
+    results: dict[str, Any] = {
+        "type": type_name,
+        "input": "table",
+        **output.results,
+        "warnings": ctx.warnings,
+        "fitted_on": fitted_on("table", InputSpec(path=Path(source or "")), table),
+    }
+    if ctx.failed_checks:
+        results["failed_checks"] = ctx.failed_checks
+    _warn(ctx.warnings, stage_name, stacklevel=3)  # the user -> imupipe.allan -> here
+    units = metadata(table).get("units", {})
+    raw = frozenset(s for s, unit in units.items() if unit == "raw")
+    return StageResult(stage_name, type_name, results, output.steps, raw)
+
+
+@dataclass
+class Calibration:
+    """A correction chain and the results it was fitted with: the document of a
+    ``calibration.json`` (see the reference page "calibration.json") and its steps.
+
+    ``Calibration.load(path)`` reads one (``imupipe run``'s, ``imupipe import``'s, or a
+    corrected MCAP's attached copy), :meth:`apply` corrects a common table, :meth:`save` writes
+    it (``imupipe convert`` takes it), :meth:`from_results` makes one from stage results.
+    """
+
+    document: dict[str, Any]
+    steps: list[Step]
+    fitted: dict[str, StageResult] = field(default_factory=dict, repr=False)
+    """The stage results it was made from (:meth:`from_results`), by stage name."""
+
+    @classmethod
+    def load(cls, path: str | os.PathLike[str]) -> Calibration:
+        """Read and check a calibration file (every chain entry; one-line
+        :class:`ImupipeError` naming the file, the entry and the field)."""
+        doc, steps = load_calibration(path)
+        return cls(doc, steps)
+
+    @classmethod
+    def from_results(cls, *results: StageResult) -> Calibration:
+        """The chain of the given stage results' steps, in the order given (fit each on the
+        table corrected by the ones before it: ``b = imupipe.gyro_bias(t)``,
+        ``a = imupipe.accel_calibration(b.apply(t))``, ``Calibration.from_results(b, a)``)."""
+        chain = [step for r in results for step in r.steps]
+        fitted = [r.results.get("fitted_on") for r in results for _ in r.steps]
+        doc = calibration_document(chain, {r.name: r.results for r in results}, fitted)
+        return cls(doc, chain, {r.name: r for r in results})
+
+    def apply(self, table: pa.Table) -> pa.Table:
+        """``table`` corrected by every step of the chain, in order."""
+        return apply_chain(table, self.steps)
+
+    def save(self, path: str | os.PathLike[str]) -> Path:
+        """Write the calibration as JSON to ``path`` (written whole or not at all); returns it."""
+        target = Path(path)
+        with atomic_path(target) as tmp:
+            tmp.write_text(calibration_json(self.document), encoding="utf-8")
+        return target
+
+    @property
+    def results(self) -> dict[str, StageResult]:
+        """The stage results recorded with the chain, by stage name."""
+        if self.fitted:
+            return dict(self.fitted)
+        return {
+            name: StageResult(name, str(r.get("type", "?")), r, [])
+            for name, r in self.document.get("results", {}).items()
+        }
+
+    def _chain_lines(self) -> list[str]:
+        lines = []
+        for i, entry in enumerate(self.document.get("chain", [])):
+            source = (entry.get("fitted_on") or {}).get("path") or "-"
+            lines.append(
+                f"{i + 1}. {entry.get('sensor')}: {entry.get('type')} ({entry.get('kind', 'linear')}), "
+                f"fitted on {source}"
+            )
+        return lines
+
+    def __repr__(self) -> str:
+        head = f"Calibration: {len(self.steps)} step(s)\n" + "\n".join(self._chain_lines())
+        summaries = [r.summary() for r in self.results.values()]
+        return head + ("\n\n" + _text(summaries) if summaries else "\n")
+
+    def _repr_html_(self) -> str:
+        import html
+
+        from imupipe.pipeline.report import stage_html
+
+        items = "".join(f"<li>{html.escape(line[3:])}</li>" for line in self._chain_lines())
+        body = "".join(stage_html(r.summary()) for r in self.results.values())
+        return f"<p><b>Calibration</b>: {len(self.steps)} step(s)</p><ol>{items}</ol>{body}"
+
+
+@dataclass
+class RunResult:
+    """What :func:`run` did: the output folder and the files written, the calibration
+    (:class:`Calibration`) and each stage's result (:class:`StageResult`, by stage name)."""
+
+    out_dir: Path
+    files: list[Path]
+    calibration: Calibration
+    stages: dict[str, StageResult]
+    counts: dict[str, dict[str, int]]
+    """Input -> messages written per topic into its corrected MCAP (``apply_to``)."""
+
+    def __repr__(self) -> str:
+        files = "\n".join(str(p) for p in self.files)
+        return _text([s.summary() for s in self.stages.values()]) + files + "\n"
+
+    def _repr_html_(self) -> str:
+        import html
+
+        from imupipe.pipeline.report import overview_html, stage_html
+
+        summaries = [s.summary() for s in self.stages.values()]
+        files = "".join(f"<li>{html.escape(str(p))}</li>" for p in self.files)
+        return (
+            overview_html(summaries)
+            + "".join(stage_html(s) for s in summaries)
+            + f"<p>Files written:</p><ul>{files}</ul>"
+        )
+
+
+def load_run_config(config: str | os.PathLike[str] | Mapping[str, Any]) -> Config:
+    """A config from a TOML file, or from a dict with the same tables (relative paths from the
+    current folder; messages name it ``<dict>``)."""
+    if isinstance(config, Mapping):
+        base = Path.cwd()
+        return parse_config(dict(config), base / "<dict>", base)
+    return load_config(config)
+
+
+def run(
+    config: str | os.PathLike[str] | Mapping[str, Any],
+    *,
+    quiet: bool = True,
+    spawn: bool = False,
+) -> RunResult:
+    """``imupipe run``: read the inputs, run the stages in order, write the outputs into the
+    config's ``[output] dir`` (all or nothing).
+
+    ``config`` is a TOML file or a dict with the same tables (``{"inputs": {"static": {"path":
+    "static.mcap"}}, "stages": [{"type": "allan"}], "output": {"dir": "out"}}``). ``quiet``:
+    no progress bar and no warnings on stderr (the stages' warnings are in the results either
+    way); ``spawn``: also stream the recording to a Rerun viewer.
+    """
+    cfg = load_run_config(config)
+    summary: RunSummary = run_config(cfg, quiet=quiet, spawn=spawn)
+    doc = summary.calibration
+    steps = check_calibration(doc, str(summary.out_dir / "calibration.json"))
+    stages = Calibration(doc, steps).results
+    raw = raw_count_sensors(cfg.inputs)
+    for result in stages.values():
+        result.counts = frozenset(raw.get(str(result.results.get("input")), ()))
+    # each step to the stage that fitted it, where its type says which (one stage of that type)
+    types = [s.type for s in stages.values()]
+    for step, entry in zip(steps, doc["chain"], strict=True):
+        if types.count(str(entry.get("type"))) == 1:
+            stages[next(n for n, s in stages.items() if s.type == entry["type"])].steps.append(step)
+    return RunResult(
+        summary.out_dir, summary.files, Calibration(doc, steps), stages, summary.counts
+    )
