@@ -18,6 +18,7 @@ __all__ = [
     "accel_calibration",
     "allan",
     "average",
+    "baro_temperature",
     "gyro_bias",
     "gyro_calibration",
     "mag_calibration",
@@ -200,7 +201,7 @@ def accel_calibration(
     - ``noise_quantile``: The quantile of the windowed variance taken as the noise floor (the
       log must be at rest for more than this fraction of its length).
     - ``misalignment``: Fit the three misalignment angles (true), not (false: 6 parameters,
-      scale and bias), or let the poses decide by AICc ("auto").
+      scale and bias), or let the poses decide by the prediction of left-out poses ("auto").
     - ``method``: How the model is solved: ``lm`` (Levenberg-Marquardt on the pose means, 9 or 6
       parameters as ``misalignment`` says), ``six_position`` (per axis ``b = (max + min) / 2``,
       ``k = 2g / (max - min)``: needs every face, no misalignment), ``frank_wolfe`` (the same
@@ -403,7 +404,7 @@ def temperature(
     table: pa.Table,
     *,
     sensor: Literal["gyro", "accel"] = "gyro",
-    model: Literal["poly", "lag", "six_term", "piecewise", "stepwise"] = "poly",
+    model: Literal["auto", "poly", "lag", "six_term", "piecewise", "stepwise"] = "auto",
     order: int | None = None,
     rate_terms: list[str] | None = None,
     lag_s: float | None = None,
@@ -420,6 +421,7 @@ def temperature(
     write_blocks: bool = False,
     turntable_rate: float | None = None,
     scale_order: int = 2,
+    still_threshold: float = 10.0,
     name: str | None = None,
     accept_failed_checks: bool = False,
 ) -> StageResult:
@@ -430,12 +432,18 @@ def temperature(
     fails its own quality check, with a warning. Options:
 
     - ``sensor``: Which sensor to compensate (every axis).
-    - ``model``: The bias model: ``poly`` (a polynomial in T, its order and the ``dT`` term
-      chosen by AICc), ``lag`` (a polynomial in the sensing element's temperature Ts, a first-
-      order lag of T whose time constant is fitted), ``six_term`` (``a1 T^2 + a2 T + a3 dT^2 +
-      a4 dT + a5 T dT + a6``, the MATLAB example of the temperature-calibration method),
-      ``piecewise`` (linear per temperature segment plus ``k_dt x dT``, the gyro patent's model)
-      or ``stepwise`` (terms in T, dT and the ambient Ta, dTa chosen by stepwise regression).
+    - ``model``: The bias model. ``auto`` (default): the one of ``poly``, ``lag`` and
+      ``piecewise`` that predicts held-out segments of the log best (``lag`` only where heating
+      and cooling identify it; another model replaces ``poly`` only when its held-out error,
+      geometric mean over the axes, is at least 10 % lower); the choice and its figures are in
+      ``results.choice``. ``rate_terms`` or ``turntable_rate`` given with ``auto`` mean
+      ``poly``, ``lag_s`` means ``lag``. Or one named: ``poly`` (a polynomial in T, its order
+      and the ``dT`` term chosen by AICc), ``lag`` (a polynomial in the sensing element's
+      temperature Ts, a first-order lag of T whose time constant is fitted), ``six_term`` (``a1
+      T^2 + a2 T + a3 dT^2 + a4 dT + a5 T dT + a6``, the MATLAB example of the temperature-
+      calibration method), ``piecewise`` (linear per temperature segment plus ``k_dt x dT``, the
+      gyro patent's model) or ``stepwise`` (terms in T, dT and the ambient Ta, dTa chosen by
+      stepwise regression).
     - ``order``: poly, lag: polynomial order (0..5); default: chosen per axis by the data
       (0..3). stepwise: highest power of T offered (default 3).
     - ``rate_terms``: poly: rate terms among dT, dT^2, T*dT; lag: dTs. Default: dT (poly) or dTs
@@ -465,6 +473,11 @@ def temperature(
       gyro patent's method); fit the scale factor of each turned axis against temperature;
       blocks with turning are left out of the bias fit.
     - ``scale_order``: Polynomial order of the scale factor in T - Tref.
+    - ``still_threshold``: Only still samples enter the fit: a sample is still where the
+      windowed variance of the accelerometer and of the gyroscope (1 s, or 10 samples on slower
+      logs) is below this many times its noise floor (the static-interval detector of the multi-
+      position stages); handling and moves between soaks are left out, and a block enters when
+      half its samples are still. 0: every sample enters (as before issue 25).
     """
     return fit_stage(
         "temperature",
@@ -488,6 +501,7 @@ def temperature(
             "write_blocks": write_blocks,
             "turntable_rate": turntable_rate,
             "scale_order": scale_order,
+            "still_threshold": still_threshold,
         },
         name=name,
         accept_failed_checks=accept_failed_checks,
@@ -556,6 +570,41 @@ def thermal_soak(
             "tref": tref,
             "misalignment": misalignment,
             "gyro_matrix": gyro_matrix,
+        },
+        name=name,
+        accept_failed_checks=accept_failed_checks,
+    )
+
+
+def baro_temperature(
+    table: pa.Table,
+    *,
+    order: int = 5,
+    bins: int = 2000,
+    min_span: float = 10.0,
+    name: str | None = None,
+    accept_failed_checks: bool = False,
+) -> StageResult:
+    r"""``baro_temperature`` stage: a barometer's pressure error against its own temperature, the
+    thermal compensation PX4 applies to barometers (``TC_Bn_*``).
+
+    Fits on ``table`` (the common table, e.g. from :func:`imupipe.read`); ``name`` names
+    the stage in messages (default: its type); ``accept_failed_checks`` keeps a fit that
+    fails its own quality check, with a warning. Options:
+
+    - ``order``: Degree of the polynomial in T - TREF (PX4's ``TC_B*`` hold up to 5, its script
+      fits 5).
+    - ``bins``: Equal-width temperature bins whose mean pressures are fitted (PX4's script:
+      2000).
+    - ``min_span``: degC: the smallest temperature range that fixes a curve (quality check).
+    """
+    return fit_stage(
+        "baro_temperature",
+        table,
+        {
+            "order": order,
+            "bins": bins,
+            "min_span": min_span,
         },
         name=name,
         accept_failed_checks=accept_failed_checks,
