@@ -292,11 +292,15 @@ class TemperatureStep(ThermalStep):
         for name, far in stats.outside.items():
             if far:
                 lo, hi = self.ranges[name]
-                what = "clamped to" if name in tm.TEMPERATURES else "extrapolated beyond"
                 seen = stats.seen[name]
+                if name in tm.TEMPERATURES:
+                    what, unit, k = f"{name} clamped to", "degC", 1.0
+                else:  # rates in degC/min, as the summary and the docs give them
+                    what, unit, k = f"{name} (temperature rate) extrapolated beyond", "degC/min", 60
                 notes.append(
-                    f"{name} {what} the fitted range [{lo:.4g}, {hi:.4g}] at {far} of "
-                    f"{stats.total} samples (seen {seen[0]:.4g}..{seen[1]:.4g})"
+                    f"{what} the fitted range {lo * k:.3g} .. {hi * k:.3g} {unit} at {far} of "
+                    f"{stats.total} samples ({100 * far / max(stats.total, 1):.0f} %; seen "
+                    f"{seen[0] * k:.3g} .. {seen[1] * k:.3g} {unit})"
                 )
         return "; ".join(notes) or None
 
