@@ -13,8 +13,10 @@ declared; the sinks decide *how* to lay them out. The kinds:
 
 Every plot has one physical unit (a series declared into a plot of another unit gets a plot of
 its own beside it). Values are stored in the unit they are shown in: SI, except
-tesla, shown in microtesla (``DISPLAY_UNITS``). The kept copies are small: a signal is averaged
-down to at most ``keep_points`` blocks (the recording holds more, the MCAP output all of it).
+tesla, shown in microtesla (``DISPLAY_UNITS``). The kept copies are small: a signal longer than
+``keep_points`` is kept as the envelope of consecutive blocks, each block's smallest and largest
+value (:func:`decimate`), so its noise shows at full height (a block mean would hide it); the
+recording holds more, the MCAP output all of it.
 """
 
 from __future__ import annotations
@@ -25,8 +27,6 @@ from dataclasses import dataclass, field
 from typing import Literal
 
 import numpy as np
-
-from imupipe.stages.blocks import block_means
 
 PlotKind = Literal["time", "xy", "bars", "3d"]
 Style = Literal["line", "guide", "points", "band", "cloud", "ellipsoid"]
@@ -124,6 +124,9 @@ class Plot:
     log_x: bool = False
     log_y: bool = False
     series: list[Series] = field(default_factory=list)
+    origin: int | None = None
+    """A ``time`` plot's time origin (int64 ns) when the run gives its plots one
+    (:meth:`Figures.share_time_origin`); else the plot's own first sample."""
 
     @property
     def heading(self) -> str:
@@ -145,7 +148,8 @@ def stage_of(entity: str) -> str:
 
 
 def decimate(t: np.ndarray, values: np.ndarray, max_points: int) -> tuple[np.ndarray, np.ndarray]:
-    """At most ``max_points`` rows: means of consecutive blocks (``t`` int64 ns or float)."""
+    """At most ``max_points`` rows. A signal over time (``t`` int64 ns): the min/max envelope
+    of consecutive blocks (:func:`decimate_columns`); a curve (float ``t``): every k-th point."""
     if len(t) <= max_points:
         return t, values
     return decimate_columns(t, list(values.reshape(len(t), -1).T), max_points)
@@ -155,14 +159,28 @@ def decimate_columns(
     t: np.ndarray, columns: Sequence[np.ndarray], max_points: int
 ) -> tuple[np.ndarray, np.ndarray]:
     """:func:`decimate` of the (n, k) array whose columns are ``columns`` (each (n,)), without
-    making that array: (times, (m, k) values)."""
+    making that array: (times, (m, k) values).
+
+    Over time, the signal is cut into ``max_points // 2`` blocks of consecutive samples and each
+    block gives two rows: its smallest value at its first sample's time and its largest at its
+    middle sample's time (per column; NaN ignored). Drawn as a line, the rows fill the band the
+    raw samples fill at that zoom: the noise keeps its height (a block mean showed a 100 Hz gyro's
+    0.0017 rad/s noise about 6x smaller)."""
     if len(t) <= max_points:
         return t, np.column_stack(columns)
-    window = math.ceil(len(t) / max_points)
     if np.issubdtype(t.dtype, np.integer):
-        blocks = block_means(t, columns[0], window=window)
-        rest = [np.add.reduceat(c, blocks.starts) / blocks.counts for c in columns[1:]]
-        return blocks.t_ns, np.column_stack([blocks.means, *rest])
+        window = math.ceil(len(t) / max(1, max_points // 2))
+        starts = np.arange(0, len(t), window)
+        middles = np.minimum(starts + window // 2, len(t) - 1)
+        times = np.empty(2 * len(starts), dtype=t.dtype)
+        times[0::2], times[1::2] = t[starts], t[middles]
+        out = np.empty((len(times), len(columns)))
+        with np.errstate(invalid="ignore"):
+            for j, c in enumerate(columns):
+                out[0::2, j] = np.fmin.reduceat(c, starts)
+                out[1::2, j] = np.fmax.reduceat(c, starts)
+        return times, out
+    window = math.ceil(len(t) / max_points)
     keep = np.arange(0, len(t), window)
     return t[keep], np.column_stack([c[keep] for c in columns])
 
@@ -224,6 +242,24 @@ class Figures:
             )
             self.plots[(stage, key)] = plot
         return plot
+
+    def share_time_origin(self, within_ns: int = 86_400 * 10**9) -> int | None:
+        """Give every ``time`` plot the run's first sample as its time origin, so that every
+        plot counts time from the same instant (the block means of a stage start half a block
+        after its raw samples: four origins in one report, before). A plot whose data starts
+        more than ``within_ns`` (a day) later, another session, keeps its own."""
+        firsts = {
+            id(p): min(int(s.x[0]) for s in p.series if len(s.x))
+            for p in self.plots.values()
+            if p.kind == "time" and any(len(s.x) for s in p.series)
+        }
+        if not firsts:
+            return None
+        origin = min(firsts.values())
+        for p in self.plots.values():
+            if id(p) in firsts and firsts[id(p)] - origin <= within_ns:
+                p.origin = origin
+        return origin
 
     def of_stage(self, stage: str) -> list[Plot]:
         return [p for (s, _), p in self.plots.items() if s == stage]

@@ -26,6 +26,10 @@ W, H = 160.0, 100.0
 """The plot area, in scene units."""
 MARGIN_LEFT, MARGIN_TOP, MARGIN_BOTTOM = 34.0, 6.0, 27.0
 CHAR_WIDTH = 4.2  # scene units per character of a label in a view of ~500 px (for the legend)
+LABEL_DROP = 5.0
+"""How far (scene units, in a view of ~250 px) the viewer draws a point's label below the point:
+a y tick's label is placed this much higher, so it reads level with its grid line (it sat a
+third of a decade low on a log axis, the bottom one under the frame)."""
 FRAME_COLOR = (128, 128, 128)
 GRID_COLOR = (150, 150, 150)
 TEXT_COLOR = (110, 110, 110)
@@ -117,7 +121,7 @@ def draw(plot: Plot) -> list[tuple[str, Any]]:
         out.append((f"{root}/{where}", points))
 
     text("x_ticks", [[xa(t) * W, H + 8.0] for t in xa.ticks], xa.labels, [TEXT_COLOR])
-    y_ticks = [[-MARGIN_LEFT / 2, (1 - ya(t)) * H] for t in ya.ticks]
+    y_ticks = [[-MARGIN_LEFT / 2, (1 - ya(t)) * H - LABEL_DROP] for t in ya.ticks]
     text("y_ticks", y_ticks, ya.labels, [TEXT_COLOR])
     text("x_title", [[W / 2, H + 20.0]], [plot.x_heading], [TEXT_COLOR])
     if legend:

@@ -70,6 +70,7 @@ def render(
     """The report as one HTML string: the summary table, every warning and note with what it
     means, then each stage with its own warnings beside its results."""
     now = dt.datetime.now(dt.UTC).strftime("%Y-%m-%d %H:%M UTC")
+    figures.share_time_origin()
     parts = [
         "<!DOCTYPE html>",
         '<html lang="en"><head><meta charset="utf-8">',

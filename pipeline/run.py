@@ -209,6 +209,7 @@ def run(
             for owner, step in owners:
                 for w in getattr(step, "warnings", None) or []:
                     notices.add("warning", owner, "step", w)
+
         with staged_outputs(guard) as out:
             from imupipe.pipeline.recording import open_recorder  # rerun: loaded when run
 
