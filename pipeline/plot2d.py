@@ -71,21 +71,33 @@ def _series(plot: Plot, xa: Axis, ya: Axis) -> tuple[list, list[tuple[str, tuple
             out.append((s.entity, band))
             legend.append((s.names[0], s.colors[0]))
         elif s.style == "points":
-            pts, cols = [], []
+            pts, cols, labels = [], [], []
             for j, name in enumerate(s.names):
                 y = ya(s.values[:, j])
                 ok = np.isfinite(x) & np.isfinite(y)
+                if not ok.any():  # no legend entry without data
+                    continue
                 pts.append(np.column_stack([x[ok] * W, (1.0 - y[ok]) * H]))
                 cols += [s.colors[j]] * int(ok.sum())
+                labels += [name] * int(ok.sum())  # hovering a marker names it
                 legend.append((name, s.colors[j]))
+            if not pts:
+                continue
             points = rr.Points2D(
-                np.concatenate(pts), colors=cols, radii=POINT_RADIUS, draw_order=POINT_ORDER
+                np.concatenate(pts),
+                colors=cols,
+                radii=POINT_RADIUS,
+                labels=labels,
+                show_labels=False,
+                draw_order=POINT_ORDER,
             )
             out.append((s.entity, points))
         else:
             pieces, cols, labels = [], [], []
             for j, name in enumerate(s.names):
                 parts = strips(x, ya(s.values[:, j]), W, H)
+                if not parts:  # no legend entry without a line
+                    continue
                 pieces += parts
                 cols += [s.colors[j]] * len(parts)
                 labels += [name] * len(parts)

@@ -783,7 +783,10 @@ def open_recorder(
     if spawn and cfg.output.rerun:
         viewer, why = start_viewer()
         if viewer is None:
-            warn(f"--spawn: {why}; the recording is written to {rrd}")
+            warn(
+                f"--spawn: {why}; the recording is written to {rrd}: without a display, "
+                f"open it with `rerun --web-viewer {rrd}`, or see report.html"
+            )
     recorder = Recorder(
         out.path(rrd) if cfg.output.rerun else None,
         viewer=viewer,
