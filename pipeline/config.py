@@ -270,7 +270,7 @@ def not_a_config(path: Path) -> str:
     return (
         f"{path}: expected a TOML config file, got a log or a folder: write a config that names "
         f'the log (`[inputs.static]` `path = "{path.name}"`, then `[[stages]]`), see '
-        "README's \"Calibrate the IMU in your bag\" or docs/reference/config.md"
+        'README\'s "Calibrate the IMU in your bag" or docs/reference/config.md'
     )
 
 

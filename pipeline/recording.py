@@ -49,7 +49,6 @@ import rerun as rr
 import rerun.blueprint as rrb
 
 from imupipe.pipeline import plot2d
-from imupipe.pipeline.plot_layout import nice_ticks
 from imupipe.pipeline.figures import (
     AXIS_COLORS,
     NAMED_COLORS,
@@ -65,6 +64,7 @@ from imupipe.pipeline.figures import (
     lighter,
     stage_of,
 )
+from imupipe.pipeline.plot_layout import nice_ticks
 from imupipe.pipeline.summary import raw_count_sensors
 from imupipe.readers.table import (
     SENSOR_COLUMNS,
@@ -529,9 +529,7 @@ class Recorder:
                 plot_legend=rrb.PlotLegend(corner=rrb.Corner2D.RightTop, visible=True),
                 axis_y=rrb.ScalarAxis(range=legend_room(plot, group, len(lines))),
             )
-            views.append(
-                _with_span(view, [self._spans[e] for e in entities if e in self._spans])
-            )
+            views.append(_with_span(view, [self._spans[e] for e in entities if e in self._spans]))
         return views
 
     def _view(self, plot: Plot) -> Any:
@@ -604,9 +602,8 @@ class Recorder:
                     labels=[f"{a} {length:g}{unit}" for a in "xyz"],
                     show_labels=True,
                 )
-                self._send(
-                    lambda s, p=axes3d_path(plot), a=arrows: rr.log(p, a, static=True, recording=s)
-                )
+                path = axes3d_path(plot)
+                self._send(lambda s, p=path, a=arrows: rr.log(p, a, static=True, recording=s))
             if plot.kind == "xy":
                 for entity, archetype in plot2d.draw(plot):
                     self._send(

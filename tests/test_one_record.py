@@ -82,9 +82,7 @@ def demo_run(tmp_path_factory) -> tuple[Path, subprocess.CompletedProcess]:
     for line in script.splitlines():
         if line.strip().startswith("imupipe simulate"):
             args = shlex.split(line.split("#")[0])[1:]
-            subprocess.run(
-                [sys.executable, "-m", "imupipe.pipeline.cli", *args], cwd=d, check=True
-            )
+            subprocess.run([sys.executable, "-m", "imupipe.pipeline.cli", *args], cwd=d, check=True)
     done = run(d / "demo.toml")
     assert done.returncode == 0, done.stderr
     return d / "out", done
@@ -107,7 +105,7 @@ def check_one_record(out: Path, done: subprocess.CompletedProcess) -> int:
     summary = rrd_static(out / "recording.rrd")["/summary"]["TextDocument:text"]
     summary = summary[0] if isinstance(summary, list) else summary
     tail = done.stdout.rsplit("(also in calibration.json and report.html):", 1)[-1]
-    for level, where, message in said:
+    for level, _where, message in said:
         # the step's own prefix ([temperature gyro]) names the step; the record its stage
         found = [n for n in listed if message in n["message"] and n["level"] == level]
         assert found, (message, listed)
