@@ -268,6 +268,9 @@ def run(
 
             running.clear()
             doc = calibration_document(tables.chain, results, fitted)
+            # staged (its place in the commit order: before the corrected logs) now, written
+            # once correcting them has added its warnings
+            calibration = out.path(out_dir / "calibration.json")
             counts: dict[str, dict[str, int]] = {}
             tables.release()
             if cfg.output.apply_to:  # the MCAP writer: imported only when something is written
@@ -294,7 +297,7 @@ def run(
             for name in results:
                 results[name]["warnings"] = [n.message for n in notices.of_stage(name)]
             doc["warnings"] = notices.to_json()
-            out.write_text(out_dir / "calibration.json", calibration_json(doc))
+            calibration.write_text(calibration_json(doc), encoding="utf-8")
             files.append(out_dir / "calibration.json")
             for fname, text in exported.items():
                 out.write_text(out_dir / fname, text)

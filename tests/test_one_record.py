@@ -262,3 +262,59 @@ def test_the_legend_check_finds_an_empty_line(tmp_path):
     rec.flush()
     rec.disconnect()
     assert legend_entries_without_data(tmp_path / "r.rrd") == ["v: /s/empty"]
+
+
+# -- the README's image ----------------------------------------------------------------------------
+@pytest.mark.slow
+def test_readme_image_shows_what_the_demo_shows(demo_run):
+    """docs/images/recording_allan.png was made from the demo by make_screenshots.py --hero,
+    which wrote beside it what the tab showed; the demo of this code must show the same (else
+    run the commands in make_screenshots.py's docstring again)."""
+    import importlib.util
+
+    out, _ = demo_run
+    images = ROOT / "docs" / "images"
+    spec = importlib.util.spec_from_file_location(
+        "make_screenshots", ROOT / "docs" / "screenshots" / "make_screenshots.py"
+    )
+    shots = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(shots)
+    for image in images.glob("recording_*.png"):
+        record = json.loads(image.with_suffix(".json").read_text())
+        now = shots.hero_record(out / "recording.rrd", record["stage"])
+        assert now == record, f"{image.name} has drifted from the demo: make it again"
+    assert (ROOT / "README.md").read_text().count("docs/images/recording_allan.png") == 1
+
+
+# -- the walk-through ----------------------------------------------------------------------------
+def test_a_log_passed_as_the_config_says_a_config_was_expected(tmp_path):
+    table, _ = simulate("static", {"duration_s": 1.0, "rate_hz": 50.0}, seed=1)
+    write_log(tmp_path / "tumble.bag", table)
+    (tmp_path / "tumble_no_suffix").write_bytes((tmp_path / "tumble.bag").read_bytes())
+    (tmp_path / "latin1.toml").write_bytes(b'[inputs.a]\npath = "a.csv\xff"\n')
+    for log in ("tumble.bag", "tumble_no_suffix", "."):
+        done = subprocess.run(
+            [sys.executable, "-m", "imupipe.pipeline.cli", "run", log],
+            capture_output=True, text=True, cwd=tmp_path, timeout=120,
+        )  # fmt: skip
+        assert done.returncode == 2 and done.stderr.count("\n") == 1, done.stderr
+        assert "expected a TOML config file, got a log or a folder" in done.stderr
+        assert "UTF-8" not in done.stderr
+    done = subprocess.run(
+        [sys.executable, "-m", "imupipe.pipeline.cli", "run", "latin1.toml"],
+        capture_output=True, text=True, cwd=tmp_path, timeout=120,
+    )  # fmt: skip
+    assert done.returncode == 2 and "not UTF-8" in done.stderr  # a text config, mis-encoded
+
+
+def test_help_and_commands_page_list_every_scenario():
+    from imupipe.pipeline.simulate import SCENARIOS
+
+    done = subprocess.run(
+        [sys.executable, "-m", "imupipe.pipeline.cli", "--help"], capture_output=True, text=True
+    )
+    helptext = " ".join(done.stdout.split())
+    page = (ROOT / "docs" / "reference" / "commands.md").read_text()
+    for name in SCENARIOS:
+        assert re.search(rf"\b{name}\b", helptext), name
+        assert f"`{name}`" in page, name

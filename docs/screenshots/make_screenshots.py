@@ -11,6 +11,15 @@ viewer has finished loading and drawing), or after ``--wait`` seconds.
 
 ``report.html`` is captured with ``--html out/report.html`` (a full-page screenshot).
 
+The README's image is made from the demo's recording (``bash examples/demo.sh`` first) with
+
+    python docs/screenshots/make_screenshots.py examples/out/recording.rrd --hero allan --collapse-panels
+
+which writes ``docs/images/recording_allan.png`` (the tab whose name holds ``allan``) and
+``docs/images/recording_allan.json``: the views the tab shows and the stage's figures as the
+summary gives them. ``tests/test_one_record.py`` (slow) runs the demo and fails when either has
+drifted from what the current code shows: then run the two commands above again.
+
 Needs: ``chromium`` (Debian's package) on PATH, and the ``rerun`` viewer binary (rerun-sdk).
 Look at every screenshot before calling a view done.
 """
@@ -285,6 +294,32 @@ def send_tabs(url: str, bp: Blueprint, active: dict[str, str], collapse: bool) -
     bindings.connect_grpc_blueprint(url, True, False, stream.to_native())
 
 
+def tab_views(bp: Blueprint, path: str) -> list[str]:
+    """The names of the views inside a tab or container (depth first)."""
+    if not path.startswith("/container"):
+        return [bp.name(path)]
+    return [v for child in bp.contents(path) for v in tab_views(bp, child)]
+
+
+def hero_record(rrd: Path, stage: str) -> dict:
+    """What the README's image of ``stage``'s tab shows: the tab's views and the stage's rows
+    (the summary's quantities and cells, from ``calibration.json`` beside the recording)."""
+    from imupipe.pipeline.summary import summarise
+
+    bp = Blueprint(rrd)
+    tab = next(t for t in bp.contents(bp.root) if bp.name(t) == stage)
+    doc = json.loads((rrd.parent / "calibration.json").read_text())
+    (summary,) = [s for s in summarise(doc["results"]) if s.name == stage]
+    return {
+        "made_by": "docs/screenshots/make_screenshots.py --hero " + stage,
+        "from": "examples/demo.sh",
+        "stage": stage,
+        "status": summary.status,
+        "views": tab_views(bp, tab),
+        "rows": [[r.label, *r.cells] for r in summary.rows],
+    }
+
+
 def safe(name: str) -> str:
     return "".join(c if c.isalnum() or c in "-_" else "_" for c in name).strip("_")
 
@@ -349,7 +384,23 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument(
         "--collapse-panels", action="store_true", help="hide the blueprint and selection panels"
     )
+    p.add_argument(
+        "--hero",
+        metavar="STAGE",
+        help="make the README's image of this stage's tab: docs/images/recording_STAGE.png/.json",
+    )
     args = p.parse_args(argv)
+    if args.hero:
+        images = Path(__file__).resolve().parents[1] / "images"
+        args.out, args.tabs = Path(tempfile.mkdtemp()), [args.hero]
+        shots = asyncio.run(shoot_recording(args))
+        shot = next(s for s in shots if s.name.split("_", 1)[1].startswith(safe(args.hero)))
+        shutil.copy(shot, images / f"recording_{args.hero}.png")
+        record = hero_record(args.rrd, args.hero)
+        text = json.dumps(record, indent=1) + "\n"
+        (images / f"recording_{args.hero}.json").write_text(text, encoding="utf-8")
+        print(images / f"recording_{args.hero}.png")
+        return 0
     args.out.mkdir(parents=True, exist_ok=True)
     if args.rrd:
         asyncio.run(shoot_recording(args))
