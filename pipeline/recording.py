@@ -656,19 +656,19 @@ def axes3d_path(plot: Plot) -> str:
 
 
 def scale3d(plot: Plot) -> tuple[list[float], float]:
-    """(where, length) of a 3D plot's axes: at the median of its points, a round length about
-    half the points' largest distance from there along an axis (the scale of the view)."""
+    """(where, length) of a 3D plot's axes: at the low corner of the points' bounding box (out
+    of the cloud, not hidden in it), a round length about half the points' largest distance
+    from their median along an axis (the scale of the view)."""
     pts = [s.values.reshape(-1, 3) for s in plot.series if s.values.size]
     data = np.concatenate(pts) if pts else np.zeros((1, 3))
     data = data[np.isfinite(data).all(axis=1)]
     if not len(data):
         return [0.0, 0.0, 0.0], 1.0
-    centre = np.median(data, axis=0)
-    reach = float(np.abs(data - centre).max()) or 1.0
+    reach = float(np.abs(data - np.median(data, axis=0)).max()) or 1.0
     ticks = nice_ticks(0.0, 0.6 * reach, 3)
     inside = ticks[(ticks > 0) & (ticks <= 0.6 * reach)]
     length = float(inside[-1] if len(inside) else ticks[1])
-    return [float(c) for c in centre], length
+    return [float(c) for c in data.min(axis=0)], length
 
 
 def _short(name: str) -> str:
@@ -709,7 +709,7 @@ def magnitude_groups(plot: Plot, gap: float = 3.0) -> list[dict[str, set[str]]]:
     return [members for _, _, members in groups] or [{e: set() for e in plot.entities}]
 
 
-LEGEND_ROW_PX, VIEW_PX = 20.0, 280.0
+LEGEND_ROW_PX, VIEW_PX = 20.0, 340.0
 """Height of a legend row and of a time-series view as the tabs lay them out at 1600 x 1000 px."""
 
 
