@@ -21,6 +21,7 @@ recording holds more, the MCAP output all of it.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -183,6 +184,66 @@ def decimate_columns(
     window = math.ceil(len(t) / max_points)
     keep = np.arange(0, len(t), window)
     return t[keep], np.column_stack([c[keep] for c in columns])
+
+
+def column_ranges(plot: Plot) -> list[tuple[str, str, float, float]]:
+    """(entity, line name, smallest, largest finite value) of every line of a plot."""
+    out = []
+    for s in plot.series:
+        values = s.values.reshape(len(s.x), -1)
+        for j, name in enumerate(s.names):
+            v = values[:, j][np.isfinite(values[:, j])]
+            if len(v):
+                out.append((s.entity, name, float(v.min()), float(v.max())))
+    return out
+
+
+def magnitude_groups(plot: Plot, flatten: float = 20.0) -> list[dict[str, set[str]]]:
+    """The lines of a plot over time in groups that share a y range. Lines sorted by their
+    middle join the group before them unless the group's range would grow past ``flatten``
+    times the widest line's own range (that line would fill less than 1/``flatten`` of the
+    view's height): accel x and y near 0 with z at 9.8 m/s^2 make two groups; gyro raw and
+    corrected, 0.01 rad/s apart with 0.01 rad/s of noise, one. Each group maps entity -> the
+    names of its lines shown there."""
+    ranges = sorted(column_ranges(plot), key=lambda r: (r[2] + r[3]) / 2)
+    groups: list[tuple[float, float, float, dict[str, set[str]]]] = []
+    for entity, name, lo, hi in ranges:
+        if groups:
+            glo, ghi, widest, members = groups[-1]
+            widest = max(widest, hi - lo, 1e-12 * max(abs(lo), abs(hi), 1.0))
+            if max(ghi, hi) - min(glo, lo) <= flatten * widest:
+                members.setdefault(entity, set()).add(name)
+                groups[-1] = (min(glo, lo), max(ghi, hi), widest, members)
+                continue
+        groups.append((lo, hi, hi - lo, {entity: {name}}))
+    return [members for *_, members in groups] or [{e: set() for e in plot.entities}]
+
+
+def split_by_magnitude(plot: Plot) -> list[Plot]:
+    """A ``time`` plot as one plot per group of :func:`magnitude_groups` (itself when there is
+    one): each keeps the series' lines of its group, the title names them (``accel: z``)."""
+    groups = magnitude_groups(plot) if plot.kind == "time" else []
+    if len(groups) < 2:
+        return [plot]
+    out = []
+    for group in groups:
+        series = []
+        for s in plot.series:
+            cols = [j for j, n in enumerate(s.names) if n in group.get(s.entity, ())]
+            if cols:
+                values = s.values.reshape(len(s.x), -1)[:, cols]
+                names, colors = [s.names[j] for j in cols], [s.colors[j] for j in cols]
+                series.append(Series(s.entity, names, colors, s.x, values, s.style, s.extra))
+        lines = [n for s in series for n in s.names]
+        title = f"{plot.title}: " + ", ".join(dict.fromkeys(short_name(n) for n in lines))
+        out.append(dataclasses.replace(plot, title=title, series=series))
+    return out
+
+
+def short_name(name: str) -> str:
+    """What tells a line apart in a split plot's title: ``accel z raw`` -> ``z``."""
+    words = name.split()
+    return words[1] if len(words) > 2 else name
 
 
 class Figures:

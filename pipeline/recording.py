@@ -57,11 +57,13 @@ from imupipe.pipeline.figures import (
     Plot,
     Series,
     colors_for,
+    column_ranges,
     decimate,
     decimate_columns,
     display_unit,
     is_wall_clock,
     lighter,
+    split_by_magnitude,
     stage_of,
 )
 from imupipe.pipeline.plot_layout import nice_ticks
@@ -502,34 +504,24 @@ class Recorder:
 
     def _time_views(self, plot: Plot) -> list[Any]:
         """The views of a plot over time: one per group of lines of like magnitude
-        (:func:`magnitude_groups`: accel z at 9.8 m/s^2 apart from x and y near 0), each with
-        its legend in the top right corner above the data (the y range leaves it room)."""
-        groups = magnitude_groups(plot)
+        (:func:`~imupipe.pipeline.figures.split_by_magnitude`, as in the report: accel z at
+        9.8 m/s^2 apart from x and y near 0), each with its legend in the top right corner above
+        the data (the y range leaves it room)."""
         views = []
-        for group in groups:
-            entities = [e for e in dict.fromkeys(plot.entities) if e in group]
+        for part in split_by_magnitude(plot):
             # the signals before a stage first: the viewer draws later lines over earlier ones
-            ordered = sorted(entities, key=lambda e: not ("/raw/" in e or "/input/" in e))
-            paths = [
-                line_path(s.entity, n)
-                for e in ordered
-                for s in plot.series
-                if s.entity == e
-                for n in s.names
-                if n in group[e]
-            ]
-            lines = sorted({n for names in group.values() for n in names})
-            name = plot.heading
-            if len(groups) > 1:
-                name += ": " + ", ".join(dict.fromkeys(_short(n) for n in lines))
+            ordered = sorted(part.series, key=lambda s: not ("/raw/" in s.entity or "/input/" in s.entity))  # fmt: skip
+            paths = [line_path(s.entity, n) for s in ordered for n in s.names]
+            rows = len(dict.fromkeys(paths))
             view = rrb.TimeSeriesView(
                 origin="/",
                 contents=list(dict.fromkeys(paths)),
-                name=name,
+                name=part.heading,
                 plot_legend=rrb.PlotLegend(corner=rrb.Corner2D.RightTop, visible=True),
-                axis_y=rrb.ScalarAxis(range=legend_room(plot, group, len(lines))),
+                axis_y=rrb.ScalarAxis(range=legend_room(part, rows)),
             )
-            views.append(_with_span(view, [self._spans[e] for e in entities if e in self._spans]))
+            spans = [self._spans[e] for e in dict.fromkeys(part.entities) if e in self._spans]
+            views.append(_with_span(view, spans))
         return views
 
     def _view(self, plot: Plot) -> Any:
@@ -671,52 +663,14 @@ def scale3d(plot: Plot) -> tuple[list[float], float]:
     return [float(c) for c in data.min(axis=0)], length
 
 
-def _short(name: str) -> str:
-    """What tells a line apart in a split view's title: ``accel z raw`` -> ``z``."""
-    words = name.split()
-    return words[1] if len(words) > 2 else name
-
-
-def _column_ranges(plot: Plot) -> list[tuple[str, str, float, float]]:
-    """(entity, line name, smallest, largest finite value) of every line of a plot."""
-    out = []
-    for s in plot.series:
-        values = s.values.reshape(len(s.x), -1)
-        for j, name in enumerate(s.names):
-            v = values[:, j][np.isfinite(values[:, j])]
-            if len(v):
-                out.append((s.entity, name, float(v.min()), float(v.max())))
-    return out
-
-
-def magnitude_groups(plot: Plot, gap: float = 3.0) -> list[dict[str, set[str]]]:
-    """The lines of a plot over time in groups that share a y range: lines sorted by their
-    middle join the group before them unless the empty space between their ranges is more than
-    ``gap`` times the wider of the two (accel x and y near 0, z at 9.8 m/s^2: two groups; gyro
-    raw and corrected, 0.01 rad/s apart with 0.01 rad/s of noise: one). Each group maps entity
-    -> the names of its lines shown there."""
-    ranges = sorted(_column_ranges(plot), key=lambda r: (r[2] + r[3]) / 2)
-    groups: list[tuple[float, float, dict[str, set[str]]]] = []
-    for entity, name, lo, hi in ranges:
-        if groups:
-            glo, ghi, members = groups[-1]
-            width = max(ghi - glo, hi - lo, 1e-12 * max(abs(lo), abs(hi), 1.0))
-            if lo - ghi <= gap * width:
-                members.setdefault(entity, set()).add(name)
-                groups[-1] = (min(glo, lo), max(ghi, hi), members)
-                continue
-        groups.append((lo, hi, {entity: {name}}))
-    return [members for _, _, members in groups] or [{e: set() for e in plot.entities}]
-
-
 LEGEND_ROW_PX, VIEW_PX = 20.0, 340.0
 """Height of a legend row and of a time-series view as the tabs lay them out at 1600 x 1000 px."""
 
 
-def legend_room(plot: Plot, group: dict[str, set[str]], rows: int) -> tuple[float, float]:
-    """The y range of a view of ``group``'s lines: their data with 5 % to spare below, and above
+def legend_room(plot: Plot, rows: int) -> tuple[float, float]:
+    """The y range of a view of ``plot``'s lines: their data with 5 % to spare below, and above
     it room for the legend's ``rows`` in the top right corner, so the legend covers no data."""
-    spans = [(lo, hi) for e, n, lo, hi in _column_ranges(plot) if n in group.get(e, ())]
+    spans = [(lo, hi) for _, _, lo, hi in column_ranges(plot)]
     if not spans:
         return (0.0, 1.0)
     lo, hi = min(a for a, _ in spans), max(b for _, b in spans)

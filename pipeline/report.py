@@ -17,7 +17,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from imupipe.pipeline.figures import Figures, Plot
+from imupipe.pipeline.figures import Figures, Plot, split_by_magnitude
 from imupipe.pipeline.notices import Notice, meaning
 from imupipe.pipeline.summary import StageSummary
 from imupipe.pipeline.svg_plot import caption, svg
@@ -166,7 +166,9 @@ def _stage(s: StageSummary, plots: list[Plot]) -> str:
     if plots:
         out.append('<div class="plots">')
         # the stage's own figures first, then its signals over time
-        for plot in sorted(plots, key=lambda p: p.kind == "time"):
+        # lines of unlike magnitude in plots of their own, as in the recording
+        shown = [part for p in plots for part in split_by_magnitude(p)]
+        for plot in sorted(shown, key=lambda p: p.kind == "time"):
             drawn = svg(plot)
             if drawn:
                 wide = ' class="wide"' if plot.kind == "3d" else ""
