@@ -271,6 +271,7 @@ def run(
             # staged (its place in the commit order: before the corrected logs) now, written
             # once correcting them has added its warnings
             calibration = out.path(out_dir / "calibration.json")
+            corrected: list[Path] = []  # listed after the other files, as before
             counts: dict[str, dict[str, int]] = {}
             tables.release()
             if cfg.output.apply_to:  # the MCAP writer: imported only when something is written
@@ -281,7 +282,7 @@ def run(
                 counts[name] = write_corrected(
                     out.path(target), cfg.inputs[name], tables.chain, doc
                 )
-                files.append(target)
+                corrected.append(target)
                 bar.advance()
             exported, report = export_all(doc, chosen_exports(doc, cfg.output.exports))
             if report:  # what each tool's file leaves out: in the document, and one line
@@ -304,6 +305,7 @@ def run(
                 files.append(out_dir / fname)
             summaries = summarise(results, raw_count_sensors(cfg.inputs))
             files += publish(summaries, recorder, cfg, out, notices.of_run())
+            files += corrected
             recorder.close()
             bar.advance()
     return RunSummary(
@@ -348,7 +350,7 @@ def main(args: argparse.Namespace) -> int:
         from imupipe.pipeline.summary import print_notices, print_summary
 
         print_summary(summary.summaries)
+        print_notices(summary.notices)  # the summary ends with them; then the files written
         for path in summary.files:
             print(path)
-        print_notices(summary.notices)
     return 0

@@ -582,8 +582,9 @@ def print_summary(summaries: Sequence[StageSummary], console: Any = None) -> Non
 
 
 def print_notices(notices: Sequence[Notice], console: Any = None) -> None:
-    """Every warning and note of the run, each with what it means: the last thing the terminal
-    shows (the warnings printed while the run went have scrolled away)."""
+    """Every warning and note of the run, each with what it means: the end of the summary on
+    the terminal, just above the files written (the warnings printed while the run went have
+    scrolled away)."""
     if not notices:
         return
     from rich.console import Console
@@ -602,9 +603,10 @@ def print_notices(notices: Sequence[Notice], console: Any = None) -> None:
         )
         if c
     )
-    console.print(f"\n[bold]{head}[/bold] (also in calibration.json and report.html):")
+    console.print(f"[bold]{head}[/bold] (also in calibration.json and report.html):")
     for n in notices:
         color = "yellow" if n.level == "warning" else "cyan"
         where, message = escape(f"[{n.where}]"), escape(n.message)
         console.print(f"- [{color}]{n.level}[/{color}] {where}: {message}", highlight=False)
         console.print(f"  what it means: {escape(n.meaning)}", highlight=False, style="dim")
+    console.print()
