@@ -144,15 +144,19 @@ class Page:
             params["captureBeyondViewport"] = True
         return base64.b64decode((await self.call("Page.captureScreenshot", **params))["data"])
 
-    async def settled(self, wait: float, before: bytes = b"", interval: float = 2.0) -> bytes:
-        """A screenshot once it differs from ``before`` and two consecutive ones agree (or
-        after ``wait`` seconds)."""
+    async def settled(
+        self, wait: float, before: bytes = b"", interval: float = 2.0, agree: int = 3
+    ) -> bytes:
+        """A screenshot once it differs from ``before`` and ``agree`` consecutive ones agree (or
+        after ``wait`` seconds). Three, not two: a re-sent blueprint shows its first tab for a
+        moment before the active one (on a loaded machine, for two frames)."""
         deadline = time.monotonic() + wait
-        last = b""
+        same, last = 0, b""
         while True:
             await asyncio.sleep(interval)
             shot = await self.screenshot()
-            if (shot == last and shot != before) or time.monotonic() > deadline:
+            same = same + 1 if shot == last else 1
+            if (same >= agree and shot != before) or time.monotonic() > deadline:
                 return shot
             last = shot
 
@@ -341,7 +345,7 @@ async def shoot_recording(args) -> list[Path]:
         query = urllib.parse.urlencode({"url": proxy, "renderer": "webgl"})
         async with chromium(args.width, args.height) as page:
             await page.call("Page.navigate", url=f"http://127.0.0.1:{web}/?{query}")
-            png = await page.settled(args.wait)
+            png = await page.settled(args.wait, agree=5)  # the recording loaded and drawn
             for name, active in shots:
                 send_tabs(proxy, bp, active, args.collapse_panels)
                 png = await page.settled(args.wait, before=png)
