@@ -21,3 +21,4 @@ imupipe simulate static --duration 60 --seed 8 --out data/fleet/robot3          
 imupipe convert --calibration out/calibration.json --out out/fleet --jobs 2 data/fleet
 echo
 echo "outputs in examples/out/; open the recording with: rerun examples/out/recording.rrd"
+echo "(no display: rerun --web-viewer examples/out/recording.rrd, or open examples/out/report.html)"

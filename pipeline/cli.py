@@ -37,7 +37,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     ),
     "simulate": (
         "imupipe.pipeline.simulate",
-        "write a synthetic log with a known truth (static, poses, mag, thermal)",
+        "write a synthetic log with a known truth (static, poses, mag, thermal, thermal_soak)",
     ),
     "import": (
         "imupipe.pipeline.imports",

@@ -267,14 +267,42 @@ def default_names(stages: list[StageConfig], taken: set[str], path: Path) -> Non
         taken.update(names)
 
 
+LOG_SUFFIXES = (".bag", ".mcap", ".ulg", ".db3", ".csv", ".rrd")
+"""Files ``imupipe run`` is sometimes given instead of its config."""
+
+
+LOG_MAGIC = (b"#ROSBAG", b"\x89MCAP", b"ULog", b"SQLite format")
+"""How the logs imupipe reads begin (ROS 1 bag, MCAP, PX4 ULog, ROS 2 .db3)."""
+
+
+def looks_like_a_log(path: Path) -> bool:
+    """Whether ``path`` begins as a log does (or holds a NUL byte early: binary, not text)."""
+    with path.open("rb") as fh:
+        head = fh.read(512)
+    return head.startswith(LOG_MAGIC) or b"\x00" in head
+
+
+def not_a_config(path: Path) -> str:
+    """The one line for a log (or a folder) passed where the TOML config is expected."""
+    return (
+        f"{path}: expected a TOML config file, got a log or a folder: write a config that names "
+        f'the log (`[inputs.static]` `path = "{path.name}"`, then `[[stages]]`), see '
+        'README\'s "Calibrate the IMU in your bag" or docs/reference/config.md'
+    )
+
+
 def load_config(path: str | Path) -> Config:
     """Read and validate a config file."""
     path = Path(path)
+    if path.suffix.lower() in LOG_SUFFIXES or path.is_dir():
+        raise ConfigError(not_a_config(path))
     try:
         text = path.read_text(encoding="utf-8")
     except FileNotFoundError:
         raise ConfigError(f"{path}: no such config file") from None
     except UnicodeDecodeError as exc:
+        if looks_like_a_log(path):
+            raise ConfigError(not_a_config(path)) from None
         raise ConfigError(f"{path}: not UTF-8 text (byte {exc.start}); TOML is UTF-8") from None
     except OSError as exc:
         raise ConfigError(f"{path}: cannot read: {exc.strerror or exc}") from None

@@ -26,6 +26,10 @@ W, H = 160.0, 100.0
 """The plot area, in scene units."""
 MARGIN_LEFT, MARGIN_TOP, MARGIN_BOTTOM = 34.0, 6.0, 27.0
 CHAR_WIDTH = 4.2  # scene units per character of a label in a view of ~500 px (for the legend)
+LABEL_DROP = 5.0
+"""How far (scene units, in a view of ~250 px) the viewer draws a point's label below the point:
+a y tick's label is placed this much higher, so it reads level with its grid line (it sat a
+third of a decade low on a log axis, the bottom one under the frame)."""
 FRAME_COLOR = (128, 128, 128)
 GRID_COLOR = (150, 150, 150)
 TEXT_COLOR = (110, 110, 110)
@@ -67,21 +71,33 @@ def _series(plot: Plot, xa: Axis, ya: Axis) -> tuple[list, list[tuple[str, tuple
             out.append((s.entity, band))
             legend.append((s.names[0], s.colors[0]))
         elif s.style == "points":
-            pts, cols = [], []
+            pts, cols, labels = [], [], []
             for j, name in enumerate(s.names):
                 y = ya(s.values[:, j])
                 ok = np.isfinite(x) & np.isfinite(y)
+                if not ok.any():  # no legend entry without data
+                    continue
                 pts.append(np.column_stack([x[ok] * W, (1.0 - y[ok]) * H]))
                 cols += [s.colors[j]] * int(ok.sum())
+                labels += [name] * int(ok.sum())  # hovering a marker names it
                 legend.append((name, s.colors[j]))
+            if not pts:
+                continue
             points = rr.Points2D(
-                np.concatenate(pts), colors=cols, radii=POINT_RADIUS, draw_order=POINT_ORDER
+                np.concatenate(pts),
+                colors=cols,
+                radii=POINT_RADIUS,
+                labels=labels,
+                show_labels=False,
+                draw_order=POINT_ORDER,
             )
             out.append((s.entity, points))
         else:
             pieces, cols, labels = [], [], []
             for j, name in enumerate(s.names):
                 parts = strips(x, ya(s.values[:, j]), W, H)
+                if not parts:  # no legend entry without a line
+                    continue
                 pieces += parts
                 cols += [s.colors[j]] * len(parts)
                 labels += [name] * len(parts)
@@ -117,7 +133,7 @@ def draw(plot: Plot) -> list[tuple[str, Any]]:
         out.append((f"{root}/{where}", points))
 
     text("x_ticks", [[xa(t) * W, H + 8.0] for t in xa.ticks], xa.labels, [TEXT_COLOR])
-    y_ticks = [[-MARGIN_LEFT / 2, (1 - ya(t)) * H] for t in ya.ticks]
+    y_ticks = [[-MARGIN_LEFT / 2, (1 - ya(t)) * H - LABEL_DROP] for t in ya.ticks]
     text("y_ticks", y_ticks, ya.labels, [TEXT_COLOR])
     text("x_title", [[W / 2, H + 20.0]], [plot.x_heading], [TEXT_COLOR])
     if legend:

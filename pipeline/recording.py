@@ -57,13 +57,16 @@ from imupipe.pipeline.figures import (
     Plot,
     Series,
     colors_for,
+    column_ranges,
     decimate,
     decimate_columns,
     display_unit,
     is_wall_clock,
     lighter,
+    split_by_magnitude,
     stage_of,
 )
+from imupipe.pipeline.plot_layout import nice_ticks
 from imupipe.pipeline.summary import raw_count_sensors
 from imupipe.readers.table import (
     SENSOR_COLUMNS,
@@ -151,8 +154,14 @@ class Recorder:
         if entity in self._styled:
             return
         self._styled.add(entity)
-        style = rr.SeriesPoints if points else rr.SeriesLines
-        self.log(entity, style(names=list(names), colors=list(colors)))
+        if points:
+            self.log(entity, rr.SeriesPoints(names=list(names), colors=list(colors)))
+        else:  # zoomed out, the viewer draws each pixel column's min and max, never a mean
+            policy = rr.components.AggregationPolicy.MinMax
+            self.log(
+                entity,
+                rr.SeriesLines(names=list(names), colors=list(colors), aggregation_policy=policy),
+            )
 
     # -- what a stage shows ------------------------------------------------------------------
     def series(
@@ -173,12 +182,12 @@ class Recorder:
         signals of one stage into one plot; ``title`` names it (the unit is appended)."""
         t_ns = np.asarray(t_ns, dtype=np.int64)
         values = np.asarray(values, dtype=np.float64).reshape(len(t_ns), -1)
-        if len(t_ns) == 0:
+        names, colors, values = _with_data(names, colors_for(names, colors), values)
+        if len(t_ns) == 0 or not names:  # no legend entry without data
             return
         shown, factor = display_unit(unit)
         key = plot or entity.rstrip("/").rsplit("/", 1)[-1]
         fig = self.figures.plot(stage_of(entity), key, "time", title=title, unit=shown)
-        colors = colors_for(names, colors)
         t_ns, values = decimate(t_ns, values, self.max_points)  # then scaled: fewer points
         if factor != 1.0:
             with np.errstate(over="ignore"):  # a damaged 1e308 cell: inf, not drawn
@@ -187,7 +196,8 @@ class Recorder:
         fig.series.append(
             Series(entity, list(names), colors, kept_t, kept, "points" if points else "line")
         )
-        self._style(entity, names, colors, points)
+        for name, color in zip(names, colors, strict=True):
+            self._style(line_path(entity, name), [name], [color], points)
         lo, hi = int(t_ns.min()), int(t_ns.max())
         first, last = self._spans.get(entity, (lo, hi))
         self._spans[entity] = (min(first, lo), max(last, hi))
@@ -199,10 +209,13 @@ class Recorder:
                 if self._wall_clock
                 else rr.TimeColumn(TIMELINE, duration=t_ns.astype("timedelta64[ns]"))
             ]
-            columns = rr.Scalars.columns(scalars=values)
-            self._send(
-                lambda s: rr.send_columns(entity, indexes=indexes, columns=columns, recording=s)
-            )
+            for j, name in enumerate(names):  # one entity per line: views pick lines
+                path, columns = line_path(entity, name), rr.Scalars.columns(scalars=values[:, j])
+                self._send(
+                    lambda s, p=path, c=columns: rr.send_columns(
+                        p, indexes=indexes, columns=c, recording=s
+                    )
+                )
 
     def curve(
         self,
@@ -233,7 +246,13 @@ class Recorder:
         ``log_x``/``log_y``. (``timeline``: the older form, kept working: a label for ``x``.)"""
         x = np.asarray(x, dtype=np.float64)
         values = np.asarray(values, dtype=np.float64).reshape(len(x), -1)
-        if len(x) == 0:
+        if not band:
+            given = None if colors is None else colors_for(names, colors)
+            names, kept_colors, values = _with_data(
+                names, given or [(0, 0, 0)] * len(names), values, x
+            )
+            colors = kept_colors if given is not None else None
+        if len(x) == 0 or not names:  # no legend entry without data
             return
         shown, factor = display_unit(unit)
         stage = stage_of(entity)
@@ -483,15 +502,29 @@ class Recorder:
         """Give a stage a tab (even one that showed nothing: its results document)."""
         self.figures.stage(stage)
 
-    def _view(self, plot: Plot) -> Any:
-        if plot.kind == "time":
+    def _time_views(self, plot: Plot) -> list[Any]:
+        """The views of a plot over time: one per group of lines of like magnitude
+        (:func:`~imupipe.pipeline.figures.split_by_magnitude`, as in the report: accel z at
+        9.8 m/s^2 apart from x and y near 0), each with its legend in the top right corner above
+        the data (the y range leaves it room)."""
+        views = []
+        for part in split_by_magnitude(plot):
+            # the signals before a stage first: the viewer draws later lines over earlier ones
+            ordered = sorted(part.series, key=lambda s: not ("/raw/" in s.entity or "/input/" in s.entity))  # fmt: skip
+            paths = [line_path(s.entity, n) for s in ordered for n in s.names]
+            rows = len(dict.fromkeys(paths))
             view = rrb.TimeSeriesView(
                 origin="/",
-                contents=list(dict.fromkeys(plot.entities)),
-                name=plot.heading,
-                plot_legend=rrb.PlotLegend(visible=True),
+                contents=list(dict.fromkeys(paths)),
+                name=part.heading,
+                plot_legend=rrb.PlotLegend(corner=rrb.Corner2D.RightTop, visible=True),
+                axis_y=rrb.ScalarAxis(range=legend_room(part, rows)),
             )
-            return _with_span(view, [self._spans[e] for e in plot.entities if e in self._spans])
+            spans = [self._spans[e] for e in dict.fromkeys(part.entities) if e in self._spans]
+            views.append(_with_span(view, spans))
+        return views
+
+    def _view(self, plot: Plot) -> Any:
         if plot.kind == "bars":
             # the legend of a bar chart shows entity paths: the colours are named in the title
             named = {c: n for n, c in NAMED_COLORS.items()}
@@ -509,7 +542,9 @@ class Recorder:
             )
         if plot.kind == "3d":
             return rrb.Spatial3DView(
-                origin="/", contents=list(dict.fromkeys(plot.entities)), name=plot.heading
+                origin="/",
+                contents=[*dict.fromkeys(plot.entities), axes3d_path(plot)],
+                name=f"{plot.heading}; axes {scale3d(plot)[1]:g} {plot.unit}".rstrip(),
             )
         return plot2d.view(plot)
 
@@ -529,7 +564,7 @@ class Recorder:
             tabs.append(rrb.TextDocumentView(origin=self._documents[""], name="Summary"))
         for stage in self.figures.stages:
             plots = self.figures.of_stage(stage)
-            signals = [self._view(p) for p in plots if p.kind == "time"]
+            signals = [v for p in plots if p.kind == "time" for v in self._time_views(p)]
             others = [self._view(p) for p in plots if p.kind != "time"]
             for view in self._views.get(stage, []):
                 self._fit_time_axis(view)
@@ -549,6 +584,18 @@ class Recorder:
 
     def _draw_plots(self) -> None:
         for plot in self.figures.plots.values():
+            if plot.kind == "3d":
+                centre, length = scale3d(plot)
+                unit = f" {plot.unit}" if plot.unit else ""
+                arrows = rr.Arrows3D(
+                    origins=[centre] * 3,
+                    vectors=np.eye(3) * length,
+                    colors=AXIS_COLORS,
+                    labels=[f"{a} {length:g}{unit}" for a in "xyz"],
+                    show_labels=True,
+                )
+                path = axes3d_path(plot)
+                self._send(lambda s, p=path, a=arrows: rr.log(p, a, static=True, recording=s))
             if plot.kind == "xy":
                 for entity, archetype in plot2d.draw(plot):
                     self._send(
@@ -570,6 +617,66 @@ class Recorder:
                 self._drop_live(exc)
         for stream in self._streams:
             stream.disconnect()
+
+
+def _with_data(
+    names: Sequence[str],
+    colors: Sequence[Any],
+    values: np.ndarray,
+    x: np.ndarray | None = None,
+) -> tuple[list[str], list[Any], np.ndarray]:
+    """The columns of ``values`` (n, k) that have a finite value (at a finite ``x``), with their
+    names and colours: a line without data never gets a legend entry."""
+    ok = np.isfinite(values)
+    if x is not None:
+        ok &= np.isfinite(x)[:, None]
+    keep = ok.any(axis=0) if len(values) else np.zeros(values.shape[1], dtype=bool)
+    if keep.all():
+        return list(names), list(colors), values
+    idx = np.flatnonzero(keep)
+    return [names[i] for i in idx], [colors[i] for i in idx], values[:, idx]
+
+
+def line_path(entity: str, name: str) -> str:
+    """The entity of one line of a signal: ``/gyro_bias/corrected/gyro/gyro_x_corrected``."""
+    return f"{entity}/{_part(name)}"
+
+
+def axes3d_path(plot: Plot) -> str:
+    """Where a 3D plot's axes (three arrows with their length) are logged."""
+    return f"/{plot.stage}/{plot.key}/axes3d"
+
+
+def scale3d(plot: Plot) -> tuple[list[float], float]:
+    """(where, length) of a 3D plot's axes: at the low corner of the points' bounding box (out
+    of the cloud, not hidden in it), a round length about half the points' largest distance
+    from their median along an axis (the scale of the view)."""
+    pts = [s.values.reshape(-1, 3) for s in plot.series if s.values.size]
+    data = np.concatenate(pts) if pts else np.zeros((1, 3))
+    data = data[np.isfinite(data).all(axis=1)]
+    if not len(data):
+        return [0.0, 0.0, 0.0], 1.0
+    reach = float(np.abs(data - np.median(data, axis=0)).max()) or 1.0
+    ticks = nice_ticks(0.0, 0.6 * reach, 3)
+    inside = ticks[(ticks > 0) & (ticks <= 0.6 * reach)]
+    length = float(inside[-1] if len(inside) else ticks[1])
+    return [float(c) for c in data.min(axis=0)], length
+
+
+LEGEND_ROW_PX, VIEW_PX = 20.0, 340.0
+"""Height of a legend row and of a time-series view as the tabs lay them out at 1600 x 1000 px."""
+
+
+def legend_room(plot: Plot, rows: int) -> tuple[float, float]:
+    """The y range of a view of ``plot``'s lines: their data with 5 % to spare below, and above
+    it room for the legend's ``rows`` in the top right corner, so the legend covers no data."""
+    spans = [(lo, hi) for _, _, lo, hi in column_ranges(plot)]
+    if not spans:
+        return (0.0, 1.0)
+    lo, hi = min(a for a, _ in spans), max(b for _, b in spans)
+    span = (hi - lo) or (abs(hi) * 0.1 or 1.0)
+    top = min(0.6, (LEGEND_ROW_PX * rows + 16.0) / VIEW_PX)  # fraction of the view's height
+    return (lo - 0.05 * span, hi + span * (0.05 + top / (1.0 - top)))
 
 
 def _part(name: str) -> str:
@@ -627,7 +734,10 @@ def open_recorder(
     if spawn and cfg.output.rerun:
         viewer, why = start_viewer()
         if viewer is None:
-            warn(f"--spawn: {why}; the recording is written to {rrd}")
+            warn(
+                f"--spawn: {why}; the recording is written to {rrd}: without a display, "
+                f"open it with `rerun --web-viewer {rrd}`, or see report.html"
+            )
     recorder = Recorder(
         out.path(rrd) if cfg.output.rerun else None,
         viewer=viewer,

@@ -17,7 +17,8 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from imupipe.pipeline.figures import Figures, Plot
+from imupipe.pipeline.figures import Figures, Plot, split_by_magnitude
+from imupipe.pipeline.notices import Notice, meaning
 from imupipe.pipeline.summary import StageSummary
 from imupipe.pipeline.svg_plot import caption, svg
 from imupipe.pipeline.version import VERSION
@@ -34,6 +35,8 @@ th { background: #f4f4f4; text-align: left; }
 td.num { text-align: right; font-variant-numeric: tabular-nums; white-space: nowrap; }
 .look { background: #f3f7fd; border-left: 4px solid #3a6fd8; padding: 0.5em 0.8em; }
 .warn { color: #8a5a00; } .fail { color: #b00020; }
+.notes { background: #fdf8ec; border-left: 4px solid #d8a23a; padding: 0.3em 0.8em; }
+.notes li { margin: 0.3em 0; } .means { color: #555; }
 .status-ok { color: #1a7f37; } .status-warn { color: #8a5a00; } .status-fail { color: #b00020; }
 .plots { display: grid; grid-template-columns: repeat(auto-fill, minmax(560px, 1fr)); gap: 1em; }
 figure { margin: 0; } figure.wide { grid-column: 1 / -1; } figure svg { display: block; width: 100%; height: auto; border: 1px solid #eee; }
@@ -42,17 +45,32 @@ nav a { margin-right: 1em; }
 """
 
 
-def write_report(path: Path, summaries: Sequence[StageSummary], figures: Figures, cfg: Any) -> None:
-    """Write ``report.html`` to ``path`` (the staged temporary path of the output)."""
+def write_report(
+    path: Path,
+    summaries: Sequence[StageSummary],
+    figures: Figures,
+    cfg: Any,
+    notes: Sequence[Notice] = (),
+) -> None:
+    """Write ``report.html`` to ``path`` (the staged temporary path of the output); ``notes``:
+    the run's warnings and notes of no stage (the exports')."""
     title = f"imupipe calibration report: {Path(cfg.path).name}"
-    path.write_text(render(summaries, figures, title=title, source=str(cfg.path)), encoding="utf-8")
+    text = render(summaries, figures, title=title, source=str(cfg.path), notes=notes)
+    path.write_text(text, encoding="utf-8")
 
 
 def render(
-    summaries: Sequence[StageSummary], figures: Figures, *, title: str, source: str = ""
+    summaries: Sequence[StageSummary],
+    figures: Figures,
+    *,
+    title: str,
+    source: str = "",
+    notes: Sequence[Notice] = (),
 ) -> str:
-    """The report as one HTML string."""
+    """The report as one HTML string: the summary table, every warning and note with what it
+    means, then each stage with its own warnings beside its results."""
     now = dt.datetime.now(dt.UTC).strftime("%Y-%m-%d %H:%M UTC")
+    figures.share_time_origin()
     parts = [
         "<!DOCTYPE html>",
         '<html lang="en"><head><meta charset="utf-8">',
@@ -65,6 +83,7 @@ def render(
         + "</nav>",
         "<h2>Summary</h2>",
         overview_html(summaries),
+        _notes(summaries, notes),
     ]
     for s in summaries:
         parts.append(stage_html(s, [p for p in figures.of_stage(s.name)]))
@@ -95,6 +114,27 @@ def overview_html(summaries: Sequence[StageSummary]) -> str:
     )
 
 
+def _warning(level: str, message: str, where: str = "") -> str:
+    """One warning or note with what it means (an ``<li>``)."""
+    at = f" [{html.escape(where)}]" if where else ""
+    return (
+        f'<li><b class="warn">{level}</b>{at}: {html.escape(message)}<br>'
+        f'<span class="means">What it means: {html.escape(meaning(message))}</span></li>'
+    )
+
+
+def _notes(summaries: Sequence[StageSummary], notes: Sequence[Notice]) -> str:
+    """Every warning of the stages and note of the run, listed under the summary table."""
+    items = [_warning("warning", w, s.name) for s in summaries for w in s.warnings]
+    items += [_warning(n.level, n.message, n.where) for n in notes]
+    if not items:
+        return ""
+    return (
+        f'<div class="notes"><b>Warnings and notes ({len(items)})</b><ul>{"".join(items)}</ul>'
+        "</div>"
+    )
+
+
 def stage_html(s: StageSummary, plots: Sequence[Plot] = ()) -> str:
     """A stage's section of the report: its summary table, quality figures, warnings and
     ``plots`` (also what a stage result shows in Jupyter: ``imupipe.StageResult``)."""
@@ -103,6 +143,9 @@ def stage_html(s: StageSummary, plots: Sequence[Plot] = ()) -> str:
         f'<small class="{_status_class(s)}">({html.escape(s.type)} on {html.escape(s.input)}: '
         f"{html.escape(s.status)})</small></h2>"
     ]
+    if s.warnings:
+        items = "".join(_warning("warning", w) for w in s.warnings)
+        out.append(f'<div class="notes"><ul>{items}</ul></div>')
     if s.look_at:
         out.append(f'<p class="look"><b>What to look at.</b> {html.escape(s.look_at)}</p>')
     if s.rows:
@@ -123,12 +166,12 @@ def stage_html(s: StageSummary, plots: Sequence[Plot] = ()) -> str:
         )
     for c in s.failed_checks:
         out.append(f'<p class="fail">failed check (accepted): {html.escape(c)}</p>')
-    for w in s.warnings:
-        out.append(f'<p class="warn">warning: {html.escape(w)}</p>')
     if plots:
         out.append('<div class="plots">')
         # the stage's own figures first, then its signals over time
-        for plot in sorted(plots, key=lambda p: p.kind == "time"):
+        # lines of unlike magnitude in plots of their own, as in the recording
+        shown = [part for p in plots for part in split_by_magnitude(p)]
+        for plot in sorted(shown, key=lambda p: p.kind == "time"):
             drawn = svg(plot)
             if drawn:
                 wide = ' class="wide"' if plot.kind == "3d" else ""

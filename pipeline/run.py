@@ -25,6 +25,7 @@ from imupipe.pipeline.config import Config, load_config
 from imupipe.pipeline.exports import chosen as chosen_exports
 from imupipe.pipeline.exports import export_all
 from imupipe.pipeline.instances import expand_instances
+from imupipe.pipeline.notices import Notice, Notices
 from imupipe.pipeline.progress import progress_bar
 from imupipe.pipeline.signals import signals_deferred
 from imupipe.pipeline.summary import (
@@ -95,6 +96,7 @@ class RunSummary:
     calibration: dict[str, Any]
     counts: dict[str, dict[str, int]] = field(default_factory=dict)
     summaries: list[StageSummary] = field(default_factory=list)
+    notices: list[Notice] = field(default_factory=list)
 
 
 def calibration_document(
@@ -108,18 +110,25 @@ def calibration_document(
     return {"imupipe_version": VERSION, "chain": entries, "results": results}
 
 
-def publish(summaries: Sequence[StageSummary], recorder: Any, cfg: Any, out: Any) -> list[Any]:
+def publish(
+    summaries: Sequence[StageSummary],
+    recorder: Any,
+    cfg: Any,
+    out: Any,
+    notes: Sequence[Notice] = (),
+) -> list[Any]:
     """The summary into the recording (a document per stage, and the Summary tab) and, with
-    ``[output] report``, into ``report.html`` (staged in ``out``); returns the files written."""
+    ``[output] report``, into ``report.html`` (staged in ``out``); returns the files written.
+    ``notes``: the warnings and notes of no stage (the exports'), listed after the stages'."""
     for s in summaries:
         recorder.document(s.name, stage_markdown(s))
-    recorder.document(None, run_markdown(summaries, f"imupipe run {cfg.path.name}"))
+    recorder.document(None, run_markdown(summaries, f"imupipe run {cfg.path.name}", notes))
     if not cfg.output.report:
         return []
     from imupipe.pipeline.report import write_report  # imported only when a report is written
 
     target = cfg.output.dir / "report.html"
-    write_report(out.path(target), summaries, recorder.figures, cfg)
+    write_report(out.path(target), summaries, recorder.figures, cfg, notes)
     return [target]
 
 
@@ -168,10 +177,16 @@ def run(
     raw: dict[str, pa.Table] = {}
     used = [name for name in cfg.inputs if any(st.input == name for st in cfg.stages)]
     n_steps = len(used) + len(cfg.stages) + len(cfg.output.apply_to) + 1
+    notices = Notices()  # every warning and note, wherever raised: one record (notices.py)
+    read_warnings: dict[str, list[str]] = {}  # input -> its reader's warnings
+    running: list[str] = []  # the stage running (an input read inside it is its own)
 
     def read(name: str) -> pa.Table:
         table, warnings = read_input(cfg.inputs[name])
+        read_warnings[name] = list(warnings)
         for w in warnings:
+            if running:
+                notices.add("warning", running[0], f"inputs.{name}", w)
             if not quiet:
                 print(f"imupipe: warning: [inputs.{name}] {w}", file=sys.stderr)
         return table
@@ -188,6 +203,14 @@ def run(
         tables = CorrectedTables(raw, list(cfg.inputs), read)
         results: dict[str, Any] = {}
         fitted: list[dict[str, Any]] = []  # fitted_on of each chain entry
+        owners: list[tuple[str, Step]] = []  # (stage, step): a step's warnings are its stage's
+
+        def sweep_steps() -> None:
+            """The steps' own warnings (raised when a step corrects a log) to their stages."""
+            for owner, step in owners:
+                for w in getattr(step, "warnings", None) or []:
+                    notices.add("warning", owner, "step", w)
+
         with staged_outputs(guard) as out:
             from imupipe.pipeline.recording import open_recorder  # rerun: loaded when run
 
@@ -195,6 +218,9 @@ def run(
                 recorder, files = open_recorder(cfg, out, spawn=spawn, quiet=quiet)
             for st in cfg.stages:
                 bar.describe(f"stage {st.name}")
+                running[:] = [st.name]
+                for w in read_warnings.get(st.input, []):
+                    notices.add("warning", st.name, f"inputs.{st.input}", w)
                 stage = stage_class(st.type)(st.options)
                 tables.keep_only(st.input)
                 table = tables[st.input]
@@ -210,6 +236,10 @@ def run(
                 mine = applying(tables.chain, table)  # the steps of this input's devices
                 recorder.sensors(st.name, table, sensors, input_name=st.input, chain=mine)
                 output = stage.fit(table, ctx)
+                for w in ctx.warnings:
+                    notices.add("warning", st.name, "stage", w)
+                owners.extend((st.name, step) for step in output.steps)
+                sweep_steps()
                 where = fitted_on(st.input, cfg.inputs[st.input], table)
                 if output.steps:  # each applies to its own device's data only
                     tables.extend(on_device(output.steps, [where] * len(output.steps)))
@@ -238,7 +268,24 @@ def run(
                     files.append(out_dir / fname)
                 bar.advance()
 
+            running.clear()
             doc = calibration_document(tables.chain, results, fitted)
+            # staged (its place in the commit order: before the corrected logs) now, written
+            # once correcting them has added its warnings
+            calibration = out.path(out_dir / "calibration.json")
+            corrected: list[Path] = []  # listed after the other files, as before
+            counts: dict[str, dict[str, int]] = {}
+            tables.release()
+            if cfg.output.apply_to:  # the MCAP writer: imported only when something is written
+                from imupipe.pipeline.corrected import write_corrected
+            for name in cfg.output.apply_to:  # first: correcting a log may warn (extrapolation)
+                bar.describe(f"writing {name}.mcap")
+                target = out_dir / f"{name}.mcap"
+                counts[name] = write_corrected(
+                    out.path(target), cfg.inputs[name], tables.chain, doc
+                )
+                corrected.append(target)
+                bar.advance()
             exported, report = export_all(
                 doc,
                 chosen_exports(doc, cfg.output.exports),
@@ -247,31 +294,33 @@ def run(
             if report:  # what each tool's file leaves out: in the document, and one line
                 doc["exports"] = report
             noted = [name for name, rep in report.items() if rep.get("notes")]
-            if noted and not quiet:
-                print(exports_note(noted), file=sys.stderr)
-            out.write_text(out_dir / "calibration.json", calibration_json(doc))
+            if noted:
+                line = exports_note(noted)
+                if not quiet:
+                    print(line, file=sys.stderr)
+                details = "; ".join(f"{n}: {'; '.join(report[n]['notes'])}" for n in noted)
+                notices.add("note", None, "exports", f"{line.split('] ', 1)[1]} ({details})")
+            sweep_steps()
+            for name in results:
+                results[name]["warnings"] = [n.message for n in notices.of_stage(name)]
+            doc["warnings"] = notices.to_json()
+            calibration.write_text(calibration_json(doc), encoding="utf-8")
             files.append(out_dir / "calibration.json")
             for fname, text in exported.items():
                 out.write_text(out_dir / fname, text)
                 files.append(out_dir / fname)
             summaries = summarise(results, raw_count_sensors(cfg.inputs))
-            files += publish(summaries, recorder, cfg, out)
-            counts: dict[str, dict[str, int]] = {}
-            tables.release()
-            if cfg.output.apply_to:  # the MCAP writer: imported only when something is written
-                from imupipe.pipeline.corrected import write_corrected
-            for name in cfg.output.apply_to:
-                bar.describe(f"writing {name}.mcap")
-                target = out_dir / f"{name}.mcap"
-                counts[name] = write_corrected(
-                    out.path(target), cfg.inputs[name], tables.chain, doc
-                )
-                files.append(target)
-                bar.advance()
+            files += publish(summaries, recorder, cfg, out, notices.of_run())
+            files += corrected
             recorder.close()
             bar.advance()
     return RunSummary(
-        out_dir=out_dir, files=files, calibration=doc, counts=counts, summaries=summaries
+        out_dir=out_dir,
+        files=files,
+        calibration=doc,
+        counts=counts,
+        summaries=summaries,
+        notices=notices.items,
     )
 
 
@@ -304,9 +353,10 @@ def main(args: argparse.Namespace) -> int:
     with small_pages():
         summary = run(args.config, spawn=args.spawn, quiet=args.quiet, one_shot=True)
     if not args.quiet:
-        from imupipe.pipeline.summary import print_summary
+        from imupipe.pipeline.summary import print_notices, print_summary
 
         print_summary(summary.summaries)
+        print_notices(summary.notices)  # the summary ends with them; then the files written
         for path in summary.files:
             print(path)
     return 0

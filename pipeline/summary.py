@@ -15,6 +15,8 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
+from imupipe.pipeline.notices import Notice, counted, meaning
+
 AXES = ("x", "y", "z")
 
 
@@ -51,11 +53,12 @@ class StageSummary:
 
     @property
     def status(self) -> str:
+        """``ok``, ``ok, 2 warnings``, or ``1 failed check accepted, 2 warnings``: never a bare
+        ``ok`` for a stage that warned."""
+        warned = f", {counted(len(self.warnings), 'warning')}" if self.warnings else ""
         if self.failed_checks:
-            return f"{len(self.failed_checks)} failed check(s) accepted"
-        if self.warnings:
-            return f"{len(self.warnings)} warning(s)"
-        return "ok"
+            return f"{counted(len(self.failed_checks), 'failed check')} accepted{warned}"
+        return f"ok{warned}"
 
 
 # -- number formatting -------------------------------------------------------------------------
@@ -532,14 +535,32 @@ def stage_markdown(s: StageSummary, heading: str = "#") -> str:
     if s.failed_checks:
         lines += ["", "**Failed checks (accepted)**", ""] + [f"- {c}" for c in s.failed_checks]
     if s.warnings:
-        lines += ["", "**Warnings**", ""] + [f"- {w}" for w in s.warnings]
+        lines += ["", "**Warnings**", ""]
+        lines += [f"- {_md_escape(w)}  \n  *What it means:* {meaning(w)}" for w in s.warnings]
     if s.look_at:
         lines += ["", f"**What to look at.** {s.look_at}"]
     return "\n".join(lines) + "\n"
 
 
-def run_markdown(summaries: Sequence[StageSummary], title: str = "imupipe run") -> str:
-    """The run's summary: a table of the stages, then each stage's summary."""
+def notes_markdown(summaries: Sequence[StageSummary], notes: Sequence[Notice] = ()) -> list[str]:
+    """Every warning of the stages and every note of the run (``notes``), each with its
+    meaning: the list the run's summary opens with (none: nothing)."""
+    items = [(s.name, "warning", w) for s in summaries for w in s.warnings]
+    items += [(n.where, n.level, n.message) for n in notes]
+    if not items:
+        return []
+    lines = ["", f"**Warnings and notes ({len(items)})**", ""]
+    for where, level, message in items:
+        lines.append(f"- {level} [{_md_escape(where)}]: {_md_escape(message)}  ")
+        lines.append(f"  *What it means:* {meaning(message)}")
+    return lines
+
+
+def run_markdown(
+    summaries: Sequence[StageSummary], title: str = "imupipe run", notes: Sequence[Notice] = ()
+) -> str:
+    """The run's summary: a table of the stages, every warning and note (``notes``: the run's
+    own, the exports'), then each stage's summary."""
     lines = [
         f"# {title}",
         "",
@@ -554,6 +575,7 @@ def run_markdown(summaries: Sequence[StageSummary], title: str = "imupipe run") 
             )
             + " |"
         )
+    lines += notes_markdown(summaries, notes)
     for s in summaries:
         lines += ["", stage_markdown(s, heading="##")]
     return "\n".join(lines) + "\n"
@@ -562,6 +584,7 @@ def run_markdown(summaries: Sequence[StageSummary], title: str = "imupipe run") 
 def print_summary(summaries: Sequence[StageSummary], console: Any = None) -> None:
     """The summary on the terminal (rich tables; plain text when not a terminal)."""
     from rich.console import Console
+    from rich.markup import escape
     from rich.table import Table
 
     if console is None:  # a pipe or a file gets the long lines whole
@@ -583,7 +606,38 @@ def print_summary(summaries: Sequence[StageSummary], console: Any = None) -> Non
         for key, value in s.quality:
             console.print(f"  {key}: {value}", highlight=False)
         for check in s.failed_checks:
-            console.print(f"  [red]failed check (accepted):[/red] {check}", highlight=False)
+            console.print(f"  [red]failed check (accepted):[/red] {escape(check)}", highlight=False)
         for warning in s.warnings:
-            console.print(f"  [yellow]warning:[/yellow] {warning}", highlight=False)
+            console.print(f"  [yellow]warning:[/yellow] {escape(warning)}", highlight=False)
         console.print()
+
+
+def print_notices(notices: Sequence[Notice], console: Any = None) -> None:
+    """Every warning and note of the run, each with what it means: the end of the summary on
+    the terminal, just above the files written (the warnings printed while the run went have
+    scrolled away)."""
+    if not notices:
+        return
+    from rich.console import Console
+    from rich.markup import escape
+
+    if console is None:
+        import sys
+
+        console = Console(width=None if sys.stdout.isatty() else 160)
+    warnings = sum(n.level == "warning" for n in notices)
+    head = ", ".join(
+        c
+        for c in (
+            counted(warnings, "warning") if warnings else "",
+            counted(len(notices) - warnings, "note") if len(notices) > warnings else "",
+        )
+        if c
+    )
+    console.print(f"[bold]{head}[/bold] (also in calibration.json and report.html):")
+    for n in notices:
+        color = "yellow" if n.level == "warning" else "cyan"
+        where, message = escape(f"[{n.where}]"), escape(n.message)
+        console.print(f"- [{color}]{n.level}[/{color}] {where}: {message}", highlight=False)
+        console.print(f"  what it means: {escape(n.meaning)}", highlight=False, style="dim")
+    console.print()

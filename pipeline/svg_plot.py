@@ -299,6 +299,8 @@ def time_axis(plot: Plot) -> tuple[int, float, str] | None:
     t0 = min((int(s.x[0]) for s in plot.series if len(s.x)), default=None)
     if t0 is None:
         return None
+    if plot.origin is not None and plot.origin <= t0:  # the run's one origin
+        t0 = plot.origin
     t1 = max(int(s.x[-1]) for s in plot.series if len(s.x))
     span = (t1 - t0) * 1e-9
     scale, unit = (1.0, "s") if span < 600 else (60.0, "min") if span < 3 * 3600 else (3600.0, "h")

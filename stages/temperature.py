@@ -911,6 +911,16 @@ class TemperatureStage(Stage):
                 "scale_error_before": float(np.max(np.abs(sf_before - 1.0))),
                 "scale_error_after": float(np.max(np.abs(sf_after - 1.0))),
             }
+        if ctx.recorder.enabled:  # the held-out run's residual, beside the fitted run's
+            sensor = self.options.sensor
+            ctx.recorder.series(
+                f"/{ctx.name}/residual_{name}",
+                after.t_ns,
+                after.bias,
+                [f"{sensor} {a} residual, held-out {name}" for a in AXES],
+                unit=SENSOR_UNITS[sensor],
+                title=f"{sensor} residual on the held-out run {name}",
+            )
         metrics["input"] = name
         metrics["blocks"] = len(before.t_ns)
         return metrics

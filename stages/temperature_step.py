@@ -293,13 +293,14 @@ class TemperatureStep(ThermalStep):
             if far:
                 lo, hi = self.ranges[name]
                 seen = stats.seen[name]
-                what, unit, k = "clamped to", "degC", 1.0
-                if name not in tm.TEMPERATURES:  # a rate: shown in degC/min, as everywhere
-                    what, unit, k = "extrapolated beyond", "degC/min", 60.0
+                if name in tm.TEMPERATURES:
+                    what, unit, k = f"{name} clamped to", "degC", 1.0
+                else:  # rates in degC/min, as the summary and the docs give them
+                    what, unit, k = f"{name} (temperature rate) extrapolated beyond", "degC/min", 60
                 notes.append(
-                    f"{name} {what} the fitted range [{k * lo:.4g}, {k * hi:.4g}] {unit} at "
-                    f"{far} of {stats.total} samples (seen {k * seen[0]:.4g}..{k * seen[1]:.4g} "
-                    f"{unit})"
+                    f"{what} the fitted range {lo * k:.3g} .. {hi * k:.3g} {unit} at {far} of "
+                    f"{stats.total} samples ({100 * far / max(stats.total, 1):.0f} %; seen "
+                    f"{seen[0] * k:.3g} .. {seen[1] * k:.3g} {unit})"
                 )
         return "; ".join(notes) or None
 

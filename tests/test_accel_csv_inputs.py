@@ -87,7 +87,7 @@ def test_simulate_poses_cli_and_ferraris_without_labels_fails_in_one_line(tmp_pa
     assert done.returncode == 0, done.stderr
     rows = rrd_rows(tmp_path / "out" / "recording.rrd")
     for entity in ("/accel_calibration/norm/raw", "/accel_calibration/norm/calibrated"):
-        assert rows.get(entity, 0) > 0, (entity, sorted(rows))
+        assert any(e.startswith(entity + "/") and n > 0 for e, n in rows.items()), sorted(rows)
     bars = rrd_static(tmp_path / "out" / "recording.rrd")  # bar charts: static, no time axis
     assert bars["/accel_calibration/residual_per_pose/a_g"]["BarChart:values"][0]["shape"] == [10]
     assert "BarChart:values" in bars["/gyro_calibration/gravity_direction_residual_deg/calibrated"]

@@ -108,3 +108,14 @@ def test_tutorial_runs_as_written(page: Path, tmp_path: Path) -> None:
             timeout=600,
         )
         assert done.returncode == 0, f"{page.name}: {script}\n{done.stderr[-3000:]}"
+        if page.name == "README.md" and "imupipe run" in script:
+            _walkthrough_kept_its_word(text, tmp_path, done.stderr)
+
+
+def _walkthrough_kept_its_word(readme: str, folder: Path, stderr: str) -> None:
+    """The README's walk-through writes only the files it names, and warns about nothing (it
+    says "this run has none")."""
+    section = readme.split("## Calibrate the IMU in your bag", 1)[1].split("\n## ", 1)[0]
+    written = sorted(p.name for p in (folder / "out").iterdir())
+    assert written and all(f"`{name}`" in section for name in written), written
+    assert "warning" not in stderr, stderr

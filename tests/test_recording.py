@@ -185,7 +185,7 @@ def test_views_say_their_units_and_lines_have_distinct_names(every_stage):
         "accel z Allan deviation (m/s^2) vs tau (s)",
         "gyro y bias (rad/s) vs temperature (degC)",
         "|a| - g after calibration (mg) per pose",
-        "raw samples and the fitted ellipsoid (uT)",
+        "raw samples and the fitted ellipsoid (uT); axes 40 uT",
     ):
         assert expected in titles, sorted(titles)
     assert not any("(T)" in t or "log10" in t or "timeline" in t for t in titles)
@@ -195,10 +195,15 @@ def test_views_say_their_units_and_lines_have_distinct_names(every_stage):
         if view["class"] == "TimeSeries":
             lines = [n for e in _entities(view["query"], known) for n in names[e]]
             assert len(lines) == len(set(lines)), (view["name"], lines)
-    # the pipeline's before/after signals say which is which
-    gyro = names["/gyro_bias/corrected/gyro"]
+    # the pipeline's before/after signals say which is which (one entity per line)
+    gyro = _lines(names, "/gyro_bias/corrected/gyro")
     assert gyro == ["gyro x corrected", "gyro y corrected", "gyro z corrected"]
-    assert names["/average/raw/gyro"] == ["gyro x raw", "gyro y raw", "gyro z raw"]
+    assert _lines(names, "/average/raw/gyro") == ["gyro x raw", "gyro y raw", "gyro z raw"]
+
+
+def _lines(names: dict, signal: str) -> list[str]:
+    """The line names of a signal: its lines are the entities under it."""
+    return [n for e in sorted(names) if e.rsplit("/", 1)[0] == signal for n in names[e]]
 
 
 def test_summary_tab_first_then_one_tab_per_stage(every_stage):
@@ -223,23 +228,26 @@ def test_magnetometer_in_microtesla_and_signals_capped(every_stage):
 
     rows = rrd_rows(every_stage / "recording.rrd")
     assert max(rows.values()) <= 2000  # rerun_max_points
-    assert rows["/average/raw/gyro"] == 2000  # 60000 samples, averaged over blocks
-    assert rows["/mag_calibration/raw/mag"] == 1500  # 3000 samples in blocks of 2
-    values = []
+    # 60000 samples: the min and max of 1000 blocks of 60; 3000: of 1000 blocks of 3
+    assert rows["/average/raw/gyro/gyro_x_raw"] == 2000
+    assert rows["/mag_calibration/raw/mag/mag_x_raw"] == 2000
+    values = collections.defaultdict(list)
     for chunk in rc.RrdReader(str(every_stage / "recording.rrd")).stream().to_chunks():
-        if chunk.entity_path == "/mag_calibration/corrected/mag" and not chunk.is_static:
+        parent, line = chunk.entity_path.rsplit("/", 1)
+        if parent == "/mag_calibration/corrected/mag" and not chunk.is_static:
             col = pa.array(chunk.to_record_batch().column("Scalars:scalars"))
-            values.append(np.array(col.to_pylist(), dtype=float))
-    norm = np.linalg.norm(np.concatenate(values), axis=1)
+            values[line].append(np.array(col.to_pylist(), dtype=float).ravel())
+    xyz = np.column_stack([np.concatenate(values[f"mag_{a}_corrected"]) for a in "xyz"])
+    norm = np.linalg.norm(xyz, axis=1)
     assert 40 < np.median(norm) < 60  # the simulated field is 48.2 uT
 
 
 def test_static_input_is_sent_once_for_the_stages_that_share_it(every_stage):
     rows = rrd_rows(every_stage / "recording.rrd")
-    assert "/average/raw/gyro" in rows
-    assert "/allan/raw/gyro" not in rows and "/gyro_bias/raw/gyro" not in rows
+    assert "/average/raw/gyro/gyro_x_raw" in rows
+    assert not any(e.startswith(("/allan/raw/gyro", "/gyro_bias/raw/gyro")) for e in rows)
     views, _, _ = read_blueprint(every_stage / "recording.rrd")
-    shown = [v["query"] for v in views.values() if "/average/raw/gyro" in v["query"]]
+    shown = [v for v in views.values() if "/average/raw/gyro/gyro_x_raw" in v["query"]]
     assert len(shown) == 3  # average, allan and gyro_bias each plot it
 
 
@@ -259,11 +267,13 @@ def test_plots_split_by_unit_and_open_on_their_own_span(tmp_path):
     plots = {(p.stage, p.key): p for p in rec.figures.plots.values()}
     assert plots[("a", "gyro")].heading == "gyro (rad/s)"
     assert plots[("a", "temperature")].heading == "temperature (degC)"
-    centre = 20_000_000  # means of 5-sample blocks, stamped at the block centres
-    assert _span(rec._view(plots[("a", "gyro")])) == (int(t_a[0]) + centre, int(t_a[-1]) - centre)
-    assert _span(rec._view(plots[("b", "gyro")])) == (int(t_b[0]) + centre, int(t_b[-1]) - centre)
+    # the envelope of 500 blocks of 10: each block's min at its first sample, max at its 6th
+    (view_a,) = rec._time_views(plots[("a", "gyro")])
+    (view_b,) = rec._time_views(plots[("b", "gyro")])
+    assert _span(view_a) == (int(t_a[0]), int(t_a[4995]))
+    assert _span(view_b) == (int(t_b[0]), int(t_b[4995]))
     rec.close()
-    assert rrd_rows(tmp_path / "r.rrd")["/a/gyro"] == 1000  # block-averaged to max_points
+    assert rrd_rows(tmp_path / "r.rrd")["/a/gyro/x"] == 1000  # max_points rows per line
 
 
 def test_one_physical_unit_per_plot():

@@ -69,11 +69,13 @@ def test_recording_has_stage_entities(static_run):
     d, table, _ = static_run
     rows = rrd_rows(d / "out" / "recording.rrd")
     n = table.num_rows
-    assert rows["/average/raw/gyro"] == n  # sent once, shown by gyro_bias too
-    assert "/gyro_bias/raw/gyro" not in rows
-    assert rows["/gyro_bias/corrected/gyro"] == n
-    assert rows["/average/raw/accel"] == n
-    assert rows["/average/means/gyro"] == int(np.ceil(n / 500))
+    # one entity per line; sent once, shown by gyro_bias too
+    assert rows["/average/raw/gyro/gyro_x_raw"] == n
+    assert not any(e.startswith("/gyro_bias/raw/gyro") for e in rows)
+    assert rows["/gyro_bias/corrected/gyro/gyro_z_corrected"] == n
+    assert rows["/average/raw/accel/accel_y_raw"] == n
+    means = [e for e in rows if e.startswith("/average/means/gyro/")]
+    assert len(means) == 3 and all(rows[e] == int(np.ceil(n / 500)) for e in means)
 
 
 def test_calibration_json_reapplies_the_same_chain(static_run):

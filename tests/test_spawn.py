@@ -69,10 +69,11 @@ def test_no_viewer_on_path_says_so_and_writes_everything(cfg, tmp_path):
     out = cfg.parent / "out_none"
     assert done.stderr.splitlines() == [
         "imupipe: warning: --spawn: no Rerun viewer on PATH (the 'rerun' command comes with "
-        f"rerun-sdk); the recording is written to {out / 'recording.rrd'}"
+        f"rerun-sdk); the recording is written to {out / 'recording.rrd'}: without a display, "
+        f"open it with `rerun --web-viewer {out / 'recording.rrd'}`, or see report.html"
     ]
     assert sorted(p.name for p in out.iterdir()) == OUTPUTS
-    assert rrd_rows(out / "recording.rrd")["/gyro_bias/corrected/gyro"] > 0
+    assert rrd_rows(out / "recording.rrd")["/gyro_bias/corrected/gyro/gyro_x_corrected"] > 0
 
 
 def test_viewer_that_cannot_start_says_why_in_one_line(cfg, tmp_path):
@@ -88,7 +89,8 @@ def test_viewer_that_cannot_start_says_why_in_one_line(cfg, tmp_path):
     assert done.stderr.splitlines() == [
         "imupipe: warning: --spawn: the Rerun viewer could not start (Error: winit "
         "EventLoopError: neither WAYLAND_DISPLAY nor DISPLAY is set.); the recording is "
-        f"written to {out / 'recording.rrd'}"
+        f"written to {out / 'recording.rrd'}: without a display, open it with "
+        f"`rerun --web-viewer {out / 'recording.rrd'}`, or see report.html"
     ]
     assert sorted(p.name for p in out.iterdir()) == OUTPUTS
 
@@ -164,5 +166,5 @@ def test_viewer_dying_mid_run_leaves_the_file_whole(tmp_path):
         server.wait()
     rec.series("/s/b", t, np.ones(1000), ("b",), unit="rad/s")
     rec.close()
-    assert rrd_rows(tmp_path / "r.rrd") == {"/s/a": 1000, "/s/b": 1000}
+    assert rrd_rows(tmp_path / "r.rrd") == {"/s/a/a": 1000, "/s/b/b": 1000}  # one per line
     assert len(warnings) == 1 and warnings[0].startswith("the Rerun viewer stopped receiving (")

@@ -11,6 +11,15 @@ viewer has finished loading and drawing), or after ``--wait`` seconds.
 
 ``report.html`` is captured with ``--html out/report.html`` (a full-page screenshot).
 
+The README's image is made from the demo's recording (``bash examples/demo.sh`` first) with
+
+    python docs/screenshots/make_screenshots.py examples/out/recording.rrd --hero allan --collapse-panels
+
+which writes ``docs/images/recording_allan.png`` (the tab whose name holds ``allan``) and
+``docs/images/recording_allan.json``: the views the tab shows and the stage's figures as the
+summary gives them. ``tests/test_one_record.py`` (slow) runs the demo and fails when either has
+drifted from what the current code shows: then run the two commands above again.
+
 Needs: ``chromium`` (Debian's package) on PATH, and the ``rerun`` viewer binary (rerun-sdk).
 Look at every screenshot before calling a view done.
 """
@@ -135,15 +144,19 @@ class Page:
             params["captureBeyondViewport"] = True
         return base64.b64decode((await self.call("Page.captureScreenshot", **params))["data"])
 
-    async def settled(self, wait: float, before: bytes = b"", interval: float = 2.0) -> bytes:
-        """A screenshot once it differs from ``before`` and two consecutive ones agree (or
-        after ``wait`` seconds)."""
+    async def settled(
+        self, wait: float, before: bytes = b"", interval: float = 2.0, agree: int = 3
+    ) -> bytes:
+        """A screenshot once it differs from ``before`` and ``agree`` consecutive ones agree (or
+        after ``wait`` seconds). Three, not two: a re-sent blueprint shows its first tab for a
+        moment before the active one (on a loaded machine, for two frames)."""
         deadline = time.monotonic() + wait
-        last = b""
+        same, last = 0, b""
         while True:
             await asyncio.sleep(interval)
             shot = await self.screenshot()
-            if (shot == last and shot != before) or time.monotonic() > deadline:
+            same = same + 1 if shot == last else 1
+            if (same >= agree and shot != before) or time.monotonic() > deadline:
                 return shot
             last = shot
 
@@ -285,6 +298,32 @@ def send_tabs(url: str, bp: Blueprint, active: dict[str, str], collapse: bool) -
     bindings.connect_grpc_blueprint(url, True, False, stream.to_native())
 
 
+def tab_views(bp: Blueprint, path: str) -> list[str]:
+    """The names of the views inside a tab or container (depth first)."""
+    if not path.startswith("/container"):
+        return [bp.name(path)]
+    return [v for child in bp.contents(path) for v in tab_views(bp, child)]
+
+
+def hero_record(rrd: Path, stage: str) -> dict:
+    """What the README's image of ``stage``'s tab shows: the tab's views and the stage's rows
+    (the summary's quantities and cells, from ``calibration.json`` beside the recording)."""
+    from imupipe.pipeline.summary import summarise
+
+    bp = Blueprint(rrd)
+    tab = next(t for t in bp.contents(bp.root) if bp.name(t) == stage)
+    doc = json.loads((rrd.parent / "calibration.json").read_text())
+    (summary,) = [s for s in summarise(doc["results"]) if s.name == stage]
+    return {
+        "made_by": "docs/screenshots/make_screenshots.py --hero " + stage,
+        "from": "examples/demo.sh",
+        "stage": stage,
+        "status": summary.status,
+        "views": tab_views(bp, tab),
+        "rows": [[r.label, *r.cells] for r in summary.rows],
+    }
+
+
 def safe(name: str) -> str:
     return "".join(c if c.isalnum() or c in "-_" else "_" for c in name).strip("_")
 
@@ -306,7 +345,7 @@ async def shoot_recording(args) -> list[Path]:
         query = urllib.parse.urlencode({"url": proxy, "renderer": "webgl"})
         async with chromium(args.width, args.height) as page:
             await page.call("Page.navigate", url=f"http://127.0.0.1:{web}/?{query}")
-            png = await page.settled(args.wait)
+            png = await page.settled(args.wait, agree=5)  # the recording loaded and drawn
             for name, active in shots:
                 send_tabs(proxy, bp, active, args.collapse_panels)
                 png = await page.settled(args.wait, before=png)
@@ -349,7 +388,28 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument(
         "--collapse-panels", action="store_true", help="hide the blueprint and selection panels"
     )
+    p.add_argument(
+        "--hero",
+        metavar="STAGE",
+        help="make the README's image of this stage's tab: docs/images/recording_STAGE.png/.json",
+    )
     args = p.parse_args(argv)
+    if args.hero:
+        images = Path(__file__).resolve().parents[1] / "images"
+        args.out, args.tabs = Path(tempfile.mkdtemp()), [args.hero]
+        shots = asyncio.run(shoot_recording(args))
+        shot = next(s for s in shots if s.name.split("_", 1)[1].startswith(safe(args.hero)))
+        from PIL import Image  # a palette PNG: a third of the size, the same to the eye
+
+        with Image.open(shot) as im:
+            im.convert("RGB").quantize(256).save(
+                images / f"recording_{args.hero}.png", optimize=True
+            )
+        record = hero_record(args.rrd, args.hero)
+        text = json.dumps(record, indent=1) + "\n"
+        (images / f"recording_{args.hero}.json").write_text(text, encoding="utf-8")
+        print(images / f"recording_{args.hero}.png")
+        return 0
     args.out.mkdir(parents=True, exist_ok=True)
     if args.rrd:
         asyncio.run(shoot_recording(args))
