@@ -19,6 +19,16 @@ Failure model, the same for both engines:
 
 One task's failure never stops the others (unless ``on_done`` raises).
 
+**One log, or ``jobs == 1``** (local engine): the task runs in the driver's own process
+(:func:`run_inline`), with the same outcomes, and no pool is started (its start-up, about 0.6 s,
+was a third of a one-log conversion). A crash of that process (SIGKILL, out of memory) ends the
+command instead of being retried.
+
+**Start-up.** A pool's workers are all started and initialised before any task is sent, with
+SIGINT and SIGTERM held back meanwhile (:func:`_start_pool`): a worker still unpickling its
+queues when the driver ends found their semaphores gone and printed a ``SemLock._rebuild``
+traceback.
+
 **No orphans** (local engine). Workers ignore SIGINT (the driver decides) and turn SIGTERM into
 :class:`~imupipe.pipeline.signals.Terminated`, so a worker stopped in the middle of a log removes
 its temporary files. When the driver ends for any reason (an exception, SIGINT, SIGTERM), it
@@ -51,11 +61,14 @@ from typing import Any
 
 from imupipe.pipeline.convert_options import ENGINES
 from imupipe.pipeline.errors import ConfigError, ImupipeError
-from imupipe.pipeline.signals import Terminated
+from imupipe.pipeline.signals import Terminated, signals_deferred
 from imupipe.stages.cores import usable_cores
 
 STOP_GRACE_S = 5.0
 """How long stopped workers get to remove their temporary files before they are killed."""
+
+START_TIMEOUT_S = 120.0
+"""How long a pool's workers may take to start (signals are held back meanwhile)."""
 
 
 @dataclass
@@ -89,30 +102,44 @@ class _WorkerState:
     orphaned = False
 
 
-def guarded(fn: Callable[[Any], Any], task: Any) -> _Attempt:
-    """Run ``fn(task)`` in a worker and turn any exception into a one-line, picklable error.
-
-    SIGTERM during the task (:class:`Terminated`) has let the task remove its temporary files;
-    the worker then exits. A worker whose driver has died exits after the task."""
+def attempt(fn: Callable[[Any], Any], task: Any) -> _Attempt:
+    """Run ``fn(task)`` and turn any exception into a one-line, picklable error (SIGINT and
+    SIGTERM, BaseExceptions, pass through): an :class:`ImupipeError` is final (``fatal`` when it
+    says so), any other exception is retryable."""
     host = socket.gethostname()
-    with _WorkerState.lock:
-        _WorkerState.busy = True
     try:
         return _Attempt(True, fn(task), False, host)
     except ImupipeError as exc:
         return _Attempt(False, str(exc), False, host, bool(getattr(exc, "fatal", False)))
-    except Terminated:
-        os._exit(Terminated.exit_code)
-    except Exception as exc:  # noqa: BLE001 - a worker reports every failure as data
+    except Exception as exc:  # noqa: BLE001 - a task reports every failure as data
         where = traceback.extract_tb(exc.__traceback__)[-1]
         message = " ".join(str(exc).split())
         detail = f"{type(exc).__name__}: {message} (at {os.path.basename(where.filename)}:{where.lineno})"
         return _Attempt(False, detail, True, host)
+
+
+def guarded(fn: Callable[[Any], Any], task: Any) -> _Attempt:
+    """:func:`attempt` in a worker process.
+
+    SIGTERM during the task (:class:`Terminated`) has let the task remove its temporary files;
+    the worker then exits. A worker whose driver has died exits after the task."""
+    with _WorkerState.lock:
+        _WorkerState.busy = True
+    try:
+        return attempt(fn, task)
+    except Terminated:
+        os._exit(Terminated.exit_code)
     finally:
         with _WorkerState.lock:
             _WorkerState.busy = False
             if _WorkerState.orphaned:
                 os._exit(0)  # nobody will take the result: the driver is gone
+
+
+def _ready(_: int) -> int:
+    """A no-op task: a worker that returns it has started (its bootstrap and initializer done)."""
+    time.sleep(0.02)
+    return os.getpid()
 
 
 SINGLE_THREADED = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
@@ -283,6 +310,48 @@ def _submit(
     return True
 
 
+def run_inline(
+    fn: Callable[[Any], Any],
+    tasks: Sequence[Any],
+    on_done: Callable[[Outcome], None],
+    *,
+    retries: int = 2,
+) -> None:
+    """Run every task in this process, one after the other (one log, or ``--jobs 1``): no pool
+    to start. The same outcomes as the pool (an :class:`ImupipeError` is final, another
+    exception retried); SIGINT and SIGTERM unwind the task (its temporary files are removed) and
+    end the run."""
+    tracker = _Tracker(tasks, retries, on_done)
+    while tracker.queue:
+        i = tracker.queue.popleft()
+        tracker.start(i)
+        tracker.finish(i, attempt(fn, tasks[i]))
+
+
+def _start_pool(ctx: Any, jobs: int) -> cf.ProcessPoolExecutor:
+    """A pool of ``jobs`` workers, every one of them started and initialised before this
+    returns, with SIGINT and SIGTERM held back meanwhile: a worker still starting when the driver
+    ends would find the pool's semaphores gone (a ``SemLock._rebuild`` traceback on stderr), so
+    the pool starts no worker it cannot stop cleanly."""
+    pool = None
+    try:
+        with signals_deferred():  # a signal held here is raised when the block ends
+            pool = cf.ProcessPoolExecutor(
+                jobs, mp_context=ctx, initializer=_worker_init, initargs=(os.getpid(),)
+            )
+            seen: set[int] = set()
+            for _ in range(50):
+                seen.update(pool.map(_ready, range(jobs), timeout=START_TIMEOUT_S))
+                live = {p.pid for p in (getattr(pool, "_processes", None) or {}).values()}
+                if live <= seen:
+                    break
+    except BaseException:
+        if pool is not None:
+            _stop_pool(pool)
+        raise
+    return pool
+
+
 def run_local(
     fn: Callable[[Any], Any],
     tasks: Sequence[Any],
@@ -307,9 +376,7 @@ def run_local(
     while tracker.queue or suspects:
         crashed: list[int] = []
         refused = False  # the pool broke before it took a task: the task stays queued
-        pool = cf.ProcessPoolExecutor(
-            jobs, mp_context=ctx, initializer=_worker_init, initargs=(os.getpid(),)
-        )
+        pool = _start_pool(ctx, jobs)
         running: dict[cf.Future, int] = {}
         clean = False
         try:
@@ -462,7 +529,9 @@ def run_tasks(
     ``dashboard``: start Ray's dashboard (on 127.0.0.1) with a local Ray."""
     if not tasks:
         return
-    if engine == "local":
+    if engine == "local" and (len(tasks) == 1 or jobs == 1):
+        run_inline(fn, tasks, on_done, retries=retries)
+    elif engine == "local":
         run_local(fn, tasks, on_done, jobs=jobs, retries=retries, preload=preload)
     elif engine == "ray":
         run_ray(
