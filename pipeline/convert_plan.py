@@ -87,9 +87,9 @@ def find_logs(args: Sequence[Path], out_dir: Path, *, csv: bool = False) -> list
     return found
 
 
-def check_arguments(logs: Sequence[Path], *, csv: bool = False) -> None:
+def check_arguments(logs: Sequence[Path]) -> None:
     """Bad command before anything is written (exit 2): an argument that does not exist, or a
-    file argument whose format is unknown (a README) or a CSV without ``--config``."""
+    file argument whose suffix names no log format (a README, ``notes.md``)."""
     from imupipe.readers.dispatch import detect_format
 
     for arg in logs:
@@ -97,9 +97,7 @@ def check_arguments(logs: Sequence[Path], *, csv: bool = False) -> None:
         if not path.exists():
             raise ConfigError(f"{path}: no such file or folder")
         if path.is_file():
-            fmt = detect_format(path)
-            if fmt == "csv" and not csv:
-                raise ConfigError(f"{path}: a CSV log needs --config READ.toml (its [csv] mapping)")
+            detect_format(path)
 
 
 @dataclass
@@ -134,7 +132,7 @@ def plan(
     """One task per log found; ConfigError when an argument is missing or not a log, two logs
     would share an output, or an output breaks the path rule
     (:class:`~imupipe.pipeline.atomic.OutputGuard`)."""
-    check_arguments(logs, csv=csv)
+    check_arguments(logs)
     cal_sha, set_sha = chain_sha256(calibration), settings_sha256(settings)
     tasks: list[LogTask] = []
     owners: dict[Path, Path] = {}
