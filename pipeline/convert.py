@@ -59,6 +59,11 @@ log (the readers are otherwise imported lazily; the ROS 2 type store, ~0.15 s, m
 schemas)."""
 
 
+ENGINE_LOG = "ray.log"
+"""With ``--engine ray``: ``DIR/ray.log`` takes Ray's own output (named in each manifest line's
+``engine_log``), so the user's stderr holds imupipe's lines only."""
+
+
 @dataclass
 class ConvertSummary:
     out_dir: Path
@@ -124,6 +129,7 @@ def convert(
             file=sys.stderr,
         )
     manifest = Manifest(out, guard)  # checked by the path rule before anything is written
+    engine_log = guard.check(ENGINE_LOG, in_place=True) if engine == "ray" else None
     guard.probe()
     # temporary files of workers killed in an earlier run (on this machine, or on any Ray node:
     # no worker of this run has started yet, and one conversion at a time writes into DIR), in
@@ -135,7 +141,11 @@ def convert(
 
         def on_done(outcome: Outcome) -> None:
             task: LogTask = outcome.task
-            record: dict[str, Any] = {"attempts": outcome.attempts, "host": outcome.host}
+            record: dict[str, Any] = {
+                "attempts": outcome.attempts,
+                "host": outcome.host,
+                "engine_log": None if engine_log is None else str(engine_log),
+            }
             if outcome.error is None:
                 stats: LogStats = outcome.result
                 (summary.converted if stats.status == "converted" else summary.skipped).append(
@@ -178,6 +188,7 @@ def convert(
                 retries=retries,
                 preload=WORKER_PRELOAD,
                 dashboard=dashboard,
+                engine_log=engine_log,
             )
         except _Stop:
             done = len(summary.converted) + len(summary.skipped)

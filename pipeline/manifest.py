@@ -5,7 +5,7 @@ Each line records what ``imupipe convert`` did with one log::
     {"input": "...", "output": "...", "parquet": null, "status": "converted",
      "counts": {"/imu/data": 12000, ...}, "calibration_sha256": "...", "seconds": 1.23,
      "cpu_seconds": 1.1, "messages": 12000, "mode": "streamed", "attempts": 1, "host": "...",
-     "peak_rss_mb": 143.2, "provenance": "match", "warnings": [], "error": null,
+     "engine_log": null, "peak_rss_mb": 143.2, "provenance": "match", "warnings": [], "error": null,
      "finished_at": "2026-11-21T15:40:02Z"}
 
 ``status`` is ``converted``, ``skipped`` (an output for the same calibration already existed) or
@@ -46,6 +46,7 @@ FIELDS = (
     "mode",
     "attempts",
     "host",
+    "engine_log",
     "peak_rss_mb",
     "provenance",
     "warnings",
