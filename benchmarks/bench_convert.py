@@ -12,7 +12,14 @@
    the same run as the rest; beside it the cost per message of the fleet's logs and of the big
    log, so that what the fixed cost adds to a fleet of short logs is seen.
 
-Usage: ``python benchmarks/bench_convert.py [--messages 1000000] [--logs 20] [--log-messages 200000]``
+5. Issue 27, with ``--ray-nodes N``: the fleet of [2] on a Ray cluster of N one-CPU nodes started
+   on this machine (``ray start --head`` and N - 1 ``ray start --address``, all on 127.0.0.1,
+   under a folder of their own; stopped and removed at the end, other Rays untouched) against the
+   local pool of N workers and of 1: Ray's efficiency (1-worker time / (N x Ray time)) beside the
+   pool's.
+
+Usage: ``python benchmarks/bench_convert.py [--messages 1000000] [--logs 20] [--log-messages 200000]
+[--ray-nodes 2]``
 (prints each ratio; the machine is shared and noisy, so ratios, not absolute times, count).
 """
 
@@ -20,6 +27,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import shutil
 import subprocess
 import sys
@@ -110,12 +118,80 @@ def timed_cli(logs: list[Path], cal: Path, out: Path, *extra: str) -> tuple[floa
     return seconds, list(read_manifest(out))
 
 
+def ray_cluster(nodes: int, root: Path) -> tuple[str, list[subprocess.Popen]]:
+    """Start a Ray cluster of ``nodes`` one-CPU nodes on 127.0.0.1 under ``root``; returns (GCS
+    address, the ``ray start --block`` processes)."""
+    import socket
+
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        port = sock.getsockname()[1]
+    address = f"127.0.0.1:{port}"
+    # `ray start` turns Ray's token authentication on (Ray 2.52+); a driver sends the token
+    # (~/.ray/auth_token) only when told to
+    os.environ["RAY_AUTH_MODE"] = "token"
+    common = ["--num-cpus=1", "--node-ip-address=127.0.0.1", "--block", "--disable-usage-stats"]
+    procs = [
+        subprocess.Popen(
+            ["ray", "start", "--head", f"--port={port}", f"--temp-dir={root}",
+             "--include-dashboard=false", *common],
+            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True,
+        )
+    ]  # fmt: skip
+    import ray
+
+    deadline = time.monotonic() + 120
+    while True:  # the head up before the others join
+        try:
+            socket.create_connection(("127.0.0.1", port), timeout=1).close()
+            break
+        except OSError:
+            if time.monotonic() > deadline:
+                raise SystemExit("the Ray head did not start") from None
+            time.sleep(0.5)
+    for _ in range(nodes - 1):
+        procs.append(
+            subprocess.Popen(
+                ["ray", "start", f"--address={address}", *common],
+                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True,
+            )
+        )  # fmt: skip
+    try:
+        ray.init(address=address, logging_level="ERROR", log_to_driver=False)
+        while len([n for n in ray.nodes() if n["Alive"]]) < nodes:
+            if time.monotonic() > deadline:
+                raise SystemExit(f"only {len(ray.nodes())} of {nodes} Ray nodes joined")
+            time.sleep(0.5)
+    except BaseException:
+        stop_cluster(procs, root)
+        raise
+    finally:
+        ray.shutdown()
+    return address, procs
+
+
+def stop_cluster(procs: list[subprocess.Popen], root: Path) -> None:
+    """Stop the nodes started by :func:`ray_cluster` (by their ids) and whatever runs under
+    ``root``; remove ``root``."""
+    from imupipe.pipeline.ray_reaper import reap
+
+    for proc in procs:
+        proc.terminate()
+    for proc in procs:
+        try:
+            proc.wait(timeout=30)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+    reap(str(root))
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--messages", type=int, default=1_000_000)
     ap.add_argument("--logs", type=int, default=20)
     ap.add_argument("--log-messages", type=int, default=200_000)
     ap.add_argument("--keep", action="store_true", help="keep the temporary folder")
+    ap.add_argument("--ray-nodes", type=int, default=0, help="[5]: Ray nodes of one CPU (0: skip)")
     args = ap.parse_args()
     tmp = Path(tempfile.mkdtemp(prefix="bench_convert_"))
     cal = tmp / "calibration.json"
@@ -228,6 +304,37 @@ def main() -> None:
             f"now (pure-CPU tasks, same pool): {c1 / c2:.2f}x; CPUs the 2 workers got: {busy:.2f}; "
             f"{per_msg:.2f} us per message with 1 worker"
         )
+        if args.ray_nodes:
+            # 5. the same fleet on a local multi-node Ray cluster against the local pool
+            n = args.ray_nodes
+            root = Path(tempfile.mkdtemp(prefix="imupipe-bench-ray-", dir="/tmp"))
+            address, procs = ray_cluster(n, root)
+            try:
+                t_ray = t_pool = float("inf")
+                for _ in range(2):
+                    t_ray = min(
+                        t_ray,
+                        timed_convert([fleet], cal, tmp / "out_ray", engine="ray", address=address)[
+                            0
+                        ],
+                    )
+                    t_pool = min(t_pool, timed_convert([fleet], cal, tmp / "out_jn", jobs=n)[0])
+            finally:
+                stop_cluster(procs, root)
+            results.update(
+                ray_nodes=n,
+                ray_fleet_s=t_ray,
+                pool_fleet_s=t_pool,
+                ray_efficiency=t1 / (n * t_ray),
+                pool_efficiency=t1 / (n * t_pool),
+                ray_vs_pool=t_pool / t_ray,
+            )
+            print(
+                f"[5] {args.logs} logs x {args.log_messages:,} msgs on a Ray cluster of {n} "
+                f"one-CPU nodes on this machine: {t_ray:.2f} s, efficiency "
+                f"{t1 / (n * t_ray):.2f} (1 worker {t1:.2f} s); local pool of {n}: {t_pool:.2f} s, "
+                f"efficiency {t1 / (n * t_pool):.2f}; Ray at {t_pool / t_ray:.2f}x the pool's speed"
+            )
         print(json.dumps({k: round(v, 3) for k, v in results.items()}))
     finally:
         if args.keep:
