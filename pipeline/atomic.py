@@ -9,9 +9,19 @@ short hash of the machine's name). A process killed outright (SIGKILL, out of me
 remove its own; :func:`remove_stale_temps` removes those whose process is gone, and every
 command calls it on its output folder before it writes.
 
-**Inputs are sacred.** With an :class:`OutputGuard`, every final path is resolved (symbolic
-links followed) before anything is written and refused with one line when it lies outside the
-output folder, is an input, or lies inside an input folder (a ROS 2 bag).
+**The path rule** (every file a command writes: outputs, temporaries, the manifest, the
+Parquet files). With an :class:`OutputGuard`, every path is resolved (symbolic links followed)
+before anything is written, and refused with one line when it
+
+- lies outside the output folder ``DIR`` (or is ``DIR`` itself),
+- is an input, or lies inside an input that is a folder (a ROS 2 bag),
+- lies inside a folder searched for inputs (``convert fleet/``), unless ``DIR`` itself lies
+  strictly inside that folder (the search skips ``DIR``); ``DIR`` equal to a searched folder is
+  refused at once: its outputs would sit among its inputs.
+
+A file that is appended to in place (the manifest) must also not be a symbolic link.
+The start-up sweep of stale temporaries (:func:`remove_stale_temps`) looks only in the folders
+the command writes into, never below them, and only at names this module makes.
 """
 
 from __future__ import annotations
@@ -31,8 +41,9 @@ from imupipe.pipeline.signals import signals_deferred
 HOST_KEY = hashlib.sha1(socket.gethostname().encode()).hexdigest()[:8]
 """A short, file-name-safe key of this machine (temporary names carry it)."""
 
-TEMP_NAME = re.compile(r"^\.(?P<name>.+)\.(?P<pid>\d+)@(?P<host>[0-9a-f]{8})\.[A-Za-z0-9_]+\.tmp$")
-"""A temporary output's name: ``.<final name>.<pid>@<host key>.<random>.tmp``."""
+TEMP_NAME = re.compile(r"^\.(?P<name>.+)\.(?P<pid>\d+)@(?P<host>[0-9a-f]{8})\.[a-z0-9_]{8}\.tmp$")
+"""A temporary output's name: ``.<final name>.<pid>@<host key>.<random>.tmp`` (``random``: the
+8 characters ``tempfile.mkstemp`` draws from ``a-z0-9_``); nothing else is ever swept."""
 
 
 def _umask() -> int:
@@ -55,10 +66,10 @@ def remove_stale_temps(
     folder: str | os.PathLike[str],
     *,
     name: str | None = None,
-    recursive: bool = False,
     other_hosts: bool = False,
 ) -> list[Path]:
-    """Remove the temporary outputs in ``folder`` left by processes that no longer run.
+    """Remove the temporary outputs in ``folder`` (not below it) left by processes that no
+    longer run; only names of :data:`TEMP_NAME` are ever touched.
 
     A temporary file of this machine is stale when its process is gone; one of another machine
     (a Ray node) only with ``other_hosts`` (the caller then owns every output of that name).
@@ -66,34 +77,41 @@ def remove_stale_temps(
     root = Path(folder)
     if not root.is_dir():
         return []
-    walk = os.walk(root) if recursive else [(str(root), [], os.listdir(root))]
     removed = []
-    for here, _dirs, files in walk:
-        for f in files:
-            m = TEMP_NAME.match(f)
-            if m is None or (name is not None and m["name"] != name):
+    for f in sorted(os.listdir(root)):
+        m = TEMP_NAME.match(f)
+        if m is None or (name is not None and m["name"] != name):
+            continue
+        if m["host"] == HOST_KEY:
+            pid = int(m["pid"])
+            if pid == os.getpid() or _alive(pid):
                 continue
-            if m["host"] == HOST_KEY:
-                pid = int(m["pid"])
-                if pid == os.getpid() or _alive(pid):
-                    continue
-            elif not other_hosts:
-                continue
-            path = Path(here) / f
-            with contextlib.suppress(FileNotFoundError):
-                path.unlink()
-                removed.append(path)
+        elif not other_hosts:
+            continue
+        path = root / f
+        if not path.is_file() or path.is_symlink():
+            continue
+        with contextlib.suppress(FileNotFoundError):
+            path.unlink()
+            removed.append(path)
     return removed
 
 
 class OutputGuard:
-    """Refuses output paths outside ``root`` or onto (or into) an input.
+    """Refuses paths that break the path rule (see the module docstring).
 
-    ``where`` names the setting that chose the folder in messages (``[output] dir``, ``--out``).
+    ``inputs``: the input files and folders (a ROS 2 bag); ``searched``: the folders searched
+    for inputs. ``where`` names the setting that chose the folder in messages (``[output] dir``,
+    ``--out``).
     """
 
     def __init__(
-        self, root: str | os.PathLike[str], inputs: Iterable[str | os.PathLike[str]], where: str
+        self,
+        root: str | os.PathLike[str],
+        inputs: Iterable[str | os.PathLike[str]],
+        where: str,
+        *,
+        searched: Iterable[str | os.PathLike[str]] = (),
     ) -> None:
         self.root = Path(root).absolute()
         self.where = where
@@ -106,6 +124,15 @@ class OutputGuard:
                 raise ConfigError(
                     f"{where} {self.root}: is inside the input {inp}; choose another folder"
                 )
+        self._searched = []
+        for folder in {Path(p).absolute().resolve() for p in searched}:
+            if folder == self._root:
+                raise ConfigError(
+                    f"{where} {self.root}: is the folder searched for logs, so its outputs would "
+                    "sit among the inputs; choose another folder (one inside it is not searched)"
+                )
+            if not self._root.is_relative_to(folder):  # DIR strictly inside: DIR is skipped
+                self._searched.append(folder)
 
     def probe(self) -> None:
         """ConfigError unless a file can be created in the output folder (or, when it does not
@@ -120,8 +147,10 @@ class OutputGuard:
         os.close(fd)
         os.unlink(tmp)
 
-    def check(self, final: str | os.PathLike[str]) -> Path:
-        """``final`` made absolute; ConfigError when it must not be written."""
+    def check(self, final: str | os.PathLike[str], *, in_place: bool = False) -> Path:
+        """``final`` made absolute; ConfigError when it must not be written. ``in_place``: the
+        file is opened and written where it is (appended to), so it must not be a symbolic
+        link either."""
         final = Path(final)
         final = final if final.is_absolute() else self.root / final
         real = final.resolve()
@@ -130,9 +159,20 @@ class OutputGuard:
                 raise ConfigError(
                     f"{final}: would overwrite the input {inp}; choose another {self.where}"
                 )
+        for folder in self._searched:
+            if real.is_relative_to(folder):
+                raise ConfigError(
+                    f"{final}: would be written into {folder}, a folder searched for logs; "
+                    f"choose another {self.where}"
+                )
         if not real.is_relative_to(self._root) or real == self._root:
             raise ConfigError(
                 f"{final}: would be written outside the output folder {self.root} ({self.where})"
+            )
+        if in_place and final.is_symlink():
+            raise ConfigError(
+                f"{final}: is a symbolic link; imupipe writes it in place and follows no link "
+                "there: remove it"
             )
         return final
 

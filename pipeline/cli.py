@@ -5,8 +5,8 @@ line on stderr (``imupipe: error: ...``) naming the file or key, and exit status
 :class:`~imupipe.readers.errors.ImupipeError`, or an ``OSError`` of the file system (disk full,
 permission denied, read-only folder, busy file; the line names the file). Exit status 1 is kept
 for ``convert`` when some logs of a fleet failed, and for bugs, which also print one line
-(``--debug`` shows the traceback). SIGINT exits 130, SIGTERM 143; both remove the command's
-temporary files first.
+(``--debug`` prints the traceback before the line; the exit status stays the same). SIGINT
+exits 130, SIGTERM 143; both remove the command's temporary files first.
 
 **Start-up.** Only the module of the command given is imported (``imupipe --help`` imports
 none), so the command line starts in a few tens of milliseconds.
@@ -18,6 +18,7 @@ import argparse
 import importlib
 import os
 import sys
+import traceback
 
 from imupipe.pipeline.errors import ImupipeError
 from imupipe.pipeline.signals import Terminated, terminate_on_sigterm
@@ -106,15 +107,9 @@ def main(argv: list[str] | None = None) -> int:
         args = build_parser(_command(argv)).parse_args(argv)
         return int(args.func(args) or 0)
     except ImupipeError as exc:
-        if debug:
-            raise
-        print(f"imupipe: error: {exc}", file=sys.stderr)
-        return exc.exit_code
+        return _error(str(exc), exc.exit_code, debug)
     except OSError as exc:  # the file system: disk full, permissions, read-only, busy
-        if debug:
-            raise
-        print(f"imupipe: error: {_os_error(exc)}", file=sys.stderr)
-        return 2
+        return _error(_os_error(exc), 2, debug)
     except KeyboardInterrupt:
         print("imupipe: interrupted", file=sys.stderr)
         return 130
@@ -122,14 +117,17 @@ def main(argv: list[str] | None = None) -> int:
         print("imupipe: terminated", file=sys.stderr)
         return exc.exit_code
     except Exception as exc:  # noqa: BLE001 - the one place that turns any failure into one line
-        if debug:
-            raise
-        print(
-            f"imupipe: error: {type(exc).__name__}: {' '.join(str(exc).split())} "
-            "(run with --debug for the traceback)",
-            file=sys.stderr,
-        )
-        return 1
+        line = f"{type(exc).__name__}: {' '.join(str(exc).split())}"
+        return _error(line if debug else f"{line} (run with --debug for the traceback)", 1, debug)
+
+
+def _error(line: str, code: int, debug: bool) -> int:
+    """Print the error line (after the traceback with ``--debug``); the exit status is the same
+    with and without ``--debug``."""
+    if debug:
+        traceback.print_exc()
+    print(f"imupipe: error: {line}", file=sys.stderr)
+    return code
 
 
 if __name__ == "__main__":

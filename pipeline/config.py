@@ -422,6 +422,7 @@ def parse_config(raw: dict[str, Any], path: Path, base: Path) -> Config:
     max_points = out_raw.get("rerun_max_points", OutputConfig.rerun_max_points)
     if not isinstance(max_points, int) or isinstance(max_points, bool) or max_points < 100:
         raise ConfigError(f"{path}: [output].rerun_max_points must be an integer >= 100")
+    _check_range(f"{path}: [output].rerun_max_points", max_points, {"min": 100})
     report = out_raw.get("report", True)
     if not isinstance(report, bool):
         raise ConfigError(f"{path}: [output].report must be true or false")

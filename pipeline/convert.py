@@ -29,13 +29,18 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from imupipe.pipeline.atomic import OutputGuard, remove_stale_temps
+from imupipe.pipeline.atomic import remove_stale_temps
 from imupipe.pipeline.calibration_file import load_calibration
 from imupipe.pipeline.convert_options import DEFAULT_BATCH_ROWS, ON_MISMATCH
 from imupipe.pipeline.convert_plan import LogTask, plan
 from imupipe.pipeline.convert_provenance import fitted_on
 from imupipe.pipeline.convert_settings import load_read_settings
-from imupipe.pipeline.convert_worker import LogStats, OutputFolderError, convert_log
+from imupipe.pipeline.convert_worker import (
+    OUTPUT_FAULTS,
+    LogStats,
+    OutputFolderError,
+    convert_log,
+)
 from imupipe.pipeline.engines import Outcome, run_tasks
 from imupipe.pipeline.errors import ConfigError
 from imupipe.pipeline.manifest import Manifest
@@ -52,6 +57,11 @@ WORKER_PRELOAD = (
 """Imported once by the local pool's fork server, so that no worker pays for them on its first
 log (the readers are otherwise imported lazily; the ROS 2 type store, ~0.15 s, makes the MCAP
 schemas)."""
+
+
+ENGINE_LOG = "ray.log"
+"""With ``--engine ray``: ``DIR/ray.log`` takes Ray's own output (named in each manifest line's
+``engine_log``), so the user's stderr holds imupipe's lines only."""
 
 
 @dataclass
@@ -101,7 +111,7 @@ def convert(
     out = Path(out_dir)
     doc, _ = load_calibration(Path(calibration))
     settings = load_read_settings(None if config is None else Path(config))
-    tasks = plan(
+    planned = plan(
         [Path(p) for p in logs],
         out,
         doc,
@@ -112,6 +122,7 @@ def convert(
         csv=config is not None,
         on_mismatch=on_mismatch,
     )
+    tasks, guard = planned.tasks, planned.guard
     summary = ConvertSummary(out_dir=out)
     if not tasks:
         raise ConfigError(f"no logs found in {', '.join(map(str, logs))}")
@@ -123,17 +134,24 @@ def convert(
             "(written by an older imupipe): the logs are not checked against it",
             file=sys.stderr,
         )
-    OutputGuard(out, [], "--out").probe()
+    manifest = Manifest(out, guard)  # checked by the path rule before anything is written
+    engine_log = guard.check(ENGINE_LOG, in_place=True) if engine == "ray" else None
+    guard.probe()
     # temporary files of workers killed in an earlier run (on this machine, or on any Ray node:
-    # no worker of this run has started yet, and one conversion at a time writes into DIR)
-    remove_stale_temps(out, recursive=True, other_hosts=True)
-    manifest = Manifest(out)
+    # no worker of this run has started yet, and one conversion at a time writes into DIR), in
+    # the folders this run writes into only
+    for folder in planned.folders():
+        remove_stale_temps(folder, other_hosts=True)
     fatal: list[str] = []
     with progress_bar("imupipe convert", total=len(tasks), quiet=quiet) as bar:
 
         def on_done(outcome: Outcome) -> None:
             task: LogTask = outcome.task
-            record: dict[str, Any] = {"attempts": outcome.attempts, "host": outcome.host}
+            record: dict[str, Any] = {
+                "attempts": outcome.attempts,
+                "host": outcome.host,
+                "engine_log": None if engine_log is None else str(engine_log),
+            }
             if outcome.error is None:
                 stats: LogStats = outcome.result
                 (summary.converted if stats.status == "converted" else summary.skipped).append(
@@ -151,7 +169,14 @@ def convert(
                     error=outcome.error,
                     calibration_sha256=task.calibration_sha256,
                 )
-            manifest.append(record)
+            try:
+                manifest.append(record)
+            except OSError as exc:  # the manifest is on the output folder's disk too
+                if exc.errno not in OUTPUT_FAULTS:
+                    raise
+                if not outcome.fatal:
+                    fatal.append(f"{manifest.path}: {OUTPUT_FAULTS[exc.errno]}")
+                    raise _Stop() from None
             bar.advance()
             bar.describe(f"imupipe convert: {summary.messages:,} messages")
             if outcome.fatal:
@@ -169,6 +194,7 @@ def convert(
                 retries=retries,
                 preload=WORKER_PRELOAD,
                 dashboard=dashboard,
+                engine_log=engine_log,
             )
         except _Stop:
             done = len(summary.converted) + len(summary.skipped)
@@ -177,7 +203,8 @@ def convert(
                 "the same command resumes where this one stopped)"
             ) from None
         finally:  # also on SIGINT/SIGTERM: what stopped workers could not remove
-            remove_stale_temps(out, recursive=True)
+            for folder in planned.folders():
+                remove_stale_temps(folder)
     summary.seconds = time.perf_counter() - start
     return summary
 

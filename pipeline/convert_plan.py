@@ -93,6 +93,36 @@ def find_logs(args: Sequence[Path], out_dir: Path, *, csv: bool = False) -> list
     return found
 
 
+def check_arguments(logs: Sequence[Path]) -> None:
+    """Bad command before anything is written (exit 2): an argument that does not exist, or a
+    file argument whose suffix names no log format (a README, ``notes.md``)."""
+    from imupipe.readers.dispatch import detect_format
+
+    for arg in logs:
+        path = Path(arg)
+        if not path.exists():
+            raise ConfigError(f"{path}: no such file or folder")
+        if path.is_file():
+            detect_format(path)
+
+
+@dataclass
+class Plan:
+    """The tasks, and the guard every path the conversion writes goes through."""
+
+    tasks: list[LogTask]
+    guard: OutputGuard
+
+    def folders(self) -> list[Path]:
+        """The folders this conversion writes into (``DIR`` and its outputs' folders)."""
+        out = {self.guard.root}
+        for task in self.tasks:
+            out.add(task.output.parent)
+            if task.parquet is not None:
+                out.add(task.parquet.parent)
+        return sorted(out)
+
+
 def plan(
     logs: Sequence[Path],
     out_dir: Path,
@@ -104,15 +134,18 @@ def plan(
     batch_rows: int = DEFAULT_BATCH_ROWS,
     csv: bool = False,
     on_mismatch: str = "warn",
-) -> list[LogTask]:
-    """One task per log found; ConfigError when two logs would share an output or an output
-    would overwrite an input."""
+) -> Plan:
+    """One task per log found; ConfigError when an argument is missing or not a log, two logs
+    would share an output, or an output breaks the path rule
+    (:class:`~imupipe.pipeline.atomic.OutputGuard`)."""
+    check_arguments(logs)
     cal_sha, set_sha = chain_sha256(calibration), settings_sha256(settings)
     tasks: list[LogTask] = []
     owners: dict[Path, Path] = {}
     out_dir = out_dir.absolute()  # workers (Ray nodes) may run in another folder
     found = [(p.absolute(), rel) for p, rel in find_logs(logs, out_dir, csv=csv)]
-    guard = OutputGuard(out_dir, [p for p, _ in found], "--out")
+    searched = [Path(a) for a in logs if Path(a).is_dir() and not is_ros2_bag_dir(Path(a))]
+    guard = OutputGuard(out_dir, [p for p, _ in found], "--out", searched=searched)
     for path, rel in found:
         if rel.name in ("", ".", ".."):
             raise ConfigError(f"{path}: no file name to name its output after; name the log")
@@ -148,4 +181,4 @@ def plan(
                 on_mismatch=on_mismatch,
             )
         )
-    return tasks
+    return Plan(tasks, guard)

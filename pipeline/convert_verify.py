@@ -18,6 +18,7 @@ import pyarrow as pa
 
 from imupipe.pipeline.errors import ImupipeError, ReadError
 from imupipe.pipeline.mcap_writer import DEFAULT_TOPICS
+from imupipe.readers.spec import InputSpec
 from imupipe.readers.table import counts, metadata
 
 
@@ -92,6 +93,46 @@ def input_counts(
             f"{path}: {what} {fmt} log (its index cannot be read: {' '.join(str(exc).split())})"
         ) from None
     return None
+
+
+FORMAT_NAMES = {"ulog": "ULog", "mcap": "MCAP", "ros1": "ROS 1 bag", "ros2": "ROS 2 bag"}
+"""How messages name a format."""
+
+
+def source_counts(path: Path, fmt: str) -> dict[str, int] | None:
+    """Messages per topic of a log whose other topics are not carried over (ULog: no ROS type),
+    from its own sources (:func:`~imupipe.readers.dispatch.log_sources`); None for the formats
+    that carry every topic over (MCAP, ROS bags: their counts are verified) and CSV."""
+    from imupipe.readers import dispatch
+
+    if fmt in dispatch.CARRY_OVER or fmt == "csv":
+        return None
+    counts: collections.Counter[str] = collections.Counter()
+    for source in dispatch.log_sources(InputSpec(path=path)):
+        counts.update(source.topic_counts() or {})
+    return dict(counts)
+
+
+def not_carried(
+    fmt: str, counts: Mapping[str, int] | None, written: Mapping[str, int]
+) -> list[str]:
+    """One warning naming every input topic with no messages in the output (a topic is written
+    as itself or as ``topic/...``), with its message count; none when all are written."""
+    if not counts:
+        return []
+    lost = {
+        t: n
+        for t, n in sorted(counts.items())
+        if n and t not in written and not any(w.startswith(t + "/") for w in written)
+    }
+    if not lost:
+        return []
+    total, dropped = sum(counts.values()), sum(lost.values())
+    names = ", ".join(f"{t} ({n:,})" for t, n in lost.items())
+    return [
+        f"{len(lost)} of {len(counts)} {FORMAT_NAMES.get(fmt, fmt)} topics are not carried into the corrected MCAP (they "
+        f"have no ROS message type; {dropped:,} of {total:,} messages): {names}"
+    ]
 
 
 def counts_by_topic(table: pa.Table) -> collections.Counter[str]:

@@ -38,6 +38,8 @@ from imupipe.pipeline.convert_verify import (
     counts_by_topic,
     input_counts,
     mcap_counts,
+    not_carried,
+    source_counts,
     verify_counts,
 )
 from imupipe.pipeline.errors import ImupipeError, ReadError
@@ -211,6 +213,7 @@ def _convert_log(task: LogTask) -> LogStats:
             written = mcap_counts(mcap_tmp) or {}
             warnings += _nothing_applies(task.calibration["chain"], streams)
             verify_counts(src, expected if expected is not None else read, written)
+            warnings += not_carried(fmt, source_counts(src, fmt), written)
         status, checked = "converted", provenance.status
     return LogStats(
         input=str(src),

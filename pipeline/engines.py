@@ -19,6 +19,16 @@ Failure model, the same for both engines:
 
 One task's failure never stops the others (unless ``on_done`` raises).
 
+**One log, or ``jobs == 1``** (local engine): the task runs in the driver's own process
+(:func:`run_inline`), with the same outcomes, and no pool is started (its start-up, about 0.6 s,
+was a third of a one-log conversion). A crash of that process (SIGKILL, out of memory) ends the
+command instead of being retried.
+
+**Start-up.** A pool's workers are all started and initialised before any task is sent, with
+SIGINT and SIGTERM held back meanwhile (:func:`_start_pool`): a worker still unpickling its
+queues when the driver ends found their semaphores gone and printed a ``SemLock._rebuild``
+traceback.
+
 **No orphans** (local engine). Workers ignore SIGINT (the driver decides) and turn SIGTERM into
 :class:`~imupipe.pipeline.signals.Terminated`, so a worker stopped in the middle of a log removes
 its temporary files. When the driver ends for any reason (an exception, SIGINT, SIGTERM), it
@@ -51,11 +61,14 @@ from typing import Any
 
 from imupipe.pipeline.convert_options import ENGINES
 from imupipe.pipeline.errors import ConfigError, ImupipeError
-from imupipe.pipeline.signals import Terminated
+from imupipe.pipeline.signals import Terminated, signals_deferred
 from imupipe.stages.cores import usable_cores
 
 STOP_GRACE_S = 5.0
 """How long stopped workers get to remove their temporary files before they are killed."""
+
+START_TIMEOUT_S = 120.0
+"""How long a pool's workers may take to start (signals are held back meanwhile)."""
 
 
 @dataclass
@@ -89,30 +102,44 @@ class _WorkerState:
     orphaned = False
 
 
-def guarded(fn: Callable[[Any], Any], task: Any) -> _Attempt:
-    """Run ``fn(task)`` in a worker and turn any exception into a one-line, picklable error.
-
-    SIGTERM during the task (:class:`Terminated`) has let the task remove its temporary files;
-    the worker then exits. A worker whose driver has died exits after the task."""
+def attempt(fn: Callable[[Any], Any], task: Any) -> _Attempt:
+    """Run ``fn(task)`` and turn any exception into a one-line, picklable error (SIGINT and
+    SIGTERM, BaseExceptions, pass through): an :class:`ImupipeError` is final (``fatal`` when it
+    says so), any other exception is retryable."""
     host = socket.gethostname()
-    with _WorkerState.lock:
-        _WorkerState.busy = True
     try:
         return _Attempt(True, fn(task), False, host)
     except ImupipeError as exc:
         return _Attempt(False, str(exc), False, host, bool(getattr(exc, "fatal", False)))
-    except Terminated:
-        os._exit(Terminated.exit_code)
-    except Exception as exc:  # noqa: BLE001 - a worker reports every failure as data
+    except Exception as exc:  # noqa: BLE001 - a task reports every failure as data
         where = traceback.extract_tb(exc.__traceback__)[-1]
         message = " ".join(str(exc).split())
         detail = f"{type(exc).__name__}: {message} (at {os.path.basename(where.filename)}:{where.lineno})"
         return _Attempt(False, detail, True, host)
+
+
+def guarded(fn: Callable[[Any], Any], task: Any) -> _Attempt:
+    """:func:`attempt` in a worker process.
+
+    SIGTERM during the task (:class:`Terminated`) has let the task remove its temporary files;
+    the worker then exits. A worker whose driver has died exits after the task."""
+    with _WorkerState.lock:
+        _WorkerState.busy = True
+    try:
+        return attempt(fn, task)
+    except Terminated:
+        os._exit(Terminated.exit_code)
     finally:
         with _WorkerState.lock:
             _WorkerState.busy = False
             if _WorkerState.orphaned:
                 os._exit(0)  # nobody will take the result: the driver is gone
+
+
+def _ready(_: int) -> int:
+    """A no-op task: a worker that returns it has started (its bootstrap and initializer done)."""
+    time.sleep(0.02)
+    return os.getpid()
 
 
 SINGLE_THREADED = ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS")
@@ -283,6 +310,48 @@ def _submit(
     return True
 
 
+def run_inline(
+    fn: Callable[[Any], Any],
+    tasks: Sequence[Any],
+    on_done: Callable[[Outcome], None],
+    *,
+    retries: int = 2,
+) -> None:
+    """Run every task in this process, one after the other (one log, or ``--jobs 1``): no pool
+    to start. The same outcomes as the pool (an :class:`ImupipeError` is final, another
+    exception retried); SIGINT and SIGTERM unwind the task (its temporary files are removed) and
+    end the run."""
+    tracker = _Tracker(tasks, retries, on_done)
+    while tracker.queue:
+        i = tracker.queue.popleft()
+        tracker.start(i)
+        tracker.finish(i, attempt(fn, tasks[i]))
+
+
+def _start_pool(ctx: Any, jobs: int) -> cf.ProcessPoolExecutor:
+    """A pool of ``jobs`` workers, every one of them started and initialised before this
+    returns, with SIGINT and SIGTERM held back meanwhile: a worker still starting when the driver
+    ends would find the pool's semaphores gone (a ``SemLock._rebuild`` traceback on stderr), so
+    the pool starts no worker it cannot stop cleanly."""
+    pool = None
+    try:
+        with signals_deferred():  # a signal held here is raised when the block ends
+            pool = cf.ProcessPoolExecutor(
+                jobs, mp_context=ctx, initializer=_worker_init, initargs=(os.getpid(),)
+            )
+            seen: set[int] = set()
+            for _ in range(50):
+                seen.update(pool.map(_ready, range(jobs), timeout=START_TIMEOUT_S))
+                live = {p.pid for p in (getattr(pool, "_processes", None) or {}).values()}
+                if live <= seen:
+                    break
+    except BaseException:
+        if pool is not None:
+            _stop_pool(pool)
+        raise
+    return pool
+
+
 def run_local(
     fn: Callable[[Any], Any],
     tasks: Sequence[Any],
@@ -307,9 +376,7 @@ def run_local(
     while tracker.queue or suspects:
         crashed: list[int] = []
         refused = False  # the pool broke before it took a task: the task stays queued
-        pool = cf.ProcessPoolExecutor(
-            jobs, mp_context=ctx, initializer=_worker_init, initargs=(os.getpid(),)
-        )
+        pool = _start_pool(ctx, jobs)
         running: dict[cf.Future, int] = {}
         clean = False
         try:
@@ -376,6 +443,7 @@ def run_ray(
     jobs: int | None = None,
     retries: int = 2,
     dashboard: bool = False,
+    log: Path | None = None,
 ) -> None:
     """Run every task on a Ray cluster, one CPU each.
 
@@ -384,6 +452,13 @@ def run_ray(
     CPUs, default all, listening on 127.0.0.1 only, with the dashboard on 127.0.0.1 when
     ``dashboard``; it is shut down at the end). Workers write their outputs themselves, so the
     logs and the output folder must be on storage every node sees at the same path.
+
+    ``log``: where Ray's own output goes (:func:`_ray_output`). A local Ray started here runs
+    under a folder of its own, and a reaper ends its processes and removes the folder when this
+    function returns or the process dies, SIGKILL included
+    (:mod:`imupipe.pipeline.ray_reaper`). SIGINT and SIGTERM are held back while Ray starts
+    (Ray's own SIGTERM handler, which exits 15 with its own lines, is replaced by the caller's
+    again), so a terminated command exits 143 like the local engine.
     """
     try:
         import ray
@@ -391,29 +466,141 @@ def run_ray(
         raise ConfigError(
             "--engine ray needs Ray: pip install 'imupipe[ray]' (on every node of the cluster)"
         ) from None
-    started = False
-    if not ray.is_initialized():
-        try:
+    if address is not None and not ray.is_initialized():
+        _check_reachable(address)
+    with _ray_output(log), contextlib.ExitStack() as stack:
+        if not ray.is_initialized():
             if address is None:
-                with _local_only_ray():
+                root = stack.enter_context(_reaped_ray_root())
+                # before init: a signal held back while Ray starts is raised as init returns,
+                # and Ray started must still be shut down by us (not later, at exit, when its
+                # shutdown makes the session folder again)
+                stack.callback(ray.shutdown)
+                with _local_only_ray(), _no_ray_sigterm(ray), signals_deferred():
                     ray.init(
                         num_cpus=jobs,
                         _node_ip_address="127.0.0.1",
+                        _temp_dir=str(root),
                         include_dashboard=dashboard,
                         dashboard_host="127.0.0.1",
                         log_to_driver=False,
                         logging_level="WARNING",
                     )
             else:
-                ray.init(address=address, log_to_driver=False, logging_level="WARNING")
-            started = True
-        except ConnectionError as exc:
-            raise ConfigError(f"--address {address}: cannot connect to Ray: {exc}") from None
-    try:
+                try:
+                    with _no_ray_sigterm(ray), signals_deferred():
+                        ray.init(address=address, log_to_driver=False, logging_level="WARNING")
+                except ConnectionError as exc:
+                    raise ConfigError(
+                        f"--address {address}: cannot connect to Ray: {' '.join(str(exc).split())}"
+                    ) from None
+                stack.callback(ray.shutdown)
         _run_on_ray(ray, fn, tasks, on_done, retries)
+
+
+@contextlib.contextmanager
+def _no_ray_sigterm(ray: Any) -> Any:
+    """``ray.init`` installs a SIGTERM handler that exits with status 15 and prints Ray's own
+    lines; while this block runs it installs none, so the command's handler stays (a terminated
+    command exits 143 and says so in one line, as with the local engine)."""
+    utils = ray._private.utils
+    saved = utils.set_sigterm_handler
+    utils.set_sigterm_handler = lambda handler: None
+    try:
+        yield
     finally:
-        if started:
-            ray.shutdown()
+        utils.set_sigterm_handler = saved
+
+
+CONNECT_TIMEOUT_S = 5.0
+"""How long ``--address`` may take to accept a connection before the command gives up."""
+
+
+def _check_reachable(address: str) -> None:
+    """ConfigError within :data:`CONNECT_TIMEOUT_S` when ``address`` (``ray://host:port`` or
+    ``host:port``) accepts no TCP connection (Ray's own client waits 30 s, then prints its
+    warnings before the error)."""
+    if address == "auto":
+        return
+    hostport = address.split("://", 1)[-1].rstrip("/")
+    host, _, port = hostport.rpartition(":")
+    if not host or not port.isdigit():
+        raise ConfigError(f"--address {address}: expected 'auto', ray://HOST:PORT or HOST:PORT")
+    try:
+        socket.create_connection((host.strip("[]"), int(port)), timeout=CONNECT_TIMEOUT_S).close()
+    except OSError as exc:
+        why = exc.strerror or type(exc).__name__
+        raise ConfigError(f"--address {address}: cannot connect to Ray: {why}") from None
+
+
+@contextlib.contextmanager
+def _reaped_ray_root() -> Any:
+    """A fresh folder for the local Ray's files, and the reaper that ends that Ray's processes
+    and removes the folder when the driver is done or dies (:mod:`imupipe.pipeline.ray_reaper`)."""
+    import subprocess
+    import sys
+    import tempfile
+
+    root = Path(
+        tempfile.mkdtemp(prefix="imupipe-ray-", dir="/tmp" if os.path.isdir("/tmp") else None)
+    )
+    reaper = subprocess.Popen(
+        [sys.executable, "-m", "imupipe.pipeline.ray_reaper", str(root), str(os.getpid())],
+        stdin=subprocess.PIPE,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        start_new_session=True,
+    )
+    import shutil
+
+    try:
+        yield root
+    finally:  # after ray.shutdown(): the reaper ends what is left and removes the folder
+        assert reaper.stdin is not None
+        reaper.stdin.close()
+        with contextlib.suppress(Exception):
+            reaper.wait(timeout=30)
+        shutil.rmtree(root, ignore_errors=True)
+
+
+@contextlib.contextmanager
+def _ray_output(log: Path | None) -> Any:
+    """Ray's own output (its Python warnings, its C++ core's lines on file descriptor 2) goes to
+    ``log`` (appended; never through a symbolic link), not to the user's stderr; imupipe's own
+    lines (``sys.stderr`` as looked up when printing: warnings, errors) still reach the user's
+    stderr (Ray's logging handlers keep the old ``sys.stderr`` object, which writes to file
+    descriptor 2: the log). ``None``: leave stderr as it is."""
+    if log is None:
+        yield
+        return
+    import sys
+
+    made = [d for d in [log.parent, *log.parent.parents] if not d.exists()]
+    log.parent.mkdir(parents=True, exist_ok=True)
+    created = not os.path.lexists(log)
+    fd = os.open(log, os.O_WRONLY | os.O_APPEND | os.O_CREAT | getattr(os, "O_NOFOLLOW", 0), 0o666)
+    sys.stderr.flush()
+    saved = os.dup(2)
+    user_stderr = os.fdopen(os.dup(saved), "w", buffering=1)
+    previous = sys.stderr
+    os.dup2(fd, 2)
+    os.close(fd)
+    sys.stderr = user_stderr
+    try:
+        yield
+    except ImupipeError:  # a refusal (exit 2) leaves nothing behind: a log made for it neither
+        if created:
+            with contextlib.suppress(OSError):
+                log.unlink()
+            for folder in made:  # deepest first, if left empty
+                with contextlib.suppress(OSError):
+                    folder.rmdir()
+        raise
+    finally:
+        sys.stderr = previous
+        user_stderr.close()
+        os.dup2(saved, 2)
+        os.close(saved)
 
 
 def _run_on_ray(
@@ -439,6 +626,13 @@ def _run_on_ray(
             except ray.exceptions.RayError as exc:  # the worker or its node died
                 error = f"{type(exc).__name__}: {' '.join(str(exc).split())[:300]}"
                 tracker.failed(i, error, True)
+    except SystemError as exc:
+        # SIGINT/SIGTERM while Ray waits: Ray's signal check raises the handler's exception
+        # inside its C++ call, which Python reports as a SystemError caused by it
+        cause = exc.__cause__ or exc.__context__
+        if isinstance(cause, KeyboardInterrupt | Terminated):
+            raise cause from None
+        raise
     finally:
         for ref in running:  # the driver is ending early: stop what is still running
             with contextlib.suppress(Exception):
@@ -456,17 +650,28 @@ def run_tasks(
     retries: int = 2,
     preload: Sequence[str] = (),
     dashboard: bool = False,
+    engine_log: Path | None = None,
 ) -> None:
     """Run ``fn`` over ``tasks`` on ``engine`` (``local`` or ``ray``); see the module docstring.
     ``preload``: modules the local workers should have imported before they start;
-    ``dashboard``: start Ray's dashboard (on 127.0.0.1) with a local Ray."""
+    ``dashboard``: start Ray's dashboard (on 127.0.0.1) with a local Ray; ``engine_log``: the
+    file Ray's own output goes to instead of stderr."""
     if not tasks:
         return
-    if engine == "local":
+    if engine == "local" and (len(tasks) == 1 or jobs == 1):
+        run_inline(fn, tasks, on_done, retries=retries)
+    elif engine == "local":
         run_local(fn, tasks, on_done, jobs=jobs, retries=retries, preload=preload)
     elif engine == "ray":
         run_ray(
-            fn, tasks, on_done, address=address, jobs=jobs, retries=retries, dashboard=dashboard
+            fn,
+            tasks,
+            on_done,
+            address=address,
+            jobs=jobs,
+            retries=retries,
+            dashboard=dashboard,
+            log=engine_log,
         )
     else:
         raise ConfigError(f"--engine {engine}: unknown engine (known: {', '.join(ENGINES)})")

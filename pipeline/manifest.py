@@ -5,7 +5,7 @@ Each line records what ``imupipe convert`` did with one log::
     {"input": "...", "output": "...", "parquet": null, "status": "converted",
      "counts": {"/imu/data": 12000, ...}, "calibration_sha256": "...", "seconds": 1.23,
      "cpu_seconds": 1.1, "messages": 12000, "mode": "streamed", "attempts": 1, "host": "...",
-     "peak_rss_mb": 143.2, "provenance": "match", "warnings": [], "error": null,
+     "engine_log": null, "peak_rss_mb": 143.2, "provenance": "match", "warnings": [], "error": null,
      "finished_at": "2026-11-21T15:40:02Z"}
 
 ``status`` is ``converted``, ``skipped`` (an output for the same calibration already existed) or
@@ -20,12 +20,16 @@ their logs already done and records them as skipped.)
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import time
 from collections.abc import Iterator, Mapping
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from imupipe.pipeline.atomic import OutputGuard
 
 MANIFEST_NAME = "manifest.jsonl"
 
@@ -42,6 +46,7 @@ FIELDS = (
     "mode",
     "attempts",
     "host",
+    "engine_log",
     "peak_rss_mb",
     "provenance",
     "warnings",
@@ -52,19 +57,50 @@ FIELDS = (
 
 
 class Manifest:
-    """Appends one line per finished log to ``DIR/manifest.jsonl`` (driver process only)."""
+    """Appends one line per finished log to ``DIR/manifest.jsonl`` (driver process only).
 
-    def __init__(self, out_dir: str | os.PathLike[str]) -> None:
-        self.path = Path(out_dir) / MANIFEST_NAME
-        self.path.parent.mkdir(parents=True, exist_ok=True)
+    With ``guard``, the path is checked by the path rule
+    (:class:`~imupipe.pipeline.atomic.OutputGuard`: inside ``DIR``, not an input, not a
+    symbolic link) when the manifest is made, before anything is written. The file is created by
+    the first line, never followed through a symbolic link (``O_NOFOLLOW``); a line that cannot
+    be written whole (a full disk) is taken back, and a manifest this run created is removed
+    again, so a failed append leaves the file as it was."""
+
+    def __init__(self, out_dir: str | os.PathLike[str], guard: OutputGuard | None = None) -> None:
+        path = Path(out_dir).absolute() / MANIFEST_NAME
+        self.path = path if guard is None else guard.check(path, in_place=True)
 
     def append(self, record: Mapping[str, Any]) -> None:
+        """Append ``record``'s line; OSError (naming the manifest) when it cannot be written."""
         line = {key: record.get(key) for key in FIELDS}
         line["finished_at"] = line["finished_at"] or time.strftime(
             "%Y-%m-%dT%H:%M:%SZ", time.gmtime()
         )
-        with open(self.path, "a", encoding="utf-8") as fh:
-            fh.write(json.dumps(line, sort_keys=False) + "\n")
+        data = (json.dumps(line, sort_keys=False) + "\n").encode("utf-8")
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        flags = os.O_WRONLY | os.O_APPEND | os.O_CREAT | getattr(os, "O_NOFOLLOW", 0)
+        existed = os.path.lexists(self.path)
+        try:
+            fd = os.open(self.path, flags, 0o666)
+        except OSError as exc:
+            exc.filename = exc.filename or str(self.path)
+            raise
+        try:
+            size = os.fstat(fd).st_size
+            try:
+                view = memoryview(data)
+                while view:
+                    view = view[os.write(fd, view) :]
+            except OSError as exc:
+                with contextlib.suppress(OSError):
+                    if existed:
+                        os.ftruncate(fd, size)
+                    else:
+                        os.unlink(self.path)
+                exc.filename = str(self.path)
+                raise
+        finally:
+            os.close(fd)
 
 
 def read_manifest(out_dir: str | os.PathLike[str]) -> Iterator[dict[str, Any]]:

@@ -192,16 +192,21 @@ def encode_stream(
 
 
 def message_times(table: pa.Table) -> tuple[np.ndarray, np.ndarray]:
-    """(log time, publish time) of every row, int64 ns: ``log_time_ns`` where the reader kept it,
-    else ``t_ns``; ``publish_time_ns`` where kept, else the log time."""
+    """(log time, publish time) of every row as MCAP's **uint64** ns: ``log_time_ns`` where the
+    reader kept it, else ``t_ns``; ``publish_time_ns`` where kept, else the log time.
+
+    The table's int64 columns hold a log's uint64 times as their bit pattern (a time past 2^63 - 1
+    ns reads as negative); viewed as uint64 they are the log's own times again, so the whole
+    uint64 range is written, ordered and indexed as the log had it."""
     t_ns = table.column("t_ns")
     log = table.column("log_time_ns") if "log_time_ns" in table.column_names else t_ns
     log = pc.fill_null(log, t_ns) if log.null_count else log
+    log_u = log.to_numpy().view(np.uint64)
     if "publish_time_ns" not in table.column_names:
-        return log.to_numpy(), log.to_numpy()
+        return log_u, log_u
     pub = table.column("publish_time_ns")
     pub = pc.fill_null(pub, log) if pub.null_count else pub
-    return log.to_numpy(), pub.to_numpy()
+    return log_u, pub.to_numpy().view(np.uint64)
 
 
 def _fill_record_headers(
@@ -537,7 +542,7 @@ class McapTableWriter:
                 np.frombuffer(b"".join(pieces), np.uint8),
                 np.asarray(starts, np.int64),
                 np.asarray(channels, np.int64),
-                np.asarray(logs, np.int64),
+                np.asarray(logs, np.uint64),
             )
 
     def close(self) -> dict[str, int]:

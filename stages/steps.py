@@ -89,18 +89,10 @@ class LinearStep(Step):
         self.offset = np.asarray(self.offset, dtype=np.float64).reshape(3)
 
     def apply_values(self, values: np.ndarray) -> np.ndarray:
-        """Apply to an (n, 3) array.
-
-        Summed term by term (not a matrix product, whose summation order BLAS may choose by the
-        array's shape), so a sample's result does not depend on the batch it is corrected in:
-        a log converted in batches equals the log corrected whole, bit for bit."""
-        m = self.matrix
+        """Apply to an (n, 3) array (see :func:`axis_products` for non-finite cells)."""
         with np.errstate(over="ignore", invalid="ignore"):  # damaged samples (Inf, 1e308)
             d = np.asarray(values, dtype=np.float64) - self.offset
-            out = np.empty_like(d)
-            for i in range(3):
-                out[:, i] = m[i, 0] * d[:, 0] + m[i, 1] * d[:, 1] + m[i, 2] * d[:, 2]
-        return out
+        return axis_products(self.matrix, d)
 
     def apply(self, table: pa.Table) -> pa.Table:
         if len(SENSOR_COLUMNS[self.sensor]) != 3:
@@ -155,6 +147,53 @@ class LinearStep(Step):
             offset=np.array(entry["offset"], dtype=np.float64),
             params=params,
         )
+
+
+FLOAT_MAX = float(np.finfo(np.float64).max)
+"""The largest finite float64: a finite result too large for a float is held at it."""
+
+
+def axis_products(matrix: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """``values @ matrix.T`` for an (n, k) array, term by term, with the **non-finite rule**:
+
+    - output axis ``i`` is the sum of ``matrix[i, j] * values[:, j]`` over the input axes ``j``
+      whose coefficient is **not zero** only: a NaN or infinite input cell reaches the output
+      axes that depend on it and no other (a diagonal matrix keeps every axis to itself:
+      ``(nan, y, z)`` -> ``(nan, y', z')``, never ``(nan, nan, nan)``; 0 x NaN is not taken);
+    - an output axis whose inputs are all finite is finite: a sum that overflows float64 is held
+      at +-:data:`FLOAT_MAX` (sign kept) instead of becoming infinite.
+
+    So NaN cells in equal NaN cells out whenever every non-finite input axis feeds only its own
+    output axis. Summed term by term in a fixed order (not a matrix product, whose summation
+    order BLAS may choose by the array's shape), so a sample's result does not depend on the
+    batch it is corrected in: a log converted in batches equals the log corrected whole, bit for
+    bit."""
+    m = np.asarray(matrix, dtype=np.float64)
+    d = np.asarray(values, dtype=np.float64)
+    out = np.zeros((d.shape[0], m.shape[0]), dtype=np.float64)
+    with np.errstate(over="ignore", invalid="ignore"):
+        for i in range(m.shape[0]):
+            used = [j for j in range(m.shape[1]) if m[i, j] != 0.0]
+            if not used:
+                continue
+            col = m[i, used[0]] * d[:, used[0]]
+            for j in used[1:]:
+                col = col + m[i, j] * d[:, j]
+            finite_in = np.isfinite(d[:, used]).all(axis=1)
+            blown = finite_in & ~np.isfinite(col)
+            if blown.any():  # finite inputs, a result past float64: held at the largest float
+                col[blown] = _saturated(m[i, used], d[blown][:, used])
+            out[:, i] = col
+    return out
+
+
+def _saturated(coefficients: np.ndarray, rows: np.ndarray) -> np.ndarray:
+    """+-:data:`FLOAT_MAX` for rows of finite inputs whose weighted sum overflowed: the sign of
+    the sum computed at a scale where it cannot overflow."""
+    scale = np.abs(rows).max(axis=1, keepdims=True)
+    scale[scale == 0] = 1.0
+    small = ((rows / scale) * coefficients).sum(axis=1)
+    return np.where(small < 0, -FLOAT_MAX, FLOAT_MAX)
 
 
 STEP_KINDS: dict[str, str] = {

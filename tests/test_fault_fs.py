@@ -107,6 +107,11 @@ def test_convert_into_a_full_folder(tmp_path, logs):
     # manifest is on the full disk too): the next run finds it done
     converted = {Path(r["output"]).name for r in read_manifest(saved) if r["status"] == "converted"}
     assert converted <= set(done)
+    # the manifest is whole lines or absent: a line the full disk refused was taken back
+    manifest = saved / "manifest.jsonl"
+    if manifest.exists():
+        text = manifest.read_text()
+        assert text and text.endswith("\n"), repr(text[-80:])
 
 
 def test_run_into_a_full_folder(tmp_path, logs):
