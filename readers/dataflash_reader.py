@@ -61,7 +61,12 @@ import pyarrow as pa
 from imupipe.readers.decoded import Piece
 from imupipe.readers.errors import ReadError
 from imupipe.readers.spec import InputSpec
-from imupipe.readers.table import metadata, with_metadata, with_stream_column
+from imupipe.readers.table import (
+    metadata,
+    with_flight_stream,
+    with_metadata,
+    with_stream_column,
+)
 from imupipe.readers.table_buffer import assemble
 from imupipe.readers.topics import TOPIC_KEYS
 
@@ -575,6 +580,8 @@ def read_dataflash(spec: InputSpec) -> tuple[pa.Table, list[str]]:
             pieces["temperature"].stamp,
             f.field(inst.name, "Press", inst.rows),  # Pa (LogStructure.h units: P)
         )
+    for stream, (t_ns, values) in flight_streams(f).items():
+        table = with_flight_stream(table, stream, t_ns, values)
     meta = metadata(table)
     meta.pop("frame_id", None)  # a DataFlash log names no frames
     meta["instance"] = {s: f.instances[k].instance for s, k in chosen.items()}
@@ -593,6 +600,78 @@ def read_dataflash(spec: InputSpec) -> tuple[pa.Table, list[str]]:
             f"(they have no ROS message type; imupipe inspect lists them): {shown}"
         )
     return with_metadata(table, meta), warnings
+
+
+def euler_quaternion(roll: np.ndarray, pitch: np.ndarray, yaw: np.ndarray) -> np.ndarray:
+    """(n, 4) unit quaternions (w, x, y, z) of Z-Y-X Euler angles (rad): the rotation body ->
+    NED of an aerospace roll, pitch, yaw (``q = q_z(yaw) q_y(pitch) q_x(roll)``)."""
+    cr, sr = np.cos(roll / 2), np.sin(roll / 2)
+    cp, sp = np.cos(pitch / 2), np.sin(pitch / 2)
+    cy, sy = np.cos(yaw / 2), np.sin(yaw / 2)
+    return np.column_stack(
+        [
+            cr * cp * cy + sr * sp * sy,
+            sr * cp * cy - cr * sp * sy,
+            cr * sp * cy + sr * cp * sy,
+            cr * cp * sy - sr * sp * cy,
+        ]
+    )
+
+
+def _first_instance(f: DataFlashLog, name: str) -> np.ndarray | None:
+    """Rows of instance 0 of message ``name`` (all rows when it has no instance field)."""
+    fmt = f.by_name.get(name)
+    if fmt is None or fmt.dtype() is None or len(f.records(name)) == 0:
+        return None
+    for column in ("I", "Instance", "Inst"):
+        if fmt.numeric(column):
+            return np.flatnonzero(f.records(name)[column] == 0)
+    return np.arange(len(f.records(name)))
+
+
+def flight_streams(f: DataFlashLog) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """The flight streams the log holds (see :data:`~imupipe.readers.table.FLIGHT_COLUMNS`),
+    stream -> (t_ns, values), in SI units and degrees of latitude/longitude:
+
+    - ``attitude`` from ``ATT`` ``Roll``/``Pitch``/``Yaw`` (degrees, or centidegrees of format
+      ``c``/``C`` that :meth:`DataFlashLog.field` scales to degrees), as quaternions;
+    - ``position`` from ``GPS`` instance 0 ``Lat``/``Lng`` (1e-7 deg, format ``L``) and ``Alt``
+      (cm of format ``e`` in older firmware, m of format ``f``), the records with a 3D fix
+      (``Status`` >= 3) only;
+    - ``current`` from ``BAT`` instance 0 ``Curr`` (A) or, in older logs, ``CURR`` ``Curr``
+      (A as a float; centiamperes as an int16 ``h``, ArduCopter 3.2-3.3).
+    """
+    out: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+    rows = _first_instance(f, "ATT")
+    if rows is not None and f.by_name["ATT"].numeric("Roll", "Pitch", "Yaw"):
+        t = f.time_ns("ATT", rows)
+        if t is not None:
+            roll, pitch, yaw = (
+                np.radians(f.field("ATT", c, rows)) for c in ("Roll", "Pitch", "Yaw")
+            )
+            out["attitude"] = (t, euler_quaternion(roll, pitch, yaw))
+    rows = _first_instance(f, "GPS")
+    if rows is not None and f.by_name["GPS"].numeric("Lat", "Lng", "Alt"):
+        if f.by_name["GPS"].numeric("Status"):
+            rows = rows[f.records("GPS")["Status"][rows] >= 3]
+        t = f.time_ns("GPS", rows)
+        if t is not None and len(rows):
+            lla = np.column_stack([f.field("GPS", c, rows) for c in ("Lat", "Lng", "Alt")])
+            out["position"] = (t, lla)
+    for name in ("BAT", "CURR"):
+        rows = _first_instance(f, name)
+        if rows is None or not f.by_name[name].numeric("Curr"):
+            continue
+        t = f.time_ns(name, rows)
+        if t is None:
+            continue
+        fmt = f.by_name[name]
+        amps = f.field(name, "Curr", rows)
+        if fmt.format[fmt.columns.index("Curr")] in "hHiI":
+            amps = amps * 0.01  # centiamperes (AP_Battery's old CURR: current_amps * 100)
+        out["current"] = (t, amps)
+        break
+    return out
 
 
 def dataflash_sources(path: Path) -> list[DataFlashLog]:
