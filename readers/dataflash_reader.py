@@ -584,6 +584,9 @@ def read_dataflash(spec: InputSpec) -> tuple[pa.Table, list[str]]:
         table = with_flight_stream(table, stream, t_ns, values)
     meta = metadata(table)
     meta.pop("frame_id", None)  # a DataFlash log names no frames
+    year = gps_year(f)
+    if year is not None:
+        meta["gps_year"] = year
     meta["instance"] = {s: f.instances[k].instance for s, k in chosen.items()}
     meta["ardupilot"] = {
         "calibrated": {s: True for s in chosen if s != "temperature"},
@@ -637,7 +640,8 @@ def flight_streams(f: DataFlashLog) -> dict[str, tuple[np.ndarray, np.ndarray]]:
       ``c``/``C`` that :meth:`DataFlashLog.field` scales to degrees), as quaternions;
     - ``position`` from ``GPS`` instance 0 ``Lat``/``Lng`` (1e-7 deg, format ``L``) and ``Alt``
       (cm of format ``e`` in older firmware, m of format ``f``), the records with a 3D fix
-      (``Status`` >= 3) only;
+      (``Status`` >= 3) only, stamped by ``TimeUS`` (or, in 3.3 and older whose ``TimeMS`` is
+      the GPS time of week, by the boot time ``T``, ms);
     - ``current`` from ``BAT`` instance 0 ``Curr`` (A) or, in older logs, ``CURR`` ``Curr``
       (A as a float; centiamperes as an int16 ``h``, ArduCopter 3.2-3.3).
     """
@@ -655,6 +659,8 @@ def flight_streams(f: DataFlashLog) -> dict[str, tuple[np.ndarray, np.ndarray]]:
         if f.by_name["GPS"].numeric("Status"):
             rows = rows[f.records("GPS")["Status"][rows] >= 3]
         t = f.time_ns("GPS", rows)
+        if f.by_name["GPS"].numeric("Week", "T"):  # 3.3 and older: TimeMS is GPS time of week
+            t = f.records("GPS")["T"][rows].astype(np.int64) * 1_000_000
         if t is not None and len(rows):
             lla = np.column_stack([f.field("GPS", c, rows) for c in ("Lat", "Lng", "Alt")])
             out["position"] = (t, lla)
@@ -672,6 +678,33 @@ def flight_streams(f: DataFlashLog) -> dict[str, tuple[np.ndarray, np.ndarray]]:
         out["current"] = (t, amps)
         break
     return out
+
+
+GPS_EPOCH_UNIX_S = 315_964_800
+"""1980-01-06 00:00:00 UTC, the start of GPS week 0, in Unix seconds."""
+
+
+def gps_year(f: DataFlashLog) -> float | None:
+    """The decimal year (UTC, leap seconds ignored) of the first ``GPS`` record with a 3D fix,
+    from its week (``GWk``, old ``Week``) and time of week (``GMS``, old ``TimeMS``, ms); None
+    without one."""
+    rows = _first_instance(f, "GPS")
+    if rows is None:
+        return None
+    fmt = f.by_name["GPS"]
+    week = next((c for c in ("GWk", "Week") if fmt.numeric(c)), None)
+    ms = "GMS" if fmt.numeric("GMS") else "TimeMS"
+    if week is None or ms is None:
+        return None
+    rec = f.records("GPS")[rows]
+    ok = rec[week] > 0
+    if fmt.numeric("Status"):
+        ok &= rec["Status"] >= 3
+    if not ok.any():
+        return None
+    i = int(np.flatnonzero(ok)[0])
+    unix = GPS_EPOCH_UNIX_S + int(rec[week][i]) * 604_800 + int(rec[ms][i]) / 1000.0
+    return 1970.0 + unix / (365.2425 * 86400.0)
 
 
 def dataflash_sources(path: Path) -> list[DataFlashLog]:

@@ -162,6 +162,7 @@ STEP_KINDS: dict[str, str] = {
     "temperature": "imupipe.stages.temperature_step:TemperatureStep",
     "thermal_matrix": "imupipe.stages.temperature_step:ThermalMatrixStep",
     "g_sensitivity": "imupipe.stages.ferraris:GSensitivityStep",
+    "mag_current": "imupipe.stages.mag_inflight:MagCurrentStep",
 }
 """Step kind -> "module:Class". A new kind of correction registers here."""
 
