@@ -249,12 +249,13 @@ class MagCurrentStep(LinearStep):
 
 def ardupilot_parameters(fit: Fit, compass: int = 1) -> dict[str, float]:
     """The fit as ArduPilot ``COMPASS_*`` parameters (milligauss; the first compass has no
-    number): ``field = W (s raw + OFS) + MOT I`` (AP_Compass_Backend::correct_field), so
-    ``s = det(M)^(1/3)``, ``W = M / s``, ``OFS = -s offset``; ``MOTCT = 2`` (current)."""
+    number): ``field = W s (raw + OFS) + MOT I`` (``AP_Compass_Backend::correct_field`` and
+    MagFit's ``correct``: offsets added, then the scale, the DIA/ODI matrix, the motor term), so
+    ``s = det(M)^(1/3)``, ``W = M / s``, ``OFS = -offset``; ``MOTCT = 2`` (current)."""
     n = "" if compass == 1 else str(compass)
     s = float(np.cbrt(np.linalg.det(fit.matrix)))
     w = fit.matrix / s
-    ofs = -s * fit.offset * 1e7
+    ofs = -fit.offset * 1e7
     out = {f"COMPASS_OFS{n}_{a}": float(v) for a, v in zip("XYZ", ofs, strict=True)}
     out |= {f"COMPASS_DIA{n}_{a}": float(w[i, i]) for i, a in enumerate("XYZ")}
     out |= {

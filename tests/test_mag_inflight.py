@@ -1,0 +1,167 @@
+"""mag_inflight: the compass fitted from a flight against the World Magnetic Model."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from imupipe.pipeline.simulate import simulate, write_log
+from imupipe.readers.dataflash_reader import read_dataflash
+from imupipe.readers.spec import InputSpec
+from imupipe.readers.table import flight_stream, make_table, sensor, with_flight_stream
+from imupipe.stages.base import StageContext
+from imupipe.stages.errors import FitError
+from imupipe.stages.mag_inflight import (
+    MagCurrentStep,
+    MagInflightStage,
+    ardupilot_parameters,
+    fit_model,
+    px4_parameters,
+)
+from imupipe.stages.steps import steps_from_json
+
+from conftest import run_cli, shared_path
+
+
+def fit(table, **options):
+    stage = MagInflightStage(MagInflightStage.Options(**options))
+    ctx = StageContext(name="compass", input_name="sim", quiet=True)
+    return stage.fit(table, ctx), ctx
+
+
+@pytest.fixture(scope="module")
+def flight(tmp_path_factory):
+    """The default simulated flight, written as DataFlash and read back."""
+    table, truth = simulate("flight", {"duration_s": 180.0}, seed=3)
+    path = tmp_path_factory.mktemp("flight") / "flight.bin"
+    write_log(path, table)
+    back, _ = read_dataflash(InputSpec(path=path))
+    return back, truth
+
+
+def test_recovers_the_truth_from_dataflash(flight):
+    table, truth = flight
+    out, _ = fit(table)
+    r = out.results
+    assert r["model"] == "soft_iron" and r["motor_term"]
+    field = truth["field_norm"]
+    assert np.abs(np.array(r["offset_t"]) - truth["offset"]).max() < 0.01 * field
+    assert np.abs(np.array(r["matrix"]) - truth["matrix"]).max() < 0.01
+    motor = np.array(truth["motor"])
+    assert np.linalg.norm(np.array(r["motor_t_per_a"]) - motor) < 0.05 * np.linalg.norm(motor)
+    m = r["metrics"]
+    assert m["residual_rms_ut_after"] < 0.1 * m["residual_rms_ut_before"]
+    assert m["heading_rms_deg_after"] < 1.0 < m["heading_rms_deg_before"]
+    assert m["held_out_rms_ut"]["soft_iron"] < m["held_out_rms_ut"]["offsets"]
+    assert all(se > 0 for se in r["parameter_se"].values())
+    assert r["coverage"]["yaw_coverage_deg"] == 360.0
+
+
+def test_correction_step_applies_and_round_trips(flight):
+    table, truth = flight
+    out, _ = fit(table)
+    step = steps_from_json([json.loads(json.dumps(out.step.to_json()))])[0]
+    assert isinstance(step, MagCurrentStep) and step.kind == "mag_current"
+    corrected = sensor(step.apply(table), "mag")
+    assert len(corrected) == len(sensor(table, "mag"))
+    # the corrected norm is the field's (1 % band), raw is not
+    norms = np.linalg.norm(corrected.values, axis=1) / truth["field_norm"]
+    assert np.percentile(np.abs(norms - 1), 95) < 0.01
+    raw = np.linalg.norm(sensor(table, "mag").values, axis=1) / truth["field_norm"]
+    assert np.percentile(np.abs(raw - 1), 95) > 0.05
+
+
+def test_parameter_exports_reproduce_the_correction(flight):
+    table, _ = flight
+    out, _ = fit(table)
+    raw = sensor(table, "mag").values[:50] * 1e7  # mG
+    amps = np.linspace(0, 20, 50)
+    m = np.array(out.results["matrix"])
+    want = (
+        (raw * 1e-7 - out.results["offset_t"]) @ m.T + amps[:, None] * out.results["motor_t_per_a"]
+    ) * 1e7
+    ap = out.results["ardupilot"]
+    w = np.array(
+        [
+            [ap["COMPASS_DIA_X"], ap["COMPASS_ODI_X"], ap["COMPASS_ODI_Y"]],
+            [ap["COMPASS_ODI_X"], ap["COMPASS_DIA_Y"], ap["COMPASS_ODI_Z"]],
+            [ap["COMPASS_ODI_Y"], ap["COMPASS_ODI_Z"], ap["COMPASS_DIA_Z"]],
+        ]
+    )
+    ofs = np.array([ap[f"COMPASS_OFS_{a}"] for a in "XYZ"])
+    mot = np.array([ap[f"COMPASS_MOT_{a}"] for a in "XYZ"])
+    got = ((raw + ofs) * ap["COMPASS_SCALE"]) @ w.T + amps[:, None] * mot
+    assert np.allclose(got, want, atol=1e-6) and ap["COMPASS_MOTCT"] == 2
+    px = out.results["px4"]
+    assert px["CAL_MAG_COMP_TYP"] == 2
+    comp = np.array([px[f"CAL_MAG0_{a}COMP"] for a in "XYZ"])  # G/kA
+    assert np.allclose(comp * 1e-4 / 1e3, out.results["motor_t_per_a"])
+
+
+def test_refuses_what_the_flight_cannot_separate():
+    level, _ = simulate(
+        "flight",
+        {"duration_s": 60.0, "roll_deg": 0.0, "pitch_deg": 0.0, "current_swing_a": 0.0},
+        seed=1,
+    )
+    with pytest.raises(FitError, match="soft iron.*spread"):
+        fit(level, model="soft_iron")
+    with pytest.raises(FitError, match="motor.*current spans"):
+        fit(level, motor="on")
+    out, ctx = fit(level)  # auto: what the flight can separate, the rest named in warnings
+    assert out.results["model"] != "soft_iron" and not out.results["motor_term"]
+    assert any("soft iron" in w for w in ctx.warnings)
+    assert any("motor" in w for w in ctx.warnings)
+
+
+def test_refuses_a_log_without_attitude_or_gps():
+    t = np.arange(200, dtype=np.int64) * 20_000_000
+    table = make_table(t, mag=np.tile([2e-5, 0, 4e-5], (200, 1)))
+    with pytest.raises(FitError, match="no attitude, position"):
+        fit(table)
+    table = with_flight_stream(table, "attitude", t, np.tile([1.0, 0, 0, 0], (200, 1)))
+    table = with_flight_stream(table, "position", t, np.tile([52.0, 5.0, 0.0], (200, 1)))
+    with pytest.raises(FitError, match="date is unknown"):
+        fit(table)
+
+
+def test_robust_fit_rejects_outliers():
+    rng = np.random.default_rng(4)
+    target = rng.normal(0, 3e-5, (2000, 3))
+    raw = target + [1e-5, -2e-5, 5e-6] + rng.normal(0, 1e-7, target.shape)
+    raw[::50] += 5e-5  # spikes, 2 %
+    f = fit_model(raw, target, None, "soft_iron")
+    assert np.allclose(f.offset, [1e-5, -2e-5, 5e-6], atol=3e-8)
+    assert np.count_nonzero(~f.used) >= 40
+
+
+def test_simulate_flight_cli(tmp_path):
+    out = tmp_path / "f.bin"
+    run_cli("simulate", "flight", "--out", str(out), "--duration", "20")
+    truth = json.loads((tmp_path / "f.bin.truth.json").read_text())
+    assert truth["scenario"] == "flight"
+    table, _ = read_dataflash(InputSpec(path=out))
+    assert len(flight_stream(table, "attitude")) == 500
+    assert len(flight_stream(table, "current")) == 200
+    bad = run_cli("simulate", "flight", "--out", str(tmp_path / "f.csv"), "--duration", "5")
+    assert bad.returncode == 2 and ".bin" in bad.stderr
+
+
+REAL = {
+    "erle_pxf_118/118.BIN": {},
+    "erle_pxf_218/218.BIN": {},
+    "forum13645_ac344/log_0036.bin": {"imu_topic": "IMU", "mag_topic": "MAG"},
+    "spark404_utrecht/log.bin": {"imu_topic": "IMU", "mag_topic": "MAG"},
+}
+
+
+@pytest.mark.parametrize("name", sorted(REAL))
+def test_real_flights_improve(name):
+    path = shared_path("logs", "ardupilot_flights", *name.split("/"))
+    table, _ = read_dataflash(InputSpec(path=path, **REAL[name]))
+    out, _ = fit(table)
+    m = out.results["metrics"]
+    assert m["residual_rms_ut_after"] < 0.5 * m["residual_rms_ut_before"]
+    assert 40 < m["field_ut"] < 52
