@@ -247,48 +247,6 @@ class MagCurrentStep(LinearStep):
         )
 
 
-def ardupilot_parameters(fit: Fit, compass: int = 1) -> dict[str, float]:
-    """The fit as ArduPilot ``COMPASS_*`` parameters (milligauss; the first compass has no
-    number): ``field = W s (raw + OFS) + MOT I`` (``AP_Compass_Backend::correct_field`` and
-    MagFit's ``correct``: offsets added, then the scale, the DIA/ODI matrix, the motor term), so
-    ``s = det(M)^(1/3)``, ``W = M / s``, ``OFS = -offset``; ``MOTCT = 2`` (current)."""
-    n = "" if compass == 1 else str(compass)
-    s = float(np.cbrt(np.linalg.det(fit.matrix)))
-    w = fit.matrix / s
-    ofs = -fit.offset * 1e7
-    out = {f"COMPASS_OFS{n}_{a}": float(v) for a, v in zip("XYZ", ofs, strict=True)}
-    out |= {f"COMPASS_DIA{n}_{a}": float(w[i, i]) for i, a in enumerate("XYZ")}
-    out |= {
-        f"COMPASS_ODI{n}_X": float(w[0, 1]),
-        f"COMPASS_ODI{n}_Y": float(w[0, 2]),
-        f"COMPASS_ODI{n}_Z": float(w[1, 2]),
-        f"COMPASS_SCALE{n}": s,
-    }
-    if fit.motor_term:
-        out |= {
-            f"COMPASS_MOT{n}_{a}": float(v) for a, v in zip("XYZ", fit.motor * 1e7, strict=True)
-        }
-        out["COMPASS_MOTCT"] = 2.0
-    return out
-
-
-def px4_parameters(fit: Fit, instance: int = 0) -> dict[str, float]:
-    """The fit as PX4 ``CAL_MAGn_*`` (gauss): offsets, scales (the diagonal of M), off-diagonal
-    scales, and with the motor term ``CAL_MAGn_{X,Y,Z}COMP`` in G/kA with
-    ``CAL_MAG_COMP_TYP = 2`` (current-based)."""
-    p = f"CAL_MAG{instance}_"
-    m = fit.matrix
-    out = {f"{p}{a}OFF": float(v * 1e4) for a, v in zip("XYZ", fit.offset, strict=True)}
-    out |= {f"{p}{a}SCALE": float(m[i, i]) for i, a in enumerate("XYZ")}
-    out |= {
-        f"{p}{a}ODIAG": float(v) for a, v in zip("XYZ", (m[0, 1], m[0, 2], m[1, 2]), strict=True)
-    }
-    if fit.motor_term:
-        out |= {f"{p}{a}COMP": float(v * 1e4 * 1e3) for a, v in zip("XYZ", fit.motor, strict=True)}
-        out["CAL_MAG_COMP_TYP"] = 2.0
-    return out
-
-
 class MagInflightStage(Stage):
     type = "mag_inflight"
     sensors = ("mag",)
@@ -483,8 +441,6 @@ class MagInflightStage(Stage):
             "year": float(year),
             "coverage": coverage,
             "not_fitted": reasons,
-            "ardupilot": ardupilot_parameters(fit),
-            "px4": px4_parameters(fit),
             "metrics": metrics,
         }
         if ctx.recorder.enabled:
@@ -507,7 +463,7 @@ class MagInflightStage(Stage):
                     x_label="current",
                     x_unit="A",
                     points=True,
-                    title="residual against current",
+                    title="vector residual",
                 )
         step = MagCurrentStep(
             type=self.type,

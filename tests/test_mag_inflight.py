@@ -16,9 +16,7 @@ from imupipe.stages.errors import FitError
 from imupipe.stages.mag_inflight import (
     MagCurrentStep,
     MagInflightStage,
-    ardupilot_parameters,
     fit_model,
-    px4_parameters,
 )
 from imupipe.stages.steps import steps_from_json
 
@@ -74,15 +72,22 @@ def test_correction_step_applies_and_round_trips(flight):
 
 
 def test_parameter_exports_reproduce_the_correction(flight):
+    from imupipe.pipeline.exports import ardupilot, px4
+
     table, _ = flight
     out, _ = fit(table)
+    doc = {"chain": [out.step.to_json()], "results": {}}
+    ap = dict(
+        line.split(",")
+        for line in ardupilot.export(doc).files["ardupilot_calibration.param"].splitlines()
+        if not line.startswith("#")
+    )
+    ap = {k: float(v) for k, v in ap.items()}
     raw = sensor(table, "mag").values[:50] * 1e7  # mG
     amps = np.linspace(0, 20, 50)
     m = np.array(out.results["matrix"])
-    want = (
-        (raw * 1e-7 - out.results["offset_t"]) @ m.T + amps[:, None] * out.results["motor_t_per_a"]
-    ) * 1e7
-    ap = out.results["ardupilot"]
+    motor = np.array(out.results["motor_t_per_a"])
+    want = ((raw * 1e-7 - out.results["offset_t"]) @ m.T + amps[:, None] * motor) * 1e7
     w = np.array(
         [
             [ap["COMPASS_DIA_X"], ap["COMPASS_ODI_X"], ap["COMPASS_ODI_Y"]],
@@ -92,12 +97,28 @@ def test_parameter_exports_reproduce_the_correction(flight):
     )
     ofs = np.array([ap[f"COMPASS_OFS_{a}"] for a in "XYZ"])
     mot = np.array([ap[f"COMPASS_MOT_{a}"] for a in "XYZ"])
+    # AP_Compass_Backend::correct_field: offsets added, scale, DIA/ODI, then MOT x current
     got = ((raw + ofs) * ap["COMPASS_SCALE"]) @ w.T + amps[:, None] * mot
     assert np.allclose(got, want, atol=1e-6) and ap["COMPASS_MOTCT"] == 2
-    px = out.results["px4"]
-    assert px["CAL_MAG_COMP_TYP"] == 2
-    comp = np.array([px[f"CAL_MAG0_{a}COMP"] for a in "XYZ"])  # G/kA
-    assert np.allclose(comp * 1e-4 / 1e3, out.results["motor_t_per_a"])
+    rows = [
+        line.split("\t")
+        for line in px4.export(doc).files["px4_calibration.params"].splitlines()
+        if not line.startswith("#")
+    ]
+    p = {r[2]: float(r[3]) for r in rows}
+    assert p["CAL_MAG_COMP_TYP"] == 2
+    s = np.array(
+        [
+            [p["CAL_MAG0_XSCALE"], p["CAL_MAG0_XODIAG"], p["CAL_MAG0_YODIAG"]],
+            [p["CAL_MAG0_XODIAG"], p["CAL_MAG0_YSCALE"], p["CAL_MAG0_ZODIAG"]],
+            [p["CAL_MAG0_YODIAG"], p["CAL_MAG0_ZODIAG"], p["CAL_MAG0_ZSCALE"]],
+        ]
+    )
+    off = np.array([p[f"CAL_MAG0_{a}OFF"] for a in "XYZ"])  # G
+    comp = np.array([p[f"CAL_MAG0_{a}COMP"] for a in "XYZ"])  # G/kA
+    # PX4 Magnetometer::Correct: S ((raw + COMP * I[kA]) - OFF), gauss
+    got = ((raw * 1e-3 + amps[:, None] / 1e3 * comp) - off) @ s.T
+    assert np.allclose(got * 1e3, want, atol=1e-6)
 
 
 def test_refuses_what_the_flight_cannot_separate():
