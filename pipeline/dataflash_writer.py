@@ -10,7 +10,8 @@ Messages (ArduPilot 4.x layouts; units as ``LogStructure.h`` states them):
   quaternion, Z-Y-X Euler angles, yaw in [0, 360));
 - ``GPS``: ``Status`` 3 (3D fix), ``GMS``/``GWk`` GPS time of week (ms) and week from the table's
   ``gps_year`` metadata, ``Lat``/``Lng`` int32 1e-7 deg, ``Alt`` int32 cm;
-- ``BAT``: ``Curr`` float A.
+- ``BAT``: ``Curr`` float A;
+- ``PARM``: :data:`PARAMETERS`, before the first sample.
 
 Records are built as numpy structured arrays and interleaved by time with one scatter: no
 Python loop over samples.
@@ -29,9 +30,10 @@ from imupipe.readers.table import flight_stream, has_flight_stream, metadata, se
 FORMATS: dict[str, tuple[int, str, str, list[tuple[str, str]]]] = {
     "MAG": (
         130,
-        "QBhhh",
-        "TimeUS,I,MagX,MagY,MagZ",
-        [("TimeUS", "<u8"), ("I", "u1"), ("MagX", "<i2"), ("MagY", "<i2"), ("MagZ", "<i2")],
+        "QBhhhhhh",
+        "TimeUS,I,MagX,MagY,MagZ,OfsX,OfsY,OfsZ",
+        [("TimeUS", "<u8"), ("I", "u1")]
+        + [(f"{k}{a}", "<i2") for k in ("Mag", "Ofs") for a in "XYZ"],
     ),
     "ATT": (
         131,
@@ -60,8 +62,24 @@ FORMATS: dict[str, tuple[int, str, str, list[tuple[str, str]]]] = {
         "TimeUS,Inst,Curr",
         [("TimeUS", "<u8"), ("Inst", "u1"), ("Curr", "<f4")],
     ),
+    "PARM": (
+        134,
+        "QNf",
+        "TimeUS,Name,Value",
+        [("TimeUS", "<u8"), ("Name", "S16"), ("Value", "<f4")],
+    ),
 }
 """Message -> (type id, format characters, columns, payload dtype)."""
+PARAMETERS = {
+    "AHRS_TRIM_X": 0.0,
+    "AHRS_TRIM_Y": 0.0,
+    "AHRS_TRIM_Z": 0.0,
+    "COMPASS_OFS_X": 0.0,
+    "COMPASS_OFS_Y": 0.0,
+    "COMPASS_OFS_Z": 0.0,
+}
+"""The parameters written at the start: the logged field is the raw one (no compass
+correction in force, ``MAG`` ``Ofs*`` zero), the attitude untrimmed (what MagFit reads)."""
 FMT_DTYPE = [
     ("type", "u1"),
     ("length", "u1"),
@@ -97,6 +115,11 @@ def _payloads(table: pa.Table) -> dict[str, tuple[np.ndarray, np.ndarray]]:
         rec["TimeUS"] = t_ns // 1000
         return rec
 
+    t0 = int(table.column("t_ns").to_numpy().min(initial=0))
+    rec = empty("PARM", len(PARAMETERS), np.full(len(PARAMETERS), t0))
+    rec["Name"] = [k.encode() for k in PARAMETERS]
+    rec["Value"] = list(PARAMETERS.values())
+    out["PARM"] = (np.full(len(PARAMETERS), t0 - 1), rec)
     mag = sensor(table, "mag")
     rec = empty("MAG", len(mag), mag.t_ns)
     for i, a in enumerate("XYZ"):

@@ -36,6 +36,7 @@ import numpy as np
 import pyarrow as pa
 
 from imupipe.readers.table import (
+    SensorData,
     flight_stream,
     has_flight_stream,
     has_stream,
@@ -196,6 +197,47 @@ def wrap_deg(a: np.ndarray) -> np.ndarray:
 
 
 @dataclass
+class FlightSamples:
+    """The magnetometer samples within the attitude and GPS streams' span, with what they
+    should read: ``raw`` (n, 3) T, attitude ``q`` (n, 4), WMM ``ned`` and body-frame ``target``
+    (n, 3) T, ``current`` (n,) A or None; all on the magnetometer's stamps ``t_ns``."""
+
+    t_ns: np.ndarray
+    raw: np.ndarray
+    q: np.ndarray
+    ned: np.ndarray
+    target: np.ndarray
+    current: np.ndarray | None
+
+
+def flight_samples(table: pa.Table, mag: SensorData, year: float) -> FlightSamples:
+    """:class:`FlightSamples` of ``mag`` (finite magnetometer samples of ``table``): attitude,
+    position and current interpolated onto its stamps, the WMM field of ``year`` at the
+    position, rotated into the body. ValueError (one line) when fewer than 50 samples lie
+    within the flight streams or the date precedes the model."""
+    att = flight_stream(table, "attitude")
+    pos = flight_stream(table, "position")
+    inside = (mag.t_ns >= max(att.t_ns[0], pos.t_ns[0])) & (
+        mag.t_ns <= min(att.t_ns[-1], pos.t_ns[-1])
+    )
+    if inside.sum() < 50:
+        raise ValueError(
+            f"{int(inside.sum())} magnetometer samples lie within the attitude and GPS "
+            "streams' time span; the fit needs at least 50"
+        )
+    t_ns, raw = mag.t_ns[inside], mag.values[inside]
+    q = interpolate(att.t_ns, att.values, t_ns)
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    lla = interpolate(pos.t_ns, pos.values, t_ns)
+    ned = earth_field(lla[:, 0], lla[:, 1], lla[:, 2], year)
+    current = None
+    if has_flight_stream(table, "current"):
+        cur = flight_stream(table, "current")
+        current = interpolate(cur.t_ns, cur.values[:, 0], t_ns)
+    return FlightSamples(t_ns, raw, q, ned, rotate(q, ned, inverse=True), current)
+
+
+@dataclass
 class MagCurrentStep(LinearStep):
     """``corrected = matrix @ (raw - offset) + motor * I(t)``: a linear step plus a field per
     ampere of battery current (``motor``, T/A), the current being the table's ``current``
@@ -284,20 +326,6 @@ class MagInflightStage(Stage):
                 "sensor_mag, vehicle_attitude, vehicle_gps_position)"
             )
         mag = ctx.finite(sensor(table, "mag"), "magnetometer", minimum=50)
-        att = flight_stream(table, "attitude")
-        pos = flight_stream(table, "position")
-        inside = (mag.t_ns >= max(att.t_ns[0], pos.t_ns[0])) & (
-            mag.t_ns <= min(att.t_ns[-1], pos.t_ns[-1])
-        )
-        if inside.sum() < 50:
-            raise ctx.fail(
-                f"{int(inside.sum())} magnetometer samples lie within the attitude and GPS "
-                "streams' time span; the fit needs at least 50"
-            )
-        t_ns, raw = mag.t_ns[inside], mag.values[inside]
-        q = interpolate(att.t_ns, att.values, t_ns)
-        q /= np.linalg.norm(q, axis=1, keepdims=True)
-        lla = interpolate(pos.t_ns, pos.values, t_ns)
         year = o.year if o.year is not None else metadata(table).get("gps_year")
         if year is None:
             raise ctx.fail(
@@ -305,14 +333,10 @@ class MagInflightStage(Stage):
                 "(decimal, e.g. 2016.4) in this stage"
             )
         try:
-            ned = earth_field(lla[:, 0], lla[:, 1], lla[:, 2], float(year))
+            fs = flight_samples(table, mag, float(year))
         except ValueError as exc:
             raise ctx.fail(str(exc)) from None
-        target = rotate(q, ned, inverse=True)
-        current = None
-        if has_flight_stream(table, "current"):
-            cur = flight_stream(table, "current")
-            current = interpolate(cur.t_ns, cur.values[:, 0], t_ns)
+        t_ns, raw, q, ned, target, current = fs.t_ns, fs.raw, fs.q, fs.ned, fs.target, fs.current
 
         # -- what the flight can separate ----------------------------------------------------
         dirs = target / np.linalg.norm(target, axis=1, keepdims=True)
