@@ -306,7 +306,9 @@ class MagInflightStage(Stage):
         folds: int = field(default=5, metadata={"min": 2, "max": 50})
         """Held-out segments for the model choice."""
         huber_k: float = field(default=1.5, metadata={"min": 0.1})
+        """Huber weights beyond this many robust sigmas of the per-axis residual."""
         outlier_k: float = field(default=5.0, metadata={"min": 1.0})
+        """Samples beyond this many robust sigmas are rejected (left out of the fit)."""
         min_spread: float = field(default=0.002, metadata={"min": 0.0})
         """Smallest eigenvalue of the expected field directions' covariance for soft iron."""
         min_current_a: float = field(default=2.0, metadata={"min": 0.0})

@@ -186,3 +186,42 @@ def test_real_flights_improve(name):
     m = out.results["metrics"]
     assert m["residual_rms_ut_after"] < 0.5 * m["residual_rms_ut_before"]
     assert 40 < m["field_ut"] < 52
+
+
+def test_tutorial_runs_as_written(tmp_path):
+    import re
+    import shlex
+
+    from conftest import REPO
+
+    page = (REPO / "docs" / "tutorials" / "compass-from-flight.md").read_text()
+
+    def blocks(language: str) -> list[str]:
+        return re.findall(rf"```{language}[^\n]*\n(.*?)```", page, flags=re.S)
+
+    bash, toml, text = blocks("bash"), blocks("toml")[0], blocks("text")[0]
+    assert len(bash) == 3 and bash[1].strip() == "imupipe run compass.toml"
+    (tmp_path / "compass.toml").write_text(toml)
+    for block in bash:
+        for line in block.strip().splitlines():
+            proc = run_cli(*shlex.split(line)[1:], cwd=tmp_path)
+            assert proc.returncode == 0, (line, proc.stderr)
+    r = json.loads((tmp_path / "out" / "calibration.json").read_text())["results"]
+    r = r["mag_inflight"]
+    m = r["metrics"]
+    assert r["model"] == "soft_iron" and r["motor_term"]
+    assert round(m["residual_rms_ut_before"], 1) == 22.9
+    assert round(m["residual_rms_ut_after"], 2) == 0.28
+    assert round(m["heading_rms_deg_before"], 1) == 41.9
+    assert round(m["heading_rms_deg_after"], 2) == 0.47
+    params = (tmp_path / "out" / "ardupilot_calibration.param").read_text()
+    assert "COMPASS_MOTCT,2" in params
+    assert "CAL_MAG_COMP_TYP" in (tmp_path / "out" / "px4_calibration.params").read_text()
+    level = toml.replace("flight.bin", "level.bin").replace(
+        'type = "mag_inflight"', 'type = "mag_inflight"\nmodel = "soft_iron"'
+    )
+    (tmp_path / "level.toml").write_text(level)
+    proc = run_cli("run", "level.toml", cwd=tmp_path)
+    assert proc.returncode == 2
+    assert proc.stderr.strip().splitlines()[-1] == text.strip()
+    assert not (tmp_path / "out" / "level.mcap").exists()
