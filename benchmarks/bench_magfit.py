@@ -51,18 +51,30 @@ def magfit_script() -> Path:
     return Path(pymavlink.__file__).parent / "tools" / "magfit_WMM.py"
 
 
-def run_magfit(path: Path, cmot: bool, reduce: int, iters: int) -> dict[str, float] | str:
-    """MagFit's new parameters, or why it did not run."""
+def run_magfit(
+    path: Path, cmot: bool, reduce: int, iters: int, cache: Path | None
+) -> dict[str, float] | str:
+    """MagFit's new parameters, or why it did not run (kept in, and reused from, ``cache``)."""
+    out = path.with_name(path.name.rsplit(".", 1)[0] + "-magfit-mag-1.param")
+    kept = None if cache is None else cache / f"{path.parent.name}-{out.name}"
+    if kept is not None and kept.exists():
+        return _params(kept)
     args = [sys.executable, str(magfit_script()), "--elliptical", "--save-params"]
     args += ["--reduce", str(reduce), "--iter", str(iters), "--att-source", "ATT"]
     args += ["--cmot"] if cmot else []
     env = dict(os.environ, MPLBACKEND="Agg")
     proc = subprocess.run([*args, str(path)], capture_output=True, text=True, env=env, timeout=3600)
-    out = path.with_name(path.name.rsplit(".", 1)[0] + "-magfit-mag-1.param")
     if proc.returncode != 0 or not out.exists():
-        return (proc.stderr.strip().splitlines() or ["no output"])[-1]
+        said = (proc.stderr + proc.stdout).strip().splitlines()
+        return ([line for line in said if "fail" in line.lower()] or said or ["no output"])[-1]
+    if kept is not None:
+        kept.write_text(out.read_text())
+    return _params(out)
+
+
+def _params(path: Path) -> dict[str, float]:
     params = {}
-    for line in out.read_text().splitlines():
+    for line in path.read_text().splitlines():
         name, value = line.split()
         params[name] = float(value)
     return params
@@ -110,7 +122,7 @@ def score(fs, corrected: np.ndarray) -> tuple[float, float]:
     return float(np.sqrt(np.mean(r**2))), float(np.sqrt(np.mean(h**2)))
 
 
-def compare(path: Path, spec: dict, reduce: int, iters: int) -> None:
+def compare(path: Path, spec: dict, reduce: int, iters: int, cache: Path | None) -> None:
     table, _ = read_dataflash(InputSpec(path=path, **spec))
     stage = MagInflightStage(MagInflightStage.Options())
     ctx = StageContext(name="mag_inflight", input_name=path.name, quiet=True)
@@ -122,7 +134,7 @@ def compare(path: Path, spec: dict, reduce: int, iters: int) -> None:
         ours = ours + fs.current[:, None] * out.step.motor
     before, ours_s = score(fs, fs.raw), score(fs, ours)
     varies = fs.current is not None and np.ptp(fs.current) > 1.0
-    mf = run_magfit(path, varies, reduce, iters)
+    mf = run_magfit(path, varies, reduce, iters, cache)
     if isinstance(mf, str):
         theirs = f"MagFit did not run: {mf}"
     else:
@@ -141,21 +153,25 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("logs", nargs="*", help="real logs under ardupilot_flights (default: all)")
     ap.add_argument("--reduce", type=int, default=5, help="MagFit's --reduce")
-    ap.add_argument("--iter", type=int, default=50, help="MagFit's --iter")
+    ap.add_argument("--iter", type=int, default=100, help="MagFit's --iter")
+    ap.add_argument("--cache", type=Path, help="keep MagFit's .param files here (and reuse them)")
     args = ap.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
-        sim = Path(tmp) / "flight.bin"
+        sim_dir = Path(tmp) / "simulated"
+        sim_dir.mkdir()
+        sim = sim_dir / "flight.bin"
         table, _ = simulate("flight", {"duration_s": 120.0}, seed=3)
         write_log(sim, table)
-        compare(sim, {}, args.reduce * 2, args.iter)
+        compare(sim, {}, args.reduce * 2, args.iter, args.cache)
         for name in args.logs or REAL:
             path = SHARED / name
             if not path.exists():
                 print(f"{name}: not present ({path})")
                 continue
-            copy = Path(tmp) / path.name  # MagFit writes its .param beside the log
+            copy = Path(tmp) / path.parent.name / path.name  # MagFit writes beside the log
+            copy.parent.mkdir()
             copy.write_bytes(path.read_bytes())
-            compare(copy, REAL.get(name, {}), args.reduce, args.iter)
+            compare(copy, REAL.get(name, {}), args.reduce, args.iter, args.cache)
 
 
 if __name__ == "__main__":

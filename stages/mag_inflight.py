@@ -210,6 +210,17 @@ class FlightSamples:
     current: np.ndarray | None
 
 
+def continuous(q: np.ndarray) -> np.ndarray:
+    """Quaternions (n, 4) with their signs chosen so that neighbours lie in one hemisphere
+    (``q`` and ``-q`` are one rotation; a log's yaw wrapping at +-180 deg flips the sign), so
+    that interpolating between neighbours stays near both."""
+    if len(q) < 2:
+        return q
+    flips = np.sign(np.einsum("ij,ij->i", q[1:], q[:-1]))
+    flips[flips == 0] = 1.0
+    return q * np.concatenate([[1.0], np.cumprod(flips)])[:, None]
+
+
 def flight_samples(table: pa.Table, mag: SensorData, year: float) -> FlightSamples:
     """:class:`FlightSamples` of ``mag`` (finite magnetometer samples of ``table``): attitude,
     position and current interpolated onto its stamps, the WMM field of ``year`` at the
@@ -226,7 +237,7 @@ def flight_samples(table: pa.Table, mag: SensorData, year: float) -> FlightSampl
             "streams' time span; the fit needs at least 50"
         )
     t_ns, raw = mag.t_ns[inside], mag.values[inside]
-    q = interpolate(att.t_ns, att.values, t_ns)
+    q = interpolate(att.t_ns, continuous(att.values), t_ns)
     q /= np.linalg.norm(q, axis=1, keepdims=True)
     lla = interpolate(pos.t_ns, pos.values, t_ns)
     ned = earth_field(lla[:, 0], lla[:, 1], lla[:, 2], year)
@@ -442,9 +453,10 @@ class MagInflightStage(Stage):
         ut = UT
         metrics = {
             "residual_rms_ut_before": float(np.sqrt(np.mean(before**2)) * ut),
-            "residual_rms_ut_after": float(np.sqrt(np.mean(after[fit.used] ** 2)) * ut),
+            "residual_rms_ut_after": float(np.sqrt(np.mean(after**2)) * ut),
+            "residual_rms_ut_after_inliers": float(np.sqrt(np.mean(after[fit.used] ** 2)) * ut),
             "heading_rms_deg_before": float(np.sqrt(np.mean(h_before**2))),
-            "heading_rms_deg_after": float(np.sqrt(np.mean(h_after[fit.used] ** 2))),
+            "heading_rms_deg_after": float(np.sqrt(np.mean(h_after**2))),
             "held_out_rms_ut": {m: v * ut for m, v in held.items()},
             "outliers": int(len(raw) - fit.used.sum()),
             "samples": len(raw),
