@@ -112,3 +112,22 @@ def test_with_flight_stream_keeps_sensors_and_order():
 def test_euler_quaternion_identity_and_yaw():
     q = euler_quaternion(np.zeros(2), np.zeros(2), np.array([0.0, np.pi / 2]))
     assert np.allclose(q, [[1, 0, 0, 0], [np.sqrt(0.5), 0, 0, np.sqrt(0.5)]])
+
+
+def test_ulog_position_and_current_match_pyulog():
+    from pyulog import ULog
+
+    path = shared_path("logs", "px4_ulog", "sample_log_small.ulg")
+    table, _ = read_ulog(InputSpec(path=path, time="log"))
+    ref = ULog(str(path), ["vehicle_gps_position", "battery_status"])
+    gps = next(d for d in ref.data_list if d.name == "vehicle_gps_position").data
+    keep = gps["fix_type"] >= 3
+    pos = flight_stream(table, "position")
+    want = np.column_stack([gps["lat"] * 1e-7, gps["lon"] * 1e-7, gps["alt"] * 1e-3])[keep]
+    assert len(pos) == int(keep.sum()) > 10
+    assert np.allclose(pos.values, want, rtol=0, atol=1e-12)
+    assert np.array_equal(pos.t_ns, gps["timestamp"][keep].astype(np.int64) * 1000)
+    bat = next(d for d in ref.data_list if d.name == "battery_status" and d.multi_id == 0).data
+    ok = bat["current_a"] >= 0
+    cur = flight_stream(table, "current")
+    assert np.array_equal(cur.values[:, 0], bat["current_a"][ok].astype(float))
