@@ -36,7 +36,8 @@ message (absent or null: the writer uses ROS defaults):
 flight controller's log adds to its sensors (ULog ``vehicle_attitude``, ``vehicle_gps_position``
 or ``vehicle_global_position``, ``battery_status``; DataFlash ``ATT``, ``GPS``, ``BAT`` or
 ``CURR``). Each sample is a row of its own on which every sensor column is null (the row belongs
-to none of :data:`STREAMS`, so writers and sensor stages never see it); a stage reads one with
+to none of :data:`STREAMS`, so the message writers and sensor stages never see it; the Parquet
+dataset keeps it); a stage reads one with
 :func:`flight_stream` and puts it on its sensor's stamps with :func:`interpolate`.
 
 **Streams.** Each sensor has its own validity (the first column of the sensor is valid). A row
