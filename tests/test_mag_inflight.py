@@ -10,13 +10,21 @@ import pytest
 from imupipe.pipeline.simulate import simulate, write_log
 from imupipe.readers.dataflash_reader import read_dataflash
 from imupipe.readers.spec import InputSpec
-from imupipe.readers.table import flight_stream, make_table, sensor, with_flight_stream
+from imupipe.readers.table import (
+    finite,
+    flight_stream,
+    make_table,
+    metadata,
+    sensor,
+    with_flight_stream,
+)
 from imupipe.stages.base import StageContext
 from imupipe.stages.errors import FitError
 from imupipe.stages.mag_inflight import (
     MagCurrentStep,
     MagInflightStage,
     fit_model,
+    flight_samples,
 )
 from imupipe.stages.steps import steps_from_json
 
@@ -225,3 +233,30 @@ def test_tutorial_runs_as_written(tmp_path):
     assert proc.returncode == 2
     assert proc.stderr.strip().splitlines()[-1] == text.strip()
     assert not (tmp_path / "out" / "level.mcap").exists()
+
+
+@pytest.mark.slow
+def test_no_worse_than_magfit_on_the_simulated_flight(tmp_path):
+    """pymavlink's magfit_WMM.py (minutes: pure Python) and mag_inflight on one simulated log,
+    scored the same way (benchmarks/bench_magfit.py)."""
+    import importlib.util
+
+    from conftest import REPO
+
+    spec = importlib.util.spec_from_file_location("bench", REPO / "benchmarks" / "bench_magfit.py")
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    if not bench.magfit_script().exists():
+        pytest.skip("pymavlink's tools/magfit_WMM.py is not installed")
+    path = tmp_path / "flight.bin"
+    table, _ = simulate("flight", {"duration_s": 60.0}, seed=5)
+    write_log(path, table)
+    table, _ = read_dataflash(InputSpec(path=path))
+    out, _ = fit(table)
+    mag, _ = finite(sensor(table, "mag"))
+    fs = flight_samples(table, mag, float(metadata(table)["gps_year"]))
+    ours = out.step.apply_values(fs.raw) + fs.current[:, None] * out.step.motor
+    theirs = bench.run_magfit(path, True, 10, 100, None)
+    assert isinstance(theirs, dict), theirs
+    mf = bench.magfit_corrected(path, fs.t_ns, fs.raw, fs.current, theirs)
+    assert bench.score(fs, ours)[0] <= bench.score(fs, mf)[0]
