@@ -222,6 +222,9 @@ def test_tutorial_runs_as_written(tmp_path):
     assert round(m["residual_rms_ut_after"], 2) == 0.28
     assert round(m["heading_rms_deg_before"], 1) == 41.8
     assert round(m["heading_rms_deg_after"], 2) == 0.47
+    report = (tmp_path / "out" / "report.html").read_text()
+    for shown in ("heading error before", "heading error after", "vector residual"):
+        assert shown in report  # the heading along the flight, the residual against current
     params = (tmp_path / "out" / "ardupilot_calibration.param").read_text()
     assert "COMPASS_MOTCT,2" in params
     assert "CAL_MAG_COMP_TYP" in (tmp_path / "out" / "px4_calibration.params").read_text()
