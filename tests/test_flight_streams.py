@@ -49,7 +49,9 @@ def _rotate(q: np.ndarray, v: np.ndarray) -> np.ndarray:
 @pytest.mark.parametrize("name", sorted(FLIGHTS))
 def test_dataflash_flight_streams_match_dfreader(name):
     path = shared_path("logs", "ardupilot_flights", *name.split("/"))
-    table, _ = read_dataflash(InputSpec(path=path, imu_topic=FLIGHTS[name] and "IMU", mag_topic=FLIGHTS[name]))
+    table, _ = read_dataflash(
+        InputSpec(path=path, imu_topic=FLIGHTS[name] and "IMU", mag_topic=FLIGHTS[name])
+    )
     ref = _dfreader(path, ("ATT", "GPS", "BAT", "CURR"))
     att = flight_stream(table, "attitude")
     rec = [r for r in ref["ATT"] if r.get("I", 0) == 0]
