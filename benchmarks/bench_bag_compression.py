@@ -52,9 +52,16 @@ def main() -> None:
         d = Path(tmp)
         rows = []
         for storage, mode in bv.ROS2_VARIANTS:
-            rows.append((f"ros2 {storage} {mode}", bv.write_ros2(d / f"{storage}_{mode}", storage, mode, n=args.n)))
+            rows.append(
+                (
+                    f"ros2 {storage} {mode}",
+                    bv.write_ros2(d / f"{storage}_{mode}", storage, mode, n=args.n),
+                )
+            )
         for comp in bv.ROS1_VARIANTS:
-            rows.append((f"ros1 {comp}", bv.write_ros1(d / f"{comp}.bag", comp, n=args.n, chunk=1 << 20)))
+            rows.append(
+                (f"ros1 {comp}", bv.write_ros1(d / f"{comp}.bag", comp, n=args.n, chunk=1 << 20))
+            )
         plain: dict[str, float] = {}
         print(f"{'layout':24} {'imupipe s':>10} {'x plain':>8} {'rosbags s':>10} {'ratio':>6}")
         for name, path in rows:
@@ -62,7 +69,9 @@ def main() -> None:
             theirs = best(lambda p=path: rosbags_raw(p), 1)
             key = name.rsplit(" ", 1)[0]
             plain.setdefault(key, ours)
-            print(f"{name:24} {ours:10.3f} {ours / plain[key]:8.2f} {theirs:10.3f} {ours / theirs:6.2f}")
+            print(
+                f"{name:24} {ours:10.3f} {ours / plain[key]:8.2f} {theirs:10.3f} {ours / theirs:6.2f}"
+            )
 
 
 if __name__ == "__main__":

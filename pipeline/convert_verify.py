@@ -59,9 +59,7 @@ def mcap_counts(path: Path) -> dict[str, int] | None:
     return None if summary is None else summary[0]
 
 
-def input_counts(
-    path: Path, fmt: str, warnings: list[str] | None = None
-) -> dict[str, int] | None:
+def input_counts(path: Path, fmt: str, warnings: list[str] | None = None) -> dict[str, int] | None:
     """Messages per topic from the log's own index, without reading the messages; None for CSV and
     for logs that have no index (then the counts read are the reference). ROS bags are opened by
     imupipe's own readers, so that ``convert`` accepts exactly what ``inspect`` and ``run`` do:

@@ -63,7 +63,12 @@ import pyarrow as pa
 from imupipe.readers.decoded import Piece
 from imupipe.readers.errors import ReadError
 from imupipe.readers.spec import InputSpec
-from imupipe.readers.table import metadata, with_metadata, with_stream_column
+from imupipe.readers.table import (
+    metadata,
+    with_flight_stream,
+    with_metadata,
+    with_stream_column,
+)
 from imupipe.readers.table_buffer import assemble
 from imupipe.readers.topics import TOPIC_KEYS
 
@@ -579,8 +584,13 @@ def read_dataflash(spec: InputSpec) -> tuple[pa.Table, list[str]]:
             pieces["temperature"].stamp,
             f.field(inst.name, "Press", inst.rows),  # Pa (LogStructure.h units: P)
         )
+    for stream, (t_ns, values) in flight_streams(f).items():
+        table = with_flight_stream(table, stream, t_ns, values)
     meta = metadata(table)
     meta.pop("frame_id", None)  # a DataFlash log names no frames
+    year = gps_year(f)
+    if year is not None:
+        meta["gps_year"] = year
     meta["instance"] = {s: f.instances[k].instance for s, k in chosen.items()}
     params = calibration_parameters(f)
     devices = device_ids(f, chosen, params)
@@ -637,6 +647,108 @@ def device_ids(f: DataFlashLog, chosen: dict[str, str], params: dict[str, float]
         elif inst.name in BARO_NAMES:
             put(stream, f"BARO{inst.instance + 1}_DEVID")
     return found
+
+
+def euler_quaternion(roll: np.ndarray, pitch: np.ndarray, yaw: np.ndarray) -> np.ndarray:
+    """(n, 4) unit quaternions (w, x, y, z) of Z-Y-X Euler angles (rad): the rotation body ->
+    NED of an aerospace roll, pitch, yaw (``q = q_z(yaw) q_y(pitch) q_x(roll)``)."""
+    cr, sr = np.cos(roll / 2), np.sin(roll / 2)
+    cp, sp = np.cos(pitch / 2), np.sin(pitch / 2)
+    cy, sy = np.cos(yaw / 2), np.sin(yaw / 2)
+    return np.column_stack(
+        [
+            cr * cp * cy + sr * sp * sy,
+            sr * cp * cy - cr * sp * sy,
+            cr * sp * cy + sr * cp * sy,
+            cr * cp * sy - sr * sp * cy,
+        ]
+    )
+
+
+def _first_instance(f: DataFlashLog, name: str) -> np.ndarray | None:
+    """Rows of instance 0 of message ``name`` (all rows when it has no instance field)."""
+    fmt = f.by_name.get(name)
+    if fmt is None or fmt.dtype() is None or len(f.records(name)) == 0:
+        return None
+    for column in ("I", "Instance", "Inst"):
+        if fmt.numeric(column):
+            return np.flatnonzero(f.records(name)[column] == 0)
+    return np.arange(len(f.records(name)))
+
+
+def flight_streams(f: DataFlashLog) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """The flight streams the log holds (see :data:`~imupipe.readers.table.FLIGHT_COLUMNS`),
+    stream -> (t_ns, values), in SI units and degrees of latitude/longitude:
+
+    - ``attitude`` from ``ATT`` ``Roll``/``Pitch``/``Yaw`` (degrees, or centidegrees of format
+      ``c``/``C`` that :meth:`DataFlashLog.field` scales to degrees), as quaternions;
+    - ``position`` from ``GPS`` instance 0 ``Lat``/``Lng`` (1e-7 deg, format ``L``) and ``Alt``
+      (cm of format ``e`` in older firmware, m of format ``f``), the records with a 3D fix
+      (``Status`` >= 3) only, stamped by ``TimeUS`` (or, in 3.3 and older whose ``TimeMS`` is
+      the GPS time of week, by the boot time ``T``, ms);
+    - ``current`` from ``BAT`` instance 0 ``Curr`` (A) or, in older logs, ``CURR`` ``Curr``
+      (A as a float; centiamperes as an int16 ``h``, ArduCopter 3.2-3.3).
+    """
+    out: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+    rows = _first_instance(f, "ATT")
+    if rows is not None and f.by_name["ATT"].numeric("Roll", "Pitch", "Yaw"):
+        t = f.time_ns("ATT", rows)
+        if t is not None:
+            roll, pitch, yaw = (
+                np.radians(f.field("ATT", c, rows)) for c in ("Roll", "Pitch", "Yaw")
+            )
+            out["attitude"] = (t, euler_quaternion(roll, pitch, yaw))
+    rows = _first_instance(f, "GPS")
+    if rows is not None and f.by_name["GPS"].numeric("Lat", "Lng", "Alt"):
+        if f.by_name["GPS"].numeric("Status"):
+            rows = rows[f.records("GPS")["Status"][rows] >= 3]
+        t = f.time_ns("GPS", rows)
+        if f.by_name["GPS"].numeric("Week", "T"):  # 3.3 and older: TimeMS is GPS time of week
+            t = f.records("GPS")["T"][rows].astype(np.int64) * 1_000_000
+        if t is not None and len(rows):
+            lla = np.column_stack([f.field("GPS", c, rows) for c in ("Lat", "Lng", "Alt")])
+            out["position"] = (t, lla)
+    for name in ("BAT", "CURR"):
+        rows = _first_instance(f, name)
+        if rows is None or not f.by_name[name].numeric("Curr"):
+            continue
+        t = f.time_ns(name, rows)
+        if t is None:
+            continue
+        fmt = f.by_name[name]
+        amps = f.field(name, "Curr", rows)
+        if fmt.format[fmt.columns.index("Curr")] in "hHiI":
+            amps = amps * 0.01  # centiamperes (AP_Battery's old CURR: current_amps * 100)
+        out["current"] = (t, amps)
+        break
+    return out
+
+
+GPS_EPOCH_UNIX_S = 315_964_800
+"""1980-01-06 00:00:00 UTC, the start of GPS week 0, in Unix seconds."""
+
+
+def gps_year(f: DataFlashLog) -> float | None:
+    """The decimal year (UTC, leap seconds ignored) of the first ``GPS`` record with a 3D fix,
+    from its week (``GWk``, old ``Week``) and time of week (``GMS``, old ``TimeMS``, ms); None
+    without one."""
+    rows = _first_instance(f, "GPS")
+    if rows is None:
+        return None
+    fmt = f.by_name["GPS"]
+    week = next((c for c in ("GWk", "Week") if fmt.numeric(c)), None)
+    ms = "GMS" if fmt.numeric("GMS") else "TimeMS"
+    if week is None or ms is None:
+        return None
+    rec = f.records("GPS")[rows]
+    ok = rec[week] > 0
+    if fmt.numeric("Status"):
+        ok &= rec["Status"] >= 3
+    if not ok.any():
+        return None
+    i = int(np.flatnonzero(ok)[0])
+    unix = GPS_EPOCH_UNIX_S + int(rec[week][i]) * 604_800 + int(rec[ms][i]) / 1000.0
+    return 1970.0 + unix / (365.2425 * 86400.0)
 
 
 def dataflash_sources(path: Path) -> list[DataFlashLog]:

@@ -163,9 +163,7 @@ class Ros1Bag:
                     raise ReadError(f"{self.path}: corrupt bag (no bag header record)")
                 encryptor = fields.get("encryptor", b"").decode(errors="replace")
                 if encryptor:
-                    raise ReadError(
-                        f"{self.path}: encrypted bag ({encryptor}) is not supported"
-                    )
+                    raise ReadError(f"{self.path}: encrypted bag ({encryptor}) is not supported")
                 index_pos = int.from_bytes(fields.get("index_pos", b"\0" * 8)[:8], "little")
                 chunk_count = int.from_bytes(fields.get("chunk_count", b"\0" * 4)[:4], "little")
                 self.connections: dict[int, Connection] = {}
@@ -250,7 +248,11 @@ class Ros1Bag:
         self.warnings.append(
             f"{self.path}: the bag is not indexed (an interrupted recording?): read by scanning "
             f"its {len(chunks) + (opened is not None)} chunks"
-            + (f"; it is cut off at byte {cut}, the record there is skipped" if cut is not None else "")
+            + (
+                f"; it is cut off at byte {cut}, the record there is skipped"
+                if cut is not None
+                else ""
+            )
         )
         for (pos, fields, data_pos, data_len), index in zip(chunks, indexes, strict=True):
             where = f"{self.path}: chunk at byte {pos}"
@@ -275,7 +277,9 @@ class Ros1Bag:
         counts = {c: len(log) for c, (log, _) in index.items()}
         self.chunk_infos.append((pos, min(starts, default=0), counts))
 
-    def _open_chunk(self, fh: io.BufferedReader, pos: int, fields: dict[str, bytes], at: int) -> None:
+    def _open_chunk(
+        self, fh: io.BufferedReader, pos: int, fields: dict[str, bytes], at: int
+    ) -> None:
         """The chunk an interrupted ``rosbag record`` was writing: its header still has the
         place-holder sizes (0) and its records, compressed or not, run to the end of the file.
         What decompresses of it is walked up to its last complete record."""
@@ -326,7 +330,9 @@ class Ros1Bag:
                 logs, offs = found.setdefault(conn, ([], []))
                 logs.append(t)
                 offs.append(pos)
-        return {c: (np.asarray(t, np.int64), np.asarray(o, np.int64)) for c, (t, o) in found.items()}
+        return {
+            c: (np.asarray(t, np.int64), np.asarray(o, np.int64)) for c, (t, o) in found.items()
+        }
 
     def _walk_gaps(
         self, buf: np.ndarray, index: dict[int, tuple[np.ndarray, np.ndarray]], where: str

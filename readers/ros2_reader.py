@@ -213,7 +213,9 @@ class _Inflated:
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         if channel_id != self._cid:
             log, pub, starts, lengths = self.chunk.records(channel_id)
-            self.buf, starts, lengths = inflate_messages(self.chunk.buf, starts, lengths, self.where)
+            self.buf, starts, lengths = inflate_messages(
+                self.chunk.buf, starts, lengths, self.where
+            )
             self._cid, self._records = channel_id, (log, pub, starts, lengths)
         return self._records  # type: ignore[return-value]
 
@@ -380,9 +382,7 @@ def _inflated_source(path: Path, storage: str, zstd_messages: bool | None) -> Lo
         inflate_file(path, plain)
     except OSError as exc:
         tmp.cleanup()
-        raise ReadError(
-            f"{path}: cannot decompress to {tmp.name}: {exc.strerror or exc}"
-        ) from None
+        raise ReadError(f"{path}: cannot decompress to {tmp.name}: {exc.strerror or exc}") from None
     except ReadError:
         tmp.cleanup()
         raise

@@ -28,6 +28,17 @@ message (absent or null: the writer uses ROS defaults):
 | ``label`` | string | a CSV's segment label (csv ``label`` key), e.g. a calibration pose name |
 | ``ambient_temperature`` | float64 | degC, the air (chamber) temperature around the IMU (csv ``ambient_temperature`` key); null where absent |
 | ``pressure`` | float64 | Pa, a barometer's static pressure, on the ``temperature`` rows read from a barometer (ULog ``sensor_baro``, DataFlash ``BARO``: the temperature stream carries the barometer's own temperature); null elsewhere |
+| ``attitude_w/x/y/z`` | float64 | the vehicle's attitude, a unit quaternion (Hamilton, scalar first) rotating body (FRD) vectors into the local NED frame, on rows of the ``attitude`` flight stream |
+| ``latitude``, ``longitude``, ``altitude`` | float64 | deg, deg (WGS-84), m above mean sea level: the GNSS position, on rows of the ``position`` flight stream |
+| ``current`` | float64 | A, the battery current, on rows of the ``current`` flight stream |
+
+**Flight streams** (:data:`FLIGHT_COLUMNS`: ``attitude``, ``position``, ``current``) are what a
+flight controller's log adds to its sensors (ULog ``vehicle_attitude``, ``vehicle_gps_position``
+or ``vehicle_global_position``, ``battery_status``; DataFlash ``ATT``, ``GPS``, ``BAT`` or
+``CURR``). Each sample is a row of its own on which every sensor column is null (the row belongs
+to none of :data:`STREAMS`, so the message writers and sensor stages never see it; the Parquet
+dataset keeps it); a stage reads one with
+:func:`flight_stream` and puts it on its sensor's stamps with :func:`interpolate`.
 
 **Streams.** Each sensor has its own validity (the first column of the sensor is valid). A row
 belongs to the ``imu`` stream where gyro *or* accel is valid, to the ``mag`` stream where
@@ -117,8 +128,24 @@ OPTIONAL_FIELDS = pa.schema(
         pa.field("label", pa.string()),
         pa.field("ambient_temperature", pa.float64()),
         pa.field("pressure", pa.float64()),
+        pa.field("attitude_w", pa.float64()),
+        pa.field("attitude_x", pa.float64()),
+        pa.field("attitude_y", pa.float64()),
+        pa.field("attitude_z", pa.float64()),
+        pa.field("latitude", pa.float64()),
+        pa.field("longitude", pa.float64()),
+        pa.field("altitude", pa.float64()),
+        pa.field("current", pa.float64()),
     ]
 )
+
+FLIGHT_COLUMNS: dict[str, tuple[str, ...]] = {
+    "attitude": ("attitude_w", "attitude_x", "attitude_y", "attitude_z"),
+    "position": ("latitude", "longitude", "altitude"),
+    "current": ("current",),
+}
+"""The flight streams' columns: attitude quaternion (w, x, y, z; body FRD to NED), position
+(deg, deg, m) and battery current (A). Each sample is a row of its own (no sensor column valid)."""
 
 META_KEY = b"imupipe"
 
@@ -386,3 +413,56 @@ def sort_by_time(table: pa.Table) -> tuple[pa.Table, int]:
     order = np.argsort(t, kind="stable")
     moved = int(np.count_nonzero(order != np.arange(len(t))))
     return table.take(pa.array(order)), moved
+
+
+def with_flight_stream(
+    table: pa.Table, stream: str, t_ns: np.ndarray, values: np.ndarray
+) -> pa.Table:
+    """``table`` with the samples of flight stream ``stream`` (:data:`FLIGHT_COLUMNS`) added as
+    rows of their own: ``values`` (n, k) at ``t_ns`` (int64 ns), every other column null; rows
+    sorted stably by time (the table's rows first at equal stamps). The metadata is kept."""
+    cols = FLIGHT_COLUMNS[stream]
+    t_ns = np.asarray(t_ns, dtype=np.int64)
+    values = np.asarray(values, dtype=np.float64).reshape(len(t_ns), len(cols))
+    if len(t_ns) == 0:
+        return table
+    meta = metadata(table)
+    names: list[str] = []
+    arrays: list[pa.Array] = []
+    for field in table.schema:
+        names.append(field.name)
+        if field.name == "t_ns":
+            arrays.append(pa.array(t_ns, pa.int64()))
+        elif field.name in cols:
+            arrays.append(pa.array(values[:, cols.index(field.name)], pa.float64()))
+        else:
+            arrays.append(pa.nulls(len(t_ns), field.type))
+    for i, name in enumerate(cols):
+        if name not in table.column_names:
+            field = OPTIONAL_FIELDS.field(name)
+            table = table.append_column(field, pa.nulls(len(table), field.type))
+            names.append(name)
+            arrays.append(pa.array(values[:, i], pa.float64()))
+    added = pa.Table.from_arrays(arrays, schema=table.schema.remove_metadata())
+    merged = pa.concat_tables([table.replace_schema_metadata(None), added]).combine_chunks()
+    merged, _ = sort_by_time(merged)
+    return with_metadata(merged, meta)
+
+
+def has_flight_stream(table: pa.Table, stream: str) -> bool:
+    """Whether flight stream ``stream`` has at least one sample in ``table``."""
+    first = FLIGHT_COLUMNS[stream][0]
+    return first in table.column_names and table.column(first).null_count < len(table)
+
+
+def flight_stream(table: pa.Table, stream: str) -> SensorData:
+    """The samples of flight stream ``stream`` (attitude, position, current) as
+    :class:`SensorData` (values (n, k) in the units of :data:`FLIGHT_COLUMNS`); empty when the
+    table has none."""
+    cols = FLIGHT_COLUMNS[stream]
+    if not has_flight_stream(table, stream):
+        return SensorData(np.zeros(0, np.int64), np.zeros((0, len(cols))), np.zeros(0, np.int64))
+    rows = np.flatnonzero(pc.is_valid(table.column(cols[0])).to_numpy(zero_copy_only=False))
+    t_ns = table.column("t_ns").to_numpy()[rows]
+    values = np.column_stack([_column_f64(table, c, rows) for c in cols])
+    return SensorData(t_ns=t_ns, values=values, rows=rows)

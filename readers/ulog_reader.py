@@ -62,7 +62,12 @@ import pyarrow as pa
 from imupipe.readers.decoded import Piece
 from imupipe.readers.errors import ReadError
 from imupipe.readers.spec import InputSpec
-from imupipe.readers.table import metadata, with_metadata, with_stream_column
+from imupipe.readers.table import (
+    metadata,
+    with_flight_stream,
+    with_metadata,
+    with_stream_column,
+)
 from imupipe.readers.table_buffer import assemble
 from imupipe.readers.topics import TOPIC_KEYS
 
@@ -82,6 +87,11 @@ READ_TOPICS = (
     "sensor_baro",
     "sensor_selection",
     "vehicle_imu",
+    "vehicle_attitude",
+    "vehicle_gps_position",
+    "sensor_gps",
+    "vehicle_global_position",
+    "battery_status",
 )
 """The topics a read parses (pyulog skips the payload of every other topic)."""
 PARAMETER_PREFIXES = ("CAL_", "TC_", "SENS_BOARD_")
@@ -572,6 +582,60 @@ def output_topic(stream: str, inst: Instance) -> str:
     return inst.key
 
 
+def _position(inst: Instance) -> np.ndarray | None:
+    """(n, 3) latitude, longitude (deg), altitude (m AMSL) of a GNSS or global-position topic:
+    ``latitude_deg``/``longitude_deg``/``altitude_msl_m`` (PX4 1.14+), ``lat``/``lon`` as 1e-7
+    deg integers with ``alt`` in mm (older ``vehicle_gps_position``), or ``lat``/``lon`` as deg
+    with ``alt`` in m (``vehicle_global_position``)."""
+    if inst.has("latitude_deg", "longitude_deg", "altitude_msl_m"):
+        return inst.vector("latitude_deg", "longitude_deg", "altitude_msl_m")
+    if not inst.has("lat", "lon", "alt"):
+        return None
+    lla = inst.vector("lat", "lon", "alt")
+    if inst.data["lat"].dtype.kind in "iu":
+        lla *= np.array([1e-7, 1e-7, 1e-3])
+    return lla
+
+
+def flight_streams(f: UlogFile, time: str) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """The flight streams the log holds (see :data:`~imupipe.readers.table.FLIGHT_COLUMNS`),
+    stream -> (t_ns, values), stamped as the sensors are (``time``):
+
+    - ``attitude``: ``vehicle_attitude`` ``q[0..3]`` (w, x, y, z; body FRD -> NED);
+    - ``position``: ``vehicle_gps_position`` (or ``sensor_gps``) instance 0 with ``fix_type``
+      >= 3, else ``vehicle_global_position``;
+    - ``current``: ``battery_status`` instance 0 ``current_a`` (A), where it is measured (PX4
+      logs -1 for "unknown").
+    """
+    out: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+
+    def stamp(inst: Instance) -> np.ndarray:
+        header, log = inst.stamps(time)
+        return header if time == "header" else log
+
+    att = f.instances.get("vehicle_attitude")
+    if att is not None and att.has("q[0]", "q[1]", "q[2]", "q[3]") and len(att):
+        out["attitude"] = (stamp(att), att.vector("q[0]", "q[1]", "q[2]", "q[3]"))
+    for name in ("vehicle_gps_position", "sensor_gps", "vehicle_global_position"):
+        inst = f.instances.get(name)
+        lla = None if inst is None or not len(inst) else _position(inst)
+        if inst is None or lla is None:
+            continue
+        keep = np.ones(len(inst), dtype=bool)
+        if "fix_type" in inst.data:
+            keep = inst.data["fix_type"] >= 3
+        if keep.any():
+            out["position"] = (stamp(inst)[keep], lla[keep])
+            break
+    bat = f.instances.get("battery_status")
+    if bat is not None and bat.has("current_a") and len(bat):
+        amps = bat.data["current_a"].astype(np.float64)
+        keep = amps >= 0
+        if keep.any():
+            out["current"] = (stamp(bat)[keep], amps[keep])
+    return out
+
+
 def read_ulog(spec: InputSpec) -> tuple[pa.Table, list[str]]:
     """Read a ULog input into the common table; returns (table, warnings)."""
     f = UlogFile(spec.path, READ_TOPICS)
@@ -604,6 +668,8 @@ def read_ulog(spec: InputSpec) -> tuple[pa.Table, list[str]]:
         piece = pieces["temperature"]
         t = piece.log if spec.time == "log" else piece.stamp  # the table's t_ns
         table = with_stream_column(table, "temperature", "pressure", t, baro_pascal(baro))
+    for stream, (t_ns, values) in flight_streams(f, spec.time).items():
+        table = with_flight_stream(table, stream, t_ns, values)
     meta = metadata(table)
     meta.pop("frame_id", None)  # a ULog names no frames
     meta["instance"] = {s: f.instances[k].instance for s, k in chosen.items()}

@@ -13,6 +13,7 @@ STAGE_TYPES: dict[str, str] = {
     "accel_calibration": "imupipe.stages.accel_calibration:AccelCalibrationStage",
     "gyro_calibration": "imupipe.stages.gyro_calibration:GyroCalibrationStage",
     "mag_calibration": "imupipe.stages.mag_calibration:MagCalibrationStage",
+    "mag_inflight": "imupipe.stages.mag_inflight:MagInflightStage",
     "temperature": "imupipe.stages.temperature:TemperatureStage",
     "thermal_soak": "imupipe.stages.thermal_soak:ThermalSoakStage",
     "baro_temperature": "imupipe.stages.baro_temperature:BaroTemperatureStage",

@@ -202,6 +202,7 @@ STEP_KINDS: dict[str, str] = {
     "thermal_matrix": "imupipe.stages.temperature_step:ThermalMatrixStep",
     "g_sensitivity": "imupipe.stages.ferraris:GSensitivityStep",
     "baro_temperature": "imupipe.stages.baro_temperature:BaroTemperatureStep",
+    "mag_current": "imupipe.stages.mag_inflight:MagCurrentStep",
 }
 """Step kind -> "module:Class". A new kind of correction registers here."""
 

@@ -15,9 +15,7 @@ import numpy as np
 import yaml
 
 ROS2_VARIANTS = [
-    (storage, mode)
-    for storage in ("sqlite3", "mcap")
-    for mode in ("none", "file", "message")
+    (storage, mode) for storage in ("sqlite3", "mcap") for mode in ("none", "file", "message")
 ]
 """(storage plugin, compression mode) of the ROS 2 bags rosbags' Writer makes."""
 ROS1_VARIANTS = ["none", "bz2", "lz4"]
@@ -81,7 +79,9 @@ def write_ros2(path: Path, storage: str, mode: str, n: int = 300, seed: int = 0)
     return path
 
 
-def write_ros1(path: Path, compression: str, n: int = 300, seed: int = 0, chunk: int = 4096) -> Path:
+def write_ros1(
+    path: Path, compression: str, n: int = 300, seed: int = 0, chunk: int = 4096
+) -> Path:
     """A ROS 1 bag written by rosbags' ``rosbag1.Writer`` (small chunks: many of them)."""
     from rosbags.rosbag1 import Writer
     from rosbags.typesys import Stores, get_typestore

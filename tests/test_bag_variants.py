@@ -156,7 +156,9 @@ def _table_agrees(path: Path, ref: dict) -> None:
     imu = [m for t, (typ, ms) in ref.items() if typ == "sensor_msgs/msg/Imu" for m in ms]
     rows = table.filter(table.column("gyro_x").is_valid())
     imu.sort(key=lambda m: (m[1]["header"]["stamp"]["sec"], m[1]["header"]["stamp"]["nanosec"]))
-    stamp = [m[1]["header"]["stamp"]["sec"] * 10**9 + m[1]["header"]["stamp"]["nanosec"] for m in imu]
+    stamp = [
+        m[1]["header"]["stamp"]["sec"] * 10**9 + m[1]["header"]["stamp"]["nanosec"] for m in imu
+    ]
     np.testing.assert_array_equal(rows.column("t_ns").to_numpy(), stamp)
     np.testing.assert_array_equal(rows.column("log_time_ns").to_numpy(), [m[0] for m in imu])
     for col, field in (("gyro", "angular_velocity"), ("accel", "linear_acceleration")):
@@ -496,7 +498,9 @@ def damaged_seeds(ros1_bags, ros2_bags, tmp_path_factory) -> dict[str, bytes]:
     small = bv.write_ros1(d / "small.bag", "lz4", n=60)
     out = {
         "unindexed.bag": unindexed(small, d / "u.bag").read_bytes(),
-        "open.bag": interrupted(bv.write_ros1(d / "s2.bag", "none", n=60), d / "o.bag").read_bytes(),
+        "open.bag": interrupted(
+            bv.write_ros1(d / "s2.bag", "none", n=60), d / "o.bag"
+        ).read_bytes(),
     }
     for key, name in (("sqlite3-message", "message.db3"), ("sqlite3-file", "file.db3.zstd")):
         (f,) = [x for x in ros2_bags[key].iterdir() if x.name != "metadata.yaml"]

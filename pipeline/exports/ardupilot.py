@@ -288,6 +288,19 @@ def compose_with_log(model: SensorModel, i: int, out: Export) -> SensorModel | N
     )
 
 
+def motor_rows(model: SensorModel, i: int, written: list[Row]) -> list[Row]:
+    """A compass's current-based motor compensation (``mag_inflight``): ``COMPASS_MOT*_{X,Y,Z}``
+    in milligauss per ampere, added after ``DIA``/``ODI`` as imupipe's ``motor`` is
+    (``correct_field``), and ``COMPASS_MOTCT = 2`` (current; one for every compass)."""
+    if model.motor is None:
+        return []
+    mot = model.motor * MILLIGAUSS_PER_TESLA
+    rows: list[Row] = [(f"COMPASS_MOT{_s(i)}_{a}", mot[j]) for j, a in enumerate("XYZ")]
+    if not any(name == "COMPASS_MOTCT" for name, _ in written):
+        rows.append(("COMPASS_MOTCT", 2))
+    return rows
+
+
 def shared_ranges(
     placed: list[tuple[SensorModel, int]], out: Export
 ) -> dict[int, tuple[float, float]]:
@@ -348,7 +361,7 @@ def export(doc: dict[str, Any], complete: bool = False) -> Export:
             out.note(FNAME, f"{model.sensor}: {issue}")
         logged.update(log_parameters(model))
         if model.sensor == "mag":
-            mine = mag_rows(model, i, out, scaled)
+            mine = mag_rows(model, i, out, scaled) + motor_rows(model, i, rows)
         else:
             mine = imu_rows(model, i, out, shared.get(i), scaled)
         rows += mine

@@ -153,6 +153,10 @@ class Thermal:
         return self.coefficients @ (x ** np.arange(4))
 
 
+LINEAR_KINDS = ("linear", "mag_current")
+"""Step kinds with a matrix and an offset (``mag_current`` adds a per-ampere term: ``motor``)."""
+
+
 @dataclass
 class SensorModel:
     """One device's sensor chain composed (see the module docstring): ``corrected = matrix @
@@ -166,11 +170,14 @@ class SensorModel:
     entries: list[dict[str, Any]]
     issues: list[str]
     device: dict[str, Any] = field(default_factory=dict)
+    motor: np.ndarray | None = None
+    """A magnetometer's field per ampere of battery current (T/A), added after ``matrix``
+    (a ``mag_current`` step, ``mag_inflight``); None when no step estimated one."""
 
     @property
     def linear(self) -> bool:
         """Whether a linear step (offset, and a matrix) was estimated."""
-        return any(e.get("kind", "linear") == "linear" for e in self.entries)
+        return any(e.get("kind", "linear") in LINEAR_KINDS for e in self.entries)
 
     @property
     def scaled(self) -> bool:
@@ -251,14 +258,18 @@ def single_device(
 def _compose(sensor: str, entries: list[dict[str, Any]], dev: dict[str, Any]) -> SensorModel:
     """The entries of one device's sensor composed (module docstring)."""
     m, o = np.eye(3), np.zeros(3)
+    motor: np.ndarray | None = None
     thermal: Thermal | None = None
     issues: list[str] = []
     for e in entries:
         kind = e.get("kind", "linear")
-        if kind == "linear":
+        if kind in LINEAR_KINDS:
             m2 = np.asarray(e["matrix"], dtype=np.float64)
             o = o + np.linalg.solve(m, np.asarray(e["offset"], dtype=np.float64))
             m = m2 @ m
+            motor = None if motor is None else m2 @ motor
+            if kind == "mag_current":
+                motor = np.asarray(e["motor"], dtype=np.float64) + (0.0 if motor is None else motor)
         elif kind == "temperature":
             t = _thermal(e)
             if isinstance(t, str):
@@ -271,7 +282,7 @@ def _compose(sensor: str, entries: list[dict[str, Any]], dev: dict[str, Any]) ->
             thermal = Thermal(t.tref, minv @ t.coefficients, t.t_range)
         else:
             issues.append(f"a '{kind}' step: not mapped")
-    return SensorModel(sensor, m, o, thermal, entries, issues, dev)
+    return SensorModel(sensor, m, o, thermal, entries, issues, dev, motor)
 
 
 def left_alone(names: Iterable[str], families: Iterable[tuple[str, str]]) -> list[str]:

@@ -303,6 +303,18 @@ FAMILIES = {
 what the file leaves alone."""
 
 
+def motor_rows(model: SensorModel, t: Target) -> list[Row]:
+    """A magnetometer's current-based compensation (``mag_inflight``): PX4 adds
+    ``CAL_MAGn_{X,Y,Z}COMP`` times the battery current in kA to the raw field before the
+    offsets (``Magnetometer::Correct``, ``UpdatePower``), so ``COMP = S^-1 motor`` in G/kA,
+    with ``CAL_MAG_COMP_TYP = 2`` (current-based)."""
+    if model.motor is None or model.sensor != "mag":
+        return []
+    comp = np.linalg.solve(model.matrix, model.motor) * GAUSS_PER_TESLA * 1e3
+    rows: list[Row] = [(f"CAL_MAG{t.n}_{a}COMP", comp[i], REAL32) for i, a in enumerate("XYZ")]
+    return rows + [("CAL_MAG_COMP_TYP", 2, INT32)]
+
+
 def families(sensor: str, t: Target) -> list[tuple[str, str]]:
     """The parameter families of the device's slots (for the header's list)."""
     return [(prefix.format(n=t.n, k=t.tc), suffix) for prefix, suffix in FAMILIES[sensor]]
@@ -383,7 +395,7 @@ def export(doc: dict[str, Any], complete: bool = False) -> Export:
         for model, t in zip(models, targets(models, out), strict=True):
             if t is None:
                 continue
-            mine = rows_for(model, t, out)
+            mine = rows_for(model, t, out) + motor_rows(model, t)
             rows += mine
             alone += left_alone([r[0] for r in mine], families(sensor, t))
             logged.update(t.params)

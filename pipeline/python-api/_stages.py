@@ -22,6 +22,7 @@ __all__ = [
     "gyro_bias",
     "gyro_calibration",
     "mag_calibration",
+    "mag_inflight",
     "temperature",
     "thermal_soak",
 ]
@@ -394,6 +395,59 @@ def mag_calibration(
             "max_offset": max_offset,
             "soft_iron_range": soft_iron_range,
             "max_unexplained_pct": max_unexplained_pct,
+        },
+        name=name,
+        accept_failed_checks=accept_failed_checks,
+    )
+
+
+def mag_inflight(
+    table: pa.Table,
+    *,
+    model: Literal["auto", "offsets", "scale", "soft_iron"] = "auto",
+    motor: Literal["auto", "on", "off"] = "auto",
+    year: float | None = None,
+    folds: int = 5,
+    huber_k: float = 1.5,
+    outlier_k: float = 5.0,
+    min_spread: float = 0.002,
+    min_current_a: float = 2.0,
+    max_residual_ut: float = 5.0,
+    name: str | None = None,
+    accept_failed_checks: bool = False,
+) -> StageResult:
+    r"""``mag_inflight`` stage: the compass calibrated from a flight log against the World Magnetic
+    Model, as ArduPilot's MagFit (pymavlink ``tools/magfit_WMM.py``) does.
+
+    Fits on ``table`` (the common table, e.g. from :func:`imupipe.read`); ``name`` names
+    the stage in messages (default: its type); ``accept_failed_checks`` keeps a fit that
+    fails its own quality check, with a warning. Options:
+
+    - ``model``: ``auto`` (chosen on held-out flight segments) or one model.
+    - ``motor``: The per-ampere motor term: ``auto`` (fitted when the current varies), ``on``
+      (refused when the flight cannot separate it) or ``off``.
+    - ``year``: The flight's date as a decimal year (WMM epoch); default: the log's GPS date.
+    - ``folds``: Held-out segments for the model choice.
+    - ``huber_k``: Huber weights beyond this many robust sigmas of the per-axis residual.
+    - ``outlier_k``: Samples beyond this many robust sigmas are rejected (left out of the fit).
+    - ``min_spread``: Smallest eigenvalue of the expected field directions' covariance for soft
+      iron.
+    - ``min_current_a``: Current range (A, 5-95 %) below which the motor term cannot be fitted.
+    - ``max_residual_ut``: Quality check: RMS vector residual after the fit, uT.
+    """
+    return fit_stage(
+        "mag_inflight",
+        table,
+        {
+            "model": model,
+            "motor": motor,
+            "year": year,
+            "folds": folds,
+            "huber_k": huber_k,
+            "outlier_k": outlier_k,
+            "min_spread": min_spread,
+            "min_current_a": min_current_a,
+            "max_residual_ut": max_residual_ut,
         },
         name=name,
         accept_failed_checks=accept_failed_checks,

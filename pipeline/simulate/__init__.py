@@ -3,7 +3,8 @@
 Each scenario module exposes ``DEFAULTS`` (parameter -> default value, SI units) and
 ``simulate(params, rng) -> (table, truth)``. The log is written by the file's suffix (``.csv``,
 ``.mcap``, ``.bag``, ``.db3`` or a folder for a ROS 2 bag) and the truth as ``<FILE>.truth.json``.
-A scenario of several devices (``board``: a PX4 flight controller's IMUs and barometer) returns
+The ``flight`` scenario (a compass with attitude, GPS and current) is written as DataFlash
+(``.bin``). A scenario of several devices (``board``: a PX4 flight controller's IMUs and barometer) returns
 a :class:`~imupipe.pipeline.ulog_writer.UlogData` instead of a table and names the suffixes it
 is written in (``WRITES``: ``.ulg``).
 Parameters are set with ``--set key=value`` (values parsed as JSON, e.g. ``--set gyro_N=[1e-4,1e-4,2e-4]``).
@@ -31,6 +32,7 @@ SCENARIOS: dict[str, str] = {
     "thermal": "imupipe.pipeline.simulate.thermal",
     "thermal_soak": "imupipe.pipeline.simulate.thermal_soak",
     "board": "imupipe.pipeline.simulate.board",
+    "flight": "imupipe.pipeline.simulate.flight",
 }
 
 WRITERS: dict[str, str] = {
@@ -40,6 +42,7 @@ WRITERS: dict[str, str] = {
     ".db3": "imupipe.pipeline.bag_writer:write_ros2_bag",
     "": "imupipe.pipeline.bag_writer:write_ros2_bag",
     ".ulg": "imupipe.pipeline.ulog_writer:write_ulog",
+    ".bin": "imupipe.pipeline.dataflash_writer:write_dataflash",
 }
 """Suffix -> "module:function(path, table)"; no suffix means a ROS 2 bag folder."""
 
@@ -77,12 +80,25 @@ def write_log(path: Path, table: Any) -> None:
     suffix = path.suffix.lower()
     board = isinstance(table, UlogData)
     if suffix not in WRITERS or board != (suffix == ".ulg"):
-        known = ".ulg" if board else ", ".join(s for s in WRITERS if s and s != ".ulg")
+        known = (
+            ".ulg" if board else ", ".join(s for s in WRITERS if s and s not in (".ulg", ".bin"))
+        )
         raise ConfigError(f"{path}: unknown output format '{suffix}' for this log (use {known})")
+    if not board:
+        from imupipe.readers.table import FLIGHT_COLUMNS, has_flight_stream, has_stream
+
+        flight = any(has_flight_stream(table, s) for s in FLIGHT_COLUMNS)
+        if flight != (suffix == ".bin") or (suffix == ".bin" and not has_stream(table, "mag")):
+            use = (
+                ".bin"
+                if flight
+                else ", ".join(s for s in WRITERS if s and s not in (".ulg", ".bin"))
+            )
+            raise ConfigError(f"{path}: unknown output format '{suffix}' for this log (use {use})")
     module, fn = WRITERS[suffix].split(":")
     writer = getattr(importlib.import_module(module), fn)
     with staged_outputs() as out:
-        writer(out.path(path) if suffix in (".csv", ".mcap", ".ulg") else path, table)
+        writer(out.path(path) if suffix in (".csv", ".mcap", ".ulg", ".bin") else path, table)
 
 
 def _parse_set(items: list[str]) -> dict[str, Any]:

@@ -1,0 +1,110 @@
+"""Scenario ``flight``: a multicopter flight with a compass whose hard iron, soft iron and
+motor interference are known, for the ``mag_inflight`` stage (written as DataFlash, ``.bin``).
+
+- Attitude (body FRD -> NED): yaw turning ``yaw_turns`` full circles, roll and pitch
+  sinusoids of amplitude ``roll_deg``/``pitch_deg`` (periods 17 s and 23 s), as a quaternion
+  (``attitude`` flight stream, ``att_hz``).
+- GPS track: a circle of ``radius_m`` about ``lat``, ``lon`` at ``alt_m`` (+-20 m), ``gps_hz``.
+- Battery current (A): ``current_a`` mean, a 31 s sinusoid and a 13 s square wave of amplitudes
+  ``current_swing_a`` and half of it; the ``BAT`` stream (``bat_hz``) logs it with 0.2 A noise.
+- Compass (T, ``mag_hz``): the WMM field on ``year`` at the track (:mod:`imupipe.stages.wmm`)
+  rotated into the body, distorted by the inverse of the correction
+  ``corrected = M (raw - offset) + motor * I``: ``raw = M^-1 (B_body - motor I) + offset``,
+  plus white noise ``mag_noise`` (T per axis); the DataFlash writer rounds it to milligauss.
+
+Truth: ``matrix`` M, ``offset`` (T), ``motor`` (T/A), ``field_norm`` (T).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+import pyarrow as pa
+
+from imupipe.readers.dataflash_reader import euler_quaternion
+from imupipe.readers.table import make_table, metadata, with_flight_stream, with_metadata
+from imupipe.stages.mag_inflight import rotate
+from imupipe.stages.wmm import earth_field
+
+WRITES = (".bin",)
+"""The flight is written as DataFlash."""
+DEFAULTS: dict[str, Any] = {
+    "duration_s": 240.0,
+    "mag_hz": 50.0,
+    "att_hz": 25.0,
+    "gps_hz": 5.0,
+    "bat_hz": 10.0,
+    "year": 2024.5,
+    "lat": 52.038,
+    "lon": 5.145,
+    "alt_m": 100.0,
+    "radius_m": 200.0,
+    "yaw_turns": 6.0,
+    "roll_deg": 35.0,
+    "pitch_deg": 30.0,
+    "current_a": 12.0,
+    "current_swing_a": 8.0,
+    "offset": [1.2e-5, -8.0e-6, 2.0e-5],
+    "matrix": [[1.04, 0.02, -0.015], [0.02, 0.97, 0.01], [-0.015, 0.01, 1.02]],
+    "motor": [6.0e-8, -4.0e-8, 1.2e-7],
+    "mag_noise": 1.5e-7,
+}
+M_PER_DEG = 111_320.0
+"""Metres per degree of latitude (spherical earth: enough for a 200 m track)."""
+
+
+def _times(hz: float, duration_s: float) -> np.ndarray:
+    return (1_000_000_000 + np.arange(int(duration_s * hz)) * (1e9 / hz)).astype(np.int64)
+
+
+def _attitude(t_s: np.ndarray, p: dict[str, Any]) -> np.ndarray:
+    yaw = 2 * np.pi * p["yaw_turns"] * t_s / p["duration_s"]
+    roll = np.radians(p["roll_deg"]) * np.sin(2 * np.pi * t_s / 17.0)
+    pitch = np.radians(p["pitch_deg"]) * np.sin(2 * np.pi * t_s / 23.0 + 1.0)
+    return euler_quaternion(roll, pitch, np.mod(yaw + np.pi, 2 * np.pi) - np.pi)
+
+
+def _position(t_s: np.ndarray, p: dict[str, Any]) -> np.ndarray:
+    a = 2 * np.pi * t_s / 60.0
+    lat = p["lat"] + p["radius_m"] * np.cos(a) / M_PER_DEG
+    lon = p["lon"] + p["radius_m"] * np.sin(a) / (M_PER_DEG * np.cos(np.radians(p["lat"])))
+    return np.column_stack([lat, lon, p["alt_m"] + 20.0 * np.sin(a / 3)])
+
+
+def _current(t_s: np.ndarray, p: dict[str, Any]) -> np.ndarray:
+    """The true current (A); the ``BAT`` stream logs it with 0.2 A noise."""
+    swing = p["current_swing_a"]
+    square = np.sign(np.sin(2 * np.pi * t_s / 13.0))
+    amps = p["current_a"] + swing * np.sin(2 * np.pi * t_s / 31.0) + 0.5 * swing * square
+    return np.maximum(amps, 0.0)
+
+
+def simulate(params: dict[str, Any], rng: np.random.Generator) -> tuple[pa.Table, dict[str, Any]]:
+    p = params
+    dur = float(p["duration_s"])
+    t_mag = _times(p["mag_hz"], dur)
+    t_att, t_gps, t_bat = (_times(p[k], dur) for k in ("att_hz", "gps_hz", "bat_hz"))
+    s = lambda t: (t - 1_000_000_000) * 1e-9  # noqa: E731
+    m = np.asarray(p["matrix"], dtype=np.float64)
+    offset = np.asarray(p["offset"], dtype=np.float64)
+    motor = np.asarray(p["motor"], dtype=np.float64)
+    lla = _position(s(t_mag), p)
+    ned = earth_field(lla[:, 0], lla[:, 1], lla[:, 2], float(p["year"]))
+    body = rotate(_attitude(s(t_mag), p), ned, inverse=True)
+    amps = _current(s(t_mag), p)
+    raw = np.linalg.solve(m, (body - amps[:, None] * motor).T).T + offset
+    raw += rng.normal(0.0, p["mag_noise"], raw.shape)
+    table = make_table(t_mag, mag=raw)
+    table = with_flight_stream(table, "attitude", t_att, _attitude(s(t_att), p))
+    table = with_flight_stream(table, "position", t_gps, _position(s(t_gps), p))
+    logged = _current(s(t_bat), p) + rng.normal(0.0, 0.2, len(t_bat))
+    table = with_flight_stream(table, "current", t_bat, logged)
+    meta = metadata(table) | {"source": "simulate flight", "gps_year": float(p["year"])}
+    truth = {
+        "matrix": m.tolist(),
+        "offset": offset.tolist(),
+        "motor": motor.tolist(),
+        "field_norm": float(np.mean(np.linalg.norm(ned, axis=1))),
+    }
+    return with_metadata(table, meta), truth

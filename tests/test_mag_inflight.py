@@ -1,0 +1,265 @@
+"""mag_inflight: the compass fitted from a flight against the World Magnetic Model."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from imupipe.pipeline.simulate import simulate, write_log
+from imupipe.readers.dataflash_reader import read_dataflash
+from imupipe.readers.spec import InputSpec
+from imupipe.readers.table import (
+    finite,
+    flight_stream,
+    make_table,
+    metadata,
+    sensor,
+    with_flight_stream,
+)
+from imupipe.stages.base import StageContext
+from imupipe.stages.errors import FitError
+from imupipe.stages.mag_inflight import (
+    MagCurrentStep,
+    MagInflightStage,
+    fit_model,
+    flight_samples,
+)
+from imupipe.stages.steps import steps_from_json
+
+from conftest import run_cli, shared_path
+
+
+def fit(table, **options):
+    stage = MagInflightStage(MagInflightStage.Options(**options))
+    ctx = StageContext(name="compass", input_name="sim", quiet=True)
+    return stage.fit(table, ctx), ctx
+
+
+@pytest.fixture(scope="module")
+def flight(tmp_path_factory):
+    """The default simulated flight, written as DataFlash and read back."""
+    table, truth = simulate("flight", {"duration_s": 180.0}, seed=3)
+    path = tmp_path_factory.mktemp("flight") / "flight.bin"
+    write_log(path, table)
+    back, _ = read_dataflash(InputSpec(path=path))
+    return back, truth
+
+
+def test_recovers_the_truth_from_dataflash(flight):
+    table, truth = flight
+    out, _ = fit(table)
+    r = out.results
+    assert r["model"] == "soft_iron" and r["motor_term"]
+    field = truth["field_norm"]
+    assert np.abs(np.array(r["offset_t"]) - truth["offset"]).max() < 0.01 * field
+    assert np.abs(np.array(r["matrix"]) - truth["matrix"]).max() < 0.01
+    motor = np.array(truth["motor"])
+    assert np.linalg.norm(np.array(r["motor_t_per_a"]) - motor) < 0.05 * np.linalg.norm(motor)
+    m = r["metrics"]
+    assert m["residual_rms_ut_after"] < 0.1 * m["residual_rms_ut_before"]
+    assert m["heading_rms_deg_after"] < 1.0 < m["heading_rms_deg_before"]
+    assert m["held_out_rms_ut"]["soft_iron"] < m["held_out_rms_ut"]["offsets"]
+    assert all(se > 0 for se in r["parameter_se"].values())
+    assert r["coverage"]["yaw_coverage_deg"] == 360.0
+
+
+def test_correction_step_applies_and_round_trips(flight):
+    table, truth = flight
+    out, _ = fit(table)
+    step = steps_from_json([json.loads(json.dumps(out.step.to_json()))])[0]
+    assert isinstance(step, MagCurrentStep) and step.kind == "mag_current"
+    corrected = sensor(step.apply(table), "mag")
+    assert len(corrected) == len(sensor(table, "mag"))
+    # the corrected norm is the field's (1 % band), raw is not
+    norms = np.linalg.norm(corrected.values, axis=1) / truth["field_norm"]
+    assert np.percentile(np.abs(norms - 1), 95) < 0.01
+    raw = np.linalg.norm(sensor(table, "mag").values, axis=1) / truth["field_norm"]
+    assert np.percentile(np.abs(raw - 1), 95) > 0.05
+
+
+def test_parameter_exports_reproduce_the_correction(flight):
+    from imupipe.pipeline.exports import ardupilot, px4
+
+    table, _ = flight
+    out, _ = fit(table)
+    doc = {"chain": [out.step.to_json()], "results": {}}
+    ap = dict(
+        line.split(",")
+        for line in ardupilot.export(doc).files["ardupilot_calibration.param"].splitlines()
+        if not line.startswith("#")
+    )
+    ap = {k: float(v) for k, v in ap.items()}
+    raw = sensor(table, "mag").values[:50] * 1e7  # mG
+    amps = np.linspace(0, 20, 50)
+    m = np.array(out.results["matrix"])
+    motor = np.array(out.results["motor_t_per_a"])
+    want = ((raw * 1e-7 - out.results["offset_t"]) @ m.T + amps[:, None] * motor) * 1e7
+    w = np.array(
+        [
+            [ap["COMPASS_DIA_X"], ap["COMPASS_ODI_X"], ap["COMPASS_ODI_Y"]],
+            [ap["COMPASS_ODI_X"], ap["COMPASS_DIA_Y"], ap["COMPASS_ODI_Z"]],
+            [ap["COMPASS_ODI_Y"], ap["COMPASS_ODI_Z"], ap["COMPASS_DIA_Z"]],
+        ]
+    )
+    ofs = np.array([ap[f"COMPASS_OFS_{a}"] for a in "XYZ"])
+    mot = np.array([ap[f"COMPASS_MOT_{a}"] for a in "XYZ"])
+    # AP_Compass_Backend::correct_field: offsets added, scale, DIA/ODI, then MOT x current
+    got = ((raw + ofs) * ap["COMPASS_SCALE"]) @ w.T + amps[:, None] * mot
+    assert np.allclose(got, want, atol=1e-6) and ap["COMPASS_MOTCT"] == 2
+    rows = [
+        line.split("\t")
+        for line in px4.export(doc).files["px4_calibration.params"].splitlines()
+        if not line.startswith("#")
+    ]
+    p = {r[2]: float(r[3]) for r in rows}
+    assert p["CAL_MAG_COMP_TYP"] == 2
+    s = np.array(
+        [
+            [p["CAL_MAG0_XSCALE"], p["CAL_MAG0_XODIAG"], p["CAL_MAG0_YODIAG"]],
+            [p["CAL_MAG0_XODIAG"], p["CAL_MAG0_YSCALE"], p["CAL_MAG0_ZODIAG"]],
+            [p["CAL_MAG0_YODIAG"], p["CAL_MAG0_ZODIAG"], p["CAL_MAG0_ZSCALE"]],
+        ]
+    )
+    off = np.array([p[f"CAL_MAG0_{a}OFF"] for a in "XYZ"])  # G
+    comp = np.array([p[f"CAL_MAG0_{a}COMP"] for a in "XYZ"])  # G/kA
+    # PX4 Magnetometer::Correct: S ((raw + COMP * I[kA]) - OFF), gauss
+    got = ((raw * 1e-3 + amps[:, None] / 1e3 * comp) - off) @ s.T
+    assert np.allclose(got * 1e3, want, atol=1e-6)
+
+
+def test_refuses_what_the_flight_cannot_separate():
+    level, _ = simulate(
+        "flight",
+        {"duration_s": 60.0, "roll_deg": 0.0, "pitch_deg": 0.0, "current_swing_a": 0.0},
+        seed=1,
+    )
+    with pytest.raises(FitError, match="soft iron.*spread"):
+        fit(level, model="soft_iron")
+    with pytest.raises(FitError, match="motor.*current spans"):
+        fit(level, motor="on")
+    out, ctx = fit(level)  # auto: what the flight can separate, the rest named in warnings
+    assert out.results["model"] != "soft_iron" and not out.results["motor_term"]
+    assert any("soft iron" in w for w in ctx.warnings)
+    assert any("motor" in w for w in ctx.warnings)
+
+
+def test_refuses_a_log_without_attitude_or_gps():
+    t = np.arange(200, dtype=np.int64) * 20_000_000
+    table = make_table(t, mag=np.tile([2e-5, 0, 4e-5], (200, 1)))
+    with pytest.raises(FitError, match="no attitude, position"):
+        fit(table)
+    table = with_flight_stream(table, "attitude", t, np.tile([1.0, 0, 0, 0], (200, 1)))
+    table = with_flight_stream(table, "position", t, np.tile([52.0, 5.0, 0.0], (200, 1)))
+    with pytest.raises(FitError, match="date is unknown"):
+        fit(table)
+
+
+def test_robust_fit_rejects_outliers():
+    rng = np.random.default_rng(4)
+    target = rng.normal(0, 3e-5, (2000, 3))
+    raw = target + [1e-5, -2e-5, 5e-6] + rng.normal(0, 1e-7, target.shape)
+    raw[::50] += 5e-5  # spikes, 2 %
+    f = fit_model(raw, target, None, "soft_iron")
+    assert np.allclose(f.offset, [1e-5, -2e-5, 5e-6], atol=3e-8)
+    assert np.count_nonzero(~f.used) >= 40
+
+
+def test_simulate_flight_cli(tmp_path):
+    out = tmp_path / "f.bin"
+    run_cli("simulate", "flight", "--out", str(out), "--duration", "20")
+    truth = json.loads((tmp_path / "f.bin.truth.json").read_text())
+    assert truth["scenario"] == "flight"
+    table, _ = read_dataflash(InputSpec(path=out))
+    assert len(flight_stream(table, "attitude")) == 500
+    assert len(flight_stream(table, "current")) == 200
+    bad = run_cli("simulate", "flight", "--out", str(tmp_path / "f.csv"), "--duration", "5")
+    assert bad.returncode == 2 and ".bin" in bad.stderr
+
+
+REAL = {
+    "erle_pxf_118/118.BIN": {},
+    "erle_pxf_218/218.BIN": {},
+    "forum13645_ac344/log_0036.bin": {"imu_topic": "IMU", "mag_topic": "MAG"},
+    "spark404_utrecht/log.bin": {"imu_topic": "IMU", "mag_topic": "MAG"},
+}
+
+
+@pytest.mark.parametrize("name", sorted(REAL))
+def test_real_flights_improve(name):
+    path = shared_path("logs", "ardupilot_flights", *name.split("/"))
+    table, _ = read_dataflash(InputSpec(path=path, **REAL[name]))
+    out, _ = fit(table)
+    m = out.results["metrics"]
+    assert m["residual_rms_ut_after"] < 0.5 * m["residual_rms_ut_before"]
+    assert 40 < m["field_ut"] < 52
+
+
+def test_tutorial_runs_as_written(tmp_path):
+    import re
+    import shlex
+
+    from conftest import REPO
+
+    page = (REPO / "docs" / "tutorials" / "compass-from-flight.md").read_text()
+
+    def blocks(language: str) -> list[str]:
+        return re.findall(rf"```{language}[^\n]*\n(.*?)```", page, flags=re.S)
+
+    bash, toml, text = blocks("bash"), blocks("toml")[0], blocks("text")[0]
+    assert len(bash) == 3 and bash[1].strip() == "imupipe run compass.toml"
+    (tmp_path / "compass.toml").write_text(toml)
+    for block in bash:
+        for line in block.strip().splitlines():
+            proc = run_cli(*shlex.split(line)[1:], cwd=tmp_path)
+            assert proc.returncode == 0, (line, proc.stderr)
+    r = json.loads((tmp_path / "out" / "calibration.json").read_text())["results"]
+    r = r["mag_inflight"]
+    m = r["metrics"]
+    assert r["model"] == "soft_iron" and r["motor_term"]
+    assert round(m["residual_rms_ut_before"], 1) == 22.8
+    assert round(m["residual_rms_ut_after"], 2) == 0.28
+    assert round(m["heading_rms_deg_before"], 1) == 41.8
+    assert round(m["heading_rms_deg_after"], 2) == 0.47
+    report = (tmp_path / "out" / "report.html").read_text()
+    for shown in ("heading error before", "heading error after", "vector residual"):
+        assert shown in report  # the heading along the flight, the residual against current
+    params = (tmp_path / "out" / "ardupilot_calibration.param").read_text()
+    assert "COMPASS_MOTCT,2" in params
+    assert "CAL_MAG_COMP_TYP" in (tmp_path / "out" / "px4_calibration.params").read_text()
+    level = toml.replace("flight.bin", "level.bin").replace(
+        'type = "mag_inflight"', 'type = "mag_inflight"\nmodel = "soft_iron"'
+    )
+    (tmp_path / "level.toml").write_text(level)
+    proc = run_cli("run", "level.toml", cwd=tmp_path)
+    assert proc.returncode == 2
+    assert proc.stderr.strip().splitlines()[-1] == text.strip()
+    assert not (tmp_path / "out" / "level.mcap").exists()
+
+
+@pytest.mark.slow
+def test_no_worse_than_magfit_on_the_simulated_flight(tmp_path):
+    """pymavlink's magfit_WMM.py (minutes: pure Python) and mag_inflight on one simulated log,
+    scored the same way (benchmarks/bench_magfit.py)."""
+    import importlib.util
+
+    from conftest import REPO
+
+    spec = importlib.util.spec_from_file_location("bench", REPO / "benchmarks" / "bench_magfit.py")
+    bench = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(bench)
+    if not bench.magfit_script().exists():
+        pytest.skip("pymavlink's tools/magfit_WMM.py is not installed")
+    path = tmp_path / "flight.bin"
+    table, _ = simulate("flight", {"duration_s": 60.0}, seed=5)
+    write_log(path, table)
+    table, _ = read_dataflash(InputSpec(path=path))
+    out, _ = fit(table)
+    mag, _ = finite(sensor(table, "mag"))
+    fs = flight_samples(table, mag, float(metadata(table)["gps_year"]))
+    ours = out.step.apply_values(fs.raw) + fs.current[:, None] * out.step.motor
+    theirs = bench.run_magfit(path, True, 10, 100, None)
+    assert isinstance(theirs, dict), theirs
+    mf = bench.magfit_corrected(path, fs.t_ns, fs.raw, fs.current, theirs)
+    assert bench.score(fs, ours)[0] <= bench.score(fs, mf)[0]
