@@ -50,9 +50,11 @@ if TYPE_CHECKING:  # what editors and type checkers see; loaded lazily at run ti
         accel_calibration,
         allan,
         average,
+        baro_temperature,
         gyro_bias,
         gyro_calibration,
         mag_calibration,
+        mag_inflight,
         temperature,
         thermal_soak,
     )
@@ -75,8 +77,10 @@ __all__ = [
     "accel_calibration",
     "gyro_calibration",
     "mag_calibration",
+    "mag_inflight",
     "temperature",
     "thermal_soak",
+    "baro_temperature",
     "__version__",
 ]
 
@@ -87,8 +91,10 @@ STAGES = (
     "accel_calibration",
     "gyro_calibration",
     "mag_calibration",
+    "mag_inflight",
     "temperature",
     "thermal_soak",
+    "baro_temperature",
 )
 """The stage functions (:mod:`imupipe._stages`), one per type of
 :data:`imupipe.stages.registry.STAGE_TYPES` (a test checks they are the same); the other public
