@@ -46,6 +46,8 @@ def histories(table: pa.Table) -> list[DeviceHistory]:
     temp = _col(table, "temperature").astype(np.float64)
     values = {f: _col(table, p + f).astype(np.float64) for f in FIGURES}
     se = {f: _col(table, p + f.replace("gyro_bias_", "gyro_bias_se_") if f.startswith("gyro") else p + "accel_norm_error_se").astype(np.float64) for f in FIGURES}
+    level = _col(table, p + "level").astype(bool)
+    se["accel_norm_error"] = np.where(level, se["accel_norm_error"], np.nan)
     noise = {
         s: np.mean([_col(table, f"{p}{s}_noise_{a}").astype(np.float64) for a in "xyz"], axis=0)
         for s in ("gyro", "accel")

@@ -4,11 +4,14 @@ against the fleet.
 
 Per device (the still periods of all its logs; with a calibration, the figures after it):
 
-1. **In-field thermal slope** (unit/K) of the gyro bias (each axis) and of ``|a| - g``: the
-   weighted least-squares slope of the figure on temperature *within* each log (both demeaned per
-   log, then pooled), so that steps and drift between logs do not leak into it. Each period's
-   figure is then referred to the device's median temperature (when the slope is measured:
-   ``|slope| > 2 se``).
+1. **In-field thermal slope** (unit/K) of the gyro bias (each axis) and of ``|a| - g``, from two
+   estimates: *between logs*, the median over consecutive logs of ``d figure / d temperature``
+   (pairs at least ``MIN_DT`` apart; one step between two logs does not move a median), and
+   *within logs*, the weighted least-squares slope of the figure on temperature with both
+   demeaned per log (used when there are too few pairs and it exceeds 3 standard errors). The
+   per-log figures are referred to the device's median temperature with it. ``|a| - g`` is taken
+   from level periods only (elsewhere the accelerometer's x and y offsets project onto gravity
+   with the tilt).
 2. **Per log**: the inverse-variance weighted mean of the referred figures (gyro bias per axis,
    ``|a| - g``) and its standard error; the mean noise density over the axes (gyro, accel); the
    mean temperature and the log's date (days since the fleet's first period).
@@ -21,7 +24,8 @@ Per device (the still periods of all its logs; with a calibration, the figures a
    part; a drop to near zero: a stuck output).
 5. **Drift**: the Theil-Sen slope over calendar days of the per-log figure (unit/day), flagged
    when it departs from the fleet's median slope by more than ``k`` robust sigmas of the fleet's
-   slopes and its change over the device's span exceeds the step threshold.
+   slopes and its change over the device's span exceeds ``k s_fleet sqrt(logs - 1)`` (the reach
+   of the ordinary log-to-log change, a random walk, over that many logs).
 6. **Moved**: the change of each figure from the first log to the last, in units of the fleet's
    step scale; the fleet table is sorted by it.
 
@@ -43,6 +47,11 @@ NOISE_FLOOR = 0.05
 """Smallest robust scale of a log's log-noise departure: 5 % (below it, a change is not
 meaningful for a fleet's health)."""
 DAY_NS = 86_400e9
+MIN_DT = 3.0
+"""K: the smallest temperature difference between two logs used for the between-log slope."""
+THERMAL_SIGNIFICANCE = 3.0
+"""A thermal slope is used to refer figures to the reference temperature when it exceeds this
+many standard errors."""
 
 
 @dataclass
@@ -58,8 +67,8 @@ class DeviceHistory:
     se: dict[str, np.ndarray]
     noise: dict[str, np.ndarray]
     """``gyro``, ``accel`` -> (logs,) mean noise density over the axes."""
-    thermal: dict[str, tuple[float, float]]
-    """figure -> (slope per K, its standard error)."""
+    thermal: dict[str, tuple[float, float, float, float]]
+    """figure -> (slope used per K, within-log slope, its standard error, between-log slope)."""
     t_ref: float
     periods: int
     flags: list[dict[str, Any]] = field(default_factory=list)
@@ -91,6 +100,15 @@ def within_log_slope(log_index: np.ndarray, x: np.ndarray, y: np.ndarray, se: np
     return slope, float(np.sqrt(max(chi2, 1.0) / sxx))
 
 
+def between_log_slope(temperature: np.ndarray, values: np.ndarray, min_dt: float = MIN_DT) -> float:
+    """The thermal slope from consecutive logs: the median of ``d value / d temperature`` over
+    consecutive pairs whose temperatures differ by at least ``min_dt`` K (at least three pairs,
+    else NaN). A median of ratios: one step (a crash) between two logs does not move it."""
+    dv, dt = np.diff(values), np.diff(temperature)
+    ok = np.isfinite(dv) & np.isfinite(dt) & (np.abs(dt) >= min_dt)
+    return float(np.median(dv[ok] / dt[ok])) if ok.sum() >= 3 else float("nan")
+
+
 def device_history(
     device_id: str,
     log: Sequence[str],
@@ -112,19 +130,23 @@ def device_history(
     n = len(names)
     finite_t = temperature[np.isfinite(temperature)]
     t_ref = float(np.median(finite_t)) if len(finite_t) else float("nan")
+    with np.errstate(invalid="ignore"):
+        temps = np.array(
+            [np.nanmean(temperature[index == i]) if np.isfinite(temperature[index == i]).any() else np.nan for i in range(n)]
+        )
     figures, ses, thermal = {}, {}, {}
     for name in FIGURES:
-        slope, slope_se = within_log_slope(index, temperature, values[name], se[name])
-        thermal[name] = (slope, slope_se)
-        referred = values[name]
-        if np.isfinite(slope) and abs(slope) > 2 * slope_se:
-            referred = values[name] - slope * np.nan_to_num(temperature - t_ref)
-        per = [weighted_mean(referred[index == i], se[name][index == i]) for i in range(n)]
-        figures[name] = np.array([p[0] for p in per])
+        within = within_log_slope(index, temperature, values[name], se[name])
+        per = [weighted_mean(values[name][index == i], se[name][index == i]) for i in range(n)]
+        raw = np.array([p[0] for p in per])
+        between = between_log_slope(temps, raw)
+        slope = between
+        if not np.isfinite(slope) and np.isfinite(within[0]) and abs(within[0]) > THERMAL_SIGNIFICANCE * within[1]:
+            slope = within[0]
+        thermal[name] = (slope, within[0], within[1], between)
+        figures[name] = raw - (np.nan_to_num(slope) * np.nan_to_num(temps - t_ref))
         ses[name] = np.array([p[1] for p in per])
     day = np.array([(start_ns[index == i].mean() - t0_ns) / DAY_NS for i in range(n)])
-    with np.errstate(invalid="ignore"):
-        temps = np.array([np.nanmean(temperature[index == i]) if np.isfinite(temperature[index == i]).any() else np.nan for i in range(n)])
     return DeviceHistory(
         device_id,
         [str(x) for x in names],
@@ -176,12 +198,14 @@ def fleet_flags(histories: Sequence[DeviceHistory], k: float) -> dict[str, Any]:
                 limit = k * np.sqrt(base**2 + se[j] ** 2 + se[j - 1] ** 2)
                 if np.isfinite(d) and abs(d) > limit:
                     _flag(h, "step", name, h.logs[j], d, limit,
-                          f"{name} stepped by {d:+.3g} {unit} between {h.logs[j - 1]} and {h.logs[j]} (limit {limit:.2g})")
+                          f"{name} stepped by {d:+.3g} {unit} between {h.logs[j - 1]} and {h.logs[j]} (limit "
+                          f"{limit:.2g}; temperature {h.temperature[j - 1]:.1f} -> {h.temperature[j]:.1f} degC)")
             h.moved[name] = float((f[-1] - f[0]) / base) if len(f) > 1 and base > 0 else 0.0
             med, sig = np.nanmedian(slopes[name]), mad_sigma(slopes[name])
             span = h.day[-1] - h.day[0] if len(h.day) else 0.0
             s = h.drift[name]
-            if np.isfinite(s) and np.isfinite(sig) and abs(s - med) > k * sig and abs(s - med) * span > k * base:
+            walk = k * base * np.sqrt(max(len(f) - 1, 1))  # a random walk's reach over the logs
+            if np.isfinite(s) and np.isfinite(sig) and abs(s - med) > k * sig and abs(s - med) * span > walk:
                 _flag(h, "drift", name, None, s, med + k * sig,
                       f"{name} drifts {s:+.3g} {unit}/day (fleet median {med:+.3g}, limit +-{k * sig:.2g})")
         for s in ("gyro", "accel"):

@@ -229,9 +229,13 @@ def theil_sen(x: np.ndarray, y: np.ndarray) -> float:
 
 def weighted_mean(values: np.ndarray, se: np.ndarray) -> tuple[float, float]:
     """Inverse-variance weighted mean of ``values`` with standard errors ``se`` and its standard
-    error (NaN entries left out; NaN when none is left)."""
+    error, scaled up by the Birge ratio ``sqrt(chi2 / (n - 1))`` when the values scatter more
+    than their errors say (NaN entries left out; NaN when none is left)."""
     ok = np.isfinite(values) & np.isfinite(se) & (se > 0)
     if not ok.any():
         return float("nan"), float("nan")
     w = 1.0 / se[ok] ** 2
-    return float(np.sum(w * values[ok]) / w.sum()), float(1.0 / np.sqrt(w.sum()))
+    mean = float(np.sum(w * values[ok]) / w.sum())
+    n = int(ok.sum())
+    birge = float(np.sum(w * (values[ok] - mean) ** 2)) / (n - 1) if n > 1 else 1.0
+    return mean, float(np.sqrt(max(birge, 1.0) / w.sum()))

@@ -14,7 +14,8 @@ Model (SI; one device = one IMU instance of one vehicle):
   ``b0`` drawn once per device (std ``gyro_bias_spread`` / ``accel_bias_spread``), ``w`` a random
   walk over calendar days (``gyro_rw_per_day`` / ``accel_rw_per_day``, unit/sqrt(day)),
   ``c`` a per-device thermal coefficient (std ``gyro_thermal``, ``accel_thermal``, unit/K).
-- **Temperature** of a device in a log: ``ambient + warm * (1 - exp(-t / 300 s))``, ``ambient``
+- **Temperature** of a device in a log: ``ambient + warm_c * (1 - exp(-t / warm_tau_s))`` (self-heating
+  after power-on), ``ambient``
   uniform in ``ambient_c`` per log, plus a per-device offset of up to 3 K; sampled at 1 Hz on
   its own topic.
 - **Planted events** (``events = true``), from log ``logs // 2`` of a vehicle on:
@@ -66,7 +67,8 @@ DEFAULTS: dict[str, Any] = {
     "gyro_thermal": 5e-5,
     "accel_thermal": 5e-4,
     "ambient_c": [5.0, 35.0],
-    "warm_c": 8.0,
+    "warm_c": 10.0,
+    "warm_tau_s": 60.0,
     "events": True,
     "crash_gyro": 4e-3,
     "crash_accel": [0.12, -0.08, 0.15],
@@ -196,7 +198,7 @@ def simulate(p: dict[str, Any], rng: np.random.Generator) -> tuple[FleetLogs, di
                 s = state[k]
                 dev = f"{vehicle}:/imu{k}/data"
                 kind = planted.get((v, k)) if j >= event_log else None
-                temp = ambient + s["t_off"] + p["warm_c"] * (1 - np.exp(-ts / 300.0))
+                temp = ambient + s["t_off"] + p["warm_c"] * (1 - np.exp(-ts / p["warm_tau_s"]))
                 gb = s["gyro_b"][j] + s["gyro_c"] * (temp[:, None] - 25.0)
                 ab = s["accel_b"][j] + s["accel_c"] * (temp[:, None] - 25.0)
                 gn, an = float(p["gyro_N"]), float(p["accel_N"])
