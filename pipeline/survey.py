@@ -75,7 +75,11 @@ def imu_topics(spec: Any) -> list[tuple[str | None, str | None, str | None]]:
     out = []
     for imu in by_type["imu"]:
         temps = [t for t in by_type["temperature"] if _namespace(t) == _namespace(imu)]
-        temp = temps[0] if temps else (by_type["temperature"][0] if len(by_type["temperature"]) == 1 else None)
+        temp = (
+            temps[0]
+            if temps
+            else (by_type["temperature"][0] if len(by_type["temperature"]) == 1 else None)
+        )
         mag = by_type["mag"][0] if by_type["mag"] else None
         out.append((imu, temp, mag))
     return out
@@ -118,7 +122,9 @@ def survey_log(task: SurveyTask) -> dict[str, Any]:
         keep = np.isfinite(gyro.values).all(axis=1) & np.isfinite(accel.values).all(axis=1)
         t_ns, g_vals, a_vals = gyro.t_ns[keep], gyro.values[keep], accel.values[keep]
         if len(t_ns) < 3 or not (np.diff(t_ns) >= 0).all():
-            warnings.append(f"{task.path}: {name}: too few samples or time going back: not surveyed")
+            warnings.append(
+                f"{task.path}: {name}: too few samples or time going back: not surveyed"
+            )
             continue
         temperature = None
         if has_stream(table, "temperature"):
@@ -158,7 +164,14 @@ def survey_log(task: SurveyTask) -> dict[str, Any]:
     }
 
 
-FIGURES_3 = ("gyro_bias", "gyro_bias_se", "gyro_noise", "accel_mean", "accel_mean_se", "accel_noise")
+FIGURES_3 = (
+    "gyro_bias",
+    "gyro_bias_se",
+    "gyro_noise",
+    "accel_mean",
+    "accel_mean_se",
+    "accel_noise",
+)
 FIGURES_1 = ("accel_norm_error", "accel_norm_error_se", "tilt_deg", "level")
 
 
@@ -192,7 +205,12 @@ def _rows(
     z = np.zeros(m)
     s = stats or {}
     col("start_ns", s.get("start_ns", z.astype(np.int64)), pa.int64())
-    col("start", pa.array(s.get("start_ns", z.astype(np.int64)), pa.int64()).cast(pa.timestamp("ns", "UTC")), pa.timestamp("ns", "UTC"))
+    start_us = np.asarray(s.get("start_ns", z.astype(np.int64))) // 1000  # us: datetime-friendly
+    col(
+        "start",
+        pa.array(start_us, pa.int64()).cast(pa.timestamp("us", "UTC")),
+        pa.timestamp("us", "UTC"),
+    )
     col("stop_ns", s.get("stop_ns", z.astype(np.int64)), pa.int64())
     col("duration_s", s.get("duration_s", z), pa.float64())
     col("samples", s.get("samples", z.astype(np.int64)), pa.int64())
@@ -228,6 +246,9 @@ def plan(
     from imupipe.pipeline.manifest import latest
 
     out_dir = out_dir.absolute()
+    for arg in logs:
+        if not Path(arg).exists():
+            raise ConfigError(f"{arg}: no such file or folder")
     cal_sha = None if calibration is None else chain_sha256(calibration)
     opt_sha = _sha(options)[:16]
     done = latest(out_dir)
@@ -242,7 +263,9 @@ def plan(
                 continue
             raise ConfigError(f"{seen[str(part)]} and {path} would both be surveyed into {part}")
         seen[str(part)] = path
-        task = SurveyTask(path, rel.as_posix(), parent, part, calibration, cal_sha, options, opt_sha)
+        task = SurveyTask(
+            path, rel.as_posix(), parent, part, calibration, cal_sha, options, opt_sha
+        )
         rec = done.get(str(path))
         fresh = (
             not force
@@ -292,8 +315,13 @@ def survey(
     ok: list[SurveyTask] = list(skipped)
     for task in skipped:
         manifest.append(
-            {"input": str(task.path), "output": str(task.part), "status": "skipped",
-             "calibration_sha256": task.calibration_sha256, "mode": task.options_sha256}
+            {
+                "input": str(task.path),
+                "output": str(task.part),
+                "status": "skipped",
+                "calibration_sha256": task.calibration_sha256,
+                "mode": task.options_sha256,
+            }
         )
 
     def on_done(outcome: Outcome) -> None:
@@ -301,9 +329,14 @@ def survey(
         if outcome.error is not None:
             failed.append((str(task.path), outcome.error))
             manifest.append(
-                {"input": str(task.path), "status": "failed", "error": outcome.error,
-                 "attempts": outcome.attempts, "host": outcome.host,
-                 "calibration_sha256": task.calibration_sha256}
+                {
+                    "input": str(task.path),
+                    "status": "failed",
+                    "error": outcome.error,
+                    "attempts": outcome.attempts,
+                    "host": outcome.host,
+                    "calibration_sha256": task.calibration_sha256,
+                }
             )
             if outcome.fatal:
                 raise ConfigError(outcome.error)
@@ -320,16 +353,27 @@ def survey(
     fleet: dict[str, Any] = {}
     with staged_outputs() as out:
         if table is not None:
-            meta = {"imupipe_survey": json.dumps({"schema_version": SCHEMA_VERSION, "options": opts, "k": k})}
+            meta = {
+                "imupipe_survey": json.dumps(
+                    {"schema_version": SCHEMA_VERSION, "options": opts, "k": k}
+                )
+            }
             table = table.replace_schema_metadata(meta)
             pq.write_table(table, out.path(out_dir / SURVEY_NAME), compression="zstd")
             from imupipe.pipeline.survey_report import fleet_view, write_report
 
             fleet = fleet_view(table, k=k)
-            out.write_text(out_dir / "fleet.json", json.dumps(fleet, indent=2, default=float) + "\n")
+            out.write_text(
+                out_dir / "fleet.json", json.dumps(fleet, indent=2, default=float) + "\n"
+            )
             write_report(out.path(out_dir / "report.html"), table, fleet)
-    return {"failed": failed, "surveyed": len(ok) - len(skipped), "skipped": len(skipped),
-            "fleet": fleet, "rows": 0 if table is None else table.num_rows}
+    return {
+        "failed": failed,
+        "surveyed": len(ok) - len(skipped),
+        "skipped": len(skipped),
+        "fleet": fleet,
+        "rows": 0 if table is None else table.num_rows,
+    }
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -338,15 +382,30 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         help="every still moment of a fleet's logs: each IMU's bias, noise and temperature over time",
     )
     p.add_argument("logs", nargs="+", type=Path, metavar="LOG|FOLDER")
-    p.add_argument("--out", type=Path, required=True, help="output folder (survey.parquet, report.html)")
-    p.add_argument("--calibration", type=Path, help="calibration.json: also measure after applying it")
+    p.add_argument(
+        "--out", type=Path, required=True, help="output folder (survey.parquet, report.html)"
+    )
+    p.add_argument(
+        "--calibration", type=Path, help="calibration.json: also measure after applying it"
+    )
     p.add_argument("--engine", choices=("local", "ray"), default="local")
     p.add_argument("--jobs", type=int, help="worker processes (default: the usable cores)")
     p.add_argument("--address", help="Ray cluster address (--engine ray)")
     p.add_argument("--retries", type=int, default=2)
     p.add_argument("--force", action="store_true", help="survey every log again")
-    p.add_argument("--min-still", type=float, default=5.0, metavar="S", help="shortest still period, s (default 5)")
-    p.add_argument("--k", type=float, default=DEFAULT_K, help=f"outlier rule: k robust sigmas (default {DEFAULT_K:g})")
+    p.add_argument(
+        "--min-still",
+        type=float,
+        default=5.0,
+        metavar="S",
+        help="shortest still period, s (default 5)",
+    )
+    p.add_argument(
+        "--k",
+        type=float,
+        default=DEFAULT_K,
+        help=f"outlier rule: k robust sigmas (default {DEFAULT_K:g})",
+    )
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=main)
 
@@ -372,7 +431,10 @@ def main(args: argparse.Namespace) -> int:
         quiet=args.quiet,
     )
     for path, why in result["failed"]:
-        print(f"imupipe: error: {why}" if path in why else f"imupipe: error: {path}: {why}", file=sys.stderr)
+        print(
+            f"imupipe: error: {why}" if path in why else f"imupipe: error: {path}: {why}",
+            file=sys.stderr,
+        )
     if not args.quiet:
         from imupipe.pipeline.survey_report import summary_lines
 

@@ -20,7 +20,7 @@ import pyarrow as pa
 
 from imupipe.pipeline.figures import Plot, Series, colors_for
 from imupipe.pipeline.svg_plot import svg
-from imupipe.stages.survey_fleet import FIGURES, UNITS, DeviceHistory, device_history, fleet_flags
+from imupipe.stages.survey_fleet import FIGURES, DeviceHistory, device_history, fleet_flags
 
 
 def _col(table: pa.Table, name: str) -> np.ndarray:
@@ -45,7 +45,15 @@ def histories(table: pa.Table) -> list[DeviceHistory]:
     log = _col(table, "log").astype(str)
     temp = _col(table, "temperature").astype(np.float64)
     values = {f: _col(table, p + f).astype(np.float64) for f in FIGURES}
-    se = {f: _col(table, p + f.replace("gyro_bias_", "gyro_bias_se_") if f.startswith("gyro") else p + "accel_norm_error_se").astype(np.float64) for f in FIGURES}
+    se = {
+        f: _col(
+            table,
+            p + f.replace("gyro_bias_", "gyro_bias_se_")
+            if f.startswith("gyro")
+            else p + "accel_norm_error_se",
+        ).astype(np.float64)
+        for f in FIGURES
+    }
     level = _col(table, p + "level").astype(bool)
     se["accel_norm_error"] = np.where(level, se["accel_norm_error"], np.nan)
     noise = {
@@ -57,9 +65,14 @@ def histories(table: pa.Table) -> list[DeviceHistory]:
         rows = devices == dev
         out.append(
             device_history(
-                dev, log[rows], start[rows], temp[rows],
-                {f: v[rows] for f, v in values.items()}, {f: v[rows] for f, v in se.items()},
-                {s: v[rows] for s, v in noise.items()}, t0,
+                dev,
+                log[rows],
+                start[rows],
+                temp[rows],
+                {f: v[rows] for f, v in values.items()},
+                {f: v[rows] for f, v in se.items()},
+                {s: v[rows] for s, v in noise.items()},
+                t0,
             )
         )
     return out
@@ -97,7 +110,12 @@ def fleet_view(table: pa.Table, k: float) -> dict[str, Any]:
         for d in devices
         if d["flags"]
     ]
-    return {**fleet, "after_calibration": _prefix(table) == "cal_", "devices": devices, "recalibrate": recal}
+    return {
+        **fleet,
+        "after_calibration": _prefix(table) == "cal_",
+        "devices": devices,
+        "recalibrate": recal,
+    }
 
 
 def summary_lines(fleet: dict[str, Any]) -> list[str]:
@@ -108,7 +126,9 @@ def summary_lines(fleet: dict[str, Any]) -> list[str]:
     n = len(fleet["devices"])
     if not recal:
         return [f"imupipe survey: {n} devices, none flagged (k = {fleet['k']:g} robust sigmas)"]
-    lines = [f"imupipe survey: recalibrate {len(recal)} of {n} devices (k = {fleet['k']:g} robust sigmas):"]
+    lines = [
+        f"imupipe survey: recalibrate {len(recal)} of {n} devices (k = {fleet['k']:g} robust sigmas):"
+    ]
     for r in recal:
         why = r["why"]
         more = f" (+{len(why) - 2} more)" if len(why) > 2 else ""
@@ -120,30 +140,61 @@ def _device_plots(d: dict[str, Any], table: pa.Table) -> list[str]:
     day = np.asarray(d["day"])
     plots = []
     gyro_names = [f"gyro bias {a}" for a in "xyz"]
-    p = Plot("survey", d["device_id"] + "/gyro", "xy", f"{d['device_id']}: gyro bias per log", "rad/s",
-             x_label="days since the fleet's first log", x_unit="day")
+    p = Plot(
+        "survey",
+        d["device_id"] + "/gyro",
+        "xy",
+        f"{d['device_id']}: gyro bias per log",
+        "rad/s",
+        x_label="days since the fleet's first log",
+        x_unit="day",
+    )
     colors = colors_for(gyro_names, None)
     for i, a in enumerate("xyz"):
         f = np.asarray(d["figures"][f"gyro_bias_{a}"])
         se = np.asarray(d["se"][f"gyro_bias_{a}"])
         p.series.append(Series(f"gyro/{a}", [gyro_names[i]], [colors[i]], day, f[:, None], "line"))
-        p.series.append(Series(f"gyro/{a}/band", [gyro_names[i] + " +-2 se"], [colors[i]], day,
-                               np.column_stack([f - 2 * se, f + 2 * se]), "band"))
+        p.series.append(
+            Series(
+                f"gyro/{a}/band",
+                [gyro_names[i] + " +-2 se"],
+                [colors[i]],
+                day,
+                np.column_stack([f - 2 * se, f + 2 * se]),
+                "band",
+            )
+        )
     plots.append(svg(p))
     f = np.asarray(d["figures"]["accel_norm_error"])
-    q = Plot("survey", d["device_id"] + "/accel", "xy", f"{d['device_id']}: |a| - g per log", "m/s^2",
-             x_label="days since the fleet's first log", x_unit="day")
+    q = Plot(
+        "survey",
+        d["device_id"] + "/accel",
+        "xy",
+        f"{d['device_id']}: |a| - g per log",
+        "m/s^2",
+        x_label="days since the fleet's first log",
+        x_unit="day",
+    )
     q.series.append(Series("accel", ["|a| - g"], colors_for(["a"], None), day, f[:, None], "line"))
     plots.append(svg(q))
     rows = _col(table, "device_id").astype(str) == d["device_id"]
     pre = _prefix(table)
     temp = _col(table, "temperature").astype(np.float64)[rows]
     if np.isfinite(temp).any():
-        r = Plot("survey", d["device_id"] + "/thermal", "xy", f"{d['device_id']}: gyro bias against temperature (still periods)",
-                 "rad/s", x_label="temperature", x_unit="degC")
+        r = Plot(
+            "survey",
+            d["device_id"] + "/thermal",
+            "xy",
+            f"{d['device_id']}: gyro bias against temperature (still periods)",
+            "rad/s",
+            x_label="temperature",
+            x_unit="degC",
+        )
         for i, a in enumerate("xyz"):
             y = _col(table, f"{pre}gyro_bias_{a}").astype(np.float64)[rows]
-            r.series.append(Series(f"thermal/{a}", [gyro_names[i]], [colors[i]], temp, y[:, None], "points"))
+            r.series.append(
+                Series(f"thermal/{a}", [gyro_names[i]], [colors[i]], temp, y[:, None], "points")
+            )
         plots.append(svg(r))
     return [s for s in plots if s]
 
@@ -152,29 +203,57 @@ def write_report(path: Path, table: pa.Table, fleet: dict[str, Any]) -> None:
     """``report.html``: the fleet table, the devices to recalibrate, a section per device."""
     esc = html.escape
     k = fleet["k"]
-    head = "".join(f"<th>{esc(h)}</th>" for h in (
-        "device", "logs", "still periods", "moved (fleet sigmas)", "gyro drift (rad/s/day)",
-        "thermal slope (rad/s/K)", "gyro noise (rad/s/sqrt(Hz))", "flags"))
+    head = "".join(
+        f"<th>{esc(h)}</th>"
+        for h in (
+            "device",
+            "logs",
+            "still periods",
+            "moved (fleet sigmas)",
+            "gyro drift (rad/s/day)",
+            "thermal slope (rad/s/K)",
+            "gyro noise (rad/s/sqrt(Hz))",
+            "flags",
+        )
+    )
     rows = []
     for d in fleet["devices"]:
-        drift = max((abs(d["drift_per_day"][f"gyro_bias_{a}"]) for a in "xyz"), default=float("nan"))
+        drift = max(
+            (abs(d["drift_per_day"][f"gyro_bias_{a}"]) for a in "xyz"), default=float("nan")
+        )
         thermal = [d["thermal"][f"gyro_bias_{a}"][0] for a in "xyz"]
         noise = d["noise"]["gyro"][-1] if d["noise"]["gyro"] else float("nan")
         rows.append(
-            "<tr>" + "".join(f"<td>{c}</td>" for c in (
-                f"<a href='#{esc(d['device_id'])}'>{esc(d['device_id'])}</a>", len(d["logs"]), d["periods"],
-                f"{d['moved_max']:.1f}", f"{drift:.2e}", " ".join(f"{t:.1e}" for t in thermal),
-                f"{noise:.2e}", len(d["flags"]))) + "</tr>"
+            "<tr>"
+            + "".join(
+                f"<td>{c}</td>"
+                for c in (
+                    f"<a href='#{esc(d['device_id'])}'>{esc(d['device_id'])}</a>",
+                    len(d["logs"]),
+                    d["periods"],
+                    f"{d['moved_max']:.1f}",
+                    f"{drift:.2e}",
+                    " ".join(f"{t:.1e}" for t in thermal),
+                    f"{noise:.2e}",
+                    len(d["flags"]),
+                )
+            )
+            + "</tr>"
         )
-    recal = "".join(
-        f"<li><b>{esc(r['device_id'])}</b>: {esc('; '.join(r['why']))}</li>" for r in fleet["recalibrate"]
-    ) or "<li>none</li>"
+    recal = (
+        "".join(
+            f"<li><b>{esc(r['device_id'])}</b>: {esc('; '.join(r['why']))}</li>"
+            for r in fleet["recalibrate"]
+        )
+        or "<li>none</li>"
+    )
     sections = []
     for d in fleet["devices"]:
         flags = "".join(f"<li>{esc(f['why'])}</li>" for f in d["flags"]) or "<li>no flag</li>"
         sections.append(
             f"<section id='{esc(d['device_id'])}'><h2>{esc(d['device_id'])}</h2><ul>{flags}</ul>"
-            + "".join(_device_plots(d, table)) + "</section>"
+            + "".join(_device_plots(d, table))
+            + "</section>"
         )
     after = "after the calibration" if fleet["after_calibration"] else "raw (no calibration given)"
     text = (
@@ -186,6 +265,7 @@ def write_report(path: Path, table: pa.Table, fleet: dict[str, Any]) -> None:
         f"<p>Figures {after}. Flags: k = {k:g} robust sigmas (1.4826 MAD).</p>"
         f"<h2>Recalibrate</h2><ul>{recal}</ul>"
         f"<h2>Fleet</h2><table><tr>{head}</tr>{''.join(rows)}</table>"
-        + "".join(sections) + "</body></html>\n"
+        + "".join(sections)
+        + "</body></html>\n"
     )
     Path(path).write_text(text, encoding="utf-8")

@@ -77,10 +77,17 @@ class DeviceHistory:
 
 
 FIGURES = ("gyro_bias_x", "gyro_bias_y", "gyro_bias_z", "accel_norm_error")
-UNITS = {"gyro_bias_x": "rad/s", "gyro_bias_y": "rad/s", "gyro_bias_z": "rad/s", "accel_norm_error": "m/s^2"}
+UNITS = {
+    "gyro_bias_x": "rad/s",
+    "gyro_bias_y": "rad/s",
+    "gyro_bias_z": "rad/s",
+    "accel_norm_error": "m/s^2",
+}
 
 
-def within_log_slope(log_index: np.ndarray, x: np.ndarray, y: np.ndarray, se: np.ndarray) -> tuple[float, float]:
+def within_log_slope(
+    log_index: np.ndarray, x: np.ndarray, y: np.ndarray, se: np.ndarray
+) -> tuple[float, float]:
     """Weighted slope of ``y`` on ``x`` from their variation within each log (both demeaned per
     log with the weights ``1/se^2``) and its standard error; NaN when x does not vary."""
     ok = np.isfinite(x) & np.isfinite(y) & np.isfinite(se) & (se > 0)
@@ -132,7 +139,12 @@ def device_history(
     t_ref = float(np.median(finite_t)) if len(finite_t) else float("nan")
     with np.errstate(invalid="ignore"):
         temps = np.array(
-            [np.nanmean(temperature[index == i]) if np.isfinite(temperature[index == i]).any() else np.nan for i in range(n)]
+            [
+                np.nanmean(temperature[index == i])
+                if np.isfinite(temperature[index == i]).any()
+                else np.nan
+                for i in range(n)
+            ]
         )
     figures, ses, thermal = {}, {}, {}
     for name in FIGURES:
@@ -141,7 +153,11 @@ def device_history(
         raw = np.array([p[0] for p in per])
         between = between_log_slope(temps, raw)
         slope = between
-        if not np.isfinite(slope) and np.isfinite(within[0]) and abs(within[0]) > THERMAL_SIGNIFICANCE * within[1]:
+        if (
+            not np.isfinite(slope)
+            and np.isfinite(within[0])
+            and abs(within[0]) > THERMAL_SIGNIFICANCE * within[1]
+        ):
             slope = within[0]
         thermal[name] = (slope, within[0], within[1], between)
         figures[name] = raw - (np.nan_to_num(slope) * np.nan_to_num(temps - t_ref))
@@ -161,10 +177,19 @@ def device_history(
     )
 
 
-def _flag(h: DeviceHistory, kind: str, figure: str, log: str | None, value: float, limit: float, why: str) -> None:
+def _flag(
+    h: DeviceHistory, kind: str, figure: str, log: str | None, value: float, limit: float, why: str
+) -> None:
     h.flags.append(
-        {"device_id": h.device_id, "kind": kind, "figure": figure, "log": log,
-         "value": float(value), "threshold": float(limit), "why": why}
+        {
+            "device_id": h.device_id,
+            "kind": kind,
+            "figure": figure,
+            "log": log,
+            "value": float(value),
+            "threshold": float(limit),
+            "why": why,
+        }
     )
 
 
@@ -197,17 +222,38 @@ def fleet_flags(histories: Sequence[DeviceHistory], k: float) -> dict[str, Any]:
                 d = f[j] - f[j - 1]
                 limit = k * np.sqrt(base**2 + se[j] ** 2 + se[j - 1] ** 2)
                 if np.isfinite(d) and abs(d) > limit:
-                    _flag(h, "step", name, h.logs[j], d, limit,
-                          f"{name} stepped by {d:+.3g} {unit} between {h.logs[j - 1]} and {h.logs[j]} (limit "
-                          f"{limit:.2g}; temperature {h.temperature[j - 1]:.1f} -> {h.temperature[j]:.1f} degC)")
+                    _flag(
+                        h,
+                        "step",
+                        name,
+                        h.logs[j],
+                        d,
+                        limit,
+                        f"{name} stepped by {d:+.3g} {unit} between {h.logs[j - 1]} and {h.logs[j]} (limit "
+                        f"{limit:.2g}; temperature {h.temperature[j - 1]:.1f} -> {h.temperature[j]:.1f} degC)",
+                    )
             h.moved[name] = float((f[-1] - f[0]) / base) if len(f) > 1 and base > 0 else 0.0
-            med, sig = np.nanmedian(slopes[name]), mad_sigma(slopes[name])
+            finite = slopes[name][np.isfinite(slopes[name])]
+            med = float(np.median(finite)) if len(finite) else float("nan")
+            sig = mad_sigma(finite)
             span = h.day[-1] - h.day[0] if len(h.day) else 0.0
             s = h.drift[name]
             walk = k * base * np.sqrt(max(len(f) - 1, 1))  # a random walk's reach over the logs
-            if np.isfinite(s) and np.isfinite(sig) and abs(s - med) > k * sig and abs(s - med) * span > walk:
-                _flag(h, "drift", name, None, s, med + k * sig,
-                      f"{name} drifts {s:+.3g} {unit}/day (fleet median {med:+.3g}, limit +-{k * sig:.2g})")
+            if (
+                np.isfinite(s)
+                and np.isfinite(sig)
+                and abs(s - med) > k * sig
+                and abs(s - med) * span > walk
+            ):
+                _flag(
+                    h,
+                    "drift",
+                    name,
+                    None,
+                    s,
+                    med + k * sig,
+                    f"{name} drifts {s:+.3g} {unit}/day (fleet median {med:+.3g}, limit +-{k * sig:.2g})",
+                )
         for s in ("gyro", "accel"):
             ln = np.log(np.maximum(h.noise[s], 1e-300))
             for j in range(2, len(ln)):
@@ -215,6 +261,13 @@ def fleet_flags(histories: Sequence[DeviceHistory], k: float) -> dict[str, Any]:
                 limit = k * scales[f"{s}_noise"]
                 if abs(d) > limit:
                     word = "rose" if d > 0 else "fell"
-                    _flag(h, "noise", f"{s}_noise", h.logs[j], float(np.exp(d)), float(np.exp(limit)),
-                          f"{s} noise density {word} x{np.exp(d):.2f} against its earlier logs in {h.logs[j]} (limit x{np.exp(limit):.2f})")
+                    _flag(
+                        h,
+                        "noise",
+                        f"{s}_noise",
+                        h.logs[j],
+                        float(np.exp(d)),
+                        float(np.exp(limit)),
+                        f"{s} noise density {word} x{np.exp(d):.2f} against its earlier logs in {h.logs[j]} (limit x{np.exp(limit):.2f})",
+                    )
     return {"k": k, "scales": scales}

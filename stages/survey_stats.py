@@ -133,7 +133,9 @@ def cluster_adev(values: np.ndarray, intervals: Intervals, m: int) -> np.ndarray
         return np.sqrt(sq / (2.0 * pairs[:, None]))
 
 
-def period_means(t_ns: np.ndarray, values: np.ndarray, start_ns: np.ndarray, stop_ns: np.ndarray) -> np.ndarray:
+def period_means(
+    t_ns: np.ndarray, values: np.ndarray, start_ns: np.ndarray, stop_ns: np.ndarray
+) -> np.ndarray:
     """(m,) mean of samples ``values`` (n,) at ``t_ns`` (increasing) inside each
     ``[start_ns, stop_ns]`` (NaN where none)."""
     if len(t_ns) == 0:

@@ -98,9 +98,7 @@ class FleetLogs:
 
 def _rotation(tilt: float, azimuth: float) -> np.ndarray:
     """The gravity direction in the body frame for a tilt (rad) towards ``azimuth`` (rad)."""
-    return np.array(
-        [np.sin(tilt) * np.cos(azimuth), np.sin(tilt) * np.sin(azimuth), np.cos(tilt)]
-    )
+    return np.array([np.sin(tilt) * np.cos(azimuth), np.sin(tilt) * np.sin(azimuth), np.cos(tilt)])
 
 
 def _activity(
@@ -224,8 +222,14 @@ def simulate(p: dict[str, Any], rng: np.random.Generator) -> tuple[FleetLogs, di
                         metadata={
                             "source": "imupipe simulate fleet",
                             "format": "simulated",
-                            "topics": {"imu": f"/imu{k}/data", "temperature": f"/imu{k}/temperature"},
-                            "frame_id": {"imu": f"{vehicle}_imu{k}", "temperature": f"{vehicle}_imu{k}"},
+                            "topics": {
+                                "imu": f"/imu{k}/data",
+                                "temperature": f"/imu{k}/temperature",
+                            },
+                            "frame_id": {
+                                "imu": f"{vehicle}_imu{k}",
+                                "temperature": f"{vehicle}_imu{k}",
+                            },
                         },
                     )
                 )
