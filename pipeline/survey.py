@@ -226,7 +226,32 @@ def _rows(
         for name in FIGURES_1:
             typ = pa.bool_() if name == "level" else pa.float64()
             col(f"{prefix}{name}", f.get(name, np.zeros(m, bool) if name == "level" else z), typ)
-    return pa.Table.from_arrays(arrays, names=names)
+    fields = [
+        pa.field(n, a.type, metadata=None if column_unit(n) is None else {"unit": column_unit(n)})
+        for n, a in zip(names, arrays, strict=True)
+    ]
+    return pa.Table.from_arrays(arrays, schema=pa.schema(fields))
+
+
+def column_unit(name: str) -> str | None:
+    """The unit of a dataset column (its Parquet field's ``unit`` metadata), None for identity."""
+    base = name.removeprefix("cal_")
+    if base.endswith("_ns"):
+        return "ns"
+    for stem, unit in (
+        ("gyro_bias", "rad/s"),
+        ("gyro_noise", "rad/s/sqrt(Hz)"),
+        ("accel_noise", "m/s^2/sqrt(Hz)"),
+        ("accel_mean", "m/s^2"),
+        ("accel_norm_error", "m/s^2"),
+        ("tilt_deg", "deg"),
+        ("duration_s", "s"),
+        ("temperature", "degC"),
+        ("samples", "1"),
+    ):
+        if base.startswith(stem):
+            return unit
+    return None
 
 
 def _sha(value: Any) -> str:

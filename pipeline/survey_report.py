@@ -106,7 +106,7 @@ def fleet_view(table: pa.Table, k: float) -> dict[str, Any]:
         )
     devices.sort(key=lambda d: -d["moved_max"])
     recal = [
-        {"device_id": d["device_id"], "why": sorted({f["why"] for f in d["flags"]})}
+        {"device_id": d["device_id"], "why": list(dict.fromkeys(f["why"] for f in d["flags"]))}
         for d in devices
         if d["flags"]
     ]
