@@ -119,7 +119,7 @@ def fleet_view(table: pa.Table, k: float) -> dict[str, Any]:
 
 
 def summary_lines(fleet: dict[str, Any]) -> list[str]:
-    """The terminal summary: the devices to recalibrate and why (the first reasons)."""
+    """The terminal summary: the devices to recalibrate and why (the first reason found)."""
     if not fleet:
         return []
     recal = fleet["recalibrate"]
@@ -131,8 +131,8 @@ def summary_lines(fleet: dict[str, Any]) -> list[str]:
     ]
     for r in recal:
         why = r["why"]
-        more = f" (+{len(why) - 2} more)" if len(why) > 2 else ""
-        lines.append(f"  {r['device_id']}: {'; '.join(why[:2])}{more}")
+        more = f" (+{len(why) - 1} more in report.html)" if len(why) > 1 else ""
+        lines.append(f"  {r['device_id']}: {why[0]}{more}")
     return lines
 
 

@@ -261,3 +261,18 @@ def test_robust_helpers():
     assert mean == 1.0 and se == pytest.approx(0.1 / np.sqrt(3))
     _, wide = weighted_mean(np.array([0.0, 1.0, 2.0]), np.array([0.1, 0.1, 0.1]))
     assert wide > 0.5  # scatter beyond the stated errors widens the error (Birge ratio)
+
+
+def test_tutorial_quotes_the_planted_fleet(planted):
+    """docs/tutorials/fleet-survey.md simulates the same fleet as ``planted`` (its bash blocks
+    run in tests/test_docs_examples.py); the summary it quotes is what the survey prints."""
+    from test_docs_examples import ROOT, blocks
+
+    from imupipe.pipeline.survey_report import summary_lines
+
+    page = ROOT / "docs" / "tutorials" / "fleet-survey.md"
+    command = blocks(page, "bash")[0][1].split()
+    assert command[-2:] == ["--seed", "11"]
+    assert [c.split("=")[1] for c in command if "=" in c] == [str(SMALL["logs"]), "100"]
+    quoted = blocks(page, "text")[0][1].strip().splitlines()
+    assert summary_lines(planted[2]["fleet"]) == quoted[:-1]
