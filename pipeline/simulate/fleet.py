@@ -78,21 +78,42 @@ DEFAULTS: dict[str, Any] = {
 
 
 @dataclass
-class FleetLogs:
-    """The fleet's logs: relative path -> the tables of its IMU instances (one per topic)."""
+class LogRecipe:
+    """What makes one log (small): its samples are drawn again from ``seed`` when written, so a
+    fleet of thousands of logs is never held in memory."""
 
-    logs: dict[str, list[pa.Table]] = field(default_factory=dict)
+    rel: str
+    vehicle: str
+    t0_s: float
+    day: float
+    ambient: float
+    seed: int
+    imus: list[dict[str, Any]]
+    """Per IMU: gyro/accel bias at this log and thermal coefficients, temperature offset, noise
+    densities and the planted additions (SI)."""
+
+
+@dataclass
+class FleetLogs:
+    """The fleet's logs (recipes) and the scenario's parameters."""
+
+    params: dict[str, Any]
+    logs: list[LogRecipe] = field(default_factory=list)
+
+    def tables(self, recipe: LogRecipe) -> list[pa.Table]:
+        """The common tables of one log's IMU instances (one per topic)."""
+        return _log(recipe, self.params, tables=True)[0]
 
     def write(self, out: Path) -> None:
         """Write every log as ``out/<relative path>`` (MCAP; each written atomically)."""
         from imupipe.pipeline.atomic import staged_outputs
         from imupipe.pipeline.mcap_writer import McapTableWriter
 
-        for rel, tables in self.logs.items():
-            path = out / rel
+        for recipe in self.logs:
+            path = out / recipe.rel
             path.parent.mkdir(parents=True, exist_ok=True)
             with staged_outputs() as staged, McapTableWriter(staged.path(path)) as writer:
-                for table in tables:
+                for table in self.tables(recipe):
                     writer.write_table(table)
 
 
@@ -133,10 +154,68 @@ def _activity(
     return rate, up, vib, still
 
 
-def simulate(p: dict[str, Any], rng: np.random.Generator) -> tuple[FleetLogs, dict[str, Any]]:
+def _log(
+    r: LogRecipe, p: dict[str, Any], tables: bool
+) -> tuple[list[pa.Table], list[list[dict[str, Any]]]]:
+    """One log from its recipe: (its tables when ``tables``, else none; per IMU the truth of
+    each still moment). The activity is drawn from ``seed``, the noise from a second stream."""
     fs = float(p["rate_hz"])
     n = int(round(float(p["log_s"]) * fs))
     g = float(p["gravity"])
+    rate, up, vib, still = _activity(np.random.default_rng(r.seed), n, fs, p)
+    noise = np.random.default_rng([r.seed, 1])
+    t_ns = sample_times(r.t0_s, n, fs)
+    ts = np.arange(n) / fs
+    out, truth = [], []
+    for imu in r.imus:
+        k = imu["k"]
+        temp = r.ambient + imu["t_off"] + p["warm_c"] * (1 - np.exp(-ts / p["warm_tau_s"]))
+        gb = imu["gyro_b"] + imu["gyro_c"] * (temp[:, None] - 25.0)
+        ab = imu["accel_b"] + imu["accel_c"] * (temp[:, None] - 25.0)
+        periods = []
+        for a, b in still:
+            mean_a = up[a] * g + ab[a:b].mean(axis=0)
+            periods.append(
+                {
+                    "start_ns": int(t_ns[a]),
+                    "stop_ns": int(t_ns[b - 1]),
+                    "gyro_bias": gb[a:b].mean(axis=0).tolist(),
+                    "accel_bias": ab[a:b].mean(axis=0).tolist(),
+                    "accel_norm_error": float(np.linalg.norm(mean_a) - g),
+                    "level": bool(up[a][2] == 1.0),
+                    "gyro_N": imu["gyro_N"],
+                    "accel_N": imu["accel_N"],
+                    "temperature": float(temp[a:b].mean()),
+                }
+            )
+        truth.append(periods)
+        if not tables:
+            continue
+        gyro = rate + gb + np.column_stack([white(noise, n, imu["gyro_N"], fs) for _ in range(3)])
+        accel = up * g + vib + ab
+        accel += np.column_stack([white(noise, n, imu["accel_N"], fs) for _ in range(3)])
+        temp_rows = np.zeros(n, dtype=bool)
+        temp_rows[:: max(int(fs), 1)] = True
+        frame = f"{r.vehicle}_imu{k}"
+        out.append(
+            make_table(
+                t_ns,
+                gyro=gyro,
+                accel=accel,
+                temperature=temp,
+                valid={"imu": np.ones(n, dtype=bool), "temperature": temp_rows},
+                metadata={
+                    "source": "imupipe simulate fleet",
+                    "format": "simulated",
+                    "topics": {"imu": f"/imu{k}/data", "temperature": f"/imu{k}/temperature"},
+                    "frame_id": {"imu": frame, "temperature": frame},
+                },
+            )
+        )
+    return out, truth
+
+
+def simulate(p: dict[str, Any], rng: np.random.Generator) -> tuple[FleetLogs, dict[str, Any]]:
     nv, ni, nl = int(p["vehicles"]), int(p["imus"]), int(p["logs"])
     event_log = nl // 2
     planted: dict[tuple[int, int], str] = {}
@@ -144,7 +223,7 @@ def simulate(p: dict[str, Any], rng: np.random.Generator) -> tuple[FleetLogs, di
         for kind, (v, k) in {"crash": (1, 0), "noise": (2, ni - 1), "failing": (3, 0)}.items():
             if v < nv:
                 planted[(v, k)] = kind
-    fleet = FleetLogs()
+    fleet = FleetLogs(dict(p))
     devices: dict[str, dict[str, Any]] = {}
     events: list[dict[str, Any]] = []
     for v in range(nv):
@@ -186,69 +265,41 @@ def simulate(p: dict[str, Any], rng: np.random.Generator) -> tuple[FleetLogs, di
             }
         for j in range(nl):
             rel = f"{vehicle}/log_{j:02d}.mcap"
-            t0 = float(p["t0_s"]) + days[j] * 86400.0 + rng.uniform(8, 18) * 3600.0
-            t_ns = sample_times(t0, n, fs)
-            ts = np.arange(n) / fs
-            rate, up, vib, still = _activity(rng, n, fs, p)
-            ambient = rng.uniform(*p["ambient_c"])
-            tables = []
+            imus = []
             for k in range(ni):
-                s = state[k]
-                dev = f"{vehicle}:/imu{k}/data"
+                st = state[k]
                 kind = planted.get((v, k)) if j >= event_log else None
-                temp = ambient + s["t_off"] + p["warm_c"] * (1 - np.exp(-ts / p["warm_tau_s"]))
-                gb = s["gyro_b"][j] + s["gyro_c"] * (temp[:, None] - 25.0)
-                ab = s["accel_b"][j] + s["accel_c"] * (temp[:, None] - 25.0)
-                gn, an = float(p["gyro_N"]), float(p["accel_N"])
+                imu = {
+                    "k": k,
+                    "gyro_b": st["gyro_b"][j].copy(),
+                    "accel_b": st["accel_b"][j].copy(),
+                    "gyro_c": st["gyro_c"],
+                    "accel_c": st["accel_c"],
+                    "t_off": st["t_off"],
+                    "gyro_N": float(p["gyro_N"]),
+                    "accel_N": float(p["accel_N"]),
+                }
                 if kind == "crash":
-                    gb = gb + p["crash_gyro"]
-                    ab = ab + np.asarray(p["crash_accel"])
+                    imu["gyro_b"] += p["crash_gyro"]
+                    imu["accel_b"] += np.asarray(p["crash_accel"], dtype=np.float64)
                 elif kind == "noise":
-                    gn, an = gn * p["noise_factor"], an * p["noise_factor"]
+                    imu["gyro_N"] *= p["noise_factor"]
+                    imu["accel_N"] *= p["noise_factor"]
                 elif kind == "failing":
-                    gb = gb + np.array([0.0, 0.0, p["fail_rate"] * (days[j] - days[event_log] + 1)])
-                gyro = rate + gb + np.column_stack([white(rng, n, gn, fs) for _ in range(3)])
-                accel = up * g + vib + ab
-                accel += np.column_stack([white(rng, n, an, fs) for _ in range(3)])
-                temp_rows = np.zeros(n, dtype=bool)
-                temp_rows[:: max(int(fs), 1)] = True
-                tables.append(
-                    make_table(
-                        t_ns,
-                        gyro=gyro,
-                        accel=accel,
-                        temperature=temp,
-                        valid={"imu": np.ones(n, dtype=bool), "temperature": temp_rows},
-                        metadata={
-                            "source": "imupipe simulate fleet",
-                            "format": "simulated",
-                            "topics": {
-                                "imu": f"/imu{k}/data",
-                                "temperature": f"/imu{k}/temperature",
-                            },
-                            "frame_id": {
-                                "imu": f"{vehicle}_imu{k}",
-                                "temperature": f"{vehicle}_imu{k}",
-                            },
-                        },
-                    )
+                    imu["gyro_b"][2] += p["fail_rate"] * (days[j] - days[event_log] + 1)
+                imus.append(imu)
+            recipe = LogRecipe(
+                rel,
+                vehicle,
+                float(p["t0_s"]) + days[j] * 86400.0 + rng.uniform(8, 18) * 3600.0,
+                float(days[j]),
+                float(rng.uniform(*p["ambient_c"])),
+                int(rng.integers(2**62)),
+                imus,
+            )
+            fleet.logs.append(recipe)
+            for k, periods in enumerate(_log(recipe, p, tables=False)[1]):
+                devices[f"{vehicle}:/imu{k}/data"]["logs"].append(
+                    {"log": rel, "day": float(days[j]), "periods": periods}
                 )
-                periods = []
-                for a, b in still:
-                    mean_a = up[a] * g + ab[a:b].mean(axis=0)
-                    periods.append(
-                        {
-                            "start_ns": int(t_ns[a]),
-                            "stop_ns": int(t_ns[b - 1]),
-                            "gyro_bias": gb[a:b].mean(axis=0).tolist(),
-                            "accel_bias": ab[a:b].mean(axis=0).tolist(),
-                            "accel_norm_error": float(np.linalg.norm(mean_a) - g),
-                            "level": bool(up[a][2] == 1.0),
-                            "gyro_N": gn,
-                            "accel_N": an,
-                            "temperature": float(temp[a:b].mean()),
-                        }
-                    )
-                devices[dev]["logs"].append({"log": rel, "day": float(days[j]), "periods": periods})
-            fleet.logs[rel] = tables
     return fleet, {"devices": devices, "events": events}
