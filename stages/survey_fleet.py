@@ -15,9 +15,10 @@ Per device (the still periods of all its logs; with a calibration, the figures a
 2. **Per log**: the inverse-variance weighted mean of the referred figures (gyro bias per axis,
    ``|a| - g``) and its standard error; the mean noise density over the axes (gyro, accel); the
    mean temperature and the log's date (days since the fleet's first period).
-3. **Steps** between consecutive logs: ``|d| > k sqrt(s_fleet^2 + se_1^2 + se_2^2)``, ``s_fleet``
-   the robust scale (1.4826 MAD) of every consecutive difference in the fleet (the ordinary
-   log-to-log change: random walk, residual temperature error).
+3. **Steps** between consecutive logs: ``|d| > k sqrt(s_fleet^2 + se_1^2 + se_2^2 +
+   (se_slope dT)^2)``, ``s_fleet`` the robust scale (1.4826 MAD) of every consecutive difference
+   in the fleet (the ordinary log-to-log change: random walk, residual temperature error),
+   ``se_slope dT`` the error of referring the two logs to one temperature.
 4. **Noise**: a log whose log-noise departs from the median of the device's *earlier* logs (at
    least two) by more than ``k`` times the fleet's robust scale of that departure (floored at
    ``NOISE_FLOOR``, a 5 % relative change) is flagged (an increase: a loose mount, a failing
@@ -67,8 +68,9 @@ class DeviceHistory:
     se: dict[str, np.ndarray]
     noise: dict[str, np.ndarray]
     """``gyro``, ``accel`` -> (logs,) mean noise density over the axes."""
-    thermal: dict[str, tuple[float, float, float, float]]
-    """figure -> (slope used per K, within-log slope, its standard error, between-log slope)."""
+    thermal: dict[str, tuple[float, float, float, float, float]]
+    """figure -> (slope used per K, its standard error, within-log slope, its standard error,
+    between-log slope)."""
     t_ref: float
     periods: int
     flags: list[dict[str, Any]] = field(default_factory=list)
@@ -107,13 +109,20 @@ def within_log_slope(
     return slope, float(np.sqrt(max(chi2, 1.0) / sxx))
 
 
-def between_log_slope(temperature: np.ndarray, values: np.ndarray, min_dt: float = MIN_DT) -> float:
-    """The thermal slope from consecutive logs: the median of ``d value / d temperature`` over
-    consecutive pairs whose temperatures differ by at least ``min_dt`` K (at least three pairs,
-    else NaN). A median of ratios: one step (a crash) between two logs does not move it."""
+def between_log_slope(
+    temperature: np.ndarray, values: np.ndarray, min_dt: float = MIN_DT
+) -> tuple[float, float]:
+    """The thermal slope from consecutive logs and its standard error: the median of
+    ``d value / d temperature`` over consecutive pairs whose temperatures differ by at least
+    ``min_dt`` K (at least three pairs, else NaN), its error ``1.2533 s / sqrt(pairs)`` (the
+    median's, ``s`` the ratios' robust scale). A median of ratios: one step (a crash) between
+    two logs does not move it."""
     dv, dt = np.diff(values), np.diff(temperature)
     ok = np.isfinite(dv) & np.isfinite(dt) & (np.abs(dt) >= min_dt)
-    return float(np.median(dv[ok] / dt[ok])) if ok.sum() >= 3 else float("nan")
+    if ok.sum() < 3:
+        return float("nan"), float("nan")
+    ratios = dv[ok] / dt[ok]
+    return float(np.median(ratios)), float(1.2533 * mad_sigma(ratios) / np.sqrt(len(ratios)))
 
 
 def device_history(
@@ -151,15 +160,15 @@ def device_history(
         within = within_log_slope(index, temperature, values[name], se[name])
         per = [weighted_mean(values[name][index == i], se[name][index == i]) for i in range(n)]
         raw = np.array([p[0] for p in per])
-        between = between_log_slope(temps, raw)
-        slope = between
+        between, between_se = between_log_slope(temps, raw)
+        slope, slope_se = between, between_se
         if (
             not np.isfinite(slope)
             and np.isfinite(within[0])
             and abs(within[0]) > THERMAL_SIGNIFICANCE * within[1]
         ):
-            slope = within[0]
-        thermal[name] = (slope, within[0], within[1], between)
+            slope, slope_se = within
+        thermal[name] = (slope, np.nan_to_num(slope_se), within[0], within[1], between)
         figures[name] = raw - (np.nan_to_num(slope) * np.nan_to_num(temps - t_ref))
         ses[name] = np.array([p[1] for p in per])
     day = np.array([(start_ns[index == i].mean() - t0_ns) / DAY_NS for i in range(n)])
@@ -220,7 +229,9 @@ def fleet_flags(histories: Sequence[DeviceHistory], k: float) -> dict[str, Any]:
             base = np.nan_to_num(scales[name])
             for j in range(1, len(f)):
                 d = f[j] - f[j - 1]
-                limit = k * np.sqrt(base**2 + se[j] ** 2 + se[j - 1] ** 2)
+                dtemp = np.nan_to_num(h.temperature[j] - h.temperature[j - 1])
+                referred = (h.thermal[name][1] * dtemp) ** 2  # the slope's error over the change
+                limit = k * np.sqrt(base**2 + se[j] ** 2 + se[j - 1] ** 2 + referred)
                 if np.isfinite(d) and abs(d) > limit:
                     _flag(
                         h,
