@@ -32,6 +32,7 @@ from typing import Any
 from imupipe.pipeline.errors import ConfigError
 
 SURVEY_NAME = "survey.parquet"
+RECORDING_NAME = "survey.rrd"
 PARTS_DIR = "parts"
 SCHEMA_VERSION = 1
 DEFAULT_K = 5.0
@@ -318,6 +319,7 @@ def survey(
     options: dict[str, float] | None = None,
     k: float = DEFAULT_K,
     quiet: bool = False,
+    rerun: bool = True,
 ) -> dict[str, Any]:
     """Survey ``logs`` into ``out_dir``; returns ``{"failed": [(path, why)], "surveyed": n,
     "skipped": n, "fleet": the fleet view}``."""
@@ -392,6 +394,10 @@ def survey(
                 out_dir / "fleet.json", json.dumps(fleet, indent=2, default=float) + "\n"
             )
             write_report(out.path(out_dir / "report.html"), table, fleet)
+            if rerun:
+                from imupipe.pipeline.survey_report import write_recording
+
+                write_recording(out.path(out_dir / RECORDING_NAME), table)
     return {
         "failed": failed,
         "surveyed": len(ok) - len(skipped),
@@ -431,6 +437,9 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         default=DEFAULT_K,
         help=f"outlier rule: k robust sigmas (default {DEFAULT_K:g})",
     )
+    p.add_argument(
+        "--no-rerun", action="store_true", help=f"do not write the Rerun recording {RECORDING_NAME}"
+    )
     p.add_argument("--quiet", action="store_true")
     p.set_defaults(func=main)
 
@@ -454,6 +463,7 @@ def main(args: argparse.Namespace) -> int:
         options={"min_duration_s": float(args.min_still)},
         k=args.k,
         quiet=args.quiet,
+        rerun=not args.no_rerun,
     )
     for path, why in result["failed"]:
         print(

@@ -269,3 +269,37 @@ def write_report(path: Path, table: pa.Table, fleet: dict[str, Any]) -> None:
         + "</body></html>\n"
     )
     Path(path).write_text(text, encoding="utf-8")
+
+
+def write_recording(path: Path, table: pa.Table) -> None:
+    """``survey.rrd``: a Rerun recording with, per device, its still periods' gyro bias,
+    ``|a| - g``, noise densities and temperature on the calendar timeline (one point per
+    period; the figures after the calibration when the dataset has them)."""
+    from imupipe.pipeline.recording import Recorder
+
+    pre = _prefix(table)
+    devices = _col(table, "device_id").astype(str)
+    start = _col(table, "start_ns").astype(np.int64)
+    recorder = Recorder(Path(path), application_id="imupipe survey")
+    for dev in sorted(set(devices)):
+        rows = np.flatnonzero(devices == dev)
+        rows = rows[np.argsort(start[rows], kind="stable")]
+        t = start[rows]
+        base = "/survey/" + "".join(c if c.isalnum() else "_" for c in dev).strip("_")
+
+        axes = list("xyz")
+        shown = (
+            ("gyro_bias", [f"gyro bias {a}" for a in axes], [f"{pre}gyro_bias_{a}" for a in axes],
+             "rad/s", "gyro bias"),
+            ("accel_norm_error", ["|a| - g"], [f"{pre}accel_norm_error"], "m/s^2", "|a| - g"),
+            ("gyro_noise", [f"gyro noise {a}" for a in axes], [f"{pre}gyro_noise_{a}" for a in axes],
+             "rad/s/sqrt(Hz)", "gyro noise density"),
+            ("temperature", ["temperature"], ["temperature"], "degC", "temperature"),
+        )  # fmt: skip
+        for entity, names, columns, unit, title in shown:
+            values = np.column_stack([_col(table, c).astype(np.float64)[rows] for c in columns])
+            recorder.series(
+                f"{base}/{entity}", t, values, names, unit=unit, plot=f"{dev} {title}",
+                title=f"{dev}: {title}", points=True,
+            )  # fmt: skip
+    recorder.close()

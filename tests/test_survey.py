@@ -25,6 +25,7 @@ from imupipe.stages.survey_stats import (
 )
 
 from conftest import run_cli
+from helpers import rrd_rows
 
 SMALL = {"vehicles": 4, "imus": 2, "logs": 5, "log_s": 100.0}
 """A fleet small enough for CI: 8 devices, 40 device-logs."""
@@ -156,6 +157,11 @@ def test_dataset_report_and_resume(planted):
     report = (out / "report.html").read_text()
     assert report.count("<svg") >= 2 * len(truth["devices"])
     assert json.loads((out / "fleet.json").read_text())["k"] == 5.0
+    rows = rrd_rows(out / "survey.rrd")  # a timeline per device: one point per still period
+    devices = table.column("device_id").to_pylist()
+    for dev in truth["devices"]:
+        entity = "/survey/" + "".join(c if c.isalnum() else "_" for c in dev).strip("_")
+        assert rows[entity + "/gyro_bias"] == devices.count(dev)
     again = survey([root / "logs"], out, jobs=1)
     assert again["surveyed"] == 0 and again["skipped"] == result["surveyed"]
     assert pq.read_table(out / "survey.parquet").num_rows == table.num_rows
