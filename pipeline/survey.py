@@ -53,6 +53,10 @@ class SurveyTask:
     options_sha256: str
 
 
+FLIGHT_IMU_TYPES = {"ulog": ("sensor_gyro",), "dataflash": ("IMU", "IMU2", "IMU3")}
+"""The message types of a flight log's raw IMU instances (each read as one device)."""
+
+
 def _namespace(topic: str) -> str:
     return topic.rsplit("/", 1)[0]
 
@@ -63,11 +67,14 @@ def imu_topics(spec: Any) -> list[tuple[str | None, str | None, str | None]]:
     from imupipe.readers import dispatch
     from imupipe.readers.topics import STREAM_TYPES, normalize_type
 
-    if dispatch.detect_format(Path(spec.path)) == "csv":
+    fmt = dispatch.detect_format(Path(spec.path))
+    if fmt == "csv":
         return [(None, None, None)]
     types: dict[str, str] = {}
     for src in dispatch.log_sources(spec):
         types.update(src.topic_types())
+    if fmt in FLIGHT_IMU_TYPES:  # each instance by its key; its reader picks its temperature
+        return [(t, None, None) for t, ty in sorted(types.items()) if ty in FLIGHT_IMU_TYPES[fmt]]
     by_type: dict[str, list[str]] = {s: [] for s in STREAM_TYPES}
     for topic, ty in sorted(types.items()):
         for stream, msgtype in STREAM_TYPES.items():
@@ -259,6 +266,32 @@ def _sha(value: Any) -> str:
     return hashlib.sha256(json.dumps(value, sort_keys=True).encode()).hexdigest()
 
 
+FLIGHT_SUFFIXES = (".ulg", ".bin")
+"""Flight-controller logs (PX4 ULog, ArduPilot DataFlash), found in folders besides those
+``convert`` finds (:func:`~imupipe.pipeline.convert_plan.find_logs`: MCAP, bags, CSV)."""
+
+
+def _flight_logs(args: Sequence[Path], out_dir: Path) -> list[tuple[Path, Path]]:
+    """Every ULog and DataFlash log under the folders of ``args`` (hidden files and the output
+    folder left out), as ``find_logs`` names them."""
+    found = []
+    for arg in map(Path, args):
+        if not arg.is_dir():
+            continue
+        for p in sorted(arg.rglob("*")):
+            rel = p.relative_to(arg)
+            hidden = any(part.startswith(".") for part in rel.parts)
+            inside_out = p.resolve().is_relative_to(out_dir.resolve())
+            if (
+                p.suffix.lower() in FLIGHT_SUFFIXES
+                and p.is_file()
+                and not hidden
+                and not inside_out
+            ):
+                found.append((p, rel.with_suffix("")))
+    return found
+
+
 def plan(
     logs: Sequence[Path],
     out_dir: Path,
@@ -280,7 +313,7 @@ def plan(
     done = latest(out_dir)
     todo, skipped = [], []
     seen: dict[str, Path] = {}
-    for path, rel in find_logs(logs, out_dir, csv=True):
+    for path, rel in find_logs(logs, out_dir, csv=True) + _flight_logs(logs, out_dir):
         path = path.absolute()
         parent = rel.parent.name if rel.parent.name else path.parent.name
         part = out_dir / PARTS_DIR / rel.with_name(rel.name + ".parquet")
