@@ -40,6 +40,10 @@ COMMANDS: dict[str, tuple[str, str]] = {
         "imupipe.pipeline.simulate",
         "write a synthetic log with a known truth (static, poses, mag, thermal, thermal_soak)",
     ),
+    "survey": (
+        "imupipe.pipeline.survey",
+        "every still moment of a fleet's logs: each IMU's bias, noise, temperature over time",
+    ),
     "import": (
         "imupipe.pipeline.imports",
         "make a calibration.json from another tool's calibration (Kalibr, imu_tk, Magneto)",

@@ -6,7 +6,8 @@ Each scenario module exposes ``DEFAULTS`` (parameter -> default value, SI units)
 The ``flight`` scenario (a compass with attitude, GPS and current) is written as DataFlash
 (``.bin``). A scenario of several devices (``board``: a PX4 flight controller's IMUs and barometer) returns
 a :class:`~imupipe.pipeline.ulog_writer.UlogData` instead of a table and names the suffixes it
-is written in (``WRITES``: ``.ulg``).
+is written in (``WRITES``: ``.ulg``); the ``fleet`` scenario returns many logs and is written as a
+folder of MCAP logs.
 Parameters are set with ``--set key=value`` (values parsed as JSON, e.g. ``--set gyro_N=[1e-4,1e-4,2e-4]``).
 """
 
@@ -33,6 +34,7 @@ SCENARIOS: dict[str, str] = {
     "thermal_soak": "imupipe.pipeline.simulate.thermal_soak",
     "board": "imupipe.pipeline.simulate.board",
     "flight": "imupipe.pipeline.simulate.flight",
+    "fleet": "imupipe.pipeline.simulate.fleet",
 }
 
 WRITERS: dict[str, str] = {
@@ -75,9 +77,15 @@ def simulate(
 def write_log(path: Path, table: Any) -> None:
     """Write ``table`` (a scenario's log: a table, or a board's ``UlogData``) to ``path`` in the
     format its suffix names (atomically)."""
+    from imupipe.pipeline.simulate.fleet import FleetLogs
     from imupipe.pipeline.ulog_writer import UlogData
 
     suffix = path.suffix.lower()
+    if isinstance(table, FleetLogs):
+        if suffix:
+            raise ConfigError(f"{path}: a fleet is written as a folder of logs (give no suffix)")
+        table.write(path)
+        return
     board = isinstance(table, UlogData)
     if suffix not in WRITERS or board != (suffix == ".ulg"):
         known = (
@@ -121,7 +129,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "--out",
         type=Path,
         required=True,
-        help="output log (.csv, .mcap, .bag, .db3, folder; board: .ulg)",
+        help="output log (.csv, .mcap, .bag, .db3, folder; board: .ulg; fleet: a folder)",
     )
     p.add_argument("--rate", type=float, help="sample rate, Hz")
     p.add_argument("--duration", type=float, help="duration, s")

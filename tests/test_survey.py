@@ -1,0 +1,284 @@
+"""Issue 30: ``imupipe survey`` on the simulated fleet (``imupipe simulate fleet``): every still
+moment found and measured within its stated uncertainty, every planted event flagged, nothing
+flagged on a clean fleet; bad logs named and skipped; resumable; ``--calibration``; the dataset
+opens in one call."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pyarrow.parquet as pq
+import pytest
+
+from imupipe.pipeline.simulate import simulate, write_log
+from imupipe.pipeline.survey import survey
+from imupipe.stages.static_detector import Intervals
+from imupipe.stages.survey_stats import (
+    StillOptions,
+    batch_means_se,
+    cluster_adev,
+    mad_sigma,
+    still_periods,
+    theil_sen,
+    weighted_mean,
+)
+
+from conftest import run_cli
+from helpers import rrd_rows
+
+SMALL = {"vehicles": 4, "imus": 2, "logs": 5, "log_s": 100.0}
+"""A fleet small enough for CI: 8 devices, 40 device-logs."""
+
+
+def _fleet(root, name, seed, **params):
+    fleet, truth = simulate("fleet", {**SMALL, **params}, seed=seed)
+    write_log(root / name, fleet)
+    return root / name, truth
+
+
+@pytest.fixture(scope="module")
+def planted(tmp_path_factory):
+    root = tmp_path_factory.mktemp("fleet")
+    logs, truth = _fleet(root, "logs", 11)
+    result = survey([logs], root / "out", jobs=2)
+    return root, truth, result
+
+
+@pytest.fixture(scope="module")
+def clean(tmp_path_factory):
+    root = tmp_path_factory.mktemp("clean")
+    logs, truth = _fleet(root, "logs", 12, events=False)
+    return truth, survey([logs], root / "out", jobs=2)
+
+
+def _matched(table, truth):
+    """(survey row, truth period) pairs matched by start time (within 2 s), and the count of
+    truth periods at least 10 s long."""
+    rows = table.to_pylist()
+    by_dev: dict[str, list[dict]] = {}
+    for r in rows:
+        by_dev.setdefault(r["device_id"], []).append(r)
+    pairs, long = [], 0
+    for dev, info in truth["devices"].items():
+        starts = np.array([r["start_ns"] for r in by_dev.get(dev, [])])
+        for log in info["logs"]:
+            for p in log["periods"]:
+                if (p["stop_ns"] - p["start_ns"]) * 1e-9 >= 10:
+                    long += 1
+                if not len(starts):
+                    continue
+                i = int(np.argmin(np.abs(starts - p["start_ns"])))
+                if abs(starts[i] - p["start_ns"]) < 2e9:
+                    pairs.append((by_dev[dev][i], p))
+    return pairs, long
+
+
+def test_bias_recovered_within_uncertainty(planted):
+    root, truth, result = planted
+    table = pq.read_table(root / "out" / "survey.parquet")
+    pairs, long = _matched(table, truth)
+    assert len(pairs) >= long  # every still moment of 10 s or more is found
+    z = np.array(
+        [
+            [
+                (r[f"gyro_bias_{a}"] - p["gyro_bias"][i]) / r[f"gyro_bias_se_{a}"]
+                for i, a in enumerate("xyz")
+            ]
+            for r, p in pairs
+        ]
+    ).ravel()
+    assert np.mean(np.abs(z) < 3) > 0.95 and np.abs(z).max() < 6, np.sort(np.abs(z))[-5:]
+    assert 0.6 < np.std(z) < 1.5  # the stated uncertainty is neither too small nor too large
+    for r, p in pairs:
+        assert r["gyro_noise_x"] == pytest.approx(p["gyro_N"], rel=0.3)
+        assert r["accel_noise_z"] == pytest.approx(p["accel_N"], rel=0.3)
+        assert r["temperature"] == pytest.approx(p["temperature"], abs=0.5)
+        err = r["accel_norm_error"] - p["accel_norm_error"]
+        assert abs(err) < 5 * r["accel_norm_error_se"] + 1e-4
+
+
+def test_planted_events_flagged(planted):
+    _, truth, result = planted
+    fleet = result["fleet"]
+    flagged = {r["device_id"] for r in fleet["recalibrate"]}
+    planted_devices = {e["device_id"] for e in truth["events"]}
+    assert len(truth["events"]) == 3 and flagged == planted_devices
+    flags = {d["device_id"]: d["flags"] for d in fleet["devices"]}
+    for event in truth["events"]:
+        mine = flags[event["device_id"]]
+        log = event["log"].removesuffix(".mcap")
+        kinds = {(f["kind"], f["figure"], f["log"]) for f in mine}
+        if event["kind"] == "crash":
+            assert ("step", "accel_norm_error", log) in kinds
+        elif event["kind"] == "noise":
+            assert ("noise", "gyro_noise", log) in kinds and ("noise", "accel_noise", log) in kinds
+        else:  # failing: the gyro z bias runs away
+            assert any(
+                f["figure"] == "gyro_bias_z" and f["kind"] in ("drift", "step") for f in mine
+            )
+    # the fleet table is sorted by how far each device has moved
+    moved = [d["moved_max"] for d in fleet["devices"]]
+    assert moved == sorted(moved, reverse=True)
+
+
+def test_clean_fleet_flags_nothing(clean):
+    truth, result = clean
+    assert truth["events"] == []
+    assert result["fleet"]["recalibrate"] == [] and not result["failed"]
+
+
+def test_dataset_report_and_resume(planted):
+    root, truth, result = planted
+    out = root / "out"
+    table = pq.read_table(out / "survey.parquet")  # one call
+    for name in (
+        "log",
+        "vehicle",
+        "topic",
+        "instance",
+        "frame_id",
+        "device_id",
+        "calibration_sha256",
+        "start",
+        "duration_s",
+        "gyro_bias_x",
+        "gyro_bias_se_x",
+        "gyro_noise_x",
+        "accel_norm_error",
+        "level",
+        "temperature",
+    ):
+        assert name in table.column_names
+    assert set(table.column("device_id").to_pylist()) == set(truth["devices"])
+    assert set(table.column("frame_id").to_pylist()) == {
+        d["frame_id"] for d in truth["devices"].values()
+    }
+    report = (out / "report.html").read_text()
+    assert report.count("<svg") >= 2 * len(truth["devices"])
+    assert json.loads((out / "fleet.json").read_text())["k"] == 5.0
+    rows = rrd_rows(out / "survey.rrd")  # a timeline per device: one point per still period
+    devices = table.column("device_id").to_pylist()
+    for dev in truth["devices"]:
+        entity = "/survey/" + "".join(c if c.isalnum() else "_" for c in dev).strip("_")
+        assert rows[entity + "/gyro_bias"] == devices.count(dev)
+    again = survey([root / "logs"], out, jobs=1)
+    assert again["surveyed"] == 0 and again["skipped"] == result["surveyed"]
+    assert pq.read_table(out / "survey.parquet").num_rows == table.num_rows
+    try:
+        import duckdb
+    except ImportError:
+        return
+    n = duckdb.sql(f"select count(*) from '{out / 'survey.parquet'}'").fetchall()[0][0]
+    assert n == table.num_rows
+
+
+def test_bad_logs_named_and_skipped(tmp_path):
+    logs, _ = _fleet(tmp_path, "logs", 5, vehicles=1, imus=1, logs=2, log_s=60.0, events=False)
+    good = (logs / "veh01" / "log_00.mcap").read_bytes()
+    (logs / "veh01" / "log_99.mcap").write_bytes(good[: len(good) // 3])
+    (logs / "veh01" / "empty.csv").write_text("t_ns,gyro_x\n")
+    proc = run_cli("survey", logs, "--out", tmp_path / "out", "--jobs", "1")
+    assert proc.returncode == 1
+    errors = proc.stderr.strip().splitlines()
+    assert len(errors) == 2 and all(e.startswith("imupipe: error: ") for e in errors)
+    assert any("log_99.mcap" in e for e in errors) and any("empty.csv" in e for e in errors)
+    assert "2 surveyed" in proc.stdout and "2 failed" in proc.stdout
+    assert "Traceback" not in proc.stderr
+    proc = run_cli("survey", tmp_path / "nothing", "--out", tmp_path / "out2")
+    assert proc.returncode == 2 and proc.stderr.count("\n") == 1
+
+
+def test_calibration_residuals(tmp_path):
+    logs, truth = _fleet(
+        tmp_path, "logs", 6, vehicles=1, imus=1, logs=2, log_s=60.0, events=False, gyro_thermal=0.0
+    )
+    dev = truth["devices"]["veh01:/imu0/data"]
+    bias = np.mean([p["gyro_bias"] for log in dev["logs"] for p in log["periods"]], axis=0)
+    chain = [
+        {
+            "type": "gyro_bias",
+            "sensor": "gyro",
+            "kind": "linear",
+            "matrix": np.eye(3).tolist(),
+            "offset": bias.tolist(),
+        }
+    ]
+    cal = tmp_path / "cal.json"
+    cal.write_text(json.dumps({"chain": chain}))
+    result = survey([logs], tmp_path / "out", calibration=cal, jobs=1)
+    table = pq.read_table(tmp_path / "out" / "survey.parquet").to_pylist()
+    assert table and not result["failed"] and result["fleet"]["after_calibration"]
+    for r in table:
+        assert r["calibration_sha256"] and len(r["calibration_sha256"]) == 64
+        for a in "xyz":
+            assert r[f"cal_gyro_bias_{a}"] == pytest.approx(
+                r[f"gyro_bias_{a}"] - bias["xyz".index(a)], abs=1e-12
+            )
+            assert abs(r[f"cal_gyro_bias_{a}"]) < 6 * r[f"cal_gyro_bias_se_{a}"] + 1e-4
+
+
+# -- the stage math --------------------------------------------------------------------------------
+
+
+def test_still_periods_found_with_min_duration():
+    rng = np.random.default_rng(0)
+    fs, n = 100.0, 6000
+    t_ns = (np.arange(n) * 1e7).astype(np.int64)
+    gyro = rng.standard_normal((n, 3)) * 1e-3
+    accel = rng.standard_normal((n, 3)) * 1e-2 + [0, 0, 9.81]
+    for a, b in ((1000, 2500), (3000, 3300), (4000, 4600)):  # motion; the still gaps between
+        gyro[a:b] += rng.standard_normal((b - a, 3))
+        accel[a:b] += rng.standard_normal((b - a, 3))
+    found = still_periods(t_ns, gyro, accel, StillOptions(min_duration_s=4.5))
+    starts, stops = found.start / fs, found.stop / fs
+    # still: 0-10 s, 25-30 s, 33-40 s, 46-60 s; 25-30 s is too short once its edges are trimmed
+    assert len(found) == 3
+    assert np.allclose(starts, [0.5, 33.5, 46.5], atol=0.1) and np.allclose(
+        stops, [9.5, 39.5, 59.5], atol=0.1
+    )
+
+
+def test_noise_density_and_standard_errors():
+    rng = np.random.default_rng(1)
+    fs, density = 200.0, 2e-4
+    n = 200_000
+    values = rng.standard_normal((n, 1)) * density * np.sqrt(fs)
+    starts = np.arange(0, n, 4000)
+    intervals = Intervals(starts, starts + 4000)
+    adev = cluster_adev(values, intervals, 20)
+    noise = adev[:, 0] * np.sqrt(20 / fs)
+    assert np.median(noise) == pytest.approx(density, rel=0.03)
+    se = batch_means_se(values, intervals)[:, 0]
+    means = intervals.means(values)[:, 0]
+    assert np.std(means) == pytest.approx(np.median(se), rel=0.3)
+    assert np.std(means) == pytest.approx(density * np.sqrt(fs) / np.sqrt(4000), rel=0.3)
+
+
+def test_robust_helpers():
+    x = np.arange(20.0)
+    y = 0.5 * x + 1
+    y[3] = 100.0  # one outlier does not move the slope
+    assert theil_sen(x, y) == pytest.approx(0.5)
+    assert mad_sigma(np.r_[np.random.default_rng(2).standard_normal(4000), 1e6]) == pytest.approx(
+        1.0, rel=0.06
+    )
+    mean, se = weighted_mean(np.array([1.0, 1.0, 1.0]), np.array([0.1, 0.1, 0.1]))
+    assert mean == 1.0 and se == pytest.approx(0.1 / np.sqrt(3))
+    _, wide = weighted_mean(np.array([0.0, 1.0, 2.0]), np.array([0.1, 0.1, 0.1]))
+    assert wide > 0.5  # scatter beyond the stated errors widens the error (Birge ratio)
+
+
+def test_tutorial_quotes_the_planted_fleet(planted):
+    """docs/tutorials/fleet-survey.md simulates the same fleet as ``planted`` (its bash blocks
+    run in tests/test_docs_examples.py); the summary it quotes is what the survey prints."""
+    from test_docs_examples import ROOT, blocks
+
+    from imupipe.pipeline.survey_report import summary_lines
+
+    page = ROOT / "docs" / "tutorials" / "fleet-survey.md"
+    command = blocks(page, "bash")[0][1].split()
+    assert command[-2:] == ["--seed", "11"]
+    assert [c.split("=")[1] for c in command if "=" in c] == [str(SMALL["logs"]), "100"]
+    quoted = blocks(page, "text")[0][1].strip().splitlines()
+    assert summary_lines(planted[2]["fleet"]) == quoted[:-1]
