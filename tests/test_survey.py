@@ -161,7 +161,8 @@ def test_dataset_report_and_resume(planted):
     devices = table.column("device_id").to_pylist()
     for dev in truth["devices"]:
         entity = "/survey/" + "".join(c if c.isalnum() else "_" for c in dev).strip("_")
-        assert rows[entity + "/gyro_bias"] == devices.count(dev)
+        for axis in "xyz":  # one entity per line of the plot
+            assert rows[f"{entity}/gyro_bias/gyro_bias_{axis}"] == devices.count(dev)
     again = survey([root / "logs"], out, jobs=1)
     assert again["surveyed"] == 0 and again["skipped"] == result["surveyed"]
     assert pq.read_table(out / "survey.parquet").num_rows == table.num_rows
