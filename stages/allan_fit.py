@@ -34,7 +34,8 @@ model and may come out zero. Selected like the others, a bias instability B abso
 rise of K over a recording of a few hours (2 h, B = 5e-5 rad/s, K = 2e-6 rad/s^2/sqrt(Hz):
 K zero on 22 of 24 simulated axes; kept, its mean error over those axes is -9 %). Its 68 %
 interval is a profile likelihood (:func:`profile_interval`): the other selected terms re-fitted
-at every K, so the B that could hide a random walk widens it. K's single-run scatter is the
+at every K, so the B that could hide a random walk widens it -- also where the selection left B
+out (:func:`always_interval`: the interval is joined with the one of the model with B). K's single-run scatter is the
 data's own, not the fit's: on 180 simulated axis-runs of that gyro it is 47 % with B and 17 %
 without, 1.03 x and 1.08 x the Cramer-Rao bound of K with every term unknown (46 % and 16 %,
 from the exact Gaussian likelihood of the data; the maximum-likelihood estimate scatters as
