@@ -7,13 +7,15 @@ outcome, verdict, error against the truth, stated 95 % uncertainty, covered), th
 verdict, and the coverage of the stated 95 % intervals (target 90 to 99 %). Exits 1 when any
 case is a wrong answer or a wrong-cause refusal.
 
-Usage: ``python benchmarks/accuracy_sweep.py [--quick] [--family NAME ...]`` (``--quick``: the
-subset CI runs, short recordings and low rates).
+Usage: ``python benchmarks/accuracy_sweep.py [--quick] [--family NAME ...] [--json PATH]``
+(``--quick``: the subset CI runs, short recordings and low rates; ``--json``: the rows, uncut,
+for the docs' tables).
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 import time
 from pathlib import Path
@@ -65,6 +67,7 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--quick", action="store_true", help="the CI subset")
     p.add_argument("--family", nargs="*", help="only these families")
+    p.add_argument("--json", type=Path, help="also write the rows to this JSON file (whole)")
     args = p.parse_args(argv)
     rows: list[dict] = []
     for mod in modules():
@@ -76,6 +79,8 @@ def main(argv: list[str] | None = None) -> int:
         print(
             f"[{mod.FAMILY}: {len(got)} cases in {time.perf_counter() - t0:.1f} s]", file=sys.stderr
         )
+    if args.json:
+        args.json.write_text(json.dumps(rows, indent=1))
     print(table(rows))
     print()
     print(summary(rows))

@@ -500,8 +500,9 @@ class ModelFit:
     def error_95_mg(self) -> float:
         """95 % bound (mg) of the RMS over the sphere of the calibrated | |a| - g | error:
         the 95th percentile over :data:`ERROR_DRAWS` draws of the unknowns from their covariance
-        (its variance drawn from its scaled inverse chi-square where it comes from the residual
-        of few degrees of freedom), plus unseen misalignment (:attr:`angles_unseen`)."""
+        (its variance drawn from its scaled inverse chi-square: with the residual's degrees of
+        freedom where it comes from the residual, else with one per pose, the half-differences
+        :attr:`mean_noise` is measured from), plus unseen misalignment (:attr:`angles_unseen`)."""
         cov = self.covariance()
         if cov is None:
             return float("inf")
@@ -515,6 +516,9 @@ class ModelFit:
         dx = rng.standard_normal((ERROR_DRAWS, len(cov))) @ chol.T
         if self.dof > 0 and self.rss / self.dof >= self.mean_noise**2:
             dx *= np.sqrt(self.dof / rng.chisquare(self.dof, ERROR_DRAWS))[:, None]
+        else:  # the measured noise of a pose mean: one half-difference per pose, as many dof
+            poses = len(self.problem.samples)
+            dx *= np.sqrt(poses / rng.chisquare(poses, ERROR_DRAWS))[:, None]
         err = dx @ jac[:, free].T
         if self.angles_unseen:
             angles = rng.normal(0.0, ANGLE_PRIOR_RAD, (ERROR_DRAWS, 3))

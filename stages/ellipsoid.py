@@ -219,6 +219,59 @@ def _shape(params: np.ndarray, model: str) -> np.ndarray:
     return w
 
 
+def _jacobian(q: np.ndarray, c: np.ndarray, w: np.ndarray, model: str) -> np.ndarray:
+    """(n, 3 + k) derivatives of ``r_i = |W (q_i - c)| - 1`` by the centre and ``model``'s k
+    shape parameters (:func:`_shape_params` order)."""
+    d = q - c
+    u = d @ w.T
+    e = u / np.maximum(np.linalg.norm(u, axis=1), 1e-300)[:, None]
+    d_centre = -e @ w
+    if model == "sphere":
+        d_shape = (e * d).sum(axis=1)[:, None]
+    elif model == "axis_aligned":
+        d_shape = e * d
+    else:
+        d_shape = np.column_stack(
+            [e[:, i] * d[:, j] + (e[:, j] * d[:, i] if i != j else 0.0) for i, j in _SYM]
+        )
+    return np.column_stack([d_centre, d_shape])
+
+
+def standard_errors(points: np.ndarray, e: Ellipsoid, model: str) -> tuple[np.ndarray, np.ndarray]:
+    """Standard errors of a geometric fit ``e`` of ``model`` to ``points``: of the centre (3,
+    units of the points) and of the diagonal of the unit-determinant shape
+    ``W / det(W)^(1/3)`` (3,, the soft-iron scales the correction applies). Covariance of the
+    parameters ``s^2 (J'J)^-1`` with ``J`` the residuals' Jacobian at the fit and ``s^2`` the
+    residual sum of squares over ``n - p`` (Gauss-Newton, e.g. Seber & Wild 1989, 5.1); the
+    scales' by the delta method (central differences). NaN without degrees of freedom."""
+    points = np.asarray(points, dtype=np.float64)
+    frame = _Frame.of(points)
+    q = frame.forward(points)
+    c = (e.centre - frame.mean) / frame.scale
+    w = e.shape * frame.scale
+    p = np.concatenate([c, _shape_params(w, model)])
+    dof = len(q) - len(p)
+    if dof <= 0:
+        return np.full(3, np.nan), np.full(3, np.nan)
+    r = np.linalg.norm((q - c) @ w.T, axis=1) - 1.0
+    cov = np.linalg.pinv((j := _jacobian(q, c, w, model)).T @ j) * float(r @ r) / dof
+
+    def scales(params: np.ndarray) -> np.ndarray:
+        shape = _shape(params[3:], model)
+        return np.diag(shape) / np.linalg.det(shape) ** (1.0 / 3.0)
+
+    grad = np.empty((3, len(p)))
+    for k in range(len(p)):
+        h = 1e-6 * max(abs(p[k]), 1.0)
+        up, down = p.copy(), p.copy()
+        up[k] += h
+        down[k] -= h
+        grad[:, k] = (scales(up) - scales(down)) / (2 * h)
+    centre_se = frame.scale * np.sqrt(np.maximum(np.diag(cov)[:3], 0.0))
+    scale_se = np.sqrt(np.maximum(np.einsum("ik,kl,il->i", grad, cov, grad), 0.0))
+    return centre_se, scale_se
+
+
 def refine(points: np.ndarray, start: Ellipsoid, model: str, max_nfev: int = 200) -> Ellipsoid:
     """Levenberg-Marquardt on ``r_i = |W (h_i - c)| - 1`` from ``start`` (see the module doc)."""
     points = _points(points, {"sphere": 4, "axis_aligned": 6, "general": 9}[model])
@@ -234,20 +287,7 @@ def refine(points: np.ndarray, start: Ellipsoid, model: str, max_nfev: int = 200
         return np.linalg.norm((q - c) @ w.T, axis=1) - 1.0
 
     def jac(p: np.ndarray) -> np.ndarray:
-        c, w = unpack(p)
-        d = q - c
-        u = d @ w.T
-        e = u / np.maximum(np.linalg.norm(u, axis=1), 1e-300)[:, None]
-        d_centre = -e @ w
-        if model == "sphere":
-            d_shape = (e * d).sum(axis=1)[:, None]
-        elif model == "axis_aligned":
-            d_shape = e * d
-        else:
-            d_shape = np.column_stack(
-                [e[:, i] * d[:, j] + (e[:, j] * d[:, i] if i != j else 0.0) for i, j in _SYM]
-            )
-        return np.column_stack([d_centre, d_shape])
+        return _jacobian(q, *unpack(p), model)
 
     p0 = np.concatenate([s0.centre, _shape_params(s0.shape, model)])
     sol = least_squares(fun, p0, jac=jac, method="lm", max_nfev=max_nfev, xtol=1e-12, ftol=1e-12)

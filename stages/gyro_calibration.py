@@ -209,6 +209,8 @@ class GyroCalibrationStage(Stage):
                 },
                 "start_scale": fit["start_scale"],
                 "condition_number": chosen.condition_number(),
+                # of the residual behind the standard errors: their intervals are Student's t
+                "degrees_of_freedom": chosen.n_obs - chosen.n_params,
                 "function_evaluations": chosen.function_evaluations,
                 "time_s": fit["time_s"],
                 **({"clock": clock_note} if clock_note else {}),

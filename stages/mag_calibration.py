@@ -191,6 +191,7 @@ class MagCalibrationStage(Stage):
         noise_pct = float(100 * noise) if np.isfinite(noise) else 0.0
         unexplained_pct = float(np.sqrt(max(total_pct**2 - noise_pct**2, 0.0)))
         shape_unit = e.shape / np.linalg.det(e.shape) ** (1.0 / 3.0)
+        offset_se, scale_se = ell.standard_errors(values[report.used], e, o.model)
         radii, axes = e.axes
         metrics = {
             "samples": len(values),
@@ -216,6 +217,10 @@ class MagCalibrationStage(Stage):
             "coverage_fraction": ell.coverage_fraction(ell.unit(unit_corrected[report.used])),
             "offset_over_radius": float(np.linalg.norm(e.centre) / radius),
             "soft_iron_diagonal": np.diag(shape_unit).tolist(),
+            "standard_errors": {
+                "offset": offset_se.tolist(),
+                "soft_iron_diagonal": scale_se.tolist(),
+            },
         }
         self._check_bounds(ctx, metrics, unit)
         self._record(ctx, data.t_ns, values, corrected, e, target, report, unit, fixed)

@@ -4,6 +4,7 @@ stage states, or a refusal naming the true cause; never a wrong answer or a wron
 
 from __future__ import annotations
 
+import json
 import sys
 from functools import cache
 from pathlib import Path
@@ -41,10 +42,14 @@ def test_quick_sweep_has_no_wrong_answer_and_no_wrong_cause_refusal(module):
     assert not wrong, "\n".join(wrong)
 
 
-def test_driver_prints_one_table_the_counts_and_the_coverage(capsys):
-    code = accuracy_sweep.main(["--quick", "--family", "magnetometer"])
+def test_driver_prints_one_table_the_counts_and_the_coverage(capsys, tmp_path):
+    path = tmp_path / "rows.json"
+    code = accuracy_sweep.main(["--quick", "--family", "magnetometer", "--json", str(path)])
     out = capsys.readouterr().out
     assert code == 0
+    rows = json.loads(path.read_text())
+    assert rows and all(set(r) == KEYS for r in rows)
+    assert all(r["covered"] is not None for r in rows if r["outcome"] == "answer")
     assert out.splitlines()[0].split()[:4] == ["family", "case", "outcome", "verdict"]
     assert "wrong answer 0, wrong-cause refusal 0" in out
     assert "truth inside the stated 95 % interval" in out

@@ -235,3 +235,21 @@ def test_gyro_bias_refuses_a_real_robot_that_moves():
     stage = GyroBiasStage(GyroBiasStage.Options())
     with pytest.raises(FitError, match=r"1 s gyro means depart 0.595 rad/s"):
         stage.fit(table, StageContext(name="gyro_bias", input_name="phidgets", quiet=True))
+
+
+def test_turns_sampled_as_a_gyro_outputs_them_give_unbiased_scales():
+    """Issue 25: a nearly noise-free session with 1 s turns at 100 Hz. The simulator's gyro
+    sample is the mean rate over its sample period (what an anti-alias filter or a delta-angle
+    output gives); sampled at instants, the turns' steps of angular acceleration made every scale
+    82 ppm high. The fit now recovers the scales to a few ppm, and states the degrees of freedom
+    of its standard errors."""
+    params = {"init_static_s": 0.0, "move_s": 1.0, "gyro_N": 1e-6, "accel_N": 1e-5}
+    table, truth = simulate("poses", params, seed=11)
+    accel = AccelCalibrationStage(AccelCalibrationStage.Options()).fit(
+        table, StageContext(name="a", input_name="sim", quiet=True)
+    )
+    out = fit(apply_chain(table, [accel.step]))
+    error = np.asarray(out.results["scale"]) - np.asarray(truth["gyro"]["scale"])
+    assert np.abs(error).max() < 5e-6, error
+    metrics = out.results["metrics"]
+    assert metrics["degrees_of_freedom"] == 2 * metrics["transitions"] - 9

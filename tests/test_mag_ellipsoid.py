@@ -159,3 +159,22 @@ def test_direction_spread_tells_planar_from_tumbling():
     assert ell.direction_spread(hemisphere)[0] == pytest.approx(1 / 12, abs=0.01)
     assert ell.coverage_fraction(full) == 1.0
     assert 0.5 <= ell.coverage_fraction(hemisphere) <= 0.65  # cells straddle the equator
+
+
+def test_standard_errors_match_the_scatter_over_realisations():
+    """Issue 25: the stated standard errors of the centre and of the unit-determinant shape's
+    diagonal (the fit's Jacobian and residual) agree with the scatter of 40 noisy realisations
+    of one ellipsoid: the errors over their standard errors have an RMS near 1."""
+    rng = np.random.default_rng(5)
+    centre = np.array([20e-6, -35e-6, 12e-6])
+    shape = rotated_shape([55e-6, 48e-6, 50e-6], [10, -20, 35])
+    true_diag = np.diag(shape) / np.linalg.det(shape) ** (1 / 3)
+    z = []
+    for _ in range(40):
+        points = surface(600, centre, shape, rng, noise=1e-6)
+        e = ell.fit(points, "general")
+        centre_se, scale_se = ell.standard_errors(points, e, "general")
+        diag = np.diag(e.shape) / np.linalg.det(e.shape) ** (1 / 3)
+        z.append(np.concatenate([(e.centre - centre) / centre_se, (diag - true_diag) / scale_se]))
+    rms = np.sqrt(np.mean(np.square(z), axis=0))
+    assert np.all((rms > 0.7) & (rms < 1.35)), rms

