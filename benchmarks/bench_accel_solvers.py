@@ -24,11 +24,11 @@ from pathlib import Path
 import numpy as np
 
 from imupipe.pipeline.simulate import simulate
-from imupipe.readers.csv_reader import read_csv
+from imupipe.readers.csv.reader import read_csv
 from imupipe.readers.spec import CsvMapping, InputSpec
 from imupipe.readers.table import sensor
-from imupipe.stages import accel_models as am
-from imupipe.stages.accel_calibration import AccelCalibrationStage, detect_intervals
+from imupipe.stages.multiposition import accel_models as am
+from imupipe.stages.multiposition.accel_calibration import AccelCalibrationStage, detect_intervals
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from proc_memory import status_bytes  # noqa: E402

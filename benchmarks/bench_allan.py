@@ -44,14 +44,14 @@ import allantools
 import numpy as np
 from proc_memory import status_bytes
 from imupipe.readers.table import make_table
-from imupipe.stages.allan import AllanStage
+from imupipe.stages.allan.stage import AllanStage
 from imupipe.stages.base import StageContext
 
 n, repeats, rate = int(float(sys.argv[1])), int(sys.argv[2]), 400.0
 parts = {}
 if sys.argv[4:] == ["parts"]:  # CPU time of the stage's parts, per call
-    import imupipe.stages.allan as A
-    import imupipe.stages.allan_estimators as E
+    import imupipe.stages.allan.stage as A
+    import imupipe.stages.allan.estimators as E
 
     def timed(owner, name, label):
         f = getattr(owner, name)
@@ -110,9 +110,9 @@ import sys, time
 t0 = time.perf_counter()
 import numpy, pyarrow
 t1 = time.perf_counter()
-import imupipe.pipeline.run, imupipe.pipeline.report, imupipe.stages.allan
+import imupipe.pipeline.run, imupipe.pipeline.report.page, imupipe.stages.allan.stage
 t2 = time.perf_counter()
-import rerun, imupipe.pipeline.recording
+import rerun, imupipe.pipeline.report.recording
 t3 = time.perf_counter()
 import scipy.special
 t4 = time.perf_counter()
@@ -133,7 +133,7 @@ sys.path.insert(0, sys.argv[2])
 from proc_memory import status_bytes
 import imupipe.pipeline.cli as C
 import imupipe.pipeline.run as R
-from imupipe.stages.allan import AllanStage
+from imupipe.stages.allan.stage import AllanStage
 parts = {"imports": time.perf_counter() - t0}
 
 def timed(owner, name, label):

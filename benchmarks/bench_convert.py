@@ -35,9 +35,9 @@ import tempfile
 import time
 from pathlib import Path
 
-from imupipe.pipeline.convert import convert
-from imupipe.pipeline.mcap_writer import write_mcap
+from imupipe.pipeline.convert.fleet import convert
 from imupipe.pipeline.simulate import simulate
+from imupipe.pipeline.writers.mcap import write_mcap
 
 CALIBRATION = {
     "imupipe_version": "bench",
@@ -89,7 +89,7 @@ def burn(_: int) -> int:
 
 
 def timed_burn(n: int, jobs: int) -> float:
-    from imupipe.pipeline.engines import run_tasks
+    from imupipe.pipeline.convert.engines import run_tasks
 
     start = time.perf_counter()
     run_tasks(burn, list(range(n)), lambda _: None, jobs=jobs)
@@ -108,7 +108,7 @@ def timed_convert(logs: list[Path], cal: Path, out: Path, **kw) -> tuple[float, 
 
 def timed_cli(logs: list[Path], cal: Path, out: Path, *extra: str) -> tuple[float, list[dict]]:
     """``imupipe convert`` in a fresh process, as a user runs it: (seconds, manifest lines)."""
-    from imupipe.pipeline.manifest import read_manifest
+    from imupipe.pipeline.convert.manifest import read_manifest
 
     shutil.rmtree(out, ignore_errors=True)
     cmd = [sys.executable, "-m", "imupipe.pipeline.cli", "convert", "-q", "--calibration"]
@@ -173,7 +173,7 @@ def ray_cluster(nodes: int, root: Path) -> tuple[str, list[subprocess.Popen]]:
 def stop_cluster(procs: list[subprocess.Popen], root: Path) -> None:
     """Stop the nodes started by :func:`ray_cluster` (by their ids) and whatever runs under
     ``root``; remove ``root``."""
-    from imupipe.pipeline.ray_reaper import reap
+    from imupipe.pipeline.convert.ray_reaper import reap
 
     for proc in procs:
         proc.terminate()

@@ -59,7 +59,7 @@ TEMPERATURE = {
 
 def write_log(path: Path, messages: int) -> None:
     """The log, written ``ROWS`` rows at a time."""
-    from imupipe.pipeline.mcap_writer import McapTableWriter
+    from imupipe.pipeline.writers.mcap import McapTableWriter
     from imupipe.readers.table import make_table
 
     rng = np.random.default_rng(0)

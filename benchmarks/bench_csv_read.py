@@ -5,7 +5,7 @@ Measured in one run, on the same file (imupipe's own layout, as ``imupipe simula
 
 - **peer**: ``pyarrow.csv.read_csv(path)`` with its defaults (multithreaded, every column, types
   inferred): the parse alone, no table of ours;
-- **ours**: ``imupipe.readers.csv_reader.read_csv``, the whole read into the common table (layout
+- **ours**: ``imupipe.readers.csv.reader.read_csv``, the whole read into the common table (layout
   sniffing, the exact int64 time column, SI columns, validity); goal: about the peer's time;
 - **peak memory** of a fresh process doing each, as VmHWM growth over the process after imports,
   against the size of the common table.
@@ -43,7 +43,7 @@ def peer(path: Path) -> int:
 
 
 def ours(path: Path) -> int:
-    from imupipe.readers.csv_reader import read_csv
+    from imupipe.readers.csv.reader import read_csv
     from imupipe.readers.spec import InputSpec
 
     return read_csv(InputSpec(path=path))[0].num_rows
@@ -60,7 +60,7 @@ import json, sys
 sys.path.insert(0, sys.argv[-1])
 from proc_memory import status_bytes
 import pyarrow, pyarrow.csv, numpy
-from imupipe.readers.csv_reader import read_csv
+from imupipe.readers.csv.reader import read_csv
 from imupipe.readers.spec import InputSpec
 base = status_bytes('VmRSS')
 if sys.argv[2] == "ours":

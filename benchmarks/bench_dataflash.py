@@ -46,7 +46,7 @@ def _dfreader(path: Path) -> int:
 
 
 def _imupipe_all(path: Path) -> int:
-    from imupipe.readers.dataflash_reader import DataFlashLog
+    from imupipe.readers.dataflash.reader import DataFlashLog
 
     f = DataFlashLog(path)
     return sum(len(f.records(name)) for name in set(f.topic_types().values()))

@@ -25,11 +25,11 @@ from pathlib import Path
 import numpy as np
 
 from imupipe.pipeline.simulate import simulate, write_log
-from imupipe.readers.dataflash_reader import DataFlashLog, read_dataflash
+from imupipe.readers.dataflash.reader import DataFlashLog, read_dataflash
 from imupipe.readers.spec import InputSpec
 from imupipe.readers.table import finite, metadata, sensor
 from imupipe.stages.base import StageContext
-from imupipe.stages.mag_inflight import (
+from imupipe.stages.magnetometer.inflight import (
     MagInflightStage,
     flight_samples,
     heading_deg,

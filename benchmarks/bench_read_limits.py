@@ -4,7 +4,7 @@ Measured in one run, on the same files:
 
 - **limit**: every chunk of the file read, zstd-decompressed and CRC-checked, nothing else, in
   one thread; a read that decodes the messages cannot be faster on one core;
-- **read**: ``imupipe.readers.mcap_reader.read_mcap`` of the whole file into the common table;
+- **read**: ``imupipe.readers.mcap.reader.read_mcap`` of the whole file into the common table;
   ratio read / limit (goal: <= 2.0) for 1 M and 5 M ``sensor_msgs/Imu`` messages at 400 Hz;
 - **multi-topic**: the same Imu messages plus a 1 Hz ``sensor_msgs/Temperature`` topic in one
   MCAP, read / Imu-only read (goal: <= 1.20);
@@ -121,7 +121,7 @@ def limit(path: Path) -> int:
 
 
 def ours(path: Path) -> int:
-    from imupipe.readers.mcap_reader import read_mcap
+    from imupipe.readers.mcap.reader import read_mcap
     from imupipe.readers.spec import InputSpec
 
     table, _ = read_mcap(InputSpec(path=path))
@@ -159,7 +159,7 @@ def main() -> None:
     )
     args = parser.parse_args()
 
-    from imupipe.pipeline.mcap_writer import write_mcap
+    from imupipe.pipeline.writers.mcap import write_mcap
 
     work = args.keep or Path(tempfile.mkdtemp(prefix="imupipe-limits-"))
     work.mkdir(parents=True, exist_ok=True)

@@ -2,9 +2,9 @@
 
 Measured in one run, on the same file, against the peers the issue names:
 
-- read to table: ``imupipe.readers.mcap_reader.read_mcap`` vs rosbags ``AnyReader`` +
+- read to table: ``imupipe.readers.mcap.reader.read_mcap`` vs rosbags ``AnyReader`` +
   ``deserialize`` of every message (goal: >= 10x);
-- corrected-MCAP write: ``imupipe.pipeline.mcap_writer.write_mcap`` vs ``mcap_ros2.writer.Writer``
+- corrected-MCAP write: ``imupipe.pipeline.writers.mcap.write_mcap`` vs ``mcap_ros2.writer.Writer``
   ``write_message`` per message (goal: >= 5x);
 - peak memory growth of a fresh process reading the file, over its size after imports, against
   the size of the decoded table (goal: < 3x);
@@ -65,7 +65,7 @@ def peer_write(path: Path, table, n: int) -> None:
     """mcap_ros2's writer, one write_message per message."""
     from mcap_ros2.writer import Writer
 
-    from imupipe.pipeline.mcap_writer import msgdef
+    from imupipe.pipeline.writers.mcap import msgdef
     from imupipe.readers.table import sensor
 
     g = sensor(table, "gyro").values[:n]
@@ -111,7 +111,7 @@ MEMORY_PROBE = """
 import json, sys
 sys.path.insert(0, sys.argv[2])
 from proc_memory import status_bytes
-from imupipe.readers.mcap_reader import read_mcap
+from imupipe.readers.mcap.reader import read_mcap
 from imupipe.readers.spec import InputSpec
 import pyarrow, numpy, zstandard  # noqa
 base = status_bytes('VmRSS')
@@ -127,7 +127,7 @@ from pathlib import Path
 sys.path.insert(0, sys.argv[1])
 from proc_memory import status_bytes
 from bench_read_write import make_table, peer_write
-from imupipe.pipeline.mcap_writer import McapTableWriter
+from imupipe.pipeline.writers.mcap import McapTableWriter
 n, how, out = int(sys.argv[2]), sys.argv[3], Path(sys.argv[4])
 table = make_table(n)
 with open("/proc/self/clear_refs", "w") as fh:  # the high-water mark starts here
@@ -208,8 +208,8 @@ def main() -> None:
         report_writer_memory(args.writer_memory, args.peer_n or 100_000, work)
         return
 
-    from imupipe.pipeline.mcap_writer import write_mcap
-    from imupipe.readers.mcap_reader import read_mcap
+    from imupipe.pipeline.writers.mcap import write_mcap
+    from imupipe.readers.mcap.reader import read_mcap
     from imupipe.readers.spec import InputSpec
 
     work = args.keep or Path(tempfile.mkdtemp(prefix="imupipe-bench-"))

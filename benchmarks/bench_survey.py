@@ -23,9 +23,9 @@ import tempfile
 import time
 from pathlib import Path
 
-from imupipe.pipeline.manifest import read_manifest
+from imupipe.pipeline.convert.manifest import read_manifest
 from imupipe.pipeline.simulate import simulate, write_log
-from imupipe.pipeline.survey import survey
+from imupipe.pipeline.survey.scan import survey
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from proc_memory import status_bytes  # noqa: E402

@@ -49,7 +49,7 @@ def batches(messages: int, rows: int) -> Iterator[pa.Table]:
 
 def steps(kind: str) -> list:
     from imupipe.stages.steps import LinearStep
-    from imupipe.stages.temperature_step import TemperatureStep
+    from imupipe.stages.thermal.step import TemperatureStep
 
     if kind == "linear":
         return [LinearStep("gyro_bias", "gyro", np.eye(3), np.array([0.01, -0.02, 0.005]))]

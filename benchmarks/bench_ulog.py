@@ -30,7 +30,7 @@ sys.path.insert(0, {here!r})
 from proc_memory import status_bytes
 import pyulog, numpy, pyarrow
 from imupipe.readers.spec import InputSpec
-from imupipe.readers.ulog_reader import read_ulog
+from imupipe.readers.ulog.reader import read_ulog
 base = status_bytes("VmRSS")
 if {which!r} == "imupipe":
     table, _ = read_ulog(InputSpec(path={path!r}))
@@ -64,7 +64,7 @@ def main() -> None:
 
     from imupipe.readers.spec import InputSpec
     from imupipe.readers.table import counts
-    from imupipe.readers.ulog_reader import read_ulog
+    from imupipe.readers.ulog.reader import read_ulog
 
     spec = InputSpec(path=args.log)
     table, _ = read_ulog(spec)

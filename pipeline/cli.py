@@ -29,7 +29,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
         "calibrate: read the inputs, run the stages, write the outputs",
     ),
     "convert": (
-        "imupipe.pipeline.convert_cli",
+        "imupipe.pipeline.convert.cli",
         "apply a saved calibration to many logs (files or folders), locally or on Ray",
     ),
     "inspect": (
@@ -38,10 +38,11 @@ COMMANDS: dict[str, tuple[str, str]] = {
     ),
     "simulate": (
         "imupipe.pipeline.simulate",
-        "write a synthetic log with a known truth (static, poses, mag, thermal, thermal_soak)",
+        "write a synthetic log with a known truth (static, poses, mag, thermal, thermal_soak, board, "
+        "flight, fleet)",
     ),
     "survey": (
-        "imupipe.pipeline.survey",
+        "imupipe.pipeline.survey.scan",
         "every still moment of a fleet's logs: each IMU's bias, noise, temperature over time",
     ),
     "import": (
@@ -74,7 +75,8 @@ def build_parser(command: str | None = None) -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="imupipe",
         description=(
-            "Calibrate IMUs from CSV, MCAP, ROS bags and PX4 ULog; inspect every stage in Rerun."
+            "Calibrate IMUs from CSV, MCAP, ROS bags, PX4 ULog and ArduPilot DataFlash; inspect every "
+            "stage in Rerun."
         ),
     )
     parser.add_argument("--version", action=_Version)

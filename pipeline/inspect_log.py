@@ -2,7 +2,7 @@
 
 For MCAP and ROS bags: every topic with its message type, message count, mean rate (from the log
 times: ``(count - 1) / span``) and time span, without decoding payloads (an MCAP file with a
-summary section answers from it, :mod:`imupipe.readers.mcap_summary`, without reading a chunk
+summary section answers from it, :mod:`imupipe.readers.mcap.summary`, without reading a chunk
 or importing numpy; else from every message's log time); then the topic each
 stream would be read from (the same choice ``imupipe run`` makes, so an ambiguous choice is shown
 with its candidates) and the common-table columns that would be filled. For a PX4 ULog: every
@@ -119,8 +119,8 @@ def inspect(spec: InputSpec) -> dict[str, Any]:
 
 def _from_summary(path: Path) -> tuple[dict[str, str], dict[str, Any]] | None:
     """(topic -> type, topic -> entry) from an MCAP summary section, or None when it cannot
-    tell (:func:`imupipe.readers.mcap_summary.topic_summary`): no payload read, no numpy."""
-    from imupipe.readers.mcap_summary import topic_summary
+    tell (:func:`imupipe.readers.mcap.summary.topic_summary`): no payload read, no numpy."""
+    from imupipe.readers.mcap.summary import topic_summary
 
     summary = topic_summary(path)
     if summary is None:
@@ -176,9 +176,9 @@ def _ulog(spec: InputSpec, out: dict[str, Any]) -> dict[str, Any]:
     from imupipe.readers.table import SENSOR_COLUMNS, STREAM_OF_SENSOR
 
     if out["format"] == "dataflash":
-        from imupipe.readers.dataflash_reader import describe
+        from imupipe.readers.dataflash.reader import describe
     else:
-        from imupipe.readers.ulog_reader import describe
+        from imupipe.readers.ulog.reader import describe
 
     info = describe(spec)
     for key, inst in info["instances"].items():
@@ -215,7 +215,7 @@ def _csv_layout(spec: InputSpec, why: str) -> dict[str, Any]:
     """A CSV the mapping cannot read: its layout (delimiter, header, columns, lines skipped, a
     rate line) and why, so that the user can write the mapping (``--config``, or the run config's
     ``[inputs.NAME.csv]``). A file that is not a CSV at all is still an error."""
-    from imupipe.readers.csv_layout import sniff
+    from imupipe.readers.csv.layout import sniff
 
     m = spec.csv
     layout = sniff(
@@ -320,7 +320,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 def main(args: argparse.Namespace) -> int:
     spec = InputSpec(path=args.log)
     if args.config is not None:  # the config parser: imported only when asked (start-up time)
-        from imupipe.pipeline.convert_settings import load_read_settings
+        from imupipe.pipeline.convert.settings import load_read_settings
 
         spec = load_read_settings(args.config)
         spec.path = args.log

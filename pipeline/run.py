@@ -27,14 +27,14 @@ from imupipe.pipeline.exports import export_all
 from imupipe.pipeline.instances import expand_instances
 from imupipe.pipeline.notices import Notice, Notices
 from imupipe.pipeline.progress import progress_bar
-from imupipe.pipeline.signals import signals_deferred
-from imupipe.pipeline.summary import (
+from imupipe.pipeline.report.summary import (
     StageSummary,
     raw_count_sensors,
     run_markdown,
     stage_markdown,
     summarise,
 )
+from imupipe.pipeline.signals import signals_deferred
 from imupipe.pipeline.version import VERSION
 from imupipe.pipeline.warm_imports import WarmImports
 from imupipe.readers.dispatch import read_input, reader_for
@@ -125,7 +125,7 @@ def publish(
     recorder.document(None, run_markdown(summaries, f"imupipe run {cfg.path.name}", notes))
     if not cfg.output.report:
         return []
-    from imupipe.pipeline.report import write_report  # imported only when a report is written
+    from imupipe.pipeline.report.page import write_report  # imported only when a report is written
 
     target = cfg.output.dir / "report.html"
     write_report(out.path(target), summaries, recorder.figures, cfg, notes)
@@ -153,9 +153,9 @@ def warm_modules(cfg: Config) -> list[str]:
     modules: list[str] = []
     for st in cfg.stages:
         modules += [m for m in stage_modules(st.type) if m not in modules]
-    modules.append("imupipe.pipeline.recording")
+    modules.append("imupipe.pipeline.report.recording")
     if cfg.output.report:
-        modules.append("imupipe.pipeline.report")
+        modules.append("imupipe.pipeline.report.page")
     exporters = chosen_exports({}, cfg.output.exports)  # the chain is not known yet
     return modules + [f"imupipe.pipeline.exports.{n}" for n in exporters]
 
@@ -212,7 +212,7 @@ def run(
                     notices.add("warning", owner, "step", w)
 
         with staged_outputs(guard) as out:
-            from imupipe.pipeline.recording import open_recorder  # rerun: loaded when run
+            from imupipe.pipeline.report.recording import open_recorder  # rerun: loaded when run
 
             with signals_deferred():  # never a half-made recording stream
                 recorder, files = open_recorder(cfg, out, spawn=spawn, quiet=quiet)
@@ -277,7 +277,7 @@ def run(
             counts: dict[str, dict[str, int]] = {}
             tables.release()
             if cfg.output.apply_to:  # the MCAP writer: imported only when something is written
-                from imupipe.pipeline.corrected import write_corrected
+                from imupipe.pipeline.writers.corrected import write_corrected
             for name in cfg.output.apply_to:  # first: correcting a log may warn (extrapolation)
                 bar.describe(f"writing {name}.mcap")
                 target = out_dir / f"{name}.mcap"
@@ -353,7 +353,7 @@ def main(args: argparse.Namespace) -> int:
     with small_pages():
         summary = run(args.config, spawn=args.spawn, quiet=args.quiet, one_shot=True)
     if not args.quiet:
-        from imupipe.pipeline.summary import print_notices, print_summary
+        from imupipe.pipeline.report.summary import print_notices, print_summary
 
         print_summary(summary.summaries)
         print_notices(summary.notices)  # the summary ends with them; then the files written

@@ -18,46 +18,46 @@ if TYPE_CHECKING:  # pyarrow is loaded by the reader a read imports, not by choo
 CSV_SUFFIXES = {".csv", ".txt", ".tsv", ".mat", ".dat"}
 
 READERS: dict[str, str] = {
-    "csv": "imupipe.readers.csv_reader:read_csv",
-    "mcap": "imupipe.readers.mcap_reader:read_mcap",
-    "ros1": "imupipe.readers.ros1_reader:read_ros1",
-    "ros2": "imupipe.readers.ros2_reader:read_ros2",
-    "ulog": "imupipe.readers.ulog_reader:read_ulog",
-    "dataflash": "imupipe.readers.dataflash_reader:read_dataflash",
+    "csv": "imupipe.readers.csv.reader:read_csv",
+    "mcap": "imupipe.readers.mcap.reader:read_mcap",
+    "ros1": "imupipe.readers.ros1.reader:read_ros1",
+    "ros2": "imupipe.readers.ros2.reader:read_ros2",
+    "ulog": "imupipe.readers.ulog.reader:read_ulog",
+    "dataflash": "imupipe.readers.dataflash.reader:read_dataflash",
 }
 """Format -> "module:function(spec) -> (table, warnings)"."""
 
 CARRY_OVER: dict[str, str] = {
-    "mcap": "imupipe.readers.mcap_reader:carry_over_mcap",
-    "ros1": "imupipe.readers.ros1_reader:carry_over_ros1",
-    "ros2": "imupipe.readers.ros2_reader:carry_over_ros2",
+    "mcap": "imupipe.readers.mcap.reader:carry_over_mcap",
+    "ros1": "imupipe.readers.ros1.reader:carry_over_ros1",
+    "ros2": "imupipe.readers.ros2.reader:carry_over_ros2",
 }
 """Format -> "module:function(spec) -> Iterable[RawMessage]": the messages of every topic the
 table does not hold, in log-time order (formats without other topics are absent; a ULog's other
 topics have no ROS type and are listed in one warning by its reader instead)."""
 
 ITERATORS: dict[str, str] = {
-    "mcap": "imupipe.readers.mcap_reader:iter_mcap",
-    "ros1": "imupipe.readers.ros1_reader:iter_ros1",
-    "ros2": "imupipe.readers.ros2_reader:iter_ros2",
+    "mcap": "imupipe.readers.mcap.reader:iter_mcap",
+    "ros1": "imupipe.readers.ros1.reader:iter_ros1",
+    "ros2": "imupipe.readers.ros2.reader:iter_ros2",
 }
 """Format -> "module:function(spec, batch_rows) -> Iterator[(table, [RawMessage])]": bounded
 memory batches (formats absent here are read whole and yielded as one batch: CSV, ULog, which
 pyulog reads whole, and DataFlash)."""
 
 SOURCES: dict[str, str] = {
-    "mcap": "imupipe.readers.mcap_reader:mcap_sources",
-    "ros1": "imupipe.readers.ros1_reader:bag_sources",
-    "ros2": "imupipe.readers.ros2_reader:bag2_sources",
-    "ulog": "imupipe.readers.ulog_reader:ulog_sources",
-    "dataflash": "imupipe.readers.dataflash_reader:dataflash_sources",
+    "mcap": "imupipe.readers.mcap.reader:mcap_sources",
+    "ros1": "imupipe.readers.ros1.reader:bag_sources",
+    "ros2": "imupipe.readers.ros2.reader:bag2_sources",
+    "ulog": "imupipe.readers.ulog.reader:ulog_sources",
+    "dataflash": "imupipe.readers.dataflash.reader:dataflash_sources",
 }
 """Format -> "module:function(path) -> [LogSource]": the files of a binary log, for ``inspect``."""
 
 
 INSTANCES: dict[str, str] = {
-    "ulog": "imupipe.readers.ulog_reader:raw_instances",
-    "dataflash": "imupipe.readers.dataflash_reader:raw_instances",
+    "ulog": "imupipe.readers.ulog.reader:raw_instances",
+    "dataflash": "imupipe.readers.dataflash.reader:raw_instances",
 }
 """Format -> "module:function(path) -> {kind: [instance key]}": the raw sensor instances of a
 log with several (``imu``, ``mag``, ``baro``), named as the topic keys take them."""

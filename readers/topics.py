@@ -1,7 +1,7 @@
 """Which topic fills which stream, and which table columns a stream's message fills.
 
 No numpy or pyarrow here: ``imupipe inspect`` answers from an MCAP summary with these alone
-(:mod:`imupipe.readers.mcap_summary`), so it starts without importing either.
+(:mod:`imupipe.readers.mcap.summary`), so it starts without importing either.
 """
 
 from __future__ import annotations

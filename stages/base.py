@@ -41,7 +41,7 @@ class StageContext:
 
     - ``name``: the stage's name (its ``name`` key, else its type); Rerun paths go under ``/<name>``.
     - ``input_name``: the config input the stage fits on.
-    - ``recorder``: a :class:`imupipe.pipeline.recording.Recorder` (or a no-op stand-in).
+    - ``recorder``: a :class:`imupipe.pipeline.report.recording.Recorder` (or a no-op stand-in).
     - ``tables``: every input's table, corrected by the chain so far (for ``validate`` inputs).
     - ``warnings``: collected warnings; :meth:`warn` also prints them on stderr.
     - ``accept_failed_checks``: the stage's ``accept_failed_checks`` key: a fit that fails one of

@@ -9,14 +9,14 @@ from imupipe.stages.base import Stage
 STAGE_TYPES: dict[str, str] = {
     "average": "imupipe.stages.average:AverageStage",
     "gyro_bias": "imupipe.stages.gyro_bias:GyroBiasStage",
-    "allan": "imupipe.stages.allan:AllanStage",
-    "accel_calibration": "imupipe.stages.accel_calibration:AccelCalibrationStage",
-    "gyro_calibration": "imupipe.stages.gyro_calibration:GyroCalibrationStage",
-    "mag_calibration": "imupipe.stages.mag_calibration:MagCalibrationStage",
-    "mag_inflight": "imupipe.stages.mag_inflight:MagInflightStage",
-    "temperature": "imupipe.stages.temperature:TemperatureStage",
-    "thermal_soak": "imupipe.stages.thermal_soak:ThermalSoakStage",
-    "baro_temperature": "imupipe.stages.baro_temperature:BaroTemperatureStage",
+    "allan": "imupipe.stages.allan.stage:AllanStage",
+    "accel_calibration": "imupipe.stages.multiposition.accel_calibration:AccelCalibrationStage",
+    "gyro_calibration": "imupipe.stages.multiposition.gyro_calibration:GyroCalibrationStage",
+    "mag_calibration": "imupipe.stages.magnetometer.calibration:MagCalibrationStage",
+    "mag_inflight": "imupipe.stages.magnetometer.inflight:MagInflightStage",
+    "temperature": "imupipe.stages.thermal.temperature:TemperatureStage",
+    "thermal_soak": "imupipe.stages.thermal.soak:ThermalSoakStage",
+    "baro_temperature": "imupipe.stages.thermal.baro:BaroTemperatureStage",
 }
 
 

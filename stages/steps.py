@@ -198,11 +198,11 @@ def _saturated(coefficients: np.ndarray, rows: np.ndarray) -> np.ndarray:
 
 STEP_KINDS: dict[str, str] = {
     "linear": "imupipe.stages.steps:LinearStep",
-    "temperature": "imupipe.stages.temperature_step:TemperatureStep",
-    "thermal_matrix": "imupipe.stages.temperature_step:ThermalMatrixStep",
-    "g_sensitivity": "imupipe.stages.ferraris:GSensitivityStep",
-    "baro_temperature": "imupipe.stages.baro_temperature:BaroTemperatureStep",
-    "mag_current": "imupipe.stages.mag_inflight:MagCurrentStep",
+    "temperature": "imupipe.stages.thermal.step:TemperatureStep",
+    "thermal_matrix": "imupipe.stages.thermal.step:ThermalMatrixStep",
+    "g_sensitivity": "imupipe.stages.multiposition.ferraris:GSensitivityStep",
+    "baro_temperature": "imupipe.stages.thermal.baro:BaroTemperatureStep",
+    "mag_current": "imupipe.stages.magnetometer.inflight:MagCurrentStep",
 }
 """Step kind -> "module:Class". A new kind of correction registers here."""
 

@@ -15,10 +15,10 @@ from imupipe.pipeline.errors import FitError
 from imupipe.pipeline.run import run
 from imupipe.pipeline.simulate import simulate
 from imupipe.readers.table import make_table, sensor
-from imupipe.stages import accel_models as am
-from imupipe.stages.accel_calibration import AccelCalibrationStage
 from imupipe.stages.base import StageContext
-from imupipe.stages.ferraris import GSensitivityStep
+from imupipe.stages.multiposition import accel_models as am
+from imupipe.stages.multiposition.accel_calibration import AccelCalibrationStage
+from imupipe.stages.multiposition.ferraris import GSensitivityStep
 from imupipe.stages.steps import LinearStep, apply_chain, apply_chain_stream, steps_from_json
 
 from conftest import TEST_DATA, run_cli, shared_path

@@ -10,7 +10,7 @@ import pytest
 
 from imupipe.pipeline.config import load_config
 from imupipe.pipeline.errors import ConfigError, ReadError
-from imupipe.readers.csv_reader import read_csv
+from imupipe.readers.csv.reader import read_csv
 from imupipe.readers.table import sensor
 
 from conftest import TEST_DATA

@@ -15,7 +15,7 @@ import allantools
 import numpy as np
 import pytest
 
-from imupipe.stages import allan_estimators as est
+from imupipe.stages.allan import estimators as est
 
 from conftest import TEST_DATA, shared_path
 

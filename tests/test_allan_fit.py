@@ -21,8 +21,8 @@ from scipy.optimize import minimize
 
 from imupipe.pipeline.simulate import noise, simulate
 from imupipe.readers.table import sensor
-from imupipe.stages import allan_estimators as est
-from imupipe.stages.allan_fit import B_FLOOR, TERMS, fit_allan, slope_readings
+from imupipe.stages.allan import estimators as est
+from imupipe.stages.allan.fit import B_FLOOR, TERMS, fit_allan, slope_readings
 
 from conftest import TEST_DATA, shared_path
 

@@ -12,7 +12,7 @@ import pytest
 from imupipe.pipeline.exports.kalibr import noise_yaml
 from imupipe.readers.dispatch import read_input
 from imupipe.readers.spec import InputSpec
-from imupipe.stages.allan import AllanStage
+from imupipe.stages.allan.stage import AllanStage
 from imupipe.stages.base import StageContext
 from imupipe.stages.errors import FitError
 

@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 from imupipe.pipeline.simulate import simulate, write_log
-from imupipe.stages import allan_estimators as est
+from imupipe.stages.allan import estimators as est
 
 
 @pytest.mark.parametrize("n", [1, 7, est.DOT - 1, est.DOT, est.DOT + 1, 3 * est.DOT + 5])
@@ -51,7 +51,7 @@ def test_quiet_allan_run_imports_no_progress_bar_nor_mcap_writer(tmp_path):
         "import sys\n"
         "from imupipe.pipeline.run import run\n"
         f"run({str(cfg)!r}, quiet=True)\n"
-        "print(sorted(m for m in ('rich', 'imupipe.pipeline.mcap_writer') if m in sys.modules))\n"
+        "print(sorted(m for m in ('rich', 'imupipe.pipeline.writers.mcap') if m in sys.modules))\n"
     )
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr[-2000:]
@@ -201,8 +201,8 @@ def test_noise_work_decimation_is_a_slice_of_the_phase():
 
 def _straight_solve(a, target, w, iters=60, fixed=None, start=None):
     """The projected Gauss-Newton of ``allan_fit._solve`` as written before: every cost
-    evaluated afresh (the same NNLS, :func:`imupipe.stages.nnls.nnls`)."""
-    from imupipe.stages.nnls import nnls
+    evaluated afresh (the same NNLS, :func:`imupipe.stages.allan.nnls.nnls`)."""
+    from imupipe.stages.allan.nnls import nnls
 
     sw = np.sqrt(w)
     level = np.exp(target)
@@ -252,7 +252,7 @@ def _straight_solve(a, target, w, iters=60, fixed=None, start=None):
 def _fit_problems():
     """Log-space problems of simulated curves: white + random walk (+ bias instability,
     quantisation, ramp), every subset of the terms, with and without a fixed K share."""
-    from imupipe.stages import allan_fit as fit
+    from imupipe.stages.allan import fit
 
     rng = np.random.default_rng(17)
     taus = np.logspace(-2.4, 3.2, 22)
@@ -275,7 +275,7 @@ def test_gauss_newton_is_the_straightforward_one_bit_for_bit():
     """``_solve`` (scaled columns built once, each cost evaluated once) against the
     straightforward loop: the same coefficients and cost, bit for bit, on every subset of the
     terms and on profile solves."""
-    from imupipe.stages import allan_fit as fit
+    from imupipe.stages.allan import fit
 
     count = 0
     for problem, terms, fixed, start in _fit_problems():

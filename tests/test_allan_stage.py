@@ -11,7 +11,7 @@ import yaml
 
 from imupipe.pipeline.simulate import simulate, write_log
 from imupipe.readers.table import make_table, sensor
-from imupipe.stages.allan import AllanStage
+from imupipe.stages.allan.stage import AllanStage
 from imupipe.stages.base import StageContext
 
 from helpers import rrd_static

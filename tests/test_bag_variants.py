@@ -25,11 +25,11 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from imupipe.pipeline.convert_verify import input_counts
+from imupipe.pipeline.convert.verify import input_counts
 from imupipe.pipeline.inspect_log import inspect
 from imupipe.readers.dispatch import detect_format, log_sources, read_input
 from imupipe.readers.errors import ImupipeError, ReadError
-from imupipe.readers.ros2_reader import read_metadata
+from imupipe.readers.ros2.reader import read_metadata
 from imupipe.readers.spec import InputSpec
 from imupipe.readers.topics import normalize_type
 
@@ -297,7 +297,7 @@ def interrupted(bag: Path, dst: Path, cut: int = 0) -> Path:
     index, the bag header's ``index_pos`` 0, the last chunk's header with the place-holder sizes
     (0) rosbag writes when it opens a chunk, its records (compressed or not) to the end of the
     file, no IndexData after it; and ``cut`` more bytes cut off."""
-    from imupipe.readers.ros1_reader import Ros1Bag, _fields
+    from imupipe.readers.ros1.reader import Ros1Bag, _fields
 
     data = bag.read_bytes()
     last = max(pos for pos, _, _ in Ros1Bag(bag).chunk_infos)
@@ -418,7 +418,7 @@ def test_ros2_storage_files_alone_read_as_their_bag(ros2_bags, key, tmp_path):
         assert got.equals(want)
         _, raw = ours(path)
         assert raw == want_raw
-    from imupipe.pipeline.convert_plan import find_logs
+    from imupipe.pipeline.convert.plan import find_logs
 
     assert find_logs([tmp_path], tmp_path / "out") == [(bare, Path("bare"))]  # convert finds it
 
@@ -456,8 +456,8 @@ def test_metadata_version_10_is_accepted_by_inspect_run_and_convert(ros2_bags, t
 @pytest.mark.parametrize("mode", ["file", "message"])
 def test_ros2_zstd_bags_stream_in_batches(ros2_bags, mode, monkeypatch):
     """``convert``'s bounded-memory batches of a compressed bag hold every message once."""
-    from imupipe.readers import ros2_reader
     from imupipe.readers.dispatch import iter_input
+    from imupipe.readers.ros2 import reader as ros2_reader
 
     monkeypatch.setattr(ros2_reader, "BLOCK_ROWS", 64)
     bag = ros2_bags[f"sqlite3-{mode}"]

@@ -28,10 +28,10 @@ from imupipe.pipeline.simulate import simulate, write_log
 from imupipe.readers.dispatch import read_input
 from imupipe.readers.spec import InputSpec
 from imupipe.readers.table import make_table, with_stream_column
-from imupipe.stages.baro_temperature import BaroTemperatureStage, baro_samples
 from imupipe.stages.base import StageContext
 from imupipe.stages.errors import CalibrationError, FitError
 from imupipe.stages.steps import apply_chain, steps_from_json
+from imupipe.stages.thermal.baro import BaroTemperatureStage, baro_samples
 
 from conftest import run_cli
 

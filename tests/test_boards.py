@@ -36,7 +36,7 @@ from imupipe.readers.dispatch import read_input
 from imupipe.readers.spec import InputSpec
 from imupipe.readers.table import make_table, sensor
 from imupipe.stages.steps import LinearStep, apply_chain, steps_from_json
-from imupipe.stages.temperature_step import TemperatureStep
+from imupipe.stages.thermal.step import TemperatureStep
 
 from conftest import run_cli
 

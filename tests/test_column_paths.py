@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from imupipe.pipeline.figures import decimate, decimate_columns
+from imupipe.pipeline.report.figures import decimate, decimate_columns
 from imupipe.readers.table import make_table, sensor, sensor_columns
 from imupipe.stages.stillness import stillness
 

@@ -20,14 +20,14 @@ import pyarrow.parquet as pq
 import pytest
 from mcap.reader import make_reader
 
-from imupipe.pipeline.convert import convert
-from imupipe.pipeline.convert_plan import find_logs
-from imupipe.pipeline.convert_settings import chain_sha256
-from imupipe.pipeline.engines import run_tasks
+from imupipe.pipeline.convert.engines import run_tasks
+from imupipe.pipeline.convert.fleet import convert
+from imupipe.pipeline.convert.manifest import read_manifest
+from imupipe.pipeline.convert.plan import find_logs
+from imupipe.pipeline.convert.settings import chain_sha256
 from imupipe.pipeline.errors import ImupipeError
-from imupipe.pipeline.manifest import read_manifest
-from imupipe.pipeline.mcap_writer import msgdef, write_mcap
 from imupipe.pipeline.simulate import simulate, write_log
+from imupipe.pipeline.writers.mcap import msgdef, write_mcap
 from imupipe.readers.dispatch import detect_format
 from imupipe.readers.spec import RawMessage
 

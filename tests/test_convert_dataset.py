@@ -13,10 +13,10 @@ import pyarrow.parquet as pq
 import pytest
 from test_convert import CHAIN, expected
 
-from imupipe.pipeline.convert import convert
-from imupipe.pipeline.manifest import read_manifest
-from imupipe.pipeline.mcap_writer import write_mcap
+from imupipe.pipeline.convert.fleet import convert
+from imupipe.pipeline.convert.manifest import read_manifest
 from imupipe.pipeline.simulate import simulate
+from imupipe.pipeline.writers.mcap import write_mcap
 
 from conftest import run_cli
 

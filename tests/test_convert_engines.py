@@ -1,4 +1,4 @@
-"""Issue 8: the engines' failure model (pipeline/engines.py) with a local process pool.
+"""Issue 8: the engines' failure model (pipeline/convert/engines.py) with a local process pool.
 
 Retried: an unexpected exception and a worker process that dies; not retried: bad input
 (ImupipeError); one task's failure never stops the others.
@@ -9,7 +9,7 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-from imupipe.pipeline.engines import run_tasks
+from imupipe.pipeline.convert.engines import run_tasks
 from imupipe.pipeline.errors import ReadError
 
 

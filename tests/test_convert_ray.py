@@ -19,8 +19,8 @@ from pathlib import Path
 import pytest
 from test_fault_kill import descendants
 
-from imupipe.pipeline.engines import run_tasks
-from imupipe.pipeline.manifest import read_manifest
+from imupipe.pipeline.convert.engines import run_tasks
+from imupipe.pipeline.convert.manifest import read_manifest
 
 LOOPBACK = ("127.0.0.1:", "[::ffff:127.0.0.1]:", "[::1]:")
 
@@ -58,8 +58,8 @@ def test_local_ray_listens_on_loopback_only():
 
 
 def _fleet(tmp_path: Path, n: int = 6, messages: int = 40_000) -> tuple[Path, Path]:
-    from imupipe.pipeline.mcap_writer import write_mcap
     from imupipe.pipeline.simulate import simulate
+    from imupipe.pipeline.writers.mcap import write_mcap
 
     fleet = tmp_path / "fleet"
     fleet.mkdir()
@@ -87,7 +87,7 @@ def _convert(cal: Path, out: Path, *logs: Path, extra: tuple[str, ...] = ()) -> 
 
 def _left(roots: set[Path]) -> list[str]:
     """What the Ray under each of ``roots`` left: its folder, its processes."""
-    from imupipe.pipeline.ray_reaper import session_processes
+    from imupipe.pipeline.convert.ray_reaper import session_processes
 
     left = [str(r) for r in roots if r.exists()]
     for r in roots:

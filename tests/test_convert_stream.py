@@ -8,10 +8,10 @@ import json
 
 from test_convert import CHAIN, _status_messages, raw_messages
 
-from imupipe.pipeline.convert import convert
-from imupipe.pipeline.manifest import read_manifest
-from imupipe.pipeline.mcap_writer import write_mcap
+from imupipe.pipeline.convert.fleet import convert
+from imupipe.pipeline.convert.manifest import read_manifest
 from imupipe.pipeline.simulate import simulate
+from imupipe.pipeline.writers.mcap import write_mcap
 from imupipe.readers.dispatch import iter_input
 from imupipe.readers.spec import InputSpec
 

@@ -13,7 +13,7 @@ import numpy as np
 import pyarrow.csv as pacsv
 from test_convert import raw_messages
 
-from imupipe.pipeline.manifest import read_manifest
+from imupipe.pipeline.convert.manifest import read_manifest
 
 from conftest import run_cli
 from helpers import decode_mcap, vec
@@ -54,7 +54,7 @@ def test_temperature_step_streams_through_batches_like_the_whole_log(tmp_path):
     topic), converted with a temperature step in batches of 997 rows, gives the messages that the
     whole log corrected at once gives (apply_chain on the whole table, written by write_mcap)."""
     from imupipe.pipeline.calibration_file import load_calibration
-    from imupipe.pipeline.mcap_writer import write_mcap
+    from imupipe.pipeline.writers.mcap import write_mcap
     from imupipe.readers.dispatch import read_input
     from imupipe.readers.spec import InputSpec
     from imupipe.stages.steps import apply_chain

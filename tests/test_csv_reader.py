@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from imupipe.pipeline.errors import ReadError
-from imupipe.readers.csv_reader import read_csv
+from imupipe.readers.csv.reader import read_csv
 from imupipe.readers.spec import G0, CsvMapping, InputSpec
 from imupipe.readers.table import counts, sensor
 

@@ -1,4 +1,4 @@
-"""ArduPilot DataFlash logs (``readers/dataflash_reader.py``): value for value against pymavlink's
+"""ArduPilot DataFlash logs (``readers/dataflash/reader.py``): value for value against pymavlink's
 ``DFReader`` on a synthetic log written here (FMT + records with ``struct``) and on the real
 logs of ../shared/data/logs/ardupilot_flights (skipped when absent), the streams, instance
 names, ``inspect``, ``run`` and ``convert``, and damaged files."""
@@ -18,7 +18,7 @@ from hypothesis import strategies as st
 from pymavlink import DFReader
 
 from imupipe.pipeline.inspect_log import inspect
-from imupipe.readers.dataflash_reader import DataFlashLog, record_offsets
+from imupipe.readers.dataflash.reader import DataFlashLog, record_offsets
 from imupipe.readers.dispatch import detect_format, read_input
 from imupipe.readers.errors import ImupipeError, ReadError
 from imupipe.readers.spec import InputSpec
@@ -395,7 +395,7 @@ def test_inspect_counts_messages_without_time():
 
 def test_header_scan_across_blocks(synthetic, monkeypatch):
     """The header scan runs in blocks: a header split by a block boundary is still found."""
-    from imupipe.readers import dataflash_reader
+    from imupipe.readers.dataflash import reader as dataflash_reader
 
     path, _ = synthetic
     buf = np.fromfile(path, dtype=np.uint8)

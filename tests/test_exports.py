@@ -24,7 +24,7 @@ from imupipe.pipeline.exports import export_all
 from imupipe.pipeline.simulate import simulate, write_log
 from imupipe.readers.table import make_table, sensor
 from imupipe.stages.steps import LinearStep, steps_from_json
-from imupipe.stages.temperature_step import TemperatureStep
+from imupipe.stages.thermal.step import TemperatureStep
 
 from conftest import TEST_DATA, run_cli
 

@@ -18,8 +18,8 @@ from faults import check, cli, snapshot
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from imupipe.pipeline.mcap_writer import write_mcap
 from imupipe.pipeline.simulate import simulate
+from imupipe.pipeline.writers.mcap import write_mcap
 
 EYE = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]]
 

@@ -25,11 +25,11 @@ from faults import check, cli, snapshot
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from imupipe.pipeline.convert_settings import load_read_settings
-from imupipe.pipeline.convert_verify import mcap_counts
-from imupipe.pipeline.manifest import read_manifest
-from imupipe.pipeline.mcap_writer import write_mcap
+from imupipe.pipeline.convert.manifest import read_manifest
+from imupipe.pipeline.convert.settings import load_read_settings
+from imupipe.pipeline.convert.verify import mcap_counts
 from imupipe.pipeline.simulate import simulate
+from imupipe.pipeline.writers.mcap import write_mcap
 from imupipe.readers.dispatch import read_input
 from imupipe.readers.spec import InputSpec
 from imupipe.stages.steps import LinearStep, axis_products
@@ -329,7 +329,7 @@ def test_a_full_manifest_is_taken_back(tmp_path, monkeypatch):
     it was (no empty file)."""
     import errno
 
-    from imupipe.pipeline.manifest import Manifest
+    from imupipe.pipeline.convert.manifest import Manifest
 
     m = Manifest(tmp_path)
     real_write = os.write
@@ -379,7 +379,7 @@ def test_sigterm_while_the_pool_starts(tmp_path, mcap_log):
 
 
 def test_one_log_is_converted_without_a_pool(tmp_path, mcap_log, monkeypatch):
-    from imupipe.pipeline import engines
+    from imupipe.pipeline.convert import engines
 
     def no_pool(*args, **kwargs):
         raise AssertionError("a pool was started for one log")

@@ -189,8 +189,8 @@ def test_input_names_never_become_paths(tmp_path, name):
 def test_output_dir_of_the_input_never_overwrites_it(tmp_path):
     """[output] dir = the input's folder and an input whose stem gives its output's name: the
     campaign saw the input overwritten by its corrected copy."""
-    from imupipe.pipeline.mcap_writer import write_mcap
     from imupipe.pipeline.simulate import simulate
+    from imupipe.pipeline.writers.mcap import write_mcap
 
     table, _ = simulate("static", {"duration_s": 1.0, "rate_hz": 100.0}, seed=1)
     write_mcap(tmp_path / "a.mcap", table)

@@ -25,9 +25,9 @@ from pathlib import Path
 import pytest
 from faults import TALLY, temps
 
-from imupipe.pipeline.convert_verify import mcap_counts
-from imupipe.pipeline.mcap_writer import write_mcap
+from imupipe.pipeline.convert.verify import mcap_counts
 from imupipe.pipeline.simulate import simulate
+from imupipe.pipeline.writers.mcap import write_mcap
 
 N_LOGS = 4
 

@@ -18,9 +18,9 @@ import pytest
 from faults import TALLY, check, cli, snapshot
 from test_convert import CHAIN, _status_messages, raw_messages, write_bag_with_rosbags
 
-from imupipe.pipeline.manifest import read_manifest
-from imupipe.pipeline.mcap_writer import write_mcap
+from imupipe.pipeline.convert.manifest import read_manifest
 from imupipe.pipeline.simulate import simulate
+from imupipe.pipeline.writers.mcap import write_mcap
 
 
 def damage(data: bytes, how: str, rng: np.random.Generator) -> bytes:

@@ -25,8 +25,8 @@ from mcap.writer import Writer as RawMcapWriter
 from rosbags.typesys import Stores, get_typestore
 from rosbags.typesys.base import Nodetype
 
-from imupipe.pipeline.corrected import write_corrected
-from imupipe.pipeline.mcap_writer import McapTableWriter, write_mcap
+from imupipe.pipeline.writers.corrected import write_corrected
+from imupipe.pipeline.writers.mcap import McapTableWriter, write_mcap
 from imupipe.readers.dispatch import carry_over, iter_input, read_input
 from imupipe.readers.spec import InputSpec
 from imupipe.readers.table import has_sensor, sensor
@@ -718,7 +718,7 @@ def test_real_nan_magnetometer_travels_as_nan(real_outputs):
 def test_streamed_output_equals_whole_table_output(generated, tmp_path, monkeypatch, name, time):
     """``imupipe run``'s streamed write (batches of 200 rows, slices of 300) gives the same file,
     byte for byte, as correcting the whole table and writing it, on a log 5 to 8 batches long."""
-    from imupipe.readers import ros2_reader
+    from imupipe.readers.ros2 import reader as ros2_reader
 
     monkeypatch.setattr(ros2_reader, "BLOCK_ROWS", 150)  # sqlite rows fetched at once
     spec = InputSpec(path=generated / name, time=time)
@@ -829,7 +829,7 @@ def test_csv_without_a_sensor_invents_nothing(tmp_path, present):
 
 
 def test_csv_writer_keeps_nan_and_leaves_absent_sensors_out(tmp_path):
-    from imupipe.pipeline.csv_writer import write_csv
+    from imupipe.pipeline.writers.csv import write_csv
     from imupipe.readers.table import make_table
 
     accel = np.array([[1.0, np.nan, 3.0], [4.0, 5.0, 6.0]])

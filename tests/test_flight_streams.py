@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from pymavlink import DFReader
 
-from imupipe.readers.dataflash_reader import euler_quaternion, read_dataflash
+from imupipe.readers.dataflash.reader import euler_quaternion, read_dataflash
 from imupipe.readers.spec import InputSpec
 from imupipe.readers.table import (
     counts,
@@ -17,7 +17,7 @@ from imupipe.readers.table import (
     sensor,
     with_flight_stream,
 )
-from imupipe.readers.ulog_reader import read_ulog
+from imupipe.readers.ulog.reader import read_ulog
 
 from conftest import shared_path
 

@@ -18,10 +18,10 @@ from hypothesis import strategies as st
 from mcap.writer import CompressionType, Writer
 from test_readers import multi_stream_table
 
-from imupipe.pipeline.bag_writer import write_ros1_bag, write_ros2_bag
 from imupipe.pipeline.errors import ImupipeError
 from imupipe.pipeline.inspect_log import inspect
-from imupipe.pipeline.mcap_writer import McapTableWriter, encode_stream, msgdef
+from imupipe.pipeline.writers.bag import write_ros1_bag, write_ros2_bag
+from imupipe.pipeline.writers.mcap import McapTableWriter, encode_stream, msgdef
 from imupipe.readers.dispatch import carry_over, read_input
 from imupipe.readers.spec import InputSpec, RawMessage
 from imupipe.readers.table import counts, sensor

@@ -15,11 +15,11 @@ from imupipe.pipeline.errors import FitError
 from imupipe.pipeline.simulate import simulate, write_log
 from imupipe.readers.spec import InputSpec
 from imupipe.readers.table import make_table, replace_sensor, sensor
-from imupipe.stages import gyro_models as gm
-from imupipe.stages.accel_calibration import AccelCalibrationStage
 from imupipe.stages.base import StageContext
 from imupipe.stages.gyro_bias import GyroBiasStage
-from imupipe.stages.gyro_calibration import GyroCalibrationStage
+from imupipe.stages.multiposition import gyro_models as gm
+from imupipe.stages.multiposition.accel_calibration import AccelCalibrationStage
+from imupipe.stages.multiposition.gyro_calibration import GyroCalibrationStage
 from imupipe.stages.steps import apply_chain
 
 DEG = np.pi / 180

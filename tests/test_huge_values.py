@@ -58,7 +58,7 @@ def test_huge_cells_are_left_out_with_one_warning(tmp_path, case):
     assert len(warned) == 1, proc.stderr
     assert f"[{stage}]" in warned[0]
     if (tmp_path / "out" / "a.mcap").exists():  # the correction keeps every sample
-        from imupipe.readers.mcap_reader import read_mcap
+        from imupipe.readers.mcap.reader import read_mcap
         from imupipe.readers.spec import InputSpec
 
         out, _ = read_mcap(InputSpec(path=tmp_path / "out" / "a.mcap"))

@@ -15,7 +15,7 @@ from imupipe.pipeline.simulate import simulate, write_log
 from imupipe.pipeline.simulate.mag import DEFAULTS as MAG_DEFAULTS
 from imupipe.readers.table import make_table, sensor
 from imupipe.stages.base import StageContext
-from imupipe.stages.mag_calibration import MagCalibrationStage
+from imupipe.stages.magnetometer.calibration import MagCalibrationStage
 
 from conftest import run_cli, shared_path
 from helpers import decode_mcap, vec

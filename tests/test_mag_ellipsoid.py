@@ -1,4 +1,4 @@
-"""Ellipsoid fits (stages/ellipsoid.py) against Magneto 1.4's published answer and known truth."""
+"""Ellipsoid fits (stages/magnetometer/ellipsoid.py) against Magneto 1.4's published answer and known truth."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from imupipe.stages import ellipsoid as ell
+from imupipe.stages.magnetometer import ellipsoid as ell
 
 from conftest import shared_path
 

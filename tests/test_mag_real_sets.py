@@ -17,7 +17,7 @@ from imupipe.readers.dispatch import read_input
 from imupipe.readers.spec import CsvMapping, InputSpec
 from imupipe.stages.base import StageContext
 from imupipe.stages.errors import FitError
-from imupipe.stages.mag_calibration import MagCalibrationStage
+from imupipe.stages.magnetometer.calibration import MagCalibrationStage
 
 from conftest import TEST_DATA, run_cli, shared_path
 

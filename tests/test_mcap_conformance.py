@@ -23,7 +23,7 @@ import numpy as np
 import pytest
 
 from imupipe.pipeline.inspect_log import inspect
-from imupipe.readers.mcap_reader import McapSource
+from imupipe.readers.mcap.reader import McapSource
 from imupipe.readers.spec import InputSpec
 
 from conftest import TEST_DATA
@@ -143,7 +143,7 @@ def imu_records() -> tuple[mc.Record, ...]:
     order, as the suite's TenMessages) and two Temperature messages on ``/temp``."""
     from mcap_ros2._dynamic import serialize_dynamic
 
-    from imupipe.pipeline.mcap_writer import msgdef
+    from imupipe.pipeline.writers.mcap import msgdef
 
     rng = np.random.default_rng(3)
     records: list[mc.Record] = []

@@ -23,7 +23,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from imupipe.pipeline.inspect_log import inspect
-from imupipe.pipeline.mcap_writer import msgdef
+from imupipe.pipeline.writers.mcap import msgdef
 from imupipe.readers.dispatch import iter_input, read_input
 from imupipe.readers.spec import InputSpec
 from imupipe.readers.table import stream_mask
@@ -294,7 +294,7 @@ def test_summary_without_channels_runs_and_converts(tmp_path, cli):
 def test_summary_without_channels_costs_one_chunk(tmp_path, monkeypatch):
     """The channels a summary counts messages on but does not define are looked for in the data
     section only until they are found: the first chunk of a many-chunk file, here."""
-    from imupipe.readers import fast_mcap
+    from imupipe.readers.mcap import fast as fast_mcap
 
     options = {
         **WRITER_DEFAULTS,

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy.optimize import nnls as scipy_nnls
 
-from imupipe.stages.nnls import MAX_UNKNOWNS, nnls
+from imupipe.stages.allan.nnls import MAX_UNKNOWNS, nnls
 
 
 def _cost(a: np.ndarray, b: np.ndarray, x: np.ndarray) -> float:
@@ -37,7 +37,7 @@ def test_the_allan_fits_problems_against_scipy():
     each Gauss-Newton step's NNLS as scipy solves it."""
     from test_allan_run_speed import _fit_problems
 
-    from imupipe.stages import allan_fit as fit
+    from imupipe.stages.allan import fit
 
     count = 0
     for problem, terms, _, _ in _fit_problems():

@@ -233,7 +233,7 @@ def test_demo_legends_name_only_what_is_drawn(demo_run):
 
 def test_a_line_without_data_gets_no_legend_entry(tmp_path):
     """The check above can fail: a line all NaN is left out of the plot and its legend."""
-    from imupipe.pipeline.recording import Recorder
+    from imupipe.pipeline.report.recording import Recorder
 
     rec = Recorder(tmp_path / "r.rrd")
     t = 10**18 + np.arange(100, dtype=np.int64) * 10**7

@@ -40,8 +40,8 @@ def check(path: Path) -> None:
     sys.path.insert(0, str(REPO / "benchmarks"))
     from bench_read_limits import make_table
 
-    from imupipe.pipeline.mcap_writer import write_mcap
-    from imupipe.readers.mcap_reader import read_mcap
+    from imupipe.pipeline.writers.mcap import write_mcap
+    from imupipe.readers.mcap.reader import read_mcap
     from imupipe.readers.spec import InputSpec
     from imupipe.readers.table_buffer import PREFAULT_ROWS
 

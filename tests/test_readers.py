@@ -97,7 +97,7 @@ def written(tmp_path_factory):
     table = multi_stream_table()
     for name in ["log.csv", *BINARY]:
         write_log(d / name, table)
-    from imupipe.pipeline.bag_writer import write_ros1_bag, write_ros2_bag
+    from imupipe.pipeline.writers.bag import write_ros1_bag, write_ros2_bag
 
     write_ros1_bag(d / "log_bz2.bag", table, compression="bz2")
     write_ros1_bag(d / "log_none.bag", table, compression="none")
@@ -228,7 +228,7 @@ def test_iter_input_batches_join_to_the_table(written):
 
 
 def test_iter_input_memory_is_bounded_by_batch_and_chunk(written, tmp_path):
-    from imupipe.pipeline.mcap_writer import write_mcap
+    from imupipe.pipeline.writers.mcap import write_mcap
 
     _, table, _ = written
     path = tmp_path / "small_chunks.mcap"
@@ -285,7 +285,7 @@ def test_topic_selection_errors(written, tmp_path):
     with pytest.raises(ReadError, match=r"topic '/imu/mag' \(imu_topic\) has type .*MagneticField"):
         read_input(InputSpec(path=path, imu_topic="/imu/mag"))
     # two Imu topics: omitted imu_topic lists the candidates
-    from imupipe.pipeline.mcap_writer import McapTableWriter
+    from imupipe.pipeline.writers.mcap import McapTableWriter
     from imupipe.readers.table import with_metadata
 
     two = tmp_path / "two.mcap"
@@ -305,7 +305,7 @@ def test_topic_selection_errors(written, tmp_path):
 def test_empty_topic_is_an_error(tmp_path):
     from mcap.writer import Writer
 
-    from imupipe.pipeline.mcap_writer import msgdef
+    from imupipe.pipeline.writers.mcap import msgdef
 
     path = tmp_path / "empty.mcap"
     with open(path, "wb") as fh:
@@ -323,7 +323,7 @@ def test_empty_topic_is_an_error(tmp_path):
 def test_wrong_payload_on_a_topic_names_file_and_topic(tmp_path):
     from mcap.writer import Writer
 
-    from imupipe.pipeline.mcap_writer import msgdef
+    from imupipe.pipeline.writers.mcap import msgdef
 
     path = tmp_path / "bad.mcap"
     with open(path, "wb") as fh:
@@ -381,11 +381,11 @@ def _write_order(table, path, order: str, rng) -> pa.Table:
     rows in the file's order per topic (what the readers see)."""
     from mcap.writer import CompressionType, Writer
 
-    from imupipe.pipeline.mcap_writer import encode_stream, msgdef
+    from imupipe.pipeline.writers.mcap import encode_stream, msgdef
 
     log = table.column("log_time_ns").to_numpy()
     if order == "imupipe":  # imupipe's writer: chunks of one topic each, by first log time
-        from imupipe.pipeline.mcap_writer import write_mcap
+        from imupipe.pipeline.writers.mcap import write_mcap
 
         write_mcap(path, table, chunk_bytes=2000)
         return table
@@ -599,7 +599,7 @@ def test_mcap_fast_paths_read_what_the_general_ones_read(tmp_path, monkeypatch):
     late, one that carries -0.0, which is not zero), one frame_id per chunk checked message by
     message (two frame_ids of one length), decompression buffers used again, and batches that
     keep views into chunks while later chunks are read."""
-    from imupipe.pipeline.mcap_writer import write_mcap
+    from imupipe.pipeline.writers.mcap import write_mcap
     from imupipe.readers import decoded, table_buffer
 
     rng = np.random.default_rng(17)

@@ -9,8 +9,8 @@ import time
 
 import numpy as np
 
-from imupipe.pipeline.mcap_writer import write_mcap
-from imupipe.readers.mcap_reader import read_mcap
+from imupipe.pipeline.writers.mcap import write_mcap
+from imupipe.readers.mcap.reader import read_mcap
 from imupipe.readers.spec import InputSpec
 from imupipe.readers.table import sensor
 

@@ -10,7 +10,7 @@ import numpy as np
 import pyarrow as pa
 import pytest
 
-from imupipe.readers.csv_reader import read_csv
+from imupipe.readers.csv.reader import read_csv
 from imupipe.readers.errors import ReadError
 from imupipe.readers.spec import CsvMapping, InputSpec
 from imupipe.readers.table import counts, sensor
@@ -140,7 +140,7 @@ def test_a_row_of_nan_is_a_sample_a_row_of_empty_cells_is_not(tmp_path):
 
 def test_run_writes_every_row_of_a_csv_with_an_empty_cell(tmp_path):
     """Through the CLI: the corrected MCAP holds one Imu message per row, NaN where empty."""
-    from imupipe.readers.mcap_reader import read_mcap
+    from imupipe.readers.mcap.reader import read_mcap
 
     path = tmp_path / "a.csv"
     _imu_csv(path, edit=lambda rows: rows.__setitem__(100, rows[100].replace(",0.2,", ",,")))

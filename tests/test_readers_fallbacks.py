@@ -13,7 +13,7 @@ from mcap.writer import CompressionType, IndexType, Writer
 from rosbags.typesys import Stores, get_typestore
 from test_readers import multi_stream_table
 
-from imupipe.pipeline.mcap_writer import McapTableWriter, encode_stream, msgdef
+from imupipe.pipeline.writers.mcap import McapTableWriter, encode_stream, msgdef
 from imupipe.readers.dispatch import carry_over, read_input
 from imupipe.readers.spec import InputSpec
 

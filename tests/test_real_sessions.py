@@ -24,9 +24,9 @@ import pytest
 from imupipe.pipeline.config import load_config
 from imupipe.readers.dispatch import read_input
 from imupipe.readers.table import sensor
-from imupipe.stages import accel_models as am
-from imupipe.stages import gyro_models as gm
-from imupipe.stages.accel_calibration import AccelCalibrationStage, detect_intervals
+from imupipe.stages.multiposition import accel_models as am
+from imupipe.stages.multiposition import gyro_models as gm
+from imupipe.stages.multiposition.accel_calibration import AccelCalibrationStage, detect_intervals
 from imupipe.stages.static_detector import make_detector, sample_clock
 from imupipe.stages.steps import apply_chain, steps_from_json
 from imupipe.stages.stillness import stillness

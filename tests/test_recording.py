@@ -15,9 +15,9 @@ import numpy as np
 import pyarrow as pa
 import pytest
 
-from imupipe.pipeline.figures import Figures, display_unit
-from imupipe.pipeline.plot_layout import Axis, nice_ticks, tick_labels
-from imupipe.pipeline.recording import Recorder
+from imupipe.pipeline.report.figures import Figures, display_unit
+from imupipe.pipeline.report.plot_layout import Axis, nice_ticks, tick_labels
+from imupipe.pipeline.report.recording import Recorder
 from imupipe.pipeline.simulate import simulate, write_log
 
 from helpers import rrd_rows, rrd_static
@@ -370,7 +370,7 @@ def test_a_log_on_its_own_clock_is_shown_as_durations_not_1970(tmp_path, t0, kin
 
     import rerun.chunk as rc
 
-    from imupipe.pipeline.svg_plot import svg
+    from imupipe.pipeline.report.svg_plot import svg
 
     rec = Recorder(tmp_path / "r.rrd", max_points=1000)
     t = t0 + 5_000_000_000 + np.arange(100, dtype=np.int64) * 10_000_000
@@ -391,7 +391,7 @@ def test_a_log_on_its_own_clock_is_shown_as_durations_not_1970(tmp_path, t0, kin
 def test_a_cloud_far_from_the_origin_gets_the_points_of_the_same_cloud_at_it():
     """A raw magnetometer tumble (centre ~6000 counts, radius ~1000) is drawn with points sized
     by its own spread, not by its distance from the origin (points 6x too large before)."""
-    from imupipe.pipeline.recording import cloud_radius
+    from imupipe.pipeline.report.recording import cloud_radius
 
     rng = np.random.default_rng(3)
     d = rng.standard_normal((5000, 3))

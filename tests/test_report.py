@@ -13,11 +13,11 @@ import xml.etree.ElementTree as ET
 import numpy as np
 import pytest
 
-from imupipe.pipeline.figures import Plot, Series
-from imupipe.pipeline.plot_layout import SUPERSCRIPT, pow10_text
+from imupipe.pipeline.report.figures import Plot, Series
+from imupipe.pipeline.report.plot_layout import SUPERSCRIPT, pow10_text
+from imupipe.pipeline.report.summary import fmt
+from imupipe.pipeline.report.svg_plot import text_width
 from imupipe.pipeline.simulate import simulate, write_log
-from imupipe.pipeline.summary import fmt
-from imupipe.pipeline.svg_plot import text_width
 
 from helpers import screenshot_tool
 
@@ -245,7 +245,7 @@ def _plot(kind: str, series: list[Series], **kw) -> Plot:
 
 
 def _draw(plot: Plot) -> ET.Element:
-    from imupipe.pipeline.svg_plot import svg
+    from imupipe.pipeline.report.svg_plot import svg
 
     return ET.fromstring(svg(plot))
 
@@ -364,7 +364,7 @@ def test_3d_projections_are_at_equal_aspect_with_a_coverage_map():
 
 
 def test_a_plot_with_nothing_to_draw_is_left_out():
-    from imupipe.pipeline.svg_plot import svg
+    from imupipe.pipeline.report.svg_plot import svg
 
     assert svg(_plot("time", [])) is None
     assert (
@@ -376,7 +376,7 @@ def test_a_plot_with_nothing_to_draw_is_left_out():
 def test_axes_of_values_near_the_float64_limit():
     """Cells of 1e308 are numbers: the axis of such a curve (span past float64's range) has
     finite ends and ticks, increasing, and every value maps into [0, 1]."""
-    from imupipe.pipeline.plot_layout import Axis, nice_ticks, tick_labels
+    from imupipe.pipeline.report.plot_layout import Axis, nice_ticks, tick_labels
 
     for lo, hi in (
         (-1e308, 1e308),

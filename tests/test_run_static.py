@@ -79,7 +79,7 @@ def test_recording_has_stage_entities(static_run):
 
 
 def test_calibration_json_reapplies_the_same_chain(static_run):
-    from imupipe.readers.csv_reader import read_csv
+    from imupipe.readers.csv.reader import read_csv
     from imupipe.readers.spec import InputSpec
     from imupipe.readers.table import sensor
     from imupipe.stages.steps import apply_chain, steps_from_json

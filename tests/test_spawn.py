@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from imupipe.pipeline.recording import Recorder
+from imupipe.pipeline.report.recording import Recorder
 from imupipe.pipeline.simulate import simulate, write_log
 
 from helpers import rrd_rows, screenshot_tool

@@ -8,8 +8,7 @@ import json
 
 import pytest
 
-from imupipe.pipeline.simulate import simulate, write_log
-from imupipe.pipeline.summary import (
+from imupipe.pipeline.report.summary import (
     fmt,
     fmt_pm,
     print_summary,
@@ -17,6 +16,7 @@ from imupipe.pipeline.summary import (
     stage_markdown,
     summarise,
 )
+from imupipe.pipeline.simulate import simulate, write_log
 
 
 def test_value_rounded_to_its_uncertainty():

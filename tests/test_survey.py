@@ -12,9 +12,9 @@ import pyarrow.parquet as pq
 import pytest
 
 from imupipe.pipeline.simulate import simulate, write_log
-from imupipe.pipeline.survey import survey
+from imupipe.pipeline.survey.scan import survey
 from imupipe.stages.static_detector import Intervals
-from imupipe.stages.survey_stats import (
+from imupipe.stages.survey.stats import (
     StillOptions,
     batch_means_se,
     cluster_adev,
@@ -275,7 +275,7 @@ def test_tutorial_quotes_the_planted_fleet(planted):
     run in tests/test_docs_examples.py); the summary it quotes is what the survey prints."""
     from test_docs_examples import ROOT, blocks
 
-    from imupipe.pipeline.survey_report import summary_lines
+    from imupipe.pipeline.survey.report import summary_lines
 
     page = ROOT / "docs" / "tutorials" / "fleet-survey.md"
     command = blocks(page, "bash")[0][1].split()

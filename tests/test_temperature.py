@@ -24,9 +24,9 @@ from imupipe.readers.table import make_table, metadata, sensor, with_metadata
 from imupipe.stages.base import StageContext
 from imupipe.stages.blocks import block_means
 from imupipe.stages.steps import apply_chain, steps_from_json
-from imupipe.stages.stepwise import candidate_terms
-from imupipe.stages.temperature import TemperatureStage
-from imupipe.stages.temperature_step import TemperatureStep
+from imupipe.stages.thermal.step import TemperatureStep
+from imupipe.stages.thermal.stepwise import candidate_terms
+from imupipe.stages.thermal.temperature import TemperatureStage
 
 from conftest import run_cli
 
@@ -377,7 +377,7 @@ def test_lag_model_recording(lagging, tmp_path):
     lag fit's cost profile."""
     import rerun.chunk as rc
 
-    from imupipe.pipeline.recording import Recorder
+    from imupipe.pipeline.report.recording import Recorder
 
     fit, _, _ = lagging
     recorder = Recorder(tmp_path / "lag.rrd")

@@ -14,7 +14,7 @@ from imupipe.pipeline.errors import FitError
 from imupipe.pipeline.simulate import simulate, write_log
 from imupipe.readers.table import make_table
 from imupipe.stages.base import StageContext
-from imupipe.stages.temperature import TemperatureStage
+from imupipe.stages.thermal.temperature import TemperatureStage
 
 from conftest import REPO, run_cli
 
@@ -60,8 +60,8 @@ def test_default_chooses_the_lag_by_held_out_prediction(lagging):
     assert (reduction >= 25).all() and (before < 10).all(), (reduction, before)
     # applied to the faster cycle, the rates leave the fitted range: said in degC/min
     auto.step.apply(val)
-    (note,) = [w for w in auto.step.warnings if "dTs extrapolated beyond" in w]
-    assert "] degC/min at " in note and " degC/min)" in note, note
+    (note,) = [w for w in auto.step.warnings if "dTs (temperature rate) extrapolated beyond" in w]
+    assert " degC/min at " in note and " degC/min)" in note, note
     # the stated remaining bias and its interval, per axis
     for axis in "xyz":
         m = auto.results["metrics"][axis]

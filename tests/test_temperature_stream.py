@@ -15,7 +15,7 @@ import pytest
 
 from imupipe.readers.table import make_table
 from imupipe.stages.steps import apply_chain, apply_chain_stream
-from imupipe.stages.temperature_step import TemperatureStep, ThermalMatrixStep
+from imupipe.stages.thermal.step import TemperatureStep, ThermalMatrixStep
 
 IMU_HZ, TEMP_HZ = 20, 1
 

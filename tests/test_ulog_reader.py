@@ -296,7 +296,7 @@ def test_two_device_chip_is_paired_as_px4_pairs_it():
 
 def test_same_instance_without_vehicle_imu(monkeypatch):
     """Without vehicle_imu, PX4's own rule: accel instance i with gyro instance i."""
-    from imupipe.readers import ulog_reader
+    from imupipe.readers.ulog import reader as ulog_reader
 
     monkeypatch.setattr(
         ulog_reader, "READ_TOPICS", tuple(t for t in ulog_reader.READ_TOPICS if t != "vehicle_imu")
@@ -386,7 +386,7 @@ ULOGS = {
 def test_every_imu_of_every_log_is_pyulogs(name):
     """Every IMU candidate of each log, value for value against pyulog: sensor_combined,
     vehicle_imu[_N] (delta over dt), sensor_gyro[_N] with its partner's accel samples."""
-    from imupipe.readers.ulog_reader import UlogFile, accel_partner, candidates
+    from imupipe.readers.ulog.reader import UlogFile, accel_partner, candidates
 
     path = ULOGS[name]()
     f = UlogFile(path)

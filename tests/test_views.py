@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from imupipe.pipeline.figures import (
+from imupipe.pipeline.report.figures import (
     Figures,
     Plot,
     Series,
@@ -19,7 +19,7 @@ from imupipe.pipeline.figures import (
     magnitude_groups,
     split_by_magnitude,
 )
-from imupipe.pipeline.recording import Recorder, legend_room, scale3d
+from imupipe.pipeline.report.recording import Recorder, legend_room, scale3d
 
 T0 = 1_700_000_000 * 10**9
 
@@ -88,7 +88,7 @@ def test_3d_axes_have_a_round_length_outside_the_cloud():
 
 
 def test_report_time_plots_share_one_origin(tmp_path):
-    from imupipe.pipeline.svg_plot import time_axis
+    from imupipe.pipeline.report.svg_plot import time_axis
 
     rec = Recorder(None)
     t = T0 + np.arange(1000, dtype=np.int64) * 10**9

@@ -24,7 +24,7 @@ for name in stage_modules("allan"):
     importlib.import_module(name)
 before = {m for m in sys.modules if m.startswith("scipy")}
 from imupipe.readers.table import make_table
-from imupipe.stages.allan import AllanStage
+from imupipe.stages.allan.stage import AllanStage
 from imupipe.stages.base import StageContext
 rng = np.random.default_rng(0)
 n = 20_000
@@ -59,11 +59,11 @@ def test_a_run_warms_its_stages_recorder_report_and_exporters(tmp_path):
         '[[stages]]\ntype = "allan"\nname = "again"\n[output]\ndir = "out"\n'
     )
     assert warm_modules(load_config(cfg)) == [
-        "imupipe.stages.allan",
+        "imupipe.stages.allan.stage",
         "scipy.special",
         "imupipe.stages.average",
-        "imupipe.pipeline.recording",
-        "imupipe.pipeline.report",
+        "imupipe.pipeline.report.recording",
+        "imupipe.pipeline.report.page",
         "imupipe.pipeline.exports.kalibr",
         "imupipe.pipeline.exports.imu_utils",
         "imupipe.pipeline.exports.vins",
@@ -71,7 +71,7 @@ def test_a_run_warms_its_stages_recorder_report_and_exporters(tmp_path):
     ]
     cfg.write_text(cfg.read_text() + 'report = false\nexports = ["px4"]\n')
     assert warm_modules(load_config(cfg))[-3:] == [
-        "imupipe.pipeline.recording",
+        "imupipe.pipeline.report.recording",
         "imupipe.pipeline.exports.kalibr",
         "imupipe.pipeline.exports.px4",
     ]

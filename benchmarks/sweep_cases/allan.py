@@ -29,7 +29,7 @@ from scipy.signal import butter, sosfiltfilt
 from imupipe.pipeline.exports.common import noise
 from imupipe.pipeline.simulate import simulate
 from imupipe.readers.table import make_table, sensor
-from imupipe.stages.allan import AllanStage
+from imupipe.stages.allan.stage import AllanStage
 from imupipe.stages.base import StageContext
 from sweep_cases import judge
 

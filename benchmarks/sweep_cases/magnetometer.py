@@ -21,9 +21,9 @@ from scipy.spatial.transform import Rotation
 
 from imupipe.pipeline.simulate import simulate
 from imupipe.readers.table import make_table, sensor
-from imupipe.stages import accel_models as am
 from imupipe.stages.base import StageContext
-from imupipe.stages.mag_calibration import MagCalibrationStage
+from imupipe.stages.magnetometer.calibration import MagCalibrationStage
+from imupipe.stages.multiposition import accel_models as am
 from sweep_cases import judge
 
 FAMILY = "magnetometer"

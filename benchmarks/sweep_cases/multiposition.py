@@ -21,10 +21,10 @@ import numpy as np
 from scipy.stats import t as student_t
 
 from imupipe.pipeline.simulate import simulate
-from imupipe.stages import accel_models as am
-from imupipe.stages.accel_calibration import AccelCalibrationStage
 from imupipe.stages.base import StageContext
-from imupipe.stages.gyro_calibration import GyroCalibrationStage
+from imupipe.stages.multiposition import accel_models as am
+from imupipe.stages.multiposition.accel_calibration import AccelCalibrationStage
+from imupipe.stages.multiposition.gyro_calibration import GyroCalibrationStage
 from sweep_cases import judge
 
 FAMILY = "multi-position"

@@ -465,7 +465,7 @@ def judge(case: Case, seed: int = 0) -> dict[str, Any]:
     from imupipe.pipeline.simulate import simulate
     from imupipe.stages.base import StageContext
     from imupipe.stages.errors import FitError
-    from imupipe.stages.temperature import TemperatureStage
+    from imupipe.stages.thermal.temperature import TemperatureStage
 
     fit_log, _ = simulate("thermal", case.params, seed=100 + seed)
     # the check log without sensor noise: what the correction leaves is the calibration's error

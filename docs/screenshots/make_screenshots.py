@@ -308,7 +308,7 @@ def tab_views(bp: Blueprint, path: str) -> list[str]:
 def hero_record(rrd: Path, stage: str) -> dict:
     """What the README's image of ``stage``'s tab shows: the tab's views and the stage's rows
     (the summary's quantities and cells, from ``calibration.json`` beside the recording)."""
-    from imupipe.pipeline.summary import summarise
+    from imupipe.pipeline.report.summary import summarise
 
     bp = Blueprint(rrd)
     tab = next(t for t in bp.contents(bp.root) if bp.name(t) == stage)

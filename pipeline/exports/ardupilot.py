@@ -285,6 +285,7 @@ def compose_with_log(model: SensorModel, i: int, out: Export) -> SensorModel | N
         model.entries,
         model.issues,
         model.device,
+        model.motor,  # added after the matrix, in the corrected frame either way
     )
 
 

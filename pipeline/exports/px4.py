@@ -321,7 +321,7 @@ def families(sensor: str, t: Target) -> list[tuple[str, str]]:
 
 
 BARO_KIND = "baro_temperature"
-"""The chain entries of barometer temperature models (:mod:`imupipe.stages.baro_temperature`)."""
+"""The chain entries of barometer temperature models (:mod:`imupipe.stages.thermal.baro`)."""
 
 
 def baro_rows(doc: dict[str, Any], out: Export) -> tuple[list[Row], list[str], dict[str, Any]]:

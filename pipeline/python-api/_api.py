@@ -5,7 +5,7 @@ Every internal module the public API stands on is imported here, at the top of t
 an internal module changes one import block. The command line and this API share those
 functions: ``imupipe run`` and :func:`run` both call :func:`imupipe.pipeline.run.run`,
 ``imupipe inspect`` and :func:`inspect` both call :func:`imupipe.pipeline.inspect_log.inspect`,
-``imupipe convert`` and :func:`convert` both call :func:`imupipe.pipeline.convert.convert`.
+``imupipe convert`` and :func:`convert` both call :func:`imupipe.pipeline.convert.fleet.convert`.
 
 This module is imported on first use of a public name (``import imupipe`` alone loads none of
 it: no numpy, no pyarrow).
@@ -32,12 +32,17 @@ from imupipe.pipeline.calibration_file import (
     load_calibration,
 )
 from imupipe.pipeline.config import Config, build_options, load_config, parse_config, parse_input
-from imupipe.pipeline.convert import ConvertSummary, convert
+from imupipe.pipeline.convert.fleet import ConvertSummary, convert
 from imupipe.pipeline.inspect_log import inspect as inspect_log
 from imupipe.pipeline.inspect_log import render as render_inspection
+from imupipe.pipeline.report.summary import (
+    StageSummary,
+    print_summary,
+    raw_count_sensors,
+    summarise,
+)
 from imupipe.pipeline.run import RunSummary, calibration_document
 from imupipe.pipeline.run import run as run_config
-from imupipe.pipeline.summary import StageSummary, print_summary, raw_count_sensors, summarise
 from imupipe.readers.dispatch import read_input
 from imupipe.readers.errors import ImupipeError
 from imupipe.readers.spec import InputSpec
@@ -90,7 +95,7 @@ def _warn(messages: Sequence[str], where: str, stacklevel: int) -> None:
 
 
 def _text(summaries: Sequence[StageSummary]) -> str:
-    """The terminal summary of ``imupipe run`` (:func:`~imupipe.pipeline.summary.print_summary`)
+    """The terminal summary of ``imupipe run`` (:func:`~imupipe.pipeline.report.summary.print_summary`)
     as plain text."""
     from rich.console import Console
 
@@ -291,7 +296,7 @@ class StageResult:
         return _text([self.summary()])
 
     def _repr_html_(self) -> str:
-        from imupipe.pipeline.report import stage_html
+        from imupipe.pipeline.report.page import stage_html
 
         return stage_html(self.summary())
 
@@ -419,7 +424,7 @@ class Calibration:
     def _repr_html_(self) -> str:
         import html
 
-        from imupipe.pipeline.report import stage_html
+        from imupipe.pipeline.report.page import stage_html
 
         items = "".join(f"<li>{html.escape(line[3:])}</li>" for line in self._chain_lines())
         body = "".join(stage_html(r.summary()) for r in self.results.values())
@@ -445,7 +450,7 @@ class RunResult:
     def _repr_html_(self) -> str:
         import html
 
-        from imupipe.pipeline.report import overview_html, stage_html
+        from imupipe.pipeline.report.page import overview_html, stage_html
 
         summaries = [s.summary() for s in self.stages.values()]
         files = "".join(f"<li>{html.escape(str(p))}</li>" for p in self.files)

@@ -375,8 +375,8 @@ def mag_calibration(
       to det 1. None: ``[0.5, 2.0]``.
     - ``max_unexplained_pct``: Largest accepted std of the corrected norm that the per-sample
       noise does not explain, % of the field (``sqrt(std^2 - noise^2)``; the noise is the white
-      part of the residual series, :func:`~imupipe.stages.ellipsoid.white_part_std`); None: no
-      limit.
+      part of the residual series,
+      :func:`~imupipe.stages.magnetometer.ellipsoid.white_part_std`); None: no limit.
     """
     return fit_stage(
         "mag_calibration",

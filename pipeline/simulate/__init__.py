@@ -5,7 +5,7 @@ Each scenario module exposes ``DEFAULTS`` (parameter -> default value, SI units)
 ``.mcap``, ``.bag``, ``.db3`` or a folder for a ROS 2 bag) and the truth as ``<FILE>.truth.json``.
 The ``flight`` scenario (a compass with attitude, GPS and current) is written as DataFlash
 (``.bin``). A scenario of several devices (``board``: a PX4 flight controller's IMUs and barometer) returns
-a :class:`~imupipe.pipeline.ulog_writer.UlogData` instead of a table and names the suffixes it
+a :class:`~imupipe.pipeline.writers.ulog.UlogData` instead of a table and names the suffixes it
 is written in (``WRITES``: ``.ulg``); the ``fleet`` scenario returns many logs and is written as a
 folder of MCAP logs.
 Parameters are set with ``--set key=value`` (values parsed as JSON, e.g. ``--set gyro_N=[1e-4,1e-4,2e-4]``).
@@ -38,13 +38,13 @@ SCENARIOS: dict[str, str] = {
 }
 
 WRITERS: dict[str, str] = {
-    ".csv": "imupipe.pipeline.csv_writer:write_csv",
-    ".mcap": "imupipe.pipeline.mcap_writer:write_mcap",
-    ".bag": "imupipe.pipeline.bag_writer:write_ros1_bag",
-    ".db3": "imupipe.pipeline.bag_writer:write_ros2_bag",
-    "": "imupipe.pipeline.bag_writer:write_ros2_bag",
-    ".ulg": "imupipe.pipeline.ulog_writer:write_ulog",
-    ".bin": "imupipe.pipeline.dataflash_writer:write_dataflash",
+    ".csv": "imupipe.pipeline.writers.csv:write_csv",
+    ".mcap": "imupipe.pipeline.writers.mcap:write_mcap",
+    ".bag": "imupipe.pipeline.writers.bag:write_ros1_bag",
+    ".db3": "imupipe.pipeline.writers.bag:write_ros2_bag",
+    "": "imupipe.pipeline.writers.bag:write_ros2_bag",
+    ".ulg": "imupipe.pipeline.writers.ulog:write_ulog",
+    ".bin": "imupipe.pipeline.writers.dataflash:write_dataflash",
 }
 """Suffix -> "module:function(path, table)"; no suffix means a ROS 2 bag folder."""
 
@@ -78,7 +78,7 @@ def write_log(path: Path, table: Any) -> None:
     """Write ``table`` (a scenario's log: a table, or a board's ``UlogData``) to ``path`` in the
     format its suffix names (atomically)."""
     from imupipe.pipeline.simulate.fleet import FleetLogs
-    from imupipe.pipeline.ulog_writer import UlogData
+    from imupipe.pipeline.writers.ulog import UlogData
 
     suffix = path.suffix.lower()
     if isinstance(table, FleetLogs):

@@ -41,7 +41,7 @@ import numpy as np
 
 from imupipe.pipeline.errors import ConfigError
 from imupipe.pipeline.simulate.noise import white
-from imupipe.pipeline.ulog_writer import Topic, UlogData
+from imupipe.pipeline.writers.ulog import Topic, UlogData
 
 WRITES = (".ulg",)
 """The only format a board is written in (several devices: a ULog's topic instances)."""

@@ -107,7 +107,7 @@ class FleetLogs:
     def write(self, out: Path) -> None:
         """Write every log as ``out/<relative path>`` (MCAP; each written atomically)."""
         from imupipe.pipeline.atomic import staged_outputs
-        from imupipe.pipeline.mcap_writer import McapTableWriter
+        from imupipe.pipeline.writers.mcap import McapTableWriter
 
         for recipe in self.logs:
             path = out / recipe.rel

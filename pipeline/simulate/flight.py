@@ -7,7 +7,7 @@ motor interference are known, for the ``mag_inflight`` stage (written as DataFla
 - GPS track: a circle of ``radius_m`` about ``lat``, ``lon`` at ``alt_m`` (+-20 m), ``gps_hz``.
 - Battery current (A): ``current_a`` mean, a 31 s sinusoid and a 13 s square wave of amplitudes
   ``current_swing_a`` and half of it; the ``BAT`` stream (``bat_hz``) logs it with 0.2 A noise.
-- Compass (T, ``mag_hz``): the WMM field on ``year`` at the track (:mod:`imupipe.stages.wmm`)
+- Compass (T, ``mag_hz``): the WMM field on ``year`` at the track (:mod:`imupipe.stages.magnetometer.wmm`)
   rotated into the body, distorted by the inverse of the correction
   ``corrected = M (raw - offset) + motor * I``: ``raw = M^-1 (B_body - motor I) + offset``,
   plus white noise ``mag_noise`` (T per axis); the DataFlash writer rounds it to milligauss.
@@ -22,10 +22,10 @@ from typing import Any
 import numpy as np
 import pyarrow as pa
 
-from imupipe.readers.dataflash_reader import euler_quaternion
+from imupipe.readers.dataflash.reader import euler_quaternion
 from imupipe.readers.table import make_table, metadata, with_flight_stream, with_metadata
-from imupipe.stages.mag_inflight import rotate
-from imupipe.stages.wmm import earth_field
+from imupipe.stages.magnetometer.inflight import rotate
+from imupipe.stages.magnetometer.wmm import earth_field
 
 WRITES = (".bin",)
 """The flight is written as DataFlash."""

@@ -41,8 +41,8 @@ from scipy.spatial.transform import Rotation
 from imupipe.pipeline.simulate.clock import sample_times
 from imupipe.pipeline.simulate.noise import random_walk, white
 from imupipe.readers.table import make_table
-from imupipe.stages.accel_models import misalignment_matrix
-from imupipe.stages.gyro_models import gyro_matrix
+from imupipe.stages.multiposition.accel_models import misalignment_matrix
+from imupipe.stages.multiposition.gyro_models import gyro_matrix
 
 DEFAULTS: dict[str, Any] = {
     "rate_hz": 100.0,

@@ -80,7 +80,7 @@ def parameter_at(p: dict[str, Any], name: str, x: np.ndarray) -> np.ndarray:
 
 
 def accel_raw(f: np.ndarray, scale: np.ndarray, angles: np.ndarray, bias: np.ndarray) -> np.ndarray:
-    """``(diag(s) K)^-1 f + b`` per sample (K as in :mod:`imupipe.stages.accel_models`)."""
+    """``(diag(s) K)^-1 f + b`` per sample (K as in :mod:`imupipe.stages.multiposition.accel_models`)."""
     yz, zy, zx = angles.T
     u = f / scale
     vz = u[:, 2]
@@ -90,7 +90,7 @@ def accel_raw(f: np.ndarray, scale: np.ndarray, angles: np.ndarray, bias: np.nda
 
 
 def gyro_raw(w: np.ndarray, scale: np.ndarray, angles: np.ndarray, bias: np.ndarray) -> np.ndarray:
-    """``(T diag(s))^-1 w + b`` per sample (T as in :mod:`imupipe.stages.gyro_models`)."""
+    """``(T diag(s))^-1 w + b`` per sample (T as in :mod:`imupipe.stages.multiposition.gyro_models`)."""
     yz, zy, zx, xz, xy, yx = angles.T
     m = np.empty((len(w), 3, 3))
     m[:, 0] = np.column_stack([np.ones(len(w)), -yz, zy])

@@ -1,0 +1,213 @@
+"""``imupipe convert``: apply a saved calibration to a fleet of logs, on this machine or on a Ray
+cluster. :func:`convert` is the Python API; the command line is
+:mod:`imupipe.pipeline.convert.cli`.
+
+The work is split by responsibility:
+
+- :mod:`~imupipe.pipeline.convert.settings`: the calibration and the read settings, their hashes;
+- :mod:`~imupipe.pipeline.convert.plan`: finding the logs and their output paths;
+- :mod:`~imupipe.pipeline.convert.worker`: one log (read, correct, write, verify, commit);
+- :mod:`~imupipe.pipeline.convert.done`: skip-if-done;
+- :mod:`~imupipe.pipeline.convert.verify`: the written file against the input's own index;
+- :mod:`~imupipe.pipeline.convert.dataset`: the Parquet dataset;
+- this module: the driver (engine, progress, manifest).
+
+**Resuming.** Outputs are written under temporary names and renamed when complete, so an
+interrupted run leaves no half-written file and the next run picks up where it stopped (a log
+already converted the same way is skipped). ``DIR/manifest.jsonl`` gets one line per log (see
+:mod:`imupipe.pipeline.convert.manifest`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import os
+import sys
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from imupipe.pipeline.atomic import remove_stale_temps
+from imupipe.pipeline.calibration_file import load_calibration
+from imupipe.pipeline.convert.engines import Outcome, run_tasks
+from imupipe.pipeline.convert.manifest import Manifest
+from imupipe.pipeline.convert.options import DEFAULT_BATCH_ROWS, ON_MISMATCH
+from imupipe.pipeline.convert.plan import LogTask, plan
+from imupipe.pipeline.convert.provenance import fitted_on
+from imupipe.pipeline.convert.settings import load_read_settings
+from imupipe.pipeline.convert.worker import (
+    OUTPUT_FAULTS,
+    LogStats,
+    OutputFolderError,
+    convert_log,
+)
+from imupipe.pipeline.errors import ConfigError
+from imupipe.pipeline.progress import progress_bar
+
+WORKER_PRELOAD = (
+    "imupipe.readers.mcap.reader",
+    "imupipe.readers.ros1.reader",
+    "imupipe.readers.ros2.reader",
+    "imupipe.readers.csv.reader",
+    "rosbags.typesys.stores.ros2_humble",
+    "rosbags.typesys.stores.ros1_noetic",
+)
+"""Imported once by the local pool's fork server, so that no worker pays for them on its first
+log (the readers are otherwise imported lazily; the ROS 2 type store, ~0.15 s, makes the MCAP
+schemas)."""
+
+
+ENGINE_LOG = "ray.log"
+"""With ``--engine ray``: ``DIR/ray.log`` takes Ray's own output (named in each manifest line's
+``engine_log``), so the user's stderr holds imupipe's lines only."""
+
+
+@dataclass
+class ConvertSummary:
+    out_dir: Path
+    converted: list[LogStats] = field(default_factory=list)
+    skipped: list[LogStats] = field(default_factory=list)
+    failed: list[tuple[str, str]] = field(default_factory=list)
+    """(input, why) of each log that could not be converted."""
+    seconds: float = 0.0
+
+    @property
+    def messages(self) -> int:
+        return sum(s.messages for s in self.converted)
+
+
+def convert(
+    logs: Sequence[str | os.PathLike[str]],
+    calibration: str | os.PathLike[str],
+    out_dir: str | os.PathLike[str],
+    *,
+    config: str | os.PathLike[str] | None = None,
+    engine: str = "local",
+    jobs: int | None = None,
+    address: str | None = None,
+    retries: int = 2,
+    parquet: bool = False,
+    force: bool = False,
+    batch_rows: int = DEFAULT_BATCH_ROWS,
+    quiet: bool = True,
+    dashboard: bool = False,
+    on_mismatch: str = "warn",
+) -> ConvertSummary:
+    """Convert every log under ``logs`` (files or folders) into ``out_dir``: each log read,
+    corrected by the chain of ``calibration`` (a ``calibration.json``) and written as MCAP (or a
+    Parquet dataset with ``parquet``), resuming where an interrupted conversion stopped (see the
+    module docstring). The keywords are the options of ``imupipe convert``: ``config`` (a TOML
+    file whose ``[inputs.NAME]`` settings say how to read the logs), ``engine`` (``local`` or
+    ``ray``), ``jobs``, ``address``, ``retries``, ``force``, ``batch_rows``, ``on_mismatch``
+    (``warn`` or ``refuse``: a log from another sensor than the calibration's).
+
+    Raises :class:`~imupipe.pipeline.errors.ImupipeError` before anything is written when the
+    plan is wrong (no logs, an output over an input or outside ``out_dir``, an output folder
+    that cannot be written), and :class:`OutputFolderError` when the output folder fails during
+    the run (full, read-only): the other logs are stopped, the same command resumes."""
+    start = time.perf_counter()
+    out = Path(out_dir)
+    doc, _ = load_calibration(Path(calibration))
+    settings = load_read_settings(None if config is None else Path(config))
+    planned = plan(
+        [Path(p) for p in logs],
+        out,
+        doc,
+        settings,
+        parquet=parquet,
+        force=force,
+        batch_rows=batch_rows,
+        csv=config is not None,
+        on_mismatch=on_mismatch,
+    )
+    tasks, guard = planned.tasks, planned.guard
+    summary = ConvertSummary(out_dir=out)
+    if not tasks:
+        raise ConfigError(f"no logs found in {', '.join(map(str, logs))}")
+    if on_mismatch not in ON_MISMATCH:
+        raise ConfigError(f"--on-mismatch {on_mismatch}: not one of {', '.join(ON_MISMATCH)}")
+    if not fitted_on(doc["chain"]) and not quiet:
+        print(
+            f"imupipe: note: {calibration} does not record which sensor it was fitted on "
+            "(written by an older imupipe): the logs are not checked against it",
+            file=sys.stderr,
+        )
+    manifest = Manifest(out, guard)  # checked by the path rule before anything is written
+    engine_log = guard.check(ENGINE_LOG, in_place=True) if engine == "ray" else None
+    guard.probe()
+    # temporary files of workers killed in an earlier run (on this machine, or on any Ray node:
+    # no worker of this run has started yet, and one conversion at a time writes into DIR), in
+    # the folders this run writes into only
+    for folder in planned.folders():
+        remove_stale_temps(folder, other_hosts=True)
+    fatal: list[str] = []
+    with progress_bar("imupipe convert", total=len(tasks), quiet=quiet) as bar:
+
+        def on_done(outcome: Outcome) -> None:
+            task: LogTask = outcome.task
+            record: dict[str, Any] = {
+                "attempts": outcome.attempts,
+                "host": outcome.host,
+                "engine_log": None if engine_log is None else str(engine_log),
+            }
+            if outcome.error is None:
+                stats: LogStats = outcome.result
+                (summary.converted if stats.status == "converted" else summary.skipped).append(
+                    stats
+                )
+                record.update(dataclasses.asdict(stats), messages=stats.messages)
+                if not quiet:
+                    for w in stats.warnings:
+                        print(f"imupipe: warning: {stats.input}: {w}", file=sys.stderr)
+            else:
+                summary.failed.append((str(task.spec.path), outcome.error))
+                record.update(
+                    input=str(task.spec.path),
+                    status="failed",
+                    error=outcome.error,
+                    calibration_sha256=task.calibration_sha256,
+                )
+            try:
+                manifest.append(record)
+            except OSError as exc:  # the manifest is on the output folder's disk too
+                if exc.errno not in OUTPUT_FAULTS:
+                    raise
+                if not outcome.fatal:
+                    fatal.append(f"{manifest.path}: {OUTPUT_FAULTS[exc.errno]}")
+                    raise _Stop() from None
+            bar.advance()
+            bar.describe(f"imupipe convert: {summary.messages:,} messages")
+            if outcome.fatal:
+                fatal.append(outcome.error or "")
+                raise _Stop()
+
+        try:
+            run_tasks(
+                convert_log,
+                tasks,
+                on_done,
+                engine=engine,
+                jobs=jobs,
+                address=address,
+                retries=retries,
+                preload=WORKER_PRELOAD,
+                dashboard=dashboard,
+                engine_log=engine_log,
+            )
+        except _Stop:
+            done = len(summary.converted) + len(summary.skipped)
+            raise OutputFolderError(
+                f"{fatal[0]} ({done} of {len(tasks)} logs done; "
+                "the same command resumes where this one stopped)"
+            ) from None
+        finally:  # also on SIGINT/SIGTERM: what stopped workers could not remove
+            for folder in planned.folders():
+                remove_stale_temps(folder)
+    summary.seconds = time.perf_counter() - start
+    return summary
+
+
+class _Stop(Exception):
+    """Raised in ``on_done`` to stop the engine (its workers are stopped)."""

@@ -1,0 +1,51 @@
+"""What a conversion applies and how it reads: the calibration, the read settings, their hashes.
+
+The two SHA-256 hashes decide whether a log already converted can be skipped
+(:mod:`imupipe.pipeline.convert.done`): the chain's (what decides the corrected values) and the
+read settings' (topics, time source, CSV mapping: what decides which samples are read).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import tomllib
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+from imupipe.pipeline.config import parse_input
+from imupipe.pipeline.errors import ConfigError
+from imupipe.readers.spec import InputSpec
+
+
+def chain_sha256(calibration: Mapping[str, Any]) -> str:
+    """SHA-256 of the calibration chain in canonical JSON (what decides the corrected values)."""
+    canonical = json.dumps(calibration.get("chain", []), sort_keys=True, separators=(",", ":"))
+    return hashlib.sha256(canonical.encode()).hexdigest()
+
+
+def load_read_settings(path: Path | None) -> InputSpec:
+    """The ``--config`` TOML: the keys of one ``[inputs.NAME]`` table except ``path``
+    (``imu_topic``, ``mag_topic``, ``temperature_topic``, ``time`` and a ``[csv]`` mapping)."""
+    if path is None:
+        return InputSpec(path=Path("."))
+    try:
+        raw = tomllib.loads(Path(path).read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise ConfigError(f"--config {path}: no such file") from None
+    except (OSError, UnicodeDecodeError, tomllib.TOMLDecodeError) as exc:
+        raise ConfigError(f"--config {path}: not a readable TOML file: {exc}") from None
+    if "path" in raw:
+        raise ConfigError(f"--config {path}: 'path' is not allowed (the logs are the arguments)")
+    base = Path(path).resolve().parent
+    return parse_input("convert", {**raw, "path": str(base)}, base, f"--config {path}")
+
+
+def settings_sha256(spec: InputSpec) -> str:
+    """SHA-256 of what decides how a log is read (topics, time source, CSV mapping)."""
+    settings = dataclasses.asdict(spec)
+    settings.pop("path"), settings.pop("name")
+    canonical = json.dumps(settings, sort_keys=True, default=str, separators=(",", ":"))
+    return hashlib.sha256(canonical.encode()).hexdigest()

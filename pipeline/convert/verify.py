@@ -1,0 +1,149 @@
+"""Verification of a converted log: the written file holds the input's messages, topic for topic.
+
+The reference is the input's own index, read without reading the messages (MCAP summary
+statistics, the ROS 1 bag index, ROS 2 ``metadata.yaml``, each read as ``inspect`` and ``run``
+read it); for CSV and unindexed logs, the messages read. The written file's counts come from its
+own summary.
+"""
+
+from __future__ import annotations
+
+import collections
+import json
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import pyarrow as pa
+
+from imupipe.pipeline.errors import ImupipeError, ReadError
+from imupipe.pipeline.writers.mcap import DEFAULT_TOPICS
+from imupipe.readers.spec import InputSpec
+from imupipe.readers.table import counts, metadata
+
+
+class VerifyError(ImupipeError):
+    """The written output does not hold the input's messages, topic for topic."""
+
+
+def mcap_summary(path: Path) -> tuple[dict[str, int], dict[str, Any] | None] | None:
+    """(messages per topic, the attached calibration.json) of a finished MCAP; None when the file
+    has no summary (unfinished, or written without one) or one that does not name the topic of
+    every channel it counts messages on (:func:`imupipe.readers.mcap.summary.complete`: every
+    summary record is optional)."""
+    from mcap.reader import make_reader
+
+    from imupipe.readers.mcap.summary import complete
+
+    with open(path, "rb") as fh:
+        reader = make_reader(fh)
+        summary = reader.get_summary()
+        if summary is None or summary.statistics is None:
+            return None
+        channels = {cid: 0 for cid in summary.channels}  # topics are all it takes: no schema
+        if not complete(summary.statistics, channels, ()):
+            return None
+        per_topic: collections.Counter[str] = collections.Counter()
+        for cid, n in summary.statistics.channel_message_counts.items():
+            per_topic[summary.channels[cid].topic] += n
+        attached = None
+        for att in reader.iter_attachments():
+            if att.name == "calibration.json":
+                attached = json.loads(att.data)
+    return dict(per_topic), attached
+
+
+def mcap_counts(path: Path) -> dict[str, int] | None:
+    """Messages per topic from an MCAP's summary statistics (None when it has none)."""
+    summary = mcap_summary(path)
+    return None if summary is None else summary[0]
+
+
+def input_counts(path: Path, fmt: str, warnings: list[str] | None = None) -> dict[str, int] | None:
+    """Messages per topic from the log's own index, without reading the messages; None for CSV and
+    for logs that have no index (then the counts read are the reference). ROS bags are opened by
+    imupipe's own readers, so that ``convert`` accepts exactly what ``inspect`` and ``run`` do:
+    a ROS 2 bag's ``metadata.yaml`` (:func:`imupipe.readers.ros2.reader.bag2_counts`), a ROS 1
+    bag's index (None for an unindexed bag, whose scanning warning is appended to
+    ``warnings``)."""
+    try:
+        if fmt == "mcap":
+            return mcap_counts(path)
+        if fmt == "ros2":
+            from imupipe.readers.ros2.reader import bag2_counts
+
+            return bag2_counts(path)
+        if fmt == "ros1":
+            from imupipe.readers.ros1.reader import bag_sources
+
+            per_topic: collections.Counter[str] = collections.Counter()
+            bags = bag_sources(path)
+            for bag in bags:
+                if warnings is not None:  # convert names the input itself
+                    warnings += [w.removeprefix(f"{path}: ") for w in bag.warnings]
+                per_topic.update(bag.topic_counts())
+            return dict(per_topic) if all(bag.indexed for bag in bags) else None
+    except ImupipeError:
+        raise
+    except Exception as exc:  # noqa: BLE001 - any failure to open the index is a bad log
+        what = "truncated or corrupt" if fmt == "mcap" else "unreadable"
+        raise ReadError(
+            f"{path}: {what} {fmt} log (its index cannot be read: {' '.join(str(exc).split())})"
+        ) from None
+    return None
+
+
+FORMAT_NAMES = {"ulog": "ULog", "mcap": "MCAP", "ros1": "ROS 1 bag", "ros2": "ROS 2 bag"}
+"""How messages name a format."""
+
+
+def source_counts(path: Path, fmt: str) -> dict[str, int] | None:
+    """Messages per topic of a log whose other topics are not carried over (ULog: no ROS type),
+    from its own sources (:func:`~imupipe.readers.dispatch.log_sources`); None for the formats
+    that carry every topic over (MCAP, ROS bags: their counts are verified) and CSV."""
+    from imupipe.readers import dispatch
+
+    if fmt in dispatch.CARRY_OVER or fmt == "csv":
+        return None
+    counts: collections.Counter[str] = collections.Counter()
+    for source in dispatch.log_sources(InputSpec(path=path)):
+        counts.update(source.topic_counts() or {})
+    return dict(counts)
+
+
+def not_carried(
+    fmt: str, counts: Mapping[str, int] | None, written: Mapping[str, int]
+) -> list[str]:
+    """One warning naming every input topic with no messages in the output (a topic is written
+    as itself or as ``topic/...``), with its message count; none when all are written."""
+    if not counts:
+        return []
+    lost = {
+        t: n
+        for t, n in sorted(counts.items())
+        if n and t not in written and not any(w.startswith(t + "/") for w in written)
+    }
+    if not lost:
+        return []
+    total, dropped = sum(counts.values()), sum(lost.values())
+    names = ", ".join(f"{t} ({n:,})" for t, n in lost.items())
+    return [
+        f"{len(lost)} of {len(counts)} {FORMAT_NAMES.get(fmt, fmt)} topics are not carried into the corrected MCAP (they "
+        f"have no ROS message type; {dropped:,} of {total:,} messages): {names}"
+    ]
+
+
+def counts_by_topic(table: pa.Table) -> collections.Counter[str]:
+    """Messages per topic that ``table`` will be written as."""
+    topics = {**DEFAULT_TOPICS, **metadata(table).get("topics", {})}
+    return collections.Counter({topics[s]: n for s, n in counts(table).items() if n})
+
+
+def verify_counts(where: Path, expected: Mapping[str, int], written: Mapping[str, int]) -> None:
+    """Raise :class:`VerifyError` naming the first topic whose count differs."""
+    for topic in sorted(set(expected) | set(written)):
+        want, got = expected.get(topic, 0), written.get(topic, 0)
+        if want != got:
+            raise VerifyError(
+                f"{where}: topic {topic}: the input has {want} messages but the output {got}"
+            )

@@ -1,0 +1,19 @@
+"""What a run shows: the declared figures, the Rerun recording, the summary, the
+self-contained ``report.html`` and its SVG plots.
+
+May import: the pipeline's top (version, errors), the stages and the readers' table; never
+``writers``, ``convert``, ``exports``, ``simulate``.
+
+Its modules (the public face). Importing the package imports none of them, so that
+the command line starts light and no circle can form: import each by its full name.
+
+- :mod:`imupipe.pipeline.report.figures`: What a run shows, declared once by the stages and...
+- :mod:`imupipe.pipeline.report.page`: ``report.html``: the calibration in one self-contained...
+- :mod:`imupipe.pipeline.report.plot2d`: Curves that are not over time, drawn as Rerun 2D plots.
+- :mod:`imupipe.pipeline.report.plot_layout`: The layout of a plot's axes, shared by the Rerun...
+- :mod:`imupipe.pipeline.report.recording`: The Rerun sink: every stage's signals in one...
+- :mod:`imupipe.pipeline.report.summary`: The results of a run in short: per stage the fitted...
+- :mod:`imupipe.pipeline.report.svg_plot`: A declared plot...
+"""
+
+__all__ = ["figures", "page", "plot2d", "plot_layout", "recording", "summary", "svg_plot"]

@@ -1,0 +1,815 @@
+"""The Rerun sink: every stage's signals in one ``recording.rrd``, laid out so that every view
+shows its data when the recording opens.
+
+A stage declares *what* it shows through the recorder (``ctx.recorder``): a signal over time
+(:meth:`Recorder.series`), a curve over something else (:meth:`Recorder.curve`), one value per
+item (:meth:`Recorder.bars`), points and ellipsoids in 3D (:meth:`Recorder.points3d`,
+:meth:`Recorder.ellipsoid`), each with its SI unit, the names of its lines and the plot it goes
+in. The recorder keeps these as :class:`~imupipe.pipeline.report.figures.Figures` (which ``report.html``
+draws too) and decides *how* they look in Rerun:
+
+- signals over time: a ``TimeSeriesView`` per plot, on the ``time`` timeline (the one the time
+  panel opens on), opened on the span of its own data, titled with its unit. Signals are sent in
+  bulk with ``rr.send_columns``; one longer than ``max_points`` is averaged over consecutive
+  blocks down to that many points (the MCAP output keeps every sample);
+- curves over something else (Allan deviation over tau, bias against temperature): a
+  ``Spatial2DView`` of line strips in plot coordinates, with the axes, grid, tick labels, axis
+  titles and a legend drawn as 2D primitives, logged as static data. A time-series view cannot
+  do it: its x axis is the time panel's timeline, so a curve on a timeline of its own opens empty
+  until one switches timelines by hand, and Rerun's plots have no logarithmic axes;
+- one value per item (residual per pose or per transition): a ``BarChartView`` (static);
+- 3D points and ellipsoids: a ``Spatial3DView``;
+- per stage a markdown ``TextDocument`` with the results (:mod:`imupipe.pipeline.report.summary`), and
+  a first tab, "Summary", with all of them.
+
+The default blueprint has the Summary tab, then one tab per stage. With a viewer (``--spawn``)
+everything also streams live to it over gRPC (a second stream with the same recording id, so a
+failing viewer never touches the file).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+import os
+import re
+import shutil
+import signal
+import socket
+import subprocess
+import sys
+import tempfile
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import rerun as rr
+import rerun.blueprint as rrb
+
+from imupipe.pipeline.report import plot2d
+from imupipe.pipeline.report.figures import (
+    AXIS_COLORS,
+    NAMED_COLORS,
+    PALETTE,
+    Figures,
+    Plot,
+    Series,
+    colors_for,
+    column_ranges,
+    decimate,
+    decimate_columns,
+    display_unit,
+    is_wall_clock,
+    lighter,
+    split_by_magnitude,
+    stage_of,
+)
+from imupipe.pipeline.report.plot_layout import nice_ticks
+from imupipe.pipeline.report.summary import raw_count_sensors
+from imupipe.readers.table import (
+    SENSOR_COLUMNS,
+    SENSOR_UNITS,
+    STREAM_OF_SENSOR,
+    has_stream,
+    sensor_columns,
+)
+from imupipe.stages.base import NullRecorder
+
+TIMELINE = "time"
+
+
+class Recorder:
+    """Collects what the stages show and writes it to ``path`` (a Rerun recording; None: keep
+    the figures only, for the report) and, with ``viewer`` (a gRPC URL), streams it live."""
+
+    enabled = True
+
+    def __init__(
+        self,
+        path: Path | None,
+        *,
+        viewer: str | None = None,
+        max_points: int = 20_000,
+        keep_points: int = 2_000,
+        application_id: str = "imupipe",
+        warn: Callable[[str], None] | None = None,
+    ) -> None:
+        self.max_points = max_points
+        self.figures = Figures(keep_points)
+        self.raw_counts: dict[str, set[str]] = {}
+        """input -> the sensors it holds in raw counts (not SI): plotted apart, in counts"""
+        self._warn = warn or (lambda message: None)
+        self._streams: list[rr.RecordingStream] = []
+        self._live: rr.RecordingStream | None = None
+        if path is not None:
+            self.rec = rr.RecordingStream(application_id)
+            self.rec.save(str(path))
+            self._streams.append(self.rec)
+            if viewer is not None:
+                self._live = rr.RecordingStream(
+                    application_id, recording_id=self.rec.get_recording_id()
+                )
+                self._live.set_sinks(rr.GrpcSink(viewer))
+                self._streams.append(self._live)
+        self._views: dict[str, list[Any]] = {}  # stage -> views added with add_view
+        self._documents: dict[str, str] = {}  # stage ("" for the run) -> markdown
+        self._styled: set[str] = set()
+        self._spans: dict[str, tuple[int, int]] = {}  # entity -> (first, last) t_ns
+        self._wall_clock: bool | None = None  # the time line: dates, or durations from 0
+        self._still_counts: set[tuple[str, str]] = set()  # (input, sensor) corrected, in counts
+        self._input_units: dict[tuple[str, str], str] = {}  # (stage, sensor) -> unit of its input
+        self._reused: dict[Any, Series] = {}  # (input, sensor, steps applied) -> series sent
+
+    # -- sending -------------------------------------------------------------------------------
+    def _send(self, fn: Callable[[rr.RecordingStream], None]) -> None:
+        """``fn(stream)`` for the file and, while it works, the live viewer."""
+        for stream in list(self._streams):
+            if stream is self._live:
+                try:
+                    fn(stream)
+                except Exception as exc:  # noqa: BLE001 - a viewer failure never stops the run
+                    self._drop_live(exc)
+            else:
+                fn(stream)
+
+    def _drop_live(self, exc: BaseException) -> None:
+        if self._live is not None:
+            self._streams.remove(self._live)
+            with contextlib.suppress(Exception):
+                self._live.disconnect()
+            self._live = None
+            self._warn(f"the Rerun viewer stopped receiving ({' '.join(str(exc).split())})")
+
+    def log(self, entity: str, archetype: Any, *, static: bool = True) -> None:
+        """Anything else (a mesh, arrows...): one ``rr.log`` call, shown in a view the stage adds
+        with :meth:`add_view`."""
+        self.figures.stage(stage_of(entity))
+        self._send(lambda s: rr.log(entity, archetype, static=static, recording=s))
+
+    def _style(
+        self, entity: str, names: Sequence[str], colors: Sequence[Any], points: bool
+    ) -> None:
+        if entity in self._styled:
+            return
+        self._styled.add(entity)
+        if points:
+            self.log(entity, rr.SeriesPoints(names=list(names), colors=list(colors)))
+        else:  # zoomed out, the viewer draws each pixel column's min and max, never a mean
+            policy = rr.components.AggregationPolicy.MinMax
+            self.log(
+                entity,
+                rr.SeriesLines(names=list(names), colors=list(colors), aggregation_policy=policy),
+            )
+
+    # -- what a stage shows ------------------------------------------------------------------
+    def series(
+        self,
+        entity: str,
+        t_ns: np.ndarray,
+        values: np.ndarray,
+        names: Sequence[str] = ("x", "y", "z"),
+        *,
+        unit: str | None = None,
+        plot: str | None = None,
+        title: str | None = None,
+        colors: Sequence[Any] | None = None,
+        points: bool = False,
+    ) -> None:
+        """A signal over time: ``values`` (n,) or (n, k) in the SI ``unit`` at ``t_ns`` (int64
+        ns), one named line per column. ``plot`` (default: the entity's last path part) groups
+        signals of one stage into one plot; ``title`` names it (the unit is appended)."""
+        t_ns = np.asarray(t_ns, dtype=np.int64)
+        values = np.asarray(values, dtype=np.float64).reshape(len(t_ns), -1)
+        names, colors, values = _with_data(names, colors_for(names, colors), values)
+        if len(t_ns) == 0 or not names:  # no legend entry without data
+            return
+        shown, factor = display_unit(unit)
+        key = plot or entity.rstrip("/").rsplit("/", 1)[-1]
+        fig = self.figures.plot(stage_of(entity), key, "time", title=title, unit=shown)
+        t_ns, values = decimate(t_ns, values, self.max_points)  # then scaled: fewer points
+        if factor != 1.0:
+            with np.errstate(over="ignore"):  # a damaged 1e308 cell: inf, not drawn
+                values = values * factor
+        kept_t, kept = decimate(t_ns, values, self.figures.keep_points)
+        fig.series.append(
+            Series(entity, list(names), colors, kept_t, kept, "points" if points else "line")
+        )
+        for name, color in zip(names, colors, strict=True):
+            self._style(line_path(entity, name), [name], [color], points)
+        lo, hi = int(t_ns.min()), int(t_ns.max())
+        first, last = self._spans.get(entity, (lo, hi))
+        self._spans[entity] = (min(first, lo), max(last, hi))
+        if self._wall_clock is None:  # one kind per timeline: the first signal decides
+            self._wall_clock = is_wall_clock(lo)
+        if self._streams:
+            indexes = [
+                rr.TimeColumn(TIMELINE, timestamp=t_ns.astype("datetime64[ns]"))
+                if self._wall_clock
+                else rr.TimeColumn(TIMELINE, duration=t_ns.astype("timedelta64[ns]"))
+            ]
+            for j, name in enumerate(names):  # one entity per line: views pick lines
+                path, columns = line_path(entity, name), rr.Scalars.columns(scalars=values[:, j])
+                self._send(
+                    lambda s, p=path, c=columns: rr.send_columns(
+                        p, indexes=indexes, columns=c, recording=s
+                    )
+                )
+
+    def curve(
+        self,
+        entity: str,
+        x: np.ndarray,
+        values: np.ndarray,
+        names: Sequence[str],
+        *,
+        x_label: str | None = None,
+        x_unit: str = "",
+        unit: str | None = None,
+        plot: str | None = None,
+        title: str | None = None,
+        log_x: bool = False,
+        log_y: bool = False,
+        points: bool = False,
+        band: bool = False,
+        guide: bool = False,
+        colors: Sequence[Any] | None = None,
+        timeline: str | None = None,
+    ) -> None:
+        """A curve over something other than time: ``values`` (n,) or (n, k) in the SI ``unit``
+        against ``x`` (in ``x_unit``), one named line per column, drawn as markers with
+        ``points``, as thin guide lines beneath the data with ``guide`` (the terms of a model).
+        With ``band``, ``values`` is (n, 2), the lower and upper edge of a confidence band, and
+        ``names`` has its one name. Curves with the same ``plot`` (default:
+        the entity, relative to its stage) share a plot and its axes, logarithmic with
+        ``log_x``/``log_y``. (``timeline``: the older form, kept working: a label for ``x``.)"""
+        x = np.asarray(x, dtype=np.float64)
+        values = np.asarray(values, dtype=np.float64).reshape(len(x), -1)
+        if not band:
+            given = None if colors is None else colors_for(names, colors)
+            names, kept_colors, values = _with_data(
+                names, given or [(0, 0, 0)] * len(names), values, x
+            )
+            colors = kept_colors if given is not None else None
+        if len(x) == 0 or not names:  # no legend entry without data
+            return
+        shown, factor = display_unit(unit)
+        stage = stage_of(entity)
+        key = plot or entity.strip("/").split("/", 1)[-1]
+        fig = self.figures.plot(
+            stage,
+            key,
+            "xy",
+            title=title,
+            unit=shown,
+            x_label=x_label or timeline or "x",
+            x_unit=x_unit,
+            log_x=log_x,
+            log_y=log_y,
+        )
+        if band:
+            color = colors_for(names, colors)[0] if colors is not None else (150, 150, 150)
+            fig.series.append(Series(entity, list(names[:1]), [color], x, values * factor, "band"))
+            return
+        style = "points" if points else "guide" if guide else "line"
+        x, kept = decimate(x, values * factor, 5 * self.figures.keep_points)
+        if colors is None:
+            used = sum(len(s.names) for s in fig.series if s.style != "band")
+            colors = [PALETTE[(used + i) % len(PALETTE)] for i in range(len(names))]
+        fig.series.append(Series(entity, list(names), colors_for(names, colors), x, kept, style))
+
+    def bars(
+        self,
+        entity: str,
+        values: np.ndarray,
+        names: Sequence[str],
+        *,
+        x_label: str,
+        unit: str | None = None,
+        plot: str | None = None,
+        title: str | None = None,
+        colors: Sequence[Any] | None = None,
+    ) -> None:
+        """One value per item (``values`` (n,) or (n, k), item i at x = i), e.g. the residual
+        per pose; ``k`` columns are drawn side by side (before/after)."""
+        values = np.asarray(values, dtype=np.float64)
+        values = values.reshape(len(values), -1)
+        shown, factor = display_unit(unit)
+        key = plot or entity.strip("/").split("/", 1)[-1]
+        fig = self.figures.plot(
+            stage_of(entity), key, "bars", title=title, unit=shown, x_label=x_label
+        )
+        if colors is None:
+            named = list(NAMED_COLORS.values())
+            colors = named[1:2] if len(names) == 1 else named[: len(names)]
+        colors = colors_for(names, colors)
+        x = np.arange(len(values), dtype=np.float64)
+        fig.series.append(Series(entity, list(names), colors, x, values * factor, "line"))
+        k = values.shape[1]
+        width = 0.8 / k
+        for j, name in enumerate(names):
+            offset = (j - (k - 1) / 2) * width
+            chart = rr.BarChart(
+                values[:, j] * factor,
+                color=colors[j],
+                abscissa=x + offset,
+                widths=np.full(len(x), width),
+            )
+            self._send(
+                lambda s, c=chart, n=name: rr.log(
+                    f"{entity}/{_part(n)}", c, static=True, recording=s
+                )
+            )
+
+    def points3d(
+        self,
+        entity: str,
+        xyz: np.ndarray,
+        *,
+        unit: str | None,
+        name: str,
+        plot: str | None = None,
+        title: str | None = None,
+        colors: np.ndarray | Sequence[Any] | None = None,
+        radius: float | None = None,
+    ) -> None:
+        """A cloud of 3D points (n, 3) in the SI ``unit`` (``colors``: one, or one per point)."""
+        xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
+        shown, factor = display_unit(unit)
+        key = plot or entity.strip("/").split("/", 1)[-1]
+        fig = self.figures.plot(stage_of(entity), key, "3d", title=title, unit=shown)
+        pts = xyz * factor
+        cols = np.asarray(colors if colors is not None else [(40, 100, 230)], dtype=np.uint8)
+        cols = cols.reshape(-1, cols.shape[-1])
+        stride = max(1, math.ceil(len(pts) / (2 * self.figures.keep_points)))
+        kept_cols = cols[::stride] if len(cols) == len(pts) else cols
+        fig.series.append(
+            Series(
+                entity,
+                [name],
+                [tuple(int(c) for c in cols[0][:3])],
+                np.arange(len(pts))[::stride],
+                pts[::stride],
+                "cloud",
+                {"colors": kept_cols},
+            )
+        )
+        radius = cloud_radius(pts) if radius is None else radius
+        self.log(entity, rr.Points3D(pts, colors=cols, radii=radius))
+
+    def ellipsoid(
+        self,
+        entity: str,
+        centre: Sequence[float],
+        half_sizes: Sequence[float],
+        rotation: np.ndarray | None = None,
+        *,
+        unit: str | None,
+        name: str,
+        plot: str | None = None,
+        title: str | None = None,
+        color: Sequence[int] = (240, 180, 40),
+    ) -> None:
+        """An ellipsoid (``rotation``: 3x3 matrix whose columns are its axes) in the SI ``unit``."""
+        from scipy.spatial.transform import Rotation
+
+        shown, factor = display_unit(unit)
+        key = plot or entity.strip("/").split("/", 1)[-1]
+        fig = self.figures.plot(stage_of(entity), key, "3d", title=title, unit=shown)
+        rot = np.eye(3) if rotation is None else np.asarray(rotation, dtype=np.float64)
+        centre_s = np.asarray(centre, dtype=np.float64) * factor
+        half = np.asarray(half_sizes, dtype=np.float64) * factor
+        fig.series.append(
+            Series(
+                entity,
+                [name],
+                [tuple(color)],
+                np.zeros(1),
+                centre_s[None, :],
+                "ellipsoid",
+                {"half_sizes": half, "rotation": rot},
+            )
+        )
+        quat = Rotation.from_matrix(rot).as_quat()
+        self.log(
+            entity,
+            rr.Ellipsoids3D(
+                centers=[centre_s],
+                half_sizes=[half],
+                quaternions=[rr.Quaternion(xyzw=quat)],
+                colors=[color],
+                labels=[name],
+            ),
+        )
+
+    # -- what the pipeline shows -------------------------------------------------------------
+    def sensors(
+        self,
+        stage: str,
+        table: Any,
+        sensors: Sequence[str],
+        *,
+        input_name: str,
+        chain: Sequence[Any] = (),
+        corrected: bool = False,
+        counts: Sequence[str] = (),
+    ) -> None:
+        """A stage's ``sensors`` in ``table``, one plot per sensor: before the stage (``gyro x
+        raw``, or ``gyro x input`` when earlier steps of the ``chain`` corrected it; lighter
+        colours) or, with ``corrected``, after it (``gyro x corrected``; ``counts``: the sensors
+        the correction left in raw counts). A sensor of an input already sent at the same point
+        of the chain (an earlier stage on the same input) is not sent again: the stage's plot
+        shows the earlier signal."""
+        for name in sensors:
+            if not has_stream(table, STREAM_OF_SENSOR[name]):
+                continue
+            applied = sum(getattr(step, "sensor", None) == name for step in chain)
+            label = "corrected" if corrected else "input" if applied else "raw"
+            # raw counts (a CSV read with <sensor>_unit = "raw", until a correction makes them
+            # SI) are not SI: a plot of their own
+            read_in_counts = name in self.raw_counts.get(input_name, ())
+            if corrected and read_in_counts and name in counts:
+                self._still_counts.add((input_name, name))
+            elif corrected:
+                self._still_counts.discard((input_name, name))
+            in_counts = read_in_counts and (
+                label == "raw" or (input_name, name) in self._still_counts
+            )
+            unit = "raw counts" if in_counts else SENSOR_UNITS[name]
+            key, title = name, name
+            if not corrected:
+                self._input_units[(stage, name)] = unit
+            reuse = None if corrected else (input_name, name, applied)
+            if reuse is not None and reuse in self._reused:
+                shown = display_unit(unit)[0]
+                plot = self.figures.plot(stage, key, "time", title=title, unit=shown)
+                plot.series.append(self._reused[reuse])
+                continue
+            # averaged down column by column first: no (n, 3) copy of the input
+            t_ns, values = decimate_columns(*sensor_columns(table, name), self.max_points)
+            axes = [c.split("_")[-1] for c in SENSOR_COLUMNS[name]]
+            names = [f"{name} {a} {label}" if len(axes) > 1 else f"{name} {label}" for a in axes]
+            colors = AXIS_COLORS[: len(axes)]
+            if not corrected:
+                colors = [lighter(c) for c in colors]
+            entity = f"/{stage}/{label}/{name}"
+            self.series(
+                entity,
+                t_ns,
+                values,
+                names,
+                unit=unit,
+                plot=key,
+                title=title,
+                colors=colors,
+            )
+            shown_series = next(
+                (
+                    p.series[-1]
+                    for p in self.figures.of_stage(stage)
+                    if p.series and p.series[-1].entity == entity
+                ),
+                None,  # nothing drawn: every value of the stream is NaN (a CSV without gyro)
+            )
+            if reuse is not None and shown_series is not None:
+                self._reused[reuse] = shown_series
+
+    def input_unit(self, stage: str, sensor: str) -> str:
+        """The unit of ``sensor`` in the table ``stage`` fits on: SI, or ``raw counts`` for a
+        CSV read with ``<sensor>_unit = "raw"`` that no earlier stage corrected."""
+        return self._input_units.get((stage, sensor), SENSOR_UNITS[sensor])
+
+    def document(self, stage: str | None, markdown: str) -> None:
+        """A stage's results (``stage`` None: the run's summary) as a markdown ``TextDocument``."""
+        path = "/summary" if stage is None else f"/{stage}/summary"
+        self._documents[stage or ""] = path
+        if stage is not None:
+            self.figures.stage(stage)
+        self._send(
+            lambda s: rr.log(
+                path,
+                rr.TextDocument(markdown, media_type=rr.MediaType.MARKDOWN),
+                static=True,
+                recording=s,
+            )
+        )
+
+    # -- blueprint ---------------------------------------------------------------------------
+    def add_view(self, stage: str, view: Any) -> None:
+        """Add a view of your own (``rrb.Spatial3DView`` of what :meth:`log` sent...) to a
+        stage's tab, after the plots the recorder lays out."""
+        self.figures.stage(stage)
+        self._views.setdefault(stage, []).append(view)
+
+    def ensure_stage(self, stage: str) -> None:
+        """Give a stage a tab (even one that showed nothing: its results document)."""
+        self.figures.stage(stage)
+
+    def _time_views(self, plot: Plot) -> list[Any]:
+        """The views of a plot over time: one per group of lines of like magnitude
+        (:func:`~imupipe.pipeline.report.figures.split_by_magnitude`, as in the report: accel z at
+        9.8 m/s^2 apart from x and y near 0), each with its legend in the top right corner above
+        the data (the y range leaves it room)."""
+        views = []
+        for part in split_by_magnitude(plot):
+            # the signals before a stage first: the viewer draws later lines over earlier ones
+            ordered = sorted(part.series, key=lambda s: not ("/raw/" in s.entity or "/input/" in s.entity))  # fmt: skip
+            paths = [line_path(s.entity, n) for s in ordered for n in s.names]
+            rows = len(dict.fromkeys(paths))
+            view = rrb.TimeSeriesView(
+                origin="/",
+                contents=list(dict.fromkeys(paths)),
+                name=part.heading,
+                plot_legend=rrb.PlotLegend(corner=rrb.Corner2D.RightTop, visible=True),
+                axis_y=rrb.ScalarAxis(range=legend_room(part, rows)),
+            )
+            spans = [self._spans[e] for e in dict.fromkeys(part.entities) if e in self._spans]
+            views.append(_with_span(view, spans))
+        return views
+
+    def _view(self, plot: Plot) -> Any:
+        if plot.kind == "bars":
+            # the legend of a bar chart shows entity paths: the colours are named in the title
+            named = {c: n for n, c in NAMED_COLORS.items()}
+            key = [
+                f"{named.get(tuple(c), str(tuple(c)))} {n}"
+                for s in plot.series
+                for n, c in zip(s.names, s.colors, strict=True)
+            ]
+            title = f"{plot.heading} per {plot.x_label}"
+            return rrb.BarChartView(
+                origin="/",
+                contents=[f"{e}/**" for e in dict.fromkeys(plot.entities)],
+                name=title + (f": {', '.join(key)}" if len(key) > 1 else ""),
+                plot_legend=rrb.PlotLegend(visible=False),
+            )
+        if plot.kind == "3d":
+            return rrb.Spatial3DView(
+                origin="/",
+                contents=[*dict.fromkeys(plot.entities), axes3d_path(plot)],
+                name=f"{plot.heading}; axes {scale3d(plot)[1]:g} {plot.unit}".rstrip(),
+            )
+        return plot2d.view(plot)
+
+    def _fit_time_axis(self, view: Any) -> None:
+        """A time-series view added by a stage opens on the span of the signals under its origin."""
+        if getattr(view, "class_identifier", None) != "TimeSeries" or "TimeAxis" in view.properties:
+            return
+        origin = str(view.origin).rstrip("/")
+        _with_span(
+            view,
+            [v for e, v in self._spans.items() if e == origin or e.startswith(origin + "/")],
+        )
+
+    def blueprint(self) -> rrb.Blueprint:
+        tabs: list[Any] = []
+        if "" in self._documents:
+            tabs.append(rrb.TextDocumentView(origin=self._documents[""], name="Summary"))
+        for stage in self.figures.stages:
+            plots = self.figures.of_stage(stage)
+            signals = [v for p in plots if p.kind == "time" for v in self._time_views(p)]
+            others = [self._view(p) for p in plots if p.kind != "time"]
+            for view in self._views.get(stage, []):
+                self._fit_time_axis(view)
+                (signals if view.class_identifier == "TimeSeries" else others).append(view)
+            text = (
+                rrb.TextDocumentView(origin=self._documents[stage], name=f"{stage}: results")
+                if stage in self._documents
+                else None
+            )
+            tabs.append(_stage_layout(stage, text, others, signals))
+        return rrb.Blueprint(
+            rrb.Tabs(*tabs) if tabs else rrb.TimeSeriesView(origin="/"),
+            rrb.TimePanel(timeline=TIMELINE, state="collapsed"),
+            rrb.BlueprintPanel(state="collapsed"),
+            rrb.SelectionPanel(state="collapsed"),
+        )
+
+    def _draw_plots(self) -> None:
+        for plot in self.figures.plots.values():
+            if plot.kind == "3d":
+                centre, length = scale3d(plot)
+                unit = f" {plot.unit}" if plot.unit else ""
+                arrows = rr.Arrows3D(
+                    origins=[centre] * 3,
+                    vectors=np.eye(3) * length,
+                    colors=AXIS_COLORS,
+                    labels=[f"{a} {length:g}{unit}" for a in "xyz"],
+                    show_labels=True,
+                )
+                path = axes3d_path(plot)
+                self._send(lambda s, p=path, a=arrows: rr.log(p, a, static=True, recording=s))
+            if plot.kind == "xy":
+                for entity, archetype in plot2d.draw(plot):
+                    self._send(
+                        lambda s, e=entity, a=archetype: rr.log(e, a, static=True, recording=s)
+                    )
+
+    def close(self) -> None:
+        """Draw the 2D plots, send the blueprint and flush everything to the sinks."""
+        if not self._streams:
+            return
+        self._draw_plots()
+        blueprint = self.blueprint()
+        self._send(lambda s: s.send_blueprint(blueprint, make_active=True, make_default=True))
+        self.rec.flush()
+        if self._live is not None:
+            try:
+                self._live.flush(timeout_sec=10.0)
+            except Exception as exc:  # noqa: BLE001 - the file is complete; only the viewer failed
+                self._drop_live(exc)
+        for stream in self._streams:
+            stream.disconnect()
+
+
+def _with_data(
+    names: Sequence[str],
+    colors: Sequence[Any],
+    values: np.ndarray,
+    x: np.ndarray | None = None,
+) -> tuple[list[str], list[Any], np.ndarray]:
+    """The columns of ``values`` (n, k) that have a finite value (at a finite ``x``), with their
+    names and colours: a line without data never gets a legend entry."""
+    ok = np.isfinite(values)
+    if x is not None:
+        ok &= np.isfinite(x)[:, None]
+    keep = ok.any(axis=0) if len(values) else np.zeros(values.shape[1], dtype=bool)
+    if keep.all():
+        return list(names), list(colors), values
+    idx = np.flatnonzero(keep)
+    return [names[i] for i in idx], [colors[i] for i in idx], values[:, idx]
+
+
+def line_path(entity: str, name: str) -> str:
+    """The entity of one line of a signal: ``/gyro_bias/corrected/gyro/gyro_x_corrected``."""
+    return f"{entity}/{_part(name)}"
+
+
+def axes3d_path(plot: Plot) -> str:
+    """Where a 3D plot's axes (three arrows with their length) are logged."""
+    return f"/{plot.stage}/{plot.key}/axes3d"
+
+
+def scale3d(plot: Plot) -> tuple[list[float], float]:
+    """(where, length) of a 3D plot's axes: at the low corner of the points' bounding box (out
+    of the cloud, not hidden in it), a round length about half the points' largest distance
+    from their median along an axis (the scale of the view)."""
+    pts = [s.values.reshape(-1, 3) for s in plot.series if s.values.size]
+    data = np.concatenate(pts) if pts else np.zeros((1, 3))
+    data = data[np.isfinite(data).all(axis=1)]
+    if not len(data):
+        return [0.0, 0.0, 0.0], 1.0
+    reach = float(np.abs(data - np.median(data, axis=0)).max()) or 1.0
+    ticks = nice_ticks(0.0, 0.6 * reach, 3)
+    inside = ticks[(ticks > 0) & (ticks <= 0.6 * reach)]
+    length = float(inside[-1] if len(inside) else ticks[1])
+    return [float(c) for c in data.min(axis=0)], length
+
+
+LEGEND_ROW_PX, VIEW_PX = 20.0, 340.0
+"""Height of a legend row and of a time-series view as the tabs lay them out at 1600 x 1000 px."""
+
+
+def legend_room(plot: Plot, rows: int) -> tuple[float, float]:
+    """The y range of a view of ``plot``'s lines: their data with 5 % to spare below, and above
+    it room for the legend's ``rows`` in the top right corner, so the legend covers no data."""
+    spans = [(lo, hi) for _, _, lo, hi in column_ranges(plot)]
+    if not spans:
+        return (0.0, 1.0)
+    lo, hi = min(a for a, _ in spans), max(b for _, b in spans)
+    span = (hi - lo) or (abs(hi) * 0.1 or 1.0)
+    top = min(0.6, (LEGEND_ROW_PX * rows + 16.0) / VIEW_PX)  # fraction of the view's height
+    return (lo - 0.05 * span, hi + span * (0.05 + top / (1.0 - top)))
+
+
+def _part(name: str) -> str:
+    """A name as one entity path part (``|a| - g`` -> ``a_g``)."""
+    return re.sub(r"[^0-9A-Za-z]+", "_", name).strip("_") or "value"
+
+
+def _stage_layout(stage: str, text: Any, plots: list[Any], signals: list[Any]) -> Any:
+    """A stage's tab: its results document beside its plots; when it has both plots of its fit
+    and signals over time, and more than four views in all, those sit in two inner tabs."""
+    if len(plots) + len(signals) > 4 and plots and signals:
+        right: Any = rrb.Tabs(
+            rrb.Grid(*plots, name=f"{stage}: fit"), rrb.Grid(*signals, name=f"{stage}: signals")
+        )
+    else:
+        right = rrb.Grid(*plots, *signals, name=f"{stage}: plots")
+    if text is None:
+        return rrb.Horizontal(right, name=stage) if plots or signals else rrb.Grid(name=stage)
+    if not plots and not signals:
+        return rrb.TextDocumentView(origin=text.origin, name=stage)
+    return rrb.Horizontal(text, right, column_shares=[2, 3], name=stage)
+
+
+def _with_span(view: Any, spans: list[tuple[int, int]]) -> Any:
+    """``view`` with its time axis set to cover ``spans`` ((first, last) ns); unchanged if none."""
+    if spans:
+        view.properties["TimeAxis"] = rrb.TimeAxis(
+            view_range=rrb.TimeRange(
+                start=rrb.TimeRangeBoundary.absolute(nanos=min(a for a, _ in spans)),
+                end=rrb.TimeRangeBoundary.absolute(nanos=max(b for _, b in spans)),
+            )
+        )
+    return view
+
+
+def open_recorder(
+    cfg: Any, out: Any, *, spawn: bool = False, quiet: bool = False
+) -> tuple[Any, list[Path]]:
+    """The recorder of a run and the files it writes: a :class:`Recorder` writing
+    ``recording.rrd`` (staged in ``out``) when ``[output] rerun``, keeping the figures for
+    ``report.html`` when ``[output] report``, streaming to a viewer with ``spawn``; a
+    :class:`NullRecorder` when neither is wanted. A viewer that cannot start is one warning:
+    the run and its files go on without it."""
+
+    def warn(message: str) -> None:
+        if not quiet:
+            print(f"imupipe: warning: {message}", file=sys.stderr)
+
+    if spawn and not cfg.output.rerun:
+        warn("--spawn: [output] rerun = false: there is no recording to show")
+    if not (cfg.output.rerun or cfg.output.report):
+        return NullRecorder(), []
+    rrd = cfg.output.dir / "recording.rrd"
+    viewer = None
+    if spawn and cfg.output.rerun:
+        viewer, why = start_viewer()
+        if viewer is None:
+            warn(
+                f"--spawn: {why}; the recording is written to {rrd}: without a display, "
+                f"open it with `rerun --web-viewer {rrd}`, or see report.html"
+            )
+    recorder = Recorder(
+        out.path(rrd) if cfg.output.rerun else None,
+        viewer=viewer,
+        max_points=cfg.output.rerun_max_points,
+        warn=warn,
+    )
+    recorder.raw_counts = raw_count_sensors(cfg.inputs)
+    return recorder, [rrd] if cfg.output.rerun else []
+
+
+# -- the viewer (--spawn) --------------------------------------------------------------------------
+def start_viewer(timeout: float = 20.0) -> tuple[str | None, str]:
+    """Start the Rerun viewer (the ``rerun`` command on PATH, which rerun-sdk installs) on a free
+    port, detached, and wait until it accepts data. Returns (its gRPC URL, "") or (None, why it
+    cannot be used)."""
+    exe = shutil.which("rerun")
+    if exe is None:
+        return None, "no Rerun viewer on PATH (the 'rerun' command comes with rerun-sdk)"
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = int(s.getsockname()[1])
+    # the viewer's messages go to a file of its own (unlinked: gone when it exits)
+    with tempfile.TemporaryFile() as log:
+        try:
+            proc = subprocess.Popen(
+                [exe, "--port", str(port), "--expect-data-soon"],
+                stdin=subprocess.DEVNULL,
+                stdout=log,
+                stderr=log,
+                env={**os.environ, "RERUN_APP_ONLY": "true"},
+                start_new_session=True,
+            )
+        except OSError as exc:
+            return None, f"the Rerun viewer could not start ({exc})"
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if proc.poll() is not None:
+                return None, f"the Rerun viewer could not start ({_last_line(log)})"
+            try:
+                socket.create_connection(("127.0.0.1", port), timeout=0.5).close()
+            except OSError:
+                time.sleep(0.1)
+                continue
+            time.sleep(0.5)  # a viewer without a display listens, then exits
+            if proc.poll() is not None:
+                return None, f"the Rerun viewer could not start ({_last_line(log)})"
+            return f"rerun+http://127.0.0.1:{port}/proxy", ""
+    with contextlib.suppress(ProcessLookupError):
+        os.killpg(proc.pid, signal.SIGTERM)
+    return None, f"the Rerun viewer did not answer within {timeout:.0f} s"
+
+
+def _last_line(log: Any) -> str:
+    """The last non-empty line a process wrote, without terminal colour codes."""
+    log.seek(0)
+    text = log.read().decode("utf-8", "replace")
+    lines = [re.sub(r"\x1b\[[0-9;]*m", "", line).strip() for line in text.splitlines()]
+    lines = [re.sub(r" at \S+\.rs:\d+", "", line) for line in lines]  # Rust source locations
+    lines = [line for line in lines if line]
+    return lines[-1][:300] if lines else "it exited without a message"
+
+
+def cloud_radius(pts: np.ndarray) -> float:
+    """The radius of a 3D cloud's points (in its unit): 0.8 % of the cloud's own size (its largest
+    distance from its median along an axis), wherever it lies: a raw magnetometer's cloud sits
+    thousands of counts from the origin, and a radius taken from the distance to the origin drew
+    its points as balls that hid the ellipsoid."""
+    finite = pts[np.isfinite(pts).all(axis=1)]
+    if not len(finite):
+        return 0.008
+    return 0.008 * (float(np.abs(finite - np.median(finite, axis=0)).max()) or 1.0)

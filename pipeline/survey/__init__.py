@@ -1,0 +1,14 @@
+"""The fleet survey (``imupipe survey``): still moments of a fleet's logs, per IMU, and
+their fleet view.
+
+May import: the pipeline's top, ``report`` (figures, plots), ``convert`` (finding logs), the
+stages and the readers; nothing imports it but the command line.
+
+Its modules (the public face). Importing the package imports none of them, so that
+the command line starts light and no circle can form: import each by its full name.
+
+- :mod:`imupipe.pipeline.survey.report`: The fleet view of ``imupipe survey``:...
+- :mod:`imupipe.pipeline.survey.scan`: ``imupipe survey LOG|FOLDER ...
+"""
+
+__all__ = ["report", "scan"]

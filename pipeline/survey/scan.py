@@ -1,0 +1,516 @@
+"""``imupipe survey LOG|FOLDER ... --out DIR``: every still moment of a fleet's logs, per IMU.
+
+For each log (any format imupipe reads; a folder is searched as ``convert`` searches it) and
+each IMU topic in it, a worker reads the topic (and the temperature topic of the same namespace,
+or the log's only one), finds the still periods and measures each one
+(:mod:`imupipe.stages.survey.stats`); with ``--calibration`` the same figures are measured again
+on the corrected samples (``cal_*`` columns: what is left is the calibration's error). The rows
+of one log go to ``DIR/parts/<log>.parquet``; the driver appends one line per log to
+``DIR/manifest.jsonl`` (:mod:`imupipe.pipeline.convert.manifest`), then joins the parts into
+``DIR/survey.parquet`` (schema: ``docs/reference/survey.md``) and runs the fleet view
+(:mod:`imupipe.pipeline.survey.report`).
+
+Logs run on the engines of ``convert`` (:func:`imupipe.pipeline.convert.engines.run_tasks`: a local
+process pool or Ray). A log that cannot be read is named on stderr and left out; the others go
+on (exit status 1 when any failed). A log whose part exists, newer than the log and measured with
+the same calibration and options, is not measured again (``--force`` to redo it).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import hashlib
+import json
+import resource
+import sys
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from imupipe.pipeline.errors import ConfigError
+
+SURVEY_NAME = "survey.parquet"
+RECORDING_NAME = "survey.rrd"
+PARTS_DIR = "parts"
+SCHEMA_VERSION = 1
+DEFAULT_K = 5.0
+
+
+@dataclasses.dataclass
+class SurveyTask:
+    """What a worker needs to survey one log (picklable, small)."""
+
+    path: Path
+    log: str
+    """The log's name: its path relative to the folder given, without suffix."""
+    vehicle: str
+    part: Path
+    calibration: dict[str, Any] | None
+    calibration_sha256: str | None
+    options: dict[str, float]
+    options_sha256: str
+
+
+FLIGHT_IMU_TYPES = {"ulog": ("sensor_gyro",), "dataflash": ("IMU", "IMU2", "IMU3")}
+"""The message types of a flight log's raw IMU instances (each read as one device)."""
+
+
+def _namespace(topic: str) -> str:
+    return topic.rsplit("/", 1)[0]
+
+
+def imu_topics(spec: Any) -> list[tuple[str | None, str | None, str | None]]:
+    """(imu topic, temperature topic, magnetometer topic to name) per IMU instance of a log; one
+    (None, None, None) for a CSV file (one IMU)."""
+    from imupipe.readers import dispatch
+    from imupipe.readers.topics import STREAM_TYPES, normalize_type
+
+    fmt = dispatch.detect_format(Path(spec.path))
+    if fmt == "csv":
+        return [(None, None, None)]
+    types: dict[str, str] = {}
+    for src in dispatch.log_sources(spec):
+        types.update(src.topic_types())
+    if fmt in FLIGHT_IMU_TYPES:  # each instance by its key; its reader picks its temperature
+        return [(t, None, None) for t, ty in sorted(types.items()) if ty in FLIGHT_IMU_TYPES[fmt]]
+    by_type: dict[str, list[str]] = {s: [] for s in STREAM_TYPES}
+    for topic, ty in sorted(types.items()):
+        for stream, msgtype in STREAM_TYPES.items():
+            if normalize_type(ty) == msgtype:
+                by_type[stream].append(topic)
+    out = []
+    for imu in by_type["imu"]:
+        temps = [t for t in by_type["temperature"] if _namespace(t) == _namespace(imu)]
+        temp = (
+            temps[0]
+            if temps
+            else (by_type["temperature"][0] if len(by_type["temperature"]) == 1 else None)
+        )
+        mag = by_type["mag"][0] if by_type["mag"] else None
+        out.append((imu, temp, mag))
+    return out
+
+
+def survey_log(task: SurveyTask) -> dict[str, Any]:
+    """Survey one log (runs in a worker): write its part, return its manifest line."""
+    import numpy as np
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    from imupipe.pipeline.atomic import staged_outputs
+    from imupipe.pipeline.calibration_file import on_device
+    from imupipe.readers import dispatch
+    from imupipe.readers.spec import InputSpec
+    from imupipe.readers.table import finite, has_sensor, has_stream, metadata, sensor
+    from imupipe.stages.steps import apply_chain, steps_from_json
+    from imupipe.stages.survey.stats import StillOptions, period_stats, still_periods
+
+    start, cpu = time.perf_counter(), time.process_time()
+    opts = StillOptions(**task.options)
+    spec = InputSpec(path=Path(task.path), name=task.vehicle)
+    steps = None
+    if task.calibration is not None:
+        chain = task.calibration["chain"]
+        steps = on_device(steps_from_json(chain), chain, lenient=True)
+    rows: list[pa.Table] = []
+    counts: dict[str, int] = {}
+    warnings: list[str] = []
+    topics = imu_topics(spec)
+    for instance, (imu, temp, mag) in enumerate(topics):
+        one = dataclasses.replace(spec, imu_topic=imu, temperature_topic=temp, mag_topic=mag)
+        table, warned = dispatch.read_input(one)
+        warnings += warned
+        name = imu or "imu"
+        if not (has_sensor(table, "gyro") and has_sensor(table, "accel")):
+            warnings.append(f"{task.path}: {name} lacks a gyro or an accelerometer: not surveyed")
+            continue
+        gyro, accel = sensor(table, "gyro"), sensor(table, "accel")  # both on the imu rows
+        keep = np.isfinite(gyro.values).all(axis=1) & np.isfinite(accel.values).all(axis=1)
+        t_ns, g_vals, a_vals = gyro.t_ns[keep], gyro.values[keep], accel.values[keep]
+        if len(t_ns) < 3 or not (np.diff(t_ns) >= 0).all():
+            warnings.append(
+                f"{task.path}: {name}: too few samples or time going back: not surveyed"
+            )
+            continue
+        temperature = None
+        if has_stream(table, "temperature"):
+            tdata, _ = finite(sensor(table, "temperature"))
+            temperature = (tdata.t_ns, tdata.values[:, 0])
+        intervals = still_periods(t_ns, g_vals, a_vals, opts)
+        stats = period_stats(t_ns, g_vals, a_vals, intervals, opts, temperature)
+        cal: dict[str, np.ndarray] | None = None
+        if steps is not None:
+            corrected = apply_chain(table, steps)
+            cg = sensor(corrected, "gyro").values[keep]
+            ca = sensor(corrected, "accel").values[keep]
+            cal = period_stats(t_ns, cg, ca, intervals, opts, temperature)
+        meta = metadata(table)
+        frame = (meta.get("frame_id") or {}).get("imu")
+        topic = imu or "csv"
+        counts[topic] = len(intervals)
+        rows.append(_rows(task, topic, instance, frame, stats, cal, len(intervals)))
+        del table, intervals
+    if not topics:
+        warnings.append(f"{task.path}: no sensor_msgs/Imu topic: nothing to survey")
+    table = pa.concat_tables(rows) if rows else _rows(task, "", 0, None, None, None, 0)
+    task.part.parent.mkdir(parents=True, exist_ok=True)
+    with staged_outputs() as out:
+        pq.write_table(table, out.path(task.part), compression="zstd")
+    return {
+        "input": str(task.path),
+        "output": str(task.part),
+        "status": "surveyed",
+        "counts": counts,
+        "calibration_sha256": task.calibration_sha256,
+        "mode": task.options_sha256,
+        "seconds": round(time.perf_counter() - start, 4),
+        "cpu_seconds": round(time.process_time() - cpu, 4),
+        "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
+        "warnings": warnings,
+    }
+
+
+FIGURES_3 = (
+    "gyro_bias",
+    "gyro_bias_se",
+    "gyro_noise",
+    "accel_mean",
+    "accel_mean_se",
+    "accel_noise",
+)
+FIGURES_1 = ("accel_norm_error", "accel_norm_error_se", "tilt_deg", "level")
+
+
+def _rows(
+    task: SurveyTask,
+    topic: str,
+    instance: int,
+    frame: str | None,
+    stats: dict[str, Any] | None,
+    cal: dict[str, Any] | None,
+    m: int,
+) -> Any:
+    """The dataset rows of one IMU instance of one log (see docs/reference/survey.md)."""
+    import numpy as np
+    import pyarrow as pa
+
+    def col(name: str, values: Any, typ: pa.DataType) -> None:
+        arrays.append(pa.array(values, typ))
+        names.append(name)
+
+    arrays: list[pa.Array] = []
+    names: list[str] = []
+    col("log", [task.log] * m, pa.string())
+    col("vehicle", [task.vehicle] * m, pa.string())
+    col("topic", [topic] * m, pa.string())
+    col("instance", np.full(m, instance, np.int32), pa.int32())
+    col("frame_id", [frame] * m, pa.string())
+    col("device_id", [f"{task.vehicle}:{topic}"] * m, pa.string())
+    col("calibration_sha256", [task.calibration_sha256] * m, pa.string())
+    col("period", np.arange(m, dtype=np.int32), pa.int32())
+    z = np.zeros(m)
+    s = stats or {}
+    col("start_ns", s.get("start_ns", z.astype(np.int64)), pa.int64())
+    start_us = np.asarray(s.get("start_ns", z.astype(np.int64))) // 1000  # us: datetime-friendly
+    col(
+        "start",
+        pa.array(start_us, pa.int64()).cast(pa.timestamp("us", "UTC")),
+        pa.timestamp("us", "UTC"),
+    )
+    col("stop_ns", s.get("stop_ns", z.astype(np.int64)), pa.int64())
+    col("duration_s", s.get("duration_s", z), pa.float64())
+    col("samples", s.get("samples", z.astype(np.int64)), pa.int64())
+    col("temperature", s.get("temperature", z), pa.float64())
+    for prefix, figures in (("", stats), ("cal_", cal)):
+        if prefix and cal is None and task.calibration is None:
+            continue
+        f = figures or {}
+        for name in FIGURES_3:
+            values = f.get(name, np.full((m, 3), np.nan))
+            for i, axis in enumerate("xyz"):
+                col(f"{prefix}{name}_{axis}", values[:, i], pa.float64())
+        for name in FIGURES_1:
+            typ = pa.bool_() if name == "level" else pa.float64()
+            col(f"{prefix}{name}", f.get(name, np.zeros(m, bool) if name == "level" else z), typ)
+    fields = [
+        pa.field(n, a.type, metadata=None if column_unit(n) is None else {"unit": column_unit(n)})
+        for n, a in zip(names, arrays, strict=True)
+    ]
+    return pa.Table.from_arrays(arrays, schema=pa.schema(fields))
+
+
+def column_unit(name: str) -> str | None:
+    """The unit of a dataset column (its Parquet field's ``unit`` metadata), None for identity."""
+    base = name.removeprefix("cal_")
+    if base.endswith("_ns"):
+        return "ns"
+    for stem, unit in (
+        ("gyro_bias", "rad/s"),
+        ("gyro_noise", "rad/s/sqrt(Hz)"),
+        ("accel_noise", "m/s^2/sqrt(Hz)"),
+        ("accel_mean", "m/s^2"),
+        ("accel_norm_error", "m/s^2"),
+        ("tilt_deg", "deg"),
+        ("duration_s", "s"),
+        ("temperature", "degC"),
+        ("samples", "1"),
+    ):
+        if base.startswith(stem):
+            return unit
+    return None
+
+
+def _sha(value: Any) -> str:
+    return hashlib.sha256(json.dumps(value, sort_keys=True).encode()).hexdigest()
+
+
+FLIGHT_SUFFIXES = (".ulg", ".bin")
+"""Flight-controller logs (PX4 ULog, ArduPilot DataFlash), found in folders besides those
+``convert`` finds (:func:`~imupipe.pipeline.convert.plan.find_logs`: MCAP, bags, CSV)."""
+
+
+def _flight_logs(args: Sequence[Path], out_dir: Path) -> list[tuple[Path, Path]]:
+    """Every ULog and DataFlash log under the folders of ``args`` (hidden files and the output
+    folder left out), as ``find_logs`` names them."""
+    found = []
+    for arg in map(Path, args):
+        if not arg.is_dir():
+            continue
+        for p in sorted(arg.rglob("*")):
+            rel = p.relative_to(arg)
+            hidden = any(part.startswith(".") for part in rel.parts)
+            inside_out = p.resolve().is_relative_to(out_dir.resolve())
+            if (
+                p.suffix.lower() in FLIGHT_SUFFIXES
+                and p.is_file()
+                and not hidden
+                and not inside_out
+            ):
+                found.append((p, rel.with_suffix("")))
+    return found
+
+
+def plan(
+    logs: Sequence[Path],
+    out_dir: Path,
+    calibration: dict[str, Any] | None,
+    options: dict[str, float],
+    force: bool = False,
+) -> tuple[list[SurveyTask], list[SurveyTask]]:
+    """(tasks to run, tasks already done) for every log under ``logs``."""
+    from imupipe.pipeline.convert.manifest import latest
+    from imupipe.pipeline.convert.plan import find_logs
+    from imupipe.pipeline.convert.settings import chain_sha256
+
+    out_dir = out_dir.absolute()
+    for arg in logs:
+        if not Path(arg).exists():
+            raise ConfigError(f"{arg}: no such file or folder")
+    cal_sha = None if calibration is None else chain_sha256(calibration)
+    opt_sha = _sha(options)[:16]
+    done = latest(out_dir)
+    todo, skipped = [], []
+    seen: dict[str, Path] = {}
+    for path, rel in find_logs(logs, out_dir, csv=True) + _flight_logs(logs, out_dir):
+        path = path.absolute()
+        parent = rel.parent.name if rel.parent.name else path.parent.name
+        part = out_dir / PARTS_DIR / rel.with_name(rel.name + ".parquet")
+        if str(part) in seen:
+            if seen[str(part)].resolve() == path.resolve():
+                continue
+            raise ConfigError(f"{seen[str(part)]} and {path} would both be surveyed into {part}")
+        seen[str(part)] = path
+        task = SurveyTask(
+            path, rel.as_posix(), parent, part, calibration, cal_sha, options, opt_sha
+        )
+        rec = done.get(str(path))
+        fresh = (
+            not force
+            and rec is not None
+            and rec.get("status") in ("surveyed", "skipped")
+            and rec.get("calibration_sha256") == cal_sha
+            and rec.get("mode") == opt_sha
+            and part.exists()
+            and part.stat().st_mtime >= path.stat().st_mtime
+        )
+        (skipped if fresh else todo).append(task)
+    return todo, skipped
+
+
+def survey(
+    logs: Sequence[Path],
+    out_dir: Path,
+    *,
+    calibration: Path | None = None,
+    engine: str = "local",
+    jobs: int | None = None,
+    address: str | None = None,
+    retries: int = 2,
+    force: bool = False,
+    options: dict[str, float] | None = None,
+    k: float = DEFAULT_K,
+    quiet: bool = False,
+    rerun: bool = True,
+) -> dict[str, Any]:
+    """Survey ``logs`` into ``out_dir``; returns ``{"failed": [(path, why)], "surveyed": n,
+    "skipped": n, "fleet": the fleet view}``."""
+    from imupipe.pipeline.atomic import staged_outputs
+    from imupipe.pipeline.calibration_file import load_calibration
+    from imupipe.pipeline.convert.engines import Outcome, run_tasks
+    from imupipe.pipeline.convert.manifest import Manifest
+
+    out_dir = Path(out_dir)
+    doc = None
+    if calibration is not None:
+        doc, _ = load_calibration(calibration)
+    opts = dict(options or {})
+    todo, skipped = plan(logs, out_dir, doc, opts, force)
+    if not todo and not skipped:
+        raise ConfigError(f"no log found under {', '.join(map(str, logs))}")
+    out_dir.mkdir(parents=True, exist_ok=True)
+    manifest = Manifest(out_dir)
+    failed: list[tuple[str, str]] = []
+    ok: list[SurveyTask] = list(skipped)
+    for task in skipped:
+        manifest.append(
+            {
+                "input": str(task.path),
+                "output": str(task.part),
+                "status": "skipped",
+                "calibration_sha256": task.calibration_sha256,
+                "mode": task.options_sha256,
+            }
+        )
+
+    def on_done(outcome: Outcome) -> None:
+        task = outcome.task
+        if outcome.error is not None:
+            failed.append((str(task.path), outcome.error))
+            manifest.append(
+                {
+                    "input": str(task.path),
+                    "status": "failed",
+                    "error": outcome.error,
+                    "attempts": outcome.attempts,
+                    "host": outcome.host,
+                    "calibration_sha256": task.calibration_sha256,
+                }
+            )
+            if outcome.fatal:
+                raise ConfigError(outcome.error)
+            return
+        manifest.append({**outcome.result, "attempts": outcome.attempts, "host": outcome.host})
+        ok.append(task)
+
+    run_tasks(survey_log, todo, on_done, engine=engine, jobs=jobs, address=address, retries=retries)
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    parts = [pq.read_table(t.part) for t in sorted(ok, key=lambda t: t.log)]
+    table = pa.concat_tables(parts, promote_options="default") if parts else None
+    fleet: dict[str, Any] = {}
+    with staged_outputs() as out:
+        if table is not None:
+            meta = {
+                "imupipe_survey": json.dumps(
+                    {"schema_version": SCHEMA_VERSION, "options": opts, "k": k}
+                )
+            }
+            table = table.replace_schema_metadata(meta)
+            pq.write_table(table, out.path(out_dir / SURVEY_NAME), compression="zstd")
+            from imupipe.pipeline.survey.report import fleet_view, write_report
+
+            fleet = fleet_view(table, k=k)
+            out.write_text(
+                out_dir / "fleet.json", json.dumps(fleet, indent=2, default=float) + "\n"
+            )
+            write_report(out.path(out_dir / "report.html"), table, fleet)
+            if rerun:
+                from imupipe.pipeline.survey.report import write_recording
+
+                write_recording(out.path(out_dir / RECORDING_NAME), table)
+    return {
+        "failed": failed,
+        "surveyed": len(ok) - len(skipped),
+        "skipped": len(skipped),
+        "fleet": fleet,
+        "rows": 0 if table is None else table.num_rows,
+    }
+
+
+def add_parser(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "survey",
+        help="every still moment of a fleet's logs: each IMU's bias, noise and temperature over time",
+    )
+    p.add_argument("logs", nargs="+", type=Path, metavar="LOG|FOLDER")
+    p.add_argument(
+        "--out", type=Path, required=True, help="output folder (survey.parquet, report.html)"
+    )
+    p.add_argument(
+        "--calibration", type=Path, help="calibration.json: also measure after applying it"
+    )
+    p.add_argument("--engine", choices=("local", "ray"), default="local")
+    p.add_argument("--jobs", type=int, help="worker processes (default: the usable cores)")
+    p.add_argument("--address", help="Ray cluster address (--engine ray)")
+    p.add_argument("--retries", type=int, default=2)
+    p.add_argument("--force", action="store_true", help="survey every log again")
+    p.add_argument(
+        "--min-still",
+        type=float,
+        default=5.0,
+        metavar="S",
+        help="shortest still period, s (default 5)",
+    )
+    p.add_argument(
+        "--k",
+        type=float,
+        default=DEFAULT_K,
+        help=f"outlier rule: k robust sigmas (default {DEFAULT_K:g})",
+    )
+    p.add_argument(
+        "--no-rerun", action="store_true", help=f"do not write the Rerun recording {RECORDING_NAME}"
+    )
+    p.add_argument("--quiet", action="store_true")
+    p.set_defaults(func=main)
+
+
+def main(args: argparse.Namespace) -> int:
+    if args.jobs is not None and args.jobs < 1:
+        raise ConfigError(f"--jobs {args.jobs}: must be at least 1")
+    if not args.min_still > 0:
+        raise ConfigError(f"--min-still {args.min_still}: must be positive")
+    if not args.k > 0:
+        raise ConfigError(f"--k {args.k}: must be positive")
+    result = survey(
+        args.logs,
+        args.out,
+        calibration=args.calibration,
+        engine=args.engine,
+        jobs=args.jobs,
+        address=args.address,
+        retries=args.retries,
+        force=args.force,
+        options={"min_duration_s": float(args.min_still)},
+        k=args.k,
+        quiet=args.quiet,
+        rerun=not args.no_rerun,
+    )
+    for path, why in result["failed"]:
+        print(
+            f"imupipe: error: {why}" if path in why else f"imupipe: error: {path}: {why}",
+            file=sys.stderr,
+        )
+    if not args.quiet:
+        from imupipe.pipeline.survey.report import summary_lines
+
+        for line in summary_lines(result["fleet"]):
+            print(line)
+        print(
+            f"imupipe survey: {result['surveyed']} surveyed, {result['skipped']} skipped (already "
+            f"done), {len(result['failed'])} failed; {result['rows']} still periods -> "
+            f"{args.out / SURVEY_NAME}"
+        )
+    return 1 if result["failed"] else 0

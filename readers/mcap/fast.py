@@ -1,0 +1,562 @@
+"""MCAP at the chunk level: records, channels, and each chunk's messages as numpy offsets.
+
+The file is read sequentially, one top-level record at a time (a few per chunk, never one per
+message). A chunk is decompressed (zstd, lz4 or none; its CRC checked when set) and the
+``MessageIndex`` records that follow it give, per channel, the offset of every message record in
+the decompressed chunk; a message record is ``opcode 0x05, uint64 length, uint16 channel,
+uint32 sequence, uint64 log_time, uint64 publish_time, payload`` so the payload of message ``i``
+starts at ``offset + 31`` and is ``length - 22`` bytes long. All of that is gathered with numpy.
+
+Which messages exist is decided by the data section alone: every Message record in it, inside
+chunks or not, is read. The summary section (every record of it optional) gives what it has:
+the channels and schemas when it defines every channel it says has messages
+(:func:`imupipe.readers.mcap.summary.complete`), the chunk start times (chunk indexes) and the
+message counts (statistics, used to size the table). When it does not, the Schema and Channel
+records are gathered from the data section first (top-level or inside chunks; the pass stops
+once the channels the summary names are all found, and reads the whole data section when the
+summary names none). A message on a channel still unknown when it is read (a summary that
+named too few) has its Channel record looked for in its chunk, then in the whole data section.
+
+Fallbacks: a chunk without message indexes (writers that omit them; foxglove/mcap#1735) is
+scanned record by record; messages outside chunks are gathered into pseudo-chunks. Bytes past
+the fields a record is known to have (the specification lets records grow) are skipped.
+
+Every inconsistency (bad magic, a record running past the end of the file, a failed
+decompression or CRC, an index pointing outside its chunk) is a :class:`ReadError` naming the
+file and the byte offset.
+"""
+
+from __future__ import annotations
+
+import collections
+import io
+import os
+import struct
+import zlib
+from collections.abc import Iterator
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from mcap.data_stream import ReadDataStream
+from mcap.records import Channel, Schema, Statistics
+
+from imupipe.readers.cdr import at, even_step
+from imupipe.readers.compression import (
+    DECOMPRESS_THREADS,
+    DECOMPRESSORS,
+    PREFETCH,
+    BufferPool,
+    decompress_chunk,
+    decompress_into,
+)
+from imupipe.readers.errors import ReadError
+from imupipe.readers.mcap.summary import complete, defined
+
+MAGIC = b"\x89MCAP0\r\n"
+OP_HEADER, OP_FOOTER, OP_SCHEMA, OP_CHANNEL, OP_MESSAGE = 0x01, 0x02, 0x03, 0x04, 0x05
+OP_CHUNK, OP_MESSAGE_INDEX, OP_CHUNK_INDEX, OP_STATISTICS, OP_DATA_END = (
+    0x06,
+    0x07,
+    0x08,
+    0x0B,
+    0x0F,
+)
+NEVER = 2**63 - 1
+MESSAGE_HEADER = 31
+"""Bytes from a message record's opcode to its payload."""
+PSEUDO_CHUNK_BYTES = 1 << 20
+CHUNK_HEAD = 64
+"""Bytes of a chunk record the reading thread reads (the fields before the records, for
+compression names of up to 20 characters)."""
+POOLED_BYTES = 64 << 20
+"""Chunks up to this size are decompressed into buffers used again (:class:`BufferPool`)."""
+
+
+@dataclass(frozen=True)
+class ChannelInfo:
+    """A channel with its schema: topic, message encoding, schema name/encoding/data."""
+
+    id: int
+    topic: str
+    message_encoding: str
+    schema_name: str
+    schema_encoding: str
+    schema_data: bytes
+
+
+@dataclass
+class ChunkMessages:
+    """One decompressed chunk: ``buf`` (uint8) and, per channel id, the sorted byte offsets of
+    its message records in ``buf``."""
+
+    buf: np.ndarray
+    offsets: dict[int, np.ndarray]
+    where: str
+    bound: int = NEVER
+    """No message after this chunk (in file order) has a log time below ``bound``: from the
+    summary's chunk indexes, else assumed to be this chunk's start time (a log written in time
+    order)."""
+
+    def records(
+        self, channel_id: int, copy: bool = True
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(log_time, publish_time, payload start, payload length) of a channel's messages,
+        validated against the buffer. ``copy=False``: the times may be read-only views into the
+        chunk's buffer (for a caller that copies them at once)."""
+        off = self.offsets.get(channel_id)
+        if off is None or len(off) == 0:
+            z = np.zeros(0, np.int64)
+            return z, z, z, z
+        buf = self.buf
+        if off[0] < 0 or off[-1] + MESSAGE_HEADER > len(buf):
+            raise ReadError(f"{self.where}: message index points outside its chunk")
+        step = even_step(off)  # records of one size, one after the other: strided views
+        n = len(off)
+        if step is not None and n > 1:
+            # one record header (opcode, length, channel: 11 bytes) for all, checked once
+            first = buf[int(off[0]) : int(off[0]) + 11].tobytes()
+            reclen = int.from_bytes(first[1:9], "little")
+            if (
+                first[0] == OP_MESSAGE
+                and int.from_bytes(first[9:11], "little") == channel_id
+                and reclen >= MESSAGE_HEADER - 9
+                and int(off[-1]) + 9 + reclen <= len(buf)
+                and bool(
+                    (at(buf, off, 0, "<u8", step) == int.from_bytes(first[:8], "little")).all()
+                )
+                and bool(
+                    (at(buf, off, 7, "<u4", step) == int.from_bytes(first[7:], "little")).all()
+                )
+            ):
+                log = at(buf, off, 15, "<i8", step)  # uint64 read as int64, as astype would
+                pub = at(buf, off, 23, "<i8", step)
+                if copy:
+                    log, pub = log.copy(), pub.copy()
+                return log, pub, off + MESSAGE_HEADER, np.full(n, reclen - (MESSAGE_HEADER - 9))
+        reclen = at(buf, off, 1, "<u8", step).astype(np.int64)
+        bad = (at(buf, off, 0, "u1", step) != OP_MESSAGE) | (
+            at(buf, off, 9, "<u2", step) != channel_id
+        )
+        bad |= (reclen < MESSAGE_HEADER - 9) | (off + 9 + reclen > len(buf))
+        if np.any(bad):
+            raise ReadError(
+                f"{self.where}: message index does not point at channel {channel_id}'s messages"
+            )
+        log = at(buf, off, 15, "<u8", step).astype(np.int64)
+        pub = at(buf, off, 23, "<u8", step).astype(np.int64)
+        return log, pub, off + MESSAGE_HEADER, reclen - (MESSAGE_HEADER - 9)
+
+
+@dataclass
+class McapFile:
+    """An MCAP file opened for chunk-level reading."""
+
+    path: Path
+    channels: dict[int, ChannelInfo] = field(default_factory=dict)
+    counts: dict[int, int] | None = None
+    """Messages per channel id: from the Statistics record, or counted by a pass over the data
+    section (None when neither)."""
+    profile: str = ""
+    chunk_starts: list[tuple[int, int]] = field(default_factory=list)
+    """(file offset, message start time) of every chunk, from the summary's chunk indexes."""
+
+    def __post_init__(self) -> None:
+        self.path = Path(self.path)
+        self._schemas: dict[int, Schema] = {}
+        self._channels: dict[int, Channel] = {}
+        self._scanned = False
+        """Whether the whole data section has been read for Schema and Channel records."""
+        try:
+            self.size = self.path.stat().st_size
+            with open(self.path, "rb") as fh:
+                head = fh.read(8)
+        except OSError as exc:
+            raise ReadError(f"{self.path}: cannot read: {exc.strerror or exc}") from None
+        if head != MAGIC:
+            raise ReadError(f"{self.path}: not an MCAP file (bad magic bytes)")
+        needed = self._read_summary()
+        if needed is not None:
+            self._first_pass(needed)
+        self._join()
+
+    # -- records ---------------------------------------------------------------------------
+    def _records(
+        self, fh: io.BufferedReader, start: int, end: int, lazy: bool = False
+    ) -> Iterator[tuple[int, int, bytes]]:
+        """Top-level records between ``start`` and ``end``: (opcode, offset, body). ``lazy``:
+        a chunk's body is left unread but for its first :data:`CHUNK_HEAD` bytes (its start
+        time, sizes, CRC and compression); a worker reads the rest (:meth:`_load_chunk`)."""
+        pos = start
+        fh.seek(pos)
+        while pos < end:
+            head = fh.read(9)
+            if len(head) < 9:
+                if pos + len(head) >= self.size and pos >= end - 8:
+                    return  # the trailing magic
+                raise ReadError(
+                    f"{self.path}: truncated MCAP (record header at byte {pos} cut off)"
+                )
+            opcode, length = head[0], int.from_bytes(head[1:9], "little")
+            if pos + 9 + length > self.size:
+                if head[:8] == MAGIC[:8] and pos + 8 == self.size:
+                    return
+                raise ReadError(
+                    f"{self.path}: truncated MCAP (record at byte {pos} runs past the end of the file)"
+                )
+            if lazy and opcode == OP_CHUNK:
+                body = fh.read(min(length, CHUNK_HEAD))
+                fh.seek(pos + 9 + length)
+            else:
+                body = fh.read(length)
+            yield opcode, pos, body
+            pos += 9 + length
+
+    def _read_summary(self) -> set[int] | None:
+        """Channels, schemas, statistics and chunk indexes from the summary section. Returns
+        None when its channels are the file's (:func:`~imupipe.readers.mcap.summary.complete`),
+        else the ids of the channels it says have messages (empty: it names none), which the
+        data section must then define (:meth:`_first_pass`)."""
+        if self.size < 8 + 9 + 20 + 8:
+            raise ReadError(f"{self.path}: truncated MCAP ({self.size} bytes)")
+        stats: list[Statistics] = []
+        indexed: list[list[int]] = []
+        with open(self.path, "rb") as fh:
+            fh.seek(self.size - 37)
+            tail = fh.read(37)
+            if tail[-8:] != MAGIC or tail[0] != OP_FOOTER:
+                return set()
+            summary_start = int.from_bytes(tail[9:17], "little")
+            if summary_start == 0 or summary_start > self.size - 37:
+                return set()
+            for opcode, _pos, body in self._records(fh, summary_start, self.size - 37):
+                if opcode == OP_STATISTICS:
+                    stats.append(self._read_record(Statistics, opcode, body))
+                elif opcode == OP_CHUNK_INDEX:
+                    indexed.append(self._chunk_index(body))
+                else:
+                    self._collect(opcode, body)
+        if stats:
+            self.counts = dict(stats[0].channel_message_counts)
+        schema_of = {cid: c.schema_id for cid, c in self._channels.items()}
+        if complete(stats[0] if stats else None, schema_of, self._schemas, indexed):
+            return None
+        needed = set(self.counts or ()) | {cid for ids in indexed for cid in ids}
+        needed |= {
+            cid for cid, c in self._channels.items() if c.schema_id not in (0, *self._schemas)
+        }
+        return {cid for cid in needed if (self.counts or {}).get(cid, 1)}
+
+    def _chunk_index(self, body: bytes) -> list[int]:
+        """Record a chunk index's chunk (offset, start time); returns the channel ids it lists."""
+        try:
+            start, _end, offset, _length, size = struct.unpack_from("<QQQQI", body, 0)
+            if size % 10 or 36 + size > len(body):
+                raise struct.error("message index offsets past the record")
+            ids = np.frombuffer(body, "<u2", count=size // 2, offset=36)[::5]
+        except (struct.error, ValueError) as exc:
+            raise ReadError(
+                f"{self.path}: corrupt MCAP record (opcode {OP_CHUNK_INDEX:#x}): {exc}"
+            ) from None
+        self.chunk_starts.append((offset, start))
+        return ids.tolist()
+
+    def _read_record(self, kind: type, opcode: int, body: bytes):  # noqa: ANN202
+        """``kind.read`` of a record's body (the mcap library's record classes read the fields
+        they know and leave the rest); ReadError naming the file when it cannot."""
+        try:
+            return kind.read(ReadDataStream(io.BytesIO(body)))
+        except Exception as exc:  # noqa: BLE001 - any failure to parse is a corrupt record
+            raise ReadError(
+                f"{self.path}: corrupt MCAP record (opcode {opcode:#x}): {exc}"
+            ) from None
+
+    def _collect(self, opcode: int, body: bytes) -> bool:
+        """Keep a Schema or Channel record (a schema of id 0 is invalid and ignored, as the
+        specification says); True when it was one of them."""
+        if opcode == OP_SCHEMA:
+            s = self._read_record(Schema, opcode, body)
+            if s.id:
+                self._schemas[s.id] = s
+        elif opcode == OP_CHANNEL:
+            c = self._read_record(Channel, opcode, body)
+            self._channels[c.id] = c
+        elif opcode == OP_HEADER:
+            try:
+                self.profile = ReadDataStream(io.BytesIO(body)).read_prefixed_string()
+            except Exception:  # noqa: BLE001 - the profile is informative only
+                self.profile = ""
+            return False
+        else:
+            return False
+        return True
+
+    def _join(self) -> None:
+        """:attr:`channels` from the Schema and Channel records gathered so far."""
+        out = {}
+        for c in self._channels.values():
+            s = self._schemas.get(c.schema_id)
+            out[c.id] = ChannelInfo(
+                c.id,
+                c.topic,
+                c.message_encoding,
+                s.name if s else "",
+                s.encoding if s else "",
+                bytes(s.data) if s else b"",
+            )
+        self.channels = out
+
+    def _defined(self, needed: set[int]) -> bool:
+        """Whether the records gathered so far define every channel of ``needed``."""
+        schema_of = {cid: c.schema_id for cid, c in self._channels.items()}
+        return defined(needed, schema_of, self._schemas)
+
+    def _first_pass(self, needed: set[int]) -> None:
+        """Schema and Channel records from the data section (top-level and inside chunks),
+        until every channel of ``needed`` is defined with its schema; with ``needed`` empty,
+        from the whole data section, counting the messages of each channel too."""
+        counts: dict[int, int] = {}
+        with open(self.path, "rb") as fh:
+            for opcode, pos, body in self._records(fh, 8, self.size):
+                if opcode == OP_CHUNK:
+                    buf = self._decompress(body, pos)
+                    for op, start, end in scan_records(buf, f"{self.path}: chunk at byte {pos}"):
+                        if op == OP_MESSAGE:
+                            cid = int.from_bytes(bytes(buf[start : start + 2]), "little")
+                            counts[cid] = counts.get(cid, 0) + 1
+                        else:
+                            self._collect(op, bytes(buf[start:end]))
+                elif opcode == OP_MESSAGE and len(body) >= 2:
+                    cid = int.from_bytes(body[:2], "little")
+                    counts[cid] = counts.get(cid, 0) + 1
+                elif opcode == OP_DATA_END:
+                    self._scanned = True
+                    break
+                else:
+                    self._collect(opcode, body)
+                if needed and self._defined(needed):
+                    return
+            else:
+                self._scanned = True
+        if not needed:
+            self.counts = counts
+
+    def channel(self, cid: int, chunk: ChunkMessages) -> ChannelInfo:
+        """The channel of id ``cid``, on which ``chunk`` holds messages: looked for in the
+        chunk's own records, then in the whole data section, when not known yet; ReadError
+        when the file never defines it."""
+        found = self.channels.get(cid)
+        if found is not None:
+            return found
+        if len(chunk.buf):
+            for op, start, end in scan_records(chunk.buf, chunk.where):
+                if op in (OP_SCHEMA, OP_CHANNEL):
+                    self._collect(op, chunk.buf[start:end].tobytes())
+        if cid not in self._channels and not self._scanned:
+            self._first_pass({cid})
+        self._join()
+        if cid not in self.channels:
+            raise ReadError(
+                f"{chunk.where}: message on channel {cid}, which the file never defines"
+            )
+        return self.channels[cid]
+
+    def _load_chunk(self, fd: int, pos: int, head: bytes, out: np.ndarray | None) -> np.ndarray:
+        """Read the chunk record at ``pos`` and decompress it (thread-safe: ``pread``); into
+        ``out`` (of the chunk's uncompressed size, see :func:`_chunk_buffer`) when given."""
+        try:
+            length = int.from_bytes(os.pread(fd, 9, pos)[1:9], "little")
+            if out is None:
+                return self._decompress(os.pread(fd, length, pos + 9), pos)
+            where = f"{self.path}: chunk at byte {pos}"
+            f = ChunkFields.of(head, where)
+            if f.data_start + f.data_length > length:
+                raise ReadError(f"{where}: {f.past_the_record}")
+            if f.compression not in DECOMPRESSORS:
+                raise ReadError(f"{where}: unsupported chunk compression '{f.compression}'")
+            data = os.pread(fd, f.data_length, pos + 9 + f.data_start)
+        except OSError as exc:
+            raise ReadError(f"{self.path}: cannot read: {exc.strerror or exc}") from None
+        if len(data) != f.data_length:
+            raise ReadError(f"{where}: {f.past_the_record}")
+        return f.checked(decompress_into(data, f.compression, out, where), where)
+
+    def _decompress(self, body: bytes, pos: int) -> np.ndarray:
+        where = f"{self.path}: chunk at byte {pos}"
+        f = ChunkFields.of(body, where)
+        data = memoryview(body)[f.data_start : f.data_start + f.data_length]
+        if len(data) != f.data_length:
+            raise ReadError(f"{where}: {f.past_the_record}")
+        return f.checked(decompress_chunk(data, f.compression, f.size, where), where)
+
+    # -- chunks ----------------------------------------------------------------------------
+    def _bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """Chunk offsets (sorted) and the minimum start time of the chunks from each on."""
+        if not self.chunk_starts:
+            return np.zeros(0, np.int64), np.zeros(0, np.int64)
+        pairs = np.array(sorted(self.chunk_starts), dtype=np.uint64)
+        suffix = np.minimum.accumulate(pairs[::-1, 1])[::-1]
+        return pairs[:, 0].astype(np.int64), np.minimum(suffix, NEVER).astype(np.int64)
+
+    def chunks(self) -> Iterator[ChunkMessages]:
+        """Every chunk (and every run of un-chunked messages) in file order.
+
+        Worker threads decompress (and CRC-check) the next :data:`PREFETCH` chunks while the
+        caller decodes the current one (zstd, lz4 and zlib release the GIL)."""
+        offsets, suffix_min = self._bounds()
+        pool = BufferPool()
+        pending: ChunkMessages | None = None
+        queue: collections.deque[ChunkMessages] = collections.deque()
+        loose = bytearray()
+        loose_off: dict[int, list[int]] = {}
+        with open(self.path, "rb") as fh, ThreadPoolExecutor(DECOMPRESS_THREADS) as worker:
+            for opcode, pos, body in self._records(fh, 8, self.size, lazy=True):
+                if opcode == OP_MESSAGE_INDEX and pending is not None:
+                    if len(body) < 6:
+                        raise ReadError(f"{pending.where}: corrupt message index")
+                    cid, rlen = struct.unpack_from("<HI", body, 0)
+                    if 6 + rlen > len(body) or rlen % 16:
+                        raise ReadError(f"{pending.where}: corrupt message index")
+                    pairs = np.frombuffer(body, "<u8", count=rlen // 8, offset=6).reshape(-1, 2)
+                    found = pairs[:, 1].astype(np.int64)
+                    if len(found) > 1 and np.any(found[1:] < found[:-1]):
+                        found.sort()
+                    pending.offsets[cid] = found
+                    continue
+                if pending is not None:
+                    queue.append(pending)
+                    pending = None
+                while len(queue) > PREFETCH or (queue and opcode != OP_CHUNK):
+                    yield _finished(queue.popleft(), pool)
+                if opcode == OP_MESSAGE:
+                    if len(body) < 22:
+                        raise ReadError(f"{self.path}: corrupt message record at byte {pos}")
+                    cid = int.from_bytes(body[:2], "little")
+                    loose_off.setdefault(cid, []).append(len(loose))
+                    loose += bytes([OP_MESSAGE]) + len(body).to_bytes(8, "little") + body
+                    if len(loose) >= PSEUDO_CHUNK_BYTES:
+                        yield _loose_chunk(
+                            loose, loose_off, f"{self.path}: messages before byte {pos}"
+                        )
+                        loose, loose_off = bytearray(), {}
+                    continue
+                if loose:
+                    yield _loose_chunk(loose, loose_off, f"{self.path}: messages before byte {pos}")
+                    loose, loose_off = bytearray(), {}
+                if opcode in (OP_SCHEMA, OP_CHANNEL):
+                    if self._collect(opcode, body):
+                        self._join()
+                elif opcode == OP_CHUNK:
+                    k = int(np.searchsorted(offsets, pos, side="right"))
+                    if len(offsets):
+                        bound = int(suffix_min[k]) if k < len(offsets) else NEVER
+                    else:
+                        bound = int.from_bytes(body[:8], "little") if len(body) >= 8 else 0
+                    out = _chunk_buffer(body, pool)
+                    future = worker.submit(self._load_chunk, fh.fileno(), pos, body, out)
+                    pending = ChunkMessages(future, {}, f"{self.path}: chunk at byte {pos}", bound)  # type: ignore[arg-type]
+                elif opcode == OP_DATA_END:
+                    break
+            if pending is not None:
+                queue.append(pending)
+            while queue:
+                yield _finished(queue.popleft(), pool)
+            if loose:
+                yield _loose_chunk(loose, loose_off, f"{self.path}: messages at the end")
+
+
+@dataclass(frozen=True)
+class ChunkFields:
+    """The fields of a chunk record's body before its data: uncompressed ``size``, ``crc``
+    (0: none), ``compression``, and where the compressed data lies in the body."""
+
+    size: int
+    crc: int
+    compression: str
+    data_start: int
+    data_length: int
+
+    @classmethod
+    def of(cls, body: bytes, where: str) -> ChunkFields:
+        """The fields of ``body`` (the record's body, or at least its first bytes up to the
+        data); ReadError naming ``where`` when they cannot be read."""
+        try:
+            size, crc = struct.unpack_from("<QI", body, 16)
+            (clen,) = struct.unpack_from("<I", body, 28)
+            compression = body[32 : 32 + clen].decode()
+            (dlen,) = struct.unpack_from("<Q", body, 32 + clen)
+        except (struct.error, UnicodeDecodeError):
+            raise ReadError(f"{where}: corrupt chunk header") from None
+        return cls(size, crc, compression, 40 + clen, dlen)
+
+    @property
+    def past_the_record(self) -> str:
+        return f"corrupt chunk (data length {self.data_length} past the record)"
+
+    def checked(self, raw: np.ndarray, where: str) -> np.ndarray:
+        """``raw`` (the decompressed data), once its CRC is checked."""
+        if self.crc and zlib.crc32(raw) != self.crc:
+            raise ReadError(f"{where}: chunk CRC mismatch (corrupt data)")
+        return raw
+
+
+def _chunk_buffer(head: bytes, pool: BufferPool) -> np.ndarray | None:
+    """A buffer of ``pool`` for the chunk record whose body starts with ``head``; None when
+    its fields are not all in ``head`` or its sizes are implausible (a damaged file: the
+    chunk is then read as a whole and its errors named as they are)."""
+    try:
+        f = ChunkFields.of(head, "")
+    except ReadError:
+        return None
+    if f.compression != "zstd" or f.size > min(POOLED_BYTES, 64 * f.data_length + 4096):
+        return None
+    return pool.take(f.size)
+
+
+def _finished(chunk: ChunkMessages, pool: BufferPool) -> ChunkMessages:
+    """The chunk with its decompressed buffer (waiting for the worker) and its offsets; the
+    buffer goes back to ``pool`` (used again once nothing refers to it)."""
+    chunk.buf = chunk.buf.result()  # type: ignore[attr-defined]
+    pool.give(chunk.buf)
+    return _indexed_or_scanned(chunk)
+
+
+def _loose_chunk(buf: bytearray, offsets: dict[int, list[int]], where: str) -> ChunkMessages:
+    """Messages outside chunks as a pseudo-chunk (bound: its first message's log time)."""
+    first = min(o[0] for o in offsets.values())
+    return ChunkMessages(
+        np.frombuffer(bytes(buf), np.uint8),
+        {cid: np.asarray(o, np.int64) for cid, o in offsets.items()},
+        where,
+        int.from_bytes(bytes(buf[first + 15 : first + 23]), "little"),
+    )
+
+
+def _indexed_or_scanned(chunk: ChunkMessages) -> ChunkMessages:
+    """The chunk with per-channel offsets, scanning its records when it came without indexes."""
+    if chunk.offsets or len(chunk.buf) == 0:
+        return chunk
+    found: dict[int, list[int]] = {}
+    for opcode, start, _end in scan_records(chunk.buf, chunk.where):
+        if opcode == OP_MESSAGE and _end - start >= 22:
+            cid = int(chunk.buf[start]) | (int(chunk.buf[start + 1]) << 8)
+            found.setdefault(cid, []).append(start - 9)
+    chunk.offsets = {cid: np.asarray(o, np.int64) for cid, o in found.items()}
+    return chunk
+
+
+def scan_records(buf: np.ndarray, where: str) -> Iterator[tuple[int, int, int]]:
+    """Records inside a decompressed chunk: (opcode, body start, body end). One Python step per
+    record: the fallback for chunks without message indexes."""
+    raw = buf.tobytes() if isinstance(buf, np.ndarray) else bytes(buf)
+    pos, n = 0, len(raw)
+    while pos < n:
+        if pos + 9 > n:
+            raise ReadError(f"{where}: record header cut off inside the chunk")
+        length = int.from_bytes(raw[pos + 1 : pos + 9], "little")
+        end = pos + 9 + length
+        if end > n:
+            raise ReadError(f"{where}: record runs past the end of its chunk")
+        yield raw[pos], pos + 9, end
+        pos = end

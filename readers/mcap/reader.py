@@ -1,0 +1,166 @@
+"""MCAP logs (ROS 2 CDR or ROS 1 encoded) into the common table, chunk by chunk with numpy.
+
+``sensor_msgs/Imu``, ``MagneticField`` and ``Temperature`` messages are decoded straight from
+the decompressed chunks (:mod:`imupipe.readers.mcap.fast`, :func:`imupipe.readers.cdr.decode`);
+big-endian CDR falls back to rosbags' deserializer. Messages of every other channel are carried
+over as they are (ROS 1 encoded ones converted to ROS 2 CDR the way ``rosbags-convert`` does).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+import pyarrow as pa
+
+from imupipe.readers.decoded import Piece, concat, decode_piece
+from imupipe.readers.errors import ReadError
+from imupipe.readers.mcap.fast import ChunkMessages, McapFile
+from imupipe.readers.sources import carry_sources, iter_sources, read_sources
+from imupipe.readers.spec import InputSpec, RawMessage
+from imupipe.readers.topics import normalize_type
+
+
+class McapSource:
+    """One MCAP file as a :class:`~imupipe.readers.sources.LogSource`."""
+
+    format = "mcap"
+
+    def __init__(self, path: str | Path) -> None:
+        self.path = Path(path)
+        self.file = McapFile(self.path)
+        self._first: int | None = None
+
+    def topic_types(self) -> dict[str, str]:
+        return {c.topic: c.schema_name for c in self.file.channels.values()}
+
+    def topic_counts(self) -> dict[str, int] | None:
+        if self.file.counts is None:
+            return None
+        out: dict[str, int] = {}
+        for cid, n in self.file.counts.items():
+            if cid in self.file.channels:
+                topic = self.file.channels[cid].topic
+                out[topic] = out.get(topic, 0) + n
+        return out
+
+    def first_time(self) -> int:
+        if self._first is None:
+            self._first = 0
+            for chunk in self.file.chunks():
+                times = [chunk.records(cid)[0] for cid in chunk.offsets]
+                times = [t for t in times if len(t)]
+                if times:
+                    self._first = int(min(t.min() for t in times))
+                    break
+        return self._first
+
+    def topic_times(self) -> dict[str, np.ndarray]:
+        times: dict[str, list[np.ndarray]] = {}
+        for chunk in self.file.chunks():
+            for cid in chunk.offsets:
+                topic = self.file.channel(cid, chunk).topic
+                times.setdefault(topic, []).append(chunk.records(cid)[0])
+        return {t: np.concatenate(v) for t, v in times.items()}
+
+    def chunks(
+        self, streams: dict[str, str], carry: bool, decode: bool = True
+    ) -> Iterator[tuple[dict[str, Piece], list[RawMessage], int]]:
+        by_topic = {topic: stream for stream, topic in streams.items()}
+        stream_of: dict[int, str | None] = {}  # channel id -> its stream (None: carried over)
+        converters: dict[int, object] = {}
+        for chunk in self.file.chunks():
+            for cid in chunk.offsets:
+                if cid not in stream_of:
+                    stream_of[cid] = by_topic.get(self.file.channel(cid, chunk).topic)
+            pieces: dict[str, list[Piece]] = {}
+            if decode:
+                for cid in chunk.offsets:
+                    stream = stream_of[cid]
+                    if stream is not None:
+                        pieces.setdefault(stream, []).append(self._decode(chunk, cid, stream))
+            raw: list[RawMessage] = []
+            if carry:
+                for cid in sorted(chunk.offsets):
+                    if stream_of[cid] is None:
+                        raw.extend(self._raw(chunk, cid, converters))
+                raw.sort(key=lambda m: m.log_time)
+            yield {s: concat(p, s) for s, p in pieces.items()}, raw, chunk.bound
+
+    def _decode(self, chunk: ChunkMessages, cid: int, stream: str) -> Piece:
+        channel = self.file.channels[cid]
+        where = f"{self.path}: topic '{channel.topic}'"
+        if channel.message_encoding not in ("cdr", "ros1"):
+            raise ReadError(
+                f"{where}: message encoding '{channel.message_encoding}' is not supported "
+                "(cdr or ros1)"
+            )
+        log, pub, starts, lengths = chunk.records(cid, copy=False)
+        return decode_piece(
+            chunk.buf, starts, lengths, log, stream, channel.message_encoding, where, pub
+        )
+
+    def _raw(
+        self, chunk: ChunkMessages, cid: int, converters: dict[int, object]
+    ) -> list[RawMessage]:
+        channel = self.file.channel(cid, chunk)
+        log, pub, starts, lengths = chunk.records(cid)
+        schema_name, schema_encoding, schema_data = (
+            channel.schema_name,
+            channel.schema_encoding,
+            channel.schema_data,
+        )
+        encoding = channel.message_encoding
+        convert = None
+        if encoding == "ros1":
+            from imupipe.readers.ros1.reader import ros2_converter
+
+            if cid not in converters:
+                converters[cid] = ros2_converter(
+                    normalize_type(schema_name),
+                    schema_data.decode(errors="replace"),
+                    f"{self.path}: topic '{channel.topic}'",
+                )
+            schema_name, schema_data, convert = converters[cid]  # type: ignore[misc]
+            schema_encoding, encoding = "ros2msg", "cdr"
+        buf = chunk.buf
+        out = []
+        for lt, pt, s, n in zip(
+            log.tolist(), pub.tolist(), starts.tolist(), lengths.tolist(), strict=True
+        ):
+            data = buf[s : s + n].tobytes()
+            if convert is not None:
+                try:
+                    data = bytes(convert(data))
+                except Exception as exc:  # noqa: BLE001
+                    raise ReadError(
+                        f"{self.path}: topic '{channel.topic}': message at log time {lt} cannot "
+                        f"be converted to ROS 2 ({exc})"
+                    ) from None
+            out.append(
+                RawMessage(
+                    channel.topic, schema_name, schema_encoding, schema_data, encoding, data, lt, pt
+                )
+            )
+        return out
+
+
+def read_mcap(spec: InputSpec) -> tuple[pa.Table, list[str]]:
+    """Read an MCAP input into the common table; returns (table, warnings)."""
+    return read_sources(spec, [McapSource(spec.path)])
+
+
+def iter_mcap(spec: InputSpec, batch_rows: int) -> Iterator[tuple[pa.Table, list[RawMessage]]]:
+    """Bounded-memory batches (see :func:`imupipe.readers.sources.iter_sources`)."""
+    return iter_sources(spec, [McapSource(spec.path)], batch_rows)
+
+
+def carry_over_mcap(spec: InputSpec) -> list[RawMessage]:
+    """Messages of the topics the table does not hold, in log-time order."""
+    return carry_sources(spec, [McapSource(spec.path)])
+
+
+def mcap_sources(path: Path) -> list[McapSource]:
+    """The one source of an MCAP file (the ``log_sources`` entry for MCAP)."""
+    return [McapSource(path)]

@@ -1,0 +1,514 @@
+"""``mag_inflight`` stage: the compass calibrated from a flight log against the World Magnetic
+Model, as ArduPilot's MagFit (pymavlink ``tools/magfit_WMM.py``) does.
+
+Model (tesla; ``I`` the battery current in A, interpolated onto the magnetometer's stamps)::
+
+    R(q)^T B_wmm(lat, lon, alt)  =  M (raw - offset) + motor * I
+
+``B_wmm`` is the earth field in NED (:mod:`imupipe.stages.magnetometer.wmm`), ``R(q)`` the attitude
+(body FRD -> NED) of the table's ``attitude`` flight stream, so the left side is the field the
+compass should read in the body frame. ``offset`` is the hard iron, ``M`` a symmetric matrix
+(soft iron and scale: ArduPilot's ``COMPASS_SCALE`` x ``DIA``/``ODI``), ``motor`` the field per
+ampere (``COMPASS_MOT``, current-based). The model is linear in ``(M, -M offset, motor)``:
+it is fitted by iteratively reweighted least squares with Huber weights on the vector
+residual (``huber_k`` robust sigmas), samples beyond ``outlier_k`` robust sigmas rejected.
+
+Model choice (``model = "auto"``): ``offsets`` (M = I), ``scale`` (M = s I), ``soft_iron``
+(symmetric M), each with the motor term when the current varies; the flight is cut into
+``folds`` segments in time, each candidate fitted on the others and scored on the one held
+out, and the simplest candidate within 2 % of the best held-out RMS residual is kept.
+
+Separation (refused with ``ctx.fail`` naming what is missing): the expected body-field
+directions must span the sphere enough for soft iron (``min_spread``, the smallest eigenvalue
+of their covariance; a flight that only yawed level leaves the vertical unseen) and the current
+must vary (``min_current_a``) and not follow the field direction (correlation < 0.95) for the
+motor term. Standard errors are the least-squares ones inflated by the residual's lag-1
+autocorrelation (the residual of a flight is slow: attitude and model errors). Heading error:
+the heading of the corrected field rotated into NED minus the model's (deg).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, ClassVar, Literal
+
+import numpy as np
+import pyarrow as pa
+
+from imupipe.readers.table import (
+    SensorData,
+    flight_stream,
+    has_flight_stream,
+    has_stream,
+    interpolate,
+    metadata,
+    sensor,
+)
+from imupipe.stages.base import Stage, StageContext, StageOutput
+from imupipe.stages.magnetometer.wmm import earth_field
+from imupipe.stages.steps import EntryError, LinearStep, _numbers, _short
+
+MODELS = ("offsets", "scale", "soft_iron")
+"""Candidate static models, simplest first."""
+UT = 1e6
+"""uT per tesla: the fit works in uT (and A), which keeps its normal equations well scaled."""
+
+
+def rotate(q: np.ndarray, v: np.ndarray, inverse: bool = False) -> np.ndarray:
+    """Rotate rows of ``v`` by unit quaternions ``q`` (w, x, y, z): ``q v q*`` (body -> NED),
+    or ``q* v q`` with ``inverse`` (NED -> body)."""
+    w, u = q[:, :1], q[:, 1:]
+    if inverse:
+        u = -u
+    return v + 2.0 * np.cross(u, np.cross(u, v) + w * v)
+
+
+def _design(raw: np.ndarray, current: np.ndarray | None, model: str) -> np.ndarray:
+    """(3n, p) design of the stacked body-axis equations ``target = A theta``; theta is
+    (M terms, b (3), motor (3) when current is given); ``M raw + b + motor I``."""
+    n = len(raw)
+    x, y, z = raw[:, 0], raw[:, 1], raw[:, 2]
+    zero = np.zeros(n)
+    one = np.ones(n)
+    cols: list[list[np.ndarray]] = []  # each column: its 3 axis blocks
+    if model == "scale":
+        cols.append([x, y, z])
+    elif model == "soft_iron":
+        cols += [[x, zero, zero], [zero, y, zero], [zero, zero, z]]
+        cols += [[y, x, zero], [z, zero, x], [zero, z, y]]
+    cols += [[one, zero, zero], [zero, one, zero], [zero, zero, one]]
+    if current is not None:
+        cols += [[current, zero, zero], [zero, current, zero], [zero, zero, current]]
+    return np.column_stack([np.concatenate(c) for c in cols])
+
+
+@dataclass
+class Fit:
+    """A fitted model: ``matrix`` M, ``offset`` (T), ``motor`` (T/A; zeros without); the
+    parameter vector ``theta`` (M terms, ``b = -M offset`` in uT, motor in uT/A: see
+    :func:`parameter_names`), its covariance, the samples used and the residual sigma (uT)."""
+
+    model: str
+    motor_term: bool
+    matrix: np.ndarray
+    offset: np.ndarray
+    motor: np.ndarray
+    theta: np.ndarray
+    cov: np.ndarray
+    used: np.ndarray
+    sigma: float
+
+    def predict(self, raw: np.ndarray, current: np.ndarray | None) -> np.ndarray:
+        """The corrected field (n, 3), T."""
+        out = (raw - self.offset) @ self.matrix.T
+        if current is not None:
+            out = out + current[:, None] * self.motor
+        return out
+
+
+def parameter_names(model: str, motor_term: bool) -> list[str]:
+    """What each entry of :attr:`Fit.theta` is (units in brackets)."""
+    names = {
+        "offsets": [],
+        "scale": ["scale [1]"],
+        "soft_iron": [f"M{ij} [1]" for ij in ("xx", "yy", "zz", "xy", "xz", "yz")],
+    }[model]
+    names += [f"b_{a} [uT]" for a in "xyz"]
+    if motor_term:
+        names += [f"motor_{a} [uT/A]" for a in "xyz"]
+    return names
+
+
+def _unpack(theta: np.ndarray, model: str, motor_term: bool) -> tuple[np.ndarray, ...]:
+    k = {"offsets": 0, "scale": 1, "soft_iron": 6}[model]
+    if model == "offsets":
+        m = np.eye(3)
+    elif model == "scale":
+        m = np.eye(3) * theta[0]
+    else:
+        d, o = theta[:3], theta[3:6]
+        m = np.array([[d[0], o[0], o[1]], [o[0], d[1], o[2]], [o[1], o[2], d[2]]])
+    b = theta[k : k + 3]
+    motor = theta[k + 3 : k + 6] if motor_term else np.zeros(3)
+    offset = -np.linalg.solve(m, b)
+    return m, offset, motor
+
+
+def fit_model(
+    raw: np.ndarray,
+    target: np.ndarray,
+    current: np.ndarray | None,
+    model: str,
+    huber_k: float = 1.5,
+    outlier_k: float = 5.0,
+    iterations: int = 20,
+) -> Fit:
+    """Robust (Huber IRLS, outliers beyond ``outlier_k`` robust sigmas rejected) linear fit of
+    ``target ~ M raw + b + motor I`` (normal equations: fields in uT and current in A keep them
+    well scaled); raises ``np.linalg.LinAlgError`` when singular."""
+    n = len(raw)
+    raw, target = raw * UT, target * UT
+    a = _design(raw, current, model)
+    rhs = target.T.reshape(-1) if model != "offsets" else (target - raw).T.reshape(-1)
+    w = np.ones(n)
+    keep = np.ones(n, dtype=bool)
+    theta = np.zeros(a.shape[1])
+    sigma = 0.0
+    for _ in range(iterations):
+        ww = np.tile(w * keep, 3)
+        aw = a * ww[:, None]
+        theta_new = np.linalg.solve(aw.T @ a, aw.T @ rhs)
+        r = (rhs - a @ theta_new).reshape(3, n).T
+        e = np.linalg.norm(r, axis=1)
+        sigma = float(1.4826 * np.median(e[keep])) / np.sqrt(3) * 1.0 + 1e-300
+        per_axis = e / np.sqrt(3)
+        keep = per_axis <= outlier_k * sigma
+        w = np.minimum(1.0, huber_k * sigma / np.maximum(per_axis, 1e-300))
+        done = np.allclose(theta_new, theta, rtol=1e-9, atol=1e-9)
+        theta = theta_new
+        if done:
+            break
+    ww = np.tile(w * keep, 3)
+    r = rhs - a @ theta
+    dof = max(int(ww.astype(bool).sum()) - a.shape[1], 1)
+    s2 = float(np.sum(ww * r**2) / dof)
+    rr = r.reshape(3, n).T[keep]
+    rho = 0.0
+    if len(rr) > 3:
+        num = float(np.sum(rr[1:] * rr[:-1]))
+        den = float(np.sum(rr * rr)) or 1.0
+        rho = min(max(num / den, 0.0), 0.99)
+    inflate = (1 + rho) / (1 - rho)
+    cov = np.linalg.inv((a * ww[:, None]).T @ a) * s2 * inflate
+    m, offset, motor = _unpack(theta, model, current is not None)
+    return Fit(
+        model, current is not None, m, offset / UT, motor / UT, theta, cov, keep, np.sqrt(s2)
+    )
+
+
+def heading_deg(q: np.ndarray, body: np.ndarray) -> np.ndarray:
+    """Heading (deg from north, NED) of body-frame fields rotated into NED by ``q``."""
+    ned = rotate(q, body)
+    return np.degrees(np.arctan2(ned[:, 1], ned[:, 0]))
+
+
+def wrap_deg(a: np.ndarray) -> np.ndarray:
+    return (np.asarray(a) + 180.0) % 360.0 - 180.0
+
+
+@dataclass
+class FlightSamples:
+    """The magnetometer samples within the attitude and GPS streams' span, with what they
+    should read: ``raw`` (n, 3) T, attitude ``q`` (n, 4), WMM ``ned`` and body-frame ``target``
+    (n, 3) T, ``current`` (n,) A or None; all on the magnetometer's stamps ``t_ns``."""
+
+    t_ns: np.ndarray
+    raw: np.ndarray
+    q: np.ndarray
+    ned: np.ndarray
+    target: np.ndarray
+    current: np.ndarray | None
+
+
+def continuous(q: np.ndarray) -> np.ndarray:
+    """Quaternions (n, 4) with their signs chosen so that neighbours lie in one hemisphere
+    (``q`` and ``-q`` are one rotation; a log's yaw wrapping at +-180 deg flips the sign), so
+    that interpolating between neighbours stays near both."""
+    if len(q) < 2:
+        return q
+    flips = np.sign(np.einsum("ij,ij->i", q[1:], q[:-1]))
+    flips[flips == 0] = 1.0
+    return q * np.concatenate([[1.0], np.cumprod(flips)])[:, None]
+
+
+def flight_samples(table: pa.Table, mag: SensorData, year: float) -> FlightSamples:
+    """:class:`FlightSamples` of ``mag`` (finite magnetometer samples of ``table``): attitude,
+    position and current interpolated onto its stamps, the WMM field of ``year`` at the
+    position, rotated into the body. ValueError (one line) when fewer than 50 samples lie
+    within the flight streams or the date precedes the model."""
+    att = flight_stream(table, "attitude")
+    pos = flight_stream(table, "position")
+    inside = (mag.t_ns >= max(att.t_ns[0], pos.t_ns[0])) & (
+        mag.t_ns <= min(att.t_ns[-1], pos.t_ns[-1])
+    )
+    if inside.sum() < 50:
+        raise ValueError(
+            f"{int(inside.sum())} magnetometer samples lie within the attitude and GPS "
+            "streams' time span; the fit needs at least 50"
+        )
+    t_ns, raw = mag.t_ns[inside], mag.values[inside]
+    q = interpolate(att.t_ns, continuous(att.values), t_ns)
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    lla = interpolate(pos.t_ns, pos.values, t_ns)
+    ned = earth_field(lla[:, 0], lla[:, 1], lla[:, 2], year)
+    current = None
+    if has_flight_stream(table, "current"):
+        cur = flight_stream(table, "current")
+        current = interpolate(cur.t_ns, cur.values[:, 0], t_ns)
+    return FlightSamples(t_ns, raw, q, ned, rotate(q, ned, inverse=True), current)
+
+
+@dataclass
+class MagCurrentStep(LinearStep):
+    """``corrected = matrix @ (raw - offset) + motor * I(t)``: a linear step plus a field per
+    ampere of battery current (``motor``, T/A), the current being the table's ``current``
+    flight stream interpolated onto the magnetometer's stamps (no current stream: the term is
+    left out)."""
+
+    kind: ClassVar[str] = "mag_current"
+    motor: np.ndarray = field(default_factory=lambda: np.zeros(3))
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        self.motor = np.asarray(self.motor, dtype=np.float64).reshape(3)
+
+    def apply(self, table: pa.Table) -> pa.Table:
+        from imupipe.readers.table import replace_sensor
+
+        if not has_stream(table, "mag"):
+            return table
+        data = sensor(table, "mag")
+        out = self.apply_values(data.values)
+        if has_flight_stream(table, "current"):
+            cur = flight_stream(table, "current")
+            out = out + interpolate(cur.t_ns, cur.values[:, 0], data.t_ns)[:, None] * self.motor
+        return replace_sensor(table, "mag", data.rows, out)
+
+    def to_json(self) -> dict[str, Any]:
+        return {**super().to_json(), "motor": self.motor.tolist()}
+
+    @classmethod
+    def check_entry(cls, entry: dict[str, Any]) -> None:
+        super().check_entry(entry)
+        if _numbers(entry.get("motor"), (3,)) is None:
+            raise EntryError("motor", f"3 numbers expected, got {_short(entry.get('motor'))}")
+
+    @classmethod
+    def from_json(cls, entry: dict[str, Any]) -> MagCurrentStep:
+        params = {
+            k: v
+            for k, v in entry.items()
+            if k not in ("type", "sensor", "kind", "matrix", "offset", "motor")
+        }
+        return cls(
+            type=entry["type"],
+            sensor=entry["sensor"],
+            matrix=np.array(entry["matrix"], dtype=np.float64),
+            offset=np.array(entry["offset"], dtype=np.float64),
+            params=params,
+            motor=np.array(entry["motor"], dtype=np.float64),
+        )
+
+
+class MagInflightStage(Stage):
+    type = "mag_inflight"
+    sensors = ("mag",)
+    corrects = True
+
+    @dataclass
+    class Options:
+        model: Literal["auto", "offsets", "scale", "soft_iron"] = "auto"
+        """``auto`` (chosen on held-out flight segments) or one model."""
+        motor: Literal["auto", "on", "off"] = "auto"
+        """The per-ampere motor term: ``auto`` (fitted when the current varies), ``on``
+        (refused when the flight cannot separate it) or ``off``."""
+        year: float | None = None
+        """The flight's date as a decimal year (WMM epoch); default: the log's GPS date."""
+        folds: int = field(default=5, metadata={"min": 2, "max": 50})
+        """Held-out segments for the model choice."""
+        huber_k: float = field(default=1.5, metadata={"min": 0.1})
+        """Huber weights beyond this many robust sigmas of the per-axis residual."""
+        outlier_k: float = field(default=5.0, metadata={"min": 1.0})
+        """Samples beyond this many robust sigmas are rejected (left out of the fit)."""
+        min_spread: float = field(default=0.002, metadata={"min": 0.0})
+        """Smallest eigenvalue of the expected field directions' covariance for soft iron."""
+        min_current_a: float = field(default=2.0, metadata={"min": 0.0})
+        """Current range (A, 5-95 %) below which the motor term cannot be fitted."""
+        max_residual_ut: float = field(default=5.0, metadata={"min": 0.0})
+        """Quality check: RMS vector residual after the fit, uT."""
+
+    def fit(self, table: pa.Table, ctx: StageContext) -> StageOutput:  # noqa: C901
+        o: MagInflightStage.Options = self.options
+        missing = [s for s in ("attitude", "position") if not has_flight_stream(table, s)]
+        if not has_stream(table, "mag"):
+            missing.insert(0, "magnetometer")
+        if missing:
+            raise ctx.fail(
+                "the log has no " + ", ".join(missing) + " (an in-flight compass fit needs the "
+                "magnetometer, the attitude and a GPS position: DataFlash MAG, ATT, GPS; ULog "
+                "sensor_mag, vehicle_attitude, vehicle_gps_position)"
+            )
+        mag = ctx.finite(sensor(table, "mag"), "magnetometer", minimum=50)
+        year = o.year if o.year is not None else metadata(table).get("gps_year")
+        if year is None:
+            raise ctx.fail(
+                "the flight's date is unknown (the log has no GPS week and time): set year "
+                "(decimal, e.g. 2016.4) in this stage"
+            )
+        try:
+            fs = flight_samples(table, mag, float(year))
+        except ValueError as exc:
+            raise ctx.fail(str(exc)) from None
+        t_ns, raw, q, ned, target, current = fs.t_ns, fs.raw, fs.q, fs.ned, fs.target, fs.current
+
+        # -- what the flight can separate ----------------------------------------------------
+        dirs = target / np.linalg.norm(target, axis=1, keepdims=True)
+        spread = np.linalg.eigvalsh(np.cov(dirs.T))
+        tilt = np.degrees(
+            np.arccos(np.clip(rotate(q, np.tile([0, 0, 1.0], (len(q), 1)))[:, 2], -1, 1))
+        )
+        yaw = heading_deg(q, np.tile([1.0, 0, 0], (len(q), 1)))
+        yaw_cover = float(np.count_nonzero(np.histogram(yaw, bins=36, range=(-180, 180))[0])) * 10
+        coverage = {
+            "direction_spread": [float(v) for v in spread],
+            "yaw_coverage_deg": yaw_cover,
+            "tilt_max_deg": float(np.percentile(tilt, 99)),
+        }
+        reasons: list[str] = []
+        can_soft = bool(spread[0] >= o.min_spread)
+        if not can_soft:
+            reasons.append(
+                f"soft iron: the field's body directions spread {spread[0]:.3g} < min_spread "
+                f"{o.min_spread:g} (yaw covered {yaw_cover:.0f} deg, tilt to "
+                f"{coverage['tilt_max_deg']:.0f} deg): fly full turns and steeper banks"
+            )
+        can_motor = False
+        if current is not None:
+            lo, hi = np.percentile(current, [5, 95])
+            corr = (
+                max(abs(np.corrcoef(current, target[:, i])[0, 1]) for i in range(3))
+                if hi > lo
+                else 1.0
+            )
+            can_motor = bool(hi - lo >= o.min_current_a and corr < 0.95)
+            if not can_motor:
+                reasons.append(
+                    f"motor: the current spans {hi - lo:.2g} A (min_current_a {o.min_current_a:g})"
+                    f" or follows the field direction (|r| {corr:.2f})"
+                )
+        else:
+            reasons.append("motor: the log has no battery current")
+        if o.model == "soft_iron" and not can_soft:
+            raise ctx.fail("cannot separate " + reasons[0])
+        if o.motor == "on" and not can_motor:
+            raise ctx.fail("cannot separate " + [r for r in reasons if r.startswith("motor")][0])
+        for r in reasons:
+            ctx.warn("not fitted: " + r)
+        use_motor = can_motor and o.motor != "off"
+        cur_fit = current if use_motor else None
+        can_scale = bool(spread[-1] >= o.min_spread)
+        if not can_scale:
+            reasons.append(
+                f"scale: the field's body direction hardly changed (largest spread "
+                f"{spread[-1]:.3g} < min_spread {o.min_spread:g}): only offsets are fitted"
+            )
+        if o.model == "scale" and not can_scale:
+            raise ctx.fail("cannot separate " + reasons[-1])
+        if o.model == "auto":
+            candidates = ["offsets"] + ["scale"] * can_scale + ["soft_iron"] * can_soft
+        else:
+            candidates = [o.model]
+
+        # -- model choice on held-out segments -----------------------------------------------
+        held: dict[str, float] = {}
+        segments = np.array_split(np.arange(len(raw)), o.folds)
+        for model in candidates:
+            sq, cnt = 0.0, 0
+            try:
+                for seg in segments:
+                    train = np.ones(len(raw), dtype=bool)
+                    train[seg] = False
+                    f = fit_model(
+                        raw[train],
+                        target[train],
+                        None if cur_fit is None else cur_fit[train],
+                        model,
+                        o.huber_k,
+                        o.outlier_k,
+                    )
+                    r = np.linalg.norm(
+                        f.predict(raw[seg], None if cur_fit is None else cur_fit[seg])
+                        - target[seg],
+                        axis=1,
+                    )
+                    r = r[r <= np.median(r) * 5 + 1e-300]
+                    sq += float(np.sum(r**2))
+                    cnt += len(r)
+            except np.linalg.LinAlgError:
+                continue
+            held[model] = float(np.sqrt(sq / max(cnt, 1)))
+        if not held:
+            raise ctx.fail("every candidate model is singular on this flight")
+        best = min(held.values())
+        chosen = next(m for m in candidates if m in held and held[m] <= best * 1.02)
+        fit = fit_model(raw, target, cur_fit, chosen, o.huber_k, o.outlier_k)
+
+        before = np.linalg.norm(raw - target, axis=1)
+        corrected = fit.predict(raw, cur_fit)
+        after = np.linalg.norm(corrected - target, axis=1)
+        h_model = heading_deg(q, target)
+        h_before = wrap_deg(heading_deg(q, raw) - h_model)
+        h_after = wrap_deg(heading_deg(q, corrected) - h_model)
+        se = np.sqrt(np.diag(fit.cov))
+        ut = UT
+        metrics = {
+            "residual_rms_ut_before": float(np.sqrt(np.mean(before**2)) * ut),
+            "residual_rms_ut_after": float(np.sqrt(np.mean(after**2)) * ut),
+            "residual_rms_ut_after_inliers": float(np.sqrt(np.mean(after[fit.used] ** 2)) * ut),
+            "heading_rms_deg_before": float(np.sqrt(np.mean(h_before**2))),
+            "heading_rms_deg_after": float(np.sqrt(np.mean(h_after**2))),
+            "held_out_rms_ut": {m: v * ut for m, v in held.items()},
+            "outliers": int(len(raw) - fit.used.sum()),
+            "samples": len(raw),
+            "field_ut": float(np.mean(np.linalg.norm(ned, axis=1)) * ut),
+        }
+        ctx.check(
+            metrics["residual_rms_ut_after"] <= o.max_residual_ut,
+            f"residual {metrics['residual_rms_ut_after']:.2f} uT > max_residual_ut "
+            f"{o.max_residual_ut:g} uT",
+        )
+        results: dict[str, Any] = {
+            "model": chosen,
+            "motor_term": fit.motor_term,
+            "matrix": fit.matrix.tolist(),
+            "offset_t": fit.offset.tolist(),
+            "motor_t_per_a": fit.motor.tolist(),
+            "parameter_se": dict(
+                zip(parameter_names(chosen, fit.motor_term), se.tolist(), strict=True)
+            ),
+            "year": float(year),
+            "coverage": coverage,
+            "not_fitted": reasons,
+            "metrics": metrics,
+        }
+        if ctx.recorder.enabled:
+            rec = ctx.recorder
+            rec.series(
+                f"/{ctx.name}/heading_error",
+                t_ns,
+                np.column_stack([h_before, h_after]),
+                ["heading error before", "heading error after"],
+                unit="deg",
+                title="heading error against the WMM",
+            )
+            if current is not None:
+                rec.curve(
+                    f"/{ctx.name}/residual_vs_current",
+                    current,
+                    np.column_stack([before, after]),
+                    ["residual before", "residual after"],
+                    unit="T",
+                    x_label="current",
+                    x_unit="A",
+                    points=True,
+                    title="vector residual",
+                )
+        step = MagCurrentStep(
+            type=self.type,
+            sensor="mag",
+            matrix=fit.matrix,
+            offset=fit.offset,
+            motor=fit.motor,
+            params={"model": chosen},
+        )
+        return StageOutput(results=results, step=step)
