@@ -263,3 +263,89 @@ def test_no_worse_than_magfit_on_the_simulated_flight(tmp_path):
     assert isinstance(theirs, dict), theirs
     mf = bench.magfit_corrected(path, fs.t_ns, fs.raw, fs.current, theirs)
     assert bench.score(fs, ours)[0] <= bench.score(fs, mf)[0]
+
+
+VEHICLE = {
+    "COMPASS_OFS_X": -150.0,
+    "COMPASS_OFS_Y": 80.0,
+    "COMPASS_OFS_Z": -40.0,
+    "COMPASS_DIA_X": 1.03,
+    "COMPASS_DIA_Y": 0.98,
+    "COMPASS_DIA_Z": 1.01,
+    "COMPASS_ODI_X": 0.012,
+    "COMPASS_ODI_Y": -0.008,
+    "COMPASS_ODI_Z": 0.005,
+    "COMPASS_SCALE": 1.02,
+    "COMPASS_MOT_X": 0.3,
+    "COMPASS_MOT_Y": -0.2,
+    "COMPASS_MOT_Z": 0.5,
+    "COMPASS_MOTCT": 2.0,
+}
+"""A vehicle's own compass calibration in force while it logged (mG, mG/A), none zero."""
+
+
+def exported_reproduces_imupipe(tmp_path, log, inputs: str = "") -> tuple[float, dict]:
+    """Run mag_inflight on ``log`` (a DataFlash file) with the CLI; undo the log's own
+    correction on its MAG (the raw field), apply ArduPilot's correct_field with the exported
+    parameters over the log's (what the vehicle holds after loading the file), and compare with
+    imupipe's corrected field: (max difference in mG, the exported parameters)."""
+    from imupipe.pipeline.simulate.flight import ardupilot_correct, ardupilot_raw
+    from imupipe.readers.table import has_flight_stream, interpolate
+
+    (tmp_path / "c.toml").write_text(
+        f'[inputs.f]\npath = "{log}"\n{inputs}\n[[stages]]\ntype = "mag_inflight"\n'
+        '[output]\ndir = "out"\n'
+    )
+    proc = run_cli("run", "c.toml", cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    doc = json.loads((tmp_path / "out" / "calibration.json").read_text())
+    text = (tmp_path / "out" / "ardupilot_calibration.param").read_text()
+    exported = {
+        k: float(v) for k, v in (ln.split(",") for ln in text.splitlines() if ln[:1] != "#")
+    }
+    kw = dict(line.split(" = ") for line in inputs.splitlines() if line)
+    table, _ = read_dataflash(InputSpec(path=log, **{k: v.strip('"') for k, v in kw.items()}))
+    logged = sensor(table, "mag")
+    amps = np.zeros(len(logged))
+    if has_flight_stream(table, "current"):
+        cur = flight_stream(table, "current")
+        amps = interpolate(cur.t_ns, cur.values[:, 0], logged.t_ns)
+    before = metadata(table)["ardupilot"]["parameters"]
+    raw = ardupilot_raw(logged.values, before, amps)
+    vehicle = ardupilot_correct(raw, before | exported, amps)
+    ours = sensor(steps_from_json(doc["chain"])[0].apply(table), "mag").values
+    assert np.allclose(ardupilot_correct(raw, before, amps), logged.values, atol=1e-12)
+    return float(np.abs(vehicle - ours).max() * 1e7), exported
+
+
+def test_export_composes_with_the_vehicles_own_calibration(tmp_path):
+    """The simulated vehicle logged MAG corrected by its own COMPASS_OFS/DIA/ODI/SCALE/MOT:
+    the exported file, loaded on it, gives imupipe's corrected field from the raw one, and its
+    parameters are the truth (the raw sensor's errors) in ArduPilot's form."""
+    table, truth = simulate("flight", {"duration_s": 120.0, "vehicle": VEHICLE}, seed=6)
+    path = tmp_path / "flight.bin"
+    write_log(path, table)
+    diff, p = exported_reproduces_imupipe(tmp_path, path)
+    # mG (the field is ~500 mG, the log's resolution 1 mG): ArduPilot's DIA/ODI is symmetric,
+    # the composed M W is not quite (the product of two symmetric matrices): 1e-4 of the field
+    assert diff < 0.1
+    assert p["COMPASS_MOTCT"] == 2 and p["COMPASS_SCALE"] == 1
+    # the truth: corrected = M (raw - offset) + motor I  =>  OFS = -offset, W = M, MOT = motor
+    field = truth["field_norm"] * 1e7
+    ofs = np.array([p[f"COMPASS_OFS_{a}"] for a in "XYZ"])
+    assert np.abs(ofs + np.array(truth["offset"]) * 1e7).max() < 0.01 * field
+    dia = np.array([p[f"COMPASS_DIA_{a}"] for a in "XYZ"])
+    assert np.abs(dia - np.diag(truth["matrix"])).max() < 0.01
+    mot = np.array([p[f"COMPASS_MOT_{a}"] for a in "XYZ"])
+    want = np.array(truth["motor"]) * 1e7
+    assert np.linalg.norm(mot - want) < 0.05 * np.linalg.norm(want)
+    # without composing, the file would hold a correction on top of the vehicle's: far off
+    assert np.abs(ofs - [VEHICLE[f"COMPASS_OFS_{a}"] for a in "XYZ"]).max() > 50
+
+
+def test_export_composes_with_a_real_logs_calibration(tmp_path):
+    """spark404_utrecht: ArduPilot logged MAG with its COMPASS_OFS and DIA/ODI in force."""
+    path = shared_path("logs", "ardupilot_flights", "spark404_utrecht", "log.bin")
+    diff, p = exported_reproduces_imupipe(tmp_path, path, 'imu_topic = "IMU"\nmag_topic = "MAG"')
+    assert diff < 0.1
+    assert {"COMPASS_OFS_X", "COMPASS_DIA_X", "COMPASS_MOT_X"} <= set(p)

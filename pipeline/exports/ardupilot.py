@@ -71,6 +71,9 @@ TCAL_REFERENCE = 35.0
 TCAL_SCALE = 1e6
 """ArduPilot stores the ``INS_TCAL`` coefficients multiplied by this (``SCALE_FACTOR``)."""
 MILLIGAUSS_PER_TESLA = 1e7
+SCALE_RANGE = (1 / 1.5, 1.5)
+"""``COMPASS_SCALE`` outside this range is ignored by ArduPilot (``Compass::have_scale_factor``,
+``COMPASS_MIN/MAX_SCALE_FACTOR``)."""
 SLOTS = 3
 """ArduPilot's IMUs (and compasses) with parameters of this form."""
 SHORT = {"accel": "ACC", "gyro": "GYR", "mag": "COMPASS"}
@@ -258,8 +261,10 @@ def compose_with_log(model: SensorModel, i: int, out: Export) -> SensorModel | N
         odi = _vector(p, f"COMPASS_ODI{s}", 0.0)
         for (a, b), value in zip(((0, 1), (0, 2), (1, 2)), odi, strict=True):
             w[a, b] = w[b, a] = value
-        w = w * float(p.get(f"COMPASS_SCALE{s}") or 1.0)
+        scale = float(p.get(f"COMPASS_SCALE{s}") or 0.0)
+        w = w * (scale if SCALE_RANGE[0] <= scale <= SCALE_RANGE[1] else 1.0)
         old = -_vector(p, f"COMPASS_OFS{s}", 0.0) / MILLIGAUSS_PER_TESLA
+        motor = log_motor(model, p, s, out)
     else:
         short = SHORT[sensor]
         offs = f"INS_{short}{s}OFFS" if sensor == "accel" or i else "INS_GYROFFS"
@@ -274,6 +279,7 @@ def compose_with_log(model: SensorModel, i: int, out: Export) -> SensorModel | N
                 "temperature model is not written",
             )
             thermal = None
+        motor = model.motor
     winv = np.linalg.inv(w)
     if thermal is not None:
         thermal = type(thermal)(thermal.tref, winv @ thermal.coefficients, thermal.t_range)
@@ -285,8 +291,33 @@ def compose_with_log(model: SensorModel, i: int, out: Export) -> SensorModel | N
         model.entries,
         model.issues,
         model.device,
-        model.motor,  # added after the matrix, in the corrected frame either way
+        motor,
     )
+
+
+def log_motor(model: SensorModel, p: dict[str, Any], s: str, out: Export) -> np.ndarray | None:
+    """The compass's per-ampere term composed with the log's own: ArduPilot adds
+    ``COMPASS_MOT * I`` after ``DIA``/``ODI`` (``correct_field``), so the logged field is
+    ``W (raw + OFS) + MOT_log I`` and imupipe's ``M (logged - o) + motor I`` holds
+    ``(M MOT_log + motor) I``: the exported ``COMPASS_MOT`` replaces the log's. A log whose
+    ``COMPASS_MOTCT`` is 1 (throttle-based) or with per-motor compensation (``COMPASS_PMOT_EN``)
+    cannot be expressed per ampere: noted, its ``M MOT_log`` part left out."""
+    mot = _vector(p, f"COMPASS_MOT{s}", 0.0) / MILLIGAUSS_PER_TESLA
+    kind = int(p.get("COMPASS_MOTCT") or 0)
+    if kind == 2 and np.any(mot) and not (s == "" and p.get("COMPASS_PMOT_EN")):
+        return model.matrix @ mot + (0.0 if model.motor is None else model.motor)
+    if (kind == 1 and np.any(mot)) or (s == "" and p.get("COMPASS_PMOT_EN")):
+        out.note(
+            FNAME,
+            "mag: the log's data carry ArduPilot's throttle-based or per-motor compensation "
+            "(COMPASS_MOTCT = 1 or COMPASS_PMOT_EN = 1), which has no per-ampere form; "
+            + (
+                "the fitted per-ampere term replaces it (COMPASS_MOTCT = 2)"
+                if model.motor is not None
+                else "it stays as it is"
+            ),
+        )
+    return model.motor
 
 
 def motor_rows(model: SensorModel, i: int, written: list[Row]) -> list[Row]:

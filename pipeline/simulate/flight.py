@@ -11,8 +11,14 @@ motor interference are known, for the ``mag_inflight`` stage (written as DataFla
   rotated into the body, distorted by the inverse of the correction
   ``corrected = M (raw - offset) + motor * I``: ``raw = M^-1 (B_body - motor I) + offset``,
   plus white noise ``mag_noise`` (T per axis); the DataFlash writer rounds it to milligauss.
+- The vehicle's own compass calibration (``vehicle``: ArduPilot parameters, e.g.
+  ``{"COMPASS_OFS_X": -120, "COMPASS_DIA_X": 1.02, "COMPASS_MOT_Z": 4.5, "COMPASS_MOTCT": 2}``;
+  default none): applied to the logged field as ArduPilot's ``correct_field`` does
+  (:func:`ardupilot_correct`) and written in the log's ``PARM``, so the log is what a calibrated
+  vehicle records and an export must compose with it.
 
-Truth: ``matrix`` M, ``offset`` (T), ``motor`` (T/A), ``field_norm`` (T).
+Truth: ``matrix`` M, ``offset`` (T), ``motor`` (T/A), ``field_norm`` (T): the raw sensor's
+errors (before the vehicle's own correction).
 """
 
 from __future__ import annotations
@@ -49,7 +55,50 @@ DEFAULTS: dict[str, Any] = {
     "matrix": [[1.04, 0.02, -0.015], [0.02, 0.97, 0.01], [-0.015, 0.01, 1.02]],
     "motor": [6.0e-8, -4.0e-8, 1.2e-7],
     "mag_noise": 1.5e-7,
+    "vehicle": {},
 }
+MILLIGAUSS_PER_TESLA = 1e7
+
+
+def _compass_terms(p: dict[str, Any], s: str = "") -> tuple[np.ndarray, ...]:
+    """(OFS mG, W (scale x DIA/ODI), MOT mG/A or zeros) of compass ``s`` ("", "2", "3") as
+    ArduPilot reads its parameters: an all-zero ``DIA`` is (1, 1, 1), ``COMPASS_SCALE``
+    outside 1/1.5..1.5 (or unset) is not applied, ``MOT`` only with ``COMPASS_MOTCT = 2``."""
+
+    def vec(name: str, default: float) -> np.ndarray:
+        return np.array([float(p.get(f"{name}_{a}", default) or 0.0) for a in "XYZ"])
+
+    dia = vec(f"COMPASS_DIA{s}", 0.0)
+    dia = np.ones(3) if not np.any(dia) else dia
+    odi = vec(f"COMPASS_ODI{s}", 0.0)
+    w = np.diag(dia)
+    w[0, 1] = w[1, 0] = odi[0]
+    w[0, 2] = w[2, 0] = odi[1]
+    w[1, 2] = w[2, 1] = odi[2]
+    scale = float(p.get(f"COMPASS_SCALE{s}") or 0.0)
+    if 1 / 1.5 <= scale <= 1.5:
+        w = w * scale
+    mot = vec(f"COMPASS_MOT{s}", 0.0) if int(p.get("COMPASS_MOTCT") or 0) == 2 else np.zeros(3)
+    return vec(f"COMPASS_OFS{s}", 0.0), w, mot
+
+
+def ardupilot_correct(raw: np.ndarray, p: dict[str, Any], amps: np.ndarray) -> np.ndarray:
+    """What ArduPilot logs (T) for the raw field ``raw`` (n, 3, T, body axes) under its
+    parameters ``p`` (first compass) and battery current ``amps`` (A): ``AP_Compass_Backend``'s
+    ``correct_field``: offsets added, scale and ``DIA``/``ODI`` applied, then ``MOT * I``
+    (current-based), all in milligauss."""
+    ofs, w, mot = _compass_terms(p)
+    mg = (raw * MILLIGAUSS_PER_TESLA + ofs) @ w.T + amps[:, None] * mot
+    return mg / MILLIGAUSS_PER_TESLA
+
+
+def ardupilot_raw(logged: np.ndarray, p: dict[str, Any], amps: np.ndarray) -> np.ndarray:
+    """The inverse of :func:`ardupilot_correct`: the raw field (T) under a log's ``MAG``."""
+    ofs, w, mot = _compass_terms(p)
+    mg = np.linalg.solve(w, (logged * MILLIGAUSS_PER_TESLA - amps[:, None] * mot).T).T - ofs
+    return mg / MILLIGAUSS_PER_TESLA
+
+
 M_PER_DEG = 111_320.0
 """Metres per degree of latitude (spherical earth: enough for a 200 m track)."""
 
@@ -95,12 +144,15 @@ def simulate(params: dict[str, Any], rng: np.random.Generator) -> tuple[pa.Table
     amps = _current(s(t_mag), p)
     raw = np.linalg.solve(m, (body - amps[:, None] * motor).T).T + offset
     raw += rng.normal(0.0, p["mag_noise"], raw.shape)
-    table = make_table(t_mag, mag=raw)
+    vehicle = {k: float(v) for k, v in (p["vehicle"] or {}).items()}
+    table = make_table(t_mag, mag=ardupilot_correct(raw, vehicle, amps) if vehicle else raw)
     table = with_flight_stream(table, "attitude", t_att, _attitude(s(t_att), p))
     table = with_flight_stream(table, "position", t_gps, _position(s(t_gps), p))
     logged = _current(s(t_bat), p) + rng.normal(0.0, 0.2, len(t_bat))
     table = with_flight_stream(table, "current", t_bat, logged)
     meta = metadata(table) | {"source": "simulate flight", "gps_year": float(p["year"])}
+    if vehicle:
+        meta["ardupilot"] = {"parameters": vehicle, "calibrated": {"mag": True}}
     truth = {
         "matrix": m.tolist(),
         "offset": offset.tolist(),

@@ -11,7 +11,9 @@ Messages (ArduPilot 4.x layouts; units as ``LogStructure.h`` states them):
 - ``GPS``: ``Status`` 3 (3D fix), ``GMS``/``GWk`` GPS time of week (ms) and week from the table's
   ``gps_year`` metadata, ``Lat``/``Lng`` int32 1e-7 deg, ``Alt`` int32 cm;
 - ``BAT``: ``Curr`` float A;
-- ``PARM``: :data:`PARAMETERS`, before the first sample.
+- ``PARM``: :data:`PARAMETERS`, then the table's ``ardupilot.parameters`` metadata (a simulated
+  vehicle's own calibration, already applied to ``MAG``, whose ``Ofs*`` hold its
+  ``COMPASS_OFS_*``), before the first sample.
 
 Records are built as numpy structured arrays and interleaved by time with one scatter: no
 Python loop over samples.
@@ -116,14 +118,16 @@ def _payloads(table: pa.Table) -> dict[str, tuple[np.ndarray, np.ndarray]]:
         return rec
 
     t0 = int(table.column("t_ns").to_numpy().min(initial=0))
-    rec = empty("PARM", len(PARAMETERS), np.full(len(PARAMETERS), t0))
-    rec["Name"] = [k.encode() for k in PARAMETERS]
-    rec["Value"] = list(PARAMETERS.values())
-    out["PARM"] = (np.full(len(PARAMETERS), t0 - 1), rec)
+    params = PARAMETERS | ((metadata(table).get("ardupilot") or {}).get("parameters") or {})
+    rec = empty("PARM", len(params), np.full(len(params), t0))
+    rec["Name"] = [k.encode() for k in params]
+    rec["Value"] = list(params.values())
+    out["PARM"] = (np.full(len(params), t0 - 1), rec)
     mag = sensor(table, "mag")
     rec = empty("MAG", len(mag), mag.t_ns)
     for i, a in enumerate("XYZ"):
         rec[f"Mag{a}"] = np.clip(np.rint(mag.values[:, i] * 1e7), -32768, 32767)
+        rec[f"Ofs{a}"] = np.rint(params.get(f"COMPASS_OFS_{a}", 0.0))
     out["MAG"] = (mag.t_ns, rec)
     if has_flight_stream(table, "attitude"):
         att = flight_stream(table, "attitude")
