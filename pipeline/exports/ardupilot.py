@@ -9,8 +9,9 @@ ArduPilot corrects (ArduPilot ``libraries/AP_InertialSensor/AP_InertialSensor_Ba
     gyro:  raw - tcal(T) - INS_GYROFFS_{X,Y,Z}                                        rad/s
     tcal(T) = p(T - 35) - p(INS_ACC1_CALTEMP - 35),  p(d) = 1e-6 (c1 d + c2 d^2 + c3 d^3),
              c_k = INS_TCAL1_ACC{k}_{X,Y,Z} (GYR for the gyro), T clamped to INS_TCAL1_TMIN..TMAX
-    mag:   W (raw + COMPASS_OFS_{X,Y,Z}),  W symmetric: diagonal COMPASS_DIA_*,
-           off-diagonal COMPASS_ODI_{X,Y,Z} = W01, W02, W12                            milligauss
+    mag:   W (raw + COMPASS_OFS_{X,Y,Z}) + COMPASS_MOT_{X,Y,Z} I,  W = COMPASS_SCALE x the
+           symmetric matrix of diagonal COMPASS_DIA_*, off-diagonal COMPASS_ODI_{X,Y,Z} = W01,
+           W02, W12; I the battery current (COMPASS_MOTCT = 2)                          milligauss
 
 **One slot per device** (:func:`imupipe.pipeline.exports.common.device_models`): IMU ``i`` (1 to
 3) is ``INS_ACC*``/``INS_GYR*`` (``INS_ACCOFFS_*``, ``INS_ACC2OFFS_*``, ``INS_ACC3OFFS_*``;
@@ -233,6 +234,28 @@ def _vector(p: dict[str, Any], name: str, default: float) -> np.ndarray:
     return np.array([default if v is None else float(v) for v in values])
 
 
+def compass_terms(p: dict[str, Any], s: str = "") -> tuple[np.ndarray, ...]:
+    """(OFS mG, W (scale x DIA/ODI), MOT mG/A or zeros) of compass ``s`` ("", "2", "3") as
+    ArduPilot reads its parameters: an all-zero ``DIA`` is (1, 1, 1), ``COMPASS_SCALE``
+    outside 1/1.5..1.5 (or unset) is not applied, ``MOT`` only with ``COMPASS_MOTCT = 2``."""
+
+    def vec(name: str, default: float) -> np.ndarray:
+        return np.array([float(p.get(f"{name}_{a}", default) or 0.0) for a in "XYZ"])
+
+    dia = vec(f"COMPASS_DIA{s}", 0.0)
+    dia = np.ones(3) if not np.any(dia) else dia
+    odi = vec(f"COMPASS_ODI{s}", 0.0)
+    w = np.diag(dia)
+    w[0, 1] = w[1, 0] = odi[0]
+    w[0, 2] = w[2, 0] = odi[1]
+    w[1, 2] = w[2, 1] = odi[2]
+    scale = float(p.get(f"COMPASS_SCALE{s}") or 0.0)
+    if SCALE_RANGE[0] <= scale <= SCALE_RANGE[1]:
+        w = w * scale
+    mot = vec(f"COMPASS_MOT{s}", 0.0) if int(p.get("COMPASS_MOTCT") or 0) == 2 else np.zeros(3)
+    return vec(f"COMPASS_OFS{s}", 0.0), w, mot
+
+
 def compose_with_log(model: SensorModel, i: int, out: Export) -> SensorModel | None:
     """The model in ArduPilot's raw (sensor-frame) domain when it was fitted on data ArduPilot
     had corrected with the log's own parameters (module docstring: the logged ``IMU`` is
@@ -255,16 +278,9 @@ def compose_with_log(model: SensorModel, i: int, out: Export) -> SensorModel | N
         return None
     thermal = model.thermal
     if sensor == "mag":
-        w = np.diag(_vector(p, f"COMPASS_DIA{s}", 1.0))
-        if not np.any(np.diag(w)):
-            w = np.eye(3)  # ArduPilot reads an all-zero diagonal as the identity
-        odi = _vector(p, f"COMPASS_ODI{s}", 0.0)
-        for (a, b), value in zip(((0, 1), (0, 2), (1, 2)), odi, strict=True):
-            w[a, b] = w[b, a] = value
-        scale = float(p.get(f"COMPASS_SCALE{s}") or 0.0)
-        w = w * (scale if SCALE_RANGE[0] <= scale <= SCALE_RANGE[1] else 1.0)
-        old = -_vector(p, f"COMPASS_OFS{s}", 0.0) / MILLIGAUSS_PER_TESLA
-        motor = log_motor(model, p, s, out)
+        ofs, w, mot = compass_terms(p, s)
+        old = -ofs / MILLIGAUSS_PER_TESLA
+        motor = log_motor(model, mot / MILLIGAUSS_PER_TESLA, p, s, out)
     else:
         short = SHORT[sensor]
         offs = f"INS_{short}{s}OFFS" if sensor == "accel" or i else "INS_GYROFFS"
@@ -295,18 +311,20 @@ def compose_with_log(model: SensorModel, i: int, out: Export) -> SensorModel | N
     )
 
 
-def log_motor(model: SensorModel, p: dict[str, Any], s: str, out: Export) -> np.ndarray | None:
+def log_motor(
+    model: SensorModel, mot: np.ndarray, p: dict[str, Any], s: str, out: Export
+) -> np.ndarray | None:
     """The compass's per-ampere term composed with the log's own: ArduPilot adds
     ``COMPASS_MOT * I`` after ``DIA``/``ODI`` (``correct_field``), so the logged field is
     ``W (raw + OFS) + MOT_log I`` and imupipe's ``M (logged - o) + motor I`` holds
     ``(M MOT_log + motor) I``: the exported ``COMPASS_MOT`` replaces the log's. A log whose
     ``COMPASS_MOTCT`` is 1 (throttle-based) or with per-motor compensation (``COMPASS_PMOT_EN``)
     cannot be expressed per ampere: noted, its ``M MOT_log`` part left out."""
-    mot = _vector(p, f"COMPASS_MOT{s}", 0.0) / MILLIGAUSS_PER_TESLA
     kind = int(p.get("COMPASS_MOTCT") or 0)
+    raw_mot = _vector(p, f"COMPASS_MOT{s}", 0.0)
     if kind == 2 and np.any(mot) and not (s == "" and p.get("COMPASS_PMOT_EN")):
         return model.matrix @ mot + (0.0 if model.motor is None else model.motor)
-    if (kind == 1 and np.any(mot)) or (s == "" and p.get("COMPASS_PMOT_EN")):
+    if (kind == 1 and np.any(raw_mot)) or (s == "" and p.get("COMPASS_PMOT_EN")):
         out.note(
             FNAME,
             "mag: the log's data carry ArduPilot's throttle-based or per-motor compensation "

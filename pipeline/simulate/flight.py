@@ -28,6 +28,7 @@ from typing import Any
 import numpy as np
 import pyarrow as pa
 
+from imupipe.pipeline.exports.ardupilot import MILLIGAUSS_PER_TESLA, compass_terms
 from imupipe.readers.dataflash.reader import euler_quaternion
 from imupipe.readers.table import make_table, metadata, with_flight_stream, with_metadata
 from imupipe.stages.magnetometer.inflight import rotate
@@ -57,29 +58,6 @@ DEFAULTS: dict[str, Any] = {
     "mag_noise": 1.5e-7,
     "vehicle": {},
 }
-MILLIGAUSS_PER_TESLA = 1e7
-
-
-def _compass_terms(p: dict[str, Any], s: str = "") -> tuple[np.ndarray, ...]:
-    """(OFS mG, W (scale x DIA/ODI), MOT mG/A or zeros) of compass ``s`` ("", "2", "3") as
-    ArduPilot reads its parameters: an all-zero ``DIA`` is (1, 1, 1), ``COMPASS_SCALE``
-    outside 1/1.5..1.5 (or unset) is not applied, ``MOT`` only with ``COMPASS_MOTCT = 2``."""
-
-    def vec(name: str, default: float) -> np.ndarray:
-        return np.array([float(p.get(f"{name}_{a}", default) or 0.0) for a in "XYZ"])
-
-    dia = vec(f"COMPASS_DIA{s}", 0.0)
-    dia = np.ones(3) if not np.any(dia) else dia
-    odi = vec(f"COMPASS_ODI{s}", 0.0)
-    w = np.diag(dia)
-    w[0, 1] = w[1, 0] = odi[0]
-    w[0, 2] = w[2, 0] = odi[1]
-    w[1, 2] = w[2, 1] = odi[2]
-    scale = float(p.get(f"COMPASS_SCALE{s}") or 0.0)
-    if 1 / 1.5 <= scale <= 1.5:
-        w = w * scale
-    mot = vec(f"COMPASS_MOT{s}", 0.0) if int(p.get("COMPASS_MOTCT") or 0) == 2 else np.zeros(3)
-    return vec(f"COMPASS_OFS{s}", 0.0), w, mot
 
 
 def ardupilot_correct(raw: np.ndarray, p: dict[str, Any], amps: np.ndarray) -> np.ndarray:
@@ -87,14 +65,14 @@ def ardupilot_correct(raw: np.ndarray, p: dict[str, Any], amps: np.ndarray) -> n
     parameters ``p`` (first compass) and battery current ``amps`` (A): ``AP_Compass_Backend``'s
     ``correct_field``: offsets added, scale and ``DIA``/``ODI`` applied, then ``MOT * I``
     (current-based), all in milligauss."""
-    ofs, w, mot = _compass_terms(p)
+    ofs, w, mot = compass_terms(p)
     mg = (raw * MILLIGAUSS_PER_TESLA + ofs) @ w.T + amps[:, None] * mot
     return mg / MILLIGAUSS_PER_TESLA
 
 
 def ardupilot_raw(logged: np.ndarray, p: dict[str, Any], amps: np.ndarray) -> np.ndarray:
     """The inverse of :func:`ardupilot_correct`: the raw field (T) under a log's ``MAG``."""
-    ofs, w, mot = _compass_terms(p)
+    ofs, w, mot = compass_terms(p)
     mg = np.linalg.solve(w, (logged * MILLIGAUSS_PER_TESLA - amps[:, None] * mot).T).T - ofs
     return mg / MILLIGAUSS_PER_TESLA
 
