@@ -349,3 +349,45 @@ def test_export_composes_with_a_real_logs_calibration(tmp_path):
     diff, p = exported_reproduces_imupipe(tmp_path, path, 'imu_topic = "IMU"\nmag_topic = "MAG"')
     assert diff < 0.1
     assert {"COMPASS_OFS_X", "COMPASS_DIA_X", "COMPASS_MOT_X"} <= set(p)
+
+
+def test_flights_of_one_vehicle_fitted_together():
+    """Two flights, one compass (the default truth), other tracks and attitudes: the joint fit
+    has smaller standard errors than either alone and recovers the truth; a flight logged under
+    other compass parameters is refused."""
+    a, truth = simulate("flight", {"duration_s": 90.0}, seed=7)
+    b, _ = simulate(
+        "flight",
+        {
+            "duration_s": 90.0,
+            "yaw_turns": 3.0,
+            "roll_deg": 25.0,
+            "pitch_deg": 40.0,
+            "lat": 46.5,
+            "lon": 7.9,
+            "current_a": 18.0,
+        },
+        seed=8,
+    )
+    alone = [fit(t)[0].results for t in (a, b)]
+    stage = MagInflightStage(MagInflightStage.Options(flights=["b"]))
+    ctx = StageContext(name="compass", input_name="a", quiet=True, tables={"a": a, "b": b})
+    r = stage.fit(a, ctx).results
+    assert r["model"] == "soft_iron" and r["motor_term"]
+    for name, se in r["parameter_se"].items():
+        assert se < min(x["parameter_se"][name] for x in alone), name
+    field = truth["field_norm"]
+    assert np.abs(np.array(r["offset_t"]) - truth["offset"]).max() < 0.01 * field
+    assert np.abs(np.array(r["matrix"]) - truth["matrix"]).max() < 0.01
+    motor = np.array(truth["motor"])
+    assert np.linalg.norm(np.array(r["motor_t_per_a"]) - motor) < 0.05 * np.linalg.norm(motor)
+    flights = r["metrics"]["flights"]
+    assert set(flights) == {"a", "b"} and flights["b"]["samples"] > 4400
+    assert all(f["residual_rms_ut_after"] < 0.5 for f in flights.values())
+    other, _ = simulate("flight", {"duration_s": 30.0, "vehicle": VEHICLE}, seed=9)
+    ctx = StageContext(name="compass", input_name="a", quiet=True, tables={"a": a, "b": other})
+    with pytest.raises(FitError, match="other compass parameters"):
+        stage.fit(a, ctx)
+    ctx = StageContext(name="compass", input_name="a", quiet=True, tables={"a": a})
+    with pytest.raises(FitError, match="'b' is not another input"):
+        stage.fit(a, ctx)

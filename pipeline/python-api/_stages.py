@@ -413,6 +413,7 @@ def mag_inflight(
     min_spread: float = 0.002,
     min_current_a: float = 2.0,
     max_residual_ut: float = 5.0,
+    flights: list[str] | None = None,
     name: str | None = None,
     accept_failed_checks: bool = False,
 ) -> StageResult:
@@ -434,6 +435,9 @@ def mag_inflight(
       iron.
     - ``min_current_a``: Current range (A, 5-95 %) below which the motor term cannot be fitted.
     - ``max_residual_ut``: Quality check: RMS vector residual after the fit, uT.
+    - ``flights``: Other inputs: flights of the same vehicle (same compass, same mounting, and
+      the same compass parameters in force when logged) fitted together with this stage's input,
+      one calibration for all; each flight at its own position and date. None: ``[]``.
     """
     return fit_stage(
         "mag_inflight",
@@ -448,6 +452,7 @@ def mag_inflight(
             "min_spread": min_spread,
             "min_current_a": min_current_a,
             "max_residual_ut": max_residual_ut,
+            "flights": flights,
         },
         name=name,
         accept_failed_checks=accept_failed_checks,

@@ -300,6 +300,12 @@ class MagCurrentStep(LinearStep):
         )
 
 
+def _compass_parameters(table: pa.Table) -> dict[str, float]:
+    """The compass parameters (``COMPASS_*``) a log was recorded under (an ArduPilot log's)."""
+    params = (metadata(table).get("ardupilot") or {}).get("parameters") or {}
+    return {k: v for k, v in params.items() if k.startswith("COMPASS_")}
+
+
 class MagInflightStage(Stage):
     type = "mag_inflight"
     sensors = ("mag",)
@@ -326,29 +332,75 @@ class MagInflightStage(Stage):
         """Current range (A, 5-95 %) below which the motor term cannot be fitted."""
         max_residual_ut: float = field(default=5.0, metadata={"min": 0.0})
         """Quality check: RMS vector residual after the fit, uT."""
+        flights: list[str] = field(default_factory=list)
+        """Other inputs: flights of the same vehicle (same compass, same mounting, and the same
+        compass parameters in force when logged) fitted together with this stage's input, one
+        calibration for all; each flight at its own position and date."""
 
-    def fit(self, table: pa.Table, ctx: StageContext) -> StageOutput:  # noqa: C901
+    def _samples(self, table: pa.Table, name: str, ctx: StageContext) -> FlightSamples:
+        """The :class:`FlightSamples` of input ``name`` (``table``); refused (one line naming
+        the input) when a stream or the date is missing."""
         o: MagInflightStage.Options = self.options
+        where = "the log" if name == ctx.input_name else f"input '{name}'"
         missing = [s for s in ("attitude", "position") if not has_flight_stream(table, s)]
         if not has_stream(table, "mag"):
             missing.insert(0, "magnetometer")
         if missing:
             raise ctx.fail(
-                "the log has no " + ", ".join(missing) + " (an in-flight compass fit needs the "
+                f"{where} has no " + ", ".join(missing) + " (an in-flight compass fit needs the "
                 "magnetometer, the attitude and a GPS position: DataFlash MAG, ATT, GPS; ULog "
                 "sensor_mag, vehicle_attitude, vehicle_gps_position)"
             )
-        mag = ctx.finite(sensor(table, "mag"), "magnetometer", minimum=50)
+        mag = ctx.finite(sensor(table, "mag"), f"magnetometer of {where}", minimum=50)
         year = o.year if o.year is not None else metadata(table).get("gps_year")
         if year is None:
             raise ctx.fail(
-                "the flight's date is unknown (the log has no GPS week and time): set year "
+                f"the flight's date is unknown ({where} has no GPS week and time): set year "
                 "(decimal, e.g. 2016.4) in this stage"
             )
         try:
-            fs = flight_samples(table, mag, float(year))
+            return flight_samples(table, mag, float(year))
         except ValueError as exc:
-            raise ctx.fail(str(exc)) from None
+            raise ctx.fail(f"{where}: {exc}") from None
+
+    def _joint(self, table: pa.Table, ctx: StageContext) -> tuple[FlightSamples, list[int]]:
+        """This input's samples followed by those of every input in ``flights`` (one fit), and
+        each flight's sample count. Refused when an input is unknown or was logged under other
+        compass parameters than this one (its field is not the same function of the raw one)."""
+        o: MagInflightStage.Options = self.options
+        parts = [self._samples(table, ctx.input_name, ctx)]
+        mine = _compass_parameters(table)
+        for name in o.flights:
+            if name == ctx.input_name or name not in ctx.tables:
+                raise ctx.fail(
+                    f"flights: '{name}' is not another input (inputs: {', '.join(ctx.tables)})"
+                )
+            other = ctx.tables[name]
+            theirs = _compass_parameters(other)
+            differ = sorted(k for k in set(mine) | set(theirs) if mine.get(k) != theirs.get(k))
+            if differ:
+                raise ctx.fail(
+                    f"flights: input '{name}' was logged under other compass parameters "
+                    f"({', '.join(differ[:4])}{'...' if len(differ) > 4 else ''} differ): fit "
+                    "flights of one calibration together"
+                )
+            parts.append(self._samples(other, name, ctx))
+        counts = [len(p.t_ns) for p in parts]
+        if len(parts) == 1:
+            return parts[0], counts
+        currents = [p.current for p in parts]
+        if any(c is None for c in currents):
+            ctx.warn("flights: not every flight has a battery current; the motor term is left out")
+        joined = FlightSamples(
+            *(np.concatenate([getattr(p, k) for p in parts]) for k in ("t_ns", "raw", "q")),
+            *(np.concatenate([getattr(p, k) for p in parts]) for k in ("ned", "target")),
+            None if any(c is None for c in currents) else np.concatenate(currents),
+        )
+        return joined, counts
+
+    def fit(self, table: pa.Table, ctx: StageContext) -> StageOutput:  # noqa: C901
+        o: MagInflightStage.Options = self.options
+        fs, counts = self._joint(table, ctx)
         t_ns, raw, q, ned, target, current = fs.t_ns, fs.raw, fs.q, fs.ned, fs.target, fs.current
 
         # -- what the flight can separate ----------------------------------------------------
@@ -462,6 +514,18 @@ class MagInflightStage(Stage):
             "samples": len(raw),
             "field_ut": float(np.mean(np.linalg.norm(ned, axis=1)) * ut),
         }
+        if o.flights:  # each flight's residual under the one joint calibration
+            names = [ctx.input_name, *o.flights]
+            cuts = np.cumsum([0, *counts])
+            metrics["flights"] = {
+                name: {
+                    "samples": int(b - a),
+                    "residual_rms_ut_before": float(np.sqrt(np.mean(before[a:b] ** 2)) * ut),
+                    "residual_rms_ut_after": float(np.sqrt(np.mean(after[a:b] ** 2)) * ut),
+                    "heading_rms_deg_after": float(np.sqrt(np.mean(h_after[a:b] ** 2))),
+                }
+                for name, a, b in zip(names, cuts[:-1], cuts[1:], strict=True)
+            }
         ctx.check(
             metrics["residual_rms_ut_after"] <= o.max_residual_ut,
             f"residual {metrics['residual_rms_ut_after']:.2f} uT > max_residual_ut "
@@ -476,17 +540,18 @@ class MagInflightStage(Stage):
             "parameter_se": dict(
                 zip(parameter_names(chosen, fit.motor_term), se.tolist(), strict=True)
             ),
-            "year": float(year),
+            "year": float(o.year if o.year is not None else metadata(table)["gps_year"]),
             "coverage": coverage,
             "not_fitted": reasons,
             "metrics": metrics,
         }
         if ctx.recorder.enabled:
             rec = ctx.recorder
+            own = slice(0, counts[0])  # along this input's flight (others: their own times)
             rec.series(
                 f"/{ctx.name}/heading_error",
-                t_ns,
-                np.column_stack([h_before, h_after]),
+                t_ns[own],
+                np.column_stack([h_before[own], h_after[own]]),
                 ["heading error before", "heading error after"],
                 unit="deg",
                 title="heading error against the WMM",
