@@ -391,3 +391,58 @@ def test_flights_of_one_vehicle_fitted_together():
     ctx = StageContext(name="compass", input_name="a", quiet=True, tables={"a": a})
     with pytest.raises(FitError, match="'b' is not another input"):
         stage.fit(a, ctx)
+
+
+def test_px4_path_end_to_end(tmp_path):
+    """imupipe simulate flight --out flight.ulg: sensor_mag (raw), vehicle_attitude,
+    vehicle_gps_position (its UTC time gives the date), battery_status; the fit recovers the
+    truth and the exported CAL_MAG0_*, CAL_MAG0_{X,Y,Z}COMP with CAL_MAG_COMP_TYP = 2, applied
+    as PX4 does, give imupipe's corrected field."""
+    from imupipe.readers.table import interpolate
+    from imupipe.readers.ulog.reader import read_ulog
+
+    proc = run_cli("simulate", "flight", "--out", "flight.ulg", "--duration", "120", cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    truth = json.loads((tmp_path / "flight.ulg.truth.json").read_text())
+    (tmp_path / "c.toml").write_text(
+        '[inputs.f]\npath = "flight.ulg"\n[[stages]]\ntype = "mag_inflight"\n[output]\ndir = "out"\n'
+    )
+    proc = run_cli("run", "c.toml", cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    doc = json.loads((tmp_path / "out" / "calibration.json").read_text())
+    r = doc["results"]["mag_inflight"]
+    assert r["model"] == "soft_iron" and r["motor_term"] and abs(r["year"] - 2024.5) < 1e-3
+    rows = (tmp_path / "out" / "px4_calibration.params").read_text().splitlines()
+    p = {x[2]: float(x[3]) for x in (ln.split("\t") for ln in rows if ln[:1] != "#")}
+    assert p["CAL_MAG_COMP_TYP"] == 2 and p["CAL_MAG0_ID"] == 396825
+    field = truth["field_norm"] * 1e4  # G
+    off = np.array([p[f"CAL_MAG0_{a}OFF"] for a in "XYZ"])
+    assert np.abs(off - np.array(truth["offset"]) * 1e4).max() < 0.01 * field
+    s = np.array(
+        [
+            [p["CAL_MAG0_XSCALE"], p["CAL_MAG0_XODIAG"], p["CAL_MAG0_YODIAG"]],
+            [p["CAL_MAG0_XODIAG"], p["CAL_MAG0_YSCALE"], p["CAL_MAG0_ZODIAG"]],
+            [p["CAL_MAG0_YODIAG"], p["CAL_MAG0_ZODIAG"], p["CAL_MAG0_ZSCALE"]],
+        ]
+    )
+    assert np.abs(s - truth["matrix"]).max() < 0.01
+    comp = np.array([p[f"CAL_MAG0_{a}COMP"] for a in "XYZ"])  # G/kA, added before S
+    want = np.linalg.solve(truth["matrix"], truth["motor"]) * 1e4 * 1e3
+    assert np.linalg.norm(comp - want) < 0.05 * np.linalg.norm(want)
+    table, _ = read_ulog(InputSpec(path=tmp_path / "flight.ulg"))
+    raw = sensor(table, "mag")
+    cur = flight_stream(table, "current")
+    amps = interpolate(cur.t_ns, cur.values[:, 0], raw.t_ns)
+    px4 = ((raw.values * 1e4 + amps[:, None] / 1e3 * comp) - off) @ s.T  # G
+    ours = sensor(steps_from_json(doc["chain"])[0].apply(table), "mag").values * 1e4
+    assert np.abs(px4 - ours).max() < 1e-6
+    bad = run_cli(
+        "simulate",
+        "flight",
+        "--out",
+        "v.ulg",
+        "--set",
+        'vehicle={"COMPASS_OFS_X": 5}',
+        cwd=tmp_path,
+    )
+    assert bad.returncode == 2 and "vehicle" in bad.stderr and not (tmp_path / "v.ulg").exists()

@@ -4,7 +4,7 @@ Each scenario module exposes ``DEFAULTS`` (parameter -> default value, SI units)
 ``simulate(params, rng) -> (table, truth)``. The log is written by the file's suffix (``.csv``,
 ``.mcap``, ``.bag``, ``.db3`` or a folder for a ROS 2 bag) and the truth as ``<FILE>.truth.json``.
 The ``flight`` scenario (a compass with attitude, GPS and current) is written as DataFlash
-(``.bin``). A scenario of several devices (``board``: a PX4 flight controller's IMUs and barometer) returns
+(``.bin``) or as a PX4 ULog (``.ulg``). A scenario of several devices (``board``: a PX4 flight controller's IMUs and barometer) returns
 a :class:`~imupipe.pipeline.writers.ulog.UlogData` instead of a table and names the suffixes it
 is written in (``WRITES``: ``.ulg``); the ``fleet`` scenario returns many logs and is written as a
 folder of MCAP logs.
@@ -87,6 +87,10 @@ def write_log(path: Path, table: Any) -> None:
         table.write(path)
         return
     board = isinstance(table, UlogData)
+    if not board and suffix == ".ulg" and "attitude_w" in table.column_names:
+        from imupipe.pipeline.simulate.flight import flight_ulog  # the flight scenario
+
+        table, board = flight_ulog(table), True
     if suffix not in WRITERS or board != (suffix == ".ulg"):
         known = (
             ".ulg" if board else ", ".join(s for s in WRITERS if s and s not in (".ulg", ".bin"))

@@ -15,7 +15,12 @@ motor interference are known, for the ``mag_inflight`` stage (written as DataFla
   ``{"COMPASS_OFS_X": -120, "COMPASS_DIA_X": 1.02, "COMPASS_MOT_Z": 4.5, "COMPASS_MOTCT": 2}``;
   default none): applied to the logged field as ArduPilot's ``correct_field`` does
   (:func:`ardupilot_correct`) and written in the log's ``PARM``, so the log is what a calibrated
-  vehicle records and an export must compose with it.
+  vehicle records and an export must compose with it (DataFlash only: PX4 logs the raw field
+  in ``sensor_mag``).
+
+As a ULog (:func:`flight_ulog`): ``sensor_mag`` (raw, gauss), ``vehicle_attitude`` (``q``),
+``vehicle_gps_position`` (1e-7 deg, mm, ``time_utc_usec``, ``fix_type`` 3), ``battery_status``
+(``current_a``, with its 0.2 A noise).
 
 Truth: ``matrix`` M, ``offset`` (T), ``motor`` (T/A), ``field_norm`` (T): the raw sensor's
 errors (before the vehicle's own correction).
@@ -28,14 +33,26 @@ from typing import Any
 import numpy as np
 import pyarrow as pa
 
+from imupipe.pipeline.errors import ConfigError
 from imupipe.pipeline.exports.ardupilot import MILLIGAUSS_PER_TESLA, compass_terms
+from imupipe.pipeline.writers.ulog import Topic, UlogData
 from imupipe.readers.dataflash.reader import euler_quaternion
-from imupipe.readers.table import make_table, metadata, with_flight_stream, with_metadata
+from imupipe.readers.table import (
+    flight_stream,
+    make_table,
+    metadata,
+    sensor,
+    with_flight_stream,
+    with_metadata,
+)
 from imupipe.stages.magnetometer.inflight import rotate
 from imupipe.stages.magnetometer.wmm import earth_field
 
-WRITES = (".bin",)
-"""The flight is written as DataFlash."""
+WRITES = (".bin", ".ulg")
+"""The flight is written as DataFlash or as a PX4 ULog (:func:`flight_ulog`)."""
+GAUSS_PER_TESLA = 1e4
+MAG_DEVICE_ID = 396825
+"""The simulated compass's PX4 device id (an external I2C HMC5883 on bus 1, address 0x1e)."""
 DEFAULTS: dict[str, Any] = {
     "duration_s": 240.0,
     "mag_hz": 50.0,
@@ -138,3 +155,67 @@ def simulate(params: dict[str, Any], rng: np.random.Generator) -> tuple[pa.Table
         "field_norm": float(np.mean(np.linalg.norm(ned, axis=1))),
     }
     return with_metadata(table, meta), truth
+
+
+def flight_ulog(table: pa.Table) -> UlogData:
+    """The simulated flight (:func:`simulate`'s table) as a PX4 ULog's topics (module
+    docstring); ConfigError for a flight with an ArduPilot vehicle calibration."""
+    meta = metadata(table)
+    if meta.get("ardupilot"):
+        raise ConfigError(
+            "simulate flight: 'vehicle' is an ArduPilot calibration (written as .bin); PX4 "
+            "logs the raw field: leave vehicle unset for .ulg"
+        )
+    us = lambda t_ns: np.asarray(t_ns, dtype=np.int64) // 1000  # noqa: E731
+    mag = sensor(table, "mag")
+    att = flight_stream(table, "attitude")
+    pos = flight_stream(table, "position")
+    cur = flight_stream(table, "current")
+    t0_utc_us = (float(meta["gps_year"]) - 1970.0) * 365.2425 * 86400.0 * 1e6
+    f32, u64 = "float", "uint64_t"
+    topics = [
+        Topic(
+            "sensor_mag",
+            0,
+            {
+                "timestamp": us(mag.t_ns),
+                "timestamp_sample": us(mag.t_ns),
+                "device_id": np.full(len(mag), MAG_DEVICE_ID),
+                **{a: mag.values[:, i] * GAUSS_PER_TESLA for i, a in enumerate("xyz")},
+                "temperature": np.full(len(mag), 25.0),
+                "is_external": np.ones(len(mag)),
+            },
+            [(u64, "timestamp"), (u64, "timestamp_sample"), ("uint32_t", "device_id")]
+            + [(f32, a) for a in "xyz"]
+            + [(f32, "temperature"), ("uint32_t", "error_count"), ("bool", "is_external")],
+        ),
+        Topic(
+            "vehicle_attitude",
+            0,
+            {"timestamp": us(att.t_ns), "timestamp_sample": us(att.t_ns), "q": att.values},
+            [(u64, "timestamp"), (u64, "timestamp_sample"), ("float[4]", "q")],
+        ),
+        Topic(
+            "vehicle_gps_position",
+            0,
+            {
+                "timestamp": us(pos.t_ns),
+                "time_utc_usec": (t0_utc_us + (pos.t_ns - pos.t_ns[0]) / 1e3).astype(np.int64),
+                "lat": np.rint(pos.values[:, 0] * 1e7),
+                "lon": np.rint(pos.values[:, 1] * 1e7),
+                "alt": np.rint(pos.values[:, 2] * 1e3),
+                "fix_type": np.full(len(pos), 3),
+                "satellites_used": np.full(len(pos), 12),
+            },
+            [(u64, "timestamp"), (u64, "time_utc_usec")]
+            + [("int32_t", k) for k in ("lat", "lon", "alt")]
+            + [("uint8_t", "fix_type"), ("uint8_t", "satellites_used")],
+        ),
+        Topic(
+            "battery_status",
+            0,
+            {"timestamp": us(cur.t_ns), "current_a": cur.values[:, 0]},
+            [(u64, "timestamp"), (f32, "current_a")],
+        ),
+    ]
+    return UlogData(topics, {}, {"sys_name": "PX4", "ver_hw": "SITL"})

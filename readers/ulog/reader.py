@@ -20,7 +20,8 @@ column (Pa; :func:`baro_pascal`) on the same rows.
 Defaults: ``imu_topic`` unset takes ``sensor_combined`` when logged, else the only
 ``sensor_gyro`` instance (several: an error naming them). ``mag_topic`` unset takes the
 magnetometer that matches the IMU's kind (corrected ``vehicle_magnetometer`` or old
-``sensor_combined`` with ``sensor_combined``; the only raw ``sensor_mag`` with a raw IMU);
+``sensor_combined`` with ``sensor_combined``; the only raw ``sensor_mag`` with a raw IMU; the
+only magnetometer of a log without an IMU);
 ``temperature_topic`` unset takes the temperature of the ``sensor_gyro`` instance of the IMU's
 device (for ``sensor_combined``: the gyro PX4 selected, ``sensor_selection.gyro_device_id`` or
 ``CAL_GYRO_PRIME``). When no default applies the stream is left out with a warning naming the
@@ -356,6 +357,8 @@ def choose_topics(spec: InputSpec, f: UlogFile) -> tuple[dict[str, str], list[st
     if "mag" not in chosen and "mag" not in off:
         if raw_imu:
             pick = [k for k in cands["mag"] if k.startswith("sensor_mag")]
+        elif imu is None:  # a log without an IMU (a compass-only flight): its only magnetometer
+            pick = list(cands["mag"])
         else:
             pick = [k for k in cands["mag"] if not k.startswith("sensor_mag")]
         if len(pick) == 1:
@@ -636,6 +639,20 @@ def flight_streams(f: UlogFile, time: str) -> dict[str, tuple[np.ndarray, np.nda
     return out
 
 
+def gps_year(f: UlogFile) -> float | None:
+    """The decimal year (UTC) of the first GNSS fix (``vehicle_gps_position`` or ``sensor_gps``
+    with ``fix_type`` >= 3 and ``time_utc_usec`` set, microseconds since 1970); None without."""
+    for name in ("vehicle_gps_position", "sensor_gps"):
+        inst = f.instances.get(name)
+        if inst is None or not len(inst) or not inst.has("time_utc_usec", "fix_type"):
+            continue
+        ok = np.flatnonzero((inst.data["fix_type"] >= 3) & (inst.data["time_utc_usec"] > 0))
+        if len(ok):
+            unix = float(inst.data["time_utc_usec"][ok[0]]) / 1e6
+            return 1970.0 + unix / (365.2425 * 86400.0)
+    return None
+
+
 def read_ulog(spec: InputSpec) -> tuple[pa.Table, list[str]]:
     """Read a ULog input into the common table; returns (table, warnings)."""
     f = UlogFile(spec.path, READ_TOPICS)
@@ -672,6 +689,9 @@ def read_ulog(spec: InputSpec) -> tuple[pa.Table, list[str]]:
         table = with_flight_stream(table, stream, t_ns, values)
     meta = metadata(table)
     meta.pop("frame_id", None)  # a ULog names no frames
+    year = gps_year(f)
+    if year is not None:
+        meta["gps_year"] = year
     meta["instance"] = {s: f.instances[k].instance for s, k in chosen.items()}
     devices = {s: _device_id(f, s, k) for s, k in chosen.items()}
     meta["device_id"] = {s: d for s, d in devices.items() if d is not None}
