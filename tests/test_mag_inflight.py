@@ -446,3 +446,23 @@ def test_px4_path_end_to_end(tmp_path):
         cwd=tmp_path,
     )
     assert bad.returncode == 2 and "vehicle" in bad.stderr and not (tmp_path / "v.ulg").exists()
+
+
+def test_throttle_compensated_log_is_noted(tmp_path):
+    """A log recorded with throttle-based (COMPASS_MOTCT = 1) compensation: the term has no
+    per-ampere form; the export says so and writes the fitted current-based term."""
+    from imupipe.pipeline.exports import ardupilot
+
+    table, _ = simulate("flight", {"duration_s": 60.0}, seed=10)
+    path = tmp_path / "flight.bin"
+    write_log(path, table)
+    (tmp_path / "c.toml").write_text(
+        '[inputs.f]\npath = "flight.bin"\n[[stages]]\ntype = "mag_inflight"\n[output]\ndir = "o"\n'
+    )
+    assert run_cli("run", "c.toml", cwd=tmp_path).returncode == 0
+    doc = json.loads((tmp_path / "o" / "calibration.json").read_text())
+    params = doc["chain"][0]["fitted_on"]["ardupilot"]["parameters"]
+    params.update({"COMPASS_MOTCT": 1.0, "COMPASS_MOT_X": 0.4})
+    out = ardupilot.export(doc)
+    assert any("throttle-based" in n for n in out.notes[ardupilot.FNAME])
+    assert "COMPASS_MOTCT,2" in out.files[ardupilot.FNAME]
