@@ -162,6 +162,11 @@ def test_every_imu_in_its_own_tc_slot(warm_up):
     for slot, imu in zip((1, 0), truth["imus"], strict=True):  # cal_order [1, 0]
         for prefix, key, tol in (("TC_G", "gyro_poly", GYRO_TOL), ("TC_A", "accel_poly", 1e-3)):
             assert _slot(px4, prefix, imu["device_id"]) == slot
+            # TMIN/TMAX: the logged range of raw samples (PX4's script takes the same), not
+            # the block means' narrower one, over which the curve would be flat at the ends
+            np.testing.assert_allclose(
+                px4_range(px4, prefix, slot), imu["temperature_range"], rtol=1e-6
+            )
             temp = np.linspace(*px4_range(px4, prefix, slot), 50)
             true = np.array([np.polynomial.polynomial.polyval(temp - 25.0, c) for c in imu[key]])
             err = _px4_tc(px4, prefix, slot, temp) - true.T
@@ -223,9 +228,10 @@ def test_ardupilot_formula_reproduces_imupipe_for_both_devices(warm_up):
 
 
 def test_px4s_script_agrees(warm_up, tmp_path):
-    """PX4's Tools/process_sensor_caldata.py on the same log: every TC curve of both devices
-    within 0.05 mrad/s (gyro) and 0.2 mm/s^2 (accel, temperature-driven part), the
-    barometer's TC_B within 1 Pa."""
+    """PX4's Tools/process_sensor_caldata.py on the same log: the same TMIN/TMAX (the logged
+    range of raw samples), and every TC curve of both devices within 0.05 mrad/s (gyro) and
+    0.2 mm/s^2 (accel, temperature-driven part), the barometer's TC_B within 1 Pa, over PX4's
+    whole TMIN..TMAX (each file applied with its own clamping, as the firmware does)."""
     script = os.environ.get("PX4_PROCESS_SENSOR_CALDATA")
     if not script or not Path(script).is_file():
         pytest.skip(
@@ -248,17 +254,17 @@ def test_px4s_script_agrees(warm_up, tmp_path):
         for n in range(2):
             dev = theirs[f"{prefix}{n}_ID"]
             k = _slot(px4, prefix, dev)
-            lo = max(px4[f"{prefix}{k}_TMIN"], theirs[f"{prefix}{n}_TMIN"])
-            hi = min(px4[f"{prefix}{k}_TMAX"], theirs[f"{prefix}{n}_TMAX"])
-            temp = np.linspace(lo, hi, 100)
+            np.testing.assert_allclose(
+                px4_range(px4, prefix, k), px4_range(theirs, prefix, n), rtol=1e-6
+            )
+            temp = np.linspace(*px4_range(theirs, prefix, n), 200)
             err = _px4_tc(px4, prefix, k, temp) - _px4_tc(theirs, prefix, n, temp)
             if prefix == "TC_A":
                 err -= err.mean(axis=0)
             assert np.abs(err).max() < tol, (prefix, dev, np.abs(err).max())
     k = _slot(px4, "TC_B", theirs["TC_B0_ID"])
-    lo = max(px4[f"TC_B{k}_TMIN"], theirs["TC_B0_TMIN"])
-    hi = min(px4[f"TC_B{k}_TMAX"], theirs["TC_B0_TMAX"])
-    temp = np.linspace(lo, hi, 100)
+    np.testing.assert_allclose(px4_range(px4, "TC_B", k), px4_range(theirs, "TC_B", 0), rtol=1e-6)
+    temp = np.linspace(*px4_range(theirs, "TC_B", 0), 200)
 
     def tc_b(p: dict, n: int) -> np.ndarray:
         x = np.clip(temp, p[f"TC_B{n}_TMIN"], p[f"TC_B{n}_TMAX"]) - p[f"TC_B{n}_TREF"]

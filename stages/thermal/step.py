@@ -573,3 +573,7 @@ class Prepared:
     noise: np.ndarray | None = None
     """(m, 3) the variance of each block mean from noise (SI^2; NaN where a block's halves
     cannot be compared)."""
+    t_range: tuple[float, float] | None = None
+    """degC: the lowest and highest temperature of the samples that entered the kept blocks
+    (the logged range of raw samples, as PX4's ``process_sensor_caldata.py`` takes its
+    ``TMIN``/``TMAX``); the block means lie inside it."""

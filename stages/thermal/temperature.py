@@ -38,7 +38,11 @@ when the still periods hold several orientations.
 
 The correction (:class:`~imupipe.stages.thermal.step.TemperatureStep`) recomputes the
 variables the same way on any log, clamps temperatures to the fitted range and warns when a
-sample lies more than 0.5 degC outside it; rates outside the fitted range are extrapolated, with
+sample lies more than 0.5 degC outside it. The fitted range of T is the lowest and highest
+temperature of the samples that entered the fit (the logged range of raw samples, as PX4's
+``Tools/process_sensor_caldata.py`` takes ``TMIN``/``TMAX``), not the narrower range of the
+block means: the curve holds where the log's samples were, and the exports' ``TC_*_TMIN/TMAX``
+and ``INS_TCALi_TMIN/TMAX`` are that range; rates outside the fitted range are extrapolated, with
 a warning.
 """
 
@@ -293,6 +297,9 @@ class TemperatureStage(Stage):
                 "the fit needs at least 2 (record longer or use smaller blocks)"
             )
         means = sums[keep_idx] / n_finite[keep_idx, None]
+        entered = finite & np.isin(ids, keep_idx) & np.isfinite(v.T[:, 0])
+        raw_t = v.T[entered, 0]
+        t_range = (float(raw_t.min()), float(raw_t.max())) if len(raw_t) else None
         variables = {"T": b.temps[keep_idx, 0], "dT": b.rate[keep_idx, 0]}
         if len(channels) > 1:
             variables["Ta"], variables["dTa"] = b.temps[keep_idx, 1], b.rate[keep_idx, 1]
@@ -314,6 +321,7 @@ class TemperatureStage(Stage):
             moving=moving,
             accel=None if accel_means is None else accel_means[keep_idx],
             noise=noise[keep_idx],
+            t_range=t_range,
         )
 
     def _still(self, table: pa.Table, data: Any, finite: np.ndarray) -> np.ndarray | None:
@@ -435,6 +443,8 @@ class TemperatureStage(Stage):
             cached = None
         knots = tm.segment_knots(lo, hi, o.segment_width) if model == "piecewise" else None
         ranges = {k: [float(v.min()), float(v.max())] for k, v in prep.variables.items()}
+        if prep.t_range is not None:  # clamp at the logged samples' extremes (PX4's TMIN/TMAX)
+            ranges["T"] = [min(prep.t_range[0], lo), max(prep.t_range[1], hi)]
         if cached is not None:
             rel, lag_s, lag_info = cached
         else:
@@ -477,7 +487,8 @@ class TemperatureStage(Stage):
             "unit": SENSOR_UNITS[o.sensor],
             "model": model,
             "tref": float(tref),
-            "temperature_range": [lo, hi],
+            "temperature_range": list(ranges["T"]),
+            "block_temperature_range": [lo, hi],
             "rate_range": [60.0 * ranges["dT"][0], 60.0 * ranges["dT"][1]],
             "blocks": len(prep.t_ns),
             "terms": {ax: step.axes[i]["terms"] for i, ax in enumerate(AXES)},
