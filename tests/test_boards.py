@@ -70,16 +70,20 @@ def _stages(stype: str, sensors: list[str], extra: str = "") -> str:
     return text
 
 
-def _run(d: Path, body: str, params: str = "estimated") -> tuple[dict, dict, dict]:
+def _run(
+    d: Path, body: str, params: str = "estimated", ardupilot: bool = True
+) -> tuple[dict, dict, dict]:
+    exports = '["px4", "ardupilot"]' if ardupilot else '["px4"]'
     (d / "cfg.toml").write_text(
         body + f'[output]\ndir = "out"\napply_to = []\nrerun = false\nreport = false\n'
-        f'exports = ["px4", "ardupilot"]\nparams = "{params}"\n'
+        f'exports = {exports}\nparams = "{params}"\n'
     )
     proc = run_cli("run", d / "cfg.toml", "--quiet", cwd=d)
     assert proc.returncode == 0, proc.stderr
     doc = json.loads((d / "out" / "calibration.json").read_text())
     px4 = (d / "out" / "px4_calibration.params").read_text()
-    return doc, qgc_params(px4), mavparm(d / "out" / "ardupilot_calibration.param")
+    ardu = mavparm(d / "out" / "ardupilot_calibration.param") if ardupilot else {}
+    return doc, qgc_params(px4), ardu
 
 
 @pytest.fixture(scope="module")
@@ -162,6 +166,11 @@ def test_every_imu_in_its_own_tc_slot(warm_up):
     for slot, imu in zip((1, 0), truth["imus"], strict=True):  # cal_order [1, 0]
         for prefix, key, tol in (("TC_G", "gyro_poly", GYRO_TOL), ("TC_A", "accel_poly", 1e-3)):
             assert _slot(px4, prefix, imu["device_id"]) == slot
+            # TMIN/TMAX: the logged range of raw samples (PX4's script takes the same), not
+            # the block means' narrower one, over which the curve would be flat at the ends
+            np.testing.assert_allclose(
+                px4_range(px4, prefix, slot), imu["temperature_range"], rtol=1e-6
+            )
             temp = np.linspace(*px4_range(px4, prefix, slot), 50)
             true = np.array([np.polynomial.polynomial.polyval(temp - 25.0, c) for c in imu[key]])
             err = _px4_tc(px4, prefix, slot, temp) - true.T
@@ -223,9 +232,10 @@ def test_ardupilot_formula_reproduces_imupipe_for_both_devices(warm_up):
 
 
 def test_px4s_script_agrees(warm_up, tmp_path):
-    """PX4's Tools/process_sensor_caldata.py on the same log: every TC curve of both devices
-    within 0.05 mrad/s (gyro) and 0.2 mm/s^2 (accel, temperature-driven part), the
-    barometer's TC_B within 1 Pa."""
+    """PX4's Tools/process_sensor_caldata.py on the same log: the same TMIN/TMAX (the logged
+    range of raw samples), and every TC curve of both devices within 0.05 mrad/s (gyro) and
+    0.2 mm/s^2 (accel, temperature-driven part), the barometer's TC_B within 1 Pa, over PX4's
+    whole TMIN..TMAX (each file applied with its own clamping, as the firmware does)."""
     script = os.environ.get("PX4_PROCESS_SENSOR_CALDATA")
     if not script or not Path(script).is_file():
         pytest.skip(
@@ -248,17 +258,17 @@ def test_px4s_script_agrees(warm_up, tmp_path):
         for n in range(2):
             dev = theirs[f"{prefix}{n}_ID"]
             k = _slot(px4, prefix, dev)
-            lo = max(px4[f"{prefix}{k}_TMIN"], theirs[f"{prefix}{n}_TMIN"])
-            hi = min(px4[f"{prefix}{k}_TMAX"], theirs[f"{prefix}{n}_TMAX"])
-            temp = np.linspace(lo, hi, 100)
+            np.testing.assert_allclose(
+                px4_range(px4, prefix, k), px4_range(theirs, prefix, n), rtol=1e-6
+            )
+            temp = np.linspace(*px4_range(theirs, prefix, n), 200)
             err = _px4_tc(px4, prefix, k, temp) - _px4_tc(theirs, prefix, n, temp)
             if prefix == "TC_A":
                 err -= err.mean(axis=0)
             assert np.abs(err).max() < tol, (prefix, dev, np.abs(err).max())
     k = _slot(px4, "TC_B", theirs["TC_B0_ID"])
-    lo = max(px4[f"TC_B{k}_TMIN"], theirs["TC_B0_TMIN"])
-    hi = min(px4[f"TC_B{k}_TMAX"], theirs["TC_B0_TMAX"])
-    temp = np.linspace(lo, hi, 100)
+    np.testing.assert_allclose(px4_range(px4, "TC_B", k), px4_range(theirs, "TC_B", 0), rtol=1e-6)
+    temp = np.linspace(*px4_range(theirs, "TC_B", 0), 200)
 
     def tc_b(p: dict, n: int) -> np.ndarray:
         x = np.clip(temp, p[f"TC_B{n}_TMIN"], p[f"TC_B{n}_TMAX"]) - p[f"TC_B{n}_TREF"]
@@ -546,3 +556,107 @@ def test_a_step_naming_no_device_composes_with_every_device():
     assert [p[f"CAL_GYRO0_{a}OFF"] for a in "XYZ"] == pytest.approx([1.1e-3, 2e-3, 3e-3])
     assert [p[f"CAL_GYRO1_{a}OFF"] for a in "XYZ"] == pytest.approx([1e-3, 2.1e-3, 3e-3])
     assert (p["CAL_GYRO0_ID"], p["CAL_GYRO1_ID"]) == (111, 222)
+
+
+# -- magnetometers ------------------------------------------------------------------------------
+
+MAGS = [396825, 396826]
+"""Two magnetometers (``sensor_mag`` instances 0 and 1) on the board, each with its own thermal
+offset and its own temperature, held in one orientation as in a thermal chamber."""
+MAG_TOL = 2e-8
+"""T: the TC_M curve against the simulated thermal offset (0.2 mG; the offsets drift by 1 to
+2 uT over the warm-up, the noise is 0.1 uT per sample)."""
+MAG_BODY = (
+    '[inputs.board]\npath = "board.ulg"\ninstances = "all"\n'
+    '[[stages]]\nname = "mag"\ntype = "temperature"\nsensor = "mag"\norder = 3\nrate_terms = []\n'
+)
+
+
+@pytest.fixture(scope="module")
+def mag_board(tmp_path_factory):
+    """The magnetometers' thermal calibration in one run (``instances = "all"``)."""
+    d = tmp_path_factory.mktemp("mags")
+    opts = {**WARM_UP, "mag_device_ids": MAGS, "mag_rate_hz": 5.0, "baro": False}
+    log, truth = simulate("board", opts, seed=27)
+    write_log(d / "board.ulg", log)
+    doc, px4, _ = _run(d, MAG_BODY, ardupilot=False)  # ArduPilot has no compass thermal model
+    return d, truth, doc, px4
+
+
+def test_every_magnetometer_in_its_own_tc_m_slot(mag_board):
+    """One ``temperature`` stage with sensor = "mag" runs on each magnetometer instance; its
+    TC_M slot holds the device's id, TMIN/TMAX the logged range, X0 = 0 (zero at TREF, as PX4's
+    own magnetometer calibration normalises it) and a curve that matches the simulated thermal
+    offset relative to TREF, in gauss; no CAL_MAG line (nothing else was estimated)."""
+    _, truth, doc, px4 = mag_board
+    assert set(doc["results"]) == {"mag_sensor_mag", "mag_sensor_mag_1"}
+    assert px4["TC_M_ENABLE"] == 1
+    assert not [k for k in px4 if k.startswith(("CAL_", "TC_A", "TC_G"))]
+    for mag in truth["mags"]:
+        k = _slot(px4, "TC_M", mag["device_id"])
+        assert k == mag["instance"]  # the log's CAL_MAGk_ID
+        np.testing.assert_allclose(px4_range(px4, "TC_M", k), mag["temperature_range"], rtol=1e-6)
+        assert [px4[f"TC_M{k}_X0_{i}"] for i in range(3)] == [0.0, 0.0, 0.0]
+        temp = np.linspace(*px4_range(px4, "TC_M", k), 60)
+        tref = px4[f"TC_M{k}_TREF"]
+
+        def true(t, mag=mag):
+            return np.array([np.polynomial.polynomial.polyval(t - 25.0, c) for c in mag["poly"]])
+
+        expected = (true(temp) - true(np.array([tref]))).T * 1e4  # gauss
+        err = np.abs(_px4_tc(px4, "TC_M", k, temp) - expected).max() * 1e-4
+        assert err < MAG_TOL, (mag["device_id"], err)
+
+
+def test_px4_formula_reproduces_imupipe_for_each_magnetometer(mag_board):
+    """PX4's firmware (``TemperatureCompensation::update_offsets_mag``, calc_thermal_offsets_3D,
+    subtracted from the raw field before the CAL_MAG offsets) with the file's TC_M, on each
+    sensor_mag instance's raw gauss, equals imupipe's corrected output of that instance."""
+    d, truth, doc, px4 = mag_board
+    chain = doc["chain"]
+    for mag in truth["mags"]:
+        topic = "sensor_mag" if mag["instance"] == 0 else f"sensor_mag_{mag['instance']}"
+        raw = _raw(d / "board.ulg", "sensor_mag", mag["instance"])
+        gauss = np.column_stack([raw[a] for a in "xyz"]).astype(np.float64)
+        k = _slot(px4, "TC_M", mag["device_id"])
+        firmware = gauss - _px4_tc(px4, "TC_M", k, raw["temperature"].astype(np.float64))
+        spec = InputSpec(
+            path=d / "board.ulg", imu_topic="", mag_topic=topic, temperature_topic=topic
+        )
+        table, _ = read_input(spec)
+        ours = sensor(apply_chain(table, on_device(steps_from_json(chain), chain)), "mag").values
+        np.testing.assert_allclose(ours * 1e4, firmware, atol=1e-6)  # gauss, float32 params
+        assert np.abs(ours * 1e4 - gauss).max() > 5e-3  # a correction of 0.5 uT or more
+
+
+def test_a_turned_magnetometer_is_refused():
+    """The field in the sensor's frame turns with it: a magnetometer turned by 30 degrees
+    between its still periods fails the orientation check (its corrected field's direction),
+    named as such; the same log held still fits."""
+    from imupipe.pipeline.errors import FitError
+    from imupipe.stages.base import StageContext
+    from imupipe.stages.thermal.temperature import TemperatureStage
+
+    rng = np.random.default_rng(5)
+    t = np.arange(0.0, 2700.0, 0.5)
+    temp = 48.0 - 43.0 * np.exp(-t / 700.0)
+    field = np.array([2.0e-5, 3.0e-6, 4.5e-5])
+    drift = np.outer(temp - 25.0, [3e-8, -2e-8, 5e-8])
+    noise = rng.normal(size=(len(t), 3)) * 1e-7
+    a = np.radians(30.0) * np.clip((t - 1350.0) / 10.0, 0.0, 1.0)  # turned by hand in 10 s
+    turned = np.column_stack(
+        [np.cos(a) * field[0] - np.sin(a) * field[1], np.sin(a) * field[0] + np.cos(a) * field[1]]
+    )
+    turned = np.column_stack([turned, np.full(len(t), field[2])])
+    stamps = (t * 1e9).astype(np.int64)
+
+    def fit(values):
+        table = make_table(stamps, mag=values, temperature=temp)
+        stage = TemperatureStage(TemperatureStage.Options(sensor="mag", order=3, rate_terms=[]))
+        ctx = StageContext(name="mag", input_name="fit", tables={}, quiet=True)
+        return stage.fit(table, ctx)
+
+    out = fit(field + drift + noise)
+    assert out.step.sensor == "mag" and out.results["unit"] == "T"
+    with pytest.raises(FitError, match="the magnetometer was turned between its still periods"):
+        fit(turned + drift + noise)

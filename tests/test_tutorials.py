@@ -188,3 +188,18 @@ def test_px4_thermal_calibration(tmp_path):
     baro = doc["results"]["baro_sensor_baro"]["metrics"]
     assert round(baro["correction_span_pa"]) == 196
     assert round(baro["residual_rms_pa"]) == 1
+    # 5. the magnetometer: the quoted TC_M0 rows
+    run_commands(blocks(page, "bash")[2], tmp_path)
+    (tmp_path / "mag.toml").write_text(blocks(page, "toml")[2])
+    proc = run_cli("run", "mag.toml", cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    text = (tmp_path / "out_mag" / "px4_calibration.params").read_text()
+    rows = {}
+    for line in text.splitlines():
+        if not line.startswith("#") and line.strip():
+            _, _, name, value, _ = line.split("\t")
+            rows[name] = float(value)
+    for line in blocks(page, "text")[3].strip().splitlines():
+        _, _, name, value, _ = line.split("\t")
+        digits = len(value.split(".")[1]) if "." in value else 0
+        assert round(rows[name], digits) == float(value), name

@@ -462,7 +462,7 @@ def mag_inflight(
 def temperature(
     table: pa.Table,
     *,
-    sensor: Literal["gyro", "accel"] = "gyro",
+    sensor: Literal["gyro", "accel", "mag"] = "gyro",
     model: Literal["auto", "poly", "lag", "six_term", "piecewise", "stepwise"] = "auto",
     order: int | None = None,
     rate_terms: list[str] | None = None,
@@ -490,7 +490,11 @@ def temperature(
     the stage in messages (default: its type); ``accept_failed_checks`` keeps a fit that
     fails its own quality check, with a warning. Options:
 
-    - ``sensor``: Which sensor to compensate (every axis).
+    - ``sensor``: Which sensor to compensate (every axis): ``gyro`` (rad/s), ``accel`` (m/s^2)
+      or ``mag`` (tesla; the field of a magnetometer held in one fixed orientation, as in a
+      thermal chamber: still periods are judged on the magnetometer itself, the corrected field
+      of every still period must point the same way, and the model is normalised to zero at
+      ``tref``, PX4's ``TC_M*``).
     - ``model``: The bias model. ``auto`` (default): the one of ``poly``, ``lag`` and
       ``piecewise`` that predicts held-out segments of the log best (``lag`` only where heating
       and cooling identify it; another model replaces ``poly`` only when its held-out error,

@@ -19,18 +19,26 @@ so a level board reads ``-gravity`` on z.) The barometer (``sensor_baro`` instan
 ``baro``) reads ``pressure + baro_poly(T_b - tref)`` Pa (``baro_poly`` [c0 .. c5], the known
 thermal pressure error that PX4's ``TC_B*`` compensate) plus white noise of std ``baro_noise``
 Pa, at its own temperature ``T_b`` (the first IMU's warm-up plus ``baro_offset`` degC), written
-in hPa (mbar) as PX4 v1.11 does. Every temperature carries white noise of std ``temperature_noise``. Stamps are
+in hPa (mbar) as PX4 v1.11 does. Magnetometer ``j`` (``sensor_mag`` instance ``j``, one per
+``mag_device_ids``; none by default), held in one orientation as in a thermal chamber, reads
+``mag_field + mag_poly[j](T_m - tref)`` tesla (``mag_field`` the Earth's field in its frame,
+``mag_poly[j]`` its known thermal offset, cubic per axis as ``gyro_poly``) plus white noise of
+std ``mag_noise`` T, at ``mag_rate_hz``, at its own temperature ``T_m`` (the first IMU's warm-up
+plus ``mag_offset[j]`` degC), written in gauss as PX4 does. Every temperature carries white
+noise of std ``temperature_noise``. Stamps are
 microseconds since boot from ``boot_s``; gyro and accel of one IMU share their
 ``timestamp_sample`` (PX4's FIFO drivers stamp both alike).
 
 The log's parameters at start are ``CAL_ACCn_ID``/``CAL_GYROn_ID`` = ``device_ids[n]`` (in
 ``cal_order``: ``cal_order[n]`` is the IMU in slot ``n``), ``CAL_ACCn_*SCALE`` =
 ``accel_scale[n]`` (a previous accelerometer calibration that an export must not erase),
-``TC_*_ENABLE = 0``, ``SENS_BOARD_ROT = 0``, plus ``parameters``.
+``CAL_MAGj_ID`` = ``mag_device_ids[j]``, ``TC_*_ENABLE = 0``, ``SENS_BOARD_ROT = 0``, plus
+``parameters``.
 
 Truth: per IMU (``imus``): ``device_id``, ``instance``, ``gyro_poly``, ``accel_poly``,
 ``temperature_range``; ``tref``; ``baro`` (``device_id``, ``poly``, ``temperature_range``) when
-written.
+written; ``mags`` (per magnetometer ``device_id``, ``instance``, ``poly``, ``field``,
+``temperature_range``).
 """
 
 from __future__ import annotations
@@ -92,6 +100,19 @@ DEFAULTS: dict[str, Any] = {
     "pressure": 101325.0,
     "baro_poly": [0.0, 4.0, -0.05, 1.0e-3, 0.0, 0.0],
     "baro_noise": 1.0,
+    "mag_device_ids": [],
+    "mag_rate_hz": 10.0,
+    "mag_field": [2.0e-5, 3.0e-6, 4.5e-5],
+    "mag_poly": [
+        [
+            [0.0, 3.0e-8, 4.0e-10, -1.0e-11],
+            [0.0, -2.0e-8, 2.0e-10, 0.0],
+            [0.0, 5.0e-8, -3.0e-10, 0.0],
+        ],
+        [[0.0, -4.0e-8, 0.0, 1.0e-11], [0.0, 1.0e-8, 3.0e-10, 0.0], [0.0, 2.0e-8, 0.0, -1.0e-11]],
+    ],
+    "mag_noise": 1.0e-7,
+    "mag_offset": [1.0, -2.0],
     "parameters": {},
 }
 
@@ -176,6 +197,39 @@ def simulate(p: dict[str, Any], rng: np.random.Generator) -> tuple[UlogData, dic
             "poly": p["baro_poly"],
             "temperature_range": [float(measured.min()), float(measured.max())],
         }
+    mag_ids = [int(i) for i in p["mag_device_ids"]]
+    if len(mag_ids) > min(len(p["mag_poly"]), len(p["mag_offset"]), 4):
+        raise ConfigError(
+            "board scenario: at most 4 mag_device_ids, each with its mag_poly and mag_offset"
+        )
+    truth["mags"] = []
+    for j, dev in enumerate(mag_ids):
+        mfs = float(p["mag_rate_hz"])
+        tm_s = np.arange(int(duration * mfs) + 1) / mfs
+        nm = len(tm_s)
+        temp = warm_up(tm_s, float(p["t_start"]), float(p["t_end"][0]), float(p["tau_s"][0]))
+        temp = temp + float(p["mag_offset"][j])
+        field_t = np.asarray(p["mag_field"], dtype=np.float64) + _poly3(
+            p["mag_poly"][j], temp - tref
+        )
+        field_t = field_t + rng.standard_normal((nm, 3)) * float(p["mag_noise"])
+        measured = temp + rng.standard_normal(nm) * float(p["temperature_noise"])
+        mstamp = boot_us + np.round(tm_s * 1e6).astype(np.int64) + 400 + 50 * j
+        data = {"timestamp": mstamp + 50, "timestamp_sample": mstamp}
+        data |= {"device_id": np.full(nm, dev), "temperature": measured}
+        data |= {a: field_t[:, i] * 1e4 for i, a in enumerate("xyz")}  # gauss
+        topics.append(Topic("sensor_mag", j, data))
+        params[f"CAL_MAG{j}_ID"] = dev
+        params["TC_M_ENABLE"] = 0
+        truth["mags"].append(
+            {
+                "instance": j,
+                "device_id": dev,
+                "poly": p["mag_poly"][j],
+                "field": list(p["mag_field"]),
+                "temperature_range": [float(measured.min()), float(measured.max())],
+            }
+        )
     params |= dict(p["parameters"])
     info = {"sys_name": "PX4", "ver_hw": "IMUPIPE_SIMULATED_BOARD", "ver_sw_branch": "v1.11.2"}
     return UlogData(topics, params, info), truth

@@ -10,8 +10,8 @@ padding, trailing ``_padding`` fields left out as PX4's logger does; every forma
 ``uint64_t timestamp``), all in timestamp order.
 
 :data:`PX4_V1_11` holds the message formats of the sensor topics as PX4 v1.11 logs them
-(``sensor_gyro``, ``sensor_accel``, ``sensor_baro``; the field lists of a v1.11.2 CubeOrange
-log), so pyulog, imupipe's reader and PX4's own tools read the file as a v1.11 log. The rows of
+(``sensor_gyro``, ``sensor_accel``, ``sensor_baro``, ``sensor_mag``; the field lists of a v1.11.2
+CubeOrange log), so pyulog, imupipe's reader and PX4's own tools read the file as a v1.11 log. The rows of
 every topic are packed with one numpy structured array and merged by one stable sort of the
 timestamps: no Python loop over messages.
 """
@@ -57,6 +57,18 @@ PX4_V1_11: dict[str, tuple[tuple[str, str], ...]] = {
         ("uint32_t", "error_count"),
         ("float", "pressure"),
         ("float", "temperature"),
+    ),
+    "sensor_mag": (
+        ("uint64_t", "timestamp"),
+        ("uint64_t", "timestamp_sample"),
+        ("uint32_t", "device_id"),
+        ("float", "x"),
+        ("float", "y"),
+        ("float", "z"),
+        ("float", "temperature"),
+        ("uint32_t", "error_count"),
+        ("bool", "is_external"),
+        ("uint8_t[7]", "_padding0"),
     ),
 }
 """(type, field) of each sensor topic in PX4 v1.11's formats."""

@@ -25,6 +25,7 @@ import numpy as np
 import pyarrow as pa
 
 from imupipe.readers.table import (
+    STREAM_OF_SENSOR,
     has_stream,
     metadata,
     replace_sensor,
@@ -62,11 +63,11 @@ def temperature_samples(table: pa.Table, column: str) -> tuple[np.ndarray, np.nd
     return t[ok], v[ok]
 
 
-def imu_stamps(table: pa.Table) -> tuple[np.ndarray, np.ndarray]:
-    """(mask of the IMU rows, their stamps)."""
-    if len(table) == 0 or not has_stream(table, "imu"):
+def imu_stamps(table: pa.Table, stream: str = "imu") -> tuple[np.ndarray, np.ndarray]:
+    """(mask of the rows of ``stream``, the IMU's by default, their stamps)."""
+    if len(table) == 0 or not has_stream(table, stream):
         return np.zeros(len(table), dtype=bool), np.zeros(0, np.int64)
-    mask = stream_mask(table, "imu")
+    mask = stream_mask(table, stream)
     return mask, table.column("t_ns").to_numpy()[mask]
 
 
@@ -113,8 +114,13 @@ class ThermalStep(Step):
         """The one warning about samples outside the fitted ranges, or None."""
         return None
 
+    @property
+    def stream(self) -> str:
+        """The stream whose rows this step corrects (``imu``; ``mag`` for a magnetometer)."""
+        return STREAM_OF_SENSOR.get(self.sensor, "imu")
+
     def apply(self, table: pa.Table) -> pa.Table:
-        if not has_stream(table, "imu"):
+        if not has_stream(table, self.stream):
             return table
         source = metadata(table).get("source", "the log")
         missing = [
@@ -144,7 +150,7 @@ class ThermalStep(Step):
                 first = batch
             if source is None and len(batch):
                 source = metadata(batch).get("source", "the log")
-            mask, stamps = imu_stamps(batch)
+            mask, stamps = imu_stamps(batch, self.stream)
             temps = [temperature_samples(batch, column) for column in spec.channels]
             ready = track.push(stamps, temps)
             pending.append((batch, mask))
@@ -573,3 +579,7 @@ class Prepared:
     noise: np.ndarray | None = None
     """(m, 3) the variance of each block mean from noise (SI^2; NaN where a block's halves
     cannot be compared)."""
+    t_range: tuple[float, float] | None = None
+    """degC: the lowest and highest temperature of the samples that entered the kept blocks
+    (the logged range of raw samples, as PX4's ``process_sensor_caldata.py`` takes its
+    ``TMIN``/``TMAX``); the block means lie inside it."""

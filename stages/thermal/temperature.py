@@ -38,7 +38,11 @@ when the still periods hold several orientations.
 
 The correction (:class:`~imupipe.stages.thermal.step.TemperatureStep`) recomputes the
 variables the same way on any log, clamps temperatures to the fitted range and warns when a
-sample lies more than 0.5 degC outside it; rates outside the fitted range are extrapolated, with
+sample lies more than 0.5 degC outside it. The fitted range of T is the lowest and highest
+temperature of the samples that entered the fit (the logged range of raw samples, as PX4's
+``Tools/process_sensor_caldata.py`` takes ``TMIN``/``TMAX``), not the narrower range of the
+block means: the curve holds where the log's samples were, and the exports' ``TC_*_TMIN/TMAX``
+and ``INS_TCALi_TMIN/TMAX`` are that range; rates outside the fitted range are extrapolated, with
 a warning.
 """
 
@@ -50,7 +54,7 @@ from typing import Any, Literal
 import numpy as np
 import pyarrow as pa
 
-from imupipe.readers.table import SENSOR_UNITS, has_stream, sensor, usable
+from imupipe.readers.table import SENSOR_UNITS, STREAM_OF_SENSOR, has_stream, sensor, usable
 from imupipe.stages.base import Stage, StageContext, StageOutput
 from imupipe.stages.stillness import G0
 from imupipe.stages.thermal import choice as tc
@@ -81,6 +85,12 @@ dependence reads about 1: equal, not a failure)."""
 SWITCH_MARGIN = 0.9
 """``model = "auto"``: lag or piecewise replaces poly when its held-out error (geometric mean over
 the axes, relative to no compensation) is below this share of poly's."""
+MAG_TURN_DEG = 2.0
+"""deg: a magnetometer's corrected field may change direction by this much across a gap between
+still periods (its thermal offset over the gap is corrected; the field is tens of uT, a block
+mean's noise hundredths of a degree); more: it was turned (refused)."""
+TURN_BLOCKS = 3
+"""Kept blocks on either side of a gap whose mean field is compared."""
 MIN_OVERLAP = 0.25
 """... over temperature ranges that overlap by this share of the span, for a rate term or a lag
 to be identifiable (at one temperature, two rates)."""
@@ -142,8 +152,12 @@ class TemperatureStage(Stage):
 
     @dataclass
     class Options:
-        sensor: Literal["gyro", "accel"] = "gyro"
-        """Which sensor to compensate (every axis)."""
+        sensor: Literal["gyro", "accel", "mag"] = "gyro"
+        """Which sensor to compensate (every axis): ``gyro`` (rad/s), ``accel`` (m/s^2) or
+        ``mag`` (tesla; the field of a magnetometer held in one fixed orientation, as in a
+        thermal chamber: still periods are judged on the magnetometer itself, the corrected
+        field of every still period must point the same way, and the model is normalised to
+        zero at ``tref``, PX4's ``TC_M*``)."""
         model: Literal["auto", "poly", "lag", "six_term", "piecewise", "stepwise"] = "auto"
         """The bias model. ``auto`` (default): the one of ``poly``, ``lag`` and ``piecewise``
         that predicts held-out segments of the log best (``lag`` only where heating and cooling
@@ -220,15 +234,17 @@ class TemperatureStage(Stage):
     def prepare(self, table: pa.Table, ctx: StageContext, input_name: str) -> Prepared:
         """Complete blocks of ``table`` (see the module docstring)."""
         o = self.options
-        if not has_stream(table, "imu"):
-            raise ctx.fail(f"input '{input_name}' has no IMU samples")
+        stream = STREAM_OF_SENSOR[o.sensor]
+        if not has_stream(table, stream):
+            what = "IMU" if stream == "imu" else "magnetometer"
+            raise ctx.fail(f"input '{input_name}' has no {what} samples")
         if not len(temperature_samples(table, "temperature")[0]):
             raise ctx.fail(
                 f"input '{input_name}' has no temperature samples (map csv.temperature or set "
                 "temperature_topic)"
             )
         data = sensor(table, o.sensor)
-        what = {"gyro": "gyroscope", "accel": "accelerometer"}[o.sensor]
+        what = {"gyro": "gyroscope", "accel": "accelerometer", "mag": "magnetometer"}[o.sensor]
         ctx.finite(data, f"{what} ({input_name})", minimum=2)
         finite = usable(data.values).all(axis=1)
         channels = ["temperature"]
@@ -267,9 +283,10 @@ class TemperatureStage(Stage):
         noise = (s1 / np.maximum(n1, 1)[:, None] - s2 / np.maximum(n2, 1)[:, None]) ** 2 / 4
         noise[(n1 == 0) | (n2 == 0)] = np.nan
         accel_means = None
+        # the IMU's orientation from gravity (a magnetometer's: its corrected field, after the fit)
         acc = sensor(table, "accel").values if o.sensor == "gyro" else data.values
         acc_ok = finite & usable(acc).all(axis=1)
-        if acc_ok.any():
+        if acc_ok.any() and o.sensor != "mag":
             n_acc, acc_sums = block_sums(acc_ok, acc)
             accel_means = acc_sums / np.maximum(n_acc, 1)[:, None]
         pairs: dict[str, tuple[np.ndarray, np.ndarray]] = {}
@@ -293,6 +310,9 @@ class TemperatureStage(Stage):
                 "the fit needs at least 2 (record longer or use smaller blocks)"
             )
         means = sums[keep_idx] / n_finite[keep_idx, None]
+        entered = finite & np.isin(ids, keep_idx) & np.isfinite(v.T[:, 0])
+        raw_t = v.T[entered, 0]
+        t_range = (float(raw_t.min()), float(raw_t.max())) if len(raw_t) else None
         variables = {"T": b.temps[keep_idx, 0], "dT": b.rate[keep_idx, 0]}
         if len(channels) > 1:
             variables["Ta"], variables["dTa"] = b.temps[keep_idx, 1], b.rate[keep_idx, 1]
@@ -314,6 +334,7 @@ class TemperatureStage(Stage):
             moving=moving,
             accel=None if accel_means is None else accel_means[keep_idx],
             noise=noise[keep_idx],
+            t_range=t_range,
         )
 
     def _still(self, table: pa.Table, data: Any, finite: np.ndarray) -> np.ndarray | None:
@@ -324,7 +345,9 @@ class TemperatureStage(Stage):
         if not o.still_threshold or o.turntable_rate is not None:
             return None
         signals = []
-        for name in ("gyro", "accel"):
+        # a magnetometer's rows are not the IMU's: it is judged on its own field (turning it
+        # moves the field by up to twice its strength, far beyond its noise)
+        for name in ("mag",) if o.sensor == "mag" else ("gyro", "accel"):
             values = data.values if name == o.sensor else sensor(table, name).values
             ok = usable(values).all(axis=1)
             if np.count_nonzero(ok) < 3:
@@ -339,6 +362,8 @@ class TemperatureStage(Stage):
             return np.asarray(self.options.reference, dtype=np.float64)
         if self.options.sensor == "gyro":
             return np.zeros(3)
+        if self.options.sensor == "mag":  # the field in the log's one orientation; the fit's
+            return means.mean(axis=0)  # value at tref is moved into it (:meth:`_zero_at_tref`)
         mean = means.mean(axis=0)
         return G0 * mean / np.linalg.norm(mean)
 
@@ -435,6 +460,8 @@ class TemperatureStage(Stage):
             cached = None
         knots = tm.segment_knots(lo, hi, o.segment_width) if model == "piecewise" else None
         ranges = {k: [float(v.min()), float(v.max())] for k, v in prep.variables.items()}
+        if prep.t_range is not None:  # clamp at the logged samples' extremes (PX4's TMIN/TMAX)
+            ranges["T"] = [min(prep.t_range[0], lo), max(prep.t_range[1], hi)]
         if cached is not None:
             rel, lag_s, lag_info = cached
         else:
@@ -471,13 +498,16 @@ class TemperatureStage(Stage):
         )
         used = step.used_variables()
         step.ranges = {k: v for k, v in ranges.items() if k in used}
+        if o.sensor == "mag" and o.reference is None:
+            self._zero_at_tref(step, rel, prep)
         fitted = step.bias(rel)
         results: dict[str, Any] = {
             "sensor": o.sensor,
             "unit": SENSOR_UNITS[o.sensor],
             "model": model,
             "tref": float(tref),
-            "temperature_range": [lo, hi],
+            "temperature_range": list(ranges["T"]),
+            "block_temperature_range": [lo, hi],
             "rate_range": [60.0 * ranges["dT"][0], 60.0 * ranges["dT"][1]],
             "blocks": len(prep.t_ns),
             "terms": {ax: step.axes[i]["terms"] for i, ax in enumerate(AXES)},
@@ -499,7 +529,7 @@ class TemperatureStage(Stage):
             results["selection"] = selection
         if step.scale is not None:
             results["scale"] = self._scale_metrics(prep, step)
-        self._check_held_out(held, prep, ctx)
+        self._check_held_out(held, prep, ctx, fitted)
         if o.validate is not None:
             results["metrics"]["validate"] = self._validate(step, ctx)
         artifacts = {}
@@ -659,14 +689,68 @@ class TemperatureStage(Stage):
         metrics["held_out_segments"] = held.segments
         metrics["held_out_blocks"] = held.blocks
 
-    def _check_held_out(self, held: tc.HeldOut, prep: Prepared, ctx: StageContext) -> None:
-        """The quality checks on what the fit may be applied to: one orientation, and a
-        correction that predicts held-out segments better than no compensation on every axis."""
-        unit = SENSOR_UNITS[self.options.sensor]
+    def _zero_at_tref(
+        self, step: TemperatureStep, rel: dict[str, np.ndarray], prep: Prepared
+    ) -> None:
+        """A magnetometer's model minus its value at ``tref`` (rates zero), that value moved into
+        the reference (the field in the log's orientation, which a thermal log cannot tell from
+        the hard iron): the correction removes only the temperature-driven change and keeps
+        the vehicle's ``CAL_MAG*`` offsets valid at ``tref``, as PX4's own magnetometer thermal
+        calibration normalises ``TC_M*`` (``X0 = 0``). ``prep.bias`` and ``prep.reference`` are
+        shifted alike, so the residuals stay as fitted."""
+        at = {k: np.zeros(1) for k in rel}
+        shift = step.bias(at)[0]
+        for i, ax in enumerate(step.axes):
+            terms = list(ax["terms"])
+            coef = np.asarray(ax["coefficients"], dtype=np.float64).copy()
+            if "1" in terms:
+                coef[terms.index("1")] -= shift[i]
+            else:
+                terms, coef = [*terms, "1"], np.r_[coef, -shift[i]]
+            step.axes[i] = {"terms": terms, "coefficients": coef}
+        prep.bias = prep.bias - shift
+        prep.reference = prep.reference + shift
+        step.params = {**step.params, "reference": prep.reference.tolist()}
+
+    @staticmethod
+    def _field_turn(prep: Prepared, fitted: np.ndarray) -> float:
+        """deg: the largest change of the corrected field's direction across a gap between
+        still periods (the mean of the ``TURN_BLOCKS`` kept blocks before it against those
+        after it). The temperature barely moves across a gap and its effect is corrected, so
+        a magnetometer held in one orientation reads about 0; a turn shows in full (over
+        whole still periods a smooth fit absorbs part of it)."""
+        field = prep.bias - fitted + prep.reference
+        gaps = np.flatnonzero(np.diff(prep.keep) > 1) + 1
+        turn = 0.0
+        for g in gaps:
+            before = field[max(0, g - TURN_BLOCKS) : g].mean(axis=0)
+            after = field[g : g + TURN_BLOCKS].mean(axis=0)
+            turn = max(turn, tc.orientation_spread(np.vstack([before, after])) * 2)
+        return turn
+
+    def _check_held_out(
+        self, held: tc.HeldOut, prep: Prepared, ctx: StageContext, fitted: np.ndarray
+    ) -> None:
+        """The quality checks on what the fit may be applied to: one orientation (gravity's
+        direction; a magnetometer's corrected field), and a correction that predicts held-out
+        segments better than no compensation on every axis."""
+        sensor_name = self.options.sensor
+        unit = SENSOR_UNITS[sensor_name]
         figures = ", ".join(
             f"{a} {held.rms[i]:.3g} vs {held.baseline[i]:.3g}" for i, a in enumerate(AXES)
         )
-        if prep.accel is not None and len(prep.accel):
+        if sensor_name == "mag":
+            turn = self._field_turn(prep, fitted)
+            ctx.check(
+                turn <= MAG_TURN_DEG,
+                f"the magnetometer was turned between its still periods (its corrected field's "
+                f"direction changes by up to {turn:.3g} deg across the gaps between them): the "
+                "field in the sensor's frame turns with it, and a temperature fit across "
+                "orientations takes the turn for a thermal offset (held-out RMS "
+                f"{figures} {unit} without compensation); record the thermal log in one fixed "
+                "orientation, or give each orientation's part as its own input",
+            )
+        elif prep.accel is not None and len(prep.accel):
             runs = np.r_[0, np.cumsum(np.diff(prep.keep) > 1)]
             counts = np.bincount(runs)
             means = np.column_stack([np.bincount(runs, weights=c) for c in prep.accel.T])
@@ -674,7 +758,7 @@ class TemperatureStage(Stage):
             ctx.check(
                 spread <= tc.ORIENTATION_DEG,
                 f"the IMU was turned between its still periods (their gravity directions differ "
-                f"by up to {spread:.3g} deg from their mean): the {self.options.sensor} bias "
+                f"by up to {spread:.3g} deg from their mean): the {sensor_name} bias "
                 "changes with orientation (g-sensitivity, gravity itself) as well as with "
                 "temperature, and a temperature fit across orientations takes one for the other "
                 f"(held-out RMS {figures} {unit} without compensation); record the thermal log "
