@@ -66,7 +66,8 @@ ENGINE_LOG = "ray.log"
 
 @dataclass
 class ConvertSummary:
-    out_dir: Path
+    out_dir: Path | str
+    """The output folder (a URL when ``--out`` is on an object store)."""
     converted: list[LogStats] = field(default_factory=list)
     skipped: list[LogStats] = field(default_factory=list)
     failed: list[tuple[str, str]] = field(default_factory=list)
@@ -107,12 +108,15 @@ def convert(
     plan is wrong (no logs, an output over an input or outside ``out_dir``, an output folder
     that cannot be written), and :class:`OutputFolderError` when the output folder fails during
     the run (full, read-only): the other logs are stopped, the same command resumes."""
+    from imupipe.pipeline.convert import remote
+
     start = time.perf_counter()
-    out = Path(out_dir)
+    out_url = os.fspath(out_dir).rstrip("/") if remote.is_url(out_dir) else None
+    out: Path | str = remote.local_path(out_dir) if out_url is None else out_url
     doc, _ = load_calibration(Path(calibration))
     settings = load_read_settings(None if config is None else Path(config))
     planned = plan(
-        [Path(p) for p in logs],
+        list(logs),
         out,
         doc,
         settings,
@@ -128,20 +132,29 @@ def convert(
         raise ConfigError(f"no logs found in {', '.join(map(str, logs))}")
     if on_mismatch not in ON_MISMATCH:
         raise ConfigError(f"--on-mismatch {on_mismatch}: not one of {', '.join(ON_MISMATCH)}")
+    manifest: Manifest | remote.RemoteManifest
+    engine_log: Path | None = None
+    if guard is not None:
+        manifest = Manifest(out, guard)  # checked by the path rule before anything is written
+        engine_log = guard.check(ENGINE_LOG, in_place=True) if engine == "ray" else None
+        guard.probe()
+    else:  # --out on an object store: Ray's own output stays on the driver's stderr
+        assert out_url is not None
+        remote.probe(out_url)
+        manifest = remote.RemoteManifest(out_url)
     if not fitted_on(doc["chain"]) and not quiet:
         print(
             f"imupipe: note: {calibration} does not record which sensor it was fitted on "
             "(written by an older imupipe): the logs are not checked against it",
             file=sys.stderr,
         )
-    manifest = Manifest(out, guard)  # checked by the path rule before anything is written
-    engine_log = guard.check(ENGINE_LOG, in_place=True) if engine == "ray" else None
-    guard.probe()
     # temporary files of workers killed in an earlier run (on this machine, or on any Ray node:
     # no worker of this run has started yet, and one conversion at a time writes into DIR), in
     # the folders this run writes into only
     for folder in planned.folders():
         remove_stale_temps(folder, other_hosts=True)
+    for prefix in planned.remote_folders():
+        remote.remove_stale_temps(prefix)
     fatal: list[str] = []
     with progress_bar("imupipe convert", total=len(tasks), quiet=quiet) as bar:
 
@@ -162,9 +175,10 @@ def convert(
                     for w in stats.warnings:
                         print(f"imupipe: warning: {stats.input}: {w}", file=sys.stderr)
             else:
-                summary.failed.append((str(task.spec.path), outcome.error))
+                name = task.source or str(task.spec.path)
+                summary.failed.append((name, outcome.error))
                 record.update(
-                    input=str(task.spec.path),
+                    input=name,
                     status="failed",
                     error=outcome.error,
                     calibration_sha256=task.calibration_sha256,
@@ -205,6 +219,8 @@ def convert(
         finally:  # also on SIGINT/SIGTERM: what stopped workers could not remove
             for folder in planned.folders():
                 remove_stale_temps(folder)
+            if isinstance(manifest, remote.RemoteManifest):
+                manifest.flush()
     summary.seconds = time.perf_counter() - start
     return summary
 
