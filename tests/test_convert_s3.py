@@ -234,7 +234,9 @@ def test_an_interrupted_upload_publishes_nothing(s3, monkeypatch, exc):
     real = remote.filesystem
     monkeypatch.setattr(remote, "CHUNK", 4096)  # several writes per object
     monkeypatch.setattr(remote, "filesystem", lambda url: (_CutFS(real(url)[0], exc), real(url)[1]))
-    with pytest.raises(remote.ObjectStoreError if isinstance(exc, OSError) else type(exc)) as raised:
+    with pytest.raises(
+        remote.ObjectStoreError if isinstance(exc, OSError) else type(exc)
+    ) as raised:
         convert_log(tasks[0])
     if isinstance(exc, OSError):  # one line naming the output object
         assert f"{out}/a.mcap: cannot write" in str(raised.value)

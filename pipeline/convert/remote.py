@@ -277,16 +277,66 @@ def remove_stale_temps(url: str) -> list[str]:
     return removed
 
 
+SUMMARY_MAX = 64 << 20
+"""The most bytes of an MCAP's summary section read in one request (a larger one is read as it
+is parsed)."""
+
+
+class _Tail:
+    """A seekable view of a remote file that holds its last bytes (the MCAP summary section,
+    fetched with one ranged read) and reads anything before them as asked: the ``mcap``
+    reader parses the summary record by record, which would otherwise be one request per
+    record."""
+
+    def __init__(self, fh: Any, size: int) -> None:
+        self.fh, self.size, self.pos = fh, size, 0
+        footer = 8 + 29  # magic and the footer record (opcode, length, three fields)
+        start = size
+        if size >= footer:
+            fh.seek(size - footer)
+            tail = fh.read(footer)
+            summary_start = int.from_bytes(tail[9:17], "little")
+            if 0 < summary_start < size and size - summary_start <= SUMMARY_MAX:
+                start = summary_start
+        fh.seek(start)
+        self.start, self.buf = start, fh.read(size - start)
+
+    def seek(self, offset: int, whence: int = 0) -> int:
+        base = {0: 0, 1: self.pos, 2: self.size}[whence]
+        self.pos = base + offset
+        return self.pos
+
+    def tell(self) -> int:
+        return self.pos
+
+    def seekable(self) -> bool:
+        return True
+
+    def readable(self) -> bool:
+        return True
+
+    def read(self, n: int = -1) -> bytes:
+        n = self.size - self.pos if n is None or n < 0 else n
+        if self.pos >= self.start:
+            data = self.buf[self.pos - self.start : self.pos - self.start + n]
+        else:
+            self.fh.seek(self.pos)
+            data = self.fh.read(n)
+        self.pos += len(data)
+        return data
+
+
 def read_mcap_summary(url: str) -> Any:
     """:func:`~imupipe.pipeline.convert.verify.mcap_summary` of an object (its summary section
-    only is read, through ranged reads); None when there is no such object."""
+    fetched with one ranged read, :class:`_Tail`); None when there is no such object."""
     from imupipe.pipeline.convert.verify import summary_of
 
     fs, path = filesystem(url)
-    if object_size(url) is None:
+    size = object_size(url)
+    if size is None:
         return None
     with fs.open_input_file(path) as fh:
-        return summary_of(fh)
+        return summary_of(_Tail(fh, size))
 
 
 class RemoteManifest:

@@ -264,7 +264,10 @@ def convert_remote(task: LogTask) -> LogStats:
             size = input_size(local_src)
         found = None
         if task.output_url is not None and not task.force:
-            summary = remote.read_mcap_summary(task.output_url)
+            try:
+                summary = remote.read_mcap_summary(task.output_url)
+            except Exception:  # noqa: BLE001 - an unreadable output is simply not done
+                summary = None
             parquet_there = task.parquet_url is None or remote.object_size(task.parquet_url)
             found = None if parquet_there is None else same_conversion(summary, task, size)
         elif not task.force:
