@@ -61,7 +61,8 @@ schemas)."""
 
 ENGINE_LOG = "ray.log"
 """With ``--engine ray``: ``DIR/ray.log`` takes Ray's own output (named in each manifest line's
-``engine_log``), so the user's stderr holds imupipe's lines only."""
+``engine_log``), so the user's stderr holds imupipe's lines only; with ``--out`` on an object
+store, ``$TMPDIR/imupipe-convert-<pid>-ray.log`` on the driver's machine."""
 
 
 @dataclass
@@ -138,10 +139,14 @@ def convert(
         manifest = Manifest(out, guard)  # checked by the path rule before anything is written
         engine_log = guard.check(ENGINE_LOG, in_place=True) if engine == "ray" else None
         guard.probe()
-    else:  # --out on an object store: Ray's own output stays on the driver's stderr
+    else:  # --out on an object store: Ray's own output goes to a file of the driver's machine
         assert out_url is not None
         remote.probe(out_url)
         manifest = remote.RemoteManifest(out_url)
+        if engine == "ray":
+            import tempfile
+
+            engine_log = Path(tempfile.gettempdir()) / f"imupipe-convert-{os.getpid()}-{ENGINE_LOG}"
     if not fitted_on(doc["chain"]) and not quiet:
         print(
             f"imupipe: note: {calibration} does not record which sensor it was fitted on "
