@@ -261,3 +261,59 @@ def test_a_size_mismatch_is_not_published(s3, monkeypatch, tmp_path):
     with pytest.raises(Exception, match="uploaded 1000 bytes of 1001; not published"):
         remote.publish([(local, f"s3://{BUCKET_OUT}/size/x.bin")])
     assert _keys(client, BUCKET_OUT, "size/") == {}
+
+
+def test_a_corrupt_object_is_named_by_its_url_and_has_no_output(s3):
+    client, _, logs, cal = s3
+    data = (logs / "a.mcap").read_bytes()
+    client.put_object(Bucket=BUCKET_IN, Key="bad/corrupt.mcap", Body=data[: len(data) // 2])
+    out = f"s3://{BUCKET_OUT}/corrupt"
+    proc = run_cli("convert", "--calibration", cal, "--out", out, "-q", f"s3://{BUCKET_IN}/bad")
+    assert proc.returncode == 1, proc.stderr
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith(
+        f"imupipe: error: s3://{BUCKET_IN}/bad/corrupt.mcap: truncated or corrupt"
+    ), proc.stderr
+    assert "imupipe-convert-" not in lines[0]  # the local copy is not named
+    assert set(_keys(client, BUCKET_OUT, "corrupt/")) == {"corrupt/manifest.jsonl"}
+    (line,) = _manifest(client, "corrupt/manifest.jsonl")
+    assert line["status"] == "failed" and line["input"] == f"s3://{BUCKET_IN}/bad/corrupt.mcap"
+
+
+def test_sigterm_mid_run_leaves_only_complete_objects_and_resumes(s3):
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    client, _, _, cal = s3
+    src, out = f"s3://{BUCKET_IN}/logs", f"s3://{BUCKET_OUT}/term"
+    args = ["convert", "--calibration", str(cal), "--out", out, "--jobs", "2", "-q", src]
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "imupipe.pipeline.cli", *args],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline and proc.poll() is None:  # until the first upload
+        listed = client.list_objects_v2(Bucket=BUCKET_OUT, Prefix="term/").get("Contents", [])
+        if any(".mcap" in o["Key"] or ".parquet" in o["Key"] for o in listed):
+            break
+        time.sleep(0.02)
+    proc.send_signal(signal.SIGTERM)  # mid-run: other logs converting, this one publishing
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode in (0, 143), err
+    keys = _keys(client, BUCKET_OUT, "term/")
+    assert not [k for k in keys if k.endswith(".tmp")]  # no temporary key left
+    lines = _manifest(client, "term/manifest.jsonl") if "term/manifest.jsonl" in keys else []
+    for line in lines:  # every line's output is published, and complete
+        assert line["output"].removeprefix(f"s3://{BUCKET_OUT}/") in keys
+    for key in (k for k in keys if k.endswith(".mcap")):
+        got = _messages(client.get_object(Bucket=BUCKET_OUT, Key=key)["Body"].read())
+        assert got  # a whole MCAP: its summary and every message read back
+    again = run_cli(*args)
+    assert again.returncode == 0, again.stderr
+    assert {k for k in _keys(client, BUCKET_OUT, "term/") if k.endswith(".mcap")} == {
+        f"term/{n}.mcap" for n in ("a", "site1/m", "site2/r1")
+    }

@@ -224,6 +224,8 @@ def convert(
         finally:  # also on SIGINT/SIGTERM: what stopped workers could not remove
             for folder in planned.folders():
                 remove_stale_temps(folder)
+            for prefix in planned.remote_folders():  # of workers killed while publishing
+                remote.remove_stale_temps(prefix)
             if isinstance(manifest, remote.RemoteManifest):
                 manifest.flush()
     summary.seconds = time.perf_counter() - start

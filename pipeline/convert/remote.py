@@ -44,6 +44,7 @@ from urllib.parse import urlsplit
 
 from imupipe.pipeline.atomic import HOST_KEY, TEMP_NAME
 from imupipe.pipeline.errors import ConfigError, ImupipeError
+from imupipe.pipeline.signals import signals_deferred
 
 URL = re.compile(r"^(?P<scheme>[A-Za-z][A-Za-z0-9+.-]*)://(?P<rest>.*)$")
 """A URL: ``scheme://...`` (``file://`` is a local path)."""
@@ -224,17 +225,27 @@ def publish(items: list[tuple[Path, str]]) -> None:
             got, want = fs.get_file_info(tmp).size, local.stat().st_size
             if got != want:
                 raise ObjectStoreError(f"{url}: uploaded {got} bytes of {want}; not published")
-        for (fs, tmp, final), (_, target) in zip(staged, items, strict=True):
-            url = target  # named by the error, if the copy fails
-            fs.copy_file(tmp, final)
+        with signals_deferred():  # the copies and the clean-up are not cut in two
+            try:
+                for (fs, tmp, final), (_, target) in zip(staged, items, strict=True):
+                    url = target  # named by the error, if the copy fails
+                    fs.copy_file(tmp, final)
+            finally:
+                _delete(staged)
     except OSError as exc:
         if exc.filename is not None:
             raise
         raise ObjectStoreError(f"{url}: cannot write: {_brief(exc)}") from None
     finally:
-        for fs, tmp, _ in staged:
-            with contextlib.suppress(OSError):
-                fs.delete_file(tmp)
+        _delete(staged)
+
+
+def _delete(staged: list[tuple[Any, str, str]]) -> None:
+    """Delete the temporary keys of :func:`publish` (those already gone are skipped)."""
+    while staged:
+        fs, tmp, _ = staged.pop()
+        with contextlib.suppress(OSError):
+            fs.delete_file(tmp)
 
 
 def probe(url: str) -> None:
@@ -257,9 +268,10 @@ def probe(url: str) -> None:
 
 def remove_stale_temps(url: str) -> list[str]:
     """Delete the temporary keys (names of :data:`~imupipe.pipeline.atomic.TEMP_NAME`) directly
-    under the prefix ``url`` (not below): called by the driver before any worker starts, when
-    every one of them is a leftover of an earlier run (one conversion at a time writes into
-    ``DIR``). Returns the URLs deleted."""
+    under the prefix ``url`` (not below): called by the driver before any worker starts and
+    after its workers are stopped, when every one of them is a leftover (one conversion at a
+    time writes into ``DIR``; a worker still finishing has its copy fail on the missing key, and
+    publishes nothing). Returns the URLs deleted."""
     import pyarrow.fs as pafs
 
     fs, path = filesystem(url)
