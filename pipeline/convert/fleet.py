@@ -10,6 +10,7 @@ The work is split by responsibility:
 - :mod:`~imupipe.pipeline.convert.done`: skip-if-done;
 - :mod:`~imupipe.pipeline.convert.verify`: the written file against the input's own index;
 - :mod:`~imupipe.pipeline.convert.dataset`: the Parquet dataset;
+- :mod:`~imupipe.pipeline.convert.remote`: logs, outputs and the manifest on object storage;
 - this module: the driver (engine, progress, manifest).
 
 **Resuming.** Outputs are written under temporary names and renamed when complete, so an
@@ -103,7 +104,8 @@ def convert(
     module docstring). The keywords are the options of ``imupipe convert``: ``config`` (a TOML
     file whose ``[inputs.NAME]`` settings say how to read the logs), ``engine`` (``local`` or
     ``ray``), ``jobs``, ``address``, ``retries``, ``force``, ``batch_rows``, ``on_mismatch``
-    (``warn`` or ``refuse``: a log from another sensor than the calibration's).
+    (``warn`` or ``refuse``: a log from another sensor than the calibration's). ``logs`` and
+    ``out_dir`` may be URLs (``s3://bucket/prefix``, :mod:`imupipe.pipeline.convert.remote`).
 
     Raises :class:`~imupipe.pipeline.errors.ImupipeError` before anything is written when the
     plan is wrong (no logs, an output over an input or outside ``out_dir``, an output folder
