@@ -19,7 +19,12 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
             "ROS 2 bag folders and, with --config, .csv) and write DIR/<stem>.mcap per log."
         ),
     )
-    p.add_argument("logs", nargs="+", type=Path, metavar="LOG", help="log files or folders")
+    p.add_argument(
+        "logs",
+        nargs="+",
+        metavar="LOG",
+        help="log files or folders, or objects and prefixes on an object store (s3://BUCKET/KEY)",
+    )
     p.add_argument(
         "--calibration",
         type=Path,
@@ -27,7 +32,12 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         metavar="CAL.json",
         help="a calibration.json (from imupipe run, or attached to a converted MCAP)",
     )
-    p.add_argument("--out", type=Path, required=True, metavar="DIR", help="output folder")
+    p.add_argument(
+        "--out",
+        required=True,
+        metavar="DIR",
+        help="output folder, or a prefix on an object store (s3://BUCKET/PREFIX)",
+    )
     p.add_argument(
         "--config",
         type=Path,

@@ -9,6 +9,7 @@ for) is skipped unless ``--force``.
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 from imupipe.pipeline.convert.plan import LogTask
 from imupipe.pipeline.convert.verify import mcap_summary
@@ -30,6 +31,14 @@ def existing_output(task: LogTask, size: int) -> dict[str, int] | None:
         summary = mcap_summary(task.output)
     except Exception:  # noqa: BLE001 - an unreadable output is simply not done
         return None
+    return same_conversion(summary, task, size)
+
+
+def same_conversion(
+    summary: tuple[dict[str, int], dict[str, Any] | None] | None, task: LogTask, size: int
+) -> dict[str, int] | None:
+    """The counts of an output's ``summary`` (:func:`mcap_summary`) when its attached record
+    names this calibration, these settings and an input of ``size`` bytes; else None."""
     if summary is None or summary[1] is None:
         return None
     conversion = summary[1].get("conversion", {})

@@ -10,6 +10,7 @@ The work is split by responsibility:
 - :mod:`~imupipe.pipeline.convert.done`: skip-if-done;
 - :mod:`~imupipe.pipeline.convert.verify`: the written file against the input's own index;
 - :mod:`~imupipe.pipeline.convert.dataset`: the Parquet dataset;
+- :mod:`~imupipe.pipeline.convert.remote`: logs, outputs and the manifest on object storage;
 - this module: the driver (engine, progress, manifest).
 
 **Resuming.** Outputs are written under temporary names and renamed when complete, so an
@@ -61,12 +62,14 @@ schemas)."""
 
 ENGINE_LOG = "ray.log"
 """With ``--engine ray``: ``DIR/ray.log`` takes Ray's own output (named in each manifest line's
-``engine_log``), so the user's stderr holds imupipe's lines only."""
+``engine_log``), so the user's stderr holds imupipe's lines only; with ``--out`` on an object
+store, ``$TMPDIR/imupipe-convert-<pid>-ray.log`` on the driver's machine."""
 
 
 @dataclass
 class ConvertSummary:
-    out_dir: Path
+    out_dir: Path | str
+    """The output folder (a URL when ``--out`` is on an object store)."""
     converted: list[LogStats] = field(default_factory=list)
     skipped: list[LogStats] = field(default_factory=list)
     failed: list[tuple[str, str]] = field(default_factory=list)
@@ -101,18 +104,22 @@ def convert(
     module docstring). The keywords are the options of ``imupipe convert``: ``config`` (a TOML
     file whose ``[inputs.NAME]`` settings say how to read the logs), ``engine`` (``local`` or
     ``ray``), ``jobs``, ``address``, ``retries``, ``force``, ``batch_rows``, ``on_mismatch``
-    (``warn`` or ``refuse``: a log from another sensor than the calibration's).
+    (``warn`` or ``refuse``: a log from another sensor than the calibration's). ``logs`` and
+    ``out_dir`` may be URLs (``s3://bucket/prefix``, :mod:`imupipe.pipeline.convert.remote`).
 
     Raises :class:`~imupipe.pipeline.errors.ImupipeError` before anything is written when the
     plan is wrong (no logs, an output over an input or outside ``out_dir``, an output folder
     that cannot be written), and :class:`OutputFolderError` when the output folder fails during
     the run (full, read-only): the other logs are stopped, the same command resumes."""
+    from imupipe.pipeline.convert import remote
+
     start = time.perf_counter()
-    out = Path(out_dir)
+    out_url = os.fspath(out_dir).rstrip("/") if remote.is_url(out_dir) else None
+    out: Path | str = remote.local_path(out_dir) if out_url is None else out_url
     doc, _ = load_calibration(Path(calibration))
     settings = load_read_settings(None if config is None else Path(config))
     planned = plan(
-        [Path(p) for p in logs],
+        list(logs),
         out,
         doc,
         settings,
@@ -128,20 +135,33 @@ def convert(
         raise ConfigError(f"no logs found in {', '.join(map(str, logs))}")
     if on_mismatch not in ON_MISMATCH:
         raise ConfigError(f"--on-mismatch {on_mismatch}: not one of {', '.join(ON_MISMATCH)}")
+    manifest: Manifest | remote.RemoteManifest
+    engine_log: Path | None = None
+    if guard is not None:
+        manifest = Manifest(out, guard)  # checked by the path rule before anything is written
+        engine_log = guard.check(ENGINE_LOG, in_place=True) if engine == "ray" else None
+        guard.probe()
+    else:  # --out on an object store: Ray's own output goes to a file of the driver's machine
+        assert out_url is not None
+        remote.probe(out_url)
+        manifest = remote.RemoteManifest(out_url)
+        if engine == "ray":
+            import tempfile
+
+            engine_log = Path(tempfile.gettempdir()) / f"imupipe-convert-{os.getpid()}-{ENGINE_LOG}"
     if not fitted_on(doc["chain"]) and not quiet:
         print(
             f"imupipe: note: {calibration} does not record which sensor it was fitted on "
             "(written by an older imupipe): the logs are not checked against it",
             file=sys.stderr,
         )
-    manifest = Manifest(out, guard)  # checked by the path rule before anything is written
-    engine_log = guard.check(ENGINE_LOG, in_place=True) if engine == "ray" else None
-    guard.probe()
     # temporary files of workers killed in an earlier run (on this machine, or on any Ray node:
     # no worker of this run has started yet, and one conversion at a time writes into DIR), in
     # the folders this run writes into only
     for folder in planned.folders():
         remove_stale_temps(folder, other_hosts=True)
+    for prefix in planned.remote_folders():
+        remote.remove_stale_temps(prefix)
     fatal: list[str] = []
     with progress_bar("imupipe convert", total=len(tasks), quiet=quiet) as bar:
 
@@ -162,9 +182,10 @@ def convert(
                     for w in stats.warnings:
                         print(f"imupipe: warning: {stats.input}: {w}", file=sys.stderr)
             else:
-                summary.failed.append((str(task.spec.path), outcome.error))
+                name = task.source or str(task.spec.path)
+                summary.failed.append((name, outcome.error))
                 record.update(
-                    input=str(task.spec.path),
+                    input=name,
                     status="failed",
                     error=outcome.error,
                     calibration_sha256=task.calibration_sha256,
@@ -205,6 +226,10 @@ def convert(
         finally:  # also on SIGINT/SIGTERM: what stopped workers could not remove
             for folder in planned.folders():
                 remove_stale_temps(folder)
+            for prefix in planned.remote_folders():  # of workers killed while publishing
+                remote.remove_stale_temps(prefix)
+            if isinstance(manifest, remote.RemoteManifest):
+                manifest.flush()
     summary.seconds = time.perf_counter() - start
     return summary
 

@@ -56,6 +56,14 @@ FIELDS = (
 """The keys of every line, in this order (absent values are null)."""
 
 
+def line_bytes(record: Mapping[str, Any]) -> bytes:
+    """``record``'s manifest line: the keys of :data:`FIELDS` in order, ``finished_at`` now
+    unless given, one JSON object and a newline."""
+    line = {key: record.get(key) for key in FIELDS}
+    line["finished_at"] = line["finished_at"] or time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
+    return (json.dumps(line, sort_keys=False) + "\n").encode("utf-8")
+
+
 class Manifest:
     """Appends one line per finished log to ``DIR/manifest.jsonl`` (driver process only).
 
@@ -72,11 +80,7 @@ class Manifest:
 
     def append(self, record: Mapping[str, Any]) -> None:
         """Append ``record``'s line; OSError (naming the manifest) when it cannot be written."""
-        line = {key: record.get(key) for key in FIELDS}
-        line["finished_at"] = line["finished_at"] or time.strftime(
-            "%Y-%m-%dT%H:%M:%SZ", time.gmtime()
-        )
-        data = (json.dumps(line, sort_keys=False) + "\n").encode("utf-8")
+        data = line_bytes(record)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         flags = os.O_WRONLY | os.O_APPEND | os.O_CREAT | getattr(os, "O_NOFOLLOW", 0)
         existed = os.path.lexists(self.path)

@@ -16,7 +16,7 @@ import dataclasses
 import os
 from collections.abc import Sequence
 from dataclasses import dataclass
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 from typing import Any
 
 from imupipe.pipeline.atomic import OutputGuard
@@ -48,6 +48,16 @@ class LogTask:
     """The log's name: its output path relative to DIR, without suffix (``robot1/day1``)."""
     on_mismatch: str = "warn"
     """What a log that is not from the calibration's sensor does: ``warn`` or ``refuse``."""
+    source_url: str | None = None
+    """The input's URL when it is an object (``s3://...``): the worker copies it to a local
+    temporary file first (:mod:`imupipe.pipeline.convert.remote`)."""
+    output_url: str | None = None
+    """The output's URL when ``--out`` is on an object store (``output`` is then its name
+    relative to DIR; the worker writes it locally, verifies it, then publishes it)."""
+    parquet_url: str | None = None
+    source: str = ""
+    """How the manifest and the attached record name the input when ``spec.path`` is a local
+    copy of it (its URL); empty: ``spec.path``."""
 
 
 def is_ros2_bag_dir(path: Path) -> bool:
@@ -108,13 +118,28 @@ def check_arguments(logs: Sequence[Path]) -> None:
 
 @dataclass
 class Plan:
-    """The tasks, and the guard every path the conversion writes goes through."""
+    """The tasks, and the guard every local path the conversion writes goes through (None when
+    ``--out`` is a URL: ``out_url``)."""
 
     tasks: list[LogTask]
-    guard: OutputGuard
+    guard: OutputGuard | None
+    out_url: str | None = None
+
+    def remote_folders(self) -> list[str]:
+        """The prefixes a conversion to an object store writes into (DIR and its outputs')."""
+        if self.out_url is None:
+            return []
+        urls = {self.out_url.rstrip("/")}
+        for task in self.tasks:
+            for url in (task.output_url, task.parquet_url):
+                if url is not None:
+                    urls.add(url.rpartition("/")[0])
+        return sorted(urls)
 
     def folders(self) -> list[Path]:
         """The folders this conversion writes into (``DIR`` and its outputs' folders)."""
+        if self.guard is None:
+            return []
         out = {self.guard.root}
         for task in self.tasks:
             out.add(task.output.parent)
@@ -124,6 +149,128 @@ class Plan:
 
 
 def plan(
+    logs: Sequence[str | os.PathLike[str]],
+    out_dir: str | os.PathLike[str],
+    calibration: dict[str, Any],
+    settings: InputSpec,
+    *,
+    parquet: bool = False,
+    force: bool = False,
+    batch_rows: int = DEFAULT_BATCH_ROWS,
+    csv: bool = False,
+    on_mismatch: str = "warn",
+) -> Plan:
+    """One task per log found (see :func:`plan_local`); logs or ``out_dir`` given as URLs
+    (``s3://bucket/prefix``) are planned by :func:`plan_remote`."""
+    from imupipe.pipeline.convert.remote import is_url, local_path
+
+    keywords: dict[str, Any] = dict(
+        parquet=parquet, force=force, batch_rows=batch_rows, csv=csv, on_mismatch=on_mismatch
+    )
+    if not is_url(out_dir) and not any(is_url(a) for a in logs):
+        paths = [local_path(a) for a in logs]
+        return plan_local(paths, local_path(out_dir), calibration, settings, **keywords)
+    return plan_remote(logs, out_dir, calibration, settings, **keywords)
+
+
+def plan_remote(
+    logs: Sequence[str | os.PathLike[str]],
+    out_dir: str | os.PathLike[str],
+    calibration: dict[str, Any],
+    settings: InputSpec,
+    *,
+    parquet: bool = False,
+    force: bool = False,
+    batch_rows: int = DEFAULT_BATCH_ROWS,
+    csv: bool = False,
+    on_mismatch: str = "warn",
+) -> Plan:
+    """:func:`plan_local` when inputs or ``out_dir`` are URLs. A URL argument is an object or a
+    prefix searched recursively (:func:`imupipe.pipeline.convert.remote.find_logs`); local
+    arguments are found as by :func:`find_logs`. The path rule on an object store: no output
+    key equal to an input key, ``DIR`` not a prefix searched for logs, and (a prefix is not a
+    folder: no symbolic links) nothing outside ``DIR`` (every output is ``DIR/<name>``)."""
+    from imupipe.pipeline.convert import remote
+    from imupipe.readers.dispatch import CSV_SUFFIXES
+
+    urls = [os.fspath(a).rstrip("/") for a in logs if remote.is_url(a)]
+    paths = [remote.local_path(a) for a in logs if not remote.is_url(a)]
+    check_arguments(paths)
+    out_url = os.fspath(out_dir).rstrip("/") if remote.is_url(out_dir) else None
+    local_out = None if out_url is not None else remote.local_path(out_dir).absolute()
+    suffixes = set(LOG_SUFFIXES) | ({".csv"} if csv else set())
+    known = set(LOG_SUFFIXES) | {".ulg", ".bin", ".db3"} | CSV_SUFFIXES
+    found: list[tuple[str | Path, Path]] = []
+    for url in urls:
+        if out_url is not None and url == out_url:
+            raise ConfigError(
+                f"--out {out_url}: is the prefix searched for logs, so its outputs would sit "
+                "among the inputs; choose another prefix (one inside it is not searched)"
+            )
+        for item in remote.find_logs(url, suffixes, known):
+            if out_url is None or not item.url.startswith(out_url + "/"):
+                found.append((item.url, Path(item.rel.as_posix())))
+    nowhere = Path(os.devnull)  # local searches skip DIR; a remote DIR is never local
+    found += [(p.absolute(), rel) for p, rel in find_logs(paths, local_out or nowhere, csv=csv)]
+    guard = None
+    if local_out is not None:
+        searched = [p for p in paths if p.is_dir() and not is_ros2_bag_dir(p)]
+        local_inputs = [p for p, _ in found if isinstance(p, Path)]
+        guard = OutputGuard(local_out, local_inputs, "--out", searched=searched)
+    cal_sha, set_sha = chain_sha256(calibration), settings_sha256(settings)
+    inputs = {str(p) for p, _ in found}
+    tasks: list[LogTask] = []
+    owners: dict[str, str | Path] = {}
+    for source, rel in found:
+        if rel.name in ("", ".", ".."):
+            raise ConfigError(f"{source}: no file name to name its output after; name the log")
+        name_mcap = rel.with_name(rel.name + ".mcap")
+        name_parquet = Path(PARQUET_DIR) / rel.with_name(rel.name + ".parquet")
+        if out_url is not None:
+            output, output_url = name_mcap, remote.join(out_url, name_mcap.as_posix())
+            parquet_url = remote.join(out_url, name_parquet.as_posix()) if parquet else None
+            parquet_path = name_parquet if parquet else None
+            key = output_url
+            if output_url in inputs or parquet_url in inputs:
+                raise ConfigError(f"{output_url}: would overwrite an input; choose another --out")
+        else:
+            assert guard is not None and local_out is not None
+            output, output_url, parquet_url = guard.check(local_out / name_mcap), None, None
+            parquet_path = guard.check(local_out / name_parquet) if parquet else None
+            key = str(output.resolve())
+        if key in owners and str(owners[key]) == str(source):
+            continue  # the same log named twice
+        if key in owners:
+            raise ConfigError(
+                f"{owners[key]} and {source} would both be written to {output_url or output}; "
+                "convert them into separate --out folders"
+            )
+        owners[key] = source
+        is_remote = isinstance(source, str)
+        spec_path = Path(PurePosixPath(source).name) if is_remote else source
+        spec = dataclasses.replace(settings, path=spec_path, name=rel.name)
+        tasks.append(
+            LogTask(
+                spec=spec,
+                output=output,
+                parquet=parquet_path,
+                calibration=calibration,
+                calibration_sha256=cal_sha,
+                settings_sha256=set_sha,
+                force=force,
+                batch_rows=batch_rows,
+                log=rel.as_posix(),
+                on_mismatch=on_mismatch,
+                source_url=source if is_remote else None,
+                output_url=output_url,
+                parquet_url=parquet_url,
+                source=source if is_remote else "",
+            )
+        )
+    return Plan(tasks, guard, out_url)
+
+
+def plan_local(
     logs: Sequence[Path],
     out_dir: Path,
     calibration: dict[str, Any],

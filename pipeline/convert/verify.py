@@ -31,25 +31,31 @@ def mcap_summary(path: Path) -> tuple[dict[str, int], dict[str, Any] | None] | N
     has no summary (unfinished, or written without one) or one that does not name the topic of
     every channel it counts messages on (:func:`imupipe.readers.mcap.summary.complete`: every
     summary record is optional)."""
+    with open(path, "rb") as fh:
+        return summary_of(fh)
+
+
+def summary_of(fh: Any) -> tuple[dict[str, int], dict[str, Any] | None] | None:
+    """:func:`mcap_summary` of an open, seekable binary file (a local file, or an object opened
+    for ranged reads by :mod:`imupipe.pipeline.convert.remote`)."""
     from mcap.reader import make_reader
 
     from imupipe.readers.mcap.summary import complete
 
-    with open(path, "rb") as fh:
-        reader = make_reader(fh)
-        summary = reader.get_summary()
-        if summary is None or summary.statistics is None:
-            return None
-        channels = {cid: 0 for cid in summary.channels}  # topics are all it takes: no schema
-        if not complete(summary.statistics, channels, ()):
-            return None
-        per_topic: collections.Counter[str] = collections.Counter()
-        for cid, n in summary.statistics.channel_message_counts.items():
-            per_topic[summary.channels[cid].topic] += n
-        attached = None
-        for att in reader.iter_attachments():
-            if att.name == "calibration.json":
-                attached = json.loads(att.data)
+    reader = make_reader(fh)
+    summary = reader.get_summary()
+    if summary is None or summary.statistics is None:
+        return None
+    channels = {cid: 0 for cid in summary.channels}  # topics are all it takes: no schema
+    if not complete(summary.statistics, channels, ()):
+        return None
+    per_topic: collections.Counter[str] = collections.Counter()
+    for cid, n in summary.statistics.channel_message_counts.items():
+        per_topic[summary.channels[cid].topic] += n
+    attached = None
+    for att in reader.iter_attachments():
+        if att.name == "calibration.json":
+            attached = json.loads(att.data)
     return dict(per_topic), attached
 
 

@@ -143,7 +143,14 @@ def _nothing_applies(chain: list[dict[str, Any]], streams: set[str]) -> list[str
 
 def convert_log(task: LogTask) -> LogStats:
     """Convert one log (runs in a worker); raises ImupipeError on bad input, and
-    :class:`OutputFolderError` when the output folder cannot take the outputs."""
+    :class:`OutputFolderError` when the output folder cannot take the outputs. A log or an
+    output on an object store goes through :func:`convert_remote`."""
+    if task.source_url is not None or task.output_url is not None:
+        return convert_remote(task)
+    return _convert_local(task)
+
+
+def _convert_local(task: LogTask) -> LogStats:
     try:
         return _convert_log(task)
     except OSError as exc:
@@ -173,7 +180,7 @@ def _convert_log(task: LogTask) -> LogStats:
             "conversion": {
                 "calibration_sha256": task.calibration_sha256,
                 "settings_sha256": task.settings_sha256,
-                "input": str(src),
+                "input": task.source or str(src),
                 "input_size": size,
             },
         }
@@ -216,7 +223,7 @@ def _convert_log(task: LogTask) -> LogStats:
             warnings += not_carried(fmt, source_counts(src, fmt), written)
         status, checked = "converted", provenance.status
     return LogStats(
-        input=str(src),
+        input=task.source or str(src),
         output=str(task.output),
         parquet=None if task.parquet is None else str(task.parquet),
         status=status,
@@ -229,3 +236,86 @@ def _convert_log(task: LogTask) -> LogStats:
         warnings=warnings,
         provenance=checked,
     )
+
+
+def convert_remote(task: LogTask) -> LogStats:
+    """Convert a log whose input or output is an object (:mod:`imupipe.pipeline.convert.remote`):
+    skip it when its published output already holds it converted the same way; else copy the
+    input to a local temporary folder (bounded memory), convert it there exactly as a local log
+    (write, verify the counts), then publish the outputs (the Parquet file first, the MCAP that
+    marks the log done last). Errors name the URL, not the local copy."""
+    import dataclasses
+    import shutil
+    import tempfile
+
+    from imupipe.pipeline.convert import remote
+    from imupipe.pipeline.convert.done import same_conversion
+
+    start, cpu_start = time.perf_counter(), time.process_time()
+    tmp = Path(tempfile.mkdtemp(prefix="imupipe-convert-"))
+    src_name = task.source_url or str(task.spec.path)
+    local_src = Path(task.spec.path)
+    try:
+        if task.source_url is not None:
+            size = remote.object_size(task.source_url)
+            if size is None:
+                raise ReadError(f"{task.source_url}: no such object")
+        else:
+            size = input_size(local_src)
+        found = None
+        if task.output_url is not None and not task.force:
+            try:
+                summary = remote.read_mcap_summary(task.output_url)
+            except Exception:  # noqa: BLE001 - an unreadable output is simply not done
+                summary = None
+            parquet_there = task.parquet_url is None or remote.object_size(task.parquet_url)
+            found = None if parquet_there is None else same_conversion(summary, task, size)
+        elif not task.force:
+            found = existing_output(task, size)
+        if found is not None:
+            return LogStats(
+                input=src_name,
+                output=task.output_url or str(task.output),
+                parquet=task.parquet_url or (None if task.parquet is None else str(task.parquet)),
+                status="skipped",
+                counts=found,
+                calibration_sha256=task.calibration_sha256,
+                seconds=round(time.perf_counter() - start, 4),
+                cpu_seconds=round(time.process_time() - cpu_start, 4),
+                mode="-",
+                peak_rss_mb=round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
+            )
+        if task.source_url is not None:
+            local_src = tmp / "in" / task.spec.path.name
+            remote.download(task.source_url, local_src)
+        out_dir = tmp / "out"
+        local = dataclasses.replace(
+            task,
+            spec=dataclasses.replace(task.spec, path=local_src),
+            output=out_dir / task.output.name if task.output_url else task.output,
+            parquet=None
+            if task.parquet is None
+            else (out_dir / "parquet" / task.parquet.name if task.output_url else task.parquet),
+            force=True,  # judged above
+            source_url=None,
+            output_url=None,
+            parquet_url=None,
+            source=src_name,
+        )
+        try:
+            stats = _convert_local(local)
+        except ImupipeError as exc:
+            message = str(exc).replace(str(local_src), src_name).replace(str(tmp), "(local copy)")
+            if message == str(exc):
+                raise
+            raise type(exc)(message) from None
+        if task.output_url is not None and stats.status == "converted":
+            items = [] if local.parquet is None else [(local.parquet, task.parquet_url or "")]
+            remote.publish([*items, (local.output, task.output_url)])
+        if task.output_url is not None:
+            stats.output, stats.parquet = task.output_url, task.parquet_url
+        stats.seconds = round(time.perf_counter() - start, 4)
+        stats.cpu_seconds = round(time.process_time() - cpu_start, 4)
+        return stats
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
