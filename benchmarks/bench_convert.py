@@ -27,9 +27,7 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import shutil
-import subprocess
 import sys
 import tempfile
 import time
@@ -38,6 +36,10 @@ from pathlib import Path
 from imupipe.pipeline.convert.fleet import convert
 from imupipe.pipeline.simulate import simulate
 from imupipe.pipeline.writers.mcap import write_mcap
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from local_ray import cluster_rss_mb, ray_cluster, stop_cluster  # noqa: E402
+from proc_memory import run_measured  # noqa: E402
 
 CALIBRATION = {
     "imupipe_version": "bench",
@@ -108,22 +110,6 @@ def timed_convert(logs: list[Path], cal: Path, out: Path, **kw) -> tuple[float, 
     return seconds, summary
 
 
-PEAK_WRAPPER = """
-import sys
-from imupipe.pipeline.cli import main
-try:
-    code = main(sys.argv[2:])
-finally:
-    with open('/proc/self/status') as fh:
-        hwm = next(line.split()[1] for line in fh if line.startswith('VmHWM:'))
-    with open(sys.argv[1], 'w') as fh:
-        fh.write(hwm)
-sys.exit(code)
-"""
-"""``imupipe convert`` that writes its process's own peak RSS (``VmHWM``, kB) to ``argv[1]``
-(``ru_maxrss`` of a child can carry this benchmark's RSS at fork time)."""
-
-
 def measured_cli(
     logs: list[Path], cal: Path, out: Path, *extra: str
 ) -> tuple[float, float, list[dict]]:
@@ -133,12 +119,9 @@ def measured_cli(
     from imupipe.pipeline.convert.manifest import read_manifest
 
     shutil.rmtree(out, ignore_errors=True)
-    peak = out.with_name(out.name + ".peak")
-    cmd = [sys.executable, "-c", PEAK_WRAPPER, str(peak), "convert", "-q", "--calibration"]
-    start = time.perf_counter()
-    subprocess.run([*cmd, str(cal), "--out", str(out), *extra, *map(str, logs)], check=True)
-    seconds = time.perf_counter() - start
-    return seconds, int(peak.read_text()) / 1024, list(read_manifest(out))
+    cli = ["convert", "-q", "--calibration", str(cal), "--out", str(out), *extra]
+    seconds, peak_mb = run_measured([*cli, *map(str, logs)], out.with_name(out.name + ".peak"))
+    return seconds, peak_mb, list(read_manifest(out))
 
 
 def timed_cli(logs: list[Path], cal: Path, out: Path, *extra: str) -> tuple[float, list[dict]]:
@@ -147,95 +130,13 @@ def timed_cli(logs: list[Path], cal: Path, out: Path, *extra: str) -> tuple[floa
     return seconds, lines
 
 
-def ray_cluster(nodes: int, root: Path) -> tuple[str, list[subprocess.Popen]]:
-    """Start a Ray cluster of ``nodes`` one-CPU nodes on 127.0.0.1 under ``root``; returns (GCS
-    address, the ``ray start --block`` processes)."""
-    import socket
-
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        port = sock.getsockname()[1]
-    address = f"127.0.0.1:{port}"
-    # `ray start` turns Ray's token authentication on (Ray 2.52+); a driver sends the token
-    # (~/.ray/auth_token) only when told to
-    os.environ["RAY_AUTH_MODE"] = "token"
-    common = ["--num-cpus=1", "--node-ip-address=127.0.0.1", "--block", "--disable-usage-stats"]
-    procs = [
-        subprocess.Popen(
-            ["ray", "start", "--head", f"--port={port}", f"--temp-dir={root}",
-             "--include-dashboard=false", *common],
-            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True,
-        )
-    ]  # fmt: skip
-    import ray
-
-    deadline = time.monotonic() + 120
-    while True:  # the head up before the others join
-        try:
-            socket.create_connection(("127.0.0.1", port), timeout=1).close()
-            break
-        except OSError:
-            if time.monotonic() > deadline:
-                raise SystemExit("the Ray head did not start") from None
-            time.sleep(0.5)
-    for _ in range(nodes - 1):
-        procs.append(
-            subprocess.Popen(
-                ["ray", "start", f"--address={address}", *common],
-                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True,
-            )
-        )  # fmt: skip
-    try:
-        ray.init(address=address, logging_level="ERROR", log_to_driver=False)
-        while len([n for n in ray.nodes() if n["Alive"]]) < nodes:
-            if time.monotonic() > deadline:
-                raise SystemExit(f"only {len(ray.nodes())} of {nodes} Ray nodes joined")
-            time.sleep(0.5)
-    except BaseException:
-        stop_cluster(procs, root)
-        raise
-    finally:
-        ray.shutdown()
-    return address, procs
-
-
-def stop_cluster(procs: list[subprocess.Popen], root: Path) -> None:
-    """Stop the nodes started by :func:`ray_cluster` (by their ids) and whatever runs under
-    ``root``; remove ``root``."""
-    from imupipe.pipeline.convert.ray_reaper import reap
-
-    for proc in procs:
-        proc.terminate()
-    for proc in procs:
-        try:
-            proc.wait(timeout=30)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-    reap(str(root))
-
-
-def cluster_rss_mb(root: Path) -> float:
-    """Resident memory of a Ray cluster started by :func:`ray_cluster` (every process under
-    ``root``: GCS, raylets, agents, idle workers), MB."""
-    from imupipe.pipeline.convert.ray_reaper import session_processes
-
-    total = 0
-    for pid in session_processes(str(root)):
-        try:
-            for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-                if line.startswith("VmRSS:"):
-                    total += int(line.split()[1])
-        except OSError:
-            continue
-    return total / 1024
-
-
 def ray_section(n: int, fleet: Path, cal: Path, tmp: Path, args: argparse.Namespace) -> dict:
     """[5] The fleet converted by the whole command (a fresh process each, as a user runs it) in
     three ways, interleaved, best of 2: in-process (``--jobs 1``), the local pool of ``n``
     workers, and a Ray cluster of ``n`` one-CPU nodes started here (``--engine ray --address``);
     efficiency = speed-up over in-process / ``n``. Beside it the machine's own ceiling now (the
-    pool's pure-CPU speed-up, ``n`` workers against 1) and the peak memory of each."""
+    pool's pure-CPU speed-up, ``n`` workers against 1), the CPUs each way got (its workers' CPU
+    seconds over its wall time) and the peak memory of each."""
     root = Path(tempfile.mkdtemp(prefix="imupipe-bench-ray-", dir="/tmp"))
     t0 = time.perf_counter()
     address, procs = ray_cluster(n, root)
@@ -247,7 +148,7 @@ def ray_section(n: int, fleet: Path, cal: Path, tmp: Path, args: argparse.Namesp
             "pool": ("--jobs", str(n)),
             "ray": ("--engine", "ray", "--address", address),
         }
-        best = {way: (float("inf"), 0.0, 0.0) for way in ways}
+        best = {way: (float("inf"), 0.0, 0.0, 0.0) for way in ways}
         c1 = cn = float("inf")
         for _ in range(2):
             for way, extra in ways.items():
@@ -256,7 +157,8 @@ def ray_section(n: int, fleet: Path, cal: Path, tmp: Path, args: argparse.Namesp
                 if len(done) != args.logs:
                     raise SystemExit(f"[5] {way}: {len(done)} of {args.logs} logs converted")
                 if seconds < best[way][0]:
-                    best[way] = (seconds, peak, max(x["peak_rss_mb"] for x in done))
+                    cpus = sum(x["cpu_seconds"] for x in done) / seconds
+                    best[way] = (seconds, peak, max(x["peak_rss_mb"] for x in done), cpus)
             c1 = min(c1, timed_burn(args.logs, jobs=1))
             cn = min(cn, timed_burn(args.logs, jobs=n))
         busy_mb = cluster_rss_mb(root)
@@ -267,16 +169,17 @@ def ray_section(n: int, fleet: Path, cal: Path, tmp: Path, args: argparse.Namesp
     left = session_processes(str(root))
     if left or root.exists():
         print(f"[5] warning: the Ray cluster left {left} / {root}", file=sys.stderr)
-    (t1, p1, _), (tp, pp, wp), (tr, pr, wr) = best["inline"], best["pool"], best["ray"]
+    (t1, p1, _, u1), (tp, pp, wp, up), (tr, pr, wr, ur) = (best[w] for w in ways)
     print(
         f"[5] {args.logs} logs x {args.log_messages:,} msgs, whole command, best of 2 "
         f"(Ray cluster of {n} one-CPU nodes started in {started:.1f} s): in-process {t1:.2f} s "
-        f"(peak {p1:.0f} MB); local pool of {n}: {tp:.2f} s -> {t1 / tp:.2f}x, efficiency "
-        f"{t1 / (n * tp):.2f} (worker peak {wp:.0f} MB, command {pp:.0f} MB); Ray on {n} nodes: "
-        f"{tr:.2f} s -> {t1 / tr:.2f}x, efficiency {t1 / (n * tr):.2f} (Ray worker peak {wr:.0f} "
-        f"MB, driver {pr:.0f} MB, the cluster itself {idle_mb:.0f} MB idle, {busy_mb:.0f} MB "
-        f"after the runs); Ray at {tp / tr:.2f}x the pool's speed; the machine's ceiling now "
-        f"(pure-CPU tasks, pool of {n} against 1): {c1 / cn:.2f}x"
+        f"(peak {p1:.0f} MB, {u1:.2f} CPUs); local pool of {n}: {tp:.2f} s -> {t1 / tp:.2f}x, "
+        f"efficiency {t1 / (n * tp):.2f} ({up:.2f} CPUs; worker peak {wp:.0f} MB, command "
+        f"{pp:.0f} MB); Ray on {n} nodes: {tr:.2f} s -> {t1 / tr:.2f}x, efficiency "
+        f"{t1 / (n * tr):.2f} ({ur:.2f} CPUs; Ray worker peak {wr:.0f} MB, driver {pr:.0f} MB, "
+        f"the cluster itself {idle_mb:.0f} MB idle, {busy_mb:.0f} MB after the runs); Ray at "
+        f"{tp / tr:.2f}x the pool's speed; the machine's ceiling now (pure-CPU tasks, pool of "
+        f"{n} against 1): {c1 / cn:.2f}x"
     )
     return {
         f"ray{n}_inline_s": t1,
@@ -296,6 +199,9 @@ def ray_section(n: int, fleet: Path, cal: Path, tmp: Path, args: argparse.Namesp
         f"ray{n}_cluster_idle_mb": idle_mb,
         f"ray{n}_cluster_after_mb": busy_mb,
         f"ray{n}_cluster_start_s": started,
+        f"ray{n}_inline_cpus": u1,
+        f"ray{n}_pool_cpus": up,
+        f"ray{n}_ray_cpus": ur,
     }
 
 
