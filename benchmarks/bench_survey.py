@@ -73,6 +73,7 @@ def measure(
         "periods_per_s": round(rows / wall, 1),
         "worker_s_per_log": round(mean_long, 3),
         "worker_s_per_log_short": round(mean_short, 3),
+        "worker_cpu_s_per_log": round(sum(r["cpu_seconds"] for r in lines) / len(lines), 3),
         "fixed_cost_s_per_log": round(mean_short - slope * log_s / 10, 3),
         "worker_peak_rss_mb": max(r["peak_rss_mb"] for r in lines),
         "driver_peak_rss_mb": round(driver_mb, 1),
