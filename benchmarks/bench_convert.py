@@ -12,14 +12,15 @@
    the same run as the rest; beside it the cost per message of the fleet's logs and of the big
    log, so that what the fixed cost adds to a fleet of short logs is seen.
 
-5. Issue 27, with ``--ray-nodes N``: the fleet of [2] on a Ray cluster of N one-CPU nodes started
-   on this machine (``ray start --head`` and N - 1 ``ray start --address``, all on 127.0.0.1,
-   under a folder of their own; stopped and removed at the end, other Rays untouched) against the
-   local pool of N workers and of 1: Ray's efficiency (1-worker time / (N x Ray time)) beside the
-   pool's.
+5. Issue 27, with ``--ray-nodes 2,3``: for each N, a Ray cluster of N one-CPU nodes started on
+   this machine (``benchmarks/local_ray.py``; stopped and removed at the end, other Rays
+   untouched) and the fleet of [2] converted by the whole command in-process (``--jobs 1``), on
+   the local pool of N and on Ray (``--engine ray --address``), interleaved, on the same logs:
+   speed-up over in-process, efficiency (speed-up / N), the CPUs each got, peak memory of each
+   process and the cluster's own. ``--ray-only`` runs this section alone.
 
 Usage: ``python benchmarks/bench_convert.py [--messages 1000000] [--logs 20] [--log-messages 200000]
-[--ray-nodes 2]``
+[--ray-nodes 2,3] [--ray-only]``
 (prints each ratio; the machine is shared and noisy, so ratios, not absolute times, count).
 """
 
