@@ -12,14 +12,15 @@
    the same run as the rest; beside it the cost per message of the fleet's logs and of the big
    log, so that what the fixed cost adds to a fleet of short logs is seen.
 
-5. Issue 27, with ``--ray-nodes N``: the fleet of [2] on a Ray cluster of N one-CPU nodes started
-   on this machine (``ray start --head`` and N - 1 ``ray start --address``, all on 127.0.0.1,
-   under a folder of their own; stopped and removed at the end, other Rays untouched) against the
-   local pool of N workers and of 1: Ray's efficiency (1-worker time / (N x Ray time)) beside the
-   pool's.
+5. Issue 27, with ``--ray-nodes 2,3``: for each N, a Ray cluster of N one-CPU nodes started on
+   this machine (``benchmarks/local_ray.py``; stopped and removed at the end, other Rays
+   untouched) and the fleet of [2] converted by the whole command in-process (``--jobs 1``), on
+   the local pool of N and on Ray (``--engine ray --address``), interleaved, on the same logs:
+   speed-up over in-process, efficiency (speed-up / N), the CPUs each got, peak memory of each
+   process and the cluster's own. ``--ray-only`` runs this section alone.
 
 Usage: ``python benchmarks/bench_convert.py [--messages 1000000] [--logs 20] [--log-messages 200000]
-[--ray-nodes 2]``
+[--ray-nodes 2,3] [--ray-only]``
 (prints each ratio; the machine is shared and noisy, so ratios, not absolute times, count).
 """
 
@@ -27,9 +28,7 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import shutil
-import subprocess
 import sys
 import tempfile
 import time
@@ -38,6 +37,10 @@ from pathlib import Path
 from imupipe.pipeline.convert.fleet import convert
 from imupipe.pipeline.simulate import simulate
 from imupipe.pipeline.writers.mcap import write_mcap
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from local_ray import cluster_rss_mb, ray_cluster, stop_cluster  # noqa: E402
+from proc_memory import run_measured  # noqa: E402
 
 CALIBRATION = {
     "imupipe_version": "bench",
@@ -89,10 +92,12 @@ def burn(_: int) -> int:
 
 
 def timed_burn(n: int, jobs: int) -> float:
-    from imupipe.pipeline.convert.engines import run_tasks
+    """``n`` pure-CPU tasks on a local pool of ``jobs`` workers (a pool for 1 too: ``run_tasks``
+    would run them in-process, without the pool's start-up)."""
+    from imupipe.pipeline.convert.engines import run_local
 
     start = time.perf_counter()
-    run_tasks(burn, list(range(n)), lambda _: None, jobs=jobs)
+    run_local(burn, list(range(n)), lambda _: None, jobs=jobs)
     return time.perf_counter() - start
 
 
@@ -106,83 +111,99 @@ def timed_convert(logs: list[Path], cal: Path, out: Path, **kw) -> tuple[float, 
     return seconds, summary
 
 
-def timed_cli(logs: list[Path], cal: Path, out: Path, *extra: str) -> tuple[float, list[dict]]:
-    """``imupipe convert`` in a fresh process, as a user runs it: (seconds, manifest lines)."""
+def measured_cli(
+    logs: list[Path], cal: Path, out: Path, *extra: str
+) -> tuple[float, float, list[dict]]:
+    """``imupipe convert`` in a fresh process, as a user runs it: (seconds, the command's own
+    process's peak RSS in MB, manifest lines). A local pool's workers and a Ray cluster's
+    processes are not in that peak: their ``peak_rss_mb`` is in the manifest lines."""
     from imupipe.pipeline.convert.manifest import read_manifest
 
     shutil.rmtree(out, ignore_errors=True)
-    cmd = [sys.executable, "-m", "imupipe.pipeline.cli", "convert", "-q", "--calibration"]
-    start = time.perf_counter()
-    subprocess.run([*cmd, str(cal), "--out", str(out), *extra, *map(str, logs)], check=True)
-    seconds = time.perf_counter() - start
-    return seconds, list(read_manifest(out))
+    cli = ["convert", "-q", "--calibration", str(cal), "--out", str(out), *extra]
+    seconds, peak_mb = run_measured([*cli, *map(str, logs)], out.with_name(out.name + ".peak"))
+    return seconds, peak_mb, list(read_manifest(out))
 
 
-def ray_cluster(nodes: int, root: Path) -> tuple[str, list[subprocess.Popen]]:
-    """Start a Ray cluster of ``nodes`` one-CPU nodes on 127.0.0.1 under ``root``; returns (GCS
-    address, the ``ray start --block`` processes)."""
-    import socket
+def timed_cli(logs: list[Path], cal: Path, out: Path, *extra: str) -> tuple[float, list[dict]]:
+    """``imupipe convert`` in a fresh process, as a user runs it: (seconds, manifest lines)."""
+    seconds, _, lines = measured_cli(logs, cal, out, *extra)
+    return seconds, lines
 
-    with socket.socket() as sock:
-        sock.bind(("127.0.0.1", 0))
-        port = sock.getsockname()[1]
-    address = f"127.0.0.1:{port}"
-    # `ray start` turns Ray's token authentication on (Ray 2.52+); a driver sends the token
-    # (~/.ray/auth_token) only when told to
-    os.environ["RAY_AUTH_MODE"] = "token"
-    common = ["--num-cpus=1", "--node-ip-address=127.0.0.1", "--block", "--disable-usage-stats"]
-    procs = [
-        subprocess.Popen(
-            ["ray", "start", "--head", f"--port={port}", f"--temp-dir={root}",
-             "--include-dashboard=false", *common],
-            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True,
-        )
-    ]  # fmt: skip
-    import ray
 
-    deadline = time.monotonic() + 120
-    while True:  # the head up before the others join
-        try:
-            socket.create_connection(("127.0.0.1", port), timeout=1).close()
-            break
-        except OSError:
-            if time.monotonic() > deadline:
-                raise SystemExit("the Ray head did not start") from None
-            time.sleep(0.5)
-    for _ in range(nodes - 1):
-        procs.append(
-            subprocess.Popen(
-                ["ray", "start", f"--address={address}", *common],
-                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True,
-            )
-        )  # fmt: skip
+def ray_section(n: int, fleet: Path, cal: Path, tmp: Path, args: argparse.Namespace) -> dict:
+    """[5] The fleet converted by the whole command (a fresh process each, as a user runs it) in
+    three ways, interleaved, best of 2: in-process (``--jobs 1``), the local pool of ``n``
+    workers, and a Ray cluster of ``n`` one-CPU nodes started here (``--engine ray --address``);
+    efficiency = speed-up over in-process / ``n``. Beside it the machine's own ceiling now (the
+    pool's pure-CPU speed-up, ``n`` workers against 1), the CPUs each way got (its workers' CPU
+    seconds over its wall time) and the peak memory of each."""
+    root = Path(tempfile.mkdtemp(prefix="imupipe-bench-ray-", dir="/tmp"))
+    t0 = time.perf_counter()
+    address, procs = ray_cluster(n, root)
     try:
-        ray.init(address=address, logging_level="ERROR", log_to_driver=False)
-        while len([n for n in ray.nodes() if n["Alive"]]) < nodes:
-            if time.monotonic() > deadline:
-                raise SystemExit(f"only {len(ray.nodes())} of {nodes} Ray nodes joined")
-            time.sleep(0.5)
-    except BaseException:
-        stop_cluster(procs, root)
-        raise
+        started = time.perf_counter() - t0
+        idle_mb = cluster_rss_mb(root)
+        ways = {
+            "inline": ("--jobs", "1"),
+            "pool": ("--jobs", str(n)),
+            "ray": ("--engine", "ray", "--address", address),
+        }
+        best = {way: (float("inf"), 0.0, 0.0, 0.0) for way in ways}
+        c1 = cn = float("inf")
+        for _ in range(2):
+            for way, extra in ways.items():
+                seconds, peak, lines = measured_cli([fleet], cal, tmp / f"out5_{way}", *extra)
+                done = [x for x in lines if x.get("status") == "converted"]
+                if len(done) != args.logs:
+                    raise SystemExit(f"[5] {way}: {len(done)} of {args.logs} logs converted")
+                if seconds < best[way][0]:
+                    cpus = sum(x["cpu_seconds"] for x in done) / seconds
+                    best[way] = (seconds, peak, max(x["peak_rss_mb"] for x in done), cpus)
+            c1 = min(c1, timed_burn(args.logs, jobs=1))
+            cn = min(cn, timed_burn(args.logs, jobs=n))
+        busy_mb = cluster_rss_mb(root)
     finally:
-        ray.shutdown()
-    return address, procs
+        stop_cluster(procs, root)
+    from imupipe.pipeline.convert.ray_reaper import session_processes
 
-
-def stop_cluster(procs: list[subprocess.Popen], root: Path) -> None:
-    """Stop the nodes started by :func:`ray_cluster` (by their ids) and whatever runs under
-    ``root``; remove ``root``."""
-    from imupipe.pipeline.convert.ray_reaper import reap
-
-    for proc in procs:
-        proc.terminate()
-    for proc in procs:
-        try:
-            proc.wait(timeout=30)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-    reap(str(root))
+    left = session_processes(str(root))
+    if left or root.exists():
+        print(f"[5] warning: the Ray cluster left {left} / {root}", file=sys.stderr)
+    (t1, p1, _, u1), (tp, pp, wp, up), (tr, pr, wr, ur) = (best[w] for w in ways)
+    print(
+        f"[5] {args.logs} logs x {args.log_messages:,} msgs, whole command, best of 2 "
+        f"(Ray cluster of {n} one-CPU nodes started in {started:.1f} s): in-process {t1:.2f} s "
+        f"(peak {p1:.0f} MB, {u1:.2f} CPUs); local pool of {n}: {tp:.2f} s -> {t1 / tp:.2f}x, "
+        f"efficiency {t1 / (n * tp):.2f} ({up:.2f} CPUs; worker peak {wp:.0f} MB, command "
+        f"{pp:.0f} MB); Ray on {n} nodes: {tr:.2f} s -> {t1 / tr:.2f}x, efficiency "
+        f"{t1 / (n * tr):.2f} ({ur:.2f} CPUs; Ray worker peak {wr:.0f} MB, driver {pr:.0f} MB, "
+        f"the cluster itself {idle_mb:.0f} MB idle, {busy_mb:.0f} MB after the runs); Ray at "
+        f"{tp / tr:.2f}x the pool's speed; the machine's ceiling now (pure-CPU tasks, pool of "
+        f"{n} against 1): {c1 / cn:.2f}x"
+    )
+    return {
+        f"ray{n}_inline_s": t1,
+        f"ray{n}_pool_s": tp,
+        f"ray{n}_ray_s": tr,
+        f"ray{n}_pool_speedup": t1 / tp,
+        f"ray{n}_ray_speedup": t1 / tr,
+        f"ray{n}_pool_efficiency": t1 / (n * tp),
+        f"ray{n}_ray_efficiency": t1 / (n * tr),
+        f"ray{n}_ray_vs_pool": tp / tr,
+        f"ray{n}_machine_ceiling": c1 / cn,
+        f"ray{n}_inline_peak_mb": p1,
+        f"ray{n}_pool_worker_peak_mb": wp,
+        f"ray{n}_pool_command_peak_mb": pp,
+        f"ray{n}_ray_worker_peak_mb": wr,
+        f"ray{n}_ray_driver_peak_mb": pr,
+        f"ray{n}_cluster_idle_mb": idle_mb,
+        f"ray{n}_cluster_after_mb": busy_mb,
+        f"ray{n}_cluster_start_s": started,
+        f"ray{n}_inline_cpus": u1,
+        f"ray{n}_pool_cpus": up,
+        f"ray{n}_ray_cpus": ur,
+    }
 
 
 def main() -> None:
@@ -191,150 +212,130 @@ def main() -> None:
     ap.add_argument("--logs", type=int, default=20)
     ap.add_argument("--log-messages", type=int, default=200_000)
     ap.add_argument("--keep", action="store_true", help="keep the temporary folder")
-    ap.add_argument("--ray-nodes", type=int, default=0, help="[5]: Ray nodes of one CPU (0: skip)")
+    ap.add_argument(
+        "--ray-nodes",
+        type=lambda v: [int(n) for n in v.split(",")],
+        default=[],
+        help="[5]: Ray clusters of N one-CPU nodes, one after the other (e.g. 2,3; default: skip)",
+    )
+    ap.add_argument("--ray-only", action="store_true", help="run [5] only (with its own peers)")
     args = ap.parse_args()
     tmp = Path(tempfile.mkdtemp(prefix="bench_convert_"))
     cal = tmp / "calibration.json"
     cal.write_text(json.dumps(CALIBRATION))
     results: dict[str, float] = {}
     try:
-        big = tmp / "big" / "imu.mcap"
-        big.parent.mkdir()
-        make_log(big, args.messages)
-        quarter = tmp / "quarter" / "imu.mcap"
-        quarter.parent.mkdir()
-        make_log(quarter, args.messages // 4, seed=1)
-
-        # 1. one big log against the rosbags read-and-deserialise loop, interleaved, best of 2:
-        # the work itself (read + correct + write + verify, like the peer's loop), convert() called
-        # from Python, and the whole command in a fresh process (interpreter start, imports and
-        # planning included; one log runs in-process: no pool)
-        t_peer = t_ours = t_worker = t_cli = float("inf")
-        for _ in range(2):
-            seconds, n_peer = rosbags_read(big)
-            t_peer = min(t_peer, seconds)
-            seconds, summary = timed_convert([big], cal, tmp / "out_big", jobs=1)
-            (stats,) = summary.converted
-            assert stats.messages == n_peer == args.messages, (stats.messages, n_peer)
-            t_ours, t_worker = min(t_ours, seconds), min(t_worker, stats.seconds)
-            seconds, lines = timed_cli([big], cal, tmp / "out_cli")
-            assert lines[-1]["messages"] == args.messages, lines[-1]
-            t_cli = min(t_cli, seconds)
-        results.update(
-            convert_1log_worker_s=t_worker,
-            convert_1log_call_s=t_ours,
-            convert_1log_command_s=t_cli,
-            rosbags_read_deserialize_s=t_peer,
-            speedup_vs_rosbags=t_peer / t_worker,
-            speedup_vs_rosbags_call=t_peer / t_ours,
-            speedup_vs_rosbags_command=t_peer / t_cli,
-        )
-        print(
-            f"[1] {args.messages:,} Imu messages: rosbags AnyReader read+deserialise {t_peer:.2f} s; "
-            f"imupipe convert read+correct+write+verify {t_worker:.2f} s "
-            f"({args.messages / t_worker / 1e6:.2f} M msg/s) -> {t_peer / t_worker:.1f}x faster "
-            f"(goal >= 5x); convert() call {t_ours:.2f} s -> {t_peer / t_ours:.1f}x; whole command "
-            f"in a fresh process {t_cli:.2f} s -> {t_peer / t_cli:.1f}x (goal >= 6x)"
-        )
-
-        # 3. peak memory of the process converting (a fresh one each: its peak is its own):
-        # streamed big, streamed quarter, big read whole
-        _, lines = timed_cli([big], cal, tmp / "out_big_mem")
-        results["peak_rss_streamed_mb"] = lines[-1]["peak_rss_mb"]
-        _, lines = timed_cli([quarter], cal, tmp / "out_quarter")
-        results["peak_rss_streamed_quarter_mb"] = lines[-1]["peak_rss_mb"]
-        _, lines = timed_cli([big], cal, tmp / "out_whole", "--batch-rows", str(10**12))
-        results["peak_rss_one_batch_mb"] = lines[-1]["peak_rss_mb"]
-        print(
-            f"[3] peak RSS of the converting process: streamed {args.messages:,} msgs "
-            f"{results['peak_rss_streamed_mb']:.0f} MB, streamed {args.messages // 4:,} msgs "
-            f"{results['peak_rss_streamed_quarter_mb']:.0f} MB, the big log in one batch "
-            f"{results['peak_rss_one_batch_mb']:.0f} MB"
-        )
-
-        # 4. the per-log fixed cost: n tiny logs against one, one worker, best of 3
-        tiny = tmp / "tiny"
-        tiny.mkdir()
-        for i in range(args.logs):
-            make_log(tiny / f"t{i:02d}.mcap", 1000, seed=100 + i)
-        one = all_ = float("inf")
-        worker_ms = float("inf")
-        for _ in range(3):
-            one = min(one, timed_convert([tiny / "t00.mcap"], cal, tmp / "out_t1", jobs=1)[0])
-            seconds, s_tiny = timed_convert([tiny], cal, tmp / "out_tn", jobs=1)
-            all_ = min(all_, seconds)
-            worker_ms = min(worker_ms, 1e3 * sum(s.seconds for s in s_tiny.converted) / args.logs)
-        fixed = (all_ - one) / (args.logs - 1)
-        results.update(fixed_cost_per_log_ms=1e3 * fixed, worker_time_per_tiny_log_ms=worker_ms)
-        print(
-            f"[4] per-log fixed cost: {1e3 * fixed:.1f} ms per log ({args.logs} logs of 1,000 "
-            f"msgs {all_:.2f} s against one {one:.2f} s, one worker; the worker's own time per "
-            f"tiny log {worker_ms:.1f} ms) = {1e6 * fixed / args.log_messages:.2f} us per message "
-            f"on logs of {args.log_messages:,}; the big log alone: "
-            f"{1e6 * t_ours / args.messages:.2f} us per message (whole command)"
-        )
-
-        # 2. 20 logs, 1 worker against 2; and what this (shared) machine gives two processes now:
-        # the same pool running a pure-CPU task, 1 against 2 workers, interleaved, best of 3
         fleet = tmp / "fleet"
         fleet.mkdir()
         for i in range(args.logs):
             make_log(fleet / f"log{i:02d}.mcap", args.log_messages, seed=10 + i)
-        t1 = t2 = c1 = c2 = float("inf")
-        busy = 0.0
-        for _ in range(3):
-            t1 = min(t1, timed_convert([fleet], cal, tmp / "out_j1", jobs=1)[0])
-            seconds, s2 = timed_convert([fleet], cal, tmp / "out_j2", jobs=2)
-            if seconds < t2:
-                t2, busy = seconds, sum(s.cpu_seconds for s in s2.converted) / seconds
-            c1 = min(c1, timed_burn(args.logs, jobs=1))
-            c2 = min(c2, timed_burn(args.logs, jobs=2))
-        per_msg = 1e6 * t1 / (args.logs * args.log_messages)
-        results.update(
-            fleet_us_per_message_1_worker=per_msg,
-            fleet_1_worker_s=t1,
-            fleet_2_workers_s=t2,
-            fleet_speedup=t1 / t2,
-            machine_speedup=c1 / c2,
-            cpus_busy_2_workers=busy,
-        )
-        print(
-            f"[2] {args.logs} logs x {args.log_messages:,} msgs: 1 worker {t1:.2f} s, "
-            f"2 workers {t2:.2f} s -> {t1 / t2:.2f}x (goal >= 1.6x); the machine's own ceiling "
-            f"now (pure-CPU tasks, same pool): {c1 / c2:.2f}x; CPUs the 2 workers got: {busy:.2f}; "
-            f"{per_msg:.2f} us per message with 1 worker"
-        )
-        if args.ray_nodes:
-            # 5. the same fleet on a local multi-node Ray cluster against the local pool
-            n = args.ray_nodes
-            root = Path(tempfile.mkdtemp(prefix="imupipe-bench-ray-", dir="/tmp"))
-            address, procs = ray_cluster(n, root)
-            try:
-                t_ray = t_pool = float("inf")
-                for _ in range(2):
-                    t_ray = min(
-                        t_ray,
-                        timed_convert([fleet], cal, tmp / "out_ray", engine="ray", address=address)[
-                            0
-                        ],
-                    )
-                    t_pool = min(t_pool, timed_convert([fleet], cal, tmp / "out_jn", jobs=n)[0])
-            finally:
-                stop_cluster(procs, root)
+        if not args.ray_only:
+            big = tmp / "big" / "imu.mcap"
+            big.parent.mkdir()
+            make_log(big, args.messages)
+            quarter = tmp / "quarter" / "imu.mcap"
+            quarter.parent.mkdir()
+            make_log(quarter, args.messages // 4, seed=1)
+
+            # 1. one big log against the rosbags read-and-deserialise loop, interleaved, best of 2:
+            # the work itself (read + correct + write + verify, like the peer's loop), convert() called
+            # from Python, and the whole command in a fresh process (interpreter start, imports and
+            # planning included; one log runs in-process: no pool)
+            t_peer = t_ours = t_worker = t_cli = float("inf")
+            for _ in range(2):
+                seconds, n_peer = rosbags_read(big)
+                t_peer = min(t_peer, seconds)
+                seconds, summary = timed_convert([big], cal, tmp / "out_big", jobs=1)
+                (stats,) = summary.converted
+                assert stats.messages == n_peer == args.messages, (stats.messages, n_peer)
+                t_ours, t_worker = min(t_ours, seconds), min(t_worker, stats.seconds)
+                seconds, lines = timed_cli([big], cal, tmp / "out_cli")
+                assert lines[-1]["messages"] == args.messages, lines[-1]
+                t_cli = min(t_cli, seconds)
             results.update(
-                ray_nodes=n,
-                ray_fleet_s=t_ray,
-                pool_fleet_s=t_pool,
-                ray_efficiency=t1 / (n * t_ray),
-                pool_efficiency=t1 / (n * t_pool),
-                ray_vs_pool=t_pool / t_ray,
+                convert_1log_worker_s=t_worker,
+                convert_1log_call_s=t_ours,
+                convert_1log_command_s=t_cli,
+                rosbags_read_deserialize_s=t_peer,
+                speedup_vs_rosbags=t_peer / t_worker,
+                speedup_vs_rosbags_call=t_peer / t_ours,
+                speedup_vs_rosbags_command=t_peer / t_cli,
             )
             print(
-                f"[5] {args.logs} logs x {args.log_messages:,} msgs on a Ray cluster of {n} "
-                f"one-CPU nodes on this machine: {t_ray:.2f} s, efficiency "
-                f"{t1 / (n * t_ray):.2f} (1 worker {t1:.2f} s); local pool of {n}: {t_pool:.2f} s, "
-                f"efficiency {t1 / (n * t_pool):.2f}; Ray at {t_pool / t_ray:.2f}x the pool's speed"
+                f"[1] {args.messages:,} Imu messages: rosbags AnyReader read+deserialise {t_peer:.2f} s; "
+                f"imupipe convert read+correct+write+verify {t_worker:.2f} s "
+                f"({args.messages / t_worker / 1e6:.2f} M msg/s) -> {t_peer / t_worker:.1f}x faster "
+                f"(goal >= 5x); convert() call {t_ours:.2f} s -> {t_peer / t_ours:.1f}x; whole command "
+                f"in a fresh process {t_cli:.2f} s -> {t_peer / t_cli:.1f}x (goal >= 6x)"
             )
+
+            # 3. peak memory of the process converting (a fresh one each: its peak is its own):
+            # streamed big, streamed quarter, big read whole
+            _, lines = timed_cli([big], cal, tmp / "out_big_mem")
+            results["peak_rss_streamed_mb"] = lines[-1]["peak_rss_mb"]
+            _, lines = timed_cli([quarter], cal, tmp / "out_quarter")
+            results["peak_rss_streamed_quarter_mb"] = lines[-1]["peak_rss_mb"]
+            _, lines = timed_cli([big], cal, tmp / "out_whole", "--batch-rows", str(10**12))
+            results["peak_rss_one_batch_mb"] = lines[-1]["peak_rss_mb"]
+            print(
+                f"[3] peak RSS of the converting process: streamed {args.messages:,} msgs "
+                f"{results['peak_rss_streamed_mb']:.0f} MB, streamed {args.messages // 4:,} msgs "
+                f"{results['peak_rss_streamed_quarter_mb']:.0f} MB, the big log in one batch "
+                f"{results['peak_rss_one_batch_mb']:.0f} MB"
+            )
+
+            # 4. the per-log fixed cost: n tiny logs against one, one worker, best of 3
+            tiny = tmp / "tiny"
+            tiny.mkdir()
+            for i in range(args.logs):
+                make_log(tiny / f"t{i:02d}.mcap", 1000, seed=100 + i)
+            one = all_ = float("inf")
+            worker_ms = float("inf")
+            for _ in range(3):
+                one = min(one, timed_convert([tiny / "t00.mcap"], cal, tmp / "out_t1", jobs=1)[0])
+                seconds, s_tiny = timed_convert([tiny], cal, tmp / "out_tn", jobs=1)
+                all_ = min(all_, seconds)
+                worker_ms = min(
+                    worker_ms, 1e3 * sum(s.seconds for s in s_tiny.converted) / args.logs
+                )
+            fixed = (all_ - one) / (args.logs - 1)
+            results.update(fixed_cost_per_log_ms=1e3 * fixed, worker_time_per_tiny_log_ms=worker_ms)
+            print(
+                f"[4] per-log fixed cost: {1e3 * fixed:.1f} ms per log ({args.logs} logs of 1,000 "
+                f"msgs {all_:.2f} s against one {one:.2f} s, one worker; the worker's own time per "
+                f"tiny log {worker_ms:.1f} ms) = {1e6 * fixed / args.log_messages:.2f} us per message "
+                f"on logs of {args.log_messages:,}; the big log alone: "
+                f"{1e6 * t_ours / args.messages:.2f} us per message (whole command)"
+            )
+
+            # 2. 20 logs, 1 worker against 2; and what this (shared) machine gives two processes now:
+            # the same pool running a pure-CPU task, 1 against 2 workers, interleaved, best of 3
+            t1 = t2 = c1 = c2 = float("inf")
+            busy = 0.0
+            for _ in range(3):
+                t1 = min(t1, timed_convert([fleet], cal, tmp / "out_j1", jobs=1)[0])
+                seconds, s2 = timed_convert([fleet], cal, tmp / "out_j2", jobs=2)
+                if seconds < t2:
+                    t2, busy = seconds, sum(s.cpu_seconds for s in s2.converted) / seconds
+                c1 = min(c1, timed_burn(args.logs, jobs=1))
+                c2 = min(c2, timed_burn(args.logs, jobs=2))
+            per_msg = 1e6 * t1 / (args.logs * args.log_messages)
+            results.update(
+                fleet_us_per_message_1_worker=per_msg,
+                fleet_1_worker_s=t1,
+                fleet_2_workers_s=t2,
+                fleet_speedup=t1 / t2,
+                machine_speedup=c1 / c2,
+                cpus_busy_2_workers=busy,
+            )
+            print(
+                f"[2] {args.logs} logs x {args.log_messages:,} msgs: 1 worker {t1:.2f} s, "
+                f"2 workers {t2:.2f} s -> {t1 / t2:.2f}x (goal >= 1.6x); the machine's own ceiling "
+                f"now (pure-CPU tasks, same pool): {c1 / c2:.2f}x; CPUs the 2 workers got: {busy:.2f}; "
+                f"{per_msg:.2f} us per message with 1 worker"
+            )
+        for n in args.ray_nodes:
+            results.update(ray_section(n, fleet, cal, tmp, args))
         print(json.dumps({k: round(v, 3) for k, v in results.items()}))
     finally:
         if args.keep:

@@ -1,16 +1,20 @@
 """Issue 30 scale figures for ``imupipe survey`` on a simulated fleet (``imupipe simulate fleet``).
 
 1. Throughput: ``--logs`` logs (default 1,000: ``--logs / 20`` vehicles of 20 logs, 2 IMUs each,
-   ``--log-s`` seconds at 100 Hz) surveyed with ``--jobs`` workers on the local engine: logs per
-   second and still periods per second, wall clock, fleet view and report included.
+   ``--log-s`` seconds at 100 Hz) surveyed by the whole command in a fresh process (``imupipe
+   survey``, as a user runs it) on the local engine with ``--jobs`` workers: logs per second and
+   still periods per second, wall clock, fleet view, report and recording included.
 2. Per-log fixed cost: the manifest's per-log worker seconds of the fleet's logs against those of
    20 logs a tenth as long, surveyed alike; the straight line through the two means, extrapolated
    to a log of length zero, is the fixed cost of a log (read setup, topic listing, part written).
 3. Peak memory of a worker (``peak_rss_mb`` of the manifest: the worker's max RSS) and of the
-   driver (its ``VmHWM``: the fleet view holds the whole dataset).
+   command's own process (the driver: its ``VmHWM``; the fleet view holds the whole dataset).
+4. With ``--ray-nodes N``: 1. to 3. again in the same run on the same logs, on a Ray cluster of N
+   one-CPU nodes started on this machine (``benchmarks/local_ray.py``; stopped and removed at the
+   end) with ``--engine ray --address``, beside the cluster's own resident memory.
 
-Usage: ``python benchmarks/bench_survey.py [--logs 1000] [--log-s 150] [--jobs 2]``. Not run in
-CI (minutes); the machine is shared, so the figures are indicative.
+Usage: ``python benchmarks/bench_survey.py [--logs 1000] [--log-s 150] [--jobs 2]
+[--ray-nodes 2]``. Not run in CI (minutes); the machine is shared, so the figures are indicative.
 """
 
 from __future__ import annotations
@@ -25,10 +29,10 @@ from pathlib import Path
 
 from imupipe.pipeline.convert.manifest import read_manifest
 from imupipe.pipeline.simulate import simulate, write_log
-from imupipe.pipeline.survey.scan import survey
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from proc_memory import status_bytes  # noqa: E402
+from local_ray import cluster_rss_mb, ray_cluster, stop_cluster  # noqa: E402
+from proc_memory import run_measured  # noqa: E402
 
 
 def make_fleet(root: Path, logs: int, log_s: float, seed: int) -> Path:
@@ -41,8 +45,39 @@ def make_fleet(root: Path, logs: int, log_s: float, seed: int) -> Path:
     return root
 
 
-def per_log_seconds(out: Path) -> list[float]:
-    return [r["seconds"] for r in read_manifest(out) if r.get("status") == "surveyed"]
+def measure(
+    logs: Path, small: Path, out: Path, log_s: float, engine: list[str]
+) -> dict[str, float]:
+    """Survey ``logs`` then ``small`` (the same fleet shape, logs a tenth as long) with the
+    engine options ``engine``, each by the whole command in a fresh process."""
+    import pyarrow.parquet as pq
+
+    shutil.rmtree(out, ignore_errors=True)
+    cmd = ["survey", "--quiet", *engine, "--out"]
+    wall, driver_mb = run_measured([*cmd, str(out), str(logs)], out.with_suffix(".peak"))
+    lines = [r for r in read_manifest(out) if r.get("status") == "surveyed"]
+    n = sum(1 for _ in logs.rglob("*.mcap"))
+    if len(lines) != n:
+        raise SystemExit(f"{' '.join(engine)}: {len(lines)} of {n} logs surveyed")
+    rows = pq.read_metadata(out / "survey.parquet").num_rows
+    small_out = out.with_name(out.name + "_small")
+    shutil.rmtree(small_out, ignore_errors=True)
+    run_measured([*cmd, str(small_out), str(small)], small_out.with_suffix(".peak"))
+    short = [r["seconds"] for r in read_manifest(small_out) if r.get("status") == "surveyed"]
+    mean_long = sum(r["seconds"] for r in lines) / len(lines)
+    mean_short = sum(short) / len(short)
+    slope = (mean_long - mean_short) / (log_s - log_s / 10)
+    return {
+        "wall_s": round(wall, 1),
+        "logs_per_s": round(n / wall, 2),
+        "periods_per_s": round(rows / wall, 1),
+        "worker_s_per_log": round(mean_long, 3),
+        "worker_s_per_log_short": round(mean_short, 3),
+        "worker_cpu_s_per_log": round(sum(r["cpu_seconds"] for r in lines) / len(lines), 3),
+        "fixed_cost_s_per_log": round(mean_short - slope * log_s / 10, 3),
+        "worker_peak_rss_mb": max(r["peak_rss_mb"] for r in lines),
+        "driver_peak_rss_mb": round(driver_mb, 1),
+    }
 
 
 def main() -> None:
@@ -50,6 +85,7 @@ def main() -> None:
     ap.add_argument("--logs", type=int, default=1000)
     ap.add_argument("--log-s", type=float, default=150.0)
     ap.add_argument("--jobs", type=int, default=2)
+    ap.add_argument("--ray-nodes", type=int, default=0, help="4.: Ray nodes of one CPU (0: skip)")
     args = ap.parse_args()
     tmp = Path(tempfile.mkdtemp(prefix="bench_survey_"))
     try:
@@ -58,31 +94,26 @@ def main() -> None:
         made = time.perf_counter() - t
         n = sum(1 for _ in logs.rglob("*.mcap"))
         size = sum(p.stat().st_size for p in logs.rglob("*.mcap"))
-        print(f"simulated {n} logs ({size / 1e9:.2f} GB) in {made:.0f} s")
-        t = time.perf_counter()
-        result = survey([logs], tmp / "out", jobs=args.jobs)
-        wall = time.perf_counter() - t
-        long = per_log_seconds(tmp / "out")
-        rss = [r["peak_rss_mb"] for r in read_manifest(tmp / "out") if r.get("peak_rss_mb")]
+        print(f"simulated {n} logs ({size / 1e9:.2f} GB) in {made:.0f} s", flush=True)
         small = make_fleet(tmp / "small", 20, args.log_s / 10, 2)
-        survey([small], tmp / "out_small", jobs=args.jobs)
-        short = per_log_seconds(tmp / "out_small")
-        mean_long, mean_short = sum(long) / len(long), sum(short) / len(short)
-        slope = (mean_long - mean_short) / (args.log_s - args.log_s / 10)
-        fixed = mean_short - slope * args.log_s / 10
-        figures = {
-            "logs": n,
-            "jobs": args.jobs,
-            "wall_s": round(wall, 1),
-            "logs_per_s": round(n / wall, 2),
-            "periods_per_s": round(result["rows"] / wall, 1),
-            "worker_s_per_log": round(mean_long, 3),
-            "worker_s_per_log_short": round(mean_short, 3),
-            "fixed_cost_s_per_log": round(fixed, 3),
-            "worker_peak_rss_mb": max(rss),
-            "driver_peak_rss_mb": round(status_bytes("VmHWM") / 2**20, 1),
-            "failed": len(result["failed"]),
-        }
+        figures: dict[str, object] = {"logs": n, "log_s": args.log_s}
+        local = ["--jobs", str(args.jobs)]
+        figures[f"local_{args.jobs}_workers"] = measure(logs, small, tmp / "out", args.log_s, local)
+        print(json.dumps(figures, indent=2), flush=True)
+        if args.ray_nodes:
+            root = Path(tempfile.mkdtemp(prefix="imupipe-bench-ray-", dir="/tmp"))
+            address, procs = ray_cluster(args.ray_nodes, root)
+            try:
+                idle = cluster_rss_mb(root)
+                ray = ["--engine", "ray", "--address", address]
+                on_ray = measure(logs, small, tmp / "out_ray", args.log_s, ray)
+                on_ray["cluster_idle_rss_mb"] = round(idle, 1)
+                on_ray["cluster_after_rss_mb"] = round(cluster_rss_mb(root), 1)
+            finally:
+                stop_cluster(procs, root)
+            figures[f"ray_{args.ray_nodes}_nodes"] = on_ray
+            local_wall = figures[f"local_{args.jobs}_workers"]["wall_s"]  # type: ignore[index]
+            figures["ray_vs_local_speed"] = round(local_wall / on_ray["wall_s"], 2)
         print(json.dumps(figures, indent=2))
     finally:
         shutil.rmtree(tmp, ignore_errors=True)

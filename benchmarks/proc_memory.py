@@ -35,3 +35,32 @@ def run_probe(code: str, *args: str) -> dict:
         check=True,
     )
     return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+PEAK_WRAPPER = """
+import sys
+from imupipe.pipeline.cli import main
+try:
+    code = main(sys.argv[2:])
+finally:
+    with open('/proc/self/status') as fh:
+        hwm = next(line.split()[1] for line in fh if line.startswith('VmHWM:'))
+    with open(sys.argv[1], 'w') as fh:
+        fh.write(hwm)
+sys.exit(code)
+"""
+"""An ``imupipe`` command that writes its process's own peak RSS (``VmHWM``, kB) to ``argv[1]``."""
+
+
+def run_measured(argv: list[str], peak_file: Path) -> tuple[float, float]:
+    """Run ``imupipe ARGV`` in a fresh Python, as a user runs it: (seconds, the command's own
+    process's peak RSS in MB, from its ``VmHWM``; a pool's workers and a Ray cluster's processes
+    are not in it). A failing command raises ``CalledProcessError``."""
+    import subprocess
+    import sys
+    import time
+
+    start = time.perf_counter()
+    subprocess.run([sys.executable, "-c", PEAK_WRAPPER, str(peak_file), *argv], check=True)
+    seconds = time.perf_counter() - start
+    return seconds, int(peak_file.read_text()) / 1024

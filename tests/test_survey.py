@@ -283,3 +283,25 @@ def test_tutorial_quotes_the_planted_fleet(planted):
     assert [c.split("=")[1] for c in command if "=" in c] == [str(SMALL["logs"]), "100"]
     quoted = blocks(page, "text")[0][1].strip().splitlines()
     assert summary_lines(planted[2]["fleet"]) == quoted[:-1]
+
+
+@pytest.mark.slow
+def test_survey_on_ray_matches_the_local_engine_and_keeps_ray_off_stderr(tmp_path):
+    """``--engine ray`` (a local Ray started by the command): the same rows as the local engine,
+    Ray's own output in ``DIR/ray.log`` and nothing on stderr. Slow: it starts Ray."""
+    pytest.importorskip("ray")
+    logs, _ = _fleet(tmp_path, "logs", 13, vehicles=1, imus=1, logs=2, log_s=60.0)
+    local = run_cli("survey", "--quiet", "--no-rerun", "--jobs", "1", "--out", tmp_path / "a", logs)
+    assert local.returncode == 0, local.stderr
+    proc = run_cli(
+        "survey", "--quiet", "--no-rerun", "--engine", "ray", "--jobs", "1",
+        "--out", tmp_path / "b", logs,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stderr == "", proc.stderr
+    assert (tmp_path / "b" / "ray.log").is_file()
+    a, b = (pq.read_table(tmp_path / d / "survey.parquet") for d in ("a", "b"))
+    assert a.num_rows > 0
+    assert a.select(["device_id", "start_ns", "gyro_bias_x"]).equals(
+        b.select(["device_id", "start_ns", "gyro_bias_x"])
+    )

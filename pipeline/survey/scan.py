@@ -359,6 +359,7 @@ def survey(
     from imupipe.pipeline.atomic import staged_outputs
     from imupipe.pipeline.calibration_file import load_calibration
     from imupipe.pipeline.convert.engines import Outcome, run_tasks
+    from imupipe.pipeline.convert.fleet import ENGINE_LOG
     from imupipe.pipeline.convert.manifest import Manifest
 
     out_dir = Path(out_dir)
@@ -404,7 +405,18 @@ def survey(
         manifest.append({**outcome.result, "attempts": outcome.attempts, "host": outcome.host})
         ok.append(task)
 
-    run_tasks(survey_log, todo, on_done, engine=engine, jobs=jobs, address=address, retries=retries)
+    # as convert: Ray's own output goes to DIR/ray.log, the user's stderr holds imupipe's lines
+    engine_log = out_dir / ENGINE_LOG if engine == "ray" else None
+    run_tasks(
+        survey_log,
+        todo,
+        on_done,
+        engine=engine,
+        jobs=jobs,
+        address=address,
+        retries=retries,
+        engine_log=engine_log,
+    )
     import pyarrow as pa
     import pyarrow.parquet as pq
 
