@@ -87,3 +87,31 @@ def select_topics(path: Path | str, spec: InputSpec, types: Mapping[str, str]) -
             f"{have or 'none'}"
         )
     return chosen
+
+
+def asked_topics(
+    spec: InputSpec,
+    candidates: Mapping[str, list[str]],
+    known: Mapping[str, object],
+    path: Path | str,
+    what: str,
+) -> tuple[dict[str, str], set[str]]:
+    """The streams the spec names a topic (an autopilot log's instance) for, and those it turns
+    off (a topic key set to ``""``): (stream -> topic, off). A named topic that cannot fill its
+    stream is an error naming ``what`` can (``"ULog topics"``, ``"DataFlash messages"``):
+    ``is not in the log`` when ``known`` (every topic of the log) lacks it, else ``cannot fill
+    it``."""
+    off = {s for s, key in TOPIC_KEYS.items() if getattr(spec, key) == ""}
+    chosen: dict[str, str] = {}
+    for stream, key in TOPIC_KEYS.items():
+        wanted = getattr(spec, key)
+        if wanted is None or stream in off:
+            continue
+        if wanted not in candidates[stream]:
+            where = "is not in the log" if wanted not in known else "cannot fill it"
+            raise ReadError(
+                f"{path}: {key} '{wanted}' {where}; {what} that can: "
+                f"{', '.join(candidates[stream]) or 'none'}"
+            )
+        chosen[stream] = wanted
+    return chosen, off

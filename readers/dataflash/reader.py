@@ -70,7 +70,7 @@ from imupipe.readers.table import (
     with_stream_column,
 )
 from imupipe.readers.table_buffer import assemble
-from imupipe.readers.topics import TOPIC_KEYS
+from imupipe.readers.topics import asked_topics
 
 HEAD = (0xA3, 0x95)
 """The two bytes that start every record."""
@@ -459,20 +459,8 @@ def choose_topics(spec: InputSpec, f: DataFlashLog) -> tuple[dict[str, str], lis
     magnetometer (several: left out with a warning), the chosen IMU's own temperature. A key set
     to ``""`` leaves its stream out."""
     cands = candidates(f)
-    chosen: dict[str, str] = {}
+    chosen, off = asked_topics(spec, cands, f.instances, f.path, "DataFlash messages")
     warnings: list[str] = []
-    off = {s for s, key in TOPIC_KEYS.items() if getattr(spec, key) == ""}
-    for stream, key in TOPIC_KEYS.items():
-        wanted = getattr(spec, key)
-        if wanted is None or stream in off:
-            continue
-        if wanted not in cands[stream]:
-            where = "is not in the log" if wanted not in f.instances else "cannot fill it"
-            raise ReadError(
-                f"{f.path}: {key} '{wanted}' {where}; DataFlash messages that can: "
-                f"{', '.join(cands[stream]) or 'none'}"
-            )
-        chosen[stream] = wanted
     if "imu" not in chosen and cands["imu"] and "imu" not in off:
         if len(cands["imu"]) > 1:
             raise ReadError(

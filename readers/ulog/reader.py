@@ -70,7 +70,7 @@ from imupipe.readers.table import (
     with_stream_column,
 )
 from imupipe.readers.table_buffer import assemble
-from imupipe.readers.topics import TOPIC_KEYS
+from imupipe.readers.topics import asked_topics
 
 US_TO_NS = 1000
 """ULog timestamps are microseconds since boot."""
@@ -326,20 +326,8 @@ def choose_topics(spec: InputSpec, f: UlogFile) -> tuple[dict[str, str], list[st
     docstring); returns (choice, warnings). A setting naming a topic that cannot fill its
     stream is an error listing the ones that can."""
     cands = candidates(f)
-    chosen: dict[str, str] = {}
+    chosen, off = asked_topics(spec, cands, f.instances, f.path, "ULog topics")
     warnings: list[str] = []
-    off = {s for s, key in TOPIC_KEYS.items() if getattr(spec, key) == ""}
-    for stream, key in TOPIC_KEYS.items():
-        wanted = getattr(spec, key)
-        if wanted is None or stream in off:
-            continue
-        if wanted not in cands[stream]:
-            where = "is not in the log" if wanted not in f.instances else "cannot fill it"
-            raise ReadError(
-                f"{f.path}: {key} '{wanted}' {where}; ULog topics that can: "
-                f"{', '.join(cands[stream]) or 'none'}"
-            )
-        chosen[stream] = wanted
     if "imu" not in chosen and "imu" not in off:
         raw = [k for k in cands["imu"] if f.instances[k].name == "sensor_gyro"]
         integrated = [k for k in cands["imu"] if f.instances[k].name == "vehicle_imu"]
