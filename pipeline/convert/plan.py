@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import dataclasses
 import os
-from collections.abc import Sequence
+from collections.abc import Collection, Sequence
 from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
 from typing import Any
@@ -69,13 +69,17 @@ def is_ros2_bag_dir(path: Path) -> bool:
     )
 
 
-def find_logs(args: Sequence[Path], out_dir: Path, *, csv: bool = False) -> list[tuple[Path, Path]]:
+def find_logs(
+    args: Sequence[Path], out_dir: Path, *, csv: bool = False, extra: Collection[str] = ()
+) -> list[tuple[Path, Path]]:
     """Every log under ``args`` as (path, output path relative to DIR, without suffix).
 
     A file argument is taken as it is (its format is judged when it is read); a folder argument is
-    a ROS 2 bag or is searched recursively. The output folder is never searched.
+    a ROS 2 bag or is searched recursively for MCAP and ROS 1 logs, CSV files with ``csv`` and
+    the suffixes in ``extra`` (``survey``: ``.ulg``, ``.bin``). Hidden files and folders and the
+    output folder are never searched.
     """
-    suffixes = set(LOG_SUFFIXES) | ({".csv"} if csv else set())
+    suffixes = set(LOG_SUFFIXES) | ({".csv"} if csv else set()) | set(extra)
     out_real = out_dir.resolve()
     found: list[tuple[Path, Path]] = []
     for arg in args:

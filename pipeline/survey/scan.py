@@ -271,27 +271,6 @@ FLIGHT_SUFFIXES = (".ulg", ".bin")
 ``convert`` finds (:func:`~imupipe.pipeline.convert.plan.find_logs`: MCAP, bags, CSV)."""
 
 
-def _flight_logs(args: Sequence[Path], out_dir: Path) -> list[tuple[Path, Path]]:
-    """Every ULog and DataFlash log under the folders of ``args`` (hidden files and the output
-    folder left out), as ``find_logs`` names them."""
-    found = []
-    for arg in map(Path, args):
-        if not arg.is_dir():
-            continue
-        for p in sorted(arg.rglob("*")):
-            rel = p.relative_to(arg)
-            hidden = any(part.startswith(".") for part in rel.parts)
-            inside_out = p.resolve().is_relative_to(out_dir.resolve())
-            if (
-                p.suffix.lower() in FLIGHT_SUFFIXES
-                and p.is_file()
-                and not hidden
-                and not inside_out
-            ):
-                found.append((p, rel.with_suffix("")))
-    return found
-
-
 def plan(
     logs: Sequence[Path],
     out_dir: Path,
@@ -313,7 +292,7 @@ def plan(
     done = latest(out_dir)
     todo, skipped = [], []
     seen: dict[str, Path] = {}
-    for path, rel in find_logs(logs, out_dir, csv=True) + _flight_logs(logs, out_dir):
+    for path, rel in find_logs(logs, out_dir, csv=True, extra=FLIGHT_SUFFIXES):
         path = path.absolute()
         parent = rel.parent.name if rel.parent.name else path.parent.name
         part = out_dir / PARTS_DIR / rel.with_name(rel.name + ".parquet")
