@@ -248,6 +248,194 @@ def flight_samples(table: pa.Table, mag: SensorData, year: float) -> FlightSampl
     return FlightSamples(t_ns, raw, q, ned, rotate(q, ned, inverse=True), current)
 
 
+class CannotSeparate(ValueError):
+    """The flight cannot separate what was asked (the message names what is missing)."""
+
+
+@dataclass
+class FlownFit:
+    """What :func:`fit_flight` found on one flight (or on several joined): the chosen ``model``
+    and its :class:`Fit`, the held-out RMS per candidate (uT), the ``coverage`` of attitudes,
+    the terms ``not_fitted`` and why, the ``warnings`` a stage shows, the ``metrics`` (uT, deg),
+    each parameter's standard error, and per sample the vector residual (T) and heading error
+    (deg) before and after."""
+
+    model: str
+    fit: Fit
+    held_out: dict[str, float]
+    coverage: dict[str, Any]
+    not_fitted: list[str]
+    warnings: list[str]
+    metrics: dict[str, Any]
+    parameter_se: dict[str, float]
+    before: np.ndarray
+    after: np.ndarray
+    h_before: np.ndarray
+    h_after: np.ndarray
+
+
+def coverage_of(q: np.ndarray, target: np.ndarray) -> dict[str, Any]:
+    """The attitudes a flight covered: the eigenvalues of the covariance of the expected field's
+    body directions (``direction_spread``, ascending), the yaw covered in 10 deg bins (deg) and
+    the 99th percentile of the tilt (deg)."""
+    dirs = target / np.linalg.norm(target, axis=1, keepdims=True)
+    spread = np.linalg.eigvalsh(np.cov(dirs.T))
+    tilt = np.degrees(
+        np.arccos(np.clip(rotate(q, np.tile([0, 0, 1.0], (len(q), 1)))[:, 2], -1, 1))
+    )
+    yaw = heading_deg(q, np.tile([1.0, 0, 0], (len(q), 1)))
+    yaw_cover = float(np.count_nonzero(np.histogram(yaw, bins=36, range=(-180, 180))[0])) * 10
+    return {
+        "direction_spread": [float(v) for v in spread],
+        "yaw_coverage_deg": yaw_cover,
+        "tilt_max_deg": float(np.percentile(tilt, 99)),
+    }
+
+
+def fit_flight(fs: FlightSamples, o: Any) -> FlownFit:  # noqa: C901
+    """The in-flight compass fit of the module docstring on ``fs``, under ``o`` (the stage's
+    :class:`MagInflightStage.Options` or any object with its fields): what the flight can
+    separate, the model chosen on held-out segments, the final robust fit and its figures.
+    :class:`CannotSeparate` when the model or motor term asked for cannot be separated, or every
+    candidate is singular. One implementation for the stage and for ``imupipe survey``."""
+    raw, q, ned, target, current = fs.raw, fs.q, fs.ned, fs.target, fs.current
+
+    # -- what the flight can separate ----------------------------------------------------
+    coverage = coverage_of(q, target)
+    spread = coverage["direction_spread"]
+    yaw_cover = coverage["yaw_coverage_deg"]
+    reasons: list[str] = []
+    can_soft = bool(spread[0] >= o.min_spread)
+    if not can_soft:
+        reasons.append(
+            f"soft iron: the field's body directions spread {spread[0]:.3g} < min_spread "
+            f"{o.min_spread:g} (yaw covered {yaw_cover:.0f} deg, tilt to "
+            f"{coverage['tilt_max_deg']:.0f} deg): fly full turns and steeper banks"
+        )
+    can_motor = False
+    if current is not None:
+        lo, hi = np.percentile(current, [5, 95])
+        corr = (
+            max(abs(np.corrcoef(current, target[:, i])[0, 1]) for i in range(3))
+            if hi > lo
+            else 1.0
+        )
+        can_motor = bool(hi - lo >= o.min_current_a and corr < 0.95)
+        if not can_motor:
+            reasons.append(
+                f"motor: the current spans {hi - lo:.2g} A (min_current_a {o.min_current_a:g})"
+                f" or follows the field direction (|r| {corr:.2f})"
+            )
+    else:
+        reasons.append("motor: the log has no battery current")
+    if o.model == "soft_iron" and not can_soft:
+        raise CannotSeparate("cannot separate " + reasons[0])
+    if o.motor == "on" and not can_motor:
+        raise CannotSeparate(
+            "cannot separate " + [r for r in reasons if r.startswith("motor")][0]
+        )
+    warnings = ["not fitted: " + r for r in reasons]
+    use_motor = can_motor and o.motor != "off"
+    cur_fit = current if use_motor else None
+    can_scale = bool(spread[-1] >= o.min_spread)
+    if not can_scale:
+        reasons.append(
+            f"scale: the field's body direction hardly changed (largest spread "
+            f"{spread[-1]:.3g} < min_spread {o.min_spread:g}): only offsets are fitted"
+        )
+    if o.model == "scale" and not can_scale:
+        raise CannotSeparate("cannot separate " + reasons[-1])
+    if o.model == "auto":
+        candidates = ["offsets"] + ["scale"] * can_scale + ["soft_iron"] * can_soft
+    else:
+        candidates = [o.model]
+
+    # -- model choice on held-out segments -----------------------------------------------
+    held: dict[str, float] = {}
+    segments = np.array_split(np.arange(len(raw)), o.folds)
+    for model in candidates:
+        sq, cnt = 0.0, 0
+        try:
+            for seg in segments:
+                train = np.ones(len(raw), dtype=bool)
+                train[seg] = False
+                f = fit_model(
+                    raw[train],
+                    target[train],
+                    None if cur_fit is None else cur_fit[train],
+                    model,
+                    o.huber_k,
+                    o.outlier_k,
+                )
+                r = np.linalg.norm(
+                    f.predict(raw[seg], None if cur_fit is None else cur_fit[seg]) - target[seg],
+                    axis=1,
+                )
+                r = r[r <= np.median(r) * 5 + 1e-300]
+                sq += float(np.sum(r**2))
+                cnt += len(r)
+        except np.linalg.LinAlgError:
+            continue
+        held[model] = float(np.sqrt(sq / max(cnt, 1)))
+    if not held:
+        raise CannotSeparate("every candidate model is singular on this flight")
+    best = min(held.values())
+    chosen = next(m for m in candidates if m in held and held[m] <= best * 1.02)
+    fit = fit_model(raw, target, cur_fit, chosen, o.huber_k, o.outlier_k)
+
+    before = np.linalg.norm(raw - target, axis=1)
+    corrected = fit.predict(raw, cur_fit)
+    after = np.linalg.norm(corrected - target, axis=1)
+    h_model = heading_deg(q, target)
+    h_before = wrap_deg(heading_deg(q, raw) - h_model)
+    h_after = wrap_deg(heading_deg(q, corrected) - h_model)
+    se = np.sqrt(np.diag(fit.cov))
+    ut = UT
+    metrics = {
+        "residual_rms_ut_before": float(np.sqrt(np.mean(before**2)) * ut),
+        "residual_rms_ut_after": float(np.sqrt(np.mean(after**2)) * ut),
+        "residual_rms_ut_after_inliers": float(np.sqrt(np.mean(after[fit.used] ** 2)) * ut),
+        "heading_rms_deg_before": float(np.sqrt(np.mean(h_before**2))),
+        "heading_rms_deg_after": float(np.sqrt(np.mean(h_after**2))),
+        "held_out_rms_ut": {m: v * ut for m, v in held.items()},
+        "outliers": int(len(raw) - fit.used.sum()),
+        "samples": len(raw),
+        "field_ut": float(np.mean(np.linalg.norm(ned, axis=1)) * ut),
+    }
+    return FlownFit(
+        chosen,
+        fit,
+        held,
+        coverage,
+        reasons,
+        warnings,
+        metrics,
+        dict(zip(parameter_names(chosen, fit.motor_term), se.tolist(), strict=True)),
+        before,
+        after,
+        h_before,
+        h_after,
+    )
+
+
+def offset_covariance(fit: Fit) -> np.ndarray:
+    """(3, 3) covariance of ``fit.offset`` (T^2): ``offset = -M^-1 b`` propagated from the
+    covariance of ``theta`` through its Jacobian (central differences on ``theta``)."""
+    k = {"offsets": 0, "scale": 1, "soft_iron": 6}[fit.model]
+    if k == 0:
+        return fit.cov[:3, :3] / UT**2
+    jac = np.zeros((3, len(fit.theta)))
+    for j in range(k + 3):  # the offset depends on the M terms and on b only
+        h = 1e-6 * max(abs(fit.theta[j]), 1.0)
+        up, down = fit.theta.copy(), fit.theta.copy()
+        up[j] += h
+        down[j] -= h
+        jac[:, j] = (
+            _unpack(up, fit.model, fit.motor_term)[1] - _unpack(down, fit.model, fit.motor_term)[1]
+        ) / (2 * h)
+    return jac @ fit.cov @ jac.T / UT**2
+
+
 @dataclass
 class MagCurrentStep(LinearStep):
     """``corrected = matrix @ (raw - offset) + motor * I(t)``: a linear step plus a field per
@@ -398,122 +586,19 @@ class MagInflightStage(Stage):
         )
         return joined, counts
 
-    def fit(self, table: pa.Table, ctx: StageContext) -> StageOutput:  # noqa: C901
+    def fit(self, table: pa.Table, ctx: StageContext) -> StageOutput:
         o: MagInflightStage.Options = self.options
         fs, counts = self._joint(table, ctx)
-        t_ns, raw, q, ned, target, current = fs.t_ns, fs.raw, fs.q, fs.ned, fs.target, fs.current
-
-        # -- what the flight can separate ----------------------------------------------------
-        dirs = target / np.linalg.norm(target, axis=1, keepdims=True)
-        spread = np.linalg.eigvalsh(np.cov(dirs.T))
-        tilt = np.degrees(
-            np.arccos(np.clip(rotate(q, np.tile([0, 0, 1.0], (len(q), 1)))[:, 2], -1, 1))
-        )
-        yaw = heading_deg(q, np.tile([1.0, 0, 0], (len(q), 1)))
-        yaw_cover = float(np.count_nonzero(np.histogram(yaw, bins=36, range=(-180, 180))[0])) * 10
-        coverage = {
-            "direction_spread": [float(v) for v in spread],
-            "yaw_coverage_deg": yaw_cover,
-            "tilt_max_deg": float(np.percentile(tilt, 99)),
-        }
-        reasons: list[str] = []
-        can_soft = bool(spread[0] >= o.min_spread)
-        if not can_soft:
-            reasons.append(
-                f"soft iron: the field's body directions spread {spread[0]:.3g} < min_spread "
-                f"{o.min_spread:g} (yaw covered {yaw_cover:.0f} deg, tilt to "
-                f"{coverage['tilt_max_deg']:.0f} deg): fly full turns and steeper banks"
-            )
-        can_motor = False
-        if current is not None:
-            lo, hi = np.percentile(current, [5, 95])
-            corr = (
-                max(abs(np.corrcoef(current, target[:, i])[0, 1]) for i in range(3))
-                if hi > lo
-                else 1.0
-            )
-            can_motor = bool(hi - lo >= o.min_current_a and corr < 0.95)
-            if not can_motor:
-                reasons.append(
-                    f"motor: the current spans {hi - lo:.2g} A (min_current_a {o.min_current_a:g})"
-                    f" or follows the field direction (|r| {corr:.2f})"
-                )
-        else:
-            reasons.append("motor: the log has no battery current")
-        if o.model == "soft_iron" and not can_soft:
-            raise ctx.fail("cannot separate " + reasons[0])
-        if o.motor == "on" and not can_motor:
-            raise ctx.fail("cannot separate " + [r for r in reasons if r.startswith("motor")][0])
-        for r in reasons:
-            ctx.warn("not fitted: " + r)
-        use_motor = can_motor and o.motor != "off"
-        cur_fit = current if use_motor else None
-        can_scale = bool(spread[-1] >= o.min_spread)
-        if not can_scale:
-            reasons.append(
-                f"scale: the field's body direction hardly changed (largest spread "
-                f"{spread[-1]:.3g} < min_spread {o.min_spread:g}): only offsets are fitted"
-            )
-        if o.model == "scale" and not can_scale:
-            raise ctx.fail("cannot separate " + reasons[-1])
-        if o.model == "auto":
-            candidates = ["offsets"] + ["scale"] * can_scale + ["soft_iron"] * can_soft
-        else:
-            candidates = [o.model]
-
-        # -- model choice on held-out segments -----------------------------------------------
-        held: dict[str, float] = {}
-        segments = np.array_split(np.arange(len(raw)), o.folds)
-        for model in candidates:
-            sq, cnt = 0.0, 0
-            try:
-                for seg in segments:
-                    train = np.ones(len(raw), dtype=bool)
-                    train[seg] = False
-                    f = fit_model(
-                        raw[train],
-                        target[train],
-                        None if cur_fit is None else cur_fit[train],
-                        model,
-                        o.huber_k,
-                        o.outlier_k,
-                    )
-                    r = np.linalg.norm(
-                        f.predict(raw[seg], None if cur_fit is None else cur_fit[seg])
-                        - target[seg],
-                        axis=1,
-                    )
-                    r = r[r <= np.median(r) * 5 + 1e-300]
-                    sq += float(np.sum(r**2))
-                    cnt += len(r)
-            except np.linalg.LinAlgError:
-                continue
-            held[model] = float(np.sqrt(sq / max(cnt, 1)))
-        if not held:
-            raise ctx.fail("every candidate model is singular on this flight")
-        best = min(held.values())
-        chosen = next(m for m in candidates if m in held and held[m] <= best * 1.02)
-        fit = fit_model(raw, target, cur_fit, chosen, o.huber_k, o.outlier_k)
-
-        before = np.linalg.norm(raw - target, axis=1)
-        corrected = fit.predict(raw, cur_fit)
-        after = np.linalg.norm(corrected - target, axis=1)
-        h_model = heading_deg(q, target)
-        h_before = wrap_deg(heading_deg(q, raw) - h_model)
-        h_after = wrap_deg(heading_deg(q, corrected) - h_model)
-        se = np.sqrt(np.diag(fit.cov))
+        try:
+            flown = fit_flight(fs, o)
+        except CannotSeparate as exc:
+            raise ctx.fail(str(exc)) from None
+        for w in flown.warnings:
+            ctx.warn(w)
+        t_ns, current = fs.t_ns, fs.current
+        fit, chosen, metrics = flown.fit, flown.model, flown.metrics
+        before, after, h_before, h_after = flown.before, flown.after, flown.h_before, flown.h_after
         ut = UT
-        metrics = {
-            "residual_rms_ut_before": float(np.sqrt(np.mean(before**2)) * ut),
-            "residual_rms_ut_after": float(np.sqrt(np.mean(after**2)) * ut),
-            "residual_rms_ut_after_inliers": float(np.sqrt(np.mean(after[fit.used] ** 2)) * ut),
-            "heading_rms_deg_before": float(np.sqrt(np.mean(h_before**2))),
-            "heading_rms_deg_after": float(np.sqrt(np.mean(h_after**2))),
-            "held_out_rms_ut": {m: v * ut for m, v in held.items()},
-            "outliers": int(len(raw) - fit.used.sum()),
-            "samples": len(raw),
-            "field_ut": float(np.mean(np.linalg.norm(ned, axis=1)) * ut),
-        }
         if o.flights:  # each flight's residual under the one joint calibration
             names = [ctx.input_name, *o.flights]
             cuts = np.cumsum([0, *counts])
@@ -537,12 +622,10 @@ class MagInflightStage(Stage):
             "matrix": fit.matrix.tolist(),
             "offset_t": fit.offset.tolist(),
             "motor_t_per_a": fit.motor.tolist(),
-            "parameter_se": dict(
-                zip(parameter_names(chosen, fit.motor_term), se.tolist(), strict=True)
-            ),
+            "parameter_se": flown.parameter_se,
             "year": float(o.year if o.year is not None else metadata(table)["gps_year"]),
-            "coverage": coverage,
-            "not_fitted": reasons,
+            "coverage": flown.coverage,
+            "not_fitted": flown.not_fitted,
             "metrics": metrics,
         }
         if ctx.recorder.enabled:
