@@ -662,3 +662,23 @@ def report_section(fleet: dict[str, Any] | None) -> str:
         f"<h3>Recalibrate</h3><ul>{recal}</ul>"
         f"<table><tr>{head}</tr>{''.join(rows)}</table>" + "".join(sections)
     )
+
+
+def write_compass(out: Any, out_dir: Path, tasks: list[Any], k: float) -> dict[str, Any] | None:
+    """Join the compass parts of ``tasks`` (in order) into ``DIR/compass.parquet`` and write
+    the compass fleet view ``DIR/compass.json`` through ``out`` (the driver's staged outputs);
+    returns the fleet view, None when no log had a compass part."""
+    table = join_compass(
+        [compass_part(Path(t.part)) for t in tasks],
+        {"imupipe_survey_compass": json.dumps({"schema_version": 1, "k": k})},
+    )
+    if table is None:
+        return None
+    import pyarrow.parquet as pq
+
+    pq.write_table(table, out.path(Path(out_dir) / COMPASS_NAME), compression="zstd")
+    fleet = compass_fleet(table, k)
+    out.write_text(
+        Path(out_dir) / COMPASS_FLEET_NAME, json.dumps(fleet, indent=2, default=float) + "\n"
+    )
+    return fleet

@@ -155,6 +155,9 @@ def survey_log(task: SurveyTask) -> dict[str, Any]:
     if not topics:
         warnings.append(f"{task.path}: no sensor_msgs/Imu topic: nothing to survey")
     table = pa.concat_tables(rows) if rows else _rows(task, "", 0, None, None, None, 0)
+    from imupipe.pipeline.survey.compass import survey_compass  # flight logs: their compasses
+
+    compass = survey_compass(task)  # writes parts/<log>.compass.parquet (before the log's part)
     task.part.parent.mkdir(parents=True, exist_ok=True)
     with staged_outputs() as out:
         pq.write_table(table, out.path(task.part), compression="zstd")
@@ -168,7 +171,8 @@ def survey_log(task: SurveyTask) -> dict[str, Any]:
         "seconds": round(time.perf_counter() - start, 4),
         "cpu_seconds": round(time.process_time() - cpu, 4),
         "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
-        "warnings": warnings,
+        "warnings": warnings + (compass or {}).get("warnings", []),
+        **({"compass": compass} if compass else {}),
     }
 
 
@@ -402,7 +406,11 @@ def survey(
     parts = [pq.read_table(t.part) for t in sorted(ok, key=lambda t: t.log)]
     table = pa.concat_tables(parts, promote_options="default") if parts else None
     fleet: dict[str, Any] = {}
+    compass = None
     with staged_outputs() as out:
+        from imupipe.pipeline.survey.compass import write_compass
+
+        compass = write_compass(out, out_dir, sorted(ok, key=lambda t: t.log), k)
         if table is not None:
             meta = {
                 "imupipe_survey": json.dumps(
@@ -417,7 +425,7 @@ def survey(
             out.write_text(
                 out_dir / "fleet.json", json.dumps(fleet, indent=2, default=float) + "\n"
             )
-            write_report(out.path(out_dir / "report.html"), table, fleet)
+            write_report(out.path(out_dir / "report.html"), table, fleet, compass=compass)
             if rerun:
                 from imupipe.pipeline.survey.report import write_recording
 
@@ -427,6 +435,7 @@ def survey(
         "surveyed": len(ok) - len(skipped),
         "skipped": len(skipped),
         "fleet": fleet,
+        "compass": compass,
         "rows": 0 if table is None else table.num_rows,
     }
 
@@ -495,9 +504,10 @@ def main(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
     if not args.quiet:
+        from imupipe.pipeline.survey.compass import summary_lines as compass_lines
         from imupipe.pipeline.survey.report import summary_lines
 
-        for line in summary_lines(result["fleet"]):
+        for line in summary_lines(result["fleet"]) + compass_lines(result["compass"]):
             print(line)
         print(
             f"imupipe survey: {result['surveyed']} surveyed, {result['skipped']} skipped (already "
