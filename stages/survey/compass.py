@@ -14,7 +14,7 @@ Per compass device (its fitted flights in date order; vectors in uT):
    size (the second within a factor two of the first), is one odd flight (a magnetised tool
    aboard, a bad attitude estimate), reported as an outlier instead of two steps.
 3. **Drift**: the Theil-Sen slope (:func:`~imupipe.stages.survey.stats.theil_sen`) of each
-   offset axis over calendar days (uT/day, three flights or more), flagged when it departs from
+   offset axis over calendar days (uT/day) since the last step (three flights or more), flagged when it departs from
    the fleet's median slope by more than ``k`` robust sigmas of the fleet's slopes and its
    change over the device's span exceeds ``k s_fleet sqrt(flights - 1)`` (the reach of the
    ordinary change over that many flights), as the IMU fleet view's rule.
@@ -194,15 +194,21 @@ def compass_flags(histories: Sequence[CompassHistory], k: float) -> dict[str, An
         scales[name] = [mad_sigma(all_d[:, i]) if len(all_d) else float("nan") for i in range(3)]
     s_off = np.nan_to_num(np.asarray(scales["offset"]))
     s_mot = np.nan_to_num(np.asarray(scales["motor"]))
-    slopes = []
+    since: dict[str, int] = {}
     for h in histories:
+        _step_flags(h, "offsets", h.offset, h.offset_se, s_off, k, "uT")
+        stepped = [h.logs.index(f["log"]) for f in h.flags if f["kind"] == "step"]
+        since[h.device_id] = max(stepped, default=0)
+    slopes = []
+    for h in histories:  # the drift since the last step (a step is not a drift)
+        a = since[h.device_id]
         h.drift = [
-            theil_sen(h.day, h.offset[:, i]) if len(h.day) >= 3 else float("nan") for i in range(3)
+            theil_sen(h.day[a:], h.offset[a:, i]) if len(h.day) - a >= 3 else float("nan")
+            for i in range(3)
         ]
         slopes.append(h.drift)
     slope_arr = np.asarray(slopes, dtype=np.float64).reshape(-1, 3)
     for h in histories:
-        _step_flags(h, "offsets", h.offset, h.offset_se, s_off, k, "uT")
         both = np.isfinite(h.motor).all(axis=1)
         if both.sum() > 1:
             idx = np.flatnonzero(both)
@@ -215,14 +221,15 @@ def compass_flags(histories: Sequence[CompassHistory], k: float) -> dict[str, An
             h.flags += sub.flags
         n = len(h.day)
         h.moved = float(np.linalg.norm(h.offset[-1] - h.offset[0])) if n > 1 else 0.0
-        span = h.day[-1] - h.day[0] if n else 0.0
+        a = since[h.device_id]
+        span = h.day[-1] - h.day[a] if n else 0.0
         for i in range(3):
             finite = slope_arr[:, i][np.isfinite(slope_arr[:, i])]
             s = h.drift[i]
             if not len(finite) or not np.isfinite(s):
                 continue
             med, sig = float(np.median(finite)), mad_sigma(finite)
-            walk = k * s_off[i] * np.sqrt(max(n - 1, 1))
+            walk = k * s_off[i] * np.sqrt(max(n - a - 1, 1))
             if abs(s - med) > k * sig and abs(s - med) * span > walk:
                 _flag(
                     h, "drift", f"offset_{'xyz'[i]}", None, s, med + k * sig,
