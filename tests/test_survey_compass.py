@@ -171,7 +171,7 @@ def test_dataset_units_report_and_summary(planted, tmp_path):
     for dev in ("ap1:MAG", "ap2:MAG", "px4:sensor_mag"):
         assert f"{dev}: compass offsets per flight" in page
     parts = sorted(p.name for p in (root / "out" / "parts" / "ap1").iterdir())
-    assert "flight_0.bin.compass.parquet" in parts
+    assert "flight_0.compass.parquet" in parts
 
 
 def test_refused_flight_is_a_row_not_a_failed_log(tmp_path):
@@ -199,3 +199,26 @@ def test_outlier_flight_is_one_flag_not_two_steps():
     )  # fmt: skip
     compass_flags([h], k=5.0)
     assert [(f["kind"], f["log"]) for f in h.flags] == [("outlier", "f3")]
+
+
+def test_tutorial_section_runs_as_written(tmp_path):
+    """docs/tutorials/compass-from-flight.md, section 5: its bash block runs and prints the
+    lines the page quotes."""
+    import re
+    import subprocess
+
+    from conftest import REPO
+
+    page = (REPO / "docs" / "tutorials" / "compass-from-flight.md").read_text()
+    section = page.split("## 5. Track the compass across flights", 1)[1]
+    (script,) = re.findall(r"```bash\n(.*?)```", section, flags=re.S)
+    (quoted,) = re.findall(r"```text\n(.*?)```", section, flags=re.S)
+    done = subprocess.run(
+        ["bash", "-c", script], cwd=tmp_path, capture_output=True, text=True, timeout=120
+    )
+    assert done.returncode == 0, done.stderr
+    for line in quoted.strip().splitlines():
+        assert line in done.stdout.splitlines(), (line, done.stdout)
+    fleet = json.loads((tmp_path / "survey" / "compass.json").read_text())
+    (dev,) = fleet["devices"]
+    assert "off by 5.1 uT in drone/flight_3" in dev["flags"][-1]["why"]
