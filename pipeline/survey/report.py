@@ -205,6 +205,7 @@ def write_report(
     """``report.html``: the fleet table, the devices to recalibrate, a section per device, and
     the compasses' section (:func:`imupipe.pipeline.survey.compass.report_section`)."""
     from imupipe.pipeline.survey.compass import report_section
+
     esc = html.escape
     k = fleet["k"]
     head = "".join(

@@ -280,9 +280,7 @@ def coverage_of(q: np.ndarray, target: np.ndarray) -> dict[str, Any]:
     the 99th percentile of the tilt (deg)."""
     dirs = target / np.linalg.norm(target, axis=1, keepdims=True)
     spread = np.linalg.eigvalsh(np.cov(dirs.T))
-    tilt = np.degrees(
-        np.arccos(np.clip(rotate(q, np.tile([0, 0, 1.0], (len(q), 1)))[:, 2], -1, 1))
-    )
+    tilt = np.degrees(np.arccos(np.clip(rotate(q, np.tile([0, 0, 1.0], (len(q), 1)))[:, 2], -1, 1)))
     yaw = heading_deg(q, np.tile([1.0, 0, 0], (len(q), 1)))
     yaw_cover = float(np.count_nonzero(np.histogram(yaw, bins=36, range=(-180, 180))[0])) * 10
     return {
@@ -316,9 +314,7 @@ def fit_flight(fs: FlightSamples, o: Any) -> FlownFit:  # noqa: C901
     if current is not None:
         lo, hi = np.percentile(current, [5, 95])
         corr = (
-            max(abs(np.corrcoef(current, target[:, i])[0, 1]) for i in range(3))
-            if hi > lo
-            else 1.0
+            max(abs(np.corrcoef(current, target[:, i])[0, 1]) for i in range(3)) if hi > lo else 1.0
         )
         can_motor = bool(hi - lo >= o.min_current_a and corr < 0.95)
         if not can_motor:
@@ -331,9 +327,7 @@ def fit_flight(fs: FlightSamples, o: Any) -> FlownFit:  # noqa: C901
     if o.model == "soft_iron" and not can_soft:
         raise CannotSeparate("cannot separate " + reasons[0])
     if o.motor == "on" and not can_motor:
-        raise CannotSeparate(
-            "cannot separate " + [r for r in reasons if r.startswith("motor")][0]
-        )
+        raise CannotSeparate("cannot separate " + [r for r in reasons if r.startswith("motor")][0])
     warnings = ["not fitted: " + r for r in reasons]
     use_motor = can_motor and o.motor != "off"
     cur_fit = current if use_motor else None
