@@ -222,3 +222,50 @@ def test_tutorial_section_runs_as_written(tmp_path):
     fleet = json.loads((tmp_path / "survey" / "compass.json").read_text())
     (dev,) = fleet["devices"]
     assert "off by 5.1 uT in drone/flight_3" in dev["flags"][-1]["why"]
+
+
+def test_px4_vehicle_calibration_read_from_cal_mag(tmp_path):
+    """A PX4 log whose CAL_MAG0 slot (the compass's device id) holds the truth in PX4's form:
+    the vehicle's calibration is read from it (offset, soft iron, COMP), and it is not off."""
+    from imupipe.pipeline.simulate.flight import MAG_DEVICE_ID, flight_ulog
+    from imupipe.pipeline.writers.ulog import write_ulog
+
+    spec = VEHICLES["px4"]
+    table, _ = simulate("flight", {**SHORT, **{k: spec[k] for k in ("offset", "matrix", "motor")}})
+    data = flight_ulog(table)
+    m, off, mot = (np.asarray(spec[k]) for k in ("matrix", "offset", "motor"))
+    comp = np.linalg.solve(m, mot) * 1e4 * 1e3  # G/kA, added before the offsets
+    params = {"CAL_MAG0_ID": MAG_DEVICE_ID, "CAL_MAG_COMP_TYP": 2, "SENS_BOARD_ROT": 0}
+    for i, a in enumerate("XYZ"):
+        params |= {f"CAL_MAG0_{a}OFF": off[i] * 1e4, f"CAL_MAG0_{a}SCALE": m[i, i]}
+        params[f"CAL_MAG0_{a}COMP"] = comp[i]
+    for (i, j), a in zip(((0, 1), (0, 2), (1, 2)), "XYZ", strict=True):
+        params[f"CAL_MAG0_{a}ODIAG"] = m[i, j]
+    data.parameters.update(params)
+    (tmp_path / "logs" / "px").mkdir(parents=True)
+    write_ulog(tmp_path / "logs" / "px" / "f.ulg", data)
+    result = survey([tmp_path / "logs"], tmp_path / "out", jobs=1, rerun=False)
+    (row,) = pq.read_table(tmp_path / "out" / COMPASS_NAME).to_pylist()
+    assert row["status"] == "fitted" and row["hw_device_id"] == MAG_DEVICE_ID
+    vehicle = np.array([row[f"vehicle_offset_{a}"] for a in "xyz"])
+    assert np.allclose(vehicle, off * 1e6, atol=1e-3)
+    assert np.allclose([row[f"vehicle_motor_{a}"] for a in "xyz"], mot * 1e6, atol=1e-5)
+    assert row["calibration_error_ut"] < 0.3 and row["residual_vehicle_ut"] < 0.5
+    assert result["compass"]["recalibrate"] == []
+
+
+def test_real_ardupilot_flights(tmp_path):
+    """The four public ArduPilot logs: every compass fitted, the residual under the flight's fit
+    below the one under the vehicle's own COMPASS_* parameters."""
+    from conftest import shared_path
+
+    folder = shared_path("logs", "ardupilot_flights")
+    result = survey([folder], tmp_path / "out", jobs=1, rerun=False)
+    rows = pq.read_table(tmp_path / "out" / COMPASS_NAME).to_pylist()
+    assert len(rows) == 6 and all(r["status"] == "fitted" for r in rows)
+    for r in rows:
+        assert r["residual_after_ut"] < 0.5 * r["residual_vehicle_ut"]
+        assert 40 < r["field_ut"] < 52
+        assert json.loads(r["vehicle_parameters"])  # what the vehicle flew with
+    erle = [d for d in result["compass"]["devices"] if d["device_id"].startswith("erle")]
+    assert {d["domain"] for d in erle} == {"logged"}  # COMPASS_ORIENT = 8: tracked as logged

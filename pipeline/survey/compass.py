@@ -134,11 +134,11 @@ def _px4_vehicle(p: dict[str, Any], device_id: int | None) -> VehicleCompass:
         if int(p.get("CAL_MAG_COMP_TYP") or 0) == 1 and comp.any():
             notes.append("the vehicle compensates the motors by throttle (CAL_MAG_COMP_TYP = 1)")
         comp = np.zeros(3)
-    rot = p.get(f"{pre}ROT", -1)
-    if p.get("SENS_BOARD_ROT", 0) or rot not in (-1, 0):
+    rot, board = p.get(f"{pre}ROT", -1), p.get("SENS_BOARD_ROT", 0)
+    if board or rot not in (-1, 0):
         notes.append(
-            f"the vehicle rotates this compass (SENS_BOARD_ROT, {pre}ROT = {rot}): its "
-            "calibration is not applied to the raw field here"
+            f"the vehicle rotates this compass (SENS_BOARD_ROT = {board:g}, {pre}ROT = {rot:g}): "
+            "its calibration is not applied to the raw field here"
         )
     motor = s @ (comp / GAUSS_PER_TESLA / 1e3)  # G/kA -> T/A, added before S
     return VehicleCompass(off / GAUSS_PER_TESLA, s, motor, own, True, False, notes)
@@ -170,13 +170,23 @@ def survey_compass(task: Any) -> dict[str, Any] | None:
     spec = InputSpec(path=path, name=task.vehicle)
     rows: list[dict[str, Any]] = []
     warnings: list[str] = []
-    for instance, key in enumerate(_instances(spec)):
+    keys: list[str | None] = list(_instances(spec))
+    if not keys and dispatch.detect_format(path) == "ulog":
+        keys = [None]  # no raw sensor_mag: the magnetometer PX4 corrected, if it is the only one
+    for instance, key in enumerate(keys):
         one = dataclasses.replace(spec, imu_topic="", temperature_topic="", mag_topic=key)
         try:
             table, _ = dispatch.read_input(one)
         except Exception as exc:  # noqa: BLE001 - one compass that cannot be read: its row says why
-            rows.append(_refused(task, key, instance, None, f"not read: {exc}"))
+            if key is not None:
+                rows.append(_refused(task, key, instance, None, f"not read: {exc}"))
             continue
+        if key is None:
+            from imupipe.readers.table import has_stream, metadata
+
+            if not has_stream(table, "mag"):
+                continue
+            key = str((metadata(table).get("topics") or {}).get("mag") or "mag")
         rows.append(fit_compass(task, key, instance, table))
     for r in rows:
         if r["status"] == "refused":
@@ -243,6 +253,8 @@ def fit_compass(task: Any, key: str, instance: int, table: pa.Table) -> dict[str
     else:
         hw = (meta.get("device_id") or {}).get("mag")
         vehicle = _px4_vehicle((meta.get("px4") or {}).get("parameters") or {}, hw)
+        # vehicle_magnetometer (old sensor_combined): the field PX4 had corrected with CAL_MAG
+        vehicle.applied = bool(((meta.get("px4") or {}).get("calibrated") or {}).get("mag"))
     common = {
         "vehicle_parameters": json.dumps(vehicle.parameters, sort_keys=True),
         "notes": "; ".join(vehicle.notes) or None,
@@ -279,7 +291,14 @@ def fit_compass(task: Any, key: str, instance: int, table: pa.Table) -> dict[str
     cov_off = offset_covariance(fit)
     se_motor = np.sqrt(np.diag(fit.cov)[-3:]) / UT if fit.motor_term else np.full(3, np.nan)
     notes = list(vehicle.notes)
-    if vehicle.applied:
+    if vehicle.applied and fmt != "dataflash":
+        notes.append(
+            "PX4 had corrected this field with its CAL_MAG parameters: the offsets for the raw "
+            "sensor are not derived (fit_offset_* are tracked); survey the raw sensor_mag"
+        )
+        s_matrix, s_offset, s_motor = np.full((3, 3), np.nan), np.full(3, np.nan), None
+        s_cov = np.full((3, 3), np.nan)
+    elif vehicle.applied:
         out = Export()
         model = SensorModel(
             "mag",
@@ -297,8 +316,12 @@ def fit_compass(task: Any, key: str, instance: int, table: pa.Table) -> dict[str
             fit.motor if fit.motor_term else None,
         )
         composed = compose_with_log(model, inst, out)
-        notes += [n for ns in out.notes.values() for n in ns]
+        notes += [n for ns in out.notes.values() for n in ns if "not written" not in n]
         if composed is None:
+            notes.append(
+                "the log rotates the compass (AHRS_ORIENTATION, COMPASS_ORIENT): the offsets "
+                "for the raw sensor are not derived (fit_offset_* are tracked)"
+            )
             s_matrix, s_offset, s_motor = np.full((3, 3), np.nan), np.full(3, np.nan), None
             s_cov = np.full((3, 3), np.nan)
         else:
