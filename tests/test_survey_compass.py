@@ -269,3 +269,16 @@ def test_real_ardupilot_flights(tmp_path):
         assert json.loads(r["vehicle_parameters"])  # what the vehicle flew with
     erle = [d for d in result["compass"]["devices"] if d["device_id"].startswith("erle")]
     assert {d["domain"] for d in erle} == {"logged"}  # COMPASS_ORIENT = 8: tracked as logged
+
+
+def test_resumed_survey_keeps_the_compass_rows(planted):
+    """A second run skips every log and joins the same compass rows; a flight log surveyed
+    before the compass existed (its compass part missing) is surveyed again."""
+    root, _, first = planted
+    before = pq.read_table(root / "out" / COMPASS_NAME).to_pylist()
+    (root / "out" / "parts" / "ap1" / "flight_0.compass.parquet").unlink()
+    again = survey([root / "logs"], root / "out", jobs=1, rerun=False)
+    assert (again["surveyed"], again["skipped"]) == (1, len(VEHICLES) * FLIGHTS - 1)
+    after = pq.read_table(root / "out" / COMPASS_NAME).to_pylist()
+    assert [(r["log"], r["offset_x"]) for r in after] == [(r["log"], r["offset_x"]) for r in before]
+    assert again["compass"]["recalibrate"] == first["compass"]["recalibrate"]

@@ -286,6 +286,7 @@ def plan(
     from imupipe.pipeline.convert.manifest import latest
     from imupipe.pipeline.convert.plan import find_logs
     from imupipe.pipeline.convert.settings import chain_sha256
+    from imupipe.pipeline.survey.compass import compass_part
 
     out_dir = out_dir.absolute()
     for arg in logs:
@@ -317,6 +318,7 @@ def plan(
             and rec.get("mode") == opt_sha
             and part.exists()
             and part.stat().st_mtime >= path.stat().st_mtime
+            and (path.suffix.lower() not in FLIGHT_SUFFIXES or compass_part(part).exists())
         )
         (skipped if fresh else todo).append(task)
     return todo, skipped
