@@ -282,3 +282,34 @@ def test_resumed_survey_keeps_the_compass_rows(planted):
     after = pq.read_table(root / "out" / COMPASS_NAME).to_pylist()
     assert [(r["log"], r["offset_x"]) for r in after] == [(r["log"], r["offset_x"]) for r in before]
     assert again["compass"]["recalibrate"] == first["compass"]["recalibrate"]
+
+
+def test_drift_flagged_and_steady_compasses_not():
+    """A compass whose offsets creep 0.3 uT per weekly flight among steady ones: flagged as a
+    drift, with no step (each flight-to-flight change is within the fleet's rule)."""
+    rng = np.random.default_rng(1)
+    n, histories = 8, []
+    for v in range(5):
+        offset = np.tile([5.0 * v, -3.0, 8.0], (n, 1)) + rng.normal(0, 0.1, (n, 3))
+        if v == 2:
+            offset[:, 1] += 0.3 * np.arange(n)
+        histories.append(
+            compass_history(
+                f"v{v}:MAG",
+                [f"f{i}" for i in range(n)],
+                np.arange(n) * 7 * 86_400e9,
+                offset,
+                np.full((n, 3), 0.1),
+                np.full((n, 3), np.nan),
+                np.full((n, 3), np.nan),
+                np.zeros(n),
+                np.full(n, 0.3),
+                np.full(n, 49.0),
+                0,
+            )  # fmt: skip
+        )
+    compass_flags(histories, k=5.0)
+    flagged = {h.device_id: [(f["kind"], f["figure"]) for f in h.flags] for h in histories}
+    assert flagged == {
+        "v0:MAG": [], "v1:MAG": [], "v2:MAG": [("drift", "offset_y")], "v3:MAG": [], "v4:MAG": []
+    }  # fmt: skip

@@ -25,6 +25,10 @@ must vary (``min_current_a``) and not follow the field direction (correlation < 
 motor term. Standard errors are the least-squares ones inflated by the residual's lag-1
 autocorrelation (the residual of a flight is slow: attitude and model errors). Heading error:
 the heading of the corrected field rotated into NED minus the model's (deg).
+
+The fit itself is :func:`fit_flight` (on :func:`flight_samples`): the stage calls it on its
+input (and the flights joined to it), ``imupipe survey`` on every compass of every flight log
+(:mod:`imupipe.pipeline.survey.compass`), so both give the same answer on the same flight.
 """
 
 from __future__ import annotations
