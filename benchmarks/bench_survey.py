@@ -27,6 +27,7 @@ from __future__ import annotations
 import argparse
 import json
 import shutil
+import subprocess
 import sys
 import tempfile
 import time
@@ -87,32 +88,38 @@ def measure(
 
 def measure_long(root: Path, seconds: float, rate_hz: float) -> dict[str, float]:
     """5.: one long log surveyed whole (one batch) and streamed, each by a fresh worker."""
-    from imupipe.pipeline.survey.scan import survey
-
-    fleet, _ = simulate(
-        "fleet",
-        {
-            "vehicles": 1,
-            "imus": 1,
-            "logs": 1,
-            "log_s": seconds,
-            "rate_hz": rate_hz,
-            "events": False,
-        },
-        seed=3,
+    # simulated in a process of its own: a process's peak RSS passes to its children (fork and
+    # exec keep it), so the workers below must not descend from one that held the simulation
+    sim = (
+        "import sys; from pathlib import Path; from imupipe.pipeline.simulate import simulate,"
+        " write_log; f, _ = simulate('fleet', {'vehicles': 1, 'imus': 1, 'logs': 1, 'log_s':"
+        " float(sys.argv[2]), 'rate_hz': float(sys.argv[3]), 'events': False}, seed=3);"
+        " write_log(Path(sys.argv[1]), f)"
     )
-    write_log(root / "long", fleet)
-    del fleet
+    subprocess.run(
+        [sys.executable, "-c", sim, str(root / "long"), str(seconds), str(rate_hz)], check=True
+    )
     figures: dict[str, float] = {"long_log_s": seconds, "long_rate_hz": rate_hz}
     rows = {}
     for name, batch in (("whole", 1 << 40), ("streamed", None)):
         out = root / f"long_{name}"
         shutil.rmtree(out, ignore_errors=True)
-        result = survey([root / "long"], out, jobs=1, rerun=False, quiet=True, batch_rows=batch)
+        # a fresh process each: a worker's peak is measured from its own start
+        code = (
+            "import sys; from pathlib import Path; from imupipe.pipeline.survey.scan import survey;"
+            "r = survey([Path(sys.argv[1])], Path(sys.argv[2]), jobs=1, rerun=False, quiet=True,"
+            " batch_rows=None if sys.argv[3] == 'None' else int(sys.argv[3])); print(r['rows'])"
+        )
+        proc = subprocess.run(
+            [sys.executable, "-c", code, str(root / "long"), str(out), str(batch)],
+            capture_output=True,
+            text=True,
+            check=True,
+        )
         (line,) = [r for r in read_manifest(out) if r.get("status") == "surveyed"]
         figures[f"{name}_worker_peak_rss_mb"] = line["peak_rss_mb"]
         figures[f"{name}_worker_s"] = line["seconds"]
-        rows[name] = result["rows"]
+        rows[name] = int(proc.stdout.split()[-1])
     if rows["whole"] != rows["streamed"]:
         raise SystemExit(f"whole and streamed found different periods: {rows}")
     figures["still_periods"] = rows["whole"]
