@@ -2,8 +2,9 @@
 
 For each log (any format imupipe reads; a folder is searched as ``convert`` searches it) and
 each IMU topic in it, a worker reads the topic (and the temperature topic of the same namespace,
-or the log's only one), finds the still periods and measures each one
-(:mod:`imupipe.stages.survey.stats`); with ``--calibration`` the same figures are measured again
+or the log's only one) in batches, so that its memory is bounded by a batch and not by the log
+(:mod:`imupipe.pipeline.survey.stream`), finds the still periods and measures each one
+(:mod:`imupipe.stages.survey.stats`, :mod:`imupipe.stages.survey.streaming`); with ``--calibration`` the same figures are measured again
 on the corrected samples (``cal_*`` columns: what is left is the calibration's error). The rows
 of one log go to ``DIR/parts/<log>.parquet``; the driver appends one line per log to
 ``DIR/manifest.jsonl`` (:mod:`imupipe.pipeline.convert.manifest`), then joins the parts into

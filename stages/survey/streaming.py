@@ -109,18 +109,21 @@ class LogHistogram:
         self.lo, hi = DECADES
         self.counts = np.zeros((hi - self.lo) * BINS_PER_DECADE, np.int64)
         self.zeros = 0
+        self.n = 0
+        """Values counted (zeros included)."""
 
     def add(self, values: np.ndarray) -> None:
         v = values[np.isfinite(values)]
         pos = v[v > 0]
         self.zeros += len(v) - len(pos)
+        self.n += len(v)
+        if not len(pos):
+            return
         idx = np.floor((np.log10(pos) - self.lo) * BINS_PER_DECADE).astype(np.int64)
         np.clip(idx, 0, len(self.counts) - 1, out=idx)
-        self.counts += np.bincount(idx, minlength=len(self.counts))
-
-    @property
-    def n(self) -> int:
-        return int(self.counts.sum()) + self.zeros
+        first = int(idx.min())  # count over the span the values cover, not every bin
+        counted = np.bincount(idx - first)
+        self.counts[first : first + len(counted)] += counted
 
     def quantile(self, q: float) -> float | None:
         """The ``q`` quantile (None when empty; 0 when it falls among the zeros)."""
@@ -130,10 +133,12 @@ class LogHistogram:
         rank = q * (n - 1)  # 0-based position among the sorted values
         if rank < self.zeros:
             return 0.0
-        cum = np.cumsum(self.counts) + self.zeros
-        b = int(np.searchsorted(cum, rank, side="right"))
-        before = cum[b] - self.counts[b]
-        frac = min(max((rank - before + 0.5) / self.counts[b], 0.0), 1.0)
+        bins = np.flatnonzero(self.counts)  # the occupied bins, in order
+        counts = self.counts[bins]
+        cum = np.cumsum(counts) + self.zeros
+        i = min(int(np.searchsorted(cum, rank, side="right")), len(bins) - 1)
+        b = int(bins[i])
+        frac = min(max((rank - (cum[i] - counts[i]) + 0.5) / counts[i], 0.0), 1.0)
         return float(10.0 ** (self.lo + (b + frac) / BINS_PER_DECADE))
 
 
