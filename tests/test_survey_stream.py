@@ -203,3 +203,26 @@ def test_histogram_quantile_matches_numpy():
     empty = LogHistogram()
     empty.add(np.array([0.0, 0.0, 1.0, np.inf]))
     assert empty.quantile(0.02) == 0.0 and empty.n == 3
+
+
+def test_a_gap_that_changes_the_window_reads_pass_one_again(log, tmp_path):
+    """The first batch's rate sets pass 1's window; 30 s missing from the log lower the log's
+    rate so that its window differs: pass 1 runs again, the figures are the whole log's."""
+    from imupipe.pipeline.writers.mcap import write_mcap
+    from imupipe.stages.survey.streaming import Rule
+
+    table, _ = read_input(log)
+    t = table.column("t_ns").to_numpy()
+    cut = (t > t[0] + 40_000_000_000) & (t < t[0] + 70_000_000_000)
+    table = table.filter(pa.array(~cut))
+    path = tmp_path / "gap.mcap"
+    write_mcap(path, table)
+    spec = dataclasses.replace(log, path=path)
+    imu = t[~cut][table.column("gyro_x").is_valid().to_numpy(zero_copy_only=False)]
+    first = Rule.at(StillOptions(), (1_999) / ((imu[1_999] - imu[0]) * 1e-9))
+    overall = Rule.at(StillOptions(), (len(imu) - 1) / ((imu[-1] - imu[0]) * 1e-9))
+    assert first.half != overall.half  # the case this test is for
+    whole, _ = _survey(spec, 10**9)
+    streamed, _ = _survey(spec, 2_000)
+    assert whole.passes == 1 and streamed.passes == 3
+    _same(whole.stats, streamed.stats)

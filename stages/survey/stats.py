@@ -3,15 +3,18 @@
 **Still periods** (:func:`still_periods`): the static detector of
 :mod:`imupipe.stages.static_detector` (Tedaldi et al. ICRA 2014: the norm of the per-axis variance
 of the accelerometer over a centred ``window_s`` window, below ``k`` times the log's noise floor,
-here its ``floor_quantile`` quantile), and the same rule on the gyro (a vehicle turning at a
-constant rate has a quiet accelerometer), for runs of at least ``min_duration_s``.
+here its ``floor_quantile`` quantile, read from a fine log-spaced histogram), and the same rule on
+the gyro (a vehicle turning at a constant rate has a quiet accelerometer), for runs of at least
+``min_duration_s``.
 
-**Per period** (:func:`period_stats`), vectorised over all periods at once with cumulative sums:
+**Per period** (:func:`figures`, from the running sums of
+:mod:`imupipe.stages.survey.streaming`), vectorised over all periods at once:
 
 - gyro bias (rad/s, 3 axes): the period's mean rate. Its standard error by the method of batch
-  means (``BATCHES`` contiguous batches, ``se = std(batch means) / sqrt(BATCHES)``; it holds for
-  correlated noise, where ``std / sqrt(n)`` would be too small), floored by the white-noise
-  value ``ADEV(tau) / sqrt(n tau0 / tau)``;
+  means (``BATCHES`` to ``2 BATCHES - 1`` contiguous blocks of a power-of-two length,
+  ``se = std(block means) / sqrt(blocks)``; it holds for correlated noise, where
+  ``std / sqrt(n)`` would be too small), floored by the white-noise value
+  ``ADEV(tau) / sqrt(n tau0 / tau)``;
 - accelerometer mean (m/s^2, 3 axes), ``|mean a| - g`` (m/s^2: the scale and offset error seen in
   the gravity magnitude, signed) and ``level``: the mean lies within ``level_deg`` of the body z
   axis, so its x and y components are the x and y offsets plus the (small) tilt;
@@ -20,6 +23,10 @@ constant rate has a quiet accelerometer), for runs of at least ``min_duration_s`
   non-overlapping clusters of ``m = tau / tau0`` samples);
 - temperature (degC): the mean of the temperature samples inside the period (NaN without any);
 - start time (ns), duration (s) and sample count.
+
+**One way**: :func:`still_periods`, :func:`period_stats`, :func:`batch_means_se` and
+:func:`cluster_adev` take a log held whole and run it as one batch through the streaming code;
+the survey streams the same code batch by batch (:mod:`imupipe.pipeline.survey.stream`).
 
 **Robust statistics** for the fleet view: :func:`mad_sigma` (1.4826 MAD: the standard deviation
 of a normal sample, robust to outliers; Rousseeuw & Croux 1993), :func:`theil_sen` (median of
