@@ -75,7 +75,7 @@ def test_batches_give_the_whole_log_figures(log):
     assert sum(1 for _ in iter_input(log, batch_rows=2_000, carry=False)) >= 4
     whole, _ = _survey(log, 10**9)
     streamed, warnings = _survey(log, 2_000)
-    assert whole.passes == 1 and streamed.passes == 2  # one read when the log is one batch
+    assert whole.reads == 1 and streamed.reads == 2  # one read when the log is one batch
     assert not warnings
     _same(whole.stats, streamed.stats)
     assert np.isfinite(whole.stats["temperature"]).all()
@@ -224,5 +224,5 @@ def test_a_gap_that_changes_the_window_reads_pass_one_again(log, tmp_path):
     assert first.half != overall.half  # the case this test is for
     whole, _ = _survey(spec, 10**9)
     streamed, _ = _survey(spec, 2_000)
-    assert whole.passes == 1 and streamed.passes == 3
+    assert whole.reads == 1 and streamed.reads == 3
     _same(whole.stats, streamed.stats)

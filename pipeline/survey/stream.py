@@ -44,7 +44,9 @@ class Surveyed:
     stats: dict[str, np.ndarray]
     cal: dict[str, np.ndarray] | None
     frame: str | None
-    passes: int
+    reads: int
+    """How many times the topic was read: 1 when it came as one batch, 2 streamed, 3 when the
+    first batch's rate gave another window than the log's."""
 
 
 def _rows(table: pa.Table) -> tuple[np.ndarray, np.ndarray] | None:
@@ -170,7 +172,7 @@ def survey_topic(
     batch_rows = batch_rows or DEFAULT_BATCH_ROWS
     whole: pa.Table | None = None
     half: int | None = None
-    passes = 0
+    reads = 0
     meta: dict[str, Any] | None = None
 
     def batches() -> Iterator[pa.Table]:
@@ -188,7 +190,7 @@ def survey_topic(
         warnings += warned
         meta = metadata(whole)
     while True:
-        passes += 1
+        reads += 1
         try:
             floor, only = _first_pass(batches(), opts, half)
         except _Backwards:
@@ -209,7 +211,7 @@ def survey_topic(
             return None
         if rate is None or floor.n < max(int(round(opts.window_s * rate)), 3):
             return Surveyed(
-                _empty(opts), None if steps is None else _empty(opts), _frame(meta), passes
+                _empty(opts), None if steps is None else _empty(opts), _frame(meta), reads
             )
         rule = Rule.at(opts, rate)
         if rule.half == floor.windowed.half:
@@ -228,7 +230,7 @@ def survey_topic(
     else:
         source = iter([only]) if only is not None else batches()
         if only is None:
-            passes += 1
+            reads += 1
         for raw, corrected in _with_corrected(source, steps):
             temp = _temperature(raw)
             if temp is not None:
@@ -253,7 +255,7 @@ def survey_topic(
             start_ns, stop_ns, acc, periods.reference, tsum, tcount, rule, opts,
             columns=slice(6, 12),
         )  # fmt: skip
-    return Surveyed(stats, cal, _frame(meta), passes)
+    return Surveyed(stats, cal, _frame(meta), reads)
 
 
 def _frame(meta: dict[str, Any] | None) -> str | None:
