@@ -431,7 +431,18 @@ class Periods:
     temp_sum: list[np.ndarray] = field(default_factory=list)
     temp_count: list[np.ndarray] = field(default_factory=list)
 
-    def add(self, start, stop, start_ns, stop_ns, acc: Acc, tsum, tcount) -> None:  # noqa: ANN001
+    def add(
+        self,
+        start: np.ndarray,
+        stop: np.ndarray,
+        start_ns: np.ndarray,
+        stop_ns: np.ndarray,
+        acc: Acc,
+        tsum: np.ndarray,
+        tcount: np.ndarray,
+    ) -> None:
+        """Closed periods: row ranges ``[start, stop)``, first and last stamps, sums,
+        temperature sums and counts so far."""
         if len(start):
             self.start.append(start)
             self.stop.append(stop)
