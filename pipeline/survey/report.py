@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import html
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import pyarrow as pa
@@ -21,6 +21,9 @@ import pyarrow as pa
 from imupipe.pipeline.report.figures import Plot, Series, colors_for
 from imupipe.pipeline.report.svg_plot import svg
 from imupipe.stages.survey.fleet import FIGURES, DeviceHistory, device_history, fleet_flags
+
+if TYPE_CHECKING:
+    from imupipe.pipeline.survey.chamber import Chambers
 
 
 def _col(table: pa.Table, name: str) -> np.ndarray:
@@ -78,11 +81,60 @@ def histories(table: pa.Table) -> list[DeviceHistory]:
     return out
 
 
-def fleet_view(table: pa.Table, k: float) -> dict[str, Any]:
+def chamber_view(
+    table: pa.Table, h: DeviceHistory, chambers: Chambers, t0_ns: int, scales: dict[str, float]
+) -> dict[str, Any] | None:
+    """One device's in-field thermal curves against its chamber calibration
+    (:mod:`imupipe.stages.survey.chamber`): ``source``, ``range`` (degC), the still periods
+    ``outside`` it and their ``outside_span``, ``t_ns`` (the chamber's date), ``m`` (log
+    intervals since it) and per figure the :func:`compare` result; None without a chamber curve."""
+    from imupipe.pipeline.survey.chamber import device_model
+    from imupipe.stages.survey import chamber as ch
+
+    rows = _col(table, "device_id").astype(str) == h.device_id
+    vehicle = str(_col(table, "vehicle")[rows][0])
+    topic = str(_col(table, "topic")[rows][0])
+    model = device_model(chambers, vehicle, topic)
+    if model is None:
+        return None
+    temp = _col(table, "temperature").astype(np.float64)[rows]
+    accel = np.column_stack(
+        [_col(table, f"accel_mean_{a}").astype(np.float64)[rows] for a in "xyz"]
+    )
+    pred = ch.predicted(model, temp, accel)
+    index = {name: i for i, name in enumerate(h.logs)}
+    log_index = np.array([index[x] for x in _col(table, "log").astype(str)[rows]])
+    figures = {}
+    for figure, p in pred.items():
+        se_name = (
+            figure.replace("gyro_bias_", "gyro_bias_se_")
+            if figure.startswith("gyro")
+            else "accel_norm_error_se"
+        )
+        measured = _col(table, figure).astype(np.float64)[rows]
+        se = _col(table, se_name).astype(np.float64)[rows]
+        step = float(np.nan_to_num(scales.get(figure, 0.0)))
+        figures[figure] = ch.compare(log_index, temp, measured, se, p, step)
+    sensor = "gyro" if "gyro" in model.ranges else "accel"
+    return {
+        "source": model.source,
+        **ch.outside(temp, model.ranges[sensor]),
+        "ranges": {s: list(r) for s, r in model.ranges.items()},
+        "t_ns": model.t_ns,
+        "m": ch.steps_since(model.t_ns, h.day, t0_ns),
+        "figures": figures,
+    }
+
+
+def fleet_view(table: pa.Table, k: float, chambers: Chambers | None = None) -> dict[str, Any]:
     """The fleet view as a JSON-ready dict: ``k``, the fleet's scales, per device its per-log
-    figures, thermal slopes, drift, moved and flags, and the devices to recalibrate."""
+    figures, thermal slopes, drift, moved and flags, its comparison with its chamber calibration
+    (``chamber``, with ``chambers``; see :func:`chamber_view`), and the devices to
+    recalibrate."""
     hs = histories(table)
     fleet = fleet_flags(hs, k)
+    start = _col(table, "start_ns").astype(np.int64)
+    t0 = int(start.min()) if len(start) else 0
     devices = []
     for h in hs:
         moved = max((abs(v) for v in h.moved.values()), default=0.0)
@@ -102,8 +154,15 @@ def fleet_view(table: pa.Table, k: float) -> dict[str, Any]:
                 "moved": h.moved,
                 "moved_max": moved,
                 "flags": h.flags,
+                "chamber": chamber_view(table, h, chambers, t0, fleet["scales"])
+                if chambers
+                else None,
             }
         )
+    if chambers:
+        from imupipe.stages.survey.chamber import chamber_flags
+
+        fleet["chamber_widen"] = chamber_flags(devices, fleet["scales"], k)
     devices.sort(key=lambda d: -d["moved_max"])
     recal = [
         {"device_id": d["device_id"], "why": list(dict.fromkeys(f["why"] for f in d["flags"]))}
