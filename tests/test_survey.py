@@ -113,10 +113,14 @@ def test_planted_events_flagged(planted):
             assert ("step", "accel_norm_error", log) in kinds
         elif event["kind"] == "noise":
             assert ("noise", "gyro_noise", log) in kinds and ("noise", "accel_noise", log) in kinds
-        else:  # failing: the gyro z bias runs away
-            assert any(
-                f["figure"] == "gyro_bias_z" and f["kind"] in ("drift", "step") for f in mine
-            )
+        else:  # failing: the gyro z bias runs away from the event's log on
+            runaway = [f for f in mine if f["figure"] == "gyro_bias_z"]
+            assert runaway and {f["kind"] for f in runaway} <= {"drift", "step"}
+            # the onset is named: the earliest log flagged is the event's, none before it, and
+            # the drift (when flagged) starts there
+            assert all(f["log"] is not None for f in runaway), runaway
+            assert min(f["log"] for f in runaway) == log
+            assert all(f["log"] == log for f in runaway if f["kind"] == "drift")
     # the fleet table is sorted by how far each device has moved
     moved = [d["moved_max"] for d in fleet["devices"]]
     assert moved == sorted(moved, reverse=True)
