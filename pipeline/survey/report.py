@@ -26,6 +26,10 @@ if TYPE_CHECKING:
     from imupipe.pipeline.survey.chamber import Chambers
 
 
+CURVE_POINTS = 60
+"""Points of the chamber's gyro curve over the temperature range flown (fleet.json, the plot)."""
+
+
 def _col(table: pa.Table, name: str) -> np.ndarray:
     return table.column(name).to_numpy(zero_copy_only=False)
 
@@ -116,6 +120,12 @@ def chamber_view(
         step = float(np.nan_to_num(scales.get(figure, 0.0)))
         figures[figure] = ch.compare(log_index, temp, measured, se, p, step)
     sensor = "gyro" if "gyro" in model.ranges else "accel"
+    curve: dict[str, list[float]] = {}
+    finite = temp[np.isfinite(temp)]
+    if "gyro" in model.steps and len(finite):
+        grid = np.linspace(finite.min(), finite.max(), CURVE_POINTS)
+        curve = {"temperature": grid.tolist()}
+        curve.update({f: v.tolist() for f, v in ch.predicted(model, grid).items()})
     return {
         "source": model.source,
         **ch.outside(temp, model.ranges[sensor]),
@@ -123,6 +133,7 @@ def chamber_view(
         "t_ns": model.t_ns,
         "m": ch.steps_since(model.t_ns, h.day, t0_ns),
         "figures": figures,
+        "curve": curve,
     }
 
 
@@ -192,7 +203,90 @@ def summary_lines(fleet: dict[str, Any]) -> list[str]:
         why = r["why"]
         more = f" (+{len(why) - 1} more in report.html)" if len(why) > 1 else ""
         lines.append(f"  {r['device_id']}: {why[0]}{more}")
-    return lines
+    return lines + _chamber_line(fleet)
+
+
+def _chamber_line(fleet: dict[str, Any]) -> list[str]:
+    """One line on the chamber comparison (none without a chamber calibration)."""
+    compared = [d for d in fleet["devices"] if d.get("chamber")]
+    if not compared:
+        return []
+    beyond = [d for d in compared if d["chamber"]["outside"]]
+    line = (
+        f"imupipe survey: {len(compared)} of {len(fleet['devices'])} devices compared with their "
+        "chamber calibration"
+    )
+    if beyond:
+        line += (
+            f"; {len(beyond)} flown outside its calibrated range, where its curve is "
+            "extrapolated (report.html names them)"
+        )
+    return [line]
+
+
+def _chamber_plot(d: dict[str, Any], table: pa.Table) -> str | None:
+    """The raw gyro bias of every still period against temperature, on the axis that departs most
+    from its chamber curve (against its limits), with the chamber curve (dashed grey beyond the
+    chamber's calibrated range: extrapolated) and the in-field curve fitted to the periods (the
+    chamber curve moved by the offset and the slope difference, dashed)."""
+    c = d["chamber"]
+    curve = c.get("curve") or {}
+    axis = _worst_axis(c["figures"])
+    if "gyro_bias_x" not in curve or axis is None:
+        return None
+    figure = f"gyro_bias_{axis}"
+    fit = c["figures"][figure]
+    rows = _col(table, "device_id").astype(str) == d["device_id"]
+    temp = _col(table, "temperature").astype(np.float64)[rows]
+    grid = np.asarray(curve["temperature"])
+    lo, hi = c["ranges"]["gyro"]
+    inside = (grid >= lo) & (grid <= hi)
+    model = np.asarray(curve[figure])
+    color = colors_for(["x", "y", "z"], None)["xyz".index(axis)]
+    p = Plot(
+        "survey",
+        d["device_id"] + "/chamber",
+        "xy",
+        f"{d['device_id']}: gyro {axis} bias against temperature and its chamber curve",
+        "rad/s",
+        x_label="temperature",
+        x_unit="degC",
+    )
+    measured = _col(table, figure).astype(np.float64)[rows]
+    grey = (110, 110, 110)
+    p.series.append(
+        Series("chamber/periods", ["still periods"], [color], temp, measured[:, None], "points")
+    )
+    chamber = np.where(inside, model, np.nan)
+    p.series.append(
+        Series(
+            "chamber/curve",
+            [f"chamber curve ({lo:.0f}..{hi:.0f} degC)"],
+            [grey],
+            grid,
+            chamber[:, None],
+            "line",
+        )
+    )
+    if not inside.all():  # the extrapolated ends, joined to the line
+        near = np.convolve((~inside).astype(int), [1, 1, 1], "same") > 0
+        p.series.append(
+            Series(
+                "chamber/extrapolated",
+                ["chamber curve, extrapolated"],
+                [grey],
+                grid,
+                np.where(near, model, np.nan)[:, None],
+                "guide",
+            )
+        )
+    infield = model + fit["offset"] + fit["slope"] * (grid - fit["t_centre"])
+    p.series.append(
+        Series(
+            "chamber/infield", ["in-field curve (fit)"], [color], grid, infield[:, None], "guide"
+        )
+    )
+    return svg(p)
 
 
 def _device_plots(d: dict[str, Any], table: pa.Table) -> list[str]:
@@ -244,7 +338,8 @@ def _device_plots(d: dict[str, Any], table: pa.Table) -> list[str]:
             "survey",
             d["device_id"] + "/thermal",
             "xy",
-            f"{d['device_id']}: gyro bias against temperature (still periods)",
+            f"{d['device_id']}: gyro bias against temperature (still periods"
+            + (", after the calibration)" if pre else ")"),
             "rad/s",
             x_label="temperature",
             x_unit="degC",
@@ -255,7 +350,80 @@ def _device_plots(d: dict[str, Any], table: pa.Table) -> list[str]:
                 Series(f"thermal/{a}", [gyro_names[i]], [colors[i]], temp, y[:, None], "points")
             )
         plots.append(svg(r))
+    if d.get("chamber"):
+        plots.append(_chamber_plot(d, table))
     return [s for s in plots if s]
+
+
+def _worst_axis(c: dict[str, Any], keys: tuple[str, ...] = ("offset", "slope")) -> str | None:
+    """The gyro axis whose ``keys`` (``offset``, ``slope``) are the largest against their limits."""
+    ratios = {}
+    for a in "xyz":
+        f = c.get(f"gyro_bias_{a}", {})
+        r = [abs(f[k]) / f[f"limit_{k}"] for k in keys if f.get(f"limit_{k}", 0) > 0]
+        if r:
+            ratios[a] = max(r)
+    return max(ratios, key=lambda a: ratios[a]) if ratios else None
+
+
+def _chamber_cells(d: dict[str, Any]) -> tuple[str, str, str]:
+    """The fleet table's chamber cells: the gyro axis furthest off in offset and in slope (value
+    +- standard error), and the still periods beyond the chamber's calibrated range."""
+    ch = d.get("chamber")
+    if not ch:
+        return "-", "-", "-"
+    c = ch["figures"]
+    cells = []
+    for key, se in (("offset", "offset_se"), ("slope", "slope_se")):
+        a = _worst_axis(c, (key,))
+        cells.append(
+            "-"
+            if a is None
+            else f"{a} {c[f'gyro_bias_{a}'][key]:+.1e} &plusmn; {c[f'gyro_bias_{a}'][se]:.0e}"
+        )
+    span = ch["outside_span"]
+    cells.append(f"{ch['outside']} ({span[0]:.0f}..{span[1]:.0f} degC)" if span else "0")
+    return cells[0], cells[1], cells[2]
+
+
+def _chamber_text(d: dict[str, Any]) -> str:
+    """The device section's line on its chamber calibration."""
+    ch = d.get("chamber")
+    if not ch:
+        return ""
+    esc = html.escape
+    lo, hi = ch["range"]
+    text = f"Chamber calibration {esc(ch['source'])}, calibrated over {lo:.0f}..{hi:.0f} degC"
+    if ch["outside_span"]:
+        a, b = ch["outside_span"]
+        text += (
+            f"; {ch['outside']} still periods at {a:.1f}..{b:.1f} degC lie beyond it: its curve "
+            "is extrapolated there"
+        )
+    rows = []
+    for figure, c in ch["figures"].items():
+        if not np.isfinite(c["offset"]):
+            continue
+        unit = "rad/s" if figure.startswith("gyro") else "m/s^2"
+        rows.append(
+            f"<tr><td>{esc(figure)}</td><td>{c['offset']:+.2e} &plusmn; {c['offset_se']:.1e} "
+            f"{unit} at {c['t_centre']:.1f} degC</td><td>{c.get('limit_offset', np.nan):.1e}</td>"
+            f"<td>{c['slope']:+.2e} &plusmn; {c['slope_se']:.1e} {unit}/K</td>"
+            f"<td>{c.get('limit_slope', np.nan):.1e}</td>"
+            f"<td>{c['worst']:+.2e} at {c['worst_t']:.1f} degC</td></tr>"
+        )
+    head = "".join(
+        f"<th>{h}</th>"
+        for h in (
+            "figure",
+            "offset (in-field - chamber)",
+            "limit",
+            "slope difference",
+            "limit",
+            "largest departure in the range flown",
+        )
+    )
+    return f"<p>{text}.</p><table><tr>{head}</tr>{''.join(rows)}</table>"
 
 
 def write_report(path: Path, table: pa.Table, fleet: dict[str, Any]) -> None:
@@ -272,6 +440,9 @@ def write_report(path: Path, table: pa.Table, fleet: dict[str, Any]) -> None:
             "gyro drift (rad/s/day)",
             "thermal slope (rad/s/K)",
             "gyro noise (rad/s/sqrt(Hz))",
+            "vs chamber: offset (rad/s)",
+            "vs chamber: slope (rad/s/K)",
+            "periods beyond the chamber's range",
             "flags",
         )
     )
@@ -294,6 +465,7 @@ def write_report(path: Path, table: pa.Table, fleet: dict[str, Any]) -> None:
                     f"{drift:.2e}",
                     " ".join(f"{t:.1e}" for t in thermal),
                     f"{noise:.2e}",
+                    *_chamber_cells(d),
                     len(d["flags"]),
                 )
             )
@@ -311,6 +483,7 @@ def write_report(path: Path, table: pa.Table, fleet: dict[str, Any]) -> None:
         flags = "".join(f"<li>{esc(f['why'])}</li>" for f in d["flags"]) or "<li>no flag</li>"
         sections.append(
             f"<section id='{esc(d['device_id'])}'><h2>{esc(d['device_id'])}</h2><ul>{flags}</ul>"
+            + _chamber_text(d)
             + "".join(_device_plots(d, table))
             + "</section>"
         )
@@ -330,16 +503,19 @@ def write_report(path: Path, table: pa.Table, fleet: dict[str, Any]) -> None:
     Path(path).write_text(text, encoding="utf-8")
 
 
-def write_recording(path: Path, table: pa.Table) -> None:
+def write_recording(path: Path, table: pa.Table, fleet: dict[str, Any] | None = None) -> None:
     """``survey.rrd``: a Rerun recording with, per device, its still periods' gyro bias,
     ``|a| - g``, noise densities and temperature on the calendar timeline (one point per
-    period; the figures after the calibration when the dataset has them)."""
+    period; the figures after the calibration when the dataset has them) and, with a chamber
+    calibration, its raw gyro bias against temperature with the chamber curve
+    (``/survey/<device>/chamber/...``)."""
     from imupipe.pipeline.report.recording import Recorder
 
     pre = _prefix(table)
     devices = _col(table, "device_id").astype(str)
     start = _col(table, "start_ns").astype(np.int64)
     recorder = Recorder(Path(path), application_id="imupipe survey")
+    by_id = {d["device_id"]: d.get("chamber") for d in (fleet or {}).get("devices", [])}
     for dev in sorted(set(devices)):
         rows = np.flatnonzero(devices == dev)
         rows = rows[np.argsort(start[rows], kind="stable")]
@@ -360,5 +536,26 @@ def write_recording(path: Path, table: pa.Table) -> None:
             recorder.series(
                 f"{base}/{entity}", t, values, names, unit=unit, plot=f"{dev} {title}",
                 title=f"{dev}: {title}", points=True,
+            )  # fmt: skip
+        chamber = by_id.get(dev)
+        if chamber and chamber.get("curve", {}).get("gyro_bias_x") is not None:
+            temp = _col(table, "temperature").astype(np.float64)[rows]
+            names = [f"gyro bias {a}" for a in axes]
+            plot = base.rsplit("/", 1)[1] + "_chamber"  # an entity path: no blanks
+            title = f"{dev}: gyro bias against temperature, still periods and chamber curve"
+            raw = np.column_stack(
+                [_col(table, f"gyro_bias_{a}").astype(np.float64)[rows] for a in axes]
+            )
+            recorder.curve(
+                f"{base}/chamber/periods", temp, raw, [f"{n}, still periods" for n in names],
+                x_label="temperature", x_unit="degC", unit="rad/s", plot=plot, title=title,
+                points=True,
+            )  # fmt: skip
+            curve = chamber["curve"]
+            recorder.curve(
+                f"{base}/chamber/curve", np.asarray(curve["temperature"]),
+                np.column_stack([curve[f"gyro_bias_{a}"] for a in axes]),
+                [f"{n}, chamber curve" for n in names], x_label="temperature", x_unit="degC",
+                unit="rad/s", plot=plot, title=title,
             )  # fmt: skip
     recorder.close()

@@ -433,7 +433,7 @@ def survey(
             if rerun:
                 from imupipe.pipeline.survey.report import write_recording
 
-                write_recording(out.path(out_dir / RECORDING_NAME), table)
+                write_recording(out.path(out_dir / RECORDING_NAME), table, fleet)
     return {
         "failed": failed,
         "surveyed": len(ok) - len(skipped),
