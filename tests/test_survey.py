@@ -6,12 +6,15 @@ opens in one call."""
 from __future__ import annotations
 
 import json
+import re
 
 import numpy as np
 import pyarrow.parquet as pq
 import pytest
 
+from imupipe.pipeline.calibration_file import load_calibration
 from imupipe.pipeline.simulate import simulate, write_log
+from imupipe.pipeline.survey.report import summary_lines
 from imupipe.pipeline.survey.scan import survey
 from imupipe.stages.static_detector import Intervals
 from imupipe.stages.survey.stats import (
@@ -25,7 +28,7 @@ from imupipe.stages.survey.stats import (
 )
 
 from conftest import run_cli
-from helpers import rrd_rows
+from helpers import rrd_rows, rrd_static
 
 SMALL = {"vehicles": 4, "imus": 2, "logs": 5, "log_s": 100.0}
 """A fleet small enough for CI: 8 devices, 40 device-logs."""
@@ -309,3 +312,159 @@ def test_survey_on_ray_matches_the_local_engine_and_keeps_ray_off_stderr(tmp_pat
     assert a.select(["device_id", "start_ns", "gyro_bias_x"]).equals(
         b.select(["device_id", "start_ns", "gyro_bias_x"])
     )
+
+
+# -- issue 30 item 3: the in-field thermal curve against the chamber calibration ------------------
+
+CHAMBER = {**SMALL, "events": False, "chamber": True}
+"""The planted events off, every device with a chamber calibration (``logs.chamber/``); with
+``chamber_events`` (the default) vehicle 1's curves have changed since: its imu1's gyro z offset,
+its imu0's gyro z thermal slope. The tutorial's section 5 simulates this fleet (seed 21)."""
+
+
+@pytest.fixture(scope="module")
+def chamber_planted(tmp_path_factory):
+    root = tmp_path_factory.mktemp("chamber")
+    logs, truth = _fleet(root, "logs", 21, **CHAMBER)
+    return root, truth, survey([logs], root / "out", chamber=root / "logs.chamber", jobs=2)
+
+
+def test_chamber_change_recovered_within_uncertainty(chamber_planted):
+    """Per device and gyro axis, the offset of the in-field curve from the chamber's (at the
+    survey's centre temperature) and the slope difference match the truth within their stated
+    standard errors."""
+    _, truth, result = chamber_planted
+    z_offset, z_slope = [], []
+    for d in result["fleet"]["devices"]:
+        true = truth["devices"][d["device_id"]]["chamber"]
+        for i, a in enumerate("xyz"):
+            c = d["chamber"]["figures"][f"gyro_bias_{a}"]
+            slope = true["gyro_slope"][i]
+            offset = np.mean([o[i] for o in true["gyro_offset"]])
+            offset += slope * (c["t_centre"] - true["tref"])
+            z_offset.append((c["offset"] - offset) / c["offset_se"])
+            z_slope.append((c["slope"] - slope) / c["slope_se"])
+    z_offset, z_slope = np.array(z_offset), np.array(z_slope)
+    assert len(z_offset) == 3 * 8
+    assert np.abs(z_offset).max() < 4 and np.abs(z_slope).max() < 4, (z_offset, z_slope)
+    assert np.mean(np.abs(z_slope) < 2) > 0.8  # neither too small nor too large an error
+    assert 0.5 < np.std(z_slope) < 1.6
+
+
+def test_chamber_change_flagged(chamber_planted):
+    root, truth, result = chamber_planted
+    fleet = result["fleet"]
+    planted = {
+        dev: info["chamber"]["planted"]
+        for dev, info in truth["devices"].items()
+        if info["chamber"]["planted"]
+    }
+    assert sorted(planted.values()) == ["offset", "slope"]
+    assert {r["device_id"] for r in fleet["recalibrate"]} == set(planted)
+    for d in fleet["devices"]:
+        kinds = {(f["kind"], f["figure"]) for f in d["flags"]}
+        if d["device_id"] in planted:
+            assert (f"chamber_{planted[d['device_id']]}", "gyro_bias_z") in kinds
+            assert d["flags"][0]["why"].startswith("in-field gyro z bias ")
+        else:
+            assert not kinds
+    lines = summary_lines(fleet)
+    assert any(" mrad/s above its chamber curve at " in line for line in lines), lines
+    # the periods beyond the chamber's 0..40 degC are counted per device
+    table = pq.read_table(root / "out" / "survey.parquet")
+    temps = np.array(table.column("temperature").to_pylist())
+    devices = np.array(table.column("device_id").to_pylist())
+    for d in fleet["devices"]:
+        mine = temps[devices == d["device_id"]]
+        assert d["chamber"]["outside"] == int(np.sum((mine > 40.5) | (mine < -0.5)))
+        assert d["chamber"]["range"] == [0.0, 40.0]
+    assert sum(d["chamber"]["outside"] for d in fleet["devices"]) > 0
+    # shown: a plot per device, fleet.json, the recording
+    report = (root / "out" / "report.html").read_text()
+    titled = re.findall(
+        r"(veh\d\d:/imu\d/data): gyro [xyz] bias against temperature and its", report
+    )
+    assert set(titled) == set(truth["devices"])
+    assert "vs chamber: offset (rad/s)" in report
+    saved = json.loads((root / "out" / "fleet.json").read_text())
+    assert all(d["chamber"]["figures"]["gyro_bias_z"]["limit_offset"] > 0 for d in saved["devices"])
+    static = rrd_static(root / "out" / "survey.rrd")
+    assert sum(p.endswith("/chamber/curve") for p in static) == 8
+
+
+def test_chamber_that_holds_flags_nothing(tmp_path):
+    logs, truth = _fleet(tmp_path, "logs", 21, **CHAMBER, chamber_events=False)
+    result = survey([logs], tmp_path / "out", chamber=tmp_path / "logs.chamber", jobs=2)
+    assert all(info["chamber"]["planted"] is None for info in truth["devices"].values())
+    assert all(d["chamber"] for d in result["fleet"]["devices"])
+    assert result["fleet"]["recalibrate"] == [], result["fleet"]["recalibrate"]
+
+
+def test_chamber_from_the_calibration_applied(tmp_path):
+    """Without ``--chamber``, the thermal steps of ``--calibration`` are the chamber curve; the
+    steady-state curve equals what the applied correction removed (inside its range)."""
+    logs, _ = _fleet(
+        tmp_path, "logs", 7, vehicles=1, imus=1, logs=3, log_s=60.0, events=False, chamber=True
+    )
+    cal = tmp_path / "logs.chamber" / "veh01.json"
+    result = survey([logs], tmp_path / "out", calibration=cal, jobs=1)
+    (d,) = result["fleet"]["devices"]
+    assert d["chamber"]["source"] == str(cal)
+    rows = pq.read_table(tmp_path / "out" / "survey.parquet").to_pylist()
+    from imupipe.pipeline.survey.chamber import device_model
+    from imupipe.stages.survey.chamber import predicted
+
+    model = device_model({None: [(str(cal), *load_calibration(cal))]}, "veh01", "/imu0/data")
+    inside = [r for r in rows if 1.0 < r["temperature"] < 39.0]
+    assert inside
+    pred = predicted(model, np.array([r["temperature"] for r in inside]))
+    for j, r in enumerate(inside):
+        for a in "xyz":  # corrected = raw - chamber curve (linear in T: the mean commutes)
+            expected = r[f"gyro_bias_{a}"] - pred[f"gyro_bias_{a}"][j]
+            assert r[f"cal_gyro_bias_{a}"] == pytest.approx(expected, abs=2e-6)
+
+
+def test_chamber_curve_inverts_the_applied_chain():
+    """The chamber curve (the raw output the chain maps to zero at a steady temperature) is what
+    the correction as ``run`` and ``convert`` apply it turns into zero: a poly temperature step
+    with a scale factor on z, then a linear step (matrix and offset)."""
+    from imupipe.readers.table import make_table, sensor
+    from imupipe.stages.steps import LinearStep, apply_chain
+    from imupipe.stages.survey.chamber import raw_output
+    from imupipe.stages.thermal.step import TemperatureStep
+
+    thermal = TemperatureStep(
+        type="temperature", sensor="gyro", model="poly", tref=25.0, window=None, window_s=10.0,
+        axes=[{"terms": ["1", "T", "T^2"], "coefficients": [1e-3 * (i + 1), 2e-5, -3e-7]}
+              for i in range(3)],
+        ranges={"T": [-10.0, 50.0]},
+        scale={"z": {"terms": ["1", "T"], "coefficients": [1.01, 1e-4]}},
+    )  # fmt: skip
+    matrix = np.array([[1.02, 0.01, 0.0], [0.0, 0.98, -0.02], [0.005, 0.0, 1.0]])
+    steps = [thermal, LinearStep("gyro_calibration", "gyro", matrix, np.array([2e-4, -1e-4, 3e-4]))]
+    for temp in (-5.0, 12.0, 37.5):
+        raw = raw_output(steps, np.array([temp]), np.zeros((1, 3)))
+        n = 2000
+        t_ns = (np.arange(n) * 1e7).astype(np.int64)
+        table = make_table(
+            t_ns,
+            gyro=np.tile(raw, (n, 1)),
+            accel=np.tile([0.0, 0.0, 9.81], (n, 1)),
+            temperature=np.full(n, temp),
+        )
+        corrected = sensor(apply_chain(table, steps), "gyro").values
+        assert np.abs(corrected).max() < 1e-12, (temp, corrected[:2])
+
+
+def test_chamber_option_errors(tmp_path):
+    logs, _ = _fleet(tmp_path, "logs", 5, vehicles=1, imus=1, logs=1, log_s=30.0, events=False)
+    proc = run_cli("survey", logs, "--out", tmp_path / "o", "--chamber", tmp_path / "none.json")
+    assert proc.returncode == 2 and "--chamber" in proc.stderr and proc.stderr.count("\n") == 1
+    plain = tmp_path / "plain.json"
+    chain = [
+        {"type": "gyro_bias", "sensor": "gyro", "matrix": np.eye(3).tolist(), "offset": [0, 0, 0]}
+    ]
+    plain.write_text(json.dumps({"chain": chain}))
+    proc = run_cli("survey", logs, "--out", tmp_path / "o", "--chamber", plain)
+    assert proc.returncode == 2 and "no temperature-compensation step" in proc.stderr
+    assert "Traceback" not in proc.stderr and not (tmp_path / "o").exists()
