@@ -468,3 +468,19 @@ def test_chamber_option_errors(tmp_path):
     proc = run_cli("survey", logs, "--out", tmp_path / "o", "--chamber", plain)
     assert proc.returncode == 2 and "no temperature-compensation step" in proc.stderr
     assert "Traceback" not in proc.stderr and not (tmp_path / "o").exists()
+
+
+def test_tutorial_quotes_the_chamber_fleet(chamber_planted):
+    """docs/tutorials/fleet-survey.md's section 5 simulates the fleet of ``chamber_planted``; the
+    summary it quotes is what the survey prints."""
+    from test_docs_examples import ROOT, blocks
+
+    page = ROOT / "docs" / "tutorials" / "fleet-survey.md"
+    body = next(b for _, b in blocks(page, "bash") if "chamber=true" in b)
+    command = body.splitlines()[0].split()
+    assert command[-2:] == ["--seed", "21"]
+    sets = dict(c.split("=") for c in command if "=" in c)
+    assert sets == {"logs": "5", "log_s": "100", "events": "false", "chamber": "true"}
+    assert {k: CHAMBER[k] for k in ("logs", "log_s")} == {"logs": 5, "log_s": 100.0}
+    quoted = next(b for _, b in blocks(page, "text") if "chamber curve" in b).strip().splitlines()
+    assert summary_lines(chamber_planted[2]["fleet"]) == quoted[:-1]
