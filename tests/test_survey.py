@@ -5,6 +5,7 @@ opens in one call."""
 
 from __future__ import annotations
 
+import itertools
 import json
 import re
 
@@ -17,6 +18,7 @@ from imupipe.pipeline.simulate import simulate, write_log
 from imupipe.pipeline.survey.report import summary_lines
 from imupipe.pipeline.survey.scan import survey
 from imupipe.stages.static_detector import Intervals
+from imupipe.stages.survey.chamber import predicted
 from imupipe.stages.survey.stats import (
     StillOptions,
     batch_means_se,
@@ -412,7 +414,6 @@ def test_chamber_from_the_calibration_applied(tmp_path):
     assert d["chamber"]["source"] == str(cal)
     rows = pq.read_table(tmp_path / "out" / "survey.parquet").to_pylist()
     from imupipe.pipeline.survey.chamber import device_model
-    from imupipe.stages.survey.chamber import predicted
 
     model = device_model({None: [(str(cal), *load_calibration(cal))]}, "veh01", "/imu0/data")
     inside = [r for r in rows if 1.0 < r["temperature"] < 39.0]
@@ -431,7 +432,7 @@ def test_chamber_curve_inverts_the_applied_chain():
     from imupipe.readers.table import make_table, sensor
     from imupipe.stages.steps import LinearStep, apply_chain
     from imupipe.stages.survey.chamber import raw_output
-    from imupipe.stages.thermal.step import TemperatureStep
+    from imupipe.stages.thermal.step import TemperatureStep, ThermalMatrixStep
 
     thermal = TemperatureStep(
         type="temperature", sensor="gyro", model="poly", tref=25.0, window=None, window_s=10.0,
@@ -441,8 +442,19 @@ def test_chamber_curve_inverts_the_applied_chain():
         scale={"z": {"terms": ["1", "T"], "coefficients": [1.01, 1e-4]}},
     )  # fmt: skip
     matrix = np.array([[1.02, 0.01, 0.0], [0.0, 0.98, -0.02], [0.005, 0.0, 1.0]])
-    steps = [thermal, LinearStep("gyro_calibration", "gyro", matrix, np.array([2e-4, -1e-4, 3e-4]))]
-    for temp in (-5.0, 12.0, 37.5):
+    linear = LinearStep("gyro_calibration", "gyro", matrix, np.array([2e-4, -1e-4, 3e-4]))
+
+    def comps(k, c0, c1):
+        return [{"terms": ["1", "T"], "coefficients": [c0 * (i + 1), c1]} for i in range(k)]
+
+    soak = ThermalMatrixStep(
+        type="thermal_soak", sensor="gyro", form="gyro", tref=20.0, range=[-20.0, 60.0],
+        parameters={"scale": comps(3, 1.0, 1e-4), "misalignment": comps(6, 1e-3, 2e-5),
+                    "bias": comps(3, 5e-4, -3e-5)},
+    )  # fmt: skip
+    for steps, temp in itertools.product(
+        ([thermal, linear], [soak, linear], [linear, soak]), (-5.0, 12.0, 37.5)
+    ):
         raw = raw_output(steps, np.array([temp]), np.zeros((1, 3)))
         n = 2000
         t_ns = (np.arange(n) * 1e7).astype(np.int64)
@@ -454,6 +466,36 @@ def test_chamber_curve_inverts_the_applied_chain():
         )
         corrected = sensor(apply_chain(table, steps), "gyro").values
         assert np.abs(corrected).max() < 1e-12, (temp, corrected[:2])
+
+
+def test_chamber_files_matched_to_devices(tmp_path):
+    """A folder: ``<vehicle>.json`` and ``<vehicle>/*.json`` are that vehicle's; within it an
+    entry naming a topic is that topic's device, one naming none every device's."""
+    from imupipe.pipeline.survey.chamber import device_model, load_chambers
+
+    def entry(topic, bias):
+        e = {
+            "type": "temperature", "sensor": "gyro", "kind": "temperature", "model": "poly",
+            "tref": 25.0, "window": None, "window_s": 10.0, "ranges": {"T": [0.0, 40.0]},
+            "axes": [{"terms": ["1", "T"], "coefficients": [bias, 1e-5]}] * 3,
+        }  # fmt: skip
+        return {**e, "fitted_on": {"topics": {"imu": topic}}} if topic else e
+
+    folder = tmp_path / "chambers"
+    (folder / "veh01").mkdir(parents=True)
+    (folder / "veh01" / "calibration.json").write_text(json.dumps({"chain": [entry(None, 1e-3)]}))
+    chain = [entry("/imu0/data", 2e-3), entry("/imu1/data", 3e-3)]
+    (folder / "veh02.json").write_text(json.dumps({"chain": chain}))
+    chambers = load_chambers(folder)
+    t = np.array([25.0])
+    for vehicle, topic, bias in (
+        ("veh01", "/imu0/data", 1e-3), ("veh01", "/imu1/data", 1e-3),
+        ("veh02", "/imu0/data", 2e-3), ("veh02", "/imu1/data", 3e-3),
+    ):  # fmt: skip
+        model = device_model(chambers, vehicle, topic)
+        assert predicted(model, t)["gyro_bias_z"][0] == pytest.approx(bias)
+    assert device_model(chambers, "veh02", "/imu2/data") is None
+    assert device_model(chambers, "veh03", "/imu0/data") is None
 
 
 def test_chamber_option_errors(tmp_path):
