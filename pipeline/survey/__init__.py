@@ -7,8 +7,9 @@ stages and the readers; nothing imports it but the command line.
 Its modules (the public face). Importing the package imports none of them, so that
 the command line starts light and no circle can form: import each by its full name.
 
+- :mod:`imupipe.pipeline.survey.chamber`: The chamber calibrations ``imupipe survey`` compares...
 - :mod:`imupipe.pipeline.survey.report`: The fleet view of ``imupipe survey``:...
 - :mod:`imupipe.pipeline.survey.scan`: ``imupipe survey LOG|FOLDER ...
 """
 
-__all__ = ["report", "scan"]
+__all__ = ["chamber", "report", "scan"]

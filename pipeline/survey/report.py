@@ -7,6 +7,13 @@ table (sorted by how far each device has moved, in units of the fleet's ordinary
 change) and, per device, its gyro bias and ``|a| - g`` against calendar time (one point per log,
 with its standard error as a band) and its gyro bias against temperature (one point per still
 period: the in-field thermal curve), drawn by :mod:`imupipe.pipeline.report.svg_plot`.
+
+With chamber calibrations (:mod:`imupipe.pipeline.survey.chamber`), each device's in-field curve
+is compared with its chamber curve (:mod:`imupipe.stages.survey.chamber`, on the raw figures):
+``fleet.json`` holds the comparison per device, the fleet table three more columns, the device's
+section a table and a plot of its gyro axis furthest from the chamber curve against temperature,
+the recording the raw gyro bias against temperature with the chamber curve, and the summary a
+line on how many devices were compared and flown beyond their chamber's range.
 """
 
 from __future__ import annotations
@@ -546,16 +553,17 @@ def write_recording(path: Path, table: pa.Table, fleet: dict[str, Any] | None = 
             raw = np.column_stack(
                 [_col(table, f"gyro_bias_{a}").astype(np.float64)[rows] for a in axes]
             )
+            colors = colors_for(names, None)  # an axis's periods and curve in one colour
             recorder.curve(
-                f"{base}/chamber/periods", temp, raw, [f"{n}, still periods" for n in names],
+                f"{base}/chamber/periods", temp, raw, [f"{a}, still periods" for a in axes],
                 x_label="temperature", x_unit="degC", unit="rad/s", plot=plot, title=title,
-                points=True,
+                points=True, colors=colors,
             )  # fmt: skip
             curve = chamber["curve"]
             recorder.curve(
                 f"{base}/chamber/curve", np.asarray(curve["temperature"]),
                 np.column_stack([curve[f"gyro_bias_{a}"] for a in axes]),
-                [f"{n}, chamber curve" for n in names], x_label="temperature", x_unit="degC",
-                unit="rad/s", plot=plot, title=title,
+                [f"{a}, chamber curve" for a in axes], x_label="temperature", x_unit="degC",
+                unit="rad/s", plot=plot, title=title, colors=colors,
             )  # fmt: skip
     recorder.close()

@@ -5,8 +5,9 @@ May import: the stages' shared bottom (static_detector, steps); the thermal mode
 Its modules (the public face). Importing the package imports none of them, so that
 the command line starts light and no circle can form: import each by its full name.
 
+- :mod:`imupipe.stages.survey.chamber`: In-field thermal curves against the chamber calibration...
 - :mod:`imupipe.stages.survey.fleet`: The fleet view of ``imupipe survey``: each device's...
 - :mod:`imupipe.stages.survey.stats`: The still moments of a log and what each one says about an...
 """
 
-__all__ = ["fleet", "stats"]
+__all__ = ["chamber", "fleet", "stats"]
