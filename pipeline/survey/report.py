@@ -37,8 +37,35 @@ CURVE_POINTS = 60
 """Points of the chamber's gyro curve over the temperature range flown (fleet.json, the plot)."""
 
 
-def _col(table: pa.Table, name: str) -> np.ndarray:
-    return table.column(name).to_numpy(zero_copy_only=False)
+_CACHE: dict[str, Any] = {"table": None, "columns": {}, "rows": None}
+"""The columns of the last table read (the fleet view reads the same columns for every device):
+its numpy arrays, shared (never written to), and each device's row indices."""
+
+
+def _cached(table: pa.Table) -> dict[str, Any]:
+    if _CACHE["table"] is not table:
+        _CACHE.update(table=table, columns={}, rows=None)
+    return _CACHE
+
+
+def _col(table: pa.Table, name: str, dtype: Any = None) -> np.ndarray:
+    """Column ``name`` as a numpy array (cast to ``dtype``), read once per table."""
+    columns = _cached(table)["columns"]
+    if (name, dtype) not in columns:
+        values = table.column(name).to_numpy(zero_copy_only=False)
+        columns[(name, dtype)] = values if dtype is None else values.astype(dtype)
+    return columns[(name, dtype)]
+
+
+def _rows(table: pa.Table, device_id: str) -> np.ndarray:
+    """The row indices of one device, in table order."""
+    cache = _cached(table)
+    if cache["rows"] is None:
+        names, index = np.unique(_col(table, "device_id", str), return_inverse=True)
+        order = np.argsort(index, kind="stable")
+        bounds = np.searchsorted(index[order], np.arange(len(names) + 1))
+        cache["rows"] = {str(n): order[bounds[i] : bounds[i + 1]] for i, n in enumerate(names)}
+    return cache["rows"].get(device_id, np.zeros(0, np.int64))
 
 
 def _prefix(table: pa.Table) -> str:
@@ -53,12 +80,12 @@ def _prefix(table: pa.Table) -> str:
 def histories(table: pa.Table) -> list[DeviceHistory]:
     """Each device's per-log history (see :func:`device_history`)."""
     p = _prefix(table)
-    devices = _col(table, "device_id").astype(str)
-    start = _col(table, "start_ns").astype(np.int64)
+    devices = _col(table, "device_id", str)
+    start = _col(table, "start_ns", np.int64)
     t0 = int(start.min()) if len(start) else 0
-    log = _col(table, "log").astype(str)
-    temp = _col(table, "temperature").astype(np.float64)
-    values = {f: _col(table, p + f).astype(np.float64) for f in FIGURES}
+    log = _col(table, "log", str)
+    temp = _col(table, "temperature", np.float64)
+    values = {f: _col(table, p + f, np.float64) for f in FIGURES}
     se = {
         f: _col(
             table,
@@ -68,15 +95,15 @@ def histories(table: pa.Table) -> list[DeviceHistory]:
         ).astype(np.float64)
         for f in FIGURES
     }
-    level = _col(table, p + "level").astype(bool)
+    level = _col(table, p + "level", bool)
     se["accel_norm_error"] = np.where(level, se["accel_norm_error"], np.nan)
     noise = {
-        s: np.mean([_col(table, f"{p}{s}_noise_{a}").astype(np.float64) for a in "xyz"], axis=0)
+        s: np.mean([_col(table, f"{p}{s}_noise_{a}", np.float64) for a in "xyz"], axis=0)
         for s in ("gyro", "accel")
     }
     out = []
     for dev in sorted(set(devices)):
-        rows = devices == dev
+        rows = _rows(table, dev)
         out.append(
             device_history(
                 dev,
@@ -102,19 +129,18 @@ def chamber_view(
     from imupipe.pipeline.survey.chamber import device_model
     from imupipe.stages.survey import chamber as ch
 
-    rows = _col(table, "device_id").astype(str) == h.device_id
+    rows = _rows(table, h.device_id)
     vehicle = str(_col(table, "vehicle")[rows][0])
     topic = str(_col(table, "topic")[rows][0])
     model = device_model(chambers, vehicle, topic)
     if model is None:
         return None
-    temp = _col(table, "temperature").astype(np.float64)[rows]
-    accel = np.column_stack(
-        [_col(table, f"accel_mean_{a}").astype(np.float64)[rows] for a in "xyz"]
-    )
+    temp = _col(table, "temperature", np.float64)[rows]
+    accel = np.column_stack([_col(table, f"accel_mean_{a}", np.float64)[rows] for a in "xyz"])
     pred = ch.predicted(model, temp, accel)
     index = {name: i for i, name in enumerate(h.logs)}
-    log_index = np.array([index[x] for x in _col(table, "log").astype(str)[rows]])
+    names, inverse = np.unique(_col(table, "log", str)[rows], return_inverse=True)
+    log_index = np.array([index[str(x)] for x in names])[inverse]
     figures = {}
     for figure, p in pred.items():
         se_name = (
@@ -122,8 +148,8 @@ def chamber_view(
             if figure.startswith("gyro")
             else "accel_norm_error_se"
         )
-        measured = _col(table, figure).astype(np.float64)[rows]
-        se = _col(table, se_name).astype(np.float64)[rows]
+        measured = _col(table, figure, np.float64)[rows]
+        se = _col(table, se_name, np.float64)[rows]
         step = float(np.nan_to_num(scales.get(figure, 0.0)))
         figures[figure] = ch.compare(log_index, temp, measured, se, p, step)
     sensor = "gyro" if "gyro" in model.ranges else "accel"
@@ -151,7 +177,7 @@ def fleet_view(table: pa.Table, k: float, chambers: Chambers | None = None) -> d
     recalibrate."""
     hs = histories(table)
     fleet = fleet_flags(hs, k)
-    start = _col(table, "start_ns").astype(np.int64)
+    start = _col(table, "start_ns", np.int64)
     t0 = int(start.min()) if len(start) else 0
     devices = []
     for h in hs:
@@ -243,8 +269,8 @@ def _chamber_plot(d: dict[str, Any], table: pa.Table) -> str | None:
         return None
     figure = f"gyro_bias_{axis}"
     fit = c["figures"][figure]
-    rows = _col(table, "device_id").astype(str) == d["device_id"]
-    temp = _col(table, "temperature").astype(np.float64)[rows]
+    rows = _rows(table, d["device_id"])
+    temp = _col(table, "temperature", np.float64)[rows]
     grid = np.asarray(curve["temperature"])
     lo, hi = c["ranges"]["gyro"]
     inside = (grid >= lo) & (grid <= hi)
@@ -259,7 +285,7 @@ def _chamber_plot(d: dict[str, Any], table: pa.Table) -> str | None:
         x_label="temperature",
         x_unit="degC",
     )
-    measured = _col(table, figure).astype(np.float64)[rows]
+    measured = _col(table, figure, np.float64)[rows]
     grey = (110, 110, 110)
     p.series.append(
         Series("chamber/periods", ["still periods"], [color], temp, measured[:, None], "points")
@@ -337,9 +363,9 @@ def _device_plots(d: dict[str, Any], table: pa.Table) -> list[str]:
     )
     q.series.append(Series("accel", ["|a| - g"], colors_for(["a"], None), day, f[:, None], "line"))
     plots.append(svg(q))
-    rows = _col(table, "device_id").astype(str) == d["device_id"]
+    rows = _rows(table, d["device_id"])
     pre = _prefix(table)
-    temp = _col(table, "temperature").astype(np.float64)[rows]
+    temp = _col(table, "temperature", np.float64)[rows]
     if np.isfinite(temp).any():
         r = Plot(
             "survey",
@@ -352,7 +378,7 @@ def _device_plots(d: dict[str, Any], table: pa.Table) -> list[str]:
             x_unit="degC",
         )
         for i, a in enumerate("xyz"):
-            y = _col(table, f"{pre}gyro_bias_{a}").astype(np.float64)[rows]
+            y = _col(table, f"{pre}gyro_bias_{a}", np.float64)[rows]
             r.series.append(
                 Series(f"thermal/{a}", [gyro_names[i]], [colors[i]], temp, y[:, None], "points")
             )
@@ -519,12 +545,12 @@ def write_recording(path: Path, table: pa.Table, fleet: dict[str, Any] | None = 
     from imupipe.pipeline.report.recording import Recorder
 
     pre = _prefix(table)
-    devices = _col(table, "device_id").astype(str)
-    start = _col(table, "start_ns").astype(np.int64)
+    devices = _col(table, "device_id", str)
+    start = _col(table, "start_ns", np.int64)
     recorder = Recorder(Path(path), application_id="imupipe survey")
     by_id = {d["device_id"]: d.get("chamber") for d in (fleet or {}).get("devices", [])}
     for dev in sorted(set(devices)):
-        rows = np.flatnonzero(devices == dev)
+        rows = _rows(table, dev)
         rows = rows[np.argsort(start[rows], kind="stable")]
         t = start[rows]
         base = "/survey/" + "".join(c if c.isalnum() else "_" for c in dev).strip("_")
@@ -539,20 +565,18 @@ def write_recording(path: Path, table: pa.Table, fleet: dict[str, Any] | None = 
             ("temperature", ["temperature"], ["temperature"], "degC", "temperature"),
         )  # fmt: skip
         for entity, names, columns, unit, title in shown:
-            values = np.column_stack([_col(table, c).astype(np.float64)[rows] for c in columns])
+            values = np.column_stack([_col(table, c, np.float64)[rows] for c in columns])
             recorder.series(
                 f"{base}/{entity}", t, values, names, unit=unit, plot=f"{dev} {title}",
                 title=f"{dev}: {title}", points=True,
             )  # fmt: skip
         chamber = by_id.get(dev)
         if chamber and chamber.get("curve", {}).get("gyro_bias_x") is not None:
-            temp = _col(table, "temperature").astype(np.float64)[rows]
+            temp = _col(table, "temperature", np.float64)[rows]
             names = [f"gyro bias {a}" for a in axes]
             plot = base.rsplit("/", 1)[1] + "_chamber"  # an entity path: no blanks
             title = f"{dev}: gyro bias against temperature, still periods and chamber curve"
-            raw = np.column_stack(
-                [_col(table, f"gyro_bias_{a}").astype(np.float64)[rows] for a in axes]
-            )
+            raw = np.column_stack([_col(table, f"gyro_bias_{a}", np.float64)[rows] for a in axes])
             colors = colors_for(names, None)  # an axis's periods and curve in one colour
             recorder.curve(
                 f"{base}/chamber/periods", temp, raw, [f"{a}, still periods" for a in axes],
