@@ -346,6 +346,12 @@ def test_chamber_change_recovered_within_uncertainty(chamber_planted):
             offset += slope * (c["t_centre"] - true["tref"])
             z_offset.append((c["offset"] - offset) / c["offset_se"])
             z_slope.append((c["slope"] - slope) / c["slope_se"])
+        # |a| - g: the accelerometer's offset change along gravity (the IMUs sit within 8 deg
+        # of level, so the z axis's)
+        c = d["chamber"]["figures"]["accel_norm_error"]
+        offset = np.mean([o[2] for o in true["accel_offset"]])
+        assert abs(c["offset"] - offset) < 4 * c["offset_se"], (d["device_id"], c, offset)
+        assert abs(c["slope"]) < 4 * c["slope_se"]
     z_offset, z_slope = np.array(z_offset), np.array(z_slope)
     assert len(z_offset) == 3 * 8
     assert np.abs(z_offset).max() < 4 and np.abs(z_slope).max() < 4, (z_offset, z_slope)
