@@ -296,10 +296,11 @@ def _name(figure: str) -> str:
 def chamber_flags(
     devices: Sequence[dict[str, Any]], scales: Mapping[str, float], k: float
 ) -> dict[str, Any]:
-    """Apply the rule of the module docstring: each device's ``chamber`` dict (figure ->
-    :func:`compare` result, plus ``m``) gets ``limit_offset``, ``limit_slope`` and the flags
-    (``chamber_offset``, ``chamber_slope``) appended to ``device["flags"]``; returns ``{"c":
-    ...}`` per figure (the fleet's robust scale of the standardised departures)."""
+    """Apply the rule of the module docstring to every device with a ``chamber`` dict
+    (``figures``: figure -> :func:`compare` result; ``m``; ``ranges``: sensor -> calibrated
+    range): each figure gets ``reach``, ``limit_offset`` and ``limit_slope``, and the flags
+    (``chamber_offset``, ``chamber_slope``) go to ``device["flags"]``. Returns, per figure,
+    ``{"offset": c, "slope": c}``: the widening ``c`` of each limit."""
     with_chamber = [d for d in devices if d.get("chamber")]
     widen: dict[str, dict[str, float]] = {}
     for figure in CHAMBER_FIGURES:
@@ -329,6 +330,9 @@ def chamber_flags(
                 f"{_name(figure)} {_text(figure, abs(c['worst']))} "
                 f"{'above' if c['worst'] > 0 else 'below'} its chamber curve at {c['worst_t']:.0f} degC"
             )
+            lo, hi = ch["ranges"]["gyro" if figure.startswith("gyro") else "accel"]
+            if not lo - WARN_MARGIN <= c["worst_t"] <= hi + WARN_MARGIN:
+                where += f" (beyond the chamber's {lo:.0f}..{hi:.0f} degC: extrapolated)"
             unit = "rad/s" if figure.startswith("gyro") else "m/s^2"
             if abs(c["offset"]) > c["limit_offset"]:
                 d["flags"].append(
