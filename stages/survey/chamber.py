@@ -12,8 +12,9 @@ ambient at it too (``Ta = T``), and the linear steps of the same sensor. Each st
 linear step: ``A = matrix``, ``o = offset``; a thermal-matrix step: its scale and misalignment at
 ``T`` and its bias), so the raw output for a corrected value ``c`` is
 ``o_1 + A_1^-1 (o_2 + A_2^-1 (... (o_n + A_n^-1 c)))``, solved per still period. Outside the
-chamber's calibrated range the model's terms are *extrapolated* (evaluated beyond it; the
-correction itself holds the temperature at the range's end), and those periods are named.
+chamber's calibrated range the model's terms are *extrapolated* (evaluated beyond it, a
+``piecewise`` model's hats holding their end values; the correction itself holds the temperature
+at the range's end), and those periods are named.
 
 **The comparison** (:func:`compare`), per figure (``gyro_bias_x|y|z``: the raw bias against the
 chamber's zero-rate output; ``accel_norm_error``: the raw ``|a| - g`` against the chamber's
