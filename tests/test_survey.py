@@ -504,6 +504,17 @@ def test_chamber_files_matched_to_devices(tmp_path):
     assert device_model(chambers, "veh03", "/imu0/data") is None
 
 
+def test_chamber_date_and_random_walk_reach():
+    """``m``, the log intervals from the chamber to the logs' mean date: from the chamber's date
+    when it is a wall-clock date, else one interval before the first log; at least 1."""
+    from imupipe.stages.survey.chamber import DAY_NS, steps_since
+
+    day, t0 = np.array([0.0, 7.0, 14.0, 21.0, 28.0]), 1_767_225_600 * 10**9
+    assert steps_since(t0 - int(20 * DAY_NS), day, t0) == pytest.approx((14 + 20) / 7)
+    assert steps_since(None, day, t0) == steps_since(10**12, day, t0) == pytest.approx(3.0)
+    assert steps_since(t0 + int(100 * DAY_NS), day, t0) == 1.0
+
+
 def test_chamber_option_errors(tmp_path):
     logs, _ = _fleet(tmp_path, "logs", 5, vehicles=1, imus=1, logs=1, log_s=30.0, events=False)
     proc = run_cli("survey", logs, "--out", tmp_path / "o", "--chamber", tmp_path / "none.json")

@@ -71,6 +71,8 @@ THERMAL = (TemperatureStep, ThermalMatrixStep)
 MIN_ROBUST_DEVICES = 6
 """Devices with a chamber calibration needed before their standardised departures' robust scale
 widens the limits (fewer: ``c = 1``)."""
+WALL_CLOCK_NS = 946_684_800 * 10**9
+"""2000-01-01 in Unix ns: a chamber date before it is a log's own clock, not a date."""
 CHAMBER_FIGURES = ("gyro_bias_x", "gyro_bias_y", "gyro_bias_z", "accel_norm_error")
 
 
@@ -271,9 +273,12 @@ def outside(temp: np.ndarray, calibrated: tuple[float, float]) -> dict[str, Any]
 
 def steps_since(chamber_ns: int | None, day: np.ndarray, t0_ns: int) -> float:
     """``m``: the log intervals between the chamber and the device's logs (their mean day),
-    in units of the device's median interval between logs; when the chamber's date is unknown,
-    as if it ran just before the first log. At least 1."""
+    in units of the device's median interval between logs; when the chamber's date is unknown
+    (or before :data:`WALL_CLOCK_NS`: a log timed from its own start), as if it ran one interval
+    before the first log. At least 1."""
     day = np.asarray(day, dtype=np.float64)
+    if chamber_ns is not None and chamber_ns < WALL_CLOCK_NS:  # the chamber log's own clock
+        chamber_ns = None
     if len(day) < 2:
         return 1.0
     gap = float(np.median(np.diff(day)))
