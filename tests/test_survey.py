@@ -10,6 +10,7 @@ import json
 import re
 
 import numpy as np
+import pyarrow.compute as pc
 import pyarrow.parquet as pq
 import pytest
 
@@ -382,10 +383,17 @@ def test_chamber_change_flagged(chamber_planted):
     table = pq.read_table(root / "out" / "survey.parquet")
     temps = np.array(table.column("temperature").to_pylist())
     devices = np.array(table.column("device_id").to_pylist())
+    outside = np.array(table.column("chamber_outside").to_pylist())
     for d in fleet["devices"]:
         mine = temps[devices == d["device_id"]]
         assert d["chamber"]["outside"] == int(np.sum((mine > 40.5) | (mine < -0.5)))
+        assert d["chamber"]["outside"] == int(np.sum(outside[devices == d["device_id"]]))
         assert d["chamber"]["range"] == [0.0, 40.0]
+    # the dataset holds the chamber curve at each period: raw minus it is what moved
+    assert table.schema.field("chamber_gyro_bias_z").metadata == {b"unit": b"rad/s"}
+    moved = pc.subtract(table.column("gyro_bias_z"), table.column("chamber_gyro_bias_z"))
+    offset_dev = (devices == "veh01:/imu1/data") & ~outside
+    assert np.median(np.array(moved.to_pylist())[offset_dev]) == pytest.approx(2e-3, abs=3e-4)
     assert sum(d["chamber"]["outside"] for d in fleet["devices"]) > 0
     # shown: a plot per device, fleet.json, the recording
     report = (root / "out" / "report.html").read_text()

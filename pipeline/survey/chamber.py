@@ -15,8 +15,9 @@ curve is made of its gyro and accelerometer thermal steps (``temperature``, ``th
 and the linear steps of the same sensors; a sensor without a thermal step has none.
 
 Without ``--chamber``, the thermal steps of ``--calibration`` (when it holds any) are every
-device's chamber curve, by the same rule. The chamber files are read by the fleet view only:
-giving, changing or dropping them never surveys a log again.
+device's chamber curve, by the same rule. The chamber files are read by the driver only (the
+dataset's ``chamber_*`` columns, :func:`chamber_columns`, and the fleet view): giving, changing or
+dropping them never surveys a log again.
 """
 
 from __future__ import annotations
@@ -25,10 +26,14 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+import pyarrow as pa
+
 from imupipe.pipeline.calibration_file import device, load_calibration
 from imupipe.pipeline.errors import ConfigError
 from imupipe.stages.steps import Step
-from imupipe.stages.survey.chamber import ChamberModel, chamber_model
+from imupipe.stages.survey.chamber import ChamberModel, chamber_model, predicted
+from imupipe.stages.thermal.step import WARN_MARGIN
 
 Chambers = dict[str | None, list[tuple[str, dict[str, Any], list[Step]]]]
 """vehicle (None: every vehicle) -> (file, document, steps) of its chamber calibrations."""
@@ -88,3 +93,48 @@ def device_model(chambers: Chambers, vehicle: str, topic: str) -> ChamberModel |
         if model is not None:
             return model
     return None
+
+
+CHAMBER_COLUMNS = (
+    ("chamber_gyro_bias_x", "rad/s"),
+    ("chamber_gyro_bias_y", "rad/s"),
+    ("chamber_gyro_bias_z", "rad/s"),
+    ("chamber_accel_norm_error", "m/s^2"),
+)
+"""The dataset's chamber columns (name, unit): the chamber's figure at each still period."""
+
+
+def chamber_columns(table: pa.Table, chambers: Chambers) -> pa.Table:
+    """``table`` (the survey dataset) with the chamber curve at each still period: the columns of
+    :data:`CHAMBER_COLUMNS` (the chamber's gyro zero-rate output and ``|a| - g`` at the period's
+    temperature and direction: :func:`imupipe.stages.survey.chamber.predicted`; NaN for a device
+    without a chamber curve) and ``chamber_outside`` (the period lies more than 0.5 degC beyond
+    the chamber's calibrated range, where its curve is extrapolated; null without a chamber)."""
+
+    def col(name: str) -> np.ndarray:
+        return table.column(name).to_numpy(zero_copy_only=False)
+
+    n = table.num_rows
+    out = {name: np.full(n, np.nan) for name, _ in CHAMBER_COLUMNS}
+    outside, known = np.zeros(n, bool), np.zeros(n, bool)
+    names, index = np.unique(col("device_id").astype(str), return_inverse=True)
+    vehicle, topic = col("vehicle").astype(str), col("topic").astype(str)
+    temp = col("temperature").astype(np.float64)
+    accel = np.column_stack([col(f"accel_mean_{a}").astype(np.float64) for a in "xyz"])
+    for i in range(len(names)):
+        rows = np.flatnonzero(index == i)
+        model = device_model(chambers, vehicle[rows[0]], topic[rows[0]])
+        if model is None:
+            continue
+        for figure, values in predicted(model, temp[rows], accel[rows]).items():
+            out["chamber_" + figure][rows] = values
+        lo, hi = model.ranges["gyro" if "gyro" in model.ranges else "accel"]
+        t = temp[rows]
+        outside[rows] = (t < lo - WARN_MARGIN) | (t > hi + WARN_MARGIN)
+        known[rows] = True
+    for name, unit in CHAMBER_COLUMNS:
+        field = pa.field(name, pa.float64(), metadata={"unit": unit})
+        table = table.append_column(field, pa.array(out[name], pa.float64()))
+    return table.append_column(
+        pa.field("chamber_outside", pa.bool_()), pa.array(outside, pa.bool_(), mask=~known)
+    )

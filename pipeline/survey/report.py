@@ -136,8 +136,11 @@ def chamber_view(
     if model is None:
         return None
     temp = _col(table, "temperature", np.float64)[rows]
-    accel = np.column_stack([_col(table, f"accel_mean_{a}", np.float64)[rows] for a in "xyz"])
-    pred = ch.predicted(model, temp, accel)
+    pred = {}
+    for figure in ch.CHAMBER_FIGURES:  # the dataset's chamber columns (chamber_columns)
+        values = _col(table, "chamber_" + figure, np.float64)[rows]
+        if np.isfinite(values).any():
+            pred[figure] = values
     index = {name: i for i, name in enumerate(h.logs)}
     names, inverse = np.unique(_col(table, "log", str)[rows], return_inverse=True)
     log_index = np.array([index[str(x)] for x in names])[inverse]
@@ -175,6 +178,10 @@ def fleet_view(table: pa.Table, k: float, chambers: Chambers | None = None) -> d
     figures, thermal slopes, drift, moved and flags, its comparison with its chamber calibration
     (``chamber``, with ``chambers``; see :func:`chamber_view`), and the devices to
     recalibrate."""
+    if chambers and "chamber_gyro_bias_x" not in table.column_names:
+        from imupipe.pipeline.survey.chamber import chamber_columns
+
+        table = chamber_columns(table, chambers)
     hs = histories(table)
     fleet = fleet_flags(hs, k)
     start = _col(table, "start_ns", np.int64)

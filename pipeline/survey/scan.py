@@ -422,6 +422,8 @@ def survey(
                 )
             }
             table = table.replace_schema_metadata(meta)
+            if chambers:  # the chamber curve at each period (chamber_* columns)
+                table = chamber_files.chamber_columns(table, chambers)
             pq.write_table(table, out.path(out_dir / SURVEY_NAME), compression="zstd")
             from imupipe.pipeline.survey.report import fleet_view, write_report
 
