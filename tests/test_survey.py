@@ -523,6 +523,21 @@ def test_chamber_date_and_random_walk_reach():
     assert steps_since(t0 + int(100 * DAY_NS), day, t0) == 1.0
 
 
+def test_chamber_offset_not_judged_without_a_fleet_scale(tmp_path):
+    """One device with two logs: the ordinary log-to-log change (and so the random walk since
+    the chamber) is unknown; the offset is not judged and the summary says so, the planted slope
+    change is still flagged."""
+    params = {"vehicles": 1, "imus": 1, "logs": 2, "log_s": 60.0, "events": False, "chamber": True}
+    logs, truth = _fleet(tmp_path, "logs", 3, **params)
+    result = survey([logs], tmp_path / "out", chamber=tmp_path / "logs.chamber", jobs=1)
+    (d,) = result["fleet"]["devices"]
+    assert truth["devices"][d["device_id"]]["chamber"]["planted"] == "offset and slope"
+    c = d["chamber"]["figures"]["gyro_bias_z"]
+    assert np.isnan(c["limit_offset"]) and abs(c["offset"]) > 1e-3  # moved, but not judged
+    assert {f["kind"] for f in d["flags"]} == {"chamber_slope"}
+    assert "offsets not judged" in summary_lines(result["fleet"])[-1]
+
+
 def test_chamber_option_errors(tmp_path):
     logs, _ = _fleet(tmp_path, "logs", 5, vehicles=1, imus=1, logs=1, log_s=30.0, events=False)
     proc = run_cli("survey", logs, "--out", tmp_path / "o", "--chamber", tmp_path / "none.json")

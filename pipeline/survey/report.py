@@ -235,7 +235,10 @@ def summary_lines(fleet: dict[str, Any]) -> list[str]:
     recal = fleet["recalibrate"]
     n = len(fleet["devices"])
     if not recal:
-        return [f"imupipe survey: {n} devices, none flagged (k = {fleet['k']:g} robust sigmas)"]
+        return [
+            f"imupipe survey: {n} devices, none flagged (k = {fleet['k']:g} robust sigmas)",
+            *_chamber_line(fleet),
+        ]
     lines = [
         f"imupipe survey: recalibrate {len(recal)} of {n} devices (k = {fleet['k']:g} robust sigmas):"
     ]
@@ -261,6 +264,11 @@ def _chamber_line(fleet: dict[str, Any]) -> list[str]:
             f"; {len(beyond)} flown outside its calibrated range, where its curve is "
             "extrapolated (report.html names them)"
         )
+    judged = [
+        c for d in compared for c in d["chamber"]["figures"].values() if np.isfinite(c["offset"])
+    ]
+    if judged and not any(np.isfinite(c.get("limit_offset", np.nan)) for c in judged):
+        line += "; offsets not judged (too few logs to tell the bias random walk since the chamber)"
     return [line]
 
 

@@ -43,7 +43,9 @@ in the ``m`` log intervals between the chamber and the device's logs (the bias r
 the chamber: expected, not a fault); the slope difference when ``|ds| > k c se_ds``. ``c`` is the
 robust scale (1.4826 MAD) of the fleet's standardised departures, floored at 1, when six devices
 or more have a chamber calibration (stated errors that are too small widen the limit for all),
-else 1.
+else 1. The offset is judged only when the fleet has ``MIN_PAIRS`` consecutive log pairs or more
+(else ``s``, and with it what the random walk since the chamber reaches, is unknown: the limit
+is null); the slope difference always.
 """
 
 from __future__ import annotations
@@ -73,6 +75,8 @@ MIN_ROBUST_DEVICES = 6
 widens the limits (fewer: ``c = 1``)."""
 WALL_CLOCK_NS = 946_684_800 * 10**9
 """2000-01-01 in Unix ns: a chamber date before it is a log's own clock, not a date."""
+MIN_PAIRS = 3
+"""Consecutive log pairs the fleet needs before the offset is judged (``s`` estimable)."""
 CHAMBER_FIGURES = ("gyro_bias_x", "gyro_bias_y", "gyro_bias_z", "accel_norm_error")
 
 
@@ -308,6 +312,12 @@ def chamber_flags(
     (``chamber_offset``, ``chamber_slope``) go to ``device["flags"]``. Returns, per figure,
     ``{"offset": c, "slope": c}``: the widening ``c`` of each limit."""
     with_chamber = [d for d in devices if d.get("chamber")]
+    pairs = sum(max(len(d["logs"]) - 1, 0) for d in devices)
+
+    def reach(figure: str, m: float) -> float:
+        s = scales.get(figure, float("nan"))
+        return float(s * np.sqrt(m)) if pairs >= MIN_PAIRS and np.isfinite(s) else float("nan")
+
     widen: dict[str, dict[str, float]] = {}
     for figure in CHAMBER_FIGURES:
         z_off, z_slope = [], []
@@ -315,8 +325,9 @@ def chamber_flags(
             c = d["chamber"]["figures"].get(figure)
             if c is None or not np.isfinite(c["offset"]):
                 continue
-            reach = np.nan_to_num(scales.get(figure, 0.0)) * np.sqrt(d["chamber"]["m"])
-            z_off.append(c["offset"] / np.hypot(c["offset_se"], reach))
+            r = reach(figure, d["chamber"]["m"])
+            if np.isfinite(r):
+                z_off.append(c["offset"] / np.hypot(c["offset_se"], r))
             if np.isfinite(c["slope_se"]) and c["slope_se"] > 0:
                 z_slope.append(c["slope"] / c["slope_se"])
         widen[figure] = {
@@ -328,9 +339,10 @@ def chamber_flags(
         for figure, c in ch["figures"].items():
             if not np.isfinite(c["offset"]):
                 continue
-            reach = float(np.nan_to_num(scales.get(figure, 0.0)) * np.sqrt(ch["m"]))
-            c["reach"] = reach
-            c["limit_offset"] = float(k * widen[figure]["offset"] * np.hypot(c["offset_se"], reach))
+            c["reach"] = reach(figure, ch["m"])
+            c["limit_offset"] = float(
+                k * widen[figure]["offset"] * np.hypot(c["offset_se"], c["reach"])
+            )
             c["limit_slope"] = float(k * widen[figure]["slope"] * c["slope_se"])
             where = (
                 f"{_name(figure)} {_text(figure, abs(c['worst']))} "
@@ -340,7 +352,7 @@ def chamber_flags(
             if not lo - WARN_MARGIN <= c["worst_t"] <= hi + WARN_MARGIN:
                 where += f" (beyond the chamber's {lo:.0f}..{hi:.0f} degC: extrapolated)"
             unit = "rad/s" if figure.startswith("gyro") else "m/s^2"
-            if abs(c["offset"]) > c["limit_offset"]:
+            if np.isfinite(c["limit_offset"]) and abs(c["offset"]) > c["limit_offset"]:
                 d["flags"].append(
                     {
                         "device_id": d["device_id"], "kind": "chamber_offset", "figure": figure,
