@@ -23,11 +23,24 @@ Model (SI; one device = one IMU instance of one vehicle):
   ``crash_gyro``), ``noise`` (vehicle 3, last imu: noise densities times ``noise_factor``:
   a loosened mount) and ``failing`` (vehicle 4, imu 0: the gyro z bias runs away at
   ``fail_rate`` rad/s per day). Events whose vehicle does not exist are left out.
+- **Chamber calibrations** (``chamber = true``): every device went through a thermal chamber
+  ``chamber_days`` days before its vehicle's first log, over ``chamber_range_c`` degC; its
+  chamber calibration is the true curve then (a ``temperature`` step, model ``poly``, terms
+  ``1, T`` about Tref = 25 degC, for the gyro and the accelerometer): ``b0 - w_pre + c (T - 25)``,
+  ``w_pre`` the bias random walk over those days (so the bias has moved since the chamber by
+  ``w_pre + w(day)``). Planted changes of the curve after the chamber (``chamber_events``, from
+  the first log on), both on vehicle 1: its last IMU's gyro bias moves by ``chamber_offset``
+  (rad/s, per axis), its first IMU's gyro thermal slope by ``chamber_slope`` (rad/s/K).
 
 Written as a folder ``OUT/<vehicle>/log_<k>.mcap``, one MCAP per log holding each IMU instance
 on ``/imu<i>/data`` (frame ``<vehicle>_imu<i>``) and ``/imu<i>/temperature``; the truth is
 ``OUT.truth.json``: per device and log, every still moment's bounds and its true mean gyro bias,
-accelerometer bias, ``|a| - g``, noise densities and temperature, and the planted events.
+accelerometer bias, ``|a| - g``, noise densities and temperature, and the planted events. With
+``chamber``, each vehicle's chamber calibration (one ``calibration.json`` with a gyro and an
+accelerometer step per IMU, each naming its topic) is ``OUT.chamber/<vehicle>.json`` and the truth
+gives per device ``chamber``: the change of the curve since the chamber, per log the offset at
+Tref (``gyro_offset``, ``accel_offset``, unit) and the slope change (``gyro_slope``,
+``accel_slope``, unit/K), and ``planted`` (``offset``, ``slope`` or null).
 """
 
 from __future__ import annotations
@@ -74,7 +87,15 @@ DEFAULTS: dict[str, Any] = {
     "crash_accel": [0.12, -0.08, 0.15],
     "noise_factor": 3.0,
     "fail_rate": 1.5e-3,
+    "chamber": False,
+    "chamber_days": 20.0,
+    "chamber_range_c": [0.0, 40.0],
+    "chamber_events": True,
+    "chamber_offset": [0.0, 0.0, 2e-3],
+    "chamber_slope": [0.0, 0.0, 6e-5],
 }
+CHAMBER_TREF = 25.0
+"""degC: the reference temperature of the simulated thermal coefficients and chamber curves."""
 
 
 @dataclass
@@ -99,15 +120,26 @@ class FleetLogs:
 
     params: dict[str, Any]
     logs: list[LogRecipe] = field(default_factory=list)
+    chambers: dict[str, dict[str, Any]] = field(default_factory=dict)
+    """vehicle -> its chamber calibration document (with ``chamber``)."""
 
     def tables(self, recipe: LogRecipe) -> list[pa.Table]:
         """The common tables of one log's IMU instances (one per topic)."""
         return _log(recipe, self.params, tables=True)[0]
 
     def write(self, out: Path) -> None:
-        """Write every log as ``out/<relative path>`` (MCAP; each written atomically)."""
+        """Write every log as ``out/<relative path>`` (MCAP; each written atomically) and each
+        vehicle's chamber calibration as ``out.chamber/<vehicle>.json``."""
         from imupipe.pipeline.atomic import staged_outputs
+        from imupipe.pipeline.calibration_file import calibration_json
         from imupipe.pipeline.writers.mcap import McapTableWriter
+
+        if self.chambers:
+            folder = out.with_name(out.name + ".chamber")
+            folder.mkdir(parents=True, exist_ok=True)
+            with staged_outputs() as staged:
+                for vehicle, doc in self.chambers.items():
+                    staged.write_text(folder / f"{vehicle}.json", calibration_json(doc))
 
         for recipe in self.logs:
             path = out / recipe.rel
@@ -215,6 +247,48 @@ def _log(
     return out, truth
 
 
+def chamber_entries(
+    vehicle: str, k: int, imu: dict[str, Any], p: dict[str, Any], t_ns: int
+) -> list[dict[str, Any]]:
+    """The chain entries of IMU ``k``'s chamber calibration: a ``temperature`` step (poly,
+    ``1, T`` about :data:`CHAMBER_TREF`) for the gyro and one for the accelerometer, fitted on a
+    chamber log of its topic that ended at ``t_ns``."""
+    from imupipe.stages.thermal.step import TemperatureStep
+
+    out = []
+    lo, hi = (float(v) for v in p["chamber_range_c"])
+    for sensor in ("gyro", "accel"):
+        b, c = imu[f"{sensor}_b0"], imu[f"{sensor}_c"]
+        step = TemperatureStep(
+            type="temperature",
+            sensor=sensor,
+            model="poly",
+            tref=CHAMBER_TREF,
+            window=None,
+            window_s=10.0,
+            axes=[
+                {"terms": ["1", "T"], "coefficients": [float(b[i]), float(c[i])]} for i in range(3)
+            ],
+            ranges={"T": [lo, hi]},
+        )
+        topic = f"/imu{k}"
+        out.append(
+            {
+                **step.to_json(),
+                "fitted_on": {
+                    "input": "chamber",
+                    "path": f"chamber/{vehicle}_imu{k}.mcap",
+                    "format": "mcap",
+                    "topics": {"imu": f"{topic}/data", "temperature": f"{topic}/temperature"},
+                    "frame_id": {"imu": f"{vehicle}_imu{k}"},
+                    "t_start_ns": t_ns - int(4 * 3600e9),
+                    "t_end_ns": t_ns,
+                },
+            }
+        )
+    return out
+
+
 def simulate(p: dict[str, Any], rng: np.random.Generator) -> tuple[FleetLogs, dict[str, Any]]:
     nv, ni, nl = int(p["vehicles"]), int(p["imus"]), int(p["logs"])
     event_log = nl // 2
@@ -223,6 +297,11 @@ def simulate(p: dict[str, Any], rng: np.random.Generator) -> tuple[FleetLogs, di
         for kind, (v, k) in {"crash": (1, 0), "noise": (2, ni - 1), "failing": (3, 0)}.items():
             if v < nv:
                 planted[(v, k)] = kind
+    chamber_planted: dict[tuple[int, int], str] = {}
+    if p["chamber"] and p["chamber_events"]:
+        chamber_planted = {(0, 0): "slope", (0, ni - 1): "offset"}
+        if ni == 1:
+            chamber_planted = {(0, 0): "offset and slope"}
     fleet = FleetLogs(dict(p))
     devices: dict[str, dict[str, Any]] = {}
     events: list[dict[str, Any]] = []
@@ -253,6 +332,32 @@ def simulate(p: dict[str, Any], rng: np.random.Generator) -> tuple[FleetLogs, di
                 events.append(
                     {"device_id": dev, "kind": kind, "log": f"{vehicle}/log_{event_log:02d}.mcap"}
                 )
+            chamber = None
+            if p["chamber"]:  # the walk from the chamber to the first log
+                st = state[-1]
+                pre = np.sqrt(float(p["chamber_days"]))
+                st["gyro_b0"] = (
+                    st["gyro_b"][0] - rng.standard_normal(3) * p["gyro_rw_per_day"] * pre
+                )
+                st["accel_b0"] = (
+                    st["accel_b"][0] - rng.standard_normal(3) * p["accel_rw_per_day"] * pre
+                )
+                change = chamber_planted.get((v, k))
+                st["chamber_offset"] = np.zeros(3)
+                st["chamber_slope"] = np.zeros(3)
+                if change and "offset" in change:
+                    st["chamber_offset"] = np.asarray(p["chamber_offset"], dtype=np.float64)
+                if change and "slope" in change:
+                    st["chamber_slope"] = np.asarray(p["chamber_slope"], dtype=np.float64)
+                chamber = {
+                    "file": f"{vehicle}.json",
+                    "planted": change,
+                    "tref": CHAMBER_TREF,
+                    "gyro_offset": (st["gyro_b"] - st["gyro_b0"] + st["chamber_offset"]).tolist(),
+                    "accel_offset": (st["accel_b"] - st["accel_b0"]).tolist(),
+                    "gyro_slope": st["chamber_slope"].tolist(),
+                    "accel_slope": [0.0, 0.0, 0.0],
+                }
             devices[dev] = {
                 "vehicle": vehicle,
                 "topic": topic,
@@ -261,6 +366,7 @@ def simulate(p: dict[str, Any], rng: np.random.Generator) -> tuple[FleetLogs, di
                 "gyro_thermal": state[-1]["gyro_c"].tolist(),
                 "accel_thermal": state[-1]["accel_c"].tolist(),
                 "event": kind,
+                "chamber": chamber,
                 "logs": [],
             }
         for j in range(nl):
@@ -273,12 +379,14 @@ def simulate(p: dict[str, Any], rng: np.random.Generator) -> tuple[FleetLogs, di
                     "k": k,
                     "gyro_b": st["gyro_b"][j].copy(),
                     "accel_b": st["accel_b"][j].copy(),
-                    "gyro_c": st["gyro_c"],
+                    "gyro_c": st["gyro_c"] + st.get("chamber_slope", 0.0),
                     "accel_c": st["accel_c"],
                     "t_off": st["t_off"],
                     "gyro_N": float(p["gyro_N"]),
                     "accel_N": float(p["accel_N"]),
                 }
+                if p["chamber"]:
+                    imu["gyro_b"] += st["chamber_offset"]
                 if kind == "crash":
                     imu["gyro_b"] += p["crash_gyro"]
                     imu["accel_b"] += np.asarray(p["crash_accel"], dtype=np.float64)
@@ -288,6 +396,28 @@ def simulate(p: dict[str, Any], rng: np.random.Generator) -> tuple[FleetLogs, di
                 elif kind == "failing":
                     imu["gyro_b"][2] += p["fail_rate"] * (days[j] - days[event_log] + 1)
                 imus.append(imu)
+            if p["chamber"] and j == 0:
+                t_ch = int((float(p["t0_s"]) + (days[0] - p["chamber_days"]) * 86400.0) * 1e9)
+                chain = [
+                    e
+                    for k in range(ni)
+                    for e in chamber_entries(
+                        vehicle,
+                        k,
+                        {
+                            "gyro_b0": state[k]["gyro_b0"],
+                            "accel_b0": state[k]["accel_b0"],
+                            "gyro_c": state[k]["gyro_c"],
+                            "accel_c": state[k]["accel_c"],
+                        },
+                        p,
+                        t_ch,
+                    )
+                ]
+                fleet.chambers[vehicle] = {
+                    "chain": chain,
+                    "simulated": {"scenario": "fleet", "vehicle": vehicle},
+                }
             recipe = LogRecipe(
                 rel,
                 vehicle,

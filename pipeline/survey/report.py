@@ -7,13 +7,20 @@ table (sorted by how far each device has moved, in units of the fleet's ordinary
 change) and, per device, its gyro bias and ``|a| - g`` against calendar time (one point per log,
 with its standard error as a band) and its gyro bias against temperature (one point per still
 period: the in-field thermal curve), drawn by :mod:`imupipe.pipeline.report.svg_plot`.
+
+With chamber calibrations (:mod:`imupipe.pipeline.survey.chamber`), each device's in-field curve
+is compared with its chamber curve (:mod:`imupipe.stages.survey.chamber`, on the raw figures):
+``fleet.json`` holds the comparison per device, the fleet table three more columns, the device's
+section a table and a plot of its gyro axis furthest from the chamber curve against temperature,
+the recording the raw gyro bias against temperature with the chamber curve, and the summary a
+line on how many devices were compared and flown beyond their chamber's range.
 """
 
 from __future__ import annotations
 
 import html
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import pyarrow as pa
@@ -22,9 +29,43 @@ from imupipe.pipeline.report.figures import Plot, Series, colors_for
 from imupipe.pipeline.report.svg_plot import svg
 from imupipe.stages.survey.fleet import FIGURES, DeviceHistory, device_history, fleet_flags
 
+if TYPE_CHECKING:
+    from imupipe.pipeline.survey.chamber import Chambers
 
-def _col(table: pa.Table, name: str) -> np.ndarray:
-    return table.column(name).to_numpy(zero_copy_only=False)
+
+CURVE_POINTS = 60
+"""Points of the chamber's gyro curve over the temperature range flown (fleet.json, the plot)."""
+
+
+_CACHE: dict[str, Any] = {"table": None, "columns": {}, "rows": None}
+"""The columns of the last table read (the fleet view reads the same columns for every device):
+its numpy arrays, shared (never written to), and each device's row indices."""
+
+
+def _cached(table: pa.Table) -> dict[str, Any]:
+    if _CACHE["table"] is not table:
+        _CACHE.update(table=table, columns={}, rows=None)
+    return _CACHE
+
+
+def _col(table: pa.Table, name: str, dtype: Any = None) -> np.ndarray:
+    """Column ``name`` as a numpy array (cast to ``dtype``), read once per table."""
+    columns = _cached(table)["columns"]
+    if (name, dtype) not in columns:
+        values = table.column(name).to_numpy(zero_copy_only=False)
+        columns[(name, dtype)] = values if dtype is None else values.astype(dtype)
+    return columns[(name, dtype)]
+
+
+def _rows(table: pa.Table, device_id: str) -> np.ndarray:
+    """The row indices of one device, in table order."""
+    cache = _cached(table)
+    if cache["rows"] is None:
+        names, index = np.unique(_col(table, "device_id", str), return_inverse=True)
+        order = np.argsort(index, kind="stable")
+        bounds = np.searchsorted(index[order], np.arange(len(names) + 1))
+        cache["rows"] = {str(n): order[bounds[i] : bounds[i + 1]] for i, n in enumerate(names)}
+    return cache["rows"].get(device_id, np.zeros(0, np.int64))
 
 
 def _prefix(table: pa.Table) -> str:
@@ -39,12 +80,12 @@ def _prefix(table: pa.Table) -> str:
 def histories(table: pa.Table) -> list[DeviceHistory]:
     """Each device's per-log history (see :func:`device_history`)."""
     p = _prefix(table)
-    devices = _col(table, "device_id").astype(str)
-    start = _col(table, "start_ns").astype(np.int64)
+    devices = _col(table, "device_id", str)
+    start = _col(table, "start_ns", np.int64)
     t0 = int(start.min()) if len(start) else 0
-    log = _col(table, "log").astype(str)
-    temp = _col(table, "temperature").astype(np.float64)
-    values = {f: _col(table, p + f).astype(np.float64) for f in FIGURES}
+    log = _col(table, "log", str)
+    temp = _col(table, "temperature", np.float64)
+    values = {f: _col(table, p + f, np.float64) for f in FIGURES}
     se = {
         f: _col(
             table,
@@ -54,15 +95,15 @@ def histories(table: pa.Table) -> list[DeviceHistory]:
         ).astype(np.float64)
         for f in FIGURES
     }
-    level = _col(table, p + "level").astype(bool)
+    level = _col(table, p + "level", bool)
     se["accel_norm_error"] = np.where(level, se["accel_norm_error"], np.nan)
     noise = {
-        s: np.mean([_col(table, f"{p}{s}_noise_{a}").astype(np.float64) for a in "xyz"], axis=0)
+        s: np.mean([_col(table, f"{p}{s}_noise_{a}", np.float64) for a in "xyz"], axis=0)
         for s in ("gyro", "accel")
     }
     out = []
     for dev in sorted(set(devices)):
-        rows = devices == dev
+        rows = _rows(table, dev)
         out.append(
             device_history(
                 dev,
@@ -78,11 +119,73 @@ def histories(table: pa.Table) -> list[DeviceHistory]:
     return out
 
 
-def fleet_view(table: pa.Table, k: float) -> dict[str, Any]:
+def chamber_view(
+    table: pa.Table, h: DeviceHistory, chambers: Chambers, t0_ns: int, scales: dict[str, float]
+) -> dict[str, Any] | None:
+    """One device's in-field thermal curves against its chamber calibration
+    (:mod:`imupipe.stages.survey.chamber`): ``source``, ``range`` (degC), the still periods
+    ``outside`` it and their ``outside_span``, ``t_ns`` (the chamber's date), ``m`` (log
+    intervals since it) and per figure the :func:`compare` result; None without a chamber curve."""
+    from imupipe.pipeline.survey.chamber import device_model
+    from imupipe.stages.survey import chamber as ch
+
+    rows = _rows(table, h.device_id)
+    vehicle = str(_col(table, "vehicle")[rows][0])
+    topic = str(_col(table, "topic")[rows][0])
+    model = device_model(chambers, vehicle, topic)
+    if model is None:
+        return None
+    temp = _col(table, "temperature", np.float64)[rows]
+    pred = {}
+    for figure in ch.CHAMBER_FIGURES:  # the dataset's chamber columns (chamber_columns)
+        values = _col(table, "chamber_" + figure, np.float64)[rows]
+        if np.isfinite(values).any():
+            pred[figure] = values
+    index = {name: i for i, name in enumerate(h.logs)}
+    names, inverse = np.unique(_col(table, "log", str)[rows], return_inverse=True)
+    log_index = np.array([index[str(x)] for x in names])[inverse]
+    figures = {}
+    for figure, p in pred.items():
+        se_name = (
+            figure.replace("gyro_bias_", "gyro_bias_se_")
+            if figure.startswith("gyro")
+            else "accel_norm_error_se"
+        )
+        measured = _col(table, figure, np.float64)[rows]
+        se = _col(table, se_name, np.float64)[rows]
+        step = float(np.nan_to_num(scales.get(figure, 0.0)))
+        figures[figure] = ch.compare(log_index, temp, measured, se, p, step)
+    sensor = "gyro" if "gyro" in model.ranges else "accel"
+    curve: dict[str, list[float]] = {}
+    finite = temp[np.isfinite(temp)]
+    if "gyro" in model.steps and len(finite):
+        grid = np.linspace(finite.min(), finite.max(), CURVE_POINTS)
+        curve = {"temperature": grid.tolist()}
+        curve.update({f: v.tolist() for f, v in ch.predicted(model, grid).items()})
+    return {
+        "source": model.source,
+        **ch.outside(temp, model.ranges[sensor]),
+        "ranges": {s: list(r) for s, r in model.ranges.items()},
+        "t_ns": model.t_ns,
+        "m": ch.steps_since(model.t_ns, h.day, t0_ns),
+        "figures": figures,
+        "curve": curve,
+    }
+
+
+def fleet_view(table: pa.Table, k: float, chambers: Chambers | None = None) -> dict[str, Any]:
     """The fleet view as a JSON-ready dict: ``k``, the fleet's scales, per device its per-log
-    figures, thermal slopes, drift, moved and flags, and the devices to recalibrate."""
+    figures, thermal slopes, drift, moved and flags, its comparison with its chamber calibration
+    (``chamber``, with ``chambers``; see :func:`chamber_view`), and the devices to
+    recalibrate."""
+    if chambers and "chamber_gyro_bias_x" not in table.column_names:
+        from imupipe.pipeline.survey.chamber import chamber_columns
+
+        table = chamber_columns(table, chambers)
     hs = histories(table)
     fleet = fleet_flags(hs, k)
+    start = _col(table, "start_ns", np.int64)
+    t0 = int(start.min()) if len(start) else 0
     devices = []
     for h in hs:
         moved = max((abs(v) for v in h.moved.values()), default=0.0)
@@ -102,8 +205,15 @@ def fleet_view(table: pa.Table, k: float) -> dict[str, Any]:
                 "moved": h.moved,
                 "moved_max": moved,
                 "flags": h.flags,
+                "chamber": chamber_view(table, h, chambers, t0, fleet["scales"])
+                if chambers
+                else None,
             }
         )
+    if chambers:
+        from imupipe.stages.survey.chamber import chamber_flags
+
+        fleet["chamber_widen"] = chamber_flags(devices, fleet["scales"], k)
     devices.sort(key=lambda d: -d["moved_max"])
     recal = [
         {"device_id": d["device_id"], "why": list(dict.fromkeys(f["why"] for f in d["flags"]))}
@@ -125,7 +235,10 @@ def summary_lines(fleet: dict[str, Any]) -> list[str]:
     recal = fleet["recalibrate"]
     n = len(fleet["devices"])
     if not recal:
-        return [f"imupipe survey: {n} devices, none flagged (k = {fleet['k']:g} robust sigmas)"]
+        return [
+            f"imupipe survey: {n} devices, none flagged (k = {fleet['k']:g} robust sigmas)",
+            *_chamber_line(fleet),
+        ]
     lines = [
         f"imupipe survey: recalibrate {len(recal)} of {n} devices (k = {fleet['k']:g} robust sigmas):"
     ]
@@ -133,7 +246,95 @@ def summary_lines(fleet: dict[str, Any]) -> list[str]:
         why = r["why"]
         more = f" (+{len(why) - 1} more in report.html)" if len(why) > 1 else ""
         lines.append(f"  {r['device_id']}: {why[0]}{more}")
-    return lines
+    return lines + _chamber_line(fleet)
+
+
+def _chamber_line(fleet: dict[str, Any]) -> list[str]:
+    """One line on the chamber comparison (none without a chamber calibration)."""
+    compared = [d for d in fleet["devices"] if d.get("chamber")]
+    if not compared:
+        return []
+    beyond = [d for d in compared if d["chamber"]["outside"]]
+    line = (
+        f"imupipe survey: {len(compared)} of {len(fleet['devices'])} devices compared with their "
+        "chamber calibration"
+    )
+    if beyond:
+        line += (
+            f"; {len(beyond)} flown outside its calibrated range, where its curve is "
+            "extrapolated (report.html names them)"
+        )
+    judged = [
+        c for d in compared for c in d["chamber"]["figures"].values() if np.isfinite(c["offset"])
+    ]
+    if judged and not any(np.isfinite(c.get("limit_offset", np.nan)) for c in judged):
+        line += "; offsets not judged (too few logs to tell the bias random walk since the chamber)"
+    return [line]
+
+
+def _chamber_plot(d: dict[str, Any], table: pa.Table) -> str | None:
+    """The raw gyro bias of every still period against temperature, on the axis that departs most
+    from its chamber curve (against its limits), with the chamber curve (dashed grey beyond the
+    chamber's calibrated range: extrapolated) and the in-field curve fitted to the periods (the
+    chamber curve moved by the offset and the slope difference, dashed)."""
+    c = d["chamber"]
+    curve = c.get("curve") or {}
+    axis = _worst_axis(c["figures"])
+    if "gyro_bias_x" not in curve or axis is None:
+        return None
+    figure = f"gyro_bias_{axis}"
+    fit = c["figures"][figure]
+    rows = _rows(table, d["device_id"])
+    temp = _col(table, "temperature", np.float64)[rows]
+    grid = np.asarray(curve["temperature"])
+    lo, hi = c["ranges"]["gyro"]
+    inside = (grid >= lo) & (grid <= hi)
+    model = np.asarray(curve[figure])
+    color = colors_for(["x", "y", "z"], None)["xyz".index(axis)]
+    p = Plot(
+        "survey",
+        d["device_id"] + "/chamber",
+        "xy",
+        f"{d['device_id']}: gyro {axis} bias against temperature and its chamber curve",
+        "rad/s",
+        x_label="temperature",
+        x_unit="degC",
+    )
+    measured = _col(table, figure, np.float64)[rows]
+    grey = (110, 110, 110)
+    p.series.append(
+        Series("chamber/periods", ["still periods"], [color], temp, measured[:, None], "points")
+    )
+    chamber = np.where(inside, model, np.nan)
+    p.series.append(
+        Series(
+            "chamber/curve",
+            [f"chamber curve ({lo:.0f}..{hi:.0f} degC)"],
+            [grey],
+            grid,
+            chamber[:, None],
+            "line",
+        )
+    )
+    if not inside.all():  # the extrapolated ends, joined to the line
+        near = np.convolve((~inside).astype(int), [1, 1, 1], "same") > 0
+        p.series.append(
+            Series(
+                "chamber/extrapolated",
+                ["chamber curve, extrapolated"],
+                [grey],
+                grid,
+                np.where(near, model, np.nan)[:, None],
+                "guide",
+            )
+        )
+    infield = model + fit["offset"] + fit["slope"] * (grid - fit["t_centre"])
+    p.series.append(
+        Series(
+            "chamber/infield", ["in-field curve (fit)"], [color], grid, infield[:, None], "guide"
+        )
+    )
+    return svg(p)
 
 
 def _device_plots(d: dict[str, Any], table: pa.Table) -> list[str]:
@@ -177,26 +378,100 @@ def _device_plots(d: dict[str, Any], table: pa.Table) -> list[str]:
     )
     q.series.append(Series("accel", ["|a| - g"], colors_for(["a"], None), day, f[:, None], "line"))
     plots.append(svg(q))
-    rows = _col(table, "device_id").astype(str) == d["device_id"]
+    rows = _rows(table, d["device_id"])
     pre = _prefix(table)
-    temp = _col(table, "temperature").astype(np.float64)[rows]
+    temp = _col(table, "temperature", np.float64)[rows]
     if np.isfinite(temp).any():
         r = Plot(
             "survey",
             d["device_id"] + "/thermal",
             "xy",
-            f"{d['device_id']}: gyro bias against temperature (still periods)",
+            f"{d['device_id']}: gyro bias against temperature (still periods"
+            + (", after the calibration)" if pre else ")"),
             "rad/s",
             x_label="temperature",
             x_unit="degC",
         )
         for i, a in enumerate("xyz"):
-            y = _col(table, f"{pre}gyro_bias_{a}").astype(np.float64)[rows]
+            y = _col(table, f"{pre}gyro_bias_{a}", np.float64)[rows]
             r.series.append(
                 Series(f"thermal/{a}", [gyro_names[i]], [colors[i]], temp, y[:, None], "points")
             )
         plots.append(svg(r))
+    if d.get("chamber"):
+        plots.append(_chamber_plot(d, table))
     return [s for s in plots if s]
+
+
+def _worst_axis(c: dict[str, Any], keys: tuple[str, ...] = ("offset", "slope")) -> str | None:
+    """The gyro axis whose ``keys`` (``offset``, ``slope``) are the largest against their limits."""
+    ratios = {}
+    for a in "xyz":
+        f = c.get(f"gyro_bias_{a}", {})
+        r = [abs(f[k]) / f[f"limit_{k}"] for k in keys if f.get(f"limit_{k}", 0) > 0]
+        if r:
+            ratios[a] = max(r)
+    return max(ratios, key=lambda a: ratios[a]) if ratios else None
+
+
+def _chamber_cells(d: dict[str, Any]) -> tuple[str, str, str]:
+    """The fleet table's chamber cells: the gyro axis furthest off in offset and in slope (value
+    +- standard error), and the still periods beyond the chamber's calibrated range."""
+    ch = d.get("chamber")
+    if not ch:
+        return "-", "-", "-"
+    c = ch["figures"]
+    cells = []
+    for key, se in (("offset", "offset_se"), ("slope", "slope_se")):
+        a = _worst_axis(c, (key,))
+        cells.append(
+            "-"
+            if a is None
+            else f"{a} {c[f'gyro_bias_{a}'][key]:+.1e} &plusmn; {c[f'gyro_bias_{a}'][se]:.0e}"
+        )
+    span = ch["outside_span"]
+    cells.append(f"{ch['outside']} ({span[0]:.0f}..{span[1]:.0f} degC)" if span else "0")
+    return cells[0], cells[1], cells[2]
+
+
+def _chamber_text(d: dict[str, Any]) -> str:
+    """The device section's line on its chamber calibration."""
+    ch = d.get("chamber")
+    if not ch:
+        return ""
+    esc = html.escape
+    lo, hi = ch["range"]
+    text = f"Chamber calibration {esc(ch['source'])}, calibrated over {lo:.0f}..{hi:.0f} degC"
+    if ch["outside_span"]:
+        a, b = ch["outside_span"]
+        text += (
+            f"; {ch['outside']} still periods at {a:.1f}..{b:.1f} degC lie beyond it: its curve "
+            "is extrapolated there"
+        )
+    rows = []
+    for figure, c in ch["figures"].items():
+        if not np.isfinite(c["offset"]):
+            continue
+        unit = "rad/s" if figure.startswith("gyro") else "m/s^2"
+        rows.append(
+            f"<tr><td>{esc(figure)}</td><td>{c['offset']:+.2e} &plusmn; {c['offset_se']:.1e} "
+            f"{unit} at {c['t_centre']:.1f} degC</td><td>{c.get('limit_offset', np.nan):.1e}</td>"
+            f"<td>{c['slope']:+.2e} &plusmn; {c['slope_se']:.1e} {unit}/K</td>"
+            f"<td>{c.get('limit_slope', np.nan):.1e}</td>"
+            f"<td>{c['worst']:+.2e} at {c['worst_t']:.1f} degC</td></tr>"
+        )
+    head = "".join(
+        f"<th>{h}</th>"
+        for h in (
+            "figure",
+            "offset (in-field - chamber)",
+            "limit",
+            "slope difference",
+            "limit",
+            "largest departure in the range flown",
+        )
+    )
+    return f"<p>{text}.</p><table><tr>{head}</tr>{''.join(rows)}</table>"
 
 
 def write_report(
@@ -218,6 +493,9 @@ def write_report(
             "gyro drift (rad/s/day)",
             "thermal slope (rad/s/K)",
             "gyro noise (rad/s/sqrt(Hz))",
+            "vs chamber: offset (rad/s)",
+            "vs chamber: slope (rad/s/K)",
+            "periods beyond the chamber's range",
             "flags",
         )
     )
@@ -240,6 +518,7 @@ def write_report(
                     f"{drift:.2e}",
                     " ".join(f"{t:.1e}" for t in thermal),
                     f"{noise:.2e}",
+                    *_chamber_cells(d),
                     len(d["flags"]),
                 )
             )
@@ -257,6 +536,7 @@ def write_report(
         flags = "".join(f"<li>{esc(f['why'])}</li>" for f in d["flags"]) or "<li>no flag</li>"
         sections.append(
             f"<section id='{esc(d['device_id'])}'><h2>{esc(d['device_id'])}</h2><ul>{flags}</ul>"
+            + _chamber_text(d)
             + "".join(_device_plots(d, table))
             + "</section>"
         )
@@ -277,18 +557,21 @@ def write_report(
     Path(path).write_text(text, encoding="utf-8")
 
 
-def write_recording(path: Path, table: pa.Table) -> None:
+def write_recording(path: Path, table: pa.Table, fleet: dict[str, Any] | None = None) -> None:
     """``survey.rrd``: a Rerun recording with, per device, its still periods' gyro bias,
     ``|a| - g``, noise densities and temperature on the calendar timeline (one point per
-    period; the figures after the calibration when the dataset has them)."""
+    period; the figures after the calibration when the dataset has them) and, with a chamber
+    calibration, its raw gyro bias against temperature with the chamber curve
+    (``/survey/<device>/chamber/...``)."""
     from imupipe.pipeline.report.recording import Recorder
 
     pre = _prefix(table)
-    devices = _col(table, "device_id").astype(str)
-    start = _col(table, "start_ns").astype(np.int64)
+    devices = _col(table, "device_id", str)
+    start = _col(table, "start_ns", np.int64)
     recorder = Recorder(Path(path), application_id="imupipe survey")
+    by_id = {d["device_id"]: d.get("chamber") for d in (fleet or {}).get("devices", [])}
     for dev in sorted(set(devices)):
-        rows = np.flatnonzero(devices == dev)
+        rows = _rows(table, dev)
         rows = rows[np.argsort(start[rows], kind="stable")]
         t = start[rows]
         base = "/survey/" + "".join(c if c.isalnum() else "_" for c in dev).strip("_")
@@ -303,9 +586,29 @@ def write_recording(path: Path, table: pa.Table) -> None:
             ("temperature", ["temperature"], ["temperature"], "degC", "temperature"),
         )  # fmt: skip
         for entity, names, columns, unit, title in shown:
-            values = np.column_stack([_col(table, c).astype(np.float64)[rows] for c in columns])
+            values = np.column_stack([_col(table, c, np.float64)[rows] for c in columns])
             recorder.series(
                 f"{base}/{entity}", t, values, names, unit=unit, plot=f"{dev} {title}",
                 title=f"{dev}: {title}", points=True,
+            )  # fmt: skip
+        chamber = by_id.get(dev)
+        if chamber and chamber.get("curve", {}).get("gyro_bias_x") is not None:
+            temp = _col(table, "temperature", np.float64)[rows]
+            names = [f"gyro bias {a}" for a in axes]
+            plot = base.rsplit("/", 1)[1] + "_chamber"  # an entity path: no blanks
+            title = f"{dev}: gyro bias against temperature, still periods and chamber curve"
+            raw = np.column_stack([_col(table, f"gyro_bias_{a}", np.float64)[rows] for a in axes])
+            colors = colors_for(names, None)  # an axis's periods and curve in one colour
+            recorder.curve(
+                f"{base}/chamber/periods", temp, raw, [f"{a}, still periods" for a in axes],
+                x_label="temperature", x_unit="degC", unit="rad/s", plot=plot, title=title,
+                points=True, colors=colors,
+            )  # fmt: skip
+            curve = chamber["curve"]
+            recorder.curve(
+                f"{base}/chamber/curve", np.asarray(curve["temperature"]),
+                np.column_stack([curve[f"gyro_bias_{a}"] for a in axes]),
+                [f"{a}, chamber curve" for a in axes], x_label="temperature", x_unit="degC",
+                unit="rad/s", plot=plot, title=title, colors=colors,
             )  # fmt: skip
     recorder.close()

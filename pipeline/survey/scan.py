@@ -310,6 +310,7 @@ def survey(
     out_dir: Path,
     *,
     calibration: Path | None = None,
+    chamber: Path | None = None,
     engine: str = "local",
     jobs: int | None = None,
     address: str | None = None,
@@ -322,8 +323,10 @@ def survey(
     batch_rows: int | None = None,
 ) -> dict[str, Any]:
     """Survey ``logs`` into ``out_dir``; returns ``{"failed": [(path, why)], "surveyed": n,
-    "skipped": n, "fleet": the fleet view}``. ``batch_rows``: rows per batch a worker reads
-    (memory; the figures do not depend on it)."""
+    "skipped": n, "fleet": the fleet view}``. ``chamber``: the chamber calibrations the in-field
+    thermal curves are compared with (:mod:`imupipe.pipeline.survey.chamber`; default: the
+    thermal steps of ``calibration``). ``batch_rows``: rows per batch a worker reads (memory;
+    the figures do not depend on it)."""
     from imupipe.pipeline.atomic import staged_outputs
     from imupipe.pipeline.calibration_file import load_calibration
     from imupipe.pipeline.convert.engines import Outcome, run_tasks
@@ -332,8 +335,17 @@ def survey(
 
     out_dir = Path(out_dir)
     doc = None
+    chambers = None
     if calibration is not None:
-        doc, _ = load_calibration(calibration)
+        doc, cal_steps = load_calibration(calibration)
+    if chamber is not None or calibration is not None:
+        from imupipe.pipeline.survey import chamber as chamber_files
+
+        chambers = (
+            chamber_files.load_chambers(chamber)
+            if chamber is not None
+            else chamber_files.from_calibration(calibration, doc, cal_steps)
+        )
     opts = dict(options or {})
     todo, skipped = plan(logs, out_dir, doc, opts, force, batch_rows)
     if not todo and not skipped:
@@ -403,10 +415,12 @@ def survey(
                 )
             }
             table = table.replace_schema_metadata(meta)
+            if chambers:  # the chamber curve at each period (chamber_* columns)
+                table = chamber_files.chamber_columns(table, chambers)
             pq.write_table(table, out.path(out_dir / SURVEY_NAME), compression="zstd")
             from imupipe.pipeline.survey.report import fleet_view, write_report
 
-            fleet = fleet_view(table, k=k)
+            fleet = fleet_view(table, k=k, chambers=chambers)
             out.write_text(
                 out_dir / "fleet.json", json.dumps(fleet, indent=2, default=float) + "\n"
             )
@@ -414,7 +428,7 @@ def survey(
             if rerun:
                 from imupipe.pipeline.survey.report import write_recording
 
-                write_recording(out.path(out_dir / RECORDING_NAME), table)
+                write_recording(out.path(out_dir / RECORDING_NAME), table, fleet)
     return {
         "failed": failed,
         "surveyed": len(ok) - len(skipped),
@@ -436,6 +450,13 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument(
         "--calibration", type=Path, help="calibration.json: also measure after applying it"
+    )
+    p.add_argument(
+        "--chamber",
+        type=Path,
+        metavar="CAL.json|FOLDER",
+        help="chamber calibrations to compare the in-field thermal curves with (a file, or a "
+        "folder of <vehicle>.json); default: --calibration's thermal steps",
     )
     p.add_argument("--engine", choices=("local", "ray"), default="local")
     p.add_argument("--jobs", type=int, help="worker processes (default: the usable cores)")
@@ -473,6 +494,7 @@ def main(args: argparse.Namespace) -> int:
         args.logs,
         args.out,
         calibration=args.calibration,
+        chamber=args.chamber,
         engine=args.engine,
         jobs=args.jobs,
         address=args.address,

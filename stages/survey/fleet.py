@@ -26,7 +26,8 @@ Per device (the still periods of all its logs; with a calibration, the figures a
 5. **Drift**: the Theil-Sen slope over calendar days of the per-log figure (unit/day), flagged
    when it departs from the fleet's median slope by more than ``k`` robust sigmas of the fleet's
    slopes and its change over the device's span exceeds ``k s_fleet sqrt(logs - 1)`` (the reach
-   of the ordinary log-to-log change, a random walk, over that many logs).
+   of the ordinary log-to-log change, a random walk, over that many logs). The flag names the log
+   the drift starts at (:func:`drift_onset`) when one stands out.
 6. **Moved**: the change of each figure from the first log to the last, in units of the fleet's
    step scale; the fleet table is sorted by it.
 
@@ -202,6 +203,18 @@ def _flag(
     )
 
 
+def drift_onset(f: np.ndarray, se: np.ndarray, scale: float, k: float, sign: float) -> int | None:
+    """The log a drift starts at: the first log ``j`` from which every log departs from the
+    median of the logs before ``j``, on the drift's side (``sign``), by more than
+    ``k sqrt(scale^2 + se^2)`` (the step rule's limit); None when there is none (a drift from
+    the first log on, or one that comes and goes)."""
+    for j in range(1, len(f)):
+        departure = sign * (f[j:] - np.median(f[:j]))
+        if np.all(departure > k * np.sqrt(scale**2 + se[j:] ** 2)):
+            return j
+    return None
+
+
 def fleet_flags(histories: Sequence[DeviceHistory], k: float) -> dict[str, Any]:
     """Apply the rules of the module docstring to every device (fills ``flags``, ``drift`` and
     ``moved``); returns the fleet's scales."""
@@ -256,14 +269,16 @@ def fleet_flags(histories: Sequence[DeviceHistory], k: float) -> dict[str, Any]:
                 and abs(s - med) > k * sig
                 and abs(s - med) * span > walk
             ):
+                j = drift_onset(f, se, base, k, float(np.sign(s - med)))
+                since = "" if j is None else f" from {h.logs[j]} on"
                 _flag(
                     h,
                     "drift",
                     name,
-                    None,
+                    None if j is None else h.logs[j],
                     s,
                     med + k * sig,
-                    f"{name} drifts {s:+.3g} {unit}/day (fleet median {med:+.3g}, limit +-{k * sig:.2g})",
+                    f"{name} drifts {s:+.3g} {unit}/day{since} (fleet median {med:+.3g}, limit +-{k * sig:.2g})",
                 )
         for s in ("gyro", "accel"):
             ln = np.log(np.maximum(h.noise[s], 1e-300))
