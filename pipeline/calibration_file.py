@@ -21,8 +21,11 @@ export needs when the data were already corrected by PX4. A step imported from a
 ``fitted_on`` for the step's stream: ``{"stream": "imu", "topic": "sensor_gyro_1",
 "instance": 1, "device_id": 3670050, "frame_id": ...}`` (keys present where known). Two
 entries are of different devices when both name a ``device_id`` and they differ, else when
-both name an ``instance`` and they differ (:func:`same_device`); an entry that names neither
-(CSV, ROS, a step imported from another tool) may be of any device and applies to every one.
+both name an ``instance`` and they differ, else when both come from message logs (MCAP, ROS 1,
+ROS 2: the topic is their only identity, a PX4 or ArduPilot topic is not) and name different
+topics (:func:`same_device`): two IMUs of one bag on ``/imu0/data`` and ``/imu1/data`` are two
+devices. An entry that names none (CSV, a step imported from another tool) may be of any
+device and applies to every one.
 Steps of one device compose; a step is never applied to another device's data
 (:class:`OnDevice`): in ``run``, a stage on ``sensor_gyro_1`` fits on data corrected only by
 ``sensor_gyro_1``'s earlier steps.
@@ -109,25 +112,43 @@ def device(where: Mapping[str, Any] | None, sensor: str) -> dict[str, Any]:
 
 UNNAMED: tuple[str] = ("unnamed",)
 """The key of an entry that names no device (it may be any)."""
+FLIGHT_LOG_FORMATS = ("ulog", "dataflash")
+"""Formats whose topics are not devices (``sensor_combined`` fuses several IMUs; their devices
+are named by ``instance`` and ``device_id``)."""
+
+
+def _topic(dev: Mapping[str, Any]) -> str | None:
+    """The topic that names a message log's device (MCAP, ROS 1, ROS 2): None for a device with
+    a ``device_id`` or ``instance``, for a flight log's topic, and where no topic is known."""
+    if dev.get("device_id") is not None or dev.get("instance") is not None:
+        return None
+    if dev.get("format") in FLIGHT_LOG_FORMATS or not dev.get("topic"):
+        return None
+    return str(dev["topic"])
 
 
 def device_key(dev: Mapping[str, Any]) -> tuple[Any, ...]:
     """What tells devices apart (module docstring): ``("device_id", id)``, else
-    ``("instance", n)``, else :data:`UNNAMED`."""
+    ``("instance", n)``, else a message log's ``("topic", name)``, else :data:`UNNAMED`."""
     if dev.get("device_id") is not None:
         return ("device_id", int(dev["device_id"]))
     if dev.get("instance") is not None:
         return ("instance", int(dev["instance"]))
-    return UNNAMED
+    topic = _topic(dev)
+    return UNNAMED if topic is None else ("topic", topic)
 
 
 def same_device(a: Mapping[str, Any], b: Mapping[str, Any]) -> bool:
     """Whether two devices may be the same: by ``device_id`` when both name one, else by
-    ``instance`` when both name one, else true (a device not named may be any)."""
+    ``instance`` when both name one, else by a message log's topic when both name one, else
+    true (a device not named may be any)."""
     if a.get("device_id") is not None and b.get("device_id") is not None:
         return int(a["device_id"]) == int(b["device_id"])
     if a.get("instance") is not None and b.get("instance") is not None:
         return int(a["instance"]) == int(b["instance"])
+    ta, tb = _topic(a), _topic(b)
+    if ta is not None and tb is not None:
+        return ta == tb
     return True
 
 

@@ -53,6 +53,18 @@ def mismatches(chain: Sequence[Mapping[str, Any]], log_meta: Mapping[str, Any]) 
         sensor = chain[i]["sensor"]
         devices.setdefault(sensor, set()).add(device_key(device(where, sensor)))
     devices = {k: v - {UNNAMED} for k, v in devices.items()}
+    for sensor, keys in sorted(devices.items()):
+        ours = device(log_meta, sensor)
+        mine = device_key(ours)
+        if len(keys) > 1 and mine != UNNAMED:
+            named = [dict(zip(("key", "value"), k, strict=True)) for k in sorted(keys, key=str)]
+            if not any(same_device({n["key"]: n["value"]}, ours) for n in named):
+                listed = ", ".join(f"{n['key']} {n['value']!r}" for n in named)
+                found.append(
+                    f"the calibration's {sensor} steps are for {len(keys)} devices ({listed}); "
+                    f"this log's {sensor} ({mine[0]} {mine[1]!r}) is none of "
+                    "them: none of their steps is applied"
+                )
     for i, where in fitted_on(chain):
         sensor = chain[i]["sensor"]
         if len(devices[sensor]) > 1 and not same_device(
