@@ -303,16 +303,26 @@ FAMILIES = {
 what the file leaves alone."""
 
 
+COMP_TYP = {"throttle": 1, "current": 2}
+"""``CAL_MAG_COMP_TYP`` of each motor source (``MagCompensationType::Throttle``,
+``Current_inst0``)."""
+POWER_UNIT = {"throttle": 1.0, "current": 1e3}
+"""PX4's power signal per imupipe's: the throttle 0..1 as it is, the current in kA (per A x 1e3)."""
+
+
 def motor_rows(model: SensorModel, t: Target) -> list[Row]:
-    """A magnetometer's current-based compensation (``mag_inflight``): PX4 adds
-    ``CAL_MAGn_{X,Y,Z}COMP`` times the battery current in kA to the raw field before the
-    offsets (``Magnetometer::Correct``, ``UpdatePower``), so ``COMP = S^-1 motor`` in G/kA,
-    with ``CAL_MAG_COMP_TYP = 2`` (current-based)."""
+    """A magnetometer's motor compensation (``mag_inflight``): PX4 adds ``CAL_MAGn_{X,Y,Z}COMP``
+    times its power signal to the raw field before the offsets (``Magnetometer::Correct``,
+    ``UpdatePower``): the battery current in kA with ``CAL_MAG_COMP_TYP = 2`` (``COMP = S^-1
+    motor`` in G/kA), or the throttle 0..1 with ``CAL_MAG_COMP_TYP = 1`` (G at full throttle;
+    ``VehicleMagnetometer`` takes the norm of ``vehicle_thrust_setpoint``, in PX4 up to v1.13
+    ``actuator_controls_0[3]``, and zero while disarmed)."""
     if model.motor is None or model.sensor != "mag":
         return []
-    comp = np.linalg.solve(model.matrix, model.motor) * GAUSS_PER_TESLA * 1e3
+    per = POWER_UNIT[model.motor_source]
+    comp = np.linalg.solve(model.matrix, model.motor) * GAUSS_PER_TESLA * per
     rows: list[Row] = [(f"CAL_MAG{t.n}_{a}COMP", comp[i], REAL32) for i, a in enumerate("XYZ")]
-    return rows + [("CAL_MAG_COMP_TYP", 2, INT32)]
+    return rows + [("CAL_MAG_COMP_TYP", COMP_TYP[model.motor_source], INT32)]
 
 
 def families(sensor: str, t: Target) -> list[tuple[str, str]]:

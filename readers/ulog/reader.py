@@ -93,6 +93,8 @@ READ_TOPICS = (
     "sensor_gps",
     "vehicle_global_position",
     "battery_status",
+    "vehicle_thrust_setpoint",
+    "actuator_controls_0",
 )
 """The topics a read parses (pyulog skips the payload of every other topic)."""
 PARAMETER_PREFIXES = ("CAL_", "TC_", "SENS_BOARD_")
@@ -596,7 +598,11 @@ def flight_streams(f: UlogFile, time: str) -> dict[str, tuple[np.ndarray, np.nda
     - ``position``: ``vehicle_gps_position`` (or ``sensor_gps``) instance 0 with ``fix_type``
       >= 3, else ``vehicle_global_position``;
     - ``current``: ``battery_status`` instance 0 ``current_a`` (A), where it is measured (PX4
-      logs -1 for "unknown").
+      logs -1 for "unknown");
+    - ``throttle``: what PX4's throttle-based magnetometer power compensation
+      (``CAL_MAG_COMP_TYP = 1``, ``VehicleMagnetometer``) multiplies ``CAL_MAGn_*COMP`` by: the
+      norm of ``vehicle_thrust_setpoint`` instance 0 ``xyz`` (PX4 v1.14 and later), else
+      ``actuator_controls_0`` ``control[3]`` (``INDEX_THROTTLE``, up to v1.13), 0..1.
     """
     out: dict[str, tuple[np.ndarray, np.ndarray]] = {}
 
@@ -624,6 +630,13 @@ def flight_streams(f: UlogFile, time: str) -> dict[str, tuple[np.ndarray, np.nda
         keep = amps >= 0
         if keep.any():
             out["current"] = (stamp(bat)[keep], amps[keep])
+    thrust = f.instances.get("vehicle_thrust_setpoint")
+    controls = f.instances.get("actuator_controls_0")
+    if thrust is not None and thrust.has("xyz[0]", "xyz[1]", "xyz[2]") and len(thrust):
+        xyz = thrust.vector("xyz[0]", "xyz[1]", "xyz[2]")
+        out["throttle"] = (stamp(thrust), np.linalg.norm(xyz, axis=1))
+    elif controls is not None and controls.has("control[3]") and len(controls):
+        out["throttle"] = (stamp(controls), controls.vector("control[3]")[:, 0])
     return out
 
 

@@ -1,15 +1,18 @@
 """``mag_inflight`` stage: the compass calibrated from a flight log against the World Magnetic
 Model, as ArduPilot's MagFit (pymavlink ``tools/magfit_WMM.py``) does.
 
-Model (tesla; ``I`` the battery current in A, interpolated onto the magnetometer's stamps)::
+Model (tesla; ``P`` the motor power signal interpolated onto the magnetometer's stamps: the
+battery current ``I`` in A, or the collective throttle 0..1 when the motor term follows the
+throttle)::
 
-    R(q)^T B_wmm(lat, lon, alt)  =  M (raw - offset) + motor * I
+    R(q)^T B_wmm(lat, lon, alt)  =  M (raw - offset) + motor * P
 
 ``B_wmm`` is the earth field in NED (:mod:`imupipe.stages.magnetometer.wmm`), ``R(q)`` the attitude
 (body FRD -> NED) of the table's ``attitude`` flight stream, so the left side is the field the
 compass should read in the body frame. ``offset`` is the hard iron, ``M`` a symmetric matrix
 (soft iron and scale: ArduPilot's ``COMPASS_SCALE`` x ``DIA``/``ODI``), ``motor`` the field per
-ampere (``COMPASS_MOT``, current-based). The model is linear in ``(M, -M offset, motor)``:
+ampere (``COMPASS_MOT`` with ``COMPASS_MOTCT = 2``) or per unit of throttle (``COMPASS_MOTCT =
+1``, PX4 ``CAL_MAG_COMP_TYP = 1``). The model is linear in ``(M, -M offset, motor)``:
 it is fitted by iteratively reweighted least squares with Huber weights on the vector
 residual (``huber_k`` robust sigmas), samples beyond ``outlier_k`` robust sigmas rejected.
 
@@ -18,11 +21,19 @@ Model choice (``model = "auto"``): ``offsets`` (M = I), ``scale`` (M = s I), ``s
 ``folds`` segments in time, each candidate fitted on the others and scored on the one held
 out, and the simplest candidate within 2 % of the best held-out RMS residual is kept.
 
+Motor source (``motor_source = "auto"``): the battery current when only it is logged and
+separable, the throttle (the table's ``throttle`` flight stream: ArduCopter ``CTUN.ThO``, PX4's
+thrust setpoint) when only it is, and when both are: the static model is chosen with the
+current, then the throttle is scored with that model on the same held-out segments and replaces
+the current only when its held-out RMS residual is more than 2 % lower (the current is the
+physical cause; the throttle is its proxy, kept only when the data say it explains the field
+better, e.g. a current sensor that does not see the motors' wiring).
+
 Separation (refused with ``ctx.fail`` naming what is missing): the expected body-field
 directions must span the sphere enough for soft iron (``min_spread``, the smallest eigenvalue
 of their covariance; a flight that only yawed level leaves the vertical unseen) and the current
-must vary (``min_current_a``) and not follow the field direction (correlation < 0.95) for the
-motor term. Standard errors are the least-squares ones inflated by the residual's lag-1
+must vary (``min_current_a``; the throttle ``min_throttle``) and not follow the field direction
+(correlation < 0.95) for the motor term. Standard errors are the least-squares ones inflated by the residual's lag-1
 autocorrelation (the residual of a flight is slow: attitude and model errors). Heading error:
 the heading of the corrected field rotated into NED minus the model's (deg).
 """
@@ -50,6 +61,10 @@ from imupipe.stages.steps import EntryError, LinearStep, _numbers, _short
 
 MODELS = ("offsets", "scale", "soft_iron")
 """Candidate static models, simplest first."""
+POWER_SOURCES = ("current", "throttle")
+"""The motor term's power signals (flight streams), preferred first."""
+POWER_UNIT = {"current": "A", "throttle": "throttle"}
+"""What the motor term is per (``motor`` is T per A, or T per unit of throttle 0..1)."""
 UT = 1e6
 """uT per tesla: the fit works in uT (and A), which keeps its normal equations well scaled."""
 
@@ -106,8 +121,9 @@ class Fit:
         return out
 
 
-def parameter_names(model: str, motor_term: bool) -> list[str]:
-    """What each entry of :attr:`Fit.theta` is (units in brackets)."""
+def parameter_names(model: str, motor_term: bool, source: str = "current") -> list[str]:
+    """What each entry of :attr:`Fit.theta` is (units in brackets; the motor term per ampere, or
+    per unit of throttle with ``source = "throttle"``)."""
     names = {
         "offsets": [],
         "scale": ["scale [1]"],
@@ -115,7 +131,7 @@ def parameter_names(model: str, motor_term: bool) -> list[str]:
     }[model]
     names += [f"b_{a} [uT]" for a in "xyz"]
     if motor_term:
-        names += [f"motor_{a} [uT/A]" for a in "xyz"]
+        names += [f"motor_{a} [uT/{POWER_UNIT[source]}]" for a in "xyz"]
     return names
 
 
@@ -186,6 +202,39 @@ def fit_model(
     )
 
 
+def held_out_rms(
+    raw: np.ndarray,
+    target: np.ndarray,
+    power: np.ndarray | None,
+    model: str,
+    segments: list[np.ndarray],
+    options: Any,
+) -> float:
+    """RMS vector residual (T) of ``model`` (with the motor term on ``power`` when given) over
+    the held-out ``segments``: each fitted on the others (``options.huber_k``/``outlier_k``),
+    scored on itself, beyond 5 medians left out. Raises ``np.linalg.LinAlgError`` when a fit
+    is singular."""
+    sq, cnt = 0.0, 0
+    for seg in segments:
+        train = np.ones(len(raw), dtype=bool)
+        train[seg] = False
+        f = fit_model(
+            raw[train],
+            target[train],
+            None if power is None else power[train],
+            model,
+            options.huber_k,
+            options.outlier_k,
+        )
+        r = np.linalg.norm(
+            f.predict(raw[seg], None if power is None else power[seg]) - target[seg], axis=1
+        )
+        r = r[r <= np.median(r) * 5 + 1e-300]
+        sq += float(np.sum(r**2))
+        cnt += len(r)
+    return float(np.sqrt(sq / max(cnt, 1)))
+
+
 def heading_deg(q: np.ndarray, body: np.ndarray) -> np.ndarray:
     """Heading (deg from north, NED) of body-frame fields rotated into NED by ``q``."""
     ned = rotate(q, body)
@@ -200,7 +249,8 @@ def wrap_deg(a: np.ndarray) -> np.ndarray:
 class FlightSamples:
     """The magnetometer samples within the attitude and GPS streams' span, with what they
     should read: ``raw`` (n, 3) T, attitude ``q`` (n, 4), WMM ``ned`` and body-frame ``target``
-    (n, 3) T, ``current`` (n,) A or None; all on the magnetometer's stamps ``t_ns``."""
+    (n, 3) T, ``current`` (n,) A or None, ``throttle`` (n,) 0..1 or None; all on the
+    magnetometer's stamps ``t_ns``."""
 
     t_ns: np.ndarray
     raw: np.ndarray
@@ -208,6 +258,11 @@ class FlightSamples:
     ned: np.ndarray
     target: np.ndarray
     current: np.ndarray | None
+    throttle: np.ndarray | None = None
+
+    def power(self, source: str | None) -> np.ndarray | None:
+        """The motor power signal of ``source`` (``"current"``, ``"throttle"``; None: none)."""
+        return None if source is None else getattr(self, source)
 
 
 def continuous(q: np.ndarray) -> np.ndarray:
@@ -223,7 +278,7 @@ def continuous(q: np.ndarray) -> np.ndarray:
 
 def flight_samples(table: pa.Table, mag: SensorData, year: float) -> FlightSamples:
     """:class:`FlightSamples` of ``mag`` (finite magnetometer samples of ``table``): attitude,
-    position and current interpolated onto its stamps, the WMM field of ``year`` at the
+    position, current and throttle interpolated onto its stamps, the WMM field of ``year`` at the
     position, rotated into the body. ValueError (one line) when fewer than 50 samples lie
     within the flight streams or the date precedes the model."""
     att = flight_stream(table, "attitude")
@@ -241,11 +296,15 @@ def flight_samples(table: pa.Table, mag: SensorData, year: float) -> FlightSampl
     q /= np.linalg.norm(q, axis=1, keepdims=True)
     lla = interpolate(pos.t_ns, pos.values, t_ns)
     ned = earth_field(lla[:, 0], lla[:, 1], lla[:, 2], year)
-    current = None
-    if has_flight_stream(table, "current"):
-        cur = flight_stream(table, "current")
-        current = interpolate(cur.t_ns, cur.values[:, 0], t_ns)
-    return FlightSamples(t_ns, raw, q, ned, rotate(q, ned, inverse=True), current)
+    power: dict[str, np.ndarray | None] = {}
+    for stream in POWER_SOURCES:
+        power[stream] = None
+        if has_flight_stream(table, stream):
+            sig = flight_stream(table, stream)
+            power[stream] = interpolate(sig.t_ns, sig.values[:, 0], t_ns)
+    return FlightSamples(
+        t_ns, raw, q, ned, rotate(q, ned, inverse=True), power["current"], power["throttle"]
+    )
 
 
 @dataclass
@@ -256,6 +315,8 @@ class MagCurrentStep(LinearStep):
     left out)."""
 
     kind: ClassVar[str] = "mag_current"
+    stream: ClassVar[str] = "current"
+    """The flight stream the motor term multiplies."""
     motor: np.ndarray = field(default_factory=lambda: np.zeros(3))
 
     def __post_init__(self) -> None:
@@ -269,9 +330,9 @@ class MagCurrentStep(LinearStep):
             return table
         data = sensor(table, "mag")
         out = self.apply_values(data.values)
-        if has_flight_stream(table, "current"):
-            cur = flight_stream(table, "current")
-            out = out + interpolate(cur.t_ns, cur.values[:, 0], data.t_ns)[:, None] * self.motor
+        if has_flight_stream(table, self.stream):
+            sig = flight_stream(table, self.stream)
+            out = out + interpolate(sig.t_ns, sig.values[:, 0], data.t_ns)[:, None] * self.motor
         return replace_sensor(table, "mag", data.rows, out)
 
     def to_json(self) -> dict[str, Any]:
@@ -300,6 +361,23 @@ class MagCurrentStep(LinearStep):
         )
 
 
+@dataclass
+class MagThrottleStep(MagCurrentStep):
+    """``corrected = matrix @ (raw - offset) + motor * thr(t)``: as :class:`MagCurrentStep`, the
+    motor term per unit of collective throttle (``motor``, T at full throttle), the throttle
+    being the table's ``throttle`` flight stream (0..1; none: the term is left out)."""
+
+    kind: ClassVar[str] = "mag_throttle"
+    stream: ClassVar[str] = "throttle"
+
+
+STEP_BY_SOURCE: dict[str, type[MagCurrentStep]] = {
+    "current": MagCurrentStep,
+    "throttle": MagThrottleStep,
+}
+"""The correction step of each motor source."""
+
+
 def _compass_parameters(table: pa.Table) -> dict[str, float]:
     """The compass parameters (``COMPASS_*``) a log was recorded under (an ArduPilot log's)."""
     params = (metadata(table).get("ardupilot") or {}).get("parameters") or {}
@@ -316,8 +394,14 @@ class MagInflightStage(Stage):
         model: Literal["auto", "offsets", "scale", "soft_iron"] = "auto"
         """``auto`` (chosen on held-out flight segments) or one model."""
         motor: Literal["auto", "on", "off"] = "auto"
-        """The per-ampere motor term: ``auto`` (fitted when the current varies), ``on``
+        """The motor term: ``auto`` (fitted when the current or the throttle varies), ``on``
         (refused when the flight cannot separate it) or ``off``."""
+        motor_source: Literal["auto", "current", "throttle"] = "auto"
+        """What the motor term multiplies: the battery current (per ampere: ArduPilot
+        ``COMPASS_MOTCT = 2``, PX4 ``CAL_MAG_COMP_TYP = 2``), the collective throttle (per unit
+        of throttle 0..1: ``COMPASS_MOTCT = 1``, ``CAL_MAG_COMP_TYP = 1``; for vehicles without
+        a current sensor), or ``auto``: the one logged, and when both are, the current unless the
+        throttle's held-out residual is more than 2 % lower (module docstring)."""
         year: float | None = None
         """The flight's date as a decimal year (WMM epoch); default: the log's GPS date."""
         folds: int = field(default=5, metadata={"min": 2, "max": 50})
@@ -330,6 +414,9 @@ class MagInflightStage(Stage):
         """Smallest eigenvalue of the expected field directions' covariance for soft iron."""
         min_current_a: float = field(default=2.0, metadata={"min": 0.0})
         """Current range (A, 5-95 %) below which the motor term cannot be fitted."""
+        min_throttle: float = field(default=0.1, metadata={"min": 0.0, "max": 1.0})
+        """Throttle range (0..1, 5-95 %) below which a throttle-based motor term cannot be
+        fitted."""
         max_residual_ut: float = field(default=5.0, metadata={"min": 0.0})
         """Quality check: RMS vector residual after the fit, uT."""
         flights: list[str] = field(default_factory=list)
@@ -388,13 +475,20 @@ class MagInflightStage(Stage):
         counts = [len(p.t_ns) for p in parts]
         if len(parts) == 1:
             return parts[0], counts
-        currents = [p.current for p in parts]
-        if any(c is None for c in currents):
-            ctx.warn("flights: not every flight has a battery current; the motor term is left out")
+        power: dict[str, np.ndarray | None] = {}
+        for source in POWER_SOURCES:
+            signals = [p.power(source) for p in parts]
+            power[source] = None if any(c is None for c in signals) else np.concatenate(signals)
+        if all(v is None for v in power.values()):
+            ctx.warn(
+                "flights: not every flight has a battery current or a throttle; the motor term "
+                "is left out"
+            )
         joined = FlightSamples(
             *(np.concatenate([getattr(p, k) for p in parts]) for k in ("t_ns", "raw", "q")),
             *(np.concatenate([getattr(p, k) for p in parts]) for k in ("ned", "target")),
-            None if any(c is None for c in currents) else np.concatenate(currents),
+            power["current"],
+            power["throttle"],
         )
         return joined, counts
 
@@ -424,30 +518,46 @@ class MagInflightStage(Stage):
                 f"{o.min_spread:g} (yaw covered {yaw_cover:.0f} deg, tilt to "
                 f"{coverage['tilt_max_deg']:.0f} deg): fly full turns and steeper banks"
             )
-        can_motor = False
-        if current is not None:
-            lo, hi = np.percentile(current, [5, 95])
+        separable: dict[str, bool] = {}
+        minimum = {
+            "current": (o.min_current_a, "A", "min_current_a"),
+            "throttle": (o.min_throttle, "", "min_throttle"),
+        }
+        wanted = POWER_SOURCES if o.motor_source == "auto" else (o.motor_source,)
+        for source in wanted:
+            sig = fs.power(source)
+            if sig is None:
+                continue
+            lo, hi = np.percentile(sig, [5, 95])
             corr = (
-                max(abs(np.corrcoef(current, target[:, i])[0, 1]) for i in range(3))
-                if hi > lo
-                else 1.0
+                max(abs(np.corrcoef(sig, target[:, i])[0, 1]) for i in range(3)) if hi > lo else 1.0
             )
-            can_motor = bool(hi - lo >= o.min_current_a and corr < 0.95)
-            if not can_motor:
+            least, unit, key = minimum[source]
+            separable[source] = bool(hi - lo >= least and corr < 0.95)
+            if not separable[source]:
                 reasons.append(
-                    f"motor: the current spans {hi - lo:.2g} A (min_current_a {o.min_current_a:g})"
-                    f" or follows the field direction (|r| {corr:.2f})"
+                    f"motor: the {source} spans {hi - lo:.2g}{unit} ({key} {least:g}) or follows "
+                    f"the field direction (|r| {corr:.2f})"
                 )
-        else:
-            reasons.append("motor: the log has no battery current")
+        if not separable:
+            what = {
+                "auto": "no battery current and no throttle",
+                "current": "no battery current",
+                "throttle": "no throttle (CTUN.ThO, vehicle_thrust_setpoint)",
+            }[o.motor_source]
+            reasons.append(f"motor: the log has {what}")
+        motor_reasons = [r for r in reasons if r.startswith("motor")]
+        usable = [src for src, ok in separable.items() if ok]
         if o.model == "soft_iron" and not can_soft:
             raise ctx.fail("cannot separate " + reasons[0])
-        if o.motor == "on" and not can_motor:
-            raise ctx.fail("cannot separate " + [r for r in reasons if r.startswith("motor")][0])
+        if o.motor == "on" and not usable:
+            raise ctx.fail("cannot separate " + "; ".join(motor_reasons))
+        if usable:  # a source that could not be used while another is: not worth a warning
+            reasons = [r for r in reasons if r not in motor_reasons]
         for r in reasons:
             ctx.warn("not fitted: " + r)
-        use_motor = can_motor and o.motor != "off"
-        cur_fit = current if use_motor else None
+        source = usable[0] if usable and o.motor != "off" else None
+        cur_fit = fs.power(source)
         can_scale = bool(spread[-1] >= o.min_spread)
         if not can_scale:
             reasons.append(
@@ -465,34 +575,27 @@ class MagInflightStage(Stage):
         held: dict[str, float] = {}
         segments = np.array_split(np.arange(len(raw)), o.folds)
         for model in candidates:
-            sq, cnt = 0.0, 0
             try:
-                for seg in segments:
-                    train = np.ones(len(raw), dtype=bool)
-                    train[seg] = False
-                    f = fit_model(
-                        raw[train],
-                        target[train],
-                        None if cur_fit is None else cur_fit[train],
-                        model,
-                        o.huber_k,
-                        o.outlier_k,
-                    )
-                    r = np.linalg.norm(
-                        f.predict(raw[seg], None if cur_fit is None else cur_fit[seg])
-                        - target[seg],
-                        axis=1,
-                    )
-                    r = r[r <= np.median(r) * 5 + 1e-300]
-                    sq += float(np.sum(r**2))
-                    cnt += len(r)
+                held[model] = held_out_rms(raw, target, cur_fit, model, segments, o)
             except np.linalg.LinAlgError:
                 continue
-            held[model] = float(np.sqrt(sq / max(cnt, 1)))
         if not held:
             raise ctx.fail("every candidate model is singular on this flight")
         best = min(held.values())
         chosen = next(m for m in candidates if m in held and held[m] <= best * 1.02)
+        held_source: dict[str, float] = {}
+        if source is not None and len(usable) > 1 and o.motor != "off":
+            held_source[source] = held[chosen]
+            for other in usable[1:]:
+                try:
+                    held_source[other] = held_out_rms(
+                        raw, target, fs.power(other), chosen, segments, o
+                    )
+                except np.linalg.LinAlgError:
+                    continue
+                if held_source[other] < held_source[source] * (1 - 0.02):
+                    source = other
+            cur_fit = fs.power(source)
         fit = fit_model(raw, target, cur_fit, chosen, o.huber_k, o.outlier_k)
 
         before = np.linalg.norm(raw - target, axis=1)
@@ -510,6 +613,11 @@ class MagInflightStage(Stage):
             "heading_rms_deg_before": float(np.sqrt(np.mean(h_before**2))),
             "heading_rms_deg_after": float(np.sqrt(np.mean(h_after**2))),
             "held_out_rms_ut": {m: v * ut for m, v in held.items()},
+            **(
+                {"held_out_rms_ut_motor_source": {k: v * ut for k, v in held_source.items()}}
+                if held_source
+                else {}
+            ),
             "outliers": int(len(raw) - fit.used.sum()),
             "samples": len(raw),
             "field_ut": float(np.mean(np.linalg.norm(ned, axis=1)) * ut),
@@ -534,11 +642,21 @@ class MagInflightStage(Stage):
         results: dict[str, Any] = {
             "model": chosen,
             "motor_term": fit.motor_term,
+            "motor_source": source if fit.motor_term else None,
             "matrix": fit.matrix.tolist(),
             "offset_t": fit.offset.tolist(),
-            "motor_t_per_a": fit.motor.tolist(),
+            "motor_t_per_a": (fit.motor if source == "current" else np.zeros(3)).tolist(),
+            **(
+                {"motor_t_per_throttle": fit.motor.tolist()}
+                if fit.motor_term and source == "throttle"
+                else {}
+            ),
             "parameter_se": dict(
-                zip(parameter_names(chosen, fit.motor_term), se.tolist(), strict=True)
+                zip(
+                    parameter_names(chosen, fit.motor_term, source or "current"),
+                    se.tolist(),
+                    strict=True,
+                )
             ),
             "year": float(o.year if o.year is not None else metadata(table)["gps_year"]),
             "coverage": coverage,
@@ -556,19 +674,20 @@ class MagInflightStage(Stage):
                 unit="deg",
                 title="heading error against the WMM",
             )
-            if current is not None:
+            shown = source or ("current" if current is not None else None)
+            if shown is not None:
                 rec.curve(
-                    f"/{ctx.name}/residual_vs_current",
-                    current,
+                    f"/{ctx.name}/residual_vs_{shown}",
+                    fs.power(shown),
                     np.column_stack([before, after]),
                     ["residual before", "residual after"],
                     unit="T",
-                    x_label="current",
-                    x_unit="A",
+                    x_label=shown,
+                    x_unit="A" if shown == "current" else "1",
                     points=True,
                     title="vector residual",
                 )
-        step = MagCurrentStep(
+        step = STEP_BY_SOURCE[source or "current"](
             type=self.type,
             sensor="mag",
             matrix=fit.matrix,
