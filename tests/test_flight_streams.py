@@ -133,3 +133,42 @@ def test_ulog_position_and_current_match_pyulog():
     ok = bat["current_a"] >= 0
     cur = flight_stream(table, "current")
     assert np.array_equal(cur.values[:, 0], bat["current_a"][ok].astype(float))
+
+
+@pytest.mark.parametrize("name", sorted(FLIGHTS))
+def test_dataflash_throttle_is_the_copters_ctun_thrust_out(name):
+    """The throttle flight stream is CTUN.ThO (0..1, 4.x float) or ThrOut / 1000 (3.2-3.3
+    int16), record for record as DFReader decodes it: what ArduCopter hands its compass."""
+    path = shared_path("logs", "ardupilot_flights", *name.split("/"))
+    table, _ = read_dataflash(
+        InputSpec(path=path, imu_topic=FLIGHTS[name] and "IMU", mag_topic=FLIGHTS[name])
+    )
+    rec = _dfreader(path, ("CTUN",))["CTUN"]
+    column, scale = ("ThO", 1.0) if "ThO" in rec[0] else ("ThrOut", 1e-3)
+    want = np.array([r[column] for r in rec], dtype=float) * scale
+    thr = flight_stream(table, "throttle")
+    assert len(thr) == len(rec) > 100
+    assert np.allclose(np.sort(thr.values[:, 0]), np.sort(want), rtol=0, atol=1e-6)
+    assert thr.values.min() >= 0.0 and thr.values.max() <= 1.0 and thr.values.max() > 0.1
+
+
+def test_ulog_throttle_is_the_thrust_setpoint_norm_or_actuator_controls():
+    """PX4's throttle-based compass compensation input: |vehicle_thrust_setpoint.xyz| (v1.14+,
+    tests/data/px4_ulog/pixhawk6c_bmi055.ulg) or actuator_controls_0 control[3] (older)."""
+    from pyulog import ULog
+
+    from conftest import REPO
+
+    new = REPO / "tests" / "data" / "px4_ulog" / "pixhawk6c_bmi055.ulg"
+    table, _ = read_ulog(InputSpec(path=new, time="log"))
+    ref = ULog(str(new), ["vehicle_thrust_setpoint"]).get_dataset("vehicle_thrust_setpoint").data
+    xyz = np.column_stack([ref[f"xyz[{i}]"] for i in range(3)]).astype(float)
+    thr = flight_stream(table, "throttle")
+    assert np.array_equal(thr.t_ns, ref["timestamp"].astype(np.int64) * 1000)
+    assert np.allclose(thr.values[:, 0], np.linalg.norm(xyz, axis=1)) and thr.values.max() > 0.1
+    old = shared_path("logs", "px4_ulog", "sample_log_small.ulg")
+    table, _ = read_ulog(InputSpec(path=old, time="log"))
+    ref = ULog(str(old), ["actuator_controls_0"]).get_dataset("actuator_controls_0").data
+    thr = flight_stream(table, "throttle")
+    assert np.array_equal(thr.values[:, 0], ref["control[3]"].astype(float))
+    assert thr.values.max() > 0.1

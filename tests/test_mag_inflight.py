@@ -13,6 +13,7 @@ from imupipe.readers.spec import InputSpec
 from imupipe.readers.table import (
     finite,
     flight_stream,
+    has_flight_stream,
     make_table,
     metadata,
     sensor,
@@ -23,10 +24,11 @@ from imupipe.stages.errors import FitError
 from imupipe.stages.magnetometer.inflight import (
     MagCurrentStep,
     MagInflightStage,
+    MagThrottleStep,
     fit_model,
     flight_samples,
 )
-from imupipe.stages.steps import steps_from_json
+from imupipe.stages.steps import LinearStep, steps_from_json
 
 from conftest import run_cli, shared_path
 
@@ -290,7 +292,7 @@ def exported_reproduces_imupipe(tmp_path, log, inputs: str = "") -> tuple[float,
     parameters over the log's (what the vehicle holds after loading the file), and compare with
     imupipe's corrected field: (max difference in mG, the exported parameters)."""
     from imupipe.pipeline.simulate.flight import ardupilot_correct, ardupilot_raw
-    from imupipe.readers.table import has_flight_stream, interpolate
+    from imupipe.readers.table import interpolate
 
     (tmp_path / "c.toml").write_text(
         f'[inputs.f]\npath = "{log}"\n{inputs}\n[[stages]]\ntype = "mag_inflight"\n'
@@ -310,11 +312,15 @@ def exported_reproduces_imupipe(tmp_path, log, inputs: str = "") -> tuple[float,
     if has_flight_stream(table, "current"):
         cur = flight_stream(table, "current")
         amps = interpolate(cur.t_ns, cur.values[:, 0], logged.t_ns)
+    thr = None
+    if has_flight_stream(table, "throttle"):  # CTUN.ThO: what COMPASS_MOTCT = 1 multiplies
+        sig = flight_stream(table, "throttle")
+        thr = interpolate(sig.t_ns, sig.values[:, 0], logged.t_ns)
     before = metadata(table)["ardupilot"]["parameters"]
-    raw = ardupilot_raw(logged.values, before, amps)
-    vehicle = ardupilot_correct(raw, before | exported, amps)
+    raw = ardupilot_raw(logged.values, before, amps, thr)
+    vehicle = ardupilot_correct(raw, before | exported, amps, thr)
     ours = sensor(steps_from_json(doc["chain"])[0].apply(table), "mag").values
-    assert np.allclose(ardupilot_correct(raw, before, amps), logged.values, atol=1e-12)
+    assert np.allclose(ardupilot_correct(raw, before, amps, thr), logged.values, atol=1e-12)
     return float(np.abs(vehicle - ours).max() * 1e7), exported
 
 
@@ -466,3 +472,189 @@ def test_throttle_compensated_log_is_noted(tmp_path):
     out = ardupilot.export(doc)
     assert any("throttle-based" in n for n in out.notes[ardupilot.FNAME])
     assert "COMPASS_MOTCT,2" in out.files[ardupilot.FNAME]
+
+
+# -- throttle-based motor compensation (COMPASS_MOTCT = 1, CAL_MAG_COMP_TYP = 1) -----------------
+
+
+@pytest.fixture(scope="module")
+def throttle_flight(tmp_path_factory):
+    """A vehicle without a current sensor whose motors' interference follows the throttle,
+    written as DataFlash (CTUN.ThO, no BAT) and read back."""
+    table, truth = simulate(
+        "flight",
+        {"duration_s": 180.0, "motor_source": "throttle", "current_sensor": False},
+        seed=3,
+    )
+    path = tmp_path_factory.mktemp("thr") / "flight.bin"
+    write_log(path, table)
+    back, _ = read_dataflash(InputSpec(path=path))
+    return back, truth
+
+
+def _params(text: str, sep: str) -> dict[str, float]:
+    """name -> value of a Mission Planner (``,``) or QGroundControl (tab) parameter file."""
+    rows = [ln.split(sep) for ln in text.splitlines() if ln[:1] not in ("#", "")]
+    return {r[0]: float(r[1]) for r in rows} if sep == "," else {r[2]: float(r[3]) for r in rows}
+
+
+def _soft(p: dict[str, float], diag: str, off: str) -> np.ndarray:
+    """The symmetric matrix of a parameter file's diagonal/off-diagonal names (``{a}`` = X, Y,
+    Z)."""
+    d = [p[diag.format(a=a)] for a in "XYZ"]
+    o = [p[off.format(a=a)] for a in "XYZ"]
+    return np.array([[d[0], o[0], o[1]], [o[0], d[1], o[2]], [o[1], o[2], d[2]]])
+
+
+def test_throttle_term_recovers_the_truth_without_a_current_sensor(throttle_flight):
+    """No BAT: the motor term is fitted against CTUN.ThO and recovers the truth (targets:
+    offsets 1 % of the field, soft iron 1 %, motor 5 %)."""
+    table, truth = throttle_flight
+    assert not has_flight_stream(table, "current") and has_flight_stream(table, "throttle")
+    out, ctx = fit(table)
+    r = out.results
+    assert r["model"] == "soft_iron" and r["motor_term"] and r["motor_source"] == "throttle"
+    field = truth["field_norm"]
+    assert np.abs(np.array(r["offset_t"]) - truth["offset"]).max() < 0.01 * field
+    assert np.abs(np.array(r["matrix"]) - truth["matrix"]).max() < 0.01
+    motor = np.array(truth["motor"])  # T at full throttle
+    got = np.array(r["motor_t_per_throttle"])
+    assert np.linalg.norm(got - motor) < 0.05 * np.linalg.norm(motor)
+    assert r["motor_t_per_a"] == [0.0, 0.0, 0.0]
+    assert "motor_z [uT/throttle]" in r["parameter_se"]
+    assert r["metrics"]["residual_rms_ut_after"] < 0.5
+    assert not any("motor" in w for w in ctx.warnings)
+    # without the throttle term the same flight fits worse: the term is real
+    off, _ = fit(table, motor="off")
+    assert (
+        off.results["metrics"]["residual_rms_ut_after"] > 2 * r["metrics"]["residual_rms_ut_after"]
+    )
+
+
+def test_throttle_step_round_trips_and_applies_the_throttle(throttle_flight):
+    table, truth = throttle_flight
+    out, _ = fit(table)
+    step = steps_from_json([json.loads(json.dumps(out.step.to_json()))])[0]
+    assert isinstance(step, MagThrottleStep) and step.kind == "mag_throttle"
+    corrected = sensor(step.apply(table), "mag").values
+    norms = np.linalg.norm(corrected, axis=1) / truth["field_norm"]
+    assert np.percentile(np.abs(norms - 1), 95) < 0.01
+    static = sensor(LinearStep("x", "mag", step.matrix, step.offset).apply(table), "mag").values
+    moved = np.linalg.norm(corrected - static, axis=1)  # the motor term, ~uT with the throttle
+    assert moved.max() > 1e-6
+
+
+def test_throttle_exports_reproduce_the_correction_with_the_firmware_formulas(throttle_flight):
+    """ArduPilot (AP_Compass_Backend::correct_field with COMPASS_MOTCT = 1: motor_offset = MOT x
+    throttle, throttle 0..1 from motors->get_throttle(), i.e. CTUN.ThO) and PX4
+    (Magnetometer::Correct with CAL_MAG_COMP_TYP = 1: S ((raw + COMP x thrust) - OFF), thrust
+    the norm of vehicle_thrust_setpoint) give imupipe's corrected field from the exported
+    parameters."""
+    from imupipe.pipeline.exports import ardupilot, px4
+    from imupipe.readers.table import interpolate
+
+    table, _ = throttle_flight
+    out, _ = fit(table)
+    doc = {"chain": [out.step.to_json()], "results": {}}
+    mag = sensor(table, "mag")
+    sig = flight_stream(table, "throttle")
+    thr = interpolate(sig.t_ns, sig.values[:, 0], mag.t_ns)
+    ours = sensor(out.step.apply(table), "mag").values
+    ap = _params(ardupilot.export(doc).files[ardupilot.FNAME], ",")
+    assert ap["COMPASS_MOTCT"] == 1
+    w = _soft(ap, "COMPASS_DIA_{a}", "COMPASS_ODI_{a}") * ap["COMPASS_SCALE"]
+    ofs = np.array([ap[f"COMPASS_OFS_{a}"] for a in "XYZ"])
+    mot = np.array([ap[f"COMPASS_MOT_{a}"] for a in "XYZ"])  # mG at full throttle
+    got = (mag.values * 1e7 + ofs) @ w.T + thr[:, None] * mot
+    assert np.abs(got - ours * 1e7).max() < 1e-6
+    p = _params(px4.export(doc).files[px4.FNAME], "\t")
+    assert p["CAL_MAG_COMP_TYP"] == 1
+    s = _soft(p, "CAL_MAG0_{a}SCALE", "CAL_MAG0_{a}ODIAG")
+    off = np.array([p[f"CAL_MAG0_{a}OFF"] for a in "XYZ"])
+    comp = np.array([p[f"CAL_MAG0_{a}COMP"] for a in "XYZ"])  # G at full throttle
+    got = ((mag.values * 1e4 + thr[:, None] * comp) - off) @ s.T
+    assert np.abs(got - ours * 1e4).max() < 1e-6
+
+
+def test_motor_source_is_chosen_on_held_out_segments():
+    """Both a current and a throttle logged: the one that drives the interference wins on the
+    held-out segments (the throttle only when more than 2 % better); a forced source that is
+    not logged is refused with motor = "on"."""
+    chosen = {}
+    for source in ("current", "throttle"):
+        table, truth = simulate(
+            "flight", {"duration_s": 120.0, "motor_source": source, "log_throttle": True}, seed=11
+        )
+        assert has_flight_stream(table, "current") and has_flight_stream(table, "throttle")
+        r = fit(table)[0].results
+        held = r["metrics"]["held_out_rms_ut_motor_source"]
+        assert set(held) == {"current", "throttle"}
+        other = "current" if source == "throttle" else "throttle"
+        assert held[source] < 0.98 * held[other]
+        chosen[source] = r["motor_source"]
+        key = "motor_t_per_a" if source == "current" else "motor_t_per_throttle"
+        motor = np.array(truth["motor"])
+        assert np.linalg.norm(np.array(r[key]) - motor) < 0.05 * np.linalg.norm(motor)
+        forced = fit(table, motor_source=other)[0].results
+        assert forced["motor_source"] == other
+        assert forced["metrics"]["residual_rms_ut_after"] > r["metrics"]["residual_rms_ut_after"]
+    assert chosen == {"current": "current", "throttle": "throttle"}
+    table, _ = simulate("flight", {"duration_s": 30.0, "current_sensor": False}, seed=12)
+    with pytest.raises(FitError, match="no battery current"):
+        fit(table, motor="on", motor_source="current")
+
+
+def test_px4_throttle_path_end_to_end(tmp_path):
+    """imupipe simulate flight --out flight.ulg with the interference on the throttle and no
+    battery_status: vehicle_thrust_setpoint is read, CAL_MAG_COMP_TYP = 1 and CAL_MAG0_*COMP
+    (G at full throttle) applied as PX4 does give imupipe's corrected field."""
+    from imupipe.readers.table import interpolate
+    from imupipe.readers.ulog.reader import read_ulog
+
+    proc = run_cli(
+        "simulate", "flight", "--out", "flight.ulg", "--duration", "120",
+        "--set", "motor_source=throttle", "--set", "current_sensor=false", cwd=tmp_path,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    truth = json.loads((tmp_path / "flight.ulg.truth.json").read_text())
+    (tmp_path / "c.toml").write_text(
+        '[inputs.f]\npath = "flight.ulg"\n[[stages]]\ntype = "mag_inflight"\n[output]\ndir = "out"\n'
+    )
+    proc = run_cli("run", "c.toml", cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    doc = json.loads((tmp_path / "out" / "calibration.json").read_text())
+    assert doc["results"]["mag_inflight"]["motor_source"] == "throttle"
+    p = _params((tmp_path / "out" / "px4_calibration.params").read_text(), "\t")
+    assert p["CAL_MAG_COMP_TYP"] == 1
+    s = _soft(p, "CAL_MAG0_{a}SCALE", "CAL_MAG0_{a}ODIAG")
+    comp = np.array([p[f"CAL_MAG0_{a}COMP"] for a in "XYZ"])
+    want = np.linalg.solve(truth["matrix"], truth["motor"]) * 1e4  # COMP = S^-1 motor, G
+    assert np.linalg.norm(comp - want) < 0.05 * np.linalg.norm(want)
+    off = np.array([p[f"CAL_MAG0_{a}OFF"] for a in "XYZ"])
+    table, _ = read_ulog(InputSpec(path=tmp_path / "flight.ulg"))
+    assert not has_flight_stream(table, "current")
+    raw = sensor(table, "mag")
+    sig = flight_stream(table, "throttle")
+    thrust = interpolate(sig.t_ns, sig.values[:, 0], raw.t_ns)
+    px4 = ((raw.values * 1e4 + thrust[:, None] * comp) - off) @ s.T
+    ours = sensor(steps_from_json(doc["chain"])[0].apply(table), "mag").values * 1e4
+    assert np.abs(px4 - ours).max() < 1e-6
+
+
+def test_export_composes_with_a_throttle_compensating_vehicle(tmp_path):
+    """The vehicle logged MAG with its own COMPASS_MOTCT = 1 term (MOT x CTUN.ThO) on top of
+    OFS/DIA/ODI: the exported file, loaded on it, gives imupipe's corrected field from the raw
+    one, and its COMPASS_MOT is the truth in mG at full throttle."""
+    vehicle = VEHICLE | {"COMPASS_MOTCT": 1.0, "COMPASS_MOT_X": 6.0, "COMPASS_MOT_Y": -4.0}
+    table, truth = simulate(
+        "flight",
+        {"duration_s": 120.0, "vehicle": vehicle, "motor_source": "throttle"},
+        seed=6,
+    )
+    path = tmp_path / "flight.bin"
+    write_log(path, table)
+    diff, p = exported_reproduces_imupipe(tmp_path, path)
+    assert diff < 0.1 and p["COMPASS_MOTCT"] == 1
+    mot = np.array([p[f"COMPASS_MOT_{a}"] for a in "XYZ"])
+    want = np.array(truth["motor"]) * 1e7
+    assert np.linalg.norm(mot - want) < 0.05 * np.linalg.norm(want)
