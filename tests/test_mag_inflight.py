@@ -658,3 +658,29 @@ def test_export_composes_with_a_throttle_compensating_vehicle(tmp_path):
     mot = np.array([p[f"COMPASS_MOT_{a}"] for a in "XYZ"])
     want = np.array(truth["motor"]) * 1e7
     assert np.linalg.norm(mot - want) < 0.05 * np.linalg.norm(want)
+
+
+def test_a_throttle_the_compass_does_not_follow_is_left_out():
+    """No current sensor, a logged throttle, no motor interference: the throttle term does not
+    lower the held-out residual by 2 %, so it is left out (warned), the fit is the static one."""
+    table, truth = simulate(
+        "flight",
+        {
+            "duration_s": 60.0,
+            "motor": [0.0, 0.0, 0.0],
+            "current_sensor": False,
+            "log_throttle": True,
+        },
+        seed=13,
+    )
+    out, ctx = fit(table)
+    r = out.results
+    assert not r["motor_term"] and r["motor_source"] is None
+    held = r["metrics"]["held_out_rms_ut_motor_source"]
+    assert held["throttle"] > 0.98 * held["none"]
+    assert any("throttle term does not lower" in w for w in ctx.warnings)
+    assert type(out.step) is MagCurrentStep and not np.any(out.step.motor)
+    assert np.abs(np.array(r["offset_t"]) - truth["offset"]).max() < 0.01 * truth["field_norm"]
+    forced = fit(table, motor="on")[0].results  # asked for: fitted, and near zero
+    assert forced["motor_source"] == "throttle"
+    assert np.abs(forced["motor_t_per_throttle"]).max() < 0.05 * np.abs(truth["offset"]).max()

@@ -27,7 +27,10 @@ thrust setpoint) when only it is, and when both are: the static model is chosen 
 current, then the throttle is scored with that model on the same held-out segments and replaces
 the current only when its held-out RMS residual is more than 2 % lower (the current is the
 physical cause; the throttle is its proxy, kept only when the data say it explains the field
-better, e.g. a current sensor that does not see the motors' wiring).
+better, e.g. a current sensor that does not see the motors' wiring). A throttle term without a
+usable current (``motor = "auto"``) is also scored against no motor term on the same segments
+and, as a model term, kept only when it lowers the held-out residual by more than 2 % (a flying
+copter's throttle always varies, so its range alone does not show that the compass follows it).
 
 Separation (refused with ``ctx.fail`` naming what is missing): the expected body-field
 directions must span the sphere enough for soft iron (``min_spread``, the smallest eigenvalue
@@ -596,6 +599,20 @@ class MagInflightStage(Stage):
                 if held_source[other] < held_source[source] * (1 - 0.02):
                     source = other
             cur_fit = fs.power(source)
+        elif source == "throttle" and o.motor == "auto":  # a proxy: kept only when it helps
+            held_source["throttle"] = held[chosen]
+            try:
+                held_source["none"] = held_out_rms(raw, target, None, chosen, segments, o)
+            except np.linalg.LinAlgError:
+                held_source["none"] = np.inf
+            if held_source["throttle"] >= held_source["none"] * (1 - 0.02):
+                reasons.append(
+                    "motor: a throttle term does not lower the held-out residual by 2 % "
+                    f"({held_source['throttle'] * UT:.3g} uT with it, "
+                    f"{held_source['none'] * UT:.3g} uT without)"
+                )
+                ctx.warn("not fitted: " + reasons[-1])
+                source, cur_fit = None, None
         fit = fit_model(raw, target, cur_fit, chosen, o.huber_k, o.outlier_k)
 
         before = np.linalg.norm(raw - target, axis=1)
