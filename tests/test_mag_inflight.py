@@ -210,8 +210,9 @@ def test_tutorial_runs_as_written(tmp_path):
         return re.findall(rf"```{language}[^\n]*\n(.*?)```", page, flags=re.S)
 
     bash, toml, text = blocks("bash"), blocks("toml")[0], blocks("text")[0]
-    assert len(bash) == 3 and bash[1].strip() == "imupipe run compass.toml"
+    assert len(bash) == 4 and bash[1].strip() == "imupipe run compass.toml"
     (tmp_path / "compass.toml").write_text(toml)
+    (tmp_path / "throttle.toml").write_text(blocks("toml")[-1])
     for block in bash:
         for line in block.strip().splitlines():
             proc = run_cli(*shlex.split(line)[1:], cwd=tmp_path)
@@ -229,6 +230,16 @@ def test_tutorial_runs_as_written(tmp_path):
         assert shown in report  # the heading along the flight, the residual against current
     params = (tmp_path / "out" / "ardupilot_calibration.param").read_text()
     assert "COMPASS_MOTCT,2" in params
+    thr = json.loads((tmp_path / "out_throttle" / "calibration.json").read_text())["results"]
+    thr = thr["mag_inflight"]
+    assert thr["motor_source"] == "throttle" and thr["model"] == "soft_iron"
+    assert round(thr["metrics"]["residual_rms_ut_before"], 1) == 22.9
+    assert round(thr["metrics"]["residual_rms_ut_after"], 2) == 0.27
+    assert round(thr["metrics"]["heading_rms_deg_after"], 2) == 0.46
+    held = thr["metrics"]["held_out_rms_ut_motor_source"]
+    assert (round(held["throttle"], 2), round(held["none"], 2)) == (0.27, 0.79)
+    params = (tmp_path / "out_throttle" / "ardupilot_calibration.param").read_text()
+    assert "COMPASS_MOTCT,1" in params
     assert not (tmp_path / "out" / "px4_calibration.params").exists()  # an ArduPilot log
     level = toml.replace("flight.bin", "level.bin").replace(
         'type = "mag_inflight"', 'type = "mag_inflight"\nmodel = "soft_iron"'
