@@ -19,6 +19,7 @@ from imupipe.readers.table import (
     sensor,
     with_flight_stream,
 )
+from imupipe.readers.ulog.rotation import euler_matrix
 from imupipe.stages.base import StageContext
 from imupipe.stages.errors import FitError
 from imupipe.stages.magnetometer.inflight import (
@@ -695,3 +696,115 @@ def test_a_throttle_the_compass_does_not_follow_is_left_out():
     forced = fit(table, motor="on")[0].results  # asked for: fitted, and near zero
     assert forced["motor_source"] == "throttle"
     assert np.abs(forced["motor_t_per_throttle"]).max() < 0.05 * np.abs(truth["offset"]).max()
+
+
+# -- board and compass orientation ----------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "px4_parameters",
+    [
+        {"CAL_MAG0_ROT": 2, "SENS_BOARD_X_OFF": 1.5},  # external, turned 90 deg in yaw
+        {"SENS_BOARD_ROT": 10, "SENS_BOARD_Y_OFF": -2.0},  # internal: the board's roll 180 yaw 90
+    ],
+)
+def test_px4_rotated_compass_exports_reproduce_the_correction(tmp_path, px4_parameters):
+    """A PX4 compass read in its own axes (sensor_mag) and turned into the body by PX4 after its
+    calibration (Magnetometer::Correct: R (S ((raw + COMP P) - OFF)), R = Euler(SENS_BOARD_*_OFF)
+    rot(CAL_MAG0_ROT, or SENS_BOARD_ROT for an internal one)): the fit runs in the body axes
+    (the truth), and the exported S = R^T M R, OFF = R^T offset, COMP applied with that R give
+    imupipe's corrected field."""
+    from imupipe.readers.table import interpolate
+    from imupipe.readers.ulog.reader import read_ulog
+
+    setting = "px4_parameters=" + json.dumps(px4_parameters)
+    proc = run_cli(
+        "simulate", "flight", "--out", "f.ulg", "--duration", "120", "--set", setting, cwd=tmp_path
+    )
+    assert proc.returncode == 0, proc.stderr
+    truth = json.loads((tmp_path / "f.ulg.truth.json").read_text())
+    (tmp_path / "c.toml").write_text(
+        '[inputs.f]\npath = "f.ulg"\n[[stages]]\ntype = "mag_inflight"\n[output]\ndir = "out"\n'
+    )
+    proc = run_cli("run", "c.toml", cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    doc = json.loads((tmp_path / "out" / "calibration.json").read_text())
+    r = doc["results"]["mag_inflight"]
+    # R as PX4 builds it: the level adjustment (degrees) times the enum's Euler angles
+    rot = {2: (0, 0, 90), 10: (180, 0, 90)}[
+        px4_parameters.get("CAL_MAG0_ROT", px4_parameters.get("SENS_BOARD_ROT"))
+    ]
+    level = [px4_parameters.get(f"SENS_BOARD_{a}_OFF", 0.0) for a in "XYZ"]
+    turn = euler_matrix(*np.radians(level)) @ euler_matrix(*np.radians(rot))
+    assert np.allclose(r["sensor_rotation"], turn, atol=1e-6)
+    field = truth["field_norm"]
+    assert np.abs(np.array(r["offset_t"]) - truth["offset"]).max() < 0.01 * field
+    assert np.abs(np.array(r["matrix"]) - truth["matrix"]).max() < 0.01
+    p = _params((tmp_path / "out" / "px4_calibration.params").read_text(), "\t")
+    s = _soft(p, "CAL_MAG0_{a}SCALE", "CAL_MAG0_{a}ODIAG")
+    off = np.array([p[f"CAL_MAG0_{a}OFF"] for a in "XYZ"])  # G, sensor axes
+    comp = np.array([p[f"CAL_MAG0_{a}COMP"] for a in "XYZ"])  # G/kA
+    assert np.abs(s - turn.T @ np.array(truth["matrix"]) @ turn).max() < 0.01
+    assert np.abs(off - turn.T @ np.array(truth["offset"]) * 1e4).max() < 0.01 * field * 1e4
+    table, _ = read_ulog(InputSpec(path=tmp_path / "f.ulg"))
+    raw = sensor(table, "mag")
+    cur = flight_stream(table, "current")
+    amps = interpolate(cur.t_ns, cur.values[:, 0], raw.t_ns)
+    px4 = (((raw.values * 1e4 + amps[:, None] / 1e3 * comp) - off) @ s.T) @ turn.T  # G, body
+    ours = sensor(steps_from_json(doc["chain"])[0].apply(table), "mag").values * 1e4
+    # S is written symmetric (R^T M R is, for a symmetric M); the fitted M's own asymmetry: 0
+    assert np.abs(px4 - ours).max() < 1e-6
+    # without the rotation the file would be wrong by the turn itself
+    unturned = ((raw.values * 1e4 + amps[:, None] / 1e3 * comp) - off) @ s.T
+    assert np.abs(unturned - ours).max() > 0.1
+
+
+@pytest.mark.parametrize(
+    "orientation",
+    [
+        {"COMPASS_ORIENT": 8.0, "COMPASS_EXTERNAL": 1.0},  # external, roll 180 (the erle logs')
+        {"AHRS_ORIENTATION": 2.0, "COMPASS_EXTERNAL": 0.0},  # internal, the board yawed 90
+    ],
+)
+def test_ardupilot_orientation_composes(tmp_path, orientation):
+    """ArduPilot turns the raw field into the body (rotate_field: COMPASS_ORIENT for an external
+    compass, AHRS_ORIENTATION for an internal one) before correct_field applies the offsets,
+    DIA/ODI and MOT, and logs MAG after both: the exported file is written (no longer refused)
+    and, loaded on the vehicle, turns the compass's own readings into imupipe's corrected
+    field."""
+    from imupipe.pipeline.simulate.flight import ardupilot_correct, ardupilot_raw
+    from imupipe.readers.ulog.rotation import rotation_matrix
+
+    vehicle = VEHICLE | orientation
+    table, truth = simulate("flight", {"duration_s": 120.0, "vehicle": vehicle}, seed=6)
+    path = tmp_path / "flight.bin"
+    write_log(path, table)
+    diff, p = exported_reproduces_imupipe(tmp_path, path)
+    assert diff < 0.1 and {"COMPASS_OFS_X", "COMPASS_DIA_X", "COMPASS_MOT_X"} <= set(p)
+    # the firmware path from the compass's own axes: rotate_field, then correct_field
+    back, _ = read_dataflash(InputSpec(path=path))
+    logged = sensor(back, "mag")
+    cur = flight_stream(back, "current")
+    from imupipe.readers.table import interpolate
+
+    amps = interpolate(cur.t_ns, cur.values[:, 0], logged.t_ns)
+    turn = rotation_matrix(
+        int(orientation.get("COMPASS_ORIENT", orientation.get("AHRS_ORIENTATION")))
+    )
+    body = ardupilot_raw(logged.values, vehicle, amps)  # the raw field turned into the body
+    own_axes = body @ turn  # what the chip read: R^T body
+    firmware = ardupilot_correct(own_axes @ turn.T, vehicle | p, amps)
+    doc = json.loads((tmp_path / "out" / "calibration.json").read_text())
+    ours = sensor(steps_from_json(doc["chain"])[0].apply(back), "mag").values
+    assert np.abs(firmware - ours).max() * 1e7 < 0.1
+    mot = np.array([p[f"COMPASS_MOT_{a}"] for a in "XYZ"])
+    want = np.array(truth["motor"]) * 1e7
+    assert np.linalg.norm(mot - want) < 0.05 * np.linalg.norm(want)
+
+
+def test_export_composes_with_a_real_rotated_compass(tmp_path):
+    """erle_pxf_118 flew with COMPASS_ORIENT = 8 (roll 180): its export was refused before; the
+    composition holds since ArduPilot's compass parameters act after the rotation."""
+    path = shared_path("logs", "ardupilot_flights", "erle_pxf_118", "118.BIN")
+    diff, p = exported_reproduces_imupipe(tmp_path, path)
+    assert diff < 0.1 and {"COMPASS_OFS_X", "COMPASS_DIA_X"} <= set(p)

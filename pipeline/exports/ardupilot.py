@@ -281,19 +281,22 @@ def compose_with_log(model: SensorModel, i: int, out: Export) -> SensorModel | N
     had corrected with the log's own parameters (module docstring: the logged ``IMU`` is
     ``S (raw - tcal(T) - OFFS)``, the logged ``MAG`` is ``COMPASS_SCALE W (raw + OFS)``):
     ``M (logged - o - b(T))`` becomes ``M S (raw - (OFFS + S^-1 o) - S^-1 b(T))``, so the
-    file replaces the log's calibration. Needs no board rotation (``AHRS_ORIENTATION = 0``) and,
-    for a compass, no ``COMPASS_ORIENT``; else the sensor is left out with a note. A thermal
-    model on data the log had already compensated (``INS_TCALi_ENABLE = 1``) is left out."""
+    file replaces the log's calibration. A compass's parameters act on the field already turned
+    into the body (``AHRS_ORIENTATION`` for an internal compass, ``COMPASS_ORIENT*`` for an
+    external one: ``rotate_field`` before ``correct_field``, module docstring), as the logged
+    ``MAG`` and the fit are: the composition holds whatever the orientation (the vehicle must
+    keep it). An IMU's offsets and scales act before the board rotation
+    (``_rotate_and_correct_accel``): with ``AHRS_ORIENTATION`` set, the IMU is left out with a
+    note naming it. A thermal model on data the log had already compensated
+    (``INS_TCALi_ENABLE = 1``) is left out."""
     p = log_parameters(model)
     sensor, s = model.sensor, _s(i)
     rot = p.get("AHRS_ORIENTATION", 0) or 0
-    orient = p.get(f"COMPASS_ORIENT{s}", 0) or 0 if sensor == "mag" else 0
-    if rot or orient:
+    if rot and sensor != "mag":
         out.note(
             FNAME,
-            f"{sensor}: fitted on data ArduPilot had rotated (AHRS_ORIENTATION = {rot:g}"
-            + (f", COMPASS_ORIENT{s} = {orient:g}" if sensor == "mag" else "")
-            + "); not written",
+            f"{sensor}: fitted on data ArduPilot had rotated (AHRS_ORIENTATION = {rot:g}; its "
+            f"INS_{SHORT[sensor]} offsets act before that rotation); not written",
         )
         return None
     thermal = model.thermal

@@ -67,6 +67,7 @@ from imupipe.pipeline.exports.common import (
     params_text,
     soft_iron,
 )
+from imupipe.readers.ulog.rotation import mag_rotation
 
 FNAME = "px4_calibration.params"
 CAL = {"accel": "ACC", "gyro": "GYRO", "mag": "MAG"}
@@ -154,15 +155,38 @@ def targets(models: list[SensorModel], out: Export) -> list[Target | None]:
     return found
 
 
+def mag_turn(model: SensorModel, t: Target, out: Export) -> np.ndarray:
+    """``R`` of PX4's magnetometer correction ``R (S (raw - OFF))`` for the model's slot
+    (:mod:`imupipe.readers.ulog.rotation`): the one the reader found for the fitted device
+    (``fitted_on.px4.rotation.mag``), else the slot's in the log's parameters, else the
+    identity (a log without parameters). An undefined rotation: noted, the identity."""
+    found = (((model.fitted_on.get("px4") or {}).get("rotation") or {}).get("mag") or {}).get(
+        "matrix"
+    )
+    if found is not None:
+        return np.asarray(found, dtype=np.float64).reshape(3, 3)
+    if not t.params:
+        return np.eye(3)
+    try:
+        return mag_rotation(t.params, t.n)[0]
+    except ValueError as exc:
+        out.note(FNAME, f"mag: {exc}; written as if none")
+        return np.eye(3)
+
+
 def _compose_with_log(model: SensorModel, t: Target, out: Export) -> SensorModel | None:
-    """The model in PX4's raw domain when the fitted data held the log's CAL_* correction."""
+    """The model in PX4's raw domain when the fitted data held the log's CAL_* correction (a
+    magnetometer's also its rotation: ``vehicle_magnetometer = R S (raw - OFF)``, so ``M (vm -
+    o)`` is ``M R S (raw - (OFF + (R S)^-1 o))``)."""
     cal, p = CAL[model.sensor], t.params
     board, rot = p.get("SENS_BOARD_ROT", 0), p.get(f"CAL_{cal}{t.n}_ROT", -1)
-    if board != 0 or rot not in (-1, 0):
+    if model.sensor != "mag" and (board != 0 or rot not in (-1, 0)):
+        turned = [f"SENS_BOARD_ROT = {board}"] if board != 0 else []
+        turned += [f"CAL_{cal}{t.n}_ROT = {rot}"] if rot not in (-1, 0) else []
         out.note(
             FNAME,
-            f"{model.sensor}: fitted on data PX4 had rotated (SENS_BOARD_ROT = {board}, "
-            f"CAL_{cal}{t.n}_ROT = {rot}); not written: fit on the raw sensor topics instead",
+            f"{model.sensor}: fitted on data PX4 had rotated ({', '.join(turned)}); not "
+            "written: fit on the raw sensor topics instead",
         )
         return None
     old_off = np.array([p.get(f"CAL_{cal}{t.n}_{a}OFF", 0.0) for a in "XYZ"], dtype=np.float64)
@@ -173,6 +197,7 @@ def _compose_with_log(model: SensorModel, t: Target, out: Export) -> SensorModel
         for (i, j), value in zip(OFF_DIAGONAL, od, strict=True):
             s[i, j] = s[j, i] = value
         old_off = old_off / GAUSS_PER_TESLA
+        s = mag_turn(model, t, out) @ s
     elif model.sensor == "gyro":
         s = np.diag([p.get(f"CAL_GYRO{t.n}_{a}SCALE", 1.0) for a in "XYZ"]).astype(np.float64)
     sinv = np.linalg.inv(s)
@@ -223,7 +248,8 @@ def rows_for(model: SensorModel, t: Target, out: Export) -> list[Row]:
         rows += [(f"CAL_{cal}{n}_{a}OFF", offset[i], REAL32) for i, a in enumerate("XYZ")]
     diag = np.diag(m)
     if scaled and model.sensor == "mag":
-        diag_s, off_s = soft_iron(m, out, FNAME)
+        # PX4 turns the corrected field into the body after S (R S = m): S = R^T m
+        diag_s, off_s = soft_iron(mag_turn(model, t, out).T @ m, out, FNAME)
         rows += [(f"CAL_MAG{n}_{a}SCALE", diag_s[i], REAL32) for i, a in enumerate("XYZ")]
         rows += [(f"CAL_MAG{n}_{a}ODIAG", off_s[i], REAL32) for i, a in enumerate("XYZ")]
     elif scaled:

@@ -26,6 +26,14 @@ motor interference are known, for the ``mag_inflight`` stage (written as DataFla
   vehicle records and an export must compose with it (DataFlash only: PX4 logs the raw field
   in ``sensor_mag``).
 
+- A PX4 vehicle's mounting (``px4_parameters``, e.g. ``{"CAL_MAG0_ROT": 2}`` for an external
+  compass turned 90 deg in yaw, or ``{"SENS_BOARD_ROT": 4, "SENS_BOARD_X_OFF": 1.5}`` with
+  ``CAL_MAG0_ROT = -1`` for an internal one; ULog only): the compass reads in its own axes,
+  ``raw_sensor = R^T raw`` with ``R`` the rotation PX4 turns it by
+  (:func:`imupipe.readers.ulog.rotation.mag_rotation`); the parameters, with ``CAL_MAG0_ID``
+  the compass's device id, are written in the log (``sensor_mag.is_external`` set when
+  ``CAL_MAG0_ROT >= 0``). The truth stays in the body axes.
+
 As a ULog (:func:`flight_ulog`): ``sensor_mag`` (raw, gauss), ``vehicle_attitude`` (``q``),
 ``vehicle_gps_position`` (1e-7 deg, mm, ``time_utc_usec``, ``fix_type`` 3), ``battery_status``
 (``current_a``, with its 0.2 A noise), ``vehicle_thrust_setpoint`` (``xyz = (0, 0, -throttle)``,
@@ -56,6 +64,7 @@ from imupipe.readers.table import (
     with_flight_stream,
     with_metadata,
 )
+from imupipe.readers.ulog.rotation import mag_rotation
 from imupipe.stages.magnetometer.inflight import rotate
 from imupipe.stages.magnetometer.wmm import earth_field
 
@@ -90,6 +99,7 @@ DEFAULTS: dict[str, Any] = {
     "log_throttle": False,
     "mag_noise": 1.5e-7,
     "vehicle": {},
+    "px4_parameters": {},
 }
 
 
@@ -183,6 +193,17 @@ def simulate(params: dict[str, Any], rng: np.random.Generator) -> tuple[pa.Table
     raw += rng.normal(0.0, p["mag_noise"], raw.shape)
     vehicle = {k: float(v) for k, v in (p["vehicle"] or {}).items()}
     logged_mag = ardupilot_correct(raw, vehicle, amps, thr) if vehicle else raw
+    px4 = dict(p["px4_parameters"] or {})
+    if px4 and vehicle:
+        raise ConfigError("simulate flight: give either vehicle (ArduPilot) or px4_parameters")
+    turn = None
+    if px4:
+        px4 = {"CAL_MAG0_ID": MAG_DEVICE_ID, "CAL_MAG0_ROT": -1} | px4
+        try:
+            turn = mag_rotation(px4, 0)[0]
+        except ValueError as exc:
+            raise ConfigError(f"simulate flight: px4_parameters: {exc}") from None
+        logged_mag = raw @ turn  # the compass's own axes: R^T raw, per row
     table = make_table(t_mag, mag=logged_mag)
     table = with_flight_stream(table, "attitude", t_att, _attitude(s(t_att), p))
     table = with_flight_stream(table, "position", t_gps, _position(s(t_gps), p))
@@ -194,6 +215,13 @@ def simulate(params: dict[str, Any], rng: np.random.Generator) -> tuple[pa.Table
     meta = metadata(table) | {"source": "simulate flight", "gps_year": float(p["year"])}
     if vehicle:
         meta["ardupilot"] = {"parameters": vehicle, "calibrated": {"mag": True}}
+    if turn is not None:  # as the ULog reader gives it
+        meta["px4"] = {
+            "parameters": px4,
+            "calibrated": {"mag": False},
+            "rotation": {"mag": {"matrix": turn.tolist(), "parameters": mag_rotation(px4, 0)[1]}},
+        }
+        meta["device_id"] = {"mag": MAG_DEVICE_ID}
     truth = {
         "matrix": m.tolist(),
         "offset": offset.tolist(),
@@ -213,6 +241,8 @@ def flight_ulog(table: pa.Table) -> UlogData:
             "simulate flight: 'vehicle' is an ArduPilot calibration (written as .bin); PX4 "
             "logs the raw field: leave vehicle unset for .ulg"
         )
+    px4 = (meta.get("px4") or {}).get("parameters") or {}
+    external = float(px4.get("CAL_MAG0_ROT", 0)) >= 0
     us = lambda t_ns: np.asarray(t_ns, dtype=np.int64) // 1000  # noqa: E731
     mag = sensor(table, "mag")
     att = flight_stream(table, "attitude")
@@ -229,7 +259,7 @@ def flight_ulog(table: pa.Table) -> UlogData:
                 "device_id": np.full(len(mag), MAG_DEVICE_ID),
                 **{a: mag.values[:, i] * GAUSS_PER_TESLA for i, a in enumerate("xyz")},
                 "temperature": np.full(len(mag), 25.0),
-                "is_external": np.ones(len(mag)),
+                "is_external": np.full(len(mag), float(external)),
             },
             [(u64, "timestamp"), (u64, "timestamp_sample"), ("uint32_t", "device_id")]
             + [(f32, a) for a in "xyz"]
@@ -283,4 +313,4 @@ def flight_ulog(table: pa.Table) -> UlogData:
                 [(u64, "timestamp"), (u64, "timestamp_sample"), ("float[3]", "xyz")],
             )
         )
-    return UlogData(topics, {}, {"sys_name": "PX4", "ver_hw": "SITL"})
+    return UlogData(topics, dict(px4), {"sys_name": "PX4", "ver_hw": "SITL"})

@@ -41,7 +41,11 @@ sample without a partner is not read (counted).
 **Metadata** (besides the common keys): ``instance`` (stream -> ``multi_id``), ``device_id``
 (stream -> PX4 device id, when known) and ``px4``: ``calibrated`` (stream -> whether PX4 had
 already applied its ``CAL_*`` calibration), ``parameters`` (the log's ``CAL_*``, ``TC_*`` and
-``SENS_BOARD_*`` values at start), ``software`` and ``hardware``.
+``SENS_BOARD_*`` values at start), ``software`` and ``hardware``, and for a raw
+magnetometer (``sensor_mag``) whose device a ``CAL_MAGn_ID`` names, ``rotation.mag``: the
+rotation PX4 applies to it after its calibration, into the body frame (``matrix``, body <-
+sensor, and the ``parameters`` it was made of: ``CAL_MAGn_ROT``, ``SENS_BOARD_ROT``,
+``SENS_BOARD_{X,Y,Z}_OFF``; :mod:`imupipe.readers.ulog.rotation`).
 
 **Not carried**: ULog topics other than the ones read have no ROS message type; they are not
 written to the corrected MCAP and one warning lists them.
@@ -71,6 +75,7 @@ from imupipe.readers.table import (
 )
 from imupipe.readers.table_buffer import assemble
 from imupipe.readers.topics import asked_topics
+from imupipe.readers.ulog.rotation import mag_rotation, mag_slot
 
 US_TO_NS = 1000
 """ULog timestamps are microseconds since boot."""
@@ -545,6 +550,28 @@ def _samples(f: UlogFile, stream: str, key: str) -> int:
     return len(inst)
 
 
+def _mag_rotation(
+    px4: Mapping[str, Any], device_id: int | None, warnings: list[str]
+) -> dict[str, Any] | None:
+    """The rotation PX4 applies to the raw magnetometer read (``sensor_mag``) after its
+    calibration, into the body frame (:func:`imupipe.readers.ulog.rotation.mag_rotation`):
+    ``{"matrix": R (3x3, body <- sensor), "parameters": the ones it was made of}``; None for a
+    field PX4 had already corrected (``vehicle_magnetometer``: body frame), a device no
+    ``CAL_MAGn_ID`` names, or a rotation PX4 does not define (warned)."""
+    if device_id is None or (px4.get("calibrated") or {}).get("mag", True):
+        return None
+    params = px4.get("parameters") or {}
+    slot = mag_slot(params, int(device_id))
+    if slot is None:
+        return None
+    try:
+        matrix, used = mag_rotation(params, slot)
+    except ValueError as exc:
+        warnings.append(f"magnetometer {device_id}: {exc}; its rotation to the body is unknown")
+        return None
+    return {"matrix": matrix.tolist(), "parameters": used}
+
+
 def _calibrated(f: UlogFile, chosen: Mapping[str, str]) -> dict[str, bool]:
     """Stream -> whether PX4 had applied its ``CAL_*`` corrections (imu and mag streams)."""
     return {
@@ -702,6 +729,9 @@ def read_ulog(spec: InputSpec) -> tuple[pa.Table, list[str]]:
         "software": f.info("ver_sw"),
         "hardware": f.info("ver_hw"),
     }
+    turned = _mag_rotation(meta["px4"], meta["device_id"].get("mag"), warnings)
+    if turned is not None:
+        meta["px4"]["rotation"] = {"mag": turned}
     count, ms = f.dropouts()
     if count:
         warnings.append(f"the logger dropped data {count} times ({ms} ms in total)")

@@ -32,6 +32,14 @@ usable current (``motor = "auto"``) is also scored against no motor term on the 
 and, as a model term, kept only when it lowers the held-out residual by more than 2 % (a flying
 copter's throttle always varies, so its range alone does not show that the compass follows it).
 
+Frames: the fit runs in the body frame. A raw PX4 ``sensor_mag`` is in the compass's own axes,
+which PX4 turns into the body after its calibration (``R``: ``CAL_MAGn_ROT`` or
+``SENS_BOARD_ROT`` with ``SENS_BOARD_*_OFF``, read by the ULog reader into the table's metadata:
+:func:`sensor_rotation`): the field is turned by ``R`` before the fit, and the correction step
+holds ``M R`` and ``R^T offset`` (results: ``matrix``/``offset_t`` in the body frame,
+``sensor_rotation`` ``R``). ArduPilot's ``MAG`` is logged already turned (``AHRS_ORIENTATION``,
+``COMPASS_ORIENT``), as PX4's ``vehicle_magnetometer`` is.
+
 Separation (refused with ``ctx.fail`` naming what is missing): the expected body-field
 directions must span the sphere enough for soft iron (``min_spread``, the smallest eigenvalue
 of their covariance; a flight that only yawed level leaves the vertical unseen) and the current
@@ -381,6 +389,20 @@ STEP_BY_SOURCE: dict[str, type[MagCurrentStep]] = {
 """The correction step of each motor source."""
 
 
+def sensor_rotation(table: pa.Table) -> np.ndarray | None:
+    """The rotation (3x3, body <- sensor) the firmware applies to the table's raw magnetometer
+    after its calibration, as the reader found it in the log (a PX4 ``sensor_mag``:
+    ``CAL_MAGn_ROT`` or ``SENS_BOARD_ROT`` with ``SENS_BOARD_*_OFF``); None when the field is
+    already in the body frame (an ArduPilot ``MAG``, a PX4 ``vehicle_magnetometer``) or the log
+    declares none. The fit runs on the field turned by it, and the correction step includes it."""
+    px4 = metadata(table).get("px4") or {}
+    turn = ((px4.get("rotation") or {}).get("mag") or {}).get("matrix")
+    if turn is None:
+        return None
+    m = np.asarray(turn, dtype=np.float64).reshape(3, 3)
+    return None if np.allclose(m, np.eye(3), atol=1e-12) else m
+
+
 def _compass_parameters(table: pa.Table) -> dict[str, float]:
     """The compass parameters (``COMPASS_*``) a log was recorded under (an ArduPilot log's)."""
     params = (metadata(table).get("ardupilot") or {}).get("parameters") or {}
@@ -442,6 +464,9 @@ class MagInflightStage(Stage):
                 "sensor_mag, vehicle_attitude, vehicle_gps_position)"
             )
         mag = ctx.finite(sensor(table, "mag"), f"magnetometer of {where}", minimum=50)
+        turn = sensor_rotation(table)
+        if turn is not None:  # the raw field into the body frame, as the firmware turns it
+            mag = SensorData(mag.t_ns, mag.values @ turn.T, mag.rows)
         year = o.year if o.year is not None else metadata(table).get("gps_year")
         if year is None:
             raise ctx.fail(
@@ -460,6 +485,7 @@ class MagInflightStage(Stage):
         o: MagInflightStage.Options = self.options
         parts = [self._samples(table, ctx.input_name, ctx)]
         mine = _compass_parameters(table)
+        turn = sensor_rotation(table)
         for name in o.flights:
             if name == ctx.input_name or name not in ctx.tables:
                 raise ctx.fail(
@@ -473,6 +499,15 @@ class MagInflightStage(Stage):
                     f"flights: input '{name}' was logged under other compass parameters "
                     f"({', '.join(differ[:4])}{'...' if len(differ) > 4 else ''} differ): fit "
                     "flights of one calibration together"
+                )
+            theirs_turn = sensor_rotation(other)
+            if (turn is None) != (theirs_turn is None) or (
+                turn is not None and not np.allclose(turn, theirs_turn, atol=1e-9)
+            ):
+                raise ctx.fail(
+                    f"flights: input '{name}' turns its magnetometer into the body otherwise "
+                    "(CAL_MAGn_ROT, SENS_BOARD_ROT, SENS_BOARD_*_OFF differ): fit flights of one "
+                    "mounting together"
                 )
             parts.append(self._samples(other, name, ctx))
         counts = [len(p.t_ns) for p in parts]
@@ -704,11 +739,14 @@ class MagInflightStage(Stage):
                     points=True,
                     title="vector residual",
                 )
+        turn = sensor_rotation(table)
+        if turn is not None:  # corrected = M (R raw - o) + motor P = (M R) (raw - R^T o) + ...
+            results["sensor_rotation"] = turn.tolist()
         step = STEP_BY_SOURCE[source or "current"](
             type=self.type,
             sensor="mag",
-            matrix=fit.matrix,
-            offset=fit.offset,
+            matrix=fit.matrix if turn is None else fit.matrix @ turn,
+            offset=fit.offset if turn is None else turn.T @ fit.offset,
             motor=fit.motor,
             params={"model": chosen},
         )
