@@ -411,6 +411,23 @@ def test_flights_of_one_vehicle_fitted_together():
         stage.fit(a, ctx)
 
 
+def simulated_ulog_run(tmp_path, *settings: str) -> tuple[dict, dict]:
+    """``imupipe simulate flight --out flight.ulg --duration 120 --set S...`` then ``imupipe
+    run`` of mag_inflight on it (CLI, in ``tmp_path``): (the truth, calibration.json)."""
+    sets = [x for setting in settings for x in ("--set", setting)]
+    proc = run_cli(
+        "simulate", "flight", "--out", "flight.ulg", "--duration", "120", *sets, cwd=tmp_path
+    )
+    assert proc.returncode == 0, proc.stderr
+    truth = json.loads((tmp_path / "flight.ulg.truth.json").read_text())
+    (tmp_path / "c.toml").write_text(
+        '[inputs.f]\npath = "flight.ulg"\n[[stages]]\ntype = "mag_inflight"\n[output]\ndir = "out"\n'
+    )
+    proc = run_cli("run", "c.toml", cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    return truth, json.loads((tmp_path / "out" / "calibration.json").read_text())
+
+
 def test_px4_path_end_to_end(tmp_path):
     """imupipe simulate flight --out flight.ulg: sensor_mag (raw), vehicle_attitude,
     vehicle_gps_position (its UTC time gives the date), battery_status; the fit recovers the
@@ -419,15 +436,7 @@ def test_px4_path_end_to_end(tmp_path):
     from imupipe.readers.table import interpolate
     from imupipe.readers.ulog.reader import read_ulog
 
-    proc = run_cli("simulate", "flight", "--out", "flight.ulg", "--duration", "120", cwd=tmp_path)
-    assert proc.returncode == 0, proc.stderr
-    truth = json.loads((tmp_path / "flight.ulg.truth.json").read_text())
-    (tmp_path / "c.toml").write_text(
-        '[inputs.f]\npath = "flight.ulg"\n[[stages]]\ntype = "mag_inflight"\n[output]\ndir = "out"\n'
-    )
-    proc = run_cli("run", "c.toml", cwd=tmp_path)
-    assert proc.returncode == 0, proc.stderr
-    doc = json.loads((tmp_path / "out" / "calibration.json").read_text())
+    truth, doc = simulated_ulog_run(tmp_path)
     r = doc["results"]["mag_inflight"]
     assert r["model"] == "soft_iron" and r["motor_term"] and abs(r["year"] - 2024.5) < 1e-3
     rows = (tmp_path / "out" / "px4_calibration.params").read_text().splitlines()
@@ -623,18 +632,7 @@ def test_px4_throttle_path_end_to_end(tmp_path):
     from imupipe.readers.table import interpolate
     from imupipe.readers.ulog.reader import read_ulog
 
-    proc = run_cli(
-        "simulate", "flight", "--out", "flight.ulg", "--duration", "120",
-        "--set", "motor_source=throttle", "--set", "current_sensor=false", cwd=tmp_path,
-    )  # fmt: skip
-    assert proc.returncode == 0, proc.stderr
-    truth = json.loads((tmp_path / "flight.ulg.truth.json").read_text())
-    (tmp_path / "c.toml").write_text(
-        '[inputs.f]\npath = "flight.ulg"\n[[stages]]\ntype = "mag_inflight"\n[output]\ndir = "out"\n'
-    )
-    proc = run_cli("run", "c.toml", cwd=tmp_path)
-    assert proc.returncode == 0, proc.stderr
-    doc = json.loads((tmp_path / "out" / "calibration.json").read_text())
+    truth, doc = simulated_ulog_run(tmp_path, "motor_source=throttle", "current_sensor=false")
     assert doc["results"]["mag_inflight"]["motor_source"] == "throttle"
     p = _params((tmp_path / "out" / "px4_calibration.params").read_text(), "\t")
     assert p["CAL_MAG_COMP_TYP"] == 1
@@ -717,18 +715,7 @@ def test_px4_rotated_compass_exports_reproduce_the_correction(tmp_path, px4_para
     from imupipe.readers.table import interpolate
     from imupipe.readers.ulog.reader import read_ulog
 
-    setting = "px4_parameters=" + json.dumps(px4_parameters)
-    proc = run_cli(
-        "simulate", "flight", "--out", "f.ulg", "--duration", "120", "--set", setting, cwd=tmp_path
-    )
-    assert proc.returncode == 0, proc.stderr
-    truth = json.loads((tmp_path / "f.ulg.truth.json").read_text())
-    (tmp_path / "c.toml").write_text(
-        '[inputs.f]\npath = "f.ulg"\n[[stages]]\ntype = "mag_inflight"\n[output]\ndir = "out"\n'
-    )
-    proc = run_cli("run", "c.toml", cwd=tmp_path)
-    assert proc.returncode == 0, proc.stderr
-    doc = json.loads((tmp_path / "out" / "calibration.json").read_text())
+    truth, doc = simulated_ulog_run(tmp_path, "px4_parameters=" + json.dumps(px4_parameters))
     r = doc["results"]["mag_inflight"]
     # R as PX4 builds it: the level adjustment (degrees) times the enum's Euler angles
     rot = {2: (0, 0, 90), 10: (180, 0, 90)}[
@@ -746,7 +733,7 @@ def test_px4_rotated_compass_exports_reproduce_the_correction(tmp_path, px4_para
     comp = np.array([p[f"CAL_MAG0_{a}COMP"] for a in "XYZ"])  # G/kA
     assert np.abs(s - turn.T @ np.array(truth["matrix"]) @ turn).max() < 0.01
     assert np.abs(off - turn.T @ np.array(truth["offset"]) * 1e4).max() < 0.01 * field * 1e4
-    table, _ = read_ulog(InputSpec(path=tmp_path / "f.ulg"))
+    table, _ = read_ulog(InputSpec(path=tmp_path / "flight.ulg"))
     raw = sensor(table, "mag")
     cur = flight_stream(table, "current")
     amps = interpolate(cur.t_ns, cur.values[:, 0], raw.t_ns)

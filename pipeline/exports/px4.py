@@ -9,8 +9,11 @@ PX4 corrects each sensor (PX4-Autopilot ``src/lib/sensor_calibration``, ``Correc
 
 ``thermal(T)`` is the cubic ``TC_{A,G}n_X{0..3}_{axis}`` in ``T - TC_*n_TREF`` (T clamped to
 ``TC_*n_TMIN..TMAX``, ``src/modules/temperature_compensation``, ``calc_thermal_offsets_3D``),
-enabled by ``TC_A_ENABLE``/``TC_G_ENABLE``. ``R`` is the board rotation. A slot ``n`` applies to
-the device whose id ``CAL_*n_ID`` (``TC_*n_ID``) holds.
+enabled by ``TC_A_ENABLE``/``TC_G_ENABLE``. ``R`` is the board rotation; a magnetometer's is
+``CAL_MAGn_ROT`` (external) or ``SENS_BOARD_ROT`` (internal) with the level adjustment
+``SENS_BOARD_*_OFF`` (:mod:`imupipe.readers.ulog.rotation`), applied after ``S``: a
+magnetometer model mapping the raw field to the body (``m``) is written ``S = R^T m``. A slot
+``n`` applies to the device whose id ``CAL_*n_ID`` (``TC_*n_ID``) holds.
 
 **One slot per device.** The chain of each device (:func:`imupipe.pipeline.exports.common.device_models`: steps of one device compose, of different devices never) goes to its own slot:
 ``CAL_*n`` is the slot whose ``CAL_*n_ID`` in the log holds the device's id, else the slot of the
@@ -38,8 +41,10 @@ to ``TC_Mn_*`` in gauss (firmware with magnetometer thermal compensation, ``TC_M
 **Data PX4 had already corrected.** ``sensor_combined`` and ``vehicle_magnetometer`` hold data
 PX4 corrected with the log's own parameters (``fitted_on.px4.calibrated``). The chain fitted on
 them is composed with those parameters (PX4's ``BiasCorrectedSensorOffset``: new offset = old
-offset + bias / scale), so the file replaces the log's calibration; this needs no board
-rotation (``SENS_BOARD_ROT = 0``), else the sensor is left out with a note. The slot is the one
+offset + bias / scale), so the file replaces the log's calibration; for the accelerometer and
+gyroscope this needs no board rotation (``SENS_BOARD_ROT = 0``, ``CAL_*n_ROT`` -1 or 0), else
+the sensor is left out with a note naming the parameter; a magnetometer's rotation is composed
+(``vehicle_magnetometer = R S (raw - OFF)``). The slot is the one
 whose ``CAL_*n_ID`` is the fitted device (``fitted_on.device_id``); for a log that names no PX4
 device (CSV, ROS), the slots in the order of the devices without ``CAL_*_ID``/``TC_*_ID``,
 noted (PX4 applies a slot only to the device whose id it holds).
