@@ -272,7 +272,9 @@ def test_no_worse_than_magfit_on_the_simulated_flight(tmp_path):
     out, _ = fit(table)
     mag, _ = finite(sensor(table, "mag"))
     fs = flight_samples(table, mag, float(metadata(table)["gps_year"]))
-    ours = out.step.apply_values(fs.raw) + fs.current[:, None] * out.step.motor
+    ours = out.step.apply_values(fs.raw) + fs.power(out.results["motor_source"])[:, None] * (
+        out.step.motor
+    )
     theirs = bench.run_magfit(path, True, 10, 100, None)
     assert isinstance(theirs, dict), theirs
     mf = bench.magfit_corrected(path, fs.t_ns, fs.raw, fs.current, theirs)
