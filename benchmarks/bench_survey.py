@@ -13,8 +13,13 @@
    one-CPU nodes started on this machine (``benchmarks/local_ray.py``; stopped and removed at the
    end) with ``--engine ray --address``, beside the cluster's own resident memory.
 
+5. With ``--long-s S``: peak memory (``peak_rss_mb`` of the manifest) and worker seconds of one
+   worker surveying one log of ``S`` seconds at ``--long-hz`` (default 400) with 1 IMU, read in
+   batches (the default ``batch_rows``) against read as one batch (``batch_rows`` beyond the
+   log: the whole topic in memory, as before the survey streamed), and the ratio of the two.
+
 Usage: ``python benchmarks/bench_survey.py [--logs 1000] [--log-s 150] [--jobs 2]
-[--ray-nodes 2]``. Not run in CI (minutes); the machine is shared, so the figures are indicative.
+[--ray-nodes 2] [--long-s 7200]`` (``--logs 0``: only 5.). Not run in CI (minutes); the machine is shared, so the figures are indicative.
 """
 
 from __future__ import annotations
@@ -22,6 +27,7 @@ from __future__ import annotations
 import argparse
 import json
 import shutil
+import subprocess
 import sys
 import tempfile
 import time
@@ -80,15 +86,67 @@ def measure(
     }
 
 
+def measure_long(root: Path, seconds: float, rate_hz: float) -> dict[str, float]:
+    """5.: one long log surveyed whole (one batch) and streamed, each by a fresh worker."""
+    # simulated in a process of its own: a process's peak RSS passes to its children (fork and
+    # exec keep it), so the workers below must not descend from one that held the simulation
+    sim = (
+        "import sys; from pathlib import Path; from imupipe.pipeline.simulate import simulate,"
+        " write_log; f, _ = simulate('fleet', {'vehicles': 1, 'imus': 1, 'logs': 1, 'log_s':"
+        " float(sys.argv[2]), 'rate_hz': float(sys.argv[3]), 'events': False}, seed=3);"
+        " write_log(Path(sys.argv[1]), f)"
+    )
+    subprocess.run(
+        [sys.executable, "-c", sim, str(root / "long"), str(seconds), str(rate_hz)], check=True
+    )
+    figures: dict[str, float] = {"long_log_s": seconds, "long_rate_hz": rate_hz}
+    rows = {}
+    for name, batch in (("whole", 1 << 40), ("streamed", None)):
+        out = root / f"long_{name}"
+        shutil.rmtree(out, ignore_errors=True)
+        # a fresh process each: a worker's peak is measured from its own start
+        code = (
+            "import sys; from pathlib import Path; from imupipe.pipeline.survey.scan import survey;"
+            "r = survey([Path(sys.argv[1])], Path(sys.argv[2]), jobs=1, rerun=False, quiet=True,"
+            " batch_rows=None if sys.argv[3] == 'None' else int(sys.argv[3])); print(r['rows'])"
+        )
+        proc = subprocess.run(
+            [sys.executable, "-c", code, str(root / "long"), str(out), str(batch)],
+            capture_output=True,
+            text=True,
+            check=True,
+        )
+        (line,) = [r for r in read_manifest(out) if r.get("status") == "surveyed"]
+        figures[f"{name}_worker_peak_rss_mb"] = line["peak_rss_mb"]
+        figures[f"{name}_worker_s"] = line["seconds"]
+        rows[name] = int(proc.stdout.split()[-1])
+    if rows["whole"] != rows["streamed"]:
+        raise SystemExit(f"whole and streamed found different periods: {rows}")
+    figures["still_periods"] = rows["whole"]
+    figures["memory_whole_vs_streamed"] = round(
+        figures["whole_worker_peak_rss_mb"] / figures["streamed_worker_peak_rss_mb"], 2
+    )
+    figures["speed_streamed_vs_whole"] = round(
+        figures["whole_worker_s"] / figures["streamed_worker_s"], 2
+    )
+    return figures
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--logs", type=int, default=1000)
     ap.add_argument("--log-s", type=float, default=150.0)
     ap.add_argument("--jobs", type=int, default=2)
     ap.add_argument("--ray-nodes", type=int, default=0, help="4.: Ray nodes of one CPU (0: skip)")
+    ap.add_argument("--long-s", type=float, default=0.0, help="5.: one log this long (0: skip)")
+    ap.add_argument("--long-hz", type=float, default=400.0)
     args = ap.parse_args()
     tmp = Path(tempfile.mkdtemp(prefix="bench_survey_"))
     try:
+        if args.long_s:
+            print(json.dumps(measure_long(tmp, args.long_s, args.long_hz), indent=2), flush=True)
+        if not args.logs:
+            return
         t = time.perf_counter()
         logs = make_fleet(tmp / "fleet", args.logs, args.log_s, 1)
         made = time.perf_counter() - t

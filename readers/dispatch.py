@@ -41,7 +41,7 @@ ITERATORS: dict[str, str] = {
     "ros1": "imupipe.readers.ros1.reader:iter_ros1",
     "ros2": "imupipe.readers.ros2.reader:iter_ros2",
 }
-"""Format -> "module:function(spec, batch_rows) -> Iterator[(table, [RawMessage])]": bounded
+"""Format -> "module:function(spec, batch_rows, carry) -> Iterator[(table, [RawMessage])]": bounded
 memory batches (formats absent here are read whole and yielded as one batch: CSV, ULog, which
 pyulog reads whole, and DataFlash)."""
 
@@ -133,7 +133,7 @@ def read_input(spec: InputSpec) -> tuple[pa.Table, list[str]]:
 
 
 def iter_input(
-    spec: InputSpec, batch_rows: int = 200_000
+    spec: InputSpec, batch_rows: int = 200_000, carry: bool = True
 ) -> Iterator[tuple[pa.Table, list[RawMessage]]]:
     """The input as ``(table batch, carried-over messages)`` pairs in log order, with memory
     bounded by ``batch_rows`` rows (plus one chunk) for MCAP and ROS bags.
@@ -143,14 +143,15 @@ def iter_input(
     stamp that goes back across a batch boundary stays where the log put it) and the other
     topics' messages of the same chunks, in log-time order. Out-of-order warnings are not
     reported here (use :func:`read_input` for the globally sorted table). Other formats (CSV)
-    are read whole and yielded as one batch.
+    are read whole and yielded as one batch. ``carry=False``: the other topics are not read
+    (every batch comes with an empty list; for a reader of the table only, as the survey).
     """
     fmt = detect_format(Path(spec.path))
     if fmt in ITERATORS:
-        yield from _load(spec, fmt, ITERATORS[fmt])(spec, batch_rows)
+        yield from _load(spec, fmt, ITERATORS[fmt])(spec, batch_rows, carry)
         return
     table, _warnings = read_input(spec)
-    yield table, list(carry_over(spec))
+    yield table, list(carry_over(spec)) if carry else []
 
 
 def carry_over(spec: InputSpec) -> Iterable[RawMessage]:

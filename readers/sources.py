@@ -125,10 +125,11 @@ def _split(piece: Piece, keep: np.ndarray) -> tuple[Piece, Piece]:
 
 
 def iter_sources(
-    spec: InputSpec, sources: Sequence[LogSource], batch_rows: int
+    spec: InputSpec, sources: Sequence[LogSource], batch_rows: int, carry: bool = True
 ) -> Iterator[tuple[pa.Table, list[RawMessage]]]:
     """Batches of about ``batch_rows`` rows in log-time order, each sorted by the chosen time
-    within itself, with the carried-over messages of the same log-time span.
+    within itself, with the carried-over messages of the same log-time span (none when not
+    ``carry``: the other topics are not read).
 
     Chunks are read in file order; after each, messages whose log time is below the bound of
     everything still unread (chunk indexes / chunk infos) are final and may be emitted, the
@@ -167,7 +168,7 @@ def iter_sources(
         return table, emit
 
     for src, after in zip(ordered, later_first, strict=True):
-        for pieces, messages, bound in src.chunks(streams, carry=True):
+        for pieces, messages, bound in src.chunks(streams, carry=carry):
             for stream, piece in pieces.items():
                 parts[stream].append(piece)
                 rows += len(piece)

@@ -199,8 +199,13 @@ def _device_plots(d: dict[str, Any], table: pa.Table) -> list[str]:
     return [s for s in plots if s]
 
 
-def write_report(path: Path, table: pa.Table, fleet: dict[str, Any]) -> None:
-    """``report.html``: the fleet table, the devices to recalibrate, a section per device."""
+def write_report(
+    path: Path, table: pa.Table, fleet: dict[str, Any], compass: dict[str, Any] | None = None
+) -> None:
+    """``report.html``: the fleet table, the devices to recalibrate, a section per device, and
+    the compasses' section (:func:`imupipe.pipeline.survey.compass.report_section`)."""
+    from imupipe.pipeline.survey.compass import report_section
+
     esc = html.escape
     k = fleet["k"]
     head = "".join(
@@ -266,6 +271,7 @@ def write_report(path: Path, table: pa.Table, fleet: dict[str, Any]) -> None:
         f"<h2>Recalibrate</h2><ul>{recal}</ul>"
         f"<h2>Fleet</h2><table><tr>{head}</tr>{''.join(rows)}</table>"
         + "".join(sections)
+        + report_section(compass)
         + "</body></html>\n"
     )
     Path(path).write_text(text, encoding="utf-8")

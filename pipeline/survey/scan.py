@@ -2,8 +2,9 @@
 
 For each log (any format imupipe reads; a folder is searched as ``convert`` searches it) and
 each IMU topic in it, a worker reads the topic (and the temperature topic of the same namespace,
-or the log's only one), finds the still periods and measures each one
-(:mod:`imupipe.stages.survey.stats`); with ``--calibration`` the same figures are measured again
+or the log's only one) in batches, so that its memory is bounded by a batch and not by the log
+(:mod:`imupipe.pipeline.survey.stream`), finds the still periods and measures each one
+(:mod:`imupipe.stages.survey.stats`, :mod:`imupipe.stages.survey.streaming`); with ``--calibration`` the same figures are measured again
 on the corrected samples (``cal_*`` columns: what is left is the calibration's error). The rows
 of one log go to ``DIR/parts/<log>.parquet``; the driver appends one line per log to
 ``DIR/manifest.jsonl`` (:mod:`imupipe.pipeline.convert.manifest`), then joins the parts into
@@ -51,6 +52,8 @@ class SurveyTask:
     calibration_sha256: str | None
     options: dict[str, float]
     options_sha256: str
+    batch_rows: int | None = None
+    """Rows per batch a worker holds (None: :data:`imupipe.pipeline.survey.stream.DEFAULT_BATCH_ROWS`)."""
 
 
 FLIGHT_IMU_TYPES = {"ulog": ("sensor_gyro",), "dataflash": ("IMU", "IMU2", "IMU3")}
@@ -94,18 +97,17 @@ def imu_topics(spec: Any) -> list[tuple[str | None, str | None, str | None]]:
 
 
 def survey_log(task: SurveyTask) -> dict[str, Any]:
-    """Survey one log (runs in a worker): write its part, return its manifest line."""
-    import numpy as np
+    """Survey one log (runs in a worker): write its part, return its manifest line. Each IMU
+    topic streams in batches of ``task.batch_rows`` rows (:mod:`imupipe.pipeline.survey.stream`)."""
     import pyarrow as pa
     import pyarrow.parquet as pq
 
     from imupipe.pipeline.atomic import staged_outputs
     from imupipe.pipeline.calibration_file import on_device
-    from imupipe.readers import dispatch
+    from imupipe.pipeline.survey.stream import survey_topic
     from imupipe.readers.spec import InputSpec
-    from imupipe.readers.table import finite, has_sensor, has_stream, metadata, sensor
-    from imupipe.stages.steps import apply_chain, steps_from_json
-    from imupipe.stages.survey.stats import StillOptions, period_stats, still_periods
+    from imupipe.stages.steps import steps_from_json
+    from imupipe.stages.survey.stats import StillOptions
 
     start, cpu = time.perf_counter(), time.process_time()
     opts = StillOptions(**task.options)
@@ -120,41 +122,19 @@ def survey_log(task: SurveyTask) -> dict[str, Any]:
     topics = imu_topics(spec)
     for instance, (imu, temp, mag) in enumerate(topics):
         one = dataclasses.replace(spec, imu_topic=imu, temperature_topic=temp, mag_topic=mag)
-        table, warned = dispatch.read_input(one)
-        warnings += warned
-        name = imu or "imu"
-        if not (has_sensor(table, "gyro") and has_sensor(table, "accel")):
-            warnings.append(f"{task.path}: {name} lacks a gyro or an accelerometer: not surveyed")
+        found = survey_topic(one, opts, steps, warnings, batch_rows=task.batch_rows)
+        if found is None:
             continue
-        gyro, accel = sensor(table, "gyro"), sensor(table, "accel")  # both on the imu rows
-        keep = np.isfinite(gyro.values).all(axis=1) & np.isfinite(accel.values).all(axis=1)
-        t_ns, g_vals, a_vals = gyro.t_ns[keep], gyro.values[keep], accel.values[keep]
-        if len(t_ns) < 3 or not (np.diff(t_ns) >= 0).all():
-            warnings.append(
-                f"{task.path}: {name}: too few samples or time going back: not surveyed"
-            )
-            continue
-        temperature = None
-        if has_stream(table, "temperature"):
-            tdata, _ = finite(sensor(table, "temperature"))
-            temperature = (tdata.t_ns, tdata.values[:, 0])
-        intervals = still_periods(t_ns, g_vals, a_vals, opts)
-        stats = period_stats(t_ns, g_vals, a_vals, intervals, opts, temperature)
-        cal: dict[str, np.ndarray] | None = None
-        if steps is not None:
-            corrected = apply_chain(table, steps)
-            cg = sensor(corrected, "gyro").values[keep]
-            ca = sensor(corrected, "accel").values[keep]
-            cal = period_stats(t_ns, cg, ca, intervals, opts, temperature)
-        meta = metadata(table)
-        frame = (meta.get("frame_id") or {}).get("imu")
         topic = imu or "csv"
-        counts[topic] = len(intervals)
-        rows.append(_rows(task, topic, instance, frame, stats, cal, len(intervals)))
-        del table, intervals
+        m = len(found.stats["start_ns"])
+        counts[topic] = m
+        rows.append(_rows(task, topic, instance, found.frame, found.stats, found.cal, m))
     if not topics:
         warnings.append(f"{task.path}: no sensor_msgs/Imu topic: nothing to survey")
     table = pa.concat_tables(rows) if rows else _rows(task, "", 0, None, None, None, 0)
+    from imupipe.pipeline.survey.compass import survey_compass  # flight logs: their compasses
+
+    compass = survey_compass(task)  # writes parts/<log>.compass.parquet (before the log's part)
     task.part.parent.mkdir(parents=True, exist_ok=True)
     with staged_outputs() as out:
         pq.write_table(table, out.path(task.part), compression="zstd")
@@ -168,7 +148,8 @@ def survey_log(task: SurveyTask) -> dict[str, Any]:
         "seconds": round(time.perf_counter() - start, 4),
         "cpu_seconds": round(time.process_time() - cpu, 4),
         "peak_rss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
-        "warnings": warnings,
+        "warnings": warnings + (compass or {}).get("warnings", []),
+        **({"compass": compass} if compass else {}),
     }
 
 
@@ -277,11 +258,15 @@ def plan(
     calibration: dict[str, Any] | None,
     options: dict[str, float],
     force: bool = False,
+    batch_rows: int | None = None,
 ) -> tuple[list[SurveyTask], list[SurveyTask]]:
-    """(tasks to run, tasks already done) for every log under ``logs``."""
+    """(tasks to run, tasks already done) for every log under ``logs`` (``batch_rows``: see
+    :class:`SurveyTask`; it does not change the figures, so a part surveyed with another batch
+    size is kept)."""
     from imupipe.pipeline.convert.manifest import latest
     from imupipe.pipeline.convert.plan import find_logs
     from imupipe.pipeline.convert.settings import chain_sha256
+    from imupipe.pipeline.survey.compass import compass_part
 
     out_dir = out_dir.absolute()
     for arg in logs:
@@ -302,8 +287,9 @@ def plan(
             raise ConfigError(f"{seen[str(part)]} and {path} would both be surveyed into {part}")
         seen[str(part)] = path
         task = SurveyTask(
-            path, rel.as_posix(), parent, part, calibration, cal_sha, options, opt_sha
-        )
+            path, rel.as_posix(), parent, part, calibration, cal_sha, options, opt_sha,
+            batch_rows,
+        )  # fmt: skip
         rec = done.get(str(path))
         fresh = (
             not force
@@ -313,6 +299,7 @@ def plan(
             and rec.get("mode") == opt_sha
             and part.exists()
             and part.stat().st_mtime >= path.stat().st_mtime
+            and (path.suffix.lower() not in FLIGHT_SUFFIXES or compass_part(part).exists())
         )
         (skipped if fresh else todo).append(task)
     return todo, skipped
@@ -332,9 +319,11 @@ def survey(
     k: float = DEFAULT_K,
     quiet: bool = False,
     rerun: bool = True,
+    batch_rows: int | None = None,
 ) -> dict[str, Any]:
     """Survey ``logs`` into ``out_dir``; returns ``{"failed": [(path, why)], "surveyed": n,
-    "skipped": n, "fleet": the fleet view}``."""
+    "skipped": n, "fleet": the fleet view}``. ``batch_rows``: rows per batch a worker reads
+    (memory; the figures do not depend on it)."""
     from imupipe.pipeline.atomic import staged_outputs
     from imupipe.pipeline.calibration_file import load_calibration
     from imupipe.pipeline.convert.engines import Outcome, run_tasks
@@ -346,7 +335,7 @@ def survey(
     if calibration is not None:
         doc, _ = load_calibration(calibration)
     opts = dict(options or {})
-    todo, skipped = plan(logs, out_dir, doc, opts, force)
+    todo, skipped = plan(logs, out_dir, doc, opts, force, batch_rows)
     if not todo and not skipped:
         raise ConfigError(f"no log found under {', '.join(map(str, logs))}")
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -402,7 +391,11 @@ def survey(
     parts = [pq.read_table(t.part) for t in sorted(ok, key=lambda t: t.log)]
     table = pa.concat_tables(parts, promote_options="default") if parts else None
     fleet: dict[str, Any] = {}
+    compass = None
     with staged_outputs() as out:
+        from imupipe.pipeline.survey.compass import write_compass
+
+        compass = write_compass(out, out_dir, sorted(ok, key=lambda t: t.log), k)
         if table is not None:
             meta = {
                 "imupipe_survey": json.dumps(
@@ -417,7 +410,7 @@ def survey(
             out.write_text(
                 out_dir / "fleet.json", json.dumps(fleet, indent=2, default=float) + "\n"
             )
-            write_report(out.path(out_dir / "report.html"), table, fleet)
+            write_report(out.path(out_dir / "report.html"), table, fleet, compass=compass)
             if rerun:
                 from imupipe.pipeline.survey.report import write_recording
 
@@ -427,6 +420,7 @@ def survey(
         "surveyed": len(ok) - len(skipped),
         "skipped": len(skipped),
         "fleet": fleet,
+        "compass": compass,
         "rows": 0 if table is None else table.num_rows,
     }
 
@@ -495,9 +489,10 @@ def main(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
     if not args.quiet:
+        from imupipe.pipeline.survey.compass import summary_lines as compass_lines
         from imupipe.pipeline.survey.report import summary_lines
 
-        for line in summary_lines(result["fleet"]):
+        for line in summary_lines(result["fleet"]) + compass_lines(result["compass"]):
             print(line)
         print(
             f"imupipe survey: {result['surveyed']} surveyed, {result['skipped']} skipped (already "

@@ -151,9 +151,11 @@ def read_mcap(spec: InputSpec) -> tuple[pa.Table, list[str]]:
     return read_sources(spec, [McapSource(spec.path)])
 
 
-def iter_mcap(spec: InputSpec, batch_rows: int) -> Iterator[tuple[pa.Table, list[RawMessage]]]:
+def iter_mcap(
+    spec: InputSpec, batch_rows: int, carry: bool = True
+) -> Iterator[tuple[pa.Table, list[RawMessage]]]:
     """Bounded-memory batches (see :func:`imupipe.readers.sources.iter_sources`)."""
-    return iter_sources(spec, [McapSource(spec.path)], batch_rows)
+    return iter_sources(spec, [McapSource(spec.path)], batch_rows, carry)
 
 
 def carry_over_mcap(spec: InputSpec) -> list[RawMessage]:

@@ -574,9 +574,11 @@ def read_ros1(spec: InputSpec) -> tuple[pa.Table, list[str]]:
     return read_sources(spec, bag_sources(spec.path))
 
 
-def iter_ros1(spec: InputSpec, batch_rows: int) -> Iterator[tuple[pa.Table, list[RawMessage]]]:
+def iter_ros1(
+    spec: InputSpec, batch_rows: int, carry: bool = True
+) -> Iterator[tuple[pa.Table, list[RawMessage]]]:
     """Bounded-memory batches (see :func:`imupipe.readers.sources.iter_sources`)."""
-    return iter_sources(spec, bag_sources(spec.path), batch_rows)
+    return iter_sources(spec, bag_sources(spec.path), batch_rows, carry)
 
 
 def carry_over_ros1(spec: InputSpec) -> list[RawMessage]:

@@ -47,6 +47,10 @@ must vary (``min_current_a``; the throttle ``min_throttle``) and not follow the 
 (correlation < 0.95) for the motor term. Standard errors are the least-squares ones inflated by the residual's lag-1
 autocorrelation (the residual of a flight is slow: attitude and model errors). Heading error:
 the heading of the corrected field rotated into NED minus the model's (deg).
+
+The fit itself is :func:`fit_flight` (on :func:`flight_samples`): the stage calls it on its
+input (and the flights joined to it), ``imupipe survey`` on every compass of every flight log
+(:mod:`imupipe.pipeline.survey.compass`), so both give the same answer on the same flight.
 """
 
 from __future__ import annotations
@@ -259,9 +263,11 @@ def wrap_deg(a: np.ndarray) -> np.ndarray:
 @dataclass
 class FlightSamples:
     """The magnetometer samples within the attitude and GPS streams' span, with what they
-    should read: ``raw`` (n, 3) T, attitude ``q`` (n, 4), WMM ``ned`` and body-frame ``target``
-    (n, 3) T, ``current`` (n,) A or None, ``throttle`` (n,) 0..1 or None; all on the
-    magnetometer's stamps ``t_ns``."""
+    should read: ``raw`` (n, 3) T in the body frame, attitude ``q`` (n, 4), WMM ``ned`` and
+    body-frame ``target`` (n, 3) T, ``current`` (n,) A or None, ``throttle`` (n,) 0..1 or None;
+    all on the magnetometer's stamps ``t_ns``. ``rotation`` (3x3, body <- sensor) is the turn
+    :func:`flight_samples` applied to the logged field (:func:`sensor_rotation`; None: logged
+    in the body frame): the logged field is ``raw @ rotation``."""
 
     t_ns: np.ndarray
     raw: np.ndarray
@@ -270,6 +276,7 @@ class FlightSamples:
     target: np.ndarray
     current: np.ndarray | None
     throttle: np.ndarray | None = None
+    rotation: np.ndarray | None = None
 
     def power(self, source: str | None) -> np.ndarray | None:
         """The motor power signal of ``source`` (``"current"``, ``"throttle"``; None: none)."""
@@ -288,10 +295,12 @@ def continuous(q: np.ndarray) -> np.ndarray:
 
 
 def flight_samples(table: pa.Table, mag: SensorData, year: float) -> FlightSamples:
-    """:class:`FlightSamples` of ``mag`` (finite magnetometer samples of ``table``): attitude,
-    position, current and throttle interpolated onto its stamps, the WMM field of ``year`` at the
-    position, rotated into the body. ValueError (one line) when fewer than 50 samples lie
-    within the flight streams or the date precedes the model."""
+    """:class:`FlightSamples` of ``mag`` (finite magnetometer samples of ``table``, as logged):
+    the field turned into the body frame by the table's :func:`sensor_rotation` (as the firmware
+    turns it after its calibration), attitude, position, current and throttle interpolated onto
+    its stamps, the WMM field of ``year`` at the position, rotated into the body. ValueError (one
+    line) when fewer than 50 samples lie within the flight streams or the date precedes the
+    model."""
     att = flight_stream(table, "attitude")
     pos = flight_stream(table, "position")
     inside = (mag.t_ns >= max(att.t_ns[0], pos.t_ns[0])) & (
@@ -303,6 +312,9 @@ def flight_samples(table: pa.Table, mag: SensorData, year: float) -> FlightSampl
             "streams' time span; the fit needs at least 50"
         )
     t_ns, raw = mag.t_ns[inside], mag.values[inside]
+    turn = sensor_rotation(table)
+    if turn is not None:  # the raw field into the body frame, as the firmware turns it
+        raw = raw @ turn.T
     q = interpolate(att.t_ns, continuous(att.values), t_ns)
     q /= np.linalg.norm(q, axis=1, keepdims=True)
     lla = interpolate(pos.t_ns, pos.values, t_ns)
@@ -314,8 +326,225 @@ def flight_samples(table: pa.Table, mag: SensorData, year: float) -> FlightSampl
             sig = flight_stream(table, stream)
             power[stream] = interpolate(sig.t_ns, sig.values[:, 0], t_ns)
     return FlightSamples(
-        t_ns, raw, q, ned, rotate(q, ned, inverse=True), power["current"], power["throttle"]
+        t_ns, raw, q, ned, rotate(q, ned, inverse=True), power["current"], power["throttle"], turn
     )
+
+
+class CannotSeparate(ValueError):
+    """The flight cannot separate what was asked (the message names what is missing)."""
+
+
+@dataclass
+class FlownFit:
+    """What :func:`fit_flight` found on one flight (or on several joined): the chosen ``model``
+    and its :class:`Fit`, the motor ``source``, the held-out RMS per candidate (uT), the ``coverage`` of attitudes,
+    the terms ``not_fitted`` and why, the ``warnings`` a stage shows, the ``metrics`` (uT, deg),
+    each parameter's standard error, and per sample the vector residual (T) and heading error
+    (deg) before and after."""
+
+    model: str
+    fit: Fit
+    source: str | None
+    """What the motor term multiplies (``"current"``, ``"throttle"``; None: no motor term)."""
+    held_out: dict[str, float]
+    coverage: dict[str, Any]
+    not_fitted: list[str]
+    warnings: list[str]
+    metrics: dict[str, Any]
+    parameter_se: dict[str, float]
+    before: np.ndarray
+    after: np.ndarray
+    h_before: np.ndarray
+    h_after: np.ndarray
+
+
+def coverage_of(q: np.ndarray, target: np.ndarray) -> dict[str, Any]:
+    """The attitudes a flight covered: the eigenvalues of the covariance of the expected field's
+    body directions (``direction_spread``, ascending), the yaw covered in 10 deg bins (deg) and
+    the 99th percentile of the tilt (deg)."""
+    dirs = target / np.linalg.norm(target, axis=1, keepdims=True)
+    spread = np.linalg.eigvalsh(np.cov(dirs.T))
+    tilt = np.degrees(np.arccos(np.clip(rotate(q, np.tile([0, 0, 1.0], (len(q), 1)))[:, 2], -1, 1)))
+    yaw = heading_deg(q, np.tile([1.0, 0, 0], (len(q), 1)))
+    yaw_cover = float(np.count_nonzero(np.histogram(yaw, bins=36, range=(-180, 180))[0])) * 10
+    return {
+        "direction_spread": [float(v) for v in spread],
+        "yaw_coverage_deg": yaw_cover,
+        "tilt_max_deg": float(np.percentile(tilt, 99)),
+    }
+
+
+def fit_flight(fs: FlightSamples, o: Any) -> FlownFit:  # noqa: C901
+    """The in-flight compass fit of the module docstring on ``fs``, under ``o`` (the stage's
+    :class:`MagInflightStage.Options` or any object with its fields): what the flight can
+    separate, the model chosen on held-out segments, the motor source (current or throttle,
+    held-out 2 % rule), the final robust fit and its figures. ``fs`` is in the body frame
+    (:func:`flight_samples` turns a raw PX4 field by :func:`sensor_rotation`).
+    :class:`CannotSeparate` when the model or motor term asked for cannot be separated, or every
+    candidate is singular. One implementation for the stage and for ``imupipe survey``."""
+    raw, q, ned, target = fs.raw, fs.q, fs.ned, fs.target
+
+    # -- what the flight can separate ----------------------------------------------------
+    coverage = coverage_of(q, target)
+    spread = coverage["direction_spread"]
+    yaw_cover = coverage["yaw_coverage_deg"]
+    reasons: list[str] = []
+    can_soft = bool(spread[0] >= o.min_spread)
+    if not can_soft:
+        reasons.append(
+            f"soft iron: the field's body directions spread {spread[0]:.3g} < min_spread "
+            f"{o.min_spread:g} (yaw covered {yaw_cover:.0f} deg, tilt to "
+            f"{coverage['tilt_max_deg']:.0f} deg): fly full turns and steeper banks"
+        )
+    separable: dict[str, bool] = {}
+    minimum = {
+        "current": (o.min_current_a, "A", "min_current_a"),
+        "throttle": (o.min_throttle, "", "min_throttle"),
+    }
+    wanted = POWER_SOURCES if o.motor_source == "auto" else (o.motor_source,)
+    for src in wanted:
+        sig = fs.power(src)
+        if sig is None:
+            continue
+        lo, hi = np.percentile(sig, [5, 95])
+        corr = max(abs(np.corrcoef(sig, target[:, i])[0, 1]) for i in range(3)) if hi > lo else 1.0
+        least, unit, key = minimum[src]
+        separable[src] = bool(hi - lo >= least and corr < 0.95)
+        if not separable[src]:
+            reasons.append(
+                f"motor: the {src} spans {hi - lo:.2g}{unit} ({key} {least:g}) or follows "
+                f"the field direction (|r| {corr:.2f})"
+            )
+    if not separable:
+        what = {
+            "auto": "no battery current and no throttle",
+            "current": "no battery current",
+            "throttle": "no throttle (CTUN.ThO, vehicle_thrust_setpoint)",
+        }[o.motor_source]
+        reasons.append(f"motor: the log has {what}")
+    motor_reasons = [r for r in reasons if r.startswith("motor")]
+    usable = [src for src, ok in separable.items() if ok]
+    if o.model == "soft_iron" and not can_soft:
+        raise CannotSeparate("cannot separate " + reasons[0])
+    if o.motor == "on" and not usable:
+        raise CannotSeparate("cannot separate " + "; ".join(motor_reasons))
+    if usable:  # a source that could not be used while another is: not worth a warning
+        reasons = [r for r in reasons if r not in motor_reasons]
+    warnings = ["not fitted: " + r for r in reasons]
+    source = usable[0] if usable and o.motor != "off" else None
+    power = fs.power(source)
+    can_scale = bool(spread[-1] >= o.min_spread)
+    if not can_scale:
+        reasons.append(
+            f"scale: the field's body direction hardly changed (largest spread "
+            f"{spread[-1]:.3g} < min_spread {o.min_spread:g}): only offsets are fitted"
+        )
+    if o.model == "scale" and not can_scale:
+        raise CannotSeparate("cannot separate " + reasons[-1])
+    if o.model == "auto":
+        candidates = ["offsets"] + ["scale"] * can_scale + ["soft_iron"] * can_soft
+    else:
+        candidates = [o.model]
+
+    # -- model choice on held-out segments -----------------------------------------------
+    held: dict[str, float] = {}
+    segments = np.array_split(np.arange(len(raw)), o.folds)
+    for model in candidates:
+        try:
+            held[model] = held_out_rms(raw, target, power, model, segments, o)
+        except np.linalg.LinAlgError:
+            continue
+    if not held:
+        raise CannotSeparate("every candidate model is singular on this flight")
+    best = min(held.values())
+    chosen = next(m for m in candidates if m in held and held[m] <= best * 1.02)
+
+    # -- motor source on the same segments -----------------------------------------------
+    held_source: dict[str, float] = {}
+    if source is not None and len(usable) > 1:
+        held_source[source] = held[chosen]
+        for other in usable[1:]:
+            try:
+                held_source[other] = held_out_rms(raw, target, fs.power(other), chosen, segments, o)
+            except np.linalg.LinAlgError:
+                continue
+            if held_source[other] < held_source[source] * (1 - 0.02):
+                source = other
+        power = fs.power(source)
+    elif source == "throttle" and o.motor == "auto":  # a proxy: kept only when it helps
+        held_source["throttle"] = held[chosen]
+        try:
+            held_source["none"] = held_out_rms(raw, target, None, chosen, segments, o)
+        except np.linalg.LinAlgError:
+            held_source["none"] = np.inf
+        if held_source["throttle"] >= held_source["none"] * (1 - 0.02):
+            reasons.append(
+                "motor: a throttle term does not lower the held-out residual by 2 % "
+                f"({held_source['throttle'] * UT:.3g} uT with it, "
+                f"{held_source['none'] * UT:.3g} uT without)"
+            )
+            warnings.append("not fitted: " + reasons[-1])
+            source, power = None, None
+    fit = fit_model(raw, target, power, chosen, o.huber_k, o.outlier_k)
+
+    before = np.linalg.norm(raw - target, axis=1)
+    corrected = fit.predict(raw, power)
+    after = np.linalg.norm(corrected - target, axis=1)
+    h_model = heading_deg(q, target)
+    h_before = wrap_deg(heading_deg(q, raw) - h_model)
+    h_after = wrap_deg(heading_deg(q, corrected) - h_model)
+    se = np.sqrt(np.diag(fit.cov))
+    ut = UT
+    metrics = {
+        "residual_rms_ut_before": float(np.sqrt(np.mean(before**2)) * ut),
+        "residual_rms_ut_after": float(np.sqrt(np.mean(after**2)) * ut),
+        "residual_rms_ut_after_inliers": float(np.sqrt(np.mean(after[fit.used] ** 2)) * ut),
+        "heading_rms_deg_before": float(np.sqrt(np.mean(h_before**2))),
+        "heading_rms_deg_after": float(np.sqrt(np.mean(h_after**2))),
+        "held_out_rms_ut": {m: v * ut for m, v in held.items()},
+        **(
+            {"held_out_rms_ut_motor_source": {k: v * ut for k, v in held_source.items()}}
+            if held_source
+            else {}
+        ),
+        "outliers": int(len(raw) - fit.used.sum()),
+        "samples": len(raw),
+        "field_ut": float(np.mean(np.linalg.norm(ned, axis=1)) * ut),
+    }
+    names = parameter_names(chosen, fit.motor_term, source or "current")
+    return FlownFit(
+        chosen,
+        fit,
+        source if fit.motor_term else None,
+        held,
+        coverage,
+        reasons,
+        warnings,
+        metrics,
+        dict(zip(names, se.tolist(), strict=True)),
+        before,
+        after,
+        h_before,
+        h_after,
+    )
+
+
+def offset_covariance(fit: Fit) -> np.ndarray:
+    """(3, 3) covariance of ``fit.offset`` (T^2): ``offset = -M^-1 b`` propagated from the
+    covariance of ``theta`` through its Jacobian (central differences on ``theta``)."""
+    k = {"offsets": 0, "scale": 1, "soft_iron": 6}[fit.model]
+    if k == 0:
+        return fit.cov[:3, :3] / UT**2
+    jac = np.zeros((3, len(fit.theta)))
+    for j in range(k + 3):  # the offset depends on the M terms and on b only
+        h = 1e-6 * max(abs(fit.theta[j]), 1.0)
+        up, down = fit.theta.copy(), fit.theta.copy()
+        up[j] += h
+        down[j] -= h
+        jac[:, j] = (
+            _unpack(up, fit.model, fit.motor_term)[1] - _unpack(down, fit.model, fit.motor_term)[1]
+        ) / (2 * h)
+    return jac @ fit.cov @ jac.T / UT**2
 
 
 @dataclass
@@ -464,9 +693,6 @@ class MagInflightStage(Stage):
                 "sensor_mag, vehicle_attitude, vehicle_gps_position)"
             )
         mag = ctx.finite(sensor(table, "mag"), f"magnetometer of {where}", minimum=50)
-        turn = sensor_rotation(table)
-        if turn is not None:  # the raw field into the body frame, as the firmware turns it
-            mag = SensorData(mag.t_ns, mag.values @ turn.T, mag.rows)
         year = o.year if o.year is not None else metadata(table).get("gps_year")
         if year is None:
             raise ctx.fail(
@@ -527,153 +753,23 @@ class MagInflightStage(Stage):
             *(np.concatenate([getattr(p, k) for p in parts]) for k in ("ned", "target")),
             power["current"],
             power["throttle"],
+            turn,
         )
         return joined, counts
 
-    def fit(self, table: pa.Table, ctx: StageContext) -> StageOutput:  # noqa: C901
+    def fit(self, table: pa.Table, ctx: StageContext) -> StageOutput:
         o: MagInflightStage.Options = self.options
         fs, counts = self._joint(table, ctx)
-        t_ns, raw, q, ned, target, current = fs.t_ns, fs.raw, fs.q, fs.ned, fs.target, fs.current
-
-        # -- what the flight can separate ----------------------------------------------------
-        dirs = target / np.linalg.norm(target, axis=1, keepdims=True)
-        spread = np.linalg.eigvalsh(np.cov(dirs.T))
-        tilt = np.degrees(
-            np.arccos(np.clip(rotate(q, np.tile([0, 0, 1.0], (len(q), 1)))[:, 2], -1, 1))
-        )
-        yaw = heading_deg(q, np.tile([1.0, 0, 0], (len(q), 1)))
-        yaw_cover = float(np.count_nonzero(np.histogram(yaw, bins=36, range=(-180, 180))[0])) * 10
-        coverage = {
-            "direction_spread": [float(v) for v in spread],
-            "yaw_coverage_deg": yaw_cover,
-            "tilt_max_deg": float(np.percentile(tilt, 99)),
-        }
-        reasons: list[str] = []
-        can_soft = bool(spread[0] >= o.min_spread)
-        if not can_soft:
-            reasons.append(
-                f"soft iron: the field's body directions spread {spread[0]:.3g} < min_spread "
-                f"{o.min_spread:g} (yaw covered {yaw_cover:.0f} deg, tilt to "
-                f"{coverage['tilt_max_deg']:.0f} deg): fly full turns and steeper banks"
-            )
-        separable: dict[str, bool] = {}
-        minimum = {
-            "current": (o.min_current_a, "A", "min_current_a"),
-            "throttle": (o.min_throttle, "", "min_throttle"),
-        }
-        wanted = POWER_SOURCES if o.motor_source == "auto" else (o.motor_source,)
-        for source in wanted:
-            sig = fs.power(source)
-            if sig is None:
-                continue
-            lo, hi = np.percentile(sig, [5, 95])
-            corr = (
-                max(abs(np.corrcoef(sig, target[:, i])[0, 1]) for i in range(3)) if hi > lo else 1.0
-            )
-            least, unit, key = minimum[source]
-            separable[source] = bool(hi - lo >= least and corr < 0.95)
-            if not separable[source]:
-                reasons.append(
-                    f"motor: the {source} spans {hi - lo:.2g}{unit} ({key} {least:g}) or follows "
-                    f"the field direction (|r| {corr:.2f})"
-                )
-        if not separable:
-            what = {
-                "auto": "no battery current and no throttle",
-                "current": "no battery current",
-                "throttle": "no throttle (CTUN.ThO, vehicle_thrust_setpoint)",
-            }[o.motor_source]
-            reasons.append(f"motor: the log has {what}")
-        motor_reasons = [r for r in reasons if r.startswith("motor")]
-        usable = [src for src, ok in separable.items() if ok]
-        if o.model == "soft_iron" and not can_soft:
-            raise ctx.fail("cannot separate " + reasons[0])
-        if o.motor == "on" and not usable:
-            raise ctx.fail("cannot separate " + "; ".join(motor_reasons))
-        if usable:  # a source that could not be used while another is: not worth a warning
-            reasons = [r for r in reasons if r not in motor_reasons]
-        for r in reasons:
-            ctx.warn("not fitted: " + r)
-        source = usable[0] if usable and o.motor != "off" else None
-        cur_fit = fs.power(source)
-        can_scale = bool(spread[-1] >= o.min_spread)
-        if not can_scale:
-            reasons.append(
-                f"scale: the field's body direction hardly changed (largest spread "
-                f"{spread[-1]:.3g} < min_spread {o.min_spread:g}): only offsets are fitted"
-            )
-        if o.model == "scale" and not can_scale:
-            raise ctx.fail("cannot separate " + reasons[-1])
-        if o.model == "auto":
-            candidates = ["offsets"] + ["scale"] * can_scale + ["soft_iron"] * can_soft
-        else:
-            candidates = [o.model]
-
-        # -- model choice on held-out segments -----------------------------------------------
-        held: dict[str, float] = {}
-        segments = np.array_split(np.arange(len(raw)), o.folds)
-        for model in candidates:
-            try:
-                held[model] = held_out_rms(raw, target, cur_fit, model, segments, o)
-            except np.linalg.LinAlgError:
-                continue
-        if not held:
-            raise ctx.fail("every candidate model is singular on this flight")
-        best = min(held.values())
-        chosen = next(m for m in candidates if m in held and held[m] <= best * 1.02)
-        held_source: dict[str, float] = {}
-        if source is not None and len(usable) > 1 and o.motor != "off":
-            held_source[source] = held[chosen]
-            for other in usable[1:]:
-                try:
-                    held_source[other] = held_out_rms(
-                        raw, target, fs.power(other), chosen, segments, o
-                    )
-                except np.linalg.LinAlgError:
-                    continue
-                if held_source[other] < held_source[source] * (1 - 0.02):
-                    source = other
-            cur_fit = fs.power(source)
-        elif source == "throttle" and o.motor == "auto":  # a proxy: kept only when it helps
-            held_source["throttle"] = held[chosen]
-            try:
-                held_source["none"] = held_out_rms(raw, target, None, chosen, segments, o)
-            except np.linalg.LinAlgError:
-                held_source["none"] = np.inf
-            if held_source["throttle"] >= held_source["none"] * (1 - 0.02):
-                reasons.append(
-                    "motor: a throttle term does not lower the held-out residual by 2 % "
-                    f"({held_source['throttle'] * UT:.3g} uT with it, "
-                    f"{held_source['none'] * UT:.3g} uT without)"
-                )
-                ctx.warn("not fitted: " + reasons[-1])
-                source, cur_fit = None, None
-        fit = fit_model(raw, target, cur_fit, chosen, o.huber_k, o.outlier_k)
-
-        before = np.linalg.norm(raw - target, axis=1)
-        corrected = fit.predict(raw, cur_fit)
-        after = np.linalg.norm(corrected - target, axis=1)
-        h_model = heading_deg(q, target)
-        h_before = wrap_deg(heading_deg(q, raw) - h_model)
-        h_after = wrap_deg(heading_deg(q, corrected) - h_model)
-        se = np.sqrt(np.diag(fit.cov))
+        try:
+            flown = fit_flight(fs, o)
+        except CannotSeparate as exc:
+            raise ctx.fail(str(exc)) from None
+        for w in flown.warnings:
+            ctx.warn(w)
+        t_ns, current, source = fs.t_ns, fs.current, flown.source
+        fit, chosen, metrics = flown.fit, flown.model, flown.metrics
+        before, after, h_before, h_after = flown.before, flown.after, flown.h_before, flown.h_after
         ut = UT
-        metrics = {
-            "residual_rms_ut_before": float(np.sqrt(np.mean(before**2)) * ut),
-            "residual_rms_ut_after": float(np.sqrt(np.mean(after**2)) * ut),
-            "residual_rms_ut_after_inliers": float(np.sqrt(np.mean(after[fit.used] ** 2)) * ut),
-            "heading_rms_deg_before": float(np.sqrt(np.mean(h_before**2))),
-            "heading_rms_deg_after": float(np.sqrt(np.mean(h_after**2))),
-            "held_out_rms_ut": {m: v * ut for m, v in held.items()},
-            **(
-                {"held_out_rms_ut_motor_source": {k: v * ut for k, v in held_source.items()}}
-                if held_source
-                else {}
-            ),
-            "outliers": int(len(raw) - fit.used.sum()),
-            "samples": len(raw),
-            "field_ut": float(np.mean(np.linalg.norm(ned, axis=1)) * ut),
-        }
         if o.flights:  # each flight's residual under the one joint calibration
             names = [ctx.input_name, *o.flights]
             cuts = np.cumsum([0, *counts])
@@ -703,16 +799,10 @@ class MagInflightStage(Stage):
                 if fit.motor_term and source == "throttle"
                 else {}
             ),
-            "parameter_se": dict(
-                zip(
-                    parameter_names(chosen, fit.motor_term, source or "current"),
-                    se.tolist(),
-                    strict=True,
-                )
-            ),
+            "parameter_se": flown.parameter_se,
             "year": float(o.year if o.year is not None else metadata(table)["gps_year"]),
-            "coverage": coverage,
-            "not_fitted": reasons,
+            "coverage": flown.coverage,
+            "not_fitted": flown.not_fitted,
             "metrics": metrics,
         }
         if ctx.recorder.enabled:
@@ -739,7 +829,7 @@ class MagInflightStage(Stage):
                     points=True,
                     title="vector residual",
                 )
-        turn = sensor_rotation(table)
+        turn = fs.rotation
         if turn is not None:  # corrected = M (R raw - o) + motor P = (M R) (raw - R^T o) + ...
             results["sensor_rotation"] = turn.tolist()
         step = STEP_BY_SOURCE[source or "current"](

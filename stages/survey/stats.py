@@ -3,15 +3,18 @@
 **Still periods** (:func:`still_periods`): the static detector of
 :mod:`imupipe.stages.static_detector` (Tedaldi et al. ICRA 2014: the norm of the per-axis variance
 of the accelerometer over a centred ``window_s`` window, below ``k`` times the log's noise floor,
-here its ``floor_quantile`` quantile), and the same rule on the gyro (a vehicle turning at a
-constant rate has a quiet accelerometer), for runs of at least ``min_duration_s``.
+here its ``floor_quantile`` quantile, read from a fine log-spaced histogram), and the same rule on
+the gyro (a vehicle turning at a constant rate has a quiet accelerometer), for runs of at least
+``min_duration_s``.
 
-**Per period** (:func:`period_stats`), vectorised over all periods at once with cumulative sums:
+**Per period** (:func:`figures`, from the running sums of
+:mod:`imupipe.stages.survey.streaming`), vectorised over all periods at once:
 
 - gyro bias (rad/s, 3 axes): the period's mean rate. Its standard error by the method of batch
-  means (``BATCHES`` contiguous batches, ``se = std(batch means) / sqrt(BATCHES)``; it holds for
-  correlated noise, where ``std / sqrt(n)`` would be too small), floored by the white-noise
-  value ``ADEV(tau) / sqrt(n tau0 / tau)``;
+  means (``BATCHES`` to ``2 BATCHES - 1`` contiguous blocks of a power-of-two length,
+  ``se = std(block means) / sqrt(blocks)``; it holds for correlated noise, where
+  ``std / sqrt(n)`` would be too small), floored by the white-noise value
+  ``ADEV(tau) / sqrt(n tau0 / tau)``;
 - accelerometer mean (m/s^2, 3 axes), ``|mean a| - g`` (m/s^2: the scale and offset error seen in
   the gravity magnitude, signed) and ``level``: the mean lies within ``level_deg`` of the body z
   axis, so its x and y components are the x and y offsets plus the (small) tilt;
@@ -21,6 +24,10 @@ constant rate has a quiet accelerometer), for runs of at least ``min_duration_s`
 - temperature (degC): the mean of the temperature samples inside the period (NaN without any);
 - start time (ns), duration (s) and sample count.
 
+**One way**: :func:`still_periods`, :func:`period_stats`, :func:`batch_means_se` and
+:func:`cluster_adev` take a log held whole and run it as one batch through the streaming code;
+the survey streams the same code batch by batch (:mod:`imupipe.pipeline.survey.stream`).
+
 **Robust statistics** for the fleet view: :func:`mad_sigma` (1.4826 MAD: the standard deviation
 of a normal sample, robust to outliers; Rousseeuw & Croux 1993), :func:`theil_sen` (median of
 pairwise slopes; Sen 1968) and :func:`weighted_mean`.
@@ -28,29 +35,43 @@ pairwise slopes; Sen 1968) and :func:`weighted_mean`.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 
-from imupipe.stages.static_detector import Intervals, make_detector, moving_variance_norm, runs
+from imupipe.stages.static_detector import Intervals
+from imupipe.stages.survey.streaming import (
+    BATCHES,
+    Acc,
+    FloorPass,
+    PeriodPass,
+    Rule,
+    StillOptions,
+    assign,
+    cumsum0,
+    extend,
+    rate_of,
+)
+
+__all__ = [
+    "BATCHES",
+    "G0",
+    "StillOptions",
+    "batch_means_se",
+    "cluster_adev",
+    "figures",
+    "mad_sigma",
+    "period_stats",
+    "still_periods",
+    "theil_sen",
+    "weighted_mean",
+]
 
 G0 = 9.80665
-BATCHES = 10
-"""Batches of the batch-means standard error of a period's mean."""
 MAD_TO_SIGMA = 1.4826
 """1 / Phi^-1(3/4): the MAD of a normal sample times this is its standard deviation."""
 
 
-@dataclass(frozen=True)
-class StillOptions:
-    """The still-period rule (see the module docstring)."""
-
-    min_duration_s: float = 5.0
-    window_s: float = 1.0
-    k: float = 4.0
-    floor_quantile: float = 0.02
-    tau_s: float = 0.1
-    level_deg: float = 5.0
+def _none() -> Intervals:
+    return Intervals(np.zeros(0, np.int64), np.zeros(0, np.int64))
 
 
 def still_periods(
@@ -58,93 +79,43 @@ def still_periods(
 ) -> Intervals:
     """The still periods of gyro rad/s and accel m/s^2 (n, 3) sampled at ``t_ns`` (increasing):
     sample ranges where both windowed variances lie below ``k`` times their noise floors, at least
-    ``min_duration_s`` long. A log shorter than one window has none."""
-    n = len(t_ns)
-    if n < 3 or t_ns[-1] <= t_ns[0]:
-        return Intervals(np.zeros(0, np.int64), np.zeros(0, np.int64))
-    rate = (n - 1) / ((t_ns[-1] - t_ns[0]) * 1e-9)
-    window = max(int(round(opts.window_s * rate)), 3)
-    if n < window:
-        return Intervals(np.zeros(0, np.int64), np.zeros(0, np.int64))
-    detector = make_detector(
-        t_ns,
-        accel,
-        window_s=opts.window_s,
-        min_interval_s=opts.min_duration_s,
-        floor_quantile=opts.floor_quantile,
-    )
-    quiet = detector.variance < opts.k * detector.reference
-    gyro_var = moving_variance_norm(gyro, window)
-    finite = gyro_var[np.isfinite(gyro_var)]
-    gyro_floor = float(np.quantile(finite, opts.floor_quantile)) if len(finite) else 0.0
-    if gyro_floor > 0:
-        quiet &= gyro_var < opts.k * gyro_floor
-    return runs(quiet, detector.min_samples)
-
-
-def _segment_sums(values: np.ndarray, start: np.ndarray, stop: np.ndarray) -> np.ndarray:
-    """(m, k) sums of ``values`` (n, k) over rows ``[start, stop)`` (cumulative sums, centred on
-    the column means for precision)."""
-    csum = np.vstack([np.zeros((1, values.shape[1])), np.cumsum(values, axis=0)])
-    return csum[stop] - csum[start]
+    ``min_duration_s`` long. A log shorter than one window has none. The log as one batch of
+    :mod:`imupipe.stages.survey.streaming` (its two passes share the windowed variances)."""
+    rate = rate_of(len(t_ns), int(t_ns[0]), int(t_ns[-1])) if len(t_ns) else None
+    if rate is None:
+        return _none()
+    rule = Rule.at(opts, rate)
+    if len(t_ns) < max(int(round(opts.window_s * rate)), 3):
+        return _none()
+    x = np.column_stack([gyro, accel]).astype(np.float64)
+    floor = FloorPass(rule.half, keep=True)
+    floor.feed(t_ns, x)
+    periods = PeriodPass(rule, floor.floors(opts), opts, 6, floor.reference)
+    periods.classified(*floor.kept())
+    found = periods.finish()
+    return Intervals(found.flat("start"), found.flat("stop"))
 
 
 def batch_means_se(values: np.ndarray, intervals: Intervals, batches: int = BATCHES) -> np.ndarray:
     """(m, k) standard error of each period's mean of ``values`` (n, k) by the method of batch
-    means (``batches`` contiguous batches of equal length; the remainder is left out)."""
-    m = len(intervals)
-    k = values.shape[1]
-    if m == 0:
-        return np.zeros((0, k))
-    size = intervals.lengths // batches
-    edges = intervals.start[:, None] + size[:, None] * np.arange(batches + 1)[None, :]
-    centred = values - values.mean(axis=0)
-    csum = np.vstack([np.zeros((1, k)), np.cumsum(centred, axis=0)])
-    sums = csum[edges[:, 1:]] - csum[edges[:, :-1]]  # (m, batches, k)
-    means = sums / np.maximum(size, 1)[:, None, None]
-    se = means.std(axis=1, ddof=1) / np.sqrt(batches)
-    se[size < 1] = np.nan
-    return se
+    means: between ``batches`` and ``2 batches - 1`` contiguous blocks of ``s`` samples, ``s``
+    the least power of two giving fewer than ``2 batches`` (the remainder is left out; see
+    :mod:`imupipe.stages.survey.streaming`)."""
+    return _sums(values, intervals, 1, batches).batch_se()
 
 
 def cluster_adev(values: np.ndarray, intervals: Intervals, m: int) -> np.ndarray:
     """(p, k) Allan deviation at ``m`` samples of each period: non-overlapping clusters of ``m``
     samples inside the period, ``AVAR = mean((c[j+1] - c[j])^2) / 2`` (NaN with fewer than two
     clusters)."""
-    p = len(intervals)
-    k = values.shape[1]
-    m = max(int(m), 1)
-    count = intervals.lengths // m
-    if p == 0:
-        return np.zeros((0, k))
-    owner = np.repeat(np.arange(p), count)
-    first = np.cumsum(count) - count
-    j = np.arange(int(count.sum())) - np.repeat(first, count)
-    lo = intervals.start[owner] + j * m
-    centred = values - values.mean(axis=0)
-    csum = np.vstack([np.zeros((1, k)), np.cumsum(centred, axis=0)])
-    means = (csum[lo + m] - csum[lo]) / m
-    diff = np.diff(means, axis=0)
-    same = owner[1:] == owner[:-1]
-    sq = np.zeros((p, k))
-    np.add.at(sq, owner[1:][same], diff[same] ** 2)
-    pairs = np.bincount(owner[1:][same], minlength=p).astype(np.float64)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return np.sqrt(sq / (2.0 * pairs[:, None]))
+    return _sums(values, intervals, max(int(m), 1)).adev()
 
 
-def period_means(
-    t_ns: np.ndarray, values: np.ndarray, start_ns: np.ndarray, stop_ns: np.ndarray
-) -> np.ndarray:
-    """(m,) mean of samples ``values`` (n,) at ``t_ns`` (increasing) inside each
-    ``[start_ns, stop_ns]`` (NaN where none)."""
-    if len(t_ns) == 0:
-        return np.full(len(start_ns), np.nan)
-    lo = np.searchsorted(t_ns, start_ns, side="left")
-    hi = np.searchsorted(t_ns, stop_ns, side="right")
-    csum = np.r_[0.0, np.cumsum(values - values.mean())]
-    with np.errstate(invalid="ignore", divide="ignore"):
-        return (csum[hi] - csum[lo]) / (hi - lo) + values.mean()
+def _sums(values: np.ndarray, intervals: Intervals, m: int, batches: int = BATCHES) -> Acc:
+    values = np.asarray(values, dtype=np.float64)
+    p, k = len(intervals), values.shape[1]
+    cs = cumsum0(values - values.mean(axis=0)) if len(values) else np.zeros((1, k))
+    return extend(Acc.empty(p, k, batches), cs, intervals.start, intervals.stop, m)
 
 
 def period_stats(
@@ -156,34 +127,64 @@ def period_stats(
     temperature: tuple[np.ndarray, np.ndarray] | None = None,
     g: float = G0,
 ) -> dict[str, np.ndarray]:
-    """The figures of each still period (see the module docstring), as arrays of one row per
-    period: ``start_ns``, ``stop_ns``, ``duration_s``, ``samples``, ``gyro_bias`` (m,3),
-    ``gyro_bias_se`` (m,3), ``gyro_noise`` (m,3), ``accel_mean`` (m,3), ``accel_mean_se`` (m,3),
-    ``accel_norm_error`` (m,), ``accel_norm_error_se`` (m,), ``accel_noise`` (m,3),
-    ``level`` (m,) bool, ``tilt_deg`` (m,), ``temperature`` (m,) degC (``temperature``:
-    (t_ns, values) of the temperature stream)."""
-    n = len(t_ns)
-    rate = (n - 1) / ((t_ns[-1] - t_ns[0]) * 1e-9)
-    tau0 = 1.0 / rate
-    m_tau = max(int(round(opts.tau_s * rate)), 1)
-    lengths = intervals.lengths.astype(np.float64)
-    start_ns = t_ns[intervals.start]
-    stop_ns = t_ns[intervals.stop - 1]
+    """The figures of each still period of a log held whole (see :func:`figures`;
+    ``temperature``: (t_ns, values) of the temperature stream)."""
+    rate = rate_of(len(t_ns), int(t_ns[0]), int(t_ns[-1])) if len(t_ns) else None
+    rule = Rule.at(opts, rate or 1.0)
+    x = np.column_stack([gyro, accel]).astype(np.float64)
+    ref = x.mean(axis=0)
+    acc = extend(
+        Acc.empty(len(intervals), 6), cumsum0(x - ref), intervals.start, intervals.stop, rule.m_tau
+    )
+    start_ns = t_ns[intervals.start].astype(np.int64)
+    stop_ns = t_ns[intervals.stop - 1].astype(np.int64)
+    if temperature is not None:
+        tsum, tcount = assign(temperature[0], temperature[1], start_ns, stop_ns)
+    else:
+        tsum, tcount = np.zeros(len(intervals)), np.zeros(len(intervals), np.int64)
+    return figures(start_ns, stop_ns, acc, ref, tsum, tcount, rule, opts, g)
+
+
+def figures(
+    start_ns: np.ndarray,
+    stop_ns: np.ndarray,
+    acc: Acc,
+    reference: np.ndarray,
+    temp_sum: np.ndarray,
+    temp_count: np.ndarray,
+    rule: Rule,
+    opts: StillOptions,
+    g: float = G0,
+    columns: slice = slice(0, 6),
+) -> dict[str, np.ndarray]:
+    """The figures of each still period (see the module docstring) from its sums
+    (:class:`~imupipe.stages.survey.streaming.Acc`, over ``columns``: gyro then accelerometer,
+    centred on ``reference``), as arrays of one row per period: ``start_ns``, ``stop_ns``,
+    ``duration_s``, ``samples``, ``gyro_bias`` (m,3), ``gyro_bias_se`` (m,3), ``gyro_noise``
+    (m,3), ``accel_mean`` (m,3), ``accel_mean_se`` (m,3), ``accel_norm_error`` (m,),
+    ``accel_norm_error_se`` (m,), ``accel_noise`` (m,3), ``level`` (m,) bool, ``tilt_deg``
+    (m,), ``temperature`` (m,) degC (NaN without a temperature sample in the period)."""
+    tau0 = 1.0 / rule.rate
+    lengths = acc.n.astype(np.float64)
+    mean = acc.mean()[:, columns] + np.asarray(reference)[columns]
+    batch = acc.batch_se()[:, columns]
+    adev = acc.adev()[:, columns]
+    tau = rule.m_tau * tau0
+    white_se = adev / np.sqrt(np.maximum(lengths, 1.0) * tau0 / tau)[:, None]
+    se = np.fmax(batch, white_se)
+    noise = adev * np.sqrt(tau)
     out: dict[str, np.ndarray] = {
-        "start_ns": start_ns.astype(np.int64),
-        "stop_ns": stop_ns.astype(np.int64),
+        "start_ns": np.asarray(start_ns, np.int64),
+        "stop_ns": np.asarray(stop_ns, np.int64),
         "duration_s": lengths * tau0,
-        "samples": intervals.lengths.astype(np.int64),
+        "samples": acc.n.astype(np.int64),
+        "gyro_bias": mean[:, :3],
+        "gyro_bias_se": se[:, :3],
+        "gyro_noise": noise[:, :3],
+        "accel_mean": mean[:, 3:],
+        "accel_mean_se": se[:, 3:],
+        "accel_noise": noise[:, 3:],
     }
-    for name, values in (("gyro", gyro), ("accel", accel)):
-        mean = intervals.means(values) if len(intervals) else np.zeros((0, 3))
-        adev = cluster_adev(values, intervals, m_tau)
-        tau = m_tau * tau0
-        white_se = adev / np.sqrt(np.maximum(lengths, 1.0) * tau0 / tau)[:, None]
-        se = np.fmax(batch_means_se(values, intervals), white_se)
-        out[f"{name}_bias" if name == "gyro" else "accel_mean"] = mean
-        out[f"{name}_bias_se" if name == "gyro" else "accel_mean_se"] = se
-        out[f"{name}_noise"] = adev * np.sqrt(tau)
     a = out["accel_mean"]
     norm = np.linalg.norm(a, axis=1)
     out["accel_norm_error"] = norm - g
@@ -192,12 +193,9 @@ def period_stats(
         # propagated: d|a| = (a/|a|) . da, the axes' errors independent
         out["accel_norm_error_se"] = np.sqrt(np.sum((unit * out["accel_mean_se"]) ** 2, axis=1))
         tilt = np.degrees(np.arccos(np.clip(np.abs(unit[:, 2]), 0.0, 1.0)))
+        out["temperature"] = np.where(temp_count > 0, temp_sum / np.maximum(temp_count, 1), np.nan)
     out["tilt_deg"] = tilt
     out["level"] = tilt <= opts.level_deg
-    if temperature is not None and len(temperature[0]):
-        out["temperature"] = period_means(temperature[0], temperature[1], start_ns, stop_ns)
-    else:
-        out["temperature"] = np.full(len(intervals), np.nan)
     return out
 
 
