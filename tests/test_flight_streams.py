@@ -152,23 +152,39 @@ def test_dataflash_throttle_is_the_copters_ctun_thrust_out(name):
     assert thr.values.min() >= 0.0 and thr.values.max() <= 1.0 and thr.values.max() > 0.1
 
 
+def _armed_by_pyulog(log, t_us):
+    """vehicle_control_mode.flag_armed (what VehicleMagnetometer reads) step-held onto ``t_us``
+    as pyulog decodes it; disarmed before its first message."""
+    mode = log.get_dataset("vehicle_control_mode").data
+    i = np.searchsorted(mode["timestamp"], t_us, side="right") - 1
+    return np.where(i >= 0, mode["flag_armed"][np.maximum(i, 0)] == 1, False)
+
+
 def test_ulog_throttle_is_the_thrust_setpoint_norm_or_actuator_controls():
-    """PX4's throttle-based compass compensation input: |vehicle_thrust_setpoint.xyz| (v1.14+,
-    tests/data/px4_ulog/pixhawk6c_bmi055.ulg) or actuator_controls_0 control[3] (older)."""
+    """PX4's throttle-based compass compensation input (VehicleMagnetometer::
+    UpdatePowerCompensation): |vehicle_thrust_setpoint.xyz| of instance 0 (v1.14+,
+    tests/data/px4_ulog/pixhawk6c_bmi055.ulg) or actuator_controls_0 control[3] (older), and 0
+    while disarmed (both logs hold setpoints above 0 while disarmed: those read 0)."""
     from pyulog import ULog
 
     from conftest import REPO
 
     new = REPO / "tests" / "data" / "px4_ulog" / "pixhawk6c_bmi055.ulg"
     table, _ = read_ulog(InputSpec(path=new, time="log"))
-    ref = ULog(str(new), ["vehicle_thrust_setpoint"]).get_dataset("vehicle_thrust_setpoint").data
+    log = ULog(str(new), ["vehicle_thrust_setpoint", "vehicle_control_mode"])
+    ref = log.get_dataset("vehicle_thrust_setpoint").data
     xyz = np.column_stack([ref[f"xyz[{i}]"] for i in range(3)]).astype(float)
+    armed = _armed_by_pyulog(log, ref["timestamp"])
     thr = flight_stream(table, "throttle")
     assert np.array_equal(thr.t_ns, ref["timestamp"].astype(np.int64) * 1000)
-    assert np.allclose(thr.values[:, 0], np.linalg.norm(xyz, axis=1)) and thr.values.max() > 0.1
+    norm = np.linalg.norm(xyz, axis=1)
+    assert np.allclose(thr.values[:, 0], norm * armed) and thr.values.max() > 0.1
+    assert ((norm > 0) & ~armed).sum() > 10  # the disarmed setpoints are there, and read 0
     old = shared_path("logs", "px4_ulog", "sample_log_small.ulg")
     table, _ = read_ulog(InputSpec(path=old, time="log"))
-    ref = ULog(str(old), ["actuator_controls_0"]).get_dataset("actuator_controls_0").data
+    log = ULog(str(old), ["actuator_controls_0", "vehicle_control_mode"])
+    ref = log.get_dataset("actuator_controls_0").data
+    armed = _armed_by_pyulog(log, ref["timestamp"])
     thr = flight_stream(table, "throttle")
-    assert np.array_equal(thr.values[:, 0], ref["control[3]"].astype(float))
-    assert thr.values.max() > 0.1
+    assert np.array_equal(thr.values[:, 0], np.where(armed, ref["control[3]"].astype(float), 0.0))
+    assert thr.values.max() > 0.1 and ((ref["control[3]"] > 0) & ~armed).sum() > 10

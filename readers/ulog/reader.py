@@ -56,7 +56,7 @@ from __future__ import annotations
 import contextlib
 import io
 import struct
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -100,8 +100,18 @@ READ_TOPICS = (
     "battery_status",
     "vehicle_thrust_setpoint",
     "actuator_controls_0",
+    "vehicle_control_mode",
+    "actuator_armed",
+    "vehicle_status",
 )
 """The topics a read parses (pyulog skips the payload of every other topic)."""
+ARMED_STATE = (
+    ("vehicle_control_mode", "flag_armed", 1),
+    ("actuator_armed", "armed", 1),
+    ("vehicle_status", "arming_state", 2),
+)
+"""Where a log says the vehicle is armed (topic, field, the armed value: ``ARMING_STATE_ARMED``
+= 2), in the order tried; ``VehicleMagnetometer`` reads ``vehicle_control_mode.flag_armed``."""
 PARAMETER_PREFIXES = ("CAL_", "TC_", "SENS_BOARD_")
 """Parameters kept in the table's metadata (calibration, thermal compensation, board rotation)."""
 TEMPERATURE_TOPICS = ("sensor_gyro", "sensor_accel", "sensor_mag", "sensor_baro")
@@ -627,9 +637,23 @@ def flight_streams(f: UlogFile, time: str) -> dict[str, tuple[np.ndarray, np.nda
     - ``current``: ``battery_status`` instance 0 ``current_a`` (A), where it is measured (PX4
       logs -1 for "unknown");
     - ``throttle``: what PX4's throttle-based magnetometer power compensation
-      (``CAL_MAG_COMP_TYP = 1``, ``VehicleMagnetometer``) multiplies ``CAL_MAGn_*COMP`` by: the
-      norm of ``vehicle_thrust_setpoint`` instance 0 ``xyz`` (PX4 v1.14 and later), else
-      ``actuator_controls_0`` ``control[3]`` (``INDEX_THROTTLE``, up to v1.13), 0..1.
+      (``CAL_MAG_COMP_TYP = 1``) multiplies ``CAL_MAGn_*COMP`` by, 0..1: the norm of
+      ``vehicle_thrust_setpoint`` instance 0 ``xyz`` (PX4 v1.14 and later), else
+      ``actuator_controls_0`` ``control[3]`` (``INDEX_THROTTLE``, up to v1.13), and 0 while the
+      vehicle is disarmed (:data:`ARMED_STATE`, step-held onto the setpoint's stamps; disarmed
+      before the first message, as PX4 starts; kept as logged when no arming topic is logged).
+      Source: ``VehicleMagnetometer::UpdatePowerCompensation`` in
+      ``src/modules/sensors/vehicle_magnetometer/VehicleMagnetometer.cpp``: while armed with
+      ``MagCompensationType::Throttle`` it passes ``Vector3f(vehicle_thrust_setpoint.xyz)
+      .length()`` of ``_vehicle_thrust_setpoint_0_sub`` (instance 0) to
+      ``Magnetometer::UpdatePower``, otherwise (disarmed) 0; current-based types pass
+      ``battery_status.current_a * 0.001`` (kA) armed or not. Read in PX4-Autopilot forks
+      slgrobotics/PX4-Autopilot at 3efbf961e6879fef15ef4bb57dd08eadf732c59f and
+      Renwang-Huang/Entropix-PX4-Autopilot at 94f121e7e55e2bf93e84fa6e96c44911c17946ac (the
+      stored upstream snapshot, ce74a10ad409cd0ecf2f5b008b1983bb4e7f8cf4, predates the change
+      and reads ``actuator_controls_0.control[INDEX_THROTTLE]`` while armed); PX4's own
+      identification script (``mag_compensation/python/mag_compensation.py``, upstream
+      1c4a11fba675db013cee3a8eb436dff400b8632e) uses the same norm for its ``thrust`` type.
     """
     out: dict[str, tuple[np.ndarray, np.ndarray]] = {}
 
@@ -659,12 +683,32 @@ def flight_streams(f: UlogFile, time: str) -> dict[str, tuple[np.ndarray, np.nda
             out["current"] = (stamp(bat)[keep], amps[keep])
     thrust = f.instances.get("vehicle_thrust_setpoint")
     controls = f.instances.get("actuator_controls_0")
+    throttle = None
     if thrust is not None and thrust.has("xyz[0]", "xyz[1]", "xyz[2]") and len(thrust):
         xyz = thrust.vector("xyz[0]", "xyz[1]", "xyz[2]")
-        out["throttle"] = (stamp(thrust), np.linalg.norm(xyz, axis=1))
+        throttle = (stamp(thrust), np.linalg.norm(xyz, axis=1))
     elif controls is not None and controls.has("control[3]") and len(controls):
-        out["throttle"] = (stamp(controls), controls.vector("control[3]")[:, 0])
+        throttle = (stamp(controls), controls.vector("control[3]")[:, 0])
+    if throttle is not None:
+        armed = armed_at(f, throttle[0], stamp)
+        out["throttle"] = throttle if armed is None else (throttle[0], throttle[1] * armed)
     return out
+
+
+def armed_at(
+    f: UlogFile, t_ns: np.ndarray, stamp: Callable[[Instance], np.ndarray]
+) -> np.ndarray | None:
+    """Whether the vehicle was armed at each of ``t_ns`` (the first logged topic of
+    :data:`ARMED_STATE`, step-held; disarmed before its first message); None when the log holds
+    none. ``stamp(inst)`` gives an instance's stamps in the time base of ``t_ns``."""
+    for name, field, value in ARMED_STATE:
+        inst = f.instances.get(name)
+        if inst is None or not len(inst) or not inst.has(field):
+            continue
+        state = inst.data[field] == value
+        i = np.searchsorted(stamp(inst), t_ns, side="right") - 1
+        return np.where(i >= 0, state[np.maximum(i, 0)], False)
+    return None
 
 
 def gps_year(f: UlogFile) -> float | None:
