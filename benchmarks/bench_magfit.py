@@ -130,8 +130,9 @@ def compare(path: Path, spec: dict, reduce: int, iters: int, cache: Path | None)
     mag, _ = finite(sensor(table, "mag"))
     fs = flight_samples(table, mag, float(metadata(table)["gps_year"]))
     ours = out.step.apply_values(fs.raw)
-    if fs.current is not None:
-        ours = ours + fs.current[:, None] * out.step.motor
+    power = fs.power(out.results["motor_source"])  # the current or the throttle (or none)
+    if power is not None:
+        ours = ours + power[:, None] * out.step.motor
     before, ours_s = score(fs, fs.raw), score(fs, ours)
     varies = fs.current is not None and np.ptp(fs.current) > 1.0
     mf = run_magfit(path, varies, reduce, iters, cache)
@@ -143,7 +144,8 @@ def compare(path: Path, spec: dict, reduce: int, iters: int, cache: Path | None)
     print(
         f"{path.parent.name + '/' + path.name:34s} n={len(fs.t_ns):5d} "
         f"before {before[0]:6.2f} uT {before[1]:5.2f} deg | imupipe ({out.results['model']}"
-        f"{'+motor' if out.results['motor_term'] else ''}) {ours_s[0]:6.2f} uT "
+        f"{'+' + out.results['motor_source'] if out.results['motor_term'] else ''}) "
+        f"{ours_s[0]:6.2f} uT "
         f"{ours_s[1]:5.2f} deg | {theirs}",
         flush=True,
     )

@@ -31,11 +31,13 @@ message (absent or null: the writer uses ROS defaults):
 | ``attitude_w/x/y/z`` | float64 | the vehicle's attitude, a unit quaternion (Hamilton, scalar first) rotating body (FRD) vectors into the local NED frame, on rows of the ``attitude`` flight stream |
 | ``latitude``, ``longitude``, ``altitude`` | float64 | deg, deg (WGS-84), m above mean sea level: the GNSS position, on rows of the ``position`` flight stream |
 | ``current`` | float64 | A, the battery current, on rows of the ``current`` flight stream |
+| ``throttle`` | float64 | 1, the motors' collective throttle 0..1 (what the flight controller's compass motor compensation multiplies: ArduCopter's ``CTUN.ThO``, PX4's thrust setpoint), on rows of the ``throttle`` flight stream |
 
-**Flight streams** (:data:`FLIGHT_COLUMNS`: ``attitude``, ``position``, ``current``) are what a
-flight controller's log adds to its sensors (ULog ``vehicle_attitude``, ``vehicle_gps_position``
-or ``vehicle_global_position``, ``battery_status``; DataFlash ``ATT``, ``GPS``, ``BAT`` or
-``CURR``). Each sample is a row of its own on which every sensor column is null (the row belongs
+**Flight streams** (:data:`FLIGHT_COLUMNS`: ``attitude``, ``position``, ``current``,
+``throttle``) are what a flight controller's log adds to its sensors (ULog ``vehicle_attitude``,
+``vehicle_gps_position`` or ``vehicle_global_position``, ``battery_status``,
+``vehicle_thrust_setpoint`` or ``actuator_controls_0``; DataFlash ``ATT``, ``GPS``, ``BAT`` or
+``CURR``, ``CTUN``). Each sample is a row of its own on which every sensor column is null (the row belongs
 to none of :data:`STREAMS`, so the message writers and sensor stages never see it; the Parquet
 dataset keeps it); a stage reads one with
 :func:`flight_stream` and puts it on its sensor's stamps with :func:`interpolate`.
@@ -136,6 +138,7 @@ OPTIONAL_FIELDS = pa.schema(
         pa.field("longitude", pa.float64()),
         pa.field("altitude", pa.float64()),
         pa.field("current", pa.float64()),
+        pa.field("throttle", pa.float64()),
     ]
 )
 
@@ -143,9 +146,10 @@ FLIGHT_COLUMNS: dict[str, tuple[str, ...]] = {
     "attitude": ("attitude_w", "attitude_x", "attitude_y", "attitude_z"),
     "position": ("latitude", "longitude", "altitude"),
     "current": ("current",),
+    "throttle": ("throttle",),
 }
 """The flight streams' columns: attitude quaternion (w, x, y, z; body FRD to NED), position
-(deg, deg, m) and battery current (A). Each sample is a row of its own (no sensor column valid)."""
+(deg, deg, m), battery current (A) and collective throttle (0..1). Each sample is a row of its own (no sensor column valid)."""
 
 META_KEY = b"imupipe"
 

@@ -203,6 +203,7 @@ STEP_KINDS: dict[str, str] = {
     "g_sensitivity": "imupipe.stages.multiposition.ferraris:GSensitivityStep",
     "baro_temperature": "imupipe.stages.thermal.baro:BaroTemperatureStep",
     "mag_current": "imupipe.stages.magnetometer.inflight:MagCurrentStep",
+    "mag_throttle": "imupipe.stages.magnetometer.inflight:MagThrottleStep",
 }
 """Step kind -> "module:Class". A new kind of correction registers here."""
 

@@ -133,3 +133,58 @@ def test_ulog_position_and_current_match_pyulog():
     ok = bat["current_a"] >= 0
     cur = flight_stream(table, "current")
     assert np.array_equal(cur.values[:, 0], bat["current_a"][ok].astype(float))
+
+
+@pytest.mark.parametrize("name", sorted(FLIGHTS))
+def test_dataflash_throttle_is_the_copters_ctun_thrust_out(name):
+    """The throttle flight stream is CTUN.ThO (0..1, 4.x float) or ThrOut / 1000 (3.2-3.3
+    int16), record for record as DFReader decodes it: what ArduCopter hands its compass."""
+    path = shared_path("logs", "ardupilot_flights", *name.split("/"))
+    table, _ = read_dataflash(
+        InputSpec(path=path, imu_topic=FLIGHTS[name] and "IMU", mag_topic=FLIGHTS[name])
+    )
+    rec = _dfreader(path, ("CTUN",))["CTUN"]
+    column, scale = ("ThO", 1.0) if "ThO" in rec[0] else ("ThrOut", 1e-3)
+    want = np.array([r[column] for r in rec], dtype=float) * scale
+    thr = flight_stream(table, "throttle")
+    assert len(thr) == len(rec) > 100
+    assert np.allclose(np.sort(thr.values[:, 0]), np.sort(want), rtol=0, atol=1e-6)
+    assert thr.values.min() >= 0.0 and thr.values.max() <= 1.0 and thr.values.max() > 0.1
+
+
+def _armed_by_pyulog(log, t_us):
+    """vehicle_control_mode.flag_armed (what VehicleMagnetometer reads) step-held onto ``t_us``
+    as pyulog decodes it; disarmed before its first message."""
+    mode = log.get_dataset("vehicle_control_mode").data
+    i = np.searchsorted(mode["timestamp"], t_us, side="right") - 1
+    return np.where(i >= 0, mode["flag_armed"][np.maximum(i, 0)] == 1, False)
+
+
+def test_ulog_throttle_is_the_thrust_setpoint_norm_or_actuator_controls():
+    """PX4's throttle-based compass compensation input (VehicleMagnetometer::
+    UpdatePowerCompensation): |vehicle_thrust_setpoint.xyz| of instance 0 (v1.14+,
+    tests/data/px4_ulog/pixhawk6c_bmi055.ulg) or actuator_controls_0 control[3] (older), and 0
+    while disarmed (both logs hold setpoints above 0 while disarmed: those read 0)."""
+    from pyulog import ULog
+
+    from conftest import REPO
+
+    new = REPO / "tests" / "data" / "px4_ulog" / "pixhawk6c_bmi055.ulg"
+    table, _ = read_ulog(InputSpec(path=new, time="log"))
+    log = ULog(str(new), ["vehicle_thrust_setpoint", "vehicle_control_mode"])
+    ref = log.get_dataset("vehicle_thrust_setpoint").data
+    xyz = np.column_stack([ref[f"xyz[{i}]"] for i in range(3)]).astype(float)
+    armed = _armed_by_pyulog(log, ref["timestamp"])
+    thr = flight_stream(table, "throttle")
+    assert np.array_equal(thr.t_ns, ref["timestamp"].astype(np.int64) * 1000)
+    norm = np.linalg.norm(xyz, axis=1)
+    assert np.allclose(thr.values[:, 0], norm * armed) and thr.values.max() > 0.1
+    assert ((norm > 0) & ~armed).sum() > 10  # the disarmed setpoints are there, and read 0
+    old = shared_path("logs", "px4_ulog", "sample_log_small.ulg")
+    table, _ = read_ulog(InputSpec(path=old, time="log"))
+    log = ULog(str(old), ["actuator_controls_0", "vehicle_control_mode"])
+    ref = log.get_dataset("actuator_controls_0").data
+    armed = _armed_by_pyulog(log, ref["timestamp"])
+    thr = flight_stream(table, "throttle")
+    assert np.array_equal(thr.values[:, 0], np.where(armed, ref["control[3]"].astype(float), 0.0))
+    assert thr.values.max() > 0.1 and ((ref["control[3]"] > 0) & ~armed).sum() > 10

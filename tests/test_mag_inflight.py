@@ -13,20 +13,23 @@ from imupipe.readers.spec import InputSpec
 from imupipe.readers.table import (
     finite,
     flight_stream,
+    has_flight_stream,
     make_table,
     metadata,
     sensor,
     with_flight_stream,
 )
+from imupipe.readers.ulog.rotation import euler_matrix
 from imupipe.stages.base import StageContext
 from imupipe.stages.errors import FitError
 from imupipe.stages.magnetometer.inflight import (
     MagCurrentStep,
     MagInflightStage,
+    MagThrottleStep,
     fit_model,
     flight_samples,
 )
-from imupipe.stages.steps import steps_from_json
+from imupipe.stages.steps import LinearStep, steps_from_json
 
 from conftest import run_cli, shared_path
 
@@ -208,9 +211,10 @@ def test_tutorial_runs_as_written(tmp_path):
         return re.findall(rf"```{language}[^\n]*\n(.*?)```", page, flags=re.S)
 
     bash, toml, text = blocks("bash"), blocks("toml")[0], blocks("text")[0]
-    assert len(bash) == 4 and bash[1].strip() == "imupipe run compass.toml"
+    assert len(bash) == 5 and bash[1].strip() == "imupipe run compass.toml"
     (tmp_path / "compass.toml").write_text(toml)
-    for block in bash[:3]:  # the fourth (the survey of several flights): test_survey_compass
+    (tmp_path / "throttle.toml").write_text(blocks("toml")[-1])
+    for block in bash[:4]:  # the fifth (the survey of several flights): test_survey_compass
         for line in block.strip().splitlines():
             proc = run_cli(*shlex.split(line)[1:], cwd=tmp_path)
             assert proc.returncode == 0, (line, proc.stderr)
@@ -227,6 +231,16 @@ def test_tutorial_runs_as_written(tmp_path):
         assert shown in report  # the heading along the flight, the residual against current
     params = (tmp_path / "out" / "ardupilot_calibration.param").read_text()
     assert "COMPASS_MOTCT,2" in params
+    thr = json.loads((tmp_path / "out_throttle" / "calibration.json").read_text())["results"]
+    thr = thr["mag_inflight"]
+    assert thr["motor_source"] == "throttle" and thr["model"] == "soft_iron"
+    assert round(thr["metrics"]["residual_rms_ut_before"], 1) == 22.9
+    assert round(thr["metrics"]["residual_rms_ut_after"], 2) == 0.27
+    assert round(thr["metrics"]["heading_rms_deg_after"], 2) == 0.46
+    held = thr["metrics"]["held_out_rms_ut_motor_source"]
+    assert (round(held["throttle"], 2), round(held["none"], 2)) == (0.27, 0.79)
+    params = (tmp_path / "out_throttle" / "ardupilot_calibration.param").read_text()
+    assert "COMPASS_MOTCT,1" in params
     assert not (tmp_path / "out" / "px4_calibration.params").exists()  # an ArduPilot log
     level = toml.replace("flight.bin", "level.bin").replace(
         'type = "mag_inflight"', 'type = "mag_inflight"\nmodel = "soft_iron"'
@@ -258,7 +272,9 @@ def test_no_worse_than_magfit_on_the_simulated_flight(tmp_path):
     out, _ = fit(table)
     mag, _ = finite(sensor(table, "mag"))
     fs = flight_samples(table, mag, float(metadata(table)["gps_year"]))
-    ours = out.step.apply_values(fs.raw) + fs.current[:, None] * out.step.motor
+    ours = out.step.apply_values(fs.raw) + fs.power(out.results["motor_source"])[:, None] * (
+        out.step.motor
+    )
     theirs = bench.run_magfit(path, True, 10, 100, None)
     assert isinstance(theirs, dict), theirs
     mf = bench.magfit_corrected(path, fs.t_ns, fs.raw, fs.current, theirs)
@@ -290,7 +306,7 @@ def exported_reproduces_imupipe(tmp_path, log, inputs: str = "") -> tuple[float,
     parameters over the log's (what the vehicle holds after loading the file), and compare with
     imupipe's corrected field: (max difference in mG, the exported parameters)."""
     from imupipe.pipeline.simulate.flight import ardupilot_correct, ardupilot_raw
-    from imupipe.readers.table import has_flight_stream, interpolate
+    from imupipe.readers.table import interpolate
 
     (tmp_path / "c.toml").write_text(
         f'[inputs.f]\npath = "{log}"\n{inputs}\n[[stages]]\ntype = "mag_inflight"\n'
@@ -310,11 +326,15 @@ def exported_reproduces_imupipe(tmp_path, log, inputs: str = "") -> tuple[float,
     if has_flight_stream(table, "current"):
         cur = flight_stream(table, "current")
         amps = interpolate(cur.t_ns, cur.values[:, 0], logged.t_ns)
+    thr = None
+    if has_flight_stream(table, "throttle"):  # CTUN.ThO: what COMPASS_MOTCT = 1 multiplies
+        sig = flight_stream(table, "throttle")
+        thr = interpolate(sig.t_ns, sig.values[:, 0], logged.t_ns)
     before = metadata(table)["ardupilot"]["parameters"]
-    raw = ardupilot_raw(logged.values, before, amps)
-    vehicle = ardupilot_correct(raw, before | exported, amps)
+    raw = ardupilot_raw(logged.values, before, amps, thr)
+    vehicle = ardupilot_correct(raw, before | exported, amps, thr)
     ours = sensor(steps_from_json(doc["chain"])[0].apply(table), "mag").values
-    assert np.allclose(ardupilot_correct(raw, before, amps), logged.values, atol=1e-12)
+    assert np.allclose(ardupilot_correct(raw, before, amps, thr), logged.values, atol=1e-12)
     return float(np.abs(vehicle - ours).max() * 1e7), exported
 
 
@@ -393,6 +413,23 @@ def test_flights_of_one_vehicle_fitted_together():
         stage.fit(a, ctx)
 
 
+def simulated_ulog_run(tmp_path, *settings: str) -> tuple[dict, dict]:
+    """``imupipe simulate flight --out flight.ulg --duration 120 --set S...`` then ``imupipe
+    run`` of mag_inflight on it (CLI, in ``tmp_path``): (the truth, calibration.json)."""
+    sets = [x for setting in settings for x in ("--set", setting)]
+    proc = run_cli(
+        "simulate", "flight", "--out", "flight.ulg", "--duration", "120", *sets, cwd=tmp_path
+    )
+    assert proc.returncode == 0, proc.stderr
+    truth = json.loads((tmp_path / "flight.ulg.truth.json").read_text())
+    (tmp_path / "c.toml").write_text(
+        '[inputs.f]\npath = "flight.ulg"\n[[stages]]\ntype = "mag_inflight"\n[output]\ndir = "out"\n'
+    )
+    proc = run_cli("run", "c.toml", cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    return truth, json.loads((tmp_path / "out" / "calibration.json").read_text())
+
+
 def test_px4_path_end_to_end(tmp_path):
     """imupipe simulate flight --out flight.ulg: sensor_mag (raw), vehicle_attitude,
     vehicle_gps_position (its UTC time gives the date), battery_status; the fit recovers the
@@ -401,15 +438,7 @@ def test_px4_path_end_to_end(tmp_path):
     from imupipe.readers.table import interpolate
     from imupipe.readers.ulog.reader import read_ulog
 
-    proc = run_cli("simulate", "flight", "--out", "flight.ulg", "--duration", "120", cwd=tmp_path)
-    assert proc.returncode == 0, proc.stderr
-    truth = json.loads((tmp_path / "flight.ulg.truth.json").read_text())
-    (tmp_path / "c.toml").write_text(
-        '[inputs.f]\npath = "flight.ulg"\n[[stages]]\ntype = "mag_inflight"\n[output]\ndir = "out"\n'
-    )
-    proc = run_cli("run", "c.toml", cwd=tmp_path)
-    assert proc.returncode == 0, proc.stderr
-    doc = json.loads((tmp_path / "out" / "calibration.json").read_text())
+    truth, doc = simulated_ulog_run(tmp_path)
     r = doc["results"]["mag_inflight"]
     assert r["model"] == "soft_iron" and r["motor_term"] and abs(r["year"] - 2024.5) < 1e-3
     rows = (tmp_path / "out" / "px4_calibration.params").read_text().splitlines()
@@ -466,3 +495,305 @@ def test_throttle_compensated_log_is_noted(tmp_path):
     out = ardupilot.export(doc)
     assert any("throttle-based" in n for n in out.notes[ardupilot.FNAME])
     assert "COMPASS_MOTCT,2" in out.files[ardupilot.FNAME]
+
+
+# -- throttle-based motor compensation (COMPASS_MOTCT = 1, CAL_MAG_COMP_TYP = 1) -----------------
+
+
+@pytest.fixture(scope="module")
+def throttle_flight(tmp_path_factory):
+    """A vehicle without a current sensor whose motors' interference follows the throttle,
+    written as DataFlash (CTUN.ThO, no BAT) and read back."""
+    table, truth = simulate(
+        "flight",
+        {"duration_s": 180.0, "motor_source": "throttle", "current_sensor": False},
+        seed=3,
+    )
+    path = tmp_path_factory.mktemp("thr") / "flight.bin"
+    write_log(path, table)
+    back, _ = read_dataflash(InputSpec(path=path))
+    return back, truth
+
+
+def _params(text: str, sep: str) -> dict[str, float]:
+    """name -> value of a Mission Planner (``,``) or QGroundControl (tab) parameter file."""
+    rows = [ln.split(sep) for ln in text.splitlines() if ln[:1] not in ("#", "")]
+    return {r[0]: float(r[1]) for r in rows} if sep == "," else {r[2]: float(r[3]) for r in rows}
+
+
+def _soft(p: dict[str, float], diag: str, off: str) -> np.ndarray:
+    """The symmetric matrix of a parameter file's diagonal/off-diagonal names (``{a}`` = X, Y,
+    Z)."""
+    d = [p[diag.format(a=a)] for a in "XYZ"]
+    o = [p[off.format(a=a)] for a in "XYZ"]
+    return np.array([[d[0], o[0], o[1]], [o[0], d[1], o[2]], [o[1], o[2], d[2]]])
+
+
+def test_throttle_term_recovers_the_truth_without_a_current_sensor(throttle_flight):
+    """No BAT: the motor term is fitted against CTUN.ThO and recovers the truth (targets:
+    offsets 1 % of the field, soft iron 1 %, motor 5 %)."""
+    table, truth = throttle_flight
+    assert not has_flight_stream(table, "current") and has_flight_stream(table, "throttle")
+    out, ctx = fit(table)
+    r = out.results
+    assert r["model"] == "soft_iron" and r["motor_term"] and r["motor_source"] == "throttle"
+    field = truth["field_norm"]
+    assert np.abs(np.array(r["offset_t"]) - truth["offset"]).max() < 0.01 * field
+    assert np.abs(np.array(r["matrix"]) - truth["matrix"]).max() < 0.01
+    motor = np.array(truth["motor"])  # T at full throttle
+    got = np.array(r["motor_t_per_throttle"])
+    assert np.linalg.norm(got - motor) < 0.05 * np.linalg.norm(motor)
+    assert r["motor_t_per_a"] == [0.0, 0.0, 0.0]
+    assert "motor_z [uT/throttle]" in r["parameter_se"]
+    assert r["metrics"]["residual_rms_ut_after"] < 0.5
+    assert not any("motor" in w for w in ctx.warnings)
+    # without the throttle term the same flight fits worse: the term is real
+    off, _ = fit(table, motor="off")
+    assert (
+        off.results["metrics"]["residual_rms_ut_after"] > 2 * r["metrics"]["residual_rms_ut_after"]
+    )
+
+
+def test_throttle_step_round_trips_and_applies_the_throttle(throttle_flight):
+    table, truth = throttle_flight
+    out, _ = fit(table)
+    step = steps_from_json([json.loads(json.dumps(out.step.to_json()))])[0]
+    assert isinstance(step, MagThrottleStep) and step.kind == "mag_throttle"
+    corrected = sensor(step.apply(table), "mag").values
+    norms = np.linalg.norm(corrected, axis=1) / truth["field_norm"]
+    assert np.percentile(np.abs(norms - 1), 95) < 0.01
+    static = sensor(LinearStep("x", "mag", step.matrix, step.offset).apply(table), "mag").values
+    moved = np.linalg.norm(corrected - static, axis=1)  # the motor term, ~uT with the throttle
+    assert moved.max() > 1e-6
+
+
+def test_throttle_exports_reproduce_the_correction_with_the_firmware_formulas(throttle_flight):
+    """ArduPilot (AP_Compass_Backend::correct_field with COMPASS_MOTCT = 1: motor_offset = MOT x
+    throttle, throttle 0..1 from motors->get_throttle(), i.e. CTUN.ThO) and PX4
+    (Magnetometer::Correct with CAL_MAG_COMP_TYP = 1: S ((raw + COMP x thrust) - OFF), thrust
+    the norm of vehicle_thrust_setpoint) give imupipe's corrected field from the exported
+    parameters."""
+    from imupipe.pipeline.exports import ardupilot, px4
+    from imupipe.readers.table import interpolate
+
+    table, _ = throttle_flight
+    out, _ = fit(table)
+    doc = {"chain": [out.step.to_json()], "results": {}}
+    mag = sensor(table, "mag")
+    sig = flight_stream(table, "throttle")
+    thr = interpolate(sig.t_ns, sig.values[:, 0], mag.t_ns)
+    ours = sensor(out.step.apply(table), "mag").values
+    ap = _params(ardupilot.export(doc).files[ardupilot.FNAME], ",")
+    assert ap["COMPASS_MOTCT"] == 1
+    w = _soft(ap, "COMPASS_DIA_{a}", "COMPASS_ODI_{a}") * ap["COMPASS_SCALE"]
+    ofs = np.array([ap[f"COMPASS_OFS_{a}"] for a in "XYZ"])
+    mot = np.array([ap[f"COMPASS_MOT_{a}"] for a in "XYZ"])  # mG at full throttle
+    got = (mag.values * 1e7 + ofs) @ w.T + thr[:, None] * mot
+    assert np.abs(got - ours * 1e7).max() < 1e-6
+    p = _params(px4.export(doc).files[px4.FNAME], "\t")
+    assert p["CAL_MAG_COMP_TYP"] == 1
+    s = _soft(p, "CAL_MAG0_{a}SCALE", "CAL_MAG0_{a}ODIAG")
+    off = np.array([p[f"CAL_MAG0_{a}OFF"] for a in "XYZ"])
+    comp = np.array([p[f"CAL_MAG0_{a}COMP"] for a in "XYZ"])  # G at full throttle
+    got = ((mag.values * 1e4 + thr[:, None] * comp) - off) @ s.T
+    assert np.abs(got - ours * 1e4).max() < 1e-6
+
+
+def test_motor_source_is_chosen_on_held_out_segments():
+    """Both a current and a throttle logged: the one that drives the interference wins on the
+    held-out segments (the throttle only when more than 2 % better); a forced source that is
+    not logged is refused with motor = "on"."""
+    chosen = {}
+    for source in ("current", "throttle"):
+        table, truth = simulate(
+            "flight", {"duration_s": 120.0, "motor_source": source, "log_throttle": True}, seed=11
+        )
+        assert has_flight_stream(table, "current") and has_flight_stream(table, "throttle")
+        r = fit(table)[0].results
+        held = r["metrics"]["held_out_rms_ut_motor_source"]
+        assert set(held) == {"current", "throttle"}
+        other = "current" if source == "throttle" else "throttle"
+        assert held[source] < 0.98 * held[other]
+        chosen[source] = r["motor_source"]
+        key = "motor_t_per_a" if source == "current" else "motor_t_per_throttle"
+        motor = np.array(truth["motor"])
+        assert np.linalg.norm(np.array(r[key]) - motor) < 0.05 * np.linalg.norm(motor)
+        forced = fit(table, motor_source=other)[0].results
+        assert forced["motor_source"] == other
+        assert forced["metrics"]["residual_rms_ut_after"] > r["metrics"]["residual_rms_ut_after"]
+    assert chosen == {"current": "current", "throttle": "throttle"}
+    table, _ = simulate("flight", {"duration_s": 30.0, "current_sensor": False}, seed=12)
+    with pytest.raises(FitError, match="no battery current"):
+        fit(table, motor="on", motor_source="current")
+
+
+def test_px4_throttle_path_end_to_end(tmp_path):
+    """imupipe simulate flight --out flight.ulg with the interference on the throttle and no
+    battery_status: vehicle_thrust_setpoint is read, CAL_MAG_COMP_TYP = 1 and CAL_MAG0_*COMP
+    (G at full throttle) applied as PX4 does give imupipe's corrected field."""
+    from imupipe.readers.table import interpolate
+    from imupipe.readers.ulog.reader import read_ulog
+
+    truth, doc = simulated_ulog_run(tmp_path, "motor_source=throttle", "current_sensor=false")
+    assert doc["results"]["mag_inflight"]["motor_source"] == "throttle"
+    p = _params((tmp_path / "out" / "px4_calibration.params").read_text(), "\t")
+    assert p["CAL_MAG_COMP_TYP"] == 1
+    s = _soft(p, "CAL_MAG0_{a}SCALE", "CAL_MAG0_{a}ODIAG")
+    comp = np.array([p[f"CAL_MAG0_{a}COMP"] for a in "XYZ"])
+    want = np.linalg.solve(truth["matrix"], truth["motor"]) * 1e4  # COMP = S^-1 motor, G
+    assert np.linalg.norm(comp - want) < 0.05 * np.linalg.norm(want)
+    off = np.array([p[f"CAL_MAG0_{a}OFF"] for a in "XYZ"])
+    table, _ = read_ulog(InputSpec(path=tmp_path / "flight.ulg"))
+    assert not has_flight_stream(table, "current")
+    raw = sensor(table, "mag")
+    sig = flight_stream(table, "throttle")
+    thrust = interpolate(sig.t_ns, sig.values[:, 0], raw.t_ns)
+    px4 = ((raw.values * 1e4 + thrust[:, None] * comp) - off) @ s.T
+    ours = sensor(steps_from_json(doc["chain"])[0].apply(table), "mag").values * 1e4
+    assert np.abs(px4 - ours).max() < 1e-6
+
+
+def test_export_composes_with_a_throttle_compensating_vehicle(tmp_path):
+    """The vehicle logged MAG with its own COMPASS_MOTCT = 1 term (MOT x CTUN.ThO) on top of
+    OFS/DIA/ODI: the exported file, loaded on it, gives imupipe's corrected field from the raw
+    one, and its COMPASS_MOT is the truth in mG at full throttle."""
+    vehicle = VEHICLE | {"COMPASS_MOTCT": 1.0, "COMPASS_MOT_X": 6.0, "COMPASS_MOT_Y": -4.0}
+    table, truth = simulate(
+        "flight",
+        {"duration_s": 120.0, "vehicle": vehicle, "motor_source": "throttle"},
+        seed=6,
+    )
+    path = tmp_path / "flight.bin"
+    write_log(path, table)
+    diff, p = exported_reproduces_imupipe(tmp_path, path)
+    assert diff < 0.1 and p["COMPASS_MOTCT"] == 1
+    mot = np.array([p[f"COMPASS_MOT_{a}"] for a in "XYZ"])
+    want = np.array(truth["motor"]) * 1e7
+    assert np.linalg.norm(mot - want) < 0.05 * np.linalg.norm(want)
+
+
+def test_a_throttle_the_compass_does_not_follow_is_left_out():
+    """No current sensor, a logged throttle, no motor interference: the throttle term does not
+    lower the held-out residual by 2 %, so it is left out (warned), the fit is the static one."""
+    table, truth = simulate(
+        "flight",
+        {
+            "duration_s": 60.0,
+            "motor": [0.0, 0.0, 0.0],
+            "current_sensor": False,
+            "log_throttle": True,
+        },
+        seed=13,
+    )
+    out, ctx = fit(table)
+    r = out.results
+    assert not r["motor_term"] and r["motor_source"] is None
+    held = r["metrics"]["held_out_rms_ut_motor_source"]
+    assert held["throttle"] > 0.98 * held["none"]
+    assert any("throttle term does not lower" in w for w in ctx.warnings)
+    assert type(out.step) is MagCurrentStep and not np.any(out.step.motor)
+    assert np.abs(np.array(r["offset_t"]) - truth["offset"]).max() < 0.01 * truth["field_norm"]
+    forced = fit(table, motor="on")[0].results  # asked for: fitted, and near zero
+    assert forced["motor_source"] == "throttle"
+    assert np.abs(forced["motor_t_per_throttle"]).max() < 0.05 * np.abs(truth["offset"]).max()
+
+
+# -- board and compass orientation ----------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "px4_parameters",
+    [
+        {"CAL_MAG0_ROT": 2, "SENS_BOARD_X_OFF": 1.5},  # external, turned 90 deg in yaw
+        {"SENS_BOARD_ROT": 10, "SENS_BOARD_Y_OFF": -2.0},  # internal: the board's roll 180 yaw 90
+    ],
+)
+def test_px4_rotated_compass_exports_reproduce_the_correction(tmp_path, px4_parameters):
+    """A PX4 compass read in its own axes (sensor_mag) and turned into the body by PX4 after its
+    calibration (Magnetometer::Correct: R (S ((raw + COMP P) - OFF)), R = Euler(SENS_BOARD_*_OFF)
+    rot(CAL_MAG0_ROT, or SENS_BOARD_ROT for an internal one)): the fit runs in the body axes
+    (the truth), and the exported S = R^T M R, OFF = R^T offset, COMP applied with that R give
+    imupipe's corrected field."""
+    from imupipe.readers.table import interpolate
+    from imupipe.readers.ulog.reader import read_ulog
+
+    truth, doc = simulated_ulog_run(tmp_path, "px4_parameters=" + json.dumps(px4_parameters))
+    r = doc["results"]["mag_inflight"]
+    # R as PX4 builds it: the level adjustment (degrees) times the enum's Euler angles
+    rot = {2: (0, 0, 90), 10: (180, 0, 90)}[
+        px4_parameters.get("CAL_MAG0_ROT", px4_parameters.get("SENS_BOARD_ROT"))
+    ]
+    level = [px4_parameters.get(f"SENS_BOARD_{a}_OFF", 0.0) for a in "XYZ"]
+    turn = euler_matrix(*np.radians(level)) @ euler_matrix(*np.radians(rot))
+    assert np.allclose(r["sensor_rotation"], turn, atol=1e-6)
+    field = truth["field_norm"]
+    assert np.abs(np.array(r["offset_t"]) - truth["offset"]).max() < 0.01 * field
+    assert np.abs(np.array(r["matrix"]) - truth["matrix"]).max() < 0.01
+    p = _params((tmp_path / "out" / "px4_calibration.params").read_text(), "\t")
+    s = _soft(p, "CAL_MAG0_{a}SCALE", "CAL_MAG0_{a}ODIAG")
+    off = np.array([p[f"CAL_MAG0_{a}OFF"] for a in "XYZ"])  # G, sensor axes
+    comp = np.array([p[f"CAL_MAG0_{a}COMP"] for a in "XYZ"])  # G/kA
+    assert np.abs(s - turn.T @ np.array(truth["matrix"]) @ turn).max() < 0.01
+    assert np.abs(off - turn.T @ np.array(truth["offset"]) * 1e4).max() < 0.01 * field * 1e4
+    table, _ = read_ulog(InputSpec(path=tmp_path / "flight.ulg"))
+    raw = sensor(table, "mag")
+    cur = flight_stream(table, "current")
+    amps = interpolate(cur.t_ns, cur.values[:, 0], raw.t_ns)
+    px4 = (((raw.values * 1e4 + amps[:, None] / 1e3 * comp) - off) @ s.T) @ turn.T  # G, body
+    ours = sensor(steps_from_json(doc["chain"])[0].apply(table), "mag").values * 1e4
+    # S is written symmetric (R^T M R is, for a symmetric M); the fitted M's own asymmetry: 0
+    assert np.abs(px4 - ours).max() < 1e-6
+    # without the rotation the file would be wrong by the turn itself
+    unturned = ((raw.values * 1e4 + amps[:, None] / 1e3 * comp) - off) @ s.T
+    assert np.abs(unturned - ours).max() > 0.1
+
+
+@pytest.mark.parametrize(
+    "orientation",
+    [
+        {"COMPASS_ORIENT": 8.0, "COMPASS_EXTERNAL": 1.0},  # external, roll 180 (the erle logs')
+        {"AHRS_ORIENTATION": 2.0, "COMPASS_EXTERNAL": 0.0},  # internal, the board yawed 90
+    ],
+)
+def test_ardupilot_orientation_composes(tmp_path, orientation):
+    """ArduPilot turns the raw field into the body (rotate_field: COMPASS_ORIENT for an external
+    compass, AHRS_ORIENTATION for an internal one) before correct_field applies the offsets,
+    DIA/ODI and MOT, and logs MAG after both: the exported file is written (no longer refused)
+    and, loaded on the vehicle, turns the compass's own readings into imupipe's corrected
+    field."""
+    from imupipe.pipeline.simulate.flight import ardupilot_correct, ardupilot_raw
+    from imupipe.readers.ulog.rotation import rotation_matrix
+
+    vehicle = VEHICLE | orientation
+    table, truth = simulate("flight", {"duration_s": 120.0, "vehicle": vehicle}, seed=6)
+    path = tmp_path / "flight.bin"
+    write_log(path, table)
+    diff, p = exported_reproduces_imupipe(tmp_path, path)
+    assert diff < 0.1 and {"COMPASS_OFS_X", "COMPASS_DIA_X", "COMPASS_MOT_X"} <= set(p)
+    # the firmware path from the compass's own axes: rotate_field, then correct_field
+    back, _ = read_dataflash(InputSpec(path=path))
+    logged = sensor(back, "mag")
+    cur = flight_stream(back, "current")
+    from imupipe.readers.table import interpolate
+
+    amps = interpolate(cur.t_ns, cur.values[:, 0], logged.t_ns)
+    turn = rotation_matrix(
+        int(orientation.get("COMPASS_ORIENT", orientation.get("AHRS_ORIENTATION")))
+    )
+    body = ardupilot_raw(logged.values, vehicle, amps)  # the raw field turned into the body
+    own_axes = body @ turn  # what the chip read: R^T body
+    firmware = ardupilot_correct(own_axes @ turn.T, vehicle | p, amps)
+    doc = json.loads((tmp_path / "out" / "calibration.json").read_text())
+    ours = sensor(steps_from_json(doc["chain"])[0].apply(back), "mag").values
+    assert np.abs(firmware - ours).max() * 1e7 < 0.1
+    mot = np.array([p[f"COMPASS_MOT_{a}"] for a in "XYZ"])
+    want = np.array(truth["motor"]) * 1e7
+    assert np.linalg.norm(mot - want) < 0.05 * np.linalg.norm(want)
+
+
+def test_export_composes_with_a_real_rotated_compass(tmp_path):
+    """erle_pxf_118 flew with COMPASS_ORIENT = 8 (roll 180): its export was refused before; the
+    composition holds since ArduPilot's compass parameters act after the rotation."""
+    path = shared_path("logs", "ardupilot_flights", "erle_pxf_118", "118.BIN")
+    diff, p = exported_reproduces_imupipe(tmp_path, path)
+    assert diff < 0.1 and {"COMPASS_OFS_X", "COMPASS_DIA_X"} <= set(p)

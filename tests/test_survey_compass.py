@@ -88,6 +88,25 @@ def write_fleet(root, planted: bool) -> dict:
     return truth
 
 
+def write_px4_calibrated(path, data, s, off, motor, params: dict) -> None:
+    """Write ``data`` (a simulated flight's ULog topics) to ``path`` with CAL_MAG0 holding the
+    calibration ``S (raw + COMP I_kA - OFF)`` whose soft iron is ``s``, offsets ``off`` (T) and
+    current-based motor term ``motor`` (T/A, added after S: ``COMP = S^-1 motor`` in G/kA), and
+    ``params``."""
+    from imupipe.pipeline.writers.ulog import write_ulog
+
+    comp = np.linalg.solve(s, motor) * 1e4 * 1e3
+    params = {"CAL_MAG_COMP_TYP": 2, **params}
+    for i, a in enumerate("XYZ"):
+        params |= {f"CAL_MAG0_{a}OFF": off[i] * 1e4, f"CAL_MAG0_{a}SCALE": s[i, i]}
+        params[f"CAL_MAG0_{a}COMP"] = comp[i]
+    for (i, j), a in zip(((0, 1), (0, 2), (1, 2)), "XYZ", strict=True):
+        params[f"CAL_MAG0_{a}ODIAG"] = s[i, j]
+    data.parameters.update(params)
+    path.parent.mkdir(parents=True)
+    write_ulog(path, data)
+
+
 @pytest.fixture(scope="module")
 def planted(tmp_path_factory):
     root = tmp_path_factory.mktemp("compass_fleet")
@@ -202,7 +221,7 @@ def test_outlier_flight_is_one_flag_not_two_steps():
 
 
 def test_tutorial_section_runs_as_written(tmp_path):
-    """docs/tutorials/compass-from-flight.md, section 5: its bash block runs and prints the
+    """docs/tutorials/compass-from-flight.md, section 6: its bash block runs and prints the
     lines the page quotes."""
     import re
     import subprocess
@@ -210,7 +229,7 @@ def test_tutorial_section_runs_as_written(tmp_path):
     from conftest import REPO
 
     page = (REPO / "docs" / "tutorials" / "compass-from-flight.md").read_text()
-    section = page.split("## 5. Track the compass across flights", 1)[1]
+    section = page.split("## 6. Track the compass across flights", 1)[1]
     (script,) = re.findall(r"```bash\n(.*?)```", section, flags=re.S)
     (quoted,) = re.findall(r"```text\n(.*?)```", section, flags=re.S)
     done = subprocess.run(
@@ -228,22 +247,13 @@ def test_px4_vehicle_calibration_read_from_cal_mag(tmp_path):
     """A PX4 log whose CAL_MAG0 slot (the compass's device id) holds the truth in PX4's form:
     the vehicle's calibration is read from it (offset, soft iron, COMP), and it is not off."""
     from imupipe.pipeline.simulate.flight import MAG_DEVICE_ID, flight_ulog
-    from imupipe.pipeline.writers.ulog import write_ulog
 
     spec = VEHICLES["px4"]
     table, _ = simulate("flight", {**SHORT, **{k: spec[k] for k in ("offset", "matrix", "motor")}})
     data = flight_ulog(table)
     m, off, mot = (np.asarray(spec[k]) for k in ("matrix", "offset", "motor"))
-    comp = np.linalg.solve(m, mot) * 1e4 * 1e3  # G/kA, added before the offsets
-    params = {"CAL_MAG0_ID": MAG_DEVICE_ID, "CAL_MAG_COMP_TYP": 2, "SENS_BOARD_ROT": 0}
-    for i, a in enumerate("XYZ"):
-        params |= {f"CAL_MAG0_{a}OFF": off[i] * 1e4, f"CAL_MAG0_{a}SCALE": m[i, i]}
-        params[f"CAL_MAG0_{a}COMP"] = comp[i]
-    for (i, j), a in zip(((0, 1), (0, 2), (1, 2)), "XYZ", strict=True):
-        params[f"CAL_MAG0_{a}ODIAG"] = m[i, j]
-    data.parameters.update(params)
-    (tmp_path / "logs" / "px").mkdir(parents=True)
-    write_ulog(tmp_path / "logs" / "px" / "f.ulg", data)
+    params = {"CAL_MAG0_ID": MAG_DEVICE_ID, "SENS_BOARD_ROT": 0}
+    write_px4_calibrated(tmp_path / "logs" / "px" / "f.ulg", data, m, off, mot, params)
     result = survey([tmp_path / "logs"], tmp_path / "out", jobs=1, rerun=False)
     (row,) = pq.read_table(tmp_path / "out" / COMPASS_NAME).to_pylist()
     assert row["status"] == "fitted" and row["hw_device_id"] == MAG_DEVICE_ID
@@ -267,8 +277,15 @@ def test_real_ardupilot_flights(tmp_path):
         assert r["residual_after_ut"] < 0.5 * r["residual_vehicle_ut"]
         assert 40 < r["field_ut"] < 52
         assert json.loads(r["vehicle_parameters"])  # what the vehicle flew with
-    erle = [d for d in result["compass"]["devices"] if d["device_id"].startswith("erle")]
-    assert {d["domain"] for d in erle} == {"logged"}  # COMPASS_ORIENT = 8: tracked as logged
+    devices = {d["device_id"]: d for d in result["compass"]["devices"]}
+    # COMPASS_ORIENT = 8: ArduPilot's compass parameters act after the turn, so the fit composes
+    erle = [d for name, d in devices.items() if name.startswith("erle")]
+    assert {d["domain"] for d in erle} == {"sensor"}
+    # forum13645's first compass follows the throttle better than the current (held out)
+    (thr,) = [r for r in rows if r["log"].startswith("forum13645") and r["topic"] == "MAG"]
+    assert thr["fit_motor_source"] == thr["motor_source"] == "throttle"
+    assert thr["motor_x"] is None and thr["motor_throttle_x"] is not None
+    assert devices["forum13645_ac344:MAG"]["motor_unit"] == "uT"
 
 
 def test_resumed_survey_keeps_the_compass_rows(planted):
@@ -313,3 +330,92 @@ def test_drift_flagged_and_steady_compasses_not():
     assert flagged == {
         "v0:MAG": [], "v1:MAG": [], "v2:MAG": [("drift", "offset_y")], "v3:MAG": [], "v4:MAG": []
     }  # fmt: skip
+
+
+def test_throttle_vehicle_tracked_with_its_throttle_term(tmp_path):
+    """Flights of a vehicle without a current sensor whose compass follows the throttle
+    (ArduPilot, its own calibration without a motor term): each flight's fit carries the
+    throttle term (uT at full throttle, within 4 se of the truth) in motor_throttle_*, none
+    per ampere, and the fleet view tracks it in uT."""
+    spec = VEHICLES["ap1"]
+    calibration = {
+        k: v for k, v in ardupilot_parameters(spec).items() if not k.startswith("COMPASS_MOT")
+    }
+    for k in range(2):
+        params = {
+            **SHORT,
+            **{key: spec[key] for key in ("offset", "matrix")},
+            "motor_source": "throttle",
+            "current_sensor": False,
+            "vehicle": calibration,
+            "year": 2025.0 + 7.0 * k / 365.25,
+        }
+        table, truth = simulate("flight", params, seed=k)
+        write_log(tmp_path / "logs" / "thr" / f"flight_{k}.bin", table)
+    result = survey([tmp_path / "logs"], tmp_path / "out", jobs=1, rerun=False)
+    rows = pq.read_table(tmp_path / "out" / COMPASS_NAME).to_pylist()
+    units = {f.name: (f.metadata or {}).get(b"unit", b"").decode() for f in
+             pq.read_schema(tmp_path / "out" / COMPASS_NAME)}  # fmt: skip
+    assert units["motor_throttle_x"] == "uT" and units["motor_x"] == "uT/A"
+    true = np.asarray(truth["motor"]) * 1e6
+    assert len(rows) == 2
+    for r in rows:
+        assert r["status"] == "fitted" and r["current_span_a"] is None
+        assert (r["fit_motor_source"], r["motor_source"]) == ("throttle", "throttle")
+        assert r["vehicle_motor_source"] is None and r["vehicle_motor_x"] == 0.0
+        assert all(r[f"motor_{a}"] is None for a in "xyz")
+        motor = np.array([r[f"motor_throttle_{a}"] for a in "xyz"])
+        se = np.array([r[f"motor_throttle_se_{a}"] for a in "xyz"])
+        assert (np.abs(motor - true) < 4 * se + 1e-3).all(), (motor, true, se)
+    (dev,) = result["compass"]["devices"]
+    assert (dev["motor_source"], dev["motor_unit"]) == ("throttle", "uT")
+    assert np.isfinite(dev["motor"]).all()
+
+
+def test_vehicle_throttle_compensation_read_in_its_units():
+    """COMPASS_MOTCT = 1 (mG at full throttle) and CAL_MAG_COMP_TYP = 1 (G at full throttle) are
+    read as throttle terms, not per ampere; CAL_MAG_COMP_TYP = 2 as G/kA."""
+    from imupipe.pipeline.survey.compass import _ardupilot_vehicle, _px4_vehicle
+
+    ap = {"COMPASS_MOT_X": 300.0, "COMPASS_MOT_Y": -100.0, "COMPASS_MOT_Z": 50.0}
+    v = _ardupilot_vehicle(ap | {"COMPASS_MOTCT": 1}, 0)
+    assert v.source == "throttle" and np.allclose(v.motor, [30e-6, -10e-6, 5e-6])
+    assert _ardupilot_vehicle(ap | {"COMPASS_MOTCT": 2}, 0).source == "current"
+    assert _ardupilot_vehicle(ap | {"COMPASS_MOTCT": 0}, 0).source is None
+    px = {"CAL_MAG0_ID": 7, "CAL_MAG0_XCOMP": 0.2, "CAL_MAG0_YCOMP": 0.0, "CAL_MAG0_ZCOMP": -0.1}
+    v = _px4_vehicle(px | {"CAL_MAG_COMP_TYP": 1}, 7)
+    assert v.source == "throttle" and np.allclose(v.motor, [20e-6, 0.0, -10e-6])
+    v = _px4_vehicle(px | {"CAL_MAG_COMP_TYP": 2}, 7)
+    assert v.source == "current" and np.allclose(v.motor, [20e-9, 0.0, -10e-9])
+    assert _px4_vehicle(px | {"CAL_MAG_COMP_TYP": 0}, 7).source is None
+
+
+def test_px4_rotated_compass_fitted_in_the_body_and_reported_in_its_axes(tmp_path):
+    """A PX4 external compass turned 90 deg in yaw (CAL_MAG0_ROT = 2) whose CAL_MAG0 holds the
+    truth in PX4's form (S = R^T M R, OFF = R^T offset, COMP = S^-1 R^T motor): the survey fits
+    the field turned into the body, reports the calibration in the compass's axes (offsets
+    within 4 se of R^T offset) and finds the vehicle's own calibration not off."""
+    from imupipe.pipeline.simulate.flight import flight_ulog
+    from imupipe.readers.ulog.rotation import rotation_matrix
+
+    spec = VEHICLES["px4"]
+    table, _ = simulate(
+        "flight",
+        {**SHORT, **{k: spec[k] for k in ("offset", "matrix", "motor")},
+         "px4_parameters": {"CAL_MAG0_ROT": 2}},
+    )  # fmt: skip
+    data = flight_ulog(table)
+    r = rotation_matrix(2)
+    m, off, mot = (np.asarray(spec[k]) for k in ("matrix", "offset", "motor"))
+    s_m, s_off = r.T @ m @ r, r.T @ off
+    write_px4_calibrated(tmp_path / "logs" / "px" / "f.ulg", data, s_m, s_off, r.T @ mot, {})
+    survey([tmp_path / "logs"], tmp_path / "out", jobs=1, rerun=False)
+    (row,) = pq.read_table(tmp_path / "out" / COMPASS_NAME).to_pylist()
+    assert row["status"] == "fitted", row["why"]
+    offset = np.array([row[f"offset_{a}"] for a in "xyz"])
+    se = np.array([row[f"offset_se_{a}"] for a in "xyz"])
+    assert (np.abs(offset - s_off * 1e6) < 4 * se + 1e-3).all(), (offset, s_off * 1e6, se)
+    assert not np.allclose(s_off, off)  # the turn matters: body and compass axes differ
+    assert np.allclose([row[f"vehicle_offset_{a}"] for a in "xyz"], s_off * 1e6, atol=1e-3)
+    assert row["calibration_error_ut"] < 0.3 and row["residual_vehicle_ut"] < 0.5
+    assert row["residual_before_ut"] > 5 * row["residual_after_ut"]

@@ -9,9 +9,17 @@ ArduPilot corrects (ArduPilot ``libraries/AP_InertialSensor/AP_InertialSensor_Ba
     gyro:  raw - tcal(T) - INS_GYROFFS_{X,Y,Z}                                        rad/s
     tcal(T) = p(T - 35) - p(INS_ACC1_CALTEMP - 35),  p(d) = 1e-6 (c1 d + c2 d^2 + c3 d^3),
              c_k = INS_TCAL1_ACC{k}_{X,Y,Z} (GYR for the gyro), T clamped to INS_TCAL1_TMIN..TMAX
-    mag:   W (raw + COMPASS_OFS_{X,Y,Z}) + COMPASS_MOT_{X,Y,Z} I,  W = COMPASS_SCALE x the
+    mag:   W (raw + COMPASS_OFS_{X,Y,Z}) + COMPASS_MOT_{X,Y,Z} P,  W = COMPASS_SCALE x the
            symmetric matrix of diagonal COMPASS_DIA_*, off-diagonal COMPASS_ODI_{X,Y,Z} = W01,
-           W02, W12; I the battery current (COMPASS_MOTCT = 2)                          milligauss
+           W02, W12; P the battery current in A (COMPASS_MOTCT = 2) or the throttle 0..1
+           (COMPASS_MOTCT = 1: Compass::set_throttle(motors->get_throttle()), the value a
+           copter logs as CTUN.ThO)                                                     milligauss
+
+``raw`` of the compass is the field already rotated into the body frame: ``AP_Compass_Backend``'s
+``accumulate_sample`` rotates it (the driver's own rotation, then ``AHRS_ORIENTATION`` for an
+internal compass or ``COMPASS_ORIENT*`` for an external one, ``rotate_field``) before
+``correct_field`` adds the offsets; so the compass parameters are body-frame quantities and the
+logged ``MAG`` is the corrected body-frame field whatever the orientation.
 
 **One slot per device** (:func:`imupipe.pipeline.exports.common.device_models`): IMU ``i`` (1 to
 3) is ``INS_ACC*``/``INS_GYR*`` (``INS_ACCOFFS_*``, ``INS_ACC2OFFS_*``, ``INS_ACC3OFFS_*``;
@@ -237,7 +245,8 @@ def _vector(p: dict[str, Any], name: str, default: float) -> np.ndarray:
 def compass_terms(p: dict[str, Any], s: str = "") -> tuple[np.ndarray, ...]:
     """(OFS mG, W (scale x DIA/ODI), MOT mG/A or zeros) of compass ``s`` ("", "2", "3") as
     ArduPilot reads its parameters: an all-zero ``DIA`` is (1, 1, 1), ``COMPASS_SCALE``
-    outside 1/1.5..1.5 (or unset) is not applied, ``MOT`` only with ``COMPASS_MOTCT = 2``."""
+    outside 1/1.5..1.5 (or unset) is not applied, ``MOT`` only with ``COMPASS_MOTCT`` 1 or 2
+    (:func:`motor_kind` says whether it multiplies the throttle or the current)."""
 
     def vec(name: str, default: float) -> np.ndarray:
         return np.array([float(p.get(f"{name}_{a}", default) or 0.0) for a in "XYZ"])
@@ -252,8 +261,19 @@ def compass_terms(p: dict[str, Any], s: str = "") -> tuple[np.ndarray, ...]:
     scale = float(p.get(f"COMPASS_SCALE{s}") or 0.0)
     if SCALE_RANGE[0] <= scale <= SCALE_RANGE[1]:
         w = w * scale
-    mot = vec(f"COMPASS_MOT{s}", 0.0) if int(p.get("COMPASS_MOTCT") or 0) == 2 else np.zeros(3)
+    mot = vec(f"COMPASS_MOT{s}", 0.0) if motor_kind(p) else np.zeros(3)
     return vec(f"COMPASS_OFS{s}", 0.0), w, mot
+
+
+MOTCT = {"throttle": 1, "current": 2}
+"""``COMPASS_MOTCT`` of each motor source (``AP_COMPASS_MOT_COMP_THROTTLE``, ``_CURRENT``)."""
+
+
+def motor_kind(p: dict[str, Any]) -> int:
+    """The log's compass motor compensation as ArduPilot applies it (``correct_field``): 1
+    throttle, 2 current, 0 none (disabled, per-motor ``COMPASS_MOTCT = 3`` or unset)."""
+    kind = int(p.get("COMPASS_MOTCT") or 0)
+    return kind if kind in MOTCT.values() else 0
 
 
 def compose_with_log(model: SensorModel, i: int, out: Export) -> SensorModel | None:
@@ -261,26 +281,29 @@ def compose_with_log(model: SensorModel, i: int, out: Export) -> SensorModel | N
     had corrected with the log's own parameters (module docstring: the logged ``IMU`` is
     ``S (raw - tcal(T) - OFFS)``, the logged ``MAG`` is ``COMPASS_SCALE W (raw + OFS)``):
     ``M (logged - o - b(T))`` becomes ``M S (raw - (OFFS + S^-1 o) - S^-1 b(T))``, so the
-    file replaces the log's calibration. Needs no board rotation (``AHRS_ORIENTATION = 0``) and,
-    for a compass, no ``COMPASS_ORIENT``; else the sensor is left out with a note. A thermal
-    model on data the log had already compensated (``INS_TCALi_ENABLE = 1``) is left out."""
+    file replaces the log's calibration. A compass's parameters act on the field already turned
+    into the body (``AHRS_ORIENTATION`` for an internal compass, ``COMPASS_ORIENT*`` for an
+    external one: ``rotate_field`` before ``correct_field``, module docstring), as the logged
+    ``MAG`` and the fit are: the composition holds whatever the orientation (the vehicle must
+    keep it). An IMU's offsets and scales act before the board rotation
+    (``_rotate_and_correct_accel``): with ``AHRS_ORIENTATION`` set, the IMU is left out with a
+    note naming it. A thermal model on data the log had already compensated
+    (``INS_TCALi_ENABLE = 1``) is left out."""
     p = log_parameters(model)
     sensor, s = model.sensor, _s(i)
     rot = p.get("AHRS_ORIENTATION", 0) or 0
-    orient = p.get(f"COMPASS_ORIENT{s}", 0) or 0 if sensor == "mag" else 0
-    if rot or orient:
+    if rot and sensor != "mag":
         out.note(
             FNAME,
-            f"{sensor}: fitted on data ArduPilot had rotated (AHRS_ORIENTATION = {rot:g}"
-            + (f", COMPASS_ORIENT{s} = {orient:g}" if sensor == "mag" else "")
-            + "); not written",
+            f"{sensor}: fitted on data ArduPilot had rotated (AHRS_ORIENTATION = {rot:g}; its "
+            f"INS_{SHORT[sensor]} offsets act before that rotation); not written",
         )
         return None
     thermal = model.thermal
     if sensor == "mag":
         ofs, w, mot = compass_terms(p, s)
         old = -ofs / MILLIGAUSS_PER_TESLA
-        motor = log_motor(model, mot / MILLIGAUSS_PER_TESLA, p, s, out)
+        motor, source = log_motor(model, mot / MILLIGAUSS_PER_TESLA, p, s, out)
     else:
         short = SHORT[sensor]
         offs = f"INS_{short}{s}OFFS" if sensor == "accel" or i else "INS_GYROFFS"
@@ -295,7 +318,7 @@ def compose_with_log(model: SensorModel, i: int, out: Export) -> SensorModel | N
                 "temperature model is not written",
             )
             thermal = None
-        motor = model.motor
+        motor, source = model.motor, model.motor_source
     winv = np.linalg.inv(w)
     if thermal is not None:
         thermal = type(thermal)(thermal.tref, winv @ thermal.coefficients, thermal.t_range)
@@ -308,46 +331,55 @@ def compose_with_log(model: SensorModel, i: int, out: Export) -> SensorModel | N
         model.issues,
         model.device,
         motor,
+        source,
     )
 
 
 def log_motor(
     model: SensorModel, mot: np.ndarray, p: dict[str, Any], s: str, out: Export
-) -> np.ndarray | None:
-    """The compass's per-ampere term composed with the log's own: ArduPilot adds
-    ``COMPASS_MOT * I`` after ``DIA``/``ODI`` (``correct_field``), so the logged field is
-    ``W (raw + OFS) + MOT_log I`` and imupipe's ``M (logged - o) + motor I`` holds
-    ``(M MOT_log + motor) I``: the exported ``COMPASS_MOT`` replaces the log's. A log whose
-    ``COMPASS_MOTCT`` is 1 (throttle-based) or with per-motor compensation (``COMPASS_PMOT_EN``)
-    cannot be expressed per ampere: noted, its ``M MOT_log`` part left out."""
-    kind = int(p.get("COMPASS_MOTCT") or 0)
+) -> tuple[np.ndarray | None, str]:
+    """The compass's motor term composed with the log's own, and what it multiplies. ArduPilot
+    adds ``COMPASS_MOT * P`` after ``DIA``/``ODI`` (``correct_field``; ``P`` the current with
+    ``COMPASS_MOTCT = 2``, the throttle with ``= 1``), so the logged field is ``W (raw + OFS) +
+    MOT_log P`` and imupipe's ``M (logged - o) + motor P`` holds ``(M MOT_log + motor) P``: the
+    exported ``COMPASS_MOT`` replaces the log's. A log term of the other kind than the fitted
+    one (current against throttle), or per-motor compensation (``COMPASS_PMOT_EN``), cannot be
+    added to it: noted, its ``M MOT_log`` part left out."""
+    kind = motor_kind(p)
+    log_source = {v: k for k, v in MOTCT.items()}.get(kind)
+    per_motor = s == "" and bool(p.get("COMPASS_PMOT_EN"))
+    fitted = model.motor_source if model.motor is not None else log_source
+    if log_source is not None and np.any(mot) and not per_motor and fitted == log_source:
+        return model.matrix @ mot + (0.0 if model.motor is None else model.motor), log_source
     raw_mot = _vector(p, f"COMPASS_MOT{s}", 0.0)
-    if kind == 2 and np.any(mot) and not (s == "" and p.get("COMPASS_PMOT_EN")):
-        return model.matrix @ mot + (0.0 if model.motor is None else model.motor)
-    if (kind == 1 and np.any(raw_mot)) or (s == "" and p.get("COMPASS_PMOT_EN")):
+    if (log_source is not None and np.any(raw_mot)) or per_motor:
+        what = "per-motor (COMPASS_PMOT_EN = 1)" if per_motor else f"{log_source}-based"
         out.note(
             FNAME,
-            "mag: the log's data carry ArduPilot's throttle-based or per-motor compensation "
-            "(COMPASS_MOTCT = 1 or COMPASS_PMOT_EN = 1), which has no per-ampere form; "
+            f"mag: the log's data carry ArduPilot's {what} motor compensation "
+            f"(COMPASS_MOTCT = {kind}), which has no {model.motor_source}-based form; "
             + (
-                "the fitted per-ampere term replaces it (COMPASS_MOTCT = 2)"
+                f"the fitted {model.motor_source}-based term replaces it (COMPASS_MOTCT = "
+                f"{MOTCT[model.motor_source]})"
                 if model.motor is not None
                 else "it stays as it is"
             ),
         )
-    return model.motor
+    return model.motor, model.motor_source
 
 
 def motor_rows(model: SensorModel, i: int, written: list[Row]) -> list[Row]:
-    """A compass's current-based motor compensation (``mag_inflight``): ``COMPASS_MOT*_{X,Y,Z}``
-    in milligauss per ampere, added after ``DIA``/``ODI`` as imupipe's ``motor`` is
-    (``correct_field``), and ``COMPASS_MOTCT = 2`` (current; one for every compass)."""
+    """A compass's motor compensation (``mag_inflight``): ``COMPASS_MOT*_{X,Y,Z}`` added after
+    ``DIA``/``ODI`` as imupipe's ``motor`` is (``correct_field``), in milligauss per ampere
+    with ``COMPASS_MOTCT = 2`` (current-based) or in milligauss at full throttle with
+    ``COMPASS_MOTCT = 1`` (throttle-based: ``motor_offset = MOT * throttle``, throttle 0..1);
+    one ``COMPASS_MOTCT`` for every compass."""
     if model.motor is None:
         return []
     mot = model.motor * MILLIGAUSS_PER_TESLA
     rows: list[Row] = [(f"COMPASS_MOT{_s(i)}_{a}", mot[j]) for j, a in enumerate("XYZ")]
     if not any(name == "COMPASS_MOTCT" for name, _ in written):
-        rows.append(("COMPASS_MOTCT", 2))
+        rows.append(("COMPASS_MOTCT", MOTCT[model.motor_source]))
     return rows
 
 

@@ -153,8 +153,11 @@ class Thermal:
         return self.coefficients @ (x ** np.arange(4))
 
 
-LINEAR_KINDS = ("linear", "mag_current")
-"""Step kinds with a matrix and an offset (``mag_current`` adds a per-ampere term: ``motor``)."""
+LINEAR_KINDS = ("linear", "mag_current", "mag_throttle")
+"""Step kinds with a matrix and an offset (``mag_current`` adds a per-ampere term: ``motor``;
+``mag_throttle`` a term per unit of throttle)."""
+MOTOR_SOURCE = {"mag_current": "current", "mag_throttle": "throttle"}
+"""The power signal each motor step kind multiplies ``motor`` by."""
 
 
 @dataclass
@@ -171,8 +174,11 @@ class SensorModel:
     issues: list[str]
     device: dict[str, Any] = field(default_factory=dict)
     motor: np.ndarray | None = None
-    """A magnetometer's field per ampere of battery current (T/A), added after ``matrix``
-    (a ``mag_current`` step, ``mag_inflight``); None when no step estimated one."""
+    """A magnetometer's field per ampere of battery current (T/A), or per unit of throttle
+    (``motor_source``), added after ``matrix`` (a ``mag_current``/``mag_throttle`` step,
+    ``mag_inflight``); None when no step estimated one."""
+    motor_source: str = "current"
+    """What ``motor`` multiplies: ``"current"`` (A) or ``"throttle"`` (0..1)."""
 
     @property
     def linear(self) -> bool:
@@ -259,6 +265,7 @@ def _compose(sensor: str, entries: list[dict[str, Any]], dev: dict[str, Any]) ->
     """The entries of one device's sensor composed (module docstring)."""
     m, o = np.eye(3), np.zeros(3)
     motor: np.ndarray | None = None
+    source = "current"
     thermal: Thermal | None = None
     issues: list[str] = []
     for e in entries:
@@ -268,7 +275,14 @@ def _compose(sensor: str, entries: list[dict[str, Any]], dev: dict[str, Any]) ->
             o = o + np.linalg.solve(m, np.asarray(e["offset"], dtype=np.float64))
             m = m2 @ m
             motor = None if motor is None else m2 @ motor
-            if kind == "mag_current":
+            if kind in MOTOR_SOURCE:
+                if motor is not None and MOTOR_SOURCE[kind] != source:
+                    issues.append(
+                        f"a {MOTOR_SOURCE[kind]}-based motor term after a {source}-based one: "
+                        "the earlier one is left out"
+                    )
+                    motor = None
+                source = MOTOR_SOURCE[kind]
                 motor = np.asarray(e["motor"], dtype=np.float64) + (0.0 if motor is None else motor)
         elif kind == "temperature":
             t = _thermal(e)
@@ -282,7 +296,7 @@ def _compose(sensor: str, entries: list[dict[str, Any]], dev: dict[str, Any]) ->
             thermal = Thermal(t.tref, minv @ t.coefficients, t.t_range)
         else:
             issues.append(f"a '{kind}' step: not mapped")
-    return SensorModel(sensor, m, o, thermal, entries, issues, dev, motor)
+    return SensorModel(sensor, m, o, thermal, entries, issues, dev, motor, source)
 
 
 def left_alone(names: Iterable[str], families: Iterable[tuple[str, str]]) -> list[str]:

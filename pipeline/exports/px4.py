@@ -9,8 +9,11 @@ PX4 corrects each sensor (PX4-Autopilot ``src/lib/sensor_calibration``, ``Correc
 
 ``thermal(T)`` is the cubic ``TC_{A,G}n_X{0..3}_{axis}`` in ``T - TC_*n_TREF`` (T clamped to
 ``TC_*n_TMIN..TMAX``, ``src/modules/temperature_compensation``, ``calc_thermal_offsets_3D``),
-enabled by ``TC_A_ENABLE``/``TC_G_ENABLE``. ``R`` is the board rotation. A slot ``n`` applies to
-the device whose id ``CAL_*n_ID`` (``TC_*n_ID``) holds.
+enabled by ``TC_A_ENABLE``/``TC_G_ENABLE``. ``R`` is the board rotation; a magnetometer's is
+``CAL_MAGn_ROT`` (external) or ``SENS_BOARD_ROT`` (internal) with the level adjustment
+``SENS_BOARD_*_OFF`` (:mod:`imupipe.readers.ulog.rotation`), applied after ``S``: a
+magnetometer model mapping the raw field to the body (``m``) is written ``S = R^T m``. A slot
+``n`` applies to the device whose id ``CAL_*n_ID`` (``TC_*n_ID``) holds.
 
 **One slot per device.** The chain of each device (:func:`imupipe.pipeline.exports.common.device_models`: steps of one device compose, of different devices never) goes to its own slot:
 ``CAL_*n`` is the slot whose ``CAL_*n_ID`` in the log holds the device's id, else the slot of the
@@ -38,8 +41,10 @@ to ``TC_Mn_*`` in gauss (firmware with magnetometer thermal compensation, ``TC_M
 **Data PX4 had already corrected.** ``sensor_combined`` and ``vehicle_magnetometer`` hold data
 PX4 corrected with the log's own parameters (``fitted_on.px4.calibrated``). The chain fitted on
 them is composed with those parameters (PX4's ``BiasCorrectedSensorOffset``: new offset = old
-offset + bias / scale), so the file replaces the log's calibration; this needs no board
-rotation (``SENS_BOARD_ROT = 0``), else the sensor is left out with a note. The slot is the one
+offset + bias / scale), so the file replaces the log's calibration; for the accelerometer and
+gyroscope this needs no board rotation (``SENS_BOARD_ROT = 0``, ``CAL_*n_ROT`` -1 or 0), else
+the sensor is left out with a note naming the parameter; a magnetometer's rotation is composed
+(``vehicle_magnetometer = R S (raw - OFF)``). The slot is the one
 whose ``CAL_*n_ID`` is the fitted device (``fitted_on.device_id``); for a log that names no PX4
 device (CSV, ROS), the slots in the order of the devices without ``CAL_*_ID``/``TC_*_ID``,
 noted (PX4 applies a slot only to the device whose id it holds).
@@ -67,6 +72,7 @@ from imupipe.pipeline.exports.common import (
     params_text,
     soft_iron,
 )
+from imupipe.readers.ulog.rotation import mag_rotation
 
 FNAME = "px4_calibration.params"
 CAL = {"accel": "ACC", "gyro": "GYRO", "mag": "MAG"}
@@ -154,15 +160,38 @@ def targets(models: list[SensorModel], out: Export) -> list[Target | None]:
     return found
 
 
+def mag_turn(model: SensorModel, t: Target, out: Export) -> np.ndarray:
+    """``R`` of PX4's magnetometer correction ``R (S (raw - OFF))`` for the model's slot
+    (:mod:`imupipe.readers.ulog.rotation`): the one the reader found for the fitted device
+    (``fitted_on.px4.rotation.mag``), else the slot's in the log's parameters, else the
+    identity (a log without parameters). An undefined rotation: noted, the identity."""
+    found = (((model.fitted_on.get("px4") or {}).get("rotation") or {}).get("mag") or {}).get(
+        "matrix"
+    )
+    if found is not None:
+        return np.asarray(found, dtype=np.float64).reshape(3, 3)
+    if not t.params:
+        return np.eye(3)
+    try:
+        return mag_rotation(t.params, t.n)[0]
+    except ValueError as exc:
+        out.note(FNAME, f"mag: {exc}; written as if none")
+        return np.eye(3)
+
+
 def _compose_with_log(model: SensorModel, t: Target, out: Export) -> SensorModel | None:
-    """The model in PX4's raw domain when the fitted data held the log's CAL_* correction."""
+    """The model in PX4's raw domain when the fitted data held the log's CAL_* correction (a
+    magnetometer's also its rotation: ``vehicle_magnetometer = R S (raw - OFF)``, so ``M (vm -
+    o)`` is ``M R S (raw - (OFF + (R S)^-1 o))``)."""
     cal, p = CAL[model.sensor], t.params
     board, rot = p.get("SENS_BOARD_ROT", 0), p.get(f"CAL_{cal}{t.n}_ROT", -1)
-    if board != 0 or rot not in (-1, 0):
+    if model.sensor != "mag" and (board != 0 or rot not in (-1, 0)):
+        turned = [f"SENS_BOARD_ROT = {board}"] if board != 0 else []
+        turned += [f"CAL_{cal}{t.n}_ROT = {rot}"] if rot not in (-1, 0) else []
         out.note(
             FNAME,
-            f"{model.sensor}: fitted on data PX4 had rotated (SENS_BOARD_ROT = {board}, "
-            f"CAL_{cal}{t.n}_ROT = {rot}); not written: fit on the raw sensor topics instead",
+            f"{model.sensor}: fitted on data PX4 had rotated ({', '.join(turned)}); not "
+            "written: fit on the raw sensor topics instead",
         )
         return None
     old_off = np.array([p.get(f"CAL_{cal}{t.n}_{a}OFF", 0.0) for a in "XYZ"], dtype=np.float64)
@@ -173,6 +202,7 @@ def _compose_with_log(model: SensorModel, t: Target, out: Export) -> SensorModel
         for (i, j), value in zip(OFF_DIAGONAL, od, strict=True):
             s[i, j] = s[j, i] = value
         old_off = old_off / GAUSS_PER_TESLA
+        s = mag_turn(model, t, out) @ s
     elif model.sensor == "gyro":
         s = np.diag([p.get(f"CAL_GYRO{t.n}_{a}SCALE", 1.0) for a in "XYZ"]).astype(np.float64)
     sinv = np.linalg.inv(s)
@@ -223,7 +253,8 @@ def rows_for(model: SensorModel, t: Target, out: Export) -> list[Row]:
         rows += [(f"CAL_{cal}{n}_{a}OFF", offset[i], REAL32) for i, a in enumerate("XYZ")]
     diag = np.diag(m)
     if scaled and model.sensor == "mag":
-        diag_s, off_s = soft_iron(m, out, FNAME)
+        # PX4 turns the corrected field into the body after S (R S = m): S = R^T m
+        diag_s, off_s = soft_iron(mag_turn(model, t, out).T @ m, out, FNAME)
         rows += [(f"CAL_MAG{n}_{a}SCALE", diag_s[i], REAL32) for i, a in enumerate("XYZ")]
         rows += [(f"CAL_MAG{n}_{a}ODIAG", off_s[i], REAL32) for i, a in enumerate("XYZ")]
     elif scaled:
@@ -303,16 +334,26 @@ FAMILIES = {
 what the file leaves alone."""
 
 
+COMP_TYP = {"throttle": 1, "current": 2}
+"""``CAL_MAG_COMP_TYP`` of each motor source (``MagCompensationType::Throttle``,
+``Current_inst0``)."""
+POWER_UNIT = {"throttle": 1.0, "current": 1e3}
+"""PX4's power signal per imupipe's: the throttle 0..1 as it is, the current in kA (per A x 1e3)."""
+
+
 def motor_rows(model: SensorModel, t: Target) -> list[Row]:
-    """A magnetometer's current-based compensation (``mag_inflight``): PX4 adds
-    ``CAL_MAGn_{X,Y,Z}COMP`` times the battery current in kA to the raw field before the
-    offsets (``Magnetometer::Correct``, ``UpdatePower``), so ``COMP = S^-1 motor`` in G/kA,
-    with ``CAL_MAG_COMP_TYP = 2`` (current-based)."""
+    """A magnetometer's motor compensation (``mag_inflight``): PX4 adds ``CAL_MAGn_{X,Y,Z}COMP``
+    times its power signal to the raw field before the offsets (``Magnetometer::Correct``,
+    ``UpdatePower``): the battery current in kA with ``CAL_MAG_COMP_TYP = 2`` (``COMP = S^-1
+    motor`` in G/kA), or the throttle 0..1 with ``CAL_MAG_COMP_TYP = 1`` (G at full throttle;
+    ``VehicleMagnetometer`` takes the norm of ``vehicle_thrust_setpoint``, in PX4 up to v1.13
+    ``actuator_controls_0[3]``, and zero while disarmed)."""
     if model.motor is None or model.sensor != "mag":
         return []
-    comp = np.linalg.solve(model.matrix, model.motor) * GAUSS_PER_TESLA * 1e3
+    per = POWER_UNIT[model.motor_source]
+    comp = np.linalg.solve(model.matrix, model.motor) * GAUSS_PER_TESLA * per
     rows: list[Row] = [(f"CAL_MAG{t.n}_{a}COMP", comp[i], REAL32) for i, a in enumerate("XYZ")]
-    return rows + [("CAL_MAG_COMP_TYP", 2, INT32)]
+    return rows + [("CAL_MAG_COMP_TYP", COMP_TYP[model.motor_source], INT32)]
 
 
 def families(sensor: str, t: Target) -> list[tuple[str, str]]:

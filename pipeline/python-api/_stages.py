@@ -406,12 +406,14 @@ def mag_inflight(
     *,
     model: Literal["auto", "offsets", "scale", "soft_iron"] = "auto",
     motor: Literal["auto", "on", "off"] = "auto",
+    motor_source: Literal["auto", "current", "throttle"] = "auto",
     year: float | None = None,
     folds: int = 5,
     huber_k: float = 1.5,
     outlier_k: float = 5.0,
     min_spread: float = 0.002,
     min_current_a: float = 2.0,
+    min_throttle: float = 0.1,
     max_residual_ut: float = 5.0,
     flights: list[str] | None = None,
     name: str | None = None,
@@ -425,8 +427,13 @@ def mag_inflight(
     fails its own quality check, with a warning. Options:
 
     - ``model``: ``auto`` (chosen on held-out flight segments) or one model.
-    - ``motor``: The per-ampere motor term: ``auto`` (fitted when the current varies), ``on``
-      (refused when the flight cannot separate it) or ``off``.
+    - ``motor``: The motor term: ``auto`` (fitted when the current or the throttle varies),
+      ``on`` (refused when the flight cannot separate it) or ``off``.
+    - ``motor_source``: What the motor term multiplies: the battery current (per ampere:
+      ArduPilot ``COMPASS_MOTCT = 2``, PX4 ``CAL_MAG_COMP_TYP = 2``), the collective throttle
+      (per unit of throttle 0..1: ``COMPASS_MOTCT = 1``, ``CAL_MAG_COMP_TYP = 1``; for vehicles
+      without a current sensor), or ``auto``: the one logged, and when both are, the current
+      unless the throttle's held-out residual is more than 2 % lower (module docstring).
     - ``year``: The flight's date as a decimal year (WMM epoch); default: the log's GPS date.
     - ``folds``: Held-out segments for the model choice.
     - ``huber_k``: Huber weights beyond this many robust sigmas of the per-axis residual.
@@ -434,6 +441,8 @@ def mag_inflight(
     - ``min_spread``: Smallest eigenvalue of the expected field directions' covariance for soft
       iron.
     - ``min_current_a``: Current range (A, 5-95 %) below which the motor term cannot be fitted.
+    - ``min_throttle``: Throttle range (0..1, 5-95 %) below which a throttle-based motor term
+      cannot be fitted.
     - ``max_residual_ut``: Quality check: RMS vector residual after the fit, uT.
     - ``flights``: Other inputs: flights of the same vehicle (same compass, same mounting, and
       the same compass parameters in force when logged) fitted together with this stage's input,
@@ -445,12 +454,14 @@ def mag_inflight(
         {
             "model": model,
             "motor": motor,
+            "motor_source": motor_source,
             "year": year,
             "folds": folds,
             "huber_k": huber_k,
             "outlier_k": outlier_k,
             "min_spread": min_spread,
             "min_current_a": min_current_a,
+            "min_throttle": min_throttle,
             "max_residual_ut": max_residual_ut,
             "flights": flights,
         },

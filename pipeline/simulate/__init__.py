@@ -97,9 +97,14 @@ def write_log(path: Path, table: Any) -> None:
         )
         raise ConfigError(f"{path}: unknown output format '{suffix}' for this log (use {known})")
     if not board:
-        from imupipe.readers.table import FLIGHT_COLUMNS, has_flight_stream, has_stream
+        from imupipe.readers.table import FLIGHT_COLUMNS, has_flight_stream, has_stream, metadata
 
         flight = any(has_flight_stream(table, s) for s in FLIGHT_COLUMNS)
+        if suffix == ".bin" and ((metadata(table).get("px4") or {}).get("parameters")):
+            raise ConfigError(
+                f"{path}: 'px4_parameters' describe a PX4 vehicle (its compass in its own axes): "
+                "write it as .ulg"
+            )
         if flight != (suffix == ".bin") or (suffix == ".bin" and not has_stream(table, "mag")):
             use = (
                 ".bin"

@@ -6,11 +6,19 @@ motor interference are known, for the ``mag_inflight`` stage (written as DataFla
   (``attitude`` flight stream, ``att_hz``).
 - GPS track: a circle of ``radius_m`` about ``lat``, ``lon`` at ``alt_m`` (+-20 m), ``gps_hz``.
 - Battery current (A): ``current_a`` mean, a 31 s sinusoid and a 13 s square wave of amplitudes
-  ``current_swing_a`` and half of it; the ``BAT`` stream (``bat_hz``) logs it with 0.2 A noise.
+  ``current_swing_a`` and half of it; the ``BAT`` stream (``bat_hz``) logs it with 0.2 A noise
+  (``current_sensor = false``: a vehicle without a current sensor, no ``BAT`` stream).
+- Collective throttle (0..1): the throttle that draws that current, ``throttle_hover *
+  (I / current_a)^(2/3)`` (a rotor's current grows as its throttle to the power 1.5, so the two
+  are not proportional), logged as a copter's ``CTUN.ThO`` (``bat_hz``, exact: it is the value
+  the firmware compensates with) when ``log_throttle`` is true or the interference follows the
+  throttle.
 - Compass (T, ``mag_hz``): the WMM field on ``year`` at the track (:mod:`imupipe.stages.magnetometer.wmm`)
   rotated into the body, distorted by the inverse of the correction
-  ``corrected = M (raw - offset) + motor * I``: ``raw = M^-1 (B_body - motor I) + offset``,
+  ``corrected = M (raw - offset) + motor * P``: ``raw = M^-1 (B_body - motor P) + offset``,
   plus white noise ``mag_noise`` (T per axis); the DataFlash writer rounds it to milligauss.
+  ``P`` is the current (``motor_source = "current"``, ``motor`` T/A) or the throttle
+  (``motor_source = "throttle"``, ``motor_throttle`` T per unit of throttle).
 - The vehicle's own compass calibration (``vehicle``: ArduPilot parameters, e.g.
   ``{"COMPASS_OFS_X": -120, "COMPASS_DIA_X": 1.02, "COMPASS_MOT_Z": 4.5, "COMPASS_MOTCT": 2}``;
   default none): applied to the logged field as ArduPilot's ``correct_field`` does
@@ -18,12 +26,22 @@ motor interference are known, for the ``mag_inflight`` stage (written as DataFla
   vehicle records and an export must compose with it (DataFlash only: PX4 logs the raw field
   in ``sensor_mag``).
 
+- A PX4 vehicle's mounting (``px4_parameters``, e.g. ``{"CAL_MAG0_ROT": 2}`` for an external
+  compass turned 90 deg in yaw, or ``{"SENS_BOARD_ROT": 4, "SENS_BOARD_X_OFF": 1.5}`` with
+  ``CAL_MAG0_ROT = -1`` for an internal one; ULog only): the compass reads in its own axes,
+  ``raw_sensor = R^T raw`` with ``R`` the rotation PX4 turns it by
+  (:func:`imupipe.readers.ulog.rotation.mag_rotation`); the parameters, with ``CAL_MAG0_ID``
+  the compass's device id, are written in the log (``sensor_mag.is_external`` set when
+  ``CAL_MAG0_ROT >= 0``). The truth stays in the body axes.
+
 As a ULog (:func:`flight_ulog`): ``sensor_mag`` (raw, gauss), ``vehicle_attitude`` (``q``),
 ``vehicle_gps_position`` (1e-7 deg, mm, ``time_utc_usec``, ``fix_type`` 3), ``battery_status``
-(``current_a``, with its 0.2 A noise).
+(``current_a``, with its 0.2 A noise), ``vehicle_thrust_setpoint`` (``xyz = (0, 0, -throttle)``,
+a multicopter's, whose norm PX4's throttle compensation uses).
 
-Truth: ``matrix`` M, ``offset`` (T), ``motor`` (T/A), ``field_norm`` (T): the raw sensor's
-errors (before the vehicle's own correction).
+Truth: ``matrix`` M, ``offset`` (T), ``motor`` (T per unit of ``motor_source``),
+``motor_source``, ``field_norm`` (T): the raw sensor's errors (before the vehicle's own
+correction).
 """
 
 from __future__ import annotations
@@ -34,17 +52,19 @@ import numpy as np
 import pyarrow as pa
 
 from imupipe.pipeline.errors import ConfigError
-from imupipe.pipeline.exports.ardupilot import MILLIGAUSS_PER_TESLA, compass_terms
+from imupipe.pipeline.exports.ardupilot import MILLIGAUSS_PER_TESLA, compass_terms, motor_kind
 from imupipe.pipeline.writers.ulog import Topic, UlogData
 from imupipe.readers.dataflash.reader import euler_quaternion
 from imupipe.readers.table import (
     flight_stream,
+    has_flight_stream,
     make_table,
     metadata,
     sensor,
     with_flight_stream,
     with_metadata,
 )
+from imupipe.readers.ulog.rotation import mag_rotation
 from imupipe.stages.magnetometer.inflight import rotate
 from imupipe.stages.magnetometer.wmm import earth_field
 
@@ -72,25 +92,46 @@ DEFAULTS: dict[str, Any] = {
     "offset": [1.2e-5, -8.0e-6, 2.0e-5],
     "matrix": [[1.04, 0.02, -0.015], [0.02, 0.97, 0.01], [-0.015, 0.01, 1.02]],
     "motor": [6.0e-8, -4.0e-8, 1.2e-7],
+    "motor_source": "current",
+    "motor_throttle": [1.6e-6, -1.1e-6, 3.2e-6],
+    "throttle_hover": 0.45,
+    "current_sensor": True,
+    "log_throttle": False,
     "mag_noise": 1.5e-7,
     "vehicle": {},
+    "px4_parameters": {},
 }
 
 
-def ardupilot_correct(raw: np.ndarray, p: dict[str, Any], amps: np.ndarray) -> np.ndarray:
+def _motor_power(p: dict[str, Any], amps: np.ndarray, throttle: np.ndarray | None) -> np.ndarray:
+    """What ArduPilot multiplies ``COMPASS_MOT`` by under ``p``: the current (``COMPASS_MOTCT =
+    2``), the throttle 0..1 (``= 1``; zeros when none is given)."""
+    if motor_kind(p) == 1:
+        return np.zeros(len(amps)) if throttle is None else np.asarray(throttle, dtype=np.float64)
+    return amps
+
+
+def ardupilot_correct(
+    raw: np.ndarray, p: dict[str, Any], amps: np.ndarray, throttle: np.ndarray | None = None
+) -> np.ndarray:
     """What ArduPilot logs (T) for the raw field ``raw`` (n, 3, T, body axes) under its
-    parameters ``p`` (first compass) and battery current ``amps`` (A): ``AP_Compass_Backend``'s
-    ``correct_field``: offsets added, scale and ``DIA``/``ODI`` applied, then ``MOT * I``
-    (current-based), all in milligauss."""
+    parameters ``p`` (first compass), battery current ``amps`` (A) and throttle (0..1):
+    ``AP_Compass_Backend``'s ``correct_field``: offsets added, scale and ``DIA``/``ODI``
+    applied, then ``MOT`` times the current (``COMPASS_MOTCT = 2``) or the throttle (``= 1``),
+    all in milligauss."""
     ofs, w, mot = compass_terms(p)
-    mg = (raw * MILLIGAUSS_PER_TESLA + ofs) @ w.T + amps[:, None] * mot
+    power = _motor_power(p, amps, throttle)
+    mg = (raw * MILLIGAUSS_PER_TESLA + ofs) @ w.T + power[:, None] * mot
     return mg / MILLIGAUSS_PER_TESLA
 
 
-def ardupilot_raw(logged: np.ndarray, p: dict[str, Any], amps: np.ndarray) -> np.ndarray:
+def ardupilot_raw(
+    logged: np.ndarray, p: dict[str, Any], amps: np.ndarray, throttle: np.ndarray | None = None
+) -> np.ndarray:
     """The inverse of :func:`ardupilot_correct`: the raw field (T) under a log's ``MAG``."""
     ofs, w, mot = compass_terms(p)
-    mg = np.linalg.solve(w, (logged * MILLIGAUSS_PER_TESLA - amps[:, None] * mot).T).T - ofs
+    power = _motor_power(p, amps, throttle)
+    mg = np.linalg.solve(w, (logged * MILLIGAUSS_PER_TESLA - power[:, None] * mot).T).T - ofs
     return mg / MILLIGAUSS_PER_TESLA
 
 
@@ -124,6 +165,12 @@ def _current(t_s: np.ndarray, p: dict[str, Any]) -> np.ndarray:
     return np.maximum(amps, 0.0)
 
 
+def _throttle(amps: np.ndarray, p: dict[str, Any]) -> np.ndarray:
+    """The collective throttle (0..1) that draws ``amps`` (module docstring)."""
+    ratio = np.maximum(amps, 0.0) / float(p["current_a"])
+    return np.clip(float(p["throttle_hover"]) * ratio ** (2.0 / 3.0), 0.0, 1.0)
+
+
 def simulate(params: dict[str, Any], rng: np.random.Generator) -> tuple[pa.Table, dict[str, Any]]:
     p = params
     dur = float(p["duration_s"])
@@ -132,26 +179,54 @@ def simulate(params: dict[str, Any], rng: np.random.Generator) -> tuple[pa.Table
     s = lambda t: (t - 1_000_000_000) * 1e-9  # noqa: E731
     m = np.asarray(p["matrix"], dtype=np.float64)
     offset = np.asarray(p["offset"], dtype=np.float64)
-    motor = np.asarray(p["motor"], dtype=np.float64)
+    source = p["motor_source"]
+    if source not in ("current", "throttle"):
+        raise ConfigError(f"simulate flight: motor_source '{source}' (use current or throttle)")
+    motor = np.asarray(p["motor" if source == "current" else "motor_throttle"], dtype=np.float64)
     lla = _position(s(t_mag), p)
     ned = earth_field(lla[:, 0], lla[:, 1], lla[:, 2], float(p["year"]))
     body = rotate(_attitude(s(t_mag), p), ned, inverse=True)
     amps = _current(s(t_mag), p)
-    raw = np.linalg.solve(m, (body - amps[:, None] * motor).T).T + offset
+    thr = _throttle(amps, p)
+    power = amps if source == "current" else thr
+    raw = np.linalg.solve(m, (body - power[:, None] * motor).T).T + offset
     raw += rng.normal(0.0, p["mag_noise"], raw.shape)
     vehicle = {k: float(v) for k, v in (p["vehicle"] or {}).items()}
-    table = make_table(t_mag, mag=ardupilot_correct(raw, vehicle, amps) if vehicle else raw)
+    logged_mag = ardupilot_correct(raw, vehicle, amps, thr) if vehicle else raw
+    px4 = dict(p["px4_parameters"] or {})
+    if px4 and vehicle:
+        raise ConfigError("simulate flight: give either vehicle (ArduPilot) or px4_parameters")
+    turn = None
+    if px4:
+        px4 = {"CAL_MAG0_ID": MAG_DEVICE_ID, "CAL_MAG0_ROT": -1} | px4
+        try:
+            turn = mag_rotation(px4, 0)[0]
+        except ValueError as exc:
+            raise ConfigError(f"simulate flight: px4_parameters: {exc}") from None
+        logged_mag = raw @ turn  # the compass's own axes: R^T raw, per row
+    table = make_table(t_mag, mag=logged_mag)
     table = with_flight_stream(table, "attitude", t_att, _attitude(s(t_att), p))
     table = with_flight_stream(table, "position", t_gps, _position(s(t_gps), p))
     logged = _current(s(t_bat), p) + rng.normal(0.0, 0.2, len(t_bat))
-    table = with_flight_stream(table, "current", t_bat, logged)
+    if p["current_sensor"]:
+        table = with_flight_stream(table, "current", t_bat, logged)
+    if p["log_throttle"] or source == "throttle":
+        table = with_flight_stream(table, "throttle", t_bat, _throttle(_current(s(t_bat), p), p))
     meta = metadata(table) | {"source": "simulate flight", "gps_year": float(p["year"])}
     if vehicle:
         meta["ardupilot"] = {"parameters": vehicle, "calibrated": {"mag": True}}
+    if turn is not None:  # as the ULog reader gives it
+        meta["px4"] = {
+            "parameters": px4,
+            "calibrated": {"mag": False},
+            "rotation": {"mag": {"matrix": turn.tolist(), "parameters": mag_rotation(px4, 0)[1]}},
+        }
+        meta["device_id"] = {"mag": MAG_DEVICE_ID}
     truth = {
         "matrix": m.tolist(),
         "offset": offset.tolist(),
         "motor": motor.tolist(),
+        "motor_source": source,
         "field_norm": float(np.mean(np.linalg.norm(ned, axis=1))),
     }
     return with_metadata(table, meta), truth
@@ -166,11 +241,12 @@ def flight_ulog(table: pa.Table) -> UlogData:
             "simulate flight: 'vehicle' is an ArduPilot calibration (written as .bin); PX4 "
             "logs the raw field: leave vehicle unset for .ulg"
         )
+    px4 = (meta.get("px4") or {}).get("parameters") or {}
+    external = float(px4.get("CAL_MAG0_ROT", 0)) >= 0
     us = lambda t_ns: np.asarray(t_ns, dtype=np.int64) // 1000  # noqa: E731
     mag = sensor(table, "mag")
     att = flight_stream(table, "attitude")
     pos = flight_stream(table, "position")
-    cur = flight_stream(table, "current")
     t0_utc_us = (float(meta["gps_year"]) - 1970.0) * 365.2425 * 86400.0 * 1e6
     f32, u64 = "float", "uint64_t"
     topics = [
@@ -183,7 +259,7 @@ def flight_ulog(table: pa.Table) -> UlogData:
                 "device_id": np.full(len(mag), MAG_DEVICE_ID),
                 **{a: mag.values[:, i] * GAUSS_PER_TESLA for i, a in enumerate("xyz")},
                 "temperature": np.full(len(mag), 25.0),
-                "is_external": np.ones(len(mag)),
+                "is_external": np.full(len(mag), float(external)),
             },
             [(u64, "timestamp"), (u64, "timestamp_sample"), ("uint32_t", "device_id")]
             + [(f32, a) for a in "xyz"]
@@ -211,11 +287,30 @@ def flight_ulog(table: pa.Table) -> UlogData:
             + [("int32_t", k) for k in ("lat", "lon", "alt")]
             + [("uint8_t", "fix_type"), ("uint8_t", "satellites_used")],
         ),
-        Topic(
-            "battery_status",
-            0,
-            {"timestamp": us(cur.t_ns), "current_a": cur.values[:, 0]},
-            [(u64, "timestamp"), (f32, "current_a")],
-        ),
     ]
-    return UlogData(topics, {}, {"sys_name": "PX4", "ver_hw": "SITL"})
+    if has_flight_stream(table, "current"):
+        cur = flight_stream(table, "current")
+        topics.append(
+            Topic(
+                "battery_status",
+                0,
+                {"timestamp": us(cur.t_ns), "current_a": cur.values[:, 0]},
+                [(u64, "timestamp"), (f32, "current_a")],
+            )
+        )
+    if has_flight_stream(table, "throttle"):
+        thr = flight_stream(table, "throttle")
+        zero = np.zeros(len(thr))
+        topics.append(
+            Topic(
+                "vehicle_thrust_setpoint",
+                0,
+                {
+                    "timestamp": us(thr.t_ns),
+                    "timestamp_sample": us(thr.t_ns),
+                    "xyz": np.column_stack([zero, zero, -thr.values[:, 0]]),
+                },
+                [(u64, "timestamp"), (u64, "timestamp_sample"), ("float[3]", "xyz")],
+            )
+        )
+    return UlogData(topics, dict(px4), {"sys_name": "PX4", "ver_hw": "SITL"})

@@ -3,9 +3,11 @@
 
 **Per log** (:func:`survey_compass`, in the worker after the IMU figures): a PX4 ULog or
 ArduPilot DataFlash log's compass instances (``sensor_mag`` instances; ``MAG``, ``MAG2``...) are
-each read with the log's attitude, GPS position and battery current, and fitted by the
-``mag_inflight`` stage's own code (:func:`imupipe.stages.magnetometer.inflight.fit_flight`, the
-stage's default options): offsets, soft iron, scale and motor term, the model chosen on held-out
+each read with the log's attitude, GPS position, battery current and throttle, and fitted by the
+``mag_inflight`` stage's own code (:func:`imupipe.stages.magnetometer.inflight.flight_samples`
+and :func:`~imupipe.stages.magnetometer.inflight.fit_flight`, the stage's default options): a
+PX4 ``sensor_mag`` turned into the body by its rotation, offsets, soft iron, scale and the motor
+term on the current or the throttle (the stage's source choice), the model chosen on held-out
 segments, standard errors, residuals and heading errors, the attitudes flown. A flight that
 cannot be fitted (no GPS date, no attitude or position, too few samples, nothing separable) is a
 row with ``status = "refused"`` and ``why``, not a failed log. The rows go to
@@ -17,12 +19,15 @@ correction, PX4 logs ``sensor_mag`` raw. Each row holds:
 
 - the *vehicle's own* calibration (``vehicle_*``: the log's ``COMPASS_OFS*``/``DIA*``/``ODI*``/
   ``SCALE*``/``MOT*`` or ``CAL_MAGn_*OFF``/``SCALE``/``ODIAG``/``COMP`` of the slot holding the
-  compass's device id, in imupipe's form ``corrected = M (raw - offset) + motor I``);
+  compass's device id, in imupipe's form ``corrected = M (raw - offset) + motor P``, ``P`` the
+  current (``COMPASS_MOTCT`` 2, ``CAL_MAG_COMP_TYP`` 2, 3: ``vehicle_motor_*`` uT/A) or the
+  throttle (both 1: ``vehicle_motor_throttle_*``, uT at full throttle));
 - the flight's fit on the field as logged (``fit_offset_*``, ``fit_motor_*``: for ArduPilot the
   correction still missing on top of the vehicle's);
 - the calibration the flight says the vehicle should use (``offset_*``, ``dia_*``, ``odi_*``,
   ``scale``, ``motor_*``: the fit composed with the log's own parameters by the ArduPilot
-  export's :func:`~imupipe.pipeline.exports.ardupilot.compose_with_log`; for PX4 the fit itself),
+  export's :func:`~imupipe.pipeline.exports.ardupilot.compose_with_log`; for PX4 the fit itself,
+  in the compass's axes: ``S = R^T M R``, ``OFF = R^T o``),
   which is what the fleet view tracks: it does not move when a user recalibrates, only when the
   compass's surroundings change.
 
@@ -52,6 +57,8 @@ UT = 1e6
 """uT per tesla (the dataset's field columns are in uT)."""
 GAUSS_PER_TESLA = 1e4
 AXES = "xyz"
+MOTOR_UNIT = {"current": "uT/A", "throttle": "uT"}
+"""The motor term's unit per source: per ampere, or at full throttle (throttle 0..1)."""
 LEGEND_ROOM = 0.45
 """The report's compass plots run on past the last flight by this fraction of the span: the
 legend's room."""
@@ -68,8 +75,10 @@ def compass_part(part: Path) -> Path:
 @dataclasses.dataclass
 class VehicleCompass:
     """A vehicle's compass calibration in imupipe's form (``corrected = matrix (raw - offset) +
-    motor I``; T, T/A), the parameters it came from, and whether it is ``known`` (a log without
-    any compass parameter says nothing) and ``applied`` (ArduPilot: the logged field carries it)."""
+    motor P``; T, and T/A with ``source = "current"`` or T at full throttle with ``"throttle"``;
+    None: no motor compensation), the parameters it came from, and whether it is ``known`` (a
+    log without any compass parameter says nothing) and ``applied`` (ArduPilot: the logged field
+    carries it). All in the compass's own axes (PX4 turns the result by ``R`` after it)."""
 
     offset: np.ndarray
     matrix: np.ndarray
@@ -78,10 +87,16 @@ class VehicleCompass:
     known: bool
     applied: bool
     notes: list[str]
+    source: str | None = None
 
 
 def _ardupilot_vehicle(p: dict[str, Any], instance: int) -> VehicleCompass:
-    from imupipe.pipeline.exports.ardupilot import MILLIGAUSS_PER_TESLA, compass_terms
+    from imupipe.pipeline.exports.ardupilot import (
+        MILLIGAUSS_PER_TESLA,
+        MOTCT,
+        compass_terms,
+        motor_kind,
+    )
 
     s = "" if instance == 0 else str(instance + 1)
     own = {
@@ -93,18 +108,19 @@ def _ardupilot_vehicle(p: dict[str, Any], instance: int) -> VehicleCompass:
             for f in ("OFS", "DIA", "ODI", "SCALE", "MOT", "DEV_ID", "ORIENT")
         )
     }
-    ofs, w, mot = compass_terms(p, s)
-    notes = []
-    if int(p.get("COMPASS_MOTCT") or 0) == 1:
-        notes.append("the vehicle compensates the motors by throttle (COMPASS_MOTCT = 1)")
+    ofs, w, mot = compass_terms(p, s)  # MOT: mG/A (COMPASS_MOTCT 2) or mG at full throttle (1)
+    source = {v: k for k, v in MOTCT.items()}.get(motor_kind(p)) if mot.any() else None
     return VehicleCompass(
-        -ofs / MILLIGAUSS_PER_TESLA, w, mot / MILLIGAUSS_PER_TESLA, own, bool(p), True, notes
+        -ofs / MILLIGAUSS_PER_TESLA, w, mot / MILLIGAUSS_PER_TESLA, own, bool(p), True, [], source
     )
 
 
 def _px4_vehicle(p: dict[str, Any], device_id: int | None) -> VehicleCompass:
-    """PX4's ``Magnetometer::Correct``: ``S (raw + COMP I_kA - OFF)`` (gauss), for the
-    ``CAL_MAGn`` slot whose ``CAL_MAGn_ID`` is the compass's device id."""
+    """PX4's ``Magnetometer::Correct``: ``R S (raw + COMP P - OFF)`` (gauss), for the
+    ``CAL_MAGn`` slot whose ``CAL_MAGn_ID`` is the compass's device id; ``P`` the battery
+    current in kA (``CAL_MAG_COMP_TYP`` 2, 3: ``COMP`` in G/kA) or the throttle 0..1 (1: G at
+    full throttle); ``R`` (the slot's rotation, :func:`imupipe.stages.magnetometer.inflight.
+    sensor_rotation`) is not part of this calibration."""
     slot = next(
         (
             n
@@ -129,19 +145,11 @@ def _px4_vehicle(p: dict[str, Any], device_id: int | None) -> VehicleCompass:
     s[0, 2] = s[2, 0] = od[1]
     s[1, 2] = s[2, 1] = od[2]
     comp = np.array([p.get(f"{pre}{a}COMP", 0.0) for a in "XYZ"], dtype=np.float64)
-    notes = []
-    if int(p.get("CAL_MAG_COMP_TYP") or 0) != 2:
-        if int(p.get("CAL_MAG_COMP_TYP") or 0) == 1 and comp.any():
-            notes.append("the vehicle compensates the motors by throttle (CAL_MAG_COMP_TYP = 1)")
-        comp = np.zeros(3)
-    rot, board = p.get(f"{pre}ROT", -1), p.get("SENS_BOARD_ROT", 0)
-    if board or rot not in (-1, 0):
-        notes.append(
-            f"the vehicle rotates this compass (SENS_BOARD_ROT = {board:g}, {pre}ROT = {rot:g}): "
-            "its calibration is not applied to the raw field here"
-        )
-    motor = s @ (comp / GAUSS_PER_TESLA / 1e3)  # G/kA -> T/A, added before S
-    return VehicleCompass(off / GAUSS_PER_TESLA, s, motor, own, True, False, notes)
+    typ = int(p.get("CAL_MAG_COMP_TYP") or 0)
+    source = {1: "throttle", 2: "current", 3: "current"}.get(typ) if comp.any() else None
+    per = 1e3 if source == "current" else 1.0  # G/kA -> G/A; the throttle's G as they are
+    motor = s @ (comp / GAUSS_PER_TESLA / per) if source else np.zeros(3)  # added before S
+    return VehicleCompass(off / GAUSS_PER_TESLA, s, motor, own, True, False, [], source)
 
 
 # -- one log --------------------------------------------------------------------------------------
@@ -235,6 +243,7 @@ def fit_compass(task: Any, key: str, instance: int, table: pa.Table) -> dict[str
     from imupipe.pipeline.exports.common import Export, SensorModel
     from imupipe.readers.table import finite, has_flight_stream, has_stream, metadata, sensor
     from imupipe.stages.magnetometer.inflight import (
+        STEP_BY_SOURCE,
         CannotSeparate,
         MagInflightStage,
         fit_flight,
@@ -276,21 +285,29 @@ def fit_compass(task: Any, key: str, instance: int, table: pa.Table) -> dict[str
         flown = fit_flight(fs, options)
     except (CannotSeparate, ValueError, np.linalg.LinAlgError) as exc:
         return _refused(task, key, instance, meta, str(exc), **common)
-    fit = flown.fit
-    cur = fs.current if fit.motor_term else None
-    corrected = fit.predict(fs.raw, cur)
-    amps = fs.current if fs.current is not None else np.zeros(len(fs.raw))
-    # the field under the vehicle's own calibration
+    fit, source = flown.fit, flown.source
+    corrected = fit.predict(fs.raw, fs.power(source))
+    notes = list(vehicle.notes)
+    # the field under the vehicle's own calibration (in the compass's axes, then turned by R
+    # into the body as PX4 does: fs.raw is the logged field turned by R)
+    turn = np.eye(3) if fs.rotation is None else fs.rotation
+    own: np.ndarray | None = None
     if vehicle.applied:
         own = fs.raw
-    elif vehicle.known and not any("rotates" in n for n in vehicle.notes):
-        own = (fs.raw - vehicle.offset) @ vehicle.matrix.T + amps[:, None] * vehicle.motor
-    else:
-        own = None
+    elif vehicle.known:
+        p_own = fs.power(vehicle.source)
+        if vehicle.source is not None and p_own is None:
+            notes.append(
+                f"the vehicle compensates the motors by {vehicle.source}, which the log lacks: "
+                "its own calibration is taken without that term"
+            )
+        p_own = np.zeros(len(fs.raw)) if p_own is None else p_own
+        own = (
+            (fs.raw @ turn - vehicle.offset) @ vehicle.matrix.T + p_own[:, None] * vehicle.motor
+        ) @ turn.T
     # the calibration the flight says the vehicle should use (the raw sensor's)
     cov_off = offset_covariance(fit)
     se_motor = np.sqrt(np.diag(fit.cov)[-3:]) / UT if fit.motor_term else np.full(3, np.nan)
-    notes = list(vehicle.notes)
     if vehicle.applied and fmt != "dataflash":
         notes.append(
             "PX4 had corrected this field with its CAL_MAG parameters: the offsets for the raw "
@@ -298,6 +315,7 @@ def fit_compass(task: Any, key: str, instance: int, table: pa.Table) -> dict[str
         )
         s_matrix, s_offset, s_motor = np.full((3, 3), np.nan), np.full(3, np.nan), None
         s_cov = np.full((3, 3), np.nan)
+        s_source = None
     elif vehicle.applied:
         out = Export()
         model = SensorModel(
@@ -307,13 +325,14 @@ def fit_compass(task: Any, key: str, instance: int, table: pa.Table) -> dict[str
             None,
             [
                 {
-                    "kind": "mag_current",
+                    "kind": STEP_BY_SOURCE[source or "current"].kind,
                     "fitted_on": {"ardupilot": {"parameters": meta["ardupilot"]["parameters"]}},
                 }
             ],
             [],
             {},
             fit.motor if fit.motor_term else None,
+            source or "current",
         )
         composed = compose_with_log(model, inst, out)
         notes += [n for ns in out.notes.values() for n in ns if "not written" not in n]
@@ -324,13 +343,21 @@ def fit_compass(task: Any, key: str, instance: int, table: pa.Table) -> dict[str
             )
             s_matrix, s_offset, s_motor = np.full((3, 3), np.nan), np.full(3, np.nan), None
             s_cov = np.full((3, 3), np.nan)
+            s_source = None
         else:
             s_matrix, s_offset, s_motor = composed.matrix, composed.offset, composed.motor
+            s_source = composed.motor_source if s_motor is not None else None
             winv = np.linalg.inv(vehicle.matrix)
             s_cov = winv @ cov_off @ winv.T
-    else:
-        s_matrix, s_offset, s_cov = fit.matrix, fit.offset, cov_off
-        s_motor = fit.motor if fit.motor_term else None
+    else:  # PX4 sensor_mag: M (R raw - o) + motor P = R (R^T M R (raw - R^T o) + R^T motor P)
+        s_matrix, s_offset = turn.T @ fit.matrix @ turn, turn.T @ fit.offset
+        s_cov = turn.T @ cov_off @ turn
+        s_source = source
+        s_motor = turn.T @ fit.motor if fit.motor_term else None
+        s_se_motor = (
+            np.sqrt(np.diag(turn.T @ fit.cov[-3:, -3:] @ turn)) / UT if fit.motor_term else None
+        )
+        se_motor = se_motor if s_se_motor is None else s_se_motor
     h_model = heading_deg(fs.q, fs.target)
     m = flown.metrics
     row: dict[str, Any] = {
@@ -341,6 +368,9 @@ def fit_compass(task: Any, key: str, instance: int, table: pa.Table) -> dict[str
         "quality_ok": bool(m["residual_rms_ut_after"] <= options.max_residual_ut),
         "model": flown.model,
         "motor_term": bool(fit.motor_term),
+        "motor_source": s_source,
+        "fit_motor_source": source,
+        "vehicle_motor_source": vehicle.source if vehicle.known else None,
         "duration_s": float((fs.t_ns[-1] - fs.t_ns[0]) * 1e-9),
         "samples": int(len(fs.t_ns)),
         "field_ut": m["field_ut"],
@@ -353,6 +383,11 @@ def fit_compass(task: Any, key: str, instance: int, table: pa.Table) -> dict[str
         "direction_spread": flown.coverage["direction_spread"][0],
         "current_span_a": (
             None if fs.current is None else float(np.subtract(*np.percentile(fs.current, [95, 5])))
+        ),
+        "throttle_span": (
+            None
+            if fs.throttle is None
+            else float(np.subtract(*np.percentile(fs.throttle, [95, 5])))
         ),
         **common,
         "notes": "; ".join(notes) or None,
@@ -369,16 +404,24 @@ def fit_compass(task: Any, key: str, instance: int, table: pa.Table) -> dict[str
     for i, a in enumerate(AXES):
         row[f"fit_offset_{a}"] = float(fit.offset[i] * UT)
         row[f"fit_offset_se_{a}"] = float(np.sqrt(cov_off[i, i]) * UT)
-        row[f"fit_motor_{a}"] = float(fit.motor[i] * UT) if fit.motor_term else None
+        # the motor terms: per ampere in motor_*, at full throttle in motor_throttle_*
+        thr = {"current": "", "throttle": "throttle_"}
+        if fit.motor_term:
+            row[f"fit_motor_{thr[source]}{a}"] = float(fit.motor[i] * UT)
         row[f"offset_{a}"] = float(s_offset[i] * UT)
         row[f"offset_se_{a}"] = float(s_se[i] * UT)
         row[f"dia_{a}"] = float(s_matrix[i, i])
-        row[f"motor_{a}"] = None if s_motor is None else float(s_motor[i] * UT)
-        row[f"motor_se_{a}"] = float(se_motor[i] * UT) if fit.motor_term else None
+        if s_motor is not None:
+            row[f"motor_{thr[s_source]}{a}"] = float(s_motor[i] * UT)
+            if fit.motor_term and s_source == source:
+                row[f"motor_{thr[s_source]}se_{a}"] = float(se_motor[i] * UT)
         if vehicle.known:
             row[f"vehicle_offset_{a}"] = float(vehicle.offset[i] * UT)
             row[f"vehicle_dia_{a}"] = float(vehicle.matrix[i, i])
-            row[f"vehicle_motor_{a}"] = float(vehicle.motor[i] * UT)
+            if vehicle.source is not None:
+                row[f"vehicle_motor_{thr[vehicle.source]}{a}"] = float(vehicle.motor[i] * UT)
+            else:  # no motor compensation
+                row[f"vehicle_motor_{a}"] = 0.0
     for (i, j), a in zip(((0, 1), (0, 2), (1, 2)), AXES, strict=True):
         row[f"odi_{a}"] = float(s_matrix[i, j])
         if vehicle.known:
@@ -408,6 +451,9 @@ COLUMNS: list[tuple[str, pa.DataType, str | None]] = [
     ("quality_ok", pa.bool_(), None),
     ("model", pa.string(), None),
     ("motor_term", pa.bool_(), None),
+    ("motor_source", pa.string(), None),
+    ("fit_motor_source", pa.string(), None),
+    ("vehicle_motor_source", pa.string(), None),
     ("duration_s", pa.float64(), "s"),
     ("samples", pa.int64(), "1"),
     ("field_ut", pa.float64(), "uT"),
@@ -415,11 +461,18 @@ COLUMNS: list[tuple[str, pa.DataType, str | None]] = [
     *[(f"{n}_{a}", pa.float64(), "1") for n in ("dia", "odi") for a in AXES],
     ("scale", pa.float64(), "1"),
     *[(f"{n}_{a}", pa.float64(), "uT/A") for n in ("motor", "motor_se") for a in AXES],
+    *[
+        (f"{n}_{a}", pa.float64(), "uT")
+        for n in ("motor_throttle", "motor_throttle_se")
+        for a in AXES
+    ],
     *[(f"fit_{n}_{a}", pa.float64(), "uT") for n in ("offset", "offset_se") for a in AXES],
     *[(f"fit_motor_{a}", pa.float64(), "uT/A") for a in AXES],
+    *[(f"fit_motor_throttle_{a}", pa.float64(), "uT") for a in AXES],
     *[(f"vehicle_offset_{a}", pa.float64(), "uT") for a in AXES],
     *[(f"vehicle_{n}_{a}", pa.float64(), "1") for n in ("dia", "odi") for a in AXES],
     *[(f"vehicle_motor_{a}", pa.float64(), "uT/A") for a in AXES],
+    *[(f"vehicle_motor_throttle_{a}", pa.float64(), "uT") for a in AXES],
     ("vehicle_parameters", pa.string(), None),
     ("residual_before_ut", pa.float64(), "uT"),
     ("residual_vehicle_ut", pa.float64(), "uT"),
@@ -432,6 +485,7 @@ COLUMNS: list[tuple[str, pa.DataType, str | None]] = [
     ("tilt_max_deg", pa.float64(), "deg"),
     ("direction_spread", pa.float64(), "1"),
     ("current_span_a", pa.float64(), "A"),
+    ("throttle_span", pa.float64(), "1"),
     ("notes", pa.string(), None),
 ]
 """The dataset's columns: name, type, unit (its Parquet field's ``unit`` metadata; None for
@@ -502,8 +556,14 @@ def histories(table: pa.Table) -> list[Any]:
         def vec(name: str, ok: np.ndarray = ok) -> np.ndarray:
             return np.column_stack([_f(table, f"{name}_{a}")[ok] for a in AXES])
 
-        motor = vec("motor" if sensor else "fit_motor")
-        motor_se = vec("motor_se")
+        # the motor term in one unit per compass: per ampere where a flight has it, else at
+        # full throttle (a vehicle without a current sensor)
+        src_col = "motor_source" if sensor else "fit_motor_source"
+        src = _col(table, src_col)[ok] if src_col in table.column_names else []
+        source = "current" if "current" in set(src) or "throttle" not in set(src) else "throttle"
+        thr = "" if source == "current" else "_throttle"
+        motor = vec(("motor" if sensor else "fit_motor") + thr)
+        motor_se = vec(f"motor{thr}_se")
         out.append(
             compass_history(
                 dev,
@@ -519,6 +579,7 @@ def histories(table: pa.Table) -> list[Any]:
                 t0,
                 "sensor" if sensor else "logged",
                 refused,
+                source,
             )
         )
     return out
@@ -542,8 +603,10 @@ def compass_fleet(table: pa.Table, k: float) -> dict[str, Any]:
                 "day": h.day.tolist(),
                 "offset_ut": h.offset.tolist(),
                 "offset_se_ut": h.offset_se.tolist(),
-                "motor_ut_per_a": h.motor.tolist(),
-                "motor_se_ut_per_a": h.motor_se.tolist(),
+                "motor_source": h.motor_source,
+                "motor_unit": MOTOR_UNIT[h.motor_source],
+                "motor": h.motor.tolist(),
+                "motor_se": h.motor_se.tolist(),
                 "calibration_error_ut": h.calibration_error.tolist(),
                 "residual_after_ut": h.residual_after.tolist(),
                 "field_ut": h.field.tolist(),
@@ -601,7 +664,7 @@ def _plots(d: dict[str, Any]) -> list[str]:
     what = "offsets" if d["domain"] == "sensor" else "offsets (fitted on the field as logged)"
     for key, unit, title, vals, ses in (
         ("offset", "uT", f"compass {what}", d["offset_ut"], d["offset_se_ut"]),
-        ("motor", "uT/A", "motor term", d["motor_ut_per_a"], d["motor_se_ut_per_a"]),
+        ("motor", d["motor_unit"], f"motor term ({d['motor_source']})", d["motor"], d["motor_se"]),
     ):
         v = np.asarray(vals, dtype=np.float64).reshape(-1, 3)
         se = np.asarray(ses, dtype=np.float64).reshape(-1, 3)

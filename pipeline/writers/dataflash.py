@@ -11,6 +11,7 @@ Messages (ArduPilot 4.x layouts; units as ``LogStructure.h`` states them):
 - ``GPS``: ``Status`` 3 (3D fix), ``GMS``/``GWk`` GPS time of week (ms) and week from the table's
   ``gps_year`` metadata, ``Lat``/``Lng`` int32 1e-7 deg, ``Alt`` int32 cm;
 - ``BAT``: ``Curr`` float A;
+- ``CTUN``: a copter's ``ThI``/``ThO`` float 0..1 (the ``throttle`` flight stream, both);
 - ``PARM``: :data:`PARAMETERS`, then the table's ``ardupilot.parameters`` metadata (a simulated
   vehicle's own calibration, already applied to ``MAG``, whose ``Ofs*`` hold its
   ``COMPASS_OFS_*``), before the first sample.
@@ -63,6 +64,12 @@ FORMATS: dict[str, tuple[int, str, str, list[tuple[str, str]]]] = {
         "QBf",
         "TimeUS,Inst,Curr",
         [("TimeUS", "<u8"), ("Inst", "u1"), ("Curr", "<f4")],
+    ),
+    "CTUN": (
+        135,
+        "Qff",
+        "TimeUS,ThI,ThO",
+        [("TimeUS", "<u8"), ("ThI", "<f4"), ("ThO", "<f4")],
     ),
     "PARM": (
         134,
@@ -156,6 +163,11 @@ def _payloads(table: pa.Table) -> dict[str, tuple[np.ndarray, np.ndarray]]:
         rec = empty("BAT", len(cur), cur.t_ns)
         rec["Curr"] = cur.values[:, 0]
         out["BAT"] = (cur.t_ns, rec)
+    if has_flight_stream(table, "throttle"):
+        thr = flight_stream(table, "throttle")
+        rec = empty("CTUN", len(thr), thr.t_ns)
+        rec["ThI"] = rec["ThO"] = thr.values[:, 0]
+        out["CTUN"] = (thr.t_ns, rec)
     return out
 
 

@@ -675,7 +675,13 @@ def flight_streams(f: DataFlashLog) -> dict[str, tuple[np.ndarray, np.ndarray]]:
       (``Status`` >= 3) only, stamped by ``TimeUS`` (or, in 3.3 and older whose ``TimeMS`` is
       the GPS time of week, by the boot time ``T``, ms);
     - ``current`` from ``BAT`` instance 0 ``Curr`` (A) or, in older logs, ``CURR`` ``Curr``
-      (A as a float; centiamperes as an int16 ``h``, ArduCopter 3.2-3.3).
+      (A as a float; centiamperes as an int16 ``h``, ArduCopter 3.2-3.3);
+    - ``throttle`` from a copter's ``CTUN`` ``ThO`` (0..1, ``motors->get_throttle()``, the value
+      ``Copter::update_batt_compass`` hands to ``Compass::set_throttle`` for the throttle-based
+      motor compensation, ``COMPASS_MOTCT = 1``) or, in ArduCopter 3.2-3.3, ``ThrOut`` (an int16
+      0..1000, ``rc_3.servo_out``, which that firmware divides by 1000). Only a copter's
+      ``CTUN`` (the one with ``ThI``/``ThrIn`` beside it): a plane's ``CTUN.ThO`` is a percentage
+      of another output and its compass takes no throttle.
     """
     out: dict[str, tuple[np.ndarray, np.ndarray]] = {}
     rows = _first_instance(f, "ATT")
@@ -709,7 +715,30 @@ def flight_streams(f: DataFlashLog) -> dict[str, tuple[np.ndarray, np.ndarray]]:
             amps = amps * 0.01  # centiamperes (AP_Battery's old CURR: current_amps * 100)
         out["current"] = (t, amps)
         break
+    throttle = _copter_throttle(f)
+    if throttle is not None:
+        out["throttle"] = throttle
     return out
+
+
+def _copter_throttle(f: DataFlashLog) -> tuple[np.ndarray, np.ndarray] | None:
+    """(t_ns, throttle 0..1) of a copter's ``CTUN`` (see :func:`flight_streams`); None without."""
+    fmt = f.by_name.get("CTUN")
+    if fmt is None:
+        return None
+    if fmt.numeric("ThO", "ThI"):
+        column, scale = "ThO", 1.0
+    elif fmt.numeric("ThrOut", "ThrIn"):
+        column, scale = "ThrOut", 1e-3
+    else:
+        return None
+    rows = np.arange(len(f.records("CTUN")))
+    t = f.time_ns("CTUN", rows)
+    if t is None or not len(rows):
+        return None
+    if fmt.format[fmt.columns.index(column)] not in "hHiI":
+        scale = 1.0  # a float ThrOut: already 0..1
+    return t, f.field("CTUN", column, rows) * scale
 
 
 GPS_EPOCH_UNIX_S = 315_964_800

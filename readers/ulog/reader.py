@@ -41,7 +41,11 @@ sample without a partner is not read (counted).
 **Metadata** (besides the common keys): ``instance`` (stream -> ``multi_id``), ``device_id``
 (stream -> PX4 device id, when known) and ``px4``: ``calibrated`` (stream -> whether PX4 had
 already applied its ``CAL_*`` calibration), ``parameters`` (the log's ``CAL_*``, ``TC_*`` and
-``SENS_BOARD_*`` values at start), ``software`` and ``hardware``.
+``SENS_BOARD_*`` values at start), ``software`` and ``hardware``, and for a raw
+magnetometer (``sensor_mag``) whose device a ``CAL_MAGn_ID`` names, ``rotation.mag``: the
+rotation PX4 applies to it after its calibration, into the body frame (``matrix``, body <-
+sensor, and the ``parameters`` it was made of: ``CAL_MAGn_ROT``, ``SENS_BOARD_ROT``,
+``SENS_BOARD_{X,Y,Z}_OFF``; :mod:`imupipe.readers.ulog.rotation`).
 
 **Not carried**: ULog topics other than the ones read have no ROS message type; they are not
 written to the corrected MCAP and one warning lists them.
@@ -52,7 +56,7 @@ from __future__ import annotations
 import contextlib
 import io
 import struct
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -71,6 +75,7 @@ from imupipe.readers.table import (
 )
 from imupipe.readers.table_buffer import assemble
 from imupipe.readers.topics import asked_topics
+from imupipe.readers.ulog.rotation import mag_rotation, mag_slot
 
 US_TO_NS = 1000
 """ULog timestamps are microseconds since boot."""
@@ -93,8 +98,20 @@ READ_TOPICS = (
     "sensor_gps",
     "vehicle_global_position",
     "battery_status",
+    "vehicle_thrust_setpoint",
+    "actuator_controls_0",
+    "vehicle_control_mode",
+    "actuator_armed",
+    "vehicle_status",
 )
 """The topics a read parses (pyulog skips the payload of every other topic)."""
+ARMED_STATE = (
+    ("vehicle_control_mode", "flag_armed", 1),
+    ("actuator_armed", "armed", 1),
+    ("vehicle_status", "arming_state", 2),
+)
+"""Where a log says the vehicle is armed (topic, field, the armed value: ``ARMING_STATE_ARMED``
+= 2), in the order tried; ``VehicleMagnetometer`` reads ``vehicle_control_mode.flag_armed``."""
 PARAMETER_PREFIXES = ("CAL_", "TC_", "SENS_BOARD_")
 """Parameters kept in the table's metadata (calibration, thermal compensation, board rotation)."""
 TEMPERATURE_TOPICS = ("sensor_gyro", "sensor_accel", "sensor_mag", "sensor_baro")
@@ -543,6 +560,28 @@ def _samples(f: UlogFile, stream: str, key: str) -> int:
     return len(inst)
 
 
+def _mag_rotation(
+    px4: Mapping[str, Any], device_id: int | None, warnings: list[str]
+) -> dict[str, Any] | None:
+    """The rotation PX4 applies to the raw magnetometer read (``sensor_mag``) after its
+    calibration, into the body frame (:func:`imupipe.readers.ulog.rotation.mag_rotation`):
+    ``{"matrix": R (3x3, body <- sensor), "parameters": the ones it was made of}``; None for a
+    field PX4 had already corrected (``vehicle_magnetometer``: body frame), a device no
+    ``CAL_MAGn_ID`` names, or a rotation PX4 does not define (warned)."""
+    if device_id is None or (px4.get("calibrated") or {}).get("mag", True):
+        return None
+    params = px4.get("parameters") or {}
+    slot = mag_slot(params, int(device_id))
+    if slot is None:
+        return None
+    try:
+        matrix, used = mag_rotation(params, slot)
+    except ValueError as exc:
+        warnings.append(f"magnetometer {device_id}: {exc}; its rotation to the body is unknown")
+        return None
+    return {"matrix": matrix.tolist(), "parameters": used}
+
+
 def _calibrated(f: UlogFile, chosen: Mapping[str, str]) -> dict[str, bool]:
     """Stream -> whether PX4 had applied its ``CAL_*`` corrections (imu and mag streams)."""
     return {
@@ -596,7 +635,25 @@ def flight_streams(f: UlogFile, time: str) -> dict[str, tuple[np.ndarray, np.nda
     - ``position``: ``vehicle_gps_position`` (or ``sensor_gps``) instance 0 with ``fix_type``
       >= 3, else ``vehicle_global_position``;
     - ``current``: ``battery_status`` instance 0 ``current_a`` (A), where it is measured (PX4
-      logs -1 for "unknown").
+      logs -1 for "unknown");
+    - ``throttle``: what PX4's throttle-based magnetometer power compensation
+      (``CAL_MAG_COMP_TYP = 1``) multiplies ``CAL_MAGn_*COMP`` by, 0..1: the norm of
+      ``vehicle_thrust_setpoint`` instance 0 ``xyz`` (PX4 v1.14 and later), else
+      ``actuator_controls_0`` ``control[3]`` (``INDEX_THROTTLE``, up to v1.13), and 0 while the
+      vehicle is disarmed (:data:`ARMED_STATE`, step-held onto the setpoint's stamps; disarmed
+      before the first message, as PX4 starts; kept as logged when no arming topic is logged).
+      Source: ``VehicleMagnetometer::UpdatePowerCompensation`` in
+      ``src/modules/sensors/vehicle_magnetometer/VehicleMagnetometer.cpp``: while armed with
+      ``MagCompensationType::Throttle`` it passes ``Vector3f(vehicle_thrust_setpoint.xyz)
+      .length()`` of ``_vehicle_thrust_setpoint_0_sub`` (instance 0) to
+      ``Magnetometer::UpdatePower``, otherwise (disarmed) 0; current-based types pass
+      ``battery_status.current_a * 0.001`` (kA) armed or not. Read in PX4-Autopilot forks
+      slgrobotics/PX4-Autopilot at 3efbf961e6879fef15ef4bb57dd08eadf732c59f and
+      Renwang-Huang/Entropix-PX4-Autopilot at 94f121e7e55e2bf93e84fa6e96c44911c17946ac (the
+      stored upstream snapshot, ce74a10ad409cd0ecf2f5b008b1983bb4e7f8cf4, predates the change
+      and reads ``actuator_controls_0.control[INDEX_THROTTLE]`` while armed); PX4's own
+      identification script (``mag_compensation/python/mag_compensation.py``, upstream
+      1c4a11fba675db013cee3a8eb436dff400b8632e) uses the same norm for its ``thrust`` type.
     """
     out: dict[str, tuple[np.ndarray, np.ndarray]] = {}
 
@@ -624,7 +681,34 @@ def flight_streams(f: UlogFile, time: str) -> dict[str, tuple[np.ndarray, np.nda
         keep = amps >= 0
         if keep.any():
             out["current"] = (stamp(bat)[keep], amps[keep])
+    thrust = f.instances.get("vehicle_thrust_setpoint")
+    controls = f.instances.get("actuator_controls_0")
+    throttle = None
+    if thrust is not None and thrust.has("xyz[0]", "xyz[1]", "xyz[2]") and len(thrust):
+        xyz = thrust.vector("xyz[0]", "xyz[1]", "xyz[2]")
+        throttle = (stamp(thrust), np.linalg.norm(xyz, axis=1))
+    elif controls is not None and controls.has("control[3]") and len(controls):
+        throttle = (stamp(controls), controls.vector("control[3]")[:, 0])
+    if throttle is not None:
+        armed = armed_at(f, throttle[0], stamp)
+        out["throttle"] = throttle if armed is None else (throttle[0], throttle[1] * armed)
     return out
+
+
+def armed_at(
+    f: UlogFile, t_ns: np.ndarray, stamp: Callable[[Instance], np.ndarray]
+) -> np.ndarray | None:
+    """Whether the vehicle was armed at each of ``t_ns`` (the first logged topic of
+    :data:`ARMED_STATE`, step-held; disarmed before its first message); None when the log holds
+    none. ``stamp(inst)`` gives an instance's stamps in the time base of ``t_ns``."""
+    for name, field, value in ARMED_STATE:
+        inst = f.instances.get(name)
+        if inst is None or not len(inst) or not inst.has(field):
+            continue
+        state = inst.data[field] == value
+        i = np.searchsorted(stamp(inst), t_ns, side="right") - 1
+        return np.where(i >= 0, state[np.maximum(i, 0)], False)
+    return None
 
 
 def gps_year(f: UlogFile) -> float | None:
@@ -689,6 +773,9 @@ def read_ulog(spec: InputSpec) -> tuple[pa.Table, list[str]]:
         "software": f.info("ver_sw"),
         "hardware": f.info("ver_hw"),
     }
+    turned = _mag_rotation(meta["px4"], meta["device_id"].get("mag"), warnings)
+    if turned is not None:
+        meta["px4"]["rotation"] = {"mag": turned}
     count, ms = f.dropouts()
     if count:
         warnings.append(f"the logger dropped data {count} times ({ms} ms in total)")

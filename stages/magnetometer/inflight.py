@@ -1,15 +1,18 @@
 """``mag_inflight`` stage: the compass calibrated from a flight log against the World Magnetic
 Model, as ArduPilot's MagFit (pymavlink ``tools/magfit_WMM.py``) does.
 
-Model (tesla; ``I`` the battery current in A, interpolated onto the magnetometer's stamps)::
+Model (tesla; ``P`` the motor power signal interpolated onto the magnetometer's stamps: the
+battery current ``I`` in A, or the collective throttle 0..1 when the motor term follows the
+throttle)::
 
-    R(q)^T B_wmm(lat, lon, alt)  =  M (raw - offset) + motor * I
+    R(q)^T B_wmm(lat, lon, alt)  =  M (raw - offset) + motor * P
 
 ``B_wmm`` is the earth field in NED (:mod:`imupipe.stages.magnetometer.wmm`), ``R(q)`` the attitude
 (body FRD -> NED) of the table's ``attitude`` flight stream, so the left side is the field the
 compass should read in the body frame. ``offset`` is the hard iron, ``M`` a symmetric matrix
 (soft iron and scale: ArduPilot's ``COMPASS_SCALE`` x ``DIA``/``ODI``), ``motor`` the field per
-ampere (``COMPASS_MOT``, current-based). The model is linear in ``(M, -M offset, motor)``:
+ampere (``COMPASS_MOT`` with ``COMPASS_MOTCT = 2``) or per unit of throttle (``COMPASS_MOTCT =
+1``, PX4 ``CAL_MAG_COMP_TYP = 1``). The model is linear in ``(M, -M offset, motor)``:
 it is fitted by iteratively reweighted least squares with Huber weights on the vector
 residual (``huber_k`` robust sigmas), samples beyond ``outlier_k`` robust sigmas rejected.
 
@@ -18,11 +21,30 @@ Model choice (``model = "auto"``): ``offsets`` (M = I), ``scale`` (M = s I), ``s
 ``folds`` segments in time, each candidate fitted on the others and scored on the one held
 out, and the simplest candidate within 2 % of the best held-out RMS residual is kept.
 
+Motor source (``motor_source = "auto"``): the battery current when only it is logged and
+separable, the throttle (the table's ``throttle`` flight stream: ArduCopter ``CTUN.ThO``, PX4's
+thrust setpoint) when only it is, and when both are: the static model is chosen with the
+current, then the throttle is scored with that model on the same held-out segments and replaces
+the current only when its held-out RMS residual is more than 2 % lower (the current is the
+physical cause; the throttle is its proxy, kept only when the data say it explains the field
+better, e.g. a current sensor that does not see the motors' wiring). A throttle term without a
+usable current (``motor = "auto"``) is also scored against no motor term on the same segments
+and, as a model term, kept only when it lowers the held-out residual by more than 2 % (a flying
+copter's throttle always varies, so its range alone does not show that the compass follows it).
+
+Frames: the fit runs in the body frame. A raw PX4 ``sensor_mag`` is in the compass's own axes,
+which PX4 turns into the body after its calibration (``R``: ``CAL_MAGn_ROT`` or
+``SENS_BOARD_ROT`` with ``SENS_BOARD_*_OFF``, read by the ULog reader into the table's metadata:
+:func:`sensor_rotation`): the field is turned by ``R`` before the fit, and the correction step
+holds ``M R`` and ``R^T offset`` (results: ``matrix``/``offset_t`` in the body frame,
+``sensor_rotation`` ``R``). ArduPilot's ``MAG`` is logged already turned (``AHRS_ORIENTATION``,
+``COMPASS_ORIENT``), as PX4's ``vehicle_magnetometer`` is.
+
 Separation (refused with ``ctx.fail`` naming what is missing): the expected body-field
 directions must span the sphere enough for soft iron (``min_spread``, the smallest eigenvalue
 of their covariance; a flight that only yawed level leaves the vertical unseen) and the current
-must vary (``min_current_a``) and not follow the field direction (correlation < 0.95) for the
-motor term. Standard errors are the least-squares ones inflated by the residual's lag-1
+must vary (``min_current_a``; the throttle ``min_throttle``) and not follow the field direction
+(correlation < 0.95) for the motor term. Standard errors are the least-squares ones inflated by the residual's lag-1
 autocorrelation (the residual of a flight is slow: attitude and model errors). Heading error:
 the heading of the corrected field rotated into NED minus the model's (deg).
 
@@ -54,6 +76,10 @@ from imupipe.stages.steps import EntryError, LinearStep, _numbers, _short
 
 MODELS = ("offsets", "scale", "soft_iron")
 """Candidate static models, simplest first."""
+POWER_SOURCES = ("current", "throttle")
+"""The motor term's power signals (flight streams), preferred first."""
+POWER_UNIT = {"current": "A", "throttle": "throttle"}
+"""What the motor term is per (``motor`` is T per A, or T per unit of throttle 0..1)."""
 UT = 1e6
 """uT per tesla: the fit works in uT (and A), which keeps its normal equations well scaled."""
 
@@ -110,8 +136,9 @@ class Fit:
         return out
 
 
-def parameter_names(model: str, motor_term: bool) -> list[str]:
-    """What each entry of :attr:`Fit.theta` is (units in brackets)."""
+def parameter_names(model: str, motor_term: bool, source: str = "current") -> list[str]:
+    """What each entry of :attr:`Fit.theta` is (units in brackets; the motor term per ampere, or
+    per unit of throttle with ``source = "throttle"``)."""
     names = {
         "offsets": [],
         "scale": ["scale [1]"],
@@ -119,7 +146,7 @@ def parameter_names(model: str, motor_term: bool) -> list[str]:
     }[model]
     names += [f"b_{a} [uT]" for a in "xyz"]
     if motor_term:
-        names += [f"motor_{a} [uT/A]" for a in "xyz"]
+        names += [f"motor_{a} [uT/{POWER_UNIT[source]}]" for a in "xyz"]
     return names
 
 
@@ -190,6 +217,39 @@ def fit_model(
     )
 
 
+def held_out_rms(
+    raw: np.ndarray,
+    target: np.ndarray,
+    power: np.ndarray | None,
+    model: str,
+    segments: list[np.ndarray],
+    options: Any,
+) -> float:
+    """RMS vector residual (T) of ``model`` (with the motor term on ``power`` when given) over
+    the held-out ``segments``: each fitted on the others (``options.huber_k``/``outlier_k``),
+    scored on itself, beyond 5 medians left out. Raises ``np.linalg.LinAlgError`` when a fit
+    is singular."""
+    sq, cnt = 0.0, 0
+    for seg in segments:
+        train = np.ones(len(raw), dtype=bool)
+        train[seg] = False
+        f = fit_model(
+            raw[train],
+            target[train],
+            None if power is None else power[train],
+            model,
+            options.huber_k,
+            options.outlier_k,
+        )
+        r = np.linalg.norm(
+            f.predict(raw[seg], None if power is None else power[seg]) - target[seg], axis=1
+        )
+        r = r[r <= np.median(r) * 5 + 1e-300]
+        sq += float(np.sum(r**2))
+        cnt += len(r)
+    return float(np.sqrt(sq / max(cnt, 1)))
+
+
 def heading_deg(q: np.ndarray, body: np.ndarray) -> np.ndarray:
     """Heading (deg from north, NED) of body-frame fields rotated into NED by ``q``."""
     ned = rotate(q, body)
@@ -203,8 +263,11 @@ def wrap_deg(a: np.ndarray) -> np.ndarray:
 @dataclass
 class FlightSamples:
     """The magnetometer samples within the attitude and GPS streams' span, with what they
-    should read: ``raw`` (n, 3) T, attitude ``q`` (n, 4), WMM ``ned`` and body-frame ``target``
-    (n, 3) T, ``current`` (n,) A or None; all on the magnetometer's stamps ``t_ns``."""
+    should read: ``raw`` (n, 3) T in the body frame, attitude ``q`` (n, 4), WMM ``ned`` and
+    body-frame ``target`` (n, 3) T, ``current`` (n,) A or None, ``throttle`` (n,) 0..1 or None;
+    all on the magnetometer's stamps ``t_ns``. ``rotation`` (3x3, body <- sensor) is the turn
+    :func:`flight_samples` applied to the logged field (:func:`sensor_rotation`; None: logged
+    in the body frame): the logged field is ``raw @ rotation``."""
 
     t_ns: np.ndarray
     raw: np.ndarray
@@ -212,6 +275,12 @@ class FlightSamples:
     ned: np.ndarray
     target: np.ndarray
     current: np.ndarray | None
+    throttle: np.ndarray | None = None
+    rotation: np.ndarray | None = None
+
+    def power(self, source: str | None) -> np.ndarray | None:
+        """The motor power signal of ``source`` (``"current"``, ``"throttle"``; None: none)."""
+        return None if source is None else getattr(self, source)
 
 
 def continuous(q: np.ndarray) -> np.ndarray:
@@ -226,10 +295,12 @@ def continuous(q: np.ndarray) -> np.ndarray:
 
 
 def flight_samples(table: pa.Table, mag: SensorData, year: float) -> FlightSamples:
-    """:class:`FlightSamples` of ``mag`` (finite magnetometer samples of ``table``): attitude,
-    position and current interpolated onto its stamps, the WMM field of ``year`` at the
-    position, rotated into the body. ValueError (one line) when fewer than 50 samples lie
-    within the flight streams or the date precedes the model."""
+    """:class:`FlightSamples` of ``mag`` (finite magnetometer samples of ``table``, as logged):
+    the field turned into the body frame by the table's :func:`sensor_rotation` (as the firmware
+    turns it after its calibration), attitude, position, current and throttle interpolated onto
+    its stamps, the WMM field of ``year`` at the position, rotated into the body. ValueError (one
+    line) when fewer than 50 samples lie within the flight streams or the date precedes the
+    model."""
     att = flight_stream(table, "attitude")
     pos = flight_stream(table, "position")
     inside = (mag.t_ns >= max(att.t_ns[0], pos.t_ns[0])) & (
@@ -241,15 +312,22 @@ def flight_samples(table: pa.Table, mag: SensorData, year: float) -> FlightSampl
             "streams' time span; the fit needs at least 50"
         )
     t_ns, raw = mag.t_ns[inside], mag.values[inside]
+    turn = sensor_rotation(table)
+    if turn is not None:  # the raw field into the body frame, as the firmware turns it
+        raw = raw @ turn.T
     q = interpolate(att.t_ns, continuous(att.values), t_ns)
     q /= np.linalg.norm(q, axis=1, keepdims=True)
     lla = interpolate(pos.t_ns, pos.values, t_ns)
     ned = earth_field(lla[:, 0], lla[:, 1], lla[:, 2], year)
-    current = None
-    if has_flight_stream(table, "current"):
-        cur = flight_stream(table, "current")
-        current = interpolate(cur.t_ns, cur.values[:, 0], t_ns)
-    return FlightSamples(t_ns, raw, q, ned, rotate(q, ned, inverse=True), current)
+    power: dict[str, np.ndarray | None] = {}
+    for stream in POWER_SOURCES:
+        power[stream] = None
+        if has_flight_stream(table, stream):
+            sig = flight_stream(table, stream)
+            power[stream] = interpolate(sig.t_ns, sig.values[:, 0], t_ns)
+    return FlightSamples(
+        t_ns, raw, q, ned, rotate(q, ned, inverse=True), power["current"], power["throttle"], turn
+    )
 
 
 class CannotSeparate(ValueError):
@@ -259,13 +337,15 @@ class CannotSeparate(ValueError):
 @dataclass
 class FlownFit:
     """What :func:`fit_flight` found on one flight (or on several joined): the chosen ``model``
-    and its :class:`Fit`, the held-out RMS per candidate (uT), the ``coverage`` of attitudes,
+    and its :class:`Fit`, the motor ``source``, the held-out RMS per candidate (uT), the ``coverage`` of attitudes,
     the terms ``not_fitted`` and why, the ``warnings`` a stage shows, the ``metrics`` (uT, deg),
     each parameter's standard error, and per sample the vector residual (T) and heading error
     (deg) before and after."""
 
     model: str
     fit: Fit
+    source: str | None
+    """What the motor term multiplies (``"current"``, ``"throttle"``; None: no motor term)."""
     held_out: dict[str, float]
     coverage: dict[str, Any]
     not_fitted: list[str]
@@ -297,10 +377,12 @@ def coverage_of(q: np.ndarray, target: np.ndarray) -> dict[str, Any]:
 def fit_flight(fs: FlightSamples, o: Any) -> FlownFit:  # noqa: C901
     """The in-flight compass fit of the module docstring on ``fs``, under ``o`` (the stage's
     :class:`MagInflightStage.Options` or any object with its fields): what the flight can
-    separate, the model chosen on held-out segments, the final robust fit and its figures.
+    separate, the model chosen on held-out segments, the motor source (current or throttle,
+    held-out 2 % rule), the final robust fit and its figures. ``fs`` is in the body frame
+    (:func:`flight_samples` turns a raw PX4 field by :func:`sensor_rotation`).
     :class:`CannotSeparate` when the model or motor term asked for cannot be separated, or every
     candidate is singular. One implementation for the stage and for ``imupipe survey``."""
-    raw, q, ned, target, current = fs.raw, fs.q, fs.ned, fs.target, fs.current
+    raw, q, ned, target = fs.raw, fs.q, fs.ned, fs.target
 
     # -- what the flight can separate ----------------------------------------------------
     coverage = coverage_of(q, target)
@@ -314,27 +396,43 @@ def fit_flight(fs: FlightSamples, o: Any) -> FlownFit:  # noqa: C901
             f"{o.min_spread:g} (yaw covered {yaw_cover:.0f} deg, tilt to "
             f"{coverage['tilt_max_deg']:.0f} deg): fly full turns and steeper banks"
         )
-    can_motor = False
-    if current is not None:
-        lo, hi = np.percentile(current, [5, 95])
-        corr = (
-            max(abs(np.corrcoef(current, target[:, i])[0, 1]) for i in range(3)) if hi > lo else 1.0
-        )
-        can_motor = bool(hi - lo >= o.min_current_a and corr < 0.95)
-        if not can_motor:
+    separable: dict[str, bool] = {}
+    minimum = {
+        "current": (o.min_current_a, "A", "min_current_a"),
+        "throttle": (o.min_throttle, "", "min_throttle"),
+    }
+    wanted = POWER_SOURCES if o.motor_source == "auto" else (o.motor_source,)
+    for src in wanted:
+        sig = fs.power(src)
+        if sig is None:
+            continue
+        lo, hi = np.percentile(sig, [5, 95])
+        corr = max(abs(np.corrcoef(sig, target[:, i])[0, 1]) for i in range(3)) if hi > lo else 1.0
+        least, unit, key = minimum[src]
+        separable[src] = bool(hi - lo >= least and corr < 0.95)
+        if not separable[src]:
             reasons.append(
-                f"motor: the current spans {hi - lo:.2g} A (min_current_a {o.min_current_a:g})"
-                f" or follows the field direction (|r| {corr:.2f})"
+                f"motor: the {src} spans {hi - lo:.2g}{unit} ({key} {least:g}) or follows "
+                f"the field direction (|r| {corr:.2f})"
             )
-    else:
-        reasons.append("motor: the log has no battery current")
+    if not separable:
+        what = {
+            "auto": "no battery current and no throttle",
+            "current": "no battery current",
+            "throttle": "no throttle (CTUN.ThO, vehicle_thrust_setpoint)",
+        }[o.motor_source]
+        reasons.append(f"motor: the log has {what}")
+    motor_reasons = [r for r in reasons if r.startswith("motor")]
+    usable = [src for src, ok in separable.items() if ok]
     if o.model == "soft_iron" and not can_soft:
         raise CannotSeparate("cannot separate " + reasons[0])
-    if o.motor == "on" and not can_motor:
-        raise CannotSeparate("cannot separate " + [r for r in reasons if r.startswith("motor")][0])
+    if o.motor == "on" and not usable:
+        raise CannotSeparate("cannot separate " + "; ".join(motor_reasons))
+    if usable:  # a source that could not be used while another is: not worth a warning
+        reasons = [r for r in reasons if r not in motor_reasons]
     warnings = ["not fitted: " + r for r in reasons]
-    use_motor = can_motor and o.motor != "off"
-    cur_fit = current if use_motor else None
+    source = usable[0] if usable and o.motor != "off" else None
+    power = fs.power(source)
     can_scale = bool(spread[-1] >= o.min_spread)
     if not can_scale:
         reasons.append(
@@ -352,37 +450,45 @@ def fit_flight(fs: FlightSamples, o: Any) -> FlownFit:  # noqa: C901
     held: dict[str, float] = {}
     segments = np.array_split(np.arange(len(raw)), o.folds)
     for model in candidates:
-        sq, cnt = 0.0, 0
         try:
-            for seg in segments:
-                train = np.ones(len(raw), dtype=bool)
-                train[seg] = False
-                f = fit_model(
-                    raw[train],
-                    target[train],
-                    None if cur_fit is None else cur_fit[train],
-                    model,
-                    o.huber_k,
-                    o.outlier_k,
-                )
-                r = np.linalg.norm(
-                    f.predict(raw[seg], None if cur_fit is None else cur_fit[seg]) - target[seg],
-                    axis=1,
-                )
-                r = r[r <= np.median(r) * 5 + 1e-300]
-                sq += float(np.sum(r**2))
-                cnt += len(r)
+            held[model] = held_out_rms(raw, target, power, model, segments, o)
         except np.linalg.LinAlgError:
             continue
-        held[model] = float(np.sqrt(sq / max(cnt, 1)))
     if not held:
         raise CannotSeparate("every candidate model is singular on this flight")
     best = min(held.values())
     chosen = next(m for m in candidates if m in held and held[m] <= best * 1.02)
-    fit = fit_model(raw, target, cur_fit, chosen, o.huber_k, o.outlier_k)
+
+    # -- motor source on the same segments -----------------------------------------------
+    held_source: dict[str, float] = {}
+    if source is not None and len(usable) > 1:
+        held_source[source] = held[chosen]
+        for other in usable[1:]:
+            try:
+                held_source[other] = held_out_rms(raw, target, fs.power(other), chosen, segments, o)
+            except np.linalg.LinAlgError:
+                continue
+            if held_source[other] < held_source[source] * (1 - 0.02):
+                source = other
+        power = fs.power(source)
+    elif source == "throttle" and o.motor == "auto":  # a proxy: kept only when it helps
+        held_source["throttle"] = held[chosen]
+        try:
+            held_source["none"] = held_out_rms(raw, target, None, chosen, segments, o)
+        except np.linalg.LinAlgError:
+            held_source["none"] = np.inf
+        if held_source["throttle"] >= held_source["none"] * (1 - 0.02):
+            reasons.append(
+                "motor: a throttle term does not lower the held-out residual by 2 % "
+                f"({held_source['throttle'] * UT:.3g} uT with it, "
+                f"{held_source['none'] * UT:.3g} uT without)"
+            )
+            warnings.append("not fitted: " + reasons[-1])
+            source, power = None, None
+    fit = fit_model(raw, target, power, chosen, o.huber_k, o.outlier_k)
 
     before = np.linalg.norm(raw - target, axis=1)
-    corrected = fit.predict(raw, cur_fit)
+    corrected = fit.predict(raw, power)
     after = np.linalg.norm(corrected - target, axis=1)
     h_model = heading_deg(q, target)
     h_before = wrap_deg(heading_deg(q, raw) - h_model)
@@ -396,19 +502,26 @@ def fit_flight(fs: FlightSamples, o: Any) -> FlownFit:  # noqa: C901
         "heading_rms_deg_before": float(np.sqrt(np.mean(h_before**2))),
         "heading_rms_deg_after": float(np.sqrt(np.mean(h_after**2))),
         "held_out_rms_ut": {m: v * ut for m, v in held.items()},
+        **(
+            {"held_out_rms_ut_motor_source": {k: v * ut for k, v in held_source.items()}}
+            if held_source
+            else {}
+        ),
         "outliers": int(len(raw) - fit.used.sum()),
         "samples": len(raw),
         "field_ut": float(np.mean(np.linalg.norm(ned, axis=1)) * ut),
     }
+    names = parameter_names(chosen, fit.motor_term, source or "current")
     return FlownFit(
         chosen,
         fit,
+        source if fit.motor_term else None,
         held,
         coverage,
         reasons,
         warnings,
         metrics,
-        dict(zip(parameter_names(chosen, fit.motor_term), se.tolist(), strict=True)),
+        dict(zip(names, se.tolist(), strict=True)),
         before,
         after,
         h_before,
@@ -442,6 +555,8 @@ class MagCurrentStep(LinearStep):
     left out)."""
 
     kind: ClassVar[str] = "mag_current"
+    stream: ClassVar[str] = "current"
+    """The flight stream the motor term multiplies."""
     motor: np.ndarray = field(default_factory=lambda: np.zeros(3))
 
     def __post_init__(self) -> None:
@@ -455,9 +570,9 @@ class MagCurrentStep(LinearStep):
             return table
         data = sensor(table, "mag")
         out = self.apply_values(data.values)
-        if has_flight_stream(table, "current"):
-            cur = flight_stream(table, "current")
-            out = out + interpolate(cur.t_ns, cur.values[:, 0], data.t_ns)[:, None] * self.motor
+        if has_flight_stream(table, self.stream):
+            sig = flight_stream(table, self.stream)
+            out = out + interpolate(sig.t_ns, sig.values[:, 0], data.t_ns)[:, None] * self.motor
         return replace_sensor(table, "mag", data.rows, out)
 
     def to_json(self) -> dict[str, Any]:
@@ -486,6 +601,37 @@ class MagCurrentStep(LinearStep):
         )
 
 
+@dataclass
+class MagThrottleStep(MagCurrentStep):
+    """``corrected = matrix @ (raw - offset) + motor * thr(t)``: as :class:`MagCurrentStep`, the
+    motor term per unit of collective throttle (``motor``, T at full throttle), the throttle
+    being the table's ``throttle`` flight stream (0..1; none: the term is left out)."""
+
+    kind: ClassVar[str] = "mag_throttle"
+    stream: ClassVar[str] = "throttle"
+
+
+STEP_BY_SOURCE: dict[str, type[MagCurrentStep]] = {
+    "current": MagCurrentStep,
+    "throttle": MagThrottleStep,
+}
+"""The correction step of each motor source."""
+
+
+def sensor_rotation(table: pa.Table) -> np.ndarray | None:
+    """The rotation (3x3, body <- sensor) the firmware applies to the table's raw magnetometer
+    after its calibration, as the reader found it in the log (a PX4 ``sensor_mag``:
+    ``CAL_MAGn_ROT`` or ``SENS_BOARD_ROT`` with ``SENS_BOARD_*_OFF``); None when the field is
+    already in the body frame (an ArduPilot ``MAG``, a PX4 ``vehicle_magnetometer``) or the log
+    declares none. The fit runs on the field turned by it, and the correction step includes it."""
+    px4 = metadata(table).get("px4") or {}
+    turn = ((px4.get("rotation") or {}).get("mag") or {}).get("matrix")
+    if turn is None:
+        return None
+    m = np.asarray(turn, dtype=np.float64).reshape(3, 3)
+    return None if np.allclose(m, np.eye(3), atol=1e-12) else m
+
+
 def _compass_parameters(table: pa.Table) -> dict[str, float]:
     """The compass parameters (``COMPASS_*``) a log was recorded under (an ArduPilot log's)."""
     params = (metadata(table).get("ardupilot") or {}).get("parameters") or {}
@@ -502,8 +648,14 @@ class MagInflightStage(Stage):
         model: Literal["auto", "offsets", "scale", "soft_iron"] = "auto"
         """``auto`` (chosen on held-out flight segments) or one model."""
         motor: Literal["auto", "on", "off"] = "auto"
-        """The per-ampere motor term: ``auto`` (fitted when the current varies), ``on``
+        """The motor term: ``auto`` (fitted when the current or the throttle varies), ``on``
         (refused when the flight cannot separate it) or ``off``."""
+        motor_source: Literal["auto", "current", "throttle"] = "auto"
+        """What the motor term multiplies: the battery current (per ampere: ArduPilot
+        ``COMPASS_MOTCT = 2``, PX4 ``CAL_MAG_COMP_TYP = 2``), the collective throttle (per unit
+        of throttle 0..1: ``COMPASS_MOTCT = 1``, ``CAL_MAG_COMP_TYP = 1``; for vehicles without
+        a current sensor), or ``auto``: the one logged, and when both are, the current unless the
+        throttle's held-out residual is more than 2 % lower (module docstring)."""
         year: float | None = None
         """The flight's date as a decimal year (WMM epoch); default: the log's GPS date."""
         folds: int = field(default=5, metadata={"min": 2, "max": 50})
@@ -516,6 +668,9 @@ class MagInflightStage(Stage):
         """Smallest eigenvalue of the expected field directions' covariance for soft iron."""
         min_current_a: float = field(default=2.0, metadata={"min": 0.0})
         """Current range (A, 5-95 %) below which the motor term cannot be fitted."""
+        min_throttle: float = field(default=0.1, metadata={"min": 0.0, "max": 1.0})
+        """Throttle range (0..1, 5-95 %) below which a throttle-based motor term cannot be
+        fitted."""
         max_residual_ut: float = field(default=5.0, metadata={"min": 0.0})
         """Quality check: RMS vector residual after the fit, uT."""
         flights: list[str] = field(default_factory=list)
@@ -556,6 +711,7 @@ class MagInflightStage(Stage):
         o: MagInflightStage.Options = self.options
         parts = [self._samples(table, ctx.input_name, ctx)]
         mine = _compass_parameters(table)
+        turn = sensor_rotation(table)
         for name in o.flights:
             if name == ctx.input_name or name not in ctx.tables:
                 raise ctx.fail(
@@ -570,17 +726,34 @@ class MagInflightStage(Stage):
                     f"({', '.join(differ[:4])}{'...' if len(differ) > 4 else ''} differ): fit "
                     "flights of one calibration together"
                 )
+            theirs_turn = sensor_rotation(other)
+            if (turn is None) != (theirs_turn is None) or (
+                turn is not None and not np.allclose(turn, theirs_turn, atol=1e-9)
+            ):
+                raise ctx.fail(
+                    f"flights: input '{name}' turns its magnetometer into the body otherwise "
+                    "(CAL_MAGn_ROT, SENS_BOARD_ROT, SENS_BOARD_*_OFF differ): fit flights of one "
+                    "mounting together"
+                )
             parts.append(self._samples(other, name, ctx))
         counts = [len(p.t_ns) for p in parts]
         if len(parts) == 1:
             return parts[0], counts
-        currents = [p.current for p in parts]
-        if any(c is None for c in currents):
-            ctx.warn("flights: not every flight has a battery current; the motor term is left out")
+        power: dict[str, np.ndarray | None] = {}
+        for source in POWER_SOURCES:
+            signals = [p.power(source) for p in parts]
+            power[source] = None if any(c is None for c in signals) else np.concatenate(signals)
+        if all(v is None for v in power.values()):
+            ctx.warn(
+                "flights: not every flight has a battery current or a throttle; the motor term "
+                "is left out"
+            )
         joined = FlightSamples(
             *(np.concatenate([getattr(p, k) for p in parts]) for k in ("t_ns", "raw", "q")),
             *(np.concatenate([getattr(p, k) for p in parts]) for k in ("ned", "target")),
-            None if any(c is None for c in currents) else np.concatenate(currents),
+            power["current"],
+            power["throttle"],
+            turn,
         )
         return joined, counts
 
@@ -593,7 +766,7 @@ class MagInflightStage(Stage):
             raise ctx.fail(str(exc)) from None
         for w in flown.warnings:
             ctx.warn(w)
-        t_ns, current = fs.t_ns, fs.current
+        t_ns, current, source = fs.t_ns, fs.current, flown.source
         fit, chosen, metrics = flown.fit, flown.model, flown.metrics
         before, after, h_before, h_after = flown.before, flown.after, flown.h_before, flown.h_after
         ut = UT
@@ -617,9 +790,15 @@ class MagInflightStage(Stage):
         results: dict[str, Any] = {
             "model": chosen,
             "motor_term": fit.motor_term,
+            "motor_source": source if fit.motor_term else None,
             "matrix": fit.matrix.tolist(),
             "offset_t": fit.offset.tolist(),
-            "motor_t_per_a": fit.motor.tolist(),
+            "motor_t_per_a": (fit.motor if source == "current" else np.zeros(3)).tolist(),
+            **(
+                {"motor_t_per_throttle": fit.motor.tolist()}
+                if fit.motor_term and source == "throttle"
+                else {}
+            ),
             "parameter_se": flown.parameter_se,
             "year": float(o.year if o.year is not None else metadata(table)["gps_year"]),
             "coverage": flown.coverage,
@@ -637,23 +816,27 @@ class MagInflightStage(Stage):
                 unit="deg",
                 title="heading error against the WMM",
             )
-            if current is not None:
+            shown = source or ("current" if current is not None else None)
+            if shown is not None:
                 rec.curve(
-                    f"/{ctx.name}/residual_vs_current",
-                    current,
+                    f"/{ctx.name}/residual_vs_{shown}",
+                    fs.power(shown),
                     np.column_stack([before, after]),
                     ["residual before", "residual after"],
                     unit="T",
-                    x_label="current",
-                    x_unit="A",
+                    x_label=shown,
+                    x_unit="A" if shown == "current" else "1",
                     points=True,
                     title="vector residual",
                 )
-        step = MagCurrentStep(
+        turn = fs.rotation
+        if turn is not None:  # corrected = M (R raw - o) + motor P = (M R) (raw - R^T o) + ...
+            results["sensor_rotation"] = turn.tolist()
+        step = STEP_BY_SOURCE[source or "current"](
             type=self.type,
             sensor="mag",
-            matrix=fit.matrix,
-            offset=fit.offset,
+            matrix=fit.matrix if turn is None else fit.matrix @ turn,
+            offset=fit.offset if turn is None else turn.T @ fit.offset,
             motor=fit.motor,
             params={"model": chosen},
         )

@@ -4,7 +4,9 @@ flights (the per-flight fits are the ``mag_inflight`` stage's, made by the surve
 Per compass device (its fitted flights in date order; vectors in uT):
 
 1. **Steps** between consecutive flights of the offsets (the calibration the flight says the
-   vehicle should use) and, where both flights fitted it, of the motor term (uT/A): flagged on
+   vehicle should use) and, where both flights fitted it, of the motor term (uT/A, or uT at full
+   throttle for a compass whose motor term follows the throttle; its fleet scale among the
+   compasses of the same source): flagged on
    the axis where ``|d| > k sqrt(s_fleet^2 + se_1^2 + se_2^2)`` by the most, ``s_fleet`` the
    robust scale (1.4826 MAD, :func:`~imupipe.stages.survey.stats.mad_sigma`) of every
    consecutive difference of that axis in the fleet (the ordinary flight-to-flight change:
@@ -60,7 +62,8 @@ class CompassHistory:
     offset: np.ndarray
     offset_se: np.ndarray
     motor: np.ndarray
-    """(n, 3) uT/A, NaN where the flight did not fit the motor term."""
+    """(n, 3) uT/A (``motor_source = "current"``) or uT at full throttle (``"throttle"``), NaN
+    where the flight did not fit the motor term on that source."""
     motor_se: np.ndarray
     calibration_error: np.ndarray
     """(n,) uT: the vehicle's own calibration against the flight's fit (NaN where unknown)."""
@@ -74,6 +77,8 @@ class CompassHistory:
     drift: list[float] = field(default_factory=list)
     moved: float = 0.0
     mean_offset: list[float] = field(default_factory=list)
+    motor_source: str = "current"
+    """What the motor term multiplies: the battery current or the throttle (0..1)."""
 
 
 def compass_history(
@@ -90,6 +95,7 @@ def compass_history(
     t0_ns: int,
     domain: str = "sensor",
     refused: Sequence[tuple[str, str]] = (),
+    motor_source: str = "current",
 ) -> CompassHistory:
     """A compass's history from its fitted flights (any order; sorted by ``start_ns``)."""
     order = np.argsort(np.asarray(start_ns, dtype=np.float64), kind="stable")
@@ -107,6 +113,7 @@ def compass_history(
         take(field_ut),
         domain,
         list(refused),
+        motor_source=motor_source,
     )
     h.mean_offset = [weighted_mean(h.offset[:, i], h.offset_se[:, i])[0] for i in range(3)]
     return h
@@ -186,14 +193,24 @@ def _step_flags(
 
 def compass_flags(histories: Sequence[CompassHistory], k: float) -> dict[str, Any]:
     """Apply the module docstring's rules to every compass (fills ``flags``, ``drift``,
-    ``moved``); returns the fleet's scales (uT per axis, uT/A per axis)."""
+    ``moved``); returns the fleet's scales (``offset`` uT per axis, ``motor`` uT/A per axis,
+    ``motor_throttle`` uT at full throttle per axis)."""
     scales: dict[str, list[float]] = {}
-    for name in ("offset", "motor"):
-        diffs = [np.diff(getattr(h, name), axis=0) for h in histories if len(getattr(h, name)) > 1]
+    groups = {"offset": ("offset", None), "motor": ("motor", "current")}
+    groups["motor_throttle"] = ("motor", "throttle")
+    for name, (attr, src) in groups.items():
+        diffs = [
+            np.diff(getattr(h, attr), axis=0)
+            for h in histories
+            if len(getattr(h, attr)) > 1 and src in (None, h.motor_source)
+        ]
         all_d = np.vstack(diffs) if diffs else np.zeros((0, 3))
         scales[name] = [mad_sigma(all_d[:, i]) if len(all_d) else float("nan") for i in range(3)]
     s_off = np.nan_to_num(np.asarray(scales["offset"]))
-    s_mot = np.nan_to_num(np.asarray(scales["motor"]))
+    s_mots = {
+        "current": np.nan_to_num(np.asarray(scales["motor"])),
+        "throttle": np.nan_to_num(np.asarray(scales["motor_throttle"])),
+    }
     since: dict[str, int] = {}
     for h in histories:
         _step_flags(h, "offsets", h.offset, h.offset_se, s_off, k, "uT")
@@ -217,7 +234,9 @@ def compass_flags(histories: Sequence[CompassHistory], k: float) -> dict[str, An
                 h.motor[idx], h.motor_se[idx], h.calibration_error[idx], h.residual_after[idx],
                 h.field[idx], h.domain,
             )  # fmt: skip
-            _step_flags(sub, "motor term", h.motor[idx], h.motor_se[idx], s_mot, k, "uT/A")
+            unit = "uT/A" if h.motor_source == "current" else "uT at full throttle"
+            s_mot = s_mots[h.motor_source]
+            _step_flags(sub, "motor term", h.motor[idx], h.motor_se[idx], s_mot, k, unit)
             h.flags += sub.flags
         n = len(h.day)
         h.moved = float(np.linalg.norm(h.offset[-1] - h.offset[0])) if n > 1 else 0.0
