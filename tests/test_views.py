@@ -147,6 +147,7 @@ def test_a_long_session_gets_wide_views_that_label_its_hours():
     assert long.long and long.columns == 1
     assert long.width_px / 13.7 >= HOUR_PX  # px per hour: every hour labelled
     assert long.plot_px > 150  # four views to a tab keep a readable height
+    assert not plan_tab(True, 6, 7, 30.0).long  # 12 h marks, labelled in the grid as well
     short = plan_tab(True, 0, 4, 2.0)
     assert not short.long and short.columns == 2
     before = 1600 * 3 / 5 / 3 - 70  # a view of the grid of 7 beside the document (the old layout)

@@ -22,7 +22,10 @@ draws too) and decides *how* they look in Rerun:
 - per stage a markdown ``TextDocument`` with the results (:mod:`imupipe.pipeline.report.summary`), and
   a first tab, "Summary", with all of them.
 
-The default blueprint has the Summary tab, then one tab per stage. With a viewer (``--spawn``)
+The default blueprint has the Summary tab, then one tab per stage (:func:`plan_tab`: the
+signals of a session of many hours get inner tabs at full width, where Rerun labels every hour;
+each legend's corner is kept free of data, :func:`legend_room`; lines ``under`` others are
+see-through where they share a view, since Rerun draws a view's lines in entity-path order). With a viewer (``--spawn``)
 everything also streams live to it over gRPC (a second stream with the same recording id, so a
 failing viewer never touches the file).
 """
@@ -768,16 +771,18 @@ def plan_tab(text: bool, plots: int, signals: int, hours: float) -> TabPlan:
     then 12 h apart) and labels those :data:`HOUR_PX` apart, so a session of many hours needs
     a wide view: when the signals' grid, beside the document, leaves them less than
     :data:`HOUR_PX` per hour, the tab gives the signals inner tabs of their own at the full
-    width of the window, one view under another (:data:`SIGNALS_PER_TAB` to a tab). Sessions
-    shorter than that keep the grid (as before)."""
+    width of the window, one view under another (:data:`SIGNALS_PER_TAB` to a tab), as long as
+    that width labels every hour (up to about 21 h). Shorter sessions keep the grid (as before);
+    longer ones too (Rerun labels their 12 h marks in the grid)."""
     width, _ = SCREEN
     beside = width * (1 - TEXT_SHARE) if text else width
     inner = plots + signals > 4 and plots > 0 and signals > 0
     n = signals if inner else plots + signals
     columns = max(1, math.ceil(math.sqrt(n)))
     plot_w = beside / columns - VIEW_CHROME_PX[1]
-    if signals and hours * HOUR_PX > plot_w and hours < 24.0 * 1.5:
-        # stacked at full width; one view per row, SIGNALS_PER_TAB to an inner tab
+    if signals and plot_w < hours * HOUR_PX <= width - VIEW_CHROME_PX[1]:
+        # stacked at full width, where every hour gets its label (a longer session gets 12 h
+        # marks, labelled in the grid too); one view per row, SIGNALS_PER_TAB to an inner tab
         per_tab = math.ceil(signals / math.ceil(signals / SIGNALS_PER_TAB))
         height = TAB_PX - INNER_TAB_PX
         return TabPlan(True, 1, height / per_tab - VIEW_CHROME_PX[0], width - VIEW_CHROME_PX[1])
