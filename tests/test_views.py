@@ -99,3 +99,92 @@ def test_report_time_plots_share_one_origin(tmp_path):
     titles = {p.key: time_axis(p)[2] for p in rec.figures.plots.values()}
     assert origin == T0 and titles["gyro"] == titles["means"]
     assert titles["other"] != titles["gyro"]  # another session, days later: its own origin
+
+
+# -- what a person sees in the recording's tabs (round 2) ------------------------------------------
+H = 3_600 * 10**9  # an hour in ns
+
+
+def _override_alpha(view) -> dict[str, int]:
+    """entity -> the opacity (0..255) a view's colour override gives it."""
+    out = {}
+    for path, vis in (view.visualizer_overrides or {}).items():
+        for batch in vis.overrides:
+            if str(batch.component_descriptor()).endswith("colors"):
+                out[str(path)] = int(batch.as_arrow_array().to_pylist()[0]) & 0xFF
+    return out
+
+
+def test_lines_under_others_are_see_through_in_the_views_they_share(tmp_path):
+    """Rerun draws a view's lines in entity-path order (raw after means): the raw envelope is
+    made see-through where it lies over block means, and keeps its colour alone in a view."""
+    rec = Recorder(tmp_path / "r.rrd", max_points=1000)
+    t = T0 + np.arange(2000, dtype=np.int64) * 10**9
+    rng = np.random.default_rng(4)
+    rec.series("/s/raw/gyro", t, rng.normal(0, 1e-3, (2000, 3)), ("gx raw", "gy raw", "gz raw"),
+               unit="rad/s", plot="gyro", under=True)  # fmt: skip
+    rec.series("/s/means/gyro", t[::100], np.zeros((20, 3)), ("gx m", "gy m", "gz m"),
+               unit="rad/s", plot="gyro")  # fmt: skip
+    rec.series("/u/raw/gyro", t, rng.normal(0, 1e-3, (2000, 3)), ("ux", "uy", "uz"),
+               unit="rad/s", under=True)  # fmt: skip
+    plots = {(p.stage, p.key): p for p in rec.figures.plots.values()}
+    (shared,) = rec._time_views(plots[("s", "gyro")])
+    alpha = _override_alpha(shared)
+    assert sorted(alpha) == ["/s/raw/gyro/gx_raw", "/s/raw/gyro/gy_raw", "/s/raw/gyro/gz_raw"]
+    assert all(0 < a < 255 for a in alpha.values())  # the means are never overridden
+    (alone,) = rec._time_views(plots[("u", "gyro")])
+    assert _override_alpha(alone) == {}
+    rec.close()
+
+
+def test_a_long_session_gets_wide_views_that_label_its_hours():
+    """Rerun labels a time axis's hour marks only 60-80 px apart (then 12 h marks): a 13.7 h
+    session beside the results document in a grid of 7 had one label. Its signals now stack at
+    full width, four to an inner tab, with room for every hour; a 2 h session keeps the grid."""
+    from imupipe.pipeline.report.recording import HOUR_PX, plan_tab
+
+    long = plan_tab(True, 6, 7, 13.7)
+    assert long.long and long.columns == 1
+    assert long.width_px / 13.7 >= HOUR_PX  # px per hour: every hour labelled
+    assert long.plot_px > 150  # four views to a tab keep a readable height
+    assert not plan_tab(True, 6, 7, 30.0).long  # 12 h marks, labelled in the grid as well
+    short = plan_tab(True, 0, 4, 2.0)
+    assert not short.long and short.columns == 2
+    before = 1600 * 3 / 5 / 3 - 70  # a view of the grid of 7 beside the document (the old layout)
+    assert before / 13.7 < 60  # Rerun wrote no hour label there
+
+
+def test_long_session_tab_stacks_its_signals_in_inner_tabs(tmp_path):
+    rec = Recorder(tmp_path / "r.rrd", max_points=500)
+    t = T0 + np.linspace(0, 13.7 * H, 5000).astype(np.int64)
+    for k in range(7):
+        rec.series(f"/th/s{k}", t, np.sin(np.arange(5000) / (300 + k))[:, None], (f"line {k}",),
+                   unit="degC")  # fmt: skip
+    rec.curve("/th/fit", np.arange(10.0), np.arange(10.0), ("c",), unit="degC", x_label="T")
+    rec.document("th", "# th")
+    tab = rec.blueprint().root_container.contents[0]
+    assert type(tab).__name__ == "Tabs"
+    names = [str(c.name) for c in tab.contents]
+    assert names == ["th: fit", "th: signals 1/2", "th: signals 2/2"]
+    assert [len(c.contents) for c in tab.contents[1:]] == [4, 3]
+    assert {type(c).__name__ for c in tab.contents[1:]} == {"Vertical"}
+    rec.close()
+
+
+def test_a_wide_views_legend_sits_beside_the_data():
+    """In a wide view the legend's corner is kept free by a time range that runs on past the
+    last sample (a tenth of the width), not by squeezing the data under it."""
+    rec = Recorder(None)
+    t = T0 + np.linspace(0, 13.7 * H, 1000).astype(np.int64)
+    rec.series("/w/accel", t, np.column_stack([np.sin(np.arange(1000) / 50.0)] * 4),
+               ("accel x corrected", "accel y corrected", "accel x input", "accel y input"),
+               unit="m/s^2")  # fmt: skip
+    (plot,) = rec.figures.plots.values()
+    (view,) = rec._time_views(plot, plot_px=150.0, width_px=1530.0)
+    rng = view.properties["TimeAxis"].view_range.as_arrow_array()[0].as_py()
+    free = 1 - (int(t[-1]) - rng["start"]) / (rng["end"] - rng["start"])
+    assert 0.08 < free < 0.2  # the legend's width, ~150 px of 1530
+    y = view.properties["ScalarAxis"].range.as_arrow_array().to_pylist()[0]
+    assert y[1] < 1.2  # the data fills the height: no room kept above it
+    (tall,) = rec._time_views(plot, plot_px=150.0, width_px=200.0)  # narrow: room above
+    assert tall.properties["ScalarAxis"].range.as_arrow_array().to_pylist()[0][1] > 2.0

@@ -233,6 +233,8 @@ class Blueprint:
 
     def contents(self, container: str) -> list[str]:
         entries = self.field(container, "ContainerBlueprint:contents") or []
+        if isinstance(entries, (str, bytes)):  # a container of one: field() unwrapped it
+            entries = [entries]
         return ["/" + str(e).lstrip("/") for e in entries]
 
     def name(self, path: str) -> str:

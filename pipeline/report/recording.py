@@ -22,7 +22,10 @@ draws too) and decides *how* they look in Rerun:
 - per stage a markdown ``TextDocument`` with the results (:mod:`imupipe.pipeline.report.summary`), and
   a first tab, "Summary", with all of them.
 
-The default blueprint has the Summary tab, then one tab per stage. With a viewer (``--spawn``)
+The default blueprint has the Summary tab, then one tab per stage (:func:`plan_tab`: the
+signals of a session of many hours get inner tabs at full width, where Rerun labels every hour;
+each legend's corner is kept free of data, :func:`legend_room`; lines ``under`` others are
+see-through where they share a view, since Rerun draws a view's lines in entity-path order). With a viewer (``--spawn``)
 everything also streams live to it over gRPC (a second stream with the same recording id, so a
 failing viewer never touches the file).
 """
@@ -176,10 +179,14 @@ class Recorder:
         title: str | None = None,
         colors: Sequence[Any] | None = None,
         points: bool = False,
+        under: bool = False,
     ) -> None:
         """A signal over time: ``values`` (n,) or (n, k) in the SI ``unit`` at ``t_ns`` (int64
         ns), one named line per column. ``plot`` (default: the entity's last path part) groups
-        signals of one stage into one plot; ``title`` names it (the unit is appended)."""
+        signals of one stage into one plot; ``title`` names it (the unit is appended). With
+        ``under``, the lines lie beneath the others of their plot (the signal before a
+        correction, the raw samples under their block means): in a view with other lines they
+        are drawn see-through (:data:`UNDER_ALPHA`), whatever order the viewer draws them in."""
         t_ns = np.asarray(t_ns, dtype=np.int64)
         values = np.asarray(values, dtype=np.float64).reshape(len(t_ns), -1)
         names, colors, values = _with_data(names, colors_for(names, colors), values)
@@ -194,7 +201,15 @@ class Recorder:
                 values = values * factor
         kept_t, kept = decimate(t_ns, values, self.figures.keep_points)
         fig.series.append(
-            Series(entity, list(names), colors, kept_t, kept, "points" if points else "line")
+            Series(
+                entity,
+                list(names),
+                colors,
+                kept_t,
+                kept,
+                "points" if points else "line",
+                {"under": True} if under else {},
+            )
         )
         for name, color in zip(names, colors, strict=True):
             self._style(line_path(entity, name), [name], [color], points)
@@ -463,6 +478,7 @@ class Recorder:
                 plot=key,
                 title=title,
                 colors=colors,
+                under=not corrected,
             )
             shown_series = next(
                 (
@@ -506,27 +522,55 @@ class Recorder:
         """Give a stage a tab (even one that showed nothing: its results document)."""
         self.figures.stage(stage)
 
-    def _time_views(self, plot: Plot) -> list[Any]:
+    def _time_views(self, plot: Plot, plot_px: float = 0.0, width_px: float = 0.0) -> list[Any]:
         """The views of a plot over time: one per group of lines of like magnitude
         (:func:`~imupipe.pipeline.report.figures.split_by_magnitude`, as in the report: accel z at
         9.8 m/s^2 apart from x and y near 0), each with its legend in the top right corner above
-        the data (the y range leaves it room)."""
-        views = []
-        for part in split_by_magnitude(plot):
-            # the signals before a stage first: the viewer draws later lines over earlier ones
-            ordered = sorted(part.series, key=lambda s: not ("/raw/" in s.entity or "/input/" in s.entity))  # fmt: skip
-            paths = [line_path(s.entity, n) for s in ordered for n in s.names]
-            rows = len(dict.fromkeys(paths))
-            view = rrb.TimeSeriesView(
-                origin="/",
-                contents=list(dict.fromkeys(paths)),
-                name=part.heading,
-                plot_legend=rrb.PlotLegend(corner=rrb.Corner2D.RightTop, visible=True),
-                axis_y=rrb.ScalarAxis(range=legend_room(part, rows)),
-            )
-            spans = [self._spans[e] for e in dict.fromkeys(part.entities) if e in self._spans]
-            views.append(_with_span(view, spans))
-        return views
+        the data (the y range leaves it room in a plot ``plot_px`` high; 0: a lone view's)."""
+        return [self._time_view(part, plot_px, width_px) for part in split_by_magnitude(plot)]
+
+    def _time_view(self, part: Plot, plot_px: float, width_px: float = 0.0) -> Any:
+        """One view of :meth:`_time_views`. Rerun draws a view's lines in the order of their
+        entity paths, not of its contents: the lines ``under`` the others (raw samples beneath
+        block means, the input beneath the corrected signal) are made see-through in this view
+        (a blueprint override of their colour) so that the lines over them show wherever they
+        are drawn; alone in a view they keep their own colour."""
+        paths = list(dict.fromkeys(line_path(s.entity, n) for s in part.series for n in s.names))
+        under = {
+            line_path(s.entity, n): c
+            for s in part.series
+            if s.extra.get("under")
+            for n, c in zip(s.names, s.colors, strict=True)
+        }
+        overrides = {}
+        if under and len(under) < len(paths):  # beneath lines of another kind: see-through
+            policy = rr.components.AggregationPolicy.MinMax
+            overrides = {
+                path: rr.SeriesLines(
+                    colors=[see_through(color)], aggregation_policy=policy
+                ).visualizer()
+                for path, color in under.items()
+            }
+        # the legend's corner kept free of data: above the data (a y range with room) or, where
+        # that costs less of the view (a wide view), beside it (a time range that runs on)
+        rows, wide = len(paths), legend_width(paths_names(part)) / max(width_px or PLOT_PX, 1.0)
+        tall = legend_share(rows, plot_px or PLOT_PX)
+        beside = width_px > 0 and wide < tall  # a view whose width is known
+        view = rrb.TimeSeriesView(
+            origin="/",
+            contents=paths,
+            name=part.heading,
+            plot_legend=rrb.PlotLegend(corner=rrb.Corner2D.RightTop, visible=True),
+            axis_y=rrb.ScalarAxis(
+                range=legend_room(part, 0 if beside else rows, plot_px or PLOT_PX)
+            ),
+            overrides=overrides or None,
+        )
+        return _with_span(view, self._spans_of(part), run_on=wide if beside else 0.0)
+
+    def _spans_of(self, plot: Plot) -> list[tuple[int, int]]:
+        """(first, last) ns of each signal of a plot."""
+        return [self._spans[e] for e in dict.fromkeys(plot.entities) if e in self._spans]
 
     def _view(self, plot: Plot) -> Any:
         if plot.kind == "bars":
@@ -568,17 +612,23 @@ class Recorder:
             tabs.append(rrb.TextDocumentView(origin=self._documents[""], name="Summary"))
         for stage in self.figures.stages:
             plots = self.figures.of_stage(stage)
-            signals = [v for p in plots if p.kind == "time" for v in self._time_views(p)]
+            parts = [part for p in plots if p.kind == "time" for part in split_by_magnitude(p)]
             others = [self._view(p) for p in plots if p.kind != "time"]
+            added = []
             for view in self._views.get(stage, []):
                 self._fit_time_axis(view)
-                (signals if view.class_identifier == "TimeSeries" else others).append(view)
+                (added if view.class_identifier == "TimeSeries" else others).append(view)
+            spans = [sp for part in parts for sp in self._spans_of(part)]
+            spans += [_span_of(v) for v in added if _span_of(v) is not None]  # type: ignore[misc]
+            hours = max(((b - a) / 3.6e12 for a, b in spans), default=0.0)
             text = (
                 rrb.TextDocumentView(origin=self._documents[stage], name=f"{stage}: results")
                 if stage in self._documents
                 else None
             )
-            tabs.append(_stage_layout(stage, text, others, signals))
+            plan = plan_tab(text is not None, len(others), len(parts) + len(added), hours)
+            signals = [self._time_view(p, plan.plot_px, plan.width_px) for p in parts] + added
+            tabs.append(_stage_layout(stage, text, others, signals, plan))
         return rrb.Blueprint(
             rrb.Tabs(*tabs) if tabs else rrb.TimeSeriesView(origin="/"),
             rrb.TimePanel(timeline=TIMELINE, state="collapsed"),
@@ -667,20 +717,107 @@ def scale3d(plot: Plot) -> tuple[list[float], float]:
     return [float(c) for c in data.min(axis=0)], length
 
 
-LEGEND_ROW_PX, VIEW_PX = 20.0, 340.0
-"""Height of a legend row and of a time-series view as the tabs lay them out at 1600 x 1000 px."""
+SCREEN = (1600.0, 1000.0)
+"""The window the tabs are laid out for (px): docs/screenshots/make_screenshots.py's default."""
+TAB_PX = 906.0
+"""Height of a stage tab's content at :data:`SCREEN` (below the viewer's top bar and the
+stages' tab bar, above the collapsed time panel); an inner tab bar takes :data:`INNER_TAB_PX`."""
+INNER_TAB_PX = 27.0
+VIEW_CHROME_PX = (46.0, 70.0)
+"""What a time-series view spends outside its plot (px): height (title bar, time labels) and
+width (value labels, margins)."""
+TEXT_SHARE = 2 / 5
+"""The width share of a stage's results document beside its plots."""
+LEGEND_ROW_PX, LEGEND_PAD_PX = 23.0, 12.0
+"""Height of a legend row and the legend's margins, as the viewer draws them."""
+PLOT_PX = 250.0
+"""The plot height assumed for a view laid out on its own (a stage's added view)."""
+HOUR_PX = 72.0
+"""Pixels per hour a time axis needs to label every hour: Rerun's time axis steps from 1 h
+marks to 12 h ones (re_format's ``next_grid_tick_magnitude_nanos``) and writes a mark's label
+only when marks are 60 px apart or more (egui_plot's ``label_spacing``, faded up to 80 px): a
+13.7 h session in a 280 px wide view showed one label, its day."""
+SIGNALS_PER_TAB = 4
+"""The most views of a long session stacked in one inner tab (each keeps ~200 px of height)."""
+UNDER_ALPHA = 0.4
+"""Opacity of a line ``under`` the others of its view (:meth:`Recorder.series`)."""
 
 
-def legend_room(plot: Plot, rows: int) -> tuple[float, float]:
+def see_through(color: Sequence[int], alpha: float = UNDER_ALPHA) -> tuple[int, int, int, int]:
+    """``color`` (RGB) with the opacity ``alpha`` (RGBA, 0..255)."""
+    return (int(color[0]), int(color[1]), int(color[2]), int(round(255 * alpha)))
+
+
+class TabPlan:
+    """How a stage's tab is laid out at :data:`SCREEN` (:func:`plan_tab`): ``long`` (its signals
+    stacked at full width, :data:`SIGNALS_PER_TAB` to an inner tab), the signals' grid columns,
+    the height of their plots (px) and the width of their plots (px)."""
+
+    def __init__(self, long: bool, columns: int, plot_px: float, width_px: float) -> None:
+        self.long, self.columns, self.plot_px, self.width_px = long, columns, plot_px, width_px
+
+    def __repr__(self) -> str:
+        return (
+            f"TabPlan(long={self.long}, columns={self.columns}, "
+            f"plot_px={self.plot_px:.0f}, width_px={self.width_px:.0f})"
+        )
+
+
+def plan_tab(text: bool, plots: int, signals: int, hours: float) -> TabPlan:
+    """The layout of a stage's tab with a results document (``text``), ``plots`` views of its fit
+    and ``signals`` time-series views whose longest signal lasts ``hours``.
+
+    A time axis is readable when it labels several times. Rerun chooses the marks itself (1 h,
+    then 12 h apart) and labels those :data:`HOUR_PX` apart, so a session of many hours needs
+    a wide view: when the signals' grid, beside the document, leaves them less than
+    :data:`HOUR_PX` per hour, the tab gives the signals inner tabs of their own at the full
+    width of the window, one view under another (:data:`SIGNALS_PER_TAB` to a tab), as long as
+    that width labels every hour (up to about 21 h). Shorter sessions keep the grid (as before);
+    longer ones too (Rerun labels their 12 h marks in the grid)."""
+    width, _ = SCREEN
+    beside = width * (1 - TEXT_SHARE) if text else width
+    inner = plots + signals > 4 and plots > 0 and signals > 0
+    n = signals if inner else plots + signals
+    columns = max(1, math.ceil(math.sqrt(n)))
+    plot_w = beside / columns - VIEW_CHROME_PX[1]
+    if signals and plot_w < hours * HOUR_PX <= width - VIEW_CHROME_PX[1]:
+        # stacked at full width, where every hour gets its label (a longer session gets 12 h
+        # marks, labelled in the grid too); one view per row, SIGNALS_PER_TAB to an inner tab
+        per_tab = math.ceil(signals / math.ceil(signals / SIGNALS_PER_TAB))
+        height = TAB_PX - INNER_TAB_PX
+        return TabPlan(True, 1, height / per_tab - VIEW_CHROME_PX[0], width - VIEW_CHROME_PX[1])
+    rows = math.ceil(n / columns) if n else 1
+    height = TAB_PX - (INNER_TAB_PX if inner else 0.0)
+    return TabPlan(False, columns, height / rows - VIEW_CHROME_PX[0], plot_w)
+
+
+def legend_share(rows: int, plot_px: float) -> float:
+    """The share of a plot ``plot_px`` high that a legend of ``rows`` covers (at most 0.7)."""
+    return min(0.7, (LEGEND_ROW_PX * rows + LEGEND_PAD_PX) / max(plot_px, 1.0)) if rows else 0.0
+
+
+def legend_width(names: Sequence[str]) -> float:
+    """The width (px) of a legend of ``names`` as the viewer draws it (its marker, its margins
+    and about 7.2 px a character)."""
+    return 7.2 * max((len(n) for n in names), default=0) + 40.0
+
+
+def paths_names(plot: Plot) -> list[str]:
+    """The names of a plot's lines (what its legend lists)."""
+    return [n for s in plot.series for n in s.names]
+
+
+def legend_room(plot: Plot, rows: int, plot_px: float = PLOT_PX) -> tuple[float, float]:
     """The y range of a view of ``plot``'s lines: their data with 5 % to spare below, and above
-    it room for the legend's ``rows`` in the top right corner, so the legend covers no data."""
+    it room for the legend's ``rows`` in the top right corner of a plot ``plot_px`` high, so the
+    legend covers no data."""
     spans = [(lo, hi) for _, _, lo, hi in column_ranges(plot)]
     if not spans:
         return (0.0, 1.0)
     lo, hi = min(a for a, _ in spans), max(b for _, b in spans)
     span = (hi - lo) or (abs(hi) * 0.1 or 1.0)
-    top = min(0.6, (LEGEND_ROW_PX * rows + 16.0) / VIEW_PX)  # fraction of the view's height
-    return (lo - 0.05 * span, hi + span * (0.05 + top / (1.0 - top)))
+    top = legend_share(rows, plot_px)  # of the height
+    return (lo - 0.05 * span, hi + span * (0.05 + top) / (1.0 - top))
 
 
 def _part(name: str) -> str:
@@ -688,15 +825,39 @@ def _part(name: str) -> str:
     return re.sub(r"[^0-9A-Za-z]+", "_", name).strip("_") or "value"
 
 
-def _stage_layout(stage: str, text: Any, plots: list[Any], signals: list[Any]) -> Any:
-    """A stage's tab: its results document beside its plots; when it has both plots of its fit
-    and signals over time, and more than four views in all, those sit in two inner tabs."""
+def _stage_layout(
+    stage: str, text: Any, plots: list[Any], signals: list[Any], plan: TabPlan | None = None
+) -> Any:
+    """A stage's tab (:func:`plan_tab`): its results document beside its plots; when it has both
+    plots of its fit and signals over time, and more than four views in all, those sit in two
+    inner tabs; the signals of a long session sit in inner tabs of their own, at full width."""
+    plan = plan or plan_tab(text is not None, len(plots), len(signals), 0.0)
+    if plan.long and signals:
+        first = []
+        if plots or text is not None:
+            front = rrb.Grid(*plots, name=f"{stage}: fit") if plots else None
+            if text is not None and front is not None:
+                front = rrb.Horizontal(text, front, column_shares=[2, 3], name=f"{stage}: fit")
+            elif text is not None:
+                front = rrb.TextDocumentView(origin=text.origin, name=f"{stage}: results")
+            first.append(front)
+        tabs = math.ceil(len(signals) / SIGNALS_PER_TAB)
+        per_tab = math.ceil(len(signals) / tabs)
+        chunks = [signals[i : i + per_tab] for i in range(0, len(signals), per_tab)]
+        named = (
+            [f"{stage}: signals"]
+            if len(chunks) == 1
+            else [f"{stage}: signals {i + 1}/{len(chunks)}" for i in range(len(chunks))]
+        )
+        stacks = [rrb.Vertical(*c, name=n) for c, n in zip(chunks, named, strict=True)]
+        return rrb.Tabs(*first, *stacks, name=stage)
     if len(plots) + len(signals) > 4 and plots and signals:
         right: Any = rrb.Tabs(
-            rrb.Grid(*plots, name=f"{stage}: fit"), rrb.Grid(*signals, name=f"{stage}: signals")
+            rrb.Grid(*plots, name=f"{stage}: fit"),
+            rrb.Grid(*signals, name=f"{stage}: signals", grid_columns=plan.columns),
         )
     else:
-        right = rrb.Grid(*plots, *signals, name=f"{stage}: plots")
+        right = rrb.Grid(*plots, *signals, name=f"{stage}: plots", grid_columns=plan.columns)
     if text is None:
         return rrb.Horizontal(right, name=stage) if plots or signals else rrb.Grid(name=stage)
     if not plots and not signals:
@@ -704,13 +865,28 @@ def _stage_layout(stage: str, text: Any, plots: list[Any], signals: list[Any]) -
     return rrb.Horizontal(text, right, column_shares=[2, 3], name=stage)
 
 
-def _with_span(view: Any, spans: list[tuple[int, int]]) -> Any:
-    """``view`` with its time axis set to cover ``spans`` ((first, last) ns); unchanged if none."""
+def _span_of(view: Any) -> tuple[int, int] | None:
+    """(first, last) ns of a time-series view's time axis, when it has one."""
+    axis = view.properties.get("TimeAxis")
+    if axis is None or axis.view_range is None:
+        return None
+    rng = axis.view_range.as_arrow_array()[0].as_py()
+    start, end = rng.get("start"), rng.get("end")
+    return (int(start), int(end)) if isinstance(start, int) and isinstance(end, int) else None
+
+
+def _with_span(view: Any, spans: list[tuple[int, int]], run_on: float = 0.0) -> Any:
+    """``view`` with its time axis set to cover ``spans`` ((first, last) ns); unchanged if none.
+    With ``run_on`` (a share of the view's width) the axis runs on past the last sample so that
+    much of the view's right side is free of data (the legend's corner)."""
     if spans:
+        first, last = min(a for a, _ in spans), max(b for _, b in spans)
+        if 0.0 < run_on < 1.0:
+            last += int((last - first) * run_on / (1.0 - run_on))
         view.properties["TimeAxis"] = rrb.TimeAxis(
             view_range=rrb.TimeRange(
-                start=rrb.TimeRangeBoundary.absolute(nanos=min(a for a, _ in spans)),
-                end=rrb.TimeRangeBoundary.absolute(nanos=max(b for _, b in spans)),
+                start=rrb.TimeRangeBoundary.absolute(nanos=first),
+                end=rrb.TimeRangeBoundary.absolute(nanos=last),
             )
         )
     return view

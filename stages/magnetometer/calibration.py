@@ -428,13 +428,16 @@ class MagCalibrationStage(Stage):
         )
         names = ("|h| raw", "|h| corrected", "field magnitude")
         colors = [(150, 150, 150), (40, 100, 230), (30, 160, 60)]
-        keep = slice(0, 3) if unit_name == fixed_unit else slice(1, 3)  # one unit per plot
-        rec.series(
-            f"/{name}/norm",
-            t_ns,
-            norms[:, keep],
-            names[keep],
-            unit=fixed_unit,
-            title="|h|",
-            colors=colors[keep],
-        )
+        first = 0 if unit_name == fixed_unit else 1  # one unit per plot: raw counts apart
+        parts = [(slice(1, 3), False)] if first else [(slice(0, 1), True), (slice(1, 3), False)]
+        for keep, under in parts:  # the raw magnitude beneath the others
+            rec.series(
+                f"/{name}/norm",
+                t_ns,
+                norms[:, keep],
+                names[keep],
+                unit=fixed_unit,
+                title="|h|",
+                colors=colors[keep],
+                under=under,
+            )

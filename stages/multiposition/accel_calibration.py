@@ -630,6 +630,7 @@ class AccelCalibrationStage(Stage):
             np.linalg.norm(raw, axis=1),
             ("|a| raw",),
             colors=[(150, 150, 150)],
+            under=True,
             **(norm | {"unit": rec.input_unit(ctx.name, "accel")}),  # raw counts: a plot apart
         )
         rec.series(
