@@ -15,6 +15,7 @@ import pytest
 from imupipe.pipeline.exports.ardupilot import MILLIGAUSS_PER_TESLA
 from imupipe.pipeline.simulate import simulate, write_log
 from imupipe.pipeline.survey.compass import COMPASS_NAME
+from imupipe.pipeline.survey.report import summary_lines
 from imupipe.pipeline.survey.scan import survey
 from imupipe.stages.survey.compass import compass_flags, compass_history
 
@@ -191,6 +192,13 @@ def test_dataset_units_report_and_summary(planted, tmp_path):
         assert f"{dev}: compass offsets per flight" in page
     parts = sorted(p.name for p in (root / "out" / "parts" / "ap1").iterdir())
     assert "flight_0.compass.parquet" in parts
+    # flights move: no IMU still period, so no empty IMU table (nor chamber columns) is shown
+    assert "<h1>imupipe survey: 0 IMUs, 3 compasses</h1>" in page
+    assert "No IMU has a still period" in page and "<h2>Fleet</h2>" not in page
+    assert "vs chamber" not in page
+    assert summary_lines(planted[2]["fleet"]) == [
+        "imupipe survey: no IMU has a still period in these logs"
+    ]
 
 
 def test_refused_flight_is_a_row_not_a_failed_log(tmp_path):

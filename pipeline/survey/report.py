@@ -234,6 +234,8 @@ def summary_lines(fleet: dict[str, Any]) -> list[str]:
         return []
     recal = fleet["recalibrate"]
     n = len(fleet["devices"])
+    if n == 0:
+        return ["imupipe survey: no IMU has a still period in these logs"]
     if not recal:
         return [
             f"imupipe survey: {n} devices, none flagged (k = {fleet['k']:g} robust sigmas)",
@@ -414,6 +416,14 @@ def _worst_axis(c: dict[str, Any], keys: tuple[str, ...] = ("offset", "slope")) 
     return max(ratios, key=lambda a: ratios[a]) if ratios else None
 
 
+CHAMBER_COLUMNS = (
+    "vs chamber: offset (rad/s)",
+    "vs chamber: slope (rad/s/K)",
+    "periods beyond the chamber's range",
+)
+"""The fleet table's columns on the chamber calibration (only when a device has one)."""
+
+
 def _chamber_cells(d: dict[str, Any]) -> tuple[str, str, str]:
     """The fleet table's chamber cells: the gyro axis furthest off in offset and in slope (value
     +- standard error), and the still periods beyond the chamber's calibrated range."""
@@ -483,6 +493,7 @@ def write_report(
 
     esc = html.escape
     k = fleet["k"]
+    chambers = any(d.get("chamber") for d in fleet["devices"])
     head = "".join(
         f"<th>{esc(h)}</th>"
         for h in (
@@ -493,9 +504,7 @@ def write_report(
             "gyro drift (rad/s/day)",
             "thermal slope (rad/s/K)",
             "gyro noise (rad/s/sqrt(Hz))",
-            "vs chamber: offset (rad/s)",
-            "vs chamber: slope (rad/s/K)",
-            "periods beyond the chamber's range",
+            *(CHAMBER_COLUMNS if chambers else ()),
             "flags",
         )
     )
@@ -518,7 +527,7 @@ def write_report(
                     f"{drift:.2e}",
                     " ".join(f"{t:.1e}" for t in thermal),
                     f"{noise:.2e}",
-                    *_chamber_cells(d),
+                    *(_chamber_cells(d) if chambers else ()),
                     len(d["flags"]),
                 )
             )
@@ -541,18 +550,22 @@ def write_report(
             + "</section>"
         )
     after = "after the calibration" if fleet["after_calibration"] else "raw (no calibration given)"
+    n_compass = len((compass or {}).get("devices") or [])
+    title = f"{len(fleet['devices'])} IMUs" + (f", {n_compass} compasses" if n_compass else "")
+    if fleet["devices"]:
+        imus = (
+            f"<p>Figures {after}. Flags: k = {k:g} robust sigmas (1.4826 MAD).</p>"
+            f"<h2>Recalibrate</h2><ul>{recal}</ul>"
+            f"<h2>Fleet</h2><table><tr>{head}</tr>{''.join(rows)}</table>" + "".join(sections)
+        )
+    else:  # flight logs alone: they move, no still moment to measure an IMU in
+        imus = "<p>No IMU has a still period in these logs: the IMU figures are empty.</p>"
     text = (
         "<!doctype html><html><head><meta charset='utf-8'><title>imupipe survey</title>"
         "<style>body{font-family:system-ui,sans-serif;max-width:980px;margin:auto}"
         "table{border-collapse:collapse}td,th{border:1px solid #ccc;padding:2px 6px;font-size:13px}"
         "svg{max-width:640px}</style></head><body>"
-        f"<h1>imupipe survey: {len(fleet['devices'])} devices</h1>"
-        f"<p>Figures {after}. Flags: k = {k:g} robust sigmas (1.4826 MAD).</p>"
-        f"<h2>Recalibrate</h2><ul>{recal}</ul>"
-        f"<h2>Fleet</h2><table><tr>{head}</tr>{''.join(rows)}</table>"
-        + "".join(sections)
-        + report_section(compass)
-        + "</body></html>\n"
+        f"<h1>imupipe survey: {title}</h1>" + imus + report_section(compass) + "</body></html>\n"
     )
     Path(path).write_text(text, encoding="utf-8")
 
