@@ -455,7 +455,8 @@ def _chamber_text(d: dict[str, Any]) -> str:
     if ch["outside_span"]:
         a, b = ch["outside_span"]
         text += (
-            f"; {ch['outside']} still periods at {a:.1f}..{b:.1f} degC lie beyond it: its curve "
+            f"; {ch['outside']} still period{'s' if ch['outside'] != 1 else ''} at "
+            f"{a:.1f}..{b:.1f} degC {'lie' if ch['outside'] != 1 else 'lies'} beyond it: its curve "
             "is extrapolated there"
         )
     rows = []
