@@ -96,7 +96,7 @@ def histories(table: pa.Table) -> list[DeviceHistory]:
         for f in FIGURES
     }
     level = _col(table, p + "level", bool)
-    se["accel_norm_error"] = np.where(level, se["accel_norm_error"], np.nan)
+    accel = np.column_stack([_col(table, f"{p}accel_mean_{a}", np.float64) for a in "xyz"])
     noise = {
         s: np.mean([_col(table, f"{p}{s}_noise_{a}", np.float64) for a in "xyz"], axis=0)
         for s in ("gyro", "accel")
@@ -114,6 +114,8 @@ def histories(table: pa.Table) -> list[DeviceHistory]:
                 {f: v[rows] for f, v in se.items()},
                 {s: v[rows] for s, v in noise.items()},
                 t0,
+                accel[rows],
+                level[rows],
             )
         )
     return out
