@@ -153,10 +153,11 @@ def main() -> None:
     ap.add_argument("--first", type=int, default=100, help="first seed (default 100)")
     ap.add_argument("--kinds", default="default,small,chamber")
     ap.add_argument("--no-planted", action="store_true", help="only the clean fleets")
+    ap.add_argument("--planted-only", action="store_true", help="only the planted fleets")
     args = ap.parse_args()
     seeds = list(range(args.first, args.first + args.seeds))
     for kind in args.kinds.split(","):
-        for planted in (False, True) if not args.no_planted else (False,):
+        for planted in [p for p in (False, True) if not (args.no_planted and p or args.planted_only and not p)]:
             t = time.perf_counter()
             r = run(kind, seeds, planted)
             label = f"{kind} fleet, {'planted' if planted else 'clean'}"
