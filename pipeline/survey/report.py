@@ -202,6 +202,7 @@ def fleet_view(table: pa.Table, k: float, chambers: Chambers | None = None) -> d
                 "se": {f: v.tolist() for f, v in h.se.items()},
                 "noise": {s: v.tolist() for s, v in h.noise.items()},
                 "thermal": {f: list(v) for f, v in h.thermal.items()},
+                "figure_temperature": {f: v.temperature.tolist() for f, v in h.fits.items()},
                 "t_ref": h.t_ref,
                 "drift_per_day": h.drift,
                 "moved": h.moved,
