@@ -4,31 +4,36 @@ against the fleet.
 
 Per device (the still periods of all its logs; with a calibration, the figures after it):
 
-1. **In-field thermal slope** (unit/K) of the gyro bias (each axis) and of ``|a| - g``, from two
-   estimates: *between logs*, the median over consecutive logs of ``d figure / d temperature``
-   (pairs at least ``MIN_DT`` apart; one step between two logs does not move a median), and
-   *within logs*, the weighted least-squares slope of the figure on temperature with both
-   demeaned per log (used when there are too few pairs and it exceeds 3 standard errors). The
-   per-log figures are referred to the device's median temperature with it. ``|a| - g`` is taken
-   from level periods only (elsewhere the accelerometer's x and y offsets project onto gravity
-   with the tilt).
-2. **Per log**: the inverse-variance weighted mean of the referred figures (gyro bias per axis,
-   ``|a| - g``) and its standard error; the mean noise density over the axes (gyro, accel); the
-   mean temperature and the log's date (days since the fleet's first period).
-3. **Steps** between consecutive logs: ``|d| > k sqrt(s_fleet^2 + se_1^2 + se_2^2 +
+1. **Attitude** (:func:`attitude_term`): ``|a| - g ~ b . u`` for a period whose gravity direction
+   is ``u``, so a period leaning by a few degrees sees the accelerometer's x and y offsets; they
+   are fitted per device within logs and ``b_x u_x + b_y u_y`` is taken off each period (its
+   error added to the period's). ``|a| - g`` is then taken from level periods only.
+2. **Per log** (:func:`thermal_fit`): the inverse-variance weighted mean of each figure (gyro bias
+   per axis, ``|a| - g``) and its standard error, and the mean temperature of the same periods
+   with the same weights; the mean noise density over the axes (gyro, accel); the mean
+   temperature and the log's date (days since the fleet's first period).
+3. **In-field thermal slope** (unit/K) of each figure, always with its standard error: the
+   inverse-variance mean of the *within-log* slope (:func:`within_log_slope`) and the
+   *between-log* slope (:func:`between_log_slope`, whose error needs the fleet's step scale
+   ``s``: the slopes and ``s`` are computed twice); a device without either takes the fleet's
+   median slope with the fleet's robust spread of slopes as its error (:func:`_fleet_slope`).
+   The per-log figures are referred to the device's median temperature with it (:func:`refer`).
+   The chamber comparison (:mod:`imupipe.stages.survey.chamber`) uses the same estimate.
+4. **Steps** between consecutive logs: ``|d| > k sqrt(s_fleet^2 + se_1^2 + se_2^2 +
    (se_slope dT)^2)``, ``s_fleet`` the robust scale (1.4826 MAD) of every consecutive difference
    in the fleet (the ordinary log-to-log change: random walk, residual temperature error),
-   ``se_slope dT`` the error of referring the two logs to one temperature.
-4. **Noise**: a log whose log-noise departs from the median of the device's *earlier* logs (at
+   ``se_slope dT`` the error of referring the two logs to one temperature (``dT``: the change of
+   the figure's temperature).
+5. **Noise**: a log whose log-noise departs from the median of the device's *earlier* logs (at
    least two) by more than ``k`` times the fleet's robust scale of that departure (floored at
    ``NOISE_FLOOR``, a 5 % relative change) is flagged (an increase: a loose mount, a failing
    part; a drop to near zero: a stuck output).
-5. **Drift**: the Theil-Sen slope over calendar days of the per-log figure (unit/day), flagged
+6. **Drift**: the Theil-Sen slope over calendar days of the per-log figure (unit/day), flagged
    when it departs from the fleet's median slope by more than ``k`` robust sigmas of the fleet's
    slopes and its change over the device's span exceeds ``k s_fleet sqrt(logs - 1)`` (the reach
    of the ordinary log-to-log change, a random walk, over that many logs). The flag names the log
    the drift starts at (:func:`drift_onset`) when one stands out.
-6. **Moved**: the change of each figure from the first log to the last, in units of the fleet's
+7. **Moved**: the change of each figure from the first log to the last, in units of the fleet's
    step scale; the fleet table is sorted by it.
 
 ``k`` (default 5) is the number of robust standard deviations (1.4826 MAD, Rousseeuw & Croux
