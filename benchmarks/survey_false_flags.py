@@ -131,7 +131,10 @@ def run(kind: str, seeds: list[int], planted: bool) -> dict[str, Any]:
                     if caught(e, d["flags"]):
                         events_caught += 1
                     else:
-                        missed.append(f"seed {seed} {d['device_id']} {e['kind']}")
+                        got = sorted({(f["kind"], f["figure"], str(f["log"])) for f in d["flags"]})
+                        missed.append(
+                            f"seed {seed} {d['device_id']} {e['kind']} at {e['log']}: {got}"
+                        )
                 continue
             for f in d["flags"]:
                 false[(f["kind"], f["figure"])] += 1
@@ -157,7 +160,9 @@ def main() -> None:
     args = ap.parse_args()
     seeds = list(range(args.first, args.first + args.seeds))
     for kind in args.kinds.split(","):
-        for planted in [p for p in (False, True) if not (args.no_planted and p or args.planted_only and not p)]:
+        for planted in [
+            p for p in (False, True) if not (args.no_planted and p or args.planted_only and not p)
+        ]:
             t = time.perf_counter()
             r = run(kind, seeds, planted)
             label = f"{kind} fleet, {'planted' if planted else 'clean'}"

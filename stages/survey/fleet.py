@@ -19,7 +19,8 @@ Per device (the still periods of all its logs; with a calibration, the figures a
    median slope with the fleet's robust spread of slopes as its error (:func:`_fleet_slope`).
    The per-log figures are referred to the device's median temperature with it (:func:`refer`).
    The chamber comparison (:mod:`imupipe.stages.survey.chamber`) uses the same estimate.
-4. **Steps** between consecutive logs: ``|d| > k sqrt(s_fleet^2 + se_1^2 + se_2^2 +
+4. **Steps** between consecutive logs (that have the figure: a log without a level period is
+   passed over, ``n`` the intervals spanned): ``|d| > k sqrt(n s_fleet^2 + se_1^2 + se_2^2 +
    (se_slope dT)^2)``, ``s_fleet`` the robust scale (1.4826 MAD) of every consecutive difference
    in the fleet (the ordinary log-to-log change: random walk, residual temperature error),
    ``se_slope dT`` the error of referring the two logs to one temperature (``dT``: the change of
@@ -406,14 +407,15 @@ def fleet_flags(histories: Sequence[DeviceHistory], k: float) -> dict[str, Any]:
             unit = UNITS[name]
             f, se = h.figures[name], h.se[name]
             base = np.nan_to_num(scales[name])
-            for j in range(1, len(f)):
-                d = f[j] - f[j - 1]
-                temps = h.fits[name].temperature
-                dtemp = np.nan_to_num(temps[j] - temps[j - 1])
-                # the slope's error over the change of temperature
+            temps = h.fits[name].temperature
+            have = np.flatnonzero(np.isfinite(f))  # a log without the figure is passed over
+            for i, j in zip(have[:-1], have[1:], strict=True):
+                d = f[j] - f[i]
+                dtemp = np.nan_to_num(temps[j] - temps[i])
+                # the slope's error over the change of temperature; the walk over j - i intervals
                 referred = (np.nan_to_num(h.fits[name].slope_se) * dtemp) ** 2
-                limit = k * np.sqrt(base**2 + se[j] ** 2 + se[j - 1] ** 2 + referred)
-                if np.isfinite(d) and abs(d) > limit:
+                limit = k * np.sqrt(base**2 * (j - i) + se[j] ** 2 + se[i] ** 2 + referred)
+                if abs(d) > limit:
                     _flag(
                         h,
                         "step",
@@ -421,8 +423,8 @@ def fleet_flags(histories: Sequence[DeviceHistory], k: float) -> dict[str, Any]:
                         h.logs[j],
                         d,
                         limit,
-                        f"{name} stepped by {d:+.3g} {unit} between {h.logs[j - 1]} and {h.logs[j]} (limit "
-                        f"{limit:.2g}; temperature {temps[j - 1]:.1f} -> {temps[j]:.1f} degC)",
+                        f"{name} stepped by {d:+.3g} {unit} between {h.logs[i]} and {h.logs[j]} (limit "
+                        f"{limit:.2g}; temperature {temps[i]:.1f} -> {temps[j]:.1f} degC)",
                     )
             h.moved[name] = float((f[-1] - f[0]) / base) if len(f) > 1 and base > 0 else 0.0
             finite = slopes[name][np.isfinite(slopes[name])]
