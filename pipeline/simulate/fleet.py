@@ -35,7 +35,8 @@ Model (SI; one device = one IMU instance of one vehicle):
 Written as a folder ``OUT/<vehicle>/log_<k>.mcap``, one MCAP per log holding each IMU instance
 on ``/imu<i>/data`` (frame ``<vehicle>_imu<i>``) and ``/imu<i>/temperature``; the truth is
 ``OUT.truth.json``: per device and log, every still moment's bounds and its true mean gyro bias,
-accelerometer bias, ``|a| - g``, noise densities and temperature, and the planted events. With
+accelerometer bias, ``|a| - g``, the direction of gravity in the body (unit), noise densities and
+temperature, and the planted events. With
 ``chamber``, each vehicle's chamber calibration (one ``calibration.json`` with a gyro and an
 accelerometer step per IMU, each naming its topic) is ``OUT.chamber/<vehicle>.json`` and the truth
 gives per device ``chamber``: the change of the curve since the chamber, per log the offset at
@@ -215,6 +216,7 @@ def _log(
                     "accel_bias": ab[a:b].mean(axis=0).tolist(),
                     "accel_norm_error": float(np.linalg.norm(mean_a) - g),
                     "level": bool(up[a][2] == 1.0),
+                    "gravity_direction": up[a].tolist(),
                     "gyro_N": imu["gyro_N"],
                     "accel_N": imu["accel_N"],
                     "temperature": float(temp[a:b].mean()),

@@ -96,7 +96,7 @@ def histories(table: pa.Table) -> list[DeviceHistory]:
         for f in FIGURES
     }
     level = _col(table, p + "level", bool)
-    se["accel_norm_error"] = np.where(level, se["accel_norm_error"], np.nan)
+    accel = np.column_stack([_col(table, f"{p}accel_mean_{a}", np.float64) for a in "xyz"])
     noise = {
         s: np.mean([_col(table, f"{p}{s}_noise_{a}", np.float64) for a in "xyz"], axis=0)
         for s in ("gyro", "accel")
@@ -114,6 +114,8 @@ def histories(table: pa.Table) -> list[DeviceHistory]:
                 {f: v[rows] for f, v in se.items()},
                 {s: v[rows] for s, v in noise.items()},
                 t0,
+                accel[rows],
+                level[rows],
             )
         )
     return out
@@ -200,6 +202,7 @@ def fleet_view(table: pa.Table, k: float, chambers: Chambers | None = None) -> d
                 "se": {f: v.tolist() for f, v in h.se.items()},
                 "noise": {s: v.tolist() for s, v in h.noise.items()},
                 "thermal": {f: list(v) for f, v in h.thermal.items()},
+                "figure_temperature": {f: v.temperature.tolist() for f, v in h.fits.items()},
                 "t_ref": h.t_ref,
                 "drift_per_day": h.drift,
                 "moved": h.moved,

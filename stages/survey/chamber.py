@@ -28,7 +28,8 @@ device's still periods:
   per-log mean residual between consecutive logs on the change of their mean temperature (the
   changes of a random walk are independent, its level is not), its error from the scatter
   about it, at least what the fleet's ordinary log-to-log change ``s`` and the logs' own errors
-  give;
+  give (:func:`imupipe.stages.survey.fleet.thermal_fit`, the fleet view's own slope: a log's
+  temperature is the mean of its periods' with the weights of its mean residual);
 - **offset** (unit: the in-field curve minus the chamber's at ``t_centre``, the mean of the
   per-log temperatures): the mean over logs of ``r_log - ds (T_log - t_centre)``, its standard
   error the scatter of those values over ``sqrt(logs)`` (at least the per-log errors': the
@@ -57,8 +58,8 @@ from typing import Any
 import numpy as np
 
 from imupipe.stages.steps import LinearStep, Step
-from imupipe.stages.survey.fleet import DAY_NS, MIN_DT, within_log_slope
-from imupipe.stages.survey.stats import G0, mad_sigma, weighted_mean
+from imupipe.stages.survey.fleet import DAY_NS, thermal_fit
+from imupipe.stages.survey.stats import G0, mad_sigma
 from imupipe.stages.thermal import models as tm
 from imupipe.stages.thermal.step import (
     MATRIX_FORMS,
@@ -221,29 +222,10 @@ def compare(
     _, g = np.unique(log_index[ok], return_inverse=True)
     t, r, s = temp[ok], measured[ok] - chamber[ok], se[ok]
     n_logs = int(g.max()) + 1
-    per = [weighted_mean(r[g == j], s[g == j]) for j in range(n_logs)]
-    rl = np.array([p[0] for p in per])
-    sl = np.array([p[1] for p in per])
-    tl = np.array([float(np.mean(t[g == j])) for j in range(n_logs)])
-    within, within_se = within_log_slope(g, t, r, s)
-    between, between_se = nan, nan
-    dt, dr = np.diff(tl), np.diff(rl)
-    if n_logs >= 3 and np.max(np.abs(dt)) >= MIN_DT:
-        sxx = float(dt @ dt)
-        between = float(dt @ dr) / sxx
-        resid = dr - between * dt
-        floor = step_scale**2 + 2.0 * float(np.mean(sl**2))
-        var = max(float(resid @ resid) / (n_logs - 2), floor)
-        between_se = float(np.sqrt(var / sxx))
-    est = [
-        (v, e) for v, e in ((within, within_se), (between, between_se)) if np.isfinite(v) and e > 0
-    ]
-    if est:
-        w = np.array([1.0 / e**2 for _, e in est])
-        slope = float(np.sum(w * np.array([v for v, _ in est])) / w.sum())
-        slope_se = float(1.0 / np.sqrt(w.sum()))
-    else:
-        slope, slope_se = 0.0, nan
+    fit = thermal_fit(g, n_logs, t, r, s, step_scale)
+    rl, sl, tl = fit.value, fit.se, fit.temperature
+    within, between = fit.within, fit.between
+    slope, slope_se = (fit.slope, fit.slope_se) if np.isfinite(fit.slope) else (0.0, nan)
     centre = float(tl.mean())
     level = rl - slope * (tl - centre)
     floor = float(np.sqrt(np.mean(sl**2) / n_logs))

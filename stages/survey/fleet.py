@@ -4,31 +4,37 @@ against the fleet.
 
 Per device (the still periods of all its logs; with a calibration, the figures after it):
 
-1. **In-field thermal slope** (unit/K) of the gyro bias (each axis) and of ``|a| - g``, from two
-   estimates: *between logs*, the median over consecutive logs of ``d figure / d temperature``
-   (pairs at least ``MIN_DT`` apart; one step between two logs does not move a median), and
-   *within logs*, the weighted least-squares slope of the figure on temperature with both
-   demeaned per log (used when there are too few pairs and it exceeds 3 standard errors). The
-   per-log figures are referred to the device's median temperature with it. ``|a| - g`` is taken
-   from level periods only (elsewhere the accelerometer's x and y offsets project onto gravity
-   with the tilt).
-2. **Per log**: the inverse-variance weighted mean of the referred figures (gyro bias per axis,
-   ``|a| - g``) and its standard error; the mean noise density over the axes (gyro, accel); the
-   mean temperature and the log's date (days since the fleet's first period).
-3. **Steps** between consecutive logs: ``|d| > k sqrt(s_fleet^2 + se_1^2 + se_2^2 +
+1. **Attitude** (:func:`attitude_term`): ``|a| - g ~ b . u`` for a period whose gravity direction
+   is ``u``, so a period leaning by a few degrees sees the accelerometer's x and y offsets; they
+   are fitted per device within logs and ``b_x u_x + b_y u_y`` is taken off each period (its
+   error added to the period's). ``|a| - g`` is then taken from level periods only.
+2. **Per log** (:func:`thermal_fit`): the inverse-variance weighted mean of each figure (gyro bias
+   per axis, ``|a| - g``) and its standard error, and the mean temperature of the same periods
+   with the same weights; the mean noise density over the axes (gyro, accel); the mean
+   temperature and the log's date (days since the fleet's first period).
+3. **In-field thermal slope** (unit/K) of each figure, always with its standard error: the
+   inverse-variance mean of the *within-log* slope (:func:`within_log_slope`) and the
+   *between-log* slope (:func:`between_log_slope`, whose error needs the fleet's step scale
+   ``s``: the slopes and ``s`` are computed twice); a device without either takes the fleet's
+   median slope with the fleet's robust spread of slopes as its error (:func:`_fleet_slope`).
+   The per-log figures are referred to the device's median temperature with it (:func:`refer`).
+   The chamber comparison (:mod:`imupipe.stages.survey.chamber`) uses the same estimate.
+4. **Steps** between consecutive logs (that have the figure: a log without a level period is
+   passed over, ``n`` the intervals spanned): ``|d| > k sqrt(n s_fleet^2 + se_1^2 + se_2^2 +
    (se_slope dT)^2)``, ``s_fleet`` the robust scale (1.4826 MAD) of every consecutive difference
    in the fleet (the ordinary log-to-log change: random walk, residual temperature error),
-   ``se_slope dT`` the error of referring the two logs to one temperature.
-4. **Noise**: a log whose log-noise departs from the median of the device's *earlier* logs (at
+   ``se_slope dT`` the error of referring the two logs to one temperature (``dT``: the change of
+   the figure's temperature).
+5. **Noise**: a log whose log-noise departs from the median of the device's *earlier* logs (at
    least two) by more than ``k`` times the fleet's robust scale of that departure (floored at
    ``NOISE_FLOOR``, a 5 % relative change) is flagged (an increase: a loose mount, a failing
    part; a drop to near zero: a stuck output).
-5. **Drift**: the Theil-Sen slope over calendar days of the per-log figure (unit/day), flagged
+6. **Drift**: the Theil-Sen slope over calendar days of the per-log figure (unit/day), flagged
    when it departs from the fleet's median slope by more than ``k`` robust sigmas of the fleet's
    slopes and its change over the device's span exceeds ``k s_fleet sqrt(logs - 1)`` (the reach
    of the ordinary log-to-log change, a random walk, over that many logs). The flag names the log
    the drift starts at (:func:`drift_onset`) when one stands out.
-6. **Moved**: the change of each figure from the first log to the last, in units of the fleet's
+7. **Moved**: the change of each figure from the first log to the last, in units of the fleet's
    step scale; the fleet table is sorted by it.
 
 ``k`` (default 5) is the number of robust standard deviations (1.4826 MAD, Rousseeuw & Croux
@@ -51,9 +57,10 @@ meaningful for a fleet's health)."""
 DAY_NS = 86_400e9
 MIN_DT = 3.0
 """K: the smallest temperature difference between two logs used for the between-log slope."""
-THERMAL_SIGNIFICANCE = 3.0
-"""A thermal slope is used to refer figures to the reference temperature when it exceeds this
-many standard errors."""
+MIN_PRIOR_DEVICES = 3
+"""Devices with a thermal slope of a figure needed before the fleet's slopes stand in for a device
+without one (fewer: such a device's figures are not referred, and the error of not referring
+them is unknown)."""
 
 
 @dataclass
@@ -77,6 +84,8 @@ class DeviceHistory:
     flags: list[dict[str, Any]] = field(default_factory=list)
     drift: dict[str, float] = field(default_factory=dict)
     moved: dict[str, float] = field(default_factory=dict)
+    fits: dict[str, ThermalFit] = field(default_factory=dict)
+    """figure -> its per-log values, their temperatures and thermal slopes (not referred)."""
 
 
 FIGURES = ("gyro_bias_x", "gyro_bias_y", "gyro_bias_z", "accel_norm_error")
@@ -111,19 +120,132 @@ def within_log_slope(
 
 
 def between_log_slope(
-    temperature: np.ndarray, values: np.ndarray, min_dt: float = MIN_DT
+    temperature: np.ndarray, values: np.ndarray, se: np.ndarray, step_scale: float = 0.0
 ) -> tuple[float, float]:
-    """The thermal slope from consecutive logs and its standard error: the median of
-    ``d value / d temperature`` over consecutive pairs whose temperatures differ by at least
-    ``min_dt`` K (at least three pairs, else NaN), its error ``1.2533 s / sqrt(pairs)`` (the
-    median's, ``s`` the ratios' robust scale). A median of ratios: one step (a crash) between
-    two logs does not move it."""
-    dv, dt = np.diff(values), np.diff(temperature)
-    ok = np.isfinite(dv) & np.isfinite(dt) & (np.abs(dt) >= min_dt)
-    if ok.sum() < 3:
+    """The thermal slope from consecutive logs and its standard error: the least-squares slope
+    through the origin of the change of the per-log ``values`` between consecutive logs on the
+    change of their ``temperature`` (the changes of a random walk are independent, its level is
+    not; one step between two logs enters as one residual), its error from the scatter about it
+    (``logs - 2`` degrees of freedom) and at least what the fleet's ordinary log-to-log change
+    ``step_scale`` and the logs' own errors ``se`` give. NaN with fewer than three logs with a
+    value and a temperature, or when no two consecutive ones are ``MIN_DT`` apart."""
+    ok = np.isfinite(temperature) & np.isfinite(values)
+    t, v, e = temperature[ok], values[ok], np.nan_to_num(se[ok])
+    if len(t) < 3:
         return float("nan"), float("nan")
-    ratios = dv[ok] / dt[ok]
-    return float(np.median(ratios)), float(1.2533 * mad_sigma(ratios) / np.sqrt(len(ratios)))
+    dt, dv = np.diff(t), np.diff(v)
+    if not np.max(np.abs(dt)) >= MIN_DT:
+        return float("nan"), float("nan")
+    sxx = float(dt @ dt)
+    slope = float(dt @ dv) / sxx
+    resid = dv - slope * dt
+    floor = step_scale**2 + 2.0 * float(np.mean(e**2))
+    var = max(float(resid @ resid) / (len(t) - 2), floor)
+    return slope, float(np.sqrt(var / sxx))
+
+
+def combined(estimates: Sequence[tuple[float, float]]) -> tuple[float, float]:
+    """The inverse-variance mean of independent (value, standard error) estimates and its
+    standard error, the NaN ones left out (NaN, NaN when none is left)."""
+    est = [(v, e) for v, e in estimates if np.isfinite(v) and np.isfinite(e) and e > 0]
+    if not est:
+        return float("nan"), float("nan")
+    w = np.array([1.0 / e**2 for _, e in est])
+    return float(np.sum(w * np.array([v for v, _ in est])) / w.sum()), float(1 / np.sqrt(w.sum()))
+
+
+@dataclass
+class ThermalFit:
+    """One figure of one device per log (arrays of one entry per log, NaN for a log without a
+    period that has the figure) and its thermal slopes (unit/K)."""
+
+    value: np.ndarray
+    """The inverse-variance weighted mean of the log's periods (not referred)."""
+    se: np.ndarray
+    temperature: np.ndarray
+    """degC: the mean temperature of the same periods, with the same weights (the temperature
+    ``value`` is at)."""
+    within: float
+    within_se: float
+    between: float = float("nan")
+    between_se: float = float("nan")
+    slope: float = float("nan")
+    slope_se: float = float("nan")
+
+    def slopes(self, step_scale: float) -> tuple[float, float]:
+        """Set ``between`` with the fleet's ``step_scale`` and ``slope``: the inverse-variance
+        mean of the within-log and the between-log slopes (independent: one uses the periods'
+        departures from their log's mean, the other the logs' means); returns (slope, se)."""
+        self.between, self.between_se = between_log_slope(
+            self.temperature, self.value, self.se, step_scale
+        )
+        self.slope, self.slope_se = combined(
+            [(self.within, self.within_se), (self.between, self.between_se)]
+        )
+        return self.slope, self.slope_se
+
+
+def thermal_fit(
+    log_index: np.ndarray,
+    n_logs: int,
+    temperature: np.ndarray,
+    values: np.ndarray,
+    se: np.ndarray,
+    step_scale: float = 0.0,
+) -> ThermalFit:
+    """Per log (``log_index`` in ``0 .. n_logs - 1`` per period) the weighted mean of ``values``
+    (periods with a finite value and error), its error (:func:`weighted_mean`) and the mean
+    temperature of the same periods with the same weights; the within-log slope
+    (:func:`within_log_slope`) and the combined slope (:meth:`ThermalFit.slopes`)."""
+    ok = np.isfinite(values) & np.isfinite(se) & (se > 0)
+    value, err, temp = np.full(n_logs, np.nan), np.full(n_logs, np.nan), np.full(n_logs, np.nan)
+    for j in range(n_logs):
+        mine = ok & (log_index == j)
+        if not mine.any():
+            continue
+        value[j], err[j] = weighted_mean(values[mine], se[mine])
+        hot = mine & np.isfinite(temperature)
+        if hot.any():
+            temp[j] = float(np.average(temperature[hot], weights=1.0 / se[hot] ** 2))
+    fit = ThermalFit(value, err, temp, *within_log_slope(log_index, temperature, values, se))
+    fit.slopes(step_scale)
+    return fit
+
+
+def attitude_term(
+    log_index: np.ndarray,
+    direction: np.ndarray,
+    temperature: np.ndarray,
+    values: np.ndarray,
+    se: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray] | None:
+    """The part of ``|a| - g`` that the attitude gives through the accelerometer's x and y
+    offsets: ``|g u + b| - g ~ b . u``, so a period whose measured direction ``u`` (unit, (m, 3))
+    leans by ``theta`` sees ``b_x u_x + b_y u_y`` (up to ``|b_xy| sin theta``: 2.6e-3 m/s^2 for
+    0.03 m/s^2 offsets at 5 deg, more than the figure's own error). Estimated within logs from
+    every still period (level or not): the weighted least-squares fit of ``values`` on
+    ``(T, u_x, u_y)`` with all demeaned per log (a free intercept per log: the bias random walk
+    does not enter), its covariance scaled by ``chi2 / dof`` when above 1. Returns ``(b_x, b_y)``
+    (unit) and its (2, 2) covariance; None with fewer than 2 degrees of freedom or when the
+    periods' directions (or temperatures) do not vary within logs."""
+    ok = np.isfinite(values) & np.isfinite(se) & (se > 0) & np.isfinite(direction).all(axis=1)
+    ok &= np.isfinite(temperature)
+    g = np.unique(log_index[ok], return_inverse=True)[1]
+    x = np.column_stack([temperature[ok], direction[ok, :2]])
+    y, w = values[ok], 1.0 / se[ok] ** 2
+    dof = len(y) - (int(g.max()) + 1 if len(g) else 0) - 3
+    if dof < 2:
+        return None
+    sw = np.bincount(g, w)
+    dx = x - np.column_stack([np.bincount(g, w * c) for c in x.T])[g] / sw[g, None]
+    dy = y - (np.bincount(g, w * y) / sw)[g]
+    normal = (dx * w[:, None]).T @ dx
+    if np.linalg.cond(normal) > 1e12:
+        return None
+    beta = np.linalg.solve(normal, (dx * w[:, None]).T @ dy)
+    chi2 = float(np.sum(w * (dy - dx @ beta) ** 2)) / dof
+    cov = np.linalg.inv(normal) * max(chi2, 1.0)
+    return beta[1:], cov[1:, 1:]
 
 
 def device_history(
@@ -135,9 +257,16 @@ def device_history(
     se: Mapping[str, np.ndarray],
     noise: Mapping[str, np.ndarray],
     t0_ns: int,
+    accel: np.ndarray | None = None,
+    level: np.ndarray | None = None,
 ) -> DeviceHistory:
     """Per-log figures of one device from its periods (``values``/``se``: figure -> (m,);
-    ``noise``: ``gyro``/``accel`` -> (m,) mean noise density of the axes)."""
+    ``noise``: ``gyro``/``accel`` -> (m,) mean noise density of the axes), referred to the
+    device's median temperature with slopes whose between-log part has no fleet scale yet
+    (:func:`fleet_flags` refers them again with it). ``accel`` (m, 3): each period's mean
+    specific force, m/s^2; with it ``|a| - g`` is referred to the level attitude
+    (:func:`attitude_term`, its error added to each period's); ``level`` (m,): the periods
+    ``|a| - g`` is taken from (default: all)."""
     names, index = np.unique(np.asarray(log), return_inverse=True)
     order = np.argsort([start_ns[index == i].min() for i in range(len(names))])
     rank = np.empty_like(order)
@@ -156,35 +285,46 @@ def device_history(
                 for i in range(n)
             ]
         )
-    figures, ses, thermal = {}, {}, {}
-    for name in FIGURES:
-        within = within_log_slope(index, temperature, values[name], se[name])
-        per = [weighted_mean(values[name][index == i], se[name][index == i]) for i in range(n)]
-        raw = np.array([p[0] for p in per])
-        between, between_se = between_log_slope(temps, raw)
-        slope, slope_se = between, between_se
-        if (
-            not np.isfinite(slope)
-            and np.isfinite(within[0])
-            and abs(within[0]) > THERMAL_SIGNIFICANCE * within[1]
-        ):
-            slope, slope_se = within
-        thermal[name] = (slope, np.nan_to_num(slope_se), within[0], within[1], between)
-        figures[name] = raw - (np.nan_to_num(slope) * np.nan_to_num(temps - t_ref))
-        ses[name] = np.array([p[1] for p in per])
+    values, se = dict(values), dict(se)
+    norm, norm_se = values["accel_norm_error"], se["accel_norm_error"]
+    if accel is not None:
+        with np.errstate(invalid="ignore", divide="ignore"):
+            u = accel / np.linalg.norm(accel, axis=1)[:, None]
+        found = attitude_term(index, u, temperature, norm, norm_se)
+        if found is not None:
+            b, cov = found
+            norm = norm - u[:, :2] @ b
+            norm_se = np.sqrt(norm_se**2 + np.einsum("mi,ij,mj->m", u[:, :2], cov, u[:, :2]))
+    if level is not None:
+        norm_se = np.where(level, norm_se, np.nan)
+    values["accel_norm_error"], se["accel_norm_error"] = norm, norm_se
+    fits = {name: thermal_fit(index, n, temperature, values[name], se[name]) for name in FIGURES}
     day = np.array([(start_ns[index == i].mean() - t0_ns) / DAY_NS for i in range(n)])
-    return DeviceHistory(
+    h = DeviceHistory(
         device_id,
         [str(x) for x in names],
         day,
         temps,
-        figures,
-        ses,
+        {},
+        {name: fit.se for name, fit in fits.items()},
         {s: np.array([np.median(noise[s][index == i]) for i in range(n)]) for s in noise},
-        thermal,
+        {},
         t_ref,
         len(start_ns),
+        fits=fits,
     )
+    for name in FIGURES:
+        refer(h, name)
+    return h
+
+
+def refer(h: DeviceHistory, name: str) -> None:
+    """Refer the per-log figure ``name`` to ``h.t_ref`` with its fit's slope (``h.figures``,
+    ``h.thermal``); a log without a temperature, or a figure without a slope, is left as it is."""
+    fit = h.fits[name]
+    slope = np.nan_to_num(fit.slope)
+    h.thermal[name] = (fit.slope, fit.slope_se, fit.within, fit.within_se, fit.between)
+    h.figures[name] = fit.value - slope * np.nan_to_num(fit.temperature - h.t_ref)
 
 
 def _flag(
@@ -215,13 +355,40 @@ def drift_onset(f: np.ndarray, se: np.ndarray, scale: float, k: float, sign: flo
     return None
 
 
+def _step_scales(histories: Sequence[DeviceHistory]) -> dict[str, float]:
+    """Per figure, ``s``: the robust scale of every consecutive difference of the referred per-log
+    figures in the fleet."""
+    out = {}
+    for name in FIGURES:
+        diffs = np.concatenate([np.diff(h.figures[name]) for h in histories] or [np.zeros(0)])
+        out[name] = mad_sigma(diffs)
+    return out
+
+
+def _fleet_slope(slopes: Sequence[tuple[float, float]]) -> tuple[float, float]:
+    """What the fleet says of a device's thermal slope that its own logs cannot (no temperature
+    change within or between its logs): the median of the devices' slopes and their robust
+    scale as its error (the spread of the devices' true slopes and of their errors); NaN with
+    fewer than :data:`MIN_PRIOR_DEVICES` slopes."""
+    values = np.array([v for v, e in slopes if np.isfinite(v) and np.isfinite(e)])
+    if len(values) < MIN_PRIOR_DEVICES:
+        return float("nan"), float("nan")
+    return float(np.median(values)), mad_sigma(values)
+
+
 def fleet_flags(histories: Sequence[DeviceHistory], k: float) -> dict[str, Any]:
     """Apply the rules of the module docstring to every device (fills ``flags``, ``drift`` and
     ``moved``); returns the fleet's scales."""
-    scales: dict[str, float] = {}
-    for name in FIGURES:
-        diffs = np.concatenate([np.diff(h.figures[name]) for h in histories] or [np.zeros(0)])
-        scales[name] = mad_sigma(diffs)
+    scales = _step_scales(histories)
+    for _ in range(2):  # the between-log slopes' error needs the step scale, which needs them
+        for name in FIGURES:
+            prior = _fleet_slope([h.fits[name].slopes(scales[name]) for h in histories])
+            for h in histories:
+                fit = h.fits[name]
+                if not np.isfinite(fit.slope):
+                    fit.slope, fit.slope_se = prior
+                refer(h, name)
+        scales = _step_scales(histories)
     noise_dev: dict[str, list[float]] = {"gyro": [], "accel": []}
     for h in histories:
         for s in noise_dev:
@@ -240,12 +407,15 @@ def fleet_flags(histories: Sequence[DeviceHistory], k: float) -> dict[str, Any]:
             unit = UNITS[name]
             f, se = h.figures[name], h.se[name]
             base = np.nan_to_num(scales[name])
-            for j in range(1, len(f)):
-                d = f[j] - f[j - 1]
-                dtemp = np.nan_to_num(h.temperature[j] - h.temperature[j - 1])
-                referred = (h.thermal[name][1] * dtemp) ** 2  # the slope's error over the change
-                limit = k * np.sqrt(base**2 + se[j] ** 2 + se[j - 1] ** 2 + referred)
-                if np.isfinite(d) and abs(d) > limit:
+            temps = h.fits[name].temperature
+            have = np.flatnonzero(np.isfinite(f))  # a log without the figure is passed over
+            for i, j in zip(have[:-1], have[1:], strict=True):
+                d = f[j] - f[i]
+                dtemp = np.nan_to_num(temps[j] - temps[i])
+                # the slope's error over the change of temperature; the walk over j - i intervals
+                referred = (np.nan_to_num(h.fits[name].slope_se) * dtemp) ** 2
+                limit = k * np.sqrt(base**2 * (j - i) + se[j] ** 2 + se[i] ** 2 + referred)
+                if abs(d) > limit:
                     _flag(
                         h,
                         "step",
@@ -253,8 +423,8 @@ def fleet_flags(histories: Sequence[DeviceHistory], k: float) -> dict[str, Any]:
                         h.logs[j],
                         d,
                         limit,
-                        f"{name} stepped by {d:+.3g} {unit} between {h.logs[j - 1]} and {h.logs[j]} (limit "
-                        f"{limit:.2g}; temperature {h.temperature[j - 1]:.1f} -> {h.temperature[j]:.1f} degC)",
+                        f"{name} stepped by {d:+.3g} {unit} between {h.logs[i]} and {h.logs[j]} (limit "
+                        f"{limit:.2g}; temperature {temps[i]:.1f} -> {temps[j]:.1f} degC)",
                     )
             h.moved[name] = float((f[-1] - f[0]) / base) if len(f) > 1 and base > 0 else 0.0
             finite = slopes[name][np.isfinite(slopes[name])]
