@@ -41,7 +41,7 @@ ITERATORS: dict[str, str] = {
     "ros1": "imupipe.readers.ros1.reader:iter_ros1",
     "ros2": "imupipe.readers.ros2.reader:iter_ros2",
 }
-"""Format -> "module:function(spec, batch_rows, carry) -> Iterator[(table, [RawMessage])]": bounded
+"""Format -> "module:function(spec, batch_rows, carry, warnings) -> Iterator[(table, [RawMessage])]": bounded
 memory batches (formats absent here are read whole and yielded as one batch: CSV, ULog, which
 pyulog reads whole, and DataFlash)."""
 
@@ -133,7 +133,10 @@ def read_input(spec: InputSpec) -> tuple[pa.Table, list[str]]:
 
 
 def iter_input(
-    spec: InputSpec, batch_rows: int = 200_000, carry: bool = True
+    spec: InputSpec,
+    batch_rows: int = 200_000,
+    carry: bool = True,
+    warnings: list[str] | None = None,
 ) -> Iterator[tuple[pa.Table, list[RawMessage]]]:
     """The input as ``(table batch, carried-over messages)`` pairs in log order, with memory
     bounded by ``batch_rows`` rows (plus one chunk) for MCAP and ROS bags.
@@ -141,17 +144,20 @@ def iter_input(
     Each batch holds the sensor messages of a run of consecutive chunks (about ``batch_rows``
     rows, sorted by time within the batch; batches are not sorted against each other, so a
     stamp that goes back across a batch boundary stays where the log put it) and the other
-    topics' messages of the same chunks, in log-time order. Out-of-order warnings are not
-    reported here (use :func:`read_input` for the globally sorted table). Other formats (CSV)
-    are read whole and yielded as one batch. ``carry=False``: the other topics are not read
+    topics' messages of the same chunks, in log-time order. ``warnings``: the reader's
+    warnings are appended to it once the last batch was yielded (for MCAP and bags, those of
+    :func:`read_input` once per topic, the counts of stamps out of order or repeated summed
+    over the batches). Other formats (CSV) are read whole and yielded as one batch. ``carry=False``: the other topics are not read
     (every batch comes with an empty list; for a reader of the table only, as the survey).
     """
     fmt = detect_format(Path(spec.path))
     if fmt in ITERATORS:
-        yield from _load(spec, fmt, ITERATORS[fmt])(spec, batch_rows, carry)
+        yield from _load(spec, fmt, ITERATORS[fmt])(spec, batch_rows, carry, warnings)
         return
-    table, _warnings = read_input(spec)
+    table, warned = read_input(spec)
     yield table, list(carry_over(spec)) if carry else []
+    if warnings is not None:
+        warnings += warned
 
 
 def carry_over(spec: InputSpec) -> Iterable[RawMessage]:

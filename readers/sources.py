@@ -24,7 +24,7 @@ import pyarrow as pa
 from imupipe.readers.decoded import Piece, concat
 from imupipe.readers.errors import ReadError
 from imupipe.readers.spec import InputSpec, RawMessage
-from imupipe.readers.table_buffer import TableBuffer, assemble
+from imupipe.readers.table_buffer import TableBuffer, assemble, order_warnings
 from imupipe.readers.topics import select_topics
 
 NEVER = 2**63 - 1
@@ -125,11 +125,20 @@ def _split(piece: Piece, keep: np.ndarray) -> tuple[Piece, Piece]:
 
 
 def iter_sources(
-    spec: InputSpec, sources: Sequence[LogSource], batch_rows: int, carry: bool = True
+    spec: InputSpec,
+    sources: Sequence[LogSource],
+    batch_rows: int,
+    carry: bool = True,
+    warnings: list[str] | None = None,
 ) -> Iterator[tuple[pa.Table, list[RawMessage]]]:
     """Batches of about ``batch_rows`` rows in log-time order, each sorted by the chosen time
     within itself, with the carried-over messages of the same log-time span (none when not
     ``carry``: the other topics are not read).
+
+    ``warnings``: after the last batch, the warnings :func:`read_sources` gives, once per
+    topic: the sources' own, then the stamps out of time order or repeated within a batch
+    (counts summed over the batches; a pair of stamps across a batch boundary is not
+    compared).
 
     Chunks are read in file order; after each, messages whose log time is below the bound of
     everything still unread (chunk indexes / chunk infos) are final and may be emitted, the
@@ -143,6 +152,7 @@ def iter_sources(
     raw: list[RawMessage] = []
     rows = 0
     total = {s: 0 for s in streams}
+    counts: dict[str, list[int]] = {}
 
     def flush(bound: int) -> tuple[pa.Table, list[RawMessage]]:
         nonlocal raw, rows
@@ -164,6 +174,7 @@ def iter_sources(
             where=str(spec.path),
             warnings=[],
             sort=False,
+            counts=None if warnings is None else counts,
         )
         return table, emit
 
@@ -184,6 +195,9 @@ def iter_sources(
     _check_empty(spec, streams, total)
     if rows or raw:
         yield flush(NEVER)
+    if warnings is not None:
+        warnings += [w for src in sources for w in getattr(src, "warnings", ())]
+        warnings += order_warnings(str(spec.path), spec.time, counts)
 
 
 def carry_sources(spec: InputSpec, sources: Sequence[LogSource]) -> list[RawMessage]:

@@ -513,19 +513,15 @@ class TableBuffer:
         return sum(st.m for st in self.streams.values())
 
     # -- order -----------------------------------------------------------------------------
-    def _within(self, st: _Stream, warnings: list[str], where: str, topic: str) -> np.ndarray:
-        """The promised order of one stream's messages (log order, then stably by time)."""
+    def _within(self, st: _Stream) -> tuple[np.ndarray, int]:
+        """The promised order of one stream's messages (log order, then stably by time) and how
+        many messages it moves."""
         order = np.arange(st.m)
         if not st.log_sorted:
             order = np.argsort(st.log[: st.m], kind="stable")
         by_time = np.argsort(st.t[: st.m][order], kind="stable")
         moved = int(np.count_nonzero(by_time != np.arange(st.m)))
-        if moved:
-            warnings.append(
-                f"{where} topic {topic}: {moved} messages out of {self.time} time order; "
-                "sorted stably (none dropped)"
-            )
-        return order[by_time]
+        return order[by_time], moved
 
     def table(
         self,
@@ -536,11 +532,15 @@ class TableBuffer:
         topics: Mapping[str, str],
         where: str,
         warnings: list[str],
+        counts: dict[str, list[int]] | None = None,
     ) -> pa.Table:
         """The common table of what was added (the buffer is emptied).
 
         ``sort``: the promised order, with warnings; else only a stable merge of the streams
-        by time, each stream kept in log order (the batches of the streaming path)."""
+        by time, each stream kept in log order (the batches of the streaming path). ``counts``
+        (topic -> [messages out of time order, messages repeating the previous stamp]): where
+        the same counts as the warnings' are added up, the warnings left to the caller
+        (:func:`order_warnings`), e.g. once per topic over a streamed log's batches."""
         streams = list(self.streams.values())
         for st in streams:
             st.close()
@@ -551,22 +551,24 @@ class TableBuffer:
                 st.add_time("publish_time_ns")
         n = len(self)
         in_order = all(st.t_sorted for st in streams)
-        if sort:
+        if sort or counts is not None:  # counting needs each stream's log order
             in_order = in_order and all(st.log_sorted for st in streams)
         if not in_order:
             self._ungap()
         within: list[np.ndarray | None] = [None] * len(streams)
-        if sort:
+        if sort or counts is not None:
+            tally = {} if counts is None else counts
             for i, st in enumerate(streams):
-                order = None if in_order else self._within(st, warnings, where, topics[st.stream])
-                within[i] = order
+                order, moved = (None, 0) if in_order else self._within(st)
+                if sort:
+                    within[i] = order
                 t = self._stream_t(st) if order is None else st.t[: st.m][order]
                 dups = int(np.count_nonzero(t[1:] == t[:-1])) if st.m > 1 else 0
-                if dups:
-                    warnings.append(
-                        f"{where} topic {topics[st.stream]}: {dups} messages repeat the "
-                        f"previous {self.time} stamp (kept)"
-                    )
+                both = tally.setdefault(topics[st.stream], [0, 0])
+                both[0] += moved
+                both[1] += dups
+            if counts is None:
+                warnings += order_warnings(where, self.time, tally)
         # each stream's frame_id: its first message's (in the table's order; batches: log order)
         frame_ids = {
             st.stream: st.one_frame
@@ -805,10 +807,35 @@ def assemble(
     where: str,
     warnings: list[str],
     sort: bool = True,
+    counts: dict[str, list[int]] | None = None,
 ) -> pa.Table:
-    """The common table of the decoded ``pieces`` (stream -> Piece), all at once."""
+    """The common table of the decoded ``pieces`` (stream -> Piece), all at once (``counts``:
+    see :meth:`TableBuffer.table`)."""
     buffer = TableBuffer(list(pieces), time, {s: len(p) for s, p in pieces.items()})
     buffer.add(pieces)
     return buffer.table(
-        sort=sort, source=source, fmt=fmt, topics=topics, where=where, warnings=warnings
+        sort=sort,
+        source=source,
+        fmt=fmt,
+        topics=topics,
+        where=where,
+        warnings=warnings,
+        counts=counts,
     )
+
+
+def order_warnings(where: str, time: str, counts: Mapping[str, list[int]]) -> list[str]:
+    """The readers' warnings about stamps out of order and repeated, from ``counts`` (topic ->
+    [messages out of ``time`` order, messages repeating the previous stamp]), per topic."""
+    out = []
+    for topic, (moved, dups) in counts.items():
+        if moved:
+            out.append(
+                f"{where} topic {topic}: {moved} messages out of {time} time order; "
+                "sorted stably (none dropped)"
+            )
+        if dups:
+            out.append(
+                f"{where} topic {topic}: {dups} messages repeat the previous {time} stamp (kept)"
+            )
+    return out

@@ -226,3 +226,42 @@ def test_a_gap_that_changes_the_window_reads_pass_one_again(log, tmp_path):
     streamed, _ = _survey(spec, 2_000)
     assert whole.reads == 1 and streamed.reads == 3
     _same(whole.stats, streamed.stats)
+
+
+def test_stamps_back_and_repeated_within_a_batch_reach_the_manifest(log, tmp_path):
+    """A stamp going back within a batch (two neighbours swapped) and a stamp repeated: the
+    reader's warnings reach the survey's manifest, once per topic with the counts of the whole
+    read, whether the log is streamed in batches or read as one."""
+    import json
+
+    from imupipe.pipeline.survey.scan import survey
+    from imupipe.pipeline.writers.mcap import write_mcap
+
+    table, _ = read_input(log)
+    t = table.column("t_ns").to_numpy().copy()
+    if "log_time_ns" not in table.column_names:
+        table = table.append_column("log_time_ns", pa.array(t))
+    imu = np.flatnonzero(table.column("gyro_x").is_valid().to_numpy(zero_copy_only=False))
+    a, b = imu[len(imu) // 3], imu[len(imu) // 3 + 1]
+    t[a], t[b] = t[b], t[a]  # goes back by one period, inside a batch
+    c, d = imu[2 * len(imu) // 3], imu[2 * len(imu) // 3 + 1]
+    t[d] = t[c]  # a stamp repeated
+    table = table.set_column(table.column_names.index("t_ns"), "t_ns", pa.array(t))
+    (root := tmp_path / "logs").mkdir()
+    write_mcap(root / "one.mcap", table, chunk_bytes=16_000)
+    spec = dataclasses.replace(log, path=root / "one.mcap")
+    whole, expected = read_input(spec)
+    assert [w for w in expected if "out of header time order" in w]
+    assert [w for w in expected if "repeat the previous header stamp" in w]
+    lines = {}
+    for name, rows in (("streamed", 500), ("one batch", 10**9)):
+        survey([root], tmp_path / name, jobs=1, rerun=False, quiet=True, batch_rows=rows)
+        manifest = (tmp_path / name / "manifest.jsonl").read_text().splitlines()
+        (line,) = [json.loads(m) for m in manifest if json.loads(m).get("warnings") is not None]
+        lines[name] = line["warnings"]
+    assert not any("time goes back" in w for w in lines["streamed"])  # streamed, not re-read
+    streamed = [w for w in lines["streamed"] if "time order" in w or "repeat the" in w]
+    assert streamed == [w for w in expected if "time order" in w or "repeat the" in w]
+    assert sorted(streamed) == sorted(
+        w for w in lines["one batch"] if "time order" in w or "repeat the" in w
+    )

@@ -175,15 +175,23 @@ def survey_topic(
     reads = 0
     meta: dict[str, Any] | None = None
 
+    warned_once: list[bool] = []  # the reader's warnings: from the first read to its end
+
     def batches() -> Iterator[pa.Table]:
         nonlocal meta
         if whole is not None:
             yield whole
             return
-        for table, _ in dispatch.iter_input(spec, batch_rows=batch_rows, carry=False):
+        read: list[str] | None = None if warned_once else []
+        for table, _ in dispatch.iter_input(
+            spec, batch_rows=batch_rows, carry=False, warnings=read
+        ):
             if meta is None:
                 meta = metadata(table)
             yield table
+        if read is not None:  # the read ran to its end: its warnings, once per topic
+            warned_once.append(True)
+            warnings.extend(read)
 
     if dispatch.detect_format(spec.path) not in dispatch.ITERATORS:  # CSV, ULog, DataFlash
         whole, warned = dispatch.read_input(spec)

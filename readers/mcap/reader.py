@@ -152,10 +152,10 @@ def read_mcap(spec: InputSpec) -> tuple[pa.Table, list[str]]:
 
 
 def iter_mcap(
-    spec: InputSpec, batch_rows: int, carry: bool = True
+    spec: InputSpec, batch_rows: int, carry: bool = True, warnings: list[str] | None = None
 ) -> Iterator[tuple[pa.Table, list[RawMessage]]]:
     """Bounded-memory batches (see :func:`imupipe.readers.sources.iter_sources`)."""
-    return iter_sources(spec, [McapSource(spec.path)], batch_rows, carry)
+    return iter_sources(spec, [McapSource(spec.path)], batch_rows, carry, warnings)
 
 
 def carry_over_mcap(spec: InputSpec) -> list[RawMessage]:

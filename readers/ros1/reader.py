@@ -575,10 +575,10 @@ def read_ros1(spec: InputSpec) -> tuple[pa.Table, list[str]]:
 
 
 def iter_ros1(
-    spec: InputSpec, batch_rows: int, carry: bool = True
+    spec: InputSpec, batch_rows: int, carry: bool = True, warnings: list[str] | None = None
 ) -> Iterator[tuple[pa.Table, list[RawMessage]]]:
     """Bounded-memory batches (see :func:`imupipe.readers.sources.iter_sources`)."""
-    return iter_sources(spec, bag_sources(spec.path), batch_rows, carry)
+    return iter_sources(spec, bag_sources(spec.path), batch_rows, carry, warnings)
 
 
 def carry_over_ros1(spec: InputSpec) -> list[RawMessage]:

@@ -430,10 +430,10 @@ def read_ros2(spec: InputSpec) -> tuple[pa.Table, list[str]]:
 
 
 def iter_ros2(
-    spec: InputSpec, batch_rows: int, carry: bool = True
+    spec: InputSpec, batch_rows: int, carry: bool = True, warnings: list[str] | None = None
 ) -> Iterator[tuple[pa.Table, list[RawMessage]]]:
     """Bounded-memory batches (see :func:`imupipe.readers.sources.iter_sources`)."""
-    return iter_sources(spec, bag2_sources(spec.path), batch_rows, carry)
+    return iter_sources(spec, bag2_sources(spec.path), batch_rows, carry, warnings)
 
 
 def carry_over_ros2(spec: InputSpec) -> list[RawMessage]:
