@@ -112,7 +112,7 @@ def write_px4_calibrated(path, data, s, off, motor, params: dict) -> None:
 def planted(tmp_path_factory):
     root = tmp_path_factory.mktemp("compass_fleet")
     truth = write_fleet(root / "logs", planted=True)
-    result = survey([root / "logs"], root / "out", jobs=2, rerun=False)
+    result = survey([root / "logs"], root / "out", jobs=2)
     return root, truth, result
 
 
@@ -138,6 +138,24 @@ def test_offsets_recovered_within_their_uncertainty(planted):
         assert (np.abs(motor - true_motor) < 4 * motor_se + 1e-4).all(), (motor, true_motor)
         assert r["residual_after_ut"] < 0.5 and r["heading_after_deg"] < 1.0
         assert r["format"] == ("ulog" if r["vehicle"] == "px4" else "dataflash")
+
+
+def test_recording_holds_each_compass_per_flight(planted):
+    """survey.rrd: per compass, its offsets and motor term on the calendar timeline, one entity
+    per line, one point per fitted flight, at the flights' start times."""
+    from helpers import rrd_rows
+
+    root, _, result = planted
+    rows = rrd_rows(root / "out" / "survey.rrd")
+    devices = result["compass"]["devices"]
+    assert len(devices) == len(VEHICLES)
+    for d in devices:
+        entity = "/survey/compass/" + "".join(c if c.isalnum() else "_" for c in d["device_id"])
+        assert len(d["start_ns"]) == len(d["logs"]) == FLIGHTS
+        assert d["start_ns"] == sorted(d["start_ns"])
+        for key in ("offset", "motor"):
+            for axis in "xyz":
+                assert rows[f"{entity.rstrip('_')}/{key}/{key}_{axis}"] == FLIGHTS
 
 
 def test_vehicle_calibration_and_its_error(planted):

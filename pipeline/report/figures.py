@@ -32,7 +32,11 @@ import numpy as np
 PlotKind = Literal["time", "xy", "bars", "3d"]
 Style = Literal["line", "guide", "points", "band", "cloud", "ellipsoid"]
 
-DISPLAY_UNITS: dict[str, tuple[str, float]] = {"T": ("uT", 1e6), "T/s": ("uT/s", 1e6)}
+DISPLAY_UNITS: dict[str, tuple[str, float]] = {
+    "T": ("uT", 1e6),
+    "T/s": ("uT/s", 1e6),
+    "T/A": ("uT/A", 1e6),
+}
 """SI unit -> (unit shown, factor): the magnetometer is shown in microtesla."""
 
 AXIS_COLORS: list[tuple[int, int, int]] = [(228, 26, 28), (30, 160, 60), (40, 100, 230)]

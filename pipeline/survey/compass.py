@@ -587,12 +587,15 @@ def histories(table: pa.Table) -> list[Any]:
 
 def compass_fleet(table: pa.Table, k: float) -> dict[str, Any]:
     """The compass fleet view as a JSON-ready dict (``DIR/compass.json``): ``k``, the fleet's
-    scales, per compass its flights' offsets and motor terms, drift, flags and refused flights,
-    and the compasses to recalibrate."""
+    scales, per compass its flights (``logs``, ``start_ns``: their start, ns since the epoch;
+    ``day``) with their offsets and motor terms, drift, flags and refused flights, and the
+    compasses to recalibrate."""
     from imupipe.stages.survey.compass import compass_flags
 
     hs = histories(table)
     fleet = compass_flags(hs, k)
+    ids, logs, stamps = (table.column(c).to_pylist() for c in ("device_id", "log", "start_ns"))
+    start = {(d, log): s for d, log, s in zip(ids, logs, stamps, strict=True)}  # one per flight
     devices = []
     for h in hs:
         devices.append(
@@ -600,6 +603,7 @@ def compass_fleet(table: pa.Table, k: float) -> dict[str, Any]:
                 "device_id": h.device_id,
                 "domain": h.domain,
                 "logs": h.logs,
+                "start_ns": [start[(h.device_id, log)] for log in h.logs],
                 "day": h.day.tolist(),
                 "offset_ut": h.offset.tolist(),
                 "offset_se_ut": h.offset_se.tolist(),

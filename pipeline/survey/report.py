@@ -574,24 +574,69 @@ def write_report(
     Path(path).write_text(text, encoding="utf-8")
 
 
-def write_recording(path: Path, table: pa.Table, fleet: dict[str, Any] | None = None) -> None:
+def _entity_part(device_id: str) -> str:
+    """A device id as one part of an entity path (letters and digits; the rest ``_``)."""
+    return "".join(c if c.isalnum() else "_" for c in device_id).strip("_")
+
+
+def write_recording(
+    path: Path,
+    table: pa.Table | None,
+    fleet: dict[str, Any] | None = None,
+    compass: dict[str, Any] | None = None,
+) -> None:
     """``survey.rrd``: a Rerun recording with, per device, its still periods' gyro bias,
     ``|a| - g``, noise densities and temperature on the calendar timeline (one point per
-    period; the figures after the calibration when the dataset has them) and, with a chamber
-    calibration, its raw gyro bias against temperature with the chamber curve
-    (``/survey/<device>/chamber/...``)."""
+    period; the figures after the calibration when the dataset has them), with a chamber
+    calibration its raw gyro bias against temperature with the chamber curve
+    (``/survey/<device>/chamber/...``), and per compass of the compass fleet view
+    (``compass.json``) its offsets and motor term per flight on the same timeline
+    (``/survey/compass/<device>/offset/offset_x``..., ``.../motor/motor_x``...)."""
     from imupipe.pipeline.report.recording import Recorder
 
+    recorder = Recorder(Path(path), application_id="imupipe survey")
+    if table is not None:
+        _record_imus(recorder, table, fleet)
+    _record_compasses(recorder, compass)
+    recorder.close()
+
+
+def _record_compasses(recorder: Any, compass: dict[str, Any] | None) -> None:
+    """Per compass, one view of its offsets (uT) and one of its motor term (uT/A, or uT at full
+    throttle) on the calendar timeline, one point per fitted flight (in the sensor's axes, or
+    as fitted on the field as logged: ``domain``)."""
+    from imupipe.pipeline.survey.compass import UT
+
+    si = {"uT": "T", "uT/A": "T/A"}  # the recorder takes SI and shows tesla as uT
+    for d in (compass or {}).get("devices", []):
+        t = np.asarray(d.get("start_ns", []), dtype=np.int64)
+        if not len(t):
+            continue
+        dev, base = d["device_id"], "/survey/compass/" + _entity_part(d["device_id"])
+        # short titles: a narrow view still shows the unit
+        what = "offsets" + (", fitted as logged" if d["domain"] != "sensor" else "")
+        shown = (
+            ("offset", d["offset_ut"], "uT", what),
+            ("motor", d["motor"], d["motor_unit"], f"motor, {d['motor_source']}"),
+        )
+        for key, values, unit, title in shown:
+            v = np.asarray(values, dtype=np.float64).reshape(len(t), 3) / UT
+            recorder.series(
+                f"{base}/{key}", t, v, [f"{key} {a}" for a in "xyz"], unit=si[unit],
+                plot=f"compass {dev} {key}", title=f"{dev} {title}", points=True,
+            )  # fmt: skip
+
+
+def _record_imus(recorder: Any, table: pa.Table, fleet: dict[str, Any] | None) -> None:
     pre = _prefix(table)
     devices = _col(table, "device_id", str)
     start = _col(table, "start_ns", np.int64)
-    recorder = Recorder(Path(path), application_id="imupipe survey")
     by_id = {d["device_id"]: d.get("chamber") for d in (fleet or {}).get("devices", [])}
     for dev in sorted(set(devices)):
         rows = _rows(table, dev)
         rows = rows[np.argsort(start[rows], kind="stable")]
         t = start[rows]
-        base = "/survey/" + "".join(c if c.isalnum() else "_" for c in dev).strip("_")
+        base = "/survey/" + _entity_part(dev)
 
         axes = list("xyz")
         shown = (
@@ -628,4 +673,3 @@ def write_recording(path: Path, table: pa.Table, fleet: dict[str, Any] | None = 
                 [f"{a}, chamber curve" for a in axes], x_label="temperature", x_unit="degC",
                 unit="rad/s", plot=plot, title=title, colors=colors,
             )  # fmt: skip
-    recorder.close()

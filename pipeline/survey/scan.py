@@ -425,10 +425,10 @@ def survey(
                 out_dir / "fleet.json", json.dumps(fleet, indent=2, default=float) + "\n"
             )
             write_report(out.path(out_dir / "report.html"), table, fleet, compass=compass)
-            if rerun:
-                from imupipe.pipeline.survey.report import write_recording
+        if rerun and (table is not None or compass):
+            from imupipe.pipeline.survey.report import write_recording
 
-                write_recording(out.path(out_dir / RECORDING_NAME), table, fleet)
+            write_recording(out.path(out_dir / RECORDING_NAME), table, fleet, compass)
     return {
         "failed": failed,
         "surveyed": len(ok) - len(skipped),

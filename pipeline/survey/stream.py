@@ -19,6 +19,10 @@ depends on the batch size. Batches are each sorted by time but not against each 
 batch starts before the previous one ended (stamps going back across the log's chunks), the
 topic is read whole and sorted instead (:func:`~imupipe.readers.dispatch.read_input`, as before
 the survey streamed), with a warning that its memory was not bounded.
+
+The reader's own warnings (stamps out of order or repeated within a batch, counted per topic
+over the batches: :func:`imupipe.readers.dispatch.iter_input`'s ``warnings``) are taken from the
+first read that runs to its end, once.
 """
 
 from __future__ import annotations
