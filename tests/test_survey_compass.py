@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 
 import numpy as np
+import pyarrow as pa
 import pyarrow.parquet as pq
 import pytest
 
@@ -143,19 +144,32 @@ def test_offsets_recovered_within_their_uncertainty(planted):
 def test_recording_holds_each_compass_per_flight(planted):
     """survey.rrd: per compass, its offsets and motor term on the calendar timeline, one entity
     per line, one point per fitted flight, at the flights' start times."""
+    import rerun.chunk as rc
+
     from helpers import rrd_rows
 
     root, _, result = planted
     rows = rrd_rows(root / "out" / "survey.rrd")
+    points: dict[str, tuple[list, list]] = {}  # entity -> (times ns, values)
+    for chunk in rc.RrdReader(str(root / "out" / "survey.rrd")).stream().to_chunks():
+        if not chunk.is_static and chunk.entity_path.startswith("/survey/compass/"):
+            batch = chunk.to_record_batch()
+            t, v = points.setdefault(chunk.entity_path, ([], []))
+            t += pa.array(batch.column("time")).cast(pa.int64()).to_pylist()
+            v += pa.array(batch.column("Scalars:scalars")).flatten().to_pylist()
     devices = result["compass"]["devices"]
     assert len(devices) == len(VEHICLES)
     for d in devices:
         entity = "/survey/compass/" + "".join(c if c.isalnum() else "_" for c in d["device_id"])
         assert len(d["start_ns"]) == len(d["logs"]) == FLIGHTS
         assert d["start_ns"] == sorted(d["start_ns"])
-        for key in ("offset", "motor"):
-            for axis in "xyz":
-                assert rows[f"{entity.rstrip('_')}/{key}/{key}_{axis}"] == FLIGHTS
+        for key, values in (("offset", d["offset_ut"]), ("motor", d["motor"])):
+            for i, axis in enumerate("xyz"):
+                line = f"{entity.rstrip('_')}/{key}/{key}_{axis}"
+                assert rows[line] == FLIGHTS
+                t, v = points[line]  # at the flights' start, in uT (uT/A)
+                assert t == d["start_ns"]
+                np.testing.assert_allclose(v, np.asarray(values)[:, i], rtol=1e-12)
 
 
 def test_vehicle_calibration_and_its_error(planted):
