@@ -265,3 +265,16 @@ def test_stamps_back_and_repeated_within_a_batch_reach_the_manifest(log, tmp_pat
     assert sorted(streamed) == sorted(
         w for w in lines["one batch"] if "time order" in w or "repeat the" in w
     )
+    # convert streams the same way: its manifest carries the same warnings
+    from conftest import run_cli
+
+    cal = tmp_path / "identity.json"
+    step = {"type": "gyro_bias", "sensor": "gyro", "kind": "linear", "matrix": np.eye(3).tolist()}
+    step["offset"] = [0.0] * 3
+    cal.write_text(json.dumps({"chain": [step]}))
+    proc = run_cli("convert", "--calibration", cal, "--out", tmp_path / "conv", root / "one.mcap")
+    assert proc.returncode == 0, proc.stderr
+    (line,) = [
+        json.loads(m) for m in (tmp_path / "conv" / "manifest.jsonl").read_text().splitlines()
+    ]
+    assert [w for w in line["warnings"] if "time order" in w or "repeat the" in w] == streamed

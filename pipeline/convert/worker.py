@@ -193,7 +193,7 @@ def _convert_log(task: LogTask) -> LogStats:
             try:
                 with McapTableWriter(mcap_tmp, calibration=doc) as writer:
                     carried: list[RawMessage] = []
-                    pairs = dispatch.iter_input(spec, batch_rows=task.batch_rows)
+                    pairs = dispatch.iter_input(spec, batch_rows=task.batch_rows, warnings=warnings)
                     streams: set[str] = set()
                     batches = _tables(pairs, carried, read, provenance, warnings, streams)
                     for corrected in apply_chain_stream(batches, steps):
