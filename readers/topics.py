@@ -115,3 +115,9 @@ def asked_topics(
             )
         chosen[stream] = wanted
     return chosen, off
+
+
+NOT_CARRIED = "not carried into the corrected MCAP"
+"""The words of every warning that names a log's topics a corrected MCAP does not carry (the
+ULog and DataFlash readers' note, ``convert``'s count of them): ``convert`` keeps only its own,
+which has the counts."""

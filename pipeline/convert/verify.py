@@ -20,6 +20,7 @@ from imupipe.pipeline.errors import ImupipeError, ReadError
 from imupipe.pipeline.writers.mcap import DEFAULT_TOPICS
 from imupipe.readers.spec import InputSpec
 from imupipe.readers.table import counts, metadata
+from imupipe.readers.topics import NOT_CARRIED
 
 
 class VerifyError(ImupipeError):
@@ -134,7 +135,7 @@ def not_carried(
     total, dropped = sum(counts.values()), sum(lost.values())
     names = ", ".join(f"{t} ({n:,})" for t, n in lost.items())
     return [
-        f"{len(lost)} of {len(counts)} {FORMAT_NAMES.get(fmt, fmt)} topics are not carried into the corrected MCAP (they "
+        f"{len(lost)} of {len(counts)} {FORMAT_NAMES.get(fmt, fmt)} topics are {NOT_CARRIED} (they "
         f"have no ROS message type; {dropped:,} of {total:,} messages): {names}"
     ]
 

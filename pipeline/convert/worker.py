@@ -47,6 +47,7 @@ from imupipe.pipeline.writers.mcap import McapTableWriter
 from imupipe.readers import dispatch
 from imupipe.readers.spec import RawMessage
 from imupipe.readers.table import SCHEMA, STREAM_OF_SENSOR, STREAM_SENSORS, has_stream, metadata
+from imupipe.readers.topics import NOT_CARRIED
 from imupipe.stages.steps import apply_chain_stream, steps_from_json
 
 OUTPUT_FAULTS = {
@@ -220,7 +221,10 @@ def _convert_log(task: LogTask) -> LogStats:
             written = mcap_counts(mcap_tmp) or {}
             warnings += _nothing_applies(task.calibration["chain"], streams)
             verify_counts(src, expected if expected is not None else read, written)
-            warnings += not_carried(fmt, source_counts(src, fmt), written)
+            lost = not_carried(fmt, source_counts(src, fmt), written)
+            if lost:  # the count of what is not carried replaces the reader's note of it
+                warnings[:] = [w for w in warnings if NOT_CARRIED not in w]
+            warnings += lost
         status, checked = "converted", provenance.status
     return LogStats(
         input=task.source or str(src),

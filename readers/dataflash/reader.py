@@ -70,7 +70,7 @@ from imupipe.readers.table import (
     with_stream_column,
 )
 from imupipe.readers.table_buffer import assemble
-from imupipe.readers.topics import asked_topics
+from imupipe.readers.topics import NOT_CARRIED, asked_topics
 
 HEAD = (0xA3, 0x95)
 """The two bytes that start every record."""
@@ -595,7 +595,7 @@ def read_dataflash(spec: InputSpec) -> tuple[pa.Table, list[str]]:
             f", ... ({len(others) - 5} more)" if len(others) > 5 else ""
         )
         warnings.append(
-            f"{len(others)} other DataFlash messages are not carried into the corrected MCAP "
+            f"{len(others)} other DataFlash messages are {NOT_CARRIED} "
             f"(they have no ROS message type; imupipe inspect lists them): {shown}"
         )
     return with_metadata(table, meta), warnings

@@ -74,7 +74,7 @@ from imupipe.readers.table import (
     with_stream_column,
 )
 from imupipe.readers.table_buffer import assemble
-from imupipe.readers.topics import asked_topics
+from imupipe.readers.topics import NOT_CARRIED, asked_topics
 from imupipe.readers.ulog.rotation import mag_rotation, mag_slot
 
 US_TO_NS = 1000
@@ -788,7 +788,7 @@ def read_ulog(spec: InputSpec) -> tuple[pa.Table, list[str]]:
             f", ... ({len(others) - 5} more)" if len(others) > 5 else ""
         )
         warnings.append(
-            f"{len(others)} other ULog topics are not carried into the corrected MCAP (they "
+            f"{len(others)} other ULog topics are {NOT_CARRIED} (they "
             f"have no ROS message type; imupipe inspect lists them): {shown}"
         )
     return with_metadata(table, meta), warnings
