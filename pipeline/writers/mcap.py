@@ -76,7 +76,13 @@ RAW_BUFFER_BYTES = 256 << 20
 
 @cache
 def msgdef(msgtype: str) -> str:
-    """The ros2msg schema text of a message type (as rosbags generates it)."""
+    """The ros2msg schema text of a message type (as rosbags generates it; the writer's own
+    types from :data:`~imupipe.pipeline.writers.msgdefs.MSGDEFS`, without building rosbags'
+    typestore)."""
+    from imupipe.pipeline.writers.msgdefs import MSGDEFS
+
+    if msgtype in MSGDEFS:
+        return MSGDEFS[msgtype]
     from rosbags.typesys import Stores, get_typestore
 
     return get_typestore(Stores.ROS2_HUMBLE).generate_msgdef(msgtype, ros_version=2)[0]
