@@ -58,7 +58,7 @@ from typing import Any
 import numpy as np
 
 from imupipe.stages.steps import LinearStep, Step
-from imupipe.stages.survey.fleet import DAY_NS, thermal_fit
+from imupipe.stages.survey.fleet import DAY_NS, add_flag, thermal_fit
 from imupipe.stages.survey.stats import G0, mad_sigma
 from imupipe.stages.thermal import models as tm
 from imupipe.stages.thermal.step import (
@@ -335,22 +335,18 @@ def chamber_flags(
                 where += f" (beyond the chamber's {lo:.0f}..{hi:.0f} degC: extrapolated)"
             unit = "rad/s" if figure.startswith("gyro") else "m/s^2"
             if np.isfinite(c["limit_offset"]) and abs(c["offset"]) > c["limit_offset"]:
-                d["flags"].append(
-                    {
-                        "device_id": d["device_id"], "kind": "chamber_offset", "figure": figure,
-                        "log": None, "value": c["offset"], "threshold": c["limit_offset"],
-                        "why": f"in-field {where} (moved since the chamber: offset "
-                        f"{c['offset']:+.3g} +- {c['offset_se']:.2g} {unit} at {c['t_centre']:.0f} "
-                        f"degC, limit {c['limit_offset']:.2g})",
-                    }
+                add_flag(
+                    d["flags"], d["device_id"], "chamber_offset", figure, None, c["offset"],
+                    c["limit_offset"],
+                    f"in-field {where} (moved since the chamber: offset "
+                    f"{c['offset']:+.3g} +- {c['offset_se']:.2g} {unit} at {c['t_centre']:.0f} "
+                    f"degC, limit {c['limit_offset']:.2g})",
                 )  # fmt: skip
             if np.isfinite(c["limit_slope"]) and abs(c["slope"]) > c["limit_slope"]:
-                d["flags"].append(
-                    {
-                        "device_id": d["device_id"], "kind": "chamber_slope", "figure": figure,
-                        "log": None, "value": c["slope"], "threshold": c["limit_slope"],
-                        "why": f"in-field {where} (thermal slope {c['slope']:+.2g} +- "
-                        f"{c['slope_se']:.1g} {unit}/K off the chamber's, limit {c['limit_slope']:.1g})",
-                    }
+                add_flag(
+                    d["flags"], d["device_id"], "chamber_slope", figure, None, c["slope"],
+                    c["limit_slope"],
+                    f"in-field {where} (thermal slope {c['slope']:+.2g} +- "
+                    f"{c['slope_se']:.1g} {unit}/K off the chamber's, limit {c['limit_slope']:.1g})",
                 )  # fmt: skip
     return widen

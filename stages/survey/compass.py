@@ -42,6 +42,7 @@ from typing import Any
 
 import numpy as np
 
+from imupipe.stages.survey.fleet import add_flag
 from imupipe.stages.survey.stats import mad_sigma, theil_sen, weighted_mean
 
 OFF_FRACTION = 0.05
@@ -134,21 +135,6 @@ def _steps(h: CompassHistory, values: np.ndarray, se: np.ndarray, scale: np.ndar
     return out
 
 
-def _flag(h: CompassHistory, kind: str, figure: str, log: str | None, value: float, limit: float,
-          why: str) -> None:  # fmt: skip
-    h.flags.append(
-        {
-            "device_id": h.device_id,
-            "kind": kind,
-            "figure": figure,
-            "log": log,
-            "value": float(value),
-            "threshold": float(limit),
-            "why": why,
-        }
-    )
-
-
 def _vec(d: np.ndarray, unit: str) -> str:
     return "(" + ", ".join(f"{v:+.2f}" for v in d) + f") {unit}"
 
@@ -172,8 +158,8 @@ def _step_flags(
             )
             if opposite and similar:
                 skip.add(j + 1)
-                _flag(
-                    h, "outlier", name, h.logs[j], float(d[axis]), limit,
+                add_flag(
+                    h.flags, h.device_id, "outlier", name, h.logs[j], float(d[axis]), limit,
                     f"{name} of {h.logs[j]} depart from the flights before and after by "
                     f"{_vec(d, unit)} (limit {limit:.2g} {unit}): one odd flight",
                 )  # fmt: skip
@@ -184,8 +170,8 @@ def _step_flags(
             if unit == "uT" and np.isfinite(h.field[j]) and h.field[j] > 0
             else ""
         )
-        _flag(
-            h, "step", name, h.logs[j], float(d[axis]), limit,
+        add_flag(
+            h.flags, h.device_id, "step", name, h.logs[j], float(d[axis]), limit,
             f"{name} stepped by {_vec(d, unit)}{share} between {h.logs[j - 1]} and {h.logs[j]} "
             f"(limit {limit:.2g} {unit} on {'xyz'[axis]})",
         )  # fmt: skip
@@ -250,8 +236,8 @@ def compass_flags(histories: Sequence[CompassHistory], k: float) -> dict[str, An
             med, sig = float(np.median(finite)), mad_sigma(finite)
             walk = k * s_off[i] * np.sqrt(max(n - a - 1, 1))
             if abs(s - med) > k * sig and abs(s - med) * span > walk:
-                _flag(
-                    h, "drift", f"offset_{'xyz'[i]}", None, s, med + k * sig,
+                add_flag(
+                    h.flags, h.device_id, "drift", f"offset_{'xyz'[i]}", None, s, med + k * sig,
                     f"offset {'xyz'[i]} drifts {s:+.3g} uT/day over {span:.0f} days (fleet median "
                     f"{med:+.3g}, limit +-{k * sig:.2g})",
                 )  # fmt: skip
@@ -259,8 +245,8 @@ def compass_flags(histories: Sequence[CompassHistory], k: float) -> dict[str, An
             err = float(h.calibration_error[-1])
             limit = max(OFF_FRACTION * float(h.field[-1]), float(h.residual_after[-1]))
             if err > limit:
-                _flag(
-                    h, "calibration", "calibration_error_ut", h.logs[-1], err, limit,
+                add_flag(
+                    h.flags, h.device_id, "calibration", "calibration_error_ut", h.logs[-1], err, limit,
                     f"the compass calibration in use is off by {err:.1f} uT in {h.logs[-1]} "
                     f"(limit {limit:.1f} uT: {100 * OFF_FRACTION:.0f} % of the field or the "
                     "flight's own residual)",

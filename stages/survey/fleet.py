@@ -327,12 +327,22 @@ def refer(h: DeviceHistory, name: str) -> None:
     h.figures[name] = fit.value - slope * np.nan_to_num(fit.temperature - h.t_ref)
 
 
-def _flag(
-    h: DeviceHistory, kind: str, figure: str, log: str | None, value: float, limit: float, why: str
+def add_flag(
+    flags: list[dict[str, Any]],
+    device_id: str,
+    kind: str,
+    figure: str,
+    log: str | None,
+    value: float,
+    limit: float,
+    why: str,
 ) -> None:
-    h.flags.append(
+    """Append one flag record (``fleet.json``'s ``flags``: the device, the rule's ``kind``, the
+    figure, the log it names, the value against its ``threshold`` and the reason in words); every
+    rule of the fleet view, the chamber comparison and the compass view records its flags so."""
+    flags.append(
         {
-            "device_id": h.device_id,
+            "device_id": device_id,
             "kind": kind,
             "figure": figure,
             "log": log,
@@ -416,8 +426,9 @@ def fleet_flags(histories: Sequence[DeviceHistory], k: float) -> dict[str, Any]:
                 referred = (np.nan_to_num(h.fits[name].slope_se) * dtemp) ** 2
                 limit = k * np.sqrt(base**2 * (j - i) + se[j] ** 2 + se[i] ** 2 + referred)
                 if abs(d) > limit:
-                    _flag(
-                        h,
+                    add_flag(
+                        h.flags,
+                        h.device_id,
                         "step",
                         name,
                         h.logs[j],
@@ -441,8 +452,9 @@ def fleet_flags(histories: Sequence[DeviceHistory], k: float) -> dict[str, Any]:
             ):
                 j = drift_onset(f, se, base, k, float(np.sign(s - med)))
                 since = "" if j is None else f" from {h.logs[j]} on"
-                _flag(
-                    h,
+                add_flag(
+                    h.flags,
+                    h.device_id,
                     "drift",
                     name,
                     None if j is None else h.logs[j],
@@ -457,8 +469,9 @@ def fleet_flags(histories: Sequence[DeviceHistory], k: float) -> dict[str, Any]:
                 limit = k * scales[f"{s}_noise"]
                 if abs(d) > limit:
                     word = "rose" if d > 0 else "fell"
-                    _flag(
-                        h,
+                    add_flag(
+                        h.flags,
+                        h.device_id,
                         "noise",
                         f"{s}_noise",
                         h.logs[j],
