@@ -78,6 +78,8 @@ class LinearStep(Step):
     """
 
     kind: ClassVar[str] = "linear"
+    arrays: ClassVar[tuple[str, ...]] = ("matrix", "offset")
+    """The entry's number arrays (the step's fields); its other keys are ``params``."""
     type: str
     sensor: str
     matrix: np.ndarray
@@ -135,18 +137,10 @@ class LinearStep(Step):
 
     @classmethod
     def from_json(cls, entry: dict[str, Any]) -> LinearStep:
-        params = {
-            k: v
-            for k, v in entry.items()
-            if k not in ("type", "sensor", "kind", "matrix", "offset")
-        }
-        return cls(
-            type=entry["type"],
-            sensor=entry["sensor"],
-            matrix=np.array(entry["matrix"], dtype=np.float64),
-            offset=np.array(entry["offset"], dtype=np.float64),
-            params=params,
-        )
+        arrays = {k: np.array(entry[k], dtype=np.float64) for k in cls.arrays}
+        skip = ("type", "sensor", "kind", *cls.arrays)
+        params = {k: v for k, v in entry.items() if k not in skip}
+        return cls(type=entry["type"], sensor=entry["sensor"], params=params, **arrays)
 
 
 FLOAT_MAX = float(np.finfo(np.float64).max)

@@ -555,6 +555,7 @@ class MagCurrentStep(LinearStep):
     left out)."""
 
     kind: ClassVar[str] = "mag_current"
+    arrays: ClassVar[tuple[str, ...]] = ("matrix", "offset", "motor")
     stream: ClassVar[str] = "current"
     """The flight stream the motor term multiplies."""
     motor: np.ndarray = field(default_factory=lambda: np.zeros(3))
@@ -583,22 +584,6 @@ class MagCurrentStep(LinearStep):
         super().check_entry(entry)
         if _numbers(entry.get("motor"), (3,)) is None:
             raise EntryError("motor", f"3 numbers expected, got {_short(entry.get('motor'))}")
-
-    @classmethod
-    def from_json(cls, entry: dict[str, Any]) -> MagCurrentStep:
-        params = {
-            k: v
-            for k, v in entry.items()
-            if k not in ("type", "sensor", "kind", "matrix", "offset", "motor")
-        }
-        return cls(
-            type=entry["type"],
-            sensor=entry["sensor"],
-            matrix=np.array(entry["matrix"], dtype=np.float64),
-            offset=np.array(entry["offset"], dtype=np.float64),
-            params=params,
-            motor=np.array(entry["motor"], dtype=np.float64),
-        )
 
 
 @dataclass
