@@ -48,23 +48,28 @@ def mismatches(chain: Sequence[Mapping[str, Any]], log_meta: Mapping[str, Any]) 
     log's device: the others are not applied to it
     (:class:`~imupipe.pipeline.calibration_file.OnDevice`)."""
     found = []
-    devices: dict[str, set[tuple[Any, ...]]] = {}
+    named: dict[str, list[dict[str, Any]]] = {}  # sensor -> the devices its entries name
     for i, where in fitted_on(chain):
         sensor = chain[i]["sensor"]
-        devices.setdefault(sensor, set()).add(device_key(device(where, sensor)))
-    devices = {k: v - {UNNAMED} for k, v in devices.items()}
+        dev = device(where, sensor)
+        named.setdefault(sensor, [])
+        if device_key(dev) != UNNAMED:
+            named[sensor].append(dev)
+    devices = {s: {device_key(d) for d in devs} for s, devs in named.items()}
     for sensor, keys in sorted(devices.items()):
         ours = device(log_meta, sensor)
         mine = device_key(ours)
-        if len(keys) > 1 and mine != UNNAMED:
-            named = [dict(zip(("key", "value"), k, strict=True)) for k in sorted(keys, key=str)]
-            if not any(same_device({n["key"]: n["value"]}, ours) for n in named):
-                listed = ", ".join(f"{n['key']} {n['value']!r}" for n in named)
-                found.append(
-                    f"the calibration's {sensor} steps are for {len(keys)} devices ({listed}); "
-                    f"this log's {sensor} ({mine[0]} {mine[1]!r}) is none of "
-                    "them: none of their steps is applied"
-                )
+        if (
+            len(keys) > 1
+            and mine != UNNAMED
+            and not any(same_device(d, ours) for d in named[sensor])
+        ):
+            listed = ", ".join(f"{k} {v!r}" for k, v in sorted(keys, key=str))
+            found.append(
+                f"the calibration's {sensor} steps are for {len(keys)} devices ({listed}); "
+                f"this log's {sensor} ({mine[0]} {mine[1]!r}) is none of "
+                "them: none of their steps is applied"
+            )
     for i, where in fitted_on(chain):
         sensor = chain[i]["sensor"]
         if len(devices[sensor]) > 1 and not same_device(
