@@ -25,11 +25,21 @@ from imupipe.readers.spec import (
     MAG_UNITS,
     TIME_UNITS,
     CsvMapping,
+    FieldMapping,
     InputSpec,
 )
 from imupipe.stages.registry import STAGE_TYPES, stage_class
 
-INPUT_KEYS = {"path", "imu_topic", "mag_topic", "temperature_topic", "time", "csv", "instances"}
+INPUT_KEYS = {
+    "path",
+    "imu_topic",
+    "mag_topic",
+    "temperature_topic",
+    "time",
+    "csv",
+    "fields",
+    "instances",
+}
 CSV_KEYS = {f.name for f in dataclasses.fields(CsvMapping)} - {"required"}
 OUTPUT_KEYS = {"dir", "apply_to", "rerun", "rerun_max_points", "report", "exports", "params"}
 TOP_KEYS = {"inputs", "stages", "output"}
@@ -195,6 +205,38 @@ def _csv_mapping(where: str, raw: dict[str, Any]) -> CsvMapping:
     return mapping
 
 
+def _field_mapping(where: str, raw: Any) -> FieldMapping | None:
+    """``[inputs.NAME.fields]`` into a :class:`FieldMapping` (None when absent); the paths are
+    checked against the log when it is read."""
+    if raw is None:
+        return None
+    if not isinstance(raw, dict):
+        raise ConfigError(f"{where}: must be a table")
+    mapping = build_options(FieldMapping, dict(raw), where)
+    for key, units in (
+        ("time_unit", TIME_UNITS),
+        ("gyro_unit", GYRO_UNITS),
+        ("accel_unit", ACCEL_UNITS),
+        ("mag_unit", MAG_UNITS),
+    ):
+        if getattr(mapping, key) not in units:
+            raise ConfigError(
+                f"{where}.{key}: '{getattr(mapping, key)}' is not one of {', '.join(units)}"
+            )
+    for key in ("gyro", "accel", "mag"):
+        value = getattr(mapping, key)
+        if isinstance(value, list) and len(value) != 3:
+            raise ConfigError(f"{where}.{key}: must name 3 fields (x, y, z), got {len(value)}")
+        for path in [value] if isinstance(value, str) else value or []:
+            if "." not in path.strip("."):
+                raise ConfigError(f"{where}.{key}: '{path}' is not TOPIC.FIELD")
+    if all(getattr(mapping, k) is None for k in ("gyro", "accel", "mag", "temperature")):
+        raise ConfigError(f"{where}: maps no sensor (gyro, accel, mag or temperature)")
+    if mapping.time not in ("header", "log") and "." not in mapping.time.strip("."):
+        raise ConfigError(f"{where}.time: '{mapping.time}' is not header, log or TOPIC.FIELD")
+    return mapping
+
+
 def parse_input(name: str, raw: Any, base: Path, where: str) -> InputSpec:
     """One ``[inputs.NAME]`` table into an :class:`InputSpec`."""
     if not isinstance(raw, dict):
@@ -228,6 +270,7 @@ def parse_input(name: str, raw: Any, base: Path, where: str) -> InputSpec:
         temperature_topic=raw.get("temperature_topic"),
         time=time,
         csv=csv,
+        fields=_field_mapping(f"{where}.fields", raw.get("fields")),
     )
 
 

@@ -65,6 +65,10 @@ def _choose(spec: InputSpec, sources: Sequence[LogSource]) -> dict[str, str]:
     for src in sources:
         types.update(src.topic_types())
     where = sources[0].path if len(sources) == 1 else Path(spec.path)
+    if spec.fields is not None:  # the mapped topics (never carried over)
+        from imupipe.readers.mapped import mapped_topics
+
+        return {topic: topic for topic in mapped_topics(spec, list(types))}
     return select_topics(where, spec, types)
 
 
@@ -80,6 +84,10 @@ def _check_empty(spec: InputSpec, streams: dict[str, str], counts: dict[str, int
 
 def read_sources(spec: InputSpec, sources: Sequence[LogSource]) -> tuple[pa.Table, list[str]]:
     """The whole input as one common table; returns (table, warnings)."""
+    if spec.fields is not None:
+        from imupipe.readers.mapped import read_mapped
+
+        return read_mapped(spec, sources)  # type: ignore[arg-type]
     streams = _choose(spec, sources)
     stated = [src.topic_counts() for src in sources]
     counts = None
@@ -142,7 +150,14 @@ def iter_sources(
 
     Chunks are read in file order; after each, messages whose log time is below the bound of
     everything still unread (chunk indexes / chunk infos) are final and may be emitted, the
-    rest wait. Memory is bounded by ``batch_rows`` plus the overlap of the log's chunks."""
+    rest wait. Memory is bounded by ``batch_rows`` plus the overlap of the log's chunks.
+    An input read through a field mapping is one batch."""
+    if spec.fields is not None:
+        table, warned = read_sources(spec, sources)
+        yield table, carry_sources(spec, sources) if carry else []
+        if warnings is not None:
+            warnings += warned
+        return
     streams = _choose(spec, sources)
     ordered = _ordered(sources)
     later_first = [

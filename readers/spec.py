@@ -86,6 +86,39 @@ class CsvMapping:
 
 
 @dataclass
+class FieldMapping:
+    """Which message fields hold what, for a log of any message type (``[inputs.NAME.fields]``).
+
+    A path is ``"TOPIC.FIELD.PATH"`` (the topic, then field names joined by ``.``; an array
+    element by its index, ``gyro_rad.0``). A sensor is one path naming a Vector3-like struct
+    (three numeric fields) or a 3-element array, or a list of three scalar paths (x, y, z).
+    Each sensor may come from its own topic: each message of a topic is one row of the table,
+    the sensors of other topics null on it. Values are converted to SI by the ``*_unit`` keys.
+    """
+
+    gyro: str | list[str] | None = None
+    """The angular rate (x, y, z)."""
+    gyro_unit: str = "rad/s"
+    """rad/s, deg/s, or raw (counts, left unscaled)."""
+    accel: str | list[str] | None = None
+    """The specific force (x, y, z)."""
+    accel_unit: str = "m/s^2"
+    """m/s^2, g, mg, or raw."""
+    mag: str | list[str] | None = None
+    """The magnetic field (x, y, z)."""
+    mag_unit: str = "T"
+    """T, mT, uT, nT, gauss, mgauss, or raw."""
+    temperature: str | None = None
+    """The temperature, degC: one scalar path."""
+    time: str = "header"
+    """``header`` (each message's ``header.stamp``), ``log`` (its log time), or a path
+    ``"TOPIC.FIELD"`` (an integer or float field in ``time_unit``, or a time struct such as
+    ``builtin_interfaces/Time``); a path's field is read on every mapped topic."""
+    time_unit: str = "ns"
+    """Unit of a numeric time field: s, ms, us or ns."""
+
+
+@dataclass
 class InputSpec:
     """One named input of the config (or one log given to ``convert``)."""
 
@@ -97,6 +130,9 @@ class InputSpec:
     time: str = "header"
     """``header``: message header stamps; ``log``: the log (receive) time of each message."""
     csv: CsvMapping = field(default_factory=CsvMapping)
+    fields: FieldMapping | None = None
+    """A field mapping (``[inputs.NAME.fields]``): the sensors read from any message's fields
+    instead of from sensor_msgs topics."""
 
 
 @dataclass

@@ -16,6 +16,7 @@ import pyarrow as pa
 
 from imupipe.readers.decoded import Piece, concat, decode_piece
 from imupipe.readers.errors import ReadError
+from imupipe.readers.mapped import Batch, Definition
 from imupipe.readers.mcap.fast import ChunkMessages, McapFile
 from imupipe.readers.sources import carry_sources, iter_sources, read_sources
 from imupipe.readers.spec import InputSpec, RawMessage
@@ -87,6 +88,32 @@ class McapSource:
                         raw.extend(self._raw(chunk, cid, converters))
                 raw.sort(key=lambda m: m.log_time)
             yield {s: concat(p, s) for s, p in pieces.items()}, raw, chunk.bound
+
+    def definitions(self) -> dict[str, Definition]:
+        """Topic -> its channel's message definition (the first channel of a topic)."""
+        out: dict[str, Definition] = {}
+        for c in sorted(self.file.channels.values(), key=lambda c: c.id):
+            out.setdefault(
+                c.topic,
+                Definition(c.schema_name, c.message_encoding, c.schema_encoding, c.schema_data),
+            )
+        return out
+
+    def payloads(self, topics: set[str]) -> Iterator[list[tuple[str, Batch]]]:
+        """Per chunk: the messages of ``topics`` (field mappings, :mod:`imupipe.readers.mapped`)."""
+        for chunk in self.file.chunks():
+            out = []
+            for cid in chunk.offsets:
+                topic = self.file.channel(cid, chunk).topic
+                if topic in topics:
+                    view = self._view(chunk, cid)
+                    log, pub, starts, lengths = view.records(cid, copy=False)
+                    out.append((topic, Batch(view.buf, starts, lengths, log, pub)))
+            yield out
+
+    def _view(self, chunk: ChunkMessages, cid: int) -> ChunkMessages:
+        """The chunk as a channel's payloads are read from it."""
+        return chunk
 
     def _decode(self, chunk: ChunkMessages, cid: int, stream: str) -> Piece:
         channel = self.file.channels[cid]

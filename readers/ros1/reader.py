@@ -40,6 +40,7 @@ from imupipe.readers.cdr import unaligned
 from imupipe.readers.compression import DECOMPRESS_THREADS, PREFETCH, decompress_chunk
 from imupipe.readers.decoded import Piece, concat, decode_piece
 from imupipe.readers.errors import ReadError
+from imupipe.readers.mapped import Batch, Definition
 from imupipe.readers.sources import carry_sources, iter_sources, read_sources
 from imupipe.readers.spec import InputSpec, RawMessage
 from imupipe.readers.topics import normalize_type
@@ -488,6 +489,24 @@ class Ros1Bag:
             raise ReadError(
                 f"{self.path}: cannot parse the bag's message definitions ({exc})"
             ) from None
+
+    def definitions(self) -> dict[str, Definition]:
+        """Topic -> its type and the connection header's definition text."""
+        out: dict[str, Definition] = {}
+        for c in self.connections.values():
+            out.setdefault(c.topic, Definition(c.msgtype, "ros1", "ros1msg", c.msgdef.encode()))
+        return out
+
+    def payloads(self, topics: set[str]) -> Iterator[list[tuple[str, Batch]]]:
+        """Per chunk: the messages of ``topics`` (see :mod:`imupipe.readers.mapped`)."""
+        conns = {cid: c.topic for cid, c in self.connections.items() if c.topic in topics}
+        for chunk in self.bag_chunks():
+            out = []
+            for cid, topic in conns.items():
+                if cid in chunk.index:
+                    log, start, length = chunk.payloads(cid)
+                    out.append((topic, Batch(chunk.buf, start, length, log)))
+            yield out
 
     def _decode(self, chunk: BagChunk, cid: int, stream: str) -> Piece:
         log, start, length = chunk.payloads(cid)

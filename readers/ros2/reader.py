@@ -33,6 +33,7 @@ import pyarrow as pa
 from imupipe.readers.compression import inflate_file, inflate_messages
 from imupipe.readers.decoded import Piece, decode_piece
 from imupipe.readers.errors import ReadError
+from imupipe.readers.mapped import Batch, Definition
 from imupipe.readers.mcap.fast import ChunkMessages
 from imupipe.readers.mcap.reader import McapSource
 from imupipe.readers.sources import LogSource, carry_sources, iter_sources, read_sources
@@ -187,13 +188,56 @@ class Sqlite3Bag:
                 raw.append(RawMessage(name, typ, "ros2msg", schema, fmt, data, lt, lt))
         return pieces, raw, int(log[-1])
 
-    def _decode(self, datas: list[bytes], log: np.ndarray, tid: int, stream: str) -> Piece:
+    def definitions(self) -> dict[str, Definition]:
+        """Topic -> its type, with the bag's ``message_definitions`` text (rosbag2 Iron and
+        later write it; else rosbags' Humble definitions know the standard types)."""
+        return {
+            name: Definition(typ, fmt, "ros2msg", self.defs.get(typ, b""))
+            for name, typ, fmt in self.topics.values()
+        }
+
+    def payloads(self, topics: set[str]) -> Iterator[list[tuple[str, Batch]]]:
+        """Per block of rows: the messages of ``topics`` (see :mod:`imupipe.readers.mapped`)."""
+        chosen = {tid: t[0] for tid, t in self.topics.items() if t[0] in topics}
+        if not chosen:
+            return
+        marks = ",".join("?" * len(chosen))
+        with _guard(self.path):
+            cursor = self._db.execute(
+                f"SELECT topic_id, timestamp, data FROM messages WHERE topic_id IN ({marks}) "
+                "ORDER BY timestamp, id",
+                list(chosen),
+            )
+        while True:
+            with _guard(self.path):
+                rows = cursor.fetchmany(BLOCK_ROWS)
+            if not rows:
+                return
+            tids, stamps, datas = zip(*rows, strict=True)
+            tid = np.asarray(tids, np.int64)
+            log = np.asarray(stamps, np.int64)
+            out = []
+            for t, name in chosen.items():
+                sel = np.flatnonzero(tid == t)
+                if len(sel):
+                    picked = [datas[i] for i in sel.tolist()]
+                    buf, starts, lengths = self._joined(picked, f"{self.path}: topic '{name}'")
+                    out.append((name, Batch(buf, starts, lengths, log[sel])))
+            yield out
+
+    def _joined(self, datas: list[bytes], where: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Payloads joined into one buffer: (buf, starts, lengths), decompressed when each is
+        a zstd frame."""
         lengths = np.fromiter(map(len, datas), np.int64, len(datas))
         starts = np.concatenate([[0], np.cumsum(lengths)[:-1]]).astype(np.int64)
         buf = np.frombuffer(b"".join(datas), np.uint8)
-        where = f"{self.path}: topic '{self.topics[tid][0]}'"
         if self.zstd_messages:
             buf, starts, lengths = inflate_messages(buf, starts, lengths, where)
+        return buf, starts, lengths
+
+    def _decode(self, datas: list[bytes], log: np.ndarray, tid: int, stream: str) -> Piece:
+        where = f"{self.path}: topic '{self.topics[tid][0]}'"
+        buf, starts, lengths = self._joined(datas, where)
         return decode_piece(buf, starts, lengths, log, stream, "cdr", where)
 
 
@@ -257,6 +301,15 @@ class Bag2Mcap(McapSource):
     ) -> Iterator[tuple[dict[str, Piece], list[RawMessage], int]]:
         with self._named():
             yield from super().chunks(streams, carry, decode)
+
+    def _view(self, chunk: ChunkMessages, cid: int) -> ChunkMessages:
+        if self.zstd_messages:
+            chunk = _Inflated(chunk, f"{self.path}: topic '{self.file.channels[cid].topic}'")  # type: ignore[assignment]
+        return chunk
+
+    def payloads(self, topics: set[str]) -> Iterator[list[tuple[str, Batch]]]:
+        with self._named():
+            yield from super().payloads(topics)
 
     def _decode(self, chunk: ChunkMessages, cid: int, stream: str) -> Piece:
         if self.zstd_messages:
