@@ -505,8 +505,9 @@ def _decode_json(
     import pyarrow.json as pj
 
     n = len(starts)
-    ends = np.cumsum(lengths + 1)
-    idx = np.repeat(starts - (ends - lengths - 1), lengths) + np.arange(int(ends[-1]) - n)
+    ends = np.cumsum(lengths + 1)  # in the joined text: each payload, then a newline
+    tstart = np.cumsum(lengths) - lengths
+    idx = np.repeat(starts - tstart, lengths) + np.arange(int(ends[-1]) - n)
     data = np.full(int(ends[-1]), 10, np.uint8)
     keep = np.ones(len(data), bool)
     keep[ends - 1] = False
@@ -697,8 +698,9 @@ class _ProtoScan:
         bits = (raw & 0x7F).astype(np.uint64) << (7 * np.arange(10, dtype=np.uint64))
         bits[np.arange(10) >= size[:, None]] = 0
         value = np.bitwise_or.reduce(bits, axis=1)
-        if np.any(more[:, 9]):
-            raise PayloadError(int(np.flatnonzero(more[:, 9])[0]), "varint longer than 10 bytes")
+        endless = more.all(axis=1)
+        if endless.any():
+            raise PayloadError(int(np.flatnonzero(endless)[0]), "varint longer than 10 bytes")
         return value, size
 
     def message(
