@@ -9,6 +9,7 @@ the reference reader decodes.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import shutil
 from pathlib import Path
@@ -398,10 +399,8 @@ def _proto_classes():
     f.options.packed = False
     imu.field.add(name="temp", number=5, type=17, label=1)  # sint32
     pool = descriptor_pool.Default()
-    try:
+    with contextlib.suppress(TypeError):  # already added by an earlier test in this process
         pool.Add(fd)
-    except TypeError:
-        pass  # already added by an earlier test in this process
     return message_factory.GetMessageClass(pool.FindMessageTypeByName("acme.Imu"))
 
 
