@@ -24,7 +24,13 @@ from typing import Any
 from imupipe.pipeline.errors import ImupipeError, ReadError
 from imupipe.readers.dispatch import detect_format
 from imupipe.readers.spec import InputSpec
-from imupipe.readers.topics import COLUMNS, STREAM_TYPES, normalize_type, select_topics
+from imupipe.readers.topics import (
+    COLUMNS,
+    STREAM_TYPES,
+    TYPE_STREAMS,
+    normalize_type,
+    select_topics,
+)
 
 BASE_COLUMNS = ["t_ns", "log_time_ns", "frame_id"]
 
@@ -99,6 +105,10 @@ def inspect(spec: InputSpec) -> dict[str, Any]:
         out["warnings"] = warnings
     if fmt in ("ulog", "dataflash"):
         return _ulog(spec, out)
+    if any(normalize_type(t) not in TYPE_STREAMS for t in types.values()) or spec.fields:
+        _fields(spec, out)
+    if spec.fields is not None:
+        return out
     try:
         chosen = select_topics(path, spec, types)
     except ImupipeError as exc:
@@ -115,6 +125,42 @@ def inspect(spec: InputSpec) -> dict[str, Any]:
         columns += [name for name, _, _ in COLUMNS[stream]]
     out["columns"] = columns
     return out
+
+
+def _fields(spec: InputSpec, out: dict[str, Any]) -> None:
+    """The fields of every topic that is not a sensor_msgs type the topic keys read, with the
+    ``[inputs.NAME.fields]`` keys that would read it; with a field mapping, the streams it
+    fills (or why it cannot: ``selection_error``)."""
+    from imupipe.readers.dispatch import log_sources
+    from imupipe.readers.mapped import describe_topics, plan
+
+    sources = log_sources(spec)
+    out["fields"] = describe_topics(sources, set(STREAM_TYPES.values()))  # type: ignore[arg-type]
+    if spec.fields is None:
+        return
+    defs = {}
+    for src in sources:
+        for topic, defn in src.definitions().items():  # type: ignore[attr-defined]
+            defs.setdefault(topic, defn)
+    try:
+        plans = plan(spec, defs)
+    except ImupipeError as exc:
+        out["columns"] = []
+        out["selection_error"] = str(exc)
+        return
+    columns = ["t_ns", "log_time_ns"]
+    for topic, tp in plans.items():
+        for sensor in tp.sensors:
+            stream = {"gyro": "imu", "accel": "imu"}.get(sensor, sensor)
+            entry = out["streams"].setdefault(
+                stream, {"topic": topic, "type": tp.mtype.name, "count": 0, "sensors": {}}
+            )
+            entry["sensors"][sensor] = topic
+            if topic != entry["topic"]:
+                entry["topic"] += f", {topic}"
+            entry["count"] += out["topics"].get(topic, {}).get("count", 0)
+            columns += [f"{sensor}_{a}" for a in "xyz"] if sensor != "temperature" else [sensor]
+    out["columns"] = columns
 
 
 def _from_summary(path: Path) -> tuple[dict[str, str], dict[str, Any]] | None:
@@ -263,6 +309,17 @@ def render(info: dict[str, Any]) -> str:
                 f"  {topic:<{width}}  {v['type']:<{tw}}  {v['count']:>9}  {rate:>9}  "
                 f"{_fmt_time(v['start_ns']):>16}  {v['duration_s']:>9.3f}"
             )
+    for topic, v in info.get("fields", {}).items():
+        lines.append(f"fields of {topic} ({v['type']}, {v['encoding']}):")
+        if "error" in v:
+            lines.append(f"  {v['error']}")
+            continue
+        lines.append("  " + ", ".join(f"{p} {t}" for p, t in v["fields"]))
+        if v["mapping"]:
+            keys = ", ".join(f"{k} = {json.dumps(p)}" for k, p in v["mapping"].items())
+            lines.append(f"  read by [inputs.NAME.fields]: {keys}")
+        else:
+            lines.append("  no field looks like gyro, accel, mag or temperature")
     if "selection_error" in info:
         lines.append(f"streams: not chosen: {info['selection_error']}")
     for stream, v in info["streams"].items():

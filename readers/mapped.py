@@ -43,6 +43,7 @@ from imupipe.readers.spec import (
     FieldMapping,
     InputSpec,
 )
+from imupipe.readers.topics import normalize_type
 
 SENSORS = ("gyro", "accel", "mag", "temperature")
 UNITS = {"gyro": GYRO_UNITS, "accel": ACCEL_UNITS, "mag": MAG_UNITS}
@@ -425,3 +426,89 @@ def read_mapped(spec: InputSpec, sources: Sequence[MappedSource]):  # noqa: ANN2
 
 def _topic_of(plans: Mapping[str, TopicPlan], sensor: str) -> str | None:
     return next((t for t, tp in plans.items() if sensor in tp.sensors), None)
+
+
+# --- what inspect shows ----------------------------------------------------------------------
+
+KEYWORDS: dict[str, tuple[str, ...]] = {
+    "gyro": ("gyro", "angular_velocity", "angular_rate", "ang_vel", "omega"),
+    "accel": ("accel", "linear_acceleration", "acc", "specific_force"),
+    "mag": ("mag", "magnetic_field", "compass"),
+    "temperature": ("temperature", "temp"),
+}
+"""Field names (parts) that suggest a sensor, in order of preference."""
+
+
+def suggest(topic: str, mtype: MessageType) -> dict[str, str]:
+    """The ``[inputs.NAME.fields]`` keys that would read this topic's sensors, by the field
+    names (``gyro_rad``, ``angular_velocity``, ``accelerometer_m_s2``...): a Vector3-like
+    struct or 3-element array for gyro, accel and mag, a number for temperature; ``time`` is
+    ``header`` when the message has a header stamp, else a time struct or a number named
+    ``timestamp`` (its unit to be set), else absent (the log time)."""
+    vectors: list[tuple[str, Node]] = []
+    numbers: list[tuple[str, Node]] = []
+
+    def visit(node: Node, prefix: str) -> None:
+        for c in node.children:
+            path = f"{prefix}{c.name}"
+            if c.kind == "struct":
+                if _time_struct(c) is None and len(_xyz(c)) == 3:
+                    vectors.append((path, c))
+                else:
+                    visit(c, path + ".")
+            elif c.kind == "array" and c.count == 3 and c.item and c.item.kind == "number":
+                vectors.append((path, c))
+            elif c.kind == "number":
+                numbers.append((path, c))
+
+    visit(mtype.root, "")
+    out: dict[str, str] = {}
+    for sensor, words in KEYWORDS.items():
+        pool = numbers if sensor == "temperature" else vectors
+        for word in words:
+            hit = next((p for p, _ in pool if word in p.lower().split(".")[-1]), None)
+            if hit is not None:
+                out[sensor] = f"{topic}.{hit}"
+                break
+    if not out:
+        return out
+    header = mtype.root.child("header")
+    stamp = header.child("stamp") if header is not None else None
+    if stamp is not None and _time_struct(stamp) is not None:
+        out["time"] = "header"
+    else:
+        for c in mtype.root.children:
+            if c.name.lower() in ("timestamp", "stamp", "time", "t") and (
+                c.kind == "number" or _time_struct(c) is not None
+            ):
+                out["time"] = f"{topic}.{c.name}"
+                if c.kind == "number":
+                    out["time_unit"] = "set: s, ms, us or ns"
+                break
+    return out
+
+
+def _xyz(node: Node) -> list[Node]:
+    named = {c.name.lower(): c for c in node.children if c.kind == "number"}
+    return [named[a] for a in "xyz" if a in named]
+
+
+def describe_topics(sources: Sequence[MappedSource], skip: set[str]) -> dict[str, dict]:
+    """Topic -> {type, encoding, fields [(path, type)], mapping (suggested keys)} for every
+    topic of a type outside ``skip`` (the sensor_msgs types the topic keys read); a
+    definition that cannot be used is named in ``error``."""
+    out: dict[str, dict] = {}
+    for src in sources:
+        for topic, defn in src.definitions().items():
+            if topic in out or normalize_type(defn.msgtype) in skip:
+                continue
+            entry: dict = {"type": defn.msgtype, "encoding": defn.encoding}
+            try:
+                mtype = message_type(defn)
+            except Exception as exc:  # noqa: BLE001 - shown, not raised: inspect describes
+                entry["error"] = f"cannot use its definition ({exc})"
+            else:
+                entry["fields"] = mtype.leaves()
+                entry["mapping"] = suggest(topic, mtype)
+            out[topic] = entry
+    return out

@@ -548,3 +548,36 @@ def test_short_sequence_is_a_read_error(tmp_path):
             w.write(c, 10 + i, store.serialize_cdr(M(np.arange(k, dtype=float)), M.__msgtype__))
     with pytest.raises(ReadError, match=r"topic '/seq': message at log time 12 .*fewer than 3"):
         read_input(InputSpec(path=folder, fields=FieldMapping(gyro="/seq.rate", time="log")))
+
+
+# --- inspect ----------------------------------------------------------------------------------
+
+
+def test_inspect_lists_fields_and_the_mapping(tmp_path):
+    write_px4_bag(tmp_path / "px4", "mcap", 30)
+    write_protobuf_mcap(tmp_path / "pb.mcap", 20)
+    write_json_mcap(tmp_path / "js.mcap", 20)
+    proc = run_cli("inspect", tmp_path / "px4", "--json")
+    assert proc.returncode == 0, proc.stderr
+    info = json.loads(proc.stdout)["fields"][TOPIC]
+    assert ["gyro_rad", "float32[3]"] in info["fields"]
+    assert info["mapping"]["gyro"] == f"{TOPIC}.gyro_rad"
+    assert info["mapping"]["accel"] == f"{TOPIC}.accelerometer_m_s2"
+    assert info["mapping"]["time"] == f"{TOPIC}.timestamp"
+    pb = json.loads(run_cli("inspect", tmp_path / "pb.mcap", "--json").stdout)["fields"]["/imu_pb"]
+    assert pb["encoding"] == "protobuf"
+    assert pb["mapping"] == {
+        "gyro": "/imu_pb.gyro",
+        "temperature": "/imu_pb.temp",
+        "time": "/imu_pb.timestamp",
+    }
+    text = run_cli("inspect", tmp_path / "js.mcap").stdout
+    assert "fields of /imu_json (imu_json, json):" in text and "g.x float64" in text
+    # with the mapping: the streams it fills
+    cfg = tmp_path / "read.toml"
+    cfg.write_text(f'[fields]\ngyro = "{TOPIC}.gyro_rad"\ntime = "log"\n')
+    proc = run_cli("inspect", tmp_path / "px4", "--config", cfg, "--json")
+    info = json.loads(proc.stdout)
+    assert info["streams"]["imu"]["sensors"] == {"gyro": TOPIC}
+    assert info["streams"]["imu"]["count"] == 30
+    assert info["columns"] == ["t_ns", "log_time_ns", "gyro_x", "gyro_y", "gyro_z"]
