@@ -350,46 +350,52 @@ def read_mapped(spec: InputSpec, sources: Sequence[MappedSource]):  # noqa: ANN2
     for topic, got in parts.items():
         if not got or not sum(len(g[0]) for g in got):
             raise ReadError(f"{spec.path}: topic '{topic}' has no messages")
-    # one row per message, topics in mapping order, each topic's messages in log order
-    ts, logs, pubs, which = [], [], [], []
-    for k, topic in enumerate(plans):
-        got = parts[topic]
-        ts.append(np.concatenate([g[0] for g in got]))
-        logs.append(np.concatenate([g[1] for g in got]))
-        pubs.append(np.concatenate([g[1] if g[2] is None else g[2] for g in got]))
-        which.append(np.full(len(ts[-1]), k, np.int16))
-    t, log, pub, topic_of = (np.concatenate(a) for a in (ts, logs, pubs, which))
+    # one row per message, topics in mapping order, each topic's messages in log order; then
+    # sorted stably by time (no sort when they already are: one topic, in order)
+    ts = [np.concatenate([g[0] for g in parts[topic]]) for topic in plans]
+    sizes = [len(x) for x in ts]
+    edges = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
+    t = np.concatenate(ts) if len(ts) > 1 else ts[0]
+    log = np.concatenate([g[1] for topic in plans for g in parts[topic]])
+    has_pub = any(g[2] is not None for got in parts.values() for g in got)
+    pub = (
+        np.concatenate([g[1] if g[2] is None else g[2] for tp in plans for g in parts[tp]])
+        if has_pub
+        else None
+    )
     counts: dict[str, list[int]] = {}
     for topic, tt in zip(plans, ts, strict=True):
-        moved = int(np.count_nonzero(tt < np.maximum.accumulate(tt))) if len(tt) else 0
-        dups = int(np.count_nonzero(np.diff(tt) == 0))
-        counts[topic] = [moved, dups]
-    order = np.lexsort((topic_of, t))
-    t, log, pub, topic_of = t[order], log[order], pub[order], topic_of[order]
+        back = tt[1:] < tt[:-1]
+        moved = int(np.count_nonzero(tt < np.maximum.accumulate(tt))) if back.any() else 0
+        counts[topic] = [moved, int(np.count_nonzero(tt[1:] == tt[:-1]))]
     n = len(t)
+    order = None if bool(np.all(t[1:] >= t[:-1])) else np.argsort(t, kind="stable")
     given: dict[str, np.ndarray] = {}
     valid: dict[str, np.ndarray] = {}
     for k, (topic, tp) in enumerate(plans.items()):
         got = parts[topic]
-        rows = np.flatnonzero(topic_of == k)
-        for j, (sensor, idx) in enumerate(tp.sensors.items()):
-            offset = sum(len(x) for x in list(tp.sensors.values())[:j])
-            cols = [
-                np.concatenate([g[3][offset + c] for g in got]).astype(np.float64)
-                for c in range(len(idx))
-            ]
-            block = np.stack(cols, axis=1)
-            unit = getattr(mapping, f"{sensor}_unit", "degC")
-            if sensor in UNITS:
-                block = block * UNITS[sensor][unit]
-            full = np.zeros((n, len(idx)))
-            within = order[rows]  # positions, in the concatenation, of this topic's rows
-            first = int(sum(len(x) for x in ts[:k]))
-            full[rows] = block[within - first]
+        lo, hi = int(edges[k]), int(edges[k + 1])
+        first = 0
+        for sensor, idx in tp.sensors.items():
+            block = np.empty((hi - lo, len(idx)))
+            for c in range(len(idx)):
+                np.concatenate([g[3][first + c] for g in got], out=block[:, c], casting="unsafe")
+            first += len(idx)
+            if sensor in UNITS and UNITS[sensor][getattr(mapping, f"{sensor}_unit")] != 1.0:
+                block *= UNITS[sensor][getattr(mapping, f"{sensor}_unit")]
+            if len(plans) == 1:
+                full = block
+            else:
+                full = np.zeros((n, len(idx)))
+                full[lo:hi] = block
+                mask = np.zeros(n, bool)
+                mask[lo:hi] = True
+                valid[sensor] = mask if order is None else mask[order]
+            full = full if order is None else full[order]
             given[sensor] = full if sensor != "temperature" else full[:, 0]
-            mask = np.zeros(n, bool)
-            mask[rows] = True
-            valid[sensor] = mask
+    if order is not None:
+        t, log = t[order], log[order]
+        pub = None if pub is None else pub[order]
     stream_topics = {}
     for sensor, stream in (("gyro", "imu"), ("accel", "imu"), ("mag", "mag")):
         stream_topics.setdefault(stream, _topic_of(plans, sensor))
@@ -406,7 +412,7 @@ def read_mapped(spec: InputSpec, sources: Sequence[MappedSource]):  # noqa: ANN2
     if units:
         meta["units"] = units
     extra: dict[str, np.ndarray] = {"log_time_ns": log}
-    if any(g[2] is not None for got in parts.values() for g in got):
+    if pub is not None:
         extra["publish_time_ns"] = pub
     table = make_table(
         t,

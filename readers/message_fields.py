@@ -691,16 +691,23 @@ class _ProtoScan:
         return [out[w] for w in wanted]
 
     def varint(self, pos: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(value uint64, size in bytes) of the varint at each position."""
-        raw = self.buf[pos[:, None] + np.arange(10)]
-        more = raw >= 0x80
-        size = np.argmin(more, axis=1) + 1
-        bits = (raw & 0x7F).astype(np.uint64) << (7 * np.arange(10, dtype=np.uint64))
-        bits[np.arange(10) >= size[:, None]] = 0
-        value = np.bitwise_or.reduce(bits, axis=1)
-        endless = more.all(axis=1)
-        if endless.any():
-            raise PayloadError(int(np.flatnonzero(endless)[0]), "varint longer than 10 bytes")
+        """(value uint64, size in bytes) of the varint at each position: one byte read where
+        it is below 0x80 (tags of fields 1-15, short lengths), ten where it is not."""
+        first = self.buf[pos]
+        value = first.astype(np.uint64)
+        size = np.ones(len(pos), np.int64)
+        long = np.flatnonzero(first >= 0x80)
+        if len(long):
+            raw = self.buf[pos[long, None] + np.arange(10)]
+            more = raw >= 0x80
+            endless = more.all(axis=1)
+            if endless.any():
+                raise PayloadError(int(long[np.flatnonzero(endless)[0]]), "varint past 10 bytes")
+            n = np.argmin(more, axis=1) + 1
+            bits = (raw & 0x7F).astype(np.uint64) << (7 * np.arange(10, dtype=np.uint64))
+            bits[np.arange(10) >= n[:, None]] = 0
+            value[long] = np.bitwise_or.reduce(bits, axis=1)
+            size[long] = n
         return value, size
 
     def message(
