@@ -18,7 +18,7 @@ from pathlib import Path
 import pytest
 
 from imupipe.pipeline.config import INPUT_KEYS, OUTPUT_KEYS
-from imupipe.readers.spec import CsvMapping
+from imupipe.readers.spec import CsvMapping, FieldMapping
 from imupipe.stages.options_doc import option_docs
 from imupipe.stages.registry import STAGE_TYPES, stage_class
 
@@ -26,9 +26,9 @@ ROOT = Path(__file__).resolve().parents[1]
 REFERENCE = ROOT / "docs" / "reference"
 
 
-@pytest.mark.parametrize("name", [*STAGE_TYPES, "csv"])
+@pytest.mark.parametrize("name", [*STAGE_TYPES, "csv", "fields"])
 def test_every_config_key_has_a_docstring(name: str) -> None:
-    cls = CsvMapping if name == "csv" else stage_class(name).Options
+    cls = {"csv": CsvMapping, "fields": FieldMapping}.get(name) or stage_class(name).Options
     missing = [o.name for o in option_docs(cls) if not o.doc.strip() and o.name != "required"]
     assert not missing, f"{name}: keys without a docstring: {missing}"
 

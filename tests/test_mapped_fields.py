@@ -488,7 +488,8 @@ def _cfg(tmp_path: Path, fields: str) -> Path:
     cfg = tmp_path / "cfg.toml"
     cfg.write_text(
         f'[inputs.px4]\npath = "px4"\n\n[inputs.px4.fields]\n{fields}\n\n'
-        '[[stages]]\ntype = "gyro_bias"\n\n[output]\ndir = "out"\nrerun = false\n'
+        '[[stages]]\ntype = "gyro_bias"\naccept_failed_checks = true\n\n'
+        '[output]\ndir = "out"\nrerun = false\n'
     )
     return cfg
 
@@ -532,7 +533,11 @@ def test_mapped_run_end_to_end(tmp_path):
         "--quiet",
     )
     assert proc.returncode == 0, proc.stderr
-    assert (tmp_path / "out").exists()
+    from mcap.reader import make_reader
+
+    with open(tmp_path / "out" / "px4.mcap", "rb") as fh:
+        got = [(c.topic, s.name) for s, c, _ in make_reader(fh).iter_messages()]
+    assert len(got) == 400 and set(got) == {(TOPIC, "sensor_msgs/msg/Imu")}
 
 
 def test_short_sequence_is_a_read_error(tmp_path):

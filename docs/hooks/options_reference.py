@@ -2,7 +2,8 @@
 
 A page line ``<!-- options: STAGE_TYPE -->`` becomes the table of that stage's keys (name, type,
 default, meaning) read from its ``Options`` dataclass and the field docstrings;
-``<!-- options: csv -->`` does the same for the ``[inputs.NAME.csv]`` mapping. The tables cannot
+``<!-- options: csv -->`` does the same for the ``[inputs.NAME.csv]`` mapping, and
+``<!-- options: fields -->`` for ``[inputs.NAME.fields]``. The tables cannot
 drift from the code: a key added to a stage appears here with its docstring.
 """
 
@@ -15,7 +16,7 @@ import types
 import typing
 from typing import Any
 
-from imupipe.readers.spec import CsvMapping
+from imupipe.readers.spec import CsvMapping, FieldMapping
 from imupipe.stages.options_doc import option_docs
 from imupipe.stages.registry import stage_class
 
@@ -25,7 +26,10 @@ ROLE = re.compile(r":(?:func|class|data|attr|meth|mod):`~?([^`]+)`")
 
 
 def options_class(name: str) -> type:
-    """The dataclass whose fields are the keys of ``name`` (a stage type, or ``csv``)."""
+    """The dataclass whose fields are the keys of ``name`` (a stage type, ``csv`` or
+    ``fields``)."""
+    if name == "fields":
+        return FieldMapping
     return CsvMapping if name == "csv" else stage_class(name).Options
 
 
