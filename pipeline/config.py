@@ -270,8 +270,25 @@ def parse_input(name: str, raw: Any, base: Path, where: str) -> InputSpec:
         temperature_topic=raw.get("temperature_topic"),
         time=time,
         csv=csv,
-        fields=_field_mapping(f"{where}.fields", raw.get("fields")),
+        fields=_fields_of(raw, where),
     )
+
+
+def _fields_of(raw: dict[str, Any], where: str) -> FieldMapping | None:
+    """The input's field mapping: its ``time`` defaults to the input's; the topic keys, which
+    it replaces, are an error beside it."""
+    mapping = _field_mapping(f"{where}.fields", raw.get("fields"))
+    if mapping is None:
+        return None
+    for key in ("imu_topic", "mag_topic", "temperature_topic"):
+        if key in raw:
+            raise ConfigError(
+                f"{where}.{key}: not used with [fields], which names every sensor's topic "
+                f'(map the Imu\'s fields there: gyro = "TOPIC.angular_velocity")'
+            )
+    if "time" not in raw["fields"]:
+        mapping.time = raw.get("time", "header")
+    return mapping
 
 
 def _name_part(key: str, value: Any) -> str | None:

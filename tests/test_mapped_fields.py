@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import re
 import shutil
 from pathlib import Path
 
@@ -586,3 +587,26 @@ def test_inspect_lists_fields_and_the_mapping(tmp_path):
     assert info["streams"]["imu"]["sensors"] == {"gyro": TOPIC}
     assert info["streams"]["imu"]["count"] == 30
     assert info["columns"] == ["t_ns", "log_time_ns", "gyro_x", "gyro_y", "gyro_z"]
+
+
+def test_config_fields_table(tmp_path):
+    from imupipe.pipeline.config import parse_input
+    from imupipe.pipeline.errors import ConfigError
+
+    (tmp_path / "a.mcap").touch()
+    spec = parse_input(
+        "a",
+        {"path": "a.mcap", "time": "log", "fields": {"gyro": "/t.g", "gyro_unit": "deg/s"}},
+        tmp_path,
+        "[inputs.a]",
+    )
+    assert spec.fields == FieldMapping(gyro="/t.g", gyro_unit="deg/s", time="log")
+    for raw, needle in (
+        ({"imu_topic": "/imu", "fields": {"gyro": "/t.g"}}, "imu_topic: not used with [fields]"),
+        ({"fields": {"time": "log"}}, "maps no sensor"),
+        ({"fields": {"gyro": "nodot"}}, "is not TOPIC.FIELD"),
+        ({"fields": {"gyro": "/t.g", "bogus": 1}}, "bogus"),
+        ({"fields": {"gyro": 3}}, "gyro"),
+    ):
+        with pytest.raises(ConfigError, match=re.escape(needle)):
+            parse_input("a", {"path": "a.mcap", **raw}, tmp_path, "[inputs.a]")
