@@ -697,17 +697,19 @@ class _ProtoScan:
         value = first.astype(np.uint64)
         size = np.ones(len(pos), np.int64)
         long = np.flatnonzero(first >= 0x80)
-        if len(long):
-            raw = self.buf[pos[long, None] + np.arange(10)]
-            more = raw >= 0x80
-            endless = more.all(axis=1)
-            if endless.any():
-                raise PayloadError(int(long[np.flatnonzero(endless)[0]]), "varint past 10 bytes")
-            n = np.argmin(more, axis=1) + 1
-            bits = (raw & 0x7F).astype(np.uint64) << (7 * np.arange(10, dtype=np.uint64))
-            bits[np.arange(10) >= n[:, None]] = 0
-            value[long] = np.bitwise_or.reduce(bits, axis=1)
-            size[long] = n
+        if len(long):  # byte k of the varints still going, for k = 1..9
+            value[long] &= np.uint64(0x7F)
+            live, p = long, pos[long]
+            for k in range(1, 10):
+                b = self.buf[p + k]
+                value[live] |= (b & 0x7F).astype(np.uint64) << np.uint64(7 * k)
+                size[live] = k + 1
+                going = b >= 0x80
+                live, p = live[going], p[going]
+                if not len(live):
+                    break
+            else:
+                raise PayloadError(int(live[0]), "varint past 10 bytes")
         return value, size
 
     def message(

@@ -610,3 +610,86 @@ def test_config_fields_table(tmp_path):
     ):
         with pytest.raises(ConfigError, match=re.escape(needle)):
             parse_input("a", {"path": "a.mcap", **raw}, tmp_path, "[inputs.a]")
+
+
+# --- real recordings (../shared/data, skipped when absent) ------------------------------------
+
+
+def _rosbag1_reference(path: Path, topic: str) -> list:
+    from rosbags.rosbag1 import Reader
+    from rosbags.typesys import Stores, get_types_from_msg, get_typestore
+
+    store = get_typestore(Stores.EMPTY)
+    with Reader(path) as r:
+        conns = [c for c in r.connections if c.topic == topic]
+        for c in conns:
+            types = get_types_from_msg(c.msgdef.data, c.msgtype)
+            store.register({k: v for k, v in types.items() if k not in store.fielddefs})
+        return [store.deserialize_ros1(raw, c.msgtype) for c, _, raw in r.messages(conns)]
+
+
+def _stamp(m) -> int:
+    return m.header.stamp.sec * 10**9 + m.header.stamp.nanosec
+
+
+def _valid_rows(table, column: str):
+    return table.filter(table.column(column).is_valid())
+
+
+@pytest.mark.parametrize(
+    ("bag", "gyro_topic", "gyro_field", "mag_topic"),
+    [
+        ("madgwick_phidgets_imu_upside_down.bag", "/imu/data_raw", "angular_velocity", "/imu/mag"),
+        ("madgwick_ardrone_imu.bag", "/ardrone/imu", "angular_velocity", "/ardrone/mag"),
+        ("rl_test1.bag", "/husky_velocity_controller/odom", "twist.twist.angular", None),
+    ],
+)
+def test_real_ros1_bags_equal_rosbags(bag, gyro_topic, gyro_field, mag_topic):
+    """Recorded ROS 1 bags (imu_tools, robot_localization): each topic's definition from its
+    connection header; nav_msgs/Odometry has strings and covariances before its twist."""
+    from conftest import shared_path
+
+    path = shared_path("logs", bag)
+    mapping = FieldMapping(
+        gyro=f"{gyro_topic}.{gyro_field}",
+        mag=None if mag_topic is None else f"{mag_topic}.magnetic_field",
+        mag_unit="T",
+    )
+    table, _ = read_input(InputSpec(path=path, fields=mapping))
+    ref = _rosbag1_reference(path, gyro_topic)
+    rows = _valid_rows(table, "gyro_x")
+    assert rows.num_rows == len(ref) > 1000
+    # stable time order: compare as sets of (stamp, values) sorted the same way
+    want = np.array(
+        [[_stamp(m), *(lambda v: (v.x, v.y, v.z))(_dig(m, gyro_field))] for m in ref],
+        dtype=object,
+    )
+    order = np.argsort(np.array([w[0] for w in want], np.int64), kind="stable")
+    want = want[order]
+    assert np.array_equal(rows.column("t_ns").to_numpy(), want[:, 0].astype(np.int64))
+    got = np.stack([rows.column(f"gyro_{a}").to_numpy() for a in "xyz"], axis=1)
+    assert np.array_equal(got, want[:, 1:].astype(float), equal_nan=True)
+    if mag_topic is not None:
+        mref = _rosbag1_reference(path, mag_topic)
+        mrows = _valid_rows(table, "mag_x")
+        assert mrows.num_rows == len(mref)
+        mags = np.array(
+            [[m.magnetic_field.x, m.magnetic_field.y, m.magnetic_field.z] for m in mref]
+        )
+        stamps = np.array([_stamp(m) for m in mref])
+        k = np.argsort(stamps, kind="stable")
+        got = np.stack([mrows.column(f"mag_{a}").to_numpy() for a in "xyz"], axis=1)
+        assert np.array_equal(got, mags[k], equal_nan=True)  # the recording has NaN fields
+        # the same values as the sensor_msgs path reads from the same bag
+        plain, _ = read_input(InputSpec(path=path))
+        assert np.array_equal(
+            np.sort(plain.column("gyro_x").drop_null().to_numpy()),
+            np.sort(rows.column("gyro_x").to_numpy()),
+        )
+    assert table.num_rows == rows.num_rows + (0 if mag_topic is None else mrows.num_rows)
+
+
+def _dig(msg, path: str):
+    for part in path.split("."):
+        msg = getattr(msg, part)
+    return msg
