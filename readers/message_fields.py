@@ -254,6 +254,8 @@ def ros_type(name: str, encoding: str, schema_encoding: str, text: str) -> Messa
             types = get_types_from_idl(text)
         else:
             types = get_types_from_msg(text, full)
+    elif schema_encoding:  # a definition without fields (test_msgs/Empty)
+        types = {} if full in base.fielddefs else {full: ([], [])}
     elif full not in base.fielddefs:
         raise ValueError(f"the log carries no definition of {full}")
     defs = {**base.fielddefs, **types}

@@ -693,3 +693,47 @@ def _dig(msg, path: str):
     for part in path.split("."):
         msg = getattr(msg, part)
     return msg
+
+
+@pytest.mark.parametrize("storage", ["mcap", "sqlite3"])
+def test_rosbag2_own_test_bags_equal_rosbags(storage):
+    """rosbag2's own test bags (written by rosbag2's C++ serializer; Apache-2.0, in tests/data):
+    test_msgs/Arrays (bool, byte and char arrays before float32[3]: CDR alignment) and
+    test_msgs/BasicTypes on two topics, definitions from the bag."""
+    from rosbags.highlevel import AnyReader
+
+    from conftest import TEST_DATA
+
+    path = TEST_DATA / "rosbag_peers" / "rosbag2" / f"rosbag2_tests__{storage}__cdr_test"
+    mapping = FieldMapping(
+        gyro="/array_topic.float64_values",
+        accel="/array_topic.float32_values",
+        mag=[
+            "/array_topic.int32_values.0",
+            "/array_topic.uint64_values.1",
+            "/array_topic.int8_values.2",
+        ],
+        mag_unit="raw",
+        temperature="/test_topic.float64_value",
+        time="log",
+    )
+    table, _ = read_input(InputSpec(path=path, fields=mapping))
+    with AnyReader([path]) as r:
+        got = {c.topic: [] for c in r.connections}
+        for c, t, raw in r.messages():
+            got[c.topic].append((t, r.deserialize(raw, c.msgtype)))
+    arrays, basics = got["/array_topic"], got["/test_topic"]
+    assert table.num_rows == len(arrays) + len(basics) > 0
+    rows = _valid_rows(table, "gyro_x")
+    assert np.array_equal(rows.column("t_ns").to_numpy(), [t for t, _ in arrays])
+    for name, field in (("gyro", "float64_values"), ("accel", "float32_values")):
+        values = np.stack([rows.column(f"{name}_{a}").to_numpy() for a in "xyz"], axis=1)
+        assert np.array_equal(values, [getattr(m, field).astype(float) for _, m in arrays])
+    mag = np.stack([rows.column(f"mag_{a}").to_numpy() for a in "xyz"], axis=1)
+    want = [[m.int32_values[0], m.uint64_values[1], m.int8_values[2]] for _, m in arrays]
+    assert np.array_equal(mag, np.array(want, float))
+    temp = _valid_rows(table, "temperature")
+    assert np.array_equal(
+        temp.column("temperature").to_numpy(), [m.float64_value for _, m in basics]
+    )
+    assert np.array_equal(temp.column("t_ns").to_numpy(), [t for t, _ in basics])

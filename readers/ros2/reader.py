@@ -192,7 +192,9 @@ class Sqlite3Bag:
         """Topic -> its type, with the bag's ``message_definitions`` text (rosbag2 Iron and
         later write it; else rosbags' Humble definitions know the standard types)."""
         return {
-            name: Definition(typ, fmt, "ros2msg", self.defs.get(typ, b""))
+            name: Definition(
+                typ, fmt, "ros2msg" if typ in self.defs else "", self.defs.get(typ, b"")
+            )
             for name, typ, fmt in self.topics.values()
         }
 
