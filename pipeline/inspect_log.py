@@ -12,6 +12,11 @@ and ``TC_*`` parameters; for an ArduPilot DataFlash log the same: every message 
 (``IMU_1``, ``IMU2``), the streams, and its calibration parameters (``INS_*``, ``COMPASS_*``).
 For CSV: the columns mapped with the default mapping, samples per
 stream, rate and span.
+
+For MCAP and ROS bags, every topic whose type is not a ``sensor_msgs`` sensor type is listed with
+its fields (from the definition the log carries) and the ``[inputs.NAME.fields]`` keys that would
+read it (:func:`imupipe.readers.mapped.suggest`); given a field mapping (``--config``), the
+streams it fills. (Listing fields reads the definitions with the readers, numpy included.)
 """
 
 from __future__ import annotations
@@ -33,6 +38,8 @@ from imupipe.readers.topics import (
 )
 
 BASE_COLUMNS = ["t_ns", "log_time_ns", "frame_id"]
+FIELDS_SHOWN = 16
+"""Fields of a topic the text lists (``--json``: every field, up to 64)."""
 
 
 def _span(t: Any) -> dict[str, Any]:
@@ -314,7 +321,9 @@ def render(info: dict[str, Any]) -> str:
         if "error" in v:
             lines.append(f"  {v['error']}")
             continue
-        lines.append("  " + ", ".join(f"{p} {t}" for p, t in v["fields"]))
+        shown = ", ".join(f"{p} {t}" for p, t in v["fields"][:FIELDS_SHOWN])
+        more = len(v["fields"]) - FIELDS_SHOWN
+        lines.append(f"  {shown}" + (f", ... ({more} more; --json lists all)" if more > 0 else ""))
         if v["mapping"]:
             keys = ", ".join(f"{k} = {json.dumps(p)}" for k, p in v["mapping"].items())
             lines.append(f"  read by [inputs.NAME.fields]: {keys}")
