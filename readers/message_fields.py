@@ -458,12 +458,14 @@ class _RosWalk:
 
 
 def json_type(name: str, schema: bytes) -> MessageType:
-    """The :class:`MessageType` of a JSON channel from its ``jsonschema`` (empty: no fields
-    known until a message is read)."""
+    """The :class:`MessageType` of a JSON channel from its ``jsonschema`` (ValueError without
+    one: the fields would have to be guessed from the messages)."""
     import json
 
+    if not schema.strip():
+        raise ValueError("a json channel without a jsonschema: its fields are unknown")
     try:
-        doc = json.loads(schema) if schema.strip() else {}
+        doc = json.loads(schema)
     except ValueError as exc:
         raise ValueError(f"the jsonschema is not JSON ({exc})") from None
     root = _json_node("", doc if isinstance(doc, dict) else {})
@@ -520,7 +522,9 @@ def _decode_json(
     try:
         table = pj.read_json(
             pa.BufferReader(pa.py_buffer(data)),
-            read_options=pj.ReadOptions(block_size=max(1 << 20, int(lengths.max()) * 4 + 64)),
+            read_options=pj.ReadOptions(
+                block_size=max(1 << 22, int(lengths.max()) * 4 + 64), use_threads=False
+            ),
             parse_options=pj.ParseOptions(
                 explicit_schema=schema, unexpected_field_behavior="ignore"
             ),
@@ -567,23 +571,15 @@ def _arrow_schema(mtype: MessageType, leaves: list[Leaf]):  # noqa: ANN202
             last = k == len(leaf.path) - 1 or (
                 k == len(leaf.path) - 2 and isinstance(leaf.path[-1], int)
             )
-            names = tuple(p for p in leaf.path[: k + 1] if isinstance(p, str))
             if last:
                 found = mtype.node(tuple(str(p) for p in leaf.path[: k + 1]))
-                integer = (
-                    (
-                        found is not None
-                        and (found.item if found.kind in ("array", "sequence") else found).dtype
-                        == "i8"
-                    )
-                    if found is not None
-                    else False
-                )
+                if found is not None and found.kind in ("array", "sequence"):
+                    found = found.item
+                integer = found is not None and found.dtype == "i8"
                 node.setdefault(part, {"__leaf__": pa.int64() if integer else pa.float64()})
                 node = node[part]
             else:
                 node = node.setdefault(part, {})
-            del names
 
     def build(spec: dict) -> pa.DataType:
         if "__leaf__" in spec:
