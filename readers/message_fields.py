@@ -116,7 +116,8 @@ class Node:
 
 
 class NotFastPath(ValueError):
-    """The walk cannot follow this layout (a sequence of structs before a wanted field)."""
+    """The walk cannot follow this layout (a sequence of structs or a wstring before a wanted
+    field, a repeated protobuf message): the reference decoder reads it."""
 
 
 @dataclass
@@ -191,7 +192,10 @@ class MessageType:
         if self.encoding == "json":
             return _decode_json(self, buf, starts, lengths, leaves)
         if self.encoding == "protobuf":
-            return _ProtoScan(self, buf, starts, lengths, leaves).run()
+            try:
+                return _ProtoScan(self, buf, starts, lengths, leaves).run()
+            except NotFastPath:
+                return self.decode_reference(buf, starts, lengths, leaves)
         raise ReadError(f"message encoding '{self.encoding}' is not supported")
 
     def decode_reference(
@@ -302,7 +306,7 @@ def _ros_field(name: str, kind: object, rest: object, defs: dict, encoding: str)
         base = rest[0]  # type: ignore[index]
         if base in ROS_BASE:
             return Node(name, "number", ROS_BASE[base], type_name=base)
-        return Node(name, "string" if base in ("string", "wstring") else "other", type_name=base)
+        return Node(name, "string" if base == "string" else "other", type_name=base)
     if value == 2:
         return _ros_node(rest, name, defs, encoding)  # type: ignore[arg-type]
     (ikind, irest), count = rest  # type: ignore[misc]
@@ -450,7 +454,7 @@ class _RosWalk:
                     return
                 self.field(item, (*path, k))
             return
-        if any(p[: len(path)] == path for p in self.remaining) or self.remaining:
+        if self.remaining:  # wanted fields after a sequence of structs: offsets unknown
             raise NotFastPath(f"{what}: a sequence of {item.describe()} of varying length")
 
 
@@ -814,7 +818,7 @@ class _ProtoScan:
             for k in wanted:
                 out[(*cpath, k)] = _widen(values[:, k])
             return
-        raise PayloadError(0, f"field {'.'.join(map(str, cpath))} is not numeric")
+        raise NotFastPath(f"field {'.'.join(map(str, cpath))}: a repeated message")
 
     def packed(
         self,

@@ -737,3 +737,31 @@ def test_rosbag2_own_test_bags_equal_rosbags(storage):
         temp.column("temperature").to_numpy(), [m.float64_value for _, m in basics]
     )
     assert np.array_equal(temp.column("t_ns").to_numpy(), [t for t, _ in basics])
+
+
+def test_protobuf_repeated_message_falls_back_to_protobuf():
+    from google.protobuf import descriptor_pb2
+
+    fd = descriptor_pb2.FileDescriptorProto(
+        name="acme/multi.proto", package="acme", syntax="proto3"
+    )
+    vec = fd.message_type.add(name="V")
+    for i, k in enumerate("xyz", 1):
+        vec.field.add(name=k, number=i, type=1, label=1)
+    multi = fd.message_type.add(name="Multi")
+    multi.field.add(name="imus", number=1, type=11, label=3, type_name=".acme.V")
+    fds = descriptor_pb2.FileDescriptorSet(file=[fd]).SerializeToString()
+    mtype = protobuf_type("acme.Multi", fds)
+    msg = mtype._source()
+    payloads = []
+    for k in range(4):
+        msg.Clear()
+        for j in range(2):
+            v = msg.imus.add()
+            v.x, v.y, v.z = k, j, k * j + 0.5
+        payloads.append(msg.SerializeToString())
+    buf = np.frombuffer(b"".join(payloads), np.uint8)
+    lengths = np.array([len(p) for p in payloads])
+    starts = np.concatenate([[0], np.cumsum(lengths)[:-1]])
+    (z,) = mtype.decode(buf, starts, lengths, [Leaf(("imus", 1, "z"))])
+    assert np.array_equal(z, [0.5, 1.5, 2.5, 3.5])
