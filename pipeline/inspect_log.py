@@ -377,7 +377,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         "--config",
         type=Path,
         help="how to read the log, as for convert: the keys of one [inputs.NAME] table without "
-        "path (topics, time, a [csv] mapping)",
+        "path (topics, time, a [csv] or [fields] mapping)",
     )
     p.add_argument("--json", action="store_true", help="print JSON instead of text")
     p.set_defaults(func=main)

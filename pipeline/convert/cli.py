@@ -43,7 +43,8 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         type=Path,
         metavar="READ.toml",
         help="TOML with how to read the logs: imu_topic, mag_topic, temperature_topic, time and a "
-        "[csv] mapping (the keys of an [inputs.NAME] table); also makes folders yield .csv files",
+        "[csv] or [fields] mapping (the keys of an [inputs.NAME] table); also makes folders "
+        "yield .csv files",
     )
     p.add_argument(
         "--engine", choices=ENGINES, default="local", help="where to run (default local)"
