@@ -539,6 +539,27 @@ def test_mapped_run_end_to_end(tmp_path):
     with open(tmp_path / "out" / "px4.mcap", "rb") as fh:
         got = [(c.topic, s.name) for s, c, _ in make_reader(fh).iter_messages()]
     assert len(got) == 400 and set(got) == {(TOPIC, "sensor_msgs/msg/Imu")}
+    # convert reads the same mapping from --config
+    read = tmp_path / "read.toml"
+    read.write_text(
+        f'[fields]\ngyro = "{TOPIC}.gyro_rad"\naccel = "{TOPIC}.accelerometer_m_s2"\ntime = "log"\n'
+    )
+    proc = run_cli(
+        "convert",
+        tmp_path / "px4",
+        "--calibration",
+        tmp_path / "out" / "calibration.json",
+        "--out",
+        tmp_path / "conv",
+        "--config",
+        read,
+        "--jobs",
+        "1",
+        "--quiet",
+    )
+    assert proc.returncode == 0, proc.stderr
+    with open(tmp_path / "conv" / "px4.mcap", "rb") as fh:
+        assert sum(1 for _ in make_reader(fh).iter_messages()) == 400
 
 
 def test_short_sequence_is_a_read_error(tmp_path):
