@@ -786,3 +786,16 @@ def test_protobuf_repeated_message_falls_back_to_protobuf():
     starts = np.concatenate([[0], np.cumsum(lengths)[:-1]])
     (z,) = mtype.decode(buf, starts, lengths, [Leaf(("imus", 1, "z"))])
     assert np.array_equal(z, [0.5, 1.5, 2.5, 3.5])
+
+
+def test_python_api_read_with_fields(tmp_path):
+    import imupipe
+
+    write_px4_bag(tmp_path / "px4", "mcap", 40)
+    table = imupipe.read(
+        tmp_path / "px4",
+        fields={"gyro": f"{TOPIC}.gyro_rad", "time": f"{TOPIC}.timestamp", "time_unit": "us"},
+    )
+    assert table.num_rows == 40 and table.column("gyro_x").null_count == 0
+    info = imupipe.inspect(tmp_path / "px4", fields={"gyro": f"{TOPIC}.gyro_rad", "time": "log"})
+    assert info.info["streams"]["imu"]["sensors"] == {"gyro": TOPIC}

@@ -110,7 +110,7 @@ def _input_raw(path: str | os.PathLike[str], options: Mapping[str, Any]) -> dict
     raw: dict[str, Any] = {"path": os.fspath(path)}
     for key, value in options.items():
         if value is not None:
-            raw[key] = dict(value) if key == "csv" else value
+            raw[key] = dict(value) if key in ("csv", "fields") else value
     return raw
 
 
@@ -129,6 +129,7 @@ def read(
     temperature_topic: str | None = None,
     time: Literal["header", "log"] = "header",
     csv: Mapping[str, Any] | None = None,
+    fields: Mapping[str, Any] | None = None,
 ) -> pa.Table:
     """Read a log (CSV, MCAP, ROS 1 or ROS 2 bag, PX4 ULog, ArduPilot DataFlash) into the common
     table: a ``pyarrow.Table`` with ``t_ns`` (int64 ns) and the SI columns ``gyro_x`` (rad/s),
@@ -137,7 +138,8 @@ def read(
 
     The keywords are the keys of a config's ``[inputs.NAME]`` table, with the same checks
     (``csv`` is the ``[inputs.NAME.csv]`` mapping as a dict: ``csv={"time": 0, "time_unit":
-    "s", "accel": [1, 2, 3]}``). The reader's warnings (a topic chosen among several, stamps out
+    "s", "accel": [1, 2, 3]}``; ``fields`` the ``[inputs.NAME.fields]`` mapping:
+    ``fields={"gyro": "/fmu/out/sensor_combined.gyro_rad", "time": "log"}``). The reader's warnings (a topic chosen among several, stamps out
     of order) are issued as :class:`ImupipeWarning`. Raises :class:`ImupipeError` (one line
     naming the file and what is wrong) when the log cannot be read.
     """
@@ -150,6 +152,7 @@ def read(
         temperature_topic=temperature_topic,
         time=time,
         csv=csv,
+        fields=fields,
     )
     table, found = read_input(spec)
     _warn(found, where, stacklevel=2)
@@ -183,6 +186,7 @@ def inspect(
     temperature_topic: str | None = None,
     time: Literal["header", "log"] = "header",
     csv: Mapping[str, Any] | None = None,
+    fields: Mapping[str, Any] | None = None,
 ) -> Inspection:
     """What a log holds and what :func:`read` would take from it: topics, message types,
     counts, rates, time spans, the topic each stream is read from and the columns filled (for
@@ -196,6 +200,7 @@ def inspect(
         temperature_topic=temperature_topic,
         time=time,
         csv=csv,
+        fields=fields,
     )
     return Inspection(inspect_log(spec))
 
