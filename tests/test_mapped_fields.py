@@ -799,3 +799,48 @@ def test_python_api_read_with_fields(tmp_path):
     assert table.num_rows == 40 and table.column("gyro_x").null_count == 0
     info = imupipe.inspect(tmp_path / "px4", fields={"gyro": f"{TOPIC}.gyro_rad", "time": "log"})
     assert info.info["streams"]["imu"]["sensors"] == {"gyro": TOPIC}
+
+
+def test_cut_payloads_are_payload_errors():
+    """Every payload cut short is a PayloadError naming the message, never an IndexError or a
+    value read past the payload (the next message's bytes)."""
+    from imupipe.readers.cdr import PayloadError
+
+    store = _store(2, {"acme_msgs/msg/Rate": DRIVER})
+    M = store.types["acme_msgs/msg/Rate"]
+    H = store.types["std_msgs/msg/Header"]
+    T = store.types["builtin_interfaces/msg/Time"]
+    Vec = store.types["geometry_msgs/msg/Vector3"]
+    full = bytes(
+        store.serialize_cdr(
+            M(H(T(1, 2), "imu"), "SN1", np.arange(3.0), Vec(1, 2, 3), np.float32(4)),
+            M.__msgtype__,
+        )
+    )
+    mtype = ros_type(
+        "acme_msgs/msg/Rate", "cdr", "ros2msg", store.generate_msgdef(M.__msgtype__)[0]
+    )
+    leaves = [Leaf(("rate", "x")), Leaf(("temp_c",)), Leaf(("raw", 2))]
+    Imu = _proto_classes()
+    pmsg = Imu()
+    pmsg.timestamp.seconds = 5
+    pmsg.gyro.x, pmsg.gyro.y, pmsg.gyro.z = 1.0, 2.0, 3.0
+    pmsg.accel.extend([1.0, 2.0, 3.0])
+    from mcap_protobuf.schema import build_file_descriptor_set
+
+    ptype = protobuf_type("acme.Imu", build_file_descriptor_set(Imu).SerializeToString())
+    pfull = pmsg.SerializeToString()
+    pleaves = [Leaf(("gyro", "z")), Leaf(("accel", 2))]
+    for payload, mt, lv in ((full, mtype, leaves), (pfull, ptype, pleaves)):
+        for cut in range(1, len(payload)):
+            data = payload[:cut] + payload  # the cut message, then a whole one after it
+            buf = np.frombuffer(data, np.uint8)
+            starts, lengths = np.array([0, cut]), np.array([cut, len(payload)])
+            try:
+                values = mt.decode(buf, starts, lengths, lv)
+            except PayloadError as exc:
+                assert exc.index == 0
+                continue
+            # a protobuf message cut between fields is a valid, shorter message
+            ref = mt.decode_reference(buf, starts, lengths, lv)
+            assert all(np.array_equal(a, b) for a, b in zip(values, ref, strict=True)), cut
