@@ -331,6 +331,8 @@ def render(info: dict[str, Any]) -> str:
             lines.append("  no field looks like gyro, accel, mag or temperature")
     if "selection_error" in info:
         lines.append(f"streams: not chosen: {info['selection_error']}")
+        if any(v.get("mapping") for v in info.get("fields", {}).values()):
+            lines.append("  (the [inputs.NAME.fields] keys above read the topics they name)")
     for stream, v in info["streams"].items():
         source = v.get("topic", v.get("source"))
         extra = "" if "rate_hz" not in v or v["rate_hz"] is None else f", {v['rate_hz']:.2f} Hz"
