@@ -24,6 +24,7 @@ import warnings
 from pathlib import Path
 
 import numpy as np
+import pyarrow as pa
 import pytest
 
 import imupipe
@@ -162,6 +163,73 @@ def test_read_errors_and_warnings(tmp_path: Path) -> None:
     assert table.column("t_ns").to_pylist() == [1000, 2000, 3000]
     assert caught and all(w.category is imupipe.ImupipeWarning for w in caught)
     assert str(caught[0].message).startswith(f"[imupipe.read({str(log)!r})]")
+
+
+def test_read_gives_aligned_samples_by_default(tmp_path: Path) -> None:
+    """Issue 38: a log whose temperature has messages of its own reads as one row per IMU
+    sample, the temperature carried onto them by linear interpolation; ``rows="messages"``
+    keeps one row per message, as ``imupipe run`` reads it."""
+    table, _ = simulate("static", {"duration_s": 10.0, "temperature": None}, seed=4)
+    n = table.num_rows
+    t_ns = table.column("t_ns").to_numpy()
+    slow = t_ns[::100] + 3_000_000  # 2 Hz, between the IMU stamps
+    temp = 25.0 + 0.1 * np.arange(len(slow))  # a ramp: interpolation is exact on it
+    from imupipe.readers.table import make_table
+
+    temps = make_table(slow, temperature=temp)
+    both = pa.concat_tables([table.select(temps.column_names), temps]).sort_by("t_ns")
+    path = tmp_path / "two_streams.mcap"
+    write_log(path, both)
+    messages = imupipe.read(path, rows="messages")
+    assert messages.num_rows == n + len(slow)
+    assert np.isnan(np.mean(messages["gyro_x"].to_numpy(zero_copy_only=False)))
+    aligned = imupipe.read(path)
+    assert aligned.num_rows == n and aligned["gyro_x"].null_count == 0
+    assert aligned["temperature"].null_count == 0
+    got = aligned["temperature"].to_numpy()
+    inside = (t_ns >= slow[0]) & (t_ns <= slow[-1])
+    expected = 25.0 + 0.1 * (t_ns - slow[0]) / (slow[1] - slow[0])
+    np.testing.assert_allclose(got[inside], expected[inside], rtol=0, atol=1e-9)
+    assert np.all(got[t_ns < slow[0]] == temp[0]) and np.all(got[t_ns > slow[-1]] == temp[-1])
+    np.testing.assert_array_equal(aligned["gyro_x"].to_numpy(), table["gyro_x"].to_numpy())
+    with pytest.raises(imupipe.ImupipeError, match=r"rows='message': must be 'samples' or"):
+        imupipe.read(path, rows="message")  # type: ignore[arg-type]
+
+
+def test_mag_stage_on_aligned_rows_warns(tmp_path: Path) -> None:
+    table, _ = simulate("mag", seed=1)
+    path = tmp_path / "mag.mcap"
+    write_log(path, table)
+    with pytest.warns(imupipe.ImupipeWarning, match="rows='messages' to fit on the magnet"):
+        imupipe.mag_calibration(imupipe.read(path))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", imupipe.ImupipeWarning)
+        messages = imupipe.read(path, rows="messages")
+    result = imupipe.mag_calibration(messages)
+    assert not any("rows='messages'" in w for w in result.warnings)
+
+
+def test_dir_lists_the_public_names_only() -> None:
+    assert dir(imupipe) == sorted(imupipe.__all__)
+    assert not {"Any", "TYPE_CHECKING", "importlib", "annotations"} & set(dir(imupipe))
+
+
+def test_a_misspelt_keyword_names_the_allowed_ones(static) -> None:
+    """As the config's unknown key: an ImupipeError with the allowed list (still a TypeError,
+    what Python raises for a bad call); the signature stays the function's."""
+    with pytest.raises(
+        imupipe.ImupipeError,
+        match=r"imupipe.read\(\): unknown keyword 'imu_topc'; did you mean 'imu_topic'\? "
+        r"\(allowed: imu_topic, mag_topic, temperature_topic, time, csv, rows\)",
+    ) as caught:
+        imupipe.read(static[0], imu_topc="/imu")  # type: ignore[call-arg]
+    assert isinstance(caught.value, TypeError)
+    table = imupipe.read(static[0])
+    with pytest.raises(imupipe.ImupipeError, match=r"'term'; did you mean 'terms'\? \(allowed"):
+        imupipe.allan(table, term=["N"])  # type: ignore[call-arg]
+    with pytest.raises(imupipe.ImupipeError, match=r"imupipe.gyro_bias\(\): takes table as"):
+        imupipe.gyro_bias()  # type: ignore[call-arg]
+    assert list(inspect.signature(imupipe.read).parameters)[-1] == "rows"
 
 
 def test_calibration_round_trip_and_run_from_a_dict(
