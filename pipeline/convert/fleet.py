@@ -163,7 +163,7 @@ def convert(
     for prefix in planned.remote_folders():
         remote.remove_stale_temps(prefix)
     fatal: list[str] = []
-    with progress_bar("imupipe convert", total=len(tasks), quiet=quiet) as bar:
+    with progress_bar("imupipe convert", total=len(tasks), quiet=quiet, unit="logs") as bar:
 
         def on_done(outcome: Outcome) -> None:
             task: LogTask = outcome.task
