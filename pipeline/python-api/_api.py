@@ -178,7 +178,8 @@ def input_spec(path: str | os.PathLike[str], where: str, **options: Any) -> Inpu
     """The input ``path`` with the keys of an ``[inputs.NAME]`` table, checked as the config
     checks them (:func:`imupipe.pipeline.config.parse_input`; relative paths from the current
     folder); a :class:`~imupipe.pipeline.errors.ConfigError` naming ``where`` and the key."""
-    return parse_input("input", _input_raw(path, options), Path.cwd(), where)
+    spec = parse_input("input", _input_raw(path, options), Path.cwd(), where)
+    return dataclasses.replace(spec, keys_in=f"{where.split('(')[0]}()'s keywords")
 
 
 def read(
