@@ -98,7 +98,9 @@ def test_stage_function_recovers_the_truth_and_shows_tables(static) -> None:
     bias = np.array(result.values["bias"])
     sigma = np.array(result.uncertainties["metrics.bias_std_error"])
     assert np.all(np.abs(bias - truth["params"]["gyro_bias"]) < 5 * sigma)
-    assert result.warnings == [] and result.step is not None and result.step.sensor == "gyro"
+    assert result.step is not None and result.step.sensor == "gyro"
+    (short,) = result.warnings  # 58 s: under the minute a bias wants (issue 38)
+    assert short.startswith("only 58 s of data (11600 samples; the at-rest check had 58 one-")
     corrected = sensor(result.apply(table), "gyro").values.mean(axis=0)
     np.testing.assert_allclose(corrected, 0.0, atol=5 * sigma.max())
     text, page = repr(result), result._repr_html_()
