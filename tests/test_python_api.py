@@ -6,7 +6,8 @@
 - the functions give what the pipeline gives: the same fitted values as ``imupipe run``, the
   truth of a simulated log within its uncertainty, the same errors (one line naming the key);
 - ``Calibration`` round trip (save, load, apply), ``run`` from a dict, ``convert``;
-- the how-to page "Use imupipe from Python" runs as written, and so does the notebook example.
+- the notebook example runs (the how-to page "Use imupipe from Python" runs as written with
+  every how-to and tutorial page: ``tests/test_docs_examples.py``).
 """
 
 from __future__ import annotations
@@ -15,8 +16,6 @@ import dataclasses
 import importlib
 import inspect
 import json
-import os
-import re
 import subprocess
 import sys
 import typing
@@ -285,26 +284,7 @@ def test_convert_applies_a_saved_calibration(static, tmp_path: Path) -> None:
     )
 
 
-# -- the how-to page and the notebook, run as written ------------------------------------------
-PAGE = REPO / "docs" / "how-to" / "python.md"
-BLOCK = re.compile(r"^```(\w+)[^\n]*\n(.*?)^```", re.MULTILINE | re.DOTALL)
-
-
-def test_how_to_page_runs_as_written(tmp_path: Path) -> None:
-    """The page's ``bash`` blocks run first (they make its logs), then its ``python`` blocks in
-    order in one namespace, in a fresh folder that links the repository's ``tests/``."""
-    (tmp_path / "tests").symlink_to(REPO / "tests", target_is_directory=True)
-    blocks = BLOCK.findall(PAGE.read_text(encoding="utf-8"))
-    env = {**os.environ, "PATH": str(Path(sys.executable).parent) + os.pathsep + os.environ["PATH"]}
-    for body in [b for lang, b in blocks if lang == "bash"]:
-        done = subprocess.run(["bash", "-c", "set -euo pipefail\n" + body], cwd=tmp_path,
-                              env=env, capture_output=True, text=True, timeout=300)  # fmt: skip
-        assert done.returncode == 0, body + done.stderr[-2000:]
-    script = "\n".join(b for lang, b in blocks if lang == "python")
-    assert script.count("imupipe.") > 10
-    done = subprocess.run([sys.executable, "-c", script], cwd=tmp_path, env=env,
-                          capture_output=True, text=True, timeout=300)  # fmt: skip
-    assert done.returncode == 0, done.stderr[-3000:]
+# -- the notebook, run as written ----------------------------------------------------------------
 
 
 def test_notebook_example_runs() -> None:
