@@ -53,6 +53,7 @@ class Bar:
     def __init__(self, progress: Progress | None, task: int | None) -> None:
         self._progress, self._task = progress, task
         self._unit = ""
+        self._items: float | None = None  # items (logs) done, when a report moves within one
 
     @property
     def shown(self) -> bool:
@@ -66,6 +67,10 @@ class Bar:
 
     def advance(self, n: float = 1) -> None:
         if self.shown:
+            if self._items is not None:  # whole items: what a report within one added goes
+                self._items += n
+                self._refresh(completed=self._items)
+                return
             assert self._progress is not None and self._task is not None
             self._progress.advance(self._task, n)
             self._refresh()
@@ -77,19 +82,27 @@ class Bar:
     def phase(self, text: str, total: float | None, unit: str = "") -> None:
         """Start counting afresh: ``total`` units of ``unit`` (None: unknown, the time shows)."""
         if self.shown:
-            self._unit = unit
+            self._unit, self._items = unit, None
             self._refresh(description=text, total=total, completed=0)
 
     def fraction(self, done: int, total: int) -> None:
-        """``done`` of ``total`` of the phase (the listener of the readers' reports)."""
+        """``done`` of ``total`` of the phase (the listener of the readers' reports); when the
+        bar counts items (:meth:`listen` ``within_items``), of the item under way."""
         if self.shown and total > 0:
             assert self._progress is not None and self._task is not None
+            if self._items is not None:
+                self._refresh(completed=self._items + min(done / total, 0.99))
+                return
             whole = self._progress.tasks[self._task].total
             if whole:
                 self._refresh(completed=min(done / total, 1.0) * whole)
 
-    def listen(self) -> contextlib.AbstractContextManager[None]:
-        """Within the block, a reader's or writer's reports move this bar (:meth:`fraction`)."""
+    def listen(self, within_items: bool = False) -> contextlib.AbstractContextManager[None]:
+        """Within the block, a reader's or writer's reports move this bar (:meth:`fraction`).
+        ``within_items``: the bar counts items (logs, :meth:`advance` once each) and a report
+        moves it within the one under way (logs read in this process: one log, ``--jobs 1``;
+        worker processes report nothing here)."""
+        self._items = 0.0 if within_items else None
         return listening(self.fraction if self.shown else None)
 
 

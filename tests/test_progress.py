@@ -128,3 +128,31 @@ def test_simulate_and_run_show_progress_on_a_terminal(tmp_path: Path) -> None:
     assert status == 0 and not shown.strip(), shown
     proc = run_cli("simulate", "static", "--duration", "60", "--out", "b.mcap", cwd=tmp_path)
     assert proc.returncode == 0 and proc.stderr == "", proc.stderr
+
+
+def test_a_bar_of_logs_moves_within_the_log_under_way() -> None:
+    """convert and survey count logs; a log read in this process moves the bar within it."""
+    import io
+
+    from rich.console import Console
+    from rich.progress import Progress
+
+    from imupipe.pipeline.progress import Bar
+    from imupipe.readers.progress import report
+
+    progress = Progress(console=Console(file=io.StringIO()))
+    bar = Bar(progress, progress.add_task("logs", total=3, count=""))
+    completed = lambda: progress.tasks[0].completed  # noqa: E731
+    with bar.listen(within_items=True):
+        report(50, 100)
+        assert completed() == 0.5
+        bar.advance()  # the first log done
+        assert completed() == 1.0
+        report(25, 100)
+        assert completed() == 1.25
+        report(100, 100)
+        assert completed() < 2  # whole only when the log is counted done
+    bar.phase("bytes", 1000, "bytes")
+    with bar.listen():
+        report(3, 4)
+    assert progress.tasks[0].completed == 750

@@ -394,16 +394,17 @@ def survey(
             on_done(outcome)
             bar.advance()
 
-        run_tasks(
-            survey_log,
-            todo,
-            counted,
-            engine=engine,
-            jobs=jobs,
-            address=address,
-            retries=retries,
-            engine_log=engine_log,
-        )
+        with bar.listen(within_items=True):  # a log read here (one, --jobs 1): by its bytes
+            run_tasks(
+                survey_log,
+                todo,
+                counted,
+                engine=engine,
+                jobs=jobs,
+                address=address,
+                retries=retries,
+                engine_log=engine_log,
+            )
     import pyarrow as pa
     import pyarrow.parquet as pq
 
