@@ -494,7 +494,7 @@ def on_imu_rows(table: pa.Table) -> tuple[pa.Table, dict[str, int]]:
     Returns the table and the number of rows dropped per stream (``mag``, ``temperature``,
     the flight streams) that had rows of their own. A table without IMU samples, or whose every
     row is one, is returned as it is. The metadata records ``rows = "samples"`` and the columns
-    filled (``carried``). For a notebook (``imupipe.read``'s default); the readers and the
+    filled (``carried``) and the rows left out (``left_out``). For a notebook (``imupipe.read``'s default); the readers and the
     pipeline keep one row per message."""
     imu = stream_mask(table, "imu")
     if not imu.any() or imu.all():
@@ -525,5 +525,5 @@ def on_imu_rows(table: pa.Table) -> tuple[pa.Table, dict[str, int]]:
         out = out.set_column(index, out.schema.field(index), pa.array(filled, pa.float64()))
         carried.append(name)
     meta = metadata(table)
-    meta.update({"rows": "samples", "carried": carried})
+    meta.update({"rows": "samples", "carried": carried, "left_out": dropped})
     return with_metadata(out, meta), dropped

@@ -210,6 +210,18 @@ def test_mag_stage_on_aligned_rows_warns(tmp_path: Path) -> None:
     assert not any("rows='messages'" in w for w in result.warnings)
 
 
+def test_flight_stage_on_aligned_rows_says_to_read_messages() -> None:
+    log = REPO / "tests/data/px4_ulog/sample_log_small.ulg"
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        aligned = imupipe.read(log)
+    assert any("rows='samples' keeps the IMU samples" in str(w.message) for w in caught)
+    assert aligned["gyro_x"].null_count == 0
+    with pytest.raises(imupipe.ImupipeError, match=r"mag_inflight\(\): the table was read with "
+                       r"rows='samples' .*\(attitude, current, position, throttle\)"):  # fmt: skip
+        imupipe.mag_inflight(aligned)
+
+
 def test_dir_lists_the_public_names_only() -> None:
     assert dir(imupipe) == sorted(imupipe.__all__)
     assert not {"Any", "TYPE_CHECKING", "importlib", "annotations"} & set(dir(imupipe))

@@ -83,6 +83,9 @@ BOOKKEEPING = (
     "fitted_on",
 )
 """Keys of a stage's results that are not fitted values (see :attr:`StageResult.values`)."""
+FLIGHT_STAGES = ("mag_inflight",)
+"""Stage types that fit on a log's flight streams (attitude, position, current, throttle), which
+:func:`read`'s default ``rows="samples"`` leaves out."""
 UNCERTAINTY_SUFFIXES = ("_std", "_std_error", "_range_68", "_upper_68", "uncertainty")
 """Metric names that hold an uncertainty (see :attr:`StageResult.uncertainties`)."""
 
@@ -412,6 +415,13 @@ def fit_stage(
     given = {k: list(v) if isinstance(v, tuple) else v for k, v in given.items()}
     stage_name = name or type_name
     opts = build_options(cls.Options, given, f"imupipe.{type_name}()")
+    left_out = [s for s in metadata(table).get("left_out", {}) if s in FLIGHT_COLUMNS]
+    if type_name in FLIGHT_STAGES and left_out:
+        raise ConfigError(
+            f"imupipe.{type_name}(): the table was read with rows='samples' (imupipe.read's "
+            f"default), which leaves out the flight streams the stage fits on "
+            f"({', '.join(left_out)}): read the log with imupipe.read(path, rows='messages')"
+        )
     ctx = StageContext(
         name=stage_name,
         input_name="table",
