@@ -148,28 +148,18 @@ def test_tutorial_runs_as_written(page: Path, tmp_path: Path) -> None:
             if line.strip() and not line.strip().startswith(SKIPPED_COMMANDS)
         ]
         script = "set -euo pipefail\n" + "\n".join(lines)
-        done = subprocess.run(
-            ["bash", "-c", script],
-            cwd=tmp_path,
-            env=env,
-            capture_output=True,
-            text=True,
-            timeout=600,
-        )
+        done = _run(["bash", "-c", script], tmp_path, env)
         assert done.returncode == 0, f"{page.name}: {script}\n{done.stderr[-3000:]}"
         if page.name == "README.md" and "imupipe run" in script:
             _walkthrough_kept_its_word(text, tmp_path, done.stderr)
     script = "\n".join(body for _info, body in blocks(page, "python"))
     if script:  # after the commands that make its files, as a reader runs the page
-        done = subprocess.run(
-            [sys.executable, "-c", script],
-            cwd=tmp_path,
-            env=env,
-            capture_output=True,
-            text=True,
-            timeout=600,
-        )
+        done = _run([sys.executable, "-c", script], tmp_path, env)
         assert done.returncode == 0, f"{page.name}: python\n{done.stderr[-3000:]}"
+
+
+def _run(args: list[str], cwd: Path, env: dict[str, str]) -> subprocess.CompletedProcess:
+    return subprocess.run(args, cwd=cwd, env=env, capture_output=True, text=True, timeout=600)
 
 
 def _walkthrough_kept_its_word(readme: str, folder: Path, stderr: str) -> None:
