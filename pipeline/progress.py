@@ -54,6 +54,7 @@ class Bar:
         self._progress, self._task = progress, task
         self._unit = ""
         self._items: float | None = None  # items (logs) done, when a report moves within one
+        self._hint: float | None = None  # the phase's total, shown once a report comes
 
     @property
     def shown(self) -> bool:
@@ -79,11 +80,17 @@ class Bar:
         if self.shown:
             self._refresh(description=text)
 
-    def phase(self, text: str, total: float | None, unit: str = "") -> None:
-        """Start counting afresh: ``total`` units of ``unit`` (None: unknown, the time shows)."""
+    def phase(
+        self, text: str, total: float | None, unit: str = "", *, when_reported: bool = False
+    ) -> None:
+        """Start counting afresh: ``total`` units of ``unit`` (None: unknown, the time shows).
+        ``when_reported``: the count shows from the first report on (:meth:`fraction`); until
+        then, as for a reader that does not report, the time elapsed (never a count stuck at
+        0)."""
         if self.shown:
             self._unit, self._items = unit, None
-            self._refresh(description=text, total=total, completed=0)
+            self._hint = total if when_reported else None
+            self._refresh(description=text, total=None if when_reported else total, completed=0)
 
     def fraction(self, done: int, total: int) -> None:
         """``done`` of ``total`` of the phase (the listener of the readers' reports); when the
@@ -93,9 +100,9 @@ class Bar:
             if self._items is not None:
                 self._refresh(completed=self._items + min(done / total, 0.99))
                 return
-            whole = self._progress.tasks[self._task].total
+            whole = self._progress.tasks[self._task].total or self._hint
             if whole:
-                self._refresh(completed=min(done / total, 1.0) * whole)
+                self._refresh(total=whole, completed=min(done / total, 1.0) * whole)
 
     def listen(self, within_items: bool = False) -> contextlib.AbstractContextManager[None]:
         """Within the block, a reader's or writer's reports move this bar (:meth:`fraction`).

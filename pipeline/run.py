@@ -196,7 +196,8 @@ def run(
         with WarmImports(warm_modules(cfg), freeze=one_shot):
             for name in used:  # inputs only written (apply_to) are never held: streamed below
                 path = Path(cfg.inputs[name].path)
-                bar.phase(f"reading {name} ({path.name})", size_of(path) or None, "bytes")
+                size = size_of(path) or None
+                bar.phase(f"reading {name} ({path.name})", size, "bytes", when_reported=True)
                 with bar.listen():  # the chunked readers tell how far through the file
                     raw[name] = read(name)
         bar.phase("imupipe run", len(cfg.stages))
@@ -282,7 +283,8 @@ def run(
             for name in cfg.output.apply_to:  # first: correcting a log may warn (extrapolation)
                 target = out_dir / f"{name}.mcap"
                 size = size_of(Path(cfg.inputs[name].path))
-                bar.phase(f"writing {target.name} (reading {name})", size or None, "bytes")
+                text = f"writing {target.name} (reading {name})"
+                bar.phase(text, size or None, "bytes", when_reported=True)
                 with bar.listen():  # the log is streamed: its reader tells how far
                     counts[name] = write_corrected(
                         out.path(target), cfg.inputs[name], tables.chain, doc

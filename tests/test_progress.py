@@ -156,3 +156,23 @@ def test_a_bar_of_logs_moves_within_the_log_under_way() -> None:
     with bar.listen():
         report(3, 4)
     assert progress.tasks[0].completed == 750
+
+
+def test_a_phase_counts_only_once_its_reader_reports() -> None:
+    """A reader that does not report (CSV) shows the time elapsed, not a count stuck at 0."""
+    import io
+
+    from rich.console import Console
+    from rich.progress import Progress
+
+    from imupipe.pipeline.progress import Bar
+    from imupipe.readers.progress import report
+
+    progress = Progress(console=Console(file=io.StringIO()))
+    bar = Bar(progress, progress.add_task("run", total=None, count=""))
+    bar.phase("reading static (static.csv)", 8e6, "bytes", when_reported=True)
+    assert progress.tasks[0].total is None and progress.tasks[0].fields["count"] == ""
+    with bar.listen():
+        report(1, 4)
+    assert progress.tasks[0].total == 8e6 and progress.tasks[0].completed == 2e6
+    assert progress.tasks[0].fields["count"] == "2.0/8.0 MB"
