@@ -10,7 +10,8 @@ input or ``exports``); the run then puts them, the same words each time, in ``ca
 recording beside their stage, and at the end of the terminal summary.
 
 Every entry carries ``meaning``: what the message means for the user and what to do, in plain
-words, from :data:`MEANINGS` (a message none of them matches points to the reference page).
+words, from :data:`MEANINGS` (a message none of them matches: :data:`FALLBACK`, by where it was
+raised).
 """
 
 from __future__ import annotations
@@ -20,9 +21,6 @@ from dataclasses import asdict, dataclass
 from typing import Literal
 
 Level = Literal["warning", "note"]
-
-DOCS = "docs/reference/outputs.md#warnings-and-notes"
-"""Where the warnings are explained (the fallback meaning links there)."""
 
 MEANINGS: list[tuple[str, str]] = [
     (
@@ -58,7 +56,72 @@ MEANINGS: list[tuple[str, str]] = [
         'left out is listed under "exports" in calibration.json.',
     ),
     (
-        r"samples are NaN|NaN or Inf",
+        r"not read: several (candidates|instances)",
+        "the log has more than one sensor of that kind and imupipe does not guess which one "
+        "belongs to your IMU: that sensor is left out of this run. Name the one you want with "
+        "the key the message gives (imupipe inspect lists the log's topics).",
+    ),
+    (
+        r"temperature not read",
+        "the log holds no temperature of this IMU's own chip, so this input has no temperature "
+        "(no thermal figures for it). If one of the candidates sits on the same board, name it "
+        "with temperature_topic.",
+    ),
+    (
+        r"logger dropped data",
+        "the flight controller's logger could not keep up and lost messages for that long in "
+        "total; the fit uses what was logged. A few milliseconds are harmless; many drops make "
+        "the log's timing unreliable.",
+    ),
+    (
+        r"not carried into the corrected MCAP",
+        "the corrected MCAP holds the IMU, magnetometer and temperature; the log's other topics "
+        "(the autopilot's state, estimator, setpoints) have no ROS message type and are not "
+        "copied into it. The original log keeps them.",
+    ),
+    (
+        r"out of (time )?order",
+        "the logger wrote some samples out of time order; they were sorted by time, none "
+        "dropped. Many such samples can mean two clocks are mixed in the log.",
+    ),
+    (
+        r"times from the rate",
+        "the file has no time column, so each sample's time was made from the rate, as if no "
+        "sample were missing; a gap in the recording would go unseen.",
+    ),
+    (
+        r"skipped \d+ line",
+        "the lines before the column names were not data and were left out; check they held "
+        "nothing you need (a rate line is used for the times).",
+    ),
+    (
+        r"not indexed|was not closed|cannot be decompressed|corrupt in places",
+        "the file is damaged (most often a recording cut off by a power loss or a full disk): "
+        "everything that could be read is used, the damaged part is lost.",
+    ),
+    (
+        r"paired by nearest|within half a period",
+        "PX4 logs the gyro and the accelerometer as separate messages; imupipe put each gyro "
+        "sample with the accelerometer sample nearest in time. Harmless for a recording at "
+        "rest; a sample with no partner is NaN and left out of fits.",
+    ),
+    (
+        r"read as NaN",
+        "those messages carry no usable value (no integration interval), so they are read as "
+        "NaN and left out of the fits.",
+    ),
+    (
+        r"rotation to the body is unknown",
+        "the log does not say how this magnetometer is mounted, so its field cannot be turned "
+        "into the vehicle's axes: it is used in its own axes.",
+    ),
+    (
+        r"only \d+ s of data|a minute or more",
+        "a short recording gives a bias whose uncertainty is large and says little about the "
+        "drift; record the IMU at rest for a minute or more (docs/how-to/recordings.md).",
+    ),
+    (
+        r"samples are NaN|NaN or Inf|empty or NaN cells",
         "those samples were skipped by the fit; the rest is used. Check the logger if there "
         "are many.",
     ),
@@ -92,12 +155,27 @@ MEANINGS: list[tuple[str, str]] = [
 """(regular expression, meaning and what to do): the first that matches a message explains it."""
 
 
-def meaning(message: str) -> str:
-    """What ``message`` means for the user and what to do (plain words)."""
+FALLBACK: dict[str, str] = {
+    "inputs": "the reader met this in the log; the samples it read are used as they are. "
+    "Check the input if the figures look wrong.",
+    "stage": "the stage fitted, but flagged this about its data or its fit: look at its plots "
+    "in report.html before using the result.",
+    "step": "applying the calibration to a log met this: the corrected samples there are less "
+    "certain than the rest.",
+    "exports": "a file for another tool could not hold everything; calibration.json has it all.",
+}
+"""What a message no pattern of :data:`MEANINGS` matches means, by where it was raised (a test
+keeps every message the readers and stages are known to write matched by a pattern)."""
+
+
+def meaning(message: str, source: str = "stage") -> str:
+    """What ``message`` means for the user and what to do (plain words); ``source``: where it
+    was raised (``inputs.NAME``, ``stage``, ``step``, ``exports``), for a message no pattern
+    matches."""
     for pattern, text in MEANINGS:
         if re.search(pattern, message):
             return text
-    return f"see {DOCS} for what each warning means."
+    return FALLBACK.get(source.split(".")[0], FALLBACK["stage"])
 
 
 @dataclass
@@ -112,10 +190,14 @@ class Notice:
 
     @property
     def meaning(self) -> str:
-        return meaning(self.message)
+        return meaning(self.message, self.source)
 
     @property
     def where(self) -> str:
+        """What the message is about: the input for a reader's warning (``inputs.gyro1``),
+        else the stage (or the source of a message of the whole run)."""
+        if self.source.startswith("inputs."):
+            return self.source
         return self.stage or self.source
 
     def line(self) -> str:

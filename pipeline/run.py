@@ -26,7 +26,7 @@ from imupipe.pipeline.exports import chosen as chosen_exports
 from imupipe.pipeline.exports import export_all
 from imupipe.pipeline.instances import expand_instances
 from imupipe.pipeline.notices import Notice, Notices
-from imupipe.pipeline.progress import progress_bar
+from imupipe.pipeline.progress import progress_bar, size_of
 from imupipe.pipeline.report.summary import (
     StageSummary,
     raw_count_sensors,
@@ -176,7 +176,6 @@ def run(
     remove_stale_temps(out_dir)
     raw: dict[str, pa.Table] = {}
     used = [name for name in cfg.inputs if any(st.input == name for st in cfg.stages)]
-    n_steps = len(used) + len(cfg.stages) + len(cfg.output.apply_to) + 1
     notices = Notices()  # every warning and note, wherever raised: one record (notices.py)
     read_warnings: dict[str, list[str]] = {}  # input -> its reader's warnings
     running: list[str] = []  # the stage running (an input read inside it is its own)
@@ -191,14 +190,17 @@ def run(
                 print(f"imupipe: warning: [inputs.{name}] {w}", file=sys.stderr)
         return table
 
-    with progress_bar("imupipe run", total=n_steps, quiet=quiet) as bar:
+    with progress_bar("imupipe run", total=None, quiet=quiet) as bar:
         for name in used:  # the readers' modules, before a second thread imports alongside
             reader_for(cfg.inputs[name])
         with WarmImports(warm_modules(cfg), freeze=one_shot):
             for name in used:  # inputs only written (apply_to) are never held: streamed below
-                bar.describe(f"reading {name}")
-                raw[name] = read(name)
-                bar.advance()
+                path = Path(cfg.inputs[name].path)
+                size = size_of(path) or None
+                bar.phase(f"reading {name} ({path.name})", size, "bytes", when_reported=True)
+                with bar.listen():  # the chunked readers tell how far through the file
+                    raw[name] = read(name)
+        bar.phase("imupipe run", len(cfg.stages))
 
         tables = CorrectedTables(raw, list(cfg.inputs), read)
         results: dict[str, Any] = {}
@@ -279,13 +281,16 @@ def run(
             if cfg.output.apply_to:  # the MCAP writer: imported only when something is written
                 from imupipe.pipeline.writers.corrected import write_corrected
             for name in cfg.output.apply_to:  # first: correcting a log may warn (extrapolation)
-                bar.describe(f"writing {name}.mcap")
                 target = out_dir / f"{name}.mcap"
-                counts[name] = write_corrected(
-                    out.path(target), cfg.inputs[name], tables.chain, doc
-                )
+                size = size_of(Path(cfg.inputs[name].path))
+                text = f"writing {target.name} (reading {name})"
+                bar.phase(text, size or None, "bytes", when_reported=True)
+                with bar.listen():  # the log is streamed: its reader tells how far
+                    counts[name] = write_corrected(
+                        out.path(target), cfg.inputs[name], tables.chain, doc
+                    )
                 corrected.append(target)
-                bar.advance()
+            bar.phase("imupipe run: report and recording", None)
             exported, report = export_all(
                 doc,
                 chosen_exports(doc, cfg.output.exports),

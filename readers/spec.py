@@ -133,6 +133,15 @@ class InputSpec:
     fields: FieldMapping | None = None
     """A field mapping (``[inputs.NAME.fields]``): the sensors read from any message's fields
     instead of from sensor_msgs topics."""
+    keys_in: str | None = None
+    """Where the user sets this input's keys, as a message says it ("set mag_topic in ..."):
+    None for a config's ``[inputs.NAME]`` table; ``imupipe convert`` names its ``--config``
+    file, the Python API its keywords. Not a read setting (no hash includes it)."""
+
+    @property
+    def settings_place(self) -> str:
+        """``[inputs.NAME]``, or :attr:`keys_in` when the keys are set elsewhere."""
+        return self.keys_in or f"[inputs.{self.name}]"
 
 
 @dataclass

@@ -470,3 +470,60 @@ def flight_stream(table: pa.Table, stream: str) -> SensorData:
     t_ns = table.column("t_ns").to_numpy()[rows]
     values = np.column_stack([_column_f64(table, c, rows) for c in cols])
     return SensorData(t_ns=t_ns, values=values, rows=rows)
+
+
+CARRIED_COLUMNS: tuple[str, ...] = (
+    "mag_x",
+    "mag_y",
+    "mag_z",
+    "temperature",
+    "temperature_var",
+    "ambient_temperature",
+    "pressure",
+)
+"""The value columns :func:`on_imu_rows` carries onto the IMU stream's rows."""
+
+
+def on_imu_rows(table: pa.Table) -> tuple[pa.Table, dict[str, int]]:
+    """``table`` with one row per sample of the ``imu`` stream: the columns of
+    :data:`CARRIED_COLUMNS` (magnetometer, temperature, pressure) put on the IMU stamps by
+    :func:`interpolate` (linear in time between their own samples, held constant beyond the
+    first and last) where an IMU row has no value of its own; a row that has one keeps it.
+    Rows of no IMU sample are dropped (a flight stream's with them).
+
+    Returns the table and the number of rows dropped per stream (``mag``, ``temperature``,
+    the flight streams) that had rows of their own. A table without IMU samples, or whose every
+    row is one, is returned as it is. The metadata records ``rows = "samples"`` and the columns
+    filled (``carried``) and the rows left out (``left_out``). For a notebook (``imupipe.read``'s default); the readers and the
+    pipeline keep one row per message."""
+    imu = stream_mask(table, "imu")
+    if not imu.any() or imu.all():
+        return table, {}
+    dropped: dict[str, int] = {}
+    for stream in ("mag", "temperature"):
+        n = int(np.count_nonzero(stream_mask(table, stream) & ~imu))
+        if n:
+            dropped[stream] = n
+    for stream in FLIGHT_COLUMNS:
+        if has_flight_stream(table, stream):
+            dropped[stream] = len(table) - int(table.column(FLIGHT_COLUMNS[stream][0]).null_count)
+    rows = np.flatnonzero(imu)
+    t_ns = table.column("t_ns").to_numpy()
+    out = table.take(pa.array(rows))
+    carried: list[str] = []
+    for name in CARRIED_COLUMNS:
+        if name not in table.column_names:
+            continue
+        valid = _valid(table, name)
+        source = np.ones(len(table), dtype=bool) if valid is None else valid
+        if source[rows].all() or not source.any():
+            continue  # every IMU row has its own value, or there is none to carry
+        values = _column_f64(table, name, None)
+        have = source[rows]
+        filled = np.where(have, values[rows], interpolate(t_ns[source], values[source], t_ns[rows]))
+        index = out.column_names.index(name)
+        out = out.set_column(index, out.schema.field(index), pa.array(filled, pa.float64()))
+        carried.append(name)
+    meta = metadata(table)
+    meta.update({"rows": "samples", "carried": carried, "left_out": dropped})
+    return with_metadata(out, meta), dropped

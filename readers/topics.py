@@ -78,7 +78,7 @@ def select_topics(path: Path | str, spec: InputSpec, types: Mapping[str, str]) -
         elif len(candidates) > 1:
             raise ReadError(
                 f"{path}: several {msgtype} topics ({', '.join(candidates)}); "
-                f"set {key} in [inputs.{spec.name}]"
+                f"set {key} in {spec.settings_place}"
             )
     if not chosen:
         have = ", ".join(f"{t} ({normalize_type(ty)})" for t, ty in sorted(types.items()))
@@ -121,3 +121,12 @@ NOT_CARRIED = "not carried into the corrected MCAP"
 """The words of every warning that names a log's topics a corrected MCAP does not carry (the
 ULog and DataFlash readers' note, ``convert``'s count of them): ``convert`` keeps only its own,
 which has the counts."""
+
+SHOWN = 5
+"""How many names a warning lists before "... (N more)"."""
+
+
+def some_of(names: list[str]) -> str:
+    """The first :data:`SHOWN` of ``names``, then how many more: a list that fits one line."""
+    more = f", ... ({len(names) - SHOWN} more)" if len(names) > SHOWN else ""
+    return ", ".join(names[:SHOWN]) + more

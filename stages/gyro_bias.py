@@ -8,7 +8,9 @@ Added to the chain as ``matrix = I``, ``offset = bias``.
 Quality check (``ctx.check``): the data must be static (:mod:`imupipe.stages.stillness`): no
 1-second gyro mean further than ``motion_threshold`` rad/s from the overall mean, and the
 accelerometer norm's 1-second means within 0.05 g. A recording that moved stops the run with one
-line (a bias that includes motion is not applied) unless ``accept_failed_checks = true``.
+line (a bias that includes motion is not applied) unless ``accept_failed_checks = true``. A
+recording shorter than :data:`SHORT_S` (a minute) is used with a warning that gives its length,
+its number of 1 s means and the bias's standard error.
 """
 
 from __future__ import annotations
@@ -22,6 +24,10 @@ from imupipe.readers.table import SensorData, has_stream, sensor
 from imupipe.stages.base import Stage, StageContext, StageOutput
 from imupipe.stages.steps import LinearStep
 from imupipe.stages.stillness import stillness
+
+SHORT_S = 60.0
+"""Seconds of data under which the stage warns that the recording is short (the README: "the
+IMU at rest, a minute or more")."""
 
 
 def select_interval(data: SensorData, interval: list[float] | None) -> np.ndarray:
@@ -98,6 +104,14 @@ class GyroBiasStage(Stage):
                 "static": bool(static),
             },
         }
+        duration = float((t_ns[-1] - t_ns[0]) * 1e-9) * n / (n - 1)  # n sample periods
+        if duration < SHORT_S:
+            ctx.warn(
+                f"only {duration:.3g} s of data ({n} samples; the at-rest check had "
+                f"{len(still.gyro_1s.t_ns)} one-second means): a gyro bias wants the IMU at rest for a minute "
+                f"or more; this one is uncertain by up to {float(np.max(std / np.sqrt(n))):.2g} "
+                "rad/s (one standard error) and says nothing of the drift over minutes"
+            )
         ctx.check(
             static,
             f"motion in the bias recording: {still.describe(self.options.motion_threshold)}: the "

@@ -253,7 +253,17 @@ def test_six_position_names_the_missing_face():
 
 def test_too_few_intervals_is_an_error():
     table, _ = simulate("poses", {"n_poses": 5}, seed=7)
-    with pytest.raises(FitError, match="too few static poses: need at least 6"):
+    with pytest.raises(
+        FitError, match=r"found 5 still orientations; .* needs the IMU held still in at least 6 "
+    ) as err:
+        fit(table, method="lm")
+    assert "k=" not in str(err.value)  # a sentence, not the detector's table
+
+
+def test_a_static_log_says_one_orientation_in_words():
+    """A log at rest (no poses at all) says how many orientations it found, in words."""
+    table, _ = simulate("static", {"duration_s": 60.0}, seed=7)
+    with pytest.raises(FitError, match=r"found 1 still orientation; this calibration needs"):
         fit(table, method="lm")
 
 

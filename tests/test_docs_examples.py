@@ -2,16 +2,22 @@
 
 - Every ```toml block that holds ``[inputs]`` or ``[[stages]]`` is loaded by the config parser
   (input files replaced by empty placeholders), so a renamed or mistyped key fails here.
-- Pages under ``docs/tutorials/`` and the README's walk-through run as written: each block
-  ```toml title="NAME" is written to NAME in a fresh folder, then the ```bash blocks run in order
-  (lines that open a viewer, serve docs or install packages are skipped), in a fresh folder
-  that holds the repository's ``tests/`` and ``examples/`` (tutorials run from the repository
-  root). A tutorial that cannot run without data from outside the repository says so with
+- Pages under ``docs/tutorials/`` and ``docs/how-to/`` and the README's walk-through run as
+  written: each block ```toml title="NAME" is written to NAME in a fresh folder, then the
+  ```bash blocks run in order (lines that open a viewer, serve docs or install packages are
+  skipped), then the page's ```python blocks, in order, as one script, in a fresh folder that
+  holds the repository's ``tests/`` and ``examples/`` (the pages say to run from the repository
+  root). A page that cannot run without data from outside the repository says so with
   ``<!-- not run: reason -->``.
+- Issue 38, the kind of the fleet tutorial's dead ends: a page's Python imports only what
+  ``pip install -e .`` installs (the standard library, imupipe and its dependencies) unless the
+  page says ``pip install <package>``; and no page shows a command in a block that is not run
+  (an ``imupipe ...`` command line in a ```text block).
 """
 
 from __future__ import annotations
 
+import ast
 import os
 import re
 import subprocess
@@ -25,7 +31,18 @@ from imupipe.pipeline.config import load_config
 
 ROOT = Path(__file__).resolve().parents[1]
 PAGES = sorted([ROOT / "README.md", *(ROOT / "docs").rglob("*.md")])
-TUTORIALS = [ROOT / "README.md", *sorted((ROOT / "docs" / "tutorials").glob("*.md"))]
+TUTORIALS = [
+    ROOT / "README.md",
+    *sorted((ROOT / "docs" / "tutorials").glob("*.md")),
+    *sorted((ROOT / "docs" / "how-to").glob("*.md")),
+]
+INSTALLED = {  # what `pip install -e .` installs, by import name (pyproject's dependencies)
+    "imupipe", "numpy", "scipy", "pyarrow", "mcap", "mcap_ros2", "rosbags", "rerun", "rich",
+    "lz4", "zstandard", "backports", "pyulog", "yaml", "pygeomag",
+}  # fmt: skip
+COMMAND = re.compile(r"^\$?\s*imupipe (run|convert|survey|inspect|simulate|import)\b(?!:)")
+SLOW_PAGES: set[str] = set()
+"""Pages whose run takes more than a minute of CPU (marked slow)."""
 BLOCK = re.compile(r"^```(\w+)([^\n]*)\n(.*?)^```", re.MULTILINE | re.DOTALL)
 TITLE = re.compile(r'title="([^"]+)"')
 SKIPPED_COMMANDS = ("rerun ", "mkdocs ", "pip ", "open ", "xdg-open ", "ray start", "ray stop")
@@ -74,8 +91,40 @@ def test_config_example_is_valid(where: str, body: str, tmp_path: Path) -> None:
     load_config(cfg)
 
 
-def tutorial_pages() -> list[Path]:
-    return [p for p in TUTORIALS if blocks(p, "bash")]
+def tutorial_pages() -> list:
+    return [
+        pytest.param(p, marks=pytest.mark.slow) if p.name in SLOW_PAGES else p
+        for p in TUTORIALS
+        if blocks(p, "bash") or blocks(p, "python")
+    ]
+
+
+def imported(code: str) -> set[str]:
+    """The top-level modules a Python block imports."""
+    names: set[str] = set()
+    for node in ast.walk(ast.parse(code)):
+        if isinstance(node, ast.Import):
+            names |= {a.name.split(".")[0] for a in node.names}
+        elif isinstance(node, ast.ImportFrom) and node.module and not node.level:
+            names.add(node.module.split(".")[0])
+    return names
+
+
+@pytest.mark.parametrize("page", TUTORIALS, ids=lambda p: p.name)
+def test_page_needs_only_what_it_installs(page: Path) -> None:
+    """A page's Python needs nothing beyond ``pip install -e .`` that it does not name, and
+    every command it shows is in a block the run below runs (a ```bash block)."""
+    text = page.read_text(encoding="utf-8")
+    for _info, body in blocks(page, "python"):
+        for name in sorted(imported(body) - INSTALLED - set(sys.stdlib_module_names)):
+            assert re.search(rf"pip install [^`\n]*\b{name}\b", text), (
+                f"{page.name}: imports {name}, which `pip install -e .` does not install: say "
+                f"`pip install {name}` on the page"
+            )
+    for lang in {lang for lang, _, _ in BLOCK.findall(text)} - {"bash"}:
+        for _info, body in blocks(page, lang):
+            shown = [line for line in body.splitlines() if COMMAND.match(line)]
+            assert not shown, f"{page.name}: a command in a ```{lang} block is never run: {shown}"
 
 
 @pytest.mark.parametrize("page", tutorial_pages(), ids=lambda p: p.name)
@@ -99,17 +148,18 @@ def test_tutorial_runs_as_written(page: Path, tmp_path: Path) -> None:
             if line.strip() and not line.strip().startswith(SKIPPED_COMMANDS)
         ]
         script = "set -euo pipefail\n" + "\n".join(lines)
-        done = subprocess.run(
-            ["bash", "-c", script],
-            cwd=tmp_path,
-            env=env,
-            capture_output=True,
-            text=True,
-            timeout=600,
-        )
+        done = _run(["bash", "-c", script], tmp_path, env)
         assert done.returncode == 0, f"{page.name}: {script}\n{done.stderr[-3000:]}"
         if page.name == "README.md" and "imupipe run" in script:
             _walkthrough_kept_its_word(text, tmp_path, done.stderr)
+    script = "\n".join(body for _info, body in blocks(page, "python"))
+    if script:  # after the commands that make its files, as a reader runs the page
+        done = _run([sys.executable, "-c", script], tmp_path, env)
+        assert done.returncode == 0, f"{page.name}: python\n{done.stderr[-3000:]}"
+
+
+def _run(args: list[str], cwd: Path, env: dict[str, str]) -> subprocess.CompletedProcess:
+    return subprocess.run(args, cwd=cwd, env=env, capture_output=True, text=True, timeout=600)
 
 
 def _walkthrough_kept_its_word(readme: str, folder: Path, stderr: str) -> None:

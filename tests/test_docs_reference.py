@@ -116,3 +116,20 @@ def test_the_pattern_finds_the_words_and_spares_random_seeds() -> None:
         assert INTERNAL.search(text), text
     for text in ("--seed 4", "random seed", "InputSpec", "readers/spec.py", "a spec"):
         assert not INTERNAL.search(text), text
+
+
+def test_python_api_page_holds_its_reference_and_is_fresh() -> None:
+    """Issue 38: ``docs/reference/python-api.md`` holds the generated reference itself (it reads
+    on GitHub, not only on the built site), and it is what the generator writes from today's
+    docstrings and signatures (``python docs/hooks/api_reference.py`` after a change)."""
+    import importlib.util
+
+    path = Path(__file__).resolve().parents[1] / "docs" / "hooks" / "api_reference.py"
+    spec = importlib.util.spec_from_file_location("api_reference", path)
+    assert spec is not None and spec.loader is not None
+    hook = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(hook)
+    page = hook.PAGE.read_text(encoding="utf-8")
+    assert page == hook.render(page), "stale: run python docs/hooks/api_reference.py"
+    assert "### `imupipe.read`" in page and "rows: Literal['samples', 'messages']" in page
+    assert page.count("<!-- api: ") == page.count(hook.END) >= 5

@@ -318,3 +318,56 @@ def test_help_and_commands_page_list_every_scenario():
     for name in SCENARIOS:
         assert re.search(rf"\b{name}\b", helptext), name
         assert f"`{name}`" in page, name
+
+
+# -- issue 38: a reader's warning names its input and says what it means -----------------------
+ULOG = Path(__file__).resolve().parent / "data" / "px4_ulog" / "sample_log_small.ulg"
+
+
+def test_reader_warnings_name_their_input_and_their_meaning(tmp_path: Path) -> None:
+    from imupipe.pipeline.notices import FALLBACK
+
+    (tmp_path / "px4.toml").write_text(
+        f'[inputs.gyro1]\npath = "{ULOG}"\nimu_topic = "sensor_gyro_1"\n'
+        '[[stages]]\ntype = "gyro_bias"\n[output]\ndir = "out"\nrerun = false\n'
+    )
+    done = subprocess.run(
+        [sys.executable, "-m", "imupipe.pipeline.cli", "run", "px4.toml"],
+        cwd=tmp_path, capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    assert done.returncode == 0, done.stderr
+    doc = json.loads((tmp_path / "out" / "calibration.json").read_text())
+    read = [n for n in doc["warnings"] if n["source"] == "inputs.gyro1"]
+    assert len(read) == 3 and all(n["stage"] == "gyro_bias" for n in read)
+    tail = done.stdout.rsplit("(also in calibration.json and report.html):", 1)[-1]
+    for n in read:  # listed under the input they came from, not the stage that read it
+        assert f"warning [inputs.gyro1]: {n['message'][:40]}" in " ".join(tail.split())
+    assert "warning [gyro_bias]: magnetometer" not in tail
+    for n in doc["warnings"]:  # a meaning, never a pointer to a page
+        assert n["meaning"] not in FALLBACK.values(), n
+        assert "docs/reference/outputs.md" not in n["meaning"]
+    (short,) = [n for n in doc["warnings"] if n["source"] == "stage"]
+    assert short["message"].startswith("only 6 s of data (6 samples;")
+    assert "minute or more" in short["meaning"]
+
+
+def test_convert_says_where_its_read_keys_go(tmp_path: Path) -> None:
+    """A reader's "set mag_topic in ..." names the --config file convert was given (or says to
+    give one), not an [inputs.NAME] table convert has none of."""
+    (tmp_path / "cal.json").write_text(
+        json.dumps({"chain": [{"type": "gyro_bias", "sensor": "gyro", "kind": "linear",
+                               "matrix": np.eye(3).tolist(), "offset": [0.0, 0.0, 0.0]}]})
+    )  # fmt: skip
+    (tmp_path / "read.toml").write_text('imu_topic = "sensor_gyro_1"\n')
+    from imupipe.pipeline.convert.settings import load_read_settings
+
+    # without --config: the keys go in one
+    assert load_read_settings(None).settings_place == "a --config TOML file (e.g. read.toml)"
+    for extra, place in ((["--config", "read.toml"], "set mag_topic in read.toml (--config)"),):
+        done = subprocess.run(
+            [sys.executable, "-m", "imupipe.pipeline.cli", "convert", "--calibration",
+             "cal.json", *extra, "--out", f"out{len(extra)}", str(ULOG)],
+            cwd=tmp_path, capture_output=True, text=True, timeout=300,
+        )  # fmt: skip
+        assert done.returncode == 0, done.stderr
+        assert place in done.stderr and "[inputs." not in done.stderr, done.stderr

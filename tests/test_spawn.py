@@ -24,7 +24,9 @@ OUTPUTS = ["calibration.json", "recording.rrd", "static.mcap"]
 @pytest.fixture(scope="module")
 def cfg(tmp_path_factory) -> Path:
     d = tmp_path_factory.mktemp("spawn")
-    table, _ = simulate("static", {"duration_s": 20.0, "rate_hz": 100.0}, seed=5)
+    table, _ = simulate(
+        "static", {"duration_s": 60.0, "rate_hz": 100.0}, seed=5
+    )  # a minute: no short-recording warning
     write_log(d / "static.csv", table)
     (d / "cfg.toml").write_text(
         '[inputs.static]\npath = "static.csv"\n[[stages]]\ntype = "gyro_bias"\n'

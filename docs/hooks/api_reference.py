@@ -1,7 +1,9 @@
 """mkdocs hook: the Python API reference, generated from the docstrings.
 
-A page line ``<!-- api: NAME NAME ... -->`` becomes, for each public name of ``imupipe``, its
-signature (with the type hints as written) and its docstring; a class also gets its public
+A page line ``<!-- api: NAME NAME ... -->`` is followed, up to ``<!-- /api -->``, by each public
+name of ``imupipe``'s signature (with the type hints as written) and its docstring, written into
+the page itself (``python docs/hooks/api_reference.py``; ``tests/test_docs_reference.py`` fails
+while the page is stale), so that it reads on GitHub as on the site; a class also gets its public
 methods and properties. The reference cannot drift from the code: a keyword added to a stage's
 ``Options`` appears in ``imupipe.<stage>``'s signature here (through ``imupipe/_stages.py``,
 which the tests keep equal to what ``imupipe._codegen`` writes). A name not in
@@ -13,11 +15,16 @@ from __future__ import annotations
 import dataclasses
 import inspect
 import re
+from pathlib import Path
 from typing import Any
 
 import imupipe
 
 MARKER = re.compile(r"^<!-- api: ([\w ]+) -->$", re.MULTILINE)
+END = "<!-- /api -->"
+BLOCK = re.compile(r"^<!-- api: ([\w ]+) -->$(?:.*?^<!-- /api -->$)?", re.MULTILINE | re.DOTALL)
+"""A marker and what was generated after it (up to :data:`END`), or a marker alone."""
+PAGE = Path(__file__).resolve().parents[1] / "reference" / "python-api.md"
 ROLE = re.compile(r":(?:func|class|data|attr|meth|mod):`~?([^`]+)`")
 WIDTH = 96
 
@@ -99,18 +106,34 @@ def entry(name: str) -> str:
     return "\n".join(parts)
 
 
+def render(markdown: str) -> str:
+    """``markdown`` with each marker's entries written after it, up to its end marker ``<!--
+    /api -->`` (what was there replaced: the page in the repository holds the reference, so it
+    reads on GitHub too; ``python docs/hooks/api_reference.py`` writes it, a test keeps it
+    fresh)."""
+
+    def block(m: re.Match[str]) -> str:
+        body = "\n".join(entry(n) for n in m.group(1).split())
+        return f"<!-- api: {m.group(1)} -->\n\n{body}\n{END}"
+
+    return BLOCK.sub(block, markdown)
+
+
 def on_page_markdown(markdown: str, **_: object) -> str:
-    return MARKER.sub(lambda m: "\n".join(entry(n) for n in m.group(1).split()), markdown)
+    return render(markdown)
 
 
 def on_post_build(**_: object) -> None:
     """Every public name is on the reference page (``__version__`` aside)."""
-    from pathlib import Path
-
-    page = Path(__file__).resolve().parents[1] / "reference" / "python-api.md"
+    page = PAGE
     listed = {
         n for m in MARKER.finditer(page.read_text(encoding="utf-8")) for n in m.group(1).split()
     }
     missing = [n for n in imupipe.__all__ if n not in listed and n != "__version__"]
     if missing:
         raise ValueError(f"{page}: public names of imupipe not documented: {', '.join(missing)}")
+
+
+if __name__ == "__main__":  # python docs/hooks/api_reference.py: write the page's reference
+    PAGE.write_text(render(PAGE.read_text(encoding="utf-8")), encoding="utf-8")
+    print(PAGE)

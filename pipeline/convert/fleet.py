@@ -163,7 +163,7 @@ def convert(
     for prefix in planned.remote_folders():
         remote.remove_stale_temps(prefix)
     fatal: list[str] = []
-    with progress_bar("imupipe convert", total=len(tasks), quiet=quiet) as bar:
+    with progress_bar("imupipe convert", total=len(tasks), quiet=quiet, unit="logs") as bar:
 
         def on_done(outcome: Outcome) -> None:
             task: LogTask = outcome.task
@@ -205,18 +205,19 @@ def convert(
                 raise _Stop()
 
         try:
-            run_tasks(
-                convert_log,
-                tasks,
-                on_done,
-                engine=engine,
-                jobs=jobs,
-                address=address,
-                retries=retries,
-                preload=WORKER_PRELOAD,
-                dashboard=dashboard,
-                engine_log=engine_log,
-            )
+            with bar.listen(within_items=True):  # a log converted here (one, --jobs 1): bytes
+                run_tasks(
+                    convert_log,
+                    tasks,
+                    on_done,
+                    engine=engine,
+                    jobs=jobs,
+                    address=address,
+                    retries=retries,
+                    preload=WORKER_PRELOAD,
+                    dashboard=dashboard,
+                    engine_log=engine_log,
+                )
         except _Stop:
             done = len(summary.converted) + len(summary.skipped)
             raise OutputFolderError(

@@ -50,6 +50,7 @@ FIELDS = (
     "peak_rss_mb",
     "provenance",
     "warnings",
+    "not_carried",
     "error",
     "finished_at",
 )

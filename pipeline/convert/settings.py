@@ -29,8 +29,8 @@ def chain_sha256(calibration: Mapping[str, Any]) -> str:
 def load_read_settings(path: Path | None) -> InputSpec:
     """The ``--config`` TOML: the keys of one ``[inputs.NAME]`` table except ``path``
     (``imu_topic``, ``mag_topic``, ``temperature_topic``, ``time`` and a ``[csv]`` mapping)."""
-    if path is None:
-        return InputSpec(path=Path("."))
+    if path is None:  # the keys a log's reader may ask for go in a --config file
+        return InputSpec(path=Path("."), keys_in="a --config TOML file (e.g. read.toml)")
     try:
         raw = tomllib.loads(Path(path).read_text(encoding="utf-8"))
     except FileNotFoundError:
@@ -40,12 +40,13 @@ def load_read_settings(path: Path | None) -> InputSpec:
     if "path" in raw:
         raise ConfigError(f"--config {path}: 'path' is not allowed (the logs are the arguments)")
     base = Path(path).resolve().parent
-    return parse_input("convert", {**raw, "path": str(base)}, base, f"--config {path}")
+    spec = parse_input("convert", {**raw, "path": str(base)}, base, f"--config {path}")
+    return dataclasses.replace(spec, keys_in=f"{path} (--config)")
 
 
 def settings_sha256(spec: InputSpec) -> str:
     """SHA-256 of what decides how a log is read (topics, time source, CSV mapping)."""
     settings = dataclasses.asdict(spec)
-    settings.pop("path"), settings.pop("name")
+    settings.pop("path"), settings.pop("name"), settings.pop("keys_in")
     canonical = json.dumps(settings, sort_keys=True, default=str, separators=(",", ":"))
     return hashlib.sha256(canonical.encode()).hexdigest()

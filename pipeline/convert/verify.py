@@ -20,7 +20,7 @@ from imupipe.pipeline.errors import ImupipeError, ReadError
 from imupipe.pipeline.writers.mcap import DEFAULT_TOPICS
 from imupipe.readers.spec import InputSpec
 from imupipe.readers.table import counts, metadata
-from imupipe.readers.topics import NOT_CARRIED
+from imupipe.readers.topics import NOT_CARRIED, some_of
 
 
 class VerifyError(ImupipeError):
@@ -118,25 +118,33 @@ def source_counts(path: Path, fmt: str) -> dict[str, int] | None:
     return dict(counts)
 
 
+def lost_topics(counts: Mapping[str, int] | None, written: Mapping[str, int]) -> dict[str, int]:
+    """Every input topic (of ``counts``: topic -> messages) with no messages in the output."""
+    return {
+        t: n
+        for t, n in sorted((counts or {}).items())
+        if n and t not in written and not any(w.startswith(t + "/") for w in written)
+    }
+
+
 def not_carried(
     fmt: str, counts: Mapping[str, int] | None, written: Mapping[str, int]
 ) -> list[str]:
-    """One warning naming every input topic with no messages in the output (a topic is written
-    as itself or as ``topic/...``), with its message count; none when all are written."""
+    """One warning counting the input topics with no messages in the output (a topic is written
+    as itself or as ``topic/...``) and naming the largest few with their message counts (every
+    one is in the manifest record: :func:`lost_topics`); none when all are written."""
     if not counts:
         return []
-    lost = {
-        t: n
-        for t, n in sorted(counts.items())
-        if n and t not in written and not any(w.startswith(t + "/") for w in written)
-    }
+    lost = lost_topics(counts, written)
     if not lost:
         return []
     total, dropped = sum(counts.values()), sum(lost.values())
-    names = ", ".join(f"{t} ({n:,})" for t, n in lost.items())
+    largest = sorted(lost, key=lambda t: (-lost[t], t))  # the most messages first
+    names = some_of([f"{t} ({lost[t]:,})" for t in largest])
     return [
         f"{len(lost)} of {len(counts)} {FORMAT_NAMES.get(fmt, fmt)} topics are {NOT_CARRIED} (they "
-        f"have no ROS message type; {dropped:,} of {total:,} messages): {names}"
+        f"have no ROS message type; {dropped:,} of {total:,} messages; imupipe inspect lists "
+        f"them all): {names}"
     ]
 
 

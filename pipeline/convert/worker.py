@@ -37,6 +37,7 @@ from imupipe.pipeline.convert.provenance import ProvenanceCheck
 from imupipe.pipeline.convert.verify import (
     counts_by_topic,
     input_counts,
+    lost_topics,
     mcap_counts,
     not_carried,
     source_counts,
@@ -102,6 +103,9 @@ class LogStats:
     provenance: str = "-"
     """``match``, ``mismatch: ...`` or ``unknown`` (see :mod:`convert_provenance`); ``-`` when
     skipped."""
+    not_carried: dict[str, int] = field(default_factory=dict)
+    """Every topic of the log the corrected MCAP does not carry, with its message count (the
+    warning names the largest few)."""
 
     @property
     def messages(self) -> int:
@@ -168,6 +172,7 @@ def _convert_log(task: LogTask) -> LogStats:
     fmt = dispatch.detect_format(src)
     size = input_size(src)
     mode, warnings, checked = "-", [], "-"
+    dropped: dict[str, int] = {}
     found = None if task.force else existing_output(task, size)
     if found is not None:
         status, written = "skipped", found
@@ -221,7 +226,9 @@ def _convert_log(task: LogTask) -> LogStats:
             written = mcap_counts(mcap_tmp) or {}
             warnings += _nothing_applies(task.calibration["chain"], streams)
             verify_counts(src, expected if expected is not None else read, written)
-            lost = not_carried(fmt, source_counts(src, fmt), written)
+            in_log = source_counts(src, fmt)
+            dropped = lost_topics(in_log, written)
+            lost = not_carried(fmt, in_log, written)
             if lost:  # the count of what is not carried replaces the reader's note of it
                 warnings[:] = [w for w in warnings if NOT_CARRIED not in w]
             warnings += lost
@@ -239,6 +246,7 @@ def _convert_log(task: LogTask) -> LogStats:
         peak_rss_mb=round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
         warnings=warnings,
         provenance=checked,
+        not_carried=dropped,
     )
 
 

@@ -113,9 +113,14 @@ def __getattr__(name: str) -> Any:
     if module is None:
         raise AttributeError(f"module 'imupipe' has no attribute {name!r}")
     value = getattr(importlib.import_module(module), name)
+    if callable(value) and not isinstance(value, type):  # a misspelt keyword: the allowed
+        from imupipe._api import keywords_checked  # list, as the config says
+
+        value = keywords_checked(value)
     globals()[name] = value
     return value
 
 
 def __dir__() -> list[str]:
-    return sorted([*globals(), *__all__])
+    """The public names (``__all__``), not this module's own imports and helpers."""
+    return sorted(__all__)

@@ -14,10 +14,14 @@ it: no numpy, no pyarrow).
 from __future__ import annotations
 
 import dataclasses
+import difflib
+import functools
+import inspect as inspect_module
 import io
 import os
+import sys
 import warnings
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
@@ -33,6 +37,7 @@ from imupipe.pipeline.calibration_file import (
 )
 from imupipe.pipeline.config import Config, build_options, load_config, parse_config, parse_input
 from imupipe.pipeline.convert.fleet import ConvertSummary, convert
+from imupipe.pipeline.errors import ConfigError
 from imupipe.pipeline.inspect_log import inspect as inspect_log
 from imupipe.pipeline.inspect_log import render as render_inspection
 from imupipe.pipeline.report.summary import (
@@ -46,7 +51,7 @@ from imupipe.pipeline.run import run as run_config
 from imupipe.readers.dispatch import read_input
 from imupipe.readers.errors import ImupipeError
 from imupipe.readers.spec import InputSpec
-from imupipe.readers.table import metadata
+from imupipe.readers.table import FLIGHT_COLUMNS, metadata, on_imu_rows
 from imupipe.stages.base import StageContext
 from imupipe.stages.registry import stage_class
 from imupipe.stages.steps import Step, apply_chain
@@ -57,11 +62,13 @@ __all__ = [
     "ImupipeError",
     "ImupipeWarning",
     "Inspection",
+    "KeywordError",
     "RunResult",
     "StageResult",
     "convert",
     "fit_stage",
     "inspect",
+    "keywords_checked",
     "read",
     "run",
 ]
@@ -76,6 +83,9 @@ BOOKKEEPING = (
     "fitted_on",
 )
 """Keys of a stage's results that are not fitted values (see :attr:`StageResult.values`)."""
+FLIGHT_STAGES = ("mag_inflight",)
+"""Stage types that fit on a log's flight streams (attitude, position, current, throttle), which
+:func:`read`'s default ``rows="samples"`` leaves out."""
 UNCERTAINTY_SUFFIXES = ("_std", "_std_error", "_range_68", "_upper_68", "uncertainty")
 """Metric names that hold an uncertainty (see :attr:`StageResult.uncertainties`)."""
 
@@ -87,11 +97,64 @@ class ImupipeWarning(UserWarning):
     ``warnings.simplefilter("error", imupipe.ImupipeWarning)``."""
 
 
-def _warn(messages: Sequence[str], where: str, stacklevel: int) -> None:
-    """Issue ``messages`` as :class:`ImupipeWarning`; ``stacklevel`` counts from the caller of
-    this function (2: the caller's caller, the user's line)."""
+class KeywordError(ConfigError, TypeError):
+    """A call of a public function with a keyword it does not take, or without an argument it
+    needs: the config's message for an unknown key (the allowed list), as an
+    :class:`ImupipeError` (and a ``TypeError``, what Python raises for a bad call)."""
+
+
+def keywords_checked(function: Callable[..., Any]) -> Callable[..., Any]:
+    """``function`` whose bad calls (a misspelt keyword, a missing argument) raise
+    :class:`KeywordError` naming the keywords it takes; its signature, annotations and
+    docstring are kept (``functools.wraps``). The call itself is not slowed: the arguments are
+    bound only when Python refused them."""
+    signature = inspect_module.signature(function)
+
+    @functools.wraps(function)
+    def checked(*args: Any, **kwargs: Any) -> Any:
+        try:
+            return function(*args, **kwargs)
+        except TypeError as error:
+            try:
+                signature.bind(*args, **kwargs)
+            except TypeError:
+                raise KeywordError(_bad_call(function.__name__, signature, kwargs)) from error
+            raise
+
+    return checked
+
+
+def _bad_call(name: str, signature: inspect_module.Signature, kwargs: Mapping[str, Any]) -> str:
+    """The one line for a call that does not fit ``signature``."""
+    keywords = [p.name for p in signature.parameters.values() if p.kind is p.KEYWORD_ONLY]
+    unknown = [k for k in kwargs if k not in signature.parameters]
+    if unknown:
+        close = difflib.get_close_matches(unknown[0], keywords, n=1)
+        hint = f"; did you mean '{close[0]}'?" if close else ""
+        return (
+            f"imupipe.{name}(): unknown keyword '{unknown[0]}'{hint} "
+            f"(allowed: {', '.join(keywords)})"
+        )
+    needed = [
+        p.name
+        for p in signature.parameters.values()
+        if p.default is p.empty and p.kind not in (p.VAR_POSITIONAL, p.VAR_KEYWORD)
+    ]
+    return (
+        f"imupipe.{name}(): takes {', '.join(needed)} as argument{'s' * (len(needed) > 1)}, "
+        f"then only keywords ({', '.join(keywords)})"
+    )
+
+
+def _warn(messages: Sequence[str], where: str) -> None:
+    """Issue ``messages`` as :class:`ImupipeWarning`, attributed to the user's line: the first
+    frame outside the ``imupipe`` package (however many of its functions called this one)."""
+    package = os.path.dirname(__file__) + os.sep
+    frame, level = sys._getframe(1), 2
+    while frame is not None and frame.f_code.co_filename.startswith(package):
+        frame, level = frame.f_back, level + 1
     for message in messages:
-        warnings.warn(f"[{where}] {message}", ImupipeWarning, stacklevel=stacklevel + 1)
+        warnings.warn(f"[{where}] {message}", ImupipeWarning, stacklevel=level)
 
 
 def _text(summaries: Sequence[StageSummary]) -> str:
@@ -118,7 +181,8 @@ def input_spec(path: str | os.PathLike[str], where: str, **options: Any) -> Inpu
     """The input ``path`` with the keys of an ``[inputs.NAME]`` table, checked as the config
     checks them (:func:`imupipe.pipeline.config.parse_input`; relative paths from the current
     folder); a :class:`~imupipe.pipeline.errors.ConfigError` naming ``where`` and the key."""
-    return parse_input("input", _input_raw(path, options), Path.cwd(), where)
+    spec = parse_input("input", _input_raw(path, options), Path.cwd(), where)
+    return dataclasses.replace(spec, keys_in=f"{where.split('(')[0]}()'s keywords")
 
 
 def read(
@@ -130,19 +194,31 @@ def read(
     time: Literal["header", "log"] = "header",
     csv: Mapping[str, Any] | None = None,
     fields: Mapping[str, Any] | None = None,
+    rows: Literal["samples", "messages"] = "samples",
 ) -> pa.Table:
     """Read a log (CSV, MCAP, ROS 1 or ROS 2 bag, PX4 ULog, ArduPilot DataFlash) into the common
     table: a ``pyarrow.Table`` with ``t_ns`` (int64 ns) and the SI columns ``gyro_x`` (rad/s),
     ``accel_x`` (m/s^2), ``mag_x`` (T), ``temperature`` (degC)... (see the reference page "The
     common table").
 
-    The keywords are the keys of a config's ``[inputs.NAME]`` table, with the same checks
+    ``rows="samples"`` (the default): one row per IMU sample, so that ``gyro_x`` has no gaps;
+    the magnetometer, temperature and pressure are carried onto the IMU stamps by linear
+    interpolation in time between their own samples (held constant before the first and after
+    the last; a row that has its own value keeps it), and the rows of other messages are
+    dropped (:func:`imupipe.readers.table.on_imu_rows`; a warning says how many when a flight
+    stream's are). ``rows="messages"``: one row per message, as ``imupipe run`` reads it, every
+    sensor null on the rows of the others; fit magnetometer stages on this one, so that each
+    magnetometer sample counts once.
+
+    The other keywords are the keys of a config's ``[inputs.NAME]`` table, with the same checks
     (``csv`` is the ``[inputs.NAME.csv]`` mapping as a dict: ``csv={"time": 0, "time_unit":
     "s", "accel": [1, 2, 3]}``; ``fields`` the ``[inputs.NAME.fields]`` mapping:
     ``fields={"gyro": "/fmu/out/sensor_combined.gyro_rad", "time": "log"}``). The reader's warnings (a topic chosen among several, stamps out
     of order) are issued as :class:`ImupipeWarning`. Raises :class:`ImupipeError` (one line
     naming the file and what is wrong) when the log cannot be read.
     """
+    if rows not in ("samples", "messages"):
+        raise ConfigError(f"imupipe.read(): rows={rows!r}: must be 'samples' or 'messages'")
     where = f"imupipe.read({os.fspath(path)!r})"
     spec = input_spec(
         path,
@@ -155,7 +231,17 @@ def read(
         fields=fields,
     )
     table, found = read_input(spec)
-    _warn(found, where, stacklevel=2)
+    if rows == "samples":
+        table, dropped = on_imu_rows(table)
+        flight = {k: n for k, n in dropped.items() if k in FLIGHT_COLUMNS}
+        if flight:
+            found = [
+                *found,
+                f"rows='samples' keeps the IMU samples: the rows of "
+                f"{', '.join(f'{n} {k}' for k, n in flight.items())} samples are left out; "
+                "read with rows='messages' for them",
+            ]
+    _warn(found, where)
     return table
 
 
@@ -334,6 +420,13 @@ def fit_stage(
     given = {k: list(v) if isinstance(v, tuple) else v for k, v in given.items()}
     stage_name = name or type_name
     opts = build_options(cls.Options, given, f"imupipe.{type_name}()")
+    left_out = [s for s in metadata(table).get("left_out", {}) if s in FLIGHT_COLUMNS]
+    if type_name in FLIGHT_STAGES and left_out:
+        raise ConfigError(
+            f"imupipe.{type_name}(): the table was read with rows='samples' (imupipe.read's "
+            f"default), which leaves out the flight streams the stage fits on "
+            f"({', '.join(left_out)}): read the log with imupipe.read(path, rows='messages')"
+        )
     ctx = StageContext(
         name=stage_name,
         input_name="table",
@@ -342,6 +435,12 @@ def fit_stage(
         accept_failed_checks=accept_failed_checks,
     )
     output = cls(opts).fit(table, ctx)
+    if "mag_x" in metadata(table).get("carried", ()) and "mag" in cls.sensors_for(opts):
+        ctx.warnings.append(
+            "the table's magnetometer was interpolated onto the IMU samples (imupipe.read's "
+            "default rows='samples'): read the log with rows='messages' to fit on the "
+            "magnetometer's own samples, each counted once"
+        )
     source = metadata(table).get("source")
     results: dict[str, Any] = {
         "type": type_name,
@@ -352,7 +451,7 @@ def fit_stage(
     }
     if ctx.failed_checks:
         results["failed_checks"] = ctx.failed_checks
-    _warn(ctx.warnings, stage_name, stacklevel=3)  # the user -> imupipe.allan -> here
+    _warn(ctx.warnings, stage_name)
     units = metadata(table).get("units", {})
     raw = frozenset(s for s, unit in units.items() if unit == "raw")
     return StageResult(stage_name, type_name, results, output.steps, raw)

@@ -150,17 +150,25 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         metavar="KEY=VALUE",
         help="a scenario parameter (JSON value); repeatable",
     )
+    p.add_argument("--quiet", "-q", action="store_true", help="no progress on stderr")
     p.set_defaults(func=main)
 
 
 def main(args: argparse.Namespace) -> int:
+    from imupipe.pipeline.progress import progress_bar
+
     overrides = _parse_set(args.set)
     if args.rate is not None:
         overrides["rate_hz"] = args.rate
     if args.duration is not None:
         overrides["duration_s"] = args.duration
-    table, truth = simulate(args.scenario, overrides, args.seed)
-    write_log(args.out, table)
+    with progress_bar(f"simulating {args.scenario}", None, quiet=args.quiet) as bar:
+        scenario_module(args.scenario)  # an unknown scenario: its error before any wait
+        table, truth = simulate(args.scenario, overrides, args.seed)
+        rows = getattr(table, "num_rows", None)  # a board or a fleet: no one table
+        bar.phase(f"writing {args.out.name}", rows, "rows" if rows else "")
+        with bar.listen():  # the MCAP and bag writers tell how far they are
+            write_log(args.out, table)
     truth_path = args.out.with_name(args.out.name + ".truth.json")
     with staged_outputs() as out:
         out.write_text(truth_path, json.dumps(truth, indent=2) + "\n")

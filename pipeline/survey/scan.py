@@ -31,6 +31,7 @@ from pathlib import Path
 from typing import Any
 
 from imupipe.pipeline.errors import ConfigError
+from imupipe.pipeline.progress import progress_bar
 
 SURVEY_NAME = "survey.parquet"
 RECORDING_NAME = "survey.rrd"
@@ -387,16 +388,23 @@ def survey(
 
     # as convert: Ray's own output goes to DIR/ray.log, the user's stderr holds imupipe's lines
     engine_log = out_dir / ENGINE_LOG if engine == "ray" else None
-    run_tasks(
-        survey_log,
-        todo,
-        on_done,
-        engine=engine,
-        jobs=jobs,
-        address=address,
-        retries=retries,
-        engine_log=engine_log,
-    )
+    with progress_bar("imupipe survey", total=len(todo), quiet=quiet, unit="logs") as bar:
+
+        def counted(outcome: Outcome) -> None:
+            on_done(outcome)
+            bar.advance()
+
+        with bar.listen(within_items=True):  # a log read here (one, --jobs 1): by its bytes
+            run_tasks(
+                survey_log,
+                todo,
+                counted,
+                engine=engine,
+                jobs=jobs,
+                address=address,
+                retries=retries,
+                engine_log=engine_log,
+            )
     import pyarrow as pa
     import pyarrow.parquet as pq
 

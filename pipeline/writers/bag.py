@@ -34,7 +34,11 @@ from imupipe.pipeline.writers.mcap import (
     encode_stream,
     message_times,
 )
+from imupipe.readers.progress import report
 from imupipe.readers.table import metadata
+
+REPORT_EVERY = 10_000
+"""Messages between two reports of how far the writing is (:mod:`imupipe.readers.progress`)."""
 
 
 def _messages(table: pa.Table, encoding: str) -> Iterator[tuple[str, int, list[bytes], np.ndarray]]:
@@ -89,8 +93,10 @@ def write_ros1_bag(path: str | Path, table: pa.Table, compression: str = "lz4") 
                 s: writer.add_connection(topic, typ, typestore=store)
                 for s, (topic, typ) in streams.items()
             }
-            for t, _, stream, payload in items:
+            for i, (t, _, stream, payload) in enumerate(items):
                 writer.write(conns[stream], t, payload)
+                if not i % REPORT_EVERY:
+                    report(i, len(items))
         os.replace(tmp, final)
     finally:
         shutil.rmtree(tmpdir, ignore_errors=True)
@@ -116,8 +122,10 @@ def write_ros2_bag(path: str | Path, table: pa.Table, storage: str = "sqlite3") 
                 s: writer.add_connection(topic, typ, typestore=store)
                 for s, (topic, typ) in streams.items()
             }
-            for t, _, stream, payload in items:
+            for i, (t, _, stream, payload) in enumerate(items):
                 writer.write(conns[stream], t, payload)
+                if not i % REPORT_EVERY:
+                    report(i, len(items))
         if bare:
             (db,) = folder.glob("*.db3")
             os.replace(db, final)

@@ -54,6 +54,7 @@ from mcap.records import (
 
 from imupipe.pipeline.calibration_file import calibration_json
 from imupipe.readers import cdr
+from imupipe.readers.progress import report
 from imupipe.readers.spec import RawMessage
 from imupipe.readers.table import metadata, sensor, sensor_mask, stream_mask
 
@@ -667,5 +668,6 @@ def write_mcap(
                 writer.write_raw(raw[done:upto])
                 done = max(done, upto)
             writer.write_table(part)
+            report(start + part.num_rows, table.num_rows)
         writer.write_raw(raw[done:])
     return writer.counts()

@@ -426,7 +426,11 @@ def read_csv(spec: InputSpec) -> tuple[pa.Table, list[str]]:
         raise ReadError(
             f"{path}: no mapped column found (gyro {m.gyro}, accel {m.accel}, mag {m.mag}); "
             f"the file has: {', '.join(f.layout.names[:20]) or f'{f.layout.fields} columns'}; "
-            f"set [inputs.{spec.name}.csv]"
+            + (
+                f"set [inputs.{spec.name}.csv]"
+                if spec.keys_in is None
+                else f"set csv in {spec.keys_in}"
+            )
         )
 
     types: dict[int, pa.DataType] = {i: pa.float64() for ix in vectors.values() for i in ix}

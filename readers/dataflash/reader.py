@@ -70,7 +70,7 @@ from imupipe.readers.table import (
     with_stream_column,
 )
 from imupipe.readers.table_buffer import assemble
-from imupipe.readers.topics import NOT_CARRIED, asked_topics
+from imupipe.readers.topics import NOT_CARRIED, asked_topics, some_of
 
 HEAD = (0xA3, 0x95)
 """The two bytes that start every record."""
@@ -465,7 +465,7 @@ def choose_topics(spec: InputSpec, f: DataFlashLog) -> tuple[dict[str, str], lis
         if len(cands["imu"]) > 1:
             raise ReadError(
                 f"{f.path}: several IMU instances ({', '.join(cands['imu'])}); set imu_topic in "
-                f"[inputs.{spec.name}]"
+                f"{spec.settings_place}"
             )
         chosen["imu"] = cands["imu"][0]
     if "mag" not in chosen and cands["mag"] and "mag" not in off:
@@ -474,7 +474,7 @@ def choose_topics(spec: InputSpec, f: DataFlashLog) -> tuple[dict[str, str], lis
         else:
             warnings.append(
                 f"magnetometer not read: several instances ({', '.join(cands['mag'])}); set "
-                f"mag_topic in [inputs.{spec.name}]"
+                f"mag_topic in {spec.settings_place}"
             )
     if "temperature" not in chosen and chosen.get("imu") in cands["temperature"]:
         chosen["temperature"] = chosen["imu"]
@@ -591,9 +591,7 @@ def read_dataflash(spec: InputSpec) -> tuple[pa.Table, list[str]]:
     }
     others = sorted(set(f.instances) - set(chosen.values()))
     if others:
-        shown = ", ".join(others[:5]) + (
-            f", ... ({len(others) - 5} more)" if len(others) > 5 else ""
-        )
+        shown = some_of(others)
         warnings.append(
             f"{len(others)} other DataFlash messages are {NOT_CARRIED} "
             f"(they have no ROS message type; imupipe inspect lists them): {shown}"

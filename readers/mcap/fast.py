@@ -53,6 +53,7 @@ from imupipe.readers.compression import (
 )
 from imupipe.readers.errors import ReadError
 from imupipe.readers.mcap.summary import complete, defined
+from imupipe.readers.progress import report
 
 MAGIC = b"\x89MCAP0\r\n"
 OP_HEADER, OP_FOOTER, OP_SCHEMA, OP_CHANNEL, OP_MESSAGE = 0x01, 0x02, 0x03, 0x04, 0x05
@@ -436,6 +437,7 @@ class McapFile:
                     loose_off.setdefault(cid, []).append(len(loose))
                     loose += bytes([OP_MESSAGE]) + len(body).to_bytes(8, "little") + body
                     if len(loose) >= PSEUDO_CHUNK_BYTES:
+                        report(pos, self.size)
                         yield _loose_chunk(
                             loose, loose_off, f"{self.path}: messages before byte {pos}"
                         )
@@ -448,6 +450,7 @@ class McapFile:
                     if self._collect(opcode, body):
                         self._join()
                 elif opcode == OP_CHUNK:
+                    report(pos, self.size)  # the chunks before this one are read
                     k = int(np.searchsorted(offsets, pos, side="right"))
                     if len(offsets):
                         bound = int(suffix_min[k]) if k < len(offsets) else NEVER

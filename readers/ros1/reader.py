@@ -41,6 +41,7 @@ from imupipe.readers.compression import DECOMPRESS_THREADS, PREFETCH, decompress
 from imupipe.readers.decoded import Piece, concat, decode_piece
 from imupipe.readers.errors import ReadError
 from imupipe.readers.mapped import Batch, Definition
+from imupipe.readers.progress import report
 from imupipe.readers.sources import carry_sources, iter_sources, read_sources
 from imupipe.readers.spec import InputSpec, RawMessage
 from imupipe.readers.topics import normalize_type
@@ -416,6 +417,7 @@ class Ros1Bag:
         queue: collections.deque[BagChunk] = collections.deque()
         with open(self.path, "rb") as fh, ThreadPoolExecutor(DECOMPRESS_THREADS) as worker:
             for (pos, _, counts), bound in zip(self.chunk_infos, bounds, strict=True):
+                report(pos, self.size)  # the chunks before this one are read
                 fh.seek(pos)
                 where = f"{self.path}: chunk at byte {pos}"
                 op, fields, data = self._record(fh)

@@ -74,7 +74,7 @@ from imupipe.readers.table import (
     with_stream_column,
 )
 from imupipe.readers.table_buffer import assemble
-from imupipe.readers.topics import NOT_CARRIED, asked_topics
+from imupipe.readers.topics import NOT_CARRIED, asked_topics, some_of
 from imupipe.readers.ulog.rotation import mag_rotation, mag_slot
 
 US_TO_NS = 1000
@@ -355,7 +355,7 @@ def choose_topics(spec: InputSpec, f: UlogFile) -> tuple[dict[str, str], list[st
         elif raw or integrated:
             raise ReadError(
                 f"{f.path}: several IMU instances ({', '.join(raw + integrated)}); set "
-                f"imu_topic in [inputs.{spec.name}]"
+                f"imu_topic in {spec.settings_place}"
             )
     imu = chosen.get("imu")
     raw_imu = imu is not None and f.instances[imu].name == "sensor_gyro"
@@ -371,7 +371,7 @@ def choose_topics(spec: InputSpec, f: UlogFile) -> tuple[dict[str, str], list[st
         elif cands["mag"]:
             warnings.append(
                 f"magnetometer not read: several candidates ({', '.join(cands['mag'])}); "
-                f"set mag_topic in [inputs.{spec.name}]"
+                f"set mag_topic in {spec.settings_place}"
             )
     if "temperature" not in chosen and imu is not None and "temperature" not in off:
         device = _imu_gyro_device(f, imu)
@@ -386,7 +386,7 @@ def choose_topics(spec: InputSpec, f: UlogFile) -> tuple[dict[str, str], list[st
             warnings.append(
                 "temperature not read: the IMU's own sensor_gyro instance is not logged; "
                 f"candidates: {', '.join(cands['temperature'])}; set temperature_topic in "
-                f"[inputs.{spec.name}]"
+                f"{spec.settings_place}"
             )
     if "imu" not in chosen and "mag" not in chosen and "temperature" not in chosen:
         raise ReadError(
@@ -784,9 +784,7 @@ def read_ulog(spec: InputSpec) -> tuple[pa.Table, list[str]]:
         warnings.append(f"the file is corrupt in places (the damaged messages were skipped{said})")
     others = sorted(set(f.instances) - set(chosen.values())) + f.skipped
     if others:
-        shown = ", ".join(others[:5]) + (
-            f", ... ({len(others) - 5} more)" if len(others) > 5 else ""
-        )
+        shown = some_of(others)
         warnings.append(
             f"{len(others)} other ULog topics are {NOT_CARRIED} (they "
             f"have no ROS message type; imupipe inspect lists them): {shown}"

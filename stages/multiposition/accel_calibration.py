@@ -196,11 +196,9 @@ def detect_intervals(
             intervals = detector.detect(k, whole_windows=whole)
             row: dict[str, Any] = {"intervals": len(intervals)}
             table[f"{k:g}" + (" (whole windows)" if whole else "")] = row
-            if len(intervals) < need:
-                continue
-            poses = group_poses(intervals, accel)
-            row["poses"] = len(poses)
-            if len(poses) < need:
+            poses = group_poses(intervals, accel) if len(intervals) else None
+            row["poses"] = len(poses) if poses is not None else 0
+            if poses is None or len(poses) < need:
                 continue
             means = poses.means(accel)
             try:
@@ -221,11 +219,7 @@ def detect_intervals(
             if best is None or score < best[0]:
                 best = (score, k, whole, Detection(poses, chosen, reason, fits, {}))
     if best is None:
-        found = ", ".join(f"k={k}: {row['intervals']}" for k, row in table.items())
-        raise FitError(
-            f"too few static poses: need at least {need}, found {found} intervals "
-            "(hold the IMU still longer in more poses, or lower min_interval_s)"
-        )
+        raise FitError(too_few_poses(max(row["poses"] for row in table.values()), need))
     _, k, whole, chosen = best
     chosen.report = {
         **detector.describe(k),
@@ -241,6 +235,27 @@ def detect_intervals(
         "candidates": table,
     }
     return chosen
+
+
+def too_few_poses(found: int, need: int) -> str:
+    """The one line for a log whose still poses cannot support the fit: how many orientations
+    were found (the most over every detection threshold), how many the model needs, and what to
+    record instead."""
+    if found >= need:
+        what = (
+            f"found {found} still orientations, but none of the fits on them could be made "
+            "(the orientations too close to one another?)"
+        )
+    else:
+        what = (
+            f"found {found} still orientation{'s' if found != 1 else ''}; this calibration "
+            f"needs the IMU held still in at least {need} different orientations"
+        )
+    return (
+        f"too few static poses: {what}. Record a session of 12 or more orientations (each axis "
+        "up and down, and some in between), each held still for 2 s or more, or lower "
+        "min_interval_s if the holds are short (docs/how-to/multi-position-session.md)"
+    )
 
 
 def six_faces(means: np.ndarray, max_angle_deg: float = 30.0) -> bool:
