@@ -11,9 +11,11 @@ pairs so that both see the same load:
 [2] ``--logs`` (default 200) such logs in one run: ``imupipe convert --jobs 1 FOLDER`` against the
     same rosbags loop over all of them in one process. Goal (issue 39): >= 5x faster.
 
-Each pair prints both times, the ratio (peer / imupipe) and both processes' peak RSS (their own
-``VmHWM``); the summary gives the ratio's min and median over the pairs. The machine is shared:
-only ratios measured in the same pair count.
+Each pair prints both wall times, the ratio (peer / imupipe), both CPU times (user + system of
+the process and its children, from ``getrusage``: far less moved by the other sessions on a
+shared machine than the wall time) and their ratio, and both processes' peak RSS (their own
+``VmHWM``); the summary gives each ratio's min and median over the pairs. Only ratios measured in
+the same pair count.
 
 Usage: ``python benchmarks/bench_fleet.py [--logs 200] [--log-messages 1000] [--pairs 2]``
 """
@@ -22,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import resource
 import shutil
 import statistics
 import subprocess
@@ -56,51 +59,65 @@ with open(sys.argv[1], "w") as fh:
 """The peer: rosbags' read-and-deserialise loop over the logs given; writes ``messages VmHWM``."""
 
 
-def peer(logs: list[Path], note: Path) -> tuple[float, float, int]:
-    """(seconds, peak RSS MB, messages) of the rosbags loop in a fresh process."""
-    start = time.perf_counter()
+def children_cpu() -> float:
+    """CPU seconds (user + system) of this process's finished children so far."""
+    use = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return use.ru_utime + use.ru_stime
+
+
+def peer(logs: list[Path], note: Path) -> tuple[float, float, float, int]:
+    """(seconds, CPU seconds, peak RSS MB, messages) of the rosbags loop in a fresh process."""
+    start, cpu = time.perf_counter(), children_cpu()
     subprocess.run([sys.executable, "-c", PEER, str(note), *map(str, logs)], check=True)
-    seconds = time.perf_counter() - start
+    seconds, cpu = time.perf_counter() - start, children_cpu() - cpu
     n, hwm = note.read_text().split()
-    return seconds, int(hwm) / 1024, int(n)
+    return seconds, cpu, int(hwm) / 1024, int(n)
 
 
-def ours(target: Path, cal: Path, out: Path, n_logs: int) -> tuple[float, float, int]:
-    """(seconds, the command's peak RSS MB, messages) of ``imupipe convert --jobs 1``."""
+def ours(target: Path, cal: Path, out: Path, n_logs: int) -> tuple[float, float, float, int]:
+    """(seconds, CPU seconds, the command's peak RSS MB, messages) of ``imupipe convert --jobs
+    1``."""
     from imupipe.pipeline.convert.manifest import read_manifest
 
     shutil.rmtree(out, ignore_errors=True)
     argv = ["convert", "-q", "--jobs", "1", "--calibration", str(cal), "--out", str(out)]
+    cpu = children_cpu()
     seconds, peak = run_measured([*argv, str(target)], out.with_name(out.name + ".peak"))
+    cpu = children_cpu() - cpu
     lines = [x for x in read_manifest(out) if x.get("status") == "converted"]
     if len(lines) != n_logs:
         raise SystemExit(f"{len(lines)} of {n_logs} logs converted")
-    return seconds, peak, sum(x["messages"] for x in lines)
+    return seconds, cpu, peak, sum(x["messages"] for x in lines)
 
 
 def pairs(label: str, n: int, run_peer, run_ours) -> dict[str, float]:
     """``n`` pairs (peer first, then imupipe); prints each and the ratio's min and median."""
-    ratios, best_peer, best_ours = [], float("inf"), float("inf")
+    ratios, cpu_ratios, best_peer, best_ours = [], [], float("inf"), float("inf")
     for i in range(n):
-        tp, mp, np_ = run_peer()
-        to, mo, no = run_ours()
+        tp, cp, mp, np_ = run_peer()
+        to, co, mo, no = run_ours()
         assert np_ == no, (np_, no)
         ratios.append(tp / to)
+        cpu_ratios.append(cp / co)
         best_peer, best_ours = min(best_peer, tp), min(best_ours, to)
         print(
-            f"{label} pair {i + 1}: rosbags loop {tp:.2f} s (peak {mp:.0f} MB), imupipe convert "
-            f"{to:.2f} s (peak {mo:.0f} MB) -> {tp / to:.2f}x ({no:,} messages)",
+            f"{label} pair {i + 1}: rosbags loop {tp:.2f} s, {cp:.2f} s CPU (peak {mp:.0f} MB); "
+            f"imupipe convert {to:.2f} s, {co:.2f} s CPU (peak {mo:.0f} MB) -> {tp / to:.2f}x "
+            f"wall, {cp / co:.2f}x CPU ({no:,} messages)",
             flush=True,
         )
     print(
-        f"{label}: imupipe / rosbags speed ratio min {min(ratios):.2f}x, median "
-        f"{statistics.median(ratios):.2f}x over {n} pairs (best times: rosbags {best_peer:.2f} s, "
-        f"imupipe {best_ours:.2f} s)",
+        f"{label}: imupipe against the rosbags loop: wall min {min(ratios):.2f}x, median "
+        f"{statistics.median(ratios):.2f}x; CPU min {min(cpu_ratios):.2f}x, median "
+        f"{statistics.median(cpu_ratios):.2f}x over {n} pairs (best wall times: rosbags "
+        f"{best_peer:.2f} s, imupipe {best_ours:.2f} s)",
         flush=True,
     )
     return {
         f"{label}_ratio_min": min(ratios),
         f"{label}_ratio_median": statistics.median(ratios),
+        f"{label}_cpu_ratio_min": min(cpu_ratios),
+        f"{label}_cpu_ratio_median": statistics.median(cpu_ratios),
         f"{label}_peer_best_s": best_peer,
         f"{label}_imupipe_best_s": best_ours,
         f"{label}_imupipe_peak_mb": mo,
