@@ -8,7 +8,7 @@ pairs so that both see the same load:
 [1] one log of ``--log-messages`` (default 1,000) ``sensor_msgs/msg/Imu`` messages: ``imupipe
     convert`` against ``python peer.py LOG`` (rosbags' ``AnyReader`` reading and deserialising
     every message; the typestore built once).
-[2] ``--logs`` (default 200) such logs in one run: ``imupipe convert --jobs 1 FOLDER`` against the
+[2] ``--logs`` (default 100) such logs in one run: ``imupipe convert --jobs 1 FOLDER`` against the
     same rosbags loop over all of them in one process. Goal (issue 39): >= 5x faster.
 
 Each pair prints both wall times, the ratio (peer / imupipe), both CPU times (user + system of
@@ -17,7 +17,7 @@ shared machine than the wall time) and their ratio, and both processes' peak RSS
 ``VmHWM``); the summary gives each ratio's min and median over the pairs. Only ratios measured in
 the same pair count.
 
-Usage: ``python benchmarks/bench_fleet.py [--logs 200] [--log-messages 1000] [--pairs 2]``
+Usage: ``python benchmarks/bench_fleet.py [--logs 100] [--log-messages 1000] [--pairs 2]``
 """
 
 from __future__ import annotations
@@ -127,7 +127,7 @@ def pairs(label: str, n: int, run_peer, run_ours) -> dict[str, float]:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--logs", type=int, default=200)
+    ap.add_argument("--logs", type=int, default=100)
     ap.add_argument("--log-messages", type=int, default=1000)
     ap.add_argument("--pairs", type=int, default=2)
     args = ap.parse_args()
