@@ -27,6 +27,7 @@ from pathlib import Path
 from typing import Any
 
 from imupipe.pipeline.errors import ImupipeError, ReadError
+from imupipe.readers.arrays import to_numpy
 from imupipe.readers.dispatch import detect_format
 from imupipe.readers.spec import InputSpec
 from imupipe.readers.topics import (
@@ -82,7 +83,7 @@ def inspect(spec: InputSpec) -> dict[str, Any]:
         streams = {}
         filled = ["t_ns"]
         present = counts(table)
-        t_ns = table.column("t_ns").to_numpy()
+        t_ns = to_numpy(table.column("t_ns"))
         for stream in ("imu", "mag", "temperature"):
             if stream in present:
                 streams[stream] = {

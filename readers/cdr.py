@@ -17,6 +17,8 @@ from __future__ import annotations
 import numpy as np
 import pyarrow as pa
 
+from imupipe.readers.arrays import string_array
+
 ENCAPSULATION = b"\x00\x01\x00\x00"
 
 FIELDS: dict[str, list[tuple[str, int]]] = {
@@ -240,7 +242,7 @@ def decode(
         out = (
             empty if slots is None else [empty[:, 0] if c == 1 else empty[:, :c] for _, c in slots]
         )
-        return np.zeros(0, np.int64), pa.array([], pa.string()), out
+        return np.zeros(0, np.int64), string_array([]), out
     short = np.flatnonzero(ends - starts < 16)
     if len(short):
         raise PayloadError(
@@ -327,4 +329,4 @@ def decode_with_rosbags(
             else:
                 row.append([getattr(value, a) for a in "xyzw"[:count]])
         values[i] = np.concatenate(row)
-    return stamps, pa.array(frames, pa.string()), values
+    return stamps, string_array(frames), values

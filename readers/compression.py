@@ -9,8 +9,12 @@ ahead of the chunk they decode.
 from __future__ import annotations
 
 import bz2
+import concurrent.futures
+import contextlib
+import os
 import sys
 import threading
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import numpy as np
@@ -21,6 +25,55 @@ PREFETCH = 3
 """Chunks a reader has decompressed (or in decompression) ahead of the one it decodes."""
 DECOMPRESS_THREADS = 2
 """Worker threads that decompress chunks for one reader."""
+
+_POOL: tuple[int, concurrent.futures.ThreadPoolExecutor] | None = None
+_POOL_LOCK = threading.Lock()
+
+
+class DecompressWorkers:
+    """One reader's share of the process's decompression threads: what it submitted, so that
+    it can wait for them before it closes its file."""
+
+    def __init__(self, pool: concurrent.futures.ThreadPoolExecutor) -> None:
+        self.pool = pool
+        self.futures: list[concurrent.futures.Future] = []
+
+    def submit(self, fn: Callable, *args: object) -> concurrent.futures.Future:
+        future = self.pool.submit(fn, *args)
+        self.futures.append(future)
+        if len(self.futures) > 4 * PREFETCH:
+            self.futures = [f for f in self.futures if not f.done()]
+        return future
+
+
+def done(result: object) -> concurrent.futures.Future:
+    """A future already holding ``result`` (work done in the reader's own thread)."""
+    future: concurrent.futures.Future = concurrent.futures.Future()
+    future.set_result(result)
+    return future
+
+
+@contextlib.contextmanager
+def decompress_workers() -> Iterator[DecompressWorkers]:
+    """The :data:`DECOMPRESS_THREADS` decompression threads, started once per process and kept
+    for the next file (a thread pool per file cost 5-10 ms of thread start and join for each
+    log of a fleet, issue 39); a forked child starts its own. On leaving, what the reader
+    submitted and no thread has started is cancelled and what runs is waited for (it reads
+    the reader's file)."""
+    global _POOL
+    with _POOL_LOCK:
+        if _POOL is None or _POOL[0] != os.getpid():
+            pool = concurrent.futures.ThreadPoolExecutor(
+                DECOMPRESS_THREADS, thread_name_prefix="imupipe-decompress"
+            )
+            _POOL = (os.getpid(), pool)
+    workers = DecompressWorkers(_POOL[1])
+    try:
+        yield workers
+    finally:
+        for future in workers.futures:
+            future.cancel()
+        concurrent.futures.wait(workers.futures)
 
 
 def _zstd(data: bytes | memoryview, size: int) -> bytes:

@@ -17,6 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 import pyarrow as pa
 
+from imupipe.readers.arrays import string_array
 from imupipe.readers.cdr import (
     NotFastPath,
     PayloadError,
@@ -151,7 +152,7 @@ def concat(pieces: list[Piece], stream: str) -> Piece:
             name: np.zeros(0) if count == 1 else np.zeros((0, count))
             for name, _, count in COLUMNS[stream]
         }
-        return Piece(np.zeros(0, np.int64), np.zeros(0, np.int64), pa.array([], pa.string()), cols)
+        return Piece(np.zeros(0, np.int64), np.zeros(0, np.int64), string_array([]), cols)
     columns = {}
     for name, _, _ in COLUMNS[stream]:
         columns[name] = np.concatenate([p.columns.pop(name) for p in pieces])

@@ -21,6 +21,7 @@ from typing import Protocol
 import numpy as np
 import pyarrow as pa
 
+from imupipe.readers.arrays import arrow_array
 from imupipe.readers.decoded import Piece, concat
 from imupipe.readers.errors import ReadError
 from imupipe.readers.spec import InputSpec, RawMessage
@@ -119,7 +120,7 @@ def _split(piece: Piece, keep: np.ndarray) -> tuple[Piece, Piece]:
     """(rows where not ``keep``, rows where ``keep``) of a piece."""
     out = []
     for mask in (~keep, keep):
-        idx = pa.array(np.flatnonzero(mask))
+        idx = arrow_array(np.flatnonzero(mask))
         out.append(
             Piece(
                 piece.stamp[mask],

@@ -70,7 +70,8 @@ from typing import Any
 
 import numpy as np
 import pyarrow as pa
-import pyarrow.compute as pc
+
+from imupipe.readers.arrays import arrow_array, to_numpy, valid_mask
 
 SENSOR_COLUMNS: dict[str, tuple[str, ...]] = {
     "gyro": ("gyro_x", "gyro_y", "gyro_z"),
@@ -177,7 +178,7 @@ def make_table(
     n = t_ns.shape[0]
     valid = dict(valid or {})
     given = {"gyro": gyro, "accel": accel, "mag": mag, "temperature": temperature}
-    arrays: list[pa.Array] = [pa.array(t_ns, pa.int64())]
+    arrays: list[pa.Array] = [arrow_array(t_ns, pa.int64())]
     empty: pa.Array | None = None
     for sensor, cols in SENSOR_COLUMNS.items():
         values = given[sensor]
@@ -189,7 +190,7 @@ def make_table(
         values = np.asarray(values, dtype=np.float64).reshape(n, len(cols))
         mask = valid.get(sensor, valid.get(stream))
         null_mask = None if mask is None else ~np.asarray(mask, dtype=bool)
-        arrays += [pa.array(values[:, i], pa.float64(), mask=null_mask) for i in range(len(cols))]
+        arrays += [arrow_array(values[:, i], pa.float64(), null_mask) for i in range(len(cols))]
     table = pa.Table.from_arrays(arrays, schema=SCHEMA)
     for name, column in (extra or {}).items():
         field = OPTIONAL_FIELDS.field(name)
@@ -213,8 +214,8 @@ def _as_arrow(column: pa.Array | np.ndarray, typ: pa.DataType) -> pa.Array:
     column = np.asarray(column)
     if isinstance(typ, pa.FixedSizeListType):
         flat = np.ascontiguousarray(column, dtype=np.float64).reshape(-1)
-        return pa.FixedSizeListArray.from_arrays(pa.array(flat), typ.list_size)
-    return pa.array(column, typ)
+        return pa.FixedSizeListArray.from_arrays(arrow_array(flat), typ.list_size)
+    return arrow_array(column, typ)
 
 
 def metadata(table: pa.Table) -> dict[str, Any]:
@@ -235,7 +236,7 @@ def _valid(table: pa.Table, column_name: str) -> np.ndarray | None:
     column = table.column(column_name)
     if column.null_count == 0:
         return None
-    return pc.is_valid(column).to_numpy(zero_copy_only=False)
+    return valid_mask(column)
 
 
 def sensor_mask(table: pa.Table, name: str) -> np.ndarray:
@@ -269,7 +270,7 @@ def with_stream_column(
     """
     rows = np.flatnonzero(stream_mask(table, stream))
     order = np.argsort(np.asarray(t_ns, dtype=np.int64), kind="stable")
-    stamps = table.column("t_ns").to_numpy()[rows]
+    stamps = to_numpy(table.column("t_ns"))[rows]
     if len(rows) != len(order) or not np.array_equal(stamps, np.asarray(t_ns)[order]):
         raise ValueError(f"the {stream} rows do not match the {len(order)} stamps given")
     full = np.zeros(len(table), dtype=np.float64)
@@ -277,7 +278,7 @@ def with_stream_column(
     valid = np.zeros(len(table), dtype=bool)
     valid[rows] = True
     field = OPTIONAL_FIELDS.field(name)
-    column = pa.array(full, pa.float64(), mask=~valid)
+    column = arrow_array(full, pa.float64(), ~valid)
     if name in table.column_names:
         return table.set_column(table.column_names.index(name), field, column)
     return table.append_column(field, column)
@@ -295,7 +296,7 @@ def has_stream(table: pa.Table, stream: str) -> bool:
 
 def _column_f64(table: pa.Table, name: str, rows: np.ndarray | None) -> np.ndarray:
     column = table.column(name)
-    values = column.to_numpy() if column.null_count == 0 else (column.fill_null(np.nan).to_numpy())
+    values = to_numpy(column)  # NaN at nulls
     return values if rows is None else values[rows]
 
 
@@ -328,7 +329,7 @@ def _stream_rows(table: pa.Table, name: str) -> np.ndarray | None:
 def _sensor_columns(
     table: pa.Table, name: str, rows: np.ndarray | None
 ) -> tuple[np.ndarray, list[np.ndarray]]:
-    t_ns = table.column("t_ns").to_numpy()
+    t_ns = to_numpy(table.column("t_ns"))
     columns = [_column_f64(table, c, rows) for c in SENSOR_COLUMNS[name]]
     return (t_ns if rows is None else t_ns[rows]), columns
 
@@ -387,7 +388,7 @@ def replace_sensor(table: pa.Table, name: str, rows: np.ndarray, values: np.ndar
         full = _column_f64(table, col, None).copy()
         full[rows] = values[:, i]
         idx = table.schema.get_field_index(col)
-        table = table.set_column(idx, table.schema.field(idx), pa.array(full, mask=null_mask))
+        table = table.set_column(idx, table.schema.field(idx), arrow_array(full, mask=null_mask))
     return table
 
 
@@ -411,12 +412,12 @@ def interpolate(t_src_ns: np.ndarray, values: np.ndarray, t_dst_ns: np.ndarray) 
 
 def sort_by_time(table: pa.Table) -> tuple[pa.Table, int]:
     """Stable sort by ``t_ns``; returns the table and how many rows were out of order."""
-    t = table.column("t_ns").to_numpy()
+    t = to_numpy(table.column("t_ns"))
     if len(t) < 2 or bool(np.all(t[1:] >= t[:-1])):
         return table, 0
     order = np.argsort(t, kind="stable")
     moved = int(np.count_nonzero(order != np.arange(len(t))))
-    return table.take(pa.array(order)), moved
+    return table.take(arrow_array(order)), moved
 
 
 def with_flight_stream(
@@ -436,9 +437,9 @@ def with_flight_stream(
     for field in table.schema:
         names.append(field.name)
         if field.name == "t_ns":
-            arrays.append(pa.array(t_ns, pa.int64()))
+            arrays.append(arrow_array(t_ns, pa.int64()))
         elif field.name in cols:
-            arrays.append(pa.array(values[:, cols.index(field.name)], pa.float64()))
+            arrays.append(arrow_array(values[:, cols.index(field.name)], pa.float64()))
         else:
             arrays.append(pa.nulls(len(t_ns), field.type))
     for i, name in enumerate(cols):
@@ -446,7 +447,7 @@ def with_flight_stream(
             field = OPTIONAL_FIELDS.field(name)
             table = table.append_column(field, pa.nulls(len(table), field.type))
             names.append(name)
-            arrays.append(pa.array(values[:, i], pa.float64()))
+            arrays.append(arrow_array(values[:, i], pa.float64()))
     added = pa.Table.from_arrays(arrays, schema=table.schema.remove_metadata())
     merged = pa.concat_tables([table.replace_schema_metadata(None), added]).combine_chunks()
     merged, _ = sort_by_time(merged)
@@ -466,8 +467,8 @@ def flight_stream(table: pa.Table, stream: str) -> SensorData:
     cols = FLIGHT_COLUMNS[stream]
     if not has_flight_stream(table, stream):
         return SensorData(np.zeros(0, np.int64), np.zeros((0, len(cols))), np.zeros(0, np.int64))
-    rows = np.flatnonzero(pc.is_valid(table.column(cols[0])).to_numpy(zero_copy_only=False))
-    t_ns = table.column("t_ns").to_numpy()[rows]
+    rows = np.flatnonzero(valid_mask(table.column(cols[0])))
+    t_ns = to_numpy(table.column("t_ns"))[rows]
     values = np.column_stack([_column_f64(table, c, rows) for c in cols])
     return SensorData(t_ns=t_ns, values=values, rows=rows)
 

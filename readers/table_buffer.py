@@ -31,6 +31,7 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.compute as pc
 
+from imupipe.readers.arrays import arrow_array, string_array
 from imupipe.readers.decoded import Piece, absent_sensors, repeat_string
 from imupipe.readers.prefault import Prefault
 from imupipe.readers.table import COV, SCHEMA, null_floats, with_metadata
@@ -217,7 +218,7 @@ class _Stream:
 
     def frame(self) -> pa.Array:
         if not self.frames:
-            return pa.array([], pa.string())
+            return string_array([])
         if self.one_frame is not None and len(self.frames) > 1:
             return repeat_string(self.one_frame, self.m)  # the same as joining them
         return self.frames[0] if len(self.frames) == 1 else pa.concat_arrays(self.frames)
@@ -583,7 +584,7 @@ class TableBuffer:
             frames = [st.frame() for st in streams]
             columns, times, frame = self._gather(streams, within, frames, n, lexsort=not sort)
         self.streams = {}
-        arrays: dict[str, pa.Array] = {"t_ns": pa.array(times.pop("t_ns"), pa.int64())}
+        arrays: dict[str, pa.Array] = {"t_ns": arrow_array(times.pop("t_ns"), pa.int64())}
         extra: dict[str, pa.Array] = {}
         for name, array in columns.items():
             (arrays if name in SCHEMA.names else extra)[name] = array
@@ -591,7 +592,7 @@ class TableBuffer:
         fields = list(SCHEMA) + [pa.field(name, pa.int64()) for name in times]
         fields.append(pa.field("frame_id", pa.string()))
         values = [arrays.get(f.name, empty) for f in SCHEMA]
-        values += [pa.array(column, pa.int64()) for column in times.values()] + [frame]
+        values += [arrow_array(column, pa.int64()) for column in times.values()] + [frame]
         for name, array in extra.items():
             fields.append(pa.field(name, COV if array.type == COV else pa.float64()))
             values.append(array)
@@ -722,7 +723,7 @@ class TableBuffer:
                     flags[name] = flag[: st.m][perm]
                 else:
                     flags[name][at] = flag[: st.m][perm[at] - start[i]]
-        frame = pa.concat_arrays(frames).take(pa.array(perm))
+        frame = pa.concat_arrays(frames).take(arrow_array(perm))
         return self._arrays(streams, columns, stream_of_row, flags), times, frame
 
     @staticmethod
@@ -773,8 +774,10 @@ def _frames(
         one is not None or first is None or pc.all(pc.equal(frame, first)).as_py()
         for frame, first, one in zip(frames, firsts, ones, strict=True)
     ):
-        values = pa.array([f.as_py() if f is not None else "" for f in firsts], pa.string())
-        return pa.DictionaryArray.from_arrays(stream_of_row.view(np.int8), values).cast(pa.string())
+        values = string_array([f.as_py() if f is not None else "" for f in firsts])
+        return pa.DictionaryArray.from_arrays(
+            arrow_array(stream_of_row.view(np.int8)), values
+        ).cast(pa.string())
     if rows[large] is None:
         rows[large] = large_rows()
     source = np.empty(len(stream_of_row), np.int64)  # row -> message of the streams in turn
@@ -782,7 +785,7 @@ def _frames(
     for frame, at in zip(frames, rows, strict=True):
         source[at] = np.arange(start, start + len(frame))
         start += len(frame)
-    return pa.concat_arrays(frames).take(pa.array(source))
+    return pa.concat_arrays(frames).take(arrow_array(source))
 
 
 def _array(values: np.ndarray, valid: pa.Buffer | None) -> pa.Array:

@@ -159,3 +159,36 @@ def test_calibration_json_is_standard_json():
     assert strict["tuple"] == [1.0, None]
     assert parse_calibration(text, "x")["chain"] == []
     assert doc["results"]["s"]["metrics"]["std"][0] == math.inf  # the document is not changed
+
+
+@pytest.mark.parametrize(
+    "conversion",
+    [
+        {"calibration_sha256": "ab" * 32, "input": "/logs/ä b.mcap", "input_size": 123},
+        {},
+        [1, {"x": [float("nan"), 2.5]}],
+        "just text",
+    ],
+)
+def test_calibration_json_of_a_conversion_is_the_plain_text(conversion):
+    """convert's documents (a calibration, then a last ``conversion`` key) reuse the text of the
+    calibration from call to call; the text is exactly ``json.dumps(..., indent=2)``'s, every
+    time, also after the calibration changed."""
+    import math
+
+    from imupipe.pipeline.calibration_file import _finite, calibration_json
+
+    base = {
+        "imupipe_version": "0.3",
+        "chain": [{"type": "gyro_calibration", "matrix": [[1.0, 0.0], [0.0, 1.0]]}],
+        "results": {"s": {"metrics": {"rms": math.inf, "names": ["é", "\n"]}}, "empty": {}},
+    }
+    for doc in (
+        {**base, "conversion": conversion},
+        {**base, "conversion": conversion},  # from the kept text
+        {**base, "results": {}, "conversion": conversion},  # another calibration
+        {"conversion": conversion},
+        {"conversion": conversion, "chain": []},  # not the last key
+    ):
+        plain = json.dumps(_finite(doc), indent=2, allow_nan=False) + "\n"
+        assert calibration_json(doc) == plain

@@ -27,6 +27,7 @@ from pathlib import Path
 import numpy as np
 import pyarrow as pa
 
+from imupipe.readers.arrays import to_numpy
 from imupipe.readers.dataflash.reader import GPS_EPOCH_UNIX_S
 from imupipe.readers.table import flight_stream, has_flight_stream, metadata, sensor
 
@@ -124,7 +125,7 @@ def _payloads(table: pa.Table) -> dict[str, tuple[np.ndarray, np.ndarray]]:
         rec["TimeUS"] = t_ns // 1000
         return rec
 
-    t0 = int(table.column("t_ns").to_numpy().min(initial=0))
+    t0 = int(to_numpy(table.column("t_ns")).min(initial=0))
     params = PARAMETERS | ((metadata(table).get("ardupilot") or {}).get("parameters") or {})
     rec = empty("PARM", len(params), np.full(len(params), t0))
     rec["Name"] = [k.encode() for k in params]

@@ -55,6 +55,7 @@ from mcap.records import (
 from imupipe.pipeline.calibration_file import calibration_json
 from imupipe.readers import cdr
 from imupipe.readers.progress import report
+from imupipe.readers.arrays import arrow_array, arrow_scalar, to_numpy, unique, valid_mask
 from imupipe.readers.spec import RawMessage
 from imupipe.readers.table import metadata, sensor, sensor_mask, stream_mask
 
@@ -95,21 +96,26 @@ def _column_or(table: pa.Table, name: str, rows: np.ndarray, default: np.ndarray
         return default
     column = table.column(name)
     if len(rows) != len(column):
-        column = column.take(pa.array(rows))
+        column = column.take(arrow_array(rows))
     column = column.combine_chunks()
-    valid = None if column.null_count == 0 else pc.is_valid(column).to_numpy(zero_copy_only=False)
+    valid = None if column.null_count == 0 else valid_mask(column)
     if isinstance(column.type, pa.FixedSizeListType):
         if valid is not None:
-            column = pc.if_else(
-                valid, column, pa.scalar([0.0] * column.type.list_size, column.type)
-            )
-        values = np.asarray(column.flatten().to_numpy(zero_copy_only=False))
+            column = pc.if_else(arrow_array(valid), column, _zero_list(column.type))
+        values = np.asarray(to_numpy(column.flatten()))
         values = values.reshape(len(rows), -1)
     else:
-        values = column.to_numpy(zero_copy_only=False)
+        values = to_numpy(column)
     if valid is None:
         return values
     return np.where(valid.reshape((-1,) + (1,) * (values.ndim - 1)), values, default)
+
+
+def _zero_list(typ: pa.FixedSizeListType) -> pa.Scalar:
+    """A fixed-size list of zeros of type ``typ`` (built from buffers: ``pa.scalar`` would
+    import pandas)."""
+    flat = arrow_array(np.zeros(typ.list_size), typ.value_type)
+    return pa.FixedSizeListArray.from_arrays(flat, typ.list_size)[0]
 
 
 NO_ESTIMATE = np.array([[-1.0] + [0.0] * 8])
@@ -140,7 +146,7 @@ def encode_stream(
     n = len(rows)
     if n == 0:
         return rows, []
-    t_ns = table.column("t_ns").to_numpy()[rows]
+    t_ns = to_numpy(table.column("t_ns"))[rows]
     stamp = _column_or(table, "header_stamp_ns", rows, t_ns)
     meta_frame = metadata(table).get("frame_id", {}).get(stream, DEFAULT_FRAME)
     # defaults are one row, (1, k), broadcast by the encoder: no (n, 9) arrays of zeros
@@ -174,10 +180,11 @@ def encode_stream(
         fields["temperature"] = sensor(table, "temperature").values[:, 0]
         fields["variance"] = _column_or(table, "temperature_var", rows, np.zeros(1))
     if "frame_id" in table.column_names:
-        frames = pc.fill_null(table.column("frame_id").take(pa.array(rows)), meta_frame)
+        frames = table.column("frame_id").take(arrow_array(rows))
+        frames = pc.fill_null(frames, arrow_scalar(meta_frame, pa.string()))
         encoded = pc.dictionary_encode(frames.combine_chunks())
         names = [str(x) for x in encoded.dictionary.to_pylist()]
-        codes = encoded.indices.to_numpy(zero_copy_only=False)
+        codes = to_numpy(encoded.indices)
     else:
         names, codes = [meta_frame], np.zeros(n, dtype=np.int64)
     groups = []
@@ -208,12 +215,12 @@ def message_times(table: pa.Table) -> tuple[np.ndarray, np.ndarray]:
     t_ns = table.column("t_ns")
     log = table.column("log_time_ns") if "log_time_ns" in table.column_names else t_ns
     log = pc.fill_null(log, t_ns) if log.null_count else log
-    log_u = log.to_numpy().view(np.uint64)
+    log_u = to_numpy(log).view(np.uint64)
     if "publish_time_ns" not in table.column_names:
         return log_u, log_u
     pub = table.column("publish_time_ns")
     pub = pc.fill_null(pub, log) if pub.null_count else pub
-    return log_u, pub.to_numpy().view(np.uint64)
+    return log_u, to_numpy(pub).view(np.uint64)
 
 
 def _fill_record_headers(
@@ -353,7 +360,7 @@ class McapTableWriter:
             return
         ends = np.append(starts[1:], len(buf))
         cuts = np.searchsorted(ends, np.arange(self.chunk_bytes, int(ends[-1]), self.chunk_bytes))
-        bounds = np.unique(np.concatenate([[0], cuts + 1, [n]]).clip(0, n))
+        bounds = unique(np.concatenate([[0], cuts + 1, [n]]).clip(0, n))
         for a, b in zip(bounds[:-1].tolist(), bounds[1:].tolist(), strict=True):
             if b > a:
                 self._write_chunk(buf, starts[a:b], int(ends[b - 1]), channels[a:b], log[a:b])
@@ -386,7 +393,7 @@ class McapTableWriter:
             uncompressed_size=len(raw),
         )
         index_start = self._fh.tell()
-        for cid in np.unique(channels).tolist():
+        for cid in unique(channels).tolist():
             sel = channels == cid
             pairs = np.empty((int(sel.sum()), 2), dtype="<u8")
             pairs[:, 0] = log[sel]

@@ -60,7 +60,8 @@ from typing import Any
 import numpy as np
 import pyarrow as pa
 
-from imupipe.readers.decoded import Piece
+from imupipe.readers.arrays import unique
+from imupipe.readers.decoded import Piece, repeat_string
 from imupipe.readers.errors import ReadError
 from imupipe.readers.spec import InputSpec
 from imupipe.readers.table import (
@@ -341,14 +342,14 @@ class DataFlashLog:
     def _instances(self) -> dict[str, Instance]:
         """Every instance of every message type present: key -> Instance."""
         out: dict[str, Instance] = {}
-        present = np.unique(self.types)
+        present = unique(self.types)
         for t in present.tolist():
             fmt = self.formats[t]
             if fmt.dtype() is None or self.by_name[fmt.name] is not fmt:
                 continue
             if fmt.numeric("I") and fmt.name != "FMT":
                 ids = self.records(fmt.name)["I"].astype(np.int64)
-                for i in np.unique(ids).tolist():
+                for i in unique(ids).tolist():
                     inst = Instance(fmt.name, int(i), np.flatnonzero(ids == i))
                     out[inst.key] = inst
             else:
@@ -492,7 +493,7 @@ def _piece(f: DataFlashLog, inst: Instance, columns: dict[str, np.ndarray]) -> P
     t = f.time_ns(inst.name, inst.rows)
     if t is None:
         raise ReadError(f"{f.path}: message {inst.name} has no TimeUS or TimeMS field")
-    return Piece(t, t, pa.array([""] * len(t), pa.string()), columns)
+    return Piece(t, t, repeat_string("", len(t)), columns)
 
 
 def _xyz(

@@ -34,7 +34,6 @@ import os
 import struct
 import zlib
 from collections.abc import Iterator
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -44,12 +43,13 @@ from mcap.records import Channel, Schema, Statistics
 
 from imupipe.readers.cdr import at, even_step
 from imupipe.readers.compression import (
-    DECOMPRESS_THREADS,
     DECOMPRESSORS,
     PREFETCH,
     BufferPool,
     decompress_chunk,
     decompress_into,
+    decompress_workers,
+    done,
 )
 from imupipe.readers.errors import ReadError
 from imupipe.readers.mcap.summary import complete, defined
@@ -411,7 +411,7 @@ class McapFile:
         queue: collections.deque[ChunkMessages] = collections.deque()
         loose = bytearray()
         loose_off: dict[int, list[int]] = {}
-        with open(self.path, "rb") as fh, ThreadPoolExecutor(DECOMPRESS_THREADS) as worker:
+        with open(self.path, "rb") as fh, decompress_workers() as worker:
             for opcode, pos, body in self._records(fh, 8, self.size, lazy=True):
                 if opcode == OP_MESSAGE_INDEX and pending is not None:
                     if len(body) < 6:
@@ -457,7 +457,10 @@ class McapFile:
                     else:
                         bound = int.from_bytes(body[:8], "little") if len(body) >= 8 else 0
                     out = _chunk_buffer(body, pool)
-                    future = worker.submit(self._load_chunk, fh.fileno(), pos, body, out)
+                    if len(offsets) == 1:  # one chunk: nothing to overlap, no thread hand-off
+                        future = done(self._load_chunk(fh.fileno(), pos, body, out))
+                    else:
+                        future = worker.submit(self._load_chunk, fh.fileno(), pos, body, out)
                     pending = ChunkMessages(future, {}, f"{self.path}: chunk at byte {pos}", bound)  # type: ignore[arg-type]
                 elif opcode == OP_DATA_END:
                     break

@@ -29,7 +29,7 @@ import collections
 import io
 import struct
 from collections.abc import Callable, Iterator
-from concurrent.futures import Future, ThreadPoolExecutor
+from concurrent.futures import Future
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -37,7 +37,7 @@ import numpy as np
 import pyarrow as pa
 
 from imupipe.readers.cdr import unaligned
-from imupipe.readers.compression import DECOMPRESS_THREADS, PREFETCH, decompress_chunk
+from imupipe.readers.compression import PREFETCH, decompress_chunk, decompress_workers, done
 from imupipe.readers.decoded import Piece, concat, decode_piece
 from imupipe.readers.errors import ReadError
 from imupipe.readers.mapped import Batch, Definition
@@ -415,7 +415,7 @@ class Ros1Bag:
         starts = [t for _, t, _ in self.chunk_infos]
         bounds = list(np.minimum.accumulate(starts[::-1])[::-1][1:]) + [2**63 - 1] if starts else []
         queue: collections.deque[BagChunk] = collections.deque()
-        with open(self.path, "rb") as fh, ThreadPoolExecutor(DECOMPRESS_THREADS) as worker:
+        with open(self.path, "rb") as fh, decompress_workers() as worker:
             for (pos, _, counts), bound in zip(self.chunk_infos, bounds, strict=True):
                 report(pos, self.size)  # the chunks before this one are read
                 fh.seek(pos)
@@ -426,6 +426,8 @@ class Ros1Bag:
                 if pos in self.open_buffers:  # decompressed (what could be) by the scan
                     future: Future = Future()
                     future.set_result(self.open_buffers[pos])
+                elif len(self.chunk_infos) == 1:  # nothing to overlap: no thread hand-off
+                    future = done(self._decompress(fields, data, where))
                 else:
                     future = worker.submit(self._decompress, fields, data, where)
                 if pos in self.walked:

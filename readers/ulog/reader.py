@@ -64,7 +64,8 @@ from typing import Any
 import numpy as np
 import pyarrow as pa
 
-from imupipe.readers.decoded import Piece
+from imupipe.readers.arrays import unique
+from imupipe.readers.decoded import Piece, repeat_string
 from imupipe.readers.errors import ReadError
 from imupipe.readers.spec import InputSpec
 from imupipe.readers.table import (
@@ -273,7 +274,7 @@ def _imu_pairs(f: UlogFile) -> dict[int, int]:
         both = np.column_stack(
             [imu.data["gyro_device_id"].astype(np.int64), imu.data["accel_device_id"]]
         )
-        for gyro_id, accel_id in np.unique(both, axis=0):
+        for gyro_id, accel_id in unique(both, axis=0):
             if gyro_id and accel_id:
                 pairs.setdefault(int(gyro_id), int(accel_id))
     return pairs
@@ -401,7 +402,7 @@ def choose_topics(spec: InputSpec, f: UlogFile) -> tuple[dict[str, str], list[st
 
 
 def _piece(stamp: np.ndarray, log: np.ndarray, columns: dict[str, np.ndarray]) -> Piece:
-    return Piece(stamp, log, pa.array([""] * len(stamp), pa.string()), columns)
+    return Piece(stamp, log, repeat_string("", len(stamp)), columns)
 
 
 def _xyz(prefix: str, values: np.ndarray) -> dict[str, np.ndarray]:

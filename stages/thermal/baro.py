@@ -37,7 +37,7 @@ from typing import Any, ClassVar
 import numpy as np
 import pyarrow as pa
 
-from imupipe.readers.table import has_stream, sensor, usable
+from imupipe.readers.table import arrow_array, has_stream, sensor, to_numpy, usable, valid_mask
 from imupipe.stages.base import Stage, StageContext, StageOutput
 from imupipe.stages.steps import EntryError, Step, _numbers
 
@@ -54,7 +54,7 @@ def baro_samples(table: pa.Table) -> tuple[np.ndarray, np.ndarray, np.ndarray, n
         return empty
     temp = sensor(table, "temperature")
     col = table.column(COLUMN)
-    p = col.fill_null(np.nan).to_numpy() if col.null_count else col.to_numpy()
+    p = to_numpy(col)  # NaN at nulls
     p = np.asarray(p, dtype=np.float64)[temp.rows]
     t = temp.values[:, 0]
     ok = usable(p) & usable(t)
@@ -93,11 +93,11 @@ class BaroTemperatureStep(Step):
         if len(rows) == 0:
             return table
         col = table.column(COLUMN)
-        full = np.asarray(col.fill_null(np.nan).to_numpy(), dtype=np.float64).copy()
+        full = np.array(to_numpy(col), dtype=np.float64)  # a copy, NaN at nulls
         full[rows] = p - offset_at(self.coefficients, self.tref, self.t_range, t)
         index = table.column_names.index(COLUMN)
-        valid = ~np.asarray(col.is_null().to_numpy(zero_copy_only=False), dtype=bool)
-        array = pa.array(full, pa.float64(), mask=~valid)
+        valid = valid_mask(col)
+        array = arrow_array(full, pa.float64(), ~valid)
         return table.set_column(index, table.schema.field(COLUMN), array)
 
     def to_json(self) -> dict[str, Any]:

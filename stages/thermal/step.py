@@ -31,6 +31,7 @@ from imupipe.readers.table import (
     replace_sensor,
     sensor,
     stream_mask,
+    to_numpy,
     usable,
 )
 from imupipe.stages.errors import CalibrationError
@@ -57,8 +58,8 @@ def temperature_samples(table: pa.Table, column: str) -> tuple[np.ndarray, np.nd
         data = sensor(table, "temperature")
         t, v = data.t_ns, data.values[:, 0]
     else:
-        t = table.column("t_ns").to_numpy()
-        v = table.column(column).to_numpy(zero_copy_only=False).astype(np.float64)
+        t = to_numpy(table.column("t_ns"))
+        v = to_numpy(table.column(column)).astype(np.float64)
     ok = usable(v)
     return t[ok], v[ok]
 
@@ -68,7 +69,7 @@ def imu_stamps(table: pa.Table, stream: str = "imu") -> tuple[np.ndarray, np.nda
     if len(table) == 0 or not has_stream(table, stream):
         return np.zeros(len(table), dtype=bool), np.zeros(0, np.int64)
     mask = stream_mask(table, stream)
-    return mask, table.column("t_ns").to_numpy()[mask]
+    return mask, to_numpy(table.column("t_ns"))[mask]
 
 
 def take_variables(v: Variables, start: int, stop: int) -> Variables:
