@@ -509,8 +509,8 @@ def on_imu_rows(table: pa.Table) -> tuple[pa.Table, dict[str, int]]:
         if has_flight_stream(table, stream):
             dropped[stream] = len(table) - int(table.column(FLIGHT_COLUMNS[stream][0]).null_count)
     rows = np.flatnonzero(imu)
-    t_ns = table.column("t_ns").to_numpy()
-    out = table.take(pa.array(rows))
+    t_ns = to_numpy(table.column("t_ns"))
+    out = table.take(arrow_array(rows))
     carried: list[str] = []
     for name in CARRIED_COLUMNS:
         if name not in table.column_names:
@@ -523,7 +523,7 @@ def on_imu_rows(table: pa.Table) -> tuple[pa.Table, dict[str, int]]:
         have = source[rows]
         filled = np.where(have, values[rows], interpolate(t_ns[source], values[source], t_ns[rows]))
         index = out.column_names.index(name)
-        out = out.set_column(index, out.schema.field(index), pa.array(filled, pa.float64()))
+        out = out.set_column(index, out.schema.field(index), arrow_array(filled, pa.float64()))
         carried.append(name)
     meta = metadata(table)
     meta.update({"rows": "samples", "carried": carried, "left_out": dropped})

@@ -54,8 +54,8 @@ from mcap.records import (
 
 from imupipe.pipeline.calibration_file import calibration_json
 from imupipe.readers import cdr
-from imupipe.readers.progress import report
 from imupipe.readers.arrays import arrow_array, arrow_scalar, to_numpy, unique, valid_mask
+from imupipe.readers.progress import report
 from imupipe.readers.spec import RawMessage
 from imupipe.readers.table import metadata, sensor, sensor_mask, stream_mask
 
