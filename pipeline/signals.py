@@ -9,6 +9,7 @@ staged outputs are discarded, worker pools are stopped.
 from __future__ import annotations
 
 import contextlib
+import os
 import signal
 import threading
 from collections.abc import Iterator
@@ -24,6 +25,23 @@ class Terminated(BaseException):
 
 def _raise_terminated(signum: int, frame: FrameType | None) -> None:
     raise Terminated()
+
+
+def _exit_terminated(signum: int, frame: FrameType | None) -> None:
+    try:
+        os.write(2, b"imupipe: terminated\n")
+    finally:
+        os._exit(Terminated.exit_code)
+
+
+def exit_on_sigterm() -> None:
+    """From now on SIGTERM ends the process at once with status 143 and one line, running no
+    ``finally`` block nor ``atexit`` callback: for the moments when the command has nothing to
+    clean up (before it starts, after its outputs are in place), where an exception would be
+    printed as "Exception ignored in atexit callback" or the default action would end the
+    process by the signal. Main thread only (a no-op elsewhere)."""
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGTERM, _exit_terminated)
 
 
 def terminate_on_sigterm() -> None:

@@ -7,7 +7,7 @@ import sys
 from pathlib import Path
 
 from imupipe.pipeline.convert.options import DEFAULT_BATCH_ROWS, ENGINES, ON_MISMATCH
-from imupipe.pipeline.errors import ConfigError
+from imupipe.pipeline.errors import ConfigError, one_line
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -129,10 +129,8 @@ def main(args: argparse.Namespace) -> int:
         on_mismatch=args.on_mismatch,
     )
     for path, why in summary.failed:
-        print(
-            f"imupipe: error: {path}: {why}" if path not in why else f"imupipe: error: {why}",
-            file=sys.stderr,
-        )
+        line = f"{path}: {why}" if path not in why else why
+        print(f"imupipe: error: {one_line(line)}", file=sys.stderr)
     if not args.quiet:
         total = len(summary.converted) + len(summary.skipped) + len(summary.failed)
         print(

@@ -102,8 +102,8 @@ def find_logs(
             dirs[:] = keep
             for f in sorted(files):
                 p = here / f
-                if not f.startswith(".") and p.suffix.lower() in suffixes:
-                    found.append((p, rel / p.stem))
+                if not f.startswith(".") and p.suffix.lower() in suffixes and p.is_file():
+                    found.append((p, rel / p.stem))  # a FIFO, socket or device is no log
     return found
 
 
@@ -116,8 +116,8 @@ def check_arguments(logs: Sequence[Path]) -> None:
         path = Path(arg)
         if not path.exists():
             raise ConfigError(f"{path}: no such file or folder")
-        if path.is_file():
-            detect_format(path)
+        if not path.is_dir():
+            detect_format(path)  # by its name and stat: a FIFO or a device is never opened
 
 
 @dataclass

@@ -171,6 +171,9 @@ def _payloads(buf: np.ndarray, offsets: np.ndarray, size: int, dtype: np.dtype) 
     return np.ascontiguousarray(windows[offsets + 3]).view(dtype).reshape(-1)
 
 
+HEAD_BYTES = 1 << 20
+"""A DataFlash log starts with its ``FMT`` records: a file without one in its first MiB is not
+read further (a 2 GiB file of zeros named ``.bin`` is refused at once)."""
 SCAN_BLOCK = 1 << 24
 """Bytes scanned for headers at a time (bounds the scan's temporary masks to a few x 16 MiB)."""
 
@@ -314,6 +317,13 @@ class DataFlashLog:
         if not self.path.is_file():
             raise ReadError(f"{self.path}: no such file")
         try:
+            with open(self.path, "rb") as fh:  # judged by its head before it is read whole
+                head = fh.read(HEAD_BYTES)
+            if bytes((*HEAD, FMT_TYPE)) not in head:
+                raise ReadError(
+                    f"{self.path}: not an ArduPilot DataFlash log (no FMT record in its first "
+                    f"{len(head):,} bytes)"
+                )
             self.buf = np.fromfile(self.path, dtype=np.uint8)
         except OSError as exc:
             raise ReadError(f"{self.path}: cannot be read ({exc.strerror})") from None
