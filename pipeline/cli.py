@@ -21,7 +21,12 @@ import sys
 import traceback
 
 from imupipe.pipeline.errors import ImupipeError, one_line
-from imupipe.pipeline.signals import Terminated, exit_on_sigterm, terminate_on_sigterm
+from imupipe.pipeline.signals import (
+    Terminated,
+    exit_on_sigterm,
+    terminate_on_sigterm,
+    was_terminated,
+)
 
 exit_on_sigterm()  # a SIGTERM before main() runs: status 143, as after it
 
@@ -115,6 +120,8 @@ def main(argv: list[str] | None = None) -> int:
         args = build_parser(_command(argv)).parse_args(argv)
         code = int(args.func(args) or 0)
         exit_on_sigterm()  # the outputs are in place: nothing left to clean up
+        if was_terminated():  # its Terminated was swallowed (raised in a finaliser)
+            raise Terminated()
         return code
     except ImupipeError as exc:
         return _error(str(exc), exc.exit_code, debug)

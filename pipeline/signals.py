@@ -23,8 +23,21 @@ class Terminated(BaseException):
     exit_code = 128 + signal.SIGTERM
 
 
+_RECEIVED: list[int] = []
+"""SIGTERMs received since :func:`terminate_on_sigterm`: Python drops an exception raised in a
+finaliser or a weak-reference callback (it prints "Exception ignored in ..."), so a
+:class:`Terminated` raised there never reaches the command; :func:`was_terminated` still knows."""
+
+
 def _raise_terminated(signum: int, frame: FrameType | None) -> None:
+    _RECEIVED.append(signum)
     raise Terminated()
+
+
+def was_terminated() -> bool:
+    """Whether SIGTERM arrived since :func:`terminate_on_sigterm`, even when its
+    :class:`Terminated` was swallowed where Python ignores exceptions."""
+    return bool(_RECEIVED)
 
 
 def _exit_terminated(signum: int, frame: FrameType | None) -> None:
@@ -46,6 +59,7 @@ def exit_on_sigterm() -> None:
 
 def terminate_on_sigterm() -> None:
     """From now on SIGTERM raises :class:`Terminated` in the main thread."""
+    _RECEIVED.clear()
     signal.signal(signal.SIGTERM, _raise_terminated)
 
 

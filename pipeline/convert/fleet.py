@@ -114,7 +114,7 @@ def convert(
     from imupipe.pipeline.convert import remote
 
     start = time.perf_counter()
-    out_url = os.fspath(out_dir).rstrip("/") if remote.is_url(out_dir) else None
+    out_url = remote.check_url(out_dir, "--out") if remote.is_url(out_dir) else None
     out: Path | str = remote.local_path(out_dir) if out_url is None else out_url
     doc, _ = load_calibration(Path(calibration))
     settings = load_read_settings(None if config is None else Path(config))
