@@ -7,7 +7,7 @@ import sys
 from pathlib import Path
 
 from imupipe.pipeline.convert.options import DEFAULT_BATCH_ROWS, ENGINES, ON_MISMATCH
-from imupipe.pipeline.errors import ConfigError, one_line
+from imupipe.pipeline.errors import one_line
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -100,17 +100,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
-    if args.jobs is not None and args.jobs < 1:
-        raise ConfigError(f"--jobs {args.jobs}: must be at least 1")
-    if args.batch_rows < 1:
-        raise ConfigError(f"--batch-rows {args.batch_rows}: must be at least 1")
-    if args.retries < 0:
-        raise ConfigError(f"--retries {args.retries}: must be at least 0")
-    if args.address is not None and args.engine != "ray":
-        raise ConfigError("--address is for --engine ray")
-    if args.dashboard and (args.engine != "ray" or args.address is not None):
-        raise ConfigError("--dashboard is for --engine ray without --address")
-    from imupipe.pipeline.convert.fleet import convert
+    from imupipe.pipeline.convert.fleet import convert  # checks the options first
 
     summary = convert(
         args.logs,

@@ -33,6 +33,7 @@ from imupipe.pipeline.calibration_file import (
 )
 from imupipe.pipeline.config import Config, build_options, load_config, parse_config, parse_input
 from imupipe.pipeline.convert.fleet import ConvertSummary, convert
+from imupipe.pipeline.errors import ConfigError
 from imupipe.pipeline.inspect_log import inspect as inspect_log
 from imupipe.pipeline.inspect_log import render as render_inspection
 from imupipe.pipeline.report.summary import (
@@ -46,7 +47,7 @@ from imupipe.pipeline.run import run as run_config
 from imupipe.readers.dispatch import read_input
 from imupipe.readers.errors import ImupipeError
 from imupipe.readers.spec import InputSpec
-from imupipe.readers.table import metadata
+from imupipe.readers.table import SENSOR_COLUMNS, metadata
 from imupipe.stages.base import StageContext
 from imupipe.stages.registry import stage_class
 from imupipe.stages.steps import Step, apply_chain
@@ -85,6 +86,30 @@ class ImupipeWarning(UserWarning):
     ...``), issued with :func:`warnings.warn`: shown in a notebook, caught with
     ``warnings.catch_warnings(record=True)``, turned into errors with
     ``warnings.simplefilter("error", imupipe.ImupipeWarning)``."""
+
+
+class ArgumentError(ConfigError, TypeError):
+    """A wrong argument to a function of the API (a type, a table without the columns it
+    needs): an :class:`ImupipeError` with one line, as the command line says it, and a
+    ``TypeError`` as Python says it."""
+
+
+def _table_arg(table: Any, where: str, sensors: Sequence[str] = ()) -> pa.Table:
+    """``table`` when it is a common table with the columns of ``sensors``; ArgumentError
+    otherwise (a one-line message naming ``where``)."""
+    if not isinstance(table, pa.Table):
+        raise ArgumentError(
+            f"{where}: table must be a pyarrow.Table (from imupipe.read), not "
+            f"{type(table).__name__}"
+        )
+    need = ["t_ns", *(c for s in sensors for c in SENSOR_COLUMNS.get(s, ()))]
+    missing = [c for c in need if c not in table.column_names]
+    if missing:
+        raise ArgumentError(
+            f"{where}: the table has no column {', '.join(missing)} (a common table from "
+            "imupipe.read has them)"
+        )
+    return table
 
 
 def _warn(messages: Sequence[str], where: str, stacklevel: int) -> None:
@@ -317,9 +342,8 @@ def fit_stage(
     fails its own quality check raises :class:`ImupipeError` unless ``accept_failed_checks``.
     The stage functions (``imupipe.allan``, ...) call this.
     """
-    if not isinstance(table, pa.Table):
-        raise TypeError(f"imupipe.{type_name}(): table must be a pyarrow.Table (from imupipe.read)")
     cls = stage_class(type_name)
+    _table_arg(table, f"imupipe.{type_name}()", getattr(cls, "sensors", ()))
     factory = {
         f.name
         for f in dataclasses.fields(cls.Options)
@@ -336,7 +360,13 @@ def fit_stage(
         quiet=True,
         accept_failed_checks=accept_failed_checks,
     )
-    output = cls(opts).fit(table, ctx)
+    try:
+        output = cls(opts).fit(table, ctx)
+    except KeyError as exc:  # a column a stage reads beyond its sensors'
+        raise ArgumentError(
+            f"imupipe.{type_name}(): the table has no column {exc} (a common table from "
+            "imupipe.read has it)"
+        ) from None
     source = metadata(table).get("source")
     results: dict[str, Any] = {
         "type": type_name,
@@ -380,20 +410,59 @@ class Calibration:
         """The chain of the given stage results' steps, in the order given (fit each on the
         table corrected by the ones before it: ``b = imupipe.gyro_bias(t)``,
         ``a = imupipe.accel_calibration(b.apply(t))``, ``Calibration.from_results(b, a)``)."""
+        for i, r in enumerate(results):
+            if not isinstance(r, StageResult):
+                raise ArgumentError(
+                    f"Calibration.from_results(): argument {i + 1} must be a stage result "
+                    f"(imupipe.gyro_bias(table), ...), not {type(r).__name__}"
+                )
         chain = [step for r in results for step in r.steps]
         fitted = [r.results.get("fitted_on") for r in results for _ in r.steps]
         doc = calibration_document(chain, {r.name: r.results for r in results}, fitted)
         return cls(doc, chain, {r.name: r for r in results})
 
-    def apply(self, table: pa.Table) -> pa.Table:
-        """``table`` corrected by every step of the chain, in order."""
-        return apply_chain(table, self.steps)
+    def apply(
+        self, table: pa.Table, *, on_mismatch: Literal["warn", "refuse"] = "warn"
+    ) -> pa.Table:
+        """``table`` corrected by every step of the chain, in order, each step on the data of
+        its own device, as ``imupipe convert`` applies it. A table from another sensor than the
+        one the calibration was fitted on (its topics, frames, instances or device ids differ
+        from the chain's ``fitted_on``) is corrected with an :class:`ImupipeWarning` naming
+        the difference, or refused (``on_mismatch="refuse"``: :class:`ImupipeError`), as
+        ``convert --on-mismatch``."""
+        from imupipe.pipeline.calibration_file import on_device
+        from imupipe.pipeline.convert.provenance import ProvenanceCheck
+
+        if on_mismatch not in ("warn", "refuse"):
+            raise ArgumentError(
+                f"Calibration.apply(): on_mismatch must be 'warn' or 'refuse', not {on_mismatch!r}"
+            )
+        _table_arg(table, "Calibration.apply()", [s.sensor for s in self.steps])
+        chain = self.document.get("chain", [])
+        where = str(metadata(table).get("source") or "the table")
+        check = ProvenanceCheck(chain, on_mismatch, where)
+        _warn(check.check(metadata(table)), "Calibration.apply()", stacklevel=2)
+        steps = self.steps
+        if len(chain) == len(steps):
+            steps = on_device(steps, chain, lenient=True)
+        return apply_chain(table, steps)
 
     def save(self, path: str | os.PathLike[str]) -> Path:
-        """Write the calibration as JSON to ``path`` (written whole or not at all); returns it."""
+        """Write the calibration as JSON to ``path`` (written whole or not at all); returns it.
+        A folder, or a path that cannot be written, is an :class:`ImupipeError` (one line)."""
         target = Path(path)
-        with atomic_path(target) as tmp:
-            tmp.write_text(calibration_json(self.document), encoding="utf-8")
+        if target.is_dir():
+            raise ArgumentError(
+                f"Calibration.save(): {target} is a folder; give a file name "
+                f"({target / 'calibration.json'})"
+            )
+        try:
+            with atomic_path(target) as tmp:
+                tmp.write_text(calibration_json(self.document), encoding="utf-8")
+        except OSError as exc:
+            raise ConfigError(
+                f"Calibration.save(): {target}: cannot write: {exc.strerror or exc}"
+            ) from None
         return target
 
     @property
