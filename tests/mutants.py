@@ -256,6 +256,10 @@ REFERENCES: dict[str, Callable[[Path], dict[str, int]]] = {
 class Verdict:
     kind: str
     detail: str = ""
+    unsaid: str = ""
+    """Streams with fewer rows than the clean log's and no warning, where the reference lost
+    them too (a cut or zeroed tail: nothing in the file says it is damaged); a figure of the
+    campaign, not a failure."""
 
 
 def clean_read(path: Path) -> tuple[dict[str, str], dict[str, tuple[str, int]]]:
@@ -319,12 +323,18 @@ def judge(fmt: str, path: Path, clean: dict[str, tuple[str, int]], keys: dict[st
         got = ours.get(stream, 0) if _topic(topics.get(stream, "")) == topic else 0
         if got < want:
             short.append(f"{stream} ({topic}): {got} of {want}")
-    if not short:
-        return Verdict("equal")
     said = [w for w in warnings if WARNED.search(w)]
+    fewer = [
+        f"{stream}: {ours.get(stream, 0)} of {n}"
+        for stream, (_, n) in clean.items()
+        if ours.get(stream, 0) < n
+    ]
+    unsaid = "" if said else "; ".join(fewer)
+    if not short:
+        return Verdict("equal", unsaid=unsaid)
     if said:
         return Verdict("warned", "; ".join(short))
-    return Verdict("silent loss", "; ".join(short) + f"; warnings: {warnings}")
+    return Verdict("silent loss", "; ".join(short) + f"; warnings: {warnings}", unsaid)
 
 
 def campaign(
