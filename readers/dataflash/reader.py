@@ -15,6 +15,15 @@ between records is skipped as ``DFReader`` skips it, byte by byte to the next he
 type); the records are the candidates reachable from the first, found by pointer doubling
 (log2(n) vectorised steps). A record cut by the end of the file ends the log, as in ``DFReader``.
 
+**Damaged ``FMT`` records** (:func:`_fit_lengths`, :meth:`DataFlashLog.undecodable`): a
+type whose ``FMT`` length disagrees with the sizes of its field formats is walked with the
+length its records show (the one after which more of its records are followed by another
+record's header) and the warning says so; a type whose records still cannot be decoded (its
+formats do not add up, name an unknown character, repeat a column) is skipped with a warning
+giving its record count and its ``FMT``'s offset, so no stream vanishes unsaid; bytes between
+records are counted with the first offset and the record headers found among them. A file
+without an ``FMT`` record in its first MiB is refused before it is read whole.
+
 **Instances.** ArduPilot logs a sensor kind either as one message per instance (``IMU``,
 ``IMU2``, ``IMU3``; ``MAG``, ``MAG2``; ``BARO``, ``BAR2``: older firmware) or as one message with
 an instance field ``I`` (``IMU`` with ``I`` = 0, 1, 2: ArduPilot 4.1 and later). imupipe names

@@ -47,6 +47,15 @@ rotation PX4 applies to it after its calibration, into the body frame (``matrix`
 sensor, and the ``parameters`` it was made of: ``CAL_MAGn_ROT``, ``SENS_BOARD_ROT``,
 ``SENS_BOARD_{X,Y,Z}_OFF``; :mod:`imupipe.readers.ulog.rotation`).
 
+**Damaged files**: stock pyulog (1.3) ends its parse, without a word, at the first record whose
+payload it cannot unpack (a data record of size 0 or 1, an info or dropout record cut short:
+its ``struct.error`` is taken for the end of the file), and skips data records of an unknown
+``msg_id`` or a wrong size uncounted. A file whose first parse met such damage is parsed again
+by a subclass of pyulog's ``ULog`` that skips each damaged record and goes on (what pyulog
+does for the damage it knows), recording its offset, size and topic; one warning says how many
+records and bytes were skipped, between which offsets, and which topics' messages were among
+them (:meth:`UlogFile.damage_warning`). An undamaged file is parsed once, at pyulog's speed.
+
 **Not carried**: ULog topics other than the ones read have no ROS message type; they are not
 written to the corrected MCAP and one warning lists them.
 """
