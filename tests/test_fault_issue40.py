@@ -325,3 +325,40 @@ def test_calibration_apply_checks_the_device(tmp_path):
         cal.apply(other)
     with pytest.raises(imupipe.ImupipeError, match="not the sensor of the calibration"):
         cal.apply(other, on_mismatch="refuse")
+
+
+def test_an_object_store_gone_is_one_line(tmp_path):
+    """A moto server stopped after the log was uploaded: the conversion ends in one line
+    naming the URL (no raw OSError, no traceback), nothing written outside ``--out``."""
+    import logging
+    import socket
+
+    moto_server = pytest.importorskip("moto.server", reason="moto[server] is needed")
+    boto3 = pytest.importorskip("boto3")
+    with socket.socket() as sock:
+        sock.bind(("127.0.0.1", 0))
+        port = sock.getsockname()[1]
+    logging.getLogger("werkzeug").setLevel(logging.ERROR)
+    server = moto_server.ThreadedMotoServer(ip_address="127.0.0.1", port=port, verbose=False)
+    server.start()
+    env = {**os.environ, "AWS_ACCESS_KEY_ID": "testing", "AWS_SECRET_ACCESS_KEY": "testing",
+           "AWS_DEFAULT_REGION": "us-east-1", "AWS_ENDPOINT_URL": f"http://127.0.0.1:{port}"}  # fmt: skip
+    try:
+        client = boto3.client(
+            "s3", endpoint_url=env["AWS_ENDPOINT_URL"], region_name="us-east-1",
+            aws_access_key_id="testing", aws_secret_access_key="testing",
+        )  # fmt: skip
+        client.create_bucket(Bucket="logs")
+        client.upload_file(str(SMALL_ULOG), "logs", "a.ulg")
+    finally:
+        server.stop()
+    cal = _cal(tmp_path / "c.json")
+    before = snapshot(tmp_path)
+    proc = subprocess.run(
+        [sys.executable, "-m", "imupipe.pipeline.cli", "convert", "--calibration", str(cal),
+         "--out", str(tmp_path / "out"), "s3://logs/a.ulg"],
+        capture_output=True, text=True, env=env, timeout=300,
+    )  # fmt: skip
+    check("object store gone", proc.returncode, proc.stderr, tmp_path, before, [tmp_path / "out"],
+          fleet=True)  # fmt: skip
+    assert proc.returncode in (1, 2) and "s3://logs/a.ulg" in proc.stderr, proc.stderr

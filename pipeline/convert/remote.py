@@ -408,8 +408,11 @@ class RemoteManifest:
         fs, key = filesystem(self.path)
         self._data = b""
         if object_size(self.path) is not None:
-            with fs.open_input_stream(key) as src:
-                self._data = src.read()
+            try:
+                with fs.open_input_stream(key) as src:
+                    self._data = src.read()
+            except OSError as exc:
+                raise ObjectStoreError(f"{self.path}: cannot read: {_brief(exc)}") from None
             if self._data and not self._data.endswith(b"\n"):  # a line cut short: dropped
                 self._data = self._data[: self._data.rfind(b"\n") + 1]
         self._dirty = False
