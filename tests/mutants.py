@@ -362,3 +362,16 @@ def campaign(
         path.write_bytes(mutant)
         out.append((src.name, fmt, what, judge(fmt, path, clean, keys)))
     return out
+
+
+def chunked_campaign(
+    count: int, seed: int, workdir: Path, limit_bytes: int | None, chunk: int = 50
+) -> list[tuple[str, str, str, Verdict]]:
+    """``count`` mutants as :func:`campaign` runs of ``chunk`` (seeds ``seed * 1000 + k``): the
+    campaign of the robustness page (``tests/test_fuzz_mutants.py``, slow)."""
+    out = []
+    for k in range(count // chunk):
+        folder = workdir / f"chunk{k}"
+        folder.mkdir()
+        out += campaign(chunk, seed * 1000 + k, folder, limit_bytes)
+    return out
