@@ -338,11 +338,15 @@ def judge(fmt: str, path: Path, clean: dict[str, tuple[str, int]], keys: dict[st
 
 
 def campaign(
-    count: int, seed: int, workdir: Path, limit_bytes: int | None = None
+    count: int,
+    seed: int,
+    workdir: Path,
+    limit_bytes: int | None = None,
+    only: set[int] | None = None,
 ) -> list[tuple[str, str, str, Verdict]]:
     """``count`` mutants spread over every seed log (seeded), each judged: (log, format, what
     was done, verdict). ``limit_bytes`` cuts each seed log first (a real log's first part is
-    a shorter real log: the quick run)."""
+    a shorter real log: the quick run); ``only``: judge only the mutants of these indexes."""
     rng = np.random.default_rng(seed)
     logs = seeds() + derived(workdir)
     out = []
@@ -358,6 +362,8 @@ def campaign(
             clean_of[src] = (data, clean_read(base))
         data, (keys, clean) = clean_of[src]
         mutant, what = mutate(fmt, data, rng)
+        if only is not None and i not in only:  # drawn all the same: the sequence is kept
+            continue
         path = workdir / f"mutant{src.suffix}"
         path.write_bytes(mutant)
         out.append((src.name, fmt, what, judge(fmt, path, clean, keys)))

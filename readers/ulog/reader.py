@@ -330,14 +330,23 @@ which pyulog takes for the end of the file (``_read_file_data``'s ``except struc
 def _parse(path: Path, wanted: _TopicFilter | None) -> tuple[Any, tuple[int, int, int] | None]:
     """pyulog's parse of ``path``, and the last record cut by the end of the file when known.
 
-    A first parse is pyulog's own (its speed); when it met damage (``_file_corrupt``) or ended
-    before the end of the file (a record it could not unpack), the file is parsed again by
-    :func:`_tolerant_ulog`, which reads past the damaged records and says where they are."""
+    A first parse is pyulog's own (its speed); when it met damage (``_file_corrupt``), ended
+    before the end of the file (a record it could not unpack) or walked records that do not end
+    at the end of the file (a record cut, or a damaged size field that sent the parse past the
+    end: pyulog takes either for the end of the log), the file is parsed again by
+    :func:`_ulog_classes`' tolerant class, which reads past the damaged records and says where
+    they are."""
     fast, tolerant = _ulog_classes()
     with _Ending(path) as handle:
         ulog = fast(handle, wanted)
     if not ulog.damaged and handle.end >= handle.size:
-        return ulog, None
+        if ulog.data_end == handle.size:
+            return ulog, None
+        if ulog.data_end > handle.size:  # the last record is cut: everything before it was read
+            at = ulog.data_end - 3 - ulog.last_size
+            return ulog, (at, 3 + ulog.last_size, handle.size - at)
+        if handle.size - ulog.data_end < 3:  # a header cut
+            return ulog, (ulog.data_end, 3, handle.size - ulog.data_end)
     with _Probe(path) as handle:
         ulog = tolerant(handle, wanted)
     return ulog, handle.cut
@@ -390,11 +399,38 @@ def _ulog_classes() -> tuple[type, type]:
 
         return type(cls.__name__, (cls,), {"__init__": init})
 
+    header_fields = _struct.Struct("<HB").unpack
+
+    class Header(ULog._MessageHeader):  # type: ignore[name-defined]
+        """pyulog's record header, adding each record's length to its log's ``walked``."""
+
+        def __init__(self, owner: Any) -> None:
+            super().__init__()
+            self.owner = owner
+
+        def initialize(self, data: bytes) -> None:
+            self.msg_size, self.msg_type = header_fields(data)
+            self.owner.walked += 3 + self.msg_size
+            self.owner.last_size = self.msg_size
+
     class Fast(ULog):  # type: ignore[misc, valid-type]
-        """pyulog's ``ULog`` noting whether it met a damaged record (``damaged``)."""
+        """pyulog's ``ULog`` noting whether it met a damaged record (``damaged``) and where the
+        records it walked in its last data section end (``data_end``: past the end of the
+        file when the last record was cut, or a damaged size field sent the parse there)."""
 
         damaged = False
         damage: tuple[Damage, ...] = ()
+        walked = 0
+        last_size = 0
+        data_end = -1
+
+        def _MessageHeader(self) -> Any:  # noqa: N802 - pyulog's name
+            return Header(self)
+
+        def _read_file_data(self, *args: Any, **kwargs: Any) -> None:
+            self.walked, start = 0, self._file_handle.tell()
+            super()._read_file_data(*args, **kwargs)
+            self.data_end = start + self.walked
 
         @property
         def _file_corrupt(self) -> bool:
