@@ -175,8 +175,11 @@ def mutate(fmt: str, data: bytes, rng: np.random.Generator) -> tuple[bytes, str]
 def _pyulog(path: Path) -> dict[str, int]:
     from pyulog import ULog
 
-    with contextlib.redirect_stdout(io.StringIO()):
-        log = ULog(str(path))
+    try:
+        with contextlib.redirect_stdout(io.StringIO()):
+            log = ULog(str(path))
+    except Exception:  # noqa: BLE001 - the reference refuses the file
+        return {}
     return {
         d.name if d.multi_id == 0 else f"{d.name}_{d.multi_id}": len(d.data["timestamp"])
         for d in log.data_list
@@ -189,11 +192,14 @@ def _pymavlink(path: Path) -> dict[str, int]:
 
     found: collections.Counter[str] = collections.Counter()
     quiet = io.StringIO()
-    with contextlib.redirect_stdout(quiet), contextlib.redirect_stderr(quiet):
-        reader = DFReader.DFReader_binary(str(path), zero_time_base=True)
-        while (msg := reader.recv_msg()) is not None:
-            name, i = msg.get_type(), getattr(msg, "I", 0)
-            found[name if not isinstance(i, int) or i == 0 else f"{name}_{i}"] += 1
+    try:
+        with contextlib.redirect_stdout(quiet), contextlib.redirect_stderr(quiet):
+            reader = DFReader.DFReader_binary(str(path), zero_time_base=True)
+            while (msg := reader.recv_msg()) is not None:
+                name, i = msg.get_type(), getattr(msg, "I", 0)
+                found[name if not isinstance(i, int) or i == 0 else f"{name}_{i}"] += 1
+    except Exception:  # noqa: BLE001 - the reference stops at its first error
+        pass
     return dict(found)
 
 
