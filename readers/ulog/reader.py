@@ -427,6 +427,11 @@ def _ulog_classes() -> tuple[type, type]:
         def _MessageHeader(self) -> Any:  # noqa: N802 - pyulog's name
             return Header(self)
 
+        def _check_packet_corruption(self, header: Any) -> bool:
+            # called for a record of a type pyulog does not know only: skipped, so said
+            self.damaged = True
+            return bool(super()._check_packet_corruption(header))
+
         def _read_file_data(self, *args: Any, **kwargs: Any) -> None:
             self.walked, start = 0, self._file_handle.tell()
             super()._read_file_data(*args, **kwargs)
