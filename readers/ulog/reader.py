@@ -402,16 +402,14 @@ def _ulog_classes() -> tuple[type, type]:
     header_fields = _struct.Struct("<HB").unpack
 
     class Header(ULog._MessageHeader):  # type: ignore[name-defined]
-        """pyulog's record header, adding each record's length to its log's ``walked``."""
+        """pyulog's record header, summing the lengths of the records it was read for
+        (``walked``)."""
 
-        def __init__(self, owner: Any) -> None:
-            super().__init__()
-            self.owner = owner
+        walked = 0
 
         def initialize(self, data: bytes) -> None:
             self.msg_size, self.msg_type = header_fields(data)
-            self.owner.walked += 3 + self.msg_size
-            self.owner.last_size = self.msg_size
+            self.walked += 3 + self.msg_size
 
     class Fast(ULog):  # type: ignore[misc, valid-type]
         """pyulog's ``ULog`` noting whether it met a damaged record (``damaged``) and where the
@@ -420,12 +418,13 @@ def _ulog_classes() -> tuple[type, type]:
 
         damaged = False
         damage: tuple[Damage, ...] = ()
-        walked = 0
+        header: Any = None
         last_size = 0
         data_end = -1
 
         def _MessageHeader(self) -> Any:  # noqa: N802 - pyulog's name
-            return Header(self)
+            self.header = Header()
+            return self.header
 
         def _check_packet_corruption(self, header: Any) -> bool:
             # called for a record of a type pyulog does not know only: skipped, so said
@@ -433,9 +432,10 @@ def _ulog_classes() -> tuple[type, type]:
             return bool(super()._check_packet_corruption(header))
 
         def _read_file_data(self, *args: Any, **kwargs: Any) -> None:
-            self.walked, start = 0, self._file_handle.tell()
-            super()._read_file_data(*args, **kwargs)
-            self.data_end = start + self.walked
+            start = self._file_handle.tell()
+            super()._read_file_data(*args, **kwargs)  # its first call makes self.header
+            self.data_end = start + self.header.walked
+            self.last_size = self.header.msg_size
 
         @property
         def _file_corrupt(self) -> bool:
