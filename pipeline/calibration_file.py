@@ -42,6 +42,7 @@ from __future__ import annotations
 
 import json
 import math
+import stat
 from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from itertools import chain as chained
@@ -321,7 +322,14 @@ def load_calibration(path: str | Path) -> tuple[dict[str, Any], list[Step]]:
     path = Path(path)
     where = str(path)
     try:
-        size = path.stat().st_size
+        info = path.stat()
+        if stat.S_ISDIR(info.st_mode):
+            raise IsADirectoryError
+        if not stat.S_ISREG(info.st_mode):  # opening a FIFO would block
+            raise CalibrationError(
+                f"{where}: not a regular file (a FIFO, socket or device), not a calibration file"
+            )
+        size = info.st_size
         if size > MAX_BYTES:
             raise CalibrationError(
                 f"{where}: {size} bytes; a calibration file is at most {MAX_BYTES} bytes"

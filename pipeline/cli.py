@@ -20,8 +20,15 @@ import os
 import sys
 import traceback
 
-from imupipe.pipeline.errors import ImupipeError
-from imupipe.pipeline.signals import Terminated, terminate_on_sigterm
+from imupipe.pipeline.errors import ImupipeError, one_line
+from imupipe.pipeline.signals import (
+    Terminated,
+    exit_on_sigterm,
+    terminate_on_sigterm,
+    was_terminated,
+)
+
+exit_on_sigterm()  # a SIGTERM before main() runs: status 143, as after it
 
 COMMANDS: dict[str, tuple[str, str]] = {
     "run": (
@@ -111,7 +118,11 @@ def main(argv: list[str] | None = None) -> int:
     terminate_on_sigterm()
     try:
         args = build_parser(_command(argv)).parse_args(argv)
-        return int(args.func(args) or 0)
+        code = int(args.func(args) or 0)
+        exit_on_sigterm()  # the outputs are in place: nothing left to clean up
+        if was_terminated():  # its Terminated was swallowed (raised in a finaliser)
+            raise Terminated()
+        return code
     except ImupipeError as exc:
         return _error(str(exc), exc.exit_code, debug)
     except OSError as exc:  # the file system: disk full, permissions, read-only, busy
@@ -132,7 +143,7 @@ def _error(line: str, code: int, debug: bool) -> int:
     with and without ``--debug``."""
     if debug:
         traceback.print_exc()
-    print(f"imupipe: error: {line}", file=sys.stderr)
+    print(f"imupipe: error: {one_line(line)}", file=sys.stderr)
     return code
 
 

@@ -11,7 +11,13 @@ from __future__ import annotations
 from imupipe.readers.errors import ImupipeError, ReadError
 from imupipe.stages.errors import CalibrationError, FitError
 
-__all__ = ["CalibrationError", "ConfigError", "FitError", "ImupipeError", "ReadError"]
+__all__ = ["CalibrationError", "ConfigError", "FitError", "ImupipeError", "ReadError", "one_line"]
+
+
+def one_line(text: str) -> str:
+    """``text`` on one line: a line break or carriage return (in a file name, say) written as
+    ``\\n`` / ``\\r``, so that an error stays one line on stderr."""
+    return text.replace("\r", "\\r").replace("\n", "\\n")
 
 
 class ConfigError(ImupipeError):

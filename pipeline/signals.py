@@ -9,6 +9,7 @@ staged outputs are discarded, worker pools are stopped.
 from __future__ import annotations
 
 import contextlib
+import os
 import signal
 import threading
 from collections.abc import Iterator
@@ -22,12 +23,43 @@ class Terminated(BaseException):
     exit_code = 128 + signal.SIGTERM
 
 
+_RECEIVED: list[int] = []
+"""SIGTERMs received since :func:`terminate_on_sigterm`: Python drops an exception raised in a
+finaliser or a weak-reference callback (it prints "Exception ignored in ..."), so a
+:class:`Terminated` raised there never reaches the command; :func:`was_terminated` still knows."""
+
+
 def _raise_terminated(signum: int, frame: FrameType | None) -> None:
+    _RECEIVED.append(signum)
     raise Terminated()
+
+
+def was_terminated() -> bool:
+    """Whether SIGTERM arrived since :func:`terminate_on_sigterm`, even when its
+    :class:`Terminated` was swallowed where Python ignores exceptions."""
+    return bool(_RECEIVED)
+
+
+def _exit_terminated(signum: int, frame: FrameType | None) -> None:
+    try:
+        os.write(2, b"imupipe: terminated\n")
+    finally:
+        os._exit(Terminated.exit_code)
+
+
+def exit_on_sigterm() -> None:
+    """From now on SIGTERM ends the process at once with status 143 and one line, running no
+    ``finally`` block nor ``atexit`` callback: for the moments when the command has nothing to
+    clean up (before it starts, after its outputs are in place), where an exception would be
+    printed as "Exception ignored in atexit callback" or the default action would end the
+    process by the signal. Main thread only (a no-op elsewhere)."""
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGTERM, _exit_terminated)
 
 
 def terminate_on_sigterm() -> None:
     """From now on SIGTERM raises :class:`Terminated` in the main thread."""
+    _RECEIVED.clear()
     signal.signal(signal.SIGTERM, _raise_terminated)
 
 

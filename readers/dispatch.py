@@ -80,6 +80,10 @@ def detect_format(path: Path) -> str:
     a path; ReadError when unknown or missing."""
     if not path.exists():
         raise ReadError(f"{path}: no such file or folder")
+    if not path.is_dir() and not path.is_file():  # stat only: opening a FIFO would block
+        raise ReadError(
+            f"{path}: not a regular file (a FIFO, socket or device); imupipe reads log files"
+        )
     if path.is_dir():
         if (path / "metadata.yaml").exists() or any(
             any(path.glob(p)) for p in ("*.db3", "*.mcap", "*.db3.zstd", "*.mcap.zstd")

@@ -7,7 +7,7 @@ import sys
 from pathlib import Path
 
 from imupipe.pipeline.convert.options import DEFAULT_BATCH_ROWS, ENGINES, ON_MISMATCH
-from imupipe.pipeline.errors import ConfigError
+from imupipe.pipeline.errors import one_line
 
 
 def add_parser(sub: argparse._SubParsersAction) -> None:
@@ -101,17 +101,7 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 
 
 def main(args: argparse.Namespace) -> int:
-    if args.jobs is not None and args.jobs < 1:
-        raise ConfigError(f"--jobs {args.jobs}: must be at least 1")
-    if args.batch_rows < 1:
-        raise ConfigError(f"--batch-rows {args.batch_rows}: must be at least 1")
-    if args.retries < 0:
-        raise ConfigError(f"--retries {args.retries}: must be at least 0")
-    if args.address is not None and args.engine != "ray":
-        raise ConfigError("--address is for --engine ray")
-    if args.dashboard and (args.engine != "ray" or args.address is not None):
-        raise ConfigError("--dashboard is for --engine ray without --address")
-    from imupipe.pipeline.convert.fleet import convert
+    from imupipe.pipeline.convert.fleet import convert  # checks the options first
 
     summary = convert(
         args.logs,
@@ -130,10 +120,8 @@ def main(args: argparse.Namespace) -> int:
         on_mismatch=args.on_mismatch,
     )
     for path, why in summary.failed:
-        print(
-            f"imupipe: error: {path}: {why}" if path not in why else f"imupipe: error: {why}",
-            file=sys.stderr,
-        )
+        line = f"{path}: {why}" if path not in why else why
+        print(f"imupipe: error: {one_line(line)}", file=sys.stderr)
     if not args.quiet:
         total = len(summary.converted) + len(summary.skipped) + len(summary.failed)
         print(

@@ -81,6 +81,38 @@ class ConvertSummary:
         return sum(s.messages for s in self.converted)
 
 
+def check_options(
+    engine: str,
+    jobs: int | None,
+    retries: int,
+    batch_rows: int,
+    address: str | None,
+    dashboard: bool,
+    on_mismatch: str,
+) -> None:
+    """ConfigError (the command line's one line, named by its option) for a wrong option of
+    :func:`convert`, from the command line or the Python API."""
+    from imupipe.pipeline.convert.options import ENGINES
+
+    def whole(value: object) -> bool:
+        return isinstance(value, int) and not isinstance(value, bool)
+
+    if engine not in ENGINES:
+        raise ConfigError(f"--engine {engine}: must be one of {', '.join(ENGINES)}")
+    if on_mismatch not in ON_MISMATCH:
+        raise ConfigError(f"--on-mismatch {on_mismatch}: must be one of {', '.join(ON_MISMATCH)}")
+    if jobs is not None and (not whole(jobs) or jobs < 1):
+        raise ConfigError(f"--jobs {jobs}: must be at least 1")
+    if not whole(batch_rows) or batch_rows < 1:
+        raise ConfigError(f"--batch-rows {batch_rows}: must be at least 1")
+    if not whole(retries) or retries < 0:
+        raise ConfigError(f"--retries {retries}: must be at least 0")
+    if address is not None and engine != "ray":
+        raise ConfigError("--address is for --engine ray")
+    if dashboard and (engine != "ray" or address is not None):
+        raise ConfigError("--dashboard is for --engine ray without --address")
+
+
 def convert(
     logs: Sequence[str | os.PathLike[str]],
     calibration: str | os.PathLike[str],
@@ -113,8 +145,9 @@ def convert(
     the run (full, read-only): the other logs are stopped, the same command resumes."""
     from imupipe.pipeline.convert import remote
 
+    check_options(engine, jobs, retries, batch_rows, address, dashboard, on_mismatch)
     start = time.perf_counter()
-    out_url = os.fspath(out_dir).rstrip("/") if remote.is_url(out_dir) else None
+    out_url = remote.check_url(out_dir, "--out") if remote.is_url(out_dir) else None
     out: Path | str = remote.local_path(out_dir) if out_url is None else out_url
     doc, _ = load_calibration(Path(calibration))
     settings = load_read_settings(None if config is None else Path(config))

@@ -102,8 +102,8 @@ def find_logs(
             dirs[:] = keep
             for f in sorted(files):
                 p = here / f
-                if not f.startswith(".") and p.suffix.lower() in suffixes:
-                    found.append((p, rel / p.stem))
+                if not f.startswith(".") and p.suffix.lower() in suffixes and p.is_file():
+                    found.append((p, rel / p.stem))  # a FIFO, socket or device is no log
     return found
 
 
@@ -116,8 +116,8 @@ def check_arguments(logs: Sequence[Path]) -> None:
         path = Path(arg)
         if not path.exists():
             raise ConfigError(f"{path}: no such file or folder")
-        if path.is_file():
-            detect_format(path)
+        if not path.is_dir():
+            detect_format(path)  # by its name and stat: a FIFO or a device is never opened
 
 
 @dataclass
@@ -197,10 +197,10 @@ def plan_remote(
     from imupipe.pipeline.convert import remote
     from imupipe.readers.dispatch import CSV_SUFFIXES
 
-    urls = [os.fspath(a).rstrip("/") for a in logs if remote.is_url(a)]
+    urls = [remote.check_url(a) for a in logs if remote.is_url(a)]
     paths = [remote.local_path(a) for a in logs if not remote.is_url(a)]
     check_arguments(paths)
-    out_url = os.fspath(out_dir).rstrip("/") if remote.is_url(out_dir) else None
+    out_url = remote.check_url(out_dir, "--out") if remote.is_url(out_dir) else None
     local_out = None if out_url is not None else remote.local_path(out_dir).absolute()
     suffixes = set(LOG_SUFFIXES) | ({".csv"} if csv else set())
     known = set(LOG_SUFFIXES) | {".ulg", ".bin", ".db3"} | CSV_SUFFIXES

@@ -72,6 +72,33 @@ def is_url(value: str | os.PathLike[str]) -> bool:
     return m is not None and m["scheme"].lower() != "file"
 
 
+SCHEMES = ("s3", "s3a", "gs", "gcs")
+"""The object stores imupipe opens (any other scheme is refused at once: pyarrow's other
+filesystems may wait without end for credentials or a server)."""
+GCS_RETRY_S = 10.0
+"""Seconds a Google Cloud Storage request is retried before it fails (pyarrow's default retries
+for 15 minutes, and looks for credentials on a metadata server first)."""
+
+
+def check_url(value: str | os.PathLike[str], what: str = "") -> str:
+    """``value`` (a URL) without its trailing slashes; ConfigError, one line, when its scheme is
+    not an object store imupipe opens (:data:`SCHEMES`) or it names no bucket (``s3://``,
+    ``s3:///x.mcap``)."""
+    text = os.fspath(value)
+    m = URL.match(text)
+    label = f"{what} {text}".strip()
+    if m is None:
+        raise ConfigError(f"{label}: not a URL")
+    scheme = m["scheme"].lower()
+    if scheme not in SCHEMES:
+        raise ConfigError(
+            f"{label}: the scheme '{scheme}://' is not supported (s3://, gs://; or a local path)"
+        )
+    if not m["rest"].split("/", 1)[0]:
+        raise ConfigError(f"{label}: names no bucket ({scheme}://BUCKET/PREFIX)")
+    return text.rstrip("/")
+
+
 def local_path(value: str | os.PathLike[str]) -> Path:
     """A local path from an argument (``file:///x`` -> ``/x``)."""
     text = os.fspath(value)
@@ -91,11 +118,20 @@ def filesystem(url: str) -> tuple[Any, str]:
     naming the URL) when the scheme is not supported or its settings are wrong."""
     import pyarrow.fs as pafs
 
+    check_url(url)
     m = URL.match(url)
-    if m is None:
-        raise ConfigError(f"{url}: not a URL")
+    assert m is not None  # check_url
     scheme = m["scheme"].lower()
     try:
+        if scheme in ("gs", "gcs"):
+            import datetime
+
+            key = (scheme, "")
+            if key not in _FILESYSTEMS:
+                _FILESYSTEMS[key] = pafs.GcsFileSystem(
+                    retry_time_limit=datetime.timedelta(seconds=GCS_RETRY_S)
+                )
+            return _FILESYSTEMS[key], m["rest"].rstrip("/")
         if scheme in ("s3", "s3a"):
             endpoint = _s3_endpoint()
             key = (scheme, repr(sorted(endpoint.items())))
@@ -120,7 +156,9 @@ def _brief(exc: BaseException) -> str:
     for marker in ("AWS Error ", "error: "):
         if marker in text:
             text = text.split(marker, 1)[1]
-    return text.split(" (Request ID")[0]
+    for cut in (" (Request ID", " Learn more about", " error_info=", " The request was not sent"):
+        text = text.split(cut)[0]
+    return text.removeprefix("google::cloud::Status(").rstrip(".")
 
 
 @dataclass
@@ -175,8 +213,13 @@ def object_size(url: str) -> int | None:
     """Bytes of an object, None when there is none."""
     import pyarrow.fs as pafs
 
+    from imupipe.pipeline.errors import ReadError
+
     fs, path = filesystem(url)
-    info = fs.get_file_info(path)
+    try:
+        info = fs.get_file_info(path)
+    except OSError as exc:
+        raise ReadError(f"{url}: cannot read: {_brief(exc)}") from None
     return info.size if info.type == pafs.FileType.File else None
 
 
@@ -365,8 +408,11 @@ class RemoteManifest:
         fs, key = filesystem(self.path)
         self._data = b""
         if object_size(self.path) is not None:
-            with fs.open_input_stream(key) as src:
-                self._data = src.read()
+            try:
+                with fs.open_input_stream(key) as src:
+                    self._data = src.read()
+            except OSError as exc:
+                raise ObjectStoreError(f"{self.path}: cannot read: {_brief(exc)}") from None
             if self._data and not self._data.endswith(b"\n"):  # a line cut short: dropped
                 self._data = self._data[: self._data.rfind(b"\n") + 1]
         self._dirty = False

@@ -18,7 +18,9 @@ written as they are read.
 from __future__ import annotations
 
 import collections
+import contextlib
 import errno
+import os
 import resource
 import time
 from collections.abc import Iterable, Iterator
@@ -28,7 +30,7 @@ from typing import Any
 
 import pyarrow as pa
 
-from imupipe.pipeline.atomic import staged_outputs
+from imupipe.pipeline.atomic import HOST_KEY, staged_outputs
 from imupipe.pipeline.calibration_file import on_device
 from imupipe.pipeline.convert.dataset import dataset_table
 from imupipe.pipeline.convert.done import existing_output, input_size
@@ -250,6 +252,34 @@ def _convert_log(task: LogTask) -> LogStats:
     )
 
 
+COPY_PREFIX = "imupipe-convert-"
+"""The local copies of a remote log live in ``$TMPDIR/imupipe-convert-<pid>@<host key>-*``."""
+
+
+def remove_stale_copies() -> list[Path]:
+    """Remove the folders of local copies (:data:`COPY_PREFIX`) of this machine's workers that
+    no longer run (a worker killed by SIGKILL cannot remove its own)."""
+    import re
+    import shutil
+    import tempfile
+
+    from imupipe.pipeline.atomic import _alive
+
+    pattern = re.compile(rf"^{COPY_PREFIX}(?P<pid>\d+)@{HOST_KEY}-[a-z0-9_]+$")
+    root = Path(tempfile.gettempdir())
+    removed = []
+    with contextlib.suppress(OSError):
+        for name in os.listdir(root):
+            m = pattern.match(name)
+            if m is None or int(m["pid"]) == os.getpid() or _alive(int(m["pid"])):
+                continue
+            path = root / name
+            if path.is_dir() and not path.is_symlink():
+                shutil.rmtree(path, ignore_errors=True)
+                removed.append(path)
+    return removed
+
+
 def convert_remote(task: LogTask) -> LogStats:
     """Convert a log whose input or output is an object (:mod:`imupipe.pipeline.convert.remote`):
     skip it when its published output already holds it converted the same way; else copy the
@@ -264,7 +294,8 @@ def convert_remote(task: LogTask) -> LogStats:
     from imupipe.pipeline.convert.done import same_conversion
 
     start, cpu_start = time.perf_counter(), time.process_time()
-    tmp = Path(tempfile.mkdtemp(prefix="imupipe-convert-"))
+    remove_stale_copies()
+    tmp = Path(tempfile.mkdtemp(prefix=f"{COPY_PREFIX}{os.getpid()}@{HOST_KEY}-"))
     src_name = task.source_url or str(task.spec.path)
     local_src = Path(task.spec.path)
     try:

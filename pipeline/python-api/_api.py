@@ -51,18 +51,18 @@ from imupipe.pipeline.run import run as run_config
 from imupipe.readers.dispatch import read_input
 from imupipe.readers.errors import ImupipeError
 from imupipe.readers.spec import InputSpec
-from imupipe.readers.table import FLIGHT_COLUMNS, metadata, on_imu_rows
+from imupipe.readers.table import FLIGHT_COLUMNS, SENSOR_COLUMNS, metadata, on_imu_rows
 from imupipe.stages.base import StageContext
 from imupipe.stages.registry import stage_class
 from imupipe.stages.steps import Step, apply_chain
 
 __all__ = [
+    "ArgumentError",
     "Calibration",
     "ConvertSummary",
     "ImupipeError",
     "ImupipeWarning",
     "Inspection",
-    "KeywordError",
     "RunResult",
     "StageResult",
     "convert",
@@ -97,15 +97,9 @@ class ImupipeWarning(UserWarning):
     ``warnings.simplefilter("error", imupipe.ImupipeWarning)``."""
 
 
-class KeywordError(ConfigError, TypeError):
-    """A call of a public function with a keyword it does not take, or without an argument it
-    needs: the config's message for an unknown key (the allowed list), as an
-    :class:`ImupipeError` (and a ``TypeError``, what Python raises for a bad call)."""
-
-
 def keywords_checked(function: Callable[..., Any]) -> Callable[..., Any]:
     """``function`` whose bad calls (a misspelt keyword, a missing argument) raise
-    :class:`KeywordError` naming the keywords it takes; its signature, annotations and
+    :class:`ArgumentError` naming the keywords it takes; its signature, annotations and
     docstring are kept (``functools.wraps``). The call itself is not slowed: the arguments are
     bound only when Python refused them."""
     signature = inspect_module.signature(function)
@@ -118,7 +112,7 @@ def keywords_checked(function: Callable[..., Any]) -> Callable[..., Any]:
             try:
                 signature.bind(*args, **kwargs)
             except TypeError:
-                raise KeywordError(_bad_call(function.__name__, signature, kwargs)) from error
+                raise ArgumentError(_bad_call(function.__name__, signature, kwargs)) from error
             raise
 
     return checked
@@ -144,6 +138,30 @@ def _bad_call(name: str, signature: inspect_module.Signature, kwargs: Mapping[st
         f"imupipe.{name}(): takes {', '.join(needed)} as argument{'s' * (len(needed) > 1)}, "
         f"then only keywords ({', '.join(keywords)})"
     )
+
+
+class ArgumentError(ConfigError, TypeError):
+    """A wrong argument to a function of the API (a type, a table without the columns it
+    needs): an :class:`ImupipeError` with one line, as the command line says it, and a
+    ``TypeError`` as Python says it."""
+
+
+def _table_arg(table: Any, where: str, sensors: Sequence[str] = ()) -> pa.Table:
+    """``table`` when it is a common table with the columns of ``sensors``; ArgumentError
+    otherwise (a one-line message naming ``where``)."""
+    if not isinstance(table, pa.Table):
+        raise ArgumentError(
+            f"{where}: table must be a pyarrow.Table (from imupipe.read), not "
+            f"{type(table).__name__}"
+        )
+    need = ["t_ns", *(c for s in sensors for c in SENSOR_COLUMNS.get(s, ()))]
+    missing = [c for c in need if c not in table.column_names]
+    if missing:
+        raise ArgumentError(
+            f"{where}: the table has no column {', '.join(missing)} (a common table from "
+            "imupipe.read has them)"
+        )
+    return table
 
 
 def _warn(messages: Sequence[str], where: str) -> None:
@@ -408,9 +426,8 @@ def fit_stage(
     fails its own quality check raises :class:`ImupipeError` unless ``accept_failed_checks``.
     The stage functions (``imupipe.allan``, ...) call this.
     """
-    if not isinstance(table, pa.Table):
-        raise TypeError(f"imupipe.{type_name}(): table must be a pyarrow.Table (from imupipe.read)")
     cls = stage_class(type_name)
+    _table_arg(table, f"imupipe.{type_name}()", getattr(cls, "sensors", ()))
     factory = {
         f.name
         for f in dataclasses.fields(cls.Options)
@@ -434,7 +451,13 @@ def fit_stage(
         quiet=True,
         accept_failed_checks=accept_failed_checks,
     )
-    output = cls(opts).fit(table, ctx)
+    try:
+        output = cls(opts).fit(table, ctx)
+    except KeyError as exc:  # a column a stage reads beyond its sensors'
+        raise ArgumentError(
+            f"imupipe.{type_name}(): the table has no column {exc} (a common table from "
+            "imupipe.read has it)"
+        ) from None
     if "mag_x" in metadata(table).get("carried", ()) and "mag" in cls.sensors_for(opts):
         ctx.warnings.append(
             "the table's magnetometer was interpolated onto the IMU samples (imupipe.read's "
@@ -484,20 +507,59 @@ class Calibration:
         """The chain of the given stage results' steps, in the order given (fit each on the
         table corrected by the ones before it: ``b = imupipe.gyro_bias(t)``,
         ``a = imupipe.accel_calibration(b.apply(t))``, ``Calibration.from_results(b, a)``)."""
+        for i, r in enumerate(results):
+            if not isinstance(r, StageResult):
+                raise ArgumentError(
+                    f"Calibration.from_results(): argument {i + 1} must be a stage result "
+                    f"(imupipe.gyro_bias(table), ...), not {type(r).__name__}"
+                )
         chain = [step for r in results for step in r.steps]
         fitted = [r.results.get("fitted_on") for r in results for _ in r.steps]
         doc = calibration_document(chain, {r.name: r.results for r in results}, fitted)
         return cls(doc, chain, {r.name: r for r in results})
 
-    def apply(self, table: pa.Table) -> pa.Table:
-        """``table`` corrected by every step of the chain, in order."""
-        return apply_chain(table, self.steps)
+    def apply(
+        self, table: pa.Table, *, on_mismatch: Literal["warn", "refuse"] = "warn"
+    ) -> pa.Table:
+        """``table`` corrected by every step of the chain, in order, each step on the data of
+        its own device, as ``imupipe convert`` applies it. A table from another sensor than the
+        one the calibration was fitted on (its topics, frames, instances or device ids differ
+        from the chain's ``fitted_on``) is corrected with an :class:`ImupipeWarning` naming
+        the difference, or refused (``on_mismatch="refuse"``: :class:`ImupipeError`), as
+        ``convert --on-mismatch``."""
+        from imupipe.pipeline.calibration_file import on_device
+        from imupipe.pipeline.convert.provenance import ProvenanceCheck
+
+        if on_mismatch not in ("warn", "refuse"):
+            raise ArgumentError(
+                f"Calibration.apply(): on_mismatch must be 'warn' or 'refuse', not {on_mismatch!r}"
+            )
+        _table_arg(table, "Calibration.apply()", [s.sensor for s in self.steps])
+        chain = self.document.get("chain", [])
+        where = str(metadata(table).get("source") or "the table")
+        check = ProvenanceCheck(chain, on_mismatch, where)
+        _warn(check.check(metadata(table)), "Calibration.apply()")
+        steps = self.steps
+        if len(chain) == len(steps):
+            steps = on_device(steps, chain, lenient=True)
+        return apply_chain(table, steps)
 
     def save(self, path: str | os.PathLike[str]) -> Path:
-        """Write the calibration as JSON to ``path`` (written whole or not at all); returns it."""
+        """Write the calibration as JSON to ``path`` (written whole or not at all); returns it.
+        A folder, or a path that cannot be written, is an :class:`ImupipeError` (one line)."""
         target = Path(path)
-        with atomic_path(target) as tmp:
-            tmp.write_text(calibration_json(self.document), encoding="utf-8")
+        if target.is_dir():
+            raise ArgumentError(
+                f"Calibration.save(): {target} is a folder; give a file name "
+                f"({target / 'calibration.json'})"
+            )
+        try:
+            with atomic_path(target) as tmp:
+                tmp.write_text(calibration_json(self.document), encoding="utf-8")
+        except OSError as exc:
+            raise ConfigError(
+                f"Calibration.save(): {target}: cannot write: {exc.strerror or exc}"
+            ) from None
         return target
 
     @property

@@ -23,6 +23,7 @@ import argparse
 import dataclasses
 import hashlib
 import json
+import math
 import resource
 import sys
 import time
@@ -30,7 +31,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from imupipe.pipeline.errors import ConfigError
+from imupipe.pipeline.errors import ConfigError, one_line
 from imupipe.pipeline.progress import progress_bar
 
 SURVEY_NAME = "survey.parquet"
@@ -253,6 +254,34 @@ FLIGHT_SUFFIXES = (".ulg", ".bin")
 ``convert`` finds (:func:`~imupipe.pipeline.convert.plan.find_logs`: MCAP, bags, CSV)."""
 
 
+def guarded_logs(logs: Sequence[Path], out_dir: Path) -> tuple[list[tuple[Path, Path]], Any]:
+    """(every log under ``logs`` as (absolute path, name), the
+    :class:`~imupipe.pipeline.atomic.OutputGuard` of ``out_dir``): ``convert``'s rules. An
+    argument that is missing or not a log (a README, a FIFO) is a ConfigError before anything is
+    read (:func:`~imupipe.pipeline.convert.plan.check_arguments`: by its name and ``stat``,
+    never by reading it); ``--out`` may not be an input, hold one, or be the folder searched."""
+    from imupipe.pipeline.atomic import OutputGuard
+    from imupipe.pipeline.convert.plan import check_arguments, find_logs, is_ros2_bag_dir
+
+    check_arguments(logs)
+    found = [
+        (p.absolute(), rel) for p, rel in find_logs(logs, out_dir, csv=True, extra=FLIGHT_SUFFIXES)
+    ]
+    searched = [Path(a) for a in logs if Path(a).is_dir() and not is_ros2_bag_dir(Path(a))]
+    guard = OutputGuard(out_dir, [p for p, _ in found], "--out", searched=searched)
+    return found, guard
+
+
+def skipped_folder(logs: Sequence[Path], out_dir: Path) -> Path | None:
+    """``out_dir`` when it lies inside a folder searched for logs (its logs are not surveyed)."""
+    out = Path(out_dir).absolute().resolve()
+    for arg in logs:
+        folder = Path(arg).absolute().resolve()
+        if Path(arg).is_dir() and out != folder and out.is_relative_to(folder) and out.exists():
+            return Path(out_dir)
+    return None
+
+
 def plan(
     logs: Sequence[Path],
     out_dir: Path,
@@ -265,21 +294,17 @@ def plan(
     :class:`SurveyTask`; it does not change the figures, so a part surveyed with another batch
     size is kept)."""
     from imupipe.pipeline.convert.manifest import latest
-    from imupipe.pipeline.convert.plan import find_logs
     from imupipe.pipeline.convert.settings import chain_sha256
     from imupipe.pipeline.survey.compass import compass_part
 
     out_dir = out_dir.absolute()
-    for arg in logs:
-        if not Path(arg).exists():
-            raise ConfigError(f"{arg}: no such file or folder")
+    found, _ = guarded_logs(logs, out_dir)
     cal_sha = None if calibration is None else chain_sha256(calibration)
     opt_sha = _sha(options)[:16]
     done = latest(out_dir)
     todo, skipped = [], []
     seen: dict[str, Path] = {}
-    for path, rel in find_logs(logs, out_dir, csv=True, extra=FLIGHT_SUFFIXES):
-        path = path.absolute()
+    for path, rel in found:
         parent = rel.parent.name if rel.parent.name else path.parent.name
         part = out_dir / PARTS_DIR / rel.with_name(rel.name + ".parquet")
         if str(part) in seen:
@@ -328,13 +353,14 @@ def survey(
     thermal curves are compared with (:mod:`imupipe.pipeline.survey.chamber`; default: the
     thermal steps of ``calibration``). ``batch_rows``: rows per batch a worker reads (memory;
     the figures do not depend on it)."""
-    from imupipe.pipeline.atomic import staged_outputs
+    from imupipe.pipeline.atomic import remove_stale_temps, staged_outputs
     from imupipe.pipeline.calibration_file import load_calibration
     from imupipe.pipeline.convert.engines import Outcome, run_tasks
     from imupipe.pipeline.convert.fleet import ENGINE_LOG
     from imupipe.pipeline.convert.manifest import Manifest
 
-    out_dir = Path(out_dir)
+    out_dir = Path(out_dir).absolute()
+    _, guard = guarded_logs(logs, out_dir)  # before anything is read or written
     doc = None
     chambers = None
     if calibration is not None:
@@ -352,6 +378,9 @@ def survey(
     if not todo and not skipped:
         raise ConfigError(f"no log found under {', '.join(map(str, logs))}")
     out_dir.mkdir(parents=True, exist_ok=True)
+    # the temporary files of a survey killed earlier (one survey at a time writes into DIR)
+    for folder in {out_dir, *(t.part.parent for t in todo + skipped)}:
+        remove_stale_temps(folder)
     manifest = Manifest(out_dir)
     failed: list[tuple[str, str]] = []
     ok: list[SurveyTask] = list(skipped)
@@ -412,7 +441,7 @@ def survey(
     table = pa.concat_tables(parts, promote_options="default") if parts else None
     fleet: dict[str, Any] = {}
     compass = None
-    with staged_outputs() as out:
+    with staged_outputs(guard) as out:
         from imupipe.pipeline.survey.compass import write_compass
 
         compass = write_compass(out, out_dir, sorted(ok, key=lambda t: t.log), k)
@@ -494,10 +523,17 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
 def main(args: argparse.Namespace) -> int:
     if args.jobs is not None and args.jobs < 1:
         raise ConfigError(f"--jobs {args.jobs}: must be at least 1")
-    if not args.min_still > 0:
-        raise ConfigError(f"--min-still {args.min_still}: must be positive")
-    if not args.k > 0:
-        raise ConfigError(f"--k {args.k}: must be positive")
+    if not 0 < args.min_still < math.inf:
+        raise ConfigError(f"--min-still {args.min_still}: must be a positive number of seconds")
+    if not 0 < args.k < math.inf:
+        raise ConfigError(f"--k {args.k}: must be a positive number")
+    skipped = skipped_folder(args.logs, args.out)
+    if skipped is not None and not args.quiet:
+        print(
+            f"imupipe: note: {one_line(str(skipped))} is the output folder: the logs in it are "
+            "not surveyed",
+            file=sys.stderr,
+        )
     result = survey(
         args.logs,
         args.out,
@@ -514,10 +550,9 @@ def main(args: argparse.Namespace) -> int:
         rerun=not args.no_rerun,
     )
     for path, why in result["failed"]:
-        print(
-            f"imupipe: error: {why}" if path in why else f"imupipe: error: {path}: {why}",
-            file=sys.stderr,
-        )
+        named = path in why or " ".join(path.split()) in why  # a worker's line: one line
+        line = why if named else f"{path}: {why}"
+        print(f"imupipe: error: {one_line(line)}", file=sys.stderr)
     if not args.quiet:
         from imupipe.pipeline.survey.compass import summary_lines as compass_lines
         from imupipe.pipeline.survey.report import summary_lines

@@ -15,6 +15,15 @@ between records is skipped as ``DFReader`` skips it, byte by byte to the next he
 type); the records are the candidates reachable from the first, found by pointer doubling
 (log2(n) vectorised steps). A record cut by the end of the file ends the log, as in ``DFReader``.
 
+**Damaged ``FMT`` records** (:func:`_fit_lengths`, :meth:`DataFlashLog.undecodable`): a
+type whose ``FMT`` length disagrees with the sizes of its field formats is walked with the
+length its records show (the one after which more of its records are followed by another
+record's header) and the warning says so; a type whose records still cannot be decoded (its
+formats do not add up, name an unknown character, repeat a column) is skipped with a warning
+giving its record count and its ``FMT``'s offset, so no stream vanishes unsaid; bytes between
+records are counted with the first offset and the record headers found among them. A file
+without an ``FMT`` record in its first MiB is refused before it is read whole.
+
 **Instances.** ArduPilot logs a sensor kind either as one message per instance (``IMU``,
 ``IMU2``, ``IMU3``; ``MAG``, ``MAG2``; ``BARO``, ``BAR2``: older firmware) or as one message with
 an instance field ``I`` (``IMU`` with ``I`` = 0, 1, 2: ArduPilot 4.1 and later). imupipe names
@@ -53,7 +62,7 @@ names a vehicle, e.g. ``ArduCopter V3.3-dev``).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -135,6 +144,10 @@ class Format:
     length: int
     format: str
     columns: tuple[str, ...]
+    at: int = field(default=-1, compare=False)
+    """The offset of the ``FMT`` record that defined it (-1: ``FMT`` itself)."""
+    said: int = field(default=0, compare=False)
+    """The length its ``FMT`` record gave, when :func:`_fit_lengths` took another."""
 
     def numeric(self, *columns: str) -> bool:
         """Whether every one of ``columns`` is a field holding one number."""
@@ -168,6 +181,9 @@ def _payloads(buf: np.ndarray, offsets: np.ndarray, size: int, dtype: np.dtype) 
     return np.ascontiguousarray(windows[offsets + 3]).view(dtype).reshape(-1)
 
 
+HEAD_BYTES = 1 << 20
+"""A DataFlash log starts with its ``FMT`` records: a file without one in its first MiB is not
+read further (a 2 GiB file of zeros named ``.bin`` is refused at once)."""
 SCAN_BLOCK = 1 << 24
 """Bytes scanned for headers at a time (bounds the scan's temporary masks to a few x 16 MiB)."""
 
@@ -200,7 +216,7 @@ def _formats_at(buf: np.ndarray, offsets: np.ndarray) -> dict[int, Format]:
     if not len(offsets):
         return formats
     recs = _payloads(buf, offsets, FMT_DTYPE.itemsize, FMT_DTYPE)
-    for rec in recs:  # one per message type: tens, not per sample
+    for at, rec in zip(offsets.tolist(), recs, strict=True):  # one per message type: tens
         t = int(rec["type"])
         if t in formats or int(rec["length"]) < 3:
             continue
@@ -211,6 +227,7 @@ def _formats_at(buf: np.ndarray, offsets: np.ndarray) -> dict[int, Format]:
             int(rec["length"]),
             _text(rec["format"]),
             columns if columns != ("",) else (),
+            at,
         )
     return formats
 
@@ -231,14 +248,50 @@ def _reachable(nxt: np.ndarray) -> np.ndarray:
     return on[:n]
 
 
+def _format_size(fmt: Format) -> int | None:
+    """The record length (header included) ``fmt``'s field formats add up to; None when a
+    format character is unknown."""
+    if any(c not in FIELD_DTYPES for c in fmt.format):
+        return None
+    return 3 + int(sum(np.dtype(FIELD_DTYPES[c]).itemsize for c in fmt.format))
+
+
+def _fit_lengths(
+    cand: np.ndarray, types: np.ndarray, formats: dict[int, Format]
+) -> dict[int, Format]:
+    """``formats`` with the length of each type whose ``FMT`` length and field formats
+    disagree (a damaged ``FMT``) taken from its records: of the two lengths, the one after
+    which more of its records are followed by another record's header (ties: the ``FMT``'s
+    length). The records of a type whose format still does not add up are skipped and counted
+    (:meth:`DataFlashLog.undecodable`)."""
+    out = dict(formats)
+    for t, fmt in formats.items():
+        size = _format_size(fmt)
+        if t == FMT_TYPE or size is None or size == fmt.length or not 3 < size < 256:
+            continue
+        at = cand[types == t]
+        if not len(at):
+            continue
+
+        def followed(length: int, at: np.ndarray = at) -> int:
+            ends = at + length
+            i = np.minimum(np.searchsorted(cand, ends), len(cand) - 1)
+            return int(np.count_nonzero(cand[i] == ends))
+
+        if followed(size) > followed(fmt.length):
+            out[t] = replace(fmt, length=size, said=fmt.length)
+    return out
+
+
 def record_offsets(buf: np.ndarray) -> tuple[np.ndarray, np.ndarray, dict[int, Format], int]:
     """(offsets, types, formats, end) of the log's records, in file order, as ``DFReader`` walks
     them; ``end`` is the offset after the last whole record (bytes after it: a cut record or
-    trailing garbage)."""
+    trailing garbage). A damaged ``FMT`` length is corrected from the records
+    (:func:`_fit_lengths`)."""
     cand = _candidates(buf)
     types = buf[cand + 2].astype(np.int64) if len(cand) else np.zeros(0, np.int64)
     fmt_at = cand[types == FMT_TYPE]
-    formats = _formats_at(buf, fmt_at)
+    formats = _fit_lengths(cand, types, _formats_at(buf, fmt_at))
     for _ in range(2):  # again when a false FMT candidate off the chain defined a type
         lengths = np.zeros(256, dtype=np.int64)
         first_def = np.full(256, len(buf), dtype=np.int64)
@@ -255,7 +308,7 @@ def record_offsets(buf: np.ndarray) -> tuple[np.ndarray, np.ndarray, dict[int, F
         nxt = np.searchsorted(pos, pos + lengths[typ])
         on = _reachable(nxt)
         pos, typ = pos[on], typ[on]
-        walked = _formats_at(buf, pos[typ == FMT_TYPE])
+        walked = _fit_lengths(cand, types, _formats_at(buf, pos[typ == FMT_TYPE]))
         if walked == formats or fmt_at.size == 0:
             break
         formats, fmt_at = walked, pos[typ == FMT_TYPE]
@@ -274,6 +327,13 @@ class DataFlashLog:
         if not self.path.is_file():
             raise ReadError(f"{self.path}: no such file")
         try:
+            with open(self.path, "rb") as fh:  # judged by its head before it is read whole
+                head = fh.read(HEAD_BYTES)
+            if bytes((*HEAD, FMT_TYPE)) not in head:
+                raise ReadError(
+                    f"{self.path}: not an ArduPilot DataFlash log (no FMT record in its first "
+                    f"{len(head):,} bytes)"
+                )
             self.buf = np.fromfile(self.path, dtype=np.uint8)
         except OSError as exc:
             raise ReadError(f"{self.path}: cannot be read ({exc.strerror})") from None
@@ -302,6 +362,64 @@ class DataFlashLog:
         for t, f in self.formats.items():
             lengths[t] = f.length
         return int(self.end - lengths[self.types].sum())
+
+    def undecodable(self) -> list[str]:
+        """One line per message type whose records were found but cannot be decoded (its
+        ``FMT``'s fields do not add up to its length, name an unknown format or repeat a
+        column), and per ``FMT`` length corrected from the records (:func:`_fit_lengths`)."""
+        out = []
+        present, n = np.unique(self.types, return_counts=True)
+        for t, count in zip(present.tolist(), n.tolist(), strict=True):
+            fmt = self.formats[t]
+            if t == FMT_TYPE:
+                continue
+            where = f"its FMT at byte {fmt.at}" if fmt.at >= 0 else "its FMT"
+            if fmt.said:
+                out.append(
+                    f"message {fmt.name}: {where} says {fmt.said} bytes a record, its fields "
+                    f"and its {count} records {fmt.length}: read as {fmt.length}"
+                )
+            if fmt.dtype() is None:
+                size = _format_size(fmt)
+                why = (
+                    f"fields '{fmt.format}' ({size} bytes) in records of {fmt.length}"
+                    if size is not None and size != fmt.length
+                    else f"fields '{fmt.format}' for columns '{','.join(fmt.columns)}'"
+                )
+                out.append(
+                    f"{count} records of message {fmt.name} (type {t}) skipped: {where} "
+                    f"gives {why}, which cannot be decoded"
+                )
+            elif self.by_name.get(fmt.name) is not fmt:
+                out.append(
+                    f"{count} records of message {fmt.name} (type {t}) skipped: another FMT "
+                    f"defines {fmt.name} first"
+                )
+        return out
+
+    def off_chain(self) -> tuple[int, dict[str, int]]:
+        """(offset of the first byte between records that belongs to no record, or -1;
+        message name -> record headers found among such bytes): what the skipped bytes
+        held."""
+        lengths = np.zeros(256, dtype=np.int64)
+        for t, f in self.formats.items():
+            lengths[t] = f.length
+        if not len(self.offsets):
+            return -1, {}
+        ends = self.offsets + lengths[self.types]
+        gaps = np.flatnonzero(ends[:-1] < self.offsets[1:])
+        first = int(ends[gaps[0]]) if len(gaps) else -1
+        cand = _candidates(self.buf[: self.end])
+        if not len(cand):
+            return first, {}
+        types = self.buf[cand + 2].astype(np.int64)
+        known = lengths[types] > 0
+        cand, types = cand[known], types[known]
+        off = ~np.isin(cand, self.offsets)
+        names, counts = np.unique(types[off], return_counts=True)
+        return first, {
+            self.formats[int(t)].name: int(c) for t, c in zip(names, counts, strict=True)
+        }
 
     def records(self, name: str) -> np.ndarray:
         """Every record of message ``name`` as a structured array (raw field values; see
@@ -526,12 +644,16 @@ def output_topic(stream: str, key: str) -> str:
 
 
 def _warnings(f: DataFlashLog) -> list[str]:
-    out = []
+    out = f.undecodable()
     skipped = f.skipped()
     if skipped:
+        first, headers = f.off_chain()
+        held = ", ".join(f"{n} x {c}" for n, c in sorted(headers.items(), key=lambda x: -x[1]))
         out.append(
-            f"{skipped} bytes between records belong to no record (corrupt in places; "
-            "skipped as pymavlink's DFReader skips them)"
+            f"{skipped} bytes between records belong to no record (corrupt in places, the "
+            f"first at byte {first}; skipped as pymavlink's DFReader skips them"
+            + (f"; record headers among them: {held}" if held else "")
+            + ")"
         )
     if f.trailing:
         out.append(
@@ -754,7 +876,7 @@ def gps_year(f: DataFlashLog) -> float | None:
     fmt = f.by_name["GPS"]
     week = next((c for c in ("GWk", "Week") if fmt.numeric(c)), None)
     ms = "GMS" if fmt.numeric("GMS") else "TimeMS"
-    if week is None or ms is None:
+    if week is None or not fmt.numeric(ms):
         return None
     rec = f.records("GPS")[rows]
     ok = rec[week] > 0

@@ -47,6 +47,15 @@ rotation PX4 applies to it after its calibration, into the body frame (``matrix`
 sensor, and the ``parameters`` it was made of: ``CAL_MAGn_ROT``, ``SENS_BOARD_ROT``,
 ``SENS_BOARD_{X,Y,Z}_OFF``; :mod:`imupipe.readers.ulog.rotation`).
 
+**Damaged files**: stock pyulog (1.3) ends its parse, without a word, at the first record whose
+payload it cannot unpack (a data record of size 0 or 1, an info or dropout record cut short:
+its ``struct.error`` is taken for the end of the file), and skips data records of an unknown
+``msg_id`` or a wrong size uncounted. A file whose first parse met such damage is parsed again
+by a subclass of pyulog's ``ULog`` that skips each damaged record and goes on (what pyulog
+does for the damage it knows), recording its offset, size and topic; one warning says how many
+records and bytes were skipped, between which offsets, and which topics' messages were among
+them (:meth:`UlogFile.damage_warning`). An undamaged file is parsed once, at pyulog's speed.
+
 **Not carried**: ULog topics other than the ones read have no ROS message type; they are not
 written to the corrected MCAP and one warning lists them.
 """
@@ -54,7 +63,9 @@ written to the corrected MCAP and one warning lists them.
 from __future__ import annotations
 
 import contextlib
+import functools
 import io
+import os
 import struct
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
@@ -173,7 +184,6 @@ class UlogFile:
     format = "ulog"
 
     def __init__(self, path: str | Path, topics: Sequence[str] | None = None) -> None:
-        from pyulog import ULog
         from pyulog.core import ULogException
 
         self.path = Path(path)
@@ -183,7 +193,7 @@ class UlogFile:
         said = io.StringIO()  # pyulog prints its corruption notices: keep them for a warning
         try:
             with contextlib.redirect_stdout(said):
-                self.ulog = ULog(str(self.path), wanted)
+                self.ulog, cut = _parse(self.path, wanted)
         except ULogException as exc:
             raise ReadError(f"{self.path}: not a readable ULog file ({exc})") from None
         except (OSError, ValueError, IndexError, KeyError, TypeError, struct.error) as exc:
@@ -201,6 +211,35 @@ class UlogFile:
                 self.notices.append(f"topic {inst.key} has no timestamp field: not read")
         self.skipped: list[str] = [] if wanted is None else sorted(wanted.seen - wanted.names)
         """Topics the log holds that were not parsed (names, every instance)."""
+        self.damage: list[Damage] = list(self.ulog.damage)
+        """The damaged records the parse skipped (offset, bytes, what), in file order."""
+        if cut is not None:
+            at, claimed, left = cut
+            self.damage.append(
+                Damage(at, left, f"the file ends inside a record ({left} of {claimed} bytes)")
+            )
+
+    def damage_warning(self) -> str | None:
+        """One line saying what the parse skipped (where, how many records and bytes), or
+        None for an undamaged file."""
+        if not self.damage and not (self.ulog.file_corruption or self.notices):
+            return None
+        if not self.damage:
+            said = f"; pyulog: {self.notices[0]}" if self.notices else ""
+            return f"the file is corrupt in places (the damaged messages were skipped{said})"
+        nbytes = sum(d.size for d in self.damage)
+        first, last = self.damage[0], self.damage[-1]
+        topics = sorted({d.topic for d in self.damage if d.topic})
+        named = f"; messages of {', '.join(topics)} among them" if topics else ""
+        where = (
+            f"at byte {first.offset}"
+            if len(self.damage) == 1
+            else f"between bytes {first.offset} and {last.offset + last.size}"
+        )
+        return (
+            f"the file is damaged: {len(self.damage)} records skipped ({nbytes} bytes) {where}"
+            f"{named} (first: {first.what} at byte {first.offset}); the rest was read"
+        )
 
     # -- LogSource view, for inspect ----------------------------------------------------------
     def topic_types(self) -> dict[str, str]:
@@ -236,6 +275,218 @@ class UlogFile:
         """(count, total ms) of the logger's dropouts."""
         drops = self.ulog.dropouts
         return len(drops), int(sum(d.duration for d in drops))
+
+
+@dataclass(frozen=True)
+class Damage:
+    """A damaged ULog record skipped by the parse: its offset in the file, the bytes skipped,
+    what was wrong and, for a data record of a known subscription, its topic."""
+
+    offset: int
+    size: int
+    what: str
+    topic: str = ""
+
+
+class _Ending(io.BufferedReader):
+    """The log file as pyulog reads it, remembering where the parse ended (``end``, at
+    ``close``) and the file's ``size``."""
+
+    def __init__(self, path: Path) -> None:
+        super().__init__(io.FileIO(path, "rb"))
+        self.size = os.fstat(self.fileno()).st_size
+        self.end = self.size
+        self.cut: tuple[int, int, int] | None = None
+
+    def close(self) -> None:
+        if not self.closed:
+            self.end = self.tell()
+        super().close()
+
+
+class _Probe(_Ending):
+    """:class:`_Ending` that also remembers a read cut short by the end of the file (``cut``:
+    offset, bytes asked, bytes left): pyulog ends its parse there without a word."""
+
+    def read(self, n: int = -1, /) -> bytes:
+        data = super().read(n)
+        if 0 < len(data) < n:
+            self.cut = (self.tell() - len(data), n, len(data))
+        return data
+
+
+PYULOG_RECORDS = (
+    "_MessageInfo",
+    "_MessageParameterDefault",
+    "_MessageAddLogged",
+    "MessageLogging",
+    "MessageLoggingTagged",
+    "MessageDropout",
+    "MessageFormat",
+)
+"""pyulog's record classes whose decoding of a damaged payload can raise ``struct.error``,
+which pyulog takes for the end of the file (``_read_file_data``'s ``except struct.error``)."""
+
+
+def _parse(path: Path, wanted: _TopicFilter | None) -> tuple[Any, tuple[int, int, int] | None]:
+    """pyulog's parse of ``path``, and the last record cut by the end of the file when known.
+
+    A first parse is pyulog's own (its speed); when it met damage (``_file_corrupt``), ended
+    before the end of the file (a record it could not unpack) or walked records that do not end
+    at the end of the file (a record cut, or a damaged size field that sent the parse past the
+    end: pyulog takes either for the end of the log), the file is parsed again by
+    :func:`_ulog_classes`' tolerant class, which reads past the damaged records and says where
+    they are."""
+    fast, tolerant = _ulog_classes()
+    with _Ending(path) as handle:
+        ulog = fast(handle, wanted)
+    if not ulog.damaged and handle.end >= handle.size:
+        if ulog.data_end == handle.size:
+            return ulog, None
+        if ulog.data_end > handle.size:  # the last record is cut: everything before it was read
+            at = ulog.data_end - 3 - ulog.last_size
+            return ulog, (at, 3 + ulog.last_size, handle.size - at)
+        if handle.size - ulog.data_end < 3:  # a header cut
+            return ulog, (ulog.data_end, 3, handle.size - ulog.data_end)
+    with _Probe(path) as handle:
+        ulog = tolerant(handle, wanted)
+    return ulog, handle.cut
+
+
+@functools.cache
+def _ulog_classes() -> tuple[type, type]:
+    """pyulog's ``ULog``, reading past damaged records and counting them (``damage``).
+
+    Stock pyulog 1.3 ends its parse at the first record whose payload is too short to unpack
+    (a data record of size 0 or 1, an info or dropout record cut short: its ``struct.error`` is
+    taken for the end of the file) and skips a data record of an unknown ``msg_id`` or a wrong
+    size without saying where. This subclass makes such a record one skipped record (pyulog's
+    own handling of a corrupt record: ``_file_corrupt`` set, the parse goes on at the next
+    record) and records each skip: its offset, bytes and topic when known."""
+    import struct as _struct
+
+    from pyulog import ULog
+
+    class Data(ULog._MessageData):  # type: ignore[name-defined]
+        def initialize(self, data: bytes, header: Any, subscriptions: Any, ulog: Any) -> bool:
+            if len(data) >= 2 and not super().initialize(data, header, subscriptions, ulog):
+                return False
+            self.timestamp = 0
+            at = ulog._file_handle.tell() - len(data) - 3
+            if len(data) < 2:
+                ulog._note(at, 3 + len(data), f"a data record of {len(data)} bytes")
+            else:
+                msg_id = int.from_bytes(data[:2], "little")
+                sub = subscriptions.get(msg_id)
+                if sub is None:
+                    what, topic = f"a data record of unknown msg_id {msg_id}", ""
+                else:
+                    what = f"a data record of {len(data) - 2} bytes for {sub.message_name}"
+                    topic = str(sub.message_name)
+                ulog._note(at, 3 + len(data), what, topic)
+            return True
+
+    def tolerant(cls: type, name: str) -> type:
+        def init(self: Any, data: bytes, header: Any, *args: Any, **kwargs: Any) -> None:
+            try:
+                cls.__init__(self, data, header, *args, **kwargs)
+            except UnicodeDecodeError:
+                raise
+            except (_struct.error, IndexError, KeyError, ValueError, OverflowError) as exc:
+                owner = _PARSING[-1]
+                at = owner._file_handle.tell() - len(data) - 3
+                owner._note(at, 3 + len(data), f"a {name.strip('_')} record ({exc})")
+                raise ValueError(str(exc)) from None
+
+        return type(cls.__name__, (cls,), {"__init__": init})
+
+    header_fields = _struct.Struct("<HB").unpack
+
+    class Header(ULog._MessageHeader):  # type: ignore[name-defined]
+        """pyulog's record header, summing the lengths of the records it was read for
+        (``walked``)."""
+
+        walked = 0
+
+        def initialize(self, data: bytes) -> None:
+            self.msg_size, self.msg_type = header_fields(data)
+            self.walked += 3 + self.msg_size
+
+    class Fast(ULog):  # type: ignore[misc, valid-type]
+        """pyulog's ``ULog`` noting whether it met a damaged record (``damaged``) and where the
+        records it walked in its last data section end (``data_end``: past the end of the
+        file when the last record was cut, or a damaged size field sent the parse there)."""
+
+        damaged = False
+        damage: tuple[Damage, ...] = ()
+        header: Any = None
+        last_size = 0
+        data_end = -1
+
+        def _MessageHeader(self) -> Any:  # noqa: N802 - pyulog's name
+            self.header = Header()
+            return self.header
+
+        def _check_packet_corruption(self, header: Any) -> bool:
+            # called for a record of a type pyulog does not know only: skipped, so said
+            self.damaged = True
+            return bool(super()._check_packet_corruption(header))
+
+        def _read_file_data(self, *args: Any, **kwargs: Any) -> None:
+            start = self._file_handle.tell()
+            super()._read_file_data(*args, **kwargs)  # its first call makes self.header
+            self.data_end = start + self.header.walked
+            self.last_size = self.header.msg_size
+
+        @property
+        def _file_corrupt(self) -> bool:
+            return bool(self.__dict__.get("_corrupt", False))
+
+        @_file_corrupt.setter
+        def _file_corrupt(self, value: bool) -> None:
+            self.__dict__["_corrupt"] = value
+            if value:
+                self.damaged = True
+
+    class Tolerant(Fast):
+        _MessageData = Data
+
+        def __init__(self, *args: Any, **kwargs: Any) -> None:
+            self.damage: list[Damage] = []
+            _PARSING.append(self)
+            try:
+                super().__init__(*args, **kwargs)
+            finally:
+                _PARSING.pop()
+
+        def _note(self, at: int, size: int, what: str, topic: str = "") -> None:
+            self.damage.append(Damage(int(at), int(size), what, topic))
+
+        def _check_packet_corruption(self, header: Any) -> bool:
+            corrupt = bool(super()._check_packet_corruption(header))
+            at = self._file_handle.tell() - 3 - header.msg_size
+            if corrupt:  # pyulog steps one byte on and looks for the next record
+                self._note(
+                    at, 1, f"a record header (type {header.msg_type}, {header.msg_size} bytes)"
+                )
+            else:  # a record of a type pyulog does not know: skipped whole
+                self._note(at, 3 + header.msg_size, f"a record of unknown type {header.msg_type}")
+            return corrupt
+
+        def _find_sync(self, last_n_bytes: int = -1) -> bool:
+            start = self._file_handle.tell()
+            found = bool(super()._find_sync(last_n_bytes))
+            if found and self._file_handle.tell() > start:
+                self._note(start, self._file_handle.tell() - start, "bytes up to the next sync")
+            return found
+
+    for name in PYULOG_RECORDS:
+        setattr(Tolerant, name, tolerant(getattr(ULog, name), name))
+    return Fast, Tolerant
+
+
+_PARSING: list[Any] = []
+"""The tolerant ULogs being parsed (innermost last): the record classes report to it."""
 
 
 class _TopicFilter:
@@ -780,9 +1031,9 @@ def read_ulog(spec: InputSpec) -> tuple[pa.Table, list[str]]:
     count, ms = f.dropouts()
     if count:
         warnings.append(f"the logger dropped data {count} times ({ms} ms in total)")
-    if f.ulog.file_corruption or f.notices:
-        said = f"; pyulog: {f.notices[0]}" if f.notices else ""
-        warnings.append(f"the file is corrupt in places (the damaged messages were skipped{said})")
+    damaged = f.damage_warning()
+    if damaged:
+        warnings.append(damaged)
     others = sorted(set(f.instances) - set(chosen.values())) + f.skipped
     if others:
         shown = some_of(others)
