@@ -797,3 +797,41 @@ def test_export_composes_with_a_real_rotated_compass(tmp_path):
     path = shared_path("logs", "ardupilot_flights", "erle_pxf_118", "118.BIN")
     diff, p = exported_reproduces_imupipe(tmp_path, path)
     assert diff < 0.1 and {"COMPASS_OFS_X", "COMPASS_DIA_X"} <= set(p)
+
+
+def _trimmed(table, trim: tuple[float, float]):
+    """``table`` as ArduPilot would log it with ``AHRS_TRIM_X/Y = trim`` (rad): ATT is the
+    vehicle body's attitude, ``R_board from_euler(trim.x, trim.y, 0)^T`` (``AP_AHRS``), the
+    compass stays in the board's frame; the trim goes into the log's parameters."""
+    import pyarrow as pa
+    from scipy.spatial.transform import Rotation
+
+    from imupipe.readers.table import FLIGHT_COLUMNS, with_metadata
+
+    att = flight_stream(table, "attitude")
+    board = Rotation.from_quat(att.values[:, [1, 2, 3, 0]])
+    turn = Rotation.from_euler("ZYX", [0.0, trim[1], trim[0]])
+    vehicle = (board * turn.inv()).as_quat()[:, [3, 0, 1, 2]]
+    for j, name in enumerate(FLIGHT_COLUMNS["attitude"]):
+        col = table.column(name).to_numpy(zero_copy_only=False).astype(float)
+        col[att.rows] = vehicle[:, j]
+        i = table.schema.get_field_index(name)
+        table = table.set_column(i, table.schema.field(i), pa.array(col, mask=np.isnan(col)))
+    meta = metadata(table)
+    params = meta.setdefault("ardupilot", {}).setdefault("parameters", {})
+    params.update({"AHRS_TRIM_X": trim[0], "AHRS_TRIM_Y": trim[1]})
+    return with_metadata(table, meta)
+
+
+def test_ahrs_trim_turns_the_logged_attitude_into_the_boards():
+    """ArduPilot logs the trimmed vehicle attitude; the compass is in the board's frame. With
+    AHRS_TRIM_X/Y of 2-3 deg the fit recovers the truth as on the untrimmed flight (before the
+    trim was applied: the offsets came out 3.2 uT off)."""
+    table, truth = simulate("flight", {"duration_s": 120.0}, seed=3)
+    trimmed = _trimmed(table, (np.radians(2.0), np.radians(-3.0)))
+    r = fit(trimmed)[0].results
+    field = truth["field_norm"]
+    assert np.abs(np.array(r["offset_t"]) - truth["offset"]).max() < 0.01 * field
+    assert np.abs(np.array(r["matrix"]) - truth["matrix"]).max() < 0.01
+    plain = fit(table)[0].results["metrics"]["residual_rms_ut_after"]
+    assert r["metrics"]["residual_rms_ut_after"] < 1.2 * plain

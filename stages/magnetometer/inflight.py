@@ -317,6 +317,9 @@ def flight_samples(table: pa.Table, mag: SensorData, year: float) -> FlightSampl
         raw = raw @ turn.T
     q = interpolate(att.t_ns, continuous(att.values), t_ns)
     q /= np.linalg.norm(q, axis=1, keepdims=True)
+    trim = attitude_trim(table)
+    if trim is not None:  # the vehicle body's attitude -> the board's, where MAG is
+        q = turn_by(q, trim)
     lla = interpolate(pos.t_ns, pos.values, t_ns)
     ned = earth_field(lla[:, 0], lla[:, 1], lla[:, 2], year)
     power: dict[str, np.ndarray | None] = {}
@@ -615,6 +618,39 @@ def sensor_rotation(table: pa.Table) -> np.ndarray | None:
         return None
     m = np.asarray(turn, dtype=np.float64).reshape(3, 3)
     return None if np.allclose(m, np.eye(3), atol=1e-12) else m
+
+
+def turn_by(q: np.ndarray, trim: tuple[float, float]) -> np.ndarray:
+    """``q (x) q_y(trim[1]) q_x(trim[0])``: attitudes (n, 4; w, x, y, z; body -> NED) followed
+    by the body-fixed turn of roll ``trim[0]`` and pitch ``trim[1]`` (rad), yaw 0."""
+    cr, sr = np.cos(trim[0] / 2), np.sin(trim[0] / 2)
+    cp, sp = np.cos(trim[1] / 2), np.sin(trim[1] / 2)
+    bw, bx, by, bz = cr * cp, sr * cp, cr * sp, -sr * sp
+    aw, ax, ay, az = q.T
+    return np.column_stack(
+        [
+            aw * bw - ax * bx - ay * by - az * bz,
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+        ]
+    )
+
+
+def attitude_trim(table: pa.Table) -> tuple[float, float] | None:
+    """ArduPilot's ``AHRS_TRIM_X``/``_Y`` (rad) of the log, or None when absent or zero.
+
+    ArduPilot logs the vehicle body's attitude (``ATT``; the EKFs' ``NKF1``/``XKF1`` Euler
+    angles have the trim subtracted too), while its compass and IMU are in the autopilot
+    board's frame (already turned by ``AHRS_ORIENTATION`` and ``COMPASS_ORIENT``, so those
+    need nothing more): ``AP_AHRS`` builds ``_rotation_autopilot_body_to_vehicle_body =
+    from_euler(trim.x, trim.y, 0)`` and ``body_dcm = dcm * (that)^T``, so the board's attitude
+    is ``R_board = R_att from_euler(trim.x, trim.y, 0)`` (``AHRS_TRIM_Z`` is not used). MagFit
+    (``magfit_WMM.py``) adds the trims to the logged roll and pitch for the same reason. A
+    trim of 2 deg left out tilts the expected field by 2 deg: ~17 mG of a 500 mG field."""
+    params = (metadata(table).get("ardupilot") or {}).get("parameters") or {}
+    trim = (float(params.get("AHRS_TRIM_X") or 0.0), float(params.get("AHRS_TRIM_Y") or 0.0))
+    return trim if any(trim) else None
 
 
 def _compass_parameters(table: pa.Table) -> dict[str, float]:
