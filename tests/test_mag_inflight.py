@@ -191,9 +191,21 @@ REAL = {
 
 @pytest.mark.parametrize("name", sorted(REAL))
 def test_real_flights_improve(name):
+    """Every real flight's fit lowers the residual and the heading error; erle_pxf_118 (two
+    crashes) is refused: its fits raise the heading error (5.2 -> 6.1 deg) and its soft iron
+    lies outside ArduPilot's form (diagonal 0.70 over a scale of 1.28: before, exported as
+    COMPASS_DIA 1.53 with no note); MagFit has no trustworthy fit of it either."""
     path = shared_path("logs", "ardupilot_flights", *name.split("/"))
     table, _ = read_dataflash(InputSpec(path=path, **REAL[name]))
+    if name.startswith("erle_pxf_118"):
+        with pytest.raises(FitError, match="heading error .* above .* as flown"):
+            fit(table)
+        return
     out, _ = fit(table)
+    assert (
+        out.results["metrics"]["heading_rms_deg_after"]
+        < out.results["metrics"]["heading_rms_deg_before"]
+    )
     m = out.results["metrics"]
     assert m["residual_rms_ut_after"] < 0.5 * m["residual_rms_ut_before"]
     assert 40 < m["field_ut"] < 52
@@ -300,7 +312,9 @@ VEHICLE = {
 """A vehicle's own compass calibration in force while it logged (mG, mG/A), none zero."""
 
 
-def exported_reproduces_imupipe(tmp_path, log, inputs: str = "") -> tuple[float, dict]:
+def exported_reproduces_imupipe(
+    tmp_path, log, inputs: str = "", stage: str = ""
+) -> tuple[float, dict]:
     """Run mag_inflight on ``log`` (a DataFlash file) with the CLI; undo the log's own
     correction on its MAG (the raw field), apply ArduPilot's correct_field with the exported
     parameters over the log's (what the vehicle holds after loading the file), and compare with
@@ -309,7 +323,7 @@ def exported_reproduces_imupipe(tmp_path, log, inputs: str = "") -> tuple[float,
     from imupipe.readers.table import interpolate
 
     (tmp_path / "c.toml").write_text(
-        f'[inputs.f]\npath = "{log}"\n{inputs}\n[[stages]]\ntype = "mag_inflight"\n'
+        f'[inputs.f]\npath = "{log}"\n{inputs}\n[[stages]]\ntype = "mag_inflight"\n{stage}\n'
         '[output]\ndir = "out"\n'
     )
     proc = run_cli("run", "c.toml", cwd=tmp_path)
@@ -368,7 +382,9 @@ def test_export_composes_with_a_real_logs_calibration(tmp_path):
     path = shared_path("logs", "ardupilot_flights", "spark404_utrecht", "log.bin")
     diff, p = exported_reproduces_imupipe(tmp_path, path, 'imu_topic = "IMU"\nmag_topic = "MAG"')
     assert diff < 0.1
-    assert {"COMPASS_OFS_X", "COMPASS_DIA_X", "COMPASS_MOT_X"} <= set(p)
+    assert {"COMPASS_OFS_X", "COMPASS_DIA_X"} <= set(p)
+    # its current term does not lower the held-out residual: not fitted, so not switched on
+    assert "COMPASS_MOTCT" not in p and "COMPASS_MOT_X" not in p
 
 
 def test_flights_of_one_vehicle_fitted_together():
@@ -599,29 +615,26 @@ def test_throttle_exports_reproduce_the_correction_with_the_firmware_formulas(th
     assert np.abs(got - ours * 1e4).max() < 1e-6
 
 
-def test_motor_source_is_chosen_on_held_out_segments():
-    """Both a current and a throttle logged: the one that drives the interference wins on the
-    held-out segments (the throttle only when more than 2 % better); a forced source that is
-    not logged is refused with motor = "on"."""
-    chosen = {}
+def test_motor_source_is_one_per_vehicle():
+    """Both a current and a throttle logged: the current (the physical cause) is the motor
+    source whatever the compass, so that every compass of a vehicle has the kind of its one
+    COMPASS_MOTCT (before, each compass's held-out segments chose, and one log's MAG took the
+    throttle, its MAG2 the current); the throttle when asked for; the motor term scored against
+    none on held-out segments; a forced source that is not logged is refused with motor = "on"."""
     for source in ("current", "throttle"):
         table, truth = simulate(
             "flight", {"duration_s": 120.0, "motor_source": source, "log_throttle": True}, seed=11
         )
         assert has_flight_stream(table, "current") and has_flight_stream(table, "throttle")
         r = fit(table)[0].results
+        assert r["motor_source"] == "current" and r["motor_term"]
         held = r["metrics"]["held_out_rms_ut_motor_source"]
-        assert set(held) == {"current", "throttle"}
-        other = "current" if source == "throttle" else "throttle"
-        assert held[source] < 0.98 * held[other]
-        chosen[source] = r["motor_source"]
+        assert set(held) == {"current", "none"} and held["current"] < 0.98 * held["none"]
+        asked = fit(table, motor_source=source)[0].results
+        assert asked["motor_source"] == source
         key = "motor_t_per_a" if source == "current" else "motor_t_per_throttle"
         motor = np.array(truth["motor"])
-        assert np.linalg.norm(np.array(r[key]) - motor) < 0.05 * np.linalg.norm(motor)
-        forced = fit(table, motor_source=other)[0].results
-        assert forced["motor_source"] == other
-        assert forced["metrics"]["residual_rms_ut_after"] > r["metrics"]["residual_rms_ut_after"]
-    assert chosen == {"current": "current", "throttle": "throttle"}
+        assert np.linalg.norm(np.array(asked[key]) - motor) < 0.05 * np.linalg.norm(motor)
     table, _ = simulate("flight", {"duration_s": 30.0, "current_sensor": False}, seed=12)
     with pytest.raises(FitError, match="no battery current"):
         fit(table, motor="on", motor_source="current")
@@ -665,7 +678,7 @@ def test_export_composes_with_a_throttle_compensating_vehicle(tmp_path):
     )
     path = tmp_path / "flight.bin"
     write_log(path, table)
-    diff, p = exported_reproduces_imupipe(tmp_path, path)
+    diff, p = exported_reproduces_imupipe(tmp_path, path, stage='motor_source = "throttle"')
     assert diff < 0.1 and p["COMPASS_MOTCT"] == 1
     mot = np.array([p[f"COMPASS_MOT_{a}"] for a in "XYZ"])
     want = np.array(truth["motor"]) * 1e7
@@ -792,9 +805,9 @@ def test_ardupilot_orientation_composes(tmp_path, orientation):
 
 
 def test_export_composes_with_a_real_rotated_compass(tmp_path):
-    """erle_pxf_118 flew with COMPASS_ORIENT = 8 (roll 180): its export was refused before; the
+    """erle_pxf_218 flew with COMPASS_ORIENT = 8 (roll 180): its export was refused before; the
     composition holds since ArduPilot's compass parameters act after the rotation."""
-    path = shared_path("logs", "ardupilot_flights", "erle_pxf_118", "118.BIN")
+    path = shared_path("logs", "ardupilot_flights", "erle_pxf_218", "218.BIN")
     diff, p = exported_reproduces_imupipe(tmp_path, path)
     assert diff < 0.1 and {"COMPASS_OFS_X", "COMPASS_DIA_X"} <= set(p)
 

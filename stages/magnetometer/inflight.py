@@ -21,16 +21,18 @@ Model choice (``model = "auto"``): ``offsets`` (M = I), ``scale`` (M = s I), ``s
 ``folds`` segments in time, each candidate fitted on the others and scored on the one held
 out, and the simplest candidate within 2 % of the best held-out RMS residual is kept.
 
-Motor source (``motor_source = "auto"``): the battery current when only it is logged and
-separable, the throttle (the table's ``throttle`` flight stream: ArduCopter ``CTUN.ThO``, PX4's
-thrust setpoint) when only it is, and when both are: the static model is chosen with the
-current, then the throttle is scored with that model on the same held-out segments and replaces
-the current only when its held-out RMS residual is more than 2 % lower (the current is the
-physical cause; the throttle is its proxy, kept only when the data say it explains the field
-better, e.g. a current sensor that does not see the motors' wiring). A throttle term without a
-usable current (``motor = "auto"``) is also scored against no motor term on the same segments
-and, as a model term, kept only when it lowers the held-out residual by more than 2 % (a flying
-copter's throttle always varies, so its range alone does not show that the compass follows it).
+Motor source (``motor_source = "auto"``): the battery current when it is logged and
+separable, else the throttle (the table's ``throttle`` flight stream: ArduCopter ``CTUN.ThO``,
+PX4's thrust setpoint). The choice depends only on the vehicle's current and attitude, not on
+the compass, so every compass of one log gets the same kind: a vehicle has one
+``COMPASS_MOTCT`` (one ``CAL_MAG_COMP_TYP``) for all its compasses, and a per-ampere
+``COMPASS_MOT2`` under a throttle ``COMPASS_MOTCT`` is wrong by the ratio of the two signals
+(the current is the physical cause; ask for ``motor_source = "throttle"`` for a current sensor
+that does not see the motors' wiring). With ``motor = "auto"`` the motor term is then scored
+against none on the same held-out segments and kept only when it lowers the held-out residual
+by more than 2 % (a flying copter's throttle and current always vary, so their range alone
+does not show that the compass follows them); a compass left without it gets ``MOT`` 0 under
+the vehicle's ``COMPASS_MOTCT``.
 
 Frames: the fit runs in the body frame. A raw PX4 ``sensor_mag`` is in the compass's own axes,
 which PX4 turns into the body after its calibration (``R``: ``CAL_MAGn_ROT`` or
@@ -250,6 +252,14 @@ def held_out_rms(
     return float(np.sqrt(sq / max(cnt, 1)))
 
 
+def as_flown(before: np.ndarray) -> float:
+    """RMS of the vector residuals ``before`` (as flown: no fit, nothing held out), beyond 5
+    medians left out as :func:`held_out_rms` leaves them out: the figure a held-out residual
+    must be below for the fit to help."""
+    r = before[before <= np.median(before) * 5 + 1e-300]
+    return float(np.sqrt(np.mean(r**2)))
+
+
 def heading_deg(q: np.ndarray, body: np.ndarray) -> np.ndarray:
     """Heading (deg from north, NED) of body-frame fields rotated into NED by ``q``."""
     ned = rotate(q, body)
@@ -361,6 +371,45 @@ class FlownFit:
     h_after: np.ndarray
 
 
+SCALE_RANGE = (1 / 1.5, 1.5)
+"""The common scale of the soft iron ArduPilot applies (``COMPASS_SCALE``:
+``Compass::have_scale_factor``, ``COMPASS_MIN/MAX_SCALE_FACTOR``; MagFit bounds it 0.6..1.5)."""
+DIAGONAL_RANGE = (0.8, 1.2)
+"""The soft iron's diagonal over its common scale (``COMPASS_DIA``): MagFit's bounds
+(``magfit_WMM.py --min-diag/--max-diag``); ArduPilot's own calibrator refuses beyond 0.2..5
+(``CompassCalibrator::fit_acceptable``), a physical compass stays well inside 0.8..1.2."""
+OFF_DIAGONAL_MAX = 0.2
+"""The soft iron's off-diagonal over its common scale (``COMPASS_ODI``): MagFit's bound
+(``--min-offdiag/--max-offdiag``; the calibrator's is 1)."""
+
+
+def out_of_range(matrix: np.ndarray) -> str:
+    """Why the soft-iron ``matrix`` M has no plausible ArduPilot form (empty when it has): M
+    as ``COMPASS_SCALE`` (its mean diagonal) times ``DIA``/``ODI`` (as MagFit normalises it),
+    each inside :data:`SCALE_RANGE`, :data:`DIAGONAL_RANGE`, :data:`OFF_DIAGONAL_MAX`."""
+    scale = float(np.mean(np.diag(matrix)))
+    if not SCALE_RANGE[0] <= scale <= SCALE_RANGE[1]:
+        return (
+            f"scale {scale:.3f} outside {SCALE_RANGE[0]:.3f}..{SCALE_RANGE[1]:g} "
+            "(COMPASS_SCALE; a compass this far off is broken or mis-configured)"
+        )
+    rel = matrix / scale
+    diag = np.diag(rel)
+    off = rel[np.triu_indices(3, 1)]
+    if np.any(diag < DIAGONAL_RANGE[0]) or np.any(diag > DIAGONAL_RANGE[1]):
+        return (
+            f"soft-iron diagonal {np.round(diag, 3).tolist()} outside "
+            f"{DIAGONAL_RANGE[0]:g}..{DIAGONAL_RANGE[1]:g} (COMPASS_DIA over COMPASS_SCALE "
+            f"{scale:.3f})"
+        )
+    if np.any(np.abs(off) > OFF_DIAGONAL_MAX):
+        return (
+            f"soft-iron off-diagonal {np.round(off, 3).tolist()} outside +-{OFF_DIAGONAL_MAX:g} "
+            f"(COMPASS_ODI over COMPASS_SCALE {scale:.3f})"
+        )
+    return ""
+
+
 def coverage_of(q: np.ndarray, target: np.ndarray) -> dict[str, Any]:
     """The attitudes a flight covered: the eigenvalues of the covariance of the expected field's
     body directions (``direction_spread``, ascending), the yaw covered in 10 deg bins (deg) and
@@ -454,36 +503,34 @@ def fit_flight(fs: FlightSamples, o: Any) -> FlownFit:  # noqa: C901
     segments = np.array_split(np.arange(len(raw)), o.folds)
     for model in candidates:
         try:
+            whole = fit_model(raw, target, power, model, o.huber_k, o.outlier_k)
             held[model] = held_out_rms(raw, target, power, model, segments, o)
         except np.linalg.LinAlgError:
             continue
+        wrong = out_of_range(whole.matrix)
+        if wrong:
+            del held[model]
+            reasons.append(f"{model}: {wrong}")
+            if o.model != "auto":
+                raise CannotSeparate(f"{model}: {wrong}")
+            warnings.append(f"not fitted: {model}: {wrong}")
     if not held:
         raise CannotSeparate("every candidate model is singular on this flight")
     best = min(held.values())
     chosen = next(m for m in candidates if m in held and held[m] <= best * 1.02)
 
-    # -- motor source on the same segments -----------------------------------------------
+    # -- the motor term: kept only when it lowers the held-out residual ---------------------
     held_source: dict[str, float] = {}
-    if source is not None and len(usable) > 1:
+    if source is not None and o.motor == "auto":
         held_source[source] = held[chosen]
-        for other in usable[1:]:
-            try:
-                held_source[other] = held_out_rms(raw, target, fs.power(other), chosen, segments, o)
-            except np.linalg.LinAlgError:
-                continue
-            if held_source[other] < held_source[source] * (1 - 0.02):
-                source = other
-        power = fs.power(source)
-    elif source == "throttle" and o.motor == "auto":  # a proxy: kept only when it helps
-        held_source["throttle"] = held[chosen]
         try:
             held_source["none"] = held_out_rms(raw, target, None, chosen, segments, o)
         except np.linalg.LinAlgError:
             held_source["none"] = np.inf
-        if held_source["throttle"] >= held_source["none"] * (1 - 0.02):
+        if held_source[source] >= held_source["none"] * (1 - 0.02):
             reasons.append(
-                "motor: a throttle term does not lower the held-out residual by 2 % "
-                f"({held_source['throttle'] * UT:.3g} uT with it, "
+                f"motor: a {source} term does not lower the held-out residual by 2 % "
+                f"({held_source[source] * UT:.3g} uT with it, "
                 f"{held_source['none'] * UT:.3g} uT without)"
             )
             warnings.append("not fitted: " + reasons[-1])
@@ -505,6 +552,7 @@ def fit_flight(fs: FlightSamples, o: Any) -> FlownFit:  # noqa: C901
         "heading_rms_deg_before": float(np.sqrt(np.mean(h_before**2))),
         "heading_rms_deg_after": float(np.sqrt(np.mean(h_after**2))),
         "held_out_rms_ut": {m: v * ut for m, v in held.items()},
+        "held_out_rms_ut_as_flown": as_flown(before) * ut,
         **(
             {"held_out_rms_ut_motor_source": {k: v * ut for k, v in held_source.items()}}
             if held_source
@@ -803,6 +851,25 @@ class MagInflightStage(Stage):
                 }
                 for name, a, b in zip(names, cuts[:-1], cuts[1:], strict=True)
             }
+        field_ut = metrics["field_ut"]
+        ctx.check(
+            float(np.linalg.norm(fit.offset)) * ut <= field_ut,
+            f"offsets {np.linalg.norm(fit.offset) * ut:.1f} uT exceed the Earth's field "
+            f"{field_ut:.1f} uT (a compass's own hard iron is smaller; is the attitude, the "
+            "compass or the flight's GPS span wrong?)",
+        )
+        held_fit = metrics["held_out_rms_ut"][chosen]
+        ctx.check(
+            held_fit < metrics["held_out_rms_ut_as_flown"],
+            f"held-out residual {held_fit:.2f} uT not below as flown "
+            f"{metrics['held_out_rms_ut_as_flown']:.2f} uT (the fit does not help on data it "
+            "did not see)",
+        )
+        ctx.check(
+            metrics["heading_rms_deg_after"] <= metrics["heading_rms_deg_before"],
+            f"heading error {metrics['heading_rms_deg_after']:.2f} deg RMS after, above "
+            f"{metrics['heading_rms_deg_before']:.2f} deg as flown",
+        )
         ctx.check(
             metrics["residual_rms_ut_after"] <= o.max_residual_ut,
             f"residual {metrics['residual_rms_ut_after']:.2f} uT > max_residual_ut "
