@@ -363,13 +363,14 @@ def test_export_composes_with_the_vehicles_own_calibration(tmp_path):
     # mG (the field is ~500 mG, the log's resolution 1 mG): ArduPilot's DIA/ODI is symmetric,
     # the composed M W is not quite (the product of two symmetric matrices): 1e-4 of the field
     assert diff < 0.1
-    assert p["COMPASS_MOTCT"] == 2 and p["COMPASS_SCALE"] == 1
+    assert p["COMPASS_MOTCT"] == 2
     # the truth: corrected = M (raw - offset) + motor I  =>  OFS = -offset, W = M, MOT = motor
     field = truth["field_norm"] * 1e7
     ofs = np.array([p[f"COMPASS_OFS_{a}"] for a in "XYZ"])
     assert np.abs(ofs + np.array(truth["offset"]) * 1e7).max() < 0.01 * field
     dia = np.array([p[f"COMPASS_DIA_{a}"] for a in "XYZ"])
-    assert np.abs(dia - np.diag(truth["matrix"])).max() < 0.01
+    assert dia.mean() == pytest.approx(1.0)  # the common scale is in COMPASS_SCALE
+    assert np.abs(dia * p["COMPASS_SCALE"] - np.diag(truth["matrix"])).max() < 0.01
     mot = np.array([p[f"COMPASS_MOT_{a}"] for a in "XYZ"])
     want = np.array(truth["motor"]) * 1e7
     assert np.linalg.norm(mot - want) < 0.05 * np.linalg.norm(want)
