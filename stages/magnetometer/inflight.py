@@ -756,10 +756,17 @@ class MagInflightStage(Stage):
         if not has_stream(table, "mag"):
             missing.insert(0, "magnetometer")
         if missing:
+            seen = metadata(table).get("mag_candidates") or []
+            which = (
+                f"; it has several compasses ({', '.join(seen)}) and read none: set mag_topic, "
+                'or instances = "all" on the input to fit each'
+                if seen and missing[0] == "magnetometer"
+                else ""
+            )
             raise ctx.fail(
                 f"{where} has no " + ", ".join(missing) + " (an in-flight compass fit needs the "
                 "magnetometer, the attitude and a GPS position: DataFlash MAG, ATT, GPS; ULog "
-                "sensor_mag, vehicle_attitude, vehicle_gps_position)"
+                f"sensor_mag, vehicle_attitude, vehicle_gps_position){which}"
             )
         mag = ctx.finite(sensor(table, "mag"), f"magnetometer of {where}", minimum=50)
         year = o.year if o.year is not None else metadata(table).get("gps_year")
