@@ -30,9 +30,11 @@ the compass, so every compass of one log gets the same kind: a vehicle has one
 (the current is the physical cause; ask for ``motor_source = "throttle"`` for a current sensor
 that does not see the motors' wiring). With ``motor = "auto"`` the motor term is then scored
 against none on the same held-out segments and kept only when it lowers the held-out residual
-by more than 2 % (a flying copter's throttle and current always vary, so their range alone
-does not show that the compass follows them); a compass left without it gets ``MOT`` 0 under
-the vehicle's ``COMPASS_MOTCT``.
+(the throttle, a proxy, by more than 2 %: a flying copter's throttle always varies, so its
+range alone does not show that the compass follows it); a compass left without it gets no
+``MOT``. A term of the kind the vehicle already had switched on (``COMPASS_MOTCT``,
+``CAL_MAG_COMP_TYP``: :attr:`FlightSamples.compensated`) is kept without that test: the file
+replaces the vehicle's term, which stays on either way.
 
 Frames: the fit runs in the body frame. A raw PX4 ``sensor_mag`` is in the compass's own axes,
 which PX4 turns into the body after its calibration (``R``: ``CAL_MAGn_ROT`` or
@@ -287,6 +289,9 @@ class FlightSamples:
     current: np.ndarray | None
     throttle: np.ndarray | None = None
     rotation: np.ndarray | None = None
+    compensated: str | None = None
+    """The motor compensation the vehicle had switched on while logging (``"current"``,
+    ``"throttle"``: ArduPilot ``COMPASS_MOTCT`` 2/1, PX4 ``CAL_MAG_COMP_TYP`` 2/1), None."""
 
     def power(self, source: str | None) -> np.ndarray | None:
         """The motor power signal of ``source`` (``"current"``, ``"throttle"``; None: none)."""
@@ -339,8 +344,26 @@ def flight_samples(table: pa.Table, mag: SensorData, year: float) -> FlightSampl
             sig = flight_stream(table, stream)
             power[stream] = interpolate(sig.t_ns, sig.values[:, 0], t_ns)
     return FlightSamples(
-        t_ns, raw, q, ned, rotate(q, ned, inverse=True), power["current"], power["throttle"], turn
+        t_ns,
+        raw,
+        q,
+        ned,
+        rotate(q, ned, inverse=True),
+        power["current"],
+        power["throttle"],
+        turn,
+        vehicle_compensation(table),
     )
+
+
+def vehicle_compensation(table: pa.Table) -> str | None:
+    """The motor compensation switched on in the log's parameters (:attr:`FlightSamples.
+    compensated`)."""
+    meta = metadata(table)
+    ap = (meta.get("ardupilot") or {}).get("parameters") or {}
+    px4 = (meta.get("px4") or {}).get("parameters") or {}
+    kind = ap.get("COMPASS_MOTCT") if ap else px4.get("CAL_MAG_COMP_TYP")
+    return {1: "throttle", 2: "current"}.get(int(kind or 0))
 
 
 class CannotSeparate(ValueError):
@@ -521,15 +544,18 @@ def fit_flight(fs: FlightSamples, o: Any) -> FlownFit:  # noqa: C901
 
     # -- the motor term: kept only when it lowers the held-out residual ---------------------
     held_source: dict[str, float] = {}
-    if source is not None and o.motor == "auto":
+    if source is not None and o.motor == "auto" and source != fs.compensated:
         held_source[source] = held[chosen]
         try:
             held_source["none"] = held_out_rms(raw, target, None, chosen, segments, o)
         except np.linalg.LinAlgError:
             held_source["none"] = np.inf
-        if held_source[source] >= held_source["none"] * (1 - 0.02):
+        margin = 0.02 if source == "throttle" else 0.0  # the throttle is a proxy: 2 %
+        if held_source[source] >= held_source["none"] * (1 - margin):
             reasons.append(
-                f"motor: a {source} term does not lower the held-out residual by 2 % "
+                f"motor: a {source} term does not lower the held-out residual"
+                + (" by 2 %" if margin else "")
+                + " "
                 f"({held_source[source] * UT:.3g} uT with it, "
                 f"{held_source['none'] * UT:.3g} uT without)"
             )
@@ -830,6 +856,7 @@ class MagInflightStage(Stage):
             power["current"],
             power["throttle"],
             turn,
+            parts[0].compensated,  # one calibration: the flights' compass parameters agree
         )
         return joined, counts
 
