@@ -270,9 +270,8 @@ def run_magfit(
     it), or why there are none; kept in ``cache`` when given."""
     index = 1 if f.mag == "MAG" else int(f.mag[3:])
     out = log.with_name(log.name.rsplit(".", 1)[0] + f"-magfit-mag-{index}.param")
-    kept = (
-        None if cache is None else cache / f"{log.parent.parent.name}-{log.parent.name}-{out.name}"
-    )
+    key = f"{log.parent.parent.name}-{log.parent.name}-{log.stat().st_size}-{out.name}"
+    kept = None if cache is None else cache / key  # the size tells the cut logs apart
     if kept is not None and kept.exists():
         return _read_params(kept)
     script = Path(__import__("pymavlink").__file__).parent / "tools" / "magfit_WMM.py"
