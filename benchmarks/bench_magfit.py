@@ -1,6 +1,9 @@
 """imupipe's ``mag_inflight`` against pymavlink's MagFit (``tools/magfit_WMM.py``) on the same
-DataFlash logs: a simulated flight with a known compass error (``imupipe simulate flight``) and
-the real ArduPilot flights of ../shared/data/logs/ardupilot_flights.
+DataFlash logs: a simulated flight with a known compass error (``imupipe simulate flight``),
+scored as below, and the real flights of ../shared/data/logs (ArduPilot and PX4), judged by
+:mod:`magfit_judge` with pymavlink's own instruments (its field table, the attitude with
+``AHRS_TRIM``, MagFit's way of applying parameters to the exported files), whole log and held
+out (``--real``; the docs' table in docs/explanation/benchmarks.md).
 
 MagFit runs headless (``MPLBACKEND=Agg``, ``--elliptical``, ``--cmot`` where the log has a
 current, ``--att-source ATT``, ``--save-params``); its parameters are applied as it applies them
@@ -9,8 +12,8 @@ log's own ``COMPASS_*`` removed as its ``remove_offsets`` does). Both correction
 scored the same way, on the same samples: the RMS vector residual against the WMM field of the
 flight's date rotated into the body by ``ATT`` (uT) and the RMS heading error (deg).
 
-Usage: ``python benchmarks/bench_magfit.py [--reduce 5] [--iter 50] [LOG ...]`` (MagFit is pure
-Python: minutes per log).
+Usage: ``python benchmarks/bench_magfit.py [--reduce 5] [--iter 300] [--cache DIR] [--real]``
+(MagFit is pure Python: minutes per log; ``--cache`` keeps its parameter files).
 """
 
 from __future__ import annotations
@@ -155,9 +158,25 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("logs", nargs="*", help="real logs under ardupilot_flights (default: all)")
     ap.add_argument("--reduce", type=int, default=5, help="MagFit's --reduce")
-    ap.add_argument("--iter", type=int, default=100, help="MagFit's --iter")
+    ap.add_argument("--iter", type=int, default=300, help="MagFit's --iter")
     ap.add_argument("--cache", type=Path, help="keep MagFit's .param files here (and reuse them)")
+    ap.add_argument("--real", action="store_true", help="the independent judge's tables only")
     args = ap.parse_args()
+    if args.real:
+        sys.path.insert(0, str(Path(__file__).parent))
+        import magfit_judge as judge
+
+        with tempfile.TemporaryDirectory() as tmp:
+            rows = []
+            for name in args.logs or judge.LOGS:
+                if not (judge.SHARED / judge.LOGS[name]).exists():
+                    print(f"{name}: not present")
+                    continue
+                rows += judge.judge_log(name, Path(tmp), args.reduce, args.iter, args.cache)
+            print(judge.markdown(rows), flush=True)
+            if judge.PX4.exists():
+                print("\n".join(judge.judge_px4(Path(tmp) / "px4")))
+        return
     with tempfile.TemporaryDirectory() as tmp:
         sim_dir = Path(tmp) / "simulated"
         sim_dir.mkdir()

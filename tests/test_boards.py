@@ -473,7 +473,8 @@ def test_no_device_named_notes_the_tc_id():
 
 def test_compass_scale_and_second_compass():
     """Two magnetometers of an ArduPilot log: COMPASS_OFS/DIA/ODI and COMPASS_OFS2/DIA2/ODI2 by
-    the log's COMPASS_DEV_ID*, each with COMPASS_SCALE* = 1 (ArduPilot multiplies by it)."""
+    the log's COMPASS_DEV_ID*, each soft iron as COMPASS_SCALE* (its mean diagonal: ArduPilot
+    multiplies by it) times DIA/ODI, as MagFit normalises them (before: SCALE 1, all in DIA)."""
     w = np.array([[1.1, 0.02, -0.01], [0.02, 0.95, 0.03], [-0.01, 0.03, 1.05]])
     m1 = LinearStep("mag_calibration", "mag", w, [12e-6, -30e-6, 8e-6])
     m2 = LinearStep("mag_calibration", "mag", np.eye(3) * 1.02, [1e-6, 2e-6, 3e-6])
@@ -488,11 +489,13 @@ def test_compass_scale_and_second_compass():
     text = files["ardupilot_calibration.param"]
     rows = dict(line.split(",") for line in text.splitlines() if not line.startswith("#"))
     rows = {k: float(v) for k, v in rows.items()}
-    assert rows["COMPASS_SCALE"] == 1.0 and rows["COMPASS_SCALE2"] == 1.0
+    scale2 = float(np.mean(np.diag(w)))
+    assert rows["COMPASS_SCALE"] == pytest.approx(1.02) and rows["COMPASS_DIA_X"] == 1.0
+    assert rows["COMPASS_SCALE2"] == pytest.approx(scale2)
     assert rows["COMPASS_DEV_ID"] == 666 and rows["COMPASS_DEV_ID2"] == 555
     assert rows["COMPASS_OFS_Z"] == pytest.approx(-3e-6 * 1e7)
-    assert rows["COMPASS_DIA2_X"] == pytest.approx(1.1)
-    assert rows["COMPASS_ODI2_Z"] == pytest.approx(0.03)
+    assert rows["COMPASS_DIA2_X"] == pytest.approx(1.1 / scale2)
+    assert rows["COMPASS_ODI2_Z"] == pytest.approx(0.03 / scale2)
     p = qgc_params(files["px4_calibration.params"])
     assert p["CAL_MAG1_ID"] == 666 and p["CAL_MAG1_XSCALE"] == pytest.approx(1.02)
 

@@ -320,6 +320,7 @@ def test_mag_soft_iron_both_autopilots(tmp_path):
     dia = [a[f"COMPASS_DIA_{x}"] for x in "XYZ"]
     odi = [a[f"COMPASS_ODI_{x}"] for x in "XYZ"]
     m = np.array([[dia[0], odi[0], odi[1]], [odi[0], dia[1], odi[2]], [odi[1], odi[2], dia[2]]])
+    m = m * a["COMPASS_SCALE"]  # correct_field: (raw + OFS) x COMPASS_SCALE, then DIA/ODI
     np.testing.assert_allclose((raw * 1e7 + ofs) @ m.T, ours * 1e7, atol=1e-9)
 
 
@@ -416,3 +417,19 @@ def test_exports_note_agrees_with_its_files():
         "imupipe: note: [exports] imu.yaml, px4_calibration.params leave out what their formats "
         "have no place for"
     )
+
+
+def test_a_compass_without_a_fitted_motor_term_switches_nothing_on():
+    """mag_inflight's step of a fit without a motor term (zeros): no COMPASS_MOTCT, no
+    COMPASS_MOT, no CAL_MAG_COMP_TYP (before: COMPASS_MOTCT = 2 with MOT 0, also on vehicles
+    without a current sensor); with one, COMPASS_MOTCT = 2."""
+    from imupipe.stages.magnetometer.inflight import MagCurrentStep
+
+    for motor in ([0.0, 0.0, 0.0], [3e-8, -2e-8, 1e-8]):
+        step = MagCurrentStep("mag_inflight", "mag", np.eye(3), [1e-6, 2e-6, 3e-6], motor=motor)
+        files, _ = export_all({"chain": [step.to_json()], "results": {}})
+        ap = files["ardupilot_calibration.param"]
+        px4 = files["px4_calibration.params"]
+        fitted = any(motor)
+        assert ("COMPASS_MOTCT,2" in ap) == fitted and ("COMPASS_MOT_X" in ap) == fitted
+        assert ("CAL_MAG_COMP_TYP" in px4) == fitted

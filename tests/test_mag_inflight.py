@@ -191,9 +191,21 @@ REAL = {
 
 @pytest.mark.parametrize("name", sorted(REAL))
 def test_real_flights_improve(name):
+    """Every real flight's fit lowers the residual and the heading error; erle_pxf_118 (two
+    crashes) is refused: its fits raise the heading error (5.2 -> 6.1 deg) and its soft iron
+    lies outside ArduPilot's form (diagonal 0.70 over a scale of 1.28: before, exported as
+    COMPASS_DIA 1.53 with no note); MagFit has no trustworthy fit of it either."""
     path = shared_path("logs", "ardupilot_flights", *name.split("/"))
     table, _ = read_dataflash(InputSpec(path=path, **REAL[name]))
+    if name.startswith("erle_pxf_118"):
+        with pytest.raises(FitError, match="heading error .* above .* as flown"):
+            fit(table)
+        return
     out, _ = fit(table)
+    assert (
+        out.results["metrics"]["heading_rms_deg_after"]
+        < out.results["metrics"]["heading_rms_deg_before"]
+    )
     m = out.results["metrics"]
     assert m["residual_rms_ut_after"] < 0.5 * m["residual_rms_ut_before"]
     assert 40 < m["field_ut"] < 52
@@ -300,7 +312,9 @@ VEHICLE = {
 """A vehicle's own compass calibration in force while it logged (mG, mG/A), none zero."""
 
 
-def exported_reproduces_imupipe(tmp_path, log, inputs: str = "") -> tuple[float, dict]:
+def exported_reproduces_imupipe(
+    tmp_path, log, inputs: str = "", stage: str = ""
+) -> tuple[float, dict]:
     """Run mag_inflight on ``log`` (a DataFlash file) with the CLI; undo the log's own
     correction on its MAG (the raw field), apply ArduPilot's correct_field with the exported
     parameters over the log's (what the vehicle holds after loading the file), and compare with
@@ -309,7 +323,7 @@ def exported_reproduces_imupipe(tmp_path, log, inputs: str = "") -> tuple[float,
     from imupipe.readers.table import interpolate
 
     (tmp_path / "c.toml").write_text(
-        f'[inputs.f]\npath = "{log}"\n{inputs}\n[[stages]]\ntype = "mag_inflight"\n'
+        f'[inputs.f]\npath = "{log}"\n{inputs}\n[[stages]]\ntype = "mag_inflight"\n{stage}\n'
         '[output]\ndir = "out"\n'
     )
     proc = run_cli("run", "c.toml", cwd=tmp_path)
@@ -349,13 +363,14 @@ def test_export_composes_with_the_vehicles_own_calibration(tmp_path):
     # mG (the field is ~500 mG, the log's resolution 1 mG): ArduPilot's DIA/ODI is symmetric,
     # the composed M W is not quite (the product of two symmetric matrices): 1e-4 of the field
     assert diff < 0.1
-    assert p["COMPASS_MOTCT"] == 2 and p["COMPASS_SCALE"] == 1
+    assert p["COMPASS_MOTCT"] == 2
     # the truth: corrected = M (raw - offset) + motor I  =>  OFS = -offset, W = M, MOT = motor
     field = truth["field_norm"] * 1e7
     ofs = np.array([p[f"COMPASS_OFS_{a}"] for a in "XYZ"])
     assert np.abs(ofs + np.array(truth["offset"]) * 1e7).max() < 0.01 * field
     dia = np.array([p[f"COMPASS_DIA_{a}"] for a in "XYZ"])
-    assert np.abs(dia - np.diag(truth["matrix"])).max() < 0.01
+    assert dia.mean() == pytest.approx(1.0)  # the common scale is in COMPASS_SCALE
+    assert np.abs(dia * p["COMPASS_SCALE"] - np.diag(truth["matrix"])).max() < 0.01
     mot = np.array([p[f"COMPASS_MOT_{a}"] for a in "XYZ"])
     want = np.array(truth["motor"]) * 1e7
     assert np.linalg.norm(mot - want) < 0.05 * np.linalg.norm(want)
@@ -368,7 +383,8 @@ def test_export_composes_with_a_real_logs_calibration(tmp_path):
     path = shared_path("logs", "ardupilot_flights", "spark404_utrecht", "log.bin")
     diff, p = exported_reproduces_imupipe(tmp_path, path, 'imu_topic = "IMU"\nmag_topic = "MAG"')
     assert diff < 0.1
-    assert {"COMPASS_OFS_X", "COMPASS_DIA_X", "COMPASS_MOT_X"} <= set(p)
+    assert {"COMPASS_OFS_X", "COMPASS_DIA_X"} <= set(p)
+    assert ("COMPASS_MOT_X" in p) == ("COMPASS_MOTCT" in p)  # switched on only when fitted
 
 
 def test_flights_of_one_vehicle_fitted_together():
@@ -599,29 +615,26 @@ def test_throttle_exports_reproduce_the_correction_with_the_firmware_formulas(th
     assert np.abs(got - ours * 1e4).max() < 1e-6
 
 
-def test_motor_source_is_chosen_on_held_out_segments():
-    """Both a current and a throttle logged: the one that drives the interference wins on the
-    held-out segments (the throttle only when more than 2 % better); a forced source that is
-    not logged is refused with motor = "on"."""
-    chosen = {}
+def test_motor_source_is_one_per_vehicle():
+    """Both a current and a throttle logged: the current (the physical cause) is the motor
+    source whatever the compass, so that every compass of a vehicle has the kind of its one
+    COMPASS_MOTCT (before, each compass's held-out segments chose, and one log's MAG took the
+    throttle, its MAG2 the current); the throttle when asked for; the motor term scored against
+    none on held-out segments; a forced source that is not logged is refused with motor = "on"."""
     for source in ("current", "throttle"):
         table, truth = simulate(
             "flight", {"duration_s": 120.0, "motor_source": source, "log_throttle": True}, seed=11
         )
         assert has_flight_stream(table, "current") and has_flight_stream(table, "throttle")
         r = fit(table)[0].results
+        assert r["motor_source"] == "current" and r["motor_term"]
         held = r["metrics"]["held_out_rms_ut_motor_source"]
-        assert set(held) == {"current", "throttle"}
-        other = "current" if source == "throttle" else "throttle"
-        assert held[source] < 0.98 * held[other]
-        chosen[source] = r["motor_source"]
+        assert set(held) == {"current", "none"} and held["current"] < 0.98 * held["none"]
+        asked = fit(table, motor_source=source)[0].results
+        assert asked["motor_source"] == source
         key = "motor_t_per_a" if source == "current" else "motor_t_per_throttle"
         motor = np.array(truth["motor"])
-        assert np.linalg.norm(np.array(r[key]) - motor) < 0.05 * np.linalg.norm(motor)
-        forced = fit(table, motor_source=other)[0].results
-        assert forced["motor_source"] == other
-        assert forced["metrics"]["residual_rms_ut_after"] > r["metrics"]["residual_rms_ut_after"]
-    assert chosen == {"current": "current", "throttle": "throttle"}
+        assert np.linalg.norm(np.array(asked[key]) - motor) < 0.05 * np.linalg.norm(motor)
     table, _ = simulate("flight", {"duration_s": 30.0, "current_sensor": False}, seed=12)
     with pytest.raises(FitError, match="no battery current"):
         fit(table, motor="on", motor_source="current")
@@ -665,7 +678,7 @@ def test_export_composes_with_a_throttle_compensating_vehicle(tmp_path):
     )
     path = tmp_path / "flight.bin"
     write_log(path, table)
-    diff, p = exported_reproduces_imupipe(tmp_path, path)
+    diff, p = exported_reproduces_imupipe(tmp_path, path, stage='motor_source = "throttle"')
     assert diff < 0.1 and p["COMPASS_MOTCT"] == 1
     mot = np.array([p[f"COMPASS_MOT_{a}"] for a in "XYZ"])
     want = np.array(truth["motor"]) * 1e7
@@ -792,8 +805,46 @@ def test_ardupilot_orientation_composes(tmp_path, orientation):
 
 
 def test_export_composes_with_a_real_rotated_compass(tmp_path):
-    """erle_pxf_118 flew with COMPASS_ORIENT = 8 (roll 180): its export was refused before; the
+    """erle_pxf_218 flew with COMPASS_ORIENT = 8 (roll 180): its export was refused before; the
     composition holds since ArduPilot's compass parameters act after the rotation."""
-    path = shared_path("logs", "ardupilot_flights", "erle_pxf_118", "118.BIN")
+    path = shared_path("logs", "ardupilot_flights", "erle_pxf_218", "218.BIN")
     diff, p = exported_reproduces_imupipe(tmp_path, path)
     assert diff < 0.1 and {"COMPASS_OFS_X", "COMPASS_DIA_X"} <= set(p)
+
+
+def _trimmed(table, trim: tuple[float, float]):
+    """``table`` as ArduPilot would log it with ``AHRS_TRIM_X/Y = trim`` (rad): ATT is the
+    vehicle body's attitude, ``R_board from_euler(trim.x, trim.y, 0)^T`` (``AP_AHRS``), the
+    compass stays in the board's frame; the trim goes into the log's parameters."""
+    import pyarrow as pa
+    from scipy.spatial.transform import Rotation
+
+    from imupipe.readers.table import FLIGHT_COLUMNS, with_metadata
+
+    att = flight_stream(table, "attitude")
+    board = Rotation.from_quat(att.values[:, [1, 2, 3, 0]])
+    turn = Rotation.from_euler("ZYX", [0.0, trim[1], trim[0]])
+    vehicle = (board * turn.inv()).as_quat()[:, [3, 0, 1, 2]]
+    for j, name in enumerate(FLIGHT_COLUMNS["attitude"]):
+        col = table.column(name).to_numpy(zero_copy_only=False).astype(float)
+        col[att.rows] = vehicle[:, j]
+        i = table.schema.get_field_index(name)
+        table = table.set_column(i, table.schema.field(i), pa.array(col, mask=np.isnan(col)))
+    meta = metadata(table)
+    params = meta.setdefault("ardupilot", {}).setdefault("parameters", {})
+    params.update({"AHRS_TRIM_X": trim[0], "AHRS_TRIM_Y": trim[1]})
+    return with_metadata(table, meta)
+
+
+def test_ahrs_trim_turns_the_logged_attitude_into_the_boards():
+    """ArduPilot logs the trimmed vehicle attitude; the compass is in the board's frame. With
+    AHRS_TRIM_X/Y of 2-3 deg the fit recovers the truth as on the untrimmed flight (before the
+    trim was applied: the offsets came out 3.2 uT off)."""
+    table, truth = simulate("flight", {"duration_s": 120.0}, seed=3)
+    trimmed = _trimmed(table, (np.radians(2.0), np.radians(-3.0)))
+    r = fit(trimmed)[0].results
+    field = truth["field_norm"]
+    assert np.abs(np.array(r["offset_t"]) - truth["offset"]).max() < 0.01 * field
+    assert np.abs(np.array(r["matrix"]) - truth["matrix"]).max() < 0.01
+    plain = fit(table)[0].results["metrics"]["residual_rms_ut_after"]
+    assert r["metrics"]["residual_rms_ut_after"] < 1.2 * plain

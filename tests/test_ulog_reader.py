@@ -414,3 +414,46 @@ def test_every_imu_of_every_log_is_pyulogs(name):
             assert len(got) and all(any(np.array_equal(g, w) for w in want_a) for g in got), key
         else:
             assert np.allclose(accel.values, want_a[order], rtol=1e-12, atol=0), key
+
+
+def test_a_zero_timestamp_sample_means_unset():
+    """PX4 v1.14's vehicle_gps_position leaves timestamp_sample 0 in every message: the header
+    time is then the message's timestamp (before: 0 ns, so no compass sample lay within the GPS
+    stream's span and mag_inflight refused the flight); a set one is kept."""
+    from imupipe.readers.ulog.reader import Instance
+
+    inst = Instance(
+        "vehicle_gps_position",
+        0,
+        {
+            "timestamp": np.array([1_000_000, 1_500_000, 2_000_000], dtype=np.uint64),
+            "timestamp_sample": np.array([0, 1_499_000, 0], dtype=np.uint64),
+        },
+    )
+    header, log = inst.stamps("header")
+    assert header.tolist() == [1_000_000_000, 1_499_000_000, 2_000_000_000]
+    assert log.tolist() == [1_000_000_000, 1_500_000_000, 2_000_000_000]
+
+
+def test_px4_flights_with_two_compasses_name_them_and_calibrate(tmp_path):
+    """A real PX4 v1.14 flight with two compasses: without mag_topic the compass stage names
+    the compasses it saw; with instances every compass gets its CAL_MAGn_* (before: "0
+    magnetometer samples lie within the attitude and GPS streams' time span")."""
+    log = shared_path("logs", "px4_flights_flugdrohne", "log_20_2023-6-7-10-52-56.ulg")
+    (tmp_path / "a.toml").write_text(
+        f'[inputs.f]\npath = "{log}"\n[[stages]]\ntype = "mag_inflight"\n[output]\ndir = "a"\n'
+    )
+    proc = run_cli("run", "a.toml", cwd=tmp_path)
+    assert proc.returncode == 2
+    assert "several compasses (vehicle_magnetometer, vehicle_magnetometer_1, sensor_mag, " in (
+        proc.stderr
+    )
+    (tmp_path / "b.toml").write_text(
+        f'[inputs.f]\npath = "{log}"\ninstances = ["sensor_mag", "sensor_mag_1"]\n'
+        '[[stages]]\ntype = "mag_inflight"\n[output]\ndir = "b"\n'
+    )
+    proc = run_cli("run", "b.toml", cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    text = (tmp_path / "b" / "px4_calibration.params").read_text()
+    for n in (0, 1):
+        assert f"CAL_MAG{n}_XOFF" in text and f"CAL_MAG{n}_ID" in text

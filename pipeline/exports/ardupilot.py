@@ -29,8 +29,11 @@ slot is the one whose ``INS_ACC*_ID``/``INS_GYR*_ID``/``COMPASS_DEV_ID*`` in the
 (``fitted_on.ardupilot.parameters``, a DataFlash log's) holds the device's id, else the device's
 instance when free, else the first free one. ``INS_TCALi_TMIN``/``TMAX`` are shared by the
 IMU's accel and gyro: written once, the intersection of both fitted ranges (noted when they
-differ). ``COMPASS_SCALE*`` is 1 (the whole soft iron is in ``DIA``/``ODI``; ArduPilot
-multiplies by it after the offsets, ``correct_field``).
+differ). A compass's soft iron ``W`` is written as ``COMPASS_SCALE*`` (its mean diagonal;
+ArduPilot multiplies by it after the offsets, ``correct_field``, and only within 1/1.5..1.5)
+times ``DIA``/``ODI`` (``W`` over the scale), as MagFit normalises them; a compass whose
+``DIA`` leaves 0.8..1.2, ``ODI`` +-0.2 or scale 1/1.5..1.5 is not written (noted with the
+figure: :func:`imupipe.stages.magnetometer.inflight.out_of_range`).
 
 ``INS_*_ID``/``COMPASS_DEV_ID*`` are written only from an ArduPilot log (PX4 numbers device
 types differently).
@@ -73,6 +76,7 @@ from imupipe.pipeline.exports.common import (
     params_text,
     soft_iron,
 )
+from imupipe.stages.magnetometer.inflight import out_of_range
 
 FNAME = "ardupilot_calibration.param"
 TCAL_REFERENCE = 35.0
@@ -224,9 +228,14 @@ def mag_rows(model: SensorModel, i: int, out: Export, scaled: bool | None = None
     rows += [(f"COMPASS_OFS{_s(i)}_{a}", ofs[j]) for j, a in enumerate("XYZ")]
     if model.scaled if scaled is None else scaled:
         diag, off = soft_iron(model.matrix, out, FNAME)
-        rows += [(f"COMPASS_DIA{_s(i)}_{a}", diag[j]) for j, a in enumerate("XYZ")]
-        rows += [(f"COMPASS_ODI{_s(i)}_{a}", off[j]) for j, a in enumerate("XYZ")]
-        rows += [(f"COMPASS_SCALE{_s(i)}", 1.0)]
+        wrong = out_of_range(model.matrix)
+        if wrong:
+            out.note(FNAME, f"mag: compass {i + 1} not written: {wrong}")
+            return []
+        scale = float(diag.mean())  # COMPASS_SCALE x DIA/ODI, as MagFit normalises them
+        rows += [(f"COMPASS_DIA{_s(i)}_{a}", diag[j] / scale) for j, a in enumerate("XYZ")]
+        rows += [(f"COMPASS_ODI{_s(i)}_{a}", off[j] / scale) for j, a in enumerate("XYZ")]
+        rows += [(f"COMPASS_SCALE{_s(i)}", scale)]
     return rows
 
 
@@ -368,13 +377,23 @@ def log_motor(
     return model.motor, model.motor_source
 
 
-def motor_rows(model: SensorModel, i: int, written: list[Row]) -> list[Row]:
+def motor_rows(model: SensorModel, i: int, written: list[Row], out: Export) -> list[Row]:
     """A compass's motor compensation (``mag_inflight``): ``COMPASS_MOT*_{X,Y,Z}`` added after
     ``DIA``/``ODI`` as imupipe's ``motor`` is (``correct_field``), in milligauss per ampere
     with ``COMPASS_MOTCT = 2`` (current-based) or in milligauss at full throttle with
     ``COMPASS_MOTCT = 1`` (throttle-based: ``motor_offset = MOT * throttle``, throttle 0..1);
-    one ``COMPASS_MOTCT`` for every compass."""
+    one ``COMPASS_MOTCT`` for every compass: a compass whose term is of another kind than an
+    earlier compass's has it left out (noted)."""
     if model.motor is None:
+        return []
+    kind = dict(written).get("COMPASS_MOTCT")
+    if kind is not None and kind != MOTCT[model.motor_source]:
+        out.note(
+            FNAME,
+            f"mag: compass {i + 1}'s {model.motor_source}-based motor term is left out: the "
+            f"vehicle has one COMPASS_MOTCT for its compasses, {kind:g} for an earlier one (fit "
+            "every compass with one motor_source)",
+        )
         return []
     mot = model.motor * MILLIGAUSS_PER_TESLA
     rows: list[Row] = [(f"COMPASS_MOT{_s(i)}_{a}", mot[j]) for j, a in enumerate("XYZ")]
@@ -443,7 +462,8 @@ def export(doc: dict[str, Any], complete: bool = False) -> Export:
             out.note(FNAME, f"{model.sensor}: {issue}")
         logged.update(log_parameters(model))
         if model.sensor == "mag":
-            mine = mag_rows(model, i, out, scaled) + motor_rows(model, i, rows)
+            mine = mag_rows(model, i, out, scaled)
+            mine += motor_rows(model, i, rows, out) if mine else []
         else:
             mine = imu_rows(model, i, out, shared.get(i), scaled)
         rows += mine

@@ -275,7 +275,7 @@ def _compose(sensor: str, entries: list[dict[str, Any]], dev: dict[str, Any]) ->
             o = o + np.linalg.solve(m, np.asarray(e["offset"], dtype=np.float64))
             m = m2 @ m
             motor = None if motor is None else m2 @ motor
-            if kind in MOTOR_SOURCE:
+            if kind in MOTOR_SOURCE and np.any(e["motor"]):  # zero: no motor term fitted
                 if motor is not None and MOTOR_SOURCE[kind] != source:
                     issues.append(
                         f"a {MOTOR_SOURCE[kind]}-based motor term after a {source}-based one: "

@@ -702,6 +702,9 @@ def read_dataflash(spec: InputSpec) -> tuple[pa.Table, list[str]]:
     year = gps_year(f)
     if year is not None:
         meta["gps_year"] = year
+    unread = candidates(f)["mag"]
+    if "mag" not in chosen and unread:  # named by a stage that needs a compass
+        meta["mag_candidates"] = unread
     meta["instance"] = {s: f.instances[k].instance for s, k in chosen.items()}
     params = calibration_parameters(f)
     devices = device_ids(f, chosen, params)

@@ -29,7 +29,8 @@ candidates and the key to set.
 
 **Time**: ULog stamps are microseconds since boot (PX4's ``hrt_absolute_time``); imupipe keeps
 them as nanoseconds since boot (x 1000), not wall time. The header time is ``timestamp_sample``
-where the topic has it (the sensor's sampling instant), else ``timestamp``; the log time is
+where the topic has it (the sensor's sampling instant) and it is not 0 (PX4 v1.14's GPS
+topics leave it 0), else ``timestamp``; the log time is
 ``timestamp`` (publication). A ``sensor_combined`` row keeps PX4's pairing of gyro and accel
 (the accel's ``accelerometer_timestamp_relative`` offset, 0 in the logs tested, is not applied
 to the row's stamp). A raw gyro sample is paired with the sample of its accelerometer
@@ -166,10 +167,13 @@ class Instance:
         return np.column_stack([self.data[f].astype(np.float64) for f in fields])
 
     def stamps(self, time: str) -> tuple[np.ndarray, np.ndarray]:
-        """(header, log) times in ns: ``timestamp_sample`` (or ``timestamp``), ``timestamp``."""
+        """(header, log) times in ns: ``timestamp_sample`` (or ``timestamp``), ``timestamp``.
+        A ``timestamp_sample`` of 0 is "not set" (PX4 v1.14's ``vehicle_gps_position`` leaves
+        it 0 in every message: the GPS drivers do not fill it): that message's ``timestamp``."""
         log = self.data["timestamp"].astype(np.int64) * US_TO_NS
         if time == "header" and "timestamp_sample" in self.data:
-            return self.data["timestamp_sample"].astype(np.int64) * US_TO_NS, log
+            sample = self.data["timestamp_sample"].astype(np.int64) * US_TO_NS
+            return np.where(sample == 0, log, sample), log
         return log, log
 
     def device_id(self) -> int | None:
@@ -1016,6 +1020,9 @@ def read_ulog(spec: InputSpec) -> tuple[pa.Table, list[str]]:
     year = gps_year(f)
     if year is not None:
         meta["gps_year"] = year
+    unread = candidates(f)["mag"]
+    if "mag" not in chosen and unread:  # named by a stage that needs a compass
+        meta["mag_candidates"] = unread
     meta["instance"] = {s: f.instances[k].instance for s, k in chosen.items()}
     devices = {s: _device_id(f, s, k) for s, k in chosen.items()}
     meta["device_id"] = {s: d for s, d in devices.items() if d is not None}

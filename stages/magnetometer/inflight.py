@@ -21,16 +21,20 @@ Model choice (``model = "auto"``): ``offsets`` (M = I), ``scale`` (M = s I), ``s
 ``folds`` segments in time, each candidate fitted on the others and scored on the one held
 out, and the simplest candidate within 2 % of the best held-out RMS residual is kept.
 
-Motor source (``motor_source = "auto"``): the battery current when only it is logged and
-separable, the throttle (the table's ``throttle`` flight stream: ArduCopter ``CTUN.ThO``, PX4's
-thrust setpoint) when only it is, and when both are: the static model is chosen with the
-current, then the throttle is scored with that model on the same held-out segments and replaces
-the current only when its held-out RMS residual is more than 2 % lower (the current is the
-physical cause; the throttle is its proxy, kept only when the data say it explains the field
-better, e.g. a current sensor that does not see the motors' wiring). A throttle term without a
-usable current (``motor = "auto"``) is also scored against no motor term on the same segments
-and, as a model term, kept only when it lowers the held-out residual by more than 2 % (a flying
-copter's throttle always varies, so its range alone does not show that the compass follows it).
+Motor source (``motor_source = "auto"``): the battery current when it is logged and
+separable, else the throttle (the table's ``throttle`` flight stream: ArduCopter ``CTUN.ThO``,
+PX4's thrust setpoint). The choice depends only on the vehicle's current and attitude, not on
+the compass, so every compass of one log gets the same kind: a vehicle has one
+``COMPASS_MOTCT`` (one ``CAL_MAG_COMP_TYP``) for all its compasses, and a per-ampere
+``COMPASS_MOT2`` under a throttle ``COMPASS_MOTCT`` is wrong by the ratio of the two signals
+(the current is the physical cause; ask for ``motor_source = "throttle"`` for a current sensor
+that does not see the motors' wiring). With ``motor = "auto"`` the motor term is then scored
+against none on the same held-out segments and kept only when it lowers the held-out residual
+(the throttle, a proxy, by more than 2 %: a flying copter's throttle always varies, so its
+range alone does not show that the compass follows it); a compass left without it gets no
+``MOT``. A term of the kind the vehicle already had switched on (``COMPASS_MOTCT``,
+``CAL_MAG_COMP_TYP``: :attr:`FlightSamples.compensated`) is kept without that test: the file
+replaces the vehicle's term, which stays on either way.
 
 Frames: the fit runs in the body frame. A raw PX4 ``sensor_mag`` is in the compass's own axes,
 which PX4 turns into the body after its calibration (``R``: ``CAL_MAGn_ROT`` or
@@ -250,6 +254,14 @@ def held_out_rms(
     return float(np.sqrt(sq / max(cnt, 1)))
 
 
+def as_flown(before: np.ndarray) -> float:
+    """RMS of the vector residuals ``before`` (as flown: no fit, nothing held out), beyond 5
+    medians left out as :func:`held_out_rms` leaves them out: the figure a held-out residual
+    must be below for the fit to help."""
+    r = before[before <= np.median(before) * 5 + 1e-300]
+    return float(np.sqrt(np.mean(r**2)))
+
+
 def heading_deg(q: np.ndarray, body: np.ndarray) -> np.ndarray:
     """Heading (deg from north, NED) of body-frame fields rotated into NED by ``q``."""
     ned = rotate(q, body)
@@ -277,6 +289,9 @@ class FlightSamples:
     current: np.ndarray | None
     throttle: np.ndarray | None = None
     rotation: np.ndarray | None = None
+    compensated: str | None = None
+    """The motor compensation the vehicle had switched on while logging (``"current"``,
+    ``"throttle"``: ArduPilot ``COMPASS_MOTCT`` 2/1, PX4 ``CAL_MAG_COMP_TYP`` 2/1), None."""
 
     def power(self, source: str | None) -> np.ndarray | None:
         """The motor power signal of ``source`` (``"current"``, ``"throttle"``; None: none)."""
@@ -317,6 +332,9 @@ def flight_samples(table: pa.Table, mag: SensorData, year: float) -> FlightSampl
         raw = raw @ turn.T
     q = interpolate(att.t_ns, continuous(att.values), t_ns)
     q /= np.linalg.norm(q, axis=1, keepdims=True)
+    trim = attitude_trim(table)
+    if trim is not None:  # the vehicle body's attitude -> the board's, where MAG is
+        q = turn_by(q, trim)
     lla = interpolate(pos.t_ns, pos.values, t_ns)
     ned = earth_field(lla[:, 0], lla[:, 1], lla[:, 2], year)
     power: dict[str, np.ndarray | None] = {}
@@ -326,8 +344,26 @@ def flight_samples(table: pa.Table, mag: SensorData, year: float) -> FlightSampl
             sig = flight_stream(table, stream)
             power[stream] = interpolate(sig.t_ns, sig.values[:, 0], t_ns)
     return FlightSamples(
-        t_ns, raw, q, ned, rotate(q, ned, inverse=True), power["current"], power["throttle"], turn
+        t_ns,
+        raw,
+        q,
+        ned,
+        rotate(q, ned, inverse=True),
+        power["current"],
+        power["throttle"],
+        turn,
+        vehicle_compensation(table),
     )
+
+
+def vehicle_compensation(table: pa.Table) -> str | None:
+    """The motor compensation switched on in the log's parameters (:attr:`FlightSamples.
+    compensated`)."""
+    meta = metadata(table)
+    ap = (meta.get("ardupilot") or {}).get("parameters") or {}
+    px4 = (meta.get("px4") or {}).get("parameters") or {}
+    kind = ap.get("COMPASS_MOTCT") if ap else px4.get("CAL_MAG_COMP_TYP")
+    return {1: "throttle", 2: "current"}.get(int(kind or 0))
 
 
 class CannotSeparate(ValueError):
@@ -356,6 +392,45 @@ class FlownFit:
     after: np.ndarray
     h_before: np.ndarray
     h_after: np.ndarray
+
+
+SCALE_RANGE = (1 / 1.5, 1.5)
+"""The common scale of the soft iron ArduPilot applies (``COMPASS_SCALE``:
+``Compass::have_scale_factor``, ``COMPASS_MIN/MAX_SCALE_FACTOR``; MagFit bounds it 0.6..1.5)."""
+DIAGONAL_RANGE = (0.8, 1.2)
+"""The soft iron's diagonal over its common scale (``COMPASS_DIA``): MagFit's bounds
+(``magfit_WMM.py --min-diag/--max-diag``); ArduPilot's own calibrator refuses beyond 0.2..5
+(``CompassCalibrator::fit_acceptable``), a physical compass stays well inside 0.8..1.2."""
+OFF_DIAGONAL_MAX = 0.2
+"""The soft iron's off-diagonal over its common scale (``COMPASS_ODI``): MagFit's bound
+(``--min-offdiag/--max-offdiag``; the calibrator's is 1)."""
+
+
+def out_of_range(matrix: np.ndarray) -> str:
+    """Why the soft-iron ``matrix`` M has no plausible ArduPilot form (empty when it has): M
+    as ``COMPASS_SCALE`` (its mean diagonal) times ``DIA``/``ODI`` (as MagFit normalises it),
+    each inside :data:`SCALE_RANGE`, :data:`DIAGONAL_RANGE`, :data:`OFF_DIAGONAL_MAX`."""
+    scale = float(np.mean(np.diag(matrix)))
+    if not SCALE_RANGE[0] <= scale <= SCALE_RANGE[1]:
+        return (
+            f"scale {scale:.3f} outside {SCALE_RANGE[0]:.3f}..{SCALE_RANGE[1]:g} "
+            "(COMPASS_SCALE; a compass this far off is broken or mis-configured)"
+        )
+    rel = matrix / scale
+    diag = np.diag(rel)
+    off = rel[np.triu_indices(3, 1)]
+    if np.any(diag < DIAGONAL_RANGE[0]) or np.any(diag > DIAGONAL_RANGE[1]):
+        return (
+            f"soft-iron diagonal {np.round(diag, 3).tolist()} outside "
+            f"{DIAGONAL_RANGE[0]:g}..{DIAGONAL_RANGE[1]:g} (COMPASS_DIA over COMPASS_SCALE "
+            f"{scale:.3f})"
+        )
+    if np.any(np.abs(off) > OFF_DIAGONAL_MAX):
+        return (
+            f"soft-iron off-diagonal {np.round(off, 3).tolist()} outside +-{OFF_DIAGONAL_MAX:g} "
+            f"(COMPASS_ODI over COMPASS_SCALE {scale:.3f})"
+        )
+    return ""
 
 
 def coverage_of(q: np.ndarray, target: np.ndarray) -> dict[str, Any]:
@@ -451,36 +526,37 @@ def fit_flight(fs: FlightSamples, o: Any) -> FlownFit:  # noqa: C901
     segments = np.array_split(np.arange(len(raw)), o.folds)
     for model in candidates:
         try:
+            whole = fit_model(raw, target, power, model, o.huber_k, o.outlier_k)
             held[model] = held_out_rms(raw, target, power, model, segments, o)
         except np.linalg.LinAlgError:
             continue
+        wrong = out_of_range(whole.matrix)
+        if wrong:
+            del held[model]
+            reasons.append(f"{model}: {wrong}")
+            if o.model != "auto":
+                raise CannotSeparate(f"{model}: {wrong}")
+            warnings.append(f"not fitted: {model}: {wrong}")
     if not held:
         raise CannotSeparate("every candidate model is singular on this flight")
     best = min(held.values())
     chosen = next(m for m in candidates if m in held and held[m] <= best * 1.02)
 
-    # -- motor source on the same segments -----------------------------------------------
+    # -- the motor term: kept only when it lowers the held-out residual ---------------------
     held_source: dict[str, float] = {}
-    if source is not None and len(usable) > 1:
+    if source is not None and o.motor == "auto" and source != fs.compensated:
         held_source[source] = held[chosen]
-        for other in usable[1:]:
-            try:
-                held_source[other] = held_out_rms(raw, target, fs.power(other), chosen, segments, o)
-            except np.linalg.LinAlgError:
-                continue
-            if held_source[other] < held_source[source] * (1 - 0.02):
-                source = other
-        power = fs.power(source)
-    elif source == "throttle" and o.motor == "auto":  # a proxy: kept only when it helps
-        held_source["throttle"] = held[chosen]
         try:
             held_source["none"] = held_out_rms(raw, target, None, chosen, segments, o)
         except np.linalg.LinAlgError:
             held_source["none"] = np.inf
-        if held_source["throttle"] >= held_source["none"] * (1 - 0.02):
+        margin = 0.02 if source == "throttle" else 0.0  # the throttle is a proxy: 2 %
+        if held_source[source] >= held_source["none"] * (1 - margin):
             reasons.append(
-                "motor: a throttle term does not lower the held-out residual by 2 % "
-                f"({held_source['throttle'] * UT:.3g} uT with it, "
+                f"motor: a {source} term does not lower the held-out residual"
+                + (" by 2 %" if margin else "")
+                + " "
+                f"({held_source[source] * UT:.3g} uT with it, "
                 f"{held_source['none'] * UT:.3g} uT without)"
             )
             warnings.append("not fitted: " + reasons[-1])
@@ -502,6 +578,7 @@ def fit_flight(fs: FlightSamples, o: Any) -> FlownFit:  # noqa: C901
         "heading_rms_deg_before": float(np.sqrt(np.mean(h_before**2))),
         "heading_rms_deg_after": float(np.sqrt(np.mean(h_after**2))),
         "held_out_rms_ut": {m: v * ut for m, v in held.items()},
+        "held_out_rms_ut_as_flown": as_flown(before) * ut,
         **(
             {"held_out_rms_ut_motor_source": {k: v * ut for k, v in held_source.items()}}
             if held_source
@@ -617,6 +694,39 @@ def sensor_rotation(table: pa.Table) -> np.ndarray | None:
     return None if np.allclose(m, np.eye(3), atol=1e-12) else m
 
 
+def turn_by(q: np.ndarray, trim: tuple[float, float]) -> np.ndarray:
+    """``q (x) q_y(trim[1]) q_x(trim[0])``: attitudes (n, 4; w, x, y, z; body -> NED) followed
+    by the body-fixed turn of roll ``trim[0]`` and pitch ``trim[1]`` (rad), yaw 0."""
+    cr, sr = np.cos(trim[0] / 2), np.sin(trim[0] / 2)
+    cp, sp = np.cos(trim[1] / 2), np.sin(trim[1] / 2)
+    bw, bx, by, bz = cr * cp, sr * cp, cr * sp, -sr * sp
+    aw, ax, ay, az = q.T
+    return np.column_stack(
+        [
+            aw * bw - ax * bx - ay * by - az * bz,
+            aw * bx + ax * bw + ay * bz - az * by,
+            aw * by - ax * bz + ay * bw + az * bx,
+            aw * bz + ax * by - ay * bx + az * bw,
+        ]
+    )
+
+
+def attitude_trim(table: pa.Table) -> tuple[float, float] | None:
+    """ArduPilot's ``AHRS_TRIM_X``/``_Y`` (rad) of the log, or None when absent or zero.
+
+    ArduPilot logs the vehicle body's attitude (``ATT``; the EKFs' ``NKF1``/``XKF1`` Euler
+    angles have the trim subtracted too), while its compass and IMU are in the autopilot
+    board's frame (already turned by ``AHRS_ORIENTATION`` and ``COMPASS_ORIENT``, so those
+    need nothing more): ``AP_AHRS`` builds ``_rotation_autopilot_body_to_vehicle_body =
+    from_euler(trim.x, trim.y, 0)`` and ``body_dcm = dcm * (that)^T``, so the board's attitude
+    is ``R_board = R_att from_euler(trim.x, trim.y, 0)`` (``AHRS_TRIM_Z`` is not used). MagFit
+    (``magfit_WMM.py``) adds the trims to the logged roll and pitch for the same reason. A
+    trim of 2 deg left out tilts the expected field by 2 deg: ~17 mG of a 500 mG field."""
+    params = (metadata(table).get("ardupilot") or {}).get("parameters") or {}
+    trim = (float(params.get("AHRS_TRIM_X") or 0.0), float(params.get("AHRS_TRIM_Y") or 0.0))
+    return trim if any(trim) else None
+
+
 def _compass_parameters(table: pa.Table) -> dict[str, float]:
     """The compass parameters (``COMPASS_*``) a log was recorded under (an ArduPilot log's)."""
     params = (metadata(table).get("ardupilot") or {}).get("parameters") or {}
@@ -672,10 +782,17 @@ class MagInflightStage(Stage):
         if not has_stream(table, "mag"):
             missing.insert(0, "magnetometer")
         if missing:
+            seen = metadata(table).get("mag_candidates") or []
+            which = (
+                f"; it has several compasses ({', '.join(seen)}) and read none: set mag_topic, "
+                'or instances = "all" on the input to fit each'
+                if seen and missing[0] == "magnetometer"
+                else ""
+            )
             raise ctx.fail(
                 f"{where} has no " + ", ".join(missing) + " (an in-flight compass fit needs the "
                 "magnetometer, the attitude and a GPS position: DataFlash MAG, ATT, GPS; ULog "
-                "sensor_mag, vehicle_attitude, vehicle_gps_position)"
+                f"sensor_mag, vehicle_attitude, vehicle_gps_position){which}"
             )
         mag = ctx.finite(sensor(table, "mag"), f"magnetometer of {where}", minimum=50)
         year = o.year if o.year is not None else metadata(table).get("gps_year")
@@ -739,6 +856,7 @@ class MagInflightStage(Stage):
             power["current"],
             power["throttle"],
             turn,
+            parts[0].compensated,  # one calibration: the flights' compass parameters agree
         )
         return joined, counts
 
@@ -767,6 +885,25 @@ class MagInflightStage(Stage):
                 }
                 for name, a, b in zip(names, cuts[:-1], cuts[1:], strict=True)
             }
+        field_ut = metrics["field_ut"]
+        ctx.check(
+            float(np.linalg.norm(fit.offset)) * ut <= field_ut,
+            f"offsets {np.linalg.norm(fit.offset) * ut:.1f} uT exceed the Earth's field "
+            f"{field_ut:.1f} uT (a compass's own hard iron is smaller; is the attitude, the "
+            "compass or the flight's GPS span wrong?)",
+        )
+        held_fit = metrics["held_out_rms_ut"][chosen]
+        ctx.check(
+            held_fit < metrics["held_out_rms_ut_as_flown"],
+            f"held-out residual {held_fit:.2f} uT not below as flown "
+            f"{metrics['held_out_rms_ut_as_flown']:.2f} uT (the fit does not help on data it "
+            "did not see)",
+        )
+        ctx.check(
+            metrics["heading_rms_deg_after"] <= metrics["heading_rms_deg_before"],
+            f"heading error {metrics['heading_rms_deg_after']:.2f} deg RMS after, above "
+            f"{metrics['heading_rms_deg_before']:.2f} deg as flown",
+        )
         ctx.check(
             metrics["residual_rms_ut_after"] <= o.max_residual_ut,
             f"residual {metrics['residual_rms_ut_after']:.2f} uT > max_residual_ut "
