@@ -221,7 +221,7 @@ def survey_topic(
         if floor.n < 3:
             warnings.append(f"{where}: too few samples: not surveyed")
             return None
-        if rate is None or floor.n < max(int(round(opts.window_s * rate)), 3):
+        if rate is None or floor.n < Rule.at(opts, rate).window:
             return Surveyed(
                 _empty(opts), None if steps is None else _empty(opts), _frame(meta), reads
             )
