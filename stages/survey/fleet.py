@@ -591,46 +591,61 @@ def inlog_steps(histories: Sequence[DeviceHistory], k: float) -> dict[str, float
 def _walk_scales(histories: Sequence[DeviceHistory], name: str) -> tuple[float, float]:
     """(sigma_w, q): the fleet's log-to-log scatter of a figure beyond the logs' own errors, as a
     white part ``sigma_w`` (turn-on repeatability, unit) and a random walk ``q`` (unit per
-    sqrt(day)), from every pair of logs of a device about the device's Theil-Sen line: the excess
-    scale (:func:`excess_scale`) of pairs less and more than a week apart, ``s^2 = 2 sigma_w^2 +
-    q^2 dt``."""
-    short: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+    sqrt(day)), from every pair of logs of a device, less the fleet's median drift (a device's
+    own slope would take a walk for a drift): the excess scale (:func:`excess_scale`) of the
+    pairs closer and farther apart than their median interval, ``s^2 = 2 sigma_w^2 + q^2 dt``
+    solved for both (all of it a walk when the intervals do not differ: the cautious reading)."""
+    slopes = [theil_sen(h.day, h.steady[name]) for h in histories]
+    finite = [v for v in slopes if np.isfinite(v)]
+    med = float(np.median(finite)) if finite else 0.0
+    parts: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
     for h in histories:
         f, se, t = h.steady[name], h.se[name], h.day
         ok = np.isfinite(f) & np.isfinite(se)
-        if ok.sum() < 3:
+        if ok.sum() < 2:
             continue
         f, se, t = f[ok], se[ok], t[ok]
-        slope = theil_sen(t, f)
-        r = f - slope * t
+        r = f - med * t
         i, j = np.triu_indices(len(f), 1)
-        short.append((r[j] - r[i], se[i] ** 2 + se[j] ** 2, t[j] - t[i]))
-    if not short:
+        parts.append((r[j] - r[i], se[i] ** 2 + se[j] ** 2, t[j] - t[i]))
+    if not parts:
         return float("nan"), float("nan")
-    d, var, dt = (np.concatenate([x[n] for x in short]) for n in range(3))
-    near = dt < 7.0
-    if near.sum() < 3 or (~near).sum() < 3:
+    d, var, dt = (np.concatenate([x[n] for x in parts]) for n in range(3))
+    near = dt <= np.median(dt)
+    t1 = float(np.mean(dt[near])) if near.any() else 0.0
+    t2 = float(np.mean(dt[~near])) if (~near).any() else 0.0
+    if near.sum() < 3 or (~near).sum() < 3 or not t2 > 1.5 * t1:
         s = excess_scale(d, var)
-        return s / np.sqrt(2.0), 0.0
+        return 0.0, float(s / np.sqrt(max(float(np.mean(dt)), 1e-9)))
     s1, s2 = excess_scale(d[near], var[near]), excess_scale(d[~near], var[~near])
-    t1, t2 = float(np.mean(dt[near])), float(np.mean(dt[~near]))
     q2 = max((s2**2 - s1**2) / (t2 - t1), 0.0)
     w2 = max(s1**2 - q2 * t1, 0.0) / 2.0
     return float(np.sqrt(w2)), float(np.sqrt(q2))
 
 
 def drift_gls(
-    day: np.ndarray, f: np.ndarray, se: np.ndarray, sigma_w: float, q: float
+    day: np.ndarray,
+    f: np.ndarray,
+    se: np.ndarray,
+    sigma_w: float,
+    q: float,
+    dtemp: np.ndarray | None = None,
+    slope_se: float = 0.0,
 ) -> tuple[float, float]:
     """The drift (unit/day) of one device's per-log figure and its standard error: generalised
     least squares of ``f = a + b day`` with the covariance ``diag(se^2 + sigma_w^2) + q^2
-    min(day_i, day_j)`` (days from the first log: a random walk from it); NaN with fewer than
-    three logs."""
+    min(day_i, day_j) + slope_se^2 dT_i dT_j`` (days from the first log: a random walk from it;
+    ``dT``: each log's temperature less the reference the figures are referred to, whose slope's
+    error is common to all logs); the error scaled by ``sqrt(chi2 / dof)`` when the logs scatter
+    more than the model says. NaN with fewer than three logs."""
     ok = np.isfinite(f) & np.isfinite(se)
     if ok.sum() < 3:
         return float("nan"), float("nan")
     t, y = day[ok] - day[ok][0], f[ok]
     cov = np.diag(se[ok] ** 2 + sigma_w**2) + q**2 * np.minimum.outer(t, t)
+    if dtemp is not None and np.isfinite(slope_se):
+        d = np.nan_to_num(dtemp[ok])
+        cov += slope_se**2 * np.outer(d, d)
     x = np.column_stack([np.ones(len(t)), t])
     ci = np.linalg.pinv(cov)
     info = x.T @ ci @ x
@@ -638,7 +653,9 @@ def drift_gls(
         return float("nan"), float("nan")
     inv = np.linalg.inv(info)
     beta = inv @ x.T @ ci @ y
-    return float(beta[1]), float(np.sqrt(inv[1, 1]))
+    r = y - x @ beta
+    birge = float(r @ ci @ r) / max(len(y) - 2, 1)
+    return float(beta[1]), float(np.sqrt(inv[1, 1] * max(birge, 1.0)))
 
 
 def drift_onset(day: np.ndarray, f: np.ndarray, w: np.ndarray, k: float) -> int:
@@ -712,7 +729,18 @@ def fleet_flags(histories: Sequence[DeviceHistory], k: float) -> dict[str, Any]:
     for name in FIGURES:
         sw, q = (float(np.nan_to_num(v)) for v in _walk_scales(histories, name))
         scales[f"{name}_turn_on"], scales[f"{name}_walk_per_sqrt_day"] = sw, q
-        fits = [drift_gls(h.day, h.steady[name], h.se[name], sw, q) for h in histories]
+        fits = [
+            drift_gls(
+                h.day,
+                h.steady[name],
+                h.se[name],
+                sw,
+                q,
+                h.fits[name].temperature - h.t_ref,
+                float(np.nan_to_num(h.fits[name].slope_se)),
+            )
+            for h in histories
+        ]
         slopes = np.array([b for b, _ in fits])
         finite = slopes[np.isfinite(slopes)]
         med = float(np.median(finite)) if len(finite) else float("nan")
