@@ -93,9 +93,7 @@ def _gauss_markov(rng: np.random.Generator, n: int, dt: float, tau: float, sd: f
     return np.repeat(lfilter([1.0], [1.0, -a], w, axis=0), per, axis=0)[:n]
 
 
-def _segments(
-    rng: np.random.Generator, moving_throughout: bool
-) -> list[tuple[str, float]]:
+def _segments(rng: np.random.Generator, moving_throughout: bool) -> list[tuple[str, float]]:
     """(kind, seconds): still periods of 20-120 s between 1-3 min of motion."""
     if moving_throughout:
         return [("flight", rng.uniform(300, 480))]
@@ -189,7 +187,11 @@ def _log(
     )
     abias = dev.accel_bias + turn_on[1] + _gauss_markov(rng, n, dt, 300.0, 2e-3)
     if "crash_at" in plant:  # a step inside the log, in the middle of a motion segment
-        moving = [(i0, i1) for (kind, _), i0, i1 in zip(segs, edges[:-1], edges[1:], strict=True) if kind != "still"]
+        moving = [
+            (i0, i1)
+            for (kind, _), i0, i1 in zip(segs, edges[:-1], edges[1:], strict=True)
+            if kind != "still"
+        ]
         i0, i1 = moving[min(int(plant["crash_at"] * len(moving)), len(moving) - 1)]
         k = (i0 + i1) // 2
         plant["crash_index"] = k
@@ -229,7 +231,9 @@ def make_fleet(seed: int, plants: tuple[str, ...] = ()) -> tuple[list[Log], list
     logs: list[Log] = []
     events: list[dict[str, Any]] = []
     flight_veh, lowrate_veh, cut_veh, notemp_veh = rng.choice(n_veh, 4, replace=False)
-    planted = dict(zip(rng.permutation(n_veh)[: len(plants)], plants, strict=False))
+    # the thermal plant on a vehicle that logs its temperature (without it, nothing to refer to)
+    hosts = [v for v in rng.permutation(n_veh) if v != notemp_veh]
+    planted = dict(zip(hosts[: len(plants)], plants, strict=False))
     for v in range(n_veh):
         name = f"veh{v:02d}"
         dev = Device(
@@ -246,7 +250,9 @@ def make_fleet(seed: int, plants: tuple[str, ...] = ()) -> tuple[list[Log], list
             dev.gyro_thermal = dev.gyro_thermal + np.array([0.0, 0.0, 5e-5])
         days = np.sort(rng.uniform(0, 35, 8))
         days[0], days[-1] = rng.uniform(0, 1), rng.uniform(34, 35)
-        walk_g = np.cumsum(rng.normal(0, 2e-5, (8, 3)) * np.sqrt(np.diff(np.r_[0, days]))[:, None], 0)
+        walk_g = np.cumsum(
+            rng.normal(0, 2e-5, (8, 3)) * np.sqrt(np.diff(np.r_[0, days]))[:, None], 0
+        )
         j_plant = int(rng.integers(3, 6))
         flight_log = int(rng.integers(1, 7)) if v == flight_veh else -1
         cut_log = int(rng.integers(0, 8)) if v == cut_veh else -1
@@ -348,7 +354,10 @@ def caught(event: dict[str, Any], flags: list[dict[str, Any]]) -> bool:
     if kind == "noise":
         return ("noise", "gyro_noise", log) in got and ("noise", "accel_noise", log) in got
     if kind == "accel_z":
-        return any(f[0] == "step" and f[1] in ("accel_norm_error", "accel_bias_z") and f[2] == log for f in got)
+        return any(
+            f[0] == "step" and f[1] in ("accel_norm_error", "accel_bias_z") and f[2] == log
+            for f in got
+        )
     if kind == "thermal":
         return not flags
     raise ValueError(kind)
@@ -394,7 +403,9 @@ def main() -> None:
                 if len(examples) < 8:
                     examples.append(f"seed {seed} {d['device_id']}: {f['why']}")
     n_false = sum(flagged.values())
-    print(f"clean fleets {args.clean}: {devices} devices, {n_false} flags, {time.perf_counter() - t:.0f} s")
+    print(
+        f"clean fleets {args.clean}: {devices} devices, {n_false} flags, {time.perf_counter() - t:.0f} s"
+    )
     for key, n in sorted(flagged.items()):
         print(f"   {key}: {n}")
     for e in examples:
@@ -436,7 +447,10 @@ def _unmatched(table: Any, logs: list[Log]) -> int:
     for r in table.to_pylist():
         if r["topic"] != "/imu/data":
             continue
-        if not any(r["start_ns"] >= a - 1.5e9 and r["stop_ns"] <= b + 1.5e9 for a, b in spans[(r["log"], r["topic"])]):
+        if not any(
+            r["start_ns"] >= a - 1.5e9 and r["stop_ns"] <= b + 1.5e9
+            for a, b in spans[(r["log"], r["topic"])]
+        ):
             n += 1
     return n
 

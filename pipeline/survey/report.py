@@ -28,6 +28,7 @@ import pyarrow as pa
 from imupipe.pipeline.report.figures import Plot, Series, colors_for
 from imupipe.pipeline.report.svg_plot import svg
 from imupipe.stages.survey.fleet import FIGURES, DeviceHistory, device_history, fleet_flags
+from imupipe.stages.survey.stats import StillOptions
 
 if TYPE_CHECKING:
     from imupipe.pipeline.survey.chamber import Chambers
@@ -78,7 +79,9 @@ def _prefix(table: pa.Table) -> str:
 
 
 def histories(table: pa.Table) -> list[DeviceHistory]:
-    """Each device's per-log history (see :func:`device_history`)."""
+    """Each device's per-log history (see :func:`device_history`); the devices with candidates
+    but no still period go to the cache's ``unstill`` (device -> its logs)."""
+    _cached(table)["unstill"] = {}
     p = _prefix(table)
     devices = _col(table, "device_id", str)
     start = _col(table, "start_ns", np.int64)
@@ -101,23 +104,27 @@ def histories(table: pa.Table) -> list[DeviceHistory]:
         s: np.mean([_col(table, f"{p}{s}_noise_{a}", np.float64) for a in "xyz"], axis=0)
         for s in ("gyro", "accel")
     }
+    with np.errstate(invalid="ignore", divide="ignore"):  # the sensor's rate, Hz
+        rate = _col(table, "samples", np.float64) / _col(table, "duration_s", np.float64)
+    at_tau = rate * StillOptions().tau_s >= 1.0
     out = []
     for dev in sorted(set(devices)):
         rows = _rows(table, dev)
         h = device_history(
-                dev,
-                log[rows],
-                start[rows],
-                temp[rows],
-                {f: v[rows] for f, v in values.items()},
-                {f: v[rows] for f, v in se.items()},
-                {s: v[rows] for s, v in noise.items()},
-                t0,
-                accel[rows],
-                level[rows],
-            )
+            dev,
+            log[rows],
+            start[rows],
+            temp[rows],
+            {f: v[rows] for f, v in values.items()},
+            {f: v[rows] for f, v in se.items()},
+            {s: v[rows] for s, v in noise.items()},
+            t0,
+            accel[rows],
+            level[rows],
+            at_tau[rows],
+        )
         if h is None:  # candidates, none of them still
-            _cached(table).setdefault("unstill", {})[dev] = sorted(set(log[rows]))
+            _cached(table)["unstill"][dev] = sorted(set(log[rows]))
             continue
         out.append(h)
     return out
@@ -283,10 +290,26 @@ def _not_still_lines(fleet: dict[str, Any]) -> list[str]:
             )
     for dev, logs in (fleet.get("devices_without_still_period") or {}).items():
         lines.append(
-            f"  {dev}: no still period in any log ({', '.join(logs)}): quiet stretches only, "
-            "none near a still sensor's noise"
+            f"  {dev}: no still period in {', '.join(logs)}: its quiet stretches are noisier "
+            "than a still MEMS IMU (vibration, not stillness)"
         )
     return lines
+
+
+def still_column(table: pa.Table, fleet: dict[str, Any]) -> pa.Table:
+    """The dataset with ``still``: False for a candidate period the fleet view judged not still
+    (:func:`~imupipe.stages.survey.fleet.still_judged`), True for the others."""
+    device = _col(table, "device_id", str)
+    start = _col(table, "start_ns", np.int64)
+    out = np.ones(table.num_rows, bool)
+    out[np.isin(device, list(fleet.get("devices_without_still_period") or {}))] = False
+    for d in fleet.get("devices") or []:
+        rejected = [r["start_ns"] for r in d.get("not_still") or []]
+        if rejected:
+            out[(device == d["device_id"]) & np.isin(start, rejected)] = False
+    if "still" in table.column_names:
+        table = table.drop_columns(["still"])
+    return table.append_column("still", pa.array(out, pa.bool_()))
 
 
 def _power_line(fleet: dict[str, Any]) -> list[str]:

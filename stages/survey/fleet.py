@@ -287,10 +287,21 @@ STILL_NOISE_RATIO = 5.0
 device's noise floor (:func:`still_judged`) is vibration, not stillness."""
 FLOOR_QUANTILE = 0.25
 """The device's noise floor: this quantile over its logs of each log's quietest period."""
+STILL_NOISE_CEILING = {"gyro": 1.75e-3, "accel": 0.039}
+"""The most white noise (rad/s/sqrt(Hz), m/s^2/sqrt(Hz)) a still MEMS IMU shows: 0.1 deg/s/sqrt(Hz)
+and 4 mg/sqrt(Hz), three to ten times the noisiest parts' datasheets (InvenSense MPU-6000
+0.005 deg/s/sqrt(Hz) and 400 ug/sqrt(Hz); ST L3GD20 0.03 deg/s/sqrt(Hz); Analog Devices ADXL345
+about 400 ug/sqrt(Hz); Bosch BMI088 0.014 deg/s/sqrt(Hz) and 175 ug/sqrt(Hz)). It judges a device
+with one log, or only flights, where the device's own floor is its vibration (a quadcopter's
+airframe: 0.01-0.02 rad/s/sqrt(Hz)); applied where the density is measured at ``tau_s`` (a rate
+of at least ``1 / tau_s``: a slower topic's samples alias the sensor's whole band)."""
 
 
 def still_judged(
-    log_index: np.ndarray, noise: Mapping[str, np.ndarray], ratio: float = STILL_NOISE_RATIO
+    log_index: np.ndarray,
+    noise: Mapping[str, np.ndarray],
+    ratio: float = STILL_NOISE_RATIO,
+    at_tau: np.ndarray | None = None,
 ) -> tuple[np.ndarray, dict[str, float], dict[str, np.ndarray]]:
     """Which candidate periods of one device are still: a log's own noise floor cannot tell (in
     a log in motion throughout, its quietest stretch is the airframe's vibration), the device's
@@ -299,11 +310,14 @@ def still_judged(
     noise (a still sensor's density is its own: a vibrating airframe's is tens to thousands of
     times more; a noise change of a few times, a loose mount, stays below ``ratio``); a period
     is still when both densities lie within ``ratio`` times their floors (a NaN density does not
-    judge). Returns (still mask, floors, each period's ratio per sensor)."""
+    judge) and, where ``at_tau`` (m,) says the density is measured at ``tau_s``, below
+    :data:`STILL_NOISE_CEILING`. Returns (still mask, floors, each period's ratio per sensor)."""
     keep = np.ones(len(log_index), bool)
     floors: dict[str, float] = {}
     ratios: dict[str, np.ndarray] = {}
     for sensor, v in noise.items():
+        if at_tau is not None and sensor in STILL_NOISE_CEILING:
+            keep &= ~(at_tau & (v > STILL_NOISE_CEILING[sensor]))
         ok = np.isfinite(v) & (v > 0)
         least = [float(np.min(v[ok & (log_index == i)])) for i in np.unique(log_index[ok])]
         if not least:
@@ -326,6 +340,7 @@ def device_history(
     t0_ns: int,
     accel: np.ndarray | None = None,
     level: np.ndarray | None = None,
+    at_tau: np.ndarray | None = None,
 ) -> DeviceHistory | None:
     """Per-log figures of one device from its candidate periods (``values``/``se``: figure ->
     (m,); ``noise``: ``gyro``/``accel`` -> (m,) mean noise density of the axes): the periods
@@ -334,10 +349,11 @@ def device_history(
     fleet scale yet (:func:`fleet_flags` refers them again with it). ``accel`` (m, 3): each
     period's mean specific force, m/s^2; with it ``|a| - g`` is referred to the level attitude
     (:func:`attitude_term`, its error added to each period's); ``level`` (m,): the periods
-    ``|a| - g`` is taken from (default: all)."""
+    ``|a| - g`` is taken from (default: all); ``at_tau`` (m,): the periods whose noise density
+    is measured at ``tau_s`` (:func:`still_judged`)."""
     log = np.asarray(log).astype(str)
     all_logs, all_index = np.unique(log, return_inverse=True)
-    keep, floors, ratios = still_judged(all_index, noise)
+    keep, floors, ratios = still_judged(all_index, noise, at_tau=at_tau)
     rejected = [
         {
             "log": str(log[i]),
