@@ -104,9 +104,11 @@ def histories(table: pa.Table) -> list[DeviceHistory]:
         s: np.mean([_col(table, f"{p}{s}_noise_{a}", np.float64) for a in "xyz"], axis=0)
         for s in ("gyro", "accel")
     }
-    with np.errstate(invalid="ignore", divide="ignore"):  # the sensor's rate, Hz
-        rate = _col(table, "samples", np.float64) / _col(table, "duration_s", np.float64)
-    at_tau = rate * StillOptions().tau_s >= 1.0
+    at_tau = np.zeros(table.num_rows, bool)  # the densities measured at tau_s
+    if {"samples", "duration_s"} <= set(table.column_names):
+        with np.errstate(invalid="ignore", divide="ignore"):  # the sensor's rate, Hz
+            rate = _col(table, "samples", np.float64) / _col(table, "duration_s", np.float64)
+        at_tau = rate * StillOptions().tau_s >= 1.0
     out = []
     for dev in sorted(set(devices)):
         rows = _rows(table, dev)

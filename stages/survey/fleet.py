@@ -49,7 +49,7 @@ from typing import Any
 
 import numpy as np
 
-from imupipe.stages.survey.stats import mad_sigma, theil_sen, weighted_mean
+from imupipe.stages.survey.stats import mad_sigma, weighted_mean
 
 NOISE_FLOOR = 0.05
 """Smallest robust scale of a log's log-noise departure: 5 % (below it, a change is not
@@ -607,36 +607,55 @@ def inlog_steps(histories: Sequence[DeviceHistory], k: float) -> dict[str, float
 def _walk_scales(histories: Sequence[DeviceHistory], name: str) -> tuple[float, float]:
     """(sigma_w, q): the fleet's log-to-log scatter of a figure beyond the logs' own errors, as a
     white part ``sigma_w`` (turn-on repeatability, unit) and a random walk ``q`` (unit per
-    sqrt(day)), from every pair of logs of a device, less the fleet's median drift (a device's
-    own slope would take a walk for a drift): the excess scale (:func:`excess_scale`) of the
-    pairs closer and farther apart than their median interval, ``s^2 = 2 sigma_w^2 + q^2 dt``
-    solved for both (all of it a walk when the intervals do not differ: the cautious reading)."""
-    slopes = [theil_sen(h.day, h.steady[name]) for h in histories]
-    finite = [v for v in slopes if np.isfinite(v)]
-    med = float(np.median(finite)) if finite else 0.0
-    parts: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
+    sqrt(day)): the restricted maximum likelihood (REML; Patterson & Thompson 1971) of the
+    covariance of :func:`drift_gls` over every device at once, each with its own level and drift
+    (so a drifting device does not read as scatter), on a grid (0 and half-decade steps over four
+    decades about the fleet's consecutive-log change, then fifth-decade steps about the best)."""
+    series = []
     for h in histories:
-        f, se, t = h.steady[name], h.se[name], h.day
+        f, se = h.steady[name], h.se[name]
         ok = np.isfinite(f) & np.isfinite(se)
-        if ok.sum() < 2:
-            continue
-        f, se, t = f[ok], se[ok], t[ok]
-        r = f - med * t
-        i, j = np.triu_indices(len(f), 1)
-        parts.append((r[j] - r[i], se[i] ** 2 + se[j] ** 2, t[j] - t[i]))
-    if not parts:
+        if ok.sum() >= 3:
+            t = h.day[ok] - h.day[ok][0]
+            dtemp = np.nan_to_num((h.fits[name].temperature - h.t_ref)[ok])
+            slope_se = float(np.nan_to_num(h.fits[name].slope_se))
+            base = np.diag(se[ok] ** 2) + slope_se**2 * np.outer(dtemp, dtemp)
+            series.append((t, f[ok], base))
+    if not series:
         return float("nan"), float("nan")
-    d, var, dt = (np.concatenate([x[n] for x in parts]) for n in range(3))
-    near = dt <= np.median(dt)
-    t1 = float(np.mean(dt[near])) if near.any() else 0.0
-    t2 = float(np.mean(dt[~near])) if (~near).any() else 0.0
-    if near.sum() < 3 or (~near).sum() < 3 or not t2 > 1.5 * t1:
-        s = excess_scale(d, var)
-        return 0.0, float(s / np.sqrt(max(float(np.mean(dt)), 1e-9)))
-    s1, s2 = excess_scale(d[near], var[near]), excess_scale(d[~near], var[~near])
-    q2 = max((s2**2 - s1**2) / (t2 - t1), 0.0)
-    w2 = max(s1**2 - q2 * t1, 0.0) / 2.0
-    return float(np.sqrt(w2)), float(np.sqrt(q2))
+    diffs = np.concatenate([np.diff(y) for _, y, _ in series])
+    span = float(np.mean(np.concatenate([np.diff(t) for t, _, _ in series])))
+    ref = float(np.nan_to_num(mad_sigma(diffs))) or 1e-12
+
+    def loglik(w: float, q: float) -> float:
+        total = 0.0
+        for t, y, base in series:
+            cov = base + w**2 * np.eye(len(t)) + q**2 * np.minimum.outer(t, t)
+            sign, logdet = np.linalg.slogdet(cov)
+            if sign <= 0:
+                return -np.inf
+            ci = np.linalg.inv(cov)
+            x = np.column_stack([np.ones(len(t)), t])
+            info = x.T @ ci @ x
+            sign2, logdet2 = np.linalg.slogdet(info)
+            if sign2 <= 0:
+                continue
+            beta = np.linalg.solve(info, x.T @ ci @ y)
+            r = y - x @ beta
+            total -= 0.5 * (logdet + logdet2 + float(r @ ci @ r))
+        return total
+
+    q_ref = ref / np.sqrt(max(span, 1e-6))
+    coarse = np.r_[
+        0.0, np.logspace(-3, 1, 9)
+    ]  # half-decade steps, then a finer grid about the best
+    _, w0, q0 = max((loglik(ref * a, q_ref * b), a, b) for a in coarse for b in coarse)
+    fine = np.logspace(-0.5, 0.5, 5)
+    grid_w = [0.0] if w0 == 0 else w0 * fine
+    grid_q = [0.0] if q0 == 0 else q0 * fine
+    _, w, q = max((loglik(ref * a, q_ref * b), a, b) for a in grid_w for b in grid_q)
+    arg = (float(ref * w), float(q_ref * q))
+    return arg
 
 
 def drift_gls(
@@ -742,8 +761,11 @@ def fleet_flags(histories: Sequence[DeviceHistory], k: float) -> dict[str, Any]:
                     )
             h.steady[name] = steady
             h.moved[name] = float((f[-1] - f[0]) / base) if len(f) > 1 and base > 0 else 0.0
+    walks = {name: np.nan_to_num(_walk_scales(histories, name)) for name in FIGURES}
+    gyro = np.max([walks[f"gyro_bias_{a}"] for a in "xyz"], axis=0)
     for name in FIGURES:
-        sw, q = (float(np.nan_to_num(v)) for v in _walk_scales(histories, name))
+        # the gyro's three axes share one die: its turn-on and walk, the largest axis's for all
+        sw, q = (float(v) for v in (gyro if name.startswith("gyro") else walks[name]))
         scales[f"{name}_turn_on"], scales[f"{name}_walk_per_sqrt_day"] = sw, q
         fits = [
             drift_gls(
@@ -760,11 +782,16 @@ def fleet_flags(histories: Sequence[DeviceHistory], k: float) -> dict[str, Any]:
         slopes = np.array([b for b, _ in fits])
         finite = slopes[np.isfinite(slopes)]
         med = float(np.median(finite)) if len(finite) else float("nan")
+        # the devices' true drifts scatter beyond their errors (a random walk that looks like a
+        # drift over few logs): the fleet's excess scale of the slopes, a random effect
+        errs = np.array([e for _, e in fits])
+        tau = float(np.nan_to_num(excess_scale(slopes - med, errs**2)))
+        scales[f"{name}_drift_spread_per_day"] = tau
         # the median's own error: pi/2 times a mean's variance (large-sample)
         widen = np.sqrt(1.0 + np.pi / 2.0 / max(len(finite), 1))
         unit = UNITS[name]
         for h, (b, e) in zip(histories, fits, strict=True):
-            e *= widen
+            e = float(np.hypot(e, tau)) * widen
             h.drift[name] = b
             h.power[name] = float((k + POWER_Z) * e)
             if not (np.isfinite(b) and np.isfinite(med) and abs(b - med) > k * e):
