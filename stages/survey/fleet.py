@@ -282,6 +282,11 @@ def attitude_term(
     return beta[first:], cov[first:, first:]
 
 
+ACCEL_OFFSET_XY = 0.5
+"""m/s^2: the size of a MEMS accelerometer's x and y offsets where the survey cannot fit them
+(:func:`attitude_term` needs several periods): about 50 mg, the zero-g offset of consumer parts
+(InvenSense MPU-6000 +-50 mg on x and y; Bosch BMI088 +-20 mg); times a period's lean it is the
+error of taking ``|a| - g`` for the offset along gravity."""
 STILL_NOISE_RATIO = 5.0
 """A candidate still period whose gyro or accelerometer noise density exceeds this many times the
 device's noise floor (:func:`still_judged`) is vibration, not stillness."""
@@ -399,6 +404,9 @@ def device_history(
             b, cov = found
             norm = norm - u[:, :2] @ b
             norm_se = np.sqrt(norm_se**2 + np.einsum("mi,ij,mj->m", u[:, :2], cov, u[:, :2]))
+        else:  # too few periods to fit it: the offsets' typical size times the lean
+            lean = np.linalg.norm(u[:, :2], axis=1) * ACCEL_OFFSET_XY
+            norm_se = np.sqrt(norm_se**2 + lean**2)
     if level is not None:
         norm_se = np.where(level, norm_se, np.nan)
     values["accel_norm_error"], se["accel_norm_error"] = norm, norm_se
