@@ -248,8 +248,7 @@ def make_fleet(seed: int, plants: tuple[str, ...] = ()) -> tuple[list[Log], list
         plant = planted.get(v)
         if plant == "thermal":
             dev.gyro_thermal = dev.gyro_thermal + np.array([0.0, 0.0, 5e-5])
-        days = np.sort(rng.uniform(0, 35, 8))
-        days[0], days[-1] = rng.uniform(0, 1), rng.uniform(34, 35)
+        days = np.sort(np.r_[rng.uniform(0, 1), rng.uniform(1, 34, 6), rng.uniform(34, 35)])
         walk_g = np.cumsum(
             rng.normal(0, 2e-5, (8, 3)) * np.sqrt(np.diff(np.r_[0, days]))[:, None], 0
         )
