@@ -120,3 +120,28 @@ def test_temperature_not_logged_is_null():
     assert _temperature(make_table(t, **imu, temperature=np.zeros(5))) is None
     got = _temperature(make_table(t, **imu, temperature=np.array([0.0, 0.0, 0.01, 0.0, -0.01])))
     assert got is not None and len(got[1]) == 5
+
+
+def test_real_flight_vibration_is_not_stillness(tmp_path):
+    """spark404_utrecht (ArduPilot, IMU and IMU2 at 25 Hz, a flight): its quiet stretches are a
+    vibrating airframe (gyro noise 0.013-0.022 rad/s/sqrt(Hz), in-period SD 0.045-0.09 rad/s)
+    and none is taken for a still period; IMU2's temperature field is 0 throughout: null."""
+    import pyarrow.parquet as pq
+
+    from conftest import shared_path
+    from imupipe.pipeline.survey.report import summary_lines
+    from imupipe.pipeline.survey.scan import survey
+
+    path = shared_path("logs", "ardupilot_flights", "spark404_utrecht", "log.bin")
+    result = survey([path], tmp_path / "out", jobs=1, quiet=True, rerun=False)
+    table = pq.read_table(tmp_path / "out" / "survey.parquet")
+    assert table.num_rows > 0 and not any(table.column("still").to_pylist())
+    imu2 = [r for r in table.to_pylist() if r["topic"] == "IMU2"]
+    assert imu2 and all(r["temperature"] is None or np.isnan(r["temperature"]) for r in imu2)
+    fleet = result["fleet"]
+    assert fleet["devices"] == [] and fleet["recalibrate"] == []
+    assert set(fleet["devices_without_still_period"]) == {
+        "spark404_utrecht:IMU",
+        "spark404_utrecht:IMU2",
+    }
+    assert any("no still period" in line for line in summary_lines(fleet))
