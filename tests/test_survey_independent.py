@@ -128,9 +128,10 @@ def test_real_flight_vibration_is_not_stillness(tmp_path):
     and none is taken for a still period; IMU2's temperature field is 0 throughout: null."""
     import pyarrow.parquet as pq
 
-    from conftest import shared_path
     from imupipe.pipeline.survey.report import summary_lines
     from imupipe.pipeline.survey.scan import survey
+
+    from conftest import shared_path
 
     path = shared_path("logs", "ardupilot_flights", "spark404_utrecht", "log.bin")
     result = survey([path], tmp_path / "out", jobs=1, quiet=True, rerun=False)
