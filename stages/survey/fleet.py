@@ -674,16 +674,17 @@ def drift_gls(
     q: float,
     dtemp: np.ndarray | None = None,
     slope_se: float = 0.0,
-) -> tuple[float, float]:
+) -> tuple[float, float, float]:
     """The drift (unit/day) of one device's per-log figure and its standard error: generalised
     least squares of ``f = a + b day`` with the covariance ``diag(se^2 + sigma_w^2) + q^2
     min(day_i, day_j) + slope_se^2 dT_i dT_j`` (days from the first log: a random walk from it;
     ``dT``: each log's temperature less the reference the figures are referred to, whose slope's
     error is common to all logs); the error scaled by ``sqrt(chi2 / dof)`` when the logs scatter
-    more than the model says. NaN with fewer than three logs."""
+    more than the model says. Returns (drift, its error, chi2 / dof); NaN with fewer than three
+    logs."""
     ok = np.isfinite(f) & np.isfinite(se)
     if ok.sum() < 3:
-        return float("nan"), float("nan")
+        return float("nan"), float("nan"), float("nan")
     t, y = day[ok] - day[ok][0], f[ok]
     cov = np.diag(se[ok] ** 2 + sigma_w**2) + q**2 * np.minimum.outer(t, t)
     if dtemp is not None and np.isfinite(slope_se):
@@ -693,12 +694,12 @@ def drift_gls(
     ci = np.linalg.pinv(cov)
     info = x.T @ ci @ x
     if np.linalg.cond(info) > 1e14:
-        return float("nan"), float("nan")
+        return float("nan"), float("nan"), float("nan")
     inv = np.linalg.inv(info)
     beta = inv @ x.T @ ci @ y
     r = y - x @ beta
     birge = float(r @ ci @ r) / max(len(y) - 2, 1)
-    return float(beta[1]), float(np.sqrt(inv[1, 1] * max(birge, 1.0)))
+    return float(beta[1]), float(np.sqrt(inv[1, 1] * max(birge, 1.0))), birge
 
 
 def drift_onset(day: np.ndarray, f: np.ndarray, w: np.ndarray, k: float) -> int:
@@ -740,6 +741,7 @@ def fleet_flags(histories: Sequence[DeviceHistory], k: float) -> dict[str, Any]:
                 noise_dev[s].append(ln[j] - np.median(ln[:j]))
     for s, devs in noise_dev.items():
         scales[f"{s}_noise"] = max(mad_sigma(np.array(devs)), NOISE_FLOOR) if devs else NOISE_FLOOR
+    pending: dict[tuple[str, str], list[dict[str, Any]]] = {}  # steps between logs
     for h in histories:
         for name in FIGURES:
             unit = UNITS[name]
@@ -757,7 +759,7 @@ def fleet_flags(histories: Sequence[DeviceHistory], k: float) -> dict[str, Any]:
                 if abs(d) > limit:
                     steady[j:] -= d
                     add_flag(
-                        h.flags,
+                        pending.setdefault((h.device_id, name), []),
                         h.device_id,
                         "step",
                         name,
@@ -770,38 +772,54 @@ def fleet_flags(histories: Sequence[DeviceHistory], k: float) -> dict[str, Any]:
             h.steady[name] = steady
             h.moved[name] = float((f[-1] - f[0]) / base) if len(f) > 1 and base > 0 else 0.0
     walks = {name: np.nan_to_num(_walk_scales(histories, name)) for name in FIGURES}
-    gyro = np.max([walks[f"gyro_bias_{a}"] for a in "xyz"], axis=0)
+    gyro = np.median([walks[f"gyro_bias_{a}"] for a in "xyz"], axis=0)
+    fitted: dict[str, tuple[Any, list[tuple[float, float, float]], float]] = {}
     for name in FIGURES:
-        # the gyro's three axes share one die: its turn-on and walk, the largest axis's for all
+        # the gyro's three axes share one die: its turn-on and walk, the axes' median for all
         sw, q = (float(v) for v in (gyro if name.startswith("gyro") else walks[name]))
         scales[f"{name}_turn_on"], scales[f"{name}_walk_per_sqrt_day"] = sw, q
-        fits = [
-            drift_gls(
-                h.day,
-                h.steady[name],
-                h.se[name],
-                sw,
-                q,
-                h.fits[name].temperature - h.t_ref,
-                float(np.nan_to_num(h.fits[name].slope_se)),
-            )
-            for h in histories
-        ]
-        slopes = np.array([b for b, _ in fits])
+
+        def gls(
+            h: DeviceHistory, f: np.ndarray, name: str = name, sw: float = sw, q: float = q
+        ) -> tuple[float, float, float]:
+            fit = h.fits[name]
+            slope_se = float(np.nan_to_num(fit.slope_se))
+            return drift_gls(h.day, f, h.se[name], sw, q, fit.temperature - h.t_ref, slope_se)
+
+        fits = [gls(h, h.steady[name]) for h in histories]
+        slopes = np.array([b for b, _, _ in fits])
         finite = slopes[np.isfinite(slopes)]
-        med = float(np.median(finite)) if len(finite) else float("nan")
-        # the devices' true drifts scatter beyond their errors (a random walk that looks like a
-        # drift over few logs): the fleet's excess scale of the slopes, a random effect
-        errs = np.array([e for _, e in fits])
-        tau = float(np.nan_to_num(excess_scale(slopes - med, errs**2)))
+        fitted[name] = (gls, fits, float(np.median(finite)) if len(finite) else float("nan"))
+    # the devices' true drifts scatter beyond their errors (a random walk that looks like a drift
+    # over few logs): the fleet's excess scale of the slopes, a random effect (the gyro's axes
+    # pooled: one die)
+    spread = {}
+    for group in (FIGURES[:3], FIGURES[3:]):
+        d = np.concatenate([[b - fitted[n][2] for b, _, _ in fitted[n][1]] for n in group])
+        var = np.concatenate([[e**2 for _, e, _ in fitted[n][1]] for n in group])
+        for n in group:
+            spread[n] = float(np.nan_to_num(excess_scale(np.asarray(d), np.asarray(var))))
+    for name in FIGURES:
+        gls, fits, med = fitted[name]
+        sw = scales[f"{name}_turn_on"]
+        finite = np.array([b for b, _, _ in fits if np.isfinite(b)])
+        tau = spread[name]
         scales[f"{name}_drift_spread_per_day"] = tau
         # the median's own error: pi/2 times a mean's variance (large-sample)
         widen = np.sqrt(1.0 + np.pi / 2.0 / max(len(finite), 1))
         unit = UNITS[name]
-        for h, (b, e) in zip(histories, fits, strict=True):
+        for h, (b, e, _) in zip(histories, fits, strict=True):
             e = float(np.hypot(e, tau)) * widen
-            h.drift[name] = b
             h.power[name] = float((k + POWER_Z) * e)
+            steps = pending.get((h.device_id, name), [])
+            if steps:  # a drift over a long gap between logs reads as a step: which is it?
+                b_f, e_f, chi2 = gls(h, h.figures[name])
+                e_f = float(np.hypot(e_f, tau)) * widen
+                dof = max(int(np.isfinite(h.figures[name]).sum()) - 2, 1)
+                if chi2 <= 1.0 + k * np.sqrt(2.0 / dof) and abs(b_f - med) > k * e_f:
+                    steps, h.steady[name], b, e = [], h.figures[name], b_f, e_f
+                h.flags.extend(steps)
+            h.drift[name] = b
             if not (np.isfinite(b) and np.isfinite(med) and abs(b - med) > k * e):
                 continue
             j = drift_onset(h.day, h.steady[name], 1.0 / (h.se[name] ** 2 + sw**2), k)
