@@ -612,15 +612,16 @@ def inlog_steps(histories: Sequence[DeviceHistory], k: float) -> dict[str, float
     return scales
 
 
-def _walk_scales(histories: Sequence[DeviceHistory], name: str) -> tuple[float, float]:
-    """(sigma_w, q): the fleet's log-to-log scatter of a figure beyond the logs' own errors, as a
+def _walk_scales(histories: Sequence[DeviceHistory], names: Sequence[str]) -> tuple[float, float]:
+    """(sigma_w, q): the fleet's log-to-log scatter of figures ``names`` (the gyro's three axes: one
+    die) beyond the logs' own errors, as a
     white part ``sigma_w`` (turn-on repeatability, unit) and a random walk ``q`` (unit per
     sqrt(day)): the restricted maximum likelihood (REML; Patterson & Thompson 1971) of the
     covariance of :func:`drift_gls` over every device at once, each with its own level and drift
     (so a drifting device does not read as scatter), on a grid (0 and half-decade steps over four
     decades about the fleet's consecutive-log change, then fifth-decade steps about the best)."""
     series = []
-    for h in histories:
+    for h, name in ((h, name) for name in names for h in histories):
         f, se = h.steady[name], h.se[name]
         ok = np.isfinite(f) & np.isfinite(se)
         if ok.sum() >= 3:
@@ -771,12 +772,12 @@ def fleet_flags(histories: Sequence[DeviceHistory], k: float) -> dict[str, Any]:
                     )
             h.steady[name] = steady
             h.moved[name] = float((f[-1] - f[0]) / base) if len(f) > 1 and base > 0 else 0.0
-    walks = {name: np.nan_to_num(_walk_scales(histories, name)) for name in FIGURES}
-    gyro = np.median([walks[f"gyro_bias_{a}"] for a in "xyz"], axis=0)
+    # the gyro's three axes share one die: one turn-on and walk, fitted to the three at once
+    gyro = np.nan_to_num(_walk_scales(histories, FIGURES[:3]))
+    accel = np.nan_to_num(_walk_scales(histories, FIGURES[3:]))
     fitted: dict[str, tuple[Any, list[tuple[float, float, float]], float]] = {}
     for name in FIGURES:
-        # the gyro's three axes share one die: its turn-on and walk, the axes' median for all
-        sw, q = (float(v) for v in (gyro if name.startswith("gyro") else walks[name]))
+        sw, q = (float(v) for v in (gyro if name.startswith("gyro") else accel))
         scales[f"{name}_turn_on"], scales[f"{name}_walk_per_sqrt_day"] = sw, q
 
         def gls(
@@ -797,8 +798,13 @@ def fleet_flags(histories: Sequence[DeviceHistory], k: float) -> dict[str, Any]:
     for group in (FIGURES[:3], FIGURES[3:]):
         d = np.concatenate([[b - fitted[n][2] for b, _, _ in fitted[n][1]] for n in group])
         var = np.concatenate([[e**2 for _, e, _ in fitted[n][1]] for n in group])
-        for n in group:
-            spread[n] = float(np.nan_to_num(excess_scale(np.asarray(d), np.asarray(var))))
+        pooled = float(np.nan_to_num(excess_scale(np.asarray(d), np.asarray(var))))
+        for n in group:  # the larger of the pooled and the figure's own
+            own = excess_scale(
+                np.array([b - fitted[n][2] for b, _, _ in fitted[n][1]]),
+                np.array([e**2 for _, e, _ in fitted[n][1]]),
+            )
+            spread[n] = max(pooled, float(np.nan_to_num(own)))
     for name in FIGURES:
         gls, fits, med = fitted[name]
         sw = scales[f"{name}_turn_on"]
