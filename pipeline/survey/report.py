@@ -28,6 +28,7 @@ import pyarrow as pa
 from imupipe.pipeline.report.figures import Plot, Series, colors_for
 from imupipe.pipeline.report.svg_plot import svg
 from imupipe.stages.survey.fleet import FIGURES, DeviceHistory, device_history, fleet_flags
+from imupipe.stages.survey.stats import StillOptions
 
 if TYPE_CHECKING:
     from imupipe.pipeline.survey.chamber import Chambers
@@ -78,7 +79,9 @@ def _prefix(table: pa.Table) -> str:
 
 
 def histories(table: pa.Table) -> list[DeviceHistory]:
-    """Each device's per-log history (see :func:`device_history`)."""
+    """Each device's per-log history (see :func:`device_history`); the devices with candidates
+    but no still period go to the cache's ``unstill`` (device -> its logs)."""
+    _cached(table)["unstill"] = {}
     p = _prefix(table)
     devices = _col(table, "device_id", str)
     start = _col(table, "start_ns", np.int64)
@@ -101,23 +104,31 @@ def histories(table: pa.Table) -> list[DeviceHistory]:
         s: np.mean([_col(table, f"{p}{s}_noise_{a}", np.float64) for a in "xyz"], axis=0)
         for s in ("gyro", "accel")
     }
+    at_tau = np.zeros(table.num_rows, bool)  # the densities measured at tau_s
+    if {"samples", "duration_s"} <= set(table.column_names):
+        with np.errstate(invalid="ignore", divide="ignore"):  # the sensor's rate, Hz
+            rate = _col(table, "samples", np.float64) / _col(table, "duration_s", np.float64)
+        at_tau = rate * StillOptions().tau_s >= 1.0
     out = []
     for dev in sorted(set(devices)):
         rows = _rows(table, dev)
-        out.append(
-            device_history(
-                dev,
-                log[rows],
-                start[rows],
-                temp[rows],
-                {f: v[rows] for f, v in values.items()},
-                {f: v[rows] for f, v in se.items()},
-                {s: v[rows] for s, v in noise.items()},
-                t0,
-                accel[rows],
-                level[rows],
-            )
+        h = device_history(
+            dev,
+            log[rows],
+            start[rows],
+            temp[rows],
+            {f: v[rows] for f, v in values.items()},
+            {f: v[rows] for f, v in se.items()},
+            {s: v[rows] for s, v in noise.items()},
+            t0,
+            accel[rows],
+            level[rows],
+            at_tau[rows],
         )
+        if h is None:  # candidates, none of them still
+            _cached(table)["unstill"][dev] = sorted(set(log[rows]))
+            continue
+        out.append(h)
     return out
 
 
@@ -137,6 +148,8 @@ def chamber_view(
     model = device_model(chambers, vehicle, topic)
     if model is None:
         return None
+    rejected = [r["start_ns"] for r in h.rejected]  # candidates that are not still periods
+    rows = rows[~np.isin(_col(table, "start_ns", np.int64)[rows], rejected)]
     temp = _col(table, "temperature", np.float64)[rows]
     pred = {}
     for figure in ch.CHAMBER_FIGURES:  # the dataset's chamber columns (chamber_columns)
@@ -208,6 +221,10 @@ def fleet_view(table: pa.Table, k: float, chambers: Chambers | None = None) -> d
                 "moved": h.moved,
                 "moved_max": moved,
                 "flags": h.flags,
+                "drift_detectable_per_week": {f: 7 * v for f, v in h.power.items()},
+                "noise_floor": h.floors,
+                "not_still": h.rejected,
+                "logs_without_still_period": h.no_still,
                 "chamber": chamber_view(table, h, chambers, t0, fleet["scales"])
                 if chambers
                 else None,
@@ -223,8 +240,10 @@ def fleet_view(table: pa.Table, k: float, chambers: Chambers | None = None) -> d
         for d in devices
         if d["flags"]
     ]
+    unstill = dict(_cached(table).get("unstill", {}))
     return {
         **fleet,
+        "devices_without_still_period": unstill,
         "after_calibration": _prefix(table) == "cal_",
         "devices": devices,
         "recalibrate": recal,
@@ -237,11 +256,14 @@ def summary_lines(fleet: dict[str, Any]) -> list[str]:
         return []
     recal = fleet["recalibrate"]
     n = len(fleet["devices"])
+    quiet = _not_still_lines(fleet)
     if n == 0:
-        return ["imupipe survey: no IMU has a still period in these logs"]
+        return ["imupipe survey: no IMU has a still period in these logs", *quiet]
     if not recal:
         return [
             f"imupipe survey: {n} devices, none flagged (k = {fleet['k']:g} robust sigmas)",
+            *_power_line(fleet),
+            *quiet,
             *_chamber_line(fleet),
         ]
     lines = [
@@ -251,7 +273,62 @@ def summary_lines(fleet: dict[str, Any]) -> list[str]:
         why = r["why"]
         more = f" (+{len(why) - 1} more in report.html)" if len(why) > 1 else ""
         lines.append(f"  {r['device_id']}: {why[0]}{more}")
-    return lines + _chamber_line(fleet)
+    return lines + _power_line(fleet) + quiet + _chamber_line(fleet)
+
+
+def _not_still_lines(fleet: dict[str, Any]) -> list[str]:
+    """The logs whose quiet stretches were judged not still (vibration, not stillness): one
+    line per device."""
+    lines = []
+    for d in fleet["devices"]:
+        logs = d.get("logs_without_still_period") or []
+        if logs:
+            worst = max(
+                (r.get("gyro_ratio", float("nan")) for r in d["not_still"]), default=float("nan")
+            )
+            lines.append(
+                f"  {d['device_id']}: no still period in {', '.join(logs)} (quiet stretches up to "
+                f"x{worst:.3g} its gyro noise floor: vibration, not stillness)"
+            )
+    for dev, logs in (fleet.get("devices_without_still_period") or {}).items():
+        lines.append(
+            f"  {dev}: no still period in {', '.join(logs)}: its quiet stretches are noisier "
+            "than a still MEMS IMU (vibration, not stillness)"
+        )
+    return lines
+
+
+def still_column(table: pa.Table, fleet: dict[str, Any]) -> pa.Table:
+    """The dataset with ``still``: False for a candidate period the fleet view judged not still
+    (:func:`~imupipe.stages.survey.fleet.still_judged`), True for the others."""
+    device = _col(table, "device_id", str)
+    start = _col(table, "start_ns", np.int64)
+    out = np.ones(table.num_rows, bool)
+    out[np.isin(device, list(fleet.get("devices_without_still_period") or {}))] = False
+    for d in fleet.get("devices") or []:
+        rejected = [r["start_ns"] for r in d.get("not_still") or []]
+        if rejected:
+            out[(device == d["device_id"]) & np.isin(start, rejected)] = False
+    if "still" in table.column_names:
+        table = table.drop_columns(["still"])
+    return table.append_column("still", pa.array(out, pa.bool_()))
+
+
+def _power_line(fleet: dict[str, Any]) -> list[str]:
+    """The drift test's power: the median over devices of the smallest gyro drift per week it
+    finds with 90 % probability."""
+    values = [
+        v
+        for d in fleet["devices"]
+        for f, v in (d.get("drift_detectable_per_week") or {}).items()
+        if f.startswith("gyro") and np.isfinite(v)
+    ]
+    if not values:
+        return []
+    return [
+        f"  drift test: a gyro bias drift of {np.median(values):.2g} rad/s per week is found with "
+        f"90 % probability (median over devices and axes; per device in fleet.json)"
+    ]
 
 
 def _chamber_line(fleet: dict[str, Any]) -> list[str]:

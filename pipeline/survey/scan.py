@@ -383,6 +383,7 @@ def survey(
         remove_stale_temps(folder)
     manifest = Manifest(out_dir)
     failed: list[tuple[str, str]] = []
+    without_still: list[str] = []  # (log, topic) surveyed with no still period
     ok: list[SurveyTask] = list(skipped)
     for task in skipped:
         manifest.append(
@@ -414,6 +415,8 @@ def survey(
             return
         manifest.append({**outcome.result, "attempts": outcome.attempts, "host": outcome.host})
         ok.append(task)
+        counts = outcome.result.get("counts") or {}
+        without_still.extend(f"{task.log} {topic}" for topic, n in counts.items() if n == 0)
 
     # as convert: Ray's own output goes to DIR/ray.log, the user's stderr holds imupipe's lines
     engine_log = out_dir / ENGINE_LOG if engine == "ray" else None
@@ -454,10 +457,11 @@ def survey(
             table = table.replace_schema_metadata(meta)
             if chambers:  # the chamber curve at each period (chamber_* columns)
                 table = chamber_files.chamber_columns(table, chambers)
-            pq.write_table(table, out.path(out_dir / SURVEY_NAME), compression="zstd")
-            from imupipe.pipeline.survey.report import fleet_view, write_report
+            from imupipe.pipeline.survey.report import fleet_view, still_column, write_report
 
             fleet = fleet_view(table, k=k, chambers=chambers)
+            table = still_column(table, fleet)
+            pq.write_table(table, out.path(out_dir / SURVEY_NAME), compression="zstd")
             out.write_text(
                 out_dir / "fleet.json", json.dumps(fleet, indent=2, default=float) + "\n"
             )
@@ -473,6 +477,7 @@ def survey(
         "fleet": fleet,
         "compass": compass,
         "rows": 0 if table is None else table.num_rows,
+        "without_still": sorted(without_still),
     }
 
 
@@ -559,6 +564,13 @@ def main(args: argparse.Namespace) -> int:
 
         for line in summary_lines(result["fleet"]) + compass_lines(result["compass"]):
             print(line)
+        if result["without_still"]:
+            names = result["without_still"]
+            more = f" (+{len(names) - 3} more)" if len(names) > 3 else ""
+            print(
+                f"imupipe survey: no still period in {len(names)} IMU topic-logs: "
+                f"{', '.join(names[:3])}{more} (manifest.jsonl says why)"
+            )
         print(
             f"imupipe survey: {result['surveyed']} surveyed, {result['skipped']} skipped (already "
             f"done), {len(result['failed'])} failed; {result['rows']} still periods -> "

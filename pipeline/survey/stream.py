@@ -67,12 +67,18 @@ def _rows(table: pa.Table) -> tuple[np.ndarray, np.ndarray] | None:
 
 
 def _temperature(table: pa.Table) -> tuple[np.ndarray, np.ndarray] | None:
+    """(t_ns, degC) of the batch's finite temperature samples; None without any, or when every
+    one is exactly 0 (a field the log fills with 0 when its sensor has no thermometer, such as
+    ArduPilot's ``IMU2.T`` or PX4's ``sensor_gyro.temperature``: not logged, never 0.0 degC)."""
     from imupipe.readers.table import finite, has_stream, sensor
 
     if not has_stream(table, "temperature"):
         return None
     data, _ = finite(sensor(table, "temperature"))
-    return data.t_ns, data.values[:, 0]
+    values = data.values[:, 0]
+    if not len(values) or not values.any():
+        return None
+    return data.t_ns, values
 
 
 class _Backwards(Exception):
@@ -221,7 +227,7 @@ def survey_topic(
         if floor.n < 3:
             warnings.append(f"{where}: too few samples: not surveyed")
             return None
-        if rate is None or floor.n < max(int(round(opts.window_s * rate)), 3):
+        if rate is None or floor.n < Rule.at(opts, rate).window:
             return Surveyed(
                 _empty(opts), None if steps is None else _empty(opts), _frame(meta), reads
             )
@@ -258,6 +264,11 @@ def survey_topic(
             periods.feed(t, x)
     found = periods.finish()
     start_ns, stop_ns = found.flat("start_ns"), found.flat("stop_ns")
+    if not len(start_ns):
+        warnings.append(
+            f"{where}: no still period (none of {opts.min_duration_s:g} s and "
+            f"{rule.min_samples} samples at its {rate:.3g} Hz): nothing measured"
+        )
     acc = _join(found.acc, columns)
     tsum, tcount = found.flat("temp_sum").astype(np.float64), found.flat("temp_count")
     stats = figures(start_ns, stop_ns, acc, periods.reference, tsum, tcount, rule, opts)

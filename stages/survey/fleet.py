@@ -49,7 +49,7 @@ from typing import Any
 
 import numpy as np
 
-from imupipe.stages.survey.stats import mad_sigma, theil_sen, weighted_mean
+from imupipe.stages.survey.stats import mad_sigma, weighted_mean
 
 NOISE_FLOOR = 0.05
 """Smallest robust scale of a log's log-noise departure: 5 % (below it, a change is not
@@ -86,6 +86,36 @@ class DeviceHistory:
     moved: dict[str, float] = field(default_factory=dict)
     fits: dict[str, ThermalFit] = field(default_factory=dict)
     """figure -> its per-log values, their temperatures and thermal slopes (not referred)."""
+    period: Periods | None = None
+    """The still periods the figures come from (in time order)."""
+    rejected: list[dict[str, Any]] = field(default_factory=list)
+    """Candidate periods judged not still (:func:`still_judged`): log, start, noise ratios."""
+    no_still: list[str] = field(default_factory=list)
+    """Logs with candidates but no still period."""
+    floors: dict[str, float] = field(default_factory=dict)
+    """``gyro``, ``accel``: the device's noise floor (noise density)."""
+    steady: dict[str, np.ndarray] = field(default_factory=dict)
+    """figure -> the per-log figures with the steps between logs found taken out (the drift
+    test's input; the in-log steps are out of ``figures`` already)."""
+    power: dict[str, float] = field(default_factory=dict)
+    """figure -> the smallest drift per day the drift test detects with 90 % probability."""
+
+
+@dataclass
+class Periods:
+    """One device's still periods in time order: log index, start, temperature, figures and
+    their standard errors, and the in-log steps taken out of each figure from their time on."""
+
+    index: np.ndarray
+    start_ns: np.ndarray
+    temperature: np.ndarray
+    values: dict[str, np.ndarray]
+    se: dict[str, np.ndarray]
+    offset: dict[str, np.ndarray] = field(default_factory=dict)
+
+    def __post_init__(self) -> None:
+        for name in self.values:
+            self.offset.setdefault(name, np.zeros(len(self.index)))
 
 
 FIGURES = ("gyro_bias_x", "gyro_bias_y", "gyro_bias_z", "accel_norm_error")
@@ -224,16 +254,19 @@ def attitude_term(
     leans by ``theta`` sees ``b_x u_x + b_y u_y`` (up to ``|b_xy| sin theta``: 2.6e-3 m/s^2 for
     0.03 m/s^2 offsets at 5 deg, more than the figure's own error). Estimated within logs from
     every still period (level or not): the weighted least-squares fit of ``values`` on
-    ``(T, u_x, u_y)`` with all demeaned per log (a free intercept per log: the bias random walk
+    ``(T, u_x, u_y)`` (``(u_x, u_y)`` when most periods have no temperature) with all demeaned
+    per log (a free intercept per log: the bias random walk
     does not enter), its covariance scaled by ``chi2 / dof`` when above 1. Returns ``(b_x, b_y)``
     (unit) and its (2, 2) covariance; None with fewer than 2 degrees of freedom or when the
     periods' directions (or temperatures) do not vary within logs."""
     ok = np.isfinite(values) & np.isfinite(se) & (se > 0) & np.isfinite(direction).all(axis=1)
-    ok &= np.isfinite(temperature)
+    hot = ok & np.isfinite(temperature)
+    with_t = hot.sum() >= ok.sum() / 2  # temperature not logged: the fit without it
+    ok = hot if with_t else ok
     g = np.unique(log_index[ok], return_inverse=True)[1]
-    x = np.column_stack([temperature[ok], direction[ok, :2]])
+    x = np.column_stack([temperature[ok], direction[ok, :2]] if with_t else [direction[ok, :2]])
     y, w = values[ok], 1.0 / se[ok] ** 2
-    dof = len(y) - (int(g.max()) + 1 if len(g) else 0) - 3
+    dof = len(y) - (int(g.max()) + 1 if len(g) else 0) - x.shape[1]
     if dof < 2:
         return None
     sw = np.bincount(g, w)
@@ -245,7 +278,60 @@ def attitude_term(
     beta = np.linalg.solve(normal, (dx * w[:, None]).T @ dy)
     chi2 = float(np.sum(w * (dy - dx @ beta) ** 2)) / dof
     cov = np.linalg.inv(normal) * max(chi2, 1.0)
-    return beta[1:], cov[1:, 1:]
+    first = x.shape[1] - 2
+    return beta[first:], cov[first:, first:]
+
+
+ACCEL_OFFSET_XY = 0.5
+"""m/s^2: the size of a MEMS accelerometer's x and y offsets where the survey cannot fit them
+(:func:`attitude_term` needs several periods): about 50 mg, the zero-g offset of consumer parts
+(InvenSense MPU-6000 +-50 mg on x and y; Bosch BMI088 +-20 mg); times a period's lean it is the
+error of taking ``|a| - g`` for the offset along gravity."""
+STILL_NOISE_RATIO = 5.0
+"""A candidate still period whose gyro or accelerometer noise density exceeds this many times the
+device's noise floor (:func:`still_judged`) is vibration, not stillness."""
+FLOOR_QUANTILE = 0.25
+"""The device's noise floor: this quantile over its logs of each log's quietest period."""
+STILL_NOISE_CEILING = {"gyro": 1.75e-3, "accel": 0.039}
+"""The most white noise (rad/s/sqrt(Hz), m/s^2/sqrt(Hz)) a still MEMS IMU shows: 0.1 deg/s/sqrt(Hz)
+and 4 mg/sqrt(Hz), three to ten times the noisiest parts' datasheets (InvenSense MPU-6000
+0.005 deg/s/sqrt(Hz) and 400 ug/sqrt(Hz); ST L3GD20 0.03 deg/s/sqrt(Hz); Analog Devices ADXL345
+about 400 ug/sqrt(Hz); Bosch BMI088 0.014 deg/s/sqrt(Hz) and 175 ug/sqrt(Hz)). It judges a device
+with one log, or only flights, where the device's own floor is its vibration (a quadcopter's
+airframe: 0.01-0.02 rad/s/sqrt(Hz)); applied where the density is measured at ``tau_s`` (a rate
+of at least ``1 / tau_s``: a slower topic's samples alias the sensor's whole band)."""
+
+
+def still_judged(
+    log_index: np.ndarray,
+    noise: Mapping[str, np.ndarray],
+    ratio: float = STILL_NOISE_RATIO,
+    at_tau: np.ndarray | None = None,
+) -> tuple[np.ndarray, dict[str, float], dict[str, np.ndarray]]:
+    """Which candidate periods of one device are still: a log's own noise floor cannot tell (in
+    a log in motion throughout, its quietest stretch is the airframe's vibration), the device's
+    floor over its logs can. Per sensor (``gyro``, ``accel``: (m,) mean noise density of the
+    axes), the floor is the :data:`FLOOR_QUANTILE` quantile over the logs of each log's least
+    noise (a still sensor's density is its own: a vibrating airframe's is tens to thousands of
+    times more; a noise change of a few times, a loose mount, stays below ``ratio``); a period
+    is still when both densities lie within ``ratio`` times their floors (a NaN density does not
+    judge) and, where ``at_tau`` (m,) says the density is measured at ``tau_s``, below
+    :data:`STILL_NOISE_CEILING`. Returns (still mask, floors, each period's ratio per sensor)."""
+    keep = np.ones(len(log_index), bool)
+    floors: dict[str, float] = {}
+    ratios: dict[str, np.ndarray] = {}
+    for sensor, v in noise.items():
+        if at_tau is not None and sensor in STILL_NOISE_CEILING:
+            keep &= ~(at_tau & (v > STILL_NOISE_CEILING[sensor]))
+        ok = np.isfinite(v) & (v > 0)
+        least = [float(np.min(v[ok & (log_index == i)])) for i in np.unique(log_index[ok])]
+        if not least:
+            floors[sensor], ratios[sensor] = float("nan"), np.full(len(v), np.nan)
+            continue
+        floors[sensor] = float(np.quantile(least, FLOOR_QUANTILE))
+        ratios[sensor] = v / floors[sensor]
+        keep &= ~(ratios[sensor] > ratio)
+    return keep, floors, ratios
 
 
 def device_history(
@@ -259,15 +345,38 @@ def device_history(
     t0_ns: int,
     accel: np.ndarray | None = None,
     level: np.ndarray | None = None,
-) -> DeviceHistory:
-    """Per-log figures of one device from its periods (``values``/``se``: figure -> (m,);
-    ``noise``: ``gyro``/``accel`` -> (m,) mean noise density of the axes), referred to the
-    device's median temperature with slopes whose between-log part has no fleet scale yet
-    (:func:`fleet_flags` refers them again with it). ``accel`` (m, 3): each period's mean
-    specific force, m/s^2; with it ``|a| - g`` is referred to the level attitude
+    at_tau: np.ndarray | None = None,
+) -> DeviceHistory | None:
+    """Per-log figures of one device from its candidate periods (``values``/``se``: figure ->
+    (m,); ``noise``: ``gyro``/``accel`` -> (m,) mean noise density of the axes): the periods
+    that are not still (:func:`still_judged`) left out (``h.rejected``; None when none is
+    left), referred to the device's median temperature with slopes whose between-log part has no
+    fleet scale yet (:func:`fleet_flags` refers them again with it). ``accel`` (m, 3): each
+    period's mean specific force, m/s^2; with it ``|a| - g`` is referred to the level attitude
     (:func:`attitude_term`, its error added to each period's); ``level`` (m,): the periods
-    ``|a| - g`` is taken from (default: all)."""
-    names, index = np.unique(np.asarray(log), return_inverse=True)
+    ``|a| - g`` is taken from (default: all); ``at_tau`` (m,): the periods whose noise density
+    is measured at ``tau_s`` (:func:`still_judged`)."""
+    log = np.asarray(log).astype(str)
+    all_logs, all_index = np.unique(log, return_inverse=True)
+    keep, floors, ratios = still_judged(all_index, noise, at_tau=at_tau)
+    rejected = [
+        {
+            "log": str(log[i]),
+            "start_ns": int(start_ns[i]),
+            **{f"{s}_ratio": float(r[i]) for s, r in ratios.items()},
+        }
+        for i in np.flatnonzero(~keep)
+    ]
+    if not keep.any():
+        return None
+    order = np.flatnonzero(keep)[np.argsort(start_ns[keep], kind="stable")]
+    log, start_ns, temperature = log[order], start_ns[order], temperature[order]
+    values = {f: np.asarray(v)[order] for f, v in values.items()}
+    se = {f: np.asarray(v)[order] for f, v in se.items()}
+    noise = {f: np.asarray(v)[order] for f, v in noise.items()}
+    accel = None if accel is None else accel[order]
+    level = None if level is None else level[order]
+    names, index = np.unique(log, return_inverse=True)
     order = np.argsort([start_ns[index == i].min() for i in range(len(names))])
     rank = np.empty_like(order)
     rank[order] = np.arange(len(order))
@@ -295,10 +404,12 @@ def device_history(
             b, cov = found
             norm = norm - u[:, :2] @ b
             norm_se = np.sqrt(norm_se**2 + np.einsum("mi,ij,mj->m", u[:, :2], cov, u[:, :2]))
+        else:  # too few periods to fit it: the offsets' typical size times the lean
+            lean = np.linalg.norm(u[:, :2], axis=1) * ACCEL_OFFSET_XY
+            norm_se = np.sqrt(norm_se**2 + lean**2)
     if level is not None:
         norm_se = np.where(level, norm_se, np.nan)
     values["accel_norm_error"], se["accel_norm_error"] = norm, norm_se
-    fits = {name: thermal_fit(index, n, temperature, values[name], se[name]) for name in FIGURES}
     day = np.array([(start_ns[index == i].mean() - t0_ns) / DAY_NS for i in range(n)])
     h = DeviceHistory(
         device_id,
@@ -306,16 +417,32 @@ def device_history(
         day,
         temps,
         {},
-        {name: fit.se for name, fit in fits.items()},
+        {},
         {s: np.array([np.median(noise[s][index == i]) for i in range(n)]) for s in noise},
         {},
         t_ref,
         len(start_ns),
-        fits=fits,
+        period=Periods(index, start_ns, temperature, values, se),
+        rejected=rejected,
+        no_still=sorted(set(all_logs.astype(str)) - {str(x) for x in names}),
+        floors=floors,
     )
+    fit_periods(h)
+    return h
+
+
+def fit_periods(h: DeviceHistory) -> None:
+    """The per-log figures of ``h`` from its periods, less the in-log steps found so far
+    (``h.period.offset``): thermal fits, standard errors and referred figures."""
+    p = h.period
+    n = len(h.logs)
+    h.fits = {
+        name: thermal_fit(p.index, n, p.temperature, p.values[name] - p.offset[name], p.se[name])
+        for name in FIGURES
+    }
+    h.se = {name: fit.se for name, fit in h.fits.items()}
     for name in FIGURES:
         refer(h, name)
-    return h
 
 
 def refer(h: DeviceHistory, name: str) -> None:
@@ -336,6 +463,7 @@ def add_flag(
     value: float,
     limit: float,
     why: str,
+    **extra: Any,
 ) -> None:
     """Append one flag record (``fleet.json``'s ``flags``: the device, the rule's ``kind``, the
     figure, the log it names, the value against its ``threshold`` and the reason in words); every
@@ -349,20 +477,9 @@ def add_flag(
             "value": float(value),
             "threshold": float(limit),
             "why": why,
+            **extra,
         }
     )
-
-
-def drift_onset(f: np.ndarray, se: np.ndarray, scale: float, k: float, sign: float) -> int | None:
-    """The log a drift starts at: the first log ``j`` from which every log departs from the
-    median of the logs before ``j``, on the drift's side (``sign``), by more than
-    ``k sqrt(scale^2 + se^2)`` (the step rule's limit); None when there is none (a drift from
-    the first log on, or one that comes and goes)."""
-    for j in range(1, len(f)):
-        departure = sign * (f[j:] - np.median(f[:j]))
-        if np.all(departure > k * np.sqrt(scale**2 + se[j:] ** 2)):
-            return j
-    return None
 
 
 def _step_scales(histories: Sequence[DeviceHistory]) -> dict[str, float]:
@@ -386,9 +503,8 @@ def _fleet_slope(slopes: Sequence[tuple[float, float]]) -> tuple[float, float]:
     return float(np.median(values)), mad_sigma(values)
 
 
-def fleet_flags(histories: Sequence[DeviceHistory], k: float) -> dict[str, Any]:
-    """Apply the rules of the module docstring to every device (fills ``flags``, ``drift`` and
-    ``moved``); returns the fleet's scales."""
+def _refer_all(histories: Sequence[DeviceHistory]) -> dict[str, float]:
+    """Thermal slopes and step scales of the fleet (see the module docstring, 3 and 4)."""
     scales = _step_scales(histories)
     for _ in range(2):  # the between-log slopes' error needs the step scale, which needs them
         for name in FIGURES:
@@ -399,6 +515,225 @@ def fleet_flags(histories: Sequence[DeviceHistory], k: float) -> dict[str, Any]:
                     fit.slope, fit.slope_se = prior
                 refer(h, name)
         scales = _step_scales(histories)
+    return scales
+
+
+CHI2_1_MEDIAN = 0.454936423119572
+"""The median of a chi-square variable with one degree of freedom."""
+POWER_Z = 1.2815515655446004
+"""z of 90 %: the drift test's stated power is the drift it flags with 90 % probability."""
+
+
+def excess_scale(d: np.ndarray, var: np.ndarray) -> float:
+    """The scale ``s`` of what differences ``d`` hold beyond their known variances ``var``: the
+    ``s >= 0`` for which ``median(d^2 / (var + s^2))`` is the median of a chi-square with one
+    degree of freedom (a robust, heteroscedastic 1.4826 MAD; 0 when ``var`` explains ``d``, NaN
+    without any)."""
+    ok = np.isfinite(d) & np.isfinite(var)
+    d2, var = d[ok] ** 2, var[ok]
+    if not len(d2):
+        return float("nan")
+    if np.median(d2 / np.maximum(var, 1e-300)) <= CHI2_1_MEDIAN:
+        return 0.0
+    lo, hi = 0.0, float(np.median(d2)) / CHI2_1_MEDIAN + 1e-300
+    for _ in range(60):
+        mid = 0.5 * (lo + hi)
+        if np.median(d2 / (var + mid)) > CHI2_1_MEDIAN:
+            lo = mid
+        else:
+            hi = mid
+    return float(np.sqrt(hi))
+
+
+def _inlog_pairs(
+    h: DeviceHistory, name: str
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Consecutive still periods of one log: (first, second, the change of the figure referred to
+    one temperature, its variance from the periods' errors and the slope's)."""
+    p = h.period
+    assert p is not None
+    v, se = p.values[name] - p.offset[name], p.se[name]
+    fit = h.fits[name]
+    slope, slope_se = np.nan_to_num(fit.slope), np.nan_to_num(fit.slope_se)
+    idx = np.flatnonzero(np.isfinite(v) & np.isfinite(se) & (se > 0))
+    i, j = idx[:-1], idx[1:]
+    same = p.index[i] == p.index[j]
+    i, j = i[same], j[same]
+    dtemp = np.nan_to_num(p.temperature[j] - p.temperature[i])
+    d = v[j] - v[i] - slope * dtemp
+    return i, j, d, se[i] ** 2 + se[j] ** 2 + (slope_se * dtemp) ** 2
+
+
+def inlog_steps(histories: Sequence[DeviceHistory], k: float) -> dict[str, float]:
+    """Change points inside a log (module docstring, 4a): consecutive still periods of one log
+    whose figures differ by more than ``k sqrt(se_1^2 + se_2^2 + (se_slope dT)^2 + s_in^2)``,
+    ``s_in`` the fleet's excess scale (:func:`excess_scale`) of such differences (the in-log bias
+    instability). Each is flagged as a ``step`` at its log with the time (``t_ns``: the start of
+    the first still period after it; ``after_ns``: of the last one before) and taken out of the
+    device's later periods (``period.offset``), so that a step is reported once: not again as a
+    step between logs, nor as a drift. Returns ``s_in`` per figure."""
+    import datetime
+
+    scales = {}
+    for name in FIGURES:
+        pairs = [_inlog_pairs(h, name) for h in histories]
+        d = np.concatenate([x[2] for x in pairs] or [np.zeros(0)])
+        var = np.concatenate([x[3] for x in pairs] or [np.zeros(0)])
+        s_in = np.nan_to_num(excess_scale(d, var))
+        scales[name] = float(s_in)
+        for h, (i, j, d_h, var_h) in zip(histories, pairs, strict=True):
+            p = h.period
+            assert p is not None
+            limit = k * np.sqrt(var_h + s_in**2)
+            for a, b, step, lim in zip(i, j, d_h, limit, strict=True):
+                if not abs(step) > lim:
+                    continue
+                p.offset[name][b:] += step
+                when = [
+                    datetime.datetime.fromtimestamp(int(x) / 1e9, datetime.UTC).strftime(
+                        "%Y-%m-%d %H:%M:%S"
+                    )
+                    for x in (p.start_ns[a], p.start_ns[b])
+                ]
+                add_flag(
+                    h.flags,
+                    h.device_id,
+                    "step",
+                    name,
+                    h.logs[int(p.index[b])],
+                    step,
+                    lim,
+                    f"{name} stepped by {step:+.3g} {UNITS[name]} inside {h.logs[int(p.index[b])]} "
+                    f"between the still periods starting {when[0]} and {when[1]} UTC "
+                    f"(limit {lim:.2g})",
+                    t_ns=int(p.start_ns[b]),
+                    after_ns=int(p.start_ns[a]),
+                )
+    return scales
+
+
+def _walk_scales(histories: Sequence[DeviceHistory], names: Sequence[str]) -> tuple[float, float]:
+    """(sigma_w, q): the fleet's log-to-log scatter of figures ``names`` (the gyro's three axes: one
+    die) beyond the logs' own errors, as a
+    white part ``sigma_w`` (turn-on repeatability, unit) and a random walk ``q`` (unit per
+    sqrt(day)): the restricted maximum likelihood (REML; Patterson & Thompson 1971) of the
+    covariance of :func:`drift_gls` over every device at once, each with its own level and drift
+    (so a drifting device does not read as scatter), on a grid (0 and half-decade steps over four
+    decades about the fleet's consecutive-log change, then fifth-decade steps about the best)."""
+    series = []
+    for h, name in ((h, name) for name in names for h in histories):
+        f, se = h.steady[name], h.se[name]
+        ok = np.isfinite(f) & np.isfinite(se)
+        if ok.sum() >= 3:
+            t = h.day[ok] - h.day[ok][0]
+            dtemp = np.nan_to_num((h.fits[name].temperature - h.t_ref)[ok])
+            slope_se = float(np.nan_to_num(h.fits[name].slope_se))
+            base = np.diag(se[ok] ** 2) + slope_se**2 * np.outer(dtemp, dtemp)
+            series.append((t, f[ok], base))
+    if not series:
+        return float("nan"), float("nan")
+    diffs = np.concatenate([np.diff(y) for _, y, _ in series])
+    span = float(np.mean(np.concatenate([np.diff(t) for t, _, _ in series])))
+    ref = float(np.nan_to_num(mad_sigma(diffs))) or 1e-12
+
+    def loglik(w: float, q: float) -> float:
+        total = 0.0
+        for t, y, base in series:
+            cov = base + w**2 * np.eye(len(t)) + q**2 * np.minimum.outer(t, t)
+            sign, logdet = np.linalg.slogdet(cov)
+            if sign <= 0:
+                return -np.inf
+            ci = np.linalg.inv(cov)
+            x = np.column_stack([np.ones(len(t)), t])
+            info = x.T @ ci @ x
+            sign2, logdet2 = np.linalg.slogdet(info)
+            if sign2 <= 0:
+                continue
+            beta = np.linalg.solve(info, x.T @ ci @ y)
+            r = y - x @ beta
+            total -= 0.5 * (logdet + logdet2 + float(r @ ci @ r))
+        return total
+
+    q_ref = ref / np.sqrt(max(span, 1e-6))
+    coarse = np.r_[
+        0.0, np.logspace(-3, 1, 9)
+    ]  # half-decade steps, then a finer grid about the best
+    _, w0, q0 = max((loglik(ref * a, q_ref * b), a, b) for a in coarse for b in coarse)
+    fine = np.logspace(-0.5, 0.5, 5)
+    grid_w = [0.0] if w0 == 0 else w0 * fine
+    grid_q = [0.0] if q0 == 0 else q0 * fine
+    _, w, q = max((loglik(ref * a, q_ref * b), a, b) for a in grid_w for b in grid_q)
+    arg = (float(ref * w), float(q_ref * q))
+    return arg
+
+
+def drift_gls(
+    day: np.ndarray,
+    f: np.ndarray,
+    se: np.ndarray,
+    sigma_w: float,
+    q: float,
+    dtemp: np.ndarray | None = None,
+    slope_se: float = 0.0,
+) -> tuple[float, float, float]:
+    """The drift (unit/day) of one device's per-log figure and its standard error: generalised
+    least squares of ``f = a + b day`` with the covariance ``diag(se^2 + sigma_w^2) + q^2
+    min(day_i, day_j) + slope_se^2 dT_i dT_j`` (days from the first log: a random walk from it;
+    ``dT``: each log's temperature less the reference the figures are referred to, whose slope's
+    error is common to all logs); the error scaled by ``sqrt(chi2 / dof)`` when the logs scatter
+    more than the model says. Returns (drift, its error, chi2 / dof); NaN with fewer than three
+    logs."""
+    ok = np.isfinite(f) & np.isfinite(se)
+    if ok.sum() < 3:
+        return float("nan"), float("nan"), float("nan")
+    t, y = day[ok] - day[ok][0], f[ok]
+    cov = np.diag(se[ok] ** 2 + sigma_w**2) + q**2 * np.minimum.outer(t, t)
+    if dtemp is not None and np.isfinite(slope_se):
+        d = np.nan_to_num(dtemp[ok])
+        cov += slope_se**2 * np.outer(d, d)
+    x = np.column_stack([np.ones(len(t)), t])
+    ci = np.linalg.pinv(cov)
+    info = x.T @ ci @ x
+    if np.linalg.cond(info) > 1e14:
+        return float("nan"), float("nan"), float("nan")
+    inv = np.linalg.inv(info)
+    beta = inv @ x.T @ ci @ y
+    r = y - x @ beta
+    birge = float(r @ ci @ r) / max(len(y) - 2, 1)
+    return float(beta[1]), float(np.sqrt(inv[1, 1] * max(birge, 1.0))), birge
+
+
+def drift_onset(day: np.ndarray, f: np.ndarray, w: np.ndarray, k: float) -> int:
+    """The log a drift starts at: the hinge ``f = a + b max(day - day_j, 0)`` that fits best
+    (weights ``w``), when it fits better than a line from the first log by more than ``k^2`` in
+    weighted squared residuals; else the first log (0)."""
+    ok = np.flatnonzero(np.isfinite(f) & np.isfinite(w))
+    if len(ok) < 4:
+        return int(ok[0]) if len(ok) else 0
+
+    def sse(x: np.ndarray) -> float:
+        a = np.column_stack([np.ones(len(ok)), x]) * np.sqrt(w[ok])[:, None]
+        beta, *_ = np.linalg.lstsq(a, f[ok] * np.sqrt(w[ok]), rcond=None)
+        r = f[ok] * np.sqrt(w[ok]) - a @ beta
+        return float(r @ r)
+
+    line = sse(day[ok] - day[ok][0])
+    hinges = [(sse(np.maximum(day[ok] - day[j], 0.0)), j) for j in ok[1:-1]]
+    best, j = min(hinges)
+    return int(j) if line - best > k**2 else int(ok[0])
+
+
+def fleet_flags(histories: Sequence[DeviceHistory], k: float) -> dict[str, Any]:
+    """Apply the rules of the module docstring to every device (fills ``flags``, ``drift`` and
+    ``moved``); returns the fleet's scales."""
+    _refer_all(histories)
+    inlog = inlog_steps(histories, k)
+    for h in histories:
+        p = h.period
+        if p is not None and any(p.offset[name].any() for name in FIGURES):
+            fit_periods(h)
+    scales = _refer_all(histories)
+    scales.update({f"{name}_in_log": v for name, v in inlog.items()})
     noise_dev: dict[str, list[float]] = {"gyro": [], "accel": []}
     for h in histories:
         for s in noise_dev:
@@ -407,17 +742,14 @@ def fleet_flags(histories: Sequence[DeviceHistory], k: float) -> dict[str, Any]:
                 noise_dev[s].append(ln[j] - np.median(ln[:j]))
     for s, devs in noise_dev.items():
         scales[f"{s}_noise"] = max(mad_sigma(np.array(devs)), NOISE_FLOOR) if devs else NOISE_FLOOR
-    slopes: dict[str, np.ndarray] = {}
-    for name in FIGURES:
-        for h in histories:
-            h.drift[name] = theil_sen(h.day, h.figures[name]) if len(h.day) >= 3 else float("nan")
-        slopes[name] = np.array([h.drift[name] for h in histories])
+    pending: dict[tuple[str, str], list[dict[str, Any]]] = {}  # steps between logs
     for h in histories:
         for name in FIGURES:
             unit = UNITS[name]
             f, se = h.figures[name], h.se[name]
             base = np.nan_to_num(scales[name])
             temps = h.fits[name].temperature
+            steady = f.copy()
             have = np.flatnonzero(np.isfinite(f))  # a log without the figure is passed over
             for i, j in zip(have[:-1], have[1:], strict=True):
                 d = f[j] - f[i]
@@ -426,8 +758,9 @@ def fleet_flags(histories: Sequence[DeviceHistory], k: float) -> dict[str, Any]:
                 referred = (np.nan_to_num(h.fits[name].slope_se) * dtemp) ** 2
                 limit = k * np.sqrt(base**2 * (j - i) + se[j] ** 2 + se[i] ** 2 + referred)
                 if abs(d) > limit:
+                    steady[j:] -= d
                     add_flag(
-                        h.flags,
+                        pending.setdefault((h.device_id, name), []),
                         h.device_id,
                         "step",
                         name,
@@ -437,31 +770,78 @@ def fleet_flags(histories: Sequence[DeviceHistory], k: float) -> dict[str, Any]:
                         f"{name} stepped by {d:+.3g} {unit} between {h.logs[i]} and {h.logs[j]} (limit "
                         f"{limit:.2g}; temperature {temps[i]:.1f} -> {temps[j]:.1f} degC)",
                     )
+            h.steady[name] = steady
             h.moved[name] = float((f[-1] - f[0]) / base) if len(f) > 1 and base > 0 else 0.0
-            finite = slopes[name][np.isfinite(slopes[name])]
-            med = float(np.median(finite)) if len(finite) else float("nan")
-            sig = mad_sigma(finite)
-            span = h.day[-1] - h.day[0] if len(h.day) else 0.0
-            s = h.drift[name]
-            walk = k * base * np.sqrt(max(len(f) - 1, 1))  # a random walk's reach over the logs
-            if (
-                np.isfinite(s)
-                and np.isfinite(sig)
-                and abs(s - med) > k * sig
-                and abs(s - med) * span > walk
-            ):
-                j = drift_onset(f, se, base, k, float(np.sign(s - med)))
-                since = "" if j is None else f" from {h.logs[j]} on"
-                add_flag(
-                    h.flags,
-                    h.device_id,
-                    "drift",
-                    name,
-                    None if j is None else h.logs[j],
-                    s,
-                    med + k * sig,
-                    f"{name} drifts {s:+.3g} {unit}/day{since} (fleet median {med:+.3g}, limit +-{k * sig:.2g})",
-                )
+    # the gyro's three axes share one die: one turn-on and walk, fitted to the three at once
+    gyro = np.nan_to_num(_walk_scales(histories, FIGURES[:3]))
+    accel = np.nan_to_num(_walk_scales(histories, FIGURES[3:]))
+    fitted: dict[str, tuple[Any, list[tuple[float, float, float]], float]] = {}
+    for name in FIGURES:
+        sw, q = (float(v) for v in (gyro if name.startswith("gyro") else accel))
+        scales[f"{name}_turn_on"], scales[f"{name}_walk_per_sqrt_day"] = sw, q
+
+        def gls(
+            h: DeviceHistory, f: np.ndarray, name: str = name, sw: float = sw, q: float = q
+        ) -> tuple[float, float, float]:
+            fit = h.fits[name]
+            slope_se = float(np.nan_to_num(fit.slope_se))
+            return drift_gls(h.day, f, h.se[name], sw, q, fit.temperature - h.t_ref, slope_se)
+
+        fits = [gls(h, h.steady[name]) for h in histories]
+        slopes = np.array([b for b, _, _ in fits])
+        finite = slopes[np.isfinite(slopes)]
+        fitted[name] = (gls, fits, float(np.median(finite)) if len(finite) else float("nan"))
+    # the devices' true drifts scatter beyond their errors (a random walk that looks like a drift
+    # over few logs): the fleet's excess scale of the slopes, a random effect (the gyro's axes
+    # pooled: one die)
+    spread = {}
+    for group in (FIGURES[:3], FIGURES[3:]):
+        d = np.concatenate([[b - fitted[n][2] for b, _, _ in fitted[n][1]] for n in group])
+        var = np.concatenate([[e**2 for _, e, _ in fitted[n][1]] for n in group])
+        pooled = float(np.nan_to_num(excess_scale(np.asarray(d), np.asarray(var))))
+        for n in group:  # the larger of the pooled and the figure's own
+            own = excess_scale(
+                np.array([b - fitted[n][2] for b, _, _ in fitted[n][1]]),
+                np.array([e**2 for _, e, _ in fitted[n][1]]),
+            )
+            spread[n] = max(pooled, float(np.nan_to_num(own)))
+    for name in FIGURES:
+        gls, fits, med = fitted[name]
+        sw = scales[f"{name}_turn_on"]
+        finite = np.array([b for b, _, _ in fits if np.isfinite(b)])
+        tau = spread[name]
+        scales[f"{name}_drift_spread_per_day"] = tau
+        # the median's own error: pi/2 times a mean's variance (large-sample)
+        widen = np.sqrt(1.0 + np.pi / 2.0 / max(len(finite), 1))
+        unit = UNITS[name]
+        for h, (b, e, _) in zip(histories, fits, strict=True):
+            e = float(np.hypot(e, tau)) * widen
+            h.power[name] = float((k + POWER_Z) * e)
+            steps = pending.get((h.device_id, name), [])
+            if steps:  # a drift over a long gap between logs reads as a step: which is it?
+                b_f, e_f, chi2 = gls(h, h.figures[name])
+                e_f = float(np.hypot(e_f, tau)) * widen
+                dof = max(int(np.isfinite(h.figures[name]).sum()) - 2, 1)
+                if chi2 <= 1.0 + k * np.sqrt(2.0 / dof) and abs(b_f - med) > k * e_f:
+                    steps, h.steady[name], b, e = [], h.figures[name], b_f, e_f
+                h.flags.extend(steps)
+            h.drift[name] = b
+            if not (np.isfinite(b) and np.isfinite(med) and abs(b - med) > k * e):
+                continue
+            j = drift_onset(h.day, h.steady[name], 1.0 / (h.se[name] ** 2 + sw**2), k)
+            add_flag(
+                h.flags,
+                h.device_id,
+                "drift",
+                name,
+                h.logs[j],
+                b,
+                med + np.sign(b - med) * k * e,
+                f"{name} drifts {7 * b:+.3g} {unit}/week from {h.logs[j]} on (fleet median "
+                f"{7 * med:+.3g}, limit +-{7 * k * e:.2g}; the smallest drift this test finds "
+                f"with 90 % probability: {7 * h.power[name]:.2g} {unit}/week)",
+            )
+    for h in histories:
         for s in ("gyro", "accel"):
             ln = np.log(np.maximum(h.noise[s], 1e-300))
             for j in range(2, len(ln)):

@@ -5,7 +5,11 @@
 of the accelerometer over a centred ``window_s`` window, below ``k`` times the log's noise floor,
 here its ``floor_quantile`` quantile, read from a fine log-spaced histogram), and the same rule on
 the gyro (a vehicle turning at a constant rate has a quiet accelerometer), for runs of at least
-``min_duration_s``.
+``min_duration_s`` and ``MIN_PERIOD_SAMPLES`` samples at the sensor's own rate, with a window of
+at least ``MIN_WINDOW_SAMPLES`` samples. The log's own floor cannot tell a vibrating airframe
+from a still one (in a log in motion throughout its quietest stretch is the vibration): the
+fleet view judges each candidate against the device's floor across its logs
+(:func:`imupipe.stages.survey.fleet.still_judged`).
 
 **Per period** (:func:`figures`, from the running sums of
 :mod:`imupipe.stages.survey.streaming`), vectorised over all periods at once:
@@ -20,7 +24,8 @@ the gyro (a vehicle turning at a constant rate has a quiet accelerometer), for r
   axis, so its x and y components are the x and y offsets plus the (small) tilt;
 - white-noise density of each axis (unit/sqrt(Hz)) from the period's own Allan deviation at
   ``tau`` (IEEE Std 952-1997 Annex C: on the -1/2 slope, ``N = ADEV(tau) sqrt(tau)``; computed on
-  non-overlapping clusters of ``m = tau / tau0`` samples);
+  non-overlapping clusters of ``m = tau / tau0`` samples, ``tau = max(tau_s, tau0)`` at the
+  sensor's real rate: a 1 Hz topic's density is at 1 s, not 0.1 s);
 - temperature (degC): the mean of the temperature samples inside the period (NaN without any);
 - start time (ns), duration (s) and sample count.
 
@@ -85,7 +90,7 @@ def still_periods(
     if rate is None:
         return _none()
     rule = Rule.at(opts, rate)
-    if len(t_ns) < max(int(round(opts.window_s * rate)), 3):
+    if len(t_ns) < rule.window:
         return _none()
     x = np.column_stack([gyro, accel]).astype(np.float64)
     floor = FloorPass(rule.half, keep=True)

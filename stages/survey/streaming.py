@@ -53,6 +53,13 @@ BINS_PER_DECADE = 1000
 """Resolution of the noise-floor histogram."""
 DECADES = (-30, 10)
 """The histogram's range of variance norms (unit^2); values beyond fall in its end bins."""
+MIN_WINDOW_SAMPLES = 10
+"""Fewest samples in the variance window: at a low rate the window is ``max(window_s,
+MIN_WINDOW_SAMPLES / rate)`` seconds (a variance of 3 samples says nothing of stillness)."""
+MIN_PERIOD_SAMPLES = 100
+"""Fewest samples in a still period, besides ``min_duration_s`` at the sensor's real rate: a
+mean's batch-means error needs ``BATCHES`` blocks of several samples (a 1 Hz topic needs 100 s,
+not 5 samples)."""
 
 
 @dataclass(frozen=True)
@@ -79,11 +86,14 @@ class Rule:
 
     @classmethod
     def at(cls, opts: StillOptions, rate: float) -> Rule:
-        window = max(int(round(opts.window_s * rate)), 3)
+        """The rule at ``rate``: the window at least :data:`MIN_WINDOW_SAMPLES`, a period at
+        least ``min_duration_s`` and :data:`MIN_PERIOD_SAMPLES`; the Allan cluster ``m_tau`` at
+        least one sample."""
+        window = max(int(round(opts.window_s * rate)), MIN_WINDOW_SAMPLES)
         return cls(
             rate,
             window // 2,
-            int(round(opts.min_duration_s * rate)),
+            max(int(round(opts.min_duration_s * rate)), MIN_PERIOD_SAMPLES),
             max(int(round(opts.tau_s * rate)), 1),
         )
 
