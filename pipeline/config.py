@@ -29,7 +29,10 @@ from imupipe.readers.spec import (
 )
 from imupipe.stages.registry import STAGE_TYPES, stage_class
 
+SPLIT_KEYS = ("gyro_topic", "accel_topic")
+"""An input's keys for a gyro and an accelerometer on topics of their own (see InputSpec)."""
 INPUT_KEYS = {"path", "imu_topic", "mag_topic", "temperature_topic", "time", "csv", "instances"}
+INPUT_KEYS |= set(SPLIT_KEYS)
 CSV_KEYS = {f.name for f in dataclasses.fields(CsvMapping)} - {"required"}
 OUTPUT_KEYS = {"dir", "apply_to", "rerun", "rerun_max_points", "report", "exports", "params"}
 TOP_KEYS = {"inputs", "stages", "output"}
@@ -202,7 +205,7 @@ def parse_input(name: str, raw: Any, base: Path, where: str) -> InputSpec:
     _check_keys(where, raw, INPUT_KEYS)
     if "path" not in raw:
         raise ConfigError(f"{where}: missing key 'path'")
-    for key in ("path", "imu_topic", "mag_topic", "temperature_topic", "time"):
+    for key in ("path", "imu_topic", "mag_topic", "temperature_topic", "time", *SPLIT_KEYS):
         if key in raw and not isinstance(raw[key], str):
             raise ConfigError(f"{where}.{key}: must be a string")
     path = Path(raw["path"])
@@ -224,6 +227,8 @@ def parse_input(name: str, raw: Any, base: Path, where: str) -> InputSpec:
         path=path,
         name=name,
         imu_topic=raw.get("imu_topic"),
+        gyro_topic=raw.get("gyro_topic"),
+        accel_topic=raw.get("accel_topic"),
         mag_topic=raw.get("mag_topic"),
         temperature_topic=raw.get("temperature_topic"),
         time=time,

@@ -24,7 +24,7 @@ from typing import Any
 from imupipe.pipeline.errors import ImupipeError, ReadError
 from imupipe.readers.dispatch import detect_format
 from imupipe.readers.spec import InputSpec
-from imupipe.readers.topics import COLUMNS, STREAM_TYPES, normalize_type, select_topics
+from imupipe.readers.topics import COLUMNS, PIECE_TYPES, STREAM_TYPES, normalize_type, select_topics
 
 BASE_COLUMNS = ["t_ns", "log_time_ns", "frame_id"]
 
@@ -109,7 +109,7 @@ def inspect(spec: InputSpec) -> dict[str, Any]:
     for stream, topic in chosen.items():
         out["streams"][stream] = {
             "topic": topic,
-            "type": STREAM_TYPES[stream],
+            "type": PIECE_TYPES[stream],
             "count": topics[topic]["count"],
         }
         columns += [name for name, _, _ in COLUMNS[stream]]
