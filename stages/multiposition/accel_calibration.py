@@ -47,7 +47,7 @@ from typing import Any, Literal
 import numpy as np
 import pyarrow as pa
 
-from imupipe.readers.table import SensorData, has_stream, sensor
+from imupipe.readers.table import SensorData, has_stream, imu_pairs, sensor
 from imupipe.stages.base import Stage, StageContext, StageOutput
 from imupipe.stages.errors import FitError
 from imupipe.stages.multiposition import accel_models as am
@@ -541,8 +541,9 @@ class AccelCalibrationStage(Stage):
                 "method 'ferraris' needs labelled segments: set csv.label (or give every part "
                 "as [start_s, end_s] in ferraris_parts)"
             )
-        acc = sensor(table, "accel")
-        gyro = sensor(table, "gyro")
+        gyro, acc, note = imu_pairs(table, on="accel")
+        if note:
+            ctx.warn(note)
         labels = table.column("label").take(pa.array(acc.rows)) if labelled else None
         parts = {}
         try:
