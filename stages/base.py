@@ -21,9 +21,28 @@ from typing import Any, ClassVar
 import numpy as np
 import pyarrow as pa
 
-from imupipe.readers.table import MAX_MAGNITUDE, SensorData, finite
+from imupipe.readers.table import MAX_MAGNITUDE, SensorData, finite, usable
 from imupipe.stages.errors import FitError
 from imupipe.stages.steps import Step
+
+AXES = ("x", "y", "z")
+
+
+def is_dead(column: np.ndarray) -> bool:
+    """An axis that carries no signal: no usable value (all NaN, Inf), or every usable value
+    the same (stuck or unconnected: exactly 0.0 throughout). Its noise is zero and its fits
+    divide by zero, so stages fit nothing on it."""
+    lo, hi = column.min(initial=np.inf), column.max(initial=-np.inf)
+    if usable(lo) and usable(hi):
+        return bool(lo == hi)
+    ok = column[usable(column)]
+    return len(ok) == 0 or bool(ok.min() == ok.max())
+
+
+def dead_value(column: np.ndarray) -> str:
+    """What a dead axis reads, for messages: ``always 0.0`` or ``no finite value``."""
+    ok = column[usable(column)]
+    return f"always {float(ok[0])!r}" if len(ok) else "no finite value"
 
 
 class NullRecorder:
@@ -98,6 +117,29 @@ class StageContext:
                 f"{len(kept)} finite {what} samples of {len(data)}; the fit needs at least {minimum}"
             )
         return kept
+
+    def dead_axes(self, data: SensorData, sensor: str, independent: bool = False) -> list[int]:
+        """The axes of ``data`` (n, 3) that carry no signal (:func:`is_dead`). A fit that needs
+        every axis (``independent`` false: an ellipsoid, a pose model) stops on the first with
+        one line naming the input, the sensor and the axis; one that fits each axis on its own
+        warns (the same names) and gets the dead axes, to fit the others only. Every axis dead
+        is an error either way."""
+        values = data.values
+        dead = [i for i in range(values.shape[1]) if is_dead(values[:, i])]
+        if not dead:
+            return []
+        axes = ", ".join(f"{sensor} {AXES[i]} ({dead_value(values[:, i])})" for i in dead)
+        if not independent or len(dead) == values.shape[1]:
+            raise self.fail(
+                f"{axes}: a dead axis (every sample the same value, or none finite) in input "
+                f"'{self.input_name}'; nothing can be fitted on it (a stuck or unconnected "
+                "sensor, or a driver that does not fill the field)"
+            )
+        self.warn(
+            f"input '{self.input_name}': {axes}: a dead axis (every sample the same value, or "
+            "none finite); nothing is fitted for it, the other axes are"
+        )
+        return dead
 
 
 @dataclass
