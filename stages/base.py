@@ -14,7 +14,7 @@ from __future__ import annotations
 import dataclasses
 import sys
 from abc import ABC, abstractmethod
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
@@ -102,12 +102,21 @@ class StageContext:
         self.failed_checks.append(" ".join(message.split()))
         self.warn(f"{message} (accepted: accept_failed_checks = true)")
 
-    def finite(self, data: SensorData, what: str, minimum: int = 1) -> SensorData:
+    def finite(
+        self, data: SensorData, what: str, minimum: int = 1, axes: Sequence[str] | None = None
+    ) -> SensorData:
         """``data`` without its samples that cannot enter a fit (NaN, Inf, or beyond
         :data:`~imupipe.readers.table.MAX_MAGNITUDE`), with one warning that counts them (``6990
         of 13964 magnetometer samples are NaN or Inf; fitted on 6974``); a stage error when
-        fewer than ``minimum`` remain."""
+        fewer than ``minimum`` remain, naming the axis (``axes``: each column's name; default
+        ``<what> x``, ...) when one has no usable value at all (a dead axis)."""
         kept, bad = finite(data)
+        if bad and len(kept) < minimum and len(data):
+            k = data.values.shape[1]
+            names = list(axes or ([what] if k == 1 else [f"{what} {a}" for a in AXES[:k]]))
+            none = [names[i] for i in range(k) if not usable(data.values[:, i]).any()]
+            if none:
+                raise self.fail(self.dead_text(", ".join(f"{n} (no finite value)" for n in none)))
         if bad:
             huge = int(np.count_nonzero(np.isfinite(data.values).all(axis=1))) - len(kept)
             kind = "NaN or Inf" if not huge else f"NaN, Inf or beyond {MAX_MAGNITUDE:g}"
@@ -130,16 +139,19 @@ class StageContext:
             return []
         axes = ", ".join(f"{sensor} {AXES[i]} ({dead_value(values[:, i])})" for i in dead)
         if not independent or len(dead) == values.shape[1]:
-            raise self.fail(
-                f"{axes}: a dead axis (every sample the same value, or none finite) in input "
-                f"'{self.input_name}'; nothing can be fitted on it (a stuck or unconnected "
-                "sensor, or a driver that does not fill the field)"
-            )
-        self.warn(
-            f"input '{self.input_name}': {axes}: a dead axis (every sample the same value, or "
-            "none finite); nothing is fitted for it, the other axes are"
-        )
+            raise self.fail(self.dead_text(axes))
+        self.warn(self.dead_text(axes, fitted_others=True))
         return dead
+
+    def dead_text(self, axes: str, fitted_others: bool = False) -> str:
+        """The one line about dead axes (``gyro z (always 0.0)``), naming the input."""
+        head = f"input '{self.input_name}': {axes}: a dead axis (every sample the same value, or none finite)"
+        if fitted_others:
+            return f"{head}; nothing is fitted for it, the other axes are"
+        return (
+            f"{head}; nothing can be fitted on it (a stuck or unconnected sensor, or a driver that "
+            "does not fill the field)"
+        )
 
 
 @dataclass

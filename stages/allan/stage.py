@@ -190,15 +190,8 @@ class AllanStage(Stage):
         if dead:
             names = ", ".join(f"{s} {AXES[i]} ({dead_value(data[s][i])})" for s, i in dead)
             if len(dead) == len(live):
-                raise ctx.fail(
-                    f"{names}: a dead axis (every sample the same value, or none finite) in "
-                    f"input '{ctx.input_name}'; a stuck or unconnected sensor has no noise to "
-                    "identify"
-                )
-            ctx.warn(
-                f"input '{ctx.input_name}': {names}: a dead axis (every sample the same value, "
-                "or none finite); nothing is fitted for it, the other axes are"
-            )
+                raise ctx.fail(ctx.dead_text(names))
+            ctx.warn(ctx.dead_text(names, fitted_others=True))
             live = [c for c in live if c not in dead]
         gyro_means = [c.mean() for c in data["gyro"]] if "gyro" in data else None
         static = True
@@ -358,14 +351,18 @@ class AllanStage(Stage):
             )
             t_ns, cols = t_ns[keep], [c[keep] for c in cols]
             number = np.flatnonzero(keep)
-        # one reduction per column tells whether any value is NaN, Inf or huge (no mask)
+        # one reduction per column tells whether any value is NaN, Inf or huge (no mask); a
+        # column without any usable value is a dead axis (left out later), not a reason to drop
+        # every row
         if not all(usable(c.min()) and usable(c.max()) for c in cols):
-            ok = np.logical_and.reduce([usable(c) for c in cols])
-            rows = np.arange(len(t_ns)) if number is None else number
-            both = SensorData(t_ns, np.column_stack(cols), rows)
-            what = "IMU (gyro and accel)" if len(sensors) > 1 else sensors[0]
-            number = ctx.finite(both, what, minimum=3).rows
-            t_ns, cols = t_ns[ok], [c[ok] for c in cols]
+            alive = [c for c in cols if usable(c).any()]
+            ok = np.logical_and.reduce([usable(c) for c in alive]) if alive else None
+            if ok is not None and not ok.all():
+                rows = np.arange(len(t_ns)) if number is None else number
+                both = SensorData(t_ns, np.column_stack(alive), rows)
+                what = "IMU (gyro and accel)" if len(sensors) > 1 else sensors[0]
+                number = ctx.finite(both, what, minimum=3).rows
+                t_ns, cols = t_ns[ok], [c[ok] for c in cols]
 
         def num(i: int) -> int:
             return int(i if number is None else number[i])

@@ -348,6 +348,7 @@ class AccelCalibrationStage(Stage):
         if o.method == "ferraris":
             return self._ferraris(table, ctx)
         acc = ctx.finite(sensor(table, "accel"), "accelerometer", minimum=2)
+        ctx.dead_axes(acc, "accel")  # the pose models couple the axes
         g = o.gravity
         models = None if o.method != "six_position" else ["6-parameter"]
         try:

@@ -99,10 +99,16 @@ class GyroCalibrationStage(Stage):
         if self.options.method == "static_poses":
             # accelerometer and gyroscope side by side: values (n, 6)
             gyro = ctx.finite(
-                imu_samples(table, ctx), "IMU (accelerometer and gyroscope)", minimum=2
+                imu_samples(table, ctx),
+                "IMU (accelerometer and gyroscope)",
+                minimum=2,
+                axes=[f"{s} {a}" for s in ("accel", "gyro") for a in "xyz"],
             )
         else:
             gyro = ctx.finite(sensor(table, "gyro"), "gyroscope", minimum=2)
+        for k, name in enumerate(("accel", "gyro") if gyro.values.shape[1] == 6 else ("gyro",)):
+            part = gyro.values[:, 3 * k : 3 * k + 3]
+            ctx.dead_axes(SensorData(gyro.t_ns, part, gyro.rows), name)  # coupled axes
         labels = (
             table.column("label").take(pa.array(gyro.rows))
             if "label" in table.column_names

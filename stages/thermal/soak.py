@@ -194,6 +194,8 @@ class ThermalSoakStage(Stage):
         gyro, acc, note = imu_pairs(table, on="accel")
         if note:
             ctx.warn(note)
+        ctx.dead_axes(acc, "accel")  # the pose models couple the axes
+        ctx.dead_axes(gyro, "gyro")
         bad = ~(np.isfinite(acc.values).all(axis=1) & np.isfinite(gyro.values).all(axis=1))
         if bad.any():
             raise ctx.fail(f"non-finite IMU sample at sample {int(np.flatnonzero(bad)[0])}")

@@ -252,7 +252,7 @@ class TemperatureStage(Stage):
             )
         data = sensor(table, o.sensor)
         what = {"gyro": "gyroscope", "accel": "accelerometer", "mag": "magnetometer"}[o.sensor]
-        ctx.finite(data, f"{what} ({input_name})", minimum=2)
+        ctx.dead_axes(ctx.finite(data, f"{what} ({input_name})", minimum=2), o.sensor)
         finite = usable(data.values).all(axis=1)
         channels = ["temperature"]
         if len(temperature_samples(table, "ambient_temperature")[0]):
