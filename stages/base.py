@@ -144,10 +144,13 @@ class StageContext:
         return dead
 
     def dead_text(self, axes: str, fitted_others: bool = False) -> str:
-        """The one line about dead axes (``gyro z (always 0.0)``), naming the input."""
-        head = f"input '{self.input_name}': {axes}: a dead axis (every sample the same value, or none finite)"
+        """The one line about dead axes (``gyro z (always 0.0)``); a warning names the input
+        (an error does: :meth:`fail`)."""
+        head = f"{axes}: a dead axis (every sample the same value, or none finite)"
         if fitted_others:
-            return f"{head}; nothing is fitted for it, the other axes are"
+            return (
+                f"input '{self.input_name}': {head}; nothing is fitted for it, the other axes are"
+            )
         return (
             f"{head}; nothing can be fitted on it (a stuck or unconnected sensor, or a driver that "
             "does not fill the field)"

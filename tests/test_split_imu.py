@@ -220,3 +220,78 @@ def test_imu_pairs_interpolates_explicitly() -> None:
     # an Imu whose rows hold both: as they are, nothing said
     both = make_table(t_g, gyro=np.ones((len(t_g), 3)), accel=np.ones((len(t_g), 3)))
     assert imu_pairs(both)[2] is None and not split_imu(both)
+
+
+# -- a dead axis ---------------------------------------------------------------------------------
+DEAD = {"zero": 0.0, "constant": 0.25, "nan": float("nan")}
+STAGES = [
+    # (stage, scenario, its params, the sensor with the dead axis, the other axes fitted)
+    ("allan", "static", {"duration_s": 600.0, "rate_hz": 100.0}, "gyro", True),
+    ("allan", "static", {"duration_s": 600.0, "rate_hz": 100.0}, "accel", True),
+    ("gyro_bias", "static", {"duration_s": 60.0}, "gyro", True),
+    ("accel_calibration", "poses", {}, "accel", False),
+    ("gyro_calibration", "poses", {}, "gyro", False),
+    ("gyro_calibration", "poses", {}, "accel", False),
+    ("mag_calibration", "mag", {}, "mag", False),
+    ("temperature", "thermal", {}, "gyro", False),
+    ("thermal_soak", "thermal_soak", {}, "accel", False),
+]
+
+
+def _dead(table, name: str, value: float):  # noqa: ANN001, ANN202
+    import pyarrow as pa
+
+    from imupipe.readers.table import SENSOR_COLUMNS
+
+    col = SENSOR_COLUMNS[name][2]
+    column = table.column(col).combine_chunks()
+    filled = np.full(len(column), value)
+    idx = table.schema.get_field_index(col)
+    return table.set_column(idx, col, pa.array(filled, mask=~sensor_mask(table, name)))
+
+
+@pytest.mark.parametrize("kind", list(DEAD))
+@pytest.mark.parametrize(("stage", "scenario", "params", "name", "others"), STAGES)
+def test_a_dead_axis_is_named(stage, scenario, params, name, others, kind) -> None:  # noqa: ANN001
+    """A constant, all-zero or all-NaN z axis: where each axis is fitted on its own (allan,
+    gyro_bias), the others with a warning naming input, sensor and axis, nothing for it; where
+    the fit couples the axes, one line naming them (the CLI's exit 2), never a traceback."""
+    import imupipe
+    from imupipe.stages.errors import FitError
+
+    table, _ = simulate(scenario, params, seed=4)
+    table = _dead(table, name, DEAD[kind])
+    fit = getattr(imupipe, stage)
+    fitted_alone = others and not (stage == "gyro_bias" and kind == "nan")
+    if not fitted_alone:
+        with pytest.raises(FitError, match=rf"input 'table': .*{name}\w* z .*dead axis"):
+            fit(table, accept_failed_checks=True)
+        return
+    with pytest.warns(UserWarning, match=rf"input 'table': {name} z \(.*\): a dead axis"):
+        out = fit(table, accept_failed_checks=True)
+    metrics = out.results["metrics"]
+    assert f"{name} z" in metrics["dead_axes"]
+    if stage == "allan":
+        assert set(out.results[name]) == {"x", "y"}  # nothing fitted for z
+        other = "accel" if name == "gyro" else "gyro"
+        assert set(out.results[other]) == {"x", "y", "z"}
+    else:
+        assert out.results["bias"][2] == 0.0 and out.step.offset[2] == 0.0
+
+
+def test_allan_of_a_camera_each_sensor_at_its_own_rate() -> None:
+    """20 simulated minutes of a camera's gyro (400 Hz) and accelerometer (250 Hz) on clocks of
+    their own: each noise density within 10 % of the truth, each from its own samples."""
+    import imupipe
+
+    table, truth = simulate("camera", {"duration_s": 1200.0}, seed=3)
+    with pytest.warns(UserWarning, match="sampled apart"):
+        out = imupipe.allan(table)
+    per = out.results["metrics"]["per_sensor"]
+    assert per["gyro"]["samples"] == 480_000 and per["accel"]["samples"] == 300_000
+    assert per["gyro"]["rate_hz"] == pytest.approx(400.0)
+    assert per["accel"]["rate_hz"] == pytest.approx(250.0)
+    assert out.results["metrics"]["rate_hz"] == pytest.approx(400.0)  # the gyro's, for exports
+    for name in ("gyro", "accel"):
+        for i, axis in enumerate("xyz"):
+            assert out.results[name][axis]["N"] == pytest.approx(truth[name]["N"][i], rel=0.10)

@@ -193,20 +193,21 @@ class AllanStage(Stage):
                 raise ctx.fail(ctx.dead_text(names))
             ctx.warn(ctx.dead_text(names, fitted_others=True))
             live = [c for c in live if c not in dead]
-        gyro_means = [c.mean() for c in data["gyro"]] if "gyro" in data else None
         static = True
-        if "gyro" in data:
-            still_data = data
-            if accel_on_gyro is not None:
-                keep = np.isin(accel_on_gyro.t_ns, t_ns)
-                acc = accel_on_gyro.values[keep]
+        if "gyro" in data:  # (a split IMU's accelerometer: judged with its gyro)
+            still = {  # a dead axis counts as still
+                s: [np.zeros_like(c) if (s, i) in dead else c for i, c in enumerate(v)]
+                for s, v in data.items()
+            }
+            if accel_on_gyro is not None:  # on the gyro's stamps (gaps cut as the gyro's)
+                acc = accel_on_gyro.values[np.isin(accel_on_gyro.t_ns, t_ns)]
                 ok = usable(acc).all(axis=1)
-                acc = np.where(ok[:, None], acc, np.nanmedian(acc, axis=0)) if ok.any() else acc
-                still_data = {"gyro": data["gyro"], "accel": [acc[:, i] for i in range(3)]}
-            if len(still_data["accel"][0]) == len(t_ns):
-                static = self._check_static(t_ns, still_data, ctx, gyro_means)
-        elif not split:
-            static = self._check_static(t_ns, data, ctx, gyro_means)
+                if ok.any():
+                    acc = np.where(ok[:, None], acc, np.median(acc[ok], axis=0))
+                still["accel"] = [acc[:, i] for i in range(3)]
+            if len(still["accel"][0]) == len(t_ns):
+                gyro_means = [c.mean() for c in still["gyro"]]
+                static = self._check_static(t_ns, still, ctx, gyro_means)
         # without lost samples the phase is of these same columns: each mean computed once
         means = None if clock.n_lost else [data[s][i].mean() for s, i in live]
         x = est.rate_to_phase([fill_lost(clock, data[s][i]) for s, i in live], 1.0 / rate_hz, means)

@@ -252,7 +252,8 @@ class TemperatureStage(Stage):
             )
         data = sensor(table, o.sensor)
         what = {"gyro": "gyroscope", "accel": "accelerometer", "mag": "magnetometer"}[o.sensor]
-        ctx.dead_axes(ctx.finite(data, f"{what} ({input_name})", minimum=2), o.sensor)
+        axes = [f"{o.sensor} {a}" for a in AXES]
+        ctx.dead_axes(ctx.finite(data, f"{what} ({input_name})", minimum=2, axes=axes), o.sensor)
         finite = usable(data.values).all(axis=1)
         channels = ["temperature"]
         if len(temperature_samples(table, "ambient_temperature")[0]):
