@@ -350,8 +350,9 @@ def imu_pairs(table: pa.Table, on: str = "gyro") -> tuple[SensorData, SensorData
     Where each IMU row holds both (an Imu message, a CSV row): :func:`sensor` of each, note
     None. Where they are sampled apart (:func:`split_imu`): both on the own stamps of sensor
     ``on`` (its rows, so that its correction goes back where it came from), the other linearly
-    interpolated onto them (:func:`interpolate`; NaN at stamps outside the other's first and
-    last usable sample: never extrapolated), and a note saying so. Nothing is resampled
+    interpolated onto them (:func:`interpolate`: held at the other's first and last usable
+    sample up to one of its periods beyond them, NaN further out: never extrapolated), and a
+    note saying so. Nothing is resampled
     silently: the caller passes the note on."""
     gyro, accel = sensor(table, "gyro"), sensor(table, "accel")
     if len(gyro) == len(accel) and np.array_equal(gyro.rows, accel.rows):
@@ -361,7 +362,8 @@ def imu_pairs(table: pa.Table, on: str = "gyro") -> tuple[SensorData, SensorData
     ok = usable(other.values).all(axis=1)
     t_o = other.t_ns[ok]
     if len(t_o) >= 2:
-        inside = (own.t_ns >= t_o[0]) & (own.t_ns <= t_o[-1])
+        period = int(np.median(np.diff(t_o)))  # up to one period beyond the ends: held
+        inside = (own.t_ns >= t_o[0] - period) & (own.t_ns <= t_o[-1] + period)
         values[inside] = interpolate(t_o, other.values[ok], own.t_ns[inside])
     names = {"gyro": "gyro", "accel": "accelerometer"}
     off = "accel" if on == "gyro" else "gyro"

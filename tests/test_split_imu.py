@@ -213,7 +213,10 @@ def test_imu_pairs_interpolates_explicitly() -> None:
     np.testing.assert_array_equal(g.t_ns, t_g)
     inside = (t_g >= t_a[0]) & (t_g <= t_a[-1])
     np.testing.assert_allclose(a.values[inside], (t_g[inside] * 1e-9)[:, None] * slope)
-    assert np.isnan(a.values[~inside]).all()  # never extrapolated
+    held = ~inside & (t_g >= t_a[0] - 4_000_000) & (t_g <= t_a[-1] + 4_000_000)
+    assert held.sum() == 2  # the gyro's first stamp, 1 ms before the first accel, and its last
+    np.testing.assert_allclose(a.values[t_g < t_a[0]], (t_a[0] * 1e-9) * slope[None, :])
+    assert np.isnan(a.values[~inside & ~held]).all()  # never extrapolated further
     g2, a2, _ = imu_pairs(table, on="accel")
     np.testing.assert_array_equal(a2.t_ns, t_a)
     np.testing.assert_allclose(g2.values[np.isfinite(g2.values).all(axis=1)], 0.5)

@@ -129,6 +129,8 @@ def read(
     temperature_topic: str | None = None,
     time: Literal["header", "log"] = "header",
     csv: Mapping[str, Any] | None = None,
+    gyro_topic: str | None = None,
+    accel_topic: str | None = None,
 ) -> pa.Table:
     """Read a log (CSV, MCAP, ROS 1 or ROS 2 bag, PX4 ULog, ArduPilot DataFlash) into the common
     table: a ``pyarrow.Table`` with ``t_ns`` (int64 ns) and the SI columns ``gyro_x`` (rad/s),
@@ -137,7 +139,8 @@ def read(
 
     The keywords are the keys of a config's ``[inputs.NAME]`` table, with the same checks
     (``csv`` is the ``[inputs.NAME.csv]`` mapping as a dict: ``csv={"time": 0, "time_unit":
-    "s", "accel": [1, 2, 3]}``). The reader's warnings (a topic chosen among several, stamps out
+    "s", "accel": [1, 2, 3]}``; ``gyro_topic`` and ``accel_topic``: a gyro and an
+    accelerometer published on topics of their own, each read at its own stamps). The reader's warnings (a topic chosen among several, stamps out
     of order) are issued as :class:`ImupipeWarning`. Raises :class:`ImupipeError` (one line
     naming the file and what is wrong) when the log cannot be read.
     """
@@ -150,6 +153,8 @@ def read(
         temperature_topic=temperature_topic,
         time=time,
         csv=csv,
+        gyro_topic=gyro_topic,
+        accel_topic=accel_topic,
     )
     table, found = read_input(spec)
     _warn(found, where, stacklevel=2)
@@ -183,6 +188,8 @@ def inspect(
     temperature_topic: str | None = None,
     time: Literal["header", "log"] = "header",
     csv: Mapping[str, Any] | None = None,
+    gyro_topic: str | None = None,
+    accel_topic: str | None = None,
 ) -> Inspection:
     """What a log holds and what :func:`read` would take from it: topics, message types,
     counts, rates, time spans, the topic each stream is read from and the columns filled (for
@@ -196,6 +203,8 @@ def inspect(
         temperature_topic=temperature_topic,
         time=time,
         csv=csv,
+        gyro_topic=gyro_topic,
+        accel_topic=accel_topic,
     )
     return Inspection(inspect_log(spec))
 

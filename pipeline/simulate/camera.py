@@ -76,7 +76,10 @@ def simulate(p: dict[str, Any], rng: np.random.Generator) -> tuple[pa.Table, dic
             "source": "imupipe simulate camera",
             "format": "simulated",
             "topics": {"gyro": p["gyro_topic"], "accel": p["accel_topic"]},
-            "frame_id": {"gyro": "camera_gyro_optical_frame", "accel": "camera_accel_optical_frame"},
+            "frame_id": {
+                "gyro": "camera_gyro_optical_frame",
+                "accel": "camera_accel_optical_frame",
+            },
         },
     )
     truth = {
