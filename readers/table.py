@@ -51,7 +51,10 @@ gives an ``imu`` stream whose other sensor is null on every row: it is absent, n
 corrected MCAP writes such a row as a ``sensor_msgs/Imu`` whose missing vector is NaN with
 element 0 of its covariance set to -1 (the message's own convention for "no data"), and the
 readers read that back as null. A CSV row may belong to all three streams; a message from a bag
-belongs to exactly one. Streams at different rates keep their own timestamps: nothing is
+belongs to exactly one. A gyro and an accelerometer read from topics of their own
+(``gyro_topic``, ``accel_topic``) give IMU rows that hold one of them each, the other null:
+:func:`split_imu`; :func:`sensor` then gives each sensor's own rows, :func:`imu_pairs` the two
+row for row (interpolated explicitly), and the metadata names streams ``gyro`` and ``accel``. Streams at different rates keep their own timestamps: nothing is
 resampled silently; a stage that needs one stream at another's timestamps calls
 :func:`interpolate` explicitly.
 
