@@ -298,3 +298,20 @@ def test_allan_of_a_camera_each_sensor_at_its_own_rate() -> None:
     for name in ("gyro", "accel"):
         for i, axis in enumerate("xyz"):
             assert out.results[name][axis]["N"] == pytest.approx(truth[name]["N"][i], rel=0.10)
+
+
+def test_exports_of_an_allan_fit_with_a_dead_axis() -> None:
+    """Kalibr, VINS and imu_utils files from the axes fitted: the dead one is left out."""
+    import imupipe
+    from imupipe.pipeline.exports.common import noise
+    from imupipe.pipeline.exports.imu_utils import imu_utils_doc
+    from imupipe.pipeline.exports.kalibr import noise_yaml
+
+    table, _ = simulate("static", {"duration_s": 600.0, "rate_hz": 100.0}, seed=5)
+    with pytest.warns(UserWarning, match="gyro z"):
+        results = imupipe.allan(_dead(table, "gyro", 0.0), accept_failed_checks=True).results
+    gyro = noise(results, "gyro")
+    assert gyro is not None and gyro.density_axis in ("x", "y")
+    doc = imu_utils_doc(results)
+    assert "z-axis" not in doc["Gyr"] and "z-axis" in doc["Acc"]
+    assert "gyroscope_noise_density" in noise_yaml("allan", results)
