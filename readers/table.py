@@ -338,12 +338,12 @@ def _rate(t_ns: np.ndarray) -> float:
 
 
 def split_imu(table: pa.Table) -> bool:
-    """Whether the gyro and the accelerometer are sampled apart: both present, and some IMU row
-    holds one without the other (a camera's gyro and accel topics, each at its own stamps)."""
-    gyro, accel = (table.column(SENSOR_COLUMNS[s][0]).null_count for s in ("gyro", "accel"))
-    if not (gyro or accel) or max(gyro, accel) == len(table):
-        return False  # every row holds both, or a sensor is absent
-    return bool(np.any(sensor_mask(table, "gyro") != sensor_mask(table, "accel")))
+    """Whether the gyro and the accelerometer were sampled apart: read from topics of their own
+    (``gyro_topic``, ``accel_topic``: the metadata's ``topics`` name ``gyro`` or ``accel``), so
+    that each IMU row holds one of them. (A CSV row with empty accel cells is an IMU sample
+    without accel: its table stays row for row.)"""
+    topics = metadata(table).get("topics") or {}
+    return "gyro" in topics or "accel" in topics
 
 
 def imu_pairs(table: pa.Table, on: str = "gyro") -> tuple[SensorData, SensorData, str | None]:

@@ -206,7 +206,13 @@ def test_imu_pairs_interpolates_explicitly() -> None:
     slope = np.array([1.0, 2.0, 3.0])
     accel = np.where(is_g[:, None], 0.0, (t[order] * 1e-9)[:, None] * slope)
     gyro = np.where(is_g[:, None], np.full((len(t), 3), 0.5), 0.0)
-    table = make_table(t[order], gyro=gyro, accel=accel, valid={"gyro": is_g, "accel": ~is_g})
+    table = make_table(
+        t[order],
+        gyro=gyro,
+        accel=accel,
+        valid={"gyro": is_g, "accel": ~is_g},
+        metadata={"topics": {"gyro": GYRO, "accel": ACCEL}},
+    )
     g, a, note = imu_pairs(table)
     assert note is not None and "interpolated linearly onto the gyro's stamps" in note
     assert len(g) == len(a) == len(t_g)
