@@ -370,12 +370,14 @@ def imu_pairs(table: pa.Table, on: str = "gyro") -> tuple[SensorData, SensorData
         values[inside] = interpolate(t_o, other.values[ok], own.t_ns[inside])
     names = {"gyro": "gyro", "accel": "accelerometer"}
     off = "accel" if on == "gyro" else "gyro"
+    moved = SensorData(own.t_ns, values, own.rows)
+    if not len(other):  # the other topic not read: absent, NaN (as a CSV without it)
+        return (own, moved, None) if on == "gyro" else (moved, own, None)
     note = (
         f"gyro ({len(gyro)} samples, {_rate(gyro.t_ns):.4g} Hz) and accelerometer ({len(accel)} "
         f"samples, {_rate(accel.t_ns):.4g} Hz) are sampled apart: the {names[off]} is "
         f"interpolated linearly onto the {names[on]}'s stamps where both are needed together"
     )
-    moved = SensorData(own.t_ns, values, own.rows)
     return (own, moved, note) if on == "gyro" else (moved, own, note)
 
 

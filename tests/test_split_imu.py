@@ -321,3 +321,17 @@ def test_exports_of_an_allan_fit_with_a_dead_axis() -> None:
     doc = imu_utils_doc(results)
     assert "z-axis" not in doc["Gyr"] and "z-axis" in doc["Acc"]
     assert "gyroscope_noise_density" in noise_yaml("allan", results)
+
+
+def test_one_topic_of_the_two_read_alone(camera) -> None:
+    """gyro_topic without accel_topic: the gyro alone, its Allan fit and its bias (the stages
+    that need the accelerometer too find it absent, as in a CSV without it)."""
+    import imupipe
+
+    folder, _, truth = camera
+    table = imupipe.read(folder / "cam.mcap", gyro_topic=GYRO)
+    out = imupipe.allan(table, accept_failed_checks=True)
+    assert set(out.results["metrics"]["per_sensor"]) == {"gyro"} and "accel" not in out.results
+    table = imupipe.read(folder / "cam.bag", accel_topic=ACCEL)
+    out = imupipe.allan(table, accept_failed_checks=True)
+    assert out.results["metrics"]["per_sensor"]["accel"]["samples"] == 5000

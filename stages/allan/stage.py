@@ -50,6 +50,7 @@ import pyarrow as pa
 from imupipe.readers.table import (
     SENSOR_UNITS,
     SensorData,
+    has_sensor,
     has_stream,
     imu_pairs,
     sensor_columns,
@@ -149,6 +150,9 @@ class AllanStage(Stage):
             raise ctx.fail("'interval' must be [start_s, end_s] with end_s > start_s")
         if not split_imu(table):
             return self._fit(table, ctx, self.sensors, None)
+        present = tuple(s for s in self.sensors if has_sensor(table, s))
+        if len(present) == 1:  # one topic of the two read: that sensor alone
+            return self._fit(table, ctx, present, None)
         # gyro and accelerometer sampled apart (a camera's two topics): each from its own
         # samples at its own rate (interpolating one onto the other's clock would smooth its
         # white noise); the stillness test, which needs both, on the gyro's stamps
@@ -205,7 +209,7 @@ class AllanStage(Stage):
                 if ok.any():
                     acc = np.where(ok[:, None], acc, np.median(acc[ok], axis=0))
                 still["accel"] = [acc[:, i] for i in range(3)]
-            if len(still["accel"][0]) == len(t_ns):
+            if "accel" in still and len(still["accel"][0]) == len(t_ns):
                 gyro_means = [c.mean() for c in still["gyro"]]
                 static = self._check_static(t_ns, still, ctx, gyro_means)
         # without lost samples the phase is of these same columns: each mean computed once
