@@ -129,17 +129,20 @@ class StageContext:
 
     def dead_axes(self, data: SensorData, sensor: str, independent: bool = False) -> list[int]:
         """The axes of ``data`` (n, 3) that carry no signal (:func:`is_dead`). A fit that needs
-        every axis (``independent`` false: an ellipsoid, a pose model) stops on the first with
-        one line naming the input, the sensor and the axis; one that fits each axis on its own
-        warns (the same names) and gets the dead axes, to fit the others only. Every axis dead
-        is an error either way."""
+        every axis (``independent`` false: an ellipsoid, a pose model) fails a quality check
+        (:meth:`check`) with one line naming the input, the sensor and the axis: the stage stops
+        unless ``accept_failed_checks``; one that fits each axis on its own warns (the same
+        names) and gets the dead axes, to fit the others only. Every axis dead is an error."""
         values = data.values
         dead = [i for i in range(values.shape[1]) if is_dead(values[:, i])]
         if not dead:
             return []
         axes = ", ".join(f"{sensor} {AXES[i]} ({dead_value(values[:, i])})" for i in dead)
-        if not independent or len(dead) == values.shape[1]:
+        if len(dead) == values.shape[1]:
             raise self.fail(self.dead_text(axes))
+        if not independent:
+            self.check(False, self.dead_text(axes))
+            return dead
         self.warn(self.dead_text(axes, fitted_others=True))
         return dead
 
