@@ -234,15 +234,17 @@ def test_imu_pairs_interpolates_explicitly() -> None:
 # -- a dead axis ---------------------------------------------------------------------------------
 DEAD = {"zero": 0.0, "constant": 0.25, "nan": float("nan")}
 STAGES = [
-    # (stage, scenario, its params, the sensor with the dead axis, the other axes fitted)
+    # (stage, scenario, its params, the sensor with the dead axis, the other axes fitted;
+    # None: a constant axis is a valid reading for the stage, which fits it as it is, and only
+    # an axis with no finite value is named)
     ("allan", "static", {"duration_s": 600.0, "rate_hz": 100.0}, "gyro", True),
     ("allan", "static", {"duration_s": 600.0, "rate_hz": 100.0}, "accel", True),
-    ("gyro_bias", "static", {"duration_s": 60.0}, "gyro", True),
+    ("gyro_bias", "static", {"duration_s": 60.0}, "gyro", None),
     ("accel_calibration", "poses", {}, "accel", False),
     ("gyro_calibration", "poses", {}, "gyro", False),
     ("gyro_calibration", "poses", {}, "accel", False),
     ("mag_calibration", "mag", {}, "mag", False),
-    ("temperature", "thermal", {}, "gyro", False),
+    ("temperature", "thermal", {}, "gyro", None),
     ("thermal_soak", "thermal_soak", {}, "accel", False),
 ]
 
@@ -262,17 +264,25 @@ def _dead(table, name: str, value: float):  # noqa: ANN001, ANN202
 @pytest.mark.parametrize("kind", list(DEAD))
 @pytest.mark.parametrize(("stage", "scenario", "params", "name", "others"), STAGES)
 def test_a_dead_axis_is_named(stage, scenario, params, name, others, kind) -> None:  # noqa: ANN001
-    """A constant, all-zero or all-NaN z axis: where each axis is fitted on its own (allan,
-    gyro_bias), the others with a warning naming input, sensor and axis, nothing for it; where
-    the fit couples the axes, one line naming them (the CLI's exit 2), never a traceback."""
+    """A constant, all-zero or all-NaN z axis: where each axis is fitted on its own (allan),
+    the others with a warning naming input, sensor and axis, nothing for it; where the fit
+    couples the axes, a failed check naming them (the CLI's exit 2 unless accepted), never a
+    traceback; where a constant is a valid reading (gyro_bias, temperature), only an axis
+    without a finite value is named."""
     import imupipe
     from imupipe.stages.errors import FitError
 
     table, _ = simulate(scenario, params, seed=4)
     table = _dead(table, name, DEAD[kind])
     fit = getattr(imupipe, stage)
-    fitted_alone = others and not (stage == "gyro_bias" and kind == "nan")
-    if not fitted_alone:
+    if others is None:  # gyro_bias (its mean), temperature (a zero drift on that axis)
+        if kind == "nan":
+            with pytest.raises(FitError, match=rf"input 'table': .*{name} z \(no finite value\)"):
+                fit(table)
+        else:
+            fit(table, accept_failed_checks=True)
+        return
+    if not others:
         with pytest.raises(FitError, match=rf"input 'table': .*{name}\w* z .*dead axis"):
             fit(table)
         if kind != "nan":  # a failed quality check: kept when asked, never a traceback
@@ -286,12 +296,9 @@ def test_a_dead_axis_is_named(stage, scenario, params, name, others, kind) -> No
         out = fit(table, accept_failed_checks=True)
     metrics = out.results["metrics"]
     assert f"{name} z" in metrics["dead_axes"]
-    if stage == "allan":
-        assert set(out.results[name]) == {"x", "y"}  # nothing fitted for z
-        other = "accel" if name == "gyro" else "gyro"
-        assert set(out.results[other]) == {"x", "y", "z"}
-    else:
-        assert out.results["bias"][2] == 0.0 and out.step.offset[2] == 0.0
+    assert set(out.results[name]) == {"x", "y"}  # nothing fitted for z
+    other = "accel" if name == "gyro" else "gyro"
+    assert set(out.results[other]) == {"x", "y", "z"}
 
 
 def test_allan_of_a_camera_each_sensor_at_its_own_rate() -> None:

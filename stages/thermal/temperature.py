@@ -252,8 +252,10 @@ class TemperatureStage(Stage):
             )
         data = sensor(table, o.sensor)
         what = {"gyro": "gyroscope", "accel": "accelerometer", "mag": "magnetometer"}[o.sensor]
+        # an axis with no finite value is named; a constant one fits a zero drift (each axis
+        # has its own model)
         axes = [f"{o.sensor} {a}" for a in AXES]
-        ctx.dead_axes(ctx.finite(data, f"{what} ({input_name})", minimum=2, axes=axes), o.sensor)
+        ctx.finite(data, f"{what} ({input_name})", minimum=2, axes=axes)
         finite = usable(data.values).all(axis=1)
         channels = ["temperature"]
         if len(temperature_samples(table, "ambient_temperature")[0]):
