@@ -53,7 +53,14 @@ import pyarrow as pa
 
 from imupipe.readers.arrays import to_numpy
 from imupipe.readers.spec import InputSpec
-from imupipe.readers.table import STREAM_OF_SENSOR, STREAMS, metadata, stream_mask
+from imupipe.readers.table import (
+    STREAM_OF_SENSOR,
+    STREAMS,
+    metadata,
+    sensor_mask,
+    split_imu,
+    stream_mask,
+)
 from imupipe.stages.errors import CalibrationError
 from imupipe.stages.steps import Step, steps_from_json
 
@@ -84,8 +91,10 @@ def fitted_on(input_name: str, spec: InputSpec, table: pa.Table) -> dict[str, An
     if len(t):
         out["t_start_ns"], out["t_end_ns"] = int(t.min()), int(t.max())
     rates: dict[str, float] = {}
-    for stream in STREAMS:
-        stamps = t[stream_mask(table, stream)] if len(t) else t
+    apart = ("gyro", "accel") if len(t) and split_imu(table) else ()  # each sensor's own rate
+    for stream in STREAMS + apart:
+        mask = sensor_mask(table, stream) if stream in apart else stream_mask(table, stream)
+        stamps = t[mask] if len(t) else t
         span = (int(stamps.max()) - int(stamps.min())) * 1e-9 if len(stamps) > 1 else 0.0
         if span > 0:
             rates[stream] = (len(stamps) - 1) / span

@@ -30,6 +30,8 @@ from imupipe.readers.spec import (
 )
 from imupipe.stages.registry import STAGE_TYPES, stage_class
 
+SPLIT_KEYS = ("gyro_topic", "accel_topic")
+"""An input's keys for a gyro and an accelerometer on topics of their own (see InputSpec)."""
 INPUT_KEYS = {
     "path",
     "imu_topic",
@@ -40,6 +42,7 @@ INPUT_KEYS = {
     "fields",
     "instances",
 }
+INPUT_KEYS |= set(SPLIT_KEYS)
 CSV_KEYS = {f.name for f in dataclasses.fields(CsvMapping)} - {"required"}
 OUTPUT_KEYS = {"dir", "apply_to", "rerun", "rerun_max_points", "report", "exports", "params"}
 TOP_KEYS = {"inputs", "stages", "output"}
@@ -244,7 +247,7 @@ def parse_input(name: str, raw: Any, base: Path, where: str) -> InputSpec:
     _check_keys(where, raw, INPUT_KEYS)
     if "path" not in raw:
         raise ConfigError(f"{where}: missing key 'path'")
-    for key in ("path", "imu_topic", "mag_topic", "temperature_topic", "time"):
+    for key in ("path", "imu_topic", "mag_topic", "temperature_topic", "time", *SPLIT_KEYS):
         if key in raw and not isinstance(raw[key], str):
             raise ConfigError(f"{where}.{key}: must be a string")
     path = Path(raw["path"])
@@ -266,6 +269,8 @@ def parse_input(name: str, raw: Any, base: Path, where: str) -> InputSpec:
         path=path,
         name=name,
         imu_topic=raw.get("imu_topic"),
+        gyro_topic=raw.get("gyro_topic"),
+        accel_topic=raw.get("accel_topic"),
         mag_topic=raw.get("mag_topic"),
         temperature_topic=raw.get("temperature_topic"),
         time=time,
@@ -280,7 +285,7 @@ def _fields_of(raw: dict[str, Any], where: str) -> FieldMapping | None:
     mapping = _field_mapping(f"{where}.fields", raw.get("fields"))
     if mapping is None:
         return None
-    for key in ("imu_topic", "mag_topic", "temperature_topic"):
+    for key in ("imu_topic", "mag_topic", "temperature_topic", *SPLIT_KEYS):
         if key in raw:
             raise ConfigError(
                 f"{where}.{key}: not used with [fields], which names every sensor's topic "

@@ -32,6 +32,7 @@ from imupipe.readers.dispatch import detect_format
 from imupipe.readers.spec import InputSpec
 from imupipe.readers.topics import (
     COLUMNS,
+    PIECE_TYPES,
     STREAM_TYPES,
     TYPE_STREAMS,
     normalize_type,
@@ -127,7 +128,7 @@ def inspect(spec: InputSpec) -> dict[str, Any]:
     for stream, topic in chosen.items():
         out["streams"][stream] = {
             "topic": topic,
-            "type": STREAM_TYPES[stream],
+            "type": PIECE_TYPES[stream],
             "count": topics[topic]["count"],
         }
         columns += [name for name, _, _ in COLUMNS[stream]]

@@ -27,7 +27,7 @@ from imupipe.readers.cdr import (
     field_count,
 )
 from imupipe.readers.errors import ReadError
-from imupipe.readers.topics import COLUMNS, STREAM_TYPES
+from imupipe.readers.topics import COLUMNS, OTHER_VECTOR, PIECE_TYPES
 
 
 @dataclass
@@ -45,6 +45,9 @@ class Piece:
     one_frame: str | None = None
     """The frame_id of every message, when the decoder found them all the same (None:
     unknown)."""
+    other_nonzero: int = 0
+    """A split stream (``gyro``, ``accel``): messages whose other vector, which is not read, is
+    not all zeros (see :data:`imupipe.readers.topics.OTHER_VECTOR`)."""
 
     def __len__(self) -> int:
         return int(self.stamp.shape[0])
@@ -63,14 +66,42 @@ def decode_piece(
     """Decode one chunk's messages of ``stream`` (payloads in ``buf``) into a :class:`Piece`;
     numpy path first, rosbags' deserializer for layouts it does not take. A bad payload is a
     ReadError prefixed with ``where`` (file and topic)."""
-    msgtype = STREAM_TYPES[stream]
+    msgtype = PIECE_TYPES[stream]
     slots = [(first, count) for _, first, count in COLUMNS[stream]]
     names = [name for name, _, _ in COLUMNS[stream]]
+    other = OTHER_VECTOR.get(stream)
+    if other is not None:
+        slots.append(other)  # decoded to be checked, then dropped
+    piece = None
     if encoding == "cdr":
         uniform = _uniform_cdr(buf, starts, lengths, msgtype, slots)
         if uniform is not None:
             stamp, frame, cols, one = uniform
-            return Piece(stamp, log, frame, dict(zip(names, cols, strict=True)), pub, one)
+            piece = Piece(stamp, log, frame, {}, pub, one)
+    if piece is None:
+        stamp, frame, cols = _decode_general(
+            buf, starts, lengths, log, msgtype, encoding, where, slots
+        )
+        piece = Piece(stamp, log, frame, {}, pub)
+    if other is not None:
+        vector = cols.pop()
+        piece.other_nonzero = int(np.count_nonzero((vector != 0).any(axis=1)))
+    piece.columns = dict(zip(names, cols, strict=True))
+    return piece
+
+
+def _decode_general(
+    buf: np.ndarray,
+    starts: np.ndarray,
+    lengths: np.ndarray,
+    log: np.ndarray,
+    msgtype: str,
+    encoding: str,
+    where: str,
+    slots: list[tuple[int, int]],
+) -> tuple[np.ndarray, pa.Array, list[np.ndarray]]:
+    """:func:`imupipe.readers.cdr.decode`, or rosbags' deserializer for the layouts it does not
+    take; a bad payload is a ReadError naming ``where`` and the message's log time."""
     try:
         try:
             stamp, frame, cols = decode(buf, starts, lengths, msgtype, encoding, slots)
@@ -86,7 +117,7 @@ def decode_piece(
             f"{where}: message at log time {int(log[exc.index])} is not a valid {msgtype}: "
             f"{exc.reason}"
         ) from None
-    return Piece(stamp, log, frame, dict(zip(names, cols, strict=True)), pub)
+    return stamp, frame, cols
 
 
 def _uniform_cdr(
@@ -165,6 +196,7 @@ def concat(pieces: list[Piece], stream: str) -> Piece:
         pa.concat_arrays([p.frame for p in pieces]),
         columns,
         pubs,
+        other_nonzero=sum(p.other_nonzero for p in pieces),
     )
     pieces.clear()
     return joined

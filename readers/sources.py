@@ -61,7 +61,9 @@ def _size(path: Path) -> int:
     return sum(f.stat().st_size for f in path.iterdir()) if path.is_dir() else path.stat().st_size
 
 
-def _choose(spec: InputSpec, sources: Sequence[LogSource]) -> dict[str, str]:
+def _choose(
+    spec: InputSpec, sources: Sequence[LogSource], notes: list[str] | None = None
+) -> dict[str, str]:
     types: dict[str, str] = {}
     for src in sources:
         types.update(src.topic_types())
@@ -70,7 +72,35 @@ def _choose(spec: InputSpec, sources: Sequence[LogSource]) -> dict[str, str]:
         from imupipe.readers.mapped import mapped_topics
 
         return {topic: topic for topic in mapped_topics(spec, list(types))}
-    return select_topics(where, spec, types)
+    return select_topics(where, spec, types, notes)
+
+
+OTHER_NAMES = {"gyro": ("linear_acceleration", "accel"), "accel": ("angular_velocity", "gyro")}
+
+
+def _tally_other(pieces: dict[str, Piece], tally: dict[str, list[int]]) -> None:
+    """Add up, per split stream, the messages whose unread vector is not zeros, and all."""
+    for stream in OTHER_NAMES:
+        piece = pieces.get(stream)
+        if piece is not None:
+            both = tally.setdefault(stream, [0, 0])
+            both[0] += piece.other_nonzero
+            both[1] += len(piece)
+
+
+def other_warnings(where: str, streams: dict[str, str], tally: dict[str, list[int]]) -> list[str]:
+    """One line per split topic whose messages carry the other sensor's vector (not zeros): it
+    is not read, and the corrected log writes zeros there."""
+    out = []
+    for stream, (nonzero, total) in tally.items():
+        if nonzero:
+            field, other = OTHER_NAMES[stream]
+            out.append(
+                f"{where} topic {streams[stream]} ({stream}_topic): {nonzero} of {total} "
+                f"messages carry a {field} that is not zeros; it is not read (the {other} comes "
+                "from its own topic) and a corrected log writes zeros there"
+            )
+    return out
 
 
 def _ordered(sources: Sequence[LogSource]) -> list[LogSource]:
@@ -89,7 +119,8 @@ def read_sources(spec: InputSpec, sources: Sequence[LogSource]) -> tuple[pa.Tabl
         from imupipe.readers.mapped import read_mapped
 
         return read_mapped(spec, sources)  # type: ignore[arg-type]
-    streams = _choose(spec, sources)
+    notes: list[str] = []
+    streams = _choose(spec, sources, notes)
     stated = [src.topic_counts() for src in sources]
     counts = None
     if None not in stated:
@@ -98,13 +129,16 @@ def read_sources(spec: InputSpec, sources: Sequence[LogSource]) -> tuple[pa.Tabl
         counts = {s: min(most, sum(c.get(t, 0) for c in stated)) for s, t in streams.items()}  # type: ignore[union-attr]
     buffer = TableBuffer(list(streams), spec.time, counts)
     total = dict.fromkeys(streams, 0)
+    other: dict[str, list[int]] = {}
     for src in _ordered(sources):
         for pieces, _, _ in src.chunks(streams, carry=False):
+            _tally_other(pieces, other)
             buffer.add(pieces)
             for stream, piece in pieces.items():
                 total[stream] += len(piece)
     _check_empty(spec, streams, total)
     warnings: list[str] = [w for src in sources for w in getattr(src, "warnings", ())]
+    warnings += notes + other_warnings(str(spec.path), streams, other)
     table = buffer.table(
         sort=True,
         source=str(spec.path),
@@ -159,7 +193,8 @@ def iter_sources(
         if warnings is not None:
             warnings += warned
         return
-    streams = _choose(spec, sources)
+    notes: list[str] = []
+    streams = _choose(spec, sources, notes)
     ordered = _ordered(sources)
     later_first = [
         min((s.first_time() for s in ordered[i + 1 :]), default=NEVER) for i in range(len(ordered))
@@ -169,6 +204,7 @@ def iter_sources(
     rows = 0
     total = {s: 0 for s in streams}
     counts: dict[str, list[int]] = {}
+    other: dict[str, list[int]] = {}
 
     def flush(bound: int) -> tuple[pa.Table, list[RawMessage]]:
         nonlocal raw, rows
@@ -196,6 +232,7 @@ def iter_sources(
 
     for src, after in zip(ordered, later_first, strict=True):
         for pieces, messages, bound in src.chunks(streams, carry=carry):
+            _tally_other(pieces, other)
             for stream, piece in pieces.items():
                 parts[stream].append(piece)
                 rows += len(piece)
@@ -213,6 +250,7 @@ def iter_sources(
         yield flush(NEVER)
     if warnings is not None:
         warnings += [w for src in sources for w in getattr(src, "warnings", ())]
+        warnings += notes + other_warnings(str(spec.path), streams, other)
         warnings += order_warnings(str(spec.path), spec.time, counts)
 
 

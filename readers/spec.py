@@ -125,6 +125,11 @@ class InputSpec:
     path: Path
     name: str = "input"
     imu_topic: str | None = None
+    gyro_topic: str | None = None
+    """A topic of ``sensor_msgs/Imu`` read for its angular_velocity only (a camera's separate
+    gyro topic; ``accel_topic`` beside it): each sensor at its own stamps."""
+    accel_topic: str | None = None
+    """A topic of ``sensor_msgs/Imu`` read for its linear_acceleration only."""
     mag_topic: str | None = None
     temperature_topic: str | None = None
     time: str = "header"

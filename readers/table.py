@@ -51,7 +51,10 @@ gives an ``imu`` stream whose other sensor is null on every row: it is absent, n
 corrected MCAP writes such a row as a ``sensor_msgs/Imu`` whose missing vector is NaN with
 element 0 of its covariance set to -1 (the message's own convention for "no data"), and the
 readers read that back as null. A CSV row may belong to all three streams; a message from a bag
-belongs to exactly one. Streams at different rates keep their own timestamps: nothing is
+belongs to exactly one. A gyro and an accelerometer read from topics of their own
+(``gyro_topic``, ``accel_topic``) give IMU rows that hold one of them each, the other null:
+:func:`split_imu`; :func:`sensor` then gives each sensor's own rows, :func:`imu_pairs` the two
+row for row (interpolated explicitly), and the metadata names streams ``gyro`` and ``accel``. Streams at different rates keep their own timestamps: nothing is
 resampled silently; a stage that needs one stream at another's timestamps calls
 :func:`interpolate` explicitly.
 
@@ -321,9 +324,62 @@ class SensorData:
 
 
 def _stream_rows(table: pa.Table, name: str) -> np.ndarray | None:
-    """The rows of sensor ``name``'s stream (None: every row)."""
+    """The rows of sensor ``name``'s stream (None: every row); in a table whose gyro and
+    accelerometer come apart (:func:`split_imu`), the rows that hold a sample of ``name``."""
+    if STREAM_OF_SENSOR[name] == "imu" and split_imu(table):
+        return np.flatnonzero(sensor_mask(table, name))
     mask = stream_mask(table, STREAM_OF_SENSOR[name])
     return None if mask.all() else np.flatnonzero(mask)
+
+
+def _rate(t_ns: np.ndarray) -> float:
+    """Mean sample rate of stamps, Hz (0 for fewer than two)."""
+    span = (int(t_ns[-1]) - int(t_ns[0])) * 1e-9 if len(t_ns) > 1 else 0.0
+    return (len(t_ns) - 1) / span if span > 0 else 0.0
+
+
+def split_imu(table: pa.Table) -> bool:
+    """Whether the gyro and the accelerometer were sampled apart: read from topics of their own
+    (``gyro_topic``, ``accel_topic``: the metadata's ``topics`` name ``gyro`` or ``accel``), so
+    that each IMU row holds one of them. (A CSV row with empty accel cells is an IMU sample
+    without accel: its table stays row for row.)"""
+    topics = metadata(table).get("topics") or {}
+    return "gyro" in topics or "accel" in topics
+
+
+def imu_pairs(table: pa.Table, on: str = "gyro") -> tuple[SensorData, SensorData, str | None]:
+    """Gyro and accelerometer row for row, for what needs both at once (a pose's gravity and
+    rotation, a g-sensitivity, a stillness test): ``(gyro, accel, note)``.
+
+    Where each IMU row holds both (an Imu message, a CSV row): :func:`sensor` of each, note
+    None. Where they are sampled apart (:func:`split_imu`): both on the own stamps of sensor
+    ``on`` (its rows, so that its correction goes back where it came from), the other linearly
+    interpolated onto them (:func:`interpolate`: held at the other's first and last usable
+    sample up to one of its periods beyond them, NaN further out: never extrapolated), and a
+    note saying so. Nothing is resampled
+    silently: the caller passes the note on."""
+    gyro, accel = sensor(table, "gyro"), sensor(table, "accel")
+    if len(gyro) == len(accel) and np.array_equal(gyro.rows, accel.rows):
+        return gyro, accel, None
+    own, other = (gyro, accel) if on == "gyro" else (accel, gyro)
+    values = np.full((len(own), 3), np.nan)
+    ok = usable(other.values).all(axis=1)
+    t_o = other.t_ns[ok]
+    if len(t_o) >= 2:
+        period = int(np.median(np.diff(t_o)))  # up to one period beyond the ends: held
+        inside = (own.t_ns >= t_o[0] - period) & (own.t_ns <= t_o[-1] + period)
+        values[inside] = interpolate(t_o, other.values[ok], own.t_ns[inside])
+    names = {"gyro": "gyro", "accel": "accelerometer"}
+    off = "accel" if on == "gyro" else "gyro"
+    moved = SensorData(own.t_ns, values, own.rows)
+    if not len(other):  # the other topic not read: absent, NaN (as a CSV without it)
+        return (own, moved, None) if on == "gyro" else (moved, own, None)
+    note = (
+        f"gyro ({len(gyro)} samples, {_rate(gyro.t_ns):.4g} Hz) and accelerometer ({len(accel)} "
+        f"samples, {_rate(accel.t_ns):.4g} Hz) are sampled apart: the {names[off]} is "
+        f"interpolated linearly onto the {names[on]}'s stamps where both are needed together"
+    )
+    return (own, moved, note) if on == "gyro" else (moved, own, note)
 
 
 def _sensor_columns(
@@ -346,7 +402,8 @@ def sensor(table: pa.Table, name: str) -> SensorData:
     """The samples of sensor ``name`` (gyro, accel, mag, temperature) as :class:`SensorData`:
     one per row of its stream, so that gyro and accel stay row for row; NaN where that row has
     no sample of this sensor (an IMU stream from a CSV without accel columns: accel all NaN; see
-    :func:`has_sensor`)."""
+    :func:`has_sensor`). Where gyro and accelerometer are sampled apart (:func:`split_imu`),
+    each at its own rows and stamps only (:func:`imu_pairs` puts them row for row)."""
     rows = _stream_rows(table, name)
     t_ns, columns = _sensor_columns(table, name, rows)
     idx = np.arange(len(table)) if rows is None else rows

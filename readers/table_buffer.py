@@ -35,13 +35,13 @@ from imupipe.readers.arrays import arrow_array, string_array
 from imupipe.readers.decoded import Piece, absent_sensors, repeat_string
 from imupipe.readers.prefault import Prefault
 from imupipe.readers.table import COV, SCHEMA, null_floats, with_metadata
-from imupipe.readers.topics import COLUMNS, STREAM_TYPES
+from imupipe.readers.topics import COLUMNS, PIECE_TYPES
 
 SPREAD_ROWS = 1 << 15
 """Rows moved per step when a column is spread to its rows in place."""
 PREFAULT_ROWS = 1 << 16
 """Columns of at least this many rows have their pages mapped by a helper thread."""
-ORDER = {s: i for i, s in enumerate(STREAM_TYPES)}
+ORDER = {s: i for i, s in enumerate(PIECE_TYPES)}
 """At equal times, the streams' rows in this order."""
 TIME_COLUMNS = {"log_time_ns": "log", "header_stamp_ns": "stamp", "publish_time_ns": "pub"}
 """The table's int64 per-message columns besides ``t_ns``, in their order: column ->
@@ -324,7 +324,7 @@ class TableBuffer:
         self, streams: Sequence[str], time: str, counts: Mapping[str, int] | None = None
     ) -> None:
         self.time = time
-        names = [s for s in STREAM_TYPES if s in streams]
+        names = [s for s in PIECE_TYPES if s in streams]
         counts = counts or {}
         total = sum(counts.get(s, 0) for s in names)
         self.large = max(names, key=lambda s: counts.get(s, 0)) if counts else None
@@ -601,7 +601,7 @@ class TableBuffer:
             "source": source,
             "format": fmt,
             "topics": {s: topics[s] for s in names},
-            "types": {s: STREAM_TYPES[s] for s in names},
+            "types": {s: PIECE_TYPES[s] for s in names},
             "frame_id": frame_ids,
         }
         return with_metadata(pa.Table.from_arrays(values, schema=pa.schema(fields)), meta)

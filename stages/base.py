@@ -14,16 +14,35 @@ from __future__ import annotations
 import dataclasses
 import sys
 from abc import ABC, abstractmethod
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
 import numpy as np
 import pyarrow as pa
 
-from imupipe.readers.table import MAX_MAGNITUDE, SensorData, finite
+from imupipe.readers.table import MAX_MAGNITUDE, SensorData, finite, usable
 from imupipe.stages.errors import FitError
 from imupipe.stages.steps import Step
+
+AXES = ("x", "y", "z")
+
+
+def is_dead(column: np.ndarray) -> bool:
+    """An axis that carries no signal: no usable value (all NaN, Inf), or every usable value
+    the same (stuck or unconnected: exactly 0.0 throughout). Its noise is zero and its fits
+    divide by zero, so stages fit nothing on it."""
+    lo, hi = column.min(initial=np.inf), column.max(initial=-np.inf)
+    if usable(lo) and usable(hi):
+        return bool(lo == hi)
+    ok = column[usable(column)]
+    return len(ok) == 0 or bool(ok.min() == ok.max())
+
+
+def dead_value(column: np.ndarray) -> str:
+    """What a dead axis reads, for messages: ``always 0.0`` or ``no finite value``."""
+    ok = column[usable(column)]
+    return f"always {float(ok[0])!r}" if len(ok) else "no finite value"
 
 
 class NullRecorder:
@@ -83,12 +102,21 @@ class StageContext:
         self.failed_checks.append(" ".join(message.split()))
         self.warn(f"{message} (accepted: accept_failed_checks = true)")
 
-    def finite(self, data: SensorData, what: str, minimum: int = 1) -> SensorData:
+    def finite(
+        self, data: SensorData, what: str, minimum: int = 1, axes: Sequence[str] | None = None
+    ) -> SensorData:
         """``data`` without its samples that cannot enter a fit (NaN, Inf, or beyond
         :data:`~imupipe.readers.table.MAX_MAGNITUDE`), with one warning that counts them (``6990
         of 13964 magnetometer samples are NaN or Inf; fitted on 6974``); a stage error when
-        fewer than ``minimum`` remain."""
+        fewer than ``minimum`` remain, naming the axis (``axes``: each column's name; default
+        ``<what> x``, ...) when one has no usable value at all (a dead axis)."""
         kept, bad = finite(data)
+        if bad and len(kept) < minimum and len(data):
+            k = data.values.shape[1]
+            names = list(axes or ([what] if k == 1 else [f"{what} {a}" for a in AXES[:k]]))
+            none = [names[i] for i in range(k) if not usable(data.values[:, i]).any()]
+            if none:
+                raise self.fail(self.dead_text(", ".join(f"{n} (no finite value)" for n in none)))
         if bad:
             huge = int(np.count_nonzero(np.isfinite(data.values).all(axis=1))) - len(kept)
             kind = "NaN or Inf" if not huge else f"NaN, Inf or beyond {MAX_MAGNITUDE:g}"
@@ -98,6 +126,38 @@ class StageContext:
                 f"{len(kept)} finite {what} samples of {len(data)}; the fit needs at least {minimum}"
             )
         return kept
+
+    def dead_axes(self, data: SensorData, sensor: str, independent: bool = False) -> list[int]:
+        """The axes of ``data`` (n, 3) that carry no signal (:func:`is_dead`). A fit that needs
+        every axis (``independent`` false: an ellipsoid, a pose model) fails a quality check
+        (:meth:`check`) with one line naming the input, the sensor and the axis: the stage stops
+        unless ``accept_failed_checks``; one that fits each axis on its own warns (the same
+        names) and gets the dead axes, to fit the others only. Every axis dead is an error."""
+        values = data.values
+        dead = [i for i in range(values.shape[1]) if is_dead(values[:, i])]
+        if not dead:
+            return []
+        axes = ", ".join(f"{sensor} {AXES[i]} ({dead_value(values[:, i])})" for i in dead)
+        if len(dead) == values.shape[1]:
+            raise self.fail(self.dead_text(axes))
+        if not independent:
+            self.check(False, self.dead_text(axes))
+            return dead
+        self.warn(self.dead_text(axes, fitted_others=True))
+        return dead
+
+    def dead_text(self, axes: str, fitted_others: bool = False) -> str:
+        """The one line about dead axes (``gyro z (always 0.0)``); a warning names the input
+        (an error does: :meth:`fail`)."""
+        head = f"{axes}: a dead axis (every sample the same value, or none finite)"
+        if fitted_others:
+            return (
+                f"input '{self.input_name}': {head}; nothing is fitted for it, the other axes are"
+            )
+        return (
+            f"{head}; nothing can be fitted on it (a stuck or unconnected sensor, or a driver that "
+            "does not fill the field)"
+        )
 
 
 @dataclass

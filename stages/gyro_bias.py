@@ -20,7 +20,7 @@ from dataclasses import dataclass
 import numpy as np
 import pyarrow as pa
 
-from imupipe.readers.table import SensorData, has_stream, sensor
+from imupipe.readers.table import SensorData, has_stream, imu_pairs
 from imupipe.stages.base import Stage, StageContext, StageOutput
 from imupipe.stages.steps import LinearStep
 from imupipe.stages.stillness import stillness
@@ -53,7 +53,9 @@ class GyroBiasStage(Stage):
     def fit(self, table: pa.Table, ctx: StageContext) -> StageOutput:
         if not has_stream(table, "imu"):
             raise ctx.fail("the input has no gyroscope samples")
-        gyro = sensor(table, "gyro")
+        gyro, accel, note = imu_pairs(table)
+        if note:
+            ctx.warn(note)
         interval = self.options.interval
         if interval is not None and (len(interval) != 2 or interval[1] <= interval[0]):
             raise ctx.fail("'interval' must be [start_s, end_s] with end_s > start_s")
@@ -64,14 +66,17 @@ class GyroBiasStage(Stage):
         both = ctx.finite(
             SensorData(
                 gyro.t_ns[mask],
-                np.hstack([gyro.values[mask], sensor(table, "accel").values[mask]]),
+                np.hstack([gyro.values[mask], accel.values[mask]]),
                 gyro.rows[mask],
             ),
             "IMU (gyroscope and accelerometer)",
             minimum=2,
+            axes=[f"{s} {a}" for s in ("gyro", "accel") for a in "xyz"],
         )
         values, t_ns = both.values[:, :3], both.t_ns
         n = len(both)
+        # a constant axis is its own bias (a quantised gyro at rest may read one count
+        # throughout); an axis with no finite value is named by ctx.finite above
         bias = values.mean(axis=0)
         std = values.std(axis=0, ddof=1)
 

@@ -175,9 +175,9 @@ def test_static_poses_without_a_still_start():
 
 
 def test_gyro_fit_that_does_not_chain_the_poses_is_not_applied():
-    """A gyro whose z axis is dead (reads 0) cannot carry one pose onto the next: the
-    direction-residual check stops the stage with the figure, unless accepted. (A dead or
-    negated axis is not an error: the fit finds the permutation or the sign.)"""
+    """A gyro whose z axis is dead (reads 0) cannot carry one pose onto the next: the dead-axis
+    check names it and stops the stage, and so does the direction-residual check with the
+    figure, unless accepted (issue 37)."""
     table, _ = simulate("poses", seed=13)
     accel = AccelCalibrationStage(AccelCalibrationStage.Options()).fit(
         table, StageContext(name="a", input_name="sim", quiet=True)
@@ -185,13 +185,12 @@ def test_gyro_fit_that_does_not_chain_the_poses_is_not_applied():
     corrected = apply_chain(table, [accel.step])
     gyro = sensor(corrected, "gyro").values
     dead = replace_sensor(corrected, "gyro", np.arange(len(gyro)), gyro * [1.0, 1.0, 0.0])
-    with pytest.raises(
-        FitError, match=r"gravity-direction residual .* deg RMS over 17 motions > 2"
-    ):
+    with pytest.raises(FitError, match=r"input 'sim': gyro z \(always 0.0\): a dead axis"):
         fit(dead)
     ctx = StageContext(name="gyro", input_name="sim", quiet=True, accept_failed_checks=True)
     GyroCalibrationStage(GyroCalibrationStage.Options()).fit(dead, ctx)
-    assert ctx.failed_checks[0].startswith("gravity-direction residual")
+    assert "gyro z (always 0.0): a dead axis" in ctx.failed_checks[0]
+    assert ctx.failed_checks[1].startswith("gravity-direction residual")
 
 
 def test_gyro_bias_on_a_recording_that_moves(tmp_path, cli):

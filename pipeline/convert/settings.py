@@ -28,7 +28,8 @@ def chain_sha256(calibration: Mapping[str, Any]) -> str:
 
 def load_read_settings(path: Path | None) -> InputSpec:
     """The ``--config`` TOML: the keys of one ``[inputs.NAME]`` table except ``path``
-    (``imu_topic``, ``mag_topic``, ``temperature_topic``, ``time`` and a ``[csv]`` mapping)."""
+    (``imu_topic``, ``gyro_topic``, ``accel_topic``, ``mag_topic``, ``temperature_topic``,
+    ``time`` and a ``[csv]`` mapping)."""
     if path is None:  # the keys a log's reader may ask for go in a --config file
         return InputSpec(path=Path("."), keys_in="a --config TOML file (e.g. read.toml)")
     try:
@@ -48,5 +49,8 @@ def settings_sha256(spec: InputSpec) -> str:
     """SHA-256 of what decides how a log is read (topics, time source, CSV mapping)."""
     settings = dataclasses.asdict(spec)
     settings.pop("path"), settings.pop("name"), settings.pop("keys_in")
+    for key in ("gyro_topic", "accel_topic"):  # unset: the hash of the settings before them
+        if settings.get(key) is None:
+            settings.pop(key, None)
     canonical = json.dumps(settings, sort_keys=True, default=str, separators=(",", ":"))
     return hashlib.sha256(canonical.encode()).hexdigest()

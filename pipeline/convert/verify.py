@@ -17,7 +17,7 @@ from typing import Any
 import pyarrow as pa
 
 from imupipe.pipeline.errors import ImupipeError, ReadError
-from imupipe.pipeline.writers.mcap import DEFAULT_TOPICS
+from imupipe.pipeline.writers.mcap import DEFAULT_TOPICS, stream_rows, written_streams
 from imupipe.readers.spec import InputSpec
 from imupipe.readers.table import counts, metadata
 from imupipe.readers.topics import NOT_CARRIED, some_of
@@ -151,6 +151,9 @@ def not_carried(
 def counts_by_topic(table: pa.Table) -> collections.Counter[str]:
     """Messages per topic that ``table`` will be written as."""
     topics = {**DEFAULT_TOPICS, **metadata(table).get("topics", {})}
+    if "gyro" in written_streams(table):  # split topics: each row to the topic it came from
+        per = {s: len(stream_rows(table, s)) for s in written_streams(table)}
+        return collections.Counter({topics[s]: n for s, n in per.items() if n})
     return collections.Counter({topics[s]: n for s, n in counts(table).items() if n})
 
 

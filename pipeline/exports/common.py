@@ -93,19 +93,22 @@ def noise(results: Mapping[str, Any], sensor: str) -> Noise | None:
     if sensor not in results:
         return None
     per_axis = results[sensor]
+    axes = [a for a in AXES if a in per_axis]  # a dead axis has no fit (allan's dead_axes)
+    if not axes:
+        return None
     bounds = results.get("metrics", {}).get(sensor, {})
     density = {
         a: (float(per_axis[a]["N"]), False)
         if per_axis[a]["N"] > 0 or "N_upper" not in bounds.get(a, {})
         else (float(bounds[a]["N_upper"]), True)
-        for a in AXES
+        for a in axes
     }
-    n_axis = max(AXES, key=lambda a: density[a][0])
-    k_axis = max(AXES, key=lambda a: per_axis[a]["K"])
+    n_axis = max(axes, key=lambda a: density[a][0])
+    k_axis = max(axes, key=lambda a: per_axis[a]["K"])
     k, bound = float(per_axis[k_axis]["K"]), False
     if k == 0.0:
         upper = results["metrics"][sensor]
-        k_axis = max(AXES, key=lambda a: upper[a]["K_upper_68"])
+        k_axis = max(axes, key=lambda a: upper[a]["K_upper_68"])
         k, bound = float(upper[k_axis]["K_upper_68"]), True
     return Noise(density[n_axis][0], n_axis, k, k_axis, bound, density[n_axis][1])
 

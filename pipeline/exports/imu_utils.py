@@ -24,7 +24,7 @@ COMMENTS = [
     "    meaning VINS and Kalibr expect. NOT what imu_utils writes there (the minimum of the",
     "    Allan deviation, i.e. bias instability 0.664 B, in rad/s): that is gyr_b / acc_b",
     "    here, the bias instability B itself (rad/s, m/s^2).",
-    "  avg-axis: the mean of the three axes.",
+    "  avg-axis: the mean of the three axes (of the axes fitted: a dead axis has no entry).",
     "  gyr_n / acc_n: where the fit resolved no white noise, the upper bound from the shortest",
     "    taus (N_upper in calibration.json), never a zero.",
 ]
@@ -35,16 +35,19 @@ def imu_utils_doc(results: dict[str, Any]) -> dict[str, Any]:
     for sensor, section, p, unit in SECTIONS:
         if sensor not in results:
             continue
-        values = {t: [float(results[sensor][a][t]) for a in AXES] for t in ("N", "K", "B")}
+        axes = [a for a in AXES if a in results[sensor]]  # a dead axis has no fit
+        if not axes:
+            continue
+        values = {t: [float(results[sensor][a][t]) for a in axes] for t in ("N", "K", "B")}
         # a white noise the fit did not resolve is written as its upper bound, never a zero
         bounds = results.get("metrics", {}).get(sensor, {})
         values["N"] = [
             n if n > 0 else float(bounds.get(a, {}).get("N_upper", n))
-            for n, a in zip(values["N"], AXES, strict=True)
+            for n, a in zip(values["N"], axes, strict=True)
         ]
         block: dict[str, Any] = {"unit": f" {unit}"}
         rows = [("avg-axis", {t: float(np.mean(v)) for t, v in values.items()})]
-        rows += [(f"{a}-axis", {t: v[i] for t, v in values.items()}) for i, a in enumerate(AXES)]
+        rows += [(f"{a}-axis", {t: v[i] for t, v in values.items()}) for i, a in enumerate(axes)]
         for label, vals in rows:
             block[label] = {f"{p}_n": vals["N"], f"{p}_w": vals["K"], f"{p}_b": vals["B"]}
         doc[section] = block

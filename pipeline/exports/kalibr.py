@@ -79,6 +79,13 @@ def noise_yaml(name: str, results: dict[str, Any]) -> str:
         "update_rate in Hz, measured from the timestamps.",
         "Kalibr takes one value per sensor: each value is the LARGEST of the three axes.",
     ]
+    topics = (results.get("fitted_on") or {}).get("topics", {})
+    if "gyro" in topics and "accel" in topics:
+        head.append(
+            f"The gyro ({topics['gyro']}) and accelerometer ({topics['accel']}) came on topics "
+            "of their own; Kalibr reads one Imu topic with both (realsense-ros: "
+            "unite_imu_method): set rostopic to it. update_rate is the gyro's."
+        )
     return yaml_text(data, head + comments)
 
 

@@ -211,6 +211,8 @@ def read(
     temperature_topic: str | None = None,
     time: Literal["header", "log"] = "header",
     csv: Mapping[str, Any] | None = None,
+    gyro_topic: str | None = None,
+    accel_topic: str | None = None,
     fields: Mapping[str, Any] | None = None,
     rows: Literal["samples", "messages"] = "samples",
 ) -> pa.Table:
@@ -231,8 +233,9 @@ def read(
     The other keywords are the keys of a config's ``[inputs.NAME]`` table, with the same checks
     (``csv`` is the ``[inputs.NAME.csv]`` mapping as a dict: ``csv={"time": 0, "time_unit":
     "s", "accel": [1, 2, 3]}``; ``fields`` the ``[inputs.NAME.fields]`` mapping:
-    ``fields={"gyro": "/fmu/out/sensor_combined.gyro_rad", "time": "log"}``). The reader's warnings (a topic chosen among several, stamps out
-    of order) are issued as :class:`ImupipeWarning`. Raises :class:`ImupipeError` (one line
+    ``fields={"gyro": "/fmu/out/sensor_combined.gyro_rad", "time": "log"}``; ``gyro_topic`` and
+    ``accel_topic``: a gyro and an accelerometer published on topics of their own, each read at
+    its own stamps). The reader's warnings (a topic chosen among several, stamps out of order) are issued as :class:`ImupipeWarning`. Raises :class:`ImupipeError` (one line
     naming the file and what is wrong) when the log cannot be read.
     """
     if rows not in ("samples", "messages"):
@@ -246,6 +249,8 @@ def read(
         temperature_topic=temperature_topic,
         time=time,
         csv=csv,
+        gyro_topic=gyro_topic,
+        accel_topic=accel_topic,
         fields=fields,
     )
     table, found = read_input(spec)
@@ -290,6 +295,8 @@ def inspect(
     temperature_topic: str | None = None,
     time: Literal["header", "log"] = "header",
     csv: Mapping[str, Any] | None = None,
+    gyro_topic: str | None = None,
+    accel_topic: str | None = None,
     fields: Mapping[str, Any] | None = None,
 ) -> Inspection:
     """What a log holds and what :func:`read` would take from it: topics, message types,
@@ -304,6 +311,8 @@ def inspect(
         temperature_topic=temperature_topic,
         time=time,
         csv=csv,
+        gyro_topic=gyro_topic,
+        accel_topic=accel_topic,
         fields=fields,
     )
     return Inspection(inspect_log(spec))

@@ -28,6 +28,7 @@ from imupipe.pipeline.errors import ConfigError
 
 SCENARIOS: dict[str, str] = {
     "static": "imupipe.pipeline.simulate.static",
+    "camera": "imupipe.pipeline.simulate.camera",
     "poses": "imupipe.pipeline.simulate.poses",
     "mag": "imupipe.pipeline.simulate.mag",
     "thermal": "imupipe.pipeline.simulate.thermal",

@@ -56,11 +56,11 @@ class Surveyed:
 def _rows(table: pa.Table) -> tuple[np.ndarray, np.ndarray] | None:
     """(t_ns, x (n, 6): gyro then accel) of the IMU rows with finite samples; None when the
     batch has no gyro or no accelerometer."""
-    from imupipe.readers.table import has_sensor, sensor
+    from imupipe.readers.table import has_sensor, imu_pairs
 
     if not (has_sensor(table, "gyro") and has_sensor(table, "accel")):
         return None
-    gyro, accel = sensor(table, "gyro"), sensor(table, "accel")  # both on the imu rows
+    gyro, accel, _ = imu_pairs(table)  # on the imu rows (sampled apart: the gyro's stamps)
     x = np.column_stack([gyro.values, accel.values])
     keep = np.isfinite(x).all(axis=1)
     return gyro.t_ns[keep], x[keep]

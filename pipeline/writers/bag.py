@@ -33,6 +33,7 @@ from imupipe.pipeline.writers.mcap import (
     STREAM_TYPES,
     encode_stream,
     message_times,
+    written_streams,
 )
 from imupipe.readers.progress import report
 from imupipe.readers.table import metadata
@@ -45,7 +46,7 @@ def _messages(table: pa.Table, encoding: str) -> Iterator[tuple[str, int, list[b
     """Per stream present: (stream, topic, payloads in row order, log times)."""
     topics = {**DEFAULT_TOPICS, **metadata(table).get("topics", {})}
     log_all, _ = message_times(table)  # a bag has no publish time
-    for stream in ("imu", "mag", "temperature"):
+    for stream in written_streams(table):
         rows, groups = encode_stream(table, stream, encoding)
         if not len(rows):
             continue

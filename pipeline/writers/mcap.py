@@ -57,14 +57,31 @@ from imupipe.readers import cdr
 from imupipe.readers.arrays import arrow_array, arrow_scalar, to_numpy, unique, valid_mask
 from imupipe.readers.progress import report
 from imupipe.readers.spec import RawMessage
-from imupipe.readers.table import metadata, sensor, sensor_mask, stream_mask
+from imupipe.readers.table import (
+    SENSOR_COLUMNS,
+    metadata,
+    sensor,
+    sensor_mask,
+    stream_mask,
+)
 
-DEFAULT_TOPICS = {"imu": "/imu/data", "mag": "/imu/mag", "temperature": "/imu/temperature"}
+DEFAULT_TOPICS = {
+    "imu": "/imu/data",
+    "mag": "/imu/mag",
+    "temperature": "/imu/temperature",
+    "gyro": "/imu/gyro",
+    "accel": "/imu/accel",
+}
 STREAM_TYPES = {
     "imu": "sensor_msgs/msg/Imu",
+    "gyro": "sensor_msgs/msg/Imu",
+    "accel": "sensor_msgs/msg/Imu",
     "mag": "sensor_msgs/msg/MagneticField",
     "temperature": "sensor_msgs/msg/Temperature",
 }
+SPLIT = ("gyro", "accel")
+"""The streams of an IMU read from a gyro and an accelerometer topic (``gyro_topic``,
+``accel_topic``): written back to those topics, one vector each."""
 DEFAULT_FRAME = "imu"
 MAGIC = b"\x89MCAP0\r\n"
 CHUNK_BYTES = 1 << 20
@@ -128,21 +145,46 @@ IMU_VECTORS = (
 """sensor_msgs/Imu: (sensor, vector field, covariance column) of the two measured vectors."""
 
 
+def written_streams(table: pa.Table) -> tuple[str, ...]:
+    """The streams a writer writes, each to its topic: ``imu``, ``mag``, ``temperature``, and
+    for a table read from a gyro and an accelerometer topic (its metadata names ``gyro`` or
+    ``accel`` topics) also ``gyro`` and ``accel`` (see :func:`stream_rows`)."""
+    topics = metadata(table).get("topics") or {}
+    if any(s in topics for s in SPLIT):
+        return ("imu", *SPLIT, "mag", "temperature")
+    return ("imu", "mag", "temperature")
+
+
+def stream_rows(table: pa.Table, stream: str) -> np.ndarray:
+    """The table rows written as messages of ``stream``. In a table read from split topics
+    (:func:`written_streams`) an IMU row with only a gyro sample is a ``gyro`` message, one with
+    only an accelerometer sample an ``accel`` message, and only a row with both an ``imu``
+    message: every row once, each topic's messages back on their topic."""
+    if stream in SPLIT or (stream == "imu" and "gyro" in written_streams(table)):
+        gyro, accel = sensor_mask(table, "gyro"), sensor_mask(table, "accel")
+        mask = {"imu": gyro & accel, "gyro": gyro & ~accel, "accel": accel & ~gyro}[stream]
+        return np.flatnonzero(mask)
+    return np.flatnonzero(stream_mask(table, stream))
+
+
 def encode_stream(
     table: pa.Table, stream: str, encoding: str = "cdr", prefix: int = 0
 ) -> tuple[np.ndarray, list[tuple[np.ndarray, np.ndarray]]]:
-    """Encode every row of ``stream`` as CDR (or ROS 1 with ``encoding="ros1"``).
+    """Encode every row of ``stream`` (:func:`stream_rows`) as CDR (or ROS 1 with
+    ``encoding="ros1"``).
 
     Every field comes from the table: the header stamp is ``header_stamp_ns`` where the reader
     kept it (``time = "log"``), else ``t_ns``; values are written as they are, NaN included. In
     an Imu message whose gyro (or accel) is absent from the row (a CSV without those columns),
     the vector is NaN and element 0 of its covariance is -1, sensor_msgs/Imu's mark for "no
-    data". Optional columns left out take ROS defaults: orientation (0, 0, 0, 1) with
-    covariance element 0 = -1 (no orientation estimate), other covariances zero.
+    data". A ``gyro`` (``accel``) message of split topics carries zeros in the vector it does
+    not measure, as the cameras that publish such topics do. Optional columns left out take
+    ROS defaults: orientation (0, 0, 0, 1) with covariance element 0 = -1 (no orientation
+    estimate), other covariances zero.
 
     Returns ``(rows, groups)``: the table rows of the stream, and per frame_id a pair
     ``(positions into rows, payloads (m, prefix + L) uint8)`` (see :func:`cdr.encode`)."""
-    rows = np.flatnonzero(stream_mask(table, stream))
+    rows = stream_rows(table, stream)
     n = len(rows)
     if n == 0:
         return rows, []
@@ -152,10 +194,16 @@ def encode_stream(
     # defaults are one row, (1, k), broadcast by the encoder: no (n, 9) arrays of zeros
     zeros = np.zeros((1, 9))
     fields: dict[str, np.ndarray] = {}
-    if stream == "imu":
+    if stream in ("imu", *SPLIT):
         for name, vector, cov in IMU_VECTORS:
-            fields[vector] = sensor(table, name).values  # NaN where the sensor is absent
             covariance = _column_or(table, cov, rows, zeros)
+            if stream in SPLIT and name != stream:
+                fields[vector] = np.zeros((1, 3))
+                fields[f"{vector}_covariance"] = covariance
+                continue
+            nan = np.full(n, np.nan)  # where the sensor is absent
+            columns = SENSOR_COLUMNS[name]
+            fields[vector] = np.column_stack([_column_or(table, c, rows, nan) for c in columns])
             absent = ~sensor_mask(table, name)[rows]
             if absent.any():
                 covariance = np.array(np.broadcast_to(covariance, (n, 9)))
@@ -482,7 +530,7 @@ class McapTableWriter:
         topics = {**DEFAULT_TOPICS, **metadata(table).get("topics", {}), **self.topics}
         log_all, pub_all = message_times(table)
         pending = []  # (first log time, order, channel, records, log times)
-        for stream in ("imu", "mag", "temperature"):
+        for stream in written_streams(table):
             rows, groups = encode_stream(table, stream, prefix=RECORD_HEADER)
             if not len(rows):
                 continue

@@ -47,10 +47,19 @@ from typing import Any, Literal
 import numpy as np
 import pyarrow as pa
 
-from imupipe.readers.table import SENSOR_UNITS, SensorData, has_stream, sensor_columns, usable
+from imupipe.readers.table import (
+    SENSOR_UNITS,
+    SensorData,
+    has_sensor,
+    has_stream,
+    imu_pairs,
+    sensor_columns,
+    split_imu,
+    usable,
+)
 from imupipe.stages.allan import estimators as est
 from imupipe.stages.allan.fit import TERMS, AllanFit, fit_allan, slope_readings, term_variance
-from imupipe.stages.base import Stage, StageContext, StageOutput
+from imupipe.stages.base import Stage, StageContext, StageOutput, dead_value, is_dead
 from imupipe.stages.gyro_bias import select_interval
 from imupipe.stages.sample_clock import SampleClock, fill_lost, longest_run, sample_clock
 from imupipe.stages.stillness import stillness
@@ -139,17 +148,74 @@ class AllanStage(Stage):
             len(opts.interval) != 2 or opts.interval[1] <= opts.interval[0]
         ):
             raise ctx.fail("'interval' must be [start_s, end_s] with end_s > start_s")
-        series = self._samples(table, ctx)
+        if not split_imu(table):
+            return self._fit(table, ctx, self.sensors, None)
+        present = tuple(s for s in self.sensors if has_sensor(table, s))
+        if len(present) == 1:  # one topic of the two read: that sensor alone
+            return self._fit(table, ctx, present, None)
+        # gyro and accelerometer sampled apart (a camera's two topics): each from its own
+        # samples at its own rate (interpolating one onto the other's clock would smooth its
+        # white noise); the stillness test, which needs both, on the gyro's stamps
+        _, accel, note = imu_pairs(table)
+        ctx.warn(
+            f"{note} for the stillness test only; each sensor's deviations use its own samples"
+        )
+        gyro = self._fit(table, ctx, ("gyro",), accel)
+        both = self._fit(table, ctx, ("accel",), None)
+        results = {**gyro.results, **both.results}
+        metrics = {**gyro.results["metrics"], **both.results["metrics"]}
+        metrics["per_sensor"] = {
+            **gyro.results["metrics"]["per_sensor"],
+            **both.results["metrics"]["per_sensor"],
+        }
+        for key in ("samples", "duration_s", "rate_hz", "taus", "tau_range_s"):
+            metrics[key] = gyro.results["metrics"][key]  # the gyro's, as exports read them
+        metrics["static"] = gyro.results["metrics"]["static"]
+        results["metrics"] = metrics
+        return StageOutput(results=results, artifacts={**gyro.artifacts, **both.artifacts})
+
+    def _fit(
+        self,
+        table: pa.Table,
+        ctx: StageContext,
+        sensors: tuple[str, ...],
+        accel_on_gyro: SensorData | None,
+    ) -> StageOutput:
+        """The deviations and fits of ``sensors`` from their own rows (all of them on one
+        clock: an IMU whose samples hold both, or one sensor of a split IMU). ``accel_on_gyro``:
+        for a split IMU's gyro, the accelerometer on its stamps, for the stillness test."""
+        opts = self.options
+        split = len(sensors) < len(self.sensors)
+        series = self._samples(table, ctx, sensors)
         t_ns, data, clock = series.t_ns, series.data, series.clock
         rate_hz, duration, span = series.rate_hz, series.duration_s, series.span_s
-        gyro_means = [c.mean() for c in data["gyro"]]
-        static = self._check_static(t_ns, data, ctx, gyro_means)
+        live = [(s, i) for s in sensors for i in range(3)]
+        dead = [(s, i) for s, i in live if is_dead(data[s][i])]
+        if dead:
+            names = ", ".join(f"{s} {AXES[i]} ({dead_value(data[s][i])})" for s, i in dead)
+            if len(dead) == len(live):
+                raise ctx.fail(ctx.dead_text(names))
+            ctx.warn(ctx.dead_text(names, fitted_others=True))
+            live = [c for c in live if c not in dead]
+        static = True
+        if "gyro" in data:  # (a split IMU's accelerometer: judged with its gyro)
+            still = {  # a dead axis counts as still
+                s: [np.zeros_like(c) if (s, i) in dead else c for i, c in enumerate(v)]
+                for s, v in data.items()
+            }
+            if accel_on_gyro is not None:  # on the gyro's stamps (gaps cut as the gyro's)
+                acc = accel_on_gyro.values[np.isin(accel_on_gyro.t_ns, t_ns)]
+                ok = usable(acc).all(axis=1)
+                if ok.any():
+                    acc = np.where(ok[:, None], acc, np.median(acc[ok], axis=0))
+                still["accel"] = [acc[:, i] for i in range(3)]
+            if "accel" in still and len(still["accel"][0]) == len(t_ns):
+                gyro_means = [c.mean() for c in still["gyro"]]
+                static = self._check_static(t_ns, still, ctx, gyro_means)
         # without lost samples the phase is of these same columns: each mean computed once
-        means = None if clock.n_lost else gyro_means + [c.mean() for c in data["accel"]]
-        x = est.rate_to_phase(
-            [fill_lost(clock, c) for s in self.sensors for c in data[s]], 1.0 / rate_hz, means
-        )
-        del data, series  # the phase (6, n + 1) is all the estimators need
+        means = None if clock.n_lost else [data[s][i].mean() for s, i in live]
+        x = est.rate_to_phase([fill_lost(clock, data[s][i]) for s, i in live], 1.0 / rate_hz, means)
+        del data, series  # the phase (k, n + 1) is all the estimators need
         top = est.max_af(opts.kind, x.shape[1])
         if opts.kind not in FIT_KINDS:  # the fit runs on OADEV at the same taus
             top = min(top, est.max_af("oadev", x.shape[1]))
@@ -192,7 +258,7 @@ class AllanStage(Stage):
         fits: dict[tuple[str, int], AllanFit] = {}
         disagreements: list[str] = []
         unresolved: list[str] = []
-        for col, (name, i) in enumerate((s, i) for s in self.sensors for i in range(3)):
+        for col, (name, i) in enumerate(live):
             f = fit_allan(
                 fdev.taus,
                 fdev.dev[:, col],
@@ -241,11 +307,18 @@ class AllanStage(Stage):
                 "taus instead of a zero; record at the sensor's full rate without filtering to "
                 "measure N"
             )
+        metrics["per_sensor"] = {
+            s: {"samples": int(len(t_ns)), "rate_hz": float(rate_hz), "duration_s": duration}
+            for s in sensors
+        }
+        if dead:
+            metrics["dead_axes"] = [f"{s} {AXES[i]}" for s, i in dead]
         results["metrics"] = metrics
-        self._record(ctx, dev, conf, fits, fdev)
+        self._record(ctx, dev, conf, fits, fdev, live)
         # imu.yaml and the imu_utils layout are written from these results by the pipeline's
         # exports (imupipe.pipeline.exports.kalibr, .imu_utils)
-        artifacts = {f"{ctx.name}_curves.csv": curves_csv(dev, conf, fits, self.sensors, fdev)}
+        name = f"{ctx.name}_{sensors[0]}_curves.csv" if split else f"{ctx.name}_curves.csv"
+        artifacts = {name: curves_csv(dev, conf, fits, live, fdev)}
         return StageOutput(results=results, artifacts=artifacts)
 
     # -- checks ------------------------------------------------------------------------------
@@ -263,15 +336,18 @@ class AllanStage(Stage):
         if opts.max_gap < 2.0:
             raise ctx.fail(f"max_gap must be >= 2 (sample periods), got {opts.max_gap}")
 
-    def _samples(self, table: pa.Table, ctx: StageContext) -> ImuSeries:
+    def _samples(
+        self, table: pa.Table, ctx: StageContext, sensors: tuple[str, ...] = ("gyro", "accel")
+    ) -> ImuSeries:
         """The IMU samples the deviations are computed on: the ``interval``, without non-finite
         samples (one counted warning), on their sample clock (lost samples counted and filled,
         jitter told apart from gaps: :mod:`imupipe.stages.sample_clock`), cut to the longest
         stretch without a gap longer than ``max_gap`` periods (a warning)."""
         opts = self.options
         # column by column, views of the table where it can: no (n, 3) copy
-        t_ns, gyro = sensor_columns(table, "gyro")
-        cols = gyro + sensor_columns(table, "accel")[1]  # gyro x, y, z, accel x, y, z
+        t_ns, cols = sensor_columns(table, sensors[0])
+        for other in sensors[1:]:
+            cols = cols + sensor_columns(table, other)[1]  # gyro x, y, z, accel x, y, z
         number = None  # IMU sample numbers of the input, for messages (None: 0, 1, 2, ...)
         if opts.interval is not None:
             everyone = np.arange(len(t_ns))
@@ -280,13 +356,18 @@ class AllanStage(Stage):
             )
             t_ns, cols = t_ns[keep], [c[keep] for c in cols]
             number = np.flatnonzero(keep)
-        # one reduction per column tells whether any value is NaN, Inf or huge (no mask)
+        # one reduction per column tells whether any value is NaN, Inf or huge (no mask); a
+        # column without any usable value is a dead axis (left out later), not a reason to drop
+        # every row
         if not all(usable(c.min()) and usable(c.max()) for c in cols):
-            ok = np.logical_and.reduce([usable(c) for c in cols])
-            rows = np.arange(len(t_ns)) if number is None else number
-            both = SensorData(t_ns, np.column_stack(cols), rows)
-            number = ctx.finite(both, "IMU (gyro and accel)", minimum=3).rows
-            t_ns, cols = t_ns[ok], [c[ok] for c in cols]
+            alive = [c for c in cols if usable(c).any()]
+            ok = np.logical_and.reduce([usable(c) for c in alive]) if alive else None
+            if ok is not None and not ok.all():
+                rows = np.arange(len(t_ns)) if number is None else number
+                both = SensorData(t_ns, np.column_stack(alive), rows)
+                what = "IMU (gyro and accel)" if len(sensors) > 1 else sensors[0]
+                number = ctx.finite(both, what, minimum=3).rows
+                t_ns, cols = t_ns[ok], [c[ok] for c in cols]
 
         def num(i: int) -> int:
             return int(i if number is None else number[i])
@@ -297,7 +378,7 @@ class AllanStage(Stage):
         if dt.min() <= 0:
             i = int(np.flatnonzero(dt <= 0)[0])
             raise ctx.fail(f"time does not increase at IMU sample {num(i + 1)} (step {dt[i]} ns)")
-        data = {"gyro": cols[:3], "accel": cols[3:]}
+        data = {s: cols[3 * k : 3 * k + 3] for k, s in enumerate(sensors)}
         clock = sample_clock(t_ns, dt)
         breaks = np.flatnonzero(clock.lost + 1 > opts.max_gap) if clock.n_lost else []
         if len(breaks):
@@ -365,12 +446,13 @@ class AllanStage(Stage):
         conf: est.Confidence,
         fits: dict[tuple[str, int], AllanFit],
         fdev: est.Deviation,
+        live: list[tuple[str, int]],
     ) -> None:
         rec = ctx.recorder
         if not getattr(rec, "enabled", False):
             return
         dense = np.logspace(np.log10(dev.taus[0]), np.log10(dev.taus[-1]), 200)
-        for col, (name, i) in enumerate((s, i) for s in self.sensors for i in range(3)):
+        for col, (name, i) in enumerate(live):
             base = f"/{ctx.name}/{name}/{AXES[i]}"
             plot = dict(
                 plot=f"{name}/{AXES[i]}",
@@ -469,7 +551,7 @@ def curves_csv(
     dev: est.Deviation,
     conf: est.Confidence,
     fits: dict[tuple[str, int], AllanFit],
-    sensors: tuple[str, ...],
+    columns: list[tuple[str, int]],
     fdev: est.Deviation,
 ) -> str:
     """tau_s, then per sensor axis: deviation, 68 % bounds, fitted model, EDF, noise alpha (and
@@ -477,7 +559,7 @@ def curves_csv(
     cols = [dev.taus]
     header = ["tau_s", "m", "terms"]
     cols += [dev.m.astype(np.float64), dev.n.astype(np.float64)]
-    for col, (name, i) in enumerate((s, i) for s in sensors for i in range(3)):
+    for col, (name, i) in enumerate(columns):
         p = f"{name}_{AXES[i]}"
         header += [
             f"{p}_{dev.kind}",

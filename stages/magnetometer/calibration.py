@@ -154,6 +154,7 @@ class MagCalibrationStage(Stage):
                 "the input has no magnetometer samples (map csv.mag, or set mag_topic for a log)"
             )
         data = ctx.finite(sensor(table, "mag"), "magnetometer", minimum=o.min_samples)
+        ctx.dead_axes(data, "mag")  # an ellipsoid needs every axis
         values = data.values
         unit = SensorUnit.of(table)
         self._check_not_normalised(ctx, values, unit)

@@ -47,7 +47,7 @@ from typing import Any, Literal
 import numpy as np
 import pyarrow as pa
 
-from imupipe.readers.table import SensorData, has_stream, sensor
+from imupipe.readers.table import SensorData, has_stream, imu_pairs, sensor
 from imupipe.stages.base import Stage, StageContext, StageOutput
 from imupipe.stages.errors import FitError
 from imupipe.stages.multiposition import accel_models as am
@@ -363,6 +363,7 @@ class AccelCalibrationStage(Stage):
         if o.method == "ferraris":
             return self._ferraris(table, ctx)
         acc = ctx.finite(sensor(table, "accel"), "accelerometer", minimum=2)
+        ctx.dead_axes(acc, "accel")  # the pose models couple the axes
         g = o.gravity
         models = None if o.method != "six_position" else ["6-parameter"]
         try:
@@ -556,8 +557,9 @@ class AccelCalibrationStage(Stage):
                 "method 'ferraris' needs labelled segments: set csv.label (or give every part "
                 "as [start_s, end_s] in ferraris_parts)"
             )
-        acc = sensor(table, "accel")
-        gyro = sensor(table, "gyro")
+        gyro, acc, note = imu_pairs(table, on="accel")
+        if note:
+            ctx.warn(note)
         labels = table.column("label").take(pa.array(acc.rows)) if labelled else None
         parts = {}
         try:

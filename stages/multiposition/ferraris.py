@@ -30,7 +30,7 @@ from typing import Any, ClassVar
 import numpy as np
 import pyarrow as pa
 
-from imupipe.readers.table import has_stream, replace_sensor, sensor
+from imupipe.readers.table import has_stream, imu_pairs, replace_sensor
 from imupipe.stages.steps import Step
 
 STATIC_PARTS = ("x_p", "x_a", "y_p", "y_a", "z_p", "z_a")
@@ -124,8 +124,8 @@ class GSensitivityStep(Step):
     def apply(self, table: pa.Table) -> pa.Table:
         if not has_stream(table, "imu"):
             return table
-        gyro = sensor(table, "gyro")
-        acc = sensor(table, "accel").values
+        gyro, accel, _ = imu_pairs(table)  # sampled apart: the accel on the gyro's stamps
+        acc = accel.values
         ok = np.isfinite(acc).all(axis=1)
         # elementwise (not a matrix product, whose rounding depends on the batch size): each
         # sample's result is the same whether the log is corrected whole or batch by batch

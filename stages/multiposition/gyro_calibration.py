@@ -33,7 +33,7 @@ from typing import Any, Literal
 import numpy as np
 import pyarrow as pa
 
-from imupipe.readers.table import SensorData, has_stream, sensor
+from imupipe.readers.table import SensorData, has_stream, imu_pairs, sensor
 from imupipe.stages.base import Stage, StageContext, StageOutput
 from imupipe.stages.errors import FitError
 from imupipe.stages.multiposition import gyro_models as gm
@@ -57,10 +57,13 @@ GYRO_MISALIGNMENT_MODELS: dict[str, list[str]] = {
 }
 
 
-def imu_samples(table: pa.Table) -> SensorData:
-    """Accelerometer and gyroscope of each IMU sample side by side: values (n, 6)."""
-    acc, gyro = sensor(table, "accel"), sensor(table, "gyro")
-    return SensorData(acc.t_ns, np.hstack([acc.values, gyro.values]), acc.rows)
+def imu_samples(table: pa.Table, ctx: StageContext | None = None) -> SensorData:
+    """Accelerometer and gyroscope of each IMU sample side by side: values (n, 6); sampled
+    apart, on the gyro's stamps (:func:`~imupipe.readers.table.imu_pairs`, its note warned)."""
+    gyro, acc, note = imu_pairs(table)
+    if note and ctx is not None:
+        ctx.warn(note)
+    return SensorData(gyro.t_ns, np.hstack([acc.values, gyro.values]), gyro.rows)
 
 
 class GyroCalibrationStage(Stage):
@@ -95,9 +98,17 @@ class GyroCalibrationStage(Stage):
             raise ctx.fail("the input has no gyroscope samples")
         if self.options.method == "static_poses":
             # accelerometer and gyroscope side by side: values (n, 6)
-            gyro = ctx.finite(imu_samples(table), "IMU (accelerometer and gyroscope)", minimum=2)
+            gyro = ctx.finite(
+                imu_samples(table, ctx),
+                "IMU (accelerometer and gyroscope)",
+                minimum=2,
+                axes=[f"{s} {a}" for s in ("accel", "gyro") for a in "xyz"],
+            )
         else:
             gyro = ctx.finite(sensor(table, "gyro"), "gyroscope", minimum=2)
+        for k, name in enumerate(("accel", "gyro") if gyro.values.shape[1] == 6 else ("gyro",)):
+            part = gyro.values[:, 3 * k : 3 * k + 3]
+            ctx.dead_axes(SensorData(gyro.t_ns, part, gyro.rows), name)  # coupled axes
         labels = (
             table.column("label").take(pa.array(gyro.rows))
             if "label" in table.column_names

@@ -35,7 +35,7 @@ from typing import Any, Literal
 import numpy as np
 import pyarrow as pa
 
-from imupipe.readers.table import has_stream, sensor
+from imupipe.readers.table import has_stream, imu_pairs
 from imupipe.stages.base import Stage, StageContext, StageOutput
 from imupipe.stages.errors import FitError
 from imupipe.stages.multiposition import accel_models as am
@@ -191,8 +191,11 @@ class ThermalSoakStage(Stage):
             )
         if o.order is not None and not 0 <= o.order <= MAX_ORDER:
             raise ctx.fail(f"'order' must be 0..{MAX_ORDER}")
-        acc = sensor(table, "accel")
-        gyro = sensor(table, "gyro")
+        gyro, acc, note = imu_pairs(table, on="accel")
+        if note:
+            ctx.warn(note)
+        ctx.dead_axes(acc, "accel")  # the pose models couple the axes
+        ctx.dead_axes(gyro, "gyro")
         bad = ~(np.isfinite(acc.values).all(axis=1) & np.isfinite(gyro.values).all(axis=1))
         if bad.any():
             raise ctx.fail(f"non-finite IMU sample at sample {int(np.flatnonzero(bad)[0])}")

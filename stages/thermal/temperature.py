@@ -54,7 +54,14 @@ from typing import Any, Literal
 import numpy as np
 import pyarrow as pa
 
-from imupipe.readers.table import SENSOR_UNITS, STREAM_OF_SENSOR, has_stream, sensor, usable
+from imupipe.readers.table import (
+    SENSOR_UNITS,
+    STREAM_OF_SENSOR,
+    has_stream,
+    imu_pairs,
+    sensor,
+    usable,
+)
 from imupipe.stages.base import Stage, StageContext, StageOutput
 from imupipe.stages.stillness import G0
 from imupipe.stages.thermal import choice as tc
@@ -245,7 +252,10 @@ class TemperatureStage(Stage):
             )
         data = sensor(table, o.sensor)
         what = {"gyro": "gyroscope", "accel": "accelerometer", "mag": "magnetometer"}[o.sensor]
-        ctx.finite(data, f"{what} ({input_name})", minimum=2)
+        # an axis with no finite value is named; a constant one fits a zero drift (each axis
+        # has its own model)
+        axes = [f"{o.sensor} {a}" for a in AXES]
+        ctx.finite(data, f"{what} ({input_name})", minimum=2, axes=axes)
         finite = usable(data.values).all(axis=1)
         channels = ["temperature"]
         if len(temperature_samples(table, "ambient_temperature")[0]):
@@ -284,7 +294,12 @@ class TemperatureStage(Stage):
         noise[(n1 == 0) | (n2 == 0)] = np.nan
         accel_means = None
         # the IMU's orientation from gravity (a magnetometer's: its corrected field, after the fit)
-        acc = sensor(table, "accel").values if o.sensor == "gyro" else data.values
+        acc = data.values
+        if o.sensor == "gyro":  # sampled apart: the accelerometer on the gyro's stamps
+            _, accel, note = imu_pairs(table)
+            acc = accel.values
+            if note:
+                ctx.warn(note)
         acc_ok = finite & usable(acc).all(axis=1)
         if acc_ok.any() and o.sensor != "mag":
             n_acc, acc_sums = block_sums(acc_ok, acc)
@@ -347,8 +362,9 @@ class TemperatureStage(Stage):
         signals = []
         # a magnetometer's rows are not the IMU's: it is judged on its own field (turning it
         # moves the field by up to twice its strength, far beyond its noise)
+        pair = None if o.sensor == "mag" else imu_pairs(table, on=o.sensor)
         for name in ("mag",) if o.sensor == "mag" else ("gyro", "accel"):
-            values = data.values if name == o.sensor else sensor(table, name).values
+            values = data.values if pair is None else pair[name == "accel"].values
             ok = usable(values).all(axis=1)
             if np.count_nonzero(ok) < 3:
                 continue
