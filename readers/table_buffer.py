@@ -767,7 +767,7 @@ def _frames(
     ones = [st.one_frame for st in streams]
     if None not in ones and len(set(ones)) == 1:
         return repeat_string(ones[0], len(stream_of_row))  # type: ignore[arg-type]
-    import pyarrow.compute as pc  # only here: the import costs ~0.4 s CPU (its docs)
+    import pyarrow.compute as pc  # only here: its import costs 0.06-0.09 s CPU
 
     frames = [st.frame() for st in streams]
     firsts = [frame[0] if len(frame) else None for frame in frames]

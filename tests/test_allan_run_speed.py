@@ -40,8 +40,8 @@ def test_sumsq_lagged_matches_the_direct_second_difference():
 
 
 def test_quiet_allan_run_imports_no_progress_bar_nor_mcap_writer_nor_arrow_compute(tmp_path):
-    """Nor ``pyarrow.compute``, whose import (its functions' docs parsed) costs ~0.4 s CPU: a CSV
-    read with a numeric time column does not need it (issue 39)."""
+    """Nor ``pyarrow.compute``, whose import (its functions' docs parsed) costs 0.06-0.09 s
+    CPU: a CSV read with a numeric time column does not need it (issue 39)."""
     table, _ = simulate("static", {"duration_s": 60.0, "rate_hz": 100.0, "temperature": None}, 2)
     write_log(tmp_path / "static.csv", table)
     cfg = tmp_path / "cfg.toml"

@@ -43,7 +43,7 @@ def _first(mask: np.ndarray) -> int:
 
 def _as_decimal(cells: pa.Array, exponent: int) -> pa.Array:
     """The cells as decimal128 with ``exponent`` fractional digits (rounded below that)."""
-    import pyarrow.compute as pc  # text times only: the import costs ~0.4 s CPU
+    import pyarrow.compute as pc  # text times only: its import costs 0.06-0.09 s CPU
 
     target = pa.decimal128(38, exponent)
     try:
@@ -83,7 +83,7 @@ def text_to_ns(cells: pa.Array, exponent: int) -> np.ndarray:
     of ns (``exponent`` 0) or out of int64 range."""
     if len(cells) == 0:
         return np.zeros(0, np.int64)
-    import pyarrow.compute as pc  # text times only: the import costs ~0.4 s CPU
+    import pyarrow.compute as pc  # text times only: its import costs 0.06-0.09 s CPU
 
     try:
         try:

@@ -366,7 +366,7 @@ def _times(
         else:
             text = column.combine_chunks() if column.num_chunks != 1 else column.chunk(0)
             if f.layout.decimal == ",":
-                import pyarrow.compute as pc  # imported only here: ~0.4 s CPU (its docs)
+                import pyarrow.compute as pc  # imported only here: 0.06-0.09 s CPU
 
                 text = pc.replace_substring(text, ",", ".")
             t = text_to_ns(text, exponent)
