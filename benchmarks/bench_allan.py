@@ -14,11 +14,24 @@
    rest); and the floor no run avoids (a fresh process importing what a run imports, import by
    import, then ``pyarrow.csv.read_csv`` of the file) against the same peer.
 
+3. ``--script``: the whole ``imupipe run`` (one ``allan`` stage, defaults, every output)
+   against what a user writes without imupipe, each a whole process on the same CSV: the
+   user's script (``pandas.read_csv``, then ``allantools.oadev(taus="octave")`` per axis;
+   :data:`USER_SCRIPT`). The two alternate in pairs; each pair gives the ratio of wall times
+   and of CPU times (``os.wait4``'s rusage of that child: user + system, every thread), and the
+   children's peak RSS (``ru_maxrss``; the parent holds no data: the CSV is written by a child).
+   ``--minutes`` sets the log's length (120: the issue's 2 h at 400 Hz); ``--peer-path`` a
+   folder put on the script's ``PYTHONPATH`` only (pandas, when it is not installed: imupipe
+   never imports it). Goal (issue 39): ratio <= 0.5. Beside them, in each pair, the floor: a
+   process that imports what every such run needs (numpy, pyarrow, Rerun for the recording,
+   ``scipy.special`` for the confidence bounds and the fit) and reads the file with
+   ``pyarrow.csv.read_csv`` (:data:`SCRIPT_FLOOR`).
+
 Times are noisy on a shared machine: the load average is printed, and the ratios (both sides
 measured in the same run, interleaved) are what count.
 
 Usage: ``python benchmarks/bench_allan.py [--sizes 0.5e6 2.88e6 8e6] [--repeats 3]
-[--skip-run] [--skip-stage] [--parts]`` (``--parts``: the CPU time of the stage's parts, per call:
+[--skip-run] [--skip-stage] [--parts] [--script [--minutes 120] [--pairs 2] [--peer-path DIR]]`` (``--parts``: the CPU time of the stage's parts, per call:
 sample clock, motion check, phase, deviations, noise identification + EDF + bounds, fit).
 """
 
@@ -163,6 +176,95 @@ stage (with the imports it makes on first use: scipy), ``report.html``
 and the rest (the Rerun import and recording, the exports, the outputs)."""
 
 
+USER_SCRIPT = """
+import sys
+import allantools
+import pandas as pd
+
+df = pd.read_csv(sys.argv[1])
+rate = 1e9 / df["t_ns"].diff().median()
+for c in ("gyro_x", "gyro_y", "gyro_z", "accel_x", "accel_y", "accel_z"):
+    allantools.oadev(df[c].to_numpy(), rate=rate, data_type="freq", taus="octave")
+"""
+"""The user's script: the CSV into a DataFrame, then allantools on each axis (octave taus)."""
+
+SCRIPT_FLOOR = """
+import sys
+import numpy, pyarrow, pyarrow.csv, rerun, scipy.special
+pyarrow.csv.read_csv(sys.argv[1])
+"""
+"""What no Allan run with a recording avoids: its imports and pyarrow's parse of the file."""
+
+WRITE_CHILD = """
+import sys
+from pathlib import Path
+from imupipe.pipeline.simulate import simulate, write_log
+table, _ = simulate("static", {"rate_hz": 400.0, "duration_s": float(sys.argv[2]),
+                               "temperature": None}, 1)
+write_log(Path(sys.argv[1]), table)
+"""
+
+
+def timed_child(argv: list[str], env: dict[str, str] | None = None) -> tuple[float, float, int]:
+    """(wall s, CPU s: user + system of every thread, peak RSS bytes) of one child process."""
+    t = time.perf_counter()
+    proc = subprocess.Popen(argv, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    _, status, usage = os.wait4(proc.pid, 0)
+    wall = time.perf_counter() - t
+    proc.returncode = os.waitstatus_to_exitcode(status)
+    err = proc.stderr.read().decode(errors="replace") if proc.stderr else ""
+    if proc.returncode != 0:
+        raise SystemExit(f"{argv[:3]} failed ({proc.returncode}): {err[-2000:]}")
+    return wall, usage.ru_utime + usage.ru_stime, usage.ru_maxrss * 1024
+
+
+def bench_script(minutes: float, pairs: int, peer_path: str | None) -> None:
+    import statistics
+
+    d = Path(tempfile.mkdtemp(prefix="bench_allan_script_"))
+    csv = d / "static.csv"
+    subprocess.run([sys.executable, "-c", WRITE_CHILD, str(csv), str(minutes * 60.0)], check=True)
+    (d / "cfg.toml").write_text(
+        '[inputs.static]\npath = "static.csv"\n\n[[stages]]\ntype = "allan"\n\n'
+        '[output]\ndir = "out"\n'
+    )
+    ours_cmd = [sys.executable, "-m", "imupipe.pipeline.cli", "run", str(d / "cfg.toml"), "--quiet"]
+    peer_cmd = [sys.executable, "-c", USER_SCRIPT, str(csv)]
+    peer_env = dict(os.environ)
+    if peer_path:
+        peer_env["PYTHONPATH"] = os.pathsep.join(
+            p for p in (peer_path, os.environ.get("PYTHONPATH")) if p
+        )
+    floor_cmd = [sys.executable, "-c", SCRIPT_FLOOR, str(csv)]
+    rows = []
+    for i in range(pairs):  # alternate which side goes first
+        sides = [("ours", ours_cmd, None), ("peer", peer_cmd, peer_env), ("floor", floor_cmd, None)]
+        got = {
+            name: timed_child(cmd, env) for name, cmd, env in (sides if i % 2 == 0 else sides[::-1])
+        }
+        rows.append(got)
+    print(
+        f"3. whole imupipe run (allan, defaults) vs the user's script (pandas.read_csv + "
+        f"allantools oadev octave per axis), {minutes:g} min at 400 Hz "
+        f"({csv.stat().st_size / 1e6:.0f} MB CSV), {pairs} pairs; {load()}"
+    )
+    for label, k in (("wall", 0), ("CPU", 1)):
+        ratios = [r["ours"][k] / r["peer"][k] for r in rows]
+        each = ", ".join(f"{r['ours'][k]:.2f}/{r['peer'][k]:.2f}" for r in rows)
+        print(
+            f"   {label}: ratio imupipe/script min {min(ratios):.2f}, median "
+            f"{statistics.median(ratios):.2f} (goal <= 0.5); pairs imupipe/script s: {each}"
+        )
+        floor = [r["floor"][k] / r["peer"][k] for r in rows]
+        print(
+            f"     floor (imports + pyarrow.csv.read_csv)/script min {min(floor):.2f}, median "
+            f"{statistics.median(floor):.2f}; imupipe/floor median "
+            f"{statistics.median(r['ours'][k] / r['floor'][k] for r in rows):.2f}"
+        )
+    peak = max(r["ours"][2] for r in rows), max(r["peer"][2] for r in rows)
+    print(f"   peak RSS: imupipe {peak[0] / 1e6:.0f} MB, script {peak[1] / 1e6:.0f} MB")
+
+
 def load() -> str:
     one, five, _ = os.getloadavg()
     return f"load average {one:.2f} (1 min), {five:.2f} (5 min) on {os.cpu_count()} cores"
@@ -271,7 +373,14 @@ def main() -> None:
     p.add_argument(
         "--parts", action="store_true", help="also the CPU time of the stage's parts, per call"
     )
+    p.add_argument("--script", action="store_true", help="only the run vs the user's script")
+    p.add_argument("--minutes", type=float, default=120.0, help="--script: the log's length")
+    p.add_argument("--pairs", type=int, default=2, help="--script: pairs of runs")
+    p.add_argument("--peer-path", help="--script: a folder on the script's PYTHONPATH (pandas)")
     args = p.parse_args()
+    if args.script:
+        bench_script(args.minutes, args.pairs, args.peer_path)
+        return
     if not args.skip_stage:
         bench_stage(args.sizes, args.repeats, args.parts)
     if not args.skip_run:
