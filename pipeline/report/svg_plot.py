@@ -17,10 +17,13 @@ by :mod:`imupipe.pipeline.report.plot_layout`, as in the recording's 2D plots. W
   aspect, and a map of the points' directions from the ellipsoid's centre (azimuth, elevation
   in degrees): their coverage.
 
-Every plot has its title on top, its unit as the y title and, inside the plot area in the corner
-that hides the fewest data points, a legend (two columns for more than three entries). Lines are
-one ``<polyline>`` per piece (broken at missing values), dots one ``<path>`` of round-capped
-zero-length segments per colour; coordinates are formatted in one operation per element.
+Every plot has its title on top, its unit as the y title and, between the title and the plot
+area (outside it: it covers no data), a legend in rows. Lines are one ``<polyline>`` per piece
+(broken at missing values), dots one ``<path>`` of round-capped zero-length segments per colour;
+coordinates are formatted in one operation per element. So that no series hides another: lines
+over time are see-through (:data:`LINE_OPACITY`), an input ``under`` its correction is a wide
+light halo, a sparse series of dots is drawn last on white edges, a ``highlight`` is shaded spans
+beneath everything; ``tests/plot_check.py`` checks every figure of a report for it.
 """
 
 from __future__ import annotations
