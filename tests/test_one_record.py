@@ -318,3 +318,15 @@ def test_help_and_commands_page_list_every_scenario():
     for name in SCENARIOS:
         assert re.search(rf"\b{name}\b", helptext), name
         assert f"`{name}`" in page, name
+
+
+@pytest.mark.slow
+def test_every_figure_of_the_demo_report_passes_the_plot_check(demo_run):
+    """The demo's report (every stage): no legend on data, no legend entry with nothing
+    visible, no series hidden by another (tests/plot_check.py)."""
+    from plot_check import problems, svgs
+
+    out, _ = demo_run
+    figures = svgs((out / "report.html").read_text())
+    assert len(figures) >= 40
+    assert [p for el in figures for p in problems(el)] == []

@@ -12,8 +12,9 @@ opens the recording in headless Chromium (as :mod:`make_screenshots` does) in ea
 
 It takes a screenshot every second and prints, per mode, the seconds from opening the page to
 the first screenshot that differs from the empty viewer and to the first one equal to the final
-(settled) view, and saves that final view as ``<mode>.png``: look at it to see which layout
-opened (imupipe's tabs, or Rerun's automatic layout).
+(settled: ``--settle`` seconds unchanged) view, and saves that final view as ``<mode>.png``: look
+at it to see which layout opened (imupipe's tabs, Rerun's automatic layout, or a viewer still
+loading: then raise ``--settle``).
 """
 
 from __future__ import annotations
@@ -110,7 +111,7 @@ async def run(args) -> None:
             query = urllib.parse.urlencode({"url": source, "renderer": "webgl"})
             async with chromium(args.width, args.height) as page:
                 changed, reached, png = await watch(
-                    page, f"http://127.0.0.1:{web}/?{query}", args.limit
+                    page, f"http://127.0.0.1:{web}/?{query}", args.limit, args.settle
                 )
         target = args.out / f"{mode}.png"
         target.write_bytes(png)
@@ -127,6 +128,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", type=Path, default=Path("time_to_view"), help="folder for the PNGs")
     p.add_argument("--mode", nargs="*", default=["proxy", "url"], choices=["proxy", "url"])
     p.add_argument("--limit", type=float, default=300.0, help="longest wait per mode (s)")
+    p.add_argument(
+        "--settle",
+        type=int,
+        default=30,
+        help="seconds the view must stay the same to count as final (the viewer can sit still "
+        "on a loading state for 10 s and more)",
+    )
     p.add_argument("--width", type=int, default=1600)
     p.add_argument("--height", type=int, default=1000)
     args = p.parse_args(argv)
