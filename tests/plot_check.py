@@ -12,8 +12,9 @@ in words, what would make a reader misread it:
 earlier ones): each data element covers the pixels its lines (at their stroke width), dots (at
 their diameter), bars and bands touch, and an element with an opacity of at least
 :data:`OPAQUE` hides what lies beneath it; a see-through one (a band, an ``under`` halo, lines
-over time at 0.7) does not. An element is visible when some pixel of it is not covered by an
-opaque element drawn after it. White (the edge under a highlighted dot) hides but is no series.
+over time at 0.6) does not. A series (a colour) is visible when at least 5 % of its pixels (and
+4) are not covered by an opaque element drawn after them. White (the edge under a highlighted
+dot) hides but is no series.
 """
 
 from __future__ import annotations
@@ -27,6 +28,9 @@ NS = "{http://www.w3.org/2000/svg}"
 OPAQUE = 0.75
 """An element at least this opaque hides what it is drawn over."""
 NOT_DATA = {"grid", "frame", "legend"}
+MIN_VISIBLE, MIN_VISIBLE_PX = 0.05, 4
+"""A series shows when at least this share of its pixels (and this many) is not drawn over: a
+few specks at the edge of a cloud do not make a series a reader can see."""
 
 
 def _floats(text: str) -> list[float]:
@@ -204,14 +208,19 @@ def problems(svg: ET.Element) -> list[str]:
         if opacity >= OPAQUE:
             covered[cells] = i
     visible: dict[str, int] = {}
+    drawn: dict[str, int] = {}
     for i, (color, _, cells) in enumerate(elements):
-        shown = int((covered[cells] <= i).sum())
-        visible[color] = visible.get(color, 0) + shown
-    for color, shown in visible.items():
-        if color not in ("#fff", "#ffffff") and shown == 0:
-            found.append(f"{label}: the series in {color} is hidden by what is drawn over it")
+        visible[color] = visible.get(color, 0) + int((covered[cells] <= i).sum())
+        drawn[color] = drawn.get(color, 0) + len(cells)
+    seen = {c for c, n in visible.items() if n >= max(MIN_VISIBLE_PX, MIN_VISIBLE * drawn[c])}
+    for color in visible:
+        if color not in ("#fff", "#ffffff") and color not in seen:
+            found.append(
+                f"{label}: the series in {color} is hidden by what is drawn over it "
+                f"({visible[color]} of its {drawn[color]} px show)"
+            )
     for name, color in legend_entries(svg):
-        if not visible.get(color):
+        if color not in seen:
             found.append(f"{label}: legend entry {name!r} ({color}) has nothing visible")
     for box in legend_boxes(svg):
         inside = raster.box(*box)

@@ -47,7 +47,7 @@ CHAR_EM = 0.55
 """Width of a character in em: generous for a sans-serif font (room for labels, legends)."""
 TEXT, FRAME, GRID = "#333", "#888", "#999"
 LINE_WIDTH = {"line": 1.8, "guide": 1.2, "time": 1.1, "under": 2.6}  # px
-LINE_OPACITY = {"time": 0.7, "under": 0.45}
+LINE_OPACITY = {"time": 0.6, "under": 0.45}
 """Lines over time are slightly see-through, so that x, y and z crossing each other all show;
 lines ``under`` others (the input beneath its correction) are wider and lighter, a halo around
 the line over them. A ``highlight`` (the still intervals) is shaded spans beneath everything."""
@@ -404,14 +404,15 @@ def _curves(
     box: Box, xa: Axis, ya: Axis, series: list[Series], xs: list[np.ndarray], kind: str
 ) -> list[str]:
     """Highlights, bands, lines under others, guides, dots and lines in that order, then the
-    dots of a sparse series (a tenth of the densest one's points or fewer) on top, on white
-    edges: a few points over a dense cloud or a line stay visible."""
+    dots of a sparse series (1/:data:`SPARSE` of the densest one's points or fewer: the soak
+    blocks among heating and cooling) on top, on white edges: a few points over a dense cloud or
+    a line stay visible."""
     out: list[str] = []
     dense = max((len(s.x) for s in series if s.style == "points"), default=0)
 
     def rank(pair: tuple[Series, np.ndarray]) -> float:
         s = pair[0]
-        if s.style == "points" and 10 * len(s.x) <= dense:
+        if s.style == "points" and SPARSE * len(s.x) <= dense:
             return 9.0
         return {"highlight": -2.0, "under": -0.5}.get(_line_style(s), ORDER.get(s.style, 3))
 
@@ -452,6 +453,8 @@ def _curves(
     return out
 
 
+SPARSE = 4
+"""A series of dots with at most 1/SPARSE of the densest one's points is drawn on top."""
 SPAN_OPACITY = 0.2
 
 
