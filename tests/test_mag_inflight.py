@@ -241,6 +241,10 @@ def test_tutorial_runs_as_written(tmp_path):
     report = (tmp_path / "out" / "report.html").read_text()
     for shown in ("heading error before", "heading error after", "vector residual"):
         assert shown in report  # the heading along the flight, the residual against current
+    # labelled rows in uT, mG and deg like every stage, not the raw keys in tesla
+    for shown in ("hard iron, offset (uT)", "hard iron, offset (mG)", "soft iron, row x"):
+        assert shown in report
+    assert "offset_t" not in report and "What to look at." in report
     params = (tmp_path / "out" / "ardupilot_calibration.param").read_text()
     assert "COMPASS_MOTCT,2" in params
     thr = json.loads((tmp_path / "out_throttle" / "calibration.json").read_text())["results"]

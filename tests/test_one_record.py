@@ -371,3 +371,13 @@ def test_convert_says_where_its_read_keys_go(tmp_path: Path) -> None:
         )  # fmt: skip
         assert done.returncode == 0, done.stderr
         assert place in done.stderr and "[inputs." not in done.stderr, done.stderr
+@pytest.mark.slow
+def test_every_figure_of_the_demo_report_passes_the_plot_check(demo_run):
+    """The demo's report (every stage): no legend on data, no legend entry with nothing
+    visible, no series hidden by another (tests/plot_check.py)."""
+    from plot_check import problems, svgs
+
+    out, _ = demo_run
+    figures = svgs((out / "report.html").read_text())
+    assert len(figures) >= 40
+    assert [p for el in figures for p in problems(el)] == []

@@ -401,3 +401,34 @@ def test_a_cloud_far_from_the_origin_gets_the_points_of_the_same_cloud_at_it():
     assert cloud_radius(sphere + [6159.0, 252.0, 3447.0]) == pytest.approx(at_origin, rel=0.01)
     with_nan = np.vstack([sphere, [[np.nan, 0.0, 0.0]]])
     assert cloud_radius(with_nan) == pytest.approx(at_origin, rel=0.01)
+
+
+def test_the_blueprint_is_the_first_thing_in_the_file(tmp_path):
+    """A viewer that streams the recording (``rerun --web-viewer``, a URL) gets imupipe's tabs
+    with the first bytes: the blueprint store comes before any data chunk, the data is all
+    there, and the time panel is paused."""
+    import subprocess
+
+    from helpers import screenshot_tool
+
+    tool = screenshot_tool()
+    rec = Recorder(tmp_path / "r.rrd", max_points=1000)
+    t = 1_000_000_000_000 + np.arange(3000, dtype=np.int64) * 10_000_000
+    rec.series("/a/gyro", t, np.zeros((3000, 3)), unit="rad/s")
+    rec.document(None, "# run")
+    rec.close()
+    assert rrd_rows(tmp_path / "r.rrd")["/a/gyro/x"] == 1000
+    assert not list(tmp_path.glob("*.blueprint-first"))  # the rewrite leaves nothing beside
+    printed = subprocess.run(
+        [tool.rerun_binary(), "rrd", "print", str(tmp_path / "r.rrd")],
+        capture_output=True,
+        text=True,
+        check=True,
+    ).stdout
+    blueprint = printed.index("Blueprint,")
+    data = printed.index("/a/gyro/")
+    assert blueprint < data
+    bp = tool.Blueprint(tmp_path / "r.rrd")
+    from rerun.blueprint.components import PlayState
+
+    assert bp.field("/time_panel", "TimePanelBlueprint:play_state") == PlayState.Paused.value

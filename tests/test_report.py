@@ -215,7 +215,8 @@ def test_report_renders_in_a_headless_browser(report_run, tmp_path):
 
 def test_report_figures_keep_inside_their_frames_and_legends_clear_of_titles(report_run):
     """Nothing drawn (lines, dots, bars, text as the layout reckons its width) leaves the
-    viewBox; a legend overlaps neither a title nor another legend, and lies inside its plot."""
+    viewBox; a legend overlaps neither a title nor another legend, and lies above its plot's
+    frame, outside it (between the title and the data)."""
     html = (report_run / "out" / "report.html").read_text()
     for el in _svgs(html):
         w, h = _size(el)
@@ -231,10 +232,8 @@ def test_report_figures_keep_inside_their_frames_and_legends_clear_of_titles(rep
         for i, box in enumerate(legends):
             assert not any(_boxes_overlap(box, t) for t in titles)
             assert not any(_boxes_overlap(box, other) for other in legends[i + 1 :])
-            assert any(
-                x <= box[0] and box[2] <= x + fw and y <= box[1] and box[3] <= y + fh
-                for x, y, fw, fh in frames
-            )
+            assert box[3] <= min(y for _, y, _, _ in frames)  # above every panel
+            assert not any(_boxes_overlap(box, (x, y, x + fw, y + fh)) for x, y, fw, fh in frames)
         for i, a in enumerate(titles):
             assert not any(_boxes_overlap(a, b) for b in titles[i + 1 :])
 
@@ -283,13 +282,18 @@ def test_dots_bands_and_guides_of_an_allan_plot():
     el = _draw(plot)
     dots = [e for e in el.iter(f"{NS}path") if e.get("class") == "dots"]
     counts = [e.get("d").count("M") for e in dots if e.get("stroke") == "#2864e6"]
-    assert counts == [29, 1]  # the 29 finite values, and the legend's swatch
+    assert counts == [1, 29]  # the legend's swatch (above the plot), then the 29 finite values
     bands = [e for e in el.iter(f"{NS}polygon") if e.get("class") == "band"]
     assert [len(_points(b.get("points"))) for b in bands] == [2 * 5, 2 * 24]
     assert all(b.get("fill-opacity") == "0.3" for b in bands)
-    assert list(el).index(bands[0]) < list(el).index(dots[0])  # beneath the data
+    data = next(e for e in dots if e.get("d").count("M") == 29)
+    assert list(el).index(bands[0]) < list(el).index(data)  # beneath the data
     guides = [e for e in el.iter(f"{NS}polyline") if e.get("stroke-dasharray")]
-    assert [len(_points(g.get("points"))) for g in guides if g.get("stroke") == "#1ea03c"][0] == 30
+    # the legend's swatch (2 points, above the plot), then the guide's 30
+    assert [len(_points(g.get("points"))) for g in guides if g.get("stroke") == "#1ea03c"] == [
+        2,
+        30,
+    ]
     assert [t.text for t in _texts(el, "xtitle")] == ["tau (s)"]
 
 
@@ -353,12 +357,14 @@ def test_3d_projections_are_at_equal_aspect_with_a_coverage_map():
     outlines = [
         _points(e.get("points")) for e in el.iter(f"{NS}polyline") if e.get("stroke") == "#f0b428"
     ]
-    assert [len(o) for o in outlines] == [200, 200, 200]
+    assert [len(o) for o in outlines] == [2, 200, 200, 200]  # the legend's swatch, 3 panels
+    outlines = outlines[1:]
     spans = [np.ptp(o, axis=0) for o in outlines]
     assert spans[0][0] == pytest.approx(spans[0][1], abs=1.0)  # x-y: a circle stays round
     assert spans[1][0] == pytest.approx(2 * spans[1][1], abs=1.0)  # y-z: 50 across, 25 up
     dots = [e for e in el.iter(f"{NS}path") if e.get("class") == "dots"]
-    assert [e.get("d").count("M") for e in dots] == [400] * 4  # three planes and the map
+    # the legend's swatch, then three planes and the map
+    assert [e.get("d").count("M") for e in dots] == [1] + [400] * 4
     assert "directions (coverage)" in [t.text for t in _texts(el, "title")]
     assert {t.text for t in _texts(el, "xtitle")} == {"x (uT)", "y (uT)", "z (uT)", "azimuth (deg)"}
 
@@ -394,3 +400,85 @@ def test_axes_of_values_near_the_float64_limit():
         assert len(axis.labels) == len(axis.ticks) >= 2
         fractions = axis(np.array([lo, hi, 0.0]))  # beyond the padded axis: inf, not drawn
         assert not np.isnan(fractions).any()
+
+
+# -- the plot check: legends off the data, every entry and series visible -------------------------
+def test_every_report_plot_passes_the_plot_check(report_run):
+    """No legend covers data, no legend entry has nothing visible, no series is hidden by
+    another, in every figure of a run's report (tests/plot_check.py)."""
+    from plot_check import problems, svgs
+
+    figures = svgs((report_run / "out" / "report.html").read_text())
+    assert len(figures) >= 8
+    assert [p for el in figures for p in problems(el)] == []
+
+
+def _svg(body: str) -> ET.Element:
+    return ET.fromstring(
+        f'<svg xmlns="http://www.w3.org/2000/svg" viewBox="0 0 200 100" aria-label="t">{body}</svg>'
+    )
+
+
+LINE = '<polyline points="10,50 190,50" fill="none" stroke="#e41a1c" stroke-width="2"/>'
+
+
+def test_plot_check_fails_a_legend_over_data_and_an_entry_with_nothing_drawn():
+    from plot_check import problems
+
+    legend = (
+        '<g class="legend"><rect x="20" y="40" width="60" height="20" fill="none"/>'
+        '<polyline points="22,45 40,45" stroke="{c}" stroke-width="1.5" fill="none"/>'
+        '<text x="44" y="48">{n}</text></g>'
+    )
+    over = problems(_svg(LINE + legend.format(c="#e41a1c", n="x")))
+    assert len(over) == 1 and "covers data" in over[0]
+    above = legend.replace('y="40"', 'y="0"').format(c="#1ea03c", n="ghost")
+    missing = problems(_svg(LINE + above))
+    assert missing == ["t: legend entry 'ghost' (#1ea03c) has nothing visible"]
+    assert problems(_svg(LINE + legend.replace('y="40"', 'y="0"').format(c="#e41a1c", n="x"))) == []
+
+
+def test_plot_check_fails_a_series_drawn_over_by_another():
+    """Two curves with the same values: the second, opaque, hides the first entirely; drawn
+    see-through (lines over time) both show."""
+    from plot_check import problems
+
+    x = np.linspace(0, 10, 50)
+    y = np.sin(x)[:, None]
+    same = [
+        Series("/a", ["a"], [(228, 26, 28)], x, y, "line"),
+        Series("/b", ["b"], [(30, 160, 60)], x, y, "line"),
+    ]
+    found = problems(_draw(_plot("xy", same)))
+    assert any("#e41a1c is hidden" in p for p in found)
+    assert any("'a'" in p and "nothing visible" in p for p in found)
+    t = (x * 1e9).astype(np.int64)
+    over_time = [Series(s.entity, s.names, s.colors, t, y, "line") for s in same]
+    assert problems(_draw(_plot("time", over_time))) == []
+
+
+def test_sparse_dots_are_drawn_over_a_dense_cloud_and_still_intervals_as_spans():
+    """A few points amid many (the soak blocks among heating and cooling) come last, on white
+    edges; a highlighted series (still intervals at g) is shaded spans beneath the data."""
+    from plot_check import problems
+
+    rng = np.random.default_rng(0)
+    x = rng.uniform(0, 1, 400)
+    dense = Series(
+        "/h", ["heating"], [(228, 26, 28)], x, (x + 0.01 * rng.normal(size=400))[:, None], "points"
+    )
+    few = Series("/s", ["soak"], [(150, 150, 150)], x[:5], x[:5, None], "points")
+    el = _draw(_plot("xy", [few, dense]))
+    dots = [p for p in el.iter(f"{NS}path") if p.get("class") == "dots"]
+    assert dots[-1].get("stroke") == "#969696"
+    assert problems(el) == []
+    t = np.arange(100, dtype=np.int64) * 10**8
+    still = np.where((np.arange(100) // 25) % 2 == 0, 9.8, np.nan)
+    spans = Series(
+        "/still", ["still"], [(230, 120, 20)], t, still[:, None], "line", {"highlight": True}
+    )
+    line = Series("/a", ["|a|"], [(40, 100, 230)], t, np.full((100, 1), 9.8), "line")
+    el = _draw(_plot("time", [spans, line], unit="m/s^2"))
+    shaded = [g for g in el.iter(f"{NS}g") if g.get("class") == "spans"]
+    assert len(shaded) == 1 and len(list(shaded[0])) == 2
+    assert problems(el) == []

@@ -188,3 +188,53 @@ def test_run_prints_the_summary_unless_quiet(static_cfg, cli):
     assert str(static_cfg.parent / "out" / "calibration.json") in done.stdout
     quiet = cli("run", static_cfg, "--quiet")
     assert quiet.returncode == 0 and quiet.stdout == "" and quiet.stderr == ""
+
+
+MAG_INFLIGHT = {  # results.mag_inflight of `imupipe simulate flight` calibrated (SI: tesla)
+    "type": "mag_inflight",
+    "input": "flight",
+    "model": "soft_iron",
+    "motor_term": True,
+    "motor_source": "current",
+    "matrix": [
+        [1.04, 0.020038, -0.014836],
+        [0.020038, 0.96993, 0.0099747],
+        [-0.0148, 0.01, 1.0193],
+    ],
+    "offset_t": [1.2009e-5, -8.004e-6, 1.9974e-5],
+    "motor_t_per_a": [6.0239e-8, -4.0263e-8, 1.1976e-7],
+    "parameter_se": {"motor_x [uT/A]": 2.2e-4, "motor_y [uT/A]": 2.2e-4, "motor_z [uT/A]": 2.3e-4},
+    "year": 2024.5,
+    "coverage": {"yaw_coverage_deg": 360.0, "tilt_max_deg": 44.5},
+    "metrics": {
+        "residual_rms_ut_before": 22.817,
+        "residual_rms_ut_after": 0.27598,
+        "heading_rms_deg_before": 41.811,
+        "heading_rms_deg_after": 0.46918,
+        "held_out_rms_ut": {"offsets": 1.31, "soft_iron": 0.276},
+        "samples": 11991,
+        "outliers": 0,
+        "field_ut": 49.432,
+    },
+}
+
+
+def test_mag_inflight_in_microtesla_milligauss_and_degrees():
+    """The compass fit reads like the other stages: labelled rows in uT, mG and deg, the
+    soft-iron matrix, a headline and what to look at; no raw key in tesla."""
+    (s,) = summarise({"mag_inflight": MAG_INFLIGHT})
+    rows = {r.label: r.cells for r in s.rows}
+    assert rows["hard iron, offset (uT)"] == ["12.009", "-8.004", "19.974"]
+    assert rows["hard iron, offset (mG)"] == ["120.09", "-80.04", "199.74"]
+    assert rows["soft iron, row x"] == ["1.0400", "0.0200", "-0.0148"]
+    assert [r.name for r in s.rows].count("soft iron, row z") == 1
+    assert rows["motor interference (uT/A)"][0] == "0.06024 ± 2.2e-4"
+    assert rows["motor interference (mG/A)"] == ["0.60239", "-0.40263", "1.1976"]
+    quality = dict(s.quality)
+    assert quality["heading error"] == "0.469 deg rms; before 41.8 deg"
+    assert quality["vector residual against the WMM"] == "0.276 uT rms; before 22.8 uT"
+    assert s.headline == "heading error 41.8 -> 0.469 deg rms"
+    assert "heading error" in s.look_at
+    md = stage_markdown(s)
+    assert "offset_t" not in md and "motor_t_per_a" not in md and "e-5" not in md
+    assert "residual_rms_ut_before" not in md

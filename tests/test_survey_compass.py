@@ -222,6 +222,10 @@ def test_dataset_units_report_and_summary(planted, tmp_path):
     assert "<h2>Compass</h2>" in page and "compass-ap2:MAG" in page
     for dev in ("ap1:MAG", "ap2:MAG", "px4:sensor_mag"):
         assert f"{dev}: compass offsets per flight" in page
+    from plot_check import problems, svgs  # legends off the data, every series visible
+
+    figures = svgs(page)
+    assert len(figures) == 6 and [p for el in figures for p in problems(el)] == []
     parts = sorted(p.name for p in (root / "out" / "parts" / "ap1").iterdir())
     assert "flight_0.compass.parquet" in parts
     # flights move: no IMU still period, so no empty IMU table (nor chamber columns) is shown

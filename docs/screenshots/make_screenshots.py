@@ -9,7 +9,9 @@ re-sending the recording's own blueprint with that tab active, so what is captur
 person sees after clicking the tab. A screenshot is taken once two consecutive frames agree (the
 viewer has finished loading and drawing), or after ``--wait`` seconds.
 
-``report.html`` is captured with ``--html out/report.html`` (a full-page screenshot).
+``report.html`` is captured with ``--html out/report.html``: a full-page screenshot
+(``report.png``), one per section (``report_00_Summary.png``, ``report_01_<stage>.png``...) and
+one per figure (``report_01_fig00.png``..., zoomed ``--figure-scale``), to look at closely.
 
 The README's image is made from the demo's recording (``bash examples/demo.sh`` first) with
 
@@ -372,10 +374,44 @@ async def shoot_html(args) -> Path:
             mobile=False,
         )
         png = await page.screenshot()
-    target = args.out / "report.png"
-    target.write_bytes(png)
-    print(target)
+        target = args.out / "report.png"
+        target.write_bytes(png)
+        print(target)
+        # one PNG per section (the summary, each stage) and per figure, to look at closely
+        found = await page.call("Runtime.evaluate", expression=SECTIONS_JS, returnByValue=True)
+        for name, box in found["result"]["value"]:
+            clip = {**box, "scale": args.figure_scale if "_fig" in name else 1}
+            shot = await page.call(
+                "Page.captureScreenshot", format="png", clip=clip, captureBeyondViewport=True
+            )
+            part = args.out / f"report_{safe(name)}.png"
+            part.write_bytes(base64.b64decode(shot["data"]))
+            print(part)
     return target
+
+
+SECTIONS_JS = """
+(() => {
+  const out = [], top = el => el.getBoundingClientRect().top + window.scrollY;
+  const heads = [...document.querySelectorAll('h2')];
+  heads.forEach((h, i) => {
+    const y0 = top(h), y1 = i + 1 < heads.length ? top(heads[i + 1]) : document.body.scrollHeight;
+    const n = String(i).padStart(2, '0');
+    out.push([n + '_' + (h.id || h.textContent).replace(/^stage-/, ''),
+              {x: 0, y: y0 - 4, width: document.body.scrollWidth, height: y1 - y0}]);
+    let k = 0, el = h.nextElementSibling;
+    while (el && el.tagName !== 'H2') {
+      for (const f of el.querySelectorAll('figure')) {
+        const r = f.getBoundingClientRect();
+        out.push([n + '_fig' + String(k++).padStart(2, '0'),
+                  {x: r.left, y: r.top + window.scrollY, width: r.width, height: r.height}]);
+      }
+      el = el.nextElementSibling;
+    }
+  });
+  return out;
+})()
+"""
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -385,6 +421,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", type=Path, default=Path("screenshots"), help="folder for the PNGs")
     p.add_argument("--tabs", nargs="*", help="only the tabs whose names contain one of these")
     p.add_argument("--width", type=int, default=1600)
+    p.add_argument(
+        "--figure-scale", type=float, default=1.5, help="zoom of the report's per-figure PNGs"
+    )
     p.add_argument("--height", type=int, default=1000)
     p.add_argument("--wait", type=float, default=40.0, help="longest wait per screenshot (s)")
     p.add_argument(

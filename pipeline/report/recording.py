@@ -106,6 +106,7 @@ class Recorder:
         self._warn = warn or (lambda message: None)
         self._streams: list[rr.RecordingStream] = []
         self._live: rr.RecordingStream | None = None
+        self._path = path
         if path is not None:
             self.rec = rr.RecordingStream(application_id)
             self.rec.save(str(path))
@@ -152,13 +153,27 @@ class Recorder:
         self._send(lambda s: rr.log(entity, archetype, static=static, recording=s))
 
     def _style(
-        self, entity: str, names: Sequence[str], colors: Sequence[Any], points: bool
+        self,
+        entity: str,
+        names: Sequence[str],
+        colors: Sequence[Any],
+        points: bool,
+        highlight: bool = False,
     ) -> None:
         if entity in self._styled:
             return
         self._styled.add(entity)
         if points:
             self.log(entity, rr.SeriesPoints(names=list(names), colors=list(colors)))
+        elif highlight:  # a wide see-through stroke: the lines over it show through
+            self.log(
+                entity,
+                rr.SeriesLines(
+                    names=list(names),
+                    colors=[see_through(c, HIGHLIGHT_ALPHA) for c in colors],
+                    widths=[HIGHLIGHT_PX] * len(names),
+                ),
+            )
         else:  # zoomed out, the viewer draws each pixel column's min and max, never a mean
             policy = rr.components.AggregationPolicy.MinMax
             self.log(
@@ -180,13 +195,16 @@ class Recorder:
         colors: Sequence[Any] | None = None,
         points: bool = False,
         under: bool = False,
+        highlight: bool = False,
     ) -> None:
         """A signal over time: ``values`` (n,) or (n, k) in the SI ``unit`` at ``t_ns`` (int64
         ns), one named line per column. ``plot`` (default: the entity's last path part) groups
         signals of one stage into one plot; ``title`` names it (the unit is appended). With
         ``under``, the lines lie beneath the others of their plot (the signal before a
         correction, the raw samples under their block means): in a view with other lines they
-        are drawn see-through (:data:`UNDER_ALPHA`), whatever order the viewer draws them in."""
+        are drawn see-through (:data:`UNDER_ALPHA`), whatever order the viewer draws them in.
+        With ``highlight``, a line marks where something holds (the still intervals, at g) as
+        a wide see-through stroke (:data:`HIGHLIGHT_PX`) that the line it marks shows over."""
         t_ns = np.asarray(t_ns, dtype=np.int64)
         values = np.asarray(values, dtype=np.float64).reshape(len(t_ns), -1)
         names, colors, values = _with_data(names, colors_for(names, colors), values)
@@ -208,11 +226,11 @@ class Recorder:
                 kept_t,
                 kept,
                 "points" if points else "line",
-                {"under": True} if under else {},
+                {"under": True} if under else {"highlight": True} if highlight else {},
             )
         )
         for name, color in zip(names, colors, strict=True):
-            self._style(line_path(entity, name), [name], [color], points)
+            self._style(line_path(entity, name), [name], [color], points, highlight)
         lo, hi = int(t_ns.min()), int(t_ns.max())
         first, last = self._spans.get(entity, (lo, hi))
         self._spans[entity] = (min(first, lo), max(last, hi))
@@ -348,8 +366,10 @@ class Recorder:
         title: str | None = None,
         colors: np.ndarray | Sequence[Any] | None = None,
         radius: float | None = None,
+        color_names: dict[tuple[int, int, int], str] | None = None,
     ) -> None:
-        """A cloud of 3D points (n, 3) in the SI ``unit`` (``colors``: one, or one per point)."""
+        """A cloud of 3D points (n, 3) in the SI ``unit`` (``colors``: one, or one per point;
+        ``color_names``: what each colour means, RGB -> words, for the legend)."""
         xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
         shown, factor = display_unit(unit)
         key = plot or entity.strip("/").split("/", 1)[-1]
@@ -367,7 +387,7 @@ class Recorder:
                 np.arange(len(pts))[::stride],
                 pts[::stride],
                 "cloud",
-                {"colors": kept_cols},
+                {"colors": kept_cols, "color_names": dict(color_names or {})},
             )
         )
         radius = cloud_radius(pts) if radius is None else radius
@@ -384,7 +404,7 @@ class Recorder:
         name: str,
         plot: str | None = None,
         title: str | None = None,
-        color: Sequence[int] = (240, 180, 40),
+        color: Sequence[int] = (50, 50, 50),
     ) -> None:
         """An ellipsoid (``rotation``: 3x3 matrix whose columns are its axes) in the SI ``unit``."""
         from scipy.spatial.transform import Rotation
@@ -591,7 +611,7 @@ class Recorder:
         if plot.kind == "3d":
             return rrb.Spatial3DView(
                 origin="/",
-                contents=[*dict.fromkeys(plot.entities), axes3d_path(plot)],
+                contents=[*dict.fromkeys(plot.entities), f"{axes3d_path(plot)}/**"],
                 name=f"{plot.heading}; axes {scale3d(plot)[1]:g} {plot.unit}".rstrip(),
             )
         return plot2d.view(plot)
@@ -631,7 +651,9 @@ class Recorder:
             tabs.append(_stage_layout(stage, text, others, signals, plan))
         return rrb.Blueprint(
             rrb.Tabs(*tabs) if tabs else rrb.TimeSeriesView(origin="/"),
-            rrb.TimePanel(timeline=TIMELINE, state="collapsed"),
+            # paused: a recording that plays moves its time cursor (and redraws) for its whole
+            # span after it opens
+            rrb.TimePanel(timeline=TIMELINE, state="collapsed", play_state="paused"),
             rrb.BlueprintPanel(state="collapsed"),
             rrb.SelectionPanel(state="collapsed"),
         )
@@ -640,16 +662,23 @@ class Recorder:
         for plot in self.figures.plots.values():
             if plot.kind == "3d":
                 centre, length = scale3d(plot)
-                unit = f" {plot.unit}" if plot.unit else ""
                 arrows = rr.Arrows3D(
-                    origins=[centre] * 3,
-                    vectors=np.eye(3) * length,
+                    origins=[centre] * 3, vectors=np.eye(3) * length, colors=AXIS_COLORS
+                )
+                # each name past its arrow's tip (the arrows' own labels, from one origin,
+                # overlapped); the length is in the view's name
+                tips = rr.Points3D(
+                    np.asarray(centre) + np.eye(3) * length * 1.12,
                     colors=AXIS_COLORS,
-                    labels=[f"{a} {length:g}{unit}" for a in "xyz"],
+                    labels=list("xyz"),
+                    radii=length * 0.01,
                     show_labels=True,
                 )
                 path = axes3d_path(plot)
                 self._send(lambda s, p=path, a=arrows: rr.log(p, a, static=True, recording=s))
+                self._send(
+                    lambda s, p=path, a=tips: rr.log(f"{p}/names", a, static=True, recording=s)
+                )
             if plot.kind == "xy":
                 for entity, archetype in plot2d.draw(plot):
                     self._send(
@@ -662,15 +691,49 @@ class Recorder:
             return
         self._draw_plots()
         blueprint = self.blueprint()
-        self._send(lambda s: s.send_blueprint(blueprint, make_active=True, make_default=True))
-        self.rec.flush()
         if self._live is not None:
             try:
+                self._live.send_blueprint(blueprint, make_active=True, make_default=True)
                 self._live.flush(timeout_sec=10.0)
             except Exception as exc:  # noqa: BLE001 - the file is complete; only the viewer failed
                 self._drop_live(exc)
+        self.rec.flush()
         for stream in self._streams:
             stream.disconnect()
+        if self._path is not None:
+            blueprint_first(self._path, blueprint)
+
+
+def blueprint_first(path: Path, blueprint: rrb.Blueprint) -> None:
+    """Rewrite the recording at ``path`` with ``blueprint`` (active and default) as its first
+    messages, then its data chunks as they were.
+
+    A viewer that streams the file (``rerun --web-viewer``, a web viewer opened with
+    ``?url=.../recording.rrd``) lays out what it has received so far: with the blueprint at the
+    end, as the recorder can only send it once every stage has shown its plots, it has no
+    blueprint of imupipe's until the last byte (issue #38: Rerun's automatic layout, without
+    the tabs); first, the tabs come with the first bytes. Rerun's own
+    ``save(default_blueprint=...)`` puts it first the same way, but needs it before the data.
+    Re-encoding the demo's 325 chunks takes about 0.8 s."""
+    import rerun.chunk as rc
+
+    reader = rc.RrdReader(str(path))
+    stores = reader.recordings()
+    app_id = stores[0].application_id if stores else "imupipe"
+    tmp = path.with_name(path.name + ".blueprint-first")
+    try:
+        out = rr.RecordingStream(app_id, recording_id=stores[0].recording_id if stores else None)
+        out.save(str(tmp))
+        out.send_blueprint(blueprint, make_active=True, make_default=True)
+        for store in stores:
+            for chunk in reader.stream(store=store).to_chunks():
+                out.send_chunks(chunk)
+        out.flush()
+        out.disconnect()
+        del reader
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
 
 
 def _with_data(
@@ -739,6 +802,8 @@ only when marks are 60 px apart or more (egui_plot's ``label_spacing``, faded up
 13.7 h session in a 280 px wide view showed one label, its day."""
 SIGNALS_PER_TAB = 4
 """The most views of a long session stacked in one inner tab (each keeps ~200 px of height)."""
+HIGHLIGHT_PX, HIGHLIGHT_ALPHA = 6.0, 0.4
+"""Width (px) and opacity of a ``highlight`` line (:meth:`Recorder.series`)."""
 UNDER_ALPHA = 0.4
 """Opacity of a line ``under`` the others of its view (:meth:`Recorder.series`)."""
 

@@ -313,6 +313,100 @@ def _mag_calibration(r: dict[str, Any], s: StageSummary) -> None:
         )
 
 
+MG_PER_UT = 10.0
+"""1 uT = 10 mG (milligauss: ArduPilot's COMPASS_OFS and COMPASS_MOT unit)."""
+
+
+def _mag_inflight(r: dict[str, Any], s: StageSummary) -> None:
+    """The in-flight compass fit in the units people use: offsets in uT and mG, the soft-iron
+    matrix row by row, the motor term in uT and mG per ampere (or per unit of throttle), the
+    residual against the WMM in uT and the heading error in deg, before and after."""
+    m = r.get("metrics", {})
+    se = r.get("parameter_se") if isinstance(r.get("parameter_se"), dict) else {}
+    offset = _vector(r.get("offset_t"), 1e6)
+    _row(s.rows, "hard iron, offset", offset, "uT")
+    _row(s.rows, "hard iron, offset", _vector(r.get("offset_t"), 1e6 * MG_PER_UT), "mG")
+    matrix = r.get("matrix")
+    if isinstance(matrix, list) and len(matrix) == 3 and r.get("model") != "offsets":
+        for axis, row in zip(AXES, matrix, strict=True):
+            if isinstance(row, list) and all(isinstance(v, (int, float)) for v in row):
+                s.rows.append(Row(f"soft iron, row {axis}", [f"{v:.4f}" for v in row]))
+    per, key = (
+        ("throttle", "motor_t_per_throttle")
+        if "motor_t_per_throttle" in r
+        else (
+            "A",
+            "motor_t_per_a",
+        )
+    )
+    motor = r.get(key)
+    if r.get("motor_term") and isinstance(motor, list):
+        names = [f"motor_{a} [uT/{'A' if per == 'A' else 'throttle'}]" for a in AXES]
+        sig = [se.get(n) for n in names]
+        sig_t = [v * 1e-6 for v in sig] if all(isinstance(v, (int, float)) for v in sig) else None
+        _row(s.rows, "motor interference", _vector(motor, 1e6, sig_t), f"uT/{per}")
+        _row(s.rows, "motor interference", _vector(motor, 1e6 * MG_PER_UT), f"mG/{per}")
+    model = r.get("model")
+    if model:
+        held = m.get("held_out_rms_ut", {})
+        text = str(model)
+        if isinstance(held, dict) and held:
+            text += (
+                " (held-out residual: "
+                + ", ".join(f"{k} {fmt(v, 3)} uT" for k, v in held.items())
+                + ")"
+            )
+        s.quality.append(("model", text))
+    source = r.get("motor_source")
+    s.quality.append(("motor term", f"per {source}" if r.get("motor_term") else "not fitted"))
+    if "residual_rms_ut_after" in m:
+        s.quality.append(
+            (
+                "vector residual against the WMM",
+                f"{fmt(m['residual_rms_ut_after'], 3)} uT rms; before "
+                f"{fmt(m.get('residual_rms_ut_before'), 3)} uT",
+            )
+        )
+    if "heading_rms_deg_after" in m:
+        s.quality.append(
+            (
+                "heading error",
+                f"{fmt(m['heading_rms_deg_after'], 3)} deg rms; before "
+                f"{fmt(m.get('heading_rms_deg_before'), 3)} deg",
+            )
+        )
+        s.headline = (
+            f"heading error {fmt(m.get('heading_rms_deg_before'), 3)} -> "
+            f"{fmt(m['heading_rms_deg_after'], 3)} deg rms"
+        )
+    if "field_ut" in m:
+        year = f" (WMM, {fmt(r['year'], 5)})" if isinstance(r.get("year"), (int, float)) else ""
+        s.quality.append(("field magnitude" + year, f"{fmt(m['field_ut'], 4)} uT"))
+    cov = r.get("coverage", {})
+    if isinstance(cov, dict) and "yaw_coverage_deg" in cov:
+        s.quality.append(
+            (
+                "attitudes flown",
+                f"yaw {fmt(cov['yaw_coverage_deg'], 3)} deg, tilt up to "
+                f"{fmt(cov.get('tilt_max_deg'), 3)} deg",
+            )
+        )
+    if "samples" in m:
+        s.quality.append(("samples", f"{m['samples']} ({m.get('outliers', 0)} outliers)"))
+    for name, f in (m.get("flights") or {}).items():
+        if isinstance(f, dict):
+            s.quality.append(
+                (
+                    f"flight {name}",
+                    f"{fmt(f.get('residual_rms_ut_after'), 3)} uT rms (before "
+                    f"{fmt(f.get('residual_rms_ut_before'), 3)}), heading "
+                    f"{fmt(f.get('heading_rms_deg_after'), 3)} deg rms",
+                )
+            )
+    if r.get("not_fitted"):
+        s.quality.append(("not fitted", "; ".join(str(x) for x in r["not_fitted"])))
+
+
 def _dropped(m: dict[str, Any]) -> str:
     """Where the samples a magnetometer fit did not use went: ``7 thinned, 6 outliers``."""
     samples, thinned = m.get("samples"), m.get("samples_after_thinning")
@@ -466,6 +560,14 @@ LOOK_AT: dict[str, str] = {
         "should be flat, and the held-out run's residual as small as the fitted one's."
     ),
     "average": "The block means show slow drift that the raw noise hides.",
+    "mag_inflight": (
+        "The heading error after calibration should stay near zero along the whole flight, "
+        "with no steps where the current or throttle changes; the vector residual after should "
+        "be flat against the current (a slope left over means a motor term is missing). Offsets "
+        "of more than a few hundred mG or a soft-iron row far from (1, 0, 0) point to a magnet "
+        "or steel near the compass. The fit needs full turns and banks of tens of degrees: "
+        "with less, the offsets and the scale cannot be told apart (ArduPilot MagFit)."
+    ),
 }
 """What a person should check in each stage's plots (the report and the recording say it)."""
 
@@ -476,6 +578,7 @@ SUMMARISERS: dict[str, Callable[[dict[str, Any], StageSummary], None]] = {
     "accel_calibration": _accel_calibration,
     "gyro_calibration": _gyro_calibration,
     "mag_calibration": _mag_calibration,
+    "mag_inflight": _mag_inflight,
     "temperature": _temperature,
     "thermal_soak": _thermal_soak,
     "average": _average,

@@ -17,10 +17,13 @@ by :mod:`imupipe.pipeline.report.plot_layout`, as in the recording's 2D plots. W
   aspect, and a map of the points' directions from the ellipsoid's centre (azimuth, elevation
   in degrees): their coverage.
 
-Every plot has its title on top, its unit as the y title and, inside the plot area in the corner
-that hides the fewest data points, a legend (two columns for more than three entries). Lines are
-one ``<polyline>`` per piece (broken at missing values), dots one ``<path>`` of round-capped
-zero-length segments per colour; coordinates are formatted in one operation per element.
+Every plot has its title on top, its unit as the y title and, between the title and the plot
+area (outside it: it covers no data), a legend in rows. Lines are one ``<polyline>`` per piece
+(broken at missing values), dots one ``<path>`` of round-capped zero-length segments per colour;
+coordinates are formatted in one operation per element. So that no series hides another: lines
+over time are see-through (:data:`LINE_OPACITY`), an input ``under`` its correction is a wide
+light halo, a sparse series of dots is drawn last on white edges, a ``highlight`` is shaded spans
+beneath everything; ``tests/plot_check.py`` checks every figure of a report for it.
 """
 
 from __future__ import annotations
@@ -43,7 +46,11 @@ TITLE_SIZE, LABEL_SIZE, TICK_SIZE, LEGEND_SIZE = 13.0, 11.0, 10.0, 10.0  # px
 CHAR_EM = 0.55
 """Width of a character in em: generous for a sans-serif font (room for labels, legends)."""
 TEXT, FRAME, GRID = "#333", "#888", "#999"
-LINE_WIDTH = {"line": 1.8, "guide": 1.2, "time": 1.1}  # px
+LINE_WIDTH = {"line": 1.8, "guide": 1.2, "time": 1.1, "under": 2.6}  # px
+LINE_OPACITY = {"time": 0.6, "under": 0.45}
+"""Lines over time are slightly see-through, so that x, y and z crossing each other all show;
+lines ``under`` others (the input beneath its correction) are wider and lighter, a halo around
+the line over them. A ``highlight`` (the still intervals) is shaded spans beneath everything."""
 DOT = {"time": 3.0, "xy": 4.0, "cloud": 2.2}  # px, diameter
 DASH = "5 3"
 BAND_OPACITY = 0.3
@@ -113,18 +120,29 @@ def _coords(pts: np.ndarray, fmt: str = "%.1f,%.1f ") -> str:
     return (fmt * len(pts) % tuple(np.asarray(pts).ravel().tolist())).rstrip()
 
 
-def _polyline(pts: np.ndarray, color: str, width: float, dash: bool = False) -> str:
+def _polyline(
+    pts: np.ndarray, color: str, width: float, dash: bool = False, opacity: float = 1.0
+) -> str:
     dashed = f' stroke-dasharray="{DASH}"' if dash else ""
+    faded = f' stroke-opacity="{opacity:g}"' if opacity < 1.0 else ""
     return (
         f'<polyline points="{_coords(pts)}" fill="none" stroke="{color}" '
-        f'stroke-width="{width:g}" stroke-linejoin="round"{dashed}/>'
+        f'stroke-width="{width:g}" stroke-linejoin="round"{dashed}{faded}/>'
     )
 
 
-def _dots(pts: np.ndarray, color: str, size: float) -> str:
-    """Dots of diameter ``size`` px: one path of zero-length segments with round caps."""
+def _dots(pts: np.ndarray, color: str, size: float, edge: bool = False) -> str:
+    """Dots of diameter ``size`` px: one path of zero-length segments with round caps (with
+    ``edge``, each on a white disc 2 px wider: a few dots over a dense cloud stay apart)."""
+    d = _coords(pts, "M%.1f %.1fh0")
+    under = (
+        f'<path d="{d}" stroke="#fff" stroke-width="{size + 2:g}" stroke-linecap="round" '
+        'fill="none"/>'
+        if edge
+        else ""
+    )
     return (
-        f'<path class="dots" d="{_coords(pts, "M%.1f %.1fh0")}" stroke="{color}" '
+        f'{under}<path class="dots" d="{d}" stroke="{color}" '
         f'stroke-width="{size:g}" stroke-linecap="round" fill="none"/>'
     )
 
@@ -223,60 +241,75 @@ class Entry:
     style: str
 
 
-def legend_box(entries: Sequence[Entry], size: float = LEGEND_SIZE) -> tuple[float, float]:
-    """(width, height) px of a legend: two columns for more than three entries."""
-    widths = _column_widths(entries, size)
-    rows = math.ceil(len(entries) / len(widths))
-    return sum(widths) + 10.0 * (len(widths) - 1) + 10.0, rows * 1.4 * size + 8.0
+LEGEND_GAP = 14.0
+"""px between two entries of a legend row."""
 
 
-def _columns(entries: Sequence[Entry]) -> list[Sequence[Entry]]:
-    """The legend's columns: two for more than three entries, filled one after the other."""
-    rows = math.ceil(len(entries) / (2 if len(entries) > 3 else 1))
-    return [entries[i : i + rows] for i in range(0, len(entries), rows)]
+def _entry_width(e: Entry, size: float = LEGEND_SIZE) -> float:
+    return 24.0 + text_width(e.name, size)
 
 
-def _column_widths(entries: Sequence[Entry], size: float) -> list[float]:
-    """Width (px) of each legend column: a swatch and its longest name."""
-    return [24.0 + max(text_width(e.name, size) for e in c) for c in _columns(entries)]
+def legend_rows(entries: Sequence[Entry], width: float) -> list[list[Entry]]:
+    """The entries in rows no wider than ``width`` px, in order (a row holds at least one)."""
+    rows: list[list[Entry]] = []
+    used = width + 1.0
+    for e in entries:
+        w = _entry_width(e)
+        if rows and used + LEGEND_GAP + w <= width:
+            rows[-1].append(e)
+            used += LEGEND_GAP + w
+        else:
+            rows.append([e])
+            used = w
+    return rows
 
 
-def _legend(box: Box, entries: Sequence[Entry], data: np.ndarray) -> list[str]:
-    """The legend, in the corner of the plot area that hides the fewest of the ``data`` points
-    (px; top right first on a tie), on a white, slightly transparent box."""
+def legend_height(entries: Sequence[Entry], width: float) -> float:
+    """px a legend of ``entries`` takes above a plot area ``width`` px wide (0: none)."""
+    return len(legend_rows(entries, width)) * 1.4 * LEGEND_SIZE + 4.0 if entries else 0.0
+
+
+def _legend(x0: float, y0: float, width: float, entries: Sequence[Entry]) -> list[str]:
+    """The legend in rows from (``x0``, ``y0``) px, above the plot area and outside it: it
+    covers no data, whatever the data does."""
     if not entries:
         return []
-    w, h = legend_box(entries)
-    inset = 6.0
-    corners = [
-        (box.x + box.w - w - inset, box.y + inset),
-        (box.x + inset, box.y + inset),
-        (box.x + box.w - w - inset, box.y + box.h - h - inset),
-        (box.x + inset, box.y + box.h - h - inset),
-    ]
-
-    def hidden(corner: tuple[float, float]) -> int:
-        x, y = corner
-        inside = (
-            (data[:, 0] >= x) & (data[:, 0] <= x + w) & (data[:, 1] >= y) & (data[:, 1] <= y + h)
-        )
-        return int(inside.sum())
-
-    x0, y0 = min(corners, key=hidden)
-    x0 = max(x0, box.x + inset)
+    rows = legend_rows(entries, width)
+    h = len(rows) * 1.4 * LEGEND_SIZE
     out = [
-        f'<g class="legend"><rect x="{x0:.1f}" y="{y0:.1f}" width="{w:.1f}" height="{h:.1f}" '
-        'fill="#fff" fill-opacity="0.85" stroke="#ccc" stroke-width="0.8" rx="2"/>'
+        f'<g class="legend"><rect x="{x0:.1f}" y="{y0:.1f}" width="{width:.1f}" '
+        f'height="{h:.1f}" fill="none" stroke="none"/>'
     ]
-    x = x0 + 5.0
-    for col, width in zip(_columns(entries), _column_widths(entries, LEGEND_SIZE), strict=True):
-        for i, e in enumerate(col):
-            y = y0 + 4.0 + (i + 0.5) * 1.4 * LEGEND_SIZE
+    for i, row in enumerate(rows):
+        y, x = y0 + (i + 0.5) * 1.4 * LEGEND_SIZE, x0
+        for e in row:
             out.append(_swatch(x, y, e))
             out.append(_text(x + 24.0, y + 0.35 * LEGEND_SIZE, e.name, LEGEND_SIZE, "start"))
-        x += width + 10.0
+            x += _entry_width(e) + LEGEND_GAP
     out.append("</g>")
     return out
+
+
+def _entries(series: Sequence[Series], kind: str) -> list[Entry]:
+    """One legend entry per drawn line, dot colour, band or bar."""
+    out = []
+    for s in series:
+        if s.style == "band":
+            out.append(Entry(s.names[0], _hex(s.colors[0]), "band"))
+            continue
+        style = "bar" if kind == "bars" else _line_style(s)
+        out += [Entry(n, _hex(c), style) for n, c in zip(s.names, s.colors, strict=True)]
+    return out
+
+
+def _line_style(s: Series) -> str:
+    """How a series is drawn: its style, or ``under`` / ``highlight`` for such lines."""
+    if s.style == "line":
+        if s.extra.get("highlight"):
+            return "highlight"
+        if s.extra.get("under"):
+            return "under"
+    return s.style
 
 
 def _swatch(x: float, y: float, e: Entry) -> str:
@@ -288,7 +321,15 @@ def _swatch(x: float, y: float, e: Entry) -> str:
         )
     if e.style == "points":
         return _dots(np.array([[x + 9.0, y]]), e.color, DOT["xy"])
-    return _polyline(np.array([[x, y], [x + 18.0, y]]), e.color, 1.5, dash=e.style == "guide")
+    seg = np.array([[x, y], [x + 18.0, y]])
+    if e.style == "highlight":
+        return (
+            f'<rect x="{x:.1f}" y="{y - 5:.1f}" width="18" height="10" fill="{e.color}" '
+            f'fill-opacity="{SPAN_OPACITY:g}"/>'
+        )
+    if e.style == "under":
+        return _polyline(seg, e.color, min(LINE_WIDTH[e.style], 6.0), opacity=LINE_OPACITY[e.style])
+    return _polyline(seg, e.color, 1.5, dash=e.style == "guide")
 
 
 # -- 2D plots ------------------------------------------------------------------------------------
@@ -341,73 +382,128 @@ def _draw_2d(plot: Plot) -> list[str] | None:
     if plot.kind != "bars":  # lines on a round value stay off the frame
         xa.pad(MARGIN)
         ya.pad(MARGIN)
-    top, bottom = 28.0, HEIGHT - 7.0 - (LABEL_SIZE + 1) - 6.0 - TICK_SIZE - 4.0
+    bottom = HEIGHT - 7.0 - (LABEL_SIZE + 1) - 6.0 - TICK_SIZE - 4.0
     left = _y_room(_ticks(ya)[1], TICK_SIZE, TICK_SIZE + 1)
     xl = _ticks(xa)[1]
     right = max(10.0, text_width(xl[-1], TICK_SIZE) / 2 + 3.0) if xl else 10.0
-    box = Box(left, top, WIDTH - left - right, bottom - top)
+    width = WIDTH - left - right
+    entries = _entries(series, plot.kind)
+    top = 28.0 + legend_height(entries, width)
+    box = Box(left, top, width, bottom - top)
     out = [_title(plot.heading, box.x + box.w / 2, 18.0, TITLE_SIZE, WIDTH)]
+    out += _legend(box.x, 26.0, box.w, entries)
     out += _axes(box, xa, ya, x_title, plot.unit, TICK_SIZE)
     if plot.kind == "bars":
-        drawn, data, entries = _bars(box, xa, ya, series, xs)
+        drawn = _bars(box, xa, ya, series, xs)
     else:
-        drawn, data, entries = _curves(box, xa, ya, series, xs, plot.kind)
-    return out + drawn + _legend(box, entries, data)
+        drawn = _curves(box, xa, ya, series, xs, plot.kind)
+    return out + drawn
 
 
 def _curves(
     box: Box, xa: Axis, ya: Axis, series: list[Series], xs: list[np.ndarray], kind: str
-) -> tuple[list[str], np.ndarray, list[Entry]]:
-    """Bands, guides, dots and lines in that order: (elements, data points px, legend)."""
+) -> list[str]:
+    """Highlights, bands, lines under others, guides, dots and lines in that order, then the
+    dots of a sparse series (1/:data:`SPARSE` of the densest one's points or fewer: the soak
+    blocks among heating and cooling) on top, on white edges: a few points over a dense cloud or
+    a line stay visible."""
     out: list[str] = []
-    data: list[np.ndarray] = [np.zeros((0, 2))]
-    entries: list[Entry] = []
-    for s, x in sorted(zip(series, xs, strict=True), key=lambda p: ORDER.get(p[0].style, 3)):
+    dense = max((len(s.x) for s in series if s.style == "points"), default=0)
+
+    def rank(pair: tuple[Series, np.ndarray]) -> float:
+        s = pair[0]
+        if s.style == "points" and SPARSE * len(s.x) <= dense:
+            return 9.0
+        return {"highlight": -2.0, "under": -0.5}.get(_line_style(s), ORDER.get(s.style, 3))
+
+    for s, x in sorted(zip(series, xs, strict=True), key=rank):
         fx = xa(x)
         if s.style == "band":
             color = _hex(s.colors[0])
             lo, hi = ya(s.values[:, 0]), ya(s.values[:, 1])
             for r in runs(np.isfinite(fx) & np.isfinite(lo) & np.isfinite(hi)):
                 ring = np.vstack([_px(box, fx[r], hi[r]), _px(box, fx[r], lo[r])[::-1]])
-                data.append(ring)
                 out.append(
                     f'<polygon class="band" points="{_coords(ring)}" fill="{color}" '
                     f'fill-opacity="{BAND_OPACITY:g}" stroke="none"/>'
                 )
-            entries.append(Entry(s.names[0], color, "band"))
+            if len(fx) <= WHISKERS:
+                out += _whiskers(box, fx, lo, hi, color)
             continue
-        for j, name in enumerate(s.names):
+        style = _line_style(s)
+        if style == "highlight":  # where it holds: shaded spans across the plot, beneath all
+            for j in range(len(s.names)):
+                out += _spans(box, fx, s.values[:, j], _hex(s.colors[j]))
+            continue
+        for j in range(len(s.names)):
             color, fy = _hex(s.colors[j]), ya(s.values[:, j])
-            entries.append(Entry(name, color, s.style))
             if s.style == "points":
                 pts = _px(box, fx, fy)
-                data.append(pts)
-                out.append(_dots(pts, color, DOT["time" if kind == "time" else "xy"]))
+                size = DOT["time" if kind == "time" else "xy"]
+                out.append(_dots(pts, color, size, edge=rank((s, x)) == 9.0))
                 continue
-            width = LINE_WIDTH[
-                "time" if kind == "time" else s.style if s.style in LINE_WIDTH else "line"
-            ]
+            if style == "under":
+                width, opacity = LINE_WIDTH[style], LINE_OPACITY[style]
+            elif kind == "time":
+                width, opacity = LINE_WIDTH["time"], LINE_OPACITY["time"]
+            else:
+                width, opacity = LINE_WIDTH.get(s.style, LINE_WIDTH["line"]), 1.0
             for piece in _pieces(box, fx, fy):
-                data.append(piece)
-                out.append(_polyline(piece, color, width, dash=s.style == "guide"))
-    return out, np.concatenate(data), entries
+                out.append(_polyline(piece, color, width, s.style == "guide", opacity))
+    return out
 
 
-def _bars(
-    box: Box, xa: Axis, ya: Axis, series: list[Series], xs: list[np.ndarray]
-) -> tuple[list[str], np.ndarray, list[Entry]]:
+SPARSE = 4
+"""A series of dots with at most 1/SPARSE of the densest one's points is drawn on top."""
+SPAN_OPACITY = 0.2
+
+
+def _spans(box: Box, fx: np.ndarray, values: np.ndarray, color: str) -> list[str]:
+    """One shaded rectangle, the plot's full height, per run of finite ``values``."""
+    cells = []
+    for r in runs(np.isfinite(values) & np.isfinite(fx)):
+        x0, x1 = box.x + fx[r.start] * box.w, box.x + fx[r.stop - 1] * box.w
+        cells.append(
+            f'<rect x="{x0:.1f}" y="{box.y:.1f}" width="{max(x1 - x0, 1.0):.1f}" '
+            f'height="{box.h:.1f}"/>'
+        )
+    if not cells:
+        return []
+    return [f'<g class="spans" fill="{color}" fill-opacity="{SPAN_OPACITY:g}">{"".join(cells)}</g>']
+
+
+WHISKERS = 60
+"""A band of this many values or fewer (one per log, per flight) also gets an error bar at each
+value, capped: an interval thinner than a line still shows where it is."""
+
+
+def _whiskers(box: Box, fx: np.ndarray, lo: np.ndarray, hi: np.ndarray, color: str) -> list[str]:
+    """Error bars from ``lo`` to ``hi`` (axis fractions) at ``fx``, with 6 px caps."""
+    ok = np.isfinite(fx) & np.isfinite(lo) & np.isfinite(hi)
+    x = box.x + fx[ok] * box.w
+    y0, y1 = box.y + (1.0 - lo[ok]) * box.h, box.y + (1.0 - hi[ok]) * box.h
+    if not len(x):
+        return []
+    d = " ".join(
+        f"M{a:.1f} {b:.1f}V{c:.1f}M{a - 3:.1f} {b:.1f}h6M{a - 3:.1f} {c:.1f}h6"
+        for a, b, c in zip(x.tolist(), y0.tolist(), y1.tolist(), strict=True)
+    )
+    return [
+        f'<path class="whiskers" d="{d}" stroke="{color}" stroke-width="1.2" '
+        'stroke-opacity="0.9" fill="none"/>'
+    ]
+
+
+def _bars(box: Box, xa: Axis, ya: Axis, series: list[Series], xs: list[np.ndarray]) -> list[str]:
     """Bars grouped per x (0.8 of a slot shared by a series' columns), from 0."""
     out: list[str] = []
-    data: list[np.ndarray] = [np.zeros((0, 2))]
-    entries: list[Entry] = []
     base = box.y + (1.0 - ya(0.0)) * box.h
     unit = box.w / (xa.hi - xa.lo)
     for s, x in zip(series, xs, strict=True):
         k = s.values.shape[1]
         width = 0.8 / k
-        for j, name in enumerate(s.names):
+        for j in range(len(s.names)):
             color = _hex(s.colors[j])
-            entries.append(Entry(name, color, "bar"))
             top = box.y + (1.0 - ya(s.values[:, j])) * box.h
             left = box.x + xa(x + (j - (k - 1) / 2) * width - width / 2) * box.w
             ok = np.isfinite(top)
@@ -416,8 +512,7 @@ def _bars(
             out.append(
                 f'<g class="bars" fill="{color}">{(cell * len(rects)) % tuple(rects.ravel().tolist())}</g>'
             )
-            data.append(np.column_stack([left[ok], top[ok]]))
-    return out, np.concatenate(data), entries
+    return out
 
 
 # -- 3D ------------------------------------------------------------------------------------------
@@ -464,6 +559,25 @@ def _equal_axes(a: np.ndarray, b: np.ndarray, w: float, h: float) -> tuple[Axis,
     return out[0], out[1]
 
 
+def _entries_3d(clouds: Sequence[Series], shells: Sequence[Series]) -> list[Entry]:
+    """A cloud's entry per colour it shows (named by ``extra["color_names"]``: blue used in the
+    fit, grey thinned out...), then each outline's."""
+    out: list[Entry] = []
+    for s in clouds:
+        names = s.extra.get("color_names") or {}
+        cols = s.extra.get("colors")
+        shown = (
+            [tuple(int(v) for v in c[:3]) for c in np.unique(np.asarray(cols)[:, :3], axis=0)]
+            if cols is not None and len(cols) == len(s.values)
+            else [tuple(int(v) for v in s.colors[0][:3])]
+        )
+        for c in sorted(shown, key=lambda c: list(names).index(c) if c in names else 99):
+            label = f"{s.names[0]}: {names[c]}" if c in names else s.names[0]
+            out.append(Entry(label, _hex(c), "points"))
+    out += [Entry(s.names[0], _hex(s.colors[0]), "line") for s in shells]
+    return out
+
+
 def _draw_3d(plot: Plot) -> list[str] | None:
     """Three projections with the ellipsoids' outlines, and the directions' coverage."""
     clouds = [s for s in plot.series if s.style == "cloud" and len(s.values)]
@@ -472,9 +586,12 @@ def _draw_3d(plot: Plot) -> list[str] | None:
         return None
     centre = shells[0].values[0] if shells else np.zeros(3)
     width, tick = 2 * WIDTH, 9.0
-    room_left, room_right, top, bottom = 54.0, 12.0, 42.0, HEIGHT - 36.0
+    entries = _entries_3d(clouds, shells)
+    room_left, room_right, bottom = 54.0, 12.0, HEIGHT - 36.0
+    top = 42.0 + legend_height(entries, width - 2 * room_left)
     unit = (width - 4 * (room_left + room_right)) / 4.5
     out = [_title(plot.heading, width / 2, 18.0, TITLE_SIZE, width)]
+    out += _legend(room_left, 26.0, width - 2 * room_left, entries)
     x = room_left
     for i, j, a, b in PLANES:
         box = Box(x, top, unit, bottom - top)

@@ -59,9 +59,6 @@ GAUSS_PER_TESLA = 1e4
 AXES = "xyz"
 MOTOR_UNIT = {"current": "uT/A", "throttle": "uT"}
 """The motor term's unit per source: per ampere, or at full throttle (throttle 0..1)."""
-LEGEND_ROOM = 0.45
-"""The report's compass plots run on past the last flight by this fraction of the span: the
-legend's room."""
 
 
 def compass_part(part: Path) -> Path:
@@ -663,7 +660,6 @@ def _plots(d: dict[str, Any]) -> list[str]:
     day = np.asarray(d["day"], dtype=np.float64)
     if not len(day):
         return []
-    span = float(day[-1] - day[0])
     out = []
     what = "offsets" if d["domain"] == "sensor" else "offsets (fitted on the field as logged)"
     for key, unit, title, vals, ses in (
@@ -688,12 +684,9 @@ def _plots(d: dict[str, Any]) -> list[str]:
         for i in range(3):
             ok = np.isfinite(v[:, i])
             x, y, s = day[ok], v[ok, i], np.nan_to_num(se[ok, i])
-            # room on the right for the legend: the x axis runs on by LEGEND_ROOM of the span
-            # (a point without a value), so the legend never hides a flight
-            x_room = np.append(x, x[-1] + LEGEND_ROOM * max(span, 1.0)) if len(x) else x
-            y_room = np.append(y, np.nan) if len(x) else y
-            p.series.append(Series(f"compass/{key}/{AXES[i]}", [names[i]], [colors[i]], x_room,
-                                   y_room[:, None], "points"))  # fmt: skip
+            # the x axis ends at the last flight: the legend sits above the plot, not on it
+            p.series.append(Series(f"compass/{key}/{AXES[i]}", [names[i]], [colors[i]], x,
+                                   y[:, None], "points"))  # fmt: skip
             p.series.append(
                 Series(f"compass/{key}/{AXES[i]}/band", [f"{names[i]} +-2 se"], [colors[i]], x,
                        np.column_stack([y - 2 * s, y + 2 * s]), "band")

@@ -385,17 +385,24 @@ class MagCalibrationStage(Stage):
         name = ctx.name
         unit_name, fixed_unit = unit.plotted, fixed.plotted
         stride = max(1, int(np.ceil(len(raw) / MAX_3D_POINTS)))
+        used, outlier, thinned_out = (60, 100, 230), (230, 60, 60), (150, 150, 150)
         colors = np.where(
             report.used[:, None],
-            np.array([[60, 100, 230]]),
-            np.where(report.thinned[:, None], np.array([[230, 60, 60]]), np.array([[150] * 3])),
+            np.array([used]),
+            np.where(report.thinned[:, None], np.array([outlier]), np.array([thinned_out])),
         ).astype(np.uint8)[::stride]
+        meaning = {
+            used: "used in the fit",
+            outlier: "outliers, left out",
+            thinned_out: "thinned out (a direction's samples past its cap)",
+        }
         raw_plot = dict(unit=unit_name, plot="raw", title="raw samples and the fitted ellipsoid")
         rec.points3d(
             f"/{name}/raw/points",
             raw[::stride],
             name="raw samples",
             colors=colors,
+            color_names=meaning,
             **raw_plot,
         )
         radii, axes = e.axes
@@ -410,6 +417,7 @@ class MagCalibrationStage(Stage):
             corrected[::stride],
             name="corrected samples",
             colors=colors,
+            color_names=meaning,
             **fixed_plot,
         )
         rec.ellipsoid(

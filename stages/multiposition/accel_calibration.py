@@ -650,12 +650,21 @@ class AccelCalibrationStage(Stage):
             under=True,
             **(norm | {"unit": rec.input_unit(ctx.name, "accel")}),  # raw counts: a plot apart
         )
+        rec.series(  # a wide orange stroke at g beneath |a| where the IMU was still
+            f"/{ctx.name}/norm/still",
+            t_ns,
+            static,
+            ("still intervals (at g)",),
+            colors=[(230, 120, 20)],
+            highlight=True,
+            **norm,
+        )
         rec.series(
             f"/{ctx.name}/norm/calibrated",
             t_ns,
-            np.column_stack([np.linalg.norm(params.apply(raw), axis=1), static]),
-            ("|a| calibrated", "still intervals (at g)"),
-            colors=[(40, 100, 230), (230, 120, 20)],
+            np.linalg.norm(params.apply(raw), axis=1),
+            ("|a| calibrated",),
+            colors=[(40, 100, 230)],
             **norm,
         )
         rec.bars(
