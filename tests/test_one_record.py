@@ -371,6 +371,8 @@ def test_convert_says_where_its_read_keys_go(tmp_path: Path) -> None:
         )  # fmt: skip
         assert done.returncode == 0, done.stderr
         assert place in done.stderr and "[inputs." not in done.stderr, done.stderr
+
+
 @pytest.mark.slow
 def test_every_figure_of_the_demo_report_passes_the_plot_check(demo_run):
     """The demo's report (every stage): no legend on data, no legend entry with nothing
