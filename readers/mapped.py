@@ -397,8 +397,13 @@ def read_mapped(spec: InputSpec, sources: Sequence[MappedSource]):  # noqa: ANN2
         t, log = t[order], log[order]
         pub = None if pub is None else pub[order]
     stream_topics = {}
+    gyro_topic, accel_topic = _topic_of(plans, "gyro"), _topic_of(plans, "accel")
+    if gyro_topic and accel_topic and gyro_topic != accel_topic:
+        # sampled apart, as with gyro_topic/accel_topic: each row goes back to its own topic
+        stream_topics.update(gyro=gyro_topic, accel=accel_topic)
     for sensor, stream in (("gyro", "imu"), ("accel", "imu"), ("mag", "mag")):
-        stream_topics.setdefault(stream, _topic_of(plans, sensor))
+        if sensor not in stream_topics:
+            stream_topics.setdefault(stream, _topic_of(plans, sensor))
     stream_topics["temperature"] = _topic_of(plans, "temperature")
     topics_meta = {s: t for s, t in stream_topics.items() if t is not None}
     meta = {

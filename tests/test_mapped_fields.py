@@ -13,6 +13,7 @@ import contextlib
 import json
 import re
 import shutil
+from collections import Counter
 from pathlib import Path
 
 import numpy as np
@@ -23,7 +24,7 @@ from imupipe.readers.dispatch import read_input
 from imupipe.readers.errors import ReadError
 from imupipe.readers.message_fields import Leaf, json_type, protobuf_type, ros_type
 from imupipe.readers.spec import FieldMapping, InputSpec
-from imupipe.readers.table import sensor
+from imupipe.readers.table import metadata, sensor, split_imu
 
 from conftest import run_cli
 
@@ -199,6 +200,27 @@ def test_two_topics_rows_per_message(tmp_path):
     accel_null = table.column("accel_x").is_null().to_numpy(zero_copy_only=False)
     assert np.array_equal(gyro_null, ~accel_null)
     assert np.count_nonzero(~gyro_null) == 800
+    # sampled apart: the table says so, and a corrected log writes each row back to its topic
+    assert split_imu(table)
+    assert metadata(table)["topics"] == {"gyro": "/cam/gyro", "accel": "/cam/accel"}
+    chain = [
+        {"type": "gyro_bias", "sensor": "gyro", "kind": "linear",
+         "matrix": np.eye(3).tolist(), "offset": [0.01, -0.02, 0.005]},
+    ]  # fmt: skip
+    cal = tmp_path / "cal.json"
+    cal.write_text(json.dumps({"imupipe_version": "test", "chain": chain, "results": {}}))
+    read = tmp_path / "read.toml"
+    read.write_text('[fields]\ngyro = "/cam/gyro.vector"\naccel = "/cam/accel.vector"\n')
+    proc = run_cli(
+        "convert", folder, "--calibration", cal, "--out", tmp_path / "conv",
+        "--config", read, "--jobs", "1", "--quiet",
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr
+    from mcap.reader import make_reader
+
+    with open(next((tmp_path / "conv").rglob("*.mcap")), "rb") as fh:
+        counts = Counter(c.topic for _, c, _ in make_reader(fh).iter_messages())
+    assert counts == {"/cam/gyro": 800, "/cam/accel": 500}
 
 
 def test_ros1_driver_message_equals_rosbags(tmp_path):
