@@ -66,16 +66,24 @@ def mcap_counts(path: Path) -> dict[str, int] | None:
     return None if summary is None else summary[0]
 
 
-def input_counts(path: Path, fmt: str, warnings: list[str] | None = None) -> dict[str, int] | None:
+def input_counts(
+    path: Path, fmt: str, warnings: list[str] | None = None, salvage: bool = False
+) -> dict[str, int] | None:
     """Messages per topic from the log's own index, without reading the messages; None for CSV and
     for logs that have no index (then the counts read are the reference). ROS bags are opened by
     imupipe's own readers, so that ``convert`` accepts exactly what ``inspect`` and ``run`` do:
     a ROS 2 bag's ``metadata.yaml`` (:func:`imupipe.readers.ros2.reader.bag2_counts`), a ROS 1
     bag's index (None for an unindexed bag, whose scanning warning is appended to
-    ``warnings``)."""
+    ``warnings``). ``salvage`` (``--read-truncated``): a cut-off MCAP or ROS 1 bag has no index
+    to count by (None: the counts read, up to the cut, are the reference)."""
     try:
         if fmt == "mcap":
-            return mcap_counts(path)
+            try:
+                return mcap_counts(path)
+            except Exception:  # noqa: BLE001 - its reader reads it up to the cut, or refuses
+                if salvage:
+                    return None
+                raise
         if fmt == "ros2":
             from imupipe.readers.ros2.reader import bag2_counts
 
@@ -84,9 +92,9 @@ def input_counts(path: Path, fmt: str, warnings: list[str] | None = None) -> dic
             from imupipe.readers.ros1.reader import bag_sources
 
             per_topic: collections.Counter[str] = collections.Counter()
-            bags = bag_sources(path)
+            bags = bag_sources(path, salvage)
             for bag in bags:
-                if warnings is not None:  # convert names the input itself
+                if warnings is not None and not salvage:  # the reader's warnings say it then
                     warnings += [w.removeprefix(f"{path}: ") for w in bag.warnings]
                 per_topic.update(bag.topic_counts())
             return dict(per_topic) if all(bag.indexed for bag in bags) else None
