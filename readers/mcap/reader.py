@@ -193,6 +193,7 @@ def carry_over_mcap(spec: InputSpec) -> list[RawMessage]:
     return carry_sources(spec, [McapSource(spec.path, spec.read_truncated)])
 
 
-def mcap_sources(path: Path) -> list[McapSource]:
-    """The one source of an MCAP file (the ``log_sources`` entry for MCAP)."""
-    return [McapSource(path)]
+def mcap_sources(path: Path, salvage: bool = False) -> list[McapSource]:
+    """The one source of an MCAP file (the ``log_sources`` entry for MCAP; ``salvage``: read it
+    up to a cut, see :class:`~imupipe.readers.mcap.fast.McapFile`)."""
+    return [McapSource(path, salvage)]
