@@ -102,8 +102,10 @@ def input_counts(
         raise
     except Exception as exc:  # noqa: BLE001 - any failure to open the index is a bad log
         what = "truncated or corrupt" if fmt == "mcap" else "unreadable"
+        hint = "; --read-truncated reads a cut-off log up to the cut" if fmt == "mcap" else ""
         raise ReadError(
-            f"{path}: {what} {fmt} log (its index cannot be read: {' '.join(str(exc).split())})"
+            f"{path}: {what} {fmt} log (its index cannot be read: "
+            f"{' '.join(str(exc).split())}{hint})"
         ) from None
     return None
 

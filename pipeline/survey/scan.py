@@ -33,6 +33,7 @@ from typing import Any
 
 from imupipe.pipeline.errors import ConfigError, one_line
 from imupipe.pipeline.progress import progress_bar
+from imupipe.readers.errors import READ_TO_CUT
 
 SURVEY_NAME = "survey.parquet"
 RECORDING_NAME = "survey.rrd"
@@ -390,6 +391,7 @@ def survey(
     manifest = Manifest(out_dir)
     failed: list[tuple[str, str]] = []
     without_still: list[str] = []  # (log, topic) surveyed with no still period
+    cut_off: list[str] = []  # the warnings of the logs read up to a cut (--read-truncated)
     ok: list[SurveyTask] = list(skipped)
     for task in skipped:
         manifest.append(
@@ -423,6 +425,7 @@ def survey(
         ok.append(task)
         counts = outcome.result.get("counts") or {}
         without_still.extend(f"{task.log} {topic}" for topic, n in counts.items() if n == 0)
+        cut_off.extend(w for w in outcome.result.get("warnings", ()) if READ_TO_CUT in w)
 
     # as convert: Ray's own output goes to DIR/ray.log, the user's stderr holds imupipe's lines
     engine_log = out_dir / ENGINE_LOG if engine == "ray" else None
@@ -484,6 +487,7 @@ def survey(
         "compass": compass,
         "rows": 0 if table is None else table.num_rows,
         "without_still": sorted(without_still),
+        "cut_off": sorted(set(cut_off)),
     }
 
 
@@ -572,6 +576,8 @@ def main(args: argparse.Namespace) -> int:
         line = why if named else f"{path}: {why}"
         print(f"imupipe: error: {one_line(line)}", file=sys.stderr)
     if not args.quiet:
+        for line in result["cut_off"]:
+            print(f"imupipe: warning: {one_line(line)}", file=sys.stderr)
         from imupipe.pipeline.survey.compass import summary_lines as compass_lines
         from imupipe.pipeline.survey.report import summary_lines
 

@@ -51,7 +51,7 @@ from imupipe.readers.compression import (
     decompress_workers,
     done,
 )
-from imupipe.readers.errors import ReadError
+from imupipe.readers.errors import READ_TO_CUT, ReadError
 from imupipe.readers.mcap.summary import complete, defined
 from imupipe.readers.progress import report
 
@@ -222,13 +222,16 @@ class McapFile:
         """The file ends inside the record at ``pos``: ReadError, or (``salvage``) the records
         before it are kept and one warning says where the damage starts and what is skipped."""
         if not self.salvage:
-            raise ReadError(f"{self.path}: truncated MCAP ({what.format(pos=pos)})")
+            raise ReadError(
+                f"{self.path}: truncated MCAP ({what.format(pos=pos)}; --read-truncated reads "
+                "it up to the cut)"
+            )
         if self.cut is None:
             self.cut = pos
             self.warnings.append(
                 f"{self.path}: truncated MCAP: cut off at byte {pos} ({what.format(pos=pos)}); "
-                f"read up to the cut, the last {self.size - pos} bytes (from byte {pos} to the "
-                f"end, {self.size} bytes) are skipped with the messages in them"
+                f"{READ_TO_CUT}: the {self.size - pos} bytes from there to the end of the file "
+                f"({self.size} bytes) are skipped with the messages in them"
             )
 
     def _read_summary(self) -> set[int] | None:

@@ -39,7 +39,7 @@ import pyarrow as pa
 from imupipe.readers.cdr import unaligned
 from imupipe.readers.compression import PREFETCH, decompress_chunk, decompress_workers, done
 from imupipe.readers.decoded import Piece, concat, decode_piece
-from imupipe.readers.errors import ReadError
+from imupipe.readers.errors import READ_TO_CUT, ReadError
 from imupipe.readers.mapped import Batch, Definition
 from imupipe.readers.progress import report
 from imupipe.readers.sources import carry_sources, iter_sources, read_sources
@@ -186,7 +186,7 @@ class Ros1Bag:
                     if not salvage:
                         raise ReadError(
                             f"{self.path}: truncated bag (index at byte {index_pos} is past the "
-                            "end)"
+                            "end; --read-truncated reads it up to the cut)"
                         )
                     self.indexed = False
                     self._scan(fh, truncated=(index_pos, chunk_count))
@@ -266,9 +266,10 @@ class Ros1Bag:
                 cut, opened = opened[0], None
             self.warnings.append(
                 f"{self.path}: truncated bag: cut off at byte {cut} (the index was at byte "
-                f"{index_pos}, the file has {self.size} bytes); read up to the cut: "
-                f"{len(chunks)} of its {chunk_count} chunks, the last {self.size - cut} bytes "
-                f"and {chunk_count - len(chunks)} chunks with the messages in them are skipped"
+                f"{index_pos}, the file has {self.size} bytes); {READ_TO_CUT}: "
+                f"{len(chunks)} of its {chunk_count} chunks are read, the {self.size - cut} "
+                f"bytes from there to the end of the file ({chunk_count - len(chunks)} "
+                "chunks) are skipped with the messages in them"
             )
         else:
             self.warnings.append(
