@@ -17,12 +17,14 @@ from pathlib import Path
 
 import pyarrow.parquet as pq
 import pytest
-from conftest import run_cli
 
+from imupipe.pipeline.convert.manifest import read_manifest
 from imupipe.pipeline.simulate import simulate, write_log
 from imupipe.readers import dispatch
 from imupipe.readers.errors import ReadError
 from imupipe.readers.spec import InputSpec
+
+from conftest import run_cli
 
 CUTS = (0.35, 0.6, 0.8, 0.95)
 """Where the copies are cut, as a fraction of the file's bytes."""
@@ -130,7 +132,7 @@ def test_convert_reads_up_to_the_cut(logs, tmp_path, fmt):
     proc = run_cli("convert", "--read-truncated", "--calibration", logs["cal"], "--out", out, *cuts)
     assert proc.returncode == 0, proc.stderr
     assert "Traceback" not in proc.stderr
-    records = {Path(r["input"]): r for r in map(json.loads, open(out / "manifest.jsonl"))}
+    records = {Path(r["input"]): r for r in read_manifest(out)}
     for cut in cuts:
         ref = reference_counts(logs[fmt], cut)
         rec = records[cut]
@@ -169,7 +171,7 @@ def test_survey_reads_up_to_the_cut(logs, tmp_path, fmt):
     out = tmp_path / "survey"
     proc = run_cli("survey", "--read-truncated", "--no-rerun", *cuts, "--out", out)
     assert proc.returncode == 0, proc.stderr
-    records = {Path(r["input"]): r for r in map(json.loads, open(out / "manifest.jsonl"))}
+    records = {Path(r["input"]): r for r in read_manifest(out)}
     table = pq.read_table(out / "survey.parquet").to_pylist()
     for cut in cuts:
         rec = records[cut]
