@@ -196,7 +196,9 @@ def test_survey_reads_up_to_the_cut(logs, tmp_path, fmt):
     assert str(cuts[0]) in line and "--read-truncated" in line
 
 
-def test_cut_before_the_first_complete_chunk_is_one_line(logs, tmp_path):
-    cut = _cut(logs["bag"], 0.02, tmp_path)
-    with pytest.raises(ReadError, match="before its first complete chunk"):
+@pytest.mark.parametrize("fmt", ["mcap", "bag"])
+def test_cut_before_the_first_complete_chunk_is_one_line(logs, tmp_path, fmt):
+    cut = _cut(logs[fmt], 0.05, tmp_path)
+    assert reference_counts(logs[fmt], cut) == {}
+    with pytest.raises(ReadError, match=r"truncated .* before its first complete \w+: nothing"):
         read_counts(cut)

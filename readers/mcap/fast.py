@@ -186,6 +186,11 @@ class McapFile:
         needed = self._read_summary()
         if needed is not None:
             self._first_pass(needed)
+        if self.cut is not None and not any((self.counts or {}).values()):
+            raise ReadError(
+                f"{self.path}: truncated MCAP (cut off at byte {self.cut}, before its first "
+                "complete message: nothing to read)"
+            )
         self._join()
 
     # -- records ---------------------------------------------------------------------------
