@@ -202,3 +202,16 @@ def test_cut_before_the_first_complete_chunk_is_one_line(logs, tmp_path, fmt):
     assert reference_counts(logs[fmt], cut) == {}
     with pytest.raises(ReadError, match=r"truncated .* before its first complete \w+: nothing"):
         read_counts(cut)
+
+
+@pytest.mark.parametrize("fmt", ["mcap", "bag"])
+def test_inspect_describes_what_is_read_up_to_the_cut(logs, tmp_path, fmt):
+    cut = _cut(logs[fmt], 0.6, tmp_path)
+    proc = run_cli("inspect", "--read-truncated", "--json", cut)
+    assert proc.returncode == 0, proc.stderr
+    info = json.loads(proc.stdout)
+    counts = {topic: t["count"] for topic, t in info["topics"].items()}
+    assert counts == reference_counts(logs[fmt], cut)
+    assert any("read up to the cut" in w for w in info["warnings"])
+    proc = run_cli("inspect", cut)
+    assert proc.returncode == 2 and "--read-truncated" in proc.stderr
