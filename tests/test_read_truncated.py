@@ -215,3 +215,19 @@ def test_inspect_describes_what_is_read_up_to_the_cut(logs, tmp_path, fmt):
     assert any("read up to the cut" in w for w in info["warnings"])
     proc = run_cli("inspect", cut)
     assert proc.returncode == 2 and "--read-truncated" in proc.stderr
+
+
+def test_default_settings_hash_is_the_one_before_the_option():
+    """Outputs converted before ``read_truncated`` existed stay "already done"."""
+    import dataclasses
+    import hashlib
+
+    from imupipe.pipeline.convert.settings import settings_sha256
+
+    spec = InputSpec(path=Path("x.mcap"))
+    old = dataclasses.asdict(spec)
+    for key in ("path", "name", "keys_in", "read_truncated"):
+        old.pop(key)
+    canonical = json.dumps(old, sort_keys=True, default=str, separators=(",", ":"))
+    assert settings_sha256(spec) == hashlib.sha256(canonical.encode()).hexdigest()
+    assert settings_sha256(dataclasses.replace(spec, read_truncated=True)) != settings_sha256(spec)

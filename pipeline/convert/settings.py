@@ -48,5 +48,7 @@ def settings_sha256(spec: InputSpec) -> str:
     """SHA-256 of what decides how a log is read (topics, time source, CSV mapping)."""
     settings = dataclasses.asdict(spec)
     settings.pop("path"), settings.pop("name"), settings.pop("keys_in")
+    if not settings["read_truncated"]:  # the hashes of the outputs converted before it existed
+        settings.pop("read_truncated")
     canonical = json.dumps(settings, sort_keys=True, default=str, separators=(",", ":"))
     return hashlib.sha256(canonical.encode()).hexdigest()
