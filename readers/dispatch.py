@@ -54,7 +54,7 @@ SOURCES: dict[str, str] = {
 }
 """Format -> "module:function(path) -> [LogSource]": the files of a binary log, for ``inspect``."""
 
-READ_TRUNCATED = {"mcap", "ros1"}
+READ_TRUNCATED = {"mcap", "ros1", "ros2"}
 """The formats whose ``SOURCES`` function reads a cut-off file up to the cut when asked
 (``(path, salvage)``: :attr:`~imupipe.readers.spec.InputSpec.read_truncated`)."""
 

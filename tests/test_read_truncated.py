@@ -231,3 +231,32 @@ def test_default_settings_hash_is_the_one_before_the_option():
     canonical = json.dumps(old, sort_keys=True, default=str, separators=(",", ":"))
     assert settings_sha256(spec) == hashlib.sha256(canonical.encode()).hexdigest()
     assert settings_sha256(dataclasses.replace(spec, read_truncated=True)) != settings_sha256(spec)
+
+
+def test_ros2_bag_with_a_cut_off_mcap_storage_file(tmp_path):
+    """A ROS 2 bag (mcap storage) whose file is cut off: its ``metadata.yaml`` counts what the
+    file no longer holds; convert reads the file up to the cut, its counts the reference's."""
+    import shutil
+
+    from bag_variants import write_ros2
+
+    full = write_ros2(tmp_path / "full", "mcap", "none", n=6000)
+    [storage] = full.glob("*.mcap")
+    bags, cal = [], tmp_path / "calibration.json"
+    cal.write_text(json.dumps({"imupipe_version": "test", "chain": [], "results": {}}))
+    for fraction in (0.6, 0.9):
+        bag = tmp_path / f"cut{int(fraction * 100)}"
+        shutil.copytree(full, bag)
+        _cut(storage, fraction, tmp_path).replace(bag / storage.name)
+        bags.append(bag)
+    out = tmp_path / "out"
+    proc = run_cli("convert", "--read-truncated", "--calibration", cal, "--out", out, *bags)
+    assert proc.returncode == 0, proc.stderr
+    records = {Path(r["input"]): r for r in read_manifest(out)}
+    for bag in bags:
+        ref = reference_counts(storage, bag / storage.name)
+        assert 0 < sum(ref.values()) < sum(reference_counts(storage, storage).values())
+        assert records[bag]["counts"] == ref
+        assert any("read up to the cut" in w for w in records[bag]["warnings"])
+    proc = run_cli("convert", "--calibration", cal, "--out", tmp_path / "plain", bags[0])
+    assert proc.returncode == 1 and "truncated" in proc.stderr

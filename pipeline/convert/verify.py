@@ -85,8 +85,13 @@ def input_counts(
                     return None
                 raise
         if fmt == "ros2":
-            from imupipe.readers.ros2.reader import bag2_counts
+            from imupipe.readers.ros2.reader import bag2_counts, bag2_sources
 
+            if salvage and any(  # metadata.yaml counts what the cut-off files no longer hold
+                getattr(getattr(src, "file", None), "cut", None) is not None
+                for src in bag2_sources(path, salvage)
+            ):
+                return None
             return bag2_counts(path)
         if fmt == "ros1":
             from imupipe.readers.ros1.reader import bag_sources
