@@ -383,6 +383,12 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         help="how to read the log, as for convert: the keys of one [inputs.NAME] table without "
         "path (topics, time, a [csv] or [fields] mapping)",
     )
+    p.add_argument(
+        "--read-truncated",
+        action="store_true",
+        help="an MCAP or ROS 1 log that is cut off: describe what is read up to the cut, as "
+        "convert and survey read it with this option (default: refuse it)",
+    )
     p.add_argument("--json", action="store_true", help="print JSON instead of text")
     p.set_defaults(func=main)
 
@@ -397,6 +403,7 @@ def main(args: argparse.Namespace) -> int:
     for key in ("imu_topic", "mag_topic", "temperature_topic"):
         if getattr(args, key) is not None:
             setattr(spec, key, getattr(args, key))
+    spec.read_truncated = args.read_truncated
     info = inspect(spec)
     print(json.dumps(info, indent=2) if args.json else render(info))
     return 0

@@ -54,6 +54,9 @@ SOURCES: dict[str, str] = {
 }
 """Format -> "module:function(path) -> [LogSource]": the files of a binary log, for ``inspect``."""
 
+READ_TRUNCATED = {"mcap", "ros1", "ros2"}
+"""The formats whose ``SOURCES`` function reads a cut-off file up to the cut when asked
+(``(path, salvage)``: :attr:`~imupipe.readers.spec.InputSpec.read_truncated`)."""
 
 INSTANCES: dict[str, str] = {
     "ulog": "imupipe.readers.ulog.reader:raw_instances",
@@ -177,4 +180,7 @@ def log_sources(spec: InputSpec) -> list[LogSource]:
     fmt = detect_format(Path(spec.path))
     if fmt not in SOURCES:
         raise ReadError(f"{spec.path}: not a binary log (MCAP, ROS bag, ULog or DataFlash)")
-    return list(_load(spec, fmt, SOURCES[fmt])(Path(spec.path)))
+    load = _load(spec, fmt, SOURCES[fmt])
+    if fmt in READ_TRUNCATED:
+        return list(load(Path(spec.path), spec.read_truncated))
+    return list(load(Path(spec.path)))

@@ -23,3 +23,8 @@ class ImupipeError(Exception):
 
 class ReadError(ImupipeError):
     """A log cannot be read: missing, truncated, corrupt, wrong type, unknown topic."""
+
+
+READ_TO_CUT = "read up to the cut"
+"""The words of every warning about a cut-off log read up to the cut (``--read-truncated``), by
+which a command picks them out of a log's warnings to say them on the terminal."""

@@ -138,6 +138,10 @@ class InputSpec:
     fields: FieldMapping | None = None
     """A field mapping (``[inputs.NAME.fields]``): the sensors read from any message's fields
     instead of from sensor_msgs topics."""
+    read_truncated: bool = False
+    """Read an MCAP or ROS 1 log that is cut off (a copy or recording stopped part-way) up to
+    the cut: every complete chunk before the damage is read and a warning names the byte where
+    it starts and the bytes skipped (``--read-truncated``); False: such a log is refused."""
     keys_in: str | None = None
     """Where the user sets this input's keys, as a message says it ("set mag_topic in ..."):
     None for a config's ``[inputs.NAME]`` table; ``imupipe convert`` names its ``--config``

@@ -95,6 +95,12 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
         help="a log whose topics, frames or instances differ from those the calibration was "
         "fitted on: convert it with a warning (default) or refuse it",
     )
+    p.add_argument(
+        "--read-truncated",
+        action="store_true",
+        help="read an MCAP or ROS 1 log that is cut off up to the cut, with a warning naming "
+        "the byte where the damage starts and the bytes skipped (default: refuse it)",
+    )
     p.add_argument("--force", action="store_true", help="convert again even if already done")
     p.add_argument("--quiet", "-q", action="store_true", help="no progress or summary")
     p.set_defaults(func=main)
@@ -118,6 +124,7 @@ def main(args: argparse.Namespace) -> int:
         quiet=args.quiet,
         dashboard=args.dashboard,
         on_mismatch=args.on_mismatch,
+        read_truncated=args.read_truncated,
     )
     for path, why in summary.failed:
         line = f"{path}: {why}" if path not in why else why

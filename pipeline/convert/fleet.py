@@ -129,6 +129,7 @@ def convert(
     quiet: bool = True,
     dashboard: bool = False,
     on_mismatch: str = "warn",
+    read_truncated: bool = False,
 ) -> ConvertSummary:
     """Convert every log under ``logs`` (files or folders) into ``out_dir``: each log read,
     corrected by the chain of ``calibration`` (a ``calibration.json``) and written as MCAP (or a
@@ -151,6 +152,8 @@ def convert(
     out: Path | str = remote.local_path(out_dir) if out_url is None else out_url
     doc, _ = load_calibration(Path(calibration))
     settings = load_read_settings(None if config is None else Path(config))
+    if read_truncated:  # an MCAP or ROS 1 log cut off is read up to the cut, with a warning
+        settings = dataclasses.replace(settings, read_truncated=True)
     planned = plan(
         list(logs),
         out,
@@ -213,7 +216,8 @@ def convert(
                 record.update(dataclasses.asdict(stats), messages=stats.messages)
                 if not quiet:
                     for w in stats.warnings:
-                        print(f"imupipe: warning: {stats.input}: {w}", file=sys.stderr)
+                        where = "" if w.startswith(f"{stats.input}: ") else f"{stats.input}: "
+                        print(f"imupipe: warning: {where}{w}", file=sys.stderr)
             else:
                 name = task.source or str(task.spec.path)
                 summary.failed.append((name, outcome.error))

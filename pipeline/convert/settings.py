@@ -49,8 +49,8 @@ def settings_sha256(spec: InputSpec) -> str:
     """SHA-256 of what decides how a log is read (topics, time source, CSV mapping)."""
     settings = dataclasses.asdict(spec)
     settings.pop("path"), settings.pop("name"), settings.pop("keys_in")
-    for key in ("gyro_topic", "accel_topic"):  # unset: the hash of the settings before them
-        if settings.get(key) is None:
+    for key in ("gyro_topic", "accel_topic", "fields", "read_truncated"):
+        if not settings.get(key):  # unset: the hash of the settings before the key existed
             settings.pop(key, None)
     canonical = json.dumps(settings, sort_keys=True, default=str, separators=(",", ":"))
     return hashlib.sha256(canonical.encode()).hexdigest()

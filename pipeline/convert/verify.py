@@ -66,27 +66,40 @@ def mcap_counts(path: Path) -> dict[str, int] | None:
     return None if summary is None else summary[0]
 
 
-def input_counts(path: Path, fmt: str, warnings: list[str] | None = None) -> dict[str, int] | None:
+def input_counts(
+    path: Path, fmt: str, warnings: list[str] | None = None, salvage: bool = False
+) -> dict[str, int] | None:
     """Messages per topic from the log's own index, without reading the messages; None for CSV and
     for logs that have no index (then the counts read are the reference). ROS bags are opened by
     imupipe's own readers, so that ``convert`` accepts exactly what ``inspect`` and ``run`` do:
     a ROS 2 bag's ``metadata.yaml`` (:func:`imupipe.readers.ros2.reader.bag2_counts`), a ROS 1
     bag's index (None for an unindexed bag, whose scanning warning is appended to
-    ``warnings``)."""
+    ``warnings``). ``salvage`` (``--read-truncated``): a cut-off MCAP or ROS 1 bag has no index
+    to count by (None: the counts read, up to the cut, are the reference)."""
     try:
         if fmt == "mcap":
-            return mcap_counts(path)
+            try:
+                return mcap_counts(path)
+            except Exception:  # noqa: BLE001 - its reader reads it up to the cut, or refuses
+                if salvage:
+                    return None
+                raise
         if fmt == "ros2":
-            from imupipe.readers.ros2.reader import bag2_counts
+            from imupipe.readers.ros2.reader import bag2_counts, bag2_sources
 
+            if salvage and any(  # metadata.yaml counts what the cut-off files no longer hold
+                getattr(getattr(src, "file", None), "cut", None) is not None
+                for src in bag2_sources(path, salvage)
+            ):
+                return None
             return bag2_counts(path)
         if fmt == "ros1":
             from imupipe.readers.ros1.reader import bag_sources
 
             per_topic: collections.Counter[str] = collections.Counter()
-            bags = bag_sources(path)
+            bags = bag_sources(path, salvage)
             for bag in bags:
-                if warnings is not None:  # convert names the input itself
+                if warnings is not None and not salvage:  # the reader's warnings say it then
                     warnings += [w.removeprefix(f"{path}: ") for w in bag.warnings]
                 per_topic.update(bag.topic_counts())
             return dict(per_topic) if all(bag.indexed for bag in bags) else None
@@ -94,8 +107,10 @@ def input_counts(path: Path, fmt: str, warnings: list[str] | None = None) -> dic
         raise
     except Exception as exc:  # noqa: BLE001 - any failure to open the index is a bad log
         what = "truncated or corrupt" if fmt == "mcap" else "unreadable"
+        hint = "; --read-truncated reads a cut-off log up to the cut" if fmt == "mcap" else ""
         raise ReadError(
-            f"{path}: {what} {fmt} log (its index cannot be read: {' '.join(str(exc).split())})"
+            f"{path}: {what} {fmt} log (its index cannot be read: "
+            f"{' '.join(str(exc).split())}{hint})"
         ) from None
     return None
 

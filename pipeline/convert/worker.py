@@ -182,7 +182,7 @@ def _convert_log(task: LogTask) -> LogStats:
         chain = task.calibration["chain"]
         steps = on_device(steps_from_json(chain), chain, lenient=True)  # each on its device
         mode = "streamed"
-        expected = input_counts(src, fmt, warnings)
+        expected = input_counts(src, fmt, warnings, spec.read_truncated)
         doc = {
             **task.calibration,
             "conversion": {

@@ -33,6 +33,7 @@ from typing import Any
 
 from imupipe.pipeline.errors import ConfigError, one_line
 from imupipe.pipeline.progress import progress_bar
+from imupipe.readers.errors import READ_TO_CUT
 
 SURVEY_NAME = "survey.parquet"
 RECORDING_NAME = "survey.rrd"
@@ -56,6 +57,9 @@ class SurveyTask:
     options_sha256: str
     batch_rows: int | None = None
     """Rows per batch a worker holds (None: :data:`imupipe.pipeline.survey.stream.DEFAULT_BATCH_ROWS`)."""
+    read_truncated: bool = False
+    """Read an MCAP or ROS 1 log that is cut off up to the cut, with a warning
+    (:attr:`~imupipe.readers.spec.InputSpec.read_truncated`); False: refuse it."""
 
 
 FLIGHT_IMU_TYPES = {"ulog": ("sensor_gyro",), "dataflash": ("IMU", "IMU2", "IMU3")}
@@ -113,7 +117,7 @@ def survey_log(task: SurveyTask) -> dict[str, Any]:
 
     start, cpu = time.perf_counter(), time.process_time()
     opts = StillOptions(**task.options)
-    spec = InputSpec(path=Path(task.path), name=task.vehicle)
+    spec = InputSpec(path=Path(task.path), name=task.vehicle, read_truncated=task.read_truncated)
     steps = None
     if task.calibration is not None:
         chain = task.calibration["chain"]
@@ -289,10 +293,11 @@ def plan(
     options: dict[str, float],
     force: bool = False,
     batch_rows: int | None = None,
+    read_truncated: bool = False,
 ) -> tuple[list[SurveyTask], list[SurveyTask]]:
     """(tasks to run, tasks already done) for every log under ``logs`` (``batch_rows``: see
     :class:`SurveyTask`; it does not change the figures, so a part surveyed with another batch
-    size is kept)."""
+    size is kept; ``read_truncated`` does: it is in the mode a part was surveyed with)."""
     from imupipe.pipeline.convert.manifest import latest
     from imupipe.pipeline.convert.settings import chain_sha256
     from imupipe.pipeline.survey.compass import compass_part
@@ -300,7 +305,7 @@ def plan(
     out_dir = out_dir.absolute()
     found, _ = guarded_logs(logs, out_dir)
     cal_sha = None if calibration is None else chain_sha256(calibration)
-    opt_sha = _sha(options)[:16]
+    opt_sha = _sha({**options, "read_truncated": True} if read_truncated else options)[:16]
     done = latest(out_dir)
     todo, skipped = [], []
     seen: dict[str, Path] = {}
@@ -314,7 +319,7 @@ def plan(
         seen[str(part)] = path
         task = SurveyTask(
             path, rel.as_posix(), parent, part, calibration, cal_sha, options, opt_sha,
-            batch_rows,
+            batch_rows, read_truncated,
         )  # fmt: skip
         rec = done.get(str(path))
         fresh = (
@@ -347,12 +352,14 @@ def survey(
     quiet: bool = False,
     rerun: bool = True,
     batch_rows: int | None = None,
+    read_truncated: bool = False,
 ) -> dict[str, Any]:
     """Survey ``logs`` into ``out_dir``; returns ``{"failed": [(path, why)], "surveyed": n,
     "skipped": n, "fleet": the fleet view}``. ``chamber``: the chamber calibrations the in-field
     thermal curves are compared with (:mod:`imupipe.pipeline.survey.chamber`; default: the
     thermal steps of ``calibration``). ``batch_rows``: rows per batch a worker reads (memory;
-    the figures do not depend on it)."""
+    the figures do not depend on it). ``read_truncated``: an MCAP or ROS 1 log that is cut off
+    is read up to the cut, with a warning in the manifest (``--read-truncated``); else it fails."""
     from imupipe.pipeline.atomic import remove_stale_temps, staged_outputs
     from imupipe.pipeline.calibration_file import load_calibration
     from imupipe.pipeline.convert.engines import Outcome, run_tasks
@@ -374,7 +381,7 @@ def survey(
             else chamber_files.from_calibration(calibration, doc, cal_steps)
         )
     opts = dict(options or {})
-    todo, skipped = plan(logs, out_dir, doc, opts, force, batch_rows)
+    todo, skipped = plan(logs, out_dir, doc, opts, force, batch_rows, read_truncated)
     if not todo and not skipped:
         raise ConfigError(f"no log found under {', '.join(map(str, logs))}")
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -384,6 +391,7 @@ def survey(
     manifest = Manifest(out_dir)
     failed: list[tuple[str, str]] = []
     without_still: list[str] = []  # (log, topic) surveyed with no still period
+    cut_off: list[str] = []  # the warnings of the logs read up to a cut (--read-truncated)
     ok: list[SurveyTask] = list(skipped)
     for task in skipped:
         manifest.append(
@@ -417,6 +425,7 @@ def survey(
         ok.append(task)
         counts = outcome.result.get("counts") or {}
         without_still.extend(f"{task.log} {topic}" for topic, n in counts.items() if n == 0)
+        cut_off.extend(w for w in outcome.result.get("warnings", ()) if READ_TO_CUT in w)
 
     # as convert: Ray's own output goes to DIR/ray.log, the user's stderr holds imupipe's lines
     engine_log = out_dir / ENGINE_LOG if engine == "ray" else None
@@ -478,6 +487,7 @@ def survey(
         "compass": compass,
         "rows": 0 if table is None else table.num_rows,
         "without_still": sorted(without_still),
+        "cut_off": sorted(set(cut_off)),
     }
 
 
@@ -505,6 +515,12 @@ def add_parser(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--address", help="Ray cluster address (--engine ray)")
     p.add_argument("--retries", type=int, default=2)
     p.add_argument("--force", action="store_true", help="survey every log again")
+    p.add_argument(
+        "--read-truncated",
+        action="store_true",
+        help="read an MCAP or ROS 1 log that is cut off up to the cut, with a warning naming "
+        "the byte where the damage starts and the bytes skipped (default: the log fails)",
+    )
     p.add_argument(
         "--min-still",
         type=float,
@@ -553,12 +569,15 @@ def main(args: argparse.Namespace) -> int:
         k=args.k,
         quiet=args.quiet,
         rerun=not args.no_rerun,
+        read_truncated=args.read_truncated,
     )
     for path, why in result["failed"]:
         named = path in why or " ".join(path.split()) in why  # a worker's line: one line
         line = why if named else f"{path}: {why}"
         print(f"imupipe: error: {one_line(line)}", file=sys.stderr)
     if not args.quiet:
+        for line in result["cut_off"]:
+            print(f"imupipe: warning: {one_line(line)}", file=sys.stderr)
         from imupipe.pipeline.survey.compass import summary_lines as compass_lines
         from imupipe.pipeline.survey.report import summary_lines
 

@@ -51,7 +51,7 @@ from imupipe.readers.compression import (
     decompress_workers,
     done,
 )
-from imupipe.readers.errors import ReadError
+from imupipe.readers.errors import READ_TO_CUT, ReadError
 from imupipe.readers.mcap.summary import complete, defined
 from imupipe.readers.progress import report
 
@@ -162,6 +162,12 @@ class McapFile:
     profile: str = ""
     chunk_starts: list[tuple[int, int]] = field(default_factory=list)
     """(file offset, message start time) of every chunk, from the summary's chunk indexes."""
+    salvage: bool = False
+    """Read a file that is cut off up to the cut (the last complete record before it), with a
+    warning, instead of refusing it (:attr:`~imupipe.readers.spec.InputSpec.read_truncated`)."""
+    warnings: list[str] = field(default_factory=list)
+    cut: int | None = None
+    """Byte where a cut-off file's damage starts (``salvage``), once a pass has reached it."""
 
     def __post_init__(self) -> None:
         self.path = Path(self.path)
@@ -180,6 +186,11 @@ class McapFile:
         needed = self._read_summary()
         if needed is not None:
             self._first_pass(needed)
+        if self.cut is not None and not any((self.counts or {}).values()):
+            raise ReadError(
+                f"{self.path}: truncated MCAP (cut off at byte {self.cut}, before its first "
+                "complete message: nothing to read)"
+            )
         self._join()
 
     # -- records ---------------------------------------------------------------------------
@@ -196,16 +207,14 @@ class McapFile:
             if len(head) < 9:
                 if pos + len(head) >= self.size and pos >= end - 8:
                     return  # the trailing magic
-                raise ReadError(
-                    f"{self.path}: truncated MCAP (record header at byte {pos} cut off)"
-                )
+                self._cut_off(pos, "record header at byte {pos} cut off")
+                return
             opcode, length = head[0], int.from_bytes(head[1:9], "little")
             if pos + 9 + length > self.size:
                 if head[:8] == MAGIC[:8] and pos + 8 == self.size:
                     return
-                raise ReadError(
-                    f"{self.path}: truncated MCAP (record at byte {pos} runs past the end of the file)"
-                )
+                self._cut_off(pos, "record at byte {pos} runs past the end of the file")
+                return
             if lazy and opcode == OP_CHUNK:
                 body = fh.read(min(length, CHUNK_HEAD))
                 fh.seek(pos + 9 + length)
@@ -213,6 +222,22 @@ class McapFile:
                 body = fh.read(length)
             yield opcode, pos, body
             pos += 9 + length
+
+    def _cut_off(self, pos: int, what: str) -> None:
+        """The file ends inside the record at ``pos``: ReadError, or (``salvage``) the records
+        before it are kept and one warning says where the damage starts and what is skipped."""
+        if not self.salvage:
+            raise ReadError(
+                f"{self.path}: truncated MCAP ({what.format(pos=pos)}; --read-truncated reads "
+                "it up to the cut)"
+            )
+        if self.cut is None:
+            self.cut = pos
+            self.warnings.append(
+                f"{self.path}: truncated MCAP: cut off at byte {pos} ({what.format(pos=pos)}); "
+                f"{READ_TO_CUT}: the {self.size - pos} bytes from there to the end of the file "
+                f"({self.size} bytes) are skipped with the messages in them"
+            )
 
     def _read_summary(self) -> set[int] | None:
         """Channels, schemas, statistics and chunk indexes from the summary section. Returns

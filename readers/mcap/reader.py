@@ -28,9 +28,10 @@ class McapSource:
 
     format = "mcap"
 
-    def __init__(self, path: str | Path) -> None:
+    def __init__(self, path: str | Path, salvage: bool = False) -> None:
         self.path = Path(path)
-        self.file = McapFile(self.path)
+        self.file = McapFile(self.path, salvage=salvage)
+        self.warnings = self.file.warnings
         self._first: int | None = None
 
     def topic_types(self) -> dict[str, str]:
@@ -175,21 +176,24 @@ class McapSource:
 
 def read_mcap(spec: InputSpec) -> tuple[pa.Table, list[str]]:
     """Read an MCAP input into the common table; returns (table, warnings)."""
-    return read_sources(spec, [McapSource(spec.path)])
+    return read_sources(spec, [McapSource(spec.path, spec.read_truncated)])
 
 
 def iter_mcap(
     spec: InputSpec, batch_rows: int, carry: bool = True, warnings: list[str] | None = None
 ) -> Iterator[tuple[pa.Table, list[RawMessage]]]:
     """Bounded-memory batches (see :func:`imupipe.readers.sources.iter_sources`)."""
-    return iter_sources(spec, [McapSource(spec.path)], batch_rows, carry, warnings)
+    return iter_sources(
+        spec, [McapSource(spec.path, spec.read_truncated)], batch_rows, carry, warnings
+    )
 
 
 def carry_over_mcap(spec: InputSpec) -> list[RawMessage]:
     """Messages of the topics the table does not hold, in log-time order."""
-    return carry_sources(spec, [McapSource(spec.path)])
+    return carry_sources(spec, [McapSource(spec.path, spec.read_truncated)])
 
 
-def mcap_sources(path: Path) -> list[McapSource]:
-    """The one source of an MCAP file (the ``log_sources`` entry for MCAP)."""
-    return [McapSource(path)]
+def mcap_sources(path: Path, salvage: bool = False) -> list[McapSource]:
+    """The one source of an MCAP file (the ``log_sources`` entry for MCAP; ``salvage``: read it
+    up to a cut, see :class:`~imupipe.readers.mcap.fast.McapFile`)."""
+    return [McapSource(path, salvage)]

@@ -39,7 +39,7 @@ import pyarrow as pa
 from imupipe.readers.cdr import unaligned
 from imupipe.readers.compression import PREFETCH, decompress_chunk, decompress_workers, done
 from imupipe.readers.decoded import Piece, concat, decode_piece
-from imupipe.readers.errors import ReadError
+from imupipe.readers.errors import READ_TO_CUT, ReadError
 from imupipe.readers.mapped import Batch, Definition
 from imupipe.readers.progress import report
 from imupipe.readers.sources import carry_sources, iter_sources, read_sources
@@ -153,7 +153,9 @@ class Ros1Bag:
 
     format = "ros1"
 
-    def __init__(self, path: str | Path) -> None:
+    def __init__(self, path: str | Path, salvage: bool = False) -> None:
+        """``salvage``: a bag cut off before its index (a copy or recording stopped part-way) is
+        read by scanning its chunks up to the cut, with a warning, instead of refused."""
         self.path = Path(path)
         try:
             self.size = self.path.stat().st_size
@@ -181,9 +183,13 @@ class Ros1Bag:
                 if not self.indexed:
                     self._scan(fh)
                 elif index_pos > self.size or (index_pos == self.size and chunk_count):
-                    raise ReadError(
-                        f"{self.path}: truncated bag (index at byte {index_pos} is past the end)"
-                    )
+                    if not salvage:
+                        raise ReadError(
+                            f"{self.path}: truncated bag (index at byte {index_pos} is past the "
+                            "end; --read-truncated reads it up to the cut)"
+                        )
+                    self.indexed = False
+                    self._scan(fh, truncated=(index_pos, chunk_count))
                 else:
                     self._read_index(fh, index_pos)
         except OSError as exc:
@@ -217,10 +223,11 @@ class Ros1Bag:
             info.get("message_definition", b"").decode(errors="replace"),
         )
 
-    def _scan(self, fh: io.BufferedReader) -> None:
+    def _scan(self, fh: io.BufferedReader, truncated: tuple[int, int] | None = None) -> None:
         """Chunk infos and connections of an unindexed bag, from its records (see the module
         docstring). Only the chunks that bring a new connection, or have no ``IndexData``, are
-        decompressed here."""
+        decompressed here. ``truncated``: (index position, chunk count) of the bag header of a
+        bag cut off before its index; only the chunks complete before the cut are read."""
         cut = opened = None
         chunks: list[tuple[int, dict[str, bytes], int, int]] = []
         """(position, header fields, data position, data length) of each chunk record."""
@@ -247,15 +254,33 @@ class Ros1Bag:
             fh.seek(data_pos + data_len)
         if cut is not None and chunks:
             indexes[-1] = {}  # the file ends in the last chunk's IndexData: walk the chunk
-        self.warnings.append(
-            f"{self.path}: the bag is not indexed (an interrupted recording?): read by scanning "
-            f"its {len(chunks) + (opened is not None)} chunks"
-            + (
-                f"; it is cut off at byte {cut}, the record there is skipped"
-                if cut is not None
-                else ""
+        if truncated is not None:
+            index_pos, chunk_count = truncated
+            if not chunks:
+                raise ReadError(
+                    f"{self.path}: truncated bag (cut off at byte {cut}, before its first "
+                    "complete chunk: nothing to read)"
+                )
+            cut = self.size if cut is None else cut
+            if opened is not None:  # a cut chunk whose length field says 0: not read
+                cut, opened = opened[0], None
+            self.warnings.append(
+                f"{self.path}: truncated bag: cut off at byte {cut} (the index was at byte "
+                f"{index_pos}, the file has {self.size} bytes); {READ_TO_CUT}: "
+                f"{len(chunks)} of its {chunk_count} chunks are read, the {self.size - cut} "
+                f"bytes from there to the end of the file ({chunk_count - len(chunks)} "
+                "chunks) are skipped with the messages in them"
             )
-        )
+        else:
+            self.warnings.append(
+                f"{self.path}: the bag is not indexed (an interrupted recording?): read by "
+                f"scanning its {len(chunks) + (opened is not None)} chunks"
+                + (
+                    f"; it is cut off at byte {cut}, the record there is skipped"
+                    if cut is not None
+                    else ""
+                )
+            )
         for (pos, fields, data_pos, data_len), index in zip(chunks, indexes, strict=True):
             where = f"{self.path}: chunk at byte {pos}"
             new = [c for c in index if c not in self.connections]
@@ -581,29 +606,32 @@ def _decompressed(chunk: BagChunk) -> BagChunk:
     return chunk
 
 
-def bag_sources(path: Path) -> list[Ros1Bag]:
-    """A bag, or every ``*.bag`` of a folder (split bags), as sources."""
+def bag_sources(path: Path, salvage: bool = False) -> list[Ros1Bag]:
+    """A bag, or every ``*.bag`` of a folder (split bags), as sources (``salvage``: see
+    :class:`Ros1Bag`)."""
     path = Path(path)
     if path.is_dir():
         files = sorted(path.glob("*.bag"))
         if not files:
             raise ReadError(f"{path}: no .bag files in the folder")
-        return [Ros1Bag(f) for f in files]
-    return [Ros1Bag(path)]
+        return [Ros1Bag(f, salvage) for f in files]
+    return [Ros1Bag(path, salvage)]
 
 
 def read_ros1(spec: InputSpec) -> tuple[pa.Table, list[str]]:
     """Read a ROS 1 bag (or a folder of split bags) into the common table."""
-    return read_sources(spec, bag_sources(spec.path))
+    return read_sources(spec, bag_sources(spec.path, spec.read_truncated))
 
 
 def iter_ros1(
     spec: InputSpec, batch_rows: int, carry: bool = True, warnings: list[str] | None = None
 ) -> Iterator[tuple[pa.Table, list[RawMessage]]]:
     """Bounded-memory batches (see :func:`imupipe.readers.sources.iter_sources`)."""
-    return iter_sources(spec, bag_sources(spec.path), batch_rows, carry, warnings)
+    return iter_sources(
+        spec, bag_sources(spec.path, spec.read_truncated), batch_rows, carry, warnings
+    )
 
 
 def carry_over_ros1(spec: InputSpec) -> list[RawMessage]:
     """Messages of the other topics, converted to ROS 2 CDR, in log-time order."""
-    return carry_sources(spec, bag_sources(spec.path))
+    return carry_sources(spec, bag_sources(spec.path, spec.read_truncated))

@@ -273,10 +273,17 @@ class Bag2Mcap(McapSource):
 
     format = "ros2"
 
-    def __init__(self, path: Path, *, shown: Path | None = None, zstd_messages: bool = False):
+    def __init__(
+        self,
+        path: Path,
+        *,
+        shown: Path | None = None,
+        zstd_messages: bool = False,
+        salvage: bool = False,
+    ):
         self._real, self._shown = Path(path), Path(shown or path)
         with self._named():
-            super().__init__(path)
+            super().__init__(path, salvage)
         self.path = self._shown
         self.zstd_messages = zstd_messages
 
@@ -416,12 +423,18 @@ def bag2_counts(path: Path) -> dict[str, int] | None:
 
 
 def _storage_source(
-    path: Path, storage: str, shown: Path | None, zstd_messages: bool | None
+    path: Path,
+    storage: str,
+    shown: Path | None,
+    zstd_messages: bool | None,
+    salvage: bool = False,
 ) -> LogSource:
     """The source of one storage file; ``zstd_messages`` None: not known (no
-    ``metadata.yaml``), told by the payloads for sqlite3 (:meth:`Sqlite3Bag.sniff_zstd`)."""
+    ``metadata.yaml``), told by the payloads for sqlite3 (:meth:`Sqlite3Bag.sniff_zstd`);
+    ``salvage``: an mcap storage file cut off is read up to the cut
+    (:class:`~imupipe.readers.mcap.fast.McapFile`)."""
     if storage == "mcap":
-        return Bag2Mcap(path, shown=shown, zstd_messages=bool(zstd_messages))
+        return Bag2Mcap(path, shown=shown, zstd_messages=bool(zstd_messages), salvage=salvage)
     bag = Sqlite3Bag(path, shown=shown, zstd_messages=bool(zstd_messages))
     if zstd_messages is None:
         bag.zstd_messages = bag.sniff_zstd()
@@ -450,19 +463,20 @@ PATTERNS = ("*.db3", "*.mcap", "*.db3.zstd", "*.mcap.zstd")
 """The storage files of a bag folder without ``metadata.yaml``."""
 
 
-def bag2_sources(path: Path) -> list[LogSource]:
+def bag2_sources(path: Path, salvage: bool = False) -> list[LogSource]:
     """The storage files of a ROS 2 bag folder (as its ``metadata.yaml`` lists them, else
     :data:`PATTERNS`), or a bare ``.db3`` / ``.mcap`` / ``.db3.zstd`` / ``.mcap.zstd``. Without
     ``metadata.yaml`` a ``.zstd`` file is decompressed whole (rosbag2's file compression) and a
     sqlite3 file's payloads are taken as zstd frames when they start with zstd's magic number
-    (rosbag2's message compression; a CDR payload starts with a zero byte)."""
+    (rosbag2's message compression; a CDR payload starts with a zero byte). ``salvage``: its
+    mcap storage files cut off are read up to the cut (``--read-truncated``)."""
     path = Path(path)
     if path.is_dir() and (path / "metadata.yaml").exists():
         meta = read_metadata(path)
         if meta.compression == "file":
             return [_inflated_source(f, meta.storage, False) for f in meta.files]
         zstd = meta.compression == "message"
-        return [_storage_source(f, meta.storage, None, zstd) for f in meta.files]
+        return [_storage_source(f, meta.storage, None, zstd, salvage) for f in meta.files]
     if path.is_dir():
         files = [f for pattern in PATTERNS for f in sorted(path.glob(pattern))]
         if not files:
@@ -475,22 +489,24 @@ def bag2_sources(path: Path) -> list[LogSource]:
         if f.suffix == ".zstd":
             sources.append(_inflated_source(f, storage, None))
         else:
-            sources.append(_storage_source(f, storage, None, None))
+            sources.append(_storage_source(f, storage, None, None, salvage))
     return sources
 
 
 def read_ros2(spec: InputSpec) -> tuple[pa.Table, list[str]]:
     """Read a ROS 2 bag (folder or bare .db3) into the common table."""
-    return read_sources(spec, bag2_sources(spec.path))
+    return read_sources(spec, bag2_sources(spec.path, spec.read_truncated))
 
 
 def iter_ros2(
     spec: InputSpec, batch_rows: int, carry: bool = True, warnings: list[str] | None = None
 ) -> Iterator[tuple[pa.Table, list[RawMessage]]]:
     """Bounded-memory batches (see :func:`imupipe.readers.sources.iter_sources`)."""
-    return iter_sources(spec, bag2_sources(spec.path), batch_rows, carry, warnings)
+    return iter_sources(
+        spec, bag2_sources(spec.path, spec.read_truncated), batch_rows, carry, warnings
+    )
 
 
 def carry_over_ros2(spec: InputSpec) -> list[RawMessage]:
     """Messages of the other topics, unchanged, in log-time order."""
-    return carry_sources(spec, bag2_sources(spec.path))
+    return carry_sources(spec, bag2_sources(spec.path, spec.read_truncated))
