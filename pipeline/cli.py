@@ -45,8 +45,8 @@ COMMANDS: dict[str, tuple[str, str]] = {
     ),
     "simulate": (
         "imupipe.pipeline.simulate",
-        "write a synthetic log with a known truth (static, poses, mag, thermal, thermal_soak, board, "
-        "flight, fleet)",
+        "write a synthetic log with a known truth (static, poses, mag, thermal, thermal_soak, camera, "
+        "board, flight, fleet)",
     ),
     "survey": (
         "imupipe.pipeline.survey.scan",

@@ -27,7 +27,6 @@ from pathlib import Path
 from typing import Any
 
 from imupipe.pipeline.errors import ImupipeError, ReadError
-from imupipe.readers.arrays import to_numpy
 from imupipe.readers.dispatch import detect_format
 from imupipe.readers.spec import InputSpec
 from imupipe.readers.topics import (
@@ -84,6 +83,8 @@ def inspect(spec: InputSpec) -> dict[str, Any]:
         streams = {}
         filled = ["t_ns"]
         present = counts(table)
+        from imupipe.readers.arrays import to_numpy  # numpy and pyarrow only where read
+
         t_ns = to_numpy(table.column("t_ns"))
         for stream in ("imu", "mag", "temperature"):
             if stream in present:
