@@ -170,10 +170,8 @@ def build_options(cls: type, values: dict[str, Any], where: str) -> Any:
     return cls(**values)
 
 
-def _csv_mapping(where: str, raw: dict[str, Any]) -> CsvMapping:
-    if not isinstance(raw, dict):
-        raise ConfigError(f"{where}: must be a table")
-    mapping = build_options(CsvMapping, dict(raw), where)
+def _check_units(where: str, mapping: CsvMapping | FieldMapping) -> None:
+    """The ``*_unit`` keys of a CSV or field mapping: each one of the units the readers convert."""
     for key, units in (
         ("time_unit", TIME_UNITS),
         ("gyro_unit", GYRO_UNITS),
@@ -184,6 +182,13 @@ def _csv_mapping(where: str, raw: dict[str, Any]) -> CsvMapping:
             raise ConfigError(
                 f"{where}.{key}: '{getattr(mapping, key)}' is not one of {', '.join(units)}"
             )
+
+
+def _csv_mapping(where: str, raw: dict[str, Any]) -> CsvMapping:
+    if not isinstance(raw, dict):
+        raise ConfigError(f"{where}: must be a table")
+    mapping = build_options(CsvMapping, dict(raw), where)
+    _check_units(where, mapping)
     for key in ("gyro", "accel", "mag"):
         value = getattr(mapping, key)
         if value is not None and len(value) != 3:
@@ -216,16 +221,7 @@ def _field_mapping(where: str, raw: Any) -> FieldMapping | None:
     if not isinstance(raw, dict):
         raise ConfigError(f"{where}: must be a table")
     mapping = build_options(FieldMapping, dict(raw), where)
-    for key, units in (
-        ("time_unit", TIME_UNITS),
-        ("gyro_unit", GYRO_UNITS),
-        ("accel_unit", ACCEL_UNITS),
-        ("mag_unit", MAG_UNITS),
-    ):
-        if getattr(mapping, key) not in units:
-            raise ConfigError(
-                f"{where}.{key}: '{getattr(mapping, key)}' is not one of {', '.join(units)}"
-            )
+    _check_units(where, mapping)
     for key in ("gyro", "accel", "mag"):
         value = getattr(mapping, key)
         if isinstance(value, list) and len(value) != 3:
