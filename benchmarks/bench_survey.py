@@ -18,8 +18,18 @@
    batches (the default ``batch_rows``) against read as one batch (``batch_rows`` beyond the
    log: the whole topic in memory, as before the survey streamed), and the ratio of the two.
 
+6. With ``--scaling P`` (issue 39): ``P`` rounds over the same fleet, each in a fresh process as a
+   user runs it: a plain read of every log (rosbags' ``AnyReader`` reading and deserialising every
+   message; the typestore built once per process) in one process, and the same logs split in two
+   halves read by two such processes at once; then ``imupipe survey --jobs 1`` and ``--jobs 2``.
+   Printed per round and as min and median: the survey's speed-up with 2 jobs against the plain
+   read's with 2 processes (what this machine gives two processes at that moment), each survey
+   against the plain read (wall and CPU of the process tree), and peak memory. With ``--baseline
+   DIR`` (a checkout of the code before a change, with its ``.shim``), its two surveys too, in
+   the same rounds (``base_`` figures).
+
 Usage: ``python benchmarks/bench_survey.py [--logs 1000] [--log-s 150] [--jobs 2]
-[--ray-nodes 2] [--long-s 7200]`` (``--logs 0``: only 5.). Not run in CI (minutes); the machine is shared, so the figures are indicative.
+[--ray-nodes 2] [--long-s 7200] [--scaling 2]`` (``--logs 0``: only 5.). Not run in CI (minutes); the machine is shared, so the figures are indicative.
 """
 
 from __future__ import annotations
@@ -132,6 +142,127 @@ def measure_long(root: Path, seconds: float, rate_hz: float) -> dict[str, float]
     return figures
 
 
+PLAIN_READ = """
+import sys
+from pathlib import Path
+
+from rosbags.highlevel import AnyReader
+from rosbags.typesys import Stores, get_typestore
+
+store = get_typestore(Stores.ROS2_HUMBLE)
+n = 0
+for path in sys.argv[1:]:
+    with AnyReader([Path(path)], default_typestore=store) as reader:
+        for conn, _, raw in reader.messages(connections=reader.connections):
+            reader.deserialize(raw, conn.msgtype)
+            n += 1
+print(n)
+"""
+"""6.'s plain read: every message of the logs given, read and deserialised by rosbags."""
+
+
+def children_cpu() -> float:
+    """CPU seconds (user + system) of this process's finished children so far."""
+    import resource
+
+    use = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return use.ru_utime + use.ru_stime
+
+
+def plain_read(logs: list[Path], parts: int) -> tuple[float, float, int]:
+    """(wall s, CPU s, messages) of the plain read of ``logs`` split over ``parts`` processes
+    running at once."""
+    start, cpu = time.perf_counter(), children_cpu()
+    procs = [
+        subprocess.Popen(
+            [sys.executable, "-c", PLAIN_READ, *map(str, logs[i::parts])],
+            stdout=subprocess.PIPE,
+            text=True,
+        )
+        for i in range(parts)
+    ]
+    n = sum(int(p.communicate()[0]) for p in procs)
+    if any(p.returncode for p in procs):
+        raise SystemExit("the plain read failed")
+    return time.perf_counter() - start, children_cpu() - cpu, n
+
+
+def scaling(logs: Path, out: Path, rounds: int, baseline: Path | None) -> dict[str, float]:
+    """6.: survey with 1 and 2 jobs against the plain read in 1 and 2 processes."""
+    import os
+    import statistics
+
+    variants: list[tuple[str, dict[str, str] | None]] = [("", None)]
+    if baseline is not None:
+        base_env = {**os.environ, "PYTHONPATH": str(baseline / ".shim")}
+        variants.append(("base_", base_env))
+
+    files = sorted(logs.rglob("*.mcap"))
+    rows: dict[str, list[float]] = {}
+    for r in range(rounds):
+        fig: dict[str, float] = {}
+        for parts in (1, 2):
+            wall, cpu, _ = plain_read(files, parts)
+            fig[f"read_{parts}_s"], fig[f"read_{parts}_cpu_s"] = wall, cpu
+        for pre, env in variants:
+            for jobs in (1, 2):
+                shutil.rmtree(out, ignore_errors=True)
+                cpu = children_cpu()
+                wall, peak = run_measured(
+                    ["survey", "--quiet", "--jobs", str(jobs), "--out", str(out), str(logs)],
+                    out.with_suffix(".peak"),
+                    env,
+                )
+                name = f"{pre}survey_{jobs}"
+                fig[f"{name}_s"], fig[f"{name}_cpu_s"] = wall, children_cpu() - cpu
+                fig[f"{name}_driver_peak_mb"] = peak
+                lines = [x for x in read_manifest(out) if x.get("status") == "surveyed"]
+                if len(lines) != len(files):
+                    raise SystemExit(f"{name}: {len(lines)} of {len(files)} logs surveyed")
+                fig[f"{name}_worker_peak_mb"] = max(x["peak_rss_mb"] for x in lines)
+                fig[f"{name}_worker_s_per_log"] = sum(x["seconds"] for x in lines) / len(lines)
+            if pre:
+                fig[f"{pre}survey_speedup_vs_read_speedup"] = (
+                    fig[f"{pre}survey_1_s"]
+                    / fig[f"{pre}survey_2_s"]
+                    / (fig["read_1_s"] / fig["read_2_s"])
+                )
+        fig["read_speedup_2"] = fig["read_1_s"] / fig["read_2_s"]
+        fig["survey_speedup_2"] = fig["survey_1_s"] / fig["survey_2_s"]
+        fig["survey_speedup_vs_read_speedup"] = fig["survey_speedup_2"] / fig["read_speedup_2"]
+        fig["survey_1_vs_read_1"] = fig["survey_1_s"] / fig["read_1_s"]
+        fig["survey_2_vs_read_2"] = fig["survey_2_s"] / fig["read_2_s"]
+        fig["survey_1_cpu_vs_read_1_cpu"] = fig["survey_1_cpu_s"] / fig["read_1_cpu_s"]
+        print(
+            f"round {r + 1}: plain read 1 process {fig['read_1_s']:.2f} s, 2 processes "
+            f"{fig['read_2_s']:.2f} s ({fig['read_speedup_2']:.2f}x); survey --jobs 1 "
+            f"{fig['survey_1_s']:.2f} s, --jobs 2 {fig['survey_2_s']:.2f} s "
+            f"({fig['survey_speedup_2']:.2f}x, {fig['survey_speedup_vs_read_speedup']:.2f} of the read's "
+            f"speed-up); survey/read: {fig['survey_1_vs_read_1']:.2f}x (1), "
+            f"{fig['survey_2_vs_read_2']:.2f}x (2); CPU 1 job/1 read "
+            f"{fig['survey_1_cpu_vs_read_1_cpu']:.2f}x; worker s/log {fig['survey_1_worker_s_per_log']:.3f}"
+            f" (1) {fig['survey_2_worker_s_per_log']:.3f} (2); peak driver "
+            f"{fig['survey_2_driver_peak_mb']:.0f} MB, worker {fig['survey_2_worker_peak_mb']:.0f} MB",
+            flush=True,
+        )
+        if baseline is not None:
+            print(
+                f"round {r + 1} baseline: survey --jobs 1 {fig['base_survey_1_s']:.2f} s, --jobs 2 "
+                f"{fig['base_survey_2_s']:.2f} s ({fig['base_survey_speedup_vs_read_speedup']:.2f}"
+                f" of the read's speed-up); worker s/log {fig['base_survey_1_worker_s_per_log']:.3f}"
+                f" (1) {fig['base_survey_2_worker_s_per_log']:.3f} (2); worker peak "
+                f"{fig['base_survey_2_worker_peak_mb']:.0f} MB",
+                flush=True,
+            )
+        for k, v in fig.items():
+            rows.setdefault(k, []).append(v)
+    summary = {}
+    for k, v in rows.items():
+        summary[f"{k}_min"] = round(min(v), 3)
+        summary[f"{k}_median"] = round(statistics.median(v), 3)
+    return summary
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--logs", type=int, default=1000)
@@ -140,6 +271,8 @@ def main() -> None:
     ap.add_argument("--ray-nodes", type=int, default=0, help="4.: Ray nodes of one CPU (0: skip)")
     ap.add_argument("--long-s", type=float, default=0.0, help="5.: one log this long (0: skip)")
     ap.add_argument("--long-hz", type=float, default=400.0)
+    ap.add_argument("--scaling", type=int, default=0, help="6.: rounds of 1 vs 2 jobs (0: skip)")
+    ap.add_argument("--baseline", type=Path, help="6.: a checkout of the code before, to compare")
     args = ap.parse_args()
     tmp = Path(tempfile.mkdtemp(prefix="bench_survey_"))
     try:
@@ -153,6 +286,12 @@ def main() -> None:
         n = sum(1 for _ in logs.rglob("*.mcap"))
         size = sum(p.stat().st_size for p in logs.rglob("*.mcap"))
         print(f"simulated {n} logs ({size / 1e9:.2f} GB) in {made:.0f} s", flush=True)
+        if args.scaling:
+            print(
+                json.dumps(scaling(logs, tmp / "scaling", args.scaling, args.baseline), indent=2),
+                flush=True,
+            )
+            return
         small = make_fleet(tmp / "small", 20, args.log_s / 10, 2)
         figures: dict[str, object] = {"logs": n, "log_s": args.log_s}
         local = ["--jobs", str(args.jobs)]

@@ -52,15 +52,18 @@ sys.exit(code)
 """An ``imupipe`` command that writes its process's own peak RSS (``VmHWM``, kB) to ``argv[1]``."""
 
 
-def run_measured(argv: list[str], peak_file: Path) -> tuple[float, float]:
+def run_measured(
+    argv: list[str], peak_file: Path, env: dict[str, str] | None = None
+) -> tuple[float, float]:
     """Run ``imupipe ARGV`` in a fresh Python, as a user runs it: (seconds, the command's own
     process's peak RSS in MB, from its ``VmHWM``; a pool's workers and a Ray cluster's processes
-    are not in it). A failing command raises ``CalledProcessError``."""
+    are not in it). ``env``: the process's environment (default: this one's). A failing command
+    raises ``CalledProcessError``."""
     import subprocess
     import sys
     import time
 
     start = time.perf_counter()
-    subprocess.run([sys.executable, "-c", PEAK_WRAPPER, str(peak_file), *argv], check=True)
+    subprocess.run([sys.executable, "-c", PEAK_WRAPPER, str(peak_file), *argv], check=True, env=env)
     seconds = time.perf_counter() - start
     return seconds, int(peak_file.read_text()) / 1024
