@@ -17,13 +17,22 @@ shared machine than the wall time) and their ratio, and both processes' peak RSS
 ``VmHWM``); the summary gives each ratio's min and median over the pairs. Only ratios measured in
 the same pair count.
 
-Usage: ``python benchmarks/bench_fleet.py [--logs 100] [--log-messages 1000] [--pairs 2]``
+Every child runs with Python's bytecode cache on (``PYTHONDONTWRITEBYTECODE`` dropped, the
+cache in a temporary ``PYTHONPYCACHEPREFIX``, warmed by a first unmeasured run), as an installed
+package runs: a source checkout run with ``PYTHONDONTWRITEBYTECODE=1`` compiles every imupipe
+module on each start (0.25-0.3 s CPU of a 1k-message convert, measured), which the peer, an
+installed package, never pays. With ``--baseline DIR`` (a checkout of the code before a change,
+with its ``.shim``) its convert runs in each pair too: before/after in the same pairs.
+
+Usage: ``python benchmarks/bench_fleet.py [--logs 100] [--log-messages 1000] [--pairs 2]
+[--baseline DIR]``
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import resource
 import shutil
 import statistics
@@ -65,24 +74,42 @@ def children_cpu() -> float:
     return use.ru_utime + use.ru_stime
 
 
+def child_env(pycache: Path, shim: Path | None = None) -> dict[str, str]:
+    """This environment with the bytecode cache on (in ``pycache``) and, given ``shim``, the
+    imupipe of that checkout first on the path."""
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONDONTWRITEBYTECODE"}
+    env["PYTHONPYCACHEPREFIX"] = str(pycache)
+    if shim is not None:
+        env["PYTHONPATH"] = str(shim)
+    return env
+
+
+ENV: dict[str, str] | None = None
+"""The children's environment (:func:`child_env`), set by :func:`main`."""
+
+
 def peer(logs: list[Path], note: Path) -> tuple[float, float, float, int]:
     """(seconds, CPU seconds, peak RSS MB, messages) of the rosbags loop in a fresh process."""
     start, cpu = time.perf_counter(), children_cpu()
-    subprocess.run([sys.executable, "-c", PEER, str(note), *map(str, logs)], check=True)
+    subprocess.run([sys.executable, "-c", PEER, str(note), *map(str, logs)], check=True, env=ENV)
     seconds, cpu = time.perf_counter() - start, children_cpu() - cpu
     n, hwm = note.read_text().split()
     return seconds, cpu, int(hwm) / 1024, int(n)
 
 
-def ours(target: Path, cal: Path, out: Path, n_logs: int) -> tuple[float, float, float, int]:
+def ours(
+    target: Path, cal: Path, out: Path, n_logs: int, env: dict[str, str] | None = None
+) -> tuple[float, float, float, int]:
     """(seconds, CPU seconds, the command's peak RSS MB, messages) of ``imupipe convert --jobs
-    1``."""
+    1`` (``env``: default :data:`ENV`)."""
     from imupipe.pipeline.convert.manifest import read_manifest
 
     shutil.rmtree(out, ignore_errors=True)
     argv = ["convert", "-q", "--jobs", "1", "--calibration", str(cal), "--out", str(out)]
     cpu = children_cpu()
-    seconds, peak = run_measured([*argv, str(target)], out.with_name(out.name + ".peak"))
+    seconds, peak = run_measured(
+        [*argv, str(target)], out.with_name(out.name + ".peak"), env or ENV
+    )
     cpu = children_cpu() - cpu
     lines = [x for x in read_manifest(out) if x.get("status") == "converted"]
     if len(lines) != n_logs:
@@ -90,9 +117,11 @@ def ours(target: Path, cal: Path, out: Path, n_logs: int) -> tuple[float, float,
     return seconds, cpu, peak, sum(x["messages"] for x in lines)
 
 
-def pairs(label: str, n: int, run_peer, run_ours) -> dict[str, float]:
-    """``n`` pairs (peer first, then imupipe); prints each and the ratio's min and median."""
+def pairs(label: str, n: int, run_peer, run_ours, run_base=None) -> dict[str, float]:
+    """``n`` pairs (peer first, then imupipe, then the baseline's imupipe when given); prints
+    each and the ratios' min and median."""
     ratios, cpu_ratios, best_peer, best_ours = [], [], float("inf"), float("inf")
+    base_ratios, base_cpu_ratios = [], []
     for i in range(n):
         tp, cp, mp, np_ = run_peer()
         to, co, mo, no = run_ours()
@@ -106,6 +135,17 @@ def pairs(label: str, n: int, run_peer, run_ours) -> dict[str, float]:
             f"wall, {cp / co:.2f}x CPU ({no:,} messages)",
             flush=True,
         )
+        if run_base is not None:
+            tb, cb, mb, nb = run_base()
+            assert nb == no, (nb, no)
+            base_ratios.append(tp / tb)
+            base_cpu_ratios.append(cp / cb)
+            print(
+                f"{label} pair {i + 1}: baseline convert {tb:.2f} s, {cb:.2f} s CPU (peak "
+                f"{mb:.0f} MB) -> {tp / tb:.2f}x wall, {cp / cb:.2f}x CPU against the rosbags "
+                f"loop; this code against the baseline: {cb / co:.2f}x CPU",
+                flush=True,
+            )
     print(
         f"{label}: imupipe against the rosbags loop: wall min {min(ratios):.2f}x, median "
         f"{statistics.median(ratios):.2f}x; CPU min {min(cpu_ratios):.2f}x, median "
@@ -113,7 +153,7 @@ def pairs(label: str, n: int, run_peer, run_ours) -> dict[str, float]:
         f"{best_peer:.2f} s, imupipe {best_ours:.2f} s)",
         flush=True,
     )
-    return {
+    out = {
         f"{label}_ratio_min": min(ratios),
         f"{label}_ratio_median": statistics.median(ratios),
         f"{label}_cpu_ratio_min": min(cpu_ratios),
@@ -123,6 +163,18 @@ def pairs(label: str, n: int, run_peer, run_ours) -> dict[str, float]:
         f"{label}_imupipe_peak_mb": mo,
         f"{label}_peer_peak_mb": mp,
     }
+    if base_ratios:
+        print(
+            f"{label}: the baseline against the rosbags loop: wall min {min(base_ratios):.2f}x, "
+            f"median {statistics.median(base_ratios):.2f}x; CPU min {min(base_cpu_ratios):.2f}x, "
+            f"median {statistics.median(base_cpu_ratios):.2f}x",
+            flush=True,
+        )
+        out[f"{label}_base_ratio_min"] = min(base_ratios)
+        out[f"{label}_base_ratio_median"] = statistics.median(base_ratios)
+        out[f"{label}_base_cpu_ratio_min"] = min(base_cpu_ratios)
+        out[f"{label}_base_cpu_ratio_median"] = statistics.median(base_cpu_ratios)
+    return out
 
 
 def main() -> None:
@@ -130,8 +182,14 @@ def main() -> None:
     ap.add_argument("--logs", type=int, default=100)
     ap.add_argument("--log-messages", type=int, default=1000)
     ap.add_argument("--pairs", type=int, default=2)
+    ap.add_argument("--baseline", type=Path, help="a checkout of the code before, to compare")
     args = ap.parse_args()
     tmp = Path(tempfile.mkdtemp(prefix="bench_fleet_"))
+    global ENV
+    ENV = child_env(tmp / "pycache")
+    base_env = (
+        None if args.baseline is None else child_env(tmp / "pycache_base", args.baseline / ".shim")
+    )
     try:
         cal = tmp / "calibration.json"
         cal.write_text(json.dumps(CALIBRATION))
@@ -141,17 +199,26 @@ def main() -> None:
             make_log(fleet / f"log{i:04d}.mcap", args.log_messages, seed=i)
         logs = sorted(fleet.iterdir())
         note = tmp / "peer.txt"
+        # warm the bytecode caches (not measured)
+        peer(logs[:1], note)
+        ours(logs[0], cal, tmp / "out1", 1)
+        if base_env is not None:
+            ours(logs[0], cal, tmp / "out1", 1, base_env)
         results = pairs(
             "one_log",
             args.pairs + 1,
             lambda: peer(logs[:1], note),
             lambda: ours(logs[0], cal, tmp / "out1", 1),
+            None if base_env is None else lambda: ours(logs[0], cal, tmp / "out1", 1, base_env),
         )
         results |= pairs(
             "fleet",
             args.pairs,
             lambda: peer(logs, note),
             lambda: ours(fleet, cal, tmp / "outn", args.logs),
+            None
+            if base_env is None
+            else lambda: ours(fleet, cal, tmp / "outn", args.logs, base_env),
         )
         print(json.dumps({k: round(v, 3) for k, v in results.items()}))
     finally:
