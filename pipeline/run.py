@@ -314,7 +314,7 @@ def run(
             for fname, text in exported.items():
                 out.write_text(out_dir / fname, text)
                 files.append(out_dir / fname)
-            summaries = summarise(results, raw_count_sensors(cfg.inputs))
+            summaries = summarise(results, raw_count_sensors(cfg.inputs), notices.items)
             files += publish(summaries, recorder, cfg, out, notices.of_run())
             files += corrected
             recorder.close()

@@ -349,6 +349,19 @@ def test_reader_warnings_name_their_input_and_their_meaning(tmp_path: Path) -> N
     (short,) = [n for n in doc["warnings"] if n["source"] == "stage"]
     assert short["message"].startswith("only 6 s of data (6 samples;")
     assert "minute or more" in short["meaning"]
+    # report.html: the reader's warnings in the input's section with their meanings; the
+    # stage's section has its own warning and points to the input's
+    report = html.unescape((tmp_path / "out" / "report.html").read_text())
+    head, rest = report.split('<h2 id="input-gyro1">inputs.gyro1', 1)
+    section, stage = rest.split('<h2 id="stage-gyro-bias">', 1)
+    for n in read:
+        assert n["message"] in section and n["meaning"] in section
+        assert f"[inputs.gyro1]: {n['message']}" in head  # the list under the summary table
+        assert n["message"] not in stage
+    assert short["message"] in stage and short["message"] not in section
+    pointer = "The reader of its input gyro1 warned (3): listed under inputs.gyro1"
+    assert pointer in re.sub(r"<[^>]+>", "", stage)
+    assert "ok, 4 warnings" in stage  # the status counts them all, as calibration.json does
 
 
 def test_convert_says_where_its_read_keys_go(tmp_path: Path) -> None:
