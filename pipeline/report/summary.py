@@ -48,6 +48,8 @@ class StageSummary:
     """(input, message): what the reader of an input this stage read warned about; listed under
     the input (``[inputs.NAME]``), not the stage, in every rendering."""
     failed_checks: list[str] = field(default_factory=list)
+    caveats: list[str] = field(default_factory=list)
+    """What the status line says beside ``ok`` (``at rest not judged (5 s)``)."""
     look_at: str = ""
     counts: frozenset[str] = frozenset()
     """Sensors the stage's input holds in raw counts (not SI): their offsets are in counts."""
@@ -58,12 +60,14 @@ class StageSummary:
     @property
     def status(self) -> str:
         """``ok``, ``ok, 2 warnings``, or ``1 failed check accepted, 2 warnings``: never a bare
-        ``ok`` for a stage that warned."""
+        ``ok`` for a stage that warned; its caveats after the ``ok`` (``ok, at rest not judged
+        (5 s), 1 warning``)."""
         n = len(self.warnings) + len(self.input_warnings)
         warned = f", {counted(n, 'warning')}" if n else ""
+        said = "".join(f", {c}" for c in self.caveats)
         if self.failed_checks:
-            return f"{counted(len(self.failed_checks), 'failed check')} accepted{warned}"
-        return f"ok{warned}"
+            return f"{counted(len(self.failed_checks), 'failed check')} accepted{said}{warned}"
+        return f"ok{said}{warned}"
 
 
 # -- number formatting -------------------------------------------------------------------------
@@ -199,12 +203,25 @@ def _gyro_bias(r: dict[str, Any], s: StageSummary) -> None:
         )
     if "max_1s_excursion" in m:
         s.quality.append(("largest 1 s mean excursion", f"{fmt(m['max_1s_excursion'], 3)} {unit}"))
-    if "static" in m:
-        s.quality.append(("at rest", fmt(m["static"])))
+    rest = _at_rest(m)
+    if rest:
+        s.quality.append(("at rest", rest))
+    if m.get("static_judged") is False:  # the status line says it, not only a warning
+        s.caveats.append(f"at rest not judged ({fmt(m.get('duration_s'), 2)} s)")
     if cells:
         s.headline = (
             "bias " + ", ".join(f"{a} {c}" for a, c in zip(AXES, cells, strict=True)) + f" {unit}"
         )
+
+
+def _at_rest(m: dict[str, Any]) -> str:
+    """``yes``, ``no``, or ``not judged (5 s, need a minute or more)`` for a recording too short
+    to tell (``static_judged`` false; ``""`` without ``static``)."""
+    if "static" not in m:
+        return ""
+    if m.get("static_judged") is False:
+        return f"not judged ({fmt(m.get('duration_s'), 2)} s, need a minute or more)"
+    return fmt(m["static"])
 
 
 def _residual(rms: Any, largest: Any, before: Any, unit: str) -> str:
