@@ -270,8 +270,9 @@ def test_plots_split_by_unit_and_open_on_their_own_span(tmp_path):
     # the envelope of 500 blocks of 10: each block's min at its first sample, max at its 6th
     (view_a,) = rec._time_views(plots[("a", "gyro")])
     (view_b,) = rec._time_views(plots[("b", "gyro")])
-    assert _span(view_a) == (int(t_a[0]), int(t_a[4995]))
-    assert _span(view_b) == (int(t_b[0]), int(t_b[4995]))
+    # on the time line: elapsed since the first sample
+    assert _span(view_a) == (0, int(t_a[4995] - t_a[0]))
+    assert _span(view_b) == (int(t_b[0] - t_a[0]), int(t_b[4995] - t_a[0]))
     rec.close()
     assert rrd_rows(tmp_path / "r.rrd")["/a/gyro/x"] == 1000  # max_points rows per line
 
@@ -363,29 +364,57 @@ def test_a_magnetometer_fitted_in_counts_stays_in_counts(tmp_path, cli, field_ut
     [(0, "duration[ns]", "time since 5 s on the log's clock (s)"),
      (1_700_000_000_000_000_000, "timestamp[ns]", "time since 2023-11-14 22:13:25 UTC (s)")],
 )  # fmt: skip
-def test_a_log_on_its_own_clock_is_shown_as_durations_not_1970(tmp_path, t0, kind, label):
-    """A CSV counting from 0 or a ULog's time since boot opens as time since the log's origin in
-    the viewer and the report; a ROS or MCAP stamp as a date."""
+def test_the_time_line_is_time_since_the_start_and_the_log_time_a_second(tmp_path, t0, kind, label):
+    """The recording opens on time elapsed since the start of the recording (a duration from
+    0: the viewer labels ``+10m``, not the hour of the day), as the report counts time since
+    its start; the samples' own time is a second timeline: a date for a ROS or MCAP stamp, a
+    duration for a CSV counting from 0 or a ULog's time since boot, never a day in 1970."""
     import xml.etree.ElementTree as ET
 
     import rerun.chunk as rc
 
+    from imupipe.pipeline.report.recording import LOG_TIMELINE, TIMELINE
     from imupipe.pipeline.report.svg_plot import svg
 
     rec = Recorder(tmp_path / "r.rrd", max_points=1000)
+    rec.start_at(t0 + 4_000_000_000)  # the run's first sample: a second before this signal's
     t = t0 + 5_000_000_000 + np.arange(100, dtype=np.int64) * 10_000_000
     rec.series("/a/gyro", t, np.zeros((100, 3)), unit="rad/s")
+    rec.start_at(t0)  # once a signal is sent, the origin stays
     rec.series("/a/temperature", t, np.full(100, 25.0), ("T",), unit="degC")
+    (view,) = rec._time_views(next(iter(rec.figures.plots.values())))
     rec.close()
-    kinds = {
-        str(chunk.to_record_batch().schema.field("time").type)
-        for chunk in rc.RrdReader(str(tmp_path / "r.rrd")).stream().to_chunks()
-        if not chunk.is_static
-    }
-    assert kinds == {kind}
+    kinds, times = set(), collections.defaultdict(list)
+    for chunk in rc.RrdReader(str(tmp_path / "r.rrd")).stream().to_chunks():
+        if chunk.is_static:
+            continue
+        batch = chunk.to_record_batch()
+        kinds.add((str(batch.schema.field(TIMELINE).type), str(batch.schema.field(LOG_TIMELINE).type)))  # fmt: skip
+        for name in (TIMELINE, LOG_TIMELINE):
+            times[name] += pa.array(batch.column(name)).cast(pa.int64()).to_pylist()
+    assert kinds == {("duration[ns]", kind)}
+    assert min(times[TIMELINE]) == 1_000_000_000 and max(times[TIMELINE]) == 1_990_000_000
+    assert sorted(set(times[LOG_TIMELINE])) == t.tolist()
+    assert _span(view) == (1_000_000_000, 1_990_000_000)  # the view opens on its data
     drawn = ET.fromstring(svg(next(iter(rec.figures.plots.values()))))
     titles = [e.text for e in drawn.iter("{http://www.w3.org/2000/svg}text")]
     assert [t for t in titles if t.startswith("time since")] == [label]
+
+
+def test_the_survey_stays_on_the_calendar(tmp_path):
+    """The fleet survey's points over months of flights are on the calendar, one timeline."""
+    import rerun.chunk as rc
+
+    rec = Recorder(tmp_path / "s.rrd", elapsed=False)
+    t = 1_700_000_000_000_000_000 + np.arange(3, dtype=np.int64) * 86_400_000_000_000
+    rec.series("/survey/a/bias", t, np.zeros((3, 3)), unit="rad/s", points=True)
+    rec.close()
+    for chunk in rc.RrdReader(str(tmp_path / "s.rrd")).stream().to_chunks():
+        if not chunk.is_static:
+            batch = chunk.to_record_batch()
+            assert "log time" not in batch.schema.names
+            assert str(batch.schema.field("time").type) == "timestamp[ns]"
+            assert pa.array(batch.column("time")).cast(pa.int64()).to_pylist() == t.tolist()
 
 
 def test_a_cloud_far_from_the_origin_gets_the_points_of_the_same_cloud_at_it():

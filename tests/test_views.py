@@ -182,7 +182,7 @@ def test_a_wide_views_legend_sits_beside_the_data():
     (plot,) = rec.figures.plots.values()
     (view,) = rec._time_views(plot, plot_px=150.0, width_px=1530.0)
     rng = view.properties["TimeAxis"].view_range.as_arrow_array()[0].as_py()
-    free = 1 - (int(t[-1]) - rng["start"]) / (rng["end"] - rng["start"])
+    free = 1 - (int(t[-1] - t[0]) - rng["start"]) / (rng["end"] - rng["start"])  # elapsed
     assert 0.08 < free < 0.2  # the legend's width, ~150 px of 1530
     y = view.properties["ScalarAxis"].range.as_arrow_array().to_pylist()[0]
     assert y[1] < 1.2  # the data fills the height: no room kept above it

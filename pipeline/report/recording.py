@@ -9,7 +9,9 @@ in. The recorder keeps these as :class:`~imupipe.pipeline.report.figures.Figures
 draws too) and decides *how* they look in Rerun:
 
 - signals over time: a ``TimeSeriesView`` per plot, on the ``time`` timeline (the one the time
-  panel opens on), opened on the span of its own data, titled with its unit. Signals are sent in
+  panel opens on: time elapsed since the start of the recording, a duration, so the viewer
+  labels ``+10m``, ``+1h`` and not the hour of the day; the samples' own times are the ``log
+  time`` timeline), opened on the span of its own data, titled with its unit. Signals are sent in
   bulk with ``rr.send_columns``; one longer than ``max_points`` is averaged over consecutive
   blocks down to that many points (the MCAP output keeps every sample);
 - curves over something else (Allan deviation over tau, bias against temperature): a
@@ -81,6 +83,13 @@ from imupipe.readers.table import (
 from imupipe.stages.base import NullRecorder
 
 TIMELINE = "time"
+"""The timeline the recording opens on: time elapsed since the start of the recording (a
+duration: the viewer labels it ``+10m``, ``+1h``, as the report's "min since start"), from
+:meth:`Recorder.start_at` (default: the first sample sent)."""
+
+LOG_TIMELINE = "log time"
+"""The samples' own times, a second timeline to switch to: dates for a wall-clock log (a ROS or
+MCAP stamp), else a duration on the log's own clock (a CSV from 0, a ULog's time since boot)."""
 
 
 class Recorder:
@@ -98,8 +107,13 @@ class Recorder:
         keep_points: int = 2_000,
         application_id: str = "imupipe",
         warn: Callable[[str], None] | None = None,
+        elapsed: bool = True,
     ) -> None:
+        """``elapsed``: the :data:`TIMELINE` counts from the start of the recording (a run's
+        session); False: it is the samples' own time, the only timeline (the fleet survey's
+        calendar, over months of flights)."""
         self.max_points = max_points
+        self._elapsed = elapsed
         self.figures = Figures(keep_points)
         self.raw_counts: dict[str, set[str]] = {}
         """input -> the sensors it holds in raw counts (not SI): plotted apart, in counts"""
@@ -121,7 +135,8 @@ class Recorder:
         self._documents: dict[str, str] = {}  # stage ("" for the run) -> markdown
         self._styled: set[str] = set()
         self._spans: dict[str, tuple[int, int]] = {}  # entity -> (first, last) t_ns
-        self._wall_clock: bool | None = None  # the time line: dates, or durations from 0
+        self._wall_clock: bool | None = None  # the log time line: dates, or durations
+        self._origin: int | None = None  # ns: 0 on the time line (start_at, or the first sample)
         self._still_counts: set[tuple[str, str]] = set()  # (input, sensor) corrected, in counts
         self._input_units: dict[tuple[str, str], str] = {}  # (stage, sensor) -> unit of its input
         self._reused: dict[Any, Series] = {}  # (input, sensor, steps applied) -> series sent
@@ -145,6 +160,13 @@ class Recorder:
                 self._live.disconnect()
             self._live = None
             self._warn(f"the Rerun viewer stopped receiving ({' '.join(str(exc).split())})")
+
+    def start_at(self, t_ns: int | None) -> None:
+        """The start of the recording (ns on the samples' clock): 0 on the :data:`TIMELINE`
+        (elapsed time); before any signal is sent (later: unchanged). None: the first sample
+        sent."""
+        if self._elapsed and self._origin is None and t_ns is not None and not self._spans:
+            self._origin = int(t_ns)
 
     def log(self, entity: str, archetype: Any, *, static: bool = True) -> None:
         """Anything else (a mesh, arrows...): one ``rr.log`` call, shown in a view the stage adds
@@ -231,17 +253,25 @@ class Recorder:
         )
         for name, color in zip(names, colors, strict=True):
             self._style(line_path(entity, name), [name], [color], points, highlight)
-        lo, hi = int(t_ns.min()), int(t_ns.max())
+        if self._wall_clock is None:  # one kind per timeline: the first signal decides
+            self._wall_clock = is_wall_clock(int(t_ns.min()))
+        if self._origin is None:
+            self._origin = int(t_ns.min()) if self._elapsed else 0
+        elapsed = t_ns - self._origin
+        lo, hi = int(elapsed.min()), int(elapsed.max())  # spans on the time line
         first, last = self._spans.get(entity, (lo, hi))
         self._spans[entity] = (min(first, lo), max(last, hi))
-        if self._wall_clock is None:  # one kind per timeline: the first signal decides
-            self._wall_clock = is_wall_clock(lo)
         if self._streams:
+            own = LOG_TIMELINE if self._elapsed else TIMELINE
             indexes = [
-                rr.TimeColumn(TIMELINE, timestamp=t_ns.astype("datetime64[ns]"))
+                rr.TimeColumn(own, timestamp=t_ns.astype("datetime64[ns]"))
                 if self._wall_clock
-                else rr.TimeColumn(TIMELINE, duration=t_ns.astype("timedelta64[ns]"))
+                else rr.TimeColumn(own, duration=t_ns.astype("timedelta64[ns]"))
             ]
+            if self._elapsed:
+                indexes.insert(
+                    0, rr.TimeColumn(TIMELINE, duration=elapsed.astype("timedelta64[ns]"))
+                )
             for j, name in enumerate(names):  # one entity per line: views pick lines
                 path, columns = line_path(entity, name), rr.Scalars.columns(scalars=values[:, j])
                 self._send(
