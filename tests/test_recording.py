@@ -303,6 +303,28 @@ def test_curves_without_time_become_static_2d_plots(tmp_path):
     assert not spans  # nothing on any timeline
 
 
+def test_markers_under_a_fitted_line_show_beside_it(tmp_path):
+    """The Allan deviation's measured markers lie under the fitted line that follows them: they
+    must be wide enough to show on both sides of it (1 px at least), or a reader sees the fit
+    only (the measured points were hidden for tau < 100 s in the viewer)."""
+    from imupipe.pipeline.report import plot2d
+
+    rec = Recorder(None)
+    tau = np.logspace(-2, 3, 40)
+    rec.curve("/allan/gyro/x/measured", tau, 1e-3 / np.sqrt(tau), ("measured",), plot="x",
+              unit="rad/s", x_label="tau", x_unit="s", log_x=True, log_y=True, points=True)  # fmt: skip
+    rec.curve("/allan/gyro/x/fit", tau, 1e-3 / np.sqrt(tau), ("fit",), plot="x",
+              unit="rad/s", x_label="tau", x_unit="s", log_x=True, log_y=True)  # fmt: skip
+    (plot,) = rec.figures.plots.values()
+    drawn = dict(plot2d.draw(plot))
+    marker, line = drawn["/allan/gyro/x/measured"], drawn["/allan/gyro/x/fit"]
+    radius = -marker.radii.as_arrow_array().to_pylist()[0]  # UI points (negative radii)
+    half_width = -line.radii.as_arrow_array().to_pylist()[0]
+    order = (marker.draw_order.as_arrow_array().to_pylist()[0], line.draw_order.as_arrow_array().to_pylist()[0])  # fmt: skip
+    assert order[0] < order[1]  # the fit over the markers
+    assert radius - half_width >= 1.0, (radius, half_width)
+
+
 def test_axes_ticks():
     # round steps (1, 2, 2.5, 5 x 10^k) that cover the data
     np.testing.assert_allclose(nice_ticks(-0.0183, 0.0327), [-0.02, 0.0, 0.02, 0.04], atol=1e-15)

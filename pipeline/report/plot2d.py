@@ -33,9 +33,12 @@ third of a decade low on a log axis, the bottom one under the frame)."""
 FRAME_COLOR = (128, 128, 128)
 GRID_COLOR = (150, 150, 150)
 TEXT_COLOR = (110, 110, 110)
-LINE_RADIUS = -1.5  # negative radii are UI points
+LINE_RADIUS = -1.0  # negative radii are UI points
 BAND_RADIUS = -1.0
-POINT_RADIUS = -2.0
+POINT_RADIUS = -2.5
+"""A fitted line (2 px) over markers 5 px across: the markers show on both sides of the line
+that follows them (the Allan deviation's measured points lay hidden under a 3 px fit, 4 px
+markers), as in ``report.html`` (:data:`~imupipe.pipeline.report.svg_plot.DOT`)."""
 GUIDE_RADIUS = -1.0
 # bands and guide lines (model terms) beneath the data, fitted lines over it
 BAND_ORDER, GUIDE_ORDER, POINT_ORDER, LINE_ORDER = 10.0, 15.0, 20.0, 30.0
