@@ -592,15 +592,19 @@ class Recorder:
             if s.extra.get("under")
             for n, c in zip(s.names, s.colors, strict=True)
         }
+        policy = rr.components.AggregationPolicy.MinMax
         overrides = {}
         if under and len(under) < len(paths):  # beneath lines of another kind: see-through
-            policy = rr.components.AggregationPolicy.MinMax
             overrides = {
                 path: rr.SeriesLines(
                     colors=[see_through(color)], aggregation_policy=policy
                 ).visualizer()
                 for path, color in under.items()
             }
+        for path, color in crossing(part).items():  # x, y, z over each other: all show
+            overrides[path] = rr.SeriesLines(
+                colors=[see_through(color, CROSSING_ALPHA)], aggregation_policy=policy
+            ).visualizer()
         # the legend's corner kept free of data: above the data (a y range with room) or, where
         # that costs less of the view (a wide view), beside it (a time range that runs on)
         rows, wide = len(paths), legend_width(paths_names(part)) / max(width_px or PLOT_PX, 1.0)
@@ -836,6 +840,29 @@ HIGHLIGHT_PX, HIGHLIGHT_ALPHA = 6.0, 0.4
 """Width (px) and opacity of a ``highlight`` line (:meth:`Recorder.series`)."""
 UNDER_ALPHA = 0.4
 """Opacity of a line ``under`` the others of its view (:meth:`Recorder.series`)."""
+
+
+CROSSING_ALPHA = 0.6
+"""Opacity of lines over time that share their values' range with another line of their view
+(x, y and z corrected, all about 0): as ``report.html``'s lines over time
+(:data:`~imupipe.pipeline.report.svg_plot.LINE_OPACITY`), so the one drawn last hides none."""
+
+
+def crossing(plot: Plot) -> dict[str, tuple[int, ...]]:
+    """Line entity -> colour of the lines of ``plot`` (neither ``under`` nor ``highlight``) whose
+    range of values overlaps another such line's: drawn in one view, one would hide the other."""
+    kept = {
+        (s.entity, n): c
+        for s in plot.series
+        if not s.extra.get("under") and not s.extra.get("highlight") and s.style != "points"
+        for n, c in zip(s.names, s.colors, strict=True)
+    }
+    ranges = [(e, n, lo, hi) for e, n, lo, hi in column_ranges(plot) if (e, n) in kept]
+    out = {}
+    for i, (e, n, lo, hi) in enumerate(ranges):
+        if any(lo <= b and a <= hi for k, (_, _, a, b) in enumerate(ranges) if k != i):
+            out[line_path(e, n)] = tuple(kept[(e, n)])
+    return out
 
 
 def see_through(color: Sequence[int], alpha: float = UNDER_ALPHA) -> tuple[int, int, int, int]:
