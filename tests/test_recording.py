@@ -325,6 +325,26 @@ def test_markers_under_a_fitted_line_show_beside_it(tmp_path):
     assert radius - half_width >= 1.0, (radius, half_width)
 
 
+def test_a_few_points_amid_many_are_drawn_over_everything():
+    """The soak blocks (a few points) among heating and cooling (thousands): drawn under the
+    others their legend entry named nothing visible; on top they show, as in report.html."""
+    from imupipe.pipeline.report import plot2d
+
+    rec = Recorder(None)
+    temp = np.linspace(-40, 80, 2000)
+    for name, n in (("heating", 2000), ("soak", 12)):
+        x = temp[:: 2000 // n][:n]
+        rec.curve(f"/t/bias/{name}", x, 1e-4 * x, (f"bias {name}",), plot="b", unit="rad/s",
+                  x_label="temperature", x_unit="degC", points=True)  # fmt: skip
+    rec.curve("/t/bias/fit", temp, 1e-4 * temp, ("fit",), plot="b", unit="rad/s",
+              x_label="temperature", x_unit="degC")  # fmt: skip
+    (plot,) = rec.figures.plots.values()
+    drawn = dict(plot2d.draw(plot))
+    order = {k: drawn[f"/t/bias/{k}"].draw_order.as_arrow_array().to_pylist()[0]
+             for k in ("heating", "soak", "fit")}  # fmt: skip
+    assert order["heating"] < order["fit"] < order["soak"]
+
+
 def test_axes_ticks():
     # round steps (1, 2, 2.5, 5 x 10^k) that cover the data
     np.testing.assert_allclose(nice_ticks(-0.0183, 0.0327), [-0.02, 0.0, 0.02, 0.04], atol=1e-15)
