@@ -136,6 +136,13 @@ def test_lines_under_others_are_see_through_in_the_views_they_share(tmp_path):
     means = ["/s/means/gyro/gx_m", "/s/means/gyro/gy_m", "/s/means/gyro/gz_m"]
     assert sorted(alpha) == sorted(raw + means)
     assert all(alpha[r] < alpha[m] < 255 for r in raw for m in means)
+    widths = {
+        str(path): batch.as_arrow_array().to_pylist()[0]
+        for path, vis in shared.visualizer_overrides.items()
+        for batch in vis.overrides
+        if str(batch.component_descriptor()).endswith("widths")
+    }
+    assert sorted(widths) == raw and min(widths.values()) >= 2.0  # a halo round the means
     (alone,) = rec._time_views(plots[("u", "gyro")])
     assert _override_alpha(alone) == {}
     rec.close()

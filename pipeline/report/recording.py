@@ -597,7 +597,7 @@ class Recorder:
         if under and len(under) < len(paths):  # beneath lines of another kind: see-through
             overrides = {
                 path: rr.SeriesLines(
-                    colors=[see_through(color)], aggregation_policy=policy
+                    colors=[see_through(color)], widths=[UNDER_PX], aggregation_policy=policy
                 ).visualizer()
                 for path, color in under.items()
             }
@@ -838,8 +838,10 @@ SIGNALS_PER_TAB = 4
 """The most views of a long session stacked in one inner tab (each keeps ~200 px of height)."""
 HIGHLIGHT_PX, HIGHLIGHT_ALPHA = 6.0, 0.4
 """Width (px) and opacity of a ``highlight`` line (:meth:`Recorder.series`)."""
-UNDER_ALPHA = 0.4
-"""Opacity of a line ``under`` the others of its view (:meth:`Recorder.series`)."""
+UNDER_ALPHA, UNDER_PX = 0.4, 3.0
+"""Opacity and width (px) of a line ``under`` the others of its view (:meth:`Recorder.series`):
+a light halo around the line over it, which a line of the same values (a temperature of little
+noise beneath its block means) showed nothing of at the viewer's width (0.75 px)."""
 
 
 CROSSING_ALPHA = 0.6
