@@ -158,9 +158,24 @@ class Page:
             await asyncio.sleep(interval)
             shot = await self.screenshot()
             same = same + 1 if shot == last else 1
-            if (same >= agree and shot != before) or time.monotonic() > deadline:
+            if (same >= agree and changed(shot, before)) or time.monotonic() > deadline:
                 return shot
             last = shot
+
+
+def changed(shot: bytes, before: bytes, share: float = 0.02) -> bool:
+    """Whether ``shot`` differs from ``before`` in more than ``share`` of its pixels (another
+    tab drawn), not only in a few (a notification dot: on a loaded machine the viewer took
+    longer than three frames to show the tab sent, and each PNG showed the tab before it)."""
+    if not before:
+        return True
+    import io
+
+    import numpy as np
+    from PIL import Image
+
+    a, b = (np.asarray(Image.open(io.BytesIO(x)).convert("RGB")) for x in (shot, before))
+    return a.shape != b.shape or float(np.any(a != b, axis=2).mean()) > share
 
 
 @contextlib.asynccontextmanager
