@@ -227,6 +227,22 @@ def test_small_run_legends_name_only_what_is_drawn(small_run):
     assert legend_entries_without_data(out / "recording.rrd") == []
 
 
+def test_the_recording_counts_time_from_the_runs_first_sample(small_run):
+    """The recording's time line starts at 0 at the first sample the run read (issue 38: the
+    viewer labels it +10m, not the hour of the day)."""
+    import pyarrow.compute as pc
+
+    from imupipe.pipeline.config import load_config
+    from imupipe.readers.dispatch import read_input
+
+    out, _ = small_run
+    signals = timed_values(out / "recording.rrd")
+    assert min(int(t.min()) for t, _ in signals.values()) == 0
+    assert max(int(t.max()) for t, _ in signals.values()) == pytest.approx(600e9, rel=0.01)
+    table, _ = read_input(load_config(out.parent / "cfg.toml").inputs["static"])
+    assert pc.min(table.column("t_ns")).as_py() > 10**18  # a date on the log's clock
+
+
 @pytest.mark.slow
 def test_demo_legends_name_only_what_is_drawn(demo_run):
     out, _ = demo_run
