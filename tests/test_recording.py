@@ -242,6 +242,17 @@ def test_magnetometer_in_microtesla_and_signals_capped(every_stage):
     assert 40 < np.median(norm) < 60  # the simulated field is 48.2 uT
 
 
+def test_the_field_magnitude_is_drawn_over_the_noisy_magnitude(every_stage):
+    """The viewer draws a view's lines in entity-path order: the field's magnitude, a constant,
+    must come after |h| corrected, whose noise hid it (its legend entry named nothing seen)."""
+    views, _, _ = read_blueprint(every_stage / "recording.rrd")
+    (view,) = [v for v in views.values() if v["name"] == "|h| (uT)"]
+    paths = [q.lstrip("+ ").strip() for q in view["query"]]
+    (field,) = [p for p in paths if p.endswith("field_magnitude")]
+    (corrected,) = [p for p in paths if p.endswith("h_corrected")]
+    assert sorted([corrected, field]) == [corrected, field]
+
+
 def test_static_input_is_sent_once_for_the_stages_that_share_it(every_stage):
     rows = rrd_rows(every_stage / "recording.rrd")
     assert "/average/raw/gyro/gyro_x_raw" in rows
