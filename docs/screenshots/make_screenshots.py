@@ -365,9 +365,12 @@ async def shoot_recording(args) -> list[Path]:
         async with chromium(args.width, args.height) as page:
             await page.call("Page.navigate", url=f"http://127.0.0.1:{web}/?{query}")
             png = await page.settled(args.wait, agree=5)  # the recording loaded and drawn
+            first = {bp.root: bp.contents(bp.root)[0]}  # the tab it opens on, drawn: the
+            send_tabs(proxy, bp, first, args.collapse_panels)  # page each tab must differ from
+            png = await page.settled(args.wait, before=png)
             for name, active in shots:
                 send_tabs(proxy, bp, active, args.collapse_panels)
-                png = await page.settled(args.wait, before=png)
+                png = await page.settled(args.wait, before=b"" if active == first else png)
                 target = args.out / f"{name}.png"
                 target.write_bytes(png)
                 out.append(target)
