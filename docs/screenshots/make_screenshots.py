@@ -164,8 +164,8 @@ class Page:
 
 
 def changed(shot: bytes, before: bytes, share: float = 0.02) -> bool:
-    """Whether ``shot`` differs from ``before`` in more than ``share`` of its pixels (another
-    tab drawn), not only in a few (a notification dot: on a loaded machine the viewer took
+    """Whether ``shot`` differs from ``before`` in more than ``share`` of its pixels, each by
+    more than a shade (another tab drawn), not only in a few (a notification dot: on a loaded machine the viewer took
     longer than three frames to show the tab sent, and each PNG showed the tab before it)."""
     if not before:
         return True
@@ -175,7 +175,11 @@ def changed(shot: bytes, before: bytes, share: float = 0.02) -> bool:
     from PIL import Image
 
     a, b = (np.asarray(Image.open(io.BytesIO(x)).convert("RGB")) for x in (shot, before))
-    return a.shape != b.shape or float(np.any(a != b, axis=2).mean()) > share
+    if a.shape != b.shape:
+        return True
+    # by more than a shade: a 3D view drawn again differs in many pixels by a few levels
+    differ = np.any(np.abs(a.astype(np.int16) - b.astype(np.int16)) > 48, axis=2)
+    return float(differ.mean()) > share
 
 
 @contextlib.asynccontextmanager
