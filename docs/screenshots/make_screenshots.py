@@ -6,8 +6,10 @@ serves the recording with ``rerun --serve-web`` (the viewer that ships with reru
 in headless Chromium (WebGL on SwiftShader, no GPU or display needed), and saves one PNG per tab
 of the recording's blueprint (``00_Summary.png``, ``01_<stage>.png``...). Each tab is shown by
 re-sending the recording's own blueprint with that tab active, so what is captured is what a
-person sees after clicking the tab. A screenshot is taken once two consecutive frames agree (the
-viewer has finished loading and drawing), or after ``--wait`` seconds.
+person sees after clicking the tab. A screenshot is taken once three consecutive frames agree
+and differ from the tab before in more than 2 % of the pixels (the viewer has drawn the tab
+sent), or after ``--wait`` seconds. On a loaded machine a viewer still reading the file redraws
+as it goes: look at each PNG's active tab (a PNG may show the tab before it).
 
 ``report.html`` is captured with ``--html out/report.html``: a full-page screenshot
 (``report.png``), one per section (``report_00_Summary.png``, ``report_01_<stage>.png``...) and
