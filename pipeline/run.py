@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import argparse
 import sys
-from collections.abc import Callable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -97,6 +97,14 @@ class RunSummary:
     counts: dict[str, dict[str, int]] = field(default_factory=dict)
     summaries: list[StageSummary] = field(default_factory=list)
     notices: list[Notice] = field(default_factory=list)
+
+
+def first_sample(tables: Iterable[pa.Table]) -> int | None:
+    """The earliest ``t_ns`` of ``tables`` (the start of the recording; None: no rows)."""
+    import pyarrow.compute as pc
+
+    firsts = [pc.min(t.column("t_ns")).as_py() for t in tables if t.num_rows]
+    return min((f for f in firsts if f is not None), default=None)
 
 
 def calibration_document(
@@ -218,6 +226,7 @@ def run(
 
             with signals_deferred():  # never a half-made recording stream
                 recorder, files = open_recorder(cfg, out, spawn=spawn, quiet=quiet)
+            recorder.start_at(first_sample(raw.values()))  # its time line: time since then
             for st in cfg.stages:
                 bar.describe(f"stage {st.name}")
                 running[:] = [st.name]
@@ -314,7 +323,7 @@ def run(
             for fname, text in exported.items():
                 out.write_text(out_dir / fname, text)
                 files.append(out_dir / fname)
-            summaries = summarise(results, raw_count_sensors(cfg.inputs))
+            summaries = summarise(results, raw_count_sensors(cfg.inputs), notices.items)
             files += publish(summaries, recorder, cfg, out, notices.of_run())
             files += corrected
             recorder.close()

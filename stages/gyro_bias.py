@@ -10,7 +10,9 @@ Quality check (``ctx.check``): the data must be static (:mod:`imupipe.stages.sti
 accelerometer norm's 1-second means within 0.05 g. A recording that moved stops the run with one
 line (a bias that includes motion is not applied) unless ``accept_failed_checks = true``. A
 recording shorter than :data:`SHORT_S` (a minute) is used with a warning that gives its length,
-its number of 1 s means and the bias's standard error.
+its number of 1 s means and the bias's standard error; its stillness is not judged (metric
+``static_judged`` false: a few 1 s means that agree do not show the IMU at rest), though motion
+seen in them still fails the check.
 """
 
 from __future__ import annotations
@@ -97,25 +99,28 @@ class GyroBiasStage(Stage):
             offset=bias,
             params={"bias": bias.tolist()},
         )
+        duration_s = float((t_ns[-1] - t_ns[0]) * 1e-9)
+        judged = duration_s * n / (n - 1) >= SHORT_S  # n sample periods: 60 s at 100 Hz is a minute
         results = {
             "bias": bias.tolist(),
             "metrics": {
                 "samples": n,
-                "duration_s": float((t_ns[-1] - t_ns[0]) * 1e-9),
+                "duration_s": duration_s,
                 "std": std.tolist(),
                 "bias_std_error": (std / np.sqrt(n)).tolist(),
                 "max_1s_excursion": still.excursion,
                 "accel_norm_1s_spread": still.accel_spread,
                 "static": bool(static),
+                "static_judged": bool(judged) or not static,
             },
         }
-        duration = float((t_ns[-1] - t_ns[0]) * 1e-9) * n / (n - 1)  # n sample periods
-        if duration < SHORT_S:
+        if not judged:
             ctx.warn(
-                f"only {duration:.3g} s of data ({n} samples; the at-rest check had "
-                f"{len(still.gyro_1s.t_ns)} one-second means): a gyro bias wants the IMU at rest for a minute "
-                f"or more; this one is uncertain by up to {float(np.max(std / np.sqrt(n))):.2g} "
-                "rad/s (one standard error) and says nothing of the drift over minutes"
+                f"only {duration_s:.3g} s of data ({n} samples; the at-rest check had "
+                f"{len(still.gyro_1s.t_ns)} one-second means, too few to judge whether the IMU "
+                "was at rest): a gyro bias wants the IMU at rest for a minute or more; this one "
+                f"is uncertain by up to {float(np.max(std / np.sqrt(n))):.2g} rad/s (one standard "
+                "error) and says nothing of the drift over minutes"
             )
         ctx.check(
             static,

@@ -132,6 +132,8 @@ def test_small_run_keeps_one_record_of_its_warnings(small_run):
     doc = json.loads((out / "calibration.json").read_text())
     (short,) = [n for n in doc["warnings"] if "two hours" in n["message"]]
     assert short["stage"] == "allan" and "Record two hours" in short["meaning"]
+    assert "at rest: yes" in done.stdout  # 10 min still: judged (a 5 s one is not, below)
+    assert doc["results"]["gyro_bias"]["metrics"]["static_judged"] is True
 
 
 @pytest.mark.slow
@@ -223,6 +225,22 @@ def legend_entries_without_data(rrd: Path) -> list[str]:
 def test_small_run_legends_name_only_what_is_drawn(small_run):
     out, _ = small_run
     assert legend_entries_without_data(out / "recording.rrd") == []
+
+
+def test_the_recording_counts_time_from_the_runs_first_sample(small_run):
+    """The recording's time line starts at 0 at the first sample the run read (issue 38: the
+    viewer labels it +10m, not the hour of the day)."""
+    import pyarrow.compute as pc
+
+    from imupipe.pipeline.config import load_config
+    from imupipe.readers.dispatch import read_input
+
+    out, _ = small_run
+    signals = timed_values(out / "recording.rrd")
+    assert min(int(t.min()) for t, _ in signals.values()) == 0
+    assert max(int(t.max()) for t, _ in signals.values()) == pytest.approx(600e9, rel=0.01)
+    table, _ = read_input(load_config(out.parent / "cfg.toml").inputs["static"])
+    assert pc.min(table.column("t_ns")).as_py() > 10**18  # a date on the log's clock
 
 
 @pytest.mark.slow
@@ -347,8 +365,30 @@ def test_reader_warnings_name_their_input_and_their_meaning(tmp_path: Path) -> N
         assert n["meaning"] not in FALLBACK.values(), n
         assert "docs/reference/outputs.md" not in n["meaning"]
     (short,) = [n for n in doc["warnings"] if n["source"] == "stage"]
-    assert short["message"].startswith("only 6 s of data (6 samples;")
+    assert short["message"].startswith("only 5 s of data (6 samples;")
+    assert "too few to judge whether the IMU was at rest" in short["message"]
     assert "minute or more" in short["meaning"]
+    # too short to judge stillness: the summary line says so, as the warning does
+    not_judged = "at rest: not judged (5 s, need a minute or more)"
+    assert doc["results"]["gyro_bias"]["metrics"]["static_judged"] is False
+    status = "ok, at rest not judged (5 s), 4 warnings"
+    assert f"gyro_bias (gyro_bias on gyro1): {status}" in done.stdout
+    assert not_judged in done.stdout and "at rest: yes" not in done.stdout
+    # report.html: the reader's warnings in the input's section with their meanings; the
+    # stage's section has its own warning and points to the input's
+    report = html.unescape((tmp_path / "out" / "report.html").read_text())
+    head, rest = report.split('<h2 id="input-gyro1">inputs.gyro1', 1)
+    section, stage = rest.split('<h2 id="stage-gyro-bias">', 1)
+    for n in read:
+        assert n["message"] in section and n["meaning"] in section
+        assert f"[inputs.gyro1]: {n['message']}" in head  # the list under the summary table
+        assert n["message"] not in stage
+    assert short["message"] in stage and short["message"] not in section
+    pointer = "The reader of its input gyro1 warned (3): listed under inputs.gyro1"
+    assert pointer in re.sub(r"<[^>]+>", "", stage)
+    assert status in stage  # counting them all, as calibration.json does
+    assert report.count(status) == 2  # the summary table and the stage's heading
+    assert not_judged in stage and "at rest: yes" not in report
 
 
 def test_convert_says_where_its_read_keys_go(tmp_path: Path) -> None:

@@ -242,6 +242,17 @@ def test_magnetometer_in_microtesla_and_signals_capped(every_stage):
     assert 40 < np.median(norm) < 60  # the simulated field is 48.2 uT
 
 
+def test_the_field_magnitude_is_drawn_over_the_noisy_magnitude(every_stage):
+    """The viewer draws a view's lines in entity-path order: the field's magnitude, a constant,
+    must come after |h| corrected, whose noise hid it (its legend entry named nothing seen)."""
+    views, _, _ = read_blueprint(every_stage / "recording.rrd")
+    (view,) = [v for v in views.values() if v["name"] == "|h| (uT)"]
+    paths = [q.lstrip("+ ").strip() for q in view["query"]]
+    (field,) = [p for p in paths if p.endswith("field_magnitude")]
+    (corrected,) = [p for p in paths if p.endswith("h_corrected")]
+    assert sorted([corrected, field]) == [corrected, field]
+
+
 def test_static_input_is_sent_once_for_the_stages_that_share_it(every_stage):
     rows = rrd_rows(every_stage / "recording.rrd")
     assert "/average/raw/gyro/gyro_x_raw" in rows
@@ -270,8 +281,9 @@ def test_plots_split_by_unit_and_open_on_their_own_span(tmp_path):
     # the envelope of 500 blocks of 10: each block's min at its first sample, max at its 6th
     (view_a,) = rec._time_views(plots[("a", "gyro")])
     (view_b,) = rec._time_views(plots[("b", "gyro")])
-    assert _span(view_a) == (int(t_a[0]), int(t_a[4995]))
-    assert _span(view_b) == (int(t_b[0]), int(t_b[4995]))
+    # on the time line: elapsed since the first sample
+    assert _span(view_a) == (0, int(t_a[4995] - t_a[0]))
+    assert _span(view_b) == (int(t_b[0] - t_a[0]), int(t_b[4995] - t_a[0]))
     rec.close()
     assert rrd_rows(tmp_path / "r.rrd")["/a/gyro/x"] == 1000  # max_points rows per line
 
@@ -300,6 +312,48 @@ def test_curves_without_time_become_static_2d_plots(tmp_path):
     assert "Points2D:positions" in static["/allan/gyro/x/measured"]
     assert "Points2D:labels" in static["/allan/x/axes/x_ticks"]
     assert not spans  # nothing on any timeline
+
+
+def test_markers_under_a_fitted_line_show_beside_it(tmp_path):
+    """The Allan deviation's measured markers lie under the fitted line that follows them: they
+    must be wide enough to show on both sides of it (1 px at least), or a reader sees the fit
+    only (the measured points were hidden for tau < 100 s in the viewer)."""
+    from imupipe.pipeline.report import plot2d
+
+    rec = Recorder(None)
+    tau = np.logspace(-2, 3, 40)
+    rec.curve("/allan/gyro/x/measured", tau, 1e-3 / np.sqrt(tau), ("measured",), plot="x",
+              unit="rad/s", x_label="tau", x_unit="s", log_x=True, log_y=True, points=True)  # fmt: skip
+    rec.curve("/allan/gyro/x/fit", tau, 1e-3 / np.sqrt(tau), ("fit",), plot="x",
+              unit="rad/s", x_label="tau", x_unit="s", log_x=True, log_y=True)  # fmt: skip
+    (plot,) = rec.figures.plots.values()
+    drawn = dict(plot2d.draw(plot))
+    marker, line = drawn["/allan/gyro/x/measured"], drawn["/allan/gyro/x/fit"]
+    radius = -marker.radii.as_arrow_array().to_pylist()[0]  # UI points (negative radii)
+    half_width = -line.radii.as_arrow_array().to_pylist()[0]
+    order = (marker.draw_order.as_arrow_array().to_pylist()[0], line.draw_order.as_arrow_array().to_pylist()[0])  # fmt: skip
+    assert order[0] < order[1]  # the fit over the markers
+    assert radius - half_width >= 1.0, (radius, half_width)
+
+
+def test_a_few_points_amid_many_are_drawn_over_everything():
+    """The soak blocks (a few points) among heating and cooling (thousands): drawn under the
+    others their legend entry named nothing visible; on top they show, as in report.html."""
+    from imupipe.pipeline.report import plot2d
+
+    rec = Recorder(None)
+    temp = np.linspace(-40, 80, 2000)
+    for name, n in (("heating", 2000), ("soak", 12)):
+        x = temp[:: 2000 // n][:n]
+        rec.curve(f"/t/bias/{name}", x, 1e-4 * x, (f"bias {name}",), plot="b", unit="rad/s",
+                  x_label="temperature", x_unit="degC", points=True)  # fmt: skip
+    rec.curve("/t/bias/fit", temp, 1e-4 * temp, ("fit",), plot="b", unit="rad/s",
+              x_label="temperature", x_unit="degC")  # fmt: skip
+    (plot,) = rec.figures.plots.values()
+    drawn = dict(plot2d.draw(plot))
+    order = {k: drawn[f"/t/bias/{k}"].draw_order.as_arrow_array().to_pylist()[0]
+             for k in ("heating", "soak", "fit")}  # fmt: skip
+    assert order["heating"] < order["fit"] < order["soak"]
 
 
 def test_axes_ticks():
@@ -363,29 +417,57 @@ def test_a_magnetometer_fitted_in_counts_stays_in_counts(tmp_path, cli, field_ut
     [(0, "duration[ns]", "time since 5 s on the log's clock (s)"),
      (1_700_000_000_000_000_000, "timestamp[ns]", "time since 2023-11-14 22:13:25 UTC (s)")],
 )  # fmt: skip
-def test_a_log_on_its_own_clock_is_shown_as_durations_not_1970(tmp_path, t0, kind, label):
-    """A CSV counting from 0 or a ULog's time since boot opens as time since the log's origin in
-    the viewer and the report; a ROS or MCAP stamp as a date."""
+def test_the_time_line_is_time_since_the_start_and_the_log_time_a_second(tmp_path, t0, kind, label):
+    """The recording opens on time elapsed since the start of the recording (a duration from
+    0: the viewer labels ``+10m``, not the hour of the day), as the report counts time since
+    its start; the samples' own time is a second timeline: a date for a ROS or MCAP stamp, a
+    duration for a CSV counting from 0 or a ULog's time since boot, never a day in 1970."""
     import xml.etree.ElementTree as ET
 
     import rerun.chunk as rc
 
+    from imupipe.pipeline.report.recording import LOG_TIMELINE, TIMELINE
     from imupipe.pipeline.report.svg_plot import svg
 
     rec = Recorder(tmp_path / "r.rrd", max_points=1000)
+    rec.start_at(t0 + 4_000_000_000)  # the run's first sample: a second before this signal's
     t = t0 + 5_000_000_000 + np.arange(100, dtype=np.int64) * 10_000_000
     rec.series("/a/gyro", t, np.zeros((100, 3)), unit="rad/s")
+    rec.start_at(t0)  # once a signal is sent, the origin stays
     rec.series("/a/temperature", t, np.full(100, 25.0), ("T",), unit="degC")
+    (view,) = rec._time_views(next(iter(rec.figures.plots.values())))
     rec.close()
-    kinds = {
-        str(chunk.to_record_batch().schema.field("time").type)
-        for chunk in rc.RrdReader(str(tmp_path / "r.rrd")).stream().to_chunks()
-        if not chunk.is_static
-    }
-    assert kinds == {kind}
+    kinds, times = set(), collections.defaultdict(list)
+    for chunk in rc.RrdReader(str(tmp_path / "r.rrd")).stream().to_chunks():
+        if chunk.is_static:
+            continue
+        batch = chunk.to_record_batch()
+        kinds.add((str(batch.schema.field(TIMELINE).type), str(batch.schema.field(LOG_TIMELINE).type)))  # fmt: skip
+        for name in (TIMELINE, LOG_TIMELINE):
+            times[name] += pa.array(batch.column(name)).cast(pa.int64()).to_pylist()
+    assert kinds == {("duration[ns]", kind)}
+    assert min(times[TIMELINE]) == 1_000_000_000 and max(times[TIMELINE]) == 1_990_000_000
+    assert sorted(set(times[LOG_TIMELINE])) == t.tolist()
+    assert _span(view) == (1_000_000_000, 1_990_000_000)  # the view opens on its data
     drawn = ET.fromstring(svg(next(iter(rec.figures.plots.values()))))
     titles = [e.text for e in drawn.iter("{http://www.w3.org/2000/svg}text")]
     assert [t for t in titles if t.startswith("time since")] == [label]
+
+
+def test_the_survey_stays_on_the_calendar(tmp_path):
+    """The fleet survey's points over months of flights are on the calendar, one timeline."""
+    import rerun.chunk as rc
+
+    rec = Recorder(tmp_path / "s.rrd", elapsed=False)
+    t = 1_700_000_000_000_000_000 + np.arange(3, dtype=np.int64) * 86_400_000_000_000
+    rec.series("/survey/a/bias", t, np.zeros((3, 3)), unit="rad/s", points=True)
+    rec.close()
+    for chunk in rc.RrdReader(str(tmp_path / "s.rrd")).stream().to_chunks():
+        if not chunk.is_static:
+            batch = chunk.to_record_batch()
+            assert "log time" not in batch.schema.names
+            assert str(batch.schema.field("time").type) == "timestamp[ns]"
+            assert pa.array(batch.column("time")).cast(pa.int64()).to_pylist() == t.tolist()
 
 
 def test_a_cloud_far_from_the_origin_gets_the_points_of_the_same_cloud_at_it():

@@ -130,11 +130,39 @@ def test_lines_under_others_are_see_through_in_the_views_they_share(tmp_path):
     plots = {(p.stage, p.key): p for p in rec.figures.plots.values()}
     (shared,) = rec._time_views(plots[("s", "gyro")])
     alpha = _override_alpha(shared)
-    assert sorted(alpha) == ["/s/raw/gyro/gx_raw", "/s/raw/gyro/gy_raw", "/s/raw/gyro/gz_raw"]
-    assert all(0 < a < 255 for a in alpha.values())  # the means are never overridden
+    raw = ["/s/raw/gyro/gx_raw", "/s/raw/gyro/gy_raw", "/s/raw/gyro/gz_raw"]
+    assert all(0 < alpha[p] < 255 for p in raw)
+    # the means, all at 0, lie over each other: lighter than opaque, never as light as the raw
+    means = ["/s/means/gyro/gx_m", "/s/means/gyro/gy_m", "/s/means/gyro/gz_m"]
+    assert sorted(alpha) == sorted(raw + means)
+    assert all(alpha[r] < alpha[m] < 255 for r in raw for m in means)
+    widths = {
+        str(path): batch.as_arrow_array().to_pylist()[0]
+        for path, vis in shared.visualizer_overrides.items()
+        for batch in vis.overrides
+        if str(batch.component_descriptor()).endswith("widths")
+    }
+    assert sorted(widths) == raw and min(widths.values()) >= 2.0  # a halo round the means
     (alone,) = rec._time_views(plots[("u", "gyro")])
     assert _override_alpha(alone) == {}
     rec.close()
+
+
+def test_lines_over_each_other_are_see_through_lines_apart_are_not():
+    """x, y and z corrected, all about 0, drawn in one view: the one Rerun draws last hid the
+    others; made see-through (the report's opacity) they all show. Lines apart keep theirs."""
+    rec = Recorder(None)
+    t = T0 + np.arange(500, dtype=np.int64) * 10**8
+    rng = np.random.default_rng(5)
+    noise = rng.normal(0, 1e-3, (500, 3))
+    rec.series("/c/corrected/gyro", t, noise, ("x corrected", "y corrected", "z corrected"),
+               unit="rad/s")  # fmt: skip
+    rec.series("/d/means/gyro", t, noise * 0.1 + [0.01, -0.02, 0.005], ("x", "y", "z"),
+               unit="rad/s")  # fmt: skip
+    plots = {p.stage: p for p in rec.figures.plots.values()}
+    (over,) = rec._time_views(plots["c"])
+    assert sorted(_override_alpha(over).values()) == [153, 153, 153]  # 0.6 of 255
+    assert all(_override_alpha(v) == {} for v in rec._time_views(plots["d"]))
 
 
 def test_a_long_session_gets_wide_views_that_label_its_hours():
@@ -182,7 +210,7 @@ def test_a_wide_views_legend_sits_beside_the_data():
     (plot,) = rec.figures.plots.values()
     (view,) = rec._time_views(plot, plot_px=150.0, width_px=1530.0)
     rng = view.properties["TimeAxis"].view_range.as_arrow_array()[0].as_py()
-    free = 1 - (int(t[-1]) - rng["start"]) / (rng["end"] - rng["start"])
+    free = 1 - (int(t[-1] - t[0]) - rng["start"]) / (rng["end"] - rng["start"])  # elapsed
     assert 0.08 < free < 0.2  # the legend's width, ~150 px of 1530
     y = view.properties["ScalarAxis"].range.as_arrow_array().to_pylist()[0]
     assert y[1] < 1.2  # the data fills the height: no room kept above it

@@ -6,8 +6,10 @@ serves the recording with ``rerun --serve-web`` (the viewer that ships with reru
 in headless Chromium (WebGL on SwiftShader, no GPU or display needed), and saves one PNG per tab
 of the recording's blueprint (``00_Summary.png``, ``01_<stage>.png``...). Each tab is shown by
 re-sending the recording's own blueprint with that tab active, so what is captured is what a
-person sees after clicking the tab. A screenshot is taken once two consecutive frames agree (the
-viewer has finished loading and drawing), or after ``--wait`` seconds.
+person sees after clicking the tab. A screenshot is taken once three consecutive frames agree
+and differ from the tab before in more than 2 % of the pixels (the viewer has drawn the tab
+sent), or after ``--wait`` seconds. On a loaded machine a viewer still reading the file redraws
+as it goes: look at each PNG's active tab (a PNG may show the tab before it).
 
 ``report.html`` is captured with ``--html out/report.html``: a full-page screenshot
 (``report.png``), one per section (``report_00_Summary.png``, ``report_01_<stage>.png``...) and
@@ -158,9 +160,28 @@ class Page:
             await asyncio.sleep(interval)
             shot = await self.screenshot()
             same = same + 1 if shot == last else 1
-            if (same >= agree and shot != before) or time.monotonic() > deadline:
+            if (same >= agree and changed(shot, before)) or time.monotonic() > deadline:
                 return shot
             last = shot
+
+
+def changed(shot: bytes, before: bytes, share: float = 0.02) -> bool:
+    """Whether ``shot`` differs from ``before`` in more than ``share`` of its pixels, each by
+    more than a shade (another tab drawn), not only in a few (a notification dot: on a loaded machine the viewer took
+    longer than three frames to show the tab sent, and each PNG showed the tab before it)."""
+    if not before:
+        return True
+    import io
+
+    import numpy as np
+    from PIL import Image
+
+    a, b = (np.asarray(Image.open(io.BytesIO(x)).convert("RGB")) for x in (shot, before))
+    if a.shape != b.shape:
+        return True
+    # by more than a shade: a 3D view drawn again differs in many pixels by a few levels
+    differ = np.any(np.abs(a.astype(np.int16) - b.astype(np.int16)) > 48, axis=2)
+    return float(differ.mean()) > share
 
 
 @contextlib.asynccontextmanager
@@ -350,9 +371,12 @@ async def shoot_recording(args) -> list[Path]:
         async with chromium(args.width, args.height) as page:
             await page.call("Page.navigate", url=f"http://127.0.0.1:{web}/?{query}")
             png = await page.settled(args.wait, agree=5)  # the recording loaded and drawn
+            first = {bp.root: bp.contents(bp.root)[0]}  # the tab it opens on, drawn: the
+            send_tabs(proxy, bp, first, args.collapse_panels)  # page each tab must differ from
+            png = await page.settled(args.wait, before=png)
             for name, active in shots:
                 send_tabs(proxy, bp, active, args.collapse_panels)
-                png = await page.settled(args.wait, before=png)
+                png = await page.settled(args.wait, before=b"" if active == first else png)
                 target = args.out / f"{name}.png"
                 target.write_bytes(png)
                 out.append(target)

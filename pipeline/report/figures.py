@@ -190,6 +190,18 @@ def decimate_columns(
     return t[keep], np.column_stack([c[keep] for c in columns])
 
 
+SPARSE = 4
+"""A series of points with at most 1/SPARSE of the densest one's points is drawn on top (the
+soak blocks among heating and cooling): a few points amid many stay visible."""
+
+
+def is_sparse(series: Series, among: Sequence[Series]) -> bool:
+    """Whether ``series`` is a few points amid many of the series ``among`` it (:data:`SPARSE`):
+    drawn on top."""
+    dense = max((len(s.x) for s in among if s.style == "points"), default=0)
+    return series.style == "points" and SPARSE * len(series.x) <= dense
+
+
 def column_ranges(plot: Plot) -> list[tuple[str, str, float, float]]:
     """(entity, line name, smallest, largest finite value) of every line of a plot."""
     out = []

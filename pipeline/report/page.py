@@ -17,9 +17,9 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-from imupipe.pipeline.notices import Notice, meaning
+from imupipe.pipeline.notices import Notice, counted, meaning
 from imupipe.pipeline.report.figures import Figures, Plot, split_by_magnitude
-from imupipe.pipeline.report.summary import StageSummary
+from imupipe.pipeline.report.summary import StageSummary, by_input, inputs_warned, reader_items
 from imupipe.pipeline.report.svg_plot import caption, svg
 from imupipe.pipeline.version import VERSION
 
@@ -71,6 +71,7 @@ def render(
     means, then each stage with its own warnings beside its results."""
     now = dt.datetime.now(dt.UTC).strftime("%Y-%m-%d %H:%M UTC")
     figures.share_time_origin()
+    warned = inputs_warned(summaries)
     parts = [
         "<!DOCTYPE html>",
         '<html lang="en"><head><meta charset="utf-8">',
@@ -79,20 +80,27 @@ def render(
         f'<p class="meta">config {html.escape(source)} &middot; imupipe {VERSION} &middot; '
         f"written {now}</p>",
         "<nav>"
+        + "".join(f'<a href="#{_input_id(n)}">inputs.{html.escape(n)}</a>' for n in warned)
         + "".join(f'<a href="#{_id(s.name)}">{html.escape(s.name)}</a>' for s in summaries)
         + "</nav>",
         "<h2>Summary</h2>",
         overview_html(summaries),
         _notes(summaries, notes),
     ]
+    for name, messages in warned.items():
+        parts.append(input_html(name, messages))
     for s in summaries:
         parts.append(stage_html(s, [p for p in figures.of_stage(s.name)]))
     parts.append("</body></html>")
     return "\n".join(parts)
 
 
-def _id(name: str) -> str:
-    return "stage-" + "".join(c if c.isalnum() else "-" for c in name)
+def _id(name: str, kind: str = "stage") -> str:
+    return f"{kind}-" + "".join(c if c.isalnum() else "-" for c in name)
+
+
+def _input_id(name: str) -> str:
+    return _id(name, "input")
 
 
 def _status_class(s: StageSummary) -> str:
@@ -114,24 +122,39 @@ def overview_html(summaries: Sequence[StageSummary]) -> str:
     )
 
 
-def _warning(level: str, message: str, where: str = "") -> str:
-    """One warning or note with what it means (an ``<li>``)."""
+def _warning(level: str, message: str, where: str = "", source: str = "stage") -> str:
+    """One warning or note with what it means (an ``<li>``); ``where``: the label shown,
+    ``source``: where it was raised (``inputs.NAME``, ``stage``: the meaning's fallback)."""
     at = f" [{html.escape(where)}]" if where else ""
+    means = meaning(message, where or source)
     return (
         f'<li><b class="warn">{level}</b>{at}: {html.escape(message)}<br>'
-        f'<span class="means">What it means: {html.escape(meaning(message))}</span></li>'
+        f'<span class="means">What it means: {html.escape(means)}</span></li>'
     )
 
 
 def _notes(summaries: Sequence[StageSummary], notes: Sequence[Notice]) -> str:
-    """Every warning of the stages and note of the run, listed under the summary table."""
-    items = [_warning("warning", w, s.name) for s in summaries for w in s.warnings]
+    """Every warning of the inputs' readers and the stages, and note of the run, listed under
+    the summary table, each labelled with where it came from."""
+    items = [_warning("warning", m, where) for where, m in reader_items(summaries)]
+    items += [_warning("warning", w, s.name) for s in summaries for w in s.warnings]
     items += [_warning(n.level, n.message, n.where) for n in notes]
     if not items:
         return ""
     return (
         f'<div class="notes"><b>Warnings and notes ({len(items)})</b><ul>{"".join(items)}</ul>'
         "</div>"
+    )
+
+
+def input_html(name: str, messages: Sequence[str]) -> str:
+    """An input's section: what its reader warned about, each with what it means."""
+    items = "".join(_warning("warning", m, source=f"inputs.{name}") for m in messages)
+    return (
+        f'<h2 id="{_input_id(name)}">inputs.{html.escape(name)} '
+        f'<small class="status-warn">(its reader: {counted(len(messages), "warning")})'
+        "</small></h2>"
+        f'<div class="notes"><ul>{items}</ul></div>'
     )
 
 
@@ -146,6 +169,12 @@ def stage_html(s: StageSummary, plots: Sequence[Plot] = ()) -> str:
     if s.warnings:
         items = "".join(_warning("warning", w) for w in s.warnings)
         out.append(f'<div class="notes"><ul>{items}</ul></div>')
+    for name, messages in by_input(s.input_warnings).items():
+        out.append(
+            f'<p class="notes">The reader of its input {html.escape(name)} warned '
+            f'({len(messages)}): listed under <a href="#{_input_id(name)}">inputs.'
+            f"{html.escape(name)}</a>.</p>"
+        )
     if s.look_at:
         out.append(f'<p class="look"><b>What to look at.</b> {html.escape(s.look_at)}</p>')
     if s.rows:

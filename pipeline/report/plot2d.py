@@ -19,7 +19,7 @@ import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
-from imupipe.pipeline.report.figures import Plot
+from imupipe.pipeline.report.figures import Plot, is_sparse
 from imupipe.pipeline.report.plot_layout import Axis, strips
 
 W, H = 160.0, 100.0
@@ -33,12 +33,16 @@ third of a decade low on a log axis, the bottom one under the frame)."""
 FRAME_COLOR = (128, 128, 128)
 GRID_COLOR = (150, 150, 150)
 TEXT_COLOR = (110, 110, 110)
-LINE_RADIUS = -1.5  # negative radii are UI points
+LINE_RADIUS = -1.0  # negative radii are UI points
 BAND_RADIUS = -1.0
-POINT_RADIUS = -2.0
+POINT_RADIUS = -2.5
+"""A fitted line (2 px) over markers 5 px across: the markers show on both sides of the line
+that follows them (the Allan deviation's measured points lay hidden under a 3 px fit, 4 px
+markers), as in ``report.html`` (:data:`~imupipe.pipeline.report.svg_plot.DOT`)."""
 GUIDE_RADIUS = -1.0
-# bands and guide lines (model terms) beneath the data, fitted lines over it
-BAND_ORDER, GUIDE_ORDER, POINT_ORDER, LINE_ORDER = 10.0, 15.0, 20.0, 30.0
+# bands and guide lines (model terms) beneath the data, fitted lines over it, and a few points
+# amid many (the soak blocks among heating and cooling: figures.is_sparse) over everything
+BAND_ORDER, GUIDE_ORDER, POINT_ORDER, LINE_ORDER, SPARSE_ORDER = 10.0, 15.0, 20.0, 30.0, 40.0
 
 
 def right_margin(plot: Plot) -> float:
@@ -89,7 +93,7 @@ def _series(plot: Plot, xa: Axis, ya: Axis) -> tuple[list, list[tuple[str, tuple
                 radii=POINT_RADIUS,
                 labels=labels,
                 show_labels=False,
-                draw_order=POINT_ORDER,
+                draw_order=SPARSE_ORDER if is_sparse(s, plot.series) else POINT_ORDER,
             )
             out.append((s.entity, points))
         else:

@@ -9,7 +9,9 @@ in. The recorder keeps these as :class:`~imupipe.pipeline.report.figures.Figures
 draws too) and decides *how* they look in Rerun:
 
 - signals over time: a ``TimeSeriesView`` per plot, on the ``time`` timeline (the one the time
-  panel opens on), opened on the span of its own data, titled with its unit. Signals are sent in
+  panel opens on: time elapsed since the start of the recording, a duration, so the viewer
+  labels ``+10m``, ``+1h`` and not the hour of the day; the samples' own times are the ``log
+  time`` timeline), opened on the span of its own data, titled with its unit. Signals are sent in
   bulk with ``rr.send_columns``; one longer than ``max_points`` is averaged over consecutive
   blocks down to that many points (the MCAP output keeps every sample);
 - curves over something else (Allan deviation over tau, bias against temperature): a
@@ -81,6 +83,13 @@ from imupipe.readers.table import (
 from imupipe.stages.base import NullRecorder
 
 TIMELINE = "time"
+"""The timeline the recording opens on: time elapsed since the start of the recording (a
+duration: the viewer labels it ``+10m``, ``+1h``, as the report's "min since start"), from
+:meth:`Recorder.start_at` (default: the first sample sent)."""
+
+LOG_TIMELINE = "log time"
+"""The samples' own times, a second timeline to switch to: dates for a wall-clock log (a ROS or
+MCAP stamp), else a duration on the log's own clock (a CSV from 0, a ULog's time since boot)."""
 
 
 class Recorder:
@@ -98,8 +107,13 @@ class Recorder:
         keep_points: int = 2_000,
         application_id: str = "imupipe",
         warn: Callable[[str], None] | None = None,
+        elapsed: bool = True,
     ) -> None:
+        """``elapsed``: the :data:`TIMELINE` counts from the start of the recording (a run's
+        session); False: it is the samples' own time, the only timeline (the fleet survey's
+        calendar, over months of flights)."""
         self.max_points = max_points
+        self._elapsed = elapsed
         self.figures = Figures(keep_points)
         self.raw_counts: dict[str, set[str]] = {}
         """input -> the sensors it holds in raw counts (not SI): plotted apart, in counts"""
@@ -121,7 +135,8 @@ class Recorder:
         self._documents: dict[str, str] = {}  # stage ("" for the run) -> markdown
         self._styled: set[str] = set()
         self._spans: dict[str, tuple[int, int]] = {}  # entity -> (first, last) t_ns
-        self._wall_clock: bool | None = None  # the time line: dates, or durations from 0
+        self._wall_clock: bool | None = None  # the log time line: dates, or durations
+        self._origin: int | None = None  # ns: 0 on the time line (start_at, or the first sample)
         self._still_counts: set[tuple[str, str]] = set()  # (input, sensor) corrected, in counts
         self._input_units: dict[tuple[str, str], str] = {}  # (stage, sensor) -> unit of its input
         self._reused: dict[Any, Series] = {}  # (input, sensor, steps applied) -> series sent
@@ -145,6 +160,13 @@ class Recorder:
                 self._live.disconnect()
             self._live = None
             self._warn(f"the Rerun viewer stopped receiving ({' '.join(str(exc).split())})")
+
+    def start_at(self, t_ns: int | None) -> None:
+        """The start of the recording (ns on the samples' clock): 0 on the :data:`TIMELINE`
+        (elapsed time); before any signal is sent (later: unchanged). None: the first sample
+        sent."""
+        if self._elapsed and self._origin is None and t_ns is not None and not self._spans:
+            self._origin = int(t_ns)
 
     def log(self, entity: str, archetype: Any, *, static: bool = True) -> None:
         """Anything else (a mesh, arrows...): one ``rr.log`` call, shown in a view the stage adds
@@ -231,17 +253,25 @@ class Recorder:
         )
         for name, color in zip(names, colors, strict=True):
             self._style(line_path(entity, name), [name], [color], points, highlight)
-        lo, hi = int(t_ns.min()), int(t_ns.max())
+        if self._wall_clock is None:  # one kind per timeline: the first signal decides
+            self._wall_clock = is_wall_clock(int(t_ns.min()))
+        if self._origin is None:
+            self._origin = int(t_ns.min()) if self._elapsed else 0
+        elapsed = t_ns - self._origin
+        lo, hi = int(elapsed.min()), int(elapsed.max())  # spans on the time line
         first, last = self._spans.get(entity, (lo, hi))
         self._spans[entity] = (min(first, lo), max(last, hi))
-        if self._wall_clock is None:  # one kind per timeline: the first signal decides
-            self._wall_clock = is_wall_clock(lo)
         if self._streams:
+            own = LOG_TIMELINE if self._elapsed else TIMELINE
             indexes = [
-                rr.TimeColumn(TIMELINE, timestamp=t_ns.astype("datetime64[ns]"))
+                rr.TimeColumn(own, timestamp=t_ns.astype("datetime64[ns]"))
                 if self._wall_clock
-                else rr.TimeColumn(TIMELINE, duration=t_ns.astype("timedelta64[ns]"))
+                else rr.TimeColumn(own, duration=t_ns.astype("timedelta64[ns]"))
             ]
+            if self._elapsed:
+                indexes.insert(
+                    0, rr.TimeColumn(TIMELINE, duration=elapsed.astype("timedelta64[ns]"))
+                )
             for j, name in enumerate(names):  # one entity per line: views pick lines
                 path, columns = line_path(entity, name), rr.Scalars.columns(scalars=values[:, j])
                 self._send(
@@ -562,15 +592,19 @@ class Recorder:
             if s.extra.get("under")
             for n, c in zip(s.names, s.colors, strict=True)
         }
+        policy = rr.components.AggregationPolicy.MinMax
         overrides = {}
         if under and len(under) < len(paths):  # beneath lines of another kind: see-through
-            policy = rr.components.AggregationPolicy.MinMax
             overrides = {
                 path: rr.SeriesLines(
-                    colors=[see_through(color)], aggregation_policy=policy
+                    colors=[see_through(color)], widths=[UNDER_PX], aggregation_policy=policy
                 ).visualizer()
                 for path, color in under.items()
             }
+        for path, color in crossing(part).items():  # x, y, z over each other: all show
+            overrides[path] = rr.SeriesLines(
+                colors=[see_through(color, CROSSING_ALPHA)], aggregation_policy=policy
+            ).visualizer()
         # the legend's corner kept free of data: above the data (a y range with room) or, where
         # that costs less of the view (a wide view), beside it (a time range that runs on)
         rows, wide = len(paths), legend_width(paths_names(part)) / max(width_px or PLOT_PX, 1.0)
@@ -804,8 +838,33 @@ SIGNALS_PER_TAB = 4
 """The most views of a long session stacked in one inner tab (each keeps ~200 px of height)."""
 HIGHLIGHT_PX, HIGHLIGHT_ALPHA = 6.0, 0.4
 """Width (px) and opacity of a ``highlight`` line (:meth:`Recorder.series`)."""
-UNDER_ALPHA = 0.4
-"""Opacity of a line ``under`` the others of its view (:meth:`Recorder.series`)."""
+UNDER_ALPHA, UNDER_PX = 0.4, 3.0
+"""Opacity and width (px) of a line ``under`` the others of its view (:meth:`Recorder.series`):
+a light halo around the line over it, which a line of the same values (a temperature of little
+noise beneath its block means) showed nothing of at the viewer's width (0.75 px)."""
+
+
+CROSSING_ALPHA = 0.6
+"""Opacity of lines over time that share their values' range with another line of their view
+(x, y and z corrected, all about 0): as ``report.html``'s lines over time
+(:data:`~imupipe.pipeline.report.svg_plot.LINE_OPACITY`), so the one drawn last hides none."""
+
+
+def crossing(plot: Plot) -> dict[str, tuple[int, ...]]:
+    """Line entity -> colour of the lines of ``plot`` (neither ``under`` nor ``highlight``) whose
+    range of values overlaps another such line's: drawn in one view, one would hide the other."""
+    kept = {
+        (s.entity, n): c
+        for s in plot.series
+        if not s.extra.get("under") and not s.extra.get("highlight") and s.style != "points"
+        for n, c in zip(s.names, s.colors, strict=True)
+    }
+    ranges = [(e, n, lo, hi) for e, n, lo, hi in column_ranges(plot) if (e, n) in kept]
+    out = {}
+    for i, (e, n, lo, hi) in enumerate(ranges):
+        if any(lo <= b and a <= hi for k, (_, _, a, b) in enumerate(ranges) if k != i):
+            out[line_path(e, n)] = tuple(kept[(e, n)])
+    return out
 
 
 def see_through(color: Sequence[int], alpha: float = UNDER_ALPHA) -> tuple[int, int, int, int]:

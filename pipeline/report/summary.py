@@ -43,7 +43,13 @@ class StageSummary:
     rows: list[Row] = field(default_factory=list)
     quality: list[tuple[str, str]] = field(default_factory=list)
     warnings: list[str] = field(default_factory=list)
+    """The stage's own warnings (its fit's, its steps'); a reader's are in ``input_warnings``."""
+    input_warnings: list[tuple[str, str]] = field(default_factory=list)
+    """(input, message): what the reader of an input this stage read warned about; listed under
+    the input (``[inputs.NAME]``), not the stage, in every rendering."""
     failed_checks: list[str] = field(default_factory=list)
+    caveats: list[str] = field(default_factory=list)
+    """What the status line says beside ``ok`` (``at rest not judged (5 s)``)."""
     look_at: str = ""
     counts: frozenset[str] = frozenset()
     """Sensors the stage's input holds in raw counts (not SI): their offsets are in counts."""
@@ -54,11 +60,14 @@ class StageSummary:
     @property
     def status(self) -> str:
         """``ok``, ``ok, 2 warnings``, or ``1 failed check accepted, 2 warnings``: never a bare
-        ``ok`` for a stage that warned."""
-        warned = f", {counted(len(self.warnings), 'warning')}" if self.warnings else ""
+        ``ok`` for a stage that warned; its caveats after the ``ok`` (``ok, at rest not judged
+        (5 s), 1 warning``)."""
+        n = len(self.warnings) + len(self.input_warnings)
+        warned = f", {counted(n, 'warning')}" if n else ""
+        said = "".join(f", {c}" for c in self.caveats)
         if self.failed_checks:
-            return f"{counted(len(self.failed_checks), 'failed check')} accepted{warned}"
-        return f"ok{warned}"
+            return f"{counted(len(self.failed_checks), 'failed check')} accepted{said}{warned}"
+        return f"ok{said}{warned}"
 
 
 # -- number formatting -------------------------------------------------------------------------
@@ -194,12 +203,25 @@ def _gyro_bias(r: dict[str, Any], s: StageSummary) -> None:
         )
     if "max_1s_excursion" in m:
         s.quality.append(("largest 1 s mean excursion", f"{fmt(m['max_1s_excursion'], 3)} {unit}"))
-    if "static" in m:
-        s.quality.append(("at rest", fmt(m["static"])))
+    rest = _at_rest(m)
+    if rest:
+        s.quality.append(("at rest", rest))
+    if m.get("static_judged") is False:  # the status line says it, not only a warning
+        s.caveats.append(f"at rest not judged ({fmt(m.get('duration_s'), 2)} s)")
     if cells:
         s.headline = (
             "bias " + ", ".join(f"{a} {c}" for a, c in zip(AXES, cells, strict=True)) + f" {unit}"
         )
+
+
+def _at_rest(m: dict[str, Any]) -> str:
+    """``yes``, ``no``, or ``not judged (5 s, need a minute or more)`` for a recording too short
+    to tell (``static_judged`` false; ``""`` without ``static``)."""
+    if "static" not in m:
+        return ""
+    if m.get("static_judged") is False:
+        return f"not judged ({fmt(m.get('duration_s'), 2)} s, need a minute or more)"
+    return fmt(m["static"])
 
 
 def _residual(rms: Any, largest: Any, before: Any, unit: str) -> str:
@@ -594,10 +616,14 @@ def raw_count_sensors(inputs: Mapping[str, Any]) -> dict[str, set[str]]:
 
 
 def summarise(
-    results: dict[str, dict[str, Any]], counts: Mapping[str, set[str]] | None = None
+    results: dict[str, dict[str, Any]],
+    counts: Mapping[str, set[str]] | None = None,
+    notices: Sequence[Notice] = (),
 ) -> list[StageSummary]:
     """One :class:`StageSummary` per stage of ``calibration.json``'s ``results``, in run order;
-    ``counts``: input -> sensors in raw counts (:func:`raw_count_sensors`)."""
+    ``counts``: input -> sensors in raw counts (:func:`raw_count_sensors`); ``notices``: the
+    run's record (:class:`~imupipe.pipeline.notices.Notices`), which tells a reader's warnings
+    (listed under their input) from the stage's own."""
     out = []
     for name, r in results.items():
         s = StageSummary(name=name, type=str(r.get("type", "?")), input=str(r.get("input", "?")))
@@ -607,7 +633,10 @@ def summarise(
         except (TypeError, ValueError, KeyError, IndexError, ZeroDivisionError) as exc:
             s.quality.append(("summary", f"incomplete ({type(exc).__name__}: {exc})"))
         s.look_at = LOOK_AT.get(s.type, "")
-        s.warnings = [str(w) for w in r.get("warnings", [])]
+        read = {n.message: n.source.split(".", 1)[1] for n in notices if n.stage == name and n.source.startswith("inputs.")}  # fmt: skip
+        warnings = [" ".join(str(w).split()) for w in r.get("warnings", [])]
+        s.warnings = [w for w in warnings if w not in read]
+        s.input_warnings = [(read[w], w) for w in warnings if w in read]
         s.failed_checks = [str(c) for c in r.get("failed_checks", [])]
         out.append(s)
     return out
@@ -640,6 +669,8 @@ def stage_markdown(s: StageSummary, heading: str = "#") -> str:
     if s.warnings:
         lines += ["", "**Warnings**", ""]
         lines += [f"- {_md_escape(w)}  \n  *What it means:* {meaning(w)}" for w in s.warnings]
+    for name, messages in by_input(s.input_warnings).items():
+        lines += ["", f"{_from_input(name, len(messages))}, listed under `inputs.{name}` in the Summary."]  # fmt: skip
     if s.look_at:
         lines += ["", f"**What to look at.** {s.look_at}"]
     return "\n".join(lines) + "\n"
@@ -648,14 +679,49 @@ def stage_markdown(s: StageSummary, heading: str = "#") -> str:
 def notes_markdown(summaries: Sequence[StageSummary], notes: Sequence[Notice] = ()) -> list[str]:
     """Every warning of the stages and every note of the run (``notes``), each with its
     meaning: the list the run's summary opens with (none: nothing)."""
-    items = [(s.name, "warning", w) for s in summaries for w in s.warnings]
+    items = [(where, "warning", m) for where, m in reader_items(summaries)]
+    items += [(s.name, "warning", w) for s in summaries for w in s.warnings]
     items += [(n.where, n.level, n.message) for n in notes]
     if not items:
         return []
     lines = ["", f"**Warnings and notes ({len(items)})**", ""]
     for where, level, message in items:
         lines.append(f"- {level} [{_md_escape(where)}]: {_md_escape(message)}  ")
-        lines.append(f"  *What it means:* {meaning(message)}")
+        lines.append(f"  *What it means:* {meaning(message, where)}")
+    return lines
+
+
+def by_input(items: Sequence[tuple[str, str]]) -> dict[str, list[str]]:
+    """(input, message) pairs as input -> its messages, each once, in the order raised."""
+    out: dict[str, list[str]] = {}
+    for name, message in items:
+        if message not in out.setdefault(name, []):
+            out[name].append(message)
+    return out
+
+
+def inputs_warned(summaries: Sequence[StageSummary]) -> dict[str, list[str]]:
+    """Input -> what its reader warned about (each once, however many stages read it)."""
+    return by_input([item for s in summaries for item in s.input_warnings])
+
+
+def reader_items(summaries: Sequence[StageSummary]) -> list[tuple[str, str]]:
+    """(``inputs.NAME``, message) of every reader warning of the run, each once."""
+    return [(f"inputs.{n}", m) for n, ms in inputs_warned(summaries).items() for m in ms]
+
+
+def _from_input(name: str, n: int) -> str:
+    """``The reader of its input gyro1 warned (3)``: a stage's pointer to its input's warnings."""
+    return f"The reader of its input `{name}` warned ({n})"
+
+
+def inputs_markdown(summaries: Sequence[StageSummary]) -> list[str]:
+    """A section per input whose reader warned: its warnings with their meanings."""
+    lines: list[str] = []
+    for name, messages in inputs_warned(summaries).items():
+        lines += ["", f"## inputs.{name}", "", "**Warnings of its reader**", ""]
+        where = f"inputs.{name}"
+        lines += [f"- {_md_escape(m)}  \n  *What it means:* {meaning(m, where)}" for m in messages]
     return lines
 
 
@@ -679,6 +745,7 @@ def run_markdown(
             + " |"
         )
     lines += notes_markdown(summaries, notes)
+    lines += inputs_markdown(summaries)
     for s in summaries:
         lines += ["", stage_markdown(s, heading="##")]
     return "\n".join(lines) + "\n"
@@ -712,6 +779,10 @@ def print_summary(summaries: Sequence[StageSummary], console: Any = None) -> Non
             console.print(f"  [red]failed check (accepted):[/red] {escape(check)}", highlight=False)
         for warning in s.warnings:
             console.print(f"  [yellow]warning:[/yellow] {escape(warning)}", highlight=False)
+        for name, messages in by_input(s.input_warnings).items():
+            text = _from_input(name, len(messages)).replace("`", "")
+            under = escape(f"[inputs.{name}]")
+            console.print(f"  [yellow]{text}[/yellow]: listed under {under} below", highlight=False)
         console.print()
 
 
@@ -719,6 +790,8 @@ def print_notices(notices: Sequence[Notice], console: Any = None) -> None:
     """Every warning and note of the run, each with what it means: the end of the summary on
     the terminal, just above the files written (the warnings printed while the run went have
     scrolled away)."""
+    # a reader's warning once, however many stages read the input
+    notices = list({(n.level, n.where, n.message): n for n in notices}.values())
     if not notices:
         return
     from rich.console import Console

@@ -36,7 +36,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from imupipe.pipeline.report.figures import Plot, Series, is_wall_clock
+from imupipe.pipeline.report.figures import Plot, Series, is_sparse, is_wall_clock
 from imupipe.pipeline.report.plot_layout import Axis, pow10_text, runs, strips
 
 WIDTH, HEIGHT = 640.0, 340.0
@@ -404,15 +404,14 @@ def _curves(
     box: Box, xa: Axis, ya: Axis, series: list[Series], xs: list[np.ndarray], kind: str
 ) -> list[str]:
     """Highlights, bands, lines under others, guides, dots and lines in that order, then the
-    dots of a sparse series (1/:data:`SPARSE` of the densest one's points or fewer: the soak
+    dots of a sparse series (:func:`~imupipe.pipeline.report.figures.is_sparse`: the soak
     blocks among heating and cooling) on top, on white edges: a few points over a dense cloud or
     a line stay visible."""
     out: list[str] = []
-    dense = max((len(s.x) for s in series if s.style == "points"), default=0)
 
     def rank(pair: tuple[Series, np.ndarray]) -> float:
         s = pair[0]
-        if s.style == "points" and SPARSE * len(s.x) <= dense:
+        if is_sparse(s, series):
             return 9.0
         return {"highlight": -2.0, "under": -0.5}.get(_line_style(s), ORDER.get(s.style, 3))
 
@@ -453,8 +452,6 @@ def _curves(
     return out
 
 
-SPARSE = 4
-"""A series of dots with at most 1/SPARSE of the densest one's points is drawn on top."""
 SPAN_OPACITY = 0.2
 
 

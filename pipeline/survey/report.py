@@ -671,7 +671,7 @@ def write_recording(
     (``/survey/compass/<device>/offset/offset_x``..., ``.../motor/motor_x``...)."""
     from imupipe.pipeline.report.recording import Recorder
 
-    recorder = Recorder(Path(path), application_id="imupipe survey")
+    recorder = Recorder(Path(path), application_id="imupipe survey", elapsed=False)  # calendar
     if table is not None:
         _record_imus(recorder, table, fleet)
     _record_compasses(recorder, compass)

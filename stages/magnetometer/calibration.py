@@ -438,7 +438,7 @@ class MagCalibrationStage(Stage):
         names = ("|h| raw", "|h| corrected", "field magnitude")
         colors = [(150, 150, 150), (40, 100, 230), (30, 160, 60)]
         first = 0 if unit_name == fixed_unit else 1  # one unit per plot: raw counts apart
-        parts = [(slice(1, 3), False)] if first else [(slice(0, 1), True), (slice(1, 3), False)]
+        parts = [(slice(1, 2), False)] if first else [(slice(0, 1), True), (slice(1, 2), False)]
         for keep, under in parts:  # the raw magnitude beneath the others
             rec.series(
                 f"/{name}/norm",
@@ -450,3 +450,15 @@ class MagCalibrationStage(Stage):
                 colors=colors[keep],
                 under=under,
             )
+        # the field's magnitude over |h| corrected (the viewer draws lines in entity-path
+        # order: under it, the noisy |h| hid it), in the same plot
+        rec.series(
+            f"/{name}/norm/reference",
+            t_ns,
+            norms[:, 2],
+            names[2:],
+            unit=fixed_unit,
+            title="|h|",
+            colors=colors[2:],
+            plot="norm",
+        )
