@@ -169,6 +169,107 @@ def _unpack(theta: np.ndarray, model: str, motor_term: bool) -> tuple[np.ndarray
     return m, offset, motor
 
 
+SCALE_RANGE = (1 / 1.5, 1.5)
+"""The common scale of the soft iron ArduPilot applies (``COMPASS_SCALE``:
+``Compass::have_scale_factor``, ``COMPASS_MIN/MAX_SCALE_FACTOR``; MagFit bounds it 0.6..1.5)."""
+DIAGONAL_RANGE = (0.8, 1.2)
+"""The soft iron's diagonal over its common scale (``COMPASS_DIA``): MagFit's bounds
+(``magfit_WMM.py --min-diag/--max-diag``); ArduPilot's own calibrator refuses beyond 0.2..5
+(``CompassCalibrator::fit_acceptable``), a physical compass stays well inside 0.8..1.2."""
+OFF_DIAGONAL_MAX = 0.2
+"""The soft iron's off-diagonal over its common scale (``COMPASS_ODI``): MagFit's bound
+(``--min-offdiag/--max-offdiag``; the calibrator's is 1)."""
+
+
+def bound_constraints(model: str, p: int) -> tuple[np.ndarray, np.ndarray]:
+    """``(G, h)``: the firmware's ranges of ``model``'s matrix as linear inequalities ``G theta >=
+    h`` on :attr:`Fit.theta` (``p`` entries): the scale ``s`` (the mean diagonal) inside
+    :data:`SCALE_RANGE`, each diagonal inside :data:`DIAGONAL_RANGE` times ``s``, each
+    off-diagonal within +-:data:`OFF_DIAGONAL_MAX` times ``s`` (``COMPASS_SCALE`` x ``DIA``/
+    ``ODI``, as MagFit bounds them: ``magfit_WMM.py --min-scale/--max-diag/--max-offdiag``),
+    each bound moved inward by :data:`BOUND_MARGIN` so that a bounded fit is written, not
+    refused, by :func:`out_of_range`. None for ``offsets``."""
+    rows: list[np.ndarray] = []
+    low: list[float] = []
+    lo_s, hi_s = SCALE_RANGE[0] * (1 + BOUND_MARGIN), SCALE_RANGE[1] * (1 - BOUND_MARGIN)
+    if model == "scale":
+        rows += [np.eye(p)[0], -np.eye(p)[0]]
+        low += [lo_s, -hi_s]
+    elif model == "soft_iron":
+        mean = np.zeros(p)
+        mean[:3] = 1.0 / 3.0
+        lo_d, hi_d = DIAGONAL_RANGE[0] + BOUND_MARGIN, DIAGONAL_RANGE[1] - BOUND_MARGIN
+        off = OFF_DIAGONAL_MAX - BOUND_MARGIN
+        for i in range(3):
+            rows += [np.eye(p)[i] - lo_d * mean, hi_d * mean - np.eye(p)[i]]
+            rows += [off * mean - np.eye(p)[3 + i], off * mean + np.eye(p)[3 + i]]
+            low += [0.0, 0.0, 0.0, 0.0]
+        rows += [mean, -mean]
+        low += [lo_s, -hi_s]
+    return np.array(rows).reshape(-1, p), np.array(low)
+
+
+BOUND_MARGIN = 1e-4
+"""How far inside the firmware's ranges a bounded fit stays (relative)."""
+
+
+def solve_bounded(h: np.ndarray, g: np.ndarray, model: str) -> np.ndarray:
+    """The ``theta`` minimising ``theta^T h theta / 2 - g^T theta`` (normal equations ``h theta
+    = g`` of one weighted least-squares step) within the firmware's ranges of ``model``
+    (:func:`bound_constraints`): the unconstrained solution when it lies inside them, else the
+    constrained minimum (SLSQP, as MagFit fits with bounds). Raises ``np.linalg.LinAlgError``
+    when ``h`` is singular."""
+    theta = np.linalg.solve(h, g)
+    if model == "offsets":
+        return theta
+    gm, low = bound_constraints(model, len(theta))
+    if np.all(gm @ theta >= low):
+        return theta
+    from scipy.optimize import minimize  # loaded only when a fit leaves the ranges
+
+    norm = float(np.trace(h)) / len(theta)  # keeps the objective of order 1
+    hn, gn = h / norm, g / norm
+    start = theta.copy()
+    if model == "scale":
+        start[0] = np.clip(start[0], *SCALE_RANGE)
+    else:
+        d = start[:3]
+        s = float(np.clip(np.mean(d), *SCALE_RANGE))
+        start[:3] = np.clip(d, DIAGONAL_RANGE[0] * s, DIAGONAL_RANGE[1] * s)
+        start[3:6] = np.clip(start[3:6], -OFF_DIAGONAL_MAX * s, OFF_DIAGONAL_MAX * s)
+    res = minimize(
+        lambda x: 0.5 * x @ hn @ x - gn @ x,
+        start,
+        jac=lambda x: hn @ x - gn,
+        constraints=[{"type": "ineq", "fun": lambda x: gm @ x - low, "jac": lambda x: gm}],
+        method="SLSQP",
+        options={"ftol": 1e-14, "maxiter": 500},
+    )
+    return np.asarray(res.x, dtype=np.float64)
+
+
+FEW_DIRECTIONS_RIDGE = 1e-3
+"""Weight of :func:`toward_scale` (relative to the data's mean weight on a matrix term) on a
+flight whose field directions spread less than ``min_spread``."""
+
+
+def toward_scale(h: np.ndarray, model: str, ridge: float) -> np.ndarray:
+    """A ridge on a soft-iron fit's normal matrix ``h``: ``ridge`` times its mean diagonal over
+    the matrix terms, on the matrix's departure from its scale (each diagonal minus their mean,
+    each off-diagonal). On a flight of few directions (:data:`FEW_DIRECTIONS_RIDGE`) a term the
+    attitudes turned is determined by the data ~100 to 1, while one they did not turn (the
+    vertical row of a flight that stayed level: ``M_zz`` trades with the vertical offset, and
+    least squares shrinks it by the noise) stays at the scale model's. Zeros for the other
+    models or ``ridge`` 0."""
+    out = np.zeros_like(h)
+    if model != "soft_iron" or ridge <= 0:
+        return out
+    lam = ridge * float(np.mean(np.diag(h)[:6]))
+    out[:3, :3] = lam * (np.eye(3) - 1.0 / 3.0)  # (d - mean d)^T (d - mean d)
+    out[3:6, 3:6] = lam * 2.0 * np.eye(3)  # each off-diagonal is in M twice
+    return out
+
+
 def fit_model(
     raw: np.ndarray,
     target: np.ndarray,
@@ -177,6 +278,7 @@ def fit_model(
     huber_k: float = 1.5,
     outlier_k: float = 5.0,
     iterations: int = 20,
+    ridge: float = 0.0,
 ) -> Fit:
     """Robust (Huber IRLS, outliers beyond ``outlier_k`` robust sigmas rejected) linear fit of
     ``target ~ M raw + b + motor I`` (normal equations: fields in uT and current in A keep them
@@ -192,7 +294,8 @@ def fit_model(
     for _ in range(iterations):
         ww = np.tile(w * keep, 3)
         aw = a * ww[:, None]
-        theta_new = np.linalg.solve(aw.T @ a, aw.T @ rhs)
+        h = aw.T @ a
+        theta_new = solve_bounded(h + toward_scale(h, model, ridge), aw.T @ rhs, model)
         r = (rhs - a @ theta_new).reshape(3, n).T
         e = np.linalg.norm(r, axis=1)
         sigma = float(1.4826 * np.median(e[keep])) / np.sqrt(3) * 1.0 + 1e-300
@@ -214,7 +317,8 @@ def fit_model(
         den = float(np.sum(rr * rr)) or 1.0
         rho = min(max(num / den, 0.0), 0.99)
     inflate = (1 + rho) / (1 - rho)
-    cov = np.linalg.inv((a * ww[:, None]).T @ a) * s2 * inflate
+    h = (a * ww[:, None]).T @ a
+    cov = np.linalg.inv(h + toward_scale(h, model, ridge)) * s2 * inflate
     m, offset, motor = _unpack(theta, model, current is not None)
     return Fit(
         model, current is not None, m, offset / UT, motor / UT, theta, cov, keep, np.sqrt(s2)
@@ -228,6 +332,7 @@ def held_out_rms(
     model: str,
     segments: list[np.ndarray],
     options: Any,
+    ridge: float = 0.0,
 ) -> float:
     """RMS vector residual (T) of ``model`` (with the motor term on ``power`` when given) over
     the held-out ``segments``: each fitted on the others (``options.huber_k``/``outlier_k``),
@@ -244,6 +349,7 @@ def held_out_rms(
             model,
             options.huber_k,
             options.outlier_k,
+            ridge=ridge,
         )
         r = np.linalg.norm(
             f.predict(raw[seg], None if power is None else power[seg]) - target[seg], axis=1
@@ -394,18 +500,6 @@ class FlownFit:
     h_after: np.ndarray
 
 
-SCALE_RANGE = (1 / 1.5, 1.5)
-"""The common scale of the soft iron ArduPilot applies (``COMPASS_SCALE``:
-``Compass::have_scale_factor``, ``COMPASS_MIN/MAX_SCALE_FACTOR``; MagFit bounds it 0.6..1.5)."""
-DIAGONAL_RANGE = (0.8, 1.2)
-"""The soft iron's diagonal over its common scale (``COMPASS_DIA``): MagFit's bounds
-(``magfit_WMM.py --min-diag/--max-diag``); ArduPilot's own calibrator refuses beyond 0.2..5
-(``CompassCalibrator::fit_acceptable``), a physical compass stays well inside 0.8..1.2."""
-OFF_DIAGONAL_MAX = 0.2
-"""The soft iron's off-diagonal over its common scale (``COMPASS_ODI``): MagFit's bound
-(``--min-offdiag/--max-offdiag``; the calibrator's is 1)."""
-
-
 def out_of_range(matrix: np.ndarray) -> str:
     """Why the soft-iron ``matrix`` M has no plausible ArduPilot form (empty when it has): M
     as ``COMPASS_SCALE`` (its mean diagonal) times ``DIA``/``ODI`` (as MagFit normalises it),
@@ -431,6 +525,25 @@ def out_of_range(matrix: np.ndarray) -> str:
             f"(COMPASS_ODI over COMPASS_SCALE {scale:.3f})"
         )
     return ""
+
+
+def at_bounds(matrix: np.ndarray) -> str:
+    """Which terms of a bounded fit's ``matrix`` sit at the firmware's ranges
+    (:func:`bound_constraints`; within twice :data:`BOUND_MARGIN`), empty when none do."""
+    scale = float(np.mean(np.diag(matrix)))
+    rel = matrix / scale
+    tol = 2 * BOUND_MARGIN
+    said = []
+    if scale <= SCALE_RANGE[0] * (1 + tol) or scale >= SCALE_RANGE[1] * (1 - tol):
+        said.append(f"COMPASS_SCALE {scale:.3f}")
+    for i, a in enumerate("XYZ"):
+        d = rel[i, i]
+        if d <= DIAGONAL_RANGE[0] + tol or d >= DIAGONAL_RANGE[1] - tol:
+            said.append(f"DIA_{a} {d:.3f}")
+    for (i, k), a in zip(((0, 1), (0, 2), (1, 2)), "XYZ", strict=True):
+        if abs(rel[i, k]) >= OFF_DIAGONAL_MAX - tol:
+            said.append(f"ODI_{a} {rel[i, k]:.3f}")
+    return ", ".join(said)
 
 
 def coverage_of(q: np.ndarray, target: np.ndarray) -> dict[str, Any]:
@@ -517,17 +630,21 @@ def fit_flight(fs: FlightSamples, o: Any) -> FlownFit:  # noqa: C901
     if o.model == "scale" and not can_scale:
         raise CannotSeparate("cannot separate " + reasons[-1])
     if o.model == "auto":
-        candidates = ["offsets"] + ["scale"] * can_scale + ["soft_iron"] * can_soft
+        # soft iron on few directions too: held to the firmware's ranges (as MagFit bounds it)
+        # and kept only when it wins on held-out segments (erle_pxf_218's and forum13645's
+        # first 60 %: tilt to 10-12 deg; refused before, their held-out residual lost to MagFit)
+        candidates = ["offsets"] + ["scale"] * can_scale + ["soft_iron"] * can_scale
     else:
         candidates = [o.model]
 
     # -- model choice on held-out segments -----------------------------------------------
     held: dict[str, float] = {}
+    ridge = 0.0 if can_soft else FEW_DIRECTIONS_RIDGE  # unturned terms kept at the scale's
     segments = np.array_split(np.arange(len(raw)), o.folds)
     for model in candidates:
         try:
-            whole = fit_model(raw, target, power, model, o.huber_k, o.outlier_k)
-            held[model] = held_out_rms(raw, target, power, model, segments, o)
+            whole = fit_model(raw, target, power, model, o.huber_k, o.outlier_k, ridge=ridge)
+            held[model] = held_out_rms(raw, target, power, model, segments, o, ridge)
         except np.linalg.LinAlgError:
             continue
         wrong = out_of_range(whole.matrix)
@@ -541,13 +658,25 @@ def fit_flight(fs: FlightSamples, o: Any) -> FlownFit:  # noqa: C901
         raise CannotSeparate("every candidate model is singular on this flight")
     best = min(held.values())
     chosen = next(m for m in candidates if m in held and held[m] <= best * 1.02)
+    if chosen == "soft_iron" and not can_soft:  # not refused after all: say on what it stands
+        gone = next(r for r in reasons if r.startswith("soft iron"))
+        reasons.remove(gone)
+        warnings.remove("not fitted: " + gone)
+        warnings.append(
+            f"soft iron fitted on few directions (spread {spread[0]:.3g} < min_spread "
+            f"{o.min_spread:g}, yaw covered {yaw_cover:.0f} deg, tilt to "
+            f"{coverage['tilt_max_deg']:.0f} deg): held to ArduPilot's ranges and chosen on "
+            f"held-out segments ({held['soft_iron'] * UT:.3g} uT against "
+            + ", ".join(f"{m} {v * UT:.3g}" for m, v in held.items() if m != "soft_iron")
+            + ")"
+        )
 
     # -- the motor term: kept only when it lowers the held-out residual ---------------------
     held_source: dict[str, float] = {}
     if source is not None and o.motor == "auto" and source != fs.compensated:
         held_source[source] = held[chosen]
         try:
-            held_source["none"] = held_out_rms(raw, target, None, chosen, segments, o)
+            held_source["none"] = held_out_rms(raw, target, None, chosen, segments, o, ridge)
         except np.linalg.LinAlgError:
             held_source["none"] = np.inf
         margin = 0.02 if source == "throttle" else 0.0  # the throttle is a proxy: 2 %
@@ -561,7 +690,10 @@ def fit_flight(fs: FlightSamples, o: Any) -> FlownFit:  # noqa: C901
             )
             warnings.append("not fitted: " + reasons[-1])
             source, power = None, None
-    fit = fit_model(raw, target, power, chosen, o.huber_k, o.outlier_k)
+    fit = fit_model(raw, target, power, chosen, o.huber_k, o.outlier_k, ridge=ridge)
+    bounded = at_bounds(fit.matrix) if chosen != "offsets" else ""
+    if bounded:
+        warnings.append(f"{chosen} held at ArduPilot's ranges: {bounded}")
 
     before = np.linalg.norm(raw - target, axis=1)
     corrected = fit.predict(raw, power)
