@@ -437,6 +437,16 @@ def test_flights_of_one_vehicle_fitted_together():
     assert np.linalg.norm(np.array(r["motor_t_per_a"]) - motor) < 0.05 * np.linalg.norm(motor)
     flights = r["metrics"]["flights"]
     assert set(flights) == {"a", "b"} and flights["b"]["samples"] > 4400
+    # the model is chosen on held-out flights (each fitted on the other, scored on itself),
+    # not on time segments cutting across both
+    from imupipe.stages.magnetometer.inflight import held_out_rms
+
+    assert r["metrics"]["held_out_on"] == "flights"
+    joined, counts = stage._joint(a, ctx)
+    each = [np.arange(counts[0]), np.arange(counts[0], sum(counts))]
+    for model, got in r["metrics"]["held_out_rms_ut"].items():
+        want = held_out_rms(joined.raw, joined.target, joined.current, model, each, stage.options)
+        assert got == pytest.approx(want * 1e6, rel=1e-9), model
     assert all(f["residual_rms_ut_after"] < 0.5 for f in flights.values())
     other, _ = simulate("flight", {"duration_s": 30.0, "vehicle": VEHICLE}, seed=9)
     ctx = StageContext(name="compass", input_name="a", quiet=True, tables={"a": a, "b": other})

@@ -18,8 +18,14 @@ residual (``huber_k`` robust sigmas), samples beyond ``outlier_k`` robust sigmas
 
 Model choice (``model = "auto"``): ``offsets`` (M = I), ``scale`` (M = s I), ``soft_iron``
 (symmetric M), each with the motor term when the current varies; the flight is cut into
-``folds`` segments in time, each candidate fitted on the others and scored on the one held
-out, and the simplest candidate within 2 % of the best held-out RMS residual is kept.
+``folds`` segments in time (several flights of one vehicle, ``flights``: each flight is a
+segment), each candidate fitted on the others and scored on the one held out, and the simplest
+candidate within 2 % of the best held-out RMS residual is kept. The soft iron is fitted within
+ArduPilot's ranges (``COMPASS_SCALE`` 1/1.5..1.5, ``DIA`` 0.8..1.2, ``ODI`` +-0.2 of the
+scale; :func:`solve_bounded`), as MagFit bounds its fit, and is a candidate also on a flight
+whose field directions spread less than ``min_spread`` (little tilt): there its terms the
+attitudes did not turn are held at the scale model's by a ridge (:func:`toward_scale`), and
+the held-out segments decide.
 
 Motor source (``motor_source = "auto"``): the battery current when it is logged and
 separable, else the throttle (the table's ``throttle`` flight stream: ArduCopter ``CTUN.ThO``,
@@ -282,7 +288,8 @@ def fit_model(
 ) -> Fit:
     """Robust (Huber IRLS, outliers beyond ``outlier_k`` robust sigmas rejected) linear fit of
     ``target ~ M raw + b + motor I`` (normal equations: fields in uT and current in A keep them
-    well scaled); raises ``np.linalg.LinAlgError`` when singular."""
+    well scaled), each step within the firmware's ranges (:func:`solve_bounded`) with the
+    ``ridge`` of :func:`toward_scale`; raises ``np.linalg.LinAlgError`` when singular."""
     n = len(raw)
     raw, target = raw * UT, target * UT
     a = _design(raw, current, model)
@@ -336,7 +343,7 @@ def held_out_rms(
 ) -> float:
     """RMS vector residual (T) of ``model`` (with the motor term on ``power`` when given) over
     the held-out ``segments``: each fitted on the others (``options.huber_k``/``outlier_k``),
-    scored on itself, beyond 5 medians left out. Raises ``np.linalg.LinAlgError`` when a fit
+    scored on itself, beyond 5 medians left out (``ridge``: :func:`toward_scale`). Raises ``np.linalg.LinAlgError`` when a fit
     is singular."""
     sq, cnt = 0.0, 0
     for seg in segments:
@@ -562,14 +569,23 @@ def coverage_of(q: np.ndarray, target: np.ndarray) -> dict[str, Any]:
     }
 
 
-def fit_flight(fs: FlightSamples, o: Any) -> FlownFit:  # noqa: C901
+def fit_flight(  # noqa: C901
+    fs: FlightSamples, o: Any, flights: list[int] | None = None
+) -> FlownFit:
     """The in-flight compass fit of the module docstring on ``fs``, under ``o`` (the stage's
     :class:`MagInflightStage.Options` or any object with its fields): what the flight can
     separate, the model chosen on held-out segments, the motor source (current or throttle,
     held-out 2 % rule), the final robust fit and its figures. ``fs`` is in the body frame
     (:func:`flight_samples` turns a raw PX4 field by :func:`sensor_rotation`).
     :class:`CannotSeparate` when the model or motor term asked for cannot be separated, or every
-    candidate is singular. One implementation for the stage and for ``imupipe survey``."""
+    candidate is singular. One implementation for the stage and for ``imupipe survey``.
+
+    ``flights``: the sample counts of the flights ``fs`` joins, in order (several flights of
+    one vehicle fitted together): the held-out segments are then the flights themselves, each
+    candidate fitted on the others and scored on the one left out, so that the model and the
+    motor term chosen are those that carry from one flight to another (time segments of one
+    flight share its attitude errors and its pattern of turns); None or one flight:
+    ``o.folds`` time segments."""
     raw, q, ned, target = fs.raw, fs.q, fs.ned, fs.target
 
     # -- what the flight can separate ----------------------------------------------------
@@ -640,7 +656,11 @@ def fit_flight(fs: FlightSamples, o: Any) -> FlownFit:  # noqa: C901
     # -- model choice on held-out segments -----------------------------------------------
     held: dict[str, float] = {}
     ridge = 0.0 if can_soft else FEW_DIRECTIONS_RIDGE  # unturned terms kept at the scale's
-    segments = np.array_split(np.arange(len(raw)), o.folds)
+    if flights is not None and len(flights) > 1:
+        cuts = np.cumsum([0, *flights])
+        segments = [np.arange(a, b) for a, b in zip(cuts[:-1], cuts[1:], strict=True)]
+    else:
+        segments = np.array_split(np.arange(len(raw)), o.folds)
     for model in candidates:
         try:
             whole = fit_model(raw, target, power, model, o.huber_k, o.outlier_k, ridge=ridge)
@@ -711,6 +731,7 @@ def fit_flight(fs: FlightSamples, o: Any) -> FlownFit:  # noqa: C901
         "heading_rms_deg_after": float(np.sqrt(np.mean(h_after**2))),
         "held_out_rms_ut": {m: v * ut for m, v in held.items()},
         "held_out_rms_ut_as_flown": as_flown(before) * ut,
+        "held_out_on": "flights" if flights is not None and len(flights) > 1 else "time",
         **(
             {"held_out_rms_ut_motor_source": {k: v * ut for k, v in held_source.items()}}
             if held_source
@@ -886,13 +907,16 @@ class MagInflightStage(Stage):
         year: float | None = None
         """The flight's date as a decimal year (WMM epoch); default: the log's GPS date."""
         folds: int = field(default=5, metadata={"min": 2, "max": 50})
-        """Held-out segments for the model choice."""
+        """Held-out time segments for the model choice (with ``flights``: the flights are the
+        segments)."""
         huber_k: float = field(default=1.5, metadata={"min": 0.1})
         """Huber weights beyond this many robust sigmas of the per-axis residual."""
         outlier_k: float = field(default=5.0, metadata={"min": 1.0})
         """Samples beyond this many robust sigmas are rejected (left out of the fit)."""
         min_spread: float = field(default=0.002, metadata={"min": 0.0})
-        """Smallest eigenvalue of the expected field directions' covariance for soft iron."""
+        """Smallest eigenvalue of the expected field directions' covariance for a free soft
+        iron; below it, ``model = "soft_iron"`` is refused and ``auto`` holds the terms the
+        flight did not turn at the scale model's (module docstring)."""
         min_current_a: float = field(default=2.0, metadata={"min": 0.0})
         """Current range (A, 5-95 %) below which the motor term cannot be fitted."""
         min_throttle: float = field(default=0.1, metadata={"min": 0.0, "max": 1.0})
@@ -903,7 +927,9 @@ class MagInflightStage(Stage):
         flights: list[str] = field(default_factory=list)
         """Other inputs: flights of the same vehicle (same compass, same mounting, and the same
         compass parameters in force when logged) fitted together with this stage's input, one
-        calibration for all; each flight at its own position and date."""
+        calibration for all; each flight at its own position and date. The model and the
+        motor term are then chosen on held-out flights (each fitted on the others, scored on
+        itself), not on time segments."""
 
     def _samples(self, table: pa.Table, name: str, ctx: StageContext) -> FlightSamples:
         """The :class:`FlightSamples` of input ``name`` (``table``); refused (one line naming
@@ -996,7 +1022,7 @@ class MagInflightStage(Stage):
         o: MagInflightStage.Options = self.options
         fs, counts = self._joint(table, ctx)
         try:
-            flown = fit_flight(fs, o)
+            flown = fit_flight(fs, o, counts)
         except CannotSeparate as exc:
             raise ctx.fail(str(exc)) from None
         for w in flown.warnings:
