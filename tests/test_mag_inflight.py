@@ -929,3 +929,36 @@ def test_soft_iron_outside_the_firmware_ranges_is_bounded_not_dropped():
     assert out_of_range(m) == ""
     assert m[0, 0] / np.mean(np.diag(m)) == pytest.approx(1.2, abs=1e-3)
     assert any("held at ArduPilot's ranges: DIA_X 1.2" in w for w in ctx.warnings)
+
+
+def test_px4_raw_compass_is_judged_against_the_vehicles_own_calibration(tmp_path):
+    """A raw PX4 sensor_mag is logged before PX4's CAL_MAGn correction: "as flown" is that
+    correction applied (as the judge and PX4's Magnetometer::Correct apply it), not the raw
+    field. A vehicle whose CAL_MAG0 already holds the truth flies at the noise (before: its
+    raw field, 20+ uT off, was the baseline, so any fit "helped"); a fit cannot beat it on
+    held-out segments and is refused, the vehicle keeping its calibration."""
+    from imupipe.pipeline.simulate.flight import MAG_DEVICE_ID, flight_ulog
+    from imupipe.pipeline.writers.ulog import write_ulog
+    from imupipe.readers.dispatch import read_input
+
+    table, truth = simulate("flight", {"duration_s": 60.0, "mag_hz": 25.0}, seed=5)
+    data = flight_ulog(table)
+    m, off, mot = (np.asarray(truth[k]) for k in ("matrix", "offset", "motor"))
+    comp = np.linalg.solve(m, mot) * 1e4 * 1e3  # G/kA, added before S
+    params = {"CAL_MAG_COMP_TYP": 2, "CAL_MAG0_ID": MAG_DEVICE_ID}
+    for i, a in enumerate("XYZ"):
+        params |= {f"CAL_MAG0_{a}OFF": off[i] * 1e4, f"CAL_MAG0_{a}SCALE": m[i, i]}
+        params[f"CAL_MAG0_{a}COMP"] = comp[i]
+    for (i, j), a in zip(((0, 1), (0, 2), (1, 2)), "XYZ", strict=True):
+        params[f"CAL_MAG0_{a}ODIAG"] = m[i, j]
+    data.parameters.update(params)
+    path = tmp_path / "f.ulg"
+    write_ulog(path, data)
+    back, _ = read_input(InputSpec(path=path, mag_topic="sensor_mag"))
+    stage = MagInflightStage(MagInflightStage.Options())
+    ctx = StageContext(name="compass", input_name="f", quiet=True, accept_failed_checks=True)
+    m_ = stage.fit(back, ctx).results["metrics"]
+    assert m_["residual_rms_ut_before"] > 10.0  # the raw field
+    assert m_["residual_rms_ut_as_flown"] < 0.5 and m_["heading_rms_deg_as_flown"] < 1.0
+    assert m_["held_out_rms_ut_as_flown"] < 0.5
+    assert any("not below as flown" in c for c in ctx.failed_checks), ctx.failed_checks
