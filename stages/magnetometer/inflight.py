@@ -185,6 +185,8 @@ DIAGONAL_RANGE = (0.8, 1.2)
 OFF_DIAGONAL_MAX = 0.2
 """The soft iron's off-diagonal over its common scale (``COMPASS_ODI``): MagFit's bound
 (``--min-offdiag/--max-offdiag``; the calibrator's is 1)."""
+BOUND_MARGIN = 1e-4
+"""How far inside the firmware's ranges a bounded fit stays (relative)."""
 
 
 def bound_constraints(model: str, p: int) -> tuple[np.ndarray, np.ndarray]:
@@ -194,7 +196,7 @@ def bound_constraints(model: str, p: int) -> tuple[np.ndarray, np.ndarray]:
     off-diagonal within +-:data:`OFF_DIAGONAL_MAX` times ``s`` (``COMPASS_SCALE`` x ``DIA``/
     ``ODI``, as MagFit bounds them: ``magfit_WMM.py --min-scale/--max-diag/--max-offdiag``),
     each bound moved inward by :data:`BOUND_MARGIN` so that a bounded fit is written, not
-    refused, by :func:`out_of_range`. None for ``offsets``."""
+    refused, by :func:`out_of_range`. No rows for ``offsets``."""
     rows: list[np.ndarray] = []
     low: list[float] = []
     lo_s, hi_s = SCALE_RANGE[0] * (1 + BOUND_MARGIN), SCALE_RANGE[1] * (1 - BOUND_MARGIN)
@@ -213,10 +215,6 @@ def bound_constraints(model: str, p: int) -> tuple[np.ndarray, np.ndarray]:
         rows += [mean, -mean]
         low += [lo_s, -hi_s]
     return np.array(rows).reshape(-1, p), np.array(low)
-
-
-BOUND_MARGIN = 1e-4
-"""How far inside the firmware's ranges a bounded fit stays (relative)."""
 
 
 def solve_bounded(h: np.ndarray, g: np.ndarray, model: str) -> np.ndarray:
@@ -343,8 +341,8 @@ def held_out_rms(
 ) -> float:
     """RMS vector residual (T) of ``model`` (with the motor term on ``power`` when given) over
     the held-out ``segments``: each fitted on the others (``options.huber_k``/``outlier_k``),
-    scored on itself, beyond 5 medians left out (``ridge``: :func:`toward_scale`). Raises ``np.linalg.LinAlgError`` when a fit
-    is singular."""
+    scored on itself, beyond 5 medians left out (``ridge``: :func:`toward_scale`). Raises
+    ``np.linalg.LinAlgError`` when a fit is singular."""
     sq, cnt = 0.0, 0
     for seg in segments:
         train = np.ones(len(raw), dtype=bool)
