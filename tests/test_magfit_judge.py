@@ -75,3 +75,24 @@ def test_no_worse_than_magfit_on_spark404_held_out(judge, tmp_path):
         if isinstance(r.magfit_held, str):
             continue
         assert r.imupipe_held[0] <= r.magfit_held[0], r
+
+
+@pytest.mark.parametrize(
+    ("name", "magfit_mg", "magfit_deg"),
+    [("erle_pxf_218", 32.2, 6.48), ("forum13645_ac344", 5.8, 0.63)],
+)
+def test_held_out_no_worse_than_magfit_on_a_flight_of_little_tilt(
+    judge, tmp_path, name, magfit_mg, magfit_deg
+):
+    """Fitted on the first 60 % of the log (tilt to 10-12 deg: field directions below
+    min_spread), imupipe's MAG file scored on the last 40 % is at or below MagFit's bounded fit
+    of the same part (its figures on this judge, MagFit run as benchmarks/bench_magfit.py --real
+    runs it), the heading within MagFit's + 0.3 deg. Before, the soft iron was not a candidate
+    on such a part and the scale lost: 32.9 mG and 8.0 mG, 1.54 deg."""
+    path = shared_path("logs", "ardupilot_flights", *judge.LOGS[name].split("/"))
+    f = judge.read_flight(path, "MAG", judge.WINDOWS.get(name))
+    first = judge.cut_log(f, tmp_path / "first" / path.name)
+    held = judge.run_imupipe(first, ["MAG"], tmp_path / "held")
+    assert not isinstance(held, str), held
+    residual, heading = judge.score(f, f.params | held, judge.held_rows(f))
+    assert residual <= magfit_mg and heading <= magfit_deg + 0.3, (residual, heading)

@@ -435,18 +435,22 @@ def mag_inflight(
       without a current sensor), or ``auto``: the one logged, and when both are, the current
       unless the throttle's held-out residual is more than 2 % lower (module docstring).
     - ``year``: The flight's date as a decimal year (WMM epoch); default: the log's GPS date.
-    - ``folds``: Held-out segments for the model choice.
+    - ``folds``: Held-out time segments for the model choice (with ``flights``: the flights are
+      the segments).
     - ``huber_k``: Huber weights beyond this many robust sigmas of the per-axis residual.
     - ``outlier_k``: Samples beyond this many robust sigmas are rejected (left out of the fit).
-    - ``min_spread``: Smallest eigenvalue of the expected field directions' covariance for soft
-      iron.
+    - ``min_spread``: Smallest eigenvalue of the expected field directions' covariance for a
+      free soft iron; below it, ``model = "soft_iron"`` is refused and ``auto`` holds the terms
+      the flight did not turn at the scale model's (module docstring).
     - ``min_current_a``: Current range (A, 5-95 %) below which the motor term cannot be fitted.
     - ``min_throttle``: Throttle range (0..1, 5-95 %) below which a throttle-based motor term
       cannot be fitted.
     - ``max_residual_ut``: Quality check: RMS vector residual after the fit, uT.
     - ``flights``: Other inputs: flights of the same vehicle (same compass, same mounting, and
       the same compass parameters in force when logged) fitted together with this stage's input,
-      one calibration for all; each flight at its own position and date. None: ``[]``.
+      one calibration for all; each flight at its own position and date. The model and the motor
+      term are then chosen on held-out flights (each fitted on the others, scored on itself),
+      not on time segments. None: ``[]``.
     """
     return fit_stage(
         "mag_inflight",

@@ -55,7 +55,6 @@ PART_SUFFIX = ".compass.parquet"
 FLIGHT_FORMATS = ("ulog", "dataflash")
 UT = 1e6
 """uT per tesla (the dataset's field columns are in uT)."""
-GAUSS_PER_TESLA = 1e4
 AXES = "xyz"
 MOTOR_UNIT = {"current": "uT/A", "throttle": "uT"}
 """The motor term's unit per source: per ampere, or at full throttle (throttle 0..1)."""
@@ -114,39 +113,24 @@ def _ardupilot_vehicle(p: dict[str, Any], instance: int) -> VehicleCompass:
 
 def _px4_vehicle(p: dict[str, Any], device_id: int | None) -> VehicleCompass:
     """PX4's ``Magnetometer::Correct``: ``R S (raw + COMP P - OFF)`` (gauss), for the
-    ``CAL_MAGn`` slot whose ``CAL_MAGn_ID`` is the compass's device id; ``P`` the battery
-    current in kA (``CAL_MAG_COMP_TYP`` 2, 3: ``COMP`` in G/kA) or the throttle 0..1 (1: G at
-    full throttle); ``R`` (the slot's rotation, :func:`imupipe.stages.magnetometer.inflight.
+    ``CAL_MAGn`` slot whose ``CAL_MAGn_ID`` is the compass's device id
+    (:func:`imupipe.stages.magnetometer.inflight.px4_vehicle_calibration`); ``P`` the battery
+    current (``CAL_MAG_COMP_TYP`` 2, 3: ``COMP`` in G/kA) or the throttle 0..1 (1: G at full
+    throttle); ``R`` (the slot's rotation, :func:`imupipe.stages.magnetometer.inflight.
     sensor_rotation`) is not part of this calibration."""
-    slot = next(
-        (
-            n
-            for n in range(8)
-            if device_id is not None
-            and p.get(f"CAL_MAG{n}_ID") not in (None, 0)
-            and int(p[f"CAL_MAG{n}_ID"]) == int(device_id)
-        ),
-        None,
-    )
-    eye = np.eye(3)
-    if slot is None:
+    from imupipe.stages.magnetometer.inflight import px4_vehicle_calibration
+
+    cal = px4_vehicle_calibration(p, device_id)
+    if cal is None:
         known = any(k.startswith("CAL_MAG") for k in p)
         notes = [f"no CAL_MAGn slot holds device id {device_id}"] if known else []
-        return VehicleCompass(np.zeros(3), eye, np.zeros(3), {}, known, False, notes)
+        return VehicleCompass(np.zeros(3), np.eye(3), np.zeros(3), {}, known, False, notes)
+    off, s, comp, source = cal
+    slot = next(n for n in range(8) if int(p.get(f"CAL_MAG{n}_ID") or 0) == int(device_id or 0))
     pre = f"CAL_MAG{slot}_"
     own = {k: float(v) for k, v in p.items() if k.startswith(pre) or k == "CAL_MAG_COMP_TYP"}
-    off = np.array([p.get(f"{pre}{a}OFF", 0.0) for a in "XYZ"], dtype=np.float64)
-    s = np.diag([p.get(f"{pre}{a}SCALE", 1.0) or 1.0 for a in "XYZ"]).astype(np.float64)
-    od = [p.get(f"{pre}{a}ODIAG", 0.0) for a in "XYZ"]
-    s[0, 1] = s[1, 0] = od[0]
-    s[0, 2] = s[2, 0] = od[1]
-    s[1, 2] = s[2, 1] = od[2]
-    comp = np.array([p.get(f"{pre}{a}COMP", 0.0) for a in "XYZ"], dtype=np.float64)
-    typ = int(p.get("CAL_MAG_COMP_TYP") or 0)
-    source = {1: "throttle", 2: "current", 3: "current"}.get(typ) if comp.any() else None
-    per = 1e3 if source == "current" else 1.0  # G/kA -> G/A; the throttle's G as they are
-    motor = s @ (comp / GAUSS_PER_TESLA / per) if source else np.zeros(3)  # added before S
-    return VehicleCompass(off / GAUSS_PER_TESLA, s, motor, own, True, False, [], source)
+    motor = s @ comp  # added before S in PX4, after the matrix in imupipe's form
+    return VehicleCompass(off, s, motor, own, True, False, [], source)
 
 
 # -- one log --------------------------------------------------------------------------------------
