@@ -507,6 +507,36 @@ def _decode_json(
     lengths: np.ndarray,
     leaves: list[Leaf],
 ) -> list[np.ndarray]:
+    """JSON payloads by template (:mod:`imupipe.readers.json_numbers`), the messages no
+    template fits (or the whole batch, when something is off) by Arrow's JSON reader."""
+    from imupipe.readers.json_numbers import decode_by_template
+
+    integer = []
+    for leaf in leaves:
+        names = tuple(str(p) for p in leaf.path if isinstance(p, str))
+        node = mtype.node(names)
+        while node is not None and node.kind in ("array", "sequence"):
+            node = node.item
+        integer.append(node is not None and node.dtype == "i8")
+
+    def rest(rows: np.ndarray) -> list[np.ndarray]:
+        try:
+            return _decode_json_arrow(mtype, buf, starts[rows], lengths[rows], leaves)
+        except PayloadError as exc:
+            raise PayloadError(int(rows[exc.index]), exc.reason) from None
+
+    paths = [leaf.path for leaf in leaves]
+    got = decode_by_template(buf, starts, lengths, paths, integer, rest)
+    return got if got is not None else _decode_json_arrow(mtype, buf, starts, lengths, leaves)
+
+
+def _decode_json_arrow(
+    mtype: MessageType,
+    buf: np.ndarray,
+    starts: np.ndarray,
+    lengths: np.ndarray,
+    leaves: list[Leaf],
+) -> list[np.ndarray]:
     """JSON payloads through Arrow's JSON reader (see the module docstring)."""
     import pyarrow as pa
     import pyarrow.compute as pc
