@@ -212,3 +212,7 @@ def main() -> None:
         print(
             "ratio: min over runs against the Imu path's min (wall clock; CPU time of the process)"
         )
+
+
+if __name__ == "__main__":
+    main()
