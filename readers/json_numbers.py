@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import json
 import re
+import threading
 from collections.abc import Callable, Sequence
 
 import numpy as np
@@ -58,20 +59,54 @@ def _is_digit(values: np.ndarray) -> np.ndarray:
     return (values - np.uint8(48)) < 10
 
 
-def number_chars(region: np.ndarray) -> np.ndarray:
-    """Per byte (one more, False, at the end): is it one of ``0-9 . e E + - /`` (``/`` only to
-    save a pass: outside a string it is never next to a number)."""
-    flag = np.zeros(len(region) + 1, bool)
-    inner = flag[:-1]
-    np.less(region - np.uint8(45), 13, out=inner)  # - . / 0-9
-    inner |= region == 43  # +
-    inner |= (region | np.uint8(32)) == 101  # e E
-    return flag
+class _Scratch(threading.local):
+    """Work arrays kept from one chunk to the next (per thread): a fresh megabyte-sized numpy
+    temporary costs more in page faults than the pass that fills it."""
+
+    def __init__(self) -> None:
+        self.pad = np.empty(0, np.uint8)
+        self.u8 = np.empty(0, np.uint8)
+        self.flag = np.empty(0, bool)
+        self.e = np.empty(0, bool)
+        self.tmp = np.empty(0, bool)
+
+    def get(self, size: int) -> _Scratch:
+        if len(self.pad) < size + 16:
+            grow = int(size * 1.25) + 16
+            self.pad = np.empty(grow + 16, np.uint8)
+            self.u8 = np.empty(grow, np.uint8)
+            self.flag = np.empty(grow + 1, bool)
+            self.e = np.empty(grow, bool)
+            self.tmp = np.empty(grow, bool)
+        return self
 
 
-def run_ends(flag: np.ndarray) -> np.ndarray:
+_SCRATCH = _Scratch()
+
+
+def number_chars(region: np.ndarray, work: _Scratch | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Per byte: is it one of ``0-9 . e E + - /`` (one more, False, at the end; ``/`` only to
+    save a pass: outside a string it is never next to a number); and is it ``e`` or ``E``."""
+    n = len(region)
+    work = work or _Scratch().get(n)
+    flag, e, u8, tmp = work.flag[: n + 1], work.e[:n], work.u8[:n], work.tmp[:n]
+    flag[n] = False
+    np.subtract(region, np.uint8(45), out=u8)
+    np.less(u8, 13, out=flag[:n])  # - . / 0-9
+    np.equal(region, 43, out=tmp)  # +
+    np.logical_or(flag[:n], tmp, out=flag[:n])
+    np.bitwise_or(region, np.uint8(32), out=u8)
+    np.equal(u8, 101, out=e)  # e E
+    np.logical_or(flag[:n], e, out=flag[:n])
+    return flag, e
+
+
+def run_ends(flag: np.ndarray, work: _Scratch | None = None) -> np.ndarray:
     """Where each run of number characters ends (exclusive), from :func:`number_chars`."""
-    return np.flatnonzero(np.greater(flag[:-1], flag[1:])) + 1
+    n = len(flag) - 1
+    tmp = work.tmp[:n] if work is not None else np.empty(n, bool)
+    np.greater(flag[:-1], flag[1:], out=tmp)
+    return np.flatnonzero(tmp) + 1
 
 
 def _template(
@@ -105,13 +140,15 @@ def _template(
             return None
         which.append(value.index)
     region = np.frombuffer(text, np.uint8)
-    flag = number_chars(region)
+    flag, _ = number_chars(region)
     ends = run_ends(flag)
     starts = np.flatnonzero(np.greater(flag[1:], flag[:-1])) + 1
     starts = np.concatenate([[0], starts]) if flag[0] else starts
     spans = np.array([m.span() for m in _STRING.finditer(text)], np.int64).reshape(-1, 2)
     at = np.searchsorted(spans[:, 0], starts, side="right") - 1
-    runs = np.flatnonzero(~((at >= 0) & (starts < spans[np.maximum(at, 0), 1])))
+    lead = region[np.minimum(starts, len(region) - 1)]
+    number = _is_digit(lead) | (lead == 45)  # not the e of true, not a string's
+    runs = np.flatnonzero(number & ~((at >= 0) & (starts < spans[np.maximum(at, 0), 1])))
     if len(runs) != count[0]:
         return None
     return starts[runs], ends[runs], runs, which
@@ -162,15 +199,15 @@ def _integers(pad: np.ndarray, ts: np.ndarray, te: np.ndarray) -> np.ndarray | N
     if not len(ts) or count.min() < 1 or count.max() > 19:
         return None
     width = int(count.max())
-    value = np.zeros(len(ts), np.uint64)
-    for c in range(width):  # right-aligned: column c holds digit c of the widest
-        at = te - width + c
-        digit = pad[np.maximum(at, 0)] - np.uint8(48)
-        here = at >= first
-        if ((digit > 9) & here).any():
-            return None
-        value *= np.uint64(10)
-        value += np.where(here, digit, 0).astype(np.uint64)
+    at = te[:, None] - width + np.arange(width)  # right-aligned digits
+    digits = pad[np.maximum(at, 0)] - np.uint8(48)
+    here = at >= first[:, None]
+    if ((digits > 9) & here).any():
+        return None
+    digits[~here] = 0
+    value = digits.astype(np.uint64) @ (
+        np.uint64(10) ** np.arange(width - 1, -1, -1, dtype=np.uint64)
+    )
     if (value > np.uint64(2**63 - 1) + negative.astype(np.uint64)).any():
         return None
     out = value.astype(np.int64)  # 2**63 (only when negative) wraps to -2**63
@@ -207,7 +244,9 @@ def _parse(pad: np.ndarray, ts: np.ndarray, te: np.ndarray, integer: bool):  # n
         out = pc.cast(array, pa.int64() if integer else pa.float64())
     except (pa.ArrowInvalid, pa.ArrowNotImplementedError):
         return None
-    return out.to_numpy(zero_copy_only=False)
+    values = out.to_numpy(zero_copy_only=False)
+    minus_zero = low == np.uint64(0x302D)  # "-0": the integer 0 to json, -0.0 to Arrow
+    return np.where(minus_zero, 0.0, values) if not integer and minus_zero.any() else values
 
 
 def decode_by_template(
@@ -226,16 +265,19 @@ def decode_by_template(
     ends = starts + lengths
     if len(buf) + 16 >= 1 << 31 or not n:  # string_view offsets are int32
         return None
-    pad = np.concatenate([buf, np.zeros(16, np.uint8)])
+    work = _SCRATCH.get(len(buf))
+    pad = work.pad[: len(buf) + 16]
+    pad[: len(buf)] = buf
+    pad[len(buf) :] = 0
     lo, hi = int(starts.min()), int(ends.max())
     region = pad[lo:hi]
-    flag = number_chars(region)
-    run_end = run_ends(flag) + lo
-    bad_ends = np.zeros(0, np.int64)
-    text = region.tobytes()
-    if b".e" in text or b".E" in text:  # "1.e5": Arrow takes it, JSON does not
-        dots = (region[:-1] == 46) & ((region[1:] | np.uint8(32)) == 101)
-        bad_ends = run_end[np.searchsorted(run_end, np.flatnonzero(dots) + lo, side="right")]
+    flag, e = number_chars(region, work)
+    run_end = run_ends(flag, work) + lo
+    dots = work.tmp[: hi - lo - 1]  # "1.e5": Arrow takes it, JSON does not
+    np.equal(region[:-1], 46, out=dots)
+    np.logical_and(dots, e[1:], out=dots)
+    at = np.flatnonzero(dots) + lo if dots.any() else np.zeros(0, np.int64)
+    bad_ends = run_end[np.minimum(np.searchsorted(run_end, at, "right"), len(run_end) - 1)]
     words = unaligned(pad, "<u8")
     found: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []  # (rows, ts, te) of the leaves
     left = np.arange(n)

@@ -508,7 +508,9 @@ def _decode_json(
     leaves: list[Leaf],
 ) -> list[np.ndarray]:
     """JSON payloads by template (:mod:`imupipe.readers.json_numbers`), the messages no
-    template fits (or the whole batch, when something is off) by Arrow's JSON reader."""
+    template fits (or the whole batch, when something is off) by Arrow's JSON reader, and what
+    Arrow refuses (``NaN``, ``Infinity``, which ``json`` reads; a bad payload) by ``json``, one
+    message at a time."""
     from imupipe.readers.json_numbers import decode_by_template
 
     integer = []
@@ -520,14 +522,19 @@ def _decode_json(
         integer.append(node is not None and node.dtype == "i8")
 
     def rest(rows: np.ndarray) -> list[np.ndarray]:
+        s, n = starts[rows], lengths[rows]
         try:
-            return _decode_json_arrow(mtype, buf, starts[rows], lengths[rows], leaves)
+            return _decode_json_arrow(mtype, buf, s, n, leaves)
+        except PayloadError:
+            pass
+        try:  # what Arrow refuses (NaN, Infinity; or a bad payload): json's verdict
+            return mtype.decode_reference(buf, s, n, leaves)
         except PayloadError as exc:
             raise PayloadError(int(rows[exc.index]), exc.reason) from None
 
     paths = [leaf.path for leaf in leaves]
     got = decode_by_template(buf, starts, lengths, paths, integer, rest)
-    return got if got is not None else _decode_json_arrow(mtype, buf, starts, lengths, leaves)
+    return got if got is not None else rest(np.arange(len(starts)))
 
 
 def _decode_json_arrow(
@@ -587,6 +594,14 @@ def _decode_json_arrow(
             raise PayloadError(bad, f"field {leaf} is missing or null")
         values = column.to_numpy(zero_copy_only=False)
         out.append(values.astype(np.int64 if values.dtype.kind in "iu" else np.float64))
+    # Arrow reads "-0" as -0.0, json as the integer 0: the (rare) messages with a -0.0 by json
+    minus = np.flatnonzero(
+        np.any([(v == 0) & np.signbit(v) for v in out if v.dtype.kind == "f"] or [[False]], 0)
+    )
+    if len(minus):
+        exact = mtype.decode_reference(buf, starts[minus], lengths[minus], leaves)
+        for v, e in zip(out, exact, strict=True):
+            v[minus] = e
     return out
 
 
