@@ -23,8 +23,11 @@ start and length:
   DDS-XTypes 1.3 spec (7.4.3) and rosbags' deserializer have them. Only a sequence of structs
   before a wanted leaf makes the layout one the walk cannot follow: those messages are read
   with rosbags' deserializer, one at a time.
-- JSON: the payloads joined as newline-delimited JSON and parsed by Arrow's JSON reader
-  (``pyarrow.json``) with a schema holding only the wanted fields.
+- JSON: by template (:mod:`imupipe.readers.json_numbers`): messages with the text of a template
+  message around their numbers have their numbers found and parsed in a few numpy passes and one
+  Arrow cast per chunk; the others are joined as newline-delimited JSON and parsed by Arrow's
+  JSON reader (``pyarrow.json``) with a schema holding only the wanted fields, and what Arrow
+  refuses (``NaN``, ``Infinity``) by ``json``.
 - Protobuf: the wire format (protobuf encoding spec: varint tags, wire types 0/1/2/5) scanned in
   lockstep over all messages, one tag per message per step, nested messages as sub-ranges, packed
   and unpacked repeated fields, absent fields their proto3 default (0).
