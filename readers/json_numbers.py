@@ -5,27 +5,31 @@ SDKs and ``json.dumps`` of one dict per message: ``{"t": 17, "g": [0.01, -0.02, 
 the numbers differ. :func:`decode_by_template` reads a batch of payloads (one decompressed
 chunk) that way:
 
-1. Every run of number characters (``0-9 . e E + -``) that starts with a digit or ``-`` is found
-   in the whole chunk in a few numpy passes: a *candidate* number.
+1. Where every run of number characters (``0-9 . e E + -``) ends is found in the whole chunk in a
+   few numpy passes (into work arrays kept per thread: a fresh megabyte temporary costs more in
+   page faults than the pass).
 2. The first undecoded message is the *template*: parsed once by Python's ``json`` (the
    reference decoder of ``mcap``'s JSON channels), its numbers counted through ``parse_int`` /
-   ``parse_float`` in text order; candidates inside its strings (``"imu_1"``) are text. The
-   template must have as many numbers as candidates outside strings, and every mapped leaf must
-   be one of them: each leaf is then "the j-th number".
-3. A message has the template's shape when it has as many candidates as the template and the
-   text between its numbers is byte for byte the template's (compared 8 bytes at a time); it is
-   then valid JSON with the same structure as the template, provided each of its numbers follows
-   the JSON grammar (RFC 8259, section 6; checked here: a digit after ``-``, no leading zero,
-   a digit after ``.``; and by Arrow's parser: the rest).
+   ``parse_float`` in text order. Its runs that start with a digit or ``-`` outside its strings
+   (``"imu_1"`` is text) must be exactly its numbers, and every mapped leaf one of them: each leaf
+   is then "the j-th number", and the text between numbers is known.
+3. For every other message, number j starts where the template's text before it ends and ends
+   where its run of number characters does (the runs between two numbers are the template's:
+   counted, not searched). The message has the template's shape when its text between the numbers
+   is byte for byte the template's (compared 8 bytes at a time) and each number is one whole run;
+   it is then valid JSON with the template's structure, provided each number follows the JSON
+   grammar (RFC 8259, section 6; checked here: a digit after ``-``, no leading zero, a digit after
+   ``.``; Arrow's parser refuses the rest).
 4. Messages of another shape (a pretty-printed one, a field that comes and goes) take the next
-   template, up to :data:`TEMPLATES`; what is left is read by Arrow's JSON reader.
-5. The mapped numbers' text is handed to Arrow as a ``string_view`` array over the chunk (no
-   copy) and cast to float64 or int64: Arrow parses with ``fast_float``, correctly rounded, so
-   the values are Python's ``float(text)`` / ``int(text)``, the ``json`` module's.
+   template, up to :data:`TEMPLATES` (of at most :data:`MAX_NUMBERS` numbers); the caller reads
+   what is left (``rest``: Arrow's JSON reader, and ``json`` for what Arrow refuses).
+5. The mapped numbers are parsed for all messages at once: integers digit by digit in numpy
+   (exact), other numbers by Arrow's cast of a ``string_view`` array over the chunk (no copy;
+   ``fast_float``, correctly rounded): Python's ``int(text)`` / ``float(text)``, which ``json``
+   gives, but for ``-0``: the integer 0 to ``json``, so 0.0 here too.
 
-Duplicate keys read as ``json`` reads them (the last one). Anything else (a number outside the
-grammar, a template ``json`` refuses, text Arrow will not cast): None, and the caller reads the
-batch with Arrow's JSON reader, which names the bad message.
+Duplicate keys read as ``json`` reads them (the last one). A number Arrow will not cast: None,
+and the caller reads the whole batch its own way, naming the bad message.
 """
 
 from __future__ import annotations
@@ -41,6 +45,10 @@ from imupipe.readers.cdr import unaligned
 
 TEMPLATES = 8
 """Shapes tried per batch before the rest goes to Arrow's JSON reader."""
+
+MAX_NUMBERS = 512
+"""A template with more numbers than this (a message holding a long array) is left to Arrow's
+JSON reader: the numbers are chained one Python step each."""
 
 _STRING = re.compile(rb'"(?:[^"\\]|\\.)*"', re.DOTALL)
 """A JSON string literal (RFC 8259, section 7) in a text ``json`` has accepted."""
@@ -289,6 +297,8 @@ def decode_by_template(
         if shape is None:
             break
         rel_s, rel_e, runs, which = shape
+        if len(rel_s) > MAX_NUMBERS:
+            break
         gaps = np.diff(np.concatenate([[0], np.column_stack([rel_s, rel_e]).ravel()]))[0::2]
         k = len(rel_s)
         ts = np.empty((len(left), k), np.int64)

@@ -148,3 +148,22 @@ def test_nan_and_infinity_read_as_json_reads_them():
     assert np.isnan(a0[3]) and a0[8] == np.inf and a0[9] == -np.inf
     for g, r in zip(got, ref, strict=True):
         assert np.array_equal(g, np.asarray(r, g.dtype), equal_nan=True)
+
+
+def test_a_long_template_is_left_to_arrow(monkeypatch):
+    from imupipe.readers import json_numbers
+
+    payloads = [p for i, p in enumerate(documents(60)) if i % 2 == 0]
+    monkeypatch.setattr(json_numbers, "MAX_NUMBERS", 6)  # the documents hold 7 numbers
+    arrow_rows = []
+    arrow = message_fields._decode_json_arrow
+
+    def counting(mtype, buf, starts, lengths, leaves):  # noqa: ANN001, ANN202
+        arrow_rows.append(len(starts))
+        return arrow(mtype, buf, starts, lengths, leaves)
+
+    monkeypatch.setattr(message_fields, "_decode_json_arrow", counting)
+    got, ref = decode_both(payloads)
+    assert arrow_rows == [len(payloads)]
+    for g, r in zip(got, ref, strict=True):
+        assert np.array_equal(g, np.asarray(r, g.dtype))
