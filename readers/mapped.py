@@ -322,52 +322,170 @@ def _ns(tp: TopicPlan, values: list[np.ndarray], log: np.ndarray, unit: str) -> 
     return np.round(raw * TIME_UNITS[unit]).astype(np.int64)
 
 
-def read_mapped(spec: InputSpec, sources: Sequence[MappedSource]):  # noqa: ANN201
-    """The whole input as one common table, read through its field mapping: (table,
-    warnings)."""
-    import pyarrow as pa
+Part = tuple[np.ndarray, np.ndarray, "np.ndarray | None", list[np.ndarray]]
+"""One batch of a topic, decoded: (time ns, log time ns, publish time ns or None, the mapped
+sensors' leaf values in plan order)."""
 
-    from imupipe.readers.table import make_table
-    from imupipe.readers.table_buffer import order_warnings
 
-    mapping = spec.fields
-    assert mapping is not None
+def _plans(spec: InputSpec, sources: Sequence[MappedSource]) -> dict[str, TopicPlan]:
     defs: dict[str, Definition] = {}
     for src in sources:
         for topic, defn in src.definitions().items():
             defs.setdefault(topic, defn)
-    plans = plan(spec, defs)
-    parts: dict[str, list[tuple[np.ndarray, np.ndarray, np.ndarray | None, list[np.ndarray]]]]
-    parts = {t: [] for t in plans}
+    return plan(spec, defs)
+
+
+def _parts(
+    spec: InputSpec, sources: Sequence[MappedSource], plans: Mapping[str, TopicPlan]
+) -> Iterator[dict[str, list[Part]]]:
+    """Per chunk of each source (split files in the order of their first message): the
+    decoded batches of each mapped topic."""
+    mapping = spec.fields
+    assert mapping is not None
     for src in sorted(sources, key=lambda s: s.first_time()) if len(sources) > 1 else sources:
         for batches in src.payloads(set(plans)):
+            out: dict[str, list[Part]] = {}
             for topic, batch in batches:
                 tp = plans[topic]
                 values = decode_batch(tp, batch, str(src.path))
                 t = _ns(tp, values, batch.log, mapping.time_unit)
                 keep = [values[i] for idx in tp.sensors.values() for i in idx]
-                parts[topic].append((t, batch.log.astype(np.int64), batch.pub, keep))
-    for topic, got in parts.items():
-        if not got or not sum(len(g[0]) for g in got):
+                out.setdefault(topic, []).append((t, batch.log.astype(np.int64), batch.pub, keep))
+            yield out
+
+
+def read_mapped(spec: InputSpec, sources: Sequence[MappedSource]):  # noqa: ANN201
+    """The whole input as one common table, read through its field mapping: (table,
+    warnings)."""
+    from imupipe.readers.table_buffer import order_warnings
+
+    plans = _plans(spec, sources)
+    parts: dict[str, list[Part]] = {t: [] for t in plans}
+    for chunk in _parts(spec, sources, plans):
+        for topic, got in chunk.items():
+            parts[topic].extend(got)
+    _check_counts(spec, {t: sum(len(g[0]) for g in got) for t, got in parts.items()})
+    counts: dict[str, list[int]] = {}
+    table = _table(spec, plans, parts, sources[0].format, counts)
+    assert spec.fields is not None
+    kind = spec.fields.time if spec.fields.time in ("header", "log") else "field"
+    return table, order_warnings(str(spec.path), kind, counts)
+
+
+def iter_mapped(
+    spec: InputSpec,
+    sources: Sequence[MappedSource],
+    batch_rows: int,
+    carried: Iterator[tuple[list, int]] | None = None,
+    warnings: list[str] | None = None,
+):  # noqa: ANN201
+    """Batches of about ``batch_rows`` rows (whole chunks: a batch ends after the chunk that
+    reaches ``batch_rows``), each sorted stably by time within itself, as
+    :func:`imupipe.readers.sources.iter_sources` gives them; with each, the carried-over
+    messages (``carried``: per chunk, its messages and the bound below which every message has
+    been read) up to the batch's last log time. ``warnings``: after the last batch, the stamps
+    out of order or repeated (summed over the batches; pairs across a boundary not compared).
+    Memory: one batch plus the chunks of the carried messages that overlap it."""
+    from imupipe.readers.table_buffer import order_warnings
+
+    plans = _plans(spec, sources)
+    parts: dict[str, list[Part]] = {t: [] for t in plans}
+    total = dict.fromkeys(plans, 0)
+    counts: dict[str, list[int]] = {}
+    waiting: list = []
+    done = [carried is None]
+
+    def others(upto: int | None) -> list:
+        """The carried messages with log time <= ``upto`` (all, when None), in log-time order."""
+        nonlocal waiting
+        while not done[0]:
+            try:
+                messages, bound = next(carried)  # type: ignore[arg-type]
+            except StopIteration:
+                done[0] = True
+                break
+            waiting.extend(messages)
+            if upto is not None and bound > upto:
+                break
+        waiting.sort(key=lambda m: m.log_time)
+        if upto is None:
+            out, waiting = waiting, []
+            return out
+        k = next((i for i, m in enumerate(waiting) if m.log_time > upto), len(waiting))
+        out, waiting = waiting[:k], waiting[k:]
+        return out
+
+    def flush(last: bool):  # noqa: ANN202
+        upto = None if last else max(int(g[1].max()) for got in parts.values() for g in got)
+        table = _table(spec, plans, parts, sources[0].format, counts)
+        for topic in parts:
+            parts[topic] = []
+        return table, others(upto)
+
+    rows = 0
+    for chunk in _parts(spec, sources, plans):
+        for topic, got in chunk.items():
+            parts[topic].extend(got)
+            n = sum(len(g[0]) for g in got)
+            rows += n
+            total[topic] += n
+        if rows >= batch_rows and rows:
+            yield flush(last=False)
+            rows = 0
+    _check_counts(spec, total)
+    if rows:
+        yield flush(last=True)
+    else:
+        rest = others(None)
+        if rest:  # carried messages after the last batch's end: an empty table holds them
+            yield _table(spec, plans, parts, sources[0].format, {}), rest
+    if warnings is not None:
+        assert spec.fields is not None
+        kind = spec.fields.time if spec.fields.time in ("header", "log") else "field"
+        warnings += order_warnings(str(spec.path), kind, counts)
+
+
+def _check_counts(spec: InputSpec, total: Mapping[str, int]) -> None:
+    for topic, n in total.items():
+        if not n:
             raise ReadError(f"{spec.path}: topic '{topic}' has no messages")
+
+
+def _table(
+    spec: InputSpec,
+    plans: Mapping[str, TopicPlan],
+    parts: Mapping[str, list[Part]],
+    fmt: str,
+    counts: dict[str, list[int]],
+):  # noqa: ANN202
+    """The common table of ``parts`` (one row per message; see the module docstring); adds the
+    stamps out of order / repeated per topic to ``counts``."""
+    import pyarrow as pa
+
+    from imupipe.readers.table import make_table
+
+    mapping = spec.fields
+    assert mapping is not None
     # one row per message, topics in mapping order, each topic's messages in log order; then
     # sorted stably by time (no sort when they already are: one topic, in order)
-    ts = [np.concatenate([g[0] for g in parts[topic]]) for topic in plans]
+    empty = np.zeros(0, np.int64)
+    ts = [np.concatenate([g[0] for g in parts[topic]] or [empty]) for topic in plans]
     sizes = [len(x) for x in ts]
     edges = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
-    t = np.concatenate(ts) if len(ts) > 1 else ts[0]
-    log = np.concatenate([g[1] for topic in plans for g in parts[topic]])
+    t = np.concatenate(ts).astype(np.int64) if len(ts) > 1 else ts[0].astype(np.int64)
+    log = np.concatenate([g[1] for topic in plans for g in parts[topic]] or [empty])
     has_pub = any(g[2] is not None for got in parts.values() for g in got)
     pub = (
         np.concatenate([g[1] if g[2] is None else g[2] for tp in plans for g in parts[tp]])
         if has_pub
         else None
     )
-    counts: dict[str, list[int]] = {}
     for topic, tt in zip(plans, ts, strict=True):
         back = tt[1:] < tt[:-1]
         moved = int(np.count_nonzero(tt < np.maximum.accumulate(tt))) if back.any() else 0
-        counts[topic] = [moved, int(np.count_nonzero(tt[1:] == tt[:-1]))]
+        have = counts.setdefault(topic, [0, 0])
+        have[0] += moved
+        have[1] += int(np.count_nonzero(tt[1:] == tt[:-1]))
     n = len(t)
     order = None if bool(np.all(t[1:] >= t[:-1])) else np.argsort(t, kind="stable")
     given: dict[str, np.ndarray] = {}
@@ -379,7 +497,10 @@ def read_mapped(spec: InputSpec, sources: Sequence[MappedSource]):  # noqa: ANN2
         for sensor, idx in tp.sensors.items():
             block = np.empty((hi - lo, len(idx)))
             for c in range(len(idx)):
-                np.concatenate([g[3][first + c] for g in got], out=block[:, c], casting="unsafe")
+                if got:
+                    np.concatenate(
+                        [g[3][first + c] for g in got], out=block[:, c], casting="unsafe"
+                    )
             first += len(idx)
             if sensor in UNITS and UNITS[sensor][getattr(mapping, f"{sensor}_unit")] != 1.0:
                 block *= UNITS[sensor][getattr(mapping, f"{sensor}_unit")]
@@ -408,7 +529,7 @@ def read_mapped(spec: InputSpec, sources: Sequence[MappedSource]):  # noqa: ANN2
     topics_meta = {s: t for s, t in stream_topics.items() if t is not None}
     meta = {
         "source": str(spec.path),
-        "format": sources[0].format,
+        "format": fmt,
         "topics": topics_meta,
         "types": {s: plans[t].mtype.name for s, t in topics_meta.items()},
         "fields": {s: _topic_of(plans, s) for s in SENSORS if _topic_of(plans, s)},
@@ -430,9 +551,7 @@ def read_mapped(spec: InputSpec, sources: Sequence[MappedSource]):  # noqa: ANN2
         metadata=meta,
     )
     assert isinstance(table, pa.Table)
-    kind = mapping.time if mapping.time in ("header", "log") else "field"
-    warnings = order_warnings(str(spec.path), kind, counts)
-    return table, warnings
+    return table
 
 
 def _topic_of(plans: Mapping[str, TopicPlan], sensor: str) -> str | None:

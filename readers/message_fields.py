@@ -23,8 +23,11 @@ start and length:
   DDS-XTypes 1.3 spec (7.4.3) and rosbags' deserializer have them. Only a sequence of structs
   before a wanted leaf makes the layout one the walk cannot follow: those messages are read
   with rosbags' deserializer, one at a time.
-- JSON: the payloads joined as newline-delimited JSON and parsed by Arrow's JSON reader
-  (``pyarrow.json``) with a schema holding only the wanted fields.
+- JSON: by template (:mod:`imupipe.readers.json_numbers`): messages with the text of a template
+  message around their numbers have their numbers found and parsed in a few numpy passes and one
+  Arrow cast per chunk; the others are joined as newline-delimited JSON and parsed by Arrow's
+  JSON reader (``pyarrow.json``) with a schema holding only the wanted fields, and what Arrow
+  refuses (``NaN``, ``Infinity``) by ``json``.
 - Protobuf: the wire format (protobuf encoding spec: varint tags, wire types 0/1/2/5) scanned in
   lockstep over all messages, one tag per message per step, nested messages as sub-ranges, packed
   and unpacked repeated fields, absent fields their proto3 default (0).
@@ -507,6 +510,43 @@ def _decode_json(
     lengths: np.ndarray,
     leaves: list[Leaf],
 ) -> list[np.ndarray]:
+    """JSON payloads by template (:mod:`imupipe.readers.json_numbers`), the messages no
+    template fits (or the whole batch, when something is off) by Arrow's JSON reader, and what
+    Arrow refuses (``NaN``, ``Infinity``, which ``json`` reads; a bad payload) by ``json``, one
+    message at a time."""
+    from imupipe.readers.json_numbers import decode_by_template
+
+    integer = []
+    for leaf in leaves:
+        names = tuple(str(p) for p in leaf.path if isinstance(p, str))
+        node = mtype.node(names)
+        while node is not None and node.kind in ("array", "sequence"):
+            node = node.item
+        integer.append(node is not None and node.dtype == "i8")
+
+    def rest(rows: np.ndarray) -> list[np.ndarray]:
+        s, n = starts[rows], lengths[rows]
+        try:
+            return _decode_json_arrow(mtype, buf, s, n, leaves)
+        except PayloadError:
+            pass
+        try:  # what Arrow refuses (NaN, Infinity; or a bad payload): json's verdict
+            return mtype.decode_reference(buf, s, n, leaves)
+        except PayloadError as exc:
+            raise PayloadError(int(rows[exc.index]), exc.reason) from None
+
+    paths = [leaf.path for leaf in leaves]
+    got = decode_by_template(buf, starts, lengths, paths, integer, rest)
+    return got if got is not None else rest(np.arange(len(starts)))
+
+
+def _decode_json_arrow(
+    mtype: MessageType,
+    buf: np.ndarray,
+    starts: np.ndarray,
+    lengths: np.ndarray,
+    leaves: list[Leaf],
+) -> list[np.ndarray]:
     """JSON payloads through Arrow's JSON reader (see the module docstring)."""
     import pyarrow as pa
     import pyarrow.compute as pc
@@ -557,6 +597,14 @@ def _decode_json(
             raise PayloadError(bad, f"field {leaf} is missing or null")
         values = column.to_numpy(zero_copy_only=False)
         out.append(values.astype(np.int64 if values.dtype.kind in "iu" else np.float64))
+    # Arrow reads "-0" as -0.0, json as the integer 0: the (rare) messages with a -0.0 by json
+    minus = np.flatnonzero(
+        np.any([(v == 0) & np.signbit(v) for v in out if v.dtype.kind == "f"] or [[False]], 0)
+    )
+    if len(minus):
+        exact = mtype.decode_reference(buf, starts[minus], lengths[minus], leaves)
+        for v, e in zip(out, exact, strict=True):
+            v[minus] = e
     return out
 
 

@@ -186,12 +186,12 @@ def iter_sources(
     Chunks are read in file order; after each, messages whose log time is below the bound of
     everything still unread (chunk indexes / chunk infos) are final and may be emitted, the
     rest wait. Memory is bounded by ``batch_rows`` plus the overlap of the log's chunks.
-    An input read through a field mapping is one batch."""
+    An input read through a field mapping: :func:`imupipe.readers.mapped.iter_mapped`."""
     if spec.fields is not None:
-        table, warned = read_sources(spec, sources)
-        yield table, carry_sources(spec, sources) if carry else []
-        if warnings is not None:
-            warnings += warned
+        from imupipe.readers.mapped import iter_mapped
+
+        carried = _carried(spec, sources) if carry else None
+        yield from iter_mapped(spec, sources, batch_rows, carried, warnings)  # type: ignore[arg-type]
         return
     notes: list[str] = []
     streams = _choose(spec, sources, notes)
@@ -252,6 +252,19 @@ def iter_sources(
         warnings += [w for src in sources for w in getattr(src, "warnings", ())]
         warnings += notes + other_warnings(str(spec.path), streams, other)
         warnings += order_warnings(str(spec.path), spec.time, counts)
+
+
+def _carried(
+    spec: InputSpec, sources: Sequence[LogSource]
+) -> Iterator[tuple[list[RawMessage], int]]:
+    """Per chunk: the messages of the topics the table does not hold, and the log time below
+    which every message has been read."""
+    streams = _choose(spec, sources)
+    ordered = _ordered(sources)
+    for i, src in enumerate(ordered):
+        after = min((s.first_time() for s in ordered[i + 1 :]), default=NEVER)
+        for _, messages, bound in src.chunks(streams, carry=True, decode=False):
+            yield messages, min(bound, after)
 
 
 def carry_sources(spec: InputSpec, sources: Sequence[LogSource]) -> list[RawMessage]:

@@ -866,3 +866,87 @@ def test_cut_payloads_are_payload_errors():
             # a protobuf message cut between fields is a valid, shorter message
             ref = mt.decode_reference(buf, starts, lengths, lv)
             assert all(np.array_equal(a, b) for a, b in zip(values, ref, strict=True)), cut
+
+
+def write_split_json_mcap(path: Path, n: int = 900) -> None:
+    """Gyro at 400 Hz and accel at 250 Hz on JSON topics of their own, a text topic beside
+    them, in small chunks (many per file), in log-time order."""
+    from mcap.writer import Writer
+
+    rng = np.random.default_rng(8)
+    schema = json.dumps(
+        {"type": "object", "properties": {"v": {"type": "array", "items": {"type": "number"}}}}
+    ).encode()
+    events = []
+    for topic, rate in (("/gyro", 400), ("/accel", 250), ("/note", 7)):
+        for i in range(n * rate // 400):
+            t = 10**18 + i * 10**9 // rate + {"/gyro": 0, "/accel": 1, "/note": 2}[topic]
+            events.append((t, topic, rng.normal(size=3).tolist()))
+    events.sort()
+    with open(path, "wb") as fh:
+        w = Writer(fh, chunk_size=4096)
+        w.start()
+        sid = w.register_schema("vec", "jsonschema", schema)
+        cids = {t: w.register_channel(t, "json", sid) for t in ("/gyro", "/accel", "/note")}
+        for t, topic, v in events:
+            w.add_message(
+                cids[topic], log_time=t, data=json.dumps({"v": v}).encode(), publish_time=t
+            )
+        w.finish()
+
+
+def test_mapped_input_streams_in_batches(tmp_path):
+    """iter_input reads a mapped input in batches of about batch_rows (whole chunks): together
+    the rows of one read, each carried-over message once, in log-time order."""
+    import pyarrow as pa
+
+    from imupipe.readers.dispatch import iter_input
+
+    path = tmp_path / "split.mcap"
+    write_split_json_mcap(path)
+    mapping = FieldMapping(gyro="/gyro.v", accel="/accel.v", time="log")
+    spec = InputSpec(path=path, fields=mapping)
+    whole, _ = read_input(spec)
+    warned: list[str] = []
+    batches = list(iter_input(spec, batch_rows=300, warnings=warned))
+    assert len(batches) > 3
+    assert all(b.num_rows < 300 + 200 for b, _ in batches)  # a batch: rows of whole chunks
+    joined = pa.concat_tables([b for b, _ in batches])
+    assert joined.num_rows == whole.num_rows == 900 + 562
+    for name in ("t_ns", "log_time_ns", "gyro_x", "accel_z"):
+        assert joined.column(name).equals(whole.column(name)), name
+    notes = [m for _, carried in batches for m in carried]
+    assert [m.topic for m in notes] == ["/note"] * (900 * 7 // 400)
+    times = [m.log_time for m in notes]
+    assert times == sorted(times)
+    for table, carried in batches[:-1]:  # a batch carries what was logged up to its end
+        assert all(m.log_time <= table.column("log_time_ns").to_numpy().max() for m in carried)
+
+
+def test_mapped_convert_is_the_same_whatever_the_batch(tmp_path):
+    """convert of a mapped input several batches long writes the same messages, byte for byte
+    and in the same order, as in one batch; every carried-over message once."""
+    from test_convert import raw_messages
+
+    from imupipe.pipeline.convert.fleet import convert
+
+    log = tmp_path / "split.mcap"
+    write_split_json_mcap(log, n=600)
+    read = tmp_path / "read.toml"
+    read.write_text('[fields]\ngyro = "/gyro.v"\naccel = "/accel.v"\ntime = "log"\n')
+    chain = [
+        {"type": "gyro_bias", "sensor": "gyro", "kind": "linear",
+         "matrix": np.eye(3).tolist(), "offset": [0.01, -0.02, 0.005]},
+    ]  # fmt: skip
+    cal = tmp_path / "cal.json"
+    cal.write_text(json.dumps({"imupipe_version": "test", "chain": chain, "results": {}}))
+    outputs = {}
+    for rows in (200, 10**9):
+        out = tmp_path / f"out{rows}"
+        summary = convert([log], cal, out, config=read, jobs=1, batch_rows=rows)
+        assert not summary.failed and len(summary.converted) == 1
+        outputs[rows] = raw_messages(out / "split.mcap")
+    assert outputs[200] == outputs[10**9]
+    assert {t: len(m) for t, m in outputs[200].items()} == {
+        "/gyro": 600, "/accel": 375, "/note": 600 * 7 // 400,
+    }  # fmt: skip
