@@ -37,6 +37,7 @@ from imupipe.pipeline.report.summary import (
 from imupipe.pipeline.signals import signals_deferred
 from imupipe.pipeline.version import VERSION
 from imupipe.pipeline.warm_imports import WarmImports
+from imupipe.readers.arrays import to_numpy
 from imupipe.readers.dispatch import read_input, reader_for
 from imupipe.readers.table_buffer import small_pages
 from imupipe.stages.base import StageContext
@@ -101,10 +102,8 @@ class RunSummary:
 
 def first_sample(tables: Iterable[pa.Table]) -> int | None:
     """The earliest ``t_ns`` of ``tables`` (the start of the recording; None: no rows)."""
-    import pyarrow.compute as pc
-
-    firsts = [pc.min(t.column("t_ns")).as_py() for t in tables if t.num_rows]
-    return min((f for f in firsts if f is not None), default=None)
+    firsts = [int(to_numpy(t.column("t_ns")).min()) for t in tables if t.num_rows]
+    return min(firsts, default=None)
 
 
 def calibration_document(
