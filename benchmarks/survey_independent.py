@@ -46,7 +46,7 @@ import numpy as np
 G0 = 9.80665
 DAY_NS = 86_400 * 10**9
 T0_NS = 1_780_000_000 * 10**9
-PLANTS = ("drift", "crash", "step", "noise", "accel_z", "thermal")
+PLANTS = ("drift", "crash", "step", "noise", "accel_z", "thermal", "accel_x")
 
 
 @dataclass
@@ -60,6 +60,8 @@ class Stream:
     temperature: tuple[np.ndarray, np.ndarray] | None
     still: list[tuple[int, int, np.ndarray, np.ndarray]] = field(default_factory=list)
     """(start_ns, stop_ns, true mean gyro bias (3,), true mean accel bias (3,)) per still period."""
+    up: list[np.ndarray] = field(default_factory=list)
+    """The true direction of gravity's reaction (body frame, unit) in each still period."""
 
 
 @dataclass
@@ -78,6 +80,9 @@ class Device:
     accel_bias: np.ndarray
     gyro_thermal: np.ndarray
     temperature_logged: bool = True
+    poses: bool = False
+    """Set down on any of its faces when still (a handheld rig), not resting level."""
+    accel_scale: np.ndarray = field(default_factory=lambda: np.zeros(3))
 
 
 def _gauss_markov(rng: np.random.Generator, n: int, dt: float, tau: float, sd: float) -> np.ndarray:
@@ -166,7 +171,11 @@ def _log(
     edges = np.r_[0, np.cumsum(n_seg)]
     still_idx = []
     for (kind, _), i0, i1 in zip(segs, edges[:-1], edges[1:], strict=True):
-        if kind == "still":
+        if kind == "still" and dev.poses:  # set down on any of its six faces
+            up = np.eye(3)[rng.integers(3)] * rng.choice([-1.0, 1.0]) + rng.normal(0, 0.05, 3)
+            f[i0:i1] = G0 * up / np.linalg.norm(up)
+            still_idx.append((i0, i1))
+        elif kind == "still":
             # resting on the ground: a few degrees off level, Earth rate ignored
             tilt = rng.normal(0, 0.03, 2)
             f[i0:i1] = [
@@ -198,7 +207,11 @@ def _log(
         gbias[k:, 0] += 2e-3
     scale = plant.get("noise_scale", 1.0)
     gyro = w + gbias + rng.normal(0, dev.gyro_n * scale * np.sqrt(rate), (n, 3))
-    accel = f + abias + rng.normal(0, dev.accel_n * scale * np.sqrt(rate), (n, 3))
+    accel = (
+        f * (1 + dev.accel_scale)
+        + abias
+        + rng.normal(0, dev.accel_n * scale * np.sqrt(rate), (n, 3))
+    )
     a = np.exp(-2 * np.pi * (rate / 4) * dt)  # the sensor's low-pass at rate / 4
     gyro = lfilter([1 - a], [1, -a], gyro, axis=0, zi=(gyro[0] * a)[None, :])[0]
     accel = lfilter([1 - a], [1, -a], accel, axis=0, zi=(accel[0] * a)[None, :])[0]
@@ -217,6 +230,7 @@ def _log(
         (t_ns[:: int(rate)], np.round(temp[:: int(rate)], 2)) if dev.temperature_logged else None,
     )
     for i0, i1 in still_idx:
+        s.up.append(f[i0] / np.linalg.norm(f[i0]))
         s.still.append(
             (int(t_ns[i0]), int(t_ns[i1 - 1]), gbias[i0:i1].mean(axis=0), abias[i0:i1].mean(axis=0))
         )
@@ -227,13 +241,16 @@ def make_fleet(seed: int, plants: tuple[str, ...] = ()) -> tuple[list[Log], list
     """One fleet (see the module docstring) and its planted events (device, kind, figure, log,
     and for an in-log step its time)."""
     rng = np.random.default_rng(seed)
-    n_veh = int(rng.integers(6, 9))
+    n_veh = max(int(rng.integers(6, 9)), len(plants) + 1)
     logs: list[Log] = []
     events: list[dict[str, Any]] = []
-    flight_veh, lowrate_veh, cut_veh, notemp_veh = rng.choice(n_veh, 4, replace=False)
-    # the thermal plant on a vehicle that logs its temperature (without it, nothing to refer to)
-    hosts = [v for v in rng.permutation(n_veh) if v != notemp_veh]
-    planted = dict(zip(hosts[: len(plants)], plants, strict=False))
+    flight_veh, lowrate_veh, cut_veh, notemp_veh, *posed = rng.choice(n_veh, 6, replace=False)
+    # accel_x on a vehicle set down on its faces (a level one sees its x offset only through
+    # its lean); the others on vehicles that log their temperature (the thermal plant needs it)
+    planted = {posed[0]: "accel_x"} if "accel_x" in plants else {}
+    hosts = [v for v in rng.permutation(n_veh) if v != notemp_veh and v not in planted]
+    others = [p for p in plants if p != "accel_x"]
+    planted.update(zip(hosts[: len(others)], others, strict=True))
     for v in range(n_veh):
         name = f"veh{v:02d}"
         dev = Device(
@@ -244,6 +261,8 @@ def make_fleet(seed: int, plants: tuple[str, ...] = ()) -> tuple[list[Log], list
             rng.normal(0, 0.3, 3),
             rng.normal(0, 1e-5, 3),
             temperature_logged=v != notemp_veh,
+            poses=v in posed,
+            accel_scale=rng.normal(0, 3e-3, 3),
         )
         plant = planted.get(v)
         if plant == "thermal":
@@ -255,6 +274,7 @@ def make_fleet(seed: int, plants: tuple[str, ...] = ()) -> tuple[list[Log], list
         j_plant = int(rng.integers(3, 6))
         flight_log = int(rng.integers(1, 7)) if v == flight_veh else -1
         cut_log = int(rng.integers(0, 8)) if v == cut_veh else -1
+        both_x = False
         for j in range(8):
             start = T0_NS + int(days[j] * DAY_NS) + int(rng.uniform(8, 10) * 3600e9)
             g_on = rng.normal(0, 5e-5, 3) + walk_g[j]
@@ -266,6 +286,8 @@ def make_fleet(seed: int, plants: tuple[str, ...] = ()) -> tuple[list[Log], list
                 g_on = g_on + np.array([2e-3, 0, 0])
             if plant == "accel_z" and j >= j_plant:
                 a_on = a_on + np.array([0, 0, 0.03 * G0])
+            if plant == "accel_x" and j >= j_plant:
+                a_on = a_on + np.array([0.03 * G0, 0, 0])
             if plant == "noise" and j >= j_plant:
                 p["noise_scale"] = 2.5
             if plant == "crash" and j == j_plant:
@@ -302,10 +324,18 @@ def make_fleet(seed: int, plants: tuple[str, ...] = ()) -> tuple[list[Log], list
                 if plant == "crash":
                     ev["t_ns"] = int(stream.t_ns[p["crash_index"]])
                 events.append(ev)
+            if plant == "accel_x" and j >= j_plant:  # the first log from it that sees x
+                ev = next(e for e in events if e["kind"] == "accel_x")
+                if "seen" not in ev and any(abs(u[0]) > 0.9 for u in stream.up):
+                    ev["seen"] = log
+            ups = [u[0] for u in stream.up]  # x's offset apart from its scale: both x faces
+            both_x = both_x or (any(u > 0.9 for u in ups) and any(u < -0.9 for u in ups))
             if plant == "drift" and j == 0:
                 events.append({"device_id": f"{name}:/imu/data", "kind": "drift", "log": log})
             if plant == "thermal" and j == 0:
                 events.append({"device_id": f"{name}:/imu/data", "kind": "thermal", "log": log})
+        if plant == "accel_x":  # judged only where a log lay on both x faces
+            next(e for e in events if e["kind"] == "accel_x")["observable"] = both_x
     return logs, events
 
 
@@ -358,6 +388,8 @@ def caught(event: dict[str, Any], flags: list[dict[str, Any]]) -> bool:
             f[0] == "step" and f[1] in ("accel_norm_error", "accel_bias_z") and f[2] == log
             for f in got
         )
+    if kind == "accel_x":  # at the plant's log, or the first after it whose poses tell x
+        return ("step", "accel_bias_x", event.get("seen", log)) in got
     if kind == "thermal":
         return not flags
     raise ValueError(kind)
@@ -420,6 +452,7 @@ def main() -> None:
     tried = collections.Counter()
     other = 0
     power: list[float] = []
+    unobservable = 0
     for seed in range(1000 + args.first, 1000 + args.first + args.planted):
         logs, events = make_fleet(seed, PLANTS)
         _, view = survey_fleet(logs)
@@ -427,6 +460,9 @@ def main() -> None:
         planted = {e["device_id"] for e in events}
         other += sum(len(v) for dev, v in flags.items() if dev not in planted)
         for e in events:
+            if e.get("observable") is False:  # its poses never tell x: not a test
+                unobservable += 1
+                continue
             tried[e["kind"]] += 1
             ok = caught(e, flags.get(e["device_id"], []))
             hits[e["kind"]] += ok
@@ -440,6 +476,9 @@ def main() -> None:
     print(f"planted fleets {args.planted}: flags on unplanted devices {other}")
     for kind in PLANTS:
         print(f"   {kind:8s} {hits[kind]} of {tried[kind]}")
+    print(
+        f"   accel_x plants on a vehicle never set down on both x faces (not judged): {unobservable}"
+    )
     if power:
         q = np.nanpercentile(power, [10, 50, 90])
         print(

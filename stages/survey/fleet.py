@@ -99,6 +99,9 @@ class DeviceHistory:
     test's input; the in-log steps are out of ``figures`` already)."""
     power: dict[str, float] = field(default_factory=dict)
     """figure -> the smallest drift per day the drift test detects with 90 % probability."""
+    axes: tuple[np.ndarray, np.ndarray] = (np.zeros((0, 3)), np.zeros((0, 3)))
+    """The accelerometer's offset per log and axis and its standard error, (logs, 3) m/s^2 (NaN
+    where the log's orientations do not tell it: :func:`accel_axes`)."""
 
 
 @dataclass
@@ -119,11 +122,21 @@ class Periods:
 
 
 FIGURES = ("gyro_bias_x", "gyro_bias_y", "gyro_bias_z", "accel_norm_error")
+"""The figures of each still period (the per-log ones are their weighted means)."""
+ACCEL_AXES = ("accel_bias_x", "accel_bias_y", "accel_bias_z")
+"""The accelerometer's offset on each axis, per log, where the log's still periods lie in
+orientations that tell it (:func:`accel_axes`)."""
+LOG_FIGURES = FIGURES + ACCEL_AXES
+"""Every per-log figure the steps between logs and the drift test judge."""
+GROUPS = (FIGURES[:3], FIGURES[3:], ACCEL_AXES)
+"""Figures that share a turn-on and random walk (the gyro's three axes: one die; the
+accelerometer's offsets) in :func:`_walk_scales`."""
 UNITS = {
     "gyro_bias_x": "rad/s",
     "gyro_bias_y": "rad/s",
     "gyro_bias_z": "rad/s",
     "accel_norm_error": "m/s^2",
+    **dict.fromkeys(ACCEL_AXES, "m/s^2"),
 }
 
 
@@ -287,6 +300,94 @@ ACCEL_OFFSET_XY = 0.5
 (:func:`attitude_term` needs several periods): about 50 mg, the zero-g offset of consumer parts
 (InvenSense MPU-6000 +-50 mg on x and y; Bosch BMI088 +-20 mg); times a period's lean it is the
 error of taking ``|a| - g`` for the offset along gravity."""
+ACCEL_AXIS_SE_MAX = 0.02
+"""m/s^2 (2 mg): an axis's offset in a log is a figure of the survey when it is known to this
+(a tenth of a consumer accelerometer's zero-g offset tolerance, Bosch BMI088 +-20 mg); a log
+whose orientations do not tell it (a vehicle that rests level: the x and y offsets are seen
+through its lean only, and the z offset together with the z scale) has none on that axis."""
+ACCEL_SCALE_SD = 0.01
+"""The prior standard deviation of an accelerometer axis's scale error (1 %; MEMS datasheets
+give +-0.5 to +-3 %, InvenSense MPU-6000 +-3 %, Bosch BMI088 +-0.5 %) in :func:`accel_axes`."""
+
+
+def _axes_solve(
+    index: np.ndarray, n: int, u: np.ndarray, y: np.ndarray, w: np.ndarray, g: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The weighted least squares of :func:`accel_axes` (weights ``w``) with its priors
+    (``b_j ~ N(0, ACCEL_OFFSET_XY^2)``, ``s ~ N(0, ACCEL_SCALE_SD^2)``), solved by eliminating
+    the per-log offsets (the Schur complement of their 3x3 blocks): the offsets b (n, 3), their
+    covariance (n, 3, 3), the residuals (m,) and each period's leverage (m,)."""
+    q = g * u * u  # the scale's regressors: |g u + g S u| - g ~ g u^T S u, S diagonal
+    eye = np.eye(3)
+    a = np.zeros((n, 3, 3)) + eye / ACCEL_OFFSET_XY**2
+    c = np.zeros((n, 3, 3))
+    r = np.zeros((n, 3))
+    np.add.at(a, index, w[:, None, None] * u[:, :, None] * u[:, None, :])
+    np.add.at(c, index, w[:, None, None] * u[:, :, None] * q[:, None, :])
+    np.add.at(r, index, (w * y)[:, None] * u)
+    ai = np.linalg.inv(a)
+    aic = ai @ c
+    schur = (q * w[:, None]).T @ q + eye / ACCEL_SCALE_SD**2 - np.einsum("nji,njk->ik", c, aic)
+    si = np.linalg.inv(schur)
+    rhs = (q * w[:, None]).T @ y - np.einsum("nji,nj->i", c, np.einsum("nij,nj->ni", ai, r))
+    s = si @ rhs
+    b = np.einsum("nij,nj->ni", ai, r - c @ s)
+    cov_b = ai + aic @ si @ aic.transpose(0, 2, 1)
+    cov_bs = -aic @ si  # cov(b_j, s)
+    resid = y - np.einsum("mi,mi->m", u, b[index]) - q @ s
+    lev = w * (
+        np.einsum("mi,mij,mj->m", u, cov_b[index], u)
+        + 2 * np.einsum("mi,mij,mj->m", u, cov_bs[index], q)
+        + np.einsum("mi,ij,mj->m", q, si, q)
+    )
+    return b, cov_b, resid, lev
+
+
+def accel_axes(
+    index: np.ndarray, n: int, u: np.ndarray, y: np.ndarray, se: np.ndarray, g: float = 9.80665
+) -> tuple[np.ndarray, np.ndarray]:
+    """The accelerometer's offset on each axis in each log, from its still periods' ``|a| - g``
+    (``y``, m/s^2, error ``se``) and measured gravity directions ``u`` (unit, (m, 3)); periods
+    of log ``index`` in ``0 .. n - 1``. Model (the multi-position calibration's, Ferraris et al.
+    1995, restricted to offsets and a diagonal scale): ``|a| - g = b_j . u + g u^T S u``, the
+    offset ``b_j`` free per log (it steps and walks between logs), the diagonal scale error
+    ``S`` the device's, with weak priors (:data:`ACCEL_OFFSET_XY`, :data:`ACCEL_SCALE_SD`) so
+    that the orientations a log lacks leave its offsets' errors large instead of the fit
+    singular. The periods scatter beyond their white-noise errors (the in-log bias
+    instability): a common excess variance is fitted so that the weighted residuals' sum of
+    squares equals its degrees of freedom (the periods less the fit's effective parameters, the
+    trace of its hat matrix). Returns (n, 3) offsets (m/s^2) and their standard errors, NaN on
+    an axis whose error exceeds :data:`ACCEL_AXIS_SE_MAX` (its orientations do not tell it)."""
+    ok = np.isfinite(y) & np.isfinite(se) & (se > 0) & np.isfinite(u).all(axis=1)
+    out, err = np.full((n, 3), np.nan), np.full((n, 3), np.nan)
+    if ok.sum() < 4:
+        return out, err
+    index, u, y, var = index[ok], u[ok], y[ok], se[ok] ** 2
+
+    def fit(extra: float) -> tuple[float, float, np.ndarray, np.ndarray]:
+        w = 1.0 / (var + extra)
+        b, cov, resid, lev = _axes_solve(index, n, u, y, w, g)
+        return float(np.sum(w * resid**2)), float(len(y) - lev.sum()), b, cov
+
+    ss, dof, b, cov = fit(0.0)
+    if dof > 0.5 and ss > dof:  # bisect the excess variance: sum of squares = dof
+        lo, hi = 0.0, float(np.var(y)) + float(np.max(var))
+        for _ in range(40):
+            mid = 0.5 * (lo + hi)
+            ss, dof, _, _ = fit(mid)
+            lo, hi = (mid, hi) if ss > dof else (lo, mid)
+        ss, dof, b, cov = fit(hi)
+    e = np.sqrt(np.einsum("nii->ni", cov))
+    keep = (e <= ACCEL_AXIS_SE_MAX) & (np.bincount(index, minlength=n) > 0)[:, None]
+    out[keep], err[keep] = b[keep], e[keep]
+    return out, err
+
+
+UPRIGHT_DEG = 25.0
+"""The periods the attitude term of ``|a| - g`` is fitted from (:func:`attitude_term`): those
+within this of upright (``u_z >= cos 25 deg``), where ``b_z u_z`` is the log's intercept to 10 %
+of ``b_z``; a vehicle set down on its side or upside down sees its offsets on every axis
+(:func:`accel_axes`) instead."""
 STILL_NOISE_RATIO = 5.0
 """A candidate still period whose gyro or accelerometer noise density exceeds this many times the
 device's noise floor (:func:`still_judged`) is vibration, not stillness."""
@@ -396,10 +497,16 @@ def device_history(
         )
     values, se = dict(values), dict(se)
     norm, norm_se = values["accel_norm_error"], se["accel_norm_error"]
+    axes = np.full((n, 3), np.nan), np.full((n, 3), np.nan)
     if accel is not None:
         with np.errstate(invalid="ignore", divide="ignore"):
             u = accel / np.linalg.norm(accel, axis=1)[:, None]
-        found = attitude_term(index, u, temperature, norm, norm_se)
+        axes = accel_axes(index, n, u, norm, norm_se)
+        # the side the device rests on (upside down, b_z reads as -b_z): near it, b_z u_z is
+        # the log's intercept; beyond UPRIGHT_DEG it is not
+        side = np.sign(np.nanmedian(u[:, 2])) or 1.0
+        up = side * u[:, 2] >= np.cos(np.radians(UPRIGHT_DEG))
+        found = attitude_term(index[up], u[up], temperature[up], norm[up], norm_se[up])
         if found is not None:
             b, cov = found
             norm = norm - u[:, :2] @ b
@@ -407,6 +514,8 @@ def device_history(
         else:  # too few periods to fit it: the offsets' typical size times the lean
             lean = np.linalg.norm(u[:, :2], axis=1) * ACCEL_OFFSET_XY
             norm_se = np.sqrt(norm_se**2 + lean**2)
+        if level is not None:
+            level = level & up
     if level is not None:
         norm_se = np.where(level, norm_se, np.nan)
     values["accel_norm_error"], se["accel_norm_error"] = norm, norm_se
@@ -426,6 +535,7 @@ def device_history(
         rejected=rejected,
         no_still=sorted(set(all_logs.astype(str)) - {str(x) for x in names}),
         floors=floors,
+        axes=axes,
     )
     fit_periods(h)
     return h
@@ -443,6 +553,10 @@ def fit_periods(h: DeviceHistory) -> None:
     h.se = {name: fit.se for name, fit in h.fits.items()}
     for name in FIGURES:
         refer(h, name)
+    for i, name in enumerate(ACCEL_AXES):  # per log already; no thermal slope
+        value, se = h.axes[0][:, i], h.axes[1][:, i]
+        h.fits[name] = ThermalFit(value, se, h.temperature, float("nan"), float("nan"))
+        h.se[name], h.figures[name] = se, value
 
 
 def refer(h: DeviceHistory, name: str) -> None:
@@ -486,7 +600,7 @@ def _step_scales(histories: Sequence[DeviceHistory]) -> dict[str, float]:
     """Per figure, ``s``: the robust scale of every consecutive difference of the referred per-log
     figures in the fleet."""
     out = {}
-    for name in FIGURES:
+    for name in LOG_FIGURES:
         diffs = np.concatenate([np.diff(h.figures[name]) for h in histories] or [np.zeros(0)])
         out[name] = mad_sigma(diffs)
     return out
@@ -744,7 +858,7 @@ def fleet_flags(histories: Sequence[DeviceHistory], k: float) -> dict[str, Any]:
         scales[f"{s}_noise"] = max(mad_sigma(np.array(devs)), NOISE_FLOOR) if devs else NOISE_FLOOR
     pending: dict[tuple[str, str], list[dict[str, Any]]] = {}  # steps between logs
     for h in histories:
-        for name in FIGURES:
+        for name in LOG_FIGURES:
             unit = UNITS[name]
             f, se = h.figures[name], h.se[name]
             base = np.nan_to_num(scales[name])
@@ -773,11 +887,12 @@ def fleet_flags(histories: Sequence[DeviceHistory], k: float) -> dict[str, Any]:
             h.steady[name] = steady
             h.moved[name] = float((f[-1] - f[0]) / base) if len(f) > 1 and base > 0 else 0.0
     # the gyro's three axes share one die: one turn-on and walk, fitted to the three at once
-    gyro = np.nan_to_num(_walk_scales(histories, FIGURES[:3]))
-    accel = np.nan_to_num(_walk_scales(histories, FIGURES[3:]))
+    walk = {
+        name: np.nan_to_num(_walk_scales(histories, group)) for group in GROUPS for name in group
+    }
     fitted: dict[str, tuple[Any, list[tuple[float, float, float]], float]] = {}
-    for name in FIGURES:
-        sw, q = (float(v) for v in (gyro if name.startswith("gyro") else accel))
+    for name in LOG_FIGURES:
+        sw, q = (float(v) for v in walk[name])
         scales[f"{name}_turn_on"], scales[f"{name}_walk_per_sqrt_day"] = sw, q
 
         def gls(
@@ -795,7 +910,7 @@ def fleet_flags(histories: Sequence[DeviceHistory], k: float) -> dict[str, Any]:
     # over few logs): the fleet's excess scale of the slopes, a random effect (the gyro's axes
     # pooled: one die)
     spread = {}
-    for group in (FIGURES[:3], FIGURES[3:]):
+    for group in GROUPS:
         d = np.concatenate([[b - fitted[n][2] for b, _, _ in fitted[n][1]] for n in group])
         var = np.concatenate([[e**2 for _, e, _ in fitted[n][1]] for n in group])
         pooled = float(np.nan_to_num(excess_scale(np.asarray(d), np.asarray(var))))
@@ -805,7 +920,7 @@ def fleet_flags(histories: Sequence[DeviceHistory], k: float) -> dict[str, Any]:
                 np.array([e**2 for _, e, _ in fitted[n][1]]),
             )
             spread[n] = max(pooled, float(np.nan_to_num(own)))
-    for name in FIGURES:
+    for name in LOG_FIGURES:
         gls, fits, med = fitted[name]
         sw = scales[f"{name}_turn_on"]
         finite = np.array([b for b, _, _ in fits if np.isfinite(b)])
@@ -841,6 +956,15 @@ def fleet_flags(histories: Sequence[DeviceHistory], k: float) -> dict[str, Any]:
                 f"{7 * med:+.3g}, limit +-{7 * k * e:.2g}; the smallest drift this test finds "
                 f"with 90 % probability: {7 * h.power[name]:.2g} {unit}/week)",
             )
+    for h in histories:  # an offset step seen on its axis is not flagged again as |a| - g's
+        on_axis = {f["log"] for f in h.flags if f["kind"] == "step" and f["figure"] in ACCEL_AXES}
+        h.flags = [
+            f
+            for f in h.flags
+            if not (
+                f["figure"] == "accel_norm_error" and f["kind"] == "step" and f["log"] in on_axis
+            )
+        ]
     for h in histories:
         for s in ("gyro", "accel"):
             ln = np.log(np.maximum(h.noise[s], 1e-300))
