@@ -339,6 +339,130 @@ def make_fleet(seed: int, plants: tuple[str, ...] = ()) -> tuple[list[Log], list
     return logs, events
 
 
+IMU_MSGDEF = """std_msgs/Header header
+geometry_msgs/Quaternion orientation
+float64[9] orientation_covariance
+geometry_msgs/Vector3 angular_velocity
+float64[9] angular_velocity_covariance
+geometry_msgs/Vector3 linear_acceleration
+float64[9] linear_acceleration_covariance
+================================================================================
+MSG: std_msgs/Header
+builtin_interfaces/Time stamp
+string frame_id
+================================================================================
+MSG: builtin_interfaces/Time
+int32 sec
+uint32 nanosec
+================================================================================
+MSG: geometry_msgs/Quaternion
+float64 x
+float64 y
+float64 z
+float64 w
+================================================================================
+MSG: geometry_msgs/Vector3
+float64 x
+float64 y
+float64 z
+"""
+"""``sensor_msgs/msg/Imu`` (ROS 2 Humble) with its dependencies, as ``ros2 bag`` writes it."""
+
+
+def write_mcap(stream: Stream, path: Path, chunk_size: int = 256 * 1024) -> None:
+    """``stream`` as a ROS 2 MCAP written by the ``mcap`` library's own ROS 2 writer
+    (``mcap_ros2.writer``, not imupipe's), one ``sensor_msgs/msg/Imu`` per sample."""
+    from mcap_ros2.writer import Writer
+
+    with open(path, "wb") as fh:
+        writer = Writer(fh, chunk_size=chunk_size)
+        schema = writer.register_msgdef("sensor_msgs/msg/Imu", IMU_MSGDEF)
+        zero9 = [0.0] * 9
+        rows = zip(stream.t_ns.tolist(), stream.gyro.tolist(), stream.accel.tolist(), strict=True)
+        for t, w, a in rows:
+            msg = {
+                "header": {"stamp": {"sec": t // 10**9, "nanosec": t % 10**9}, "frame_id": "imu"},
+                "orientation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0},
+                "orientation_covariance": [-1.0] + zero9[1:],
+                "angular_velocity": dict(zip("xyz", w, strict=True)),
+                "angular_velocity_covariance": zero9,
+                "linear_acceleration": dict(zip("xyz", a, strict=True)),
+                "linear_acceleration_covariance": zero9,
+            }
+            writer.write_message(stream.topic, schema, msg, log_time=t, publish_time=t)
+        writer.finish()
+
+
+def recovered(path: Path) -> int:
+    """Messages the ``mcap`` library's ``StreamReader`` reads from a cut MCAP before the record
+    that runs past the end (what a tool can recover; imupipe's reader is not asked)."""
+    from mcap.records import Message
+    from mcap.stream_reader import StreamReader
+
+    n = 0
+    with open(path, "rb") as fh:
+        try:
+            for record in StreamReader(fh).records:
+                n += isinstance(record, Message)
+        except Exception:  # noqa: BLE001 - the damaged record: the stream ends there
+            pass
+    return n
+
+
+def truncated_check(folder: Path, seed: int = 0, keep: float = 0.7) -> dict[str, Any]:
+    """A log cut off part-way through writing (its MCAP file's first ``keep`` of its bytes:
+    no summary, the last chunk broken) surveyed from the file by ``imupipe survey`` without
+    and with ``--read-truncated``. Returns the samples written and recovered (by the ``mcap``
+    library), whether the plain survey failed it, the still periods surveyed from the cut file
+    and those the survey's own code finds in memory on the recovered samples (equal when the
+    cut log is read up to its cut), the true still periods before the cut."""
+    from imupipe.pipeline.survey.scan import survey
+    from imupipe.stages.survey.stats import StillOptions, period_stats, still_periods
+
+    rng = np.random.default_rng(seed)
+    dev = Device(100.0, 2e-4, 1.5e-3, rng.normal(0, 5e-3, 3), rng.normal(0, 0.3, 3), np.zeros(3))
+    stream = _log(rng, dev, T0_NS, 20.0, False, (np.zeros(3), np.zeros(3)), {})
+    stop = int(np.searchsorted(stream.t_ns, stream.still[1][1])) + 2000  # two still periods
+    stream.t_ns, stream.gyro, stream.accel = (
+        stream.t_ns[:stop],
+        stream.gyro[:stop],
+        stream.accel[:stop],
+    )
+    stream.still = [p for p in stream.still if p[1] <= stream.t_ns[-1]]
+    logs = folder / "logs"
+    logs.mkdir(parents=True, exist_ok=True)
+    full = folder / "full.mcap"
+    write_mcap(stream, full)
+    data = full.read_bytes()
+    cut = logs / "cut.mcap"
+    cut.write_bytes(data[: int(len(data) * keep)])
+    n = recovered(cut)
+    plain = survey([logs], folder / "plain", jobs=1, quiet=True, rerun=False)
+    read = survey([logs], folder / "cut", jobs=1, quiet=True, rerun=False, read_truncated=True)
+    import pyarrow.parquet as pq
+
+    rows = pq.read_table(folder / "cut" / "survey.parquet").to_pylist()
+    opts = StillOptions()
+    t, g, a = stream.t_ns[:n], stream.gyro[:n], stream.accel[:n]
+    memory = period_stats(t, g, a, still_periods(t, g, a, opts), opts, None)
+    return {
+        "samples": len(stream.t_ns),
+        "recovered": n,
+        "plain_failed": len(plain["failed"]),
+        "read_failed": len(read["failed"]),
+        "file": [(r["start_ns"], r["stop_ns"], r["gyro_bias_x"]) for r in rows if r["samples"]],
+        "memory": list(
+            zip(
+                memory["start_ns"].tolist(),
+                memory["stop_ns"].tolist(),
+                memory["gyro_bias"][:, 0].tolist(),
+                strict=True,
+            )
+        ),
+        "true_before_cut": sum(b <= stream.t_ns[n - 1] for _, b, _, _ in stream.still),
+    }
+
+
 def survey_fleet(logs: list[Log], k: float = 5.0) -> tuple[Any, dict[str, Any]]:
     """The survey dataset and fleet view of ``logs``, in memory (the survey's own per-log code:
     :func:`~imupipe.stages.survey.stats.still_periods` and
