@@ -609,6 +609,18 @@ def main() -> None:
             f"   gyro drift found with 90 % probability: {q[1]:.3g} rad/s per week (median; "
             f"10-90 %: {q[0]:.3g}-{q[2]:.3g})"
         )
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as tmp:
+        r = truncated_check(Path(tmp))
+    same = r["file"] == r["memory"]
+    print(
+        f"cut-off log (MCAP, 70 % of its bytes): {r['recovered']} of {r['samples']} samples "
+        f"recovered by the mcap library; plain survey failed it: {bool(r['plain_failed'])}; with "
+        f"--read-truncated {len(r['file'])} still periods (in memory on those samples: "
+        f"{len(r['memory'])}, {'the same' if same else 'DIFFERENT'}; true before the cut: "
+        f"{r['true_before_cut']})"
+    )
     print(f"total {time.perf_counter() - t:.0f} s")
 
 
