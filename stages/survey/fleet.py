@@ -102,6 +102,8 @@ class DeviceHistory:
     axes: tuple[np.ndarray, np.ndarray] = (np.zeros((0, 3)), np.zeros((0, 3)))
     """The accelerometer's offset per log and axis and its standard error, (logs, 3) m/s^2 (NaN
     where the log's orientations do not tell it: :func:`accel_axes`)."""
+    axes_input: tuple[Any, ...] | None = None
+    """:func:`accel_axes`'s arguments (fitted again with the fleet's in-log excess)."""
 
 
 @dataclass
@@ -312,12 +314,13 @@ give +-0.5 to +-3 %, InvenSense MPU-6000 +-3 %, Bosch BMI088 +-0.5 %) in :func:`
 
 def _axes_solve(
     index: np.ndarray, n: int, u: np.ndarray, y: np.ndarray, w: np.ndarray, g: float
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """The weighted least squares of :func:`accel_axes` (weights ``w``) with its priors
-    (``b_j ~ N(0, ACCEL_OFFSET_XY^2)``, ``s ~ N(0, ACCEL_SCALE_SD^2)``), solved by eliminating
-    the per-log offsets (the Schur complement of their 3x3 blocks): the offsets b (n, 3), their
-    covariance (n, 3, 3), the residuals (m,) and each period's leverage (m,)."""
-    q = g * u * u  # the scale's regressors: |g u + g S u| - g ~ g u^T S u, S diagonal
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The weighted least squares ``y ~ b_j . u + g (u * u) . s`` of :func:`accel_axes`
+    (weights ``w``) with its priors (``b_j ~ N(0, ACCEL_OFFSET_XY^2)``, ``s ~ N(0,
+    ACCEL_SCALE_SD^2)``), solved by eliminating the per-log offsets (the Schur complement of
+    their 3x3 blocks): b (n, 3), s (3,), b's covariance (n, 3, 3), the residuals (m,) and each
+    period's leverage (m,)."""
+    q = g * u * u
     eye = np.eye(3)
     a = np.zeros((n, 3, 3)) + eye / ACCEL_OFFSET_XY**2
     c = np.zeros((n, 3, 3))
@@ -340,43 +343,63 @@ def _axes_solve(
         + 2 * np.einsum("mi,mij,mj->m", u, cov_bs[index], q)
         + np.einsum("mi,ij,mj->m", q, si, q)
     )
-    return b, cov_b, resid, lev
+    return b, s, cov_b, resid, lev
 
 
 def accel_axes(
-    index: np.ndarray, n: int, u: np.ndarray, y: np.ndarray, se: np.ndarray, g: float = 9.80665
+    index: np.ndarray,
+    n: int,
+    u: np.ndarray,
+    y: np.ndarray,
+    se: np.ndarray,
+    extra: float = 0.0,
+    g: float = 9.80665,
 ) -> tuple[np.ndarray, np.ndarray]:
     """The accelerometer's offset on each axis in each log, from its still periods' ``|a| - g``
     (``y``, m/s^2, error ``se``) and measured gravity directions ``u`` (unit, (m, 3)); periods
     of log ``index`` in ``0 .. n - 1``. Model (the multi-position calibration's, Ferraris et al.
-    1995, restricted to offsets and a diagonal scale): ``|a| - g = b_j . u + g u^T S u``, the
-    offset ``b_j`` free per log (it steps and walks between logs), the diagonal scale error
-    ``S`` the device's, with weak priors (:data:`ACCEL_OFFSET_XY`, :data:`ACCEL_SCALE_SD`) so
-    that the orientations a log lacks leave its offsets' errors large instead of the fit
-    singular. The periods scatter beyond their white-noise errors (the in-log bias
-    instability): a common excess variance is fitted so that the weighted residuals' sum of
-    squares equals its degrees of freedom (the periods less the fit's effective parameters, the
-    trace of its hat matrix). Returns (n, 3) offsets (m/s^2) and their standard errors, NaN on
-    an axis whose error exceeds :data:`ACCEL_AXIS_SE_MAX` (its orientations do not tell it)."""
+    1995, restricted to offsets and a diagonal scale): each period's mean specific force ``a``
+    satisfies ``|(I + S)^-1 (a - b_j)| = g``, the offset ``b_j`` free per log (it steps and
+    walks between logs), the diagonal scale error ``S`` the device's; solved by Gauss-Newton
+    (three steps from ``b = 0, S = 0``: the first is the linear ``|a| - g ~ b_j . u + g u^T S
+    u``; the next take out its ``|b|^2 / 2g`` part, 10 mg for 0.45 m/s^2 offsets), with weak
+    priors (:data:`ACCEL_OFFSET_XY`, :data:`ACCEL_SCALE_SD`) on each step so that the
+    orientations a log lacks leave its offsets' errors large instead of the fit singular (an
+    axis seen on one face only tells its offset with its scale: both faces, in some log, part
+    them). The periods scatter beyond their white-noise errors (the in-log bias instability):
+    each period's variance is ``se^2 + extra`` (``extra``: the fleet's, from the in-log
+    differences of ``|a| - g``), or more where the device's own residuals say so (the
+    weighted sum of squares brought to its degrees of freedom: the periods less the trace of
+    the fit's hat matrix). Returns (n, 3) offsets (m/s^2) and their standard errors, NaN on an
+    axis whose error exceeds :data:`ACCEL_AXIS_SE_MAX` (its orientations do not tell it)."""
     ok = np.isfinite(y) & np.isfinite(se) & (se > 0) & np.isfinite(u).all(axis=1)
     out, err = np.full((n, 3), np.nan), np.full((n, 3), np.nan)
     if ok.sum() < 4:
         return out, err
-    index, u, y, var = index[ok], u[ok], y[ok], se[ok] ** 2
+    index, var = index[ok], se[ok] ** 2 + extra
+    a = u[ok] * (y[ok] + g)[:, None]  # each period's mean specific force
+    b, s = np.zeros((n, 3)), np.zeros(3)
 
-    def fit(extra: float) -> tuple[float, float, np.ndarray, np.ndarray]:
-        w = 1.0 / (var + extra)
-        b, cov, resid, lev = _axes_solve(index, n, u, y, w, g)
-        return float(np.sum(w * resid**2)), float(len(y) - lev.sum()), b, cov
+    def step(more: float) -> tuple[float, float, np.ndarray, np.ndarray, np.ndarray]:
+        """The Gauss-Newton step at (b, s): (sum of squares, dof, db, ds, cov)."""
+        fixed = (a - b[index]) / (1.0 + s)
+        size = np.linalg.norm(fixed, axis=1)
+        w = 1.0 / (var + more)
+        db, ds, cov, resid, lev = _axes_solve(index, n, fixed / size[:, None], size - g, w, g)
+        return float(np.sum(w * resid**2)), float(len(w) - lev.sum()), db, ds, cov
 
-    ss, dof, b, cov = fit(0.0)
-    if dof > 0.5 and ss > dof:  # bisect the excess variance: sum of squares = dof
-        lo, hi = 0.0, float(np.var(y)) + float(np.max(var))
-        for _ in range(40):
-            mid = 0.5 * (lo + hi)
-            ss, dof, _, _ = fit(mid)
-            lo, hi = (mid, hi) if ss > dof else (lo, mid)
-        ss, dof, b, cov = fit(hi)
+    more = 0.0
+    for _ in range(3):
+        ss, dof, db, ds, cov = step(more)
+        if dof > 0.5 and ss > dof:  # bisect the excess variance: sum of squares = dof
+            lo, hi = more, more + float(np.var(a)) + float(np.max(var))
+            for _ in range(40):
+                mid = 0.5 * (lo + hi)
+                ss, dof, *_ = step(mid)
+                lo, hi = (mid, hi) if ss > dof else (lo, mid)
+            more = hi
+            ss, dof, db, ds, cov = step(more)
+        b, s = b + db, s + ds
     e = np.sqrt(np.einsum("nii->ni", cov))
     keep = (e <= ACCEL_AXIS_SE_MAX) & (np.bincount(index, minlength=n) > 0)[:, None]
     out[keep], err[keep] = b[keep], e[keep]
@@ -498,10 +521,12 @@ def device_history(
     values, se = dict(values), dict(se)
     norm, norm_se = values["accel_norm_error"], se["accel_norm_error"]
     axes = np.full((n, 3), np.nan), np.full((n, 3), np.nan)
+    axes_input = None
     if accel is not None:
         with np.errstate(invalid="ignore", divide="ignore"):
             u = accel / np.linalg.norm(accel, axis=1)[:, None]
-        axes = accel_axes(index, n, u, norm, norm_se)
+        axes_input = (index, n, u, norm, norm_se)
+        axes = accel_axes(*axes_input)
         # the side the device rests on (upside down, b_z reads as -b_z): near it, b_z u_z is
         # the log's intercept; beyond UPRIGHT_DEG it is not
         side = np.sign(np.nanmedian(u[:, 2])) or 1.0
@@ -536,6 +561,7 @@ def device_history(
         no_still=sorted(set(all_logs.astype(str)) - {str(x) for x in names}),
         floors=floors,
         axes=axes,
+        axes_input=axes_input,
     )
     fit_periods(h)
     return h
@@ -842,9 +868,12 @@ def fleet_flags(histories: Sequence[DeviceHistory], k: float) -> dict[str, Any]:
     ``moved``); returns the fleet's scales."""
     _refer_all(histories)
     inlog = inlog_steps(histories, k)
+    extra = float(np.nan_to_num(inlog["accel_norm_error"])) ** 2 / 2  # per period, of a difference
     for h in histories:
         p = h.period
-        if p is not None and any(p.offset[name].any() for name in FIGURES):
+        if h.axes_input is not None and extra > 0:
+            h.axes = accel_axes(*h.axes_input, extra=extra)
+        if (p is not None and any(p.offset[name].any() for name in FIGURES)) or extra > 0:
             fit_periods(h)
     scales = _refer_all(histories)
     scales.update({f"{name}_in_log": v for name, v in inlog.items()})
