@@ -324,10 +324,6 @@ def make_fleet(seed: int, plants: tuple[str, ...] = ()) -> tuple[list[Log], list
                 if plant == "crash":
                     ev["t_ns"] = int(stream.t_ns[p["crash_index"]])
                 events.append(ev)
-            if plant == "accel_x" and j >= j_plant:  # the first log from it that sees x
-                ev = next(e for e in events if e["kind"] == "accel_x")
-                if "seen" not in ev and any(abs(u[0]) > 0.9 for u in stream.up):
-                    ev["seen"] = log
             ups = [u[0] for u in stream.up]  # x's offset apart from its scale: both x faces
             both_x = both_x or (any(u > 0.9 for u in ups) and any(u < -0.9 for u in ups))
             if plant == "drift" and j == 0:
@@ -489,7 +485,9 @@ def survey_fleet(logs: list[Log], k: float = 5.0) -> tuple[Any, dict[str, Any]]:
 
 def caught(event: dict[str, Any], flags: list[dict[str, Any]]) -> bool:
     """The plant flagged with the right kind, figure and log (and time, for an in-log step:
-    within 3 min: the step lies between two still periods)."""
+    within 3 min: the step lies between two still periods); a step between logs may be named
+    between the last log before the plant that has the figure and the first from it that has
+    it (:func:`_bracketed`)."""
     got = [(f["kind"], f["figure"], f["log"]) for f in flags]
     kind, log = event["kind"], event["log"]
     if kind == "drift":
@@ -504,19 +502,27 @@ def caught(event: dict[str, Any], flags: list[dict[str, Any]]) -> bool:
             for f in flags
         )
     if kind == "step":
-        return ("step", "gyro_bias_x", log) in got
+        return any(_bracketed(f, "gyro_bias_x", log) for f in flags)
     if kind == "noise":
         return ("noise", "gyro_noise", log) in got and ("noise", "accel_noise", log) in got
     if kind == "accel_z":
         return any(
-            f[0] == "step" and f[1] in ("accel_norm_error", "accel_bias_z") and f[2] == log
-            for f in got
+            _bracketed(f, z, log) for f in flags for z in ("accel_norm_error", "accel_bias_z")
         )
-    if kind == "accel_x":  # at the plant's log, or the first after it whose poses tell x
-        return ("step", "accel_bias_x", event.get("seen", log)) in got
+    if kind == "accel_x":
+        return any(_bracketed(f, "accel_bias_x", log) for f in flags)
     if kind == "thermal":
         return not flags
     raise ValueError(kind)
+
+
+def _bracketed(flag: dict[str, Any], figure: str, log: str) -> bool:
+    """A step of ``figure`` flagged at ``log``, or between two logs that ``log`` lies between
+    (the log before it and ``log`` lack the figure: no level still period, no pose that tells
+    the axis): after the last log that had it, at or before the flag's."""
+    if flag["kind"] != "step" or flag["figure"] != figure:
+        return False
+    return flag["log"] == log or flag.get("after_log", log) < log <= flag["log"]
 
 
 def bias_z(table: Any, logs: list[Log]) -> np.ndarray:

@@ -912,6 +912,7 @@ def fleet_flags(histories: Sequence[DeviceHistory], k: float) -> dict[str, Any]:
                         limit,
                         f"{name} stepped by {d:+.3g} {unit} between {h.logs[i]} and {h.logs[j]} (limit "
                         f"{limit:.2g}; temperature {temps[i]:.1f} -> {temps[j]:.1f} degC)",
+                        after_log=h.logs[i],
                     )
             h.steady[name] = steady
             h.moved[name] = float((f[-1] - f[0]) / base) if len(f) > 1 and base > 0 else 0.0
