@@ -28,7 +28,7 @@ def clean():
 
 @pytest.fixture(scope="module")
 def planted():
-    logs, events = si.make_fleet(1002, si.PLANTS)
+    logs, events = si.make_fleet(1003, si.PLANTS)
     return logs, events, *si.survey_fleet(logs)
 
 
@@ -47,6 +47,9 @@ def test_planted_independent_fleet_each_flagged_right(planted):
     _, events, _, view = planted
     flags = {d["device_id"]: d["flags"] for d in view["devices"]}
     assert {e["kind"] for e in events} == set(si.PLANTS)
+    # accel x +30 mg on a vehicle set down on its faces (one log on both x faces: its offset
+    # apart from its scale): a step of accel_bias_x, not only of |a| - g
+    assert next(e for e in events if e["kind"] == "accel_x")["observable"]
     for e in events:
         assert si.caught(e, flags.get(e["device_id"], [])), (e, flags.get(e["device_id"]))
     planted_devices = {e["device_id"] for e in events}
@@ -158,3 +161,31 @@ def test_truncated_log_read_up_to_its_cut(tmp_path):
     for got, want in zip(r["file"], r["memory"], strict=True):
         assert got[:2] == want[:2]
         assert got[2] == pytest.approx(want[2], rel=1e-9, abs=1e-15)
+
+
+def test_accel_offsets_per_axis_where_the_orientations_tell_them():
+    """accel_axes: a device set down on its six faces (offsets of 0.4-0.6 m/s^2, scale errors
+    of 0.2-0.4 %) gives each log's offset on every axis within 4 stated standard errors, a step
+    of +30 mg on x included; one that rests level gives none (its z offset is one figure with its
+    z scale, `|a| - g`)."""
+    from imupipe.stages.survey.fleet import accel_axes
+
+    rng = np.random.default_rng(0)
+    n, m, g = 8, 6, 9.80665
+    index = np.repeat(np.arange(n), m)
+    faces = np.vstack([np.eye(3), -np.eye(3)])
+    truth = np.array([0.6, -0.5, 0.4]) + np.zeros((n, 3))
+    truth[5:, 0] += 0.03 * g
+    for posed in (True, False):
+        up = faces[np.tile(np.arange(6), n)] if posed else np.array([0.0, 0.0, 1.0])
+        up = up + rng.normal(0, 0.03, (n * m, 3))
+        up /= np.linalg.norm(up, axis=1)[:, None]
+        a = g * up * (1 + np.array([0.003, -0.002, 0.004])) + truth[index]
+        a += rng.normal(0, 2e-3, a.shape)  # the in-log bias instability
+        norm = np.linalg.norm(a, axis=1)
+        b, se = accel_axes(index, n, a / norm[:, None], norm - g, np.full(n * m, 3e-4), 4e-6)
+        if posed:
+            assert np.isfinite(b).all() and (se < 0.005).all()
+            assert np.all(np.abs(b - truth) < 4 * se), (b - truth) / se
+        else:
+            assert np.isnan(b).all()

@@ -362,7 +362,8 @@ def accel_axes(
     satisfies ``|(I + S)^-1 (a - b_j)| = g``, the offset ``b_j`` free per log (it steps and
     walks between logs), the diagonal scale error ``S`` the device's; solved by Gauss-Newton
     (three steps from ``b = 0, S = 0``: the first is the linear ``|a| - g ~ b_j . u + g u^T S
-    u``; the next take out its ``|b|^2 / 2g`` part, 10 mg for 0.45 m/s^2 offsets), with weak
+    u``; the next take out its ``|b|^2 / 2g`` part, 10 mg for 0.45 m/s^2 offsets; the excess
+    variance below is fitted at the last, with one more step), with weak
     priors (:data:`ACCEL_OFFSET_XY`, :data:`ACCEL_SCALE_SD`) on each step so that the
     orientations a log lacks leave its offsets' errors large instead of the fit singular (an
     axis seen on one face only tells its offset with its scale: both faces, in some log, part
@@ -388,18 +389,18 @@ def accel_axes(
         db, ds, cov, resid, lev = _axes_solve(index, n, fixed / size[:, None], size - g, w, g)
         return float(np.sum(w * resid**2)), float(len(w) - lev.sum()), db, ds, cov
 
-    more = 0.0
     for _ in range(3):
-        ss, dof, db, ds, cov = step(more)
-        if dof > 0.5 and ss > dof:  # bisect the excess variance: sum of squares = dof
-            lo, hi = more, more + float(np.var(a)) + float(np.max(var))
-            for _ in range(40):
-                mid = 0.5 * (lo + hi)
-                ss, dof, *_ = step(mid)
-                lo, hi = (mid, hi) if ss > dof else (lo, mid)
-            more = hi
-            ss, dof, db, ds, cov = step(more)
+        _, _, db, ds, _ = step(0.0)
         b, s = b + db, s + ds
+    ss, dof, db, ds, cov = step(0.0)
+    if dof > 0.5 and ss > dof:  # bisect the excess variance: sum of squares = dof
+        lo, hi = 0.0, float(np.var(a - b[index])) + float(np.max(var))
+        for _ in range(40):
+            mid = 0.5 * (lo + hi)
+            ss, dof, *_ = step(mid)
+            lo, hi = (mid, hi) if ss > dof else (lo, mid)
+        ss, dof, db, ds, cov = step(hi)
+    b, s = b + db, s + ds
     e = np.sqrt(np.einsum("nii->ni", cov))
     keep = (e <= ACCEL_AXIS_SE_MAX) & (np.bincount(index, minlength=n) > 0)[:, None]
     out[keep], err[keep] = b[keep], e[keep]
@@ -815,6 +816,7 @@ def drift_gls(
     q: float,
     dtemp: np.ndarray | None = None,
     slope_se: float = 0.0,
+    column: np.ndarray | None = None,
 ) -> tuple[float, float, float]:
     """The drift (unit/day) of one device's per-log figure and its standard error: generalised
     least squares of ``f = a + b day`` with the covariance ``diag(se^2 + sigma_w^2) + q^2
@@ -822,7 +824,8 @@ def drift_gls(
     ``dT``: each log's temperature less the reference the figures are referred to, whose slope's
     error is common to all logs); the error scaled by ``sqrt(chi2 / dof)`` when the logs scatter
     more than the model says. Returns (drift, its error, chi2 / dof); NaN with fewer than three
-    logs."""
+    logs. ``column`` (one value per log): fit ``f = a + b column`` instead (a step: 0 before the
+    log it steps at, 1 from it), its ``b`` returned."""
     ok = np.isfinite(f) & np.isfinite(se)
     if ok.sum() < 3:
         return float("nan"), float("nan"), float("nan")
@@ -831,7 +834,7 @@ def drift_gls(
     if dtemp is not None and np.isfinite(slope_se):
         d = np.nan_to_num(dtemp[ok])
         cov += slope_se**2 * np.outer(d, d)
-    x = np.column_stack([np.ones(len(t)), t])
+    x = np.column_stack([np.ones(len(t)), t if column is None else column[ok]])
     ci = np.linalg.pinv(cov)
     info = x.T @ ci @ x
     if np.linalg.cond(info) > 1e14:
@@ -841,6 +844,20 @@ def drift_gls(
     r = y - x @ beta
     birge = float(r @ ci @ r) / max(len(y) - 2, 1)
     return float(beta[1]), float(np.sqrt(inv[1, 1] * max(birge, 1.0))), birge
+
+
+def _long_gap(h: DeviceHistory, step: dict[str, Any]) -> str:
+    """For a step flagged between two logs more than twice the device's median log spacing
+    apart, the words that say a drift explains it (the jump and the gap); else ``""``."""
+    i, j = h.logs.index(step["after_log"]), h.logs.index(step["log"])
+    spacing = np.diff(h.day)
+    days = float(h.day[j] - h.day[i])
+    if not len(spacing) or not days > 2.0 * float(np.median(spacing)):
+        return ""
+    return (
+        f"; the jump of {step['value']:+.3g} across the {days:.0f} days between {step['after_log']}"
+        f" and {step['log']} is this drift, not a step (a line through every log fits it as well)"
+    )
 
 
 def drift_onset(day: np.ndarray, f: np.ndarray, w: np.ndarray, k: float) -> int:
@@ -926,11 +943,17 @@ def fleet_flags(histories: Sequence[DeviceHistory], k: float) -> dict[str, Any]:
         scales[f"{name}_turn_on"], scales[f"{name}_walk_per_sqrt_day"] = sw, q
 
         def gls(
-            h: DeviceHistory, f: np.ndarray, name: str = name, sw: float = sw, q: float = q
+            h: DeviceHistory,
+            f: np.ndarray,
+            name: str = name,
+            sw: float = sw,
+            q: float = q,
+            column: np.ndarray | None = None,
         ) -> tuple[float, float, float]:
             fit = h.fits[name]
             slope_se = float(np.nan_to_num(fit.slope_se))
-            return drift_gls(h.day, f, h.se[name], sw, q, fit.temperature - h.t_ref, slope_se)
+            dtemp = fit.temperature - h.t_ref
+            return drift_gls(h.day, f, h.se[name], sw, q, dtemp, slope_se, column)
 
         fits = [gls(h, h.steady[name]) for h in histories]
         slopes = np.array([b for b, _, _ in fits])
@@ -963,15 +986,25 @@ def fleet_flags(histories: Sequence[DeviceHistory], k: float) -> dict[str, Any]:
             e = float(np.hypot(e, tau)) * widen
             h.power[name] = float((k + POWER_Z) * e)
             steps = pending.get((h.device_id, name), [])
+            gap = ""
             if steps:  # a drift over a long gap between logs reads as a step: which is it?
                 b_f, e_f, chi2 = gls(h, h.figures[name])
                 e_f = float(np.hypot(e_f, tau)) * widen
                 dof = max(int(np.isfinite(h.figures[name]).sum()) - 2, 1)
-                if chi2 <= 1.0 + k * np.sqrt(2.0 / dof) and abs(b_f - med) > k * e_f:
+                line = chi2 <= 1.0 + k * np.sqrt(2.0 / dof)  # a line through every log fits
+                if line and abs(b_f - med) > k * e_f:
                     steps, h.steady[name], b, e = [], h.figures[name], b_f, e_f
+                elif line and len(steps) == 1 and (gap := _long_gap(h, steps[0])):
+                    # the one jump spans a long gap: a drift explains it as well as a step?
+                    col = (np.arange(len(h.logs)) >= h.logs.index(steps[0]["log"])).astype(float)
+                    if chi2 <= gls(h, h.figures[name], column=col)[2]:
+                        steps, h.steady[name], b, e = [], h.figures[name], b_f, e_f
+                    else:
+                        gap = ""
                 h.flags.extend(steps)
             h.drift[name] = b
-            if not (np.isfinite(b) and np.isfinite(med) and abs(b - med) > k * e):
+            significant = np.isfinite(b) and np.isfinite(med) and abs(b - med) > k * e
+            if not (significant or gap):
                 continue
             j = drift_onset(h.day, h.steady[name], 1.0 / (h.se[name] ** 2 + sw**2), k)
             add_flag(
@@ -984,7 +1017,7 @@ def fleet_flags(histories: Sequence[DeviceHistory], k: float) -> dict[str, Any]:
                 med + np.sign(b - med) * k * e,
                 f"{name} drifts {7 * b:+.3g} {unit}/week from {h.logs[j]} on (fleet median "
                 f"{7 * med:+.3g}, limit +-{7 * k * e:.2g}; the smallest drift this test finds "
-                f"with 90 % probability: {7 * h.power[name]:.2g} {unit}/week)",
+                f"with 90 % probability: {7 * h.power[name]:.2g} {unit}/week){gap}",
             )
     for h in histories:  # an offset step seen on its axis is not flagged again as |a| - g's
         on_axis = {f["log"] for f in h.flags if f["kind"] == "step" and f["figure"] in ACCEL_AXES}
