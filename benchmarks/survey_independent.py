@@ -15,16 +15,25 @@ model:
   repeatability (gyro 0.05 mrad/s, accel 0.3 mg) and a slow random walk over days;
 - a thermal slope (gyro 0.01 mrad/s/K per axis) and a per-log temperature (ambient 5-35 degC
   and a warm-up of 3-8 K with a 200 s time constant);
+- an accelerometer scale error per axis (0.3 % standard deviation);
 - a first-order low-pass at a quarter of the rate (the sensor's digital filter), then
   quantisation (gyro 1/16.4 deg/s... 61 urad/s LSB; accel 2.4e-3 m/s^2 LSB).
 
 Per fleet: one log in motion throughout (a flight logged from arming), one vehicle with a second,
 1 Hz gyro topic (a decimated ``sensor_gyro_1``), one truncated log (cut inside a still period),
-and one vehicle whose temperature is not logged. Plants (issue #36's table), each on its own
+one vehicle whose temperature is not logged, and two vehicles set down on any of their six
+faces when still (a handheld rig; the others rest level, a few degrees off). Plants (issue #36's table), each on its own
 vehicle: ``drift`` (gyro z 0.3 mrad/s per week), ``crash`` (a 2 mrad/s gyro x step inside a
 log that goes on after it), ``step`` (the same between two logs), ``noise`` (both noise
 densities x2.5 from a log on), ``accel_z`` (+30 mg on accel z from a log on), ``thermal`` (gyro
-bias following temperature at 0.05 mrad/s/K: not a fault, nothing to flag).
+bias following temperature at 0.05 mrad/s/K: not a fault, nothing to flag), ``accel_x`` (+30
+mg on accel x from a log on, on a vehicle set down on its faces; judged only where some log of
+it lay on both x faces, which parts the x offset from the x scale). A planted fleet has at least
+one vehicle per plant and one more.
+
+:func:`truncated_check` writes a log as an MCAP with the ``mcap`` library's ROS 2 writer, cuts
+the file (a recording stopped part-way) and surveys it from the file with and without
+``--read-truncated``, against what the ``mcap`` library recovers.
 
 :func:`survey_fleet` runs each log's IMU through the survey's own detector and figures and the
 fleet view, in memory (as ``benchmarks/survey_false_flags.py``). ``main`` prints the false-alarm
