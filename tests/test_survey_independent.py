@@ -189,3 +189,45 @@ def test_accel_offsets_per_axis_where_the_orientations_tell_them():
             assert np.all(np.abs(b - truth) < 4 * se), (b - truth) / se
         else:
             assert np.isnan(b).all()
+
+
+def _gap_fleet(seed: int, drift: float = 0.0, step: float = 0.0) -> list[list[dict]]:
+    """8 devices x 8 logs on days 0-4 and 23-25 (a 19-day gap), 3 still periods a log, gyro
+    turn-on 5e-5 rad/s; device 0's gyro z drifts (rad/s/day) or steps across the gap."""
+    from imupipe.stages.survey.fleet import DAY_NS, FIGURES, device_history, fleet_flags
+
+    rng = np.random.default_rng(seed)
+    days = np.array([0, 1, 2, 3, 4, 23, 24, 25.0])
+    histories = []
+    for d in range(8):
+        j = np.repeat(np.arange(8), 3)
+        start = ((days[j] + np.tile([0, 1e-3, 2e-3], 8)) * DAY_NS).astype(np.int64) + 10**18
+        gyro = rng.normal(0, 5e-5, (8, 3))[j] + rng.normal(0, 2e-5, (24, 3))
+        if d == 0:
+            gyro[:, 2] += drift * days[j] + step * (j >= 5)
+        values = dict(zip(FIGURES, [*gyro.T, rng.normal(0.05, 1e-3, 24)], strict=True))
+        se = {f: np.full(24, 1e-3 if f == "accel_norm_error" else 2e-5) for f in FIGURES}
+        noise = {"gyro": np.full(24, 2e-4), "accel": np.full(24, 2e-3)}
+        logs = [f"dev{d}/log_{i}" for i in j]
+        temp = np.full(24, np.nan)
+        histories.append(device_history(f"dev{d}", logs, start, temp, values, se, noise, 10**18))
+    fleet_flags(histories, 5.0)
+    return [h.flags for h in histories]
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_a_jump_across_a_long_gap_is_a_drift_or_a_step_by_what_fits(seed):
+    """A 0.3 mrad/s per week drift and a 0.8 mrad/s step, each across a 19-day gap between
+    logs, both jump beyond the step rule's limit: the drift is flagged as a drift (a line
+    through the logs fits as well as one step), the step as a step (the level with one step
+    fits better: before, the line's loose fit made this step a drift too); the other devices
+    nothing. Over draws 0-7: drift named a drift 6 of 8 (2 a step: 5 logs in 4 days and 3 in 2
+    days hold little slope), step named a step 8 of 8; before, 8 and 3 of 8."""
+    drift = _gap_fleet(seed, drift=0.3e-3 / 7)
+    assert [(f["kind"], f["figure"]) for f in drift[0]] == [("drift", "gyro_bias_z")]
+    step = _gap_fleet(seed, step=0.8e-3)
+    assert [(f["kind"], f["figure"], f["log"]) for f in step[0]] == [
+        ("step", "gyro_bias_z", "dev0/log_5")
+    ]
+    assert step[0][0]["after_log"] == "dev0/log_4"
+    assert not any(drift[1:]) and not any(step[1:])

@@ -992,15 +992,14 @@ def fleet_flags(histories: Sequence[DeviceHistory], k: float) -> dict[str, Any]:
                 e_f = float(np.hypot(e_f, tau)) * widen
                 dof = max(int(np.isfinite(h.figures[name]).sum()) - 2, 1)
                 line = chi2 <= 1.0 + k * np.sqrt(2.0 / dof)  # a line through every log fits
+                if line and len(steps) == 1:  # and at least as well as the one step?
+                    col = (np.arange(len(h.logs)) >= h.logs.index(steps[0]["log"])).astype(float)
+                    line = chi2 <= gls(h, h.figures[name], column=col)[2]
                 if line and abs(b_f - med) > k * e_f:
                     steps, h.steady[name], b, e = [], h.figures[name], b_f, e_f
                 elif line and len(steps) == 1 and (gap := _long_gap(h, steps[0])):
-                    # the one jump spans a long gap: a drift explains it as well as a step?
-                    col = (np.arange(len(h.logs)) >= h.logs.index(steps[0]["log"])).astype(float)
-                    if chi2 <= gls(h, h.figures[name], column=col)[2]:
-                        steps, h.steady[name], b, e = [], h.figures[name], b_f, e_f
-                    else:
-                        gap = ""
+                    # the one jump spans a long gap: a drift explains it as well as a step
+                    steps, h.steady[name], b, e = [], h.figures[name], b_f, e_f
                 h.flags.extend(steps)
             h.drift[name] = b
             significant = np.isfinite(b) and np.isfinite(med) and abs(b - med) > k * e
