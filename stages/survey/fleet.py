@@ -932,7 +932,8 @@ def fleet_flags(histories: Sequence[DeviceHistory], k: float) -> dict[str, Any]:
                         after_log=h.logs[i],
                     )
             h.steady[name] = steady
-            h.moved[name] = float((f[-1] - f[0]) / base) if len(f) > 1 and base > 0 else 0.0
+            ends = f[have[[0, -1]]] if len(have) > 1 else np.zeros(2)  # first and last with it
+            h.moved[name] = float((ends[1] - ends[0]) / base) if base > 0 else 0.0
     # the gyro's three axes share one die: one turn-on and walk, fitted to the three at once
     walk = {
         name: np.nan_to_num(_walk_scales(histories, group)) for group in GROUPS for name in group
