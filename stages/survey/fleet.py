@@ -36,6 +36,13 @@ Per device (the still periods of all its logs; with a calibration, the figures a
    the drift starts at (:func:`drift_onset`) when one stands out.
 7. **Moved**: the change of each figure from the first log to the last, in units of the fleet's
    step scale; the fleet table is sorted by it.
+8. **Accelerometer offsets per axis** (:func:`accel_axes`, :data:`ACCEL_AXES`): per log, where
+   the still periods' orientations tell them (a device set down on several faces), judged by
+   the step and drift rules like the other per-log figures (:data:`LOG_FIGURES`).
+
+(The drift test is :func:`fleet_flags`' generalised least squares, not the Theil-Sen slope of
+6.; a single step between logs is kept as a step unless a line through the logs fits at least as
+well, and across a long gap it is then a drift: :func:`_long_gap`.)
 
 ``k`` (default 5) is the number of robust standard deviations (1.4826 MAD, Rousseeuw & Croux
 1993) beyond which a value is flagged.
