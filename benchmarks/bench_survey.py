@@ -13,6 +13,10 @@
    one-CPU nodes started on this machine (``benchmarks/local_ray.py``; stopped and removed at the
    end) with ``--engine ray --address``, beside the cluster's own resident memory.
 
+   Against a plain read of the same logs in the same run (:func:`measure_plain`: every IMU topic
+   the survey reads, read once by the readers' batches in a fresh process, on ``--jobs``
+   processes): logs per second and CPU seconds per log of each, and their ratios; ``--runs``
+   runs (default 2) of both, alternated, printed as the min and the median.
 5. With ``--long-s S``: peak memory (``peak_rss_mb`` of the manifest) and worker seconds of one
    worker surveying one log of ``S`` seconds at ``--long-hz`` (default 400) with 1 IMU, read in
    batches (the default ``batch_rows``) against read as one batch (``batch_rows`` beyond the
@@ -37,6 +41,7 @@ from __future__ import annotations
 import argparse
 import json
 import shutil
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -93,6 +98,69 @@ def measure(
         "fixed_cost_s_per_log": round(mean_short - slope * log_s / 10, 3),
         "worker_peak_rss_mb": max(r["peak_rss_mb"] for r in lines),
         "driver_peak_rss_mb": round(driver_mb, 1),
+    }
+
+
+PLAIN = """
+import dataclasses, json, resource, sys, time
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+
+def read(path):
+    from imupipe.pipeline.survey.scan import imu_topics, split_topics
+    from imupipe.pipeline.survey.stream import DEFAULT_BATCH_ROWS
+    from imupipe.readers import dispatch
+    from imupipe.readers.spec import InputSpec
+
+    cpu = time.process_time()
+    spec = InputSpec(path=Path(path), name="plain")
+    rows = 0
+    for imu, temp, mag in imu_topics(spec):
+        one = dataclasses.replace(spec, **split_topics(imu), temperature_topic=temp, mag_topic=mag)
+        for table, _ in dispatch.iter_input(one, batch_rows=DEFAULT_BATCH_ROWS, carry=False):
+            rows += table.num_rows
+    return rows, time.process_time() - cpu
+
+if __name__ == "__main__":
+    logs = sorted(str(p) for p in Path(sys.argv[1]).rglob("*.mcap"))
+    t = time.perf_counter()
+    with ProcessPoolExecutor(int(sys.argv[2])) as pool:
+        done = list(pool.map(read, logs, chunksize=8))
+    wall = time.perf_counter() - t
+    print(json.dumps({"logs": len(logs), "wall_s": wall, "rows": sum(r for r, _ in done),
+                      "cpu_s_per_log": sum(c for _, c in done) / len(logs)}))
+"""
+"""A plain read of every log under a folder (what the survey reads, once), on a process pool;
+prints its wall clock, rows and the workers' CPU seconds per log."""
+
+
+def measure_plain(logs: Path, jobs: int) -> dict[str, float]:
+    """The plain read of ``logs`` (:data:`PLAIN`) in a fresh process: logs per second (wall
+    clock, process start included as for the survey's command) and CPU seconds per log."""
+    t = time.perf_counter()
+    proc = subprocess.run(
+        [sys.executable, "-c", PLAIN, str(logs), str(jobs)],
+        capture_output=True,
+        text=True,
+        check=True,
+    )
+    wall = time.perf_counter() - t
+    got = json.loads(proc.stdout.strip().splitlines()[-1])
+    return {
+        "wall_s": round(wall, 1),
+        "logs_per_s": round(got["logs"] / wall, 2),
+        "cpu_s_per_log": round(got["cpu_s_per_log"], 4),
+    }
+
+
+def min_median(runs: list[dict[str, float]]) -> dict[str, dict[str, float]]:
+    """Per figure: its min and median over ``runs``."""
+    return {
+        key: {
+            "min": min(r[key] for r in runs),
+            "median": round(statistics.median(r[key] for r in runs), 4),
+        }
+        for key in runs[0]
     }
 
 
@@ -273,6 +341,7 @@ def main() -> None:
     ap.add_argument("--long-hz", type=float, default=400.0)
     ap.add_argument("--scaling", type=int, default=0, help="6.: rounds of 1 vs 2 jobs (0: skip)")
     ap.add_argument("--baseline", type=Path, help="6.: a checkout of the code before, to compare")
+    ap.add_argument("--runs", type=int, default=2, help="runs of the survey and the plain read")
     args = ap.parse_args()
     tmp = Path(tempfile.mkdtemp(prefix="bench_survey_"))
     try:
@@ -295,7 +364,24 @@ def main() -> None:
         small = make_fleet(tmp / "small", 20, args.log_s / 10, 2)
         figures: dict[str, object] = {"logs": n, "log_s": args.log_s}
         local = ["--jobs", str(args.jobs)]
-        figures[f"local_{args.jobs}_workers"] = measure(logs, small, tmp / "out", args.log_s, local)
+        surveyed, plain = [], []
+        for _ in range(args.runs):  # alternated: the machine's load falls on both alike
+            surveyed.append(measure(logs, small, tmp / "out", args.log_s, local))
+            plain.append(measure_plain(logs, args.jobs))
+        figures[f"local_{args.jobs}_workers"] = min_median(surveyed)
+        figures["plain_read"] = min_median(plain)
+        figures["survey_vs_plain_read"] = {
+            "cpu_s_per_log": round(
+                statistics.median(r["worker_cpu_s_per_log"] for r in surveyed)
+                / statistics.median(r["cpu_s_per_log"] for r in plain),
+                2,
+            ),
+            "logs_per_s": round(
+                statistics.median(r["logs_per_s"] for r in surveyed)
+                / statistics.median(r["logs_per_s"] for r in plain),
+                2,
+            ),
+        }
         print(json.dumps(figures, indent=2), flush=True)
         if args.ray_nodes:
             root = Path(tempfile.mkdtemp(prefix="imupipe-bench-ray-", dir="/tmp"))
@@ -309,7 +395,7 @@ def main() -> None:
             finally:
                 stop_cluster(procs, root)
             figures[f"ray_{args.ray_nodes}_nodes"] = on_ray
-            local_wall = figures[f"local_{args.jobs}_workers"]["wall_s"]  # type: ignore[index]
+            local_wall = figures[f"local_{args.jobs}_workers"]["wall_s"]["median"]  # type: ignore[index]
             figures["ray_vs_local_speed"] = round(local_wall / on_ray["wall_s"], 2)
         print(json.dumps(figures, indent=2))
     finally:

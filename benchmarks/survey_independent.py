@@ -15,16 +15,25 @@ model:
   repeatability (gyro 0.05 mrad/s, accel 0.3 mg) and a slow random walk over days;
 - a thermal slope (gyro 0.01 mrad/s/K per axis) and a per-log temperature (ambient 5-35 degC
   and a warm-up of 3-8 K with a 200 s time constant);
+- an accelerometer scale error per axis (0.3 % standard deviation);
 - a first-order low-pass at a quarter of the rate (the sensor's digital filter), then
   quantisation (gyro 1/16.4 deg/s... 61 urad/s LSB; accel 2.4e-3 m/s^2 LSB).
 
 Per fleet: one log in motion throughout (a flight logged from arming), one vehicle with a second,
 1 Hz gyro topic (a decimated ``sensor_gyro_1``), one truncated log (cut inside a still period),
-and one vehicle whose temperature is not logged. Plants (issue #36's table), each on its own
+one vehicle whose temperature is not logged, and two vehicles set down on any of their six
+faces when still (a handheld rig; the others rest level, a few degrees off). Plants (issue #36's table), each on its own
 vehicle: ``drift`` (gyro z 0.3 mrad/s per week), ``crash`` (a 2 mrad/s gyro x step inside a
 log that goes on after it), ``step`` (the same between two logs), ``noise`` (both noise
 densities x2.5 from a log on), ``accel_z`` (+30 mg on accel z from a log on), ``thermal`` (gyro
-bias following temperature at 0.05 mrad/s/K: not a fault, nothing to flag).
+bias following temperature at 0.05 mrad/s/K: not a fault, nothing to flag), ``accel_x`` (+30
+mg on accel x from a log on, on a vehicle set down on its faces; judged only where some log of
+it lay on both x faces, which parts the x offset from the x scale). A planted fleet has at least
+one vehicle per plant and one more.
+
+:func:`truncated_check` writes a log as an MCAP with the ``mcap`` library's ROS 2 writer, cuts
+the file (a recording stopped part-way) and surveys it from the file with and without
+``--read-truncated``, against what the ``mcap`` library recovers.
 
 :func:`survey_fleet` runs each log's IMU through the survey's own detector and figures and the
 fleet view, in memory (as ``benchmarks/survey_false_flags.py``). ``main`` prints the false-alarm
@@ -46,7 +55,7 @@ import numpy as np
 G0 = 9.80665
 DAY_NS = 86_400 * 10**9
 T0_NS = 1_780_000_000 * 10**9
-PLANTS = ("drift", "crash", "step", "noise", "accel_z", "thermal")
+PLANTS = ("drift", "crash", "step", "noise", "accel_z", "thermal", "accel_x")
 
 
 @dataclass
@@ -60,6 +69,8 @@ class Stream:
     temperature: tuple[np.ndarray, np.ndarray] | None
     still: list[tuple[int, int, np.ndarray, np.ndarray]] = field(default_factory=list)
     """(start_ns, stop_ns, true mean gyro bias (3,), true mean accel bias (3,)) per still period."""
+    up: list[np.ndarray] = field(default_factory=list)
+    """The true direction of gravity's reaction (body frame, unit) in each still period."""
 
 
 @dataclass
@@ -78,6 +89,9 @@ class Device:
     accel_bias: np.ndarray
     gyro_thermal: np.ndarray
     temperature_logged: bool = True
+    poses: bool = False
+    """Set down on any of its faces when still (a handheld rig), not resting level."""
+    accel_scale: np.ndarray = field(default_factory=lambda: np.zeros(3))
 
 
 def _gauss_markov(rng: np.random.Generator, n: int, dt: float, tau: float, sd: float) -> np.ndarray:
@@ -166,7 +180,11 @@ def _log(
     edges = np.r_[0, np.cumsum(n_seg)]
     still_idx = []
     for (kind, _), i0, i1 in zip(segs, edges[:-1], edges[1:], strict=True):
-        if kind == "still":
+        if kind == "still" and dev.poses:  # set down on any of its six faces
+            up = np.eye(3)[rng.integers(3)] * rng.choice([-1.0, 1.0]) + rng.normal(0, 0.05, 3)
+            f[i0:i1] = G0 * up / np.linalg.norm(up)
+            still_idx.append((i0, i1))
+        elif kind == "still":
             # resting on the ground: a few degrees off level, Earth rate ignored
             tilt = rng.normal(0, 0.03, 2)
             f[i0:i1] = [
@@ -198,7 +216,11 @@ def _log(
         gbias[k:, 0] += 2e-3
     scale = plant.get("noise_scale", 1.0)
     gyro = w + gbias + rng.normal(0, dev.gyro_n * scale * np.sqrt(rate), (n, 3))
-    accel = f + abias + rng.normal(0, dev.accel_n * scale * np.sqrt(rate), (n, 3))
+    accel = (
+        f * (1 + dev.accel_scale)
+        + abias
+        + rng.normal(0, dev.accel_n * scale * np.sqrt(rate), (n, 3))
+    )
     a = np.exp(-2 * np.pi * (rate / 4) * dt)  # the sensor's low-pass at rate / 4
     gyro = lfilter([1 - a], [1, -a], gyro, axis=0, zi=(gyro[0] * a)[None, :])[0]
     accel = lfilter([1 - a], [1, -a], accel, axis=0, zi=(accel[0] * a)[None, :])[0]
@@ -217,6 +239,7 @@ def _log(
         (t_ns[:: int(rate)], np.round(temp[:: int(rate)], 2)) if dev.temperature_logged else None,
     )
     for i0, i1 in still_idx:
+        s.up.append(f[i0] / np.linalg.norm(f[i0]))
         s.still.append(
             (int(t_ns[i0]), int(t_ns[i1 - 1]), gbias[i0:i1].mean(axis=0), abias[i0:i1].mean(axis=0))
         )
@@ -227,13 +250,16 @@ def make_fleet(seed: int, plants: tuple[str, ...] = ()) -> tuple[list[Log], list
     """One fleet (see the module docstring) and its planted events (device, kind, figure, log,
     and for an in-log step its time)."""
     rng = np.random.default_rng(seed)
-    n_veh = int(rng.integers(6, 9))
+    n_veh = max(int(rng.integers(6, 9)), len(plants) + 1)
     logs: list[Log] = []
     events: list[dict[str, Any]] = []
-    flight_veh, lowrate_veh, cut_veh, notemp_veh = rng.choice(n_veh, 4, replace=False)
-    # the thermal plant on a vehicle that logs its temperature (without it, nothing to refer to)
-    hosts = [v for v in rng.permutation(n_veh) if v != notemp_veh]
-    planted = dict(zip(hosts[: len(plants)], plants, strict=False))
+    flight_veh, lowrate_veh, cut_veh, notemp_veh, *posed = rng.choice(n_veh, 6, replace=False)
+    # accel_x on a vehicle set down on its faces (a level one sees its x offset only through
+    # its lean); the others on vehicles that log their temperature (the thermal plant needs it)
+    planted = {posed[0]: "accel_x"} if "accel_x" in plants else {}
+    hosts = [v for v in rng.permutation(n_veh) if v != notemp_veh and v not in planted]
+    others = [p for p in plants if p != "accel_x"]
+    planted.update(zip(hosts[: len(others)], others, strict=True))
     for v in range(n_veh):
         name = f"veh{v:02d}"
         dev = Device(
@@ -244,6 +270,8 @@ def make_fleet(seed: int, plants: tuple[str, ...] = ()) -> tuple[list[Log], list
             rng.normal(0, 0.3, 3),
             rng.normal(0, 1e-5, 3),
             temperature_logged=v != notemp_veh,
+            poses=v in posed,
+            accel_scale=rng.normal(0, 3e-3, 3),
         )
         plant = planted.get(v)
         if plant == "thermal":
@@ -255,6 +283,7 @@ def make_fleet(seed: int, plants: tuple[str, ...] = ()) -> tuple[list[Log], list
         j_plant = int(rng.integers(3, 6))
         flight_log = int(rng.integers(1, 7)) if v == flight_veh else -1
         cut_log = int(rng.integers(0, 8)) if v == cut_veh else -1
+        both_x = False
         for j in range(8):
             start = T0_NS + int(days[j] * DAY_NS) + int(rng.uniform(8, 10) * 3600e9)
             g_on = rng.normal(0, 5e-5, 3) + walk_g[j]
@@ -266,6 +295,8 @@ def make_fleet(seed: int, plants: tuple[str, ...] = ()) -> tuple[list[Log], list
                 g_on = g_on + np.array([2e-3, 0, 0])
             if plant == "accel_z" and j >= j_plant:
                 a_on = a_on + np.array([0, 0, 0.03 * G0])
+            if plant == "accel_x" and j >= j_plant:
+                a_on = a_on + np.array([0.03 * G0, 0, 0])
             if plant == "noise" and j >= j_plant:
                 p["noise_scale"] = 2.5
             if plant == "crash" and j == j_plant:
@@ -302,11 +333,139 @@ def make_fleet(seed: int, plants: tuple[str, ...] = ()) -> tuple[list[Log], list
                 if plant == "crash":
                     ev["t_ns"] = int(stream.t_ns[p["crash_index"]])
                 events.append(ev)
+            ups = [u[0] for u in stream.up]  # x's offset apart from its scale: both x faces
+            both_x = both_x or (any(u > 0.9 for u in ups) and any(u < -0.9 for u in ups))
             if plant == "drift" and j == 0:
                 events.append({"device_id": f"{name}:/imu/data", "kind": "drift", "log": log})
             if plant == "thermal" and j == 0:
                 events.append({"device_id": f"{name}:/imu/data", "kind": "thermal", "log": log})
+        if plant == "accel_x":  # judged only where a log lay on both x faces
+            next(e for e in events if e["kind"] == "accel_x")["observable"] = both_x
     return logs, events
+
+
+IMU_MSGDEF = """std_msgs/Header header
+geometry_msgs/Quaternion orientation
+float64[9] orientation_covariance
+geometry_msgs/Vector3 angular_velocity
+float64[9] angular_velocity_covariance
+geometry_msgs/Vector3 linear_acceleration
+float64[9] linear_acceleration_covariance
+================================================================================
+MSG: std_msgs/Header
+builtin_interfaces/Time stamp
+string frame_id
+================================================================================
+MSG: builtin_interfaces/Time
+int32 sec
+uint32 nanosec
+================================================================================
+MSG: geometry_msgs/Quaternion
+float64 x
+float64 y
+float64 z
+float64 w
+================================================================================
+MSG: geometry_msgs/Vector3
+float64 x
+float64 y
+float64 z
+"""
+"""``sensor_msgs/msg/Imu`` (ROS 2 Humble) with its dependencies, as ``ros2 bag`` writes it."""
+
+
+def write_mcap(stream: Stream, path: Path, chunk_size: int = 256 * 1024) -> None:
+    """``stream`` as a ROS 2 MCAP written by the ``mcap`` library's own ROS 2 writer
+    (``mcap_ros2.writer``, not imupipe's), one ``sensor_msgs/msg/Imu`` per sample."""
+    from mcap_ros2.writer import Writer
+
+    with open(path, "wb") as fh:
+        writer = Writer(fh, chunk_size=chunk_size)
+        schema = writer.register_msgdef("sensor_msgs/msg/Imu", IMU_MSGDEF)
+        zero9 = [0.0] * 9
+        rows = zip(stream.t_ns.tolist(), stream.gyro.tolist(), stream.accel.tolist(), strict=True)
+        for t, w, a in rows:
+            msg = {
+                "header": {"stamp": {"sec": t // 10**9, "nanosec": t % 10**9}, "frame_id": "imu"},
+                "orientation": {"x": 0.0, "y": 0.0, "z": 0.0, "w": 1.0},
+                "orientation_covariance": [-1.0] + zero9[1:],
+                "angular_velocity": dict(zip("xyz", w, strict=True)),
+                "angular_velocity_covariance": zero9,
+                "linear_acceleration": dict(zip("xyz", a, strict=True)),
+                "linear_acceleration_covariance": zero9,
+            }
+            writer.write_message(stream.topic, schema, msg, log_time=t, publish_time=t)
+        writer.finish()
+
+
+def recovered(path: Path) -> int:
+    """Messages the ``mcap`` library's ``StreamReader`` reads from a cut MCAP before the record
+    that runs past the end (what a tool can recover; imupipe's reader is not asked)."""
+    from mcap.records import Message
+    from mcap.stream_reader import StreamReader
+
+    n = 0
+    with open(path, "rb") as fh:
+        try:
+            for record in StreamReader(fh).records:
+                n += isinstance(record, Message)
+        except Exception:  # noqa: BLE001 - the damaged record: the stream ends there
+            pass
+    return n
+
+
+def truncated_check(folder: Path, seed: int = 0, keep: float = 0.7) -> dict[str, Any]:
+    """A log cut off part-way through writing (its MCAP file's first ``keep`` of its bytes:
+    no summary, the last chunk broken) surveyed from the file by ``imupipe survey`` without
+    and with ``--read-truncated``. Returns the samples written and recovered (by the ``mcap``
+    library), whether the plain survey failed it, the still periods surveyed from the cut file
+    and those the survey's own code finds in memory on the recovered samples (equal when the
+    cut log is read up to its cut), the true still periods before the cut."""
+    from imupipe.pipeline.survey.scan import survey
+    from imupipe.stages.survey.stats import StillOptions, period_stats, still_periods
+
+    rng = np.random.default_rng(seed)
+    dev = Device(100.0, 2e-4, 1.5e-3, rng.normal(0, 5e-3, 3), rng.normal(0, 0.3, 3), np.zeros(3))
+    stream = _log(rng, dev, T0_NS, 20.0, False, (np.zeros(3), np.zeros(3)), {})
+    stop = int(np.searchsorted(stream.t_ns, stream.still[1][1])) + 2000  # two still periods
+    stream.t_ns, stream.gyro, stream.accel = (
+        stream.t_ns[:stop],
+        stream.gyro[:stop],
+        stream.accel[:stop],
+    )
+    stream.still = [p for p in stream.still if p[1] <= stream.t_ns[-1]]
+    logs = folder / "logs"
+    logs.mkdir(parents=True, exist_ok=True)
+    full = folder / "full.mcap"
+    write_mcap(stream, full)
+    data = full.read_bytes()
+    cut = logs / "cut.mcap"
+    cut.write_bytes(data[: int(len(data) * keep)])
+    n = recovered(cut)
+    plain = survey([logs], folder / "plain", jobs=1, quiet=True, rerun=False)
+    read = survey([logs], folder / "cut", jobs=1, quiet=True, rerun=False, read_truncated=True)
+    import pyarrow.parquet as pq
+
+    rows = pq.read_table(folder / "cut" / "survey.parquet").to_pylist()
+    opts = StillOptions()
+    t, g, a = stream.t_ns[:n], stream.gyro[:n], stream.accel[:n]
+    memory = period_stats(t, g, a, still_periods(t, g, a, opts), opts, None)
+    return {
+        "samples": len(stream.t_ns),
+        "recovered": n,
+        "plain_failed": len(plain["failed"]),
+        "read_failed": len(read["failed"]),
+        "file": [(r["start_ns"], r["stop_ns"], r["gyro_bias_x"]) for r in rows if r["samples"]],
+        "memory": list(
+            zip(
+                memory["start_ns"].tolist(),
+                memory["stop_ns"].tolist(),
+                memory["gyro_bias"][:, 0].tolist(),
+                strict=True,
+            )
+        ),
+        "true_before_cut": sum(b <= stream.t_ns[n - 1] for _, b, _, _ in stream.still),
+    }
 
 
 def survey_fleet(logs: list[Log], k: float = 5.0) -> tuple[Any, dict[str, Any]]:
@@ -335,7 +494,9 @@ def survey_fleet(logs: list[Log], k: float = 5.0) -> tuple[Any, dict[str, Any]]:
 
 def caught(event: dict[str, Any], flags: list[dict[str, Any]]) -> bool:
     """The plant flagged with the right kind, figure and log (and time, for an in-log step:
-    within 3 min: the step lies between two still periods)."""
+    within 3 min: the step lies between two still periods); a step between logs may be named
+    between the last log before the plant that has the figure and the first from it that has
+    it (:func:`_bracketed`)."""
     got = [(f["kind"], f["figure"], f["log"]) for f in flags]
     kind, log = event["kind"], event["log"]
     if kind == "drift":
@@ -350,17 +511,27 @@ def caught(event: dict[str, Any], flags: list[dict[str, Any]]) -> bool:
             for f in flags
         )
     if kind == "step":
-        return ("step", "gyro_bias_x", log) in got
+        return any(_bracketed(f, "gyro_bias_x", log) for f in flags)
     if kind == "noise":
         return ("noise", "gyro_noise", log) in got and ("noise", "accel_noise", log) in got
     if kind == "accel_z":
         return any(
-            f[0] == "step" and f[1] in ("accel_norm_error", "accel_bias_z") and f[2] == log
-            for f in got
+            _bracketed(f, z, log) for f in flags for z in ("accel_norm_error", "accel_bias_z")
         )
+    if kind == "accel_x":
+        return any(_bracketed(f, "accel_bias_x", log) for f in flags)
     if kind == "thermal":
         return not flags
     raise ValueError(kind)
+
+
+def _bracketed(flag: dict[str, Any], figure: str, log: str) -> bool:
+    """A step of ``figure`` flagged at ``log``, or between two logs that ``log`` lies between
+    (the log before it and ``log`` lack the figure: no level still period, no pose that tells
+    the axis): after the last log that had it, at or before the flag's."""
+    if flag["kind"] != "step" or flag["figure"] != figure:
+        return False
+    return flag["log"] == log or flag.get("after_log", log) < log <= flag["log"]
 
 
 def bias_z(table: Any, logs: list[Log]) -> np.ndarray:
@@ -420,6 +591,7 @@ def main() -> None:
     tried = collections.Counter()
     other = 0
     power: list[float] = []
+    unobservable = 0
     for seed in range(1000 + args.first, 1000 + args.first + args.planted):
         logs, events = make_fleet(seed, PLANTS)
         _, view = survey_fleet(logs)
@@ -427,6 +599,9 @@ def main() -> None:
         planted = {e["device_id"] for e in events}
         other += sum(len(v) for dev, v in flags.items() if dev not in planted)
         for e in events:
+            if e.get("observable") is False:  # its poses never tell x: not a test
+                unobservable += 1
+                continue
             tried[e["kind"]] += 1
             ok = caught(e, flags.get(e["device_id"], []))
             hits[e["kind"]] += ok
@@ -440,12 +615,27 @@ def main() -> None:
     print(f"planted fleets {args.planted}: flags on unplanted devices {other}")
     for kind in PLANTS:
         print(f"   {kind:8s} {hits[kind]} of {tried[kind]}")
+    print(
+        f"   accel_x plants on a vehicle never set down on both x faces (not judged): {unobservable}"
+    )
     if power:
         q = np.nanpercentile(power, [10, 50, 90])
         print(
             f"   gyro drift found with 90 % probability: {q[1]:.3g} rad/s per week (median; "
             f"10-90 %: {q[0]:.3g}-{q[2]:.3g})"
         )
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as tmp:
+        r = truncated_check(Path(tmp))
+    same = r["file"] == r["memory"]
+    print(
+        f"cut-off log (MCAP, 70 % of its bytes): {r['recovered']} of {r['samples']} samples "
+        f"recovered by the mcap library; plain survey failed it: {bool(r['plain_failed'])}; with "
+        f"--read-truncated {len(r['file'])} still periods (in memory on those samples: "
+        f"{len(r['memory'])}, {'the same' if same else 'DIFFERENT'}; true before the cut: "
+        f"{r['true_before_cut']})"
+    )
     print(f"total {time.perf_counter() - t:.0f} s")
 
 

@@ -90,6 +90,32 @@ def split_pair(candidates: list[str]) -> dict[str, str] | None:
     return {"gyro": gyro[0], "accel": accel[0]}
 
 
+def split_pairs(candidates: list[str]) -> list[dict[str, str]]:
+    """Every camera's gyro and accelerometer topics among Imu topics ``candidates``: the pair of
+    :func:`split_pair` when there are two; with more, the topics whose names differ only in the
+    part named for the sensor (``/cam1/gyro/sample`` and ``/cam1/accel/sample``), one of each."""
+    if len(candidates) == 2:
+        pair = split_pair(candidates)
+        return [pair] if pair is not None else []
+
+    def key(topic: str) -> str:
+        parts = re.split(r"([^a-z0-9]+)", topic.lower())
+        return "".join("*" if p.startswith(("gyro", "acc")) else p for p in parts)
+
+    by_key: dict[str, dict[str, list[str]]] = {}
+    for t in candidates:
+        gyro, acc = _named(t, "gyro"), _named(t, "acc")
+        if gyro != acc:
+            by_key.setdefault(key(t), {"gyro": [], "accel": []})[
+                "gyro" if gyro else "accel"
+            ].append(t)
+    return [
+        {"gyro": two["gyro"][0], "accel": two["accel"][0]}
+        for _, two in sorted(by_key.items())
+        if len(two["gyro"]) == 1 and len(two["accel"]) == 1
+    ]
+
+
 def _wanted(path: Path | str, key: str, wanted: str, types: Mapping[str, str], msgtype: str) -> str:
     if wanted not in types:
         have = ", ".join(f"{t} ({normalize_type(ty)})" for t, ty in sorted(types.items()))

@@ -28,7 +28,7 @@ def clean():
 
 @pytest.fixture(scope="module")
 def planted():
-    logs, events = si.make_fleet(1002, si.PLANTS)
+    logs, events = si.make_fleet(1003, si.PLANTS)
     return logs, events, *si.survey_fleet(logs)
 
 
@@ -47,6 +47,9 @@ def test_planted_independent_fleet_each_flagged_right(planted):
     _, events, _, view = planted
     flags = {d["device_id"]: d["flags"] for d in view["devices"]}
     assert {e["kind"] for e in events} == set(si.PLANTS)
+    # accel x +30 mg on a vehicle set down on its faces (one log on both x faces: its offset
+    # apart from its scale): a step of accel_bias_x, not only of |a| - g
+    assert next(e for e in events if e["kind"] == "accel_x")["observable"]
     for e in events:
         assert si.caught(e, flags.get(e["device_id"], [])), (e, flags.get(e["device_id"]))
     planted_devices = {e["device_id"] for e in events}
@@ -143,3 +146,88 @@ def test_real_flight_vibration_is_not_stillness(tmp_path):
         "spark404_utrecht:IMU2",
     }
     assert any("no still period" in line for line in summary_lines(fleet))
+
+
+def test_truncated_log_read_up_to_its_cut(tmp_path):
+    """A log cut off part-way (an MCAP written by the ``mcap`` library's ROS 2 writer, its last
+    30 % of bytes lost): ``imupipe survey`` fails it without ``--read-truncated`` and with it
+    reads it up to its cut, as the ``mcap`` library's StreamReader recovers it: the still periods
+    from the file are those the survey's code finds on the recovered samples in memory, and
+    every true still period that ends before the cut is among them."""
+    r = si.truncated_check(tmp_path)
+    assert 0 < r["recovered"] < r["samples"]
+    assert r["plain_failed"] == 1 and r["read_failed"] == 0
+    assert len(r["file"]) == len(r["memory"]) == r["true_before_cut"] >= 1
+    for got, want in zip(r["file"], r["memory"], strict=True):
+        assert got[:2] == want[:2]
+        assert got[2] == pytest.approx(want[2], rel=1e-9, abs=1e-15)
+
+
+def test_accel_offsets_per_axis_where_the_orientations_tell_them():
+    """accel_axes: a device set down on its six faces (offsets of 0.4-0.6 m/s^2, scale errors
+    of 0.2-0.4 %) gives each log's offset on every axis within 4 stated standard errors, a step
+    of +30 mg on x included; one that rests level gives none (its z offset is one figure with its
+    z scale, `|a| - g`)."""
+    from imupipe.stages.survey.fleet import accel_axes
+
+    rng = np.random.default_rng(0)
+    n, m, g = 8, 6, 9.80665
+    index = np.repeat(np.arange(n), m)
+    faces = np.vstack([np.eye(3), -np.eye(3)])
+    truth = np.array([0.6, -0.5, 0.4]) + np.zeros((n, 3))
+    truth[5:, 0] += 0.03 * g
+    for posed in (True, False):
+        up = faces[np.tile(np.arange(6), n)] if posed else np.array([0.0, 0.0, 1.0])
+        up = up + rng.normal(0, 0.03, (n * m, 3))
+        up /= np.linalg.norm(up, axis=1)[:, None]
+        a = g * up * (1 + np.array([0.003, -0.002, 0.004])) + truth[index]
+        a += rng.normal(0, 2e-3, a.shape)  # the in-log bias instability
+        norm = np.linalg.norm(a, axis=1)
+        b, se = accel_axes(index, n, a / norm[:, None], norm - g, np.full(n * m, 3e-4), 4e-6)
+        if posed:
+            assert np.isfinite(b).all() and (se < 0.005).all()
+            assert np.all(np.abs(b - truth) < 4 * se), (b - truth) / se
+        else:
+            assert np.isnan(b).all()
+
+
+def _gap_fleet(seed: int, drift: float = 0.0, step: float = 0.0) -> list[list[dict]]:
+    """8 devices x 8 logs on days 0-4 and 23-25 (a 19-day gap), 3 still periods a log, gyro
+    turn-on 5e-5 rad/s; device 0's gyro z drifts (rad/s/day) or steps across the gap."""
+    from imupipe.stages.survey.fleet import DAY_NS, FIGURES, device_history, fleet_flags
+
+    rng = np.random.default_rng(seed)
+    days = np.array([0, 1, 2, 3, 4, 23, 24, 25.0])
+    histories = []
+    for d in range(8):
+        j = np.repeat(np.arange(8), 3)
+        start = ((days[j] + np.tile([0, 1e-3, 2e-3], 8)) * DAY_NS).astype(np.int64) + 10**18
+        gyro = rng.normal(0, 5e-5, (8, 3))[j] + rng.normal(0, 2e-5, (24, 3))
+        if d == 0:
+            gyro[:, 2] += drift * days[j] + step * (j >= 5)
+        values = dict(zip(FIGURES, [*gyro.T, rng.normal(0.05, 1e-3, 24)], strict=True))
+        se = {f: np.full(24, 1e-3 if f == "accel_norm_error" else 2e-5) for f in FIGURES}
+        noise = {"gyro": np.full(24, 2e-4), "accel": np.full(24, 2e-3)}
+        logs = [f"dev{d}/log_{i}" for i in j]
+        temp = np.full(24, np.nan)
+        histories.append(device_history(f"dev{d}", logs, start, temp, values, se, noise, 10**18))
+    fleet_flags(histories, 5.0)
+    return [h.flags for h in histories]
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_a_jump_across_a_long_gap_is_a_drift_or_a_step_by_what_fits(seed):
+    """A 0.3 mrad/s per week drift and a 0.8 mrad/s step, each across a 19-day gap between
+    logs, both jump beyond the step rule's limit: the drift is flagged as a drift (a line
+    through the logs fits as well as one step), the step as a step (the level with one step
+    fits better: before, the line's loose fit made this step a drift too); the other devices
+    nothing. Over draws 0-7: drift named a drift 6 of 8 (2 a step: 5 logs in 4 days and 3 in 2
+    days hold little slope), step named a step 8 of 8; before, 8 and 3 of 8."""
+    drift = _gap_fleet(seed, drift=0.3e-3 / 7)
+    assert [(f["kind"], f["figure"]) for f in drift[0]] == [("drift", "gyro_bias_z")]
+    step = _gap_fleet(seed, step=0.8e-3)
+    assert [(f["kind"], f["figure"], f["log"]) for f in step[0]] == [
+        ("step", "gyro_bias_z", "dev0/log_5")
+    ]
+    assert step[0][0]["after_log"] == "dev0/log_4"
+    assert not any(drift[1:]) and not any(step[1:])

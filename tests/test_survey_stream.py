@@ -278,3 +278,41 @@ def test_stamps_back_and_repeated_within_a_batch_reach_the_manifest(log, tmp_pat
         json.loads(m) for m in (tmp_path / "conv" / "manifest.jsonl").read_text().splitlines()
     ]
     assert [w for w in line["warnings"] if "time order" in w or "repeat the" in w] == streamed
+
+
+def test_split_gyro_and_accel_topics_are_one_imu(tmp_path):
+    """A RealSense-style camera (``imupipe simulate camera``: /camera/gyro/sample at 400 Hz,
+    /camera/accel/sample at 250 Hz) is one IMU of the survey, not two: one device whose topic
+    names both, its gyro bias and ``|a| - g`` those simulated (the accelerometer interpolated
+    onto the gyro's stamps), in an MCAP and a ROS 1 bag alike."""
+    import pyarrow.parquet as pq
+
+    from imupipe.pipeline.simulate import simulate, write_log
+    from imupipe.pipeline.survey.scan import survey
+    from imupipe.readers.topics import split_pairs
+
+    table, truth = simulate("camera", {"duration_s": 40.0}, seed=3)
+    logs = tmp_path / "logs"
+    logs.mkdir()
+    for name in ("cam_a.mcap", "cam_b.bag"):
+        write_log(logs / name, table)
+    survey([logs], tmp_path / "out", jobs=1, quiet=True, rerun=False)
+    rows = pq.read_table(tmp_path / "out" / "survey.parquet").to_pylist()
+    assert {r["device_id"] for r in rows} == {"logs:/camera/gyro/sample+/camera/accel/sample"}, {
+        r["device_id"] for r in rows
+    }
+    assert sorted(r["log"] for r in rows) == ["cam_a", "cam_b"]
+    g = np.asarray(truth["gravity"])
+    for r in rows:
+        bias = np.array([r[f"gyro_bias_{a}"] for a in "xyz"])
+        se = np.array([r[f"gyro_bias_se_{a}"] for a in "xyz"])
+        assert np.all(np.abs(bias - truth["gyro"]["bias"]) < 5 * se + 1e-5), (bias, se)
+        expected = np.linalg.norm(np.asarray(truth["accel"]["bias"]) + g) - np.linalg.norm(g)
+        assert r["accel_norm_error"] == pytest.approx(expected, abs=2e-3)
+    # several cameras: each gyro with the accelerometer of its own name
+    two = ["/cam1/gyro/sample", "/cam1/accel/sample", "/cam2/gyro/sample", "/cam2/accel/sample"]
+    assert split_pairs(two) == [
+        {"gyro": "/cam1/gyro/sample", "accel": "/cam1/accel/sample"},
+        {"gyro": "/cam2/gyro/sample", "accel": "/cam2/accel/sample"},
+    ]
+    assert split_pairs(["/imu/data", "/cam1/gyro/sample", "/cam2/accel/sample"]) == []

@@ -67,14 +67,30 @@ FLIGHT_IMU_TYPES = {"ulog": ("sensor_gyro",), "dataflash": ("IMU", "IMU2", "IMU3
 
 
 def _namespace(topic: str) -> str:
-    return topic.rsplit("/", 1)[0]
+    return topic.split(SPLIT)[0].rsplit("/", 1)[0]
+
+
+SPLIT = "+"
+"""Joins a split IMU's gyro and accelerometer topics into its one topic name (never in a ROS
+topic name)."""
+
+
+def split_topics(topic: str | None) -> dict[str, str | None]:
+    """The spec keys that read the IMU named ``topic`` (:func:`imu_topics`): ``imu_topic``, or
+    ``gyro_topic`` and ``accel_topic`` for a pair."""
+    if topic is not None and SPLIT in topic:
+        gyro, accel = topic.split(SPLIT, 1)
+        return {"imu_topic": None, "gyro_topic": gyro, "accel_topic": accel}
+    return {"imu_topic": topic}
 
 
 def imu_topics(spec: Any) -> list[tuple[str | None, str | None, str | None]]:
     """(imu topic, temperature topic, magnetometer topic to name) per IMU instance of a log; one
-    (None, None, None) for a CSV file (one IMU)."""
+    (None, None, None) for a CSV file (one IMU). A camera's gyro and accelerometer published
+    apart (:func:`~imupipe.readers.topics.split_pairs`) are one IMU: its topic is
+    ``GYRO_TOPIC+ACCEL_TOPIC`` (:func:`split_topics` reads it back)."""
     from imupipe.readers import dispatch
-    from imupipe.readers.topics import STREAM_TYPES, normalize_type
+    from imupipe.readers.topics import STREAM_TYPES, normalize_type, split_pairs
 
     fmt = dispatch.detect_format(Path(spec.path))
     if fmt == "csv":
@@ -90,8 +106,12 @@ def imu_topics(spec: Any) -> list[tuple[str | None, str | None, str | None]]:
             if normalize_type(ty) == msgtype:
                 by_type[stream].append(topic)
     out = []
-    for imu in by_type["imu"]:
-        temps = [t for t in by_type["temperature"] if _namespace(t) == _namespace(imu)]
+    pairs = split_pairs(by_type["imu"])
+    paired = {t for pair in pairs for t in pair.values()}
+    imus = [t for t in by_type["imu"] if t not in paired]
+    for imu in sorted(imus + [f"{pair['gyro']}{SPLIT}{pair['accel']}" for pair in pairs]):
+        near = (_namespace(imu), _namespace(_namespace(imu)))  # /camera of /camera/gyro/sample
+        temps = [t for t in by_type["temperature"] if _namespace(t) in near]
         temp = (
             temps[0]
             if temps
@@ -159,7 +179,7 @@ def survey_log(task: SurveyTask) -> dict[str, Any]:
     warnings: list[str] = []
     topics = imu_topics(spec)
     for instance, (imu, temp, mag) in enumerate(topics):
-        one = dataclasses.replace(spec, imu_topic=imu, temperature_topic=temp, mag_topic=mag)
+        one = dataclasses.replace(spec, **split_topics(imu), temperature_topic=temp, mag_topic=mag)
         found = survey_topic(one, opts, steps, warnings, batch_rows=task.batch_rows)
         if found is None:
             continue

@@ -178,7 +178,8 @@ def survey_topic(
     from imupipe.stages.survey.stats import figures
     from imupipe.stages.survey.streaming import PeriodPass, Rule
 
-    where = f"{spec.path}: {spec.imu_topic or 'imu'}"
+    topic = spec.imu_topic or "+".join(t for t in (spec.gyro_topic, spec.accel_topic) if t)
+    where = f"{spec.path}: {topic or 'imu'}"
     batch_rows = batch_rows or DEFAULT_BATCH_ROWS
     whole: pa.Table | None = None
     half: int | None = None
