@@ -199,6 +199,10 @@ BAD_TIMES = [
     ("nan", "line 3, column 't_ns': 'nan' is not a finite time"),
     ("12:00", "line 3, column 't_ns': '12:00' is not a number"),
     ("", "line 3, column 't_ns': empty time"),
+    # beyond Decimal's exponent range (was decimal.Overflow, a traceback)
+    ("10e999999", "line 3, column 't_ns': '10e999999' has an exponent of five digits or more"),
+    # pyarrow 26's decimal cast crashes the process on this one (was a segmentation fault)
+    ("1e-9999999", "line 3, column 't_ns': '1e-9999999' has an exponent of five digits or more"),
 ]
 
 

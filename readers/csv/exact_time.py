@@ -13,6 +13,8 @@ ns a fractional value is an error, as is anything outside |t| < 2**63 ns.
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 import pyarrow as pa
 
@@ -35,6 +37,11 @@ def _low_words(array: pa.Array) -> tuple[np.ndarray, np.ndarray]:
     words = np.frombuffer(array.buffers()[1], dtype=np.int64).reshape(-1, 2)
     words = words[array.offset : array.offset + len(array)]
     return words[:, 0], words[:, 1]
+
+
+HUGE_EXPONENT = r"[eE][+-]?0*[1-9][0-9]{4,}"
+"""An exponent of five digits or more: no time has one, and pyarrow's decimal cast crashes on
+some (``1e-9999999``); such cells are refused one by one."""
 
 
 def _first(mask: np.ndarray) -> int:
@@ -63,6 +70,8 @@ def _locate(cells: pa.Array, exponent: int) -> TimeCellError:
     from decimal import Decimal, InvalidOperation
 
     for row, cell in enumerate(cells.to_pylist()):
+        if isinstance(cell, str) and re.search(HUGE_EXPONENT, cell):
+            return TimeCellError(row, "has an exponent of five digits or more")
         try:
             value = Decimal(cell.strip()) * (10**exponent)
         except (InvalidOperation, AttributeError):
@@ -85,6 +94,8 @@ def text_to_ns(cells: pa.Array, exponent: int) -> np.ndarray:
         return np.zeros(0, np.int64)
     import pyarrow.compute as pc  # text times only: its import costs 0.06-0.09 s CPU
 
+    if pc.any(pc.match_substring_regex(cells, HUGE_EXPONENT)).as_py():
+        raise _locate(cells, exponent)  # pyarrow 26's decimal cast crashes on "1e-9999999"
     try:
         try:
             dec = _as_decimal(cells, exponent)
