@@ -41,7 +41,6 @@ import pyarrow as pa
 from imupipe.pipeline.convert.options import DEFAULT_BATCH_ROWS
 
 
-
 @dataclasses.dataclass
 class Surveyed:
     """The figures of one IMU topic: raw (``stats``) and, with a calibration, corrected
