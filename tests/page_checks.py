@@ -301,12 +301,13 @@ def check_compass_from_flight(folder: Path, page: str, results: Results) -> None
 def check_fleet_survey(folder: Path, page: str, results: Results) -> None:
     """The survey of the simulated fleet (section 1) and of the chamber fleet (section 5) print
     the summaries the page quotes."""
-    first = [r for r in results if "imupipe survey fleet --out survey" in r.args[-1].splitlines()]
+    runs = [r for r in results if "imupipe survey fleet --out survey" in r.args[-1].splitlines()]
+    assert len(runs) == 2, "the page surveys the fleet, then again (nothing left to do)"
     chamber = ran(
         results, "imupipe survey chamber_fleet --out chamber_survey --chamber chamber_fleet.chamber"
     )
     for done, shown in [
-        (first[0], fenced(page, "text")[0]),
+        (runs[0], fenced(page, "text")[0]),
         (chamber, next(b for b in fenced(page, "text") if "chamber curve" in b)),
     ]:
         printed = (done.stdout + done.stderr).splitlines()
