@@ -8,7 +8,9 @@
   skipped), then the page's ```python blocks, in order, as one script, in a fresh folder that
   holds the repository's ``tests/`` and ``examples/`` (the pages say to run from the repository
   root). A page that cannot run without data from outside the repository says so with
-  ``<!-- not run: reason -->``.
+  ``<!-- not run: reason -->``. After the run, the page's check in ``tests/page_checks.py`` (if
+  it has one) holds the figures and messages the page quotes against that folder and the output
+  of each block: each page runs once.
 - Issue 38, the kind of the fleet tutorial's dead ends: a page's Python imports only what
   ``pip install -e .`` installs (the standard library, imupipe and its dependencies) unless the
   page says ``pip install <package>``; and no page shows a command in a block that is not run
@@ -26,6 +28,7 @@ import tomllib
 from pathlib import Path
 
 import pytest
+from page_checks import CHECKS
 
 from imupipe.pipeline.config import load_config
 
@@ -141,6 +144,7 @@ def test_tutorial_runs_as_written(page: Path, tmp_path: Path) -> None:
             (tmp_path / title.group(1)).write_text(body, encoding="utf-8")
     bin_dir = str(Path(sys.executable).parent)
     env = {**os.environ, "PATH": bin_dir + os.pathsep + os.environ.get("PATH", "")}
+    results = []
     for _info, body in blocks(page, "bash"):
         lines = [
             line
@@ -150,22 +154,16 @@ def test_tutorial_runs_as_written(page: Path, tmp_path: Path) -> None:
         script = "set -euo pipefail\n" + "\n".join(lines)
         done = _run(["bash", "-c", script], tmp_path, env)
         assert done.returncode == 0, f"{page.name}: {script}\n{done.stderr[-3000:]}"
-        if page.name == "README.md" and "imupipe run" in script:
-            _walkthrough_kept_its_word(text, tmp_path, done.stderr)
+        results.append(done)
     script = "\n".join(body for _info, body in blocks(page, "python"))
     if script:  # after the commands that make its files, as a reader runs the page
         done = _run([sys.executable, "-c", script], tmp_path, env)
         assert done.returncode == 0, f"{page.name}: python\n{done.stderr[-3000:]}"
+        results.append(done)
+    check = CHECKS.get(page.relative_to(ROOT).as_posix())
+    if check:  # the figures and messages the page quotes, on this run
+        check(tmp_path, text, results)
 
 
 def _run(args: list[str], cwd: Path, env: dict[str, str]) -> subprocess.CompletedProcess:
     return subprocess.run(args, cwd=cwd, env=env, capture_output=True, text=True, timeout=600)
-
-
-def _walkthrough_kept_its_word(readme: str, folder: Path, stderr: str) -> None:
-    """The README's walk-through writes only the files it names, and warns about nothing (it
-    says "this run has none")."""
-    section = readme.split("## Calibrate the IMU in your bag", 1)[1].split("\n## ", 1)[0]
-    written = sorted(p.name for p in (folder / "out").iterdir())
-    assert written and all(f"`{name}`" in section for name in written), written
-    assert "warning" not in stderr, stderr

@@ -225,63 +225,6 @@ def test_real_flights_improve(name):
         assert any("held at ArduPilot's ranges: DIA_Y 0.800" in w for w in ctx.warnings)
 
 
-def test_tutorial_runs_as_written(tmp_path):
-    import re
-    import shlex
-
-    from conftest import REPO
-
-    page = (REPO / "docs" / "tutorials" / "compass-from-flight.md").read_text()
-
-    def blocks(language: str) -> list[str]:
-        return re.findall(rf"```{language}[^\n]*\n(.*?)```", page, flags=re.S)
-
-    bash, toml, text = blocks("bash"), blocks("toml")[0], blocks("text")[0]
-    assert len(bash) == 5 and bash[1].strip() == "imupipe run compass.toml"
-    (tmp_path / "compass.toml").write_text(toml)
-    (tmp_path / "throttle.toml").write_text(blocks("toml")[-1])
-    for block in bash[:4]:  # the fifth (the survey of several flights): test_survey_compass
-        for line in block.strip().splitlines():
-            proc = run_cli(*shlex.split(line)[1:], cwd=tmp_path)
-            assert proc.returncode == 0, (line, proc.stderr)
-    r = json.loads((tmp_path / "out" / "calibration.json").read_text())["results"]
-    r = r["mag_inflight"]
-    m = r["metrics"]
-    assert r["model"] == "soft_iron" and r["motor_term"]
-    assert round(m["residual_rms_ut_before"], 1) == 22.8
-    assert round(m["residual_rms_ut_after"], 2) == 0.28
-    assert round(m["heading_rms_deg_before"], 1) == 41.8
-    assert round(m["heading_rms_deg_after"], 2) == 0.47
-    report = (tmp_path / "out" / "report.html").read_text()
-    for shown in ("heading error before", "heading error after", "vector residual"):
-        assert shown in report  # the heading along the flight, the residual against current
-    # labelled rows in uT, mG and deg like every stage, not the raw keys in tesla
-    for shown in ("hard iron, offset (uT)", "hard iron, offset (mG)", "soft iron, row x"):
-        assert shown in report
-    assert "offset_t" not in report and "What to look at." in report
-    params = (tmp_path / "out" / "ardupilot_calibration.param").read_text()
-    assert "COMPASS_MOTCT,2" in params
-    thr = json.loads((tmp_path / "out_throttle" / "calibration.json").read_text())["results"]
-    thr = thr["mag_inflight"]
-    assert thr["motor_source"] == "throttle" and thr["model"] == "soft_iron"
-    assert round(thr["metrics"]["residual_rms_ut_before"], 1) == 22.9
-    assert round(thr["metrics"]["residual_rms_ut_after"], 2) == 0.27
-    assert round(thr["metrics"]["heading_rms_deg_after"], 2) == 0.46
-    held = thr["metrics"]["held_out_rms_ut_motor_source"]
-    assert (round(held["throttle"], 2), round(held["none"], 2)) == (0.27, 0.79)
-    params = (tmp_path / "out_throttle" / "ardupilot_calibration.param").read_text()
-    assert "COMPASS_MOTCT,1" in params
-    assert not (tmp_path / "out" / "px4_calibration.params").exists()  # an ArduPilot log
-    level = toml.replace("flight.bin", "level.bin").replace(
-        'type = "mag_inflight"', 'type = "mag_inflight"\nmodel = "soft_iron"'
-    )
-    (tmp_path / "level.toml").write_text(level)
-    proc = run_cli("run", "level.toml", cwd=tmp_path)
-    assert proc.returncode == 2
-    assert proc.stderr.strip().splitlines()[-1] == text.strip()
-    assert not (tmp_path / "out" / "level.mcap").exists()
-
-
 @pytest.mark.slow
 def test_no_worse_than_magfit_on_the_simulated_flight(tmp_path):
     """pymavlink's magfit_WMM.py (minutes: pure Python) and mag_inflight on one simulated log,

@@ -280,21 +280,6 @@ def test_robust_helpers():
     assert wide > 0.5  # scatter beyond the stated errors widens the error (Birge ratio)
 
 
-def test_tutorial_quotes_the_planted_fleet(planted):
-    """docs/tutorials/fleet-survey.md simulates the same fleet as ``planted`` (its bash blocks
-    run in tests/test_docs_examples.py); the summary it quotes is what the survey prints."""
-    from test_docs_examples import ROOT, blocks
-
-    from imupipe.pipeline.survey.report import summary_lines
-
-    page = ROOT / "docs" / "tutorials" / "fleet-survey.md"
-    command = blocks(page, "bash")[0][1].split()
-    assert command[-2:] == ["--seed", "11"]
-    assert [c.split("=")[1] for c in command if "=" in c] == [str(SMALL["logs"]), "100"]
-    quoted = blocks(page, "text")[0][1].strip().splitlines()
-    assert summary_lines(planted[2]["fleet"]) == quoted[:-1]
-
-
 @pytest.mark.slow
 def test_survey_on_ray_matches_the_local_engine_and_keeps_ray_off_stderr(tmp_path):
     """``--engine ray`` (a local Ray started by the command): the same rows as the local engine,
@@ -550,22 +535,6 @@ def test_chamber_option_errors(tmp_path):
     proc = run_cli("survey", logs, "--out", tmp_path / "o", "--chamber", plain)
     assert proc.returncode == 2 and "no temperature-compensation step" in proc.stderr
     assert "Traceback" not in proc.stderr and not (tmp_path / "o").exists()
-
-
-def test_tutorial_quotes_the_chamber_fleet(chamber_planted):
-    """docs/tutorials/fleet-survey.md's section 5 simulates the fleet of ``chamber_planted``; the
-    summary it quotes is what the survey prints."""
-    from test_docs_examples import ROOT, blocks
-
-    page = ROOT / "docs" / "tutorials" / "fleet-survey.md"
-    body = next(b for _, b in blocks(page, "bash") if "chamber=true" in b)
-    command = body.splitlines()[0].split()
-    assert command[-2:] == ["--seed", "21"]
-    sets = dict(c.split("=") for c in command if "=" in c)
-    assert sets == {"logs": "5", "log_s": "100", "events": "false", "chamber": "true"}
-    assert {k: CHAMBER[k] for k in ("logs", "log_s")} == {"logs": 5, "log_s": 100.0}
-    quoted = next(b for _, b in blocks(page, "text") if "chamber curve" in b).strip().splitlines()
-    assert summary_lines(chamber_planted[2]["fleet"]) == quoted[:-1]
 
 
 # -- issue 30: "flags nothing else on a clean fleet", over many fleets ----------------------------

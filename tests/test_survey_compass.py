@@ -264,29 +264,6 @@ def test_outlier_flight_is_one_flag_not_two_steps():
     assert [(f["kind"], f["log"]) for f in h.flags] == [("outlier", "f3")]
 
 
-def test_tutorial_section_runs_as_written(tmp_path):
-    """docs/tutorials/compass-from-flight.md, section 6: its bash block runs and prints the
-    lines the page quotes."""
-    import re
-    import subprocess
-
-    from conftest import REPO
-
-    page = (REPO / "docs" / "tutorials" / "compass-from-flight.md").read_text()
-    section = page.split("## 6. Track the compass across flights", 1)[1]
-    (script,) = re.findall(r"```bash\n(.*?)```", section, flags=re.S)
-    (quoted,) = re.findall(r"```text\n(.*?)```", section, flags=re.S)
-    done = subprocess.run(
-        ["bash", "-c", script], cwd=tmp_path, capture_output=True, text=True, timeout=120
-    )
-    assert done.returncode == 0, done.stderr
-    for line in quoted.strip().splitlines():
-        assert line in done.stdout.splitlines(), (line, done.stdout)
-    fleet = json.loads((tmp_path / "survey" / "compass.json").read_text())
-    (dev,) = fleet["devices"]
-    assert "off by 5.1 uT in drone/flight_3" in dev["flags"][-1]["why"]
-
-
 def test_px4_vehicle_calibration_read_from_cal_mag(tmp_path):
     """A PX4 log whose CAL_MAG0 slot (the compass's device id) holds the truth in PX4's form:
     the vehicle's calibration is read from it (offset, soft iron, COMP), and it is not off."""
