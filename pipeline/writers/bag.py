@@ -73,34 +73,272 @@ def _staged(final: Path) -> Path:
     return Path(tempfile.mkdtemp(prefix=f".{final.name}.", suffix=".tmp", dir=final.parent))
 
 
+CHUNK_THRESHOLD = 1 << 20
+"""Bytes of messages after which a ROS 1 chunk is closed (rosbags' writer's default, 1 MiB)."""
+_OP_CONNECTION, _OP_MSGDATA, _OP_BAGHEADER, _OP_IDXDATA, _OP_CHUNK, _OP_CHUNK_INFO = (
+    7,
+    2,
+    3,
+    4,
+    5,
+    6,
+)
+_MSG_PREFIX = 46
+"""Bytes of a ROS 1 message data record before its payload: header length, the fields ``op``,
+``conn`` and ``time``, and the data length."""
+_IDX_ROW = np.dtype([("sec", "<u4"), ("nsec", "<u4"), ("offset", "<u4")])
+
+
+def _u32(value: int) -> bytes:
+    return int(value).to_bytes(4, "little")
+
+
+def _time(ns: int) -> bytes:
+    return _u32(ns // 1_000_000_000) + _u32(ns % 1_000_000_000)
+
+
+def _header(op: int | None, fields: list[tuple[str, bytes]]) -> bytes:
+    """A ROS 1 record header: its length, then each ``name=value`` after its own length."""
+    items = ([("op", bytes([op]))] if op is not None else []) + fields
+    data = b"".join(_u32(len(k) + 1 + len(v)) + k.encode() + b"=" + v for k, v in items)
+    return _u32(len(data)) + data
+
+
+def _connection_record(conn: int, topic: str, typ: str, msgdef: str, md5: str) -> bytes:
+    """Connection record (op 0x07): ``conn`` and ``topic`` in the header, the connection's own
+    header (topic, type, md5sum, message_definition) as its data, as rosbags writes it."""
+    data = _header(
+        None,
+        [
+            ("topic", topic.encode()),
+            ("type", typ.encode()),
+            ("md5sum", md5.encode()),
+            ("message_definition", msgdef.encode()),
+        ],
+    )
+    return _header(_OP_CONNECTION, [("conn", _u32(conn)), ("topic", topic.encode())]) + data
+
+
+def _bag_header(index_pos: int, conn_count: int, chunk_count: int) -> bytes:
+    """Bag header record (op 0x03) padded with spaces to 4096 bytes."""
+    head = _header(
+        _OP_BAGHEADER,
+        [
+            ("index_pos", index_pos.to_bytes(8, "little")),
+            ("conn_count", _u32(conn_count)),
+            ("chunk_count", _u32(chunk_count)),
+        ],
+    )
+    pad = 4096 - 4 - len(head)
+    return head + _u32(pad) + b" " * pad
+
+
+def _ros1_messages(
+    table: pa.Table,
+) -> tuple[dict[str, str], list[tuple[int, np.ndarray]], np.ndarray, np.ndarray, np.ndarray]:
+    """Every message of ``table`` as ROS 1 payloads, in bag-time order.
+
+    Returns ``(streams, segments, seg, pos, times)``: ``streams`` stream -> topic in connection
+    order, ``segments`` a list of ``(conn, payloads (m, L)
+    uint8)``, one per stream and frame_id; per message in log-time order (ties: stream order,
+    then row order) its segment, its row in that segment's payloads, and its uint64 log time."""
+    log_all, _ = message_times(table)
+    segments: list[tuple[int, np.ndarray]] = []
+    seg_parts, pos_parts, time_parts, conn = [], [], [], 0
+    streams: dict[str, str] = {}
+    topics = {**DEFAULT_TOPICS, **metadata(table).get("topics", {})}
+    for stream in written_streams(table):
+        rows, groups = encode_stream(table, stream, "ros1")
+        if not len(rows):
+            continue
+        seg = np.empty(len(rows), dtype=np.int64)
+        pos = np.empty(len(rows), dtype=np.int64)
+        for sel, enc in groups:
+            seg[sel] = len(segments)
+            pos[sel] = np.arange(len(sel))
+            segments.append((conn, enc))
+        streams[stream] = topics[stream]
+        seg_parts.append(seg)
+        pos_parts.append(pos)
+        time_parts.append(log_all[rows])
+        conn += 1
+    if not segments:
+        empty = np.zeros(0, dtype=np.int64)
+        return streams, segments, empty, empty, np.zeros(0, dtype=np.uint64)
+    times = np.concatenate(time_parts)
+    order = np.argsort(times, kind="stable")  # stream order, then row order, among equal times
+    seg = np.concatenate(seg_parts)[order]
+    pos = np.concatenate(pos_parts)[order]
+    return streams, segments, seg, pos, times[order]
+
+
 def write_ros1_bag(path: str | Path, table: pa.Table, compression: str = "lz4") -> None:
-    """Write ``table`` as a ROS 1 bag at ``path``."""
-    from rosbags.rosbag1 import Writer
+    """Write ``table`` as a ROS 1 bag (format 2.0) at ``path``.
+
+    The records are those of rosbags' ``rosbag1.Writer`` byte for byte (ROS wiki, Bags/Format/2.0),
+    built with numpy a chunk at a time instead of a call per message: the bag header (padded to
+    4096 bytes); chunks closed once their messages pass 1 MiB, the first holding the connection
+    records, each followed by one index data record (version 1: time, offset) per connection in
+    the order of their first message in the chunk; then the connection records and one chunk
+    info record per chunk, whose position the bag header gives (``index_pos``). Times are
+    uint32 seconds and nanoseconds: a log time past 2106 is refused."""
     from rosbags.typesys import Stores, get_typestore
+    from rosbags.typesys.msg import denormalize_msgtype
 
     if compression not in ("lz4", "bz2", "none"):
         raise ConfigError(f"{path}: ROS 1 bag compression '{compression}' (lz4, bz2 or none)")
+    if compression == "lz4":
+        from lz4.frame import compress as lz4_compress
+
+        def compress(data: bytes) -> bytes:
+            return lz4_compress(data, 0)
+    elif compression == "bz2":
+        import bz2
+
+        def compress(data: bytes) -> bytes:
+            return bz2.compress(data, 9)
+    else:
+
+        def compress(data: bytes) -> bytes:
+            return data
+
     final = Path(path)
+    streams, segments, seg, pos, times = _ros1_messages(table)
+    sec = times // np.uint64(1_000_000_000)
+    if len(sec) and sec.max() > np.iinfo(np.uint32).max:
+        raise ConfigError(f"{path}: a log time past 2106 does not fit a ROS 1 bag's uint32 seconds")
+    store = get_typestore(Stores.ROS1_NOETIC)
+    conn_records = b""
+    for conn, stream in enumerate(streams):
+        msgdef, md5 = store.generate_msgdef(STREAM_TYPES[stream])
+        typ = denormalize_msgtype(STREAM_TYPES[stream])
+        conn_records += _connection_record(conn, streams[stream], typ, msgdef, md5)
+
+    n = len(seg)
+    seg_conn = np.array([c for c, _ in segments], dtype=np.int64)
+    seg_len = np.array([enc.shape[1] for _, enc in segments], dtype=np.int64)
+    # per segment, the 46 bytes before a payload; the time (bytes 34..42) is set per message
+    templates = np.zeros((len(segments), _MSG_PREFIX), dtype=np.uint8)
+    for s, (conn, enc) in enumerate(segments):
+        head = _header(_OP_MSGDATA, [("conn", _u32(conn)), ("time", bytes(8))])
+        templates[s] = np.frombuffer(head + _u32(enc.shape[1]), dtype=np.uint8)
+    rec = _MSG_PREFIX + seg_len[seg] if n else np.zeros(0, dtype=np.int64)
+    ends = np.cumsum(rec)
+    nsec = (times % np.uint64(1_000_000_000)).astype("<u4")
+    sec = sec.astype("<u4")
+
     tmpdir = _staged(final)
     try:
         tmp = tmpdir / final.name
-        store = get_typestore(Stores.ROS1_NOETIC)
-        streams, items = _ordered(table, "ros1")
-        writer = Writer(tmp)
-        if compression != "none":
-            writer.set_compression(Writer.CompressionFormat[compression.upper()])
-        with writer:
-            conns = {
-                s: writer.add_connection(topic, typ, typestore=store)
-                for s, (topic, typ) in streams.items()
-            }
-            for i, (t, _, stream, payload) in enumerate(items):
-                writer.write(conns[stream], t, payload)
-                if not i % REPORT_EVERY:
-                    report(i, len(items))
+        chunk_infos: list[bytes] = []
+        with tmp.open("xb") as f:
+            f.write(b"#ROSBAG V2.0\n")
+            f.write(_bag_header(0, 0, 0))
+            a, pre = 0, conn_records
+            while a < n or pre:
+                done = int(ends[a - 1]) if a else 0
+                b = int(np.searchsorted(ends, done - len(pre) + CHUNK_THRESHOLD, side="right"))
+                b = min(b + 1, n)  # the message that passes the threshold closes the chunk
+                chunk_infos.append(
+                    _write_chunk(
+                        f,
+                        compression,
+                        compress,
+                        pre,
+                        a,
+                        b,
+                        done,
+                        seg,
+                        pos,
+                        sec,
+                        nsec,
+                        times,
+                        ends,
+                        segments,
+                        seg_conn,
+                        templates,
+                    )
+                )
+                report(a, n)
+                a, pre = b, b""
+            index_pos = f.tell()
+            f.write(conn_records)
+            f.write(b"".join(chunk_infos))
+            f.seek(13)
+            f.write(_bag_header(index_pos, len(streams), len(chunk_infos)))
         os.replace(tmp, final)
     finally:
         shutil.rmtree(tmpdir, ignore_errors=True)
+
+
+def _write_chunk(
+    f,
+    compression,
+    compress,
+    pre,
+    a,
+    b,
+    done,
+    seg,
+    pos,
+    sec,
+    nsec,
+    times,
+    ends,
+    segments,
+    seg_conn,
+    templates,
+) -> bytes:
+    """Write messages ``a:b`` (after the records ``pre``) as one chunk and its index data
+    records; returns its chunk info record."""
+    chunk_pos = f.tell()
+    m = b - a
+    sg, ps = seg[a:b], pos[a:b]
+    offsets = (
+        len(pre) + np.concatenate(([0], ends[a : b - 1] - done)) if m else np.zeros(0, np.int64)
+    )
+    size = len(pre) + (int(ends[b - 1]) - done if m else 0)
+    out = np.empty(size, dtype=np.uint8)
+    out[: len(pre)] = np.frombuffer(pre, dtype=np.uint8)
+    if m:
+        prefix = templates[sg]
+        prefix[:, 34:38] = sec[a:b, None].view(np.uint8).reshape(m, 4)
+        prefix[:, 38:42] = nsec[a:b, None].view(np.uint8).reshape(m, 4)
+        out[offsets[:, None] + np.arange(_MSG_PREFIX)] = prefix
+        for s in np.unique(sg):
+            sel = sg == s
+            enc = segments[s][1]
+            out[offsets[sel, None] + (_MSG_PREFIX + np.arange(enc.shape[1]))] = enc[ps[sel]]
+    data = compress(out.tobytes())
+    f.write(_header(_OP_CHUNK, [("compression", compression.encode()), ("size", _u32(size))]))
+    f.write(_u32(len(data)))
+    f.write(data)
+    conns = seg_conn[sg]
+    present, first = np.unique(conns, return_index=True)
+    present = present[np.argsort(first)]  # in the order of their first message, as rosbags
+    info = b""
+    for c in present.tolist():
+        sel = conns == c
+        idx = np.empty(int(sel.sum()), dtype=_IDX_ROW)
+        idx["sec"], idx["nsec"], idx["offset"] = sec[a:b][sel], nsec[a:b][sel], offsets[sel]
+        f.write(
+            _header(_OP_IDXDATA, [("ver", _u32(1)), ("conn", _u32(c)), ("count", _u32(len(idx)))])
+        )
+        f.write(_u32(idx.nbytes))
+        f.write(idx.tobytes())
+        info += _u32(c) + _u32(len(idx))
+    t0, t1 = (int(times[a]), int(times[b - 1])) if m else (0, 0)
+    head = _header(
+        _OP_CHUNK_INFO,
+        [
+            ("ver", _u32(1)),
+            ("chunk_pos", chunk_pos.to_bytes(8, "little")),
+            ("start_time", _time(t0)),
+            ("end_time", _time(t1)),
+            ("count", _u32(len(present))),
+        ],
+    )
+    return head + _u32(len(info)) + info
 
 
 def write_ros2_bag(path: str | Path, table: pa.Table, storage: str = "sqlite3") -> None:
