@@ -271,6 +271,12 @@ def write_ros1_bag(path: str | Path, table: pa.Table, compression: str = "lz4") 
         shutil.rmtree(tmpdir, ignore_errors=True)
 
 
+def _rows_at(buf: np.ndarray, width: int) -> np.ndarray:
+    """``buf`` as overlapping rows of ``width`` bytes, row ``i`` starting at byte ``i``: writing
+    rows at chosen offsets copies whole records, not one indexed byte at a time."""
+    return np.lib.stride_tricks.as_strided(buf, (len(buf) - width + 1, width), (1, 1))
+
+
 def _write_chunk(
     f,
     compression,
@@ -304,11 +310,11 @@ def _write_chunk(
         prefix = templates[sg]
         prefix[:, 34:38] = sec[a:b, None].view(np.uint8).reshape(m, 4)
         prefix[:, 38:42] = nsec[a:b, None].view(np.uint8).reshape(m, 4)
-        out[offsets[:, None] + np.arange(_MSG_PREFIX)] = prefix
+        _rows_at(out, _MSG_PREFIX)[offsets] = prefix
         for s in np.unique(sg):
             sel = sg == s
             enc = segments[s][1]
-            out[offsets[sel, None] + (_MSG_PREFIX + np.arange(enc.shape[1]))] = enc[ps[sel]]
+            _rows_at(out[_MSG_PREFIX:], enc.shape[1])[offsets[sel]] = enc[ps[sel]]
     data = compress(out.tobytes())
     f.write(_header(_OP_CHUNK, [("compression", compression.encode()), ("size", _u32(size))]))
     f.write(_u32(len(data)))
