@@ -21,8 +21,10 @@ from __future__ import annotations
 import os
 import shutil
 import tempfile
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass
 from pathlib import Path
+from typing import BinaryIO
 
 import numpy as np
 import pyarrow as pa
@@ -133,142 +135,101 @@ def _bag_header(index_pos: int, conn_count: int, chunk_count: int) -> bytes:
     return head + _u32(pad) + b" " * pad
 
 
-def _ros1_messages(
-    table: pa.Table,
-) -> tuple[dict[str, str], list[tuple[int, np.ndarray]], np.ndarray, np.ndarray, np.ndarray]:
-    """Every message of ``table`` as ROS 1 payloads, in bag-time order.
+@dataclass
+class _Ros1Messages:
+    """Every message of a table as ROS 1 message data records, in bag-time order.
 
-    Returns ``(streams, segments, seg, pos, times)``: ``streams`` stream -> topic in connection
-    order, ``segments`` a list of ``(conn, payloads (m, L)
-    uint8)``, one per stream and frame_id; per message in log-time order (ties: stream order,
-    then row order) its segment, its row in that segment's payloads, and its uint64 log time."""
-    log_all, _ = message_times(table)
-    segments: list[tuple[int, np.ndarray]] = []
-    seg_parts, pos_parts, time_parts, conn = [], [], [], 0
-    streams: dict[str, str] = {}
-    topics = {**DEFAULT_TOPICS, **metadata(table).get("topics", {})}
-    for stream in written_streams(table):
-        rows, groups = encode_stream(table, stream, "ros1")
-        if not len(rows):
-            continue
-        seg = np.empty(len(rows), dtype=np.int64)
-        pos = np.empty(len(rows), dtype=np.int64)
-        for sel, enc in groups:
-            seg[sel] = len(segments)
-            pos[sel] = np.arange(len(sel))
-            segments.append((conn, enc))
-        streams[stream] = topics[stream]
-        seg_parts.append(seg)
-        pos_parts.append(pos)
-        time_parts.append(log_all[rows])
-        conn += 1
-    if not segments:
-        empty = np.zeros(0, dtype=np.int64)
-        return streams, segments, empty, empty, np.zeros(0, dtype=np.uint64)
-    times = np.concatenate(time_parts)
-    order = np.argsort(times, kind="stable")  # stream order, then row order, among equal times
-    seg = np.concatenate(seg_parts)[order]
-    pos = np.concatenate(pos_parts)[order]
-    return streams, segments, seg, pos, times[order]
+    ``segments``: ``(conn, payloads (m, L) uint8)``, one per stream and frame_id. Per message in
+    log-time order (ties: stream order, then row order): its segment ``seg``, its row ``pos`` in
+    that segment's payloads, its uint64 log time ``times`` (``sec``, ``nsec`` as uint32) and the
+    end of its record in the concatenation of all records (``ends``)."""
 
+    streams: dict[str, str]
+    """Stream -> topic, in connection order."""
+    segments: list[tuple[int, np.ndarray]]
+    seg: np.ndarray
+    pos: np.ndarray
+    times: np.ndarray
+    sec: np.ndarray
+    nsec: np.ndarray
+    ends: np.ndarray
+    templates: np.ndarray
+    """Per segment, the 46 bytes before a payload (time zero, set per message: bytes 34..42)."""
 
-def write_ros1_bag(path: str | Path, table: pa.Table, compression: str = "lz4") -> None:
-    """Write ``table`` as a ROS 1 bag (format 2.0) at ``path``.
+    @classmethod
+    def of(cls, table: pa.Table, path: str | Path) -> _Ros1Messages:
+        log_all, _ = message_times(table)  # a bag has no publish time
+        topics = {**DEFAULT_TOPICS, **metadata(table).get("topics", {})}
+        streams: dict[str, str] = {}
+        segments: list[tuple[int, np.ndarray]] = []
+        seg_parts, pos_parts, time_parts = [np.zeros(0, np.int64)], [np.zeros(0, np.int64)], []
+        for stream in written_streams(table):
+            rows, groups = encode_stream(table, stream, "ros1")
+            if not len(rows):
+                continue
+            seg = np.empty(len(rows), dtype=np.int64)
+            pos = np.empty(len(rows), dtype=np.int64)
+            for sel, enc in groups:
+                seg[sel] = len(segments)
+                pos[sel] = np.arange(len(sel))
+                segments.append((len(streams), enc))
+            streams[stream] = topics[stream]
+            seg_parts.append(seg)
+            pos_parts.append(pos)
+            time_parts.append(log_all[rows])
+        times = np.concatenate([np.zeros(0, np.uint64), *time_parts])
+        order = np.argsort(times, kind="stable")  # stream order, then row order, among ties
+        times = times[order]
+        sec = times // np.uint64(1_000_000_000)
+        if len(sec) and sec.max() > np.iinfo(np.uint32).max:
+            raise ConfigError(
+                f"{path}: a log time past 2106 does not fit a ROS 1 bag's uint32 seconds"
+            )
+        seg = np.concatenate(seg_parts)[order]
+        templates = np.zeros((len(segments), _MSG_PREFIX), dtype=np.uint8)
+        for s, (conn, enc) in enumerate(segments):
+            head = _header(_OP_MSGDATA, [("conn", _u32(conn)), ("time", bytes(8))])
+            templates[s] = np.frombuffer(head + _u32(enc.shape[1]), dtype=np.uint8)
+        seg_len = np.array([enc.shape[1] for _, enc in segments] or [0], dtype=np.int64)
+        return cls(
+            streams,
+            segments,
+            seg,
+            np.concatenate(pos_parts)[order],
+            times,
+            sec.astype("<u4"),
+            (times % np.uint64(1_000_000_000)).astype("<u4"),
+            np.cumsum(_MSG_PREFIX + seg_len[seg]),
+            templates,
+        )
 
-    The records are those of rosbags' ``rosbag1.Writer`` byte for byte (ROS wiki, Bags/Format/2.0),
-    built with numpy a chunk at a time instead of a call per message: the bag header (padded to
-    4096 bytes); chunks closed once their messages pass 1 MiB, the first holding the connection
-    records, each followed by one index data record (version 1: time, offset) per connection in
-    the order of their first message in the chunk; then the connection records and one chunk
-    info record per chunk, whose position the bag header gives (``index_pos``). Times are
-    uint32 seconds and nanoseconds: a log time past 2106 is refused."""
-    from rosbags.typesys import Stores, get_typestore
-    from rosbags.typesys.msg import denormalize_msgtype
+    def chunk_end(self, a: int, before: int) -> int:
+        """End of the chunk whose first message is ``a``, after ``before`` bytes of other
+        records: the first message that takes the chunk past ``CHUNK_THRESHOLD`` closes it."""
+        done = int(self.ends[a - 1]) if a else 0
+        b = int(np.searchsorted(self.ends, done - before + CHUNK_THRESHOLD, side="right"))
+        return min(b + 1, len(self.seg))
 
-    if compression not in ("lz4", "bz2", "none"):
-        raise ConfigError(f"{path}: ROS 1 bag compression '{compression}' (lz4, bz2 or none)")
-    if compression == "lz4":
-        from lz4.frame import compress as lz4_compress
-
-        def compress(data: bytes) -> bytes:
-            return lz4_compress(data, 0)
-    elif compression == "bz2":
-        import bz2
-
-        def compress(data: bytes) -> bytes:
-            return bz2.compress(data, 9)
-    else:
-
-        def compress(data: bytes) -> bytes:
-            return data
-
-    final = Path(path)
-    streams, segments, seg, pos, times = _ros1_messages(table)
-    sec = times // np.uint64(1_000_000_000)
-    if len(sec) and sec.max() > np.iinfo(np.uint32).max:
-        raise ConfigError(f"{path}: a log time past 2106 does not fit a ROS 1 bag's uint32 seconds")
-    store = get_typestore(Stores.ROS1_NOETIC)
-    conn_records = b""
-    for conn, stream in enumerate(streams):
-        msgdef, md5 = store.generate_msgdef(STREAM_TYPES[stream])
-        typ = denormalize_msgtype(STREAM_TYPES[stream])
-        conn_records += _connection_record(conn, streams[stream], typ, msgdef, md5)
-
-    n = len(seg)
-    seg_conn = np.array([c for c, _ in segments], dtype=np.int64)
-    seg_len = np.array([enc.shape[1] for _, enc in segments], dtype=np.int64)
-    # per segment, the 46 bytes before a payload; the time (bytes 34..42) is set per message
-    templates = np.zeros((len(segments), _MSG_PREFIX), dtype=np.uint8)
-    for s, (conn, enc) in enumerate(segments):
-        head = _header(_OP_MSGDATA, [("conn", _u32(conn)), ("time", bytes(8))])
-        templates[s] = np.frombuffer(head + _u32(enc.shape[1]), dtype=np.uint8)
-    rec = _MSG_PREFIX + seg_len[seg] if n else np.zeros(0, dtype=np.int64)
-    ends = np.cumsum(rec)
-    nsec = (times % np.uint64(1_000_000_000)).astype("<u4")
-    sec = sec.astype("<u4")
-
-    tmpdir = _staged(final)
-    try:
-        tmp = tmpdir / final.name
-        chunk_infos: list[bytes] = []
-        with tmp.open("xb") as f:
-            f.write(b"#ROSBAG V2.0\n")
-            f.write(_bag_header(0, 0, 0))
-            a, pre = 0, conn_records
-            while a < n or pre:
-                done = int(ends[a - 1]) if a else 0
-                b = int(np.searchsorted(ends, done - len(pre) + CHUNK_THRESHOLD, side="right"))
-                b = min(b + 1, n)  # the message that passes the threshold closes the chunk
-                chunk_infos.append(
-                    _write_chunk(
-                        f,
-                        compression,
-                        compress,
-                        pre,
-                        a,
-                        b,
-                        done,
-                        seg,
-                        pos,
-                        sec,
-                        nsec,
-                        times,
-                        ends,
-                        segments,
-                        seg_conn,
-                        templates,
-                    )
-                )
-                report(a, n)
-                a, pre = b, b""
-            index_pos = f.tell()
-            f.write(conn_records)
-            f.write(b"".join(chunk_infos))
-            f.seek(13)
-            f.write(_bag_header(index_pos, len(streams), len(chunk_infos)))
-        os.replace(tmp, final)
-    finally:
-        shutil.rmtree(tmpdir, ignore_errors=True)
+    def records(self, a: int, b: int, pre: bytes) -> tuple[np.ndarray, np.ndarray]:
+        """The uncompressed data of a chunk: ``pre`` then the records of messages ``a:b``;
+        and each record's offset in it."""
+        done = int(self.ends[a - 1]) if a else 0
+        m = b - a
+        offsets = len(pre) + np.concatenate(([0], self.ends[a : b - 1] - done)).astype(np.int64)
+        out = np.empty(len(pre) + (int(self.ends[b - 1]) - done if m else 0), dtype=np.uint8)
+        out[: len(pre)] = np.frombuffer(pre, dtype=np.uint8)
+        if not m:
+            return out, offsets[:0]
+        sg, ps = self.seg[a:b], self.pos[a:b]
+        prefix = self.templates[sg]
+        prefix[:, 34:38] = self.sec[a:b, None].view(np.uint8).reshape(m, 4)
+        prefix[:, 38:42] = self.nsec[a:b, None].view(np.uint8).reshape(m, 4)
+        _rows_at(out, _MSG_PREFIX)[offsets] = prefix
+        for s in np.unique(sg):
+            sel = sg == s
+            enc = self.segments[s][1]
+            _rows_at(out[_MSG_PREFIX:], enc.shape[1])[offsets[sel]] = enc[ps[sel]]
+        return out, offsets
 
 
 def _rows_at(buf: np.ndarray, width: int) -> np.ndarray:
@@ -277,74 +238,95 @@ def _rows_at(buf: np.ndarray, width: int) -> np.ndarray:
     return np.lib.stride_tricks.as_strided(buf, (len(buf) - width + 1, width), (1, 1))
 
 
+def _compressor(compression: str) -> Callable[[bytes], bytes]:
+    """rosbags' chunk compression: lz4 frames at level 0, bz2 at level 9, or none."""
+    if compression == "lz4":
+        from lz4.frame import compress
+
+        return lambda data: compress(data, 0)
+    if compression == "bz2":
+        import bz2
+
+        return lambda data: bz2.compress(data, 9)
+    return lambda data: data
+
+
 def _write_chunk(
-    f,
-    compression,
-    compress,
-    pre,
-    a,
-    b,
-    done,
-    seg,
-    pos,
-    sec,
-    nsec,
-    times,
-    ends,
-    segments,
-    seg_conn,
-    templates,
+    f: BinaryIO, msgs: _Ros1Messages, a: int, b: int, pre: bytes, compression: str
 ) -> bytes:
-    """Write messages ``a:b`` (after the records ``pre``) as one chunk and its index data
-    records; returns its chunk info record."""
+    """Write a chunk record (``pre``, then messages ``a:b``) and its index data records (op
+    0x04, version 1), one per connection in the order of its first message in the chunk;
+    returns the chunk's chunk info record (op 0x06)."""
     chunk_pos = f.tell()
-    m = b - a
-    sg, ps = seg[a:b], pos[a:b]
-    offsets = (
-        len(pre) + np.concatenate(([0], ends[a : b - 1] - done)) if m else np.zeros(0, np.int64)
-    )
-    size = len(pre) + (int(ends[b - 1]) - done if m else 0)
-    out = np.empty(size, dtype=np.uint8)
-    out[: len(pre)] = np.frombuffer(pre, dtype=np.uint8)
-    if m:
-        prefix = templates[sg]
-        prefix[:, 34:38] = sec[a:b, None].view(np.uint8).reshape(m, 4)
-        prefix[:, 38:42] = nsec[a:b, None].view(np.uint8).reshape(m, 4)
-        _rows_at(out, _MSG_PREFIX)[offsets] = prefix
-        for s in np.unique(sg):
-            sel = sg == s
-            enc = segments[s][1]
-            _rows_at(out[_MSG_PREFIX:], enc.shape[1])[offsets[sel]] = enc[ps[sel]]
-    data = compress(out.tobytes())
-    f.write(_header(_OP_CHUNK, [("compression", compression.encode()), ("size", _u32(size))]))
-    f.write(_u32(len(data)))
-    f.write(data)
-    conns = seg_conn[sg]
+    out, offsets = msgs.records(a, b, pre)
+    data = _compressor(compression)(out.tobytes())
+    f.write(_header(_OP_CHUNK, [("compression", compression.encode()), ("size", _u32(len(out)))]))
+    f.write(_u32(len(data)) + data)
+    conns = np.array([c for c, _ in msgs.segments] or [0], dtype=np.int64)[msgs.seg[a:b]]
     present, first = np.unique(conns, return_index=True)
-    present = present[np.argsort(first)]  # in the order of their first message, as rosbags
-    info = b""
-    for c in present.tolist():
+    counts = b""
+    for c in present[np.argsort(first)].tolist():
         sel = conns == c
         idx = np.empty(int(sel.sum()), dtype=_IDX_ROW)
-        idx["sec"], idx["nsec"], idx["offset"] = sec[a:b][sel], nsec[a:b][sel], offsets[sel]
-        f.write(
-            _header(_OP_IDXDATA, [("ver", _u32(1)), ("conn", _u32(c)), ("count", _u32(len(idx)))])
-        )
-        f.write(_u32(idx.nbytes))
-        f.write(idx.tobytes())
-        info += _u32(c) + _u32(len(idx))
-    t0, t1 = (int(times[a]), int(times[b - 1])) if m else (0, 0)
-    head = _header(
-        _OP_CHUNK_INFO,
-        [
-            ("ver", _u32(1)),
-            ("chunk_pos", chunk_pos.to_bytes(8, "little")),
-            ("start_time", _time(t0)),
-            ("end_time", _time(t1)),
-            ("count", _u32(len(present))),
-        ],
-    )
-    return head + _u32(len(info)) + info
+        idx["sec"], idx["nsec"] = msgs.sec[a:b][sel], msgs.nsec[a:b][sel]
+        idx["offset"] = offsets[sel]
+        fields = [("ver", _u32(1)), ("conn", _u32(c)), ("count", _u32(len(idx)))]
+        f.write(_header(_OP_IDXDATA, fields) + _u32(idx.nbytes) + idx.tobytes())
+        counts += _u32(c) + _u32(len(idx))
+    t0, t1 = (int(msgs.times[a]), int(msgs.times[b - 1])) if b > a else (0, 0)
+    fields = [
+        ("ver", _u32(1)),
+        ("chunk_pos", chunk_pos.to_bytes(8, "little")),
+        ("start_time", _time(t0)),
+        ("end_time", _time(t1)),
+        ("count", _u32(len(present))),
+    ]
+    return _header(_OP_CHUNK_INFO, fields) + _u32(len(counts)) + counts
+
+
+def write_ros1_bag(path: str | Path, table: pa.Table, compression: str = "lz4") -> None:
+    """Write ``table`` as a ROS 1 bag (format 2.0) at ``path``.
+
+    The records are those of rosbags' ``rosbag1.Writer`` byte for byte (ROS wiki,
+    Bags/Format/2.0), built with numpy a chunk at a time instead of a call per message: the bag
+    header (padded to 4096 bytes); chunks closed once their records pass 1 MiB, the first
+    holding the connection records, each followed by one index data record (version 1: time,
+    offset) per connection; then the connection records and one chunk info record per chunk,
+    whose position the bag header gives (``index_pos``). Times are uint32 seconds and
+    nanoseconds: a log time past 2106 is refused."""
+    from rosbags.typesys import Stores, get_typestore
+    from rosbags.typesys.msg import denormalize_msgtype
+
+    if compression not in ("lz4", "bz2", "none"):
+        raise ConfigError(f"{path}: ROS 1 bag compression '{compression}' (lz4, bz2 or none)")
+    final = Path(path)
+    msgs = _Ros1Messages.of(table, path)
+    store = get_typestore(Stores.ROS1_NOETIC)
+    conn_records = b""
+    for conn, (stream, topic) in enumerate(msgs.streams.items()):
+        msgdef, md5 = store.generate_msgdef(STREAM_TYPES[stream])
+        typ = denormalize_msgtype(STREAM_TYPES[stream])
+        conn_records += _connection_record(conn, topic, typ, msgdef, md5)
+    n = len(msgs.seg)
+    tmpdir = _staged(final)
+    try:
+        tmp = tmpdir / final.name
+        chunk_infos: list[bytes] = []
+        with tmp.open("xb") as f:
+            f.write(b"#ROSBAG V2.0\n" + _bag_header(0, 0, 0))
+            a, pre = 0, conn_records
+            while a < n or pre:
+                b = msgs.chunk_end(a, len(pre))
+                chunk_infos.append(_write_chunk(f, msgs, a, b, pre, compression))
+                report(a, n)
+                a, pre = b, b""
+            index_pos = f.tell()
+            f.write(conn_records + b"".join(chunk_infos))
+            f.seek(len(b"#ROSBAG V2.0\n"))
+            f.write(_bag_header(index_pos, len(msgs.streams), len(chunk_infos)))
+        os.replace(tmp, final)
+    finally:
+        shutil.rmtree(tmpdir, ignore_errors=True)
 
 
 def write_ros2_bag(path: str | Path, table: pa.Table, storage: str = "sqlite3") -> None:
