@@ -1,4 +1,4 @@
-"""Common tables as ROS 1 bags and ROS 2 bags, with rosbags' writers (for ``imupipe simulate``).
+"""Common tables as ROS 1 bags and ROS 2 bags (for ``imupipe simulate``).
 
 Each stream becomes one topic (the table's topic names, else ``/imu/data``, ``/imu/mag``,
 ``/imu/temperature``) of ``sensor_msgs/Imu``, ``MagneticField`` or ``Temperature``; the payloads
@@ -11,9 +11,9 @@ The result appears whole or not at all: the bag is written under a temporary nam
 target and renamed into place when complete.
 
 - ``write_ros1_bag(path, table, compression="lz4")``: ROS 1 bag v2.0, chunks ``lz4``, ``bz2`` or
-  ``none``.
+  ``none``, built with numpy a chunk at a time (the same bytes as rosbags' ``rosbag1.Writer``).
 - ``write_ros2_bag(path, table, storage="sqlite3")``: a ROS 2 bag folder (version 9) with sqlite3
-  or mcap storage; a ``.db3`` path gets the bare sqlite3 file.
+  or mcap storage, with rosbags' writer; a ``.db3`` path gets the bare sqlite3 file.
 """
 
 from __future__ import annotations
