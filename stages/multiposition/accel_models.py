@@ -512,7 +512,11 @@ class ModelFit:
             return float("inf")
         rng = np.random.default_rng(0)
         free = self.problem.free
-        chol = np.linalg.cholesky(cov + 1e-30 * np.eye(len(cov)))
+        try:
+            chol = np.linalg.cholesky(cov + 1e-30 * np.eye(len(cov)))
+        except np.linalg.LinAlgError:  # singular to rounding (a dead axis): a symmetric root
+            w, v = np.linalg.eigh((cov + cov.T) / 2)
+            chol = v * np.sqrt(np.clip(w, 0.0, None))
         dx = rng.standard_normal((ERROR_DRAWS, len(cov))) @ chol.T
         if self.dof > 0 and self.rss / self.dof >= self.mean_noise**2:
             dx *= np.sqrt(self.dof / rng.chisquare(self.dof, ERROR_DRAWS))[:, None]
