@@ -38,6 +38,15 @@ from imupipe.pipeline.writers.mcap import (
     written_streams,
 )
 from imupipe.readers.progress import report
+from imupipe.readers.ros1.reader import (
+    OP_BAG_HEADER,
+    OP_CHUNK,
+    OP_CHUNK_INFO,
+    OP_CONNECTION,
+    OP_INDEX,
+    OP_MSG,
+    VERSION_LINE,
+)
 from imupipe.readers.table import metadata
 
 REPORT_EVERY = 10_000
@@ -77,14 +86,6 @@ def _staged(final: Path) -> Path:
 
 CHUNK_THRESHOLD = 1 << 20
 """Bytes of messages after which a ROS 1 chunk is closed (rosbags' writer's default, 1 MiB)."""
-_OP_CONNECTION, _OP_MSGDATA, _OP_BAGHEADER, _OP_IDXDATA, _OP_CHUNK, _OP_CHUNK_INFO = (
-    7,
-    2,
-    3,
-    4,
-    5,
-    6,
-)
 _MSG_PREFIX = 46
 """Bytes of a ROS 1 message data record before its payload: header length, the fields ``op``,
 ``conn`` and ``time``, and the data length."""
@@ -118,13 +119,13 @@ def _connection_record(conn: int, topic: str, typ: str, msgdef: str, md5: str) -
             ("message_definition", msgdef.encode()),
         ],
     )
-    return _header(_OP_CONNECTION, [("conn", _u32(conn)), ("topic", topic.encode())]) + data
+    return _header(OP_CONNECTION, [("conn", _u32(conn)), ("topic", topic.encode())]) + data
 
 
 def _bag_header(index_pos: int, conn_count: int, chunk_count: int) -> bytes:
     """Bag header record (op 0x03) padded with spaces to 4096 bytes."""
     head = _header(
-        _OP_BAGHEADER,
+        OP_BAG_HEADER,
         [
             ("index_pos", index_pos.to_bytes(8, "little")),
             ("conn_count", _u32(conn_count)),
@@ -188,7 +189,7 @@ class _Ros1Messages:
         seg = np.concatenate(seg_parts)[order]
         templates = np.zeros((len(segments), _MSG_PREFIX), dtype=np.uint8)
         for s, (conn, enc) in enumerate(segments):
-            head = _header(_OP_MSGDATA, [("conn", _u32(conn)), ("time", bytes(8))])
+            head = _header(OP_MSG, [("conn", _u32(conn)), ("time", bytes(8))])
             templates[s] = np.frombuffer(head + _u32(enc.shape[1]), dtype=np.uint8)
         seg_len = np.array([enc.shape[1] for _, enc in segments] or [0], dtype=np.int64)
         return cls(
@@ -260,7 +261,7 @@ def _write_chunk(
     chunk_pos = f.tell()
     out, offsets = msgs.records(a, b, pre)
     data = _compressor(compression)(out.tobytes())
-    f.write(_header(_OP_CHUNK, [("compression", compression.encode()), ("size", _u32(len(out)))]))
+    f.write(_header(OP_CHUNK, [("compression", compression.encode()), ("size", _u32(len(out)))]))
     f.write(_u32(len(data)) + data)
     conns = np.array([c for c, _ in msgs.segments] or [0], dtype=np.int64)[msgs.seg[a:b]]
     present, first = np.unique(conns, return_index=True)
@@ -271,7 +272,7 @@ def _write_chunk(
         idx["sec"], idx["nsec"] = msgs.sec[a:b][sel], msgs.nsec[a:b][sel]
         idx["offset"] = offsets[sel]
         fields = [("ver", _u32(1)), ("conn", _u32(c)), ("count", _u32(len(idx)))]
-        f.write(_header(_OP_IDXDATA, fields) + _u32(idx.nbytes) + idx.tobytes())
+        f.write(_header(OP_INDEX, fields) + _u32(idx.nbytes) + idx.tobytes())
         counts += _u32(c) + _u32(len(idx))
     t0, t1 = (int(msgs.times[a]), int(msgs.times[b - 1])) if b > a else (0, 0)
     fields = [
@@ -281,7 +282,7 @@ def _write_chunk(
         ("end_time", _time(t1)),
         ("count", _u32(len(present))),
     ]
-    return _header(_OP_CHUNK_INFO, fields) + _u32(len(counts)) + counts
+    return _header(OP_CHUNK_INFO, fields) + _u32(len(counts)) + counts
 
 
 def write_ros1_bag(path: str | Path, table: pa.Table, compression: str = "lz4") -> None:
@@ -313,7 +314,7 @@ def write_ros1_bag(path: str | Path, table: pa.Table, compression: str = "lz4") 
         tmp = tmpdir / final.name
         chunk_infos: list[bytes] = []
         with tmp.open("xb") as f:
-            f.write(b"#ROSBAG V2.0\n" + _bag_header(0, 0, 0))
+            f.write(VERSION_LINE + _bag_header(0, 0, 0))
             a, pre = 0, conn_records
             while a < n or pre:
                 b = msgs.chunk_end(a, len(pre))
@@ -322,7 +323,7 @@ def write_ros1_bag(path: str | Path, table: pa.Table, compression: str = "lz4") 
                 a, pre = b, b""
             index_pos = f.tell()
             f.write(conn_records + b"".join(chunk_infos))
-            f.seek(len(b"#ROSBAG V2.0\n"))
+            f.seek(len(VERSION_LINE))
             f.write(_bag_header(index_pos, len(msgs.streams), len(chunk_infos)))
         os.replace(tmp, final)
     finally:
