@@ -90,6 +90,11 @@ def split_pair(candidates: list[str]) -> dict[str, str] | None:
     return {"gyro": gyro[0], "accel": accel[0]}
 
 
+SPLIT = "+"
+"""Joins a split IMU's gyro and accelerometer topics into its one name (``imupipe survey``'s
+``GYRO_TOPIC+ACCEL_TOPIC``); never in a ROS topic name."""
+
+
 def split_pairs(candidates: list[str]) -> list[dict[str, str]]:
     """Every camera's gyro and accelerometer topics among Imu topics ``candidates``: the pair of
     :func:`split_pair` when there are two; with more, the topics whose names differ only in the

@@ -34,6 +34,7 @@ from typing import Any
 from imupipe.pipeline.errors import ConfigError, one_line
 from imupipe.pipeline.progress import progress_bar
 from imupipe.readers.errors import READ_TO_CUT
+from imupipe.readers.topics import SPLIT
 
 SURVEY_NAME = "survey.parquet"
 RECORDING_NAME = "survey.rrd"
@@ -68,11 +69,6 @@ FLIGHT_IMU_TYPES = {"ulog": ("sensor_gyro",), "dataflash": ("IMU", "IMU2", "IMU3
 
 def _namespace(topic: str) -> str:
     return topic.split(SPLIT)[0].rsplit("/", 1)[0]
-
-
-SPLIT = "+"
-"""Joins a split IMU's gyro and accelerometer topics into its one topic name (never in a ROS
-topic name)."""
 
 
 def split_topics(topic: str | None) -> dict[str, str | None]:

@@ -177,10 +177,11 @@ def survey_topic(
     module docstring); None (with a warning appended) when it cannot be surveyed."""
     from imupipe.readers import dispatch
     from imupipe.readers.table import metadata
+    from imupipe.readers.topics import SPLIT
     from imupipe.stages.survey.stats import figures
     from imupipe.stages.survey.streaming import PeriodPass, Rule
 
-    topic = spec.imu_topic or "+".join(t for t in (spec.gyro_topic, spec.accel_topic) if t)
+    topic = spec.imu_topic or SPLIT.join(t for t in (spec.gyro_topic, spec.accel_topic) if t)
     where = f"{spec.path}: {topic or 'imu'}"
     batch_rows = batch_rows or DEFAULT_BATCH_ROWS
     whole: pa.Table | None = None
