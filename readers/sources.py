@@ -196,9 +196,6 @@ def iter_sources(
     notes: list[str] = []
     streams = _choose(spec, sources, notes)
     ordered = _ordered(sources)
-    later_first = [
-        min((s.first_time() for s in ordered[i + 1 :]), default=NEVER) for i in range(len(ordered))
-    ]
     parts: dict[str, list[Piece]] = {s: [] for s in streams}
     raw: list[RawMessage] = []
     rows = 0
@@ -230,7 +227,7 @@ def iter_sources(
         )
         return table, emit
 
-    for src, after in zip(ordered, later_first, strict=True):
+    for src, after in _with_later_first(ordered):
         for pieces, messages, bound in src.chunks(streams, carry=carry):
             _tally_other(pieces, other)
             for stream, piece in pieces.items():
@@ -260,19 +257,20 @@ def _carried(
     """Per chunk: the messages of the topics the table does not hold, and the log time below
     which every message has been read."""
     streams = _choose(spec, sources)
-    ordered = _ordered(sources)
-    for i, src in enumerate(ordered):
-        after = min((s.first_time() for s in ordered[i + 1 :]), default=NEVER)
+    for src, after in _with_later_first(_ordered(sources)):
         for _, messages, bound in src.chunks(streams, carry=True, decode=False):
             yield messages, min(bound, after)
 
 
+def _with_later_first(ordered: list[LogSource]) -> Iterator[tuple[LogSource, int]]:
+    """Each source with the first log time of the sources after it (NEVER for the last): no
+    message below it is still unread once the source is read."""
+    for i, src in enumerate(ordered):
+        yield src, min((s.first_time() for s in ordered[i + 1 :]), default=NEVER)
+
+
 def carry_sources(spec: InputSpec, sources: Sequence[LogSource]) -> list[RawMessage]:
     """Every message of the topics the table does not hold, in log-time order (stable)."""
-    streams = _choose(spec, sources)
-    out: list[RawMessage] = []
-    for src in _ordered(sources):
-        for _, messages, _ in src.chunks(streams, carry=True, decode=False):
-            out.extend(messages)
+    out = [m for messages, _ in _carried(spec, sources) for m in messages]
     out.sort(key=lambda m: m.log_time)
     return out
