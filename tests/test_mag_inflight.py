@@ -1019,3 +1019,20 @@ def test_heading_check_judges_the_samples_the_fit_kept():
     m = out.results["metrics"]
     assert m["outliers"] == 7 and m["heading_rms_deg_after"] > m["heading_rms_deg_as_flown"]
     assert m["heading_rms_deg_after_inliers"] < 0.7 * m["heading_rms_deg_as_flown_inliers"]
+
+
+def test_accept_failed_checks_list_needs_instances(tmp_path):
+    """A list of instances in accept_failed_checks is for an input with ``instances``; on any
+    other it is a config error naming the key (true/false as before)."""
+    from imupipe.pipeline.config import load_config
+    from imupipe.pipeline.errors import ConfigError
+
+    (tmp_path / "f.ulg").write_bytes(b"")
+    (tmp_path / "c.toml").write_text(
+        '[inputs.f]\npath = "f.ulg"\n[[stages]]\ntype = "mag_inflight"\n'
+        'accept_failed_checks = ["sensor_mag"]\n'
+    )
+    with pytest.raises(
+        ConfigError, match=r"stages\[0\]\.accept_failed_checks: must be true or false$"
+    ):
+        load_config(tmp_path / "c.toml")
