@@ -1036,3 +1036,42 @@ def test_accept_failed_checks_list_needs_instances(tmp_path):
         ConfigError, match=r"stages\[0\]\.accept_failed_checks: must be true or false$"
     ):
         load_config(tmp_path / "c.toml")
+
+
+def test_a_compass_left_alone_keeps_a_motor_term_of_another_kind_noted(two_compasses):
+    """The vehicle compensates throttle (CAL_MAG_COMP_TYP = 1, compass A's CAL_MAG0_*COMP set);
+    only compass B is fitted, with the current, so the file sets CAL_MAG_COMP_TYP = 2 and leaves
+    CAL_MAG0 alone: PX4 would read A's throttle terms per kA. The export says so (one type per
+    vehicle), naming the slot, the device and both types."""
+    d, _, (a, _), write = two_compasses
+    write("thr.ulg", {"CAL_MAG_COMP_TYP": 1, "CAL_MAG0_ID": a, "CAL_MAG0_XCOMP": 0.05})
+    (d / "thr.toml").write_text(
+        '[inputs.f]\npath = "thr.ulg"\ninstances = ["sensor_mag_1"]\n'
+        '[[stages]]\ntype = "mag_inflight"\nmotor_source = "current"\n'
+        '[output]\ndir = "thr"\napply_to = []\nrerun = false\nexports = ["px4"]\n'
+    )
+    proc = run_cli("run", d / "thr.toml", cwd=d)
+    assert proc.returncode == 0, proc.stderr
+    doc = json.loads((d / "thr" / "calibration.json").read_text())
+    notes = " ".join(doc["exports"]["px4_calibration.params"]["notes"])
+    assert f"CAL_MAG0 (device {a}) is not in this file" in notes, notes
+    assert "CAL_MAG_COMP_TYP = 1 (throttle)" in notes and "reads them per current" in notes
+
+
+def test_ardupilot_compass_left_alone_with_a_motor_term_of_another_kind_is_noted():
+    """ArduPilot: the file sets COMPASS_MOTCT = 2 for compass 1 while the log's compass 2 (not
+    in the file) holds COMPASS_MOT2 for COMPASS_MOTCT = 1: noted; the same kind, or a compass in
+    the file, is not."""
+    from imupipe.pipeline.exports.ardupilot import stale_motor_terms
+    from imupipe.pipeline.exports.common import Export
+
+    logged = {"COMPASS_MOTCT": 1, "COMPASS_MOT2_X": 12.0, "COMPASS_MOT_Z": 3.0}
+    rows = [("COMPASS_OFS_X", 1.0), ("COMPASS_MOT_X", 2.0), ("COMPASS_MOTCT", 2)]
+    out = Export()
+    stale_motor_terms(rows, logged, out)
+    notes = [n for ns in out.notes.values() for n in ns]
+    assert len(notes) == 1 and "compass 2 is not in this file" in notes[0], notes
+    assert "COMPASS_MOTCT = 1 (throttle)" in notes[0] and "per current" in notes[0]
+    same = Export()
+    stale_motor_terms(rows, logged | {"COMPASS_MOTCT": 2}, same)
+    assert not same.notes
