@@ -143,6 +143,9 @@ class MessageType:
         self.root = root
         self._source = source
         """What the reference decoder needs (rosbags types, the protobuf descriptor)."""
+        self.json_shapes: dict[tuple, list] = {}
+        """JSON: the templates of the batches read so far, per set of leaves (see
+        :func:`imupipe.readers.json_numbers.decode_by_template`)."""
 
     # -- paths ------------------------------------------------------------------------------
     def node(self, path: tuple[str, ...]) -> Node | None:
@@ -536,7 +539,8 @@ def _decode_json(
             raise PayloadError(int(rows[exc.index]), exc.reason) from None
 
     paths = [leaf.path for leaf in leaves]
-    got = decode_by_template(buf, starts, lengths, paths, integer, rest)
+    shapes = mtype.json_shapes.setdefault(tuple(paths), [])
+    got = decode_by_template(buf, starts, lengths, paths, integer, rest, shapes)
     return got if got is not None else rest(np.arange(len(starts)))
 
 
