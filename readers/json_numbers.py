@@ -70,22 +70,18 @@ class _Scratch(threading.local):
     temporary costs more in page faults than the pass that fills it."""
 
     def __init__(self) -> None:
-        self.pad = np.empty(0, np.uint8)
         self.u8 = np.empty(0, np.uint8)
         self.flag = np.empty(0, bool)
         self.e = np.empty(0, bool)
         self.tmp = np.empty(0, bool)
-        self.dot = np.empty(0, bool)
 
     def get(self, size: int) -> _Scratch:
-        if len(self.pad) < size + 16:
+        if len(self.u8) < size:
             grow = int(size * 1.25) + 16
-            self.pad = np.empty(grow + 16, np.uint8)
             self.u8 = np.empty(grow, np.uint8)
             self.flag = np.empty(grow + 1, bool)
             self.e = np.empty(grow + 1, bool)
             self.tmp = np.empty(grow, bool)
-            self.dot = np.empty(grow + 16, bool)
         return self
 
 
@@ -118,19 +114,12 @@ def run_ends(flag: np.ndarray, work: _Scratch | None = None) -> np.ndarray:
     return np.flatnonzero(tmp) + 1
 
 
-def _bad_dots(
-    region: np.ndarray, flag: np.ndarray, e: np.ndarray, work: _Scratch
-) -> tuple[np.ndarray, np.ndarray]:
-    """Per byte (one more, False, at the start): does a run of number characters end here
-    with ``.`` (``1.``); and where a ``.`` is followed by ``e`` or ``E`` (``1.e5``): Arrow takes
-    both, JSON does not (Arrow refuses ``.`` before ``+ - . /``)."""
-    n = len(region)
-    dot, at_end = work.tmp[:n], work.dot[: n + 1]
-    at_end[0] = False
+def _dot_e(region: np.ndarray, e: np.ndarray, work: _Scratch) -> np.ndarray:
+    """Where ``.`` is followed by ``e`` or ``E`` (``1.e5``: Arrow takes it, JSON does not)."""
+    dot = work.tmp[: len(region)]
     np.equal(region, 46, out=dot)
-    np.greater(dot, flag[1:], out=at_end[1:])
     np.logical_and(dot, e[1:], out=dot)
-    return at_end, (np.flatnonzero(dot) if dot.any() else np.zeros(0, np.int64))
+    return np.flatnonzero(dot) if dot.any() else np.zeros(0, np.int64)
 
 
 def _template(
@@ -220,14 +209,15 @@ class Shape:
 
     def match(
         self,
-        pad: np.ndarray,
+        buf: np.ndarray,
         run_end: np.ndarray,
         starts: np.ndarray,
         ends: np.ndarray,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """(which of the messages ``pad[starts:ends]`` have this shape; their numbers'
-        starts and ends, one row per number; each number's first 4 bytes). ``run_end``: where
-        the runs of number characters end, then ``span + 1`` times :data:`_FAR`."""
+        """(which of the messages ``buf[starts:ends]`` have this shape; their numbers'
+        starts and ends, one row per number; ``head[i]``: each number's byte ``i``, 0 to 3,
+        past the end of ``buf`` its last). ``run_end``: where the runs of number characters
+        end, then ``span + 1`` times :data:`_FAR`."""
         k, m = len(self.gaps), len(starts)
         ts = np.empty((k, m), np.int64)
         te = np.empty((k, m), np.int64)
@@ -253,26 +243,28 @@ class Shape:
         for j, first, last in self.pieces:
             base = te[j - 1] if j else starts
             for i in range(first, last):
-                np.take(pad[i - first :], base, out=got[i])
+                np.take(buf[i - first :], base, out=got[i])
         keep = ~(got != self.text).any(axis=0)
         # each number follows the JSON grammar where Arrow does not hold to it: a digit after
-        # "-", no leading zero (the "." checks are the caller's: _bad_dots)
+        # "-", no leading zero, no "." at the end (the caller's: no ".e", see _dot_e)
         head = np.empty((4, k, len(rows)), np.uint8)
-        for i in range(4):
-            np.take(pad[i:], ts, out=head[i])
+        for i in range(4):  # byte 3 may lie past the message's end (its last bracket)
+            np.take(buf[i:], ts, out=head[i], mode="clip")
         minus = head[0] == 45
         lead = np.where(minus, head[1], head[0]) - np.uint8(48)
         after = np.where(minus, head[2], head[1]) - np.uint8(48)
-        keep &= ~((lead > 9) | ((lead == 0) & (after < 10))).any(axis=0)
+        bad = (lead > 9) | ((lead == 0) & (after < 10))
+        bad |= np.take(buf, te - 1) == 46
+        keep &= ~bad.any(axis=0)
         if keep.all():
             return rows, ts, te, head
         kept = np.flatnonzero(keep)
         return rows[kept], ts.take(kept, axis=1), te.take(kept, axis=1), head.take(kept, axis=2)
 
 
-def _parse(pad: np.ndarray, ts: np.ndarray, te: np.ndarray, head: np.ndarray, integer: bool):  # noqa: ANN202
-    """The numbers ``pad[ts:te]`` (``head[i]``: their bytes ``i``, 0 to 3) parsed by Arrow: int64 or
-    float64, or None when Arrow refuses one. The text is a ``string_view`` array over ``pad``
+def _parse(buf: np.ndarray, ts: np.ndarray, te: np.ndarray, head: np.ndarray, integer: bool):  # noqa: ANN202
+    """The numbers ``buf[ts:te]`` (``head[i]``: their bytes ``i``, 0 to 3) parsed by Arrow: int64 or
+    float64, or None when Arrow refuses one. The text is a ``string_view`` array over ``buf``
     (Arrow columnar format: 16 bytes a value: its length, then up to 12 bytes inline,
     zero-padded, or a 4-byte prefix, buffer 0 and the offset)."""
     import pyarrow as pa
@@ -291,13 +283,13 @@ def _parse(pad: np.ndarray, ts: np.ndarray, te: np.ndarray, head: np.ndarray, in
     minus_zero = None
     if len(short):
         sl = lengths[short, None]
-        inline = pad[ts[short, None] + np.arange(12)]
+        inline = np.take(buf, ts[short, None] + np.arange(12), mode="clip")
         inline[np.arange(12) >= sl] = 0
         views[short, 1:] = inline.view("<u4")
         if not integer:  # "-0": the integer 0 to json, -0.0 to Arrow
             minus_zero = short[(sl[:, 0] == 2) & (views[short, 1] == 0x302D)]
     array = pa.Array.from_buffers(
-        pa.string_view(), n, [None, pa.py_buffer(views), pa.py_buffer(pad)]
+        pa.string_view(), n, [None, pa.py_buffer(views), pa.py_buffer(buf)]
     )
     try:
         out = pc.cast(array, pa.int64() if integer else pa.float64())
@@ -326,19 +318,15 @@ def decode_by_template(
     tried first; updated to this batch's. None: read the whole batch another way."""
     n = len(starts)
     ends = starts + lengths
-    if len(buf) + 16 >= 1 << 31 or not n:  # string_view offsets are int32
+    if len(buf) >= 1 << 31 or not n:  # string_view offsets are int32
         return None
     work = _SCRATCH.get(len(buf))
-    pad = work.pad[: len(buf) + 16]
-    pad[: len(buf)] = buf
-    pad[len(buf) :] = 0
     lo, hi = int(starts.min()), int(ends.max())
-    region = pad[lo:hi]
+    region = buf[lo:hi]
     flag, e = number_chars(region, work)
     found_ends = run_ends(flag, work) + lo
-    bad_end, dot_e = _bad_dots(region, flag, e, work)  # indexed by run end - lo
-    if len(dot_e):
-        bad_end[found_ends[np.searchsorted(found_ends, dot_e + lo, "right")] - lo] = True
+    dot_e = _dot_e(region, e, work)
+    bad_ends = found_ends[np.searchsorted(found_ends, dot_e + lo, "right")] if len(dot_e) else None
     known = [s for s in shapes or () if len(s.gaps) <= MAX_NUMBERS]
     found: list[tuple[Shape, np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []
     left = np.arange(n)
@@ -358,10 +346,10 @@ def decode_by_template(
             run_end = np.concatenate([found_ends, np.full(shape.span + 1, _FAR)])
         whole = len(left) == n
         rows, ts, te, head = shape.match(
-            pad, run_end, starts if whole else starts[left], ends if whole else ends[left]
+            buf, run_end, starts if whole else starts[left], ends if whole else ends[left]
         )
-        fine = ~bad_end[te - lo].any(axis=0)
-        if not fine.all():
+        fine = ~np.isin(te, bad_ends).any(axis=0) if bad_ends is not None else None
+        if fine is not None and not fine.all():
             fine = np.flatnonzero(fine)
             rows, ts, te = rows[fine], ts.take(fine, axis=1), te.take(fine, axis=1)
             head = head.take(fine, axis=2)
@@ -388,7 +376,7 @@ def decode_by_template(
         ts, te, head = (
             np.concatenate(p, axis=-1) if len(p) > 1 else p[0] for p in zip(*parts, strict=True)
         )
-        parsed = _parse(pad, ts, te, head, whole)
+        parsed = _parse(buf, ts, te, head, whole)
         if parsed is None:
             return None
         at = 0
