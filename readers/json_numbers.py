@@ -392,16 +392,17 @@ def _decode(
     found: list[tuple[Shape, np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []
     left = np.arange(n)
     run_end = found_ends
-    new = 0
-    while len(left) and (known or new < TEMPLATES):
+    new = refused = 0  # the messages no template can be made of: the first of left
+    while len(left) > refused and (known or new < TEMPLATES):
         if known:
             shape: Shape | None = known.pop(0)
         else:
             new += 1
-            t = int(left[0])
+            t = int(left[refused])
             shape = Shape.of(buf[starts[t] : ends[t]].tobytes(), leaves)
-            if shape is None:
-                break
+            if shape is None:  # NaN, a mapped field absent...: the next message's text
+                refused += 1
+                continue
         assert shape is not None
         if len(run_end) < len(found_ends) + shape.span + 1:
             run_end = np.concatenate([found_ends, np.full(shape.span + 1, _FAR)])

@@ -167,3 +167,112 @@ def test_a_long_template_is_left_to_arrow(monkeypatch):
     assert arrow_rows == [len(payloads)]
     for g, r in zip(got, ref, strict=True):
         assert np.array_equal(g, np.asarray(r, g.dtype))
+
+
+def random_number(rng: np.random.Generator) -> str:
+    """A JSON number (RFC 8259, section 6) of any form: shortest reprs of any double
+    (subnormals, 17 digits, exponents both ways), float32 values, integers up to 25 digits,
+    every spelling of zero, long mantissas, upper- and lower-case exponents with and without
+    a sign."""
+    kind = int(rng.integers(0, 7))
+    if kind == 0:  # any finite double, from its bits
+        x = float(rng.integers(0, 2**64, dtype=np.uint64).view(np.float64))
+        return repr(x) if np.isfinite(x) else "1.7976931348623157e308"
+    if kind == 1:
+        return repr(float(np.float32(rng.normal(0, 10.0 ** int(rng.integers(-40, 39))))))
+    if kind == 2:
+        digits = str(int(rng.integers(1, 10))) + "".join(map(str, rng.integers(0, 10, 24)))
+        return ("-" if rng.random() < 0.5 else "") + digits[: int(rng.integers(1, 26))]
+    if kind == 3:
+        return str(rng.choice(["0", "-0", "0.0", "-0.0", "0e0", "-0E-0", "0.000", "1E0"]))
+    mantissa = "".join(map(str, rng.integers(0, 10, int(rng.integers(1, 30))))).lstrip("0") or "0"
+    text = ("-" if rng.random() < 0.5 else "") + mantissa
+    if kind >= 5:
+        text += "." + "".join(map(str, rng.integers(0, 10, int(rng.integers(1, 25)))))
+    if kind != 5:
+        e = str(rng.choice(["e", "E"])) + str(rng.choice(["", "+", "-"]))
+        text += e + str(int(rng.integers(0, 330)))
+    return text
+
+
+def random_documents(n: int, seed: int) -> list[bytes]:
+    """Messages of a few shapes (so that templates repeat) with random numbers everywhere:
+    the mapped ones, unmapped ones beside them, numbers in strings and keys, whitespace."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for _ in range(n):
+        num = [random_number(rng) for _ in range(10)]
+        t = str(int(rng.integers(-(2**63), 2**63, dtype=np.int64)))
+        shape = int(rng.integers(0, 5))
+        if shape == 0:
+            text = (
+                f'{{"t": {t}, "g": {{"x": {num[0]}, "y": {num[1]}, "z": {num[2]}}}, '
+                f'"a": [{num[3]}, {num[4]}, {num[5]}]}}'
+            )
+        elif shape == 1:
+            text = (
+                f'{{"id": "e{num[6]}", "q": [{num[6]},{num[7]}], "t":{t},"a":[{num[3]},'
+                f'{num[4]},{num[5]}],"g":{{"z":{num[2]},"y":{num[1]},"x":{num[0]}}},"n":null}}'
+            )
+        elif shape == 2:
+            text = (
+                f'\n{{\r\n  "t" : {t} ,\t"g": {{"x":{num[0]},"y":{num[1]},"z":{num[2]},'
+                f'"w":{num[8]}}},\n  "a": [ {num[3]} , {num[4]} , {num[5]} ], "b": true }}\n'
+            )
+        elif shape == 3:  # more numbers than mapped, in a nested list
+            text = (
+                f'{{"cov": [[{num[6]}, {num[7]}], [{num[8]}, {num[9]}]], "t": {t}, '
+                f'"g": {{"x": {num[0]}, "y": {num[1]}, "z": {num[2]}}}, '
+                f'"a": [{num[3]}, {num[4]}, {num[5]}], "k1.e5": "1.e5 -01"}}'
+            )
+        else:
+            x = [float(v) if np.isfinite(float(v)) else 0.5 for v in num[:6]]
+            text = json.dumps({"t": int(t), "g": dict(zip("xyz", x, strict=False)), "a": x[3:]})
+        out.append(text.encode())
+    return out
+
+
+@pytest.mark.parametrize("seed", [11, 12, 13])
+def test_random_numbers_read_as_json_reads_them(seed, monkeypatch):
+    """Property test of the number scan: whatever the numbers' forms and the text around them,
+    every value is json's, bit for bit (the batch read in one piece and in two halves)."""
+    from imupipe.readers import json_numbers
+
+    payloads = random_documents(1500, seed)
+    arrow_rows: list[int] = []
+    arrow = message_fields._decode_json_arrow
+
+    def counting(mtype, buf, starts, lengths, leaves):  # noqa: ANN001, ANN202
+        arrow_rows.append(len(starts))
+        return arrow(mtype, buf, starts, lengths, leaves)
+
+    monkeypatch.setattr(message_fields, "_decode_json_arrow", counting)
+    for split in (10**9, 100):
+        monkeypatch.setattr(json_numbers, "SPLIT", split)
+        arrow_rows.clear()
+        got, ref = decode_both(payloads, seed=seed)
+        for g, r, leaf in zip(got, ref, LEAVES, strict=True):
+            r = np.asarray(r, g.dtype)
+            assert np.array_equal(g.view(np.int64), r.view(np.int64)), leaf
+        # by template but the fifth of the messages whose "id" string is random
+        assert sum(arrow_rows) < 0.3 * len(payloads)
+
+
+@pytest.mark.parametrize("where", ["mapped", "unmapped"])
+@pytest.mark.parametrize("bad", ["01", "-01", "1.", "1.e5", "-", "+1", ".5", "-.5", "-0.E1"])
+def test_a_bad_number_in_either_half_names_its_message(bad, where, monkeypatch):
+    """A number outside the grammar, mapped or not, makes its message a bad payload, named by
+    its index in the batch, when the batch is read in two halves too."""
+    from imupipe.readers import json_numbers
+
+    monkeypatch.setattr(json_numbers, "SPLIT", 16)
+    payloads = [p for p in random_documents(60, 5) if b'"cov"' in p]
+    text = payloads[-3].decode()
+    key = '"a": [' if where == "mapped" else '"cov": [['
+    at = text.index(key) + len(key)
+    payloads[-3] = (text[:at] + bad + text[text.index(",", at) :]).encode()
+    with pytest.raises(ValueError):
+        json.loads(payloads[-3])
+    with pytest.raises(PayloadError) as err:
+        decode_both(payloads)
+    assert err.value.index == len(payloads) - 3
