@@ -69,9 +69,11 @@ def _is_digit(values: np.ndarray) -> np.ndarray:
 
 class _Scratch(threading.local):
     """Work arrays kept from one chunk to the next (per thread): a fresh megabyte-sized numpy
-    temporary costs more in page faults than the pass that fills it."""
+    temporary costs more in page faults than the pass that fills it (the C library hands
+    memory over 128 kB back to the system when freed)."""
 
     def __init__(self) -> None:
+        self.named: dict[str, np.ndarray] = {}
         self.u8 = np.empty(0, np.uint8)
         self.flag = np.empty(0, bool)
         self.e = np.empty(0, bool)
@@ -85,6 +87,14 @@ class _Scratch(threading.local):
             self.e = np.empty(grow + 1, bool)
             self.tmp = np.empty(grow, bool)
         return self
+
+    def array(self, name: str, shape: tuple[int, ...], dtype: type) -> np.ndarray:
+        """The work array ``name`` (its contents: whatever its last user left)."""
+        size = int(np.prod(shape))
+        have = self.named.get(name)
+        if have is None or len(have) < size or have.dtype != dtype:
+            have = self.named[name] = np.empty(int(size * 1.25) + 64, dtype)
+        return have[:size].reshape(shape)
 
 
 _SCRATCH = _Scratch()
@@ -113,7 +123,9 @@ def run_ends(flag: np.ndarray, work: _Scratch | None = None) -> np.ndarray:
     n = len(flag) - 1
     tmp = work.tmp[:n] if work is not None else np.empty(n, bool)
     np.greater(flag[:-1], flag[1:], out=tmp)
-    return np.flatnonzero(tmp) + 1
+    ends = np.flatnonzero(tmp)
+    ends += 1
+    return ends
 
 
 def _dot_e(region: np.ndarray, e: np.ndarray, work: _Scratch) -> np.ndarray:
@@ -169,10 +181,6 @@ def _template(
     return starts[runs], ends[runs], runs, which
 
 
-_FAR = 1 << 40
-"""A run end past every buffer: where the runs counted from a message's first number run out."""
-
-
 class Shape:
     """What every message of one template's shape holds between its numbers: ``gaps[j]``
     bytes before number ``j`` (from the message's start, or from number ``j - 1``'s end),
@@ -215,25 +223,35 @@ class Shape:
         run_end: np.ndarray,
         starts: np.ndarray,
         ends: np.ndarray,
+        work: _Scratch,
+        keep_in_work: bool,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """(which of the messages ``buf[starts:ends]`` have this shape; their numbers'
         starts and ends, one row per number; ``head[i]``: each number's byte ``i``, 0 to 3,
         past the end of ``buf`` its last). ``run_end``: where the runs of number characters
-        end, then ``span + 1`` times :data:`_FAR`."""
+        end. ``keep_in_work``: the arrays returned may be ``work``'s."""
         k, m = len(self.gaps), len(starts)
-        ts = np.empty((k, m), np.int64)
-        te = np.empty((k, m), np.int64)
+        mine = {"ts", "te", "head"} if keep_in_work else set()
+
+        def array(name: str, shape: tuple[int, ...], dtype: type) -> np.ndarray:
+            if name in mine or name not in ("ts", "te", "head"):
+                return work.array(name, shape, dtype)
+            return np.empty(shape, dtype)
+
+        ts = array("ts", (k, m), np.int64)
+        te = array("te", (k, m), np.int64)
         np.add(starts, self.gaps[0], out=ts[0])
         run = np.searchsorted(run_end, ts[0], "right")
-        np.take(run_end, run, out=te[0])
+        np.take(run_end, run, out=te[0], mode="clip")
         ok = te[0] > ts[0]
         for j in range(1, k):
             # number j is the run steps[j] runs on, when the text between is the template's
             run += self.steps[j]
             np.add(te[j - 1], self.gaps[j], out=ts[j])
-            np.take(run_end, run, out=te[j])
+            np.take(run_end, run, out=te[j], mode="clip")
             ok &= te[j] > ts[j]
         ok &= ends - te[-1] == self.tail
+        ok &= run < len(run_end)  # the runs ran out (the takes clipped)
         rows = np.flatnonzero(ok)
         if not len(rows):
             return rows, ts[:, :0], te[:, :0], np.zeros((4, k, 0), np.uint8)
@@ -241,7 +259,7 @@ class Shape:
             ts, te, starts = ts.take(rows, axis=1), te.take(rows, axis=1), starts[rows]
         # the text between the numbers is the template's, byte for byte (gathered a byte at a
         # time: a gather of unaligned 8-byte words costs ten times as much a word)
-        got = np.empty((len(self.text), len(rows)), np.uint8)
+        got = work.array("text", (len(self.text), len(rows)), np.uint8)
         for j, first, last in self.pieces:
             base = te[j - 1] if j else starts
             for i in range(first, last):
@@ -249,14 +267,14 @@ class Shape:
         keep = ~(got != self.text).any(axis=0)
         # each number follows the JSON grammar where Arrow does not hold to it: a digit after
         # "-", no leading zero, no "." at the end (the caller's: no ".e", see _dot_e)
-        head = np.empty((4, k, len(rows)), np.uint8)
+        head = array("head", (4, k, len(rows)), np.uint8)
         for i in range(4):  # byte 3 may lie past the message's end (its last bracket)
             np.take(buf[i:], ts, out=head[i], mode="clip")
         minus = head[0] == 45
         lead = np.where(minus, head[1], head[0]) - np.uint8(48)
         after = np.where(minus, head[2], head[1]) - np.uint8(48)
         bad = (lead > 9) | ((lead == 0) & (after < 10))
-        bad |= np.take(buf, te - 1) == 46
+        bad |= np.take(buf, np.subtract(te, 1, out=work.array("at", te.shape, np.int64))) == 46
         keep &= ~bad.any(axis=0)
         if keep.all():
             return rows, ts, te, head
@@ -264,7 +282,9 @@ class Shape:
         return rows[kept], ts.take(kept, axis=1), te.take(kept, axis=1), head.take(kept, axis=2)
 
 
-def _parse(buf: np.ndarray, ts: np.ndarray, te: np.ndarray, head: np.ndarray, integer: bool):  # noqa: ANN202
+def _parse(  # noqa: ANN202
+    buf: np.ndarray, ts: np.ndarray, te: np.ndarray, head: np.ndarray, integer: bool, work: _Scratch
+):
     """The numbers ``buf[ts:te]`` (``head[i]``: their bytes ``i``, 0 to 3) parsed by Arrow: int64 or
     float64, or None when Arrow refuses one. The text is a ``string_view`` array over ``buf``
     (Arrow columnar format: 16 bytes a value: its length, then up to 12 bytes inline,
@@ -273,8 +293,8 @@ def _parse(buf: np.ndarray, ts: np.ndarray, te: np.ndarray, head: np.ndarray, in
     import pyarrow.compute as pc
 
     n = len(ts)
-    lengths = te - ts
-    views = np.empty((n, 4), "<u4")
+    lengths = np.subtract(te, ts, out=work.array("lengths", (n,), np.int64))
+    views = work.array("views", (n, 4), np.dtype("<u4"))
     views[:, 0] = lengths
     prefix = views[:, 1:2].view(np.uint8)
     for i in range(4):
@@ -385,13 +405,13 @@ def _decode(
     lo, hi = int(starts.min()), int(ends.max())
     region = buf[lo:hi]
     flag, e = number_chars(region, work)
-    found_ends = run_ends(flag, work) + lo
+    run_end = run_ends(flag, work)
+    run_end += lo
     dot_e = _dot_e(region, e, work)
-    bad_ends = found_ends[np.searchsorted(found_ends, dot_e + lo, "right")] if len(dot_e) else None
+    bad_ends = run_end[np.searchsorted(run_end, dot_e + lo, "right")] if len(dot_e) else None
     known = [s for s in shapes or () if len(s.gaps) <= MAX_NUMBERS]
     found: list[tuple[Shape, np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []
     left = np.arange(n)
-    run_end = found_ends
     new = refused = 0  # the messages no template can be made of: the first of left
     while len(left) > refused and (known or new < TEMPLATES):
         if known:
@@ -404,11 +424,14 @@ def _decode(
                 refused += 1
                 continue
         assert shape is not None
-        if len(run_end) < len(found_ends) + shape.span + 1:
-            run_end = np.concatenate([found_ends, np.full(shape.span + 1, _FAR)])
         whole = len(left) == n
         rows, ts, te, head = shape.match(
-            buf, run_end, starts if whole else starts[left], ends if whole else ends[left]
+            buf,
+            run_end,
+            starts if whole else starts[left],
+            ends if whole else ends[left],
+            work,
+            not found,
         )
         fine = ~np.isin(te, bad_ends).any(axis=0) if bad_ends is not None else None
         if fine is not None and not fine.all():
@@ -426,19 +449,18 @@ def _decode(
     for whole in set(integer) if found else ():
         # one parse for the float leaves, one for the integer ones
         cols = [j for j, w in enumerate(integer) if w == whole]
-        parts = [
-            [
-                f[2][pick].ravel(),
-                f[3][pick].ravel(),
-                f[4][:, pick].reshape(4, -1),
-            ]
-            for f in found
-            for pick in [[f[0].which[j] for j in cols]]
-        ]
-        ts, te, head = (
-            np.concatenate(p, axis=-1) if len(p) > 1 else p[0] for p in zip(*parts, strict=True)
-        )
-        parsed = _parse(buf, ts, te, head, whole)
+        size = sum(len(cols) * len(f[1]) for f in found)
+        ts = work.array("pick ts", (size,), np.int64)
+        te = work.array("pick te", (size,), np.int64)
+        head = work.array("pick head", (4, size), np.uint8)
+        at = 0
+        for f in found:
+            pick, m = [f[0].which[j] for j in cols], len(cols) * len(f[1])
+            np.take(f[2], pick, axis=0, out=ts[at : at + m].reshape(len(cols), -1))
+            np.take(f[3], pick, axis=0, out=te[at : at + m].reshape(len(cols), -1))
+            np.take(f[4], pick, axis=1, out=head[:, at : at + m].reshape(4, len(cols), -1))
+            at += m
+        parsed = _parse(buf, ts, te, head, whole, work)
         if parsed is None:
             return None
         at = 0
