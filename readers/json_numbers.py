@@ -34,9 +34,7 @@ and the caller reads the whole batch its own way, naming the bad message.
 
 from __future__ import annotations
 
-import concurrent.futures
 import json
-import os
 import re
 import threading
 from collections.abc import Callable, Sequence
@@ -337,66 +335,7 @@ def decode_by_template(
     ``buf[starts[i]:starts[i] + lengths[i]]`` (see the module docstring): int64 where
     ``integer``, else float64. ``rest(indices)`` reads the messages no template fits (Arrow's
     JSON reader). ``shapes``: the templates of the batches before (of the same ``leaves``),
-    tried first; updated to this batch's. None: read the whole batch another way.
-
-    A batch of :data:`SPLIT` messages or more, on a machine with a second core, is read in two
-    halves at once, the second in a helper thread (numpy's passes and Arrow's cast release the
-    GIL)."""
-    n = len(starts)
-    if n < SPLIT or _cores() < 2:
-        return _decode(buf, starts, lengths, leaves, integer, rest, shapes)
-    h = n // 2
-    theirs = list(shapes or ())
-    future = _helper().submit(
-        _decode, buf, starts[h:], lengths[h:], leaves, integer, lambda rows: rest(rows + h), theirs
-    )
-    try:
-        first = _decode(buf, starts[:h], lengths[:h], leaves, integer, rest, shapes)
-    finally:  # the helper reads buf: never return (or raise) before it is done
-        concurrent.futures.wait([future])
-    second = future.result()
-    if shapes is not None:
-        shapes += [s for s in theirs if s not in shapes]
-        del shapes[TEMPLATES:]
-    if first is None or second is None:
-        return None
-    return [np.concatenate(pair) for pair in zip(first, second, strict=True)]
-
-
-SPLIT = 4096
-"""Messages in a batch from which it is read in two halves at once."""
-
-_HELPER: tuple[int, concurrent.futures.ThreadPoolExecutor] | None = None
-_HELPER_LOCK = threading.Lock()
-
-
-def _cores() -> int:
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:  # not on Linux
-        return os.cpu_count() or 1
-
-
-def _helper() -> concurrent.futures.ThreadPoolExecutor:
-    """The one helper thread, started once per process (a forked child starts its own)."""
-    global _HELPER
-    with _HELPER_LOCK:
-        if _HELPER is None or _HELPER[0] != os.getpid():
-            pool = concurrent.futures.ThreadPoolExecutor(1, thread_name_prefix="imupipe-json")
-            _HELPER = (os.getpid(), pool)
-        return _HELPER[1]
-
-
-def _decode(
-    buf: np.ndarray,
-    starts: np.ndarray,
-    lengths: np.ndarray,
-    leaves: Sequence[tuple[str | int, ...]],
-    integer: Sequence[bool],
-    rest: Callable[[np.ndarray], list[np.ndarray]],
-    shapes: list[Shape] | None,
-) -> list[np.ndarray] | None:
-    """:func:`decode_by_template` in the calling thread."""
+    tried first; updated to this batch's. None: read the whole batch another way."""
     n = len(starts)
     ends = starts + lengths
     if len(buf) >= 1 << 31 or not n:  # string_view offsets are int32
