@@ -268,3 +268,23 @@ def test_a_bad_number_mapped_or_not_names_its_message(bad, where):
     with pytest.raises(PayloadError) as err:
         decode_both(payloads)
     assert err.value.index == len(payloads) - 3
+
+
+def test_the_number_views_are_valid_arrow(monkeypatch):
+    """The string_view arrays handed to Arrow's cast pass Arrow's full validation (inline
+    numbers zero-padded, the prefix of the others their first 4 bytes)."""
+    import pyarrow.compute as pc
+
+    cast = pc.cast
+    checked = []
+
+    def validating(array, *args, **kwargs):  # noqa: ANN001, ANN002, ANN003, ANN202
+        array.validate(full=True)
+        checked.append(len(array))
+        return cast(array, *args, **kwargs)
+
+    monkeypatch.setattr(pc, "cast", validating)
+    got, ref = decode_both(random_documents(300, 21), seed=21)
+    assert sum(checked) > 300
+    for g, r in zip(got, ref, strict=True):
+        assert np.array_equal(g.view(np.int64), np.asarray(r, g.dtype).view(np.int64))
