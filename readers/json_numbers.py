@@ -7,26 +7,31 @@ chunk) that way:
 
 1. Where every run of number characters (``0-9 . e E + -``) ends is found in the whole chunk in a
    few numpy passes (into work arrays kept per thread: a fresh megabyte temporary costs more in
-   page faults than the pass).
-2. The first undecoded message is the *template*: parsed once by Python's ``json`` (the
-   reference decoder of ``mcap``'s JSON channels), its numbers counted through ``parse_int`` /
-   ``parse_float`` in text order. Its runs that start with a digit or ``-`` outside its strings
-   (``"imu_1"`` is text) must be exactly its numbers, and every mapped leaf one of them: each leaf
-   is then "the j-th number", and the text between numbers is known.
-3. For every other message, number j starts where the template's text before it ends and ends
-   where its run of number characters does (the runs between two numbers are the template's:
-   counted, not searched). The message has the template's shape when its text between the numbers
-   is byte for byte the template's (compared 8 bytes at a time) and each number is one whole run;
-   it is then valid JSON with the template's structure, provided each number follows the JSON
-   grammar (RFC 8259, section 6; checked here: a digit after ``-``, no leading zero, a digit after
-   ``.``; Arrow's parser refuses the rest).
+   page faults than the pass; the same holds for every large temporary below).
+2. A *template* is a message parsed once by Python's ``json`` (the reference decoder of
+   ``mcap``'s JSON channels), its numbers counted through ``parse_int`` / ``parse_float`` in text
+   order. Its runs that start with a digit or ``-`` outside its strings (``"imu_1"`` is text)
+   must be exactly its numbers, and every mapped leaf one of them: each leaf is then "the j-th
+   number", and the text between numbers is known (a :class:`Shape`). The shapes of a channel's
+   previous chunk are tried first (kept by the caller); then the first message no shape fits.
+3. For every message, number j starts where the shape's text before it ends and ends where its
+   run of number characters does (the runs between two numbers are the shape's: counted, not
+   searched). The message has the shape when its text between the numbers is byte for byte the
+   shape's (gathered one byte position at a time over all messages: a gather of unaligned 8-byte
+   words costs about ten times one of bytes) and each number is one whole run; it is then valid
+   JSON with the template's structure, provided each number follows the JSON grammar (RFC 8259,
+   section 6). Checked here: a digit after a leading ``-``, no leading zero, no ``.`` at the end
+   or before ``e`` / ``E``; Arrow's parser refuses the rest of what JSON does not allow (``1..2``,
+   ``1e``, ``1e5e5``) in the numbers it parses, the mapped ones. An unmapped number is not
+   parsed: such a slip in it goes unseen (the message's mapped values are still ``json``'s).
 4. Messages of another shape (a pretty-printed one, a field that comes and goes) take the next
-   template, up to :data:`TEMPLATES` (of at most :data:`MAX_NUMBERS` numbers); the caller reads
-   what is left (``rest``: Arrow's JSON reader, and ``json`` for what Arrow refuses).
-5. The mapped numbers are parsed for all messages at once: integers digit by digit in numpy
-   (exact), other numbers by Arrow's cast of a ``string_view`` array over the chunk (no copy;
-   ``fast_float``, correctly rounded): Python's ``int(text)`` / ``float(text)``, which ``json``
-   gives, but for ``-0``: the integer 0 to ``json``, so 0.0 here too.
+   template, up to :data:`TEMPLATES` new ones a chunk (of at most :data:`MAX_NUMBERS` numbers);
+   a message no template can be made of (``NaN``, a mapped field absent) is left for the caller,
+   which reads what is left (``rest``: Arrow's JSON reader, and ``json`` for what Arrow refuses).
+5. The mapped numbers are parsed for all messages at once by Arrow's cast of a ``string_view``
+   array over the chunk (no copy; ``fast_float``, correctly rounded; one cast for the integer
+   leaves, one for the others): Python's ``int(text)`` / ``float(text)``, which ``json`` gives,
+   but for ``-0``: the integer 0 to ``json``, so 0.0 here too.
 
 Duplicate keys read as ``json`` reads them (the last one). A number Arrow will not cast: None,
 and the caller reads the whole batch its own way, naming the bad message.
