@@ -290,3 +290,29 @@ def test_the_number_views_are_valid_arrow(monkeypatch):
     assert sum(checked) > 300
     for g, r in zip(got, ref, strict=True):
         assert np.array_equal(g.view(np.int64), np.asarray(r, g.dtype).view(np.int64))
+
+
+def test_templates_carried_from_chunk_to_chunk(monkeypatch):
+    """A channel's templates are tried first on its next chunk: right where they fit, harmless
+    where none of that chunk's messages has their shape."""
+    from imupipe.readers import json_numbers
+
+    made = []
+    of = json_numbers.Shape.of
+    monkeypatch.setattr(json_numbers.Shape, "of", staticmethod(lambda *a: made.append(1) or of(*a)))
+    mtype = json_type("imu_json", json.dumps(SCHEMA).encode())
+    docs = documents(400, seed=4)
+    shape = [i % 9 if i % 2 else 0 for i in range(len(docs))]  # as documents() draws them
+    first = [p for p, s in zip(docs, shape, strict=True) if s == 1]  # one shape
+    second = [p for p, s in zip(docs, shape, strict=True) if s in (1, 3, 7)]  # it and two others
+    third = [p for p, s in zip(docs, shape, strict=True) if s == 5]  # none of those
+    for k, (payloads, shapes, new) in enumerate(((first, 1, 1), (second, 3, 2), (third, 1, 1))):
+        made.clear()
+        buf, starts, lengths = chunk(payloads, seed=k)
+        got = mtype.decode(buf, starts, lengths, LEAVES)
+        ref = mtype.decode_reference(buf, starts, lengths, LEAVES)
+        for g, r in zip(got, ref, strict=True):
+            assert np.array_equal(g.view(np.int64), np.asarray(r, g.dtype).view(np.int64))
+        # templates made from this chunk's messages, and the shapes kept for the next chunk
+        assert len(made) == new
+        assert len(mtype.json_shapes[tuple(leaf.path for leaf in LEAVES)]) == shapes
