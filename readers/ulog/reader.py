@@ -88,6 +88,7 @@ from imupipe.readers.table import (
 )
 from imupipe.readers.table_buffer import assemble
 from imupipe.readers.topics import NOT_CARRIED, asked_topics, some_of
+from imupipe.readers.ulog import records
 from imupipe.readers.ulog.rotation import mag_rotation, mag_slot
 
 US_TO_NS = 1000
@@ -215,7 +216,7 @@ class UlogFile:
                 self.notices.append(f"topic {inst.key} has no timestamp field: not read")
         self.skipped: list[str] = [] if wanted is None else sorted(wanted.seen - wanted.names)
         """Topics the log holds that were not parsed (names, every instance)."""
-        self.damage: list[Damage] = list(self.ulog.damage)
+        self.damage: list[Damage] = list(getattr(self.ulog, "damage", ()))
         """The damaged records the parse skipped (offset, bytes, what), in file order."""
         if cut is not None:
             at, claimed, left = cut
@@ -335,12 +336,20 @@ which pyulog takes for the end of the file (``_read_file_data``'s ``except struc
 def _parse(path: Path, wanted: _TopicFilter | None) -> tuple[Any, tuple[int, int, int] | None]:
     """pyulog's parse of ``path``, and the last record cut by the end of the file when known.
 
-    A first parse is pyulog's own (its speed); when it met damage (``_file_corrupt``), ended
+    The parse is imupipe's own (:func:`imupipe.readers.ulog.records.parse`: pyulog's result,
+    the record walk compiled) for every file it handles; for the others (damage, records pyulog
+    warns about) a first parse is pyulog's own; when it met damage (``_file_corrupt``), ended
     before the end of the file (a record it could not unpack) or walked records that do not end
     at the end of the file (a record cut, or a damaged size field that sent the parse past the
     end: pyulog takes either for the end of the log), the file is parsed again by
     :func:`_ulog_classes`' tolerant class, which reads past the damaged records and says where
     they are."""
+    own = records.parse(path, None if wanted is None else wanted.names)
+    if own is not None:
+        ulog, seen, cut = own
+        if wanted is not None:
+            wanted.seen |= seen
+        return ulog, cut
     fast, tolerant = _ulog_classes()
     with _Ending(path) as handle:
         ulog = fast(handle, wanted)

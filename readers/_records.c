@@ -1,0 +1,113 @@
+/*
+ * imupipe.readers._records: the sequential record walks of the flight-log readers, compiled.
+ *
+ * A PX4 ULog's records (https://docs.px4.io/main/en/dev_log/ulog_file_format.html) follow each
+ * other without an index: a 3-byte header (uint16 payload size, little-endian; uint8 type), then
+ * the payload. Where record k starts is known only after record k-1 is read, so the walk is
+ * sequential: numpy cannot do it without a Python step per record. This module does the walk
+ * and the copy of fixed-size payloads in C; everything else (which records are what, the
+ * structured dtypes, the values) stays in Python and numpy (imupipe.readers.record_walk, which
+ * holds the pure-Python equivalents of both functions, tested equal).
+ *
+ * Only the CPython C API and the buffer protocol are used (no numpy C API): the offsets are
+ * returned as bytes of native int64 for numpy.frombuffer.
+ */
+#define PY_SSIZE_T_CLEAN
+#include <Python.h>
+#include <stdint.h>
+#include <string.h>
+
+/* ulog_walk(buf, start, limit) -> (offsets: bytes of int64, end: int)
+ *
+ * The offsets of the records that lie whole in buf[start:limit] (limit clipped to len(buf)),
+ * walking from start: a record at o is taken when o + 3 + size <= limit; the walk stops at the
+ * first record that is not (or when fewer than 3 bytes are left). end is where the walk stopped
+ * (the end of the last record taken). */
+static PyObject *ulog_walk(PyObject *self, PyObject *args) {
+    Py_buffer view;
+    Py_ssize_t start, limit;
+    if (!PyArg_ParseTuple(args, "y*nn", &view, &start, &limit)) return NULL;
+    const uint8_t *buf = (const uint8_t *)view.buf;
+    Py_ssize_t len = view.len;
+    if (limit > len) limit = len;
+    if (start < 0) start = 0;
+    /* at most one record per 3 bytes */
+    Py_ssize_t cap = limit > start ? (limit - start) / 3 + 1 : 1;
+    int64_t *out = (int64_t *)PyMem_Malloc((size_t)cap * sizeof(int64_t));
+    if (out == NULL) {
+        PyBuffer_Release(&view);
+        return PyErr_NoMemory();
+    }
+    Py_ssize_t n = 0, o = start;
+    while (o + 3 <= limit) {
+        Py_ssize_t size = (Py_ssize_t)buf[o] | ((Py_ssize_t)buf[o + 1] << 8);
+        if (o + 3 + size > limit) break;
+        out[n++] = (int64_t)o;
+        o += 3 + size;
+    }
+    PyBuffer_Release(&view);
+    PyObject *offsets = PyBytes_FromStringAndSize((const char *)out, n * (Py_ssize_t)sizeof(int64_t));
+    PyMem_Free(out);
+    if (offsets == NULL) return NULL;
+    return Py_BuildValue("Nn", offsets, o);
+}
+
+/* gather(buf, offsets, skip, size) -> bytearray
+ *
+ * buf[o + skip : o + skip + size] for each int64 o of offsets, concatenated (the fixed-size
+ * payloads of one topic's records, for numpy.frombuffer with the topic's dtype; a bytearray, so
+ * that the arrays are writable, as pyulog's). */
+static PyObject *gather(PyObject *self, PyObject *args) {
+    Py_buffer view, offs;
+    Py_ssize_t skip, size;
+    if (!PyArg_ParseTuple(args, "y*y*nn", &view, &offs, &skip, &size)) return NULL;
+    Py_ssize_t n = offs.len / (Py_ssize_t)sizeof(int64_t);
+    if (size < 0 || skip < 0) {
+        PyBuffer_Release(&view);
+        PyBuffer_Release(&offs);
+        PyErr_SetString(PyExc_ValueError, "gather: negative size or skip");
+        return NULL;
+    }
+    PyObject *result = PyByteArray_FromStringAndSize(NULL, n * size);
+    if (result == NULL) {
+        PyBuffer_Release(&view);
+        PyBuffer_Release(&offs);
+        return NULL;
+    }
+    char *dst = PyByteArray_AS_STRING(result);
+    const char *src = (const char *)view.buf;
+    const char *raw = (const char *)offs.buf;
+    for (Py_ssize_t i = 0; i < n; i++) {
+        int64_t o;
+        memcpy(&o, raw + i * (Py_ssize_t)sizeof(int64_t), sizeof(int64_t));
+        if (o < 0 || o + skip + size > view.len) {
+            PyBuffer_Release(&view);
+            PyBuffer_Release(&offs);
+            Py_DECREF(result);
+            PyErr_Format(PyExc_IndexError, "gather: offset %lld out of the buffer", (long long)o);
+            return NULL;
+        }
+        memcpy(dst + i * size, src + o + skip, (size_t)size);
+    }
+    PyBuffer_Release(&view);
+    PyBuffer_Release(&offs);
+    return result;
+}
+
+static PyMethodDef methods[] = {
+    {"ulog_walk", ulog_walk, METH_VARARGS,
+     "ulog_walk(buf, start, limit) -> (offsets as int64 bytes, end): the ULog records lying "
+     "whole in buf[start:limit]."},
+    {"gather", gather, METH_VARARGS,
+     "gather(buf, offsets, skip, size) -> bytearray: buf[o+skip:o+skip+size] of each int64 offset, "
+     "concatenated."},
+    {NULL, NULL, 0, NULL},
+};
+
+static struct PyModuleDef module = {
+    PyModuleDef_HEAD_INIT, "_records",
+    "The sequential record walks of the flight-log readers, compiled (imupipe.readers.record_walk).",
+    -1, methods,
+};
+
+PyMODINIT_FUNC PyInit__records(void) { return PyModule_Create(&module); }

@@ -1,0 +1,83 @@
+"""The sequential record walks of the flight-log readers: compiled when built, else Python.
+
+A PX4 ULog's records follow each other without an index (a 3-byte header: uint16 payload size,
+little-endian, and uint8 type; then the payload), so where a record starts is known only after
+the one before it is read: numpy cannot walk them without a Python step per record. The
+compiled helper ``imupipe.readers._records`` (``readers/_records.c``, built by ``setup.py`` as
+an optional extension: an install without a C compiler goes on without it) does the walk and the
+copy of fixed-size payloads; the functions here are the same in pure Python, used when the
+helper is not built or ``IMUPIPE_PURE_PYTHON=1`` is set (``tests/test_record_walk.py`` checks
+that both give the same bytes).
+"""
+
+from __future__ import annotations
+
+import os
+import struct
+import mmap
+
+import numpy as np
+
+Buffer = bytes | bytearray | memoryview | mmap.mmap
+"""What the walks read: any object with the buffer protocol."""
+
+PURE_PYTHON_ENV = "IMUPIPE_PURE_PYTHON"
+"""Set to 1: use the pure-Python walks even when the compiled helper is built."""
+
+
+def py_ulog_walk(buf: Buffer, start: int, limit: int) -> tuple[bytes, int]:
+    """The offsets (int64 bytes) of the ULog records lying whole in ``buf[start:limit]``
+    (``limit`` clipped to the buffer), walking from ``start``: a record at ``o`` is taken when
+    ``o + 3 + size <= limit``; the walk stops at the first that is not, or with fewer than 3
+    bytes left. Returns the offsets and where the walk stopped (the end of the last record
+    taken)."""
+    view = memoryview(buf).cast("B")
+    limit = min(limit, len(view))
+    size_at = struct.Struct("<H").unpack_from
+    offsets: list[int] = []
+    o = max(start, 0)
+    while o + 3 <= limit:
+        (size,) = size_at(view, o)
+        if o + 3 + size > limit:
+            break
+        offsets.append(o)
+        o += 3 + size
+    return np.asarray(offsets, dtype=np.int64).tobytes(), o
+
+
+def py_gather(buf: Buffer, offsets: Buffer, skip: int, size: int) -> bytearray:
+    """``buf[o + skip : o + skip + size]`` for each int64 ``o`` of ``offsets``, concatenated
+    (a bytearray: the arrays numpy makes of it are writable)."""
+    view = memoryview(buf).cast("B")
+    starts = np.frombuffer(offsets, dtype=np.int64)
+    if skip < 0 or size < 0:
+        raise ValueError("gather: negative size or skip")
+    if len(starts) and (starts.min() < 0 or starts.max() + skip + size > len(view)):
+        raise IndexError("gather: offset out of the buffer")
+    return bytearray(b"".join([view[o + skip : o + skip + size] for o in starts.tolist()]))
+
+
+def compiled() -> bool:
+    """Whether the compiled helper is used (built, and not turned off by the environment)."""
+    return _impl()[0] is not py_ulog_walk
+
+
+def _impl() -> tuple:
+    if os.environ.get(PURE_PYTHON_ENV, "") not in ("", "0"):
+        return py_ulog_walk, py_gather
+    try:
+        from imupipe.readers import _records  # type: ignore[attr-defined]
+    except ImportError:
+        return py_ulog_walk, py_gather
+    return _records.ulog_walk, _records.gather
+
+
+def ulog_walk(buf: Buffer, start: int, limit: int) -> tuple[np.ndarray, int]:
+    """:func:`py_ulog_walk` (compiled when built): the record offsets as an int64 array."""
+    raw, end = _impl()[0](buf, start, limit)
+    return np.frombuffer(raw, dtype=np.int64), int(end)
+
+
+def gather(buf: Buffer, offsets: np.ndarray, skip: int, size: int) -> bytearray:
+    """:func:`py_gather` (compiled when built)."""
+    return _impl()[1](buf, np.ascontiguousarray(offsets, dtype=np.int64), skip, size)
