@@ -12,9 +12,9 @@ that both give the same bytes).
 
 from __future__ import annotations
 
+import mmap
 import os
 import struct
-import mmap
 
 import numpy as np
 

@@ -75,7 +75,7 @@ from imupipe.readers.errors import ReadError
 from imupipe.readers.spec import InputSpec
 from imupipe.readers.table import (
     metadata,
-    with_flight_stream,
+    with_flight_streams,
     with_metadata,
     with_stream_column,
 )
@@ -695,8 +695,7 @@ def read_dataflash(spec: InputSpec) -> tuple[pa.Table, list[str]]:
             pieces["temperature"].stamp,
             f.field(inst.name, "Press", inst.rows),  # Pa (LogStructure.h units: P)
         )
-    for stream, (t_ns, values) in flight_streams(f).items():
-        table = with_flight_stream(table, stream, t_ns, values)
+    table = with_flight_streams(table, flight_streams(f))
     meta = metadata(table)
     meta.pop("frame_id", None)  # a DataFlash log names no frames
     year = gps_year(f)

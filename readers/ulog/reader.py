@@ -82,7 +82,7 @@ from imupipe.readers.errors import ReadError
 from imupipe.readers.spec import InputSpec
 from imupipe.readers.table import (
     metadata,
-    with_flight_stream,
+    with_flight_streams,
     with_metadata,
     with_stream_column,
 )
@@ -1022,8 +1022,7 @@ def read_ulog(spec: InputSpec) -> tuple[pa.Table, list[str]]:
         piece = pieces["temperature"]
         t = piece.log if spec.time == "log" else piece.stamp  # the table's t_ns
         table = with_stream_column(table, "temperature", "pressure", t, baro_pascal(baro))
-    for stream, (t_ns, values) in flight_streams(f, spec.time).items():
-        table = with_flight_stream(table, stream, t_ns, values)
+    table = with_flight_streams(table, flight_streams(f, spec.time))
     meta = metadata(table)
     meta.pop("frame_id", None)  # a ULog names no frames
     year = gps_year(f)
