@@ -29,8 +29,9 @@ section.
 
 from __future__ import annotations
 
+import functools
 import struct
-from collections.abc import Collection
+from collections.abc import Callable, Collection
 from typing import Any
 
 import numpy as np
@@ -41,13 +42,16 @@ HEADER = 16
 """The file header's bytes: magic (7), version (1), start timestamp (uint64, us)."""
 FLAG_BITS_MAX = 8 + 8 + 3 * 8
 """The flag bits record's payload; pyulog warns about a longer one (not handled here)."""
-DEFINITIONS = frozenset(b"IMFPQB")
-"""Record types of the definitions section (pyulog's ``_read_file_definitions``)."""
 DATA_SECTION = frozenset(b"ALC")
 """Record types that end the definitions section (pyulog seeks back and reads them as data)."""
 DATA_RECORDS = frozenset(b"IMPQALCDOS")
 """Record types of the data section pyulog decodes (any other is "unknown": not handled)."""
-D = ord("D")
+ADD, TAGGED, DATA, FORMAT, INFO, LOGGED, MULTI, DROPOUT, PARAM, DEFAULT, SYNC = (
+    ord(c) for c in "ACDFILMOPQS"
+)
+"""The record types (ULog's letters: ``'A'`` subscription, ``'C'`` tagged logging, ``'D'`` data,
+``'F'`` format, ``'I'`` info, ``'L'`` logging, ``'M'`` multi-part info, ``'O'`` dropout,
+``'P'`` parameter, ``'Q'`` parameter default, ``'S'`` sync)."""
 
 
 class _Header:
@@ -72,7 +76,7 @@ def parse(path: Any, names: Collection[str] | None) -> Parsed | None:
         buf = fh.read()
     try:
         return _parse(buf, names)
-    except (struct.error, IndexError, KeyError, ValueError, OverflowError, TypeError):
+    except (struct.error, IndexError, KeyError, ValueError, OverflowError, RecursionError):
         return None  # pyulog decodes such a record as damage: its own parse says where
 
 
@@ -114,9 +118,8 @@ def _parse(buf: bytes, names: Collection[str] | None) -> Parsed | None:
     if not len(starts_data):
         return None
     first = int(starts_data[0])
-    for o in offsets[:first].tolist():
-        if not _definition(log, buf, o):
-            return None
+    if not _definitions(log, buf, offsets[:first], raw):
+        return None
     sections = [offsets[first:]]
     for i, at in enumerate(appended):
         nxt = appended[i + 1] if i + 1 < len(appended) else size
@@ -141,29 +144,33 @@ def _cut(buf: bytes, end: int) -> tuple[int, int, int] | None:
     return end, 3 + claimed, left
 
 
-def _definition(log: Any, buf: bytes, o: int) -> bool:
-    """Decode one record of the definitions section as pyulog does; False when pyulog would
-    not take it as it is (a type it does not know there, flag bits not first)."""
+def _definitions(log: Any, buf: bytes, offsets: np.ndarray, raw: np.ndarray) -> bool:
+    """Decode the records of the definitions section as pyulog does; False when pyulog would
+    not take one as it is (a type it does not know there, flag bits not first)."""
     from pyulog import ULog
 
-    (n, kind) = struct.unpack_from("<HB", buf, o)
-    data = buf[o + 3 : o + 3 + n]
-    if kind not in DEFINITIONS or kind == ord("B"):  # flag bits: read above, only when first
-        return False
-    if kind == ord("I"):
-        info = ULog._MessageInfo(data, None)
-        log._msg_info_dict[info.key] = info.value
-        log._msg_info_dict_types[info.key] = info.type
-    elif kind == ord("M"):
-        log._add_message_info_multiple(ULog._MessageInfo(data, None, is_info_multiple=True))
-    elif kind == ord("F"):
-        fmt = ULog.MessageFormat(data, None)
-        log._message_formats[fmt.name] = fmt
-    elif kind == ord("P"):
-        info = ULog._MessageInfo(data, None)
-        log._initial_parameters[info.key] = info.value
-    else:  # Q
-        log._add_parameter_default(ULog._MessageParameterDefault(data, None))
+    sizes = (raw[offsets].astype(np.int64) | (raw[offsets + 1].astype(np.int64) << 8)).tolist()
+    kinds = raw[offsets + 2].tolist()
+    info, info_types = log._msg_info_dict, log._msg_info_dict_types
+    params, formats = log._initial_parameters, log._message_formats
+    for o, n, kind in zip(offsets.tolist(), sizes, kinds, strict=True):
+        data = buf[o + 3 : o + 3 + n]
+        if kind == PARAM:
+            _, key, value = _info(data)
+            params[key] = value
+        elif kind == FORMAT:
+            fmt = _format(data)
+            formats[fmt.name] = fmt
+        elif kind == INFO:
+            kind_name, key, value = _info(data)
+            info[key] = value
+            info_types[key] = kind_name
+        elif kind == MULTI:
+            log._add_message_info_multiple(ULog._MessageInfo(data, None, is_info_multiple=True))
+        elif kind == DEFAULT:
+            log._add_parameter_default(ULog._MessageParameterDefault(data, None))
+        else:  # flag bits are read above, only when first; any other type is not pyulog's
+            return False
     return True
 
 
@@ -180,7 +187,7 @@ def _data(
 
     sizes = raw[offsets].astype(np.int64) | (raw[offsets + 1].astype(np.int64) << 8)
     kinds = raw[offsets + 2]
-    is_data = kinds == D
+    is_data = kinds == DATA
     data_at = np.flatnonzero(is_data)
     if len(data_at) and int(sizes[data_at].min()) < 2:
         return None
@@ -195,19 +202,25 @@ def _data(
     subscribed_at = np.full(1 << 16, len(offsets), dtype=np.int64)
     subs: dict[int, Any] = {}
     seen: set[str] = set()
+    layouts: dict[str, bool] = {}
+    flat: dict[str, list[str]] = {}
     for i, kind in zip(others.tolist(), other_kinds, strict=True):
-        if kind != ord("A"):
+        if kind != ADD:
             continue
         o = int(offsets[i])
-        sub = ULog._MessageAddLogged(buf[o + 3 : o + 3 + int(sizes[i])], None, log._message_formats)
-        if subscribed_at[sub.msg_id] < len(offsets):
+        data = buf[o + 3 : o + 3 + int(sizes[i])]
+        (msg_id,) = struct.unpack("<H", data[1:3])
+        name = str(data[3:], "utf-8", "ignore")
+        if subscribed_at[msg_id] < len(offsets):
             return None  # pyulog replaces the first subscription (and drops its data)
-        subscribed_at[sub.msg_id] = i
-        seen.add(sub.message_name)
-        if names is None or sub.message_name in names:
-            subs[sub.msg_id] = sub
+        subscribed_at[msg_id] = i
+        seen.add(name)
+        if names is None or name in names:
+            subs[msg_id] = ULog._MessageAddLogged(data, None, log._message_formats)
+        elif layouts.setdefault(name, _layout_ok(name, log._message_formats, flat)):
+            log._filtered_message_ids.add(msg_id)
         else:
-            log._filtered_message_ids.add(sub.msg_id)
+            return None  # pyulog cannot make the topic's dtype: a corrupt file to it
     # every data record follows its subscription (else pyulog: "no subscription found")
     if len(data_at) and bool(np.any(subscribed_at[msg_ids] > data_at)):
         return None
@@ -232,32 +245,36 @@ def _data(
 
     # the other records in file order, each with pyulog's _last_timestamp at that point
     running = np.maximum.accumulate(stamps) if len(stamps) else stamps
-    before = np.searchsorted(data_at, others)  # data records before each other record
     start = log._start_timestamp
-    for i, kind, k in zip(others.tolist(), other_kinds, before.tolist(), strict=True):
-        last = max(start, int(running[k - 1])) if k else start
-        o = int(offsets[i])
-        data = buf[o + 3 : o + 3 + int(sizes[i])]
-        if kind == ord("I"):
-            info = ULog._MessageInfo(data, None)
-            log._msg_info_dict[info.key] = info.value
-            log._msg_info_dict_types[info.key] = info.type
-        elif kind == ord("M"):
+    kinds_other = kinds[others]
+    log._sync_seq_cnt = int(np.count_nonzero(kinds_other == SYNC))
+    rest = others[(kinds_other != ADD) & (kinds_other != SYNC)]
+    before = np.searchsorted(data_at, rest).tolist()  # data records before each record
+    info, info_types = log._msg_info_dict, log._msg_info_dict_types
+    for o, n, kind, k in zip(
+        offsets[rest].tolist(), sizes[rest].tolist(), kinds[rest].tolist(), before, strict=True
+    ):
+        data = buf[o + 3 : o + 3 + n]
+        if kind in (PARAM, DROPOUT):
+            last = max(start, int(running[k - 1])) if k else start
+            if kind == PARAM:
+                _, key, value = _info(data)
+                log._changed_parameters.append((last, key, value))
+            else:
+                log._dropouts.append(ULog.MessageDropout(data, None, last))
+        elif kind == INFO:
+            kind_name, key, value = _info(data)
+            info[key] = value
+            info_types[key] = kind_name
+        elif kind == MULTI:
             log._add_message_info_multiple(ULog._MessageInfo(data, None, is_info_multiple=True))
-        elif kind == ord("P"):
-            info = ULog._MessageInfo(data, None)
-            log._changed_parameters.append((last, info.key, info.value))
-        elif kind == ord("Q"):
+        elif kind == DEFAULT:
             log._add_parameter_default(ULog._MessageParameterDefault(data, None))
-        elif kind == ord("L"):
+        elif kind == LOGGED:
             log._logged_messages.append(ULog.MessageLogging(data, None))
-        elif kind == ord("C"):
+        else:  # C
             tagged = ULog.MessageLoggingTagged(data, None)
             log._logged_messages_tagged.setdefault(tagged.tag, []).append(tagged)
-        elif kind == ord("O"):
-            log._dropouts.append(ULog.MessageDropout(data, None, last))
-        elif kind == ord("S"):
-            log._sync_seq_cnt += 1
     if len(running):
         log._last_timestamp = max(start, int(running[-1]))
 
@@ -267,3 +284,89 @@ def _data(
             log._data_list.append(ULog.Data(sub))
     log._data_list.sort(key=lambda ds: (ds.name, ds.multi_id))
     return seen
+
+
+def _info(data: bytes) -> tuple[str, str, Any]:
+    """An info (``'I'``) or parameter (``'P'``) record: (value type, key, value), decoded as
+    pyulog's ``_MessageInfo`` decodes it (strings UTF-8 with undecodable bytes dropped, pyulog's
+    default; a type pyulog does not know: the raw bytes), without its object per record."""
+    n = data[0]
+    split = str(data[1 : 1 + n], "utf-8", "ignore").split(" ")
+    kind, key = split[0], split[1]
+    rest = data[1 + n :]
+    if kind.startswith("char["):
+        return kind, key, str(rest, "utf-8", "ignore")
+    unpack = _unpackers().get(kind)
+    if unpack is None:
+        return kind, key, rest
+    return kind, key, unpack(rest)[0]
+
+
+@functools.cache
+def _unpackers() -> dict[str, Callable[[bytes], tuple[Any, ...]]]:
+    """pyulog's value types -> the unpacker of one little-endian value, as pyulog reads them."""
+    from pyulog import ULog
+
+    return {k: struct.Struct("<" + v[0]).unpack for k, v in ULog._UNPACK_TYPES.items()}
+
+
+def _format(data: bytes) -> Any:
+    """A format record (``'F'``): pyulog's ``MessageFormat`` (``name``; ``fields``: (type,
+    array size or 0, name) each), decoded as pyulog decodes it, without its calls per field."""
+    from pyulog import ULog
+
+    parts = str(data, "utf-8", "ignore").split(":")
+    fmt = ULog.MessageFormat.__new__(ULog.MessageFormat)
+    fmt.name = parts[0]
+    fields = []
+    for text in parts[1].split(";"):
+        if not text:
+            continue
+        words = text.split(" ")
+        kind, name = words[0], words[1]
+        a = kind.find("[")
+        if a == -1:
+            fields.append((kind, 0, name))
+            continue
+        count = int(kind[a + 1 : kind.find("]")])
+        if count < 0 or count > 0xFFFF:
+            raise ValueError(f"invalid array size: {count}")
+        fields.append((kind[:a], count, name))
+    fmt.fields = fields
+    return fmt
+
+
+def _flat(type_name: str, formats: dict[str, Any], memo: dict[str, list[str]]) -> list[str]:
+    """The field names pyulog's ``_MessageAddLogged._parse_nested_type`` gives a type (nested
+    types flattened: ``a.b``, arrays ``a[0]``), trailing padding kept; KeyError for a type
+    without a format, as pyulog's."""
+    from pyulog import ULog
+
+    if type_name in memo:
+        return memo[type_name]
+    out: list[str] = []
+    for kind, count, field in formats[type_name].fields:
+        inner = None if kind in ULog._UNPACK_TYPES else _flat(kind, formats, memo)
+        heads = [f"{field}[{i}]" for i in range(count)] if count > 0 else [field]
+        for head in heads:
+            out.extend([head] if inner is None else [f"{head}.{n}" for n in inner])
+    memo[type_name] = out
+    return out
+
+
+def _layout_ok(name: str, formats: dict[str, Any], memo: dict[str, list[str]]) -> bool:
+    """Whether pyulog can make the dtype of a topic this parse does not read (its fields
+    resolve and, trailing padding dropped, are unique: numpy's structured dtype refuses a name
+    twice), without making it; KeyError for a missing format, as pyulog's."""
+    names = list(_flat(name, formats, memo))
+    while names and names[-1].startswith("_padding"):
+        names.pop()
+    if "" in names:  # numpy names such a field itself: ask pyulog's own class
+        from pyulog import ULog
+
+        try:
+            ULog._MessageAddLogged(b"\0\0\0" + name.encode(), None, formats)
+        except ValueError:
+            return False
+        return True
+    return len(set(names)) == len(names)
