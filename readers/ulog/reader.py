@@ -214,6 +214,8 @@ class UlogFile:
                 self.instances[inst.key] = inst
             else:
                 self.notices.append(f"topic {inst.key} has no timestamp field: not read")
+        self.imu_pairs: dict[int, int] | None = None
+        """:func:`_imu_pairs`, once made."""
         self.skipped: list[str] = [] if wanted is None else sorted(wanted.seen - wanted.names)
         """Topics the log holds that were not parsed (names, every instance)."""
         self.damage: list[Damage] = list(getattr(self.ulog, "damage", ()))
@@ -530,7 +532,13 @@ def _old_combined(f: UlogFile, prefix: str) -> Instance | None:
 
 def _imu_pairs(f: UlogFile) -> dict[int, int]:
     """Gyro device id -> accel device id, as PX4 paired them in ``vehicle_imu`` (every
-    message of every instance; a pair with a zero id is no pair)."""
+    message of every instance; a pair with a zero id is no pair); made once per file."""
+    if f.imu_pairs is None:
+        f.imu_pairs = _pairs_of(f)
+    return f.imu_pairs
+
+
+def _pairs_of(f: UlogFile) -> dict[int, int]:
     pairs: dict[int, int] = {}
     for imu in f.named("vehicle_imu"):
         if not imu.has("gyro_device_id", "accel_device_id"):
