@@ -120,15 +120,18 @@ def _parse(buf: bytes, names: Collection[str] | None) -> Parsed | None:
     first = int(starts_data[0])
     if not _definitions(log, buf, offsets[:first], raw):
         return None
-    sections = [offsets[first:]]
+    # each data section as pyulog reads it (``_read_file_data``): its own subscriptions (pyulog
+    # turns a section's subscriptions into data at its end and starts the next without them)
+    seen = _data(log, buf, raw, offsets[first:], names)
     for i, at in enumerate(appended):
-        nxt = appended[i + 1] if i + 1 < len(appended) else size
-        more, end = ulog_walk(buf, at, nxt)
-        sections.append(more)
-    parsed = _data(log, buf, raw, np.concatenate(sections), names)
-    if parsed is None:
+        if seen is None:
+            return None
+        more, end = ulog_walk(buf, at, appended[i + 1] if i + 1 < len(appended) else size)
+        also = _data(log, buf, raw, more, names)
+        seen = None if also is None else seen | also
+    if seen is None:
         return None
-    return log, parsed, _cut(buf, int(end))
+    return log, seen, _cut(buf, int(end))
 
 
 def _cut(buf: bytes, end: int) -> tuple[int, int, int] | None:
@@ -181,8 +184,9 @@ def _data(
     offsets: np.ndarray,
     names: Collection[str] | None,
 ) -> set[str] | None:
-    """The data section's records (``offsets``, in file order) into ``log``; the subscribed
-    topic names, or None when pyulog would find the section damaged."""
+    """One data section's records (``offsets``, in file order) into ``log``, as one call of
+    pyulog's ``_read_file_data`` reads them; the subscribed topic names, or None when pyulog
+    would find the section damaged."""
     from pyulog import ULog
 
     sizes = raw[offsets].astype(np.int64) | (raw[offsets + 1].astype(np.int64) << 8)
@@ -202,6 +206,7 @@ def _data(
     subscribed_at = np.full(1 << 16, len(offsets), dtype=np.int64)
     subs: dict[int, Any] = {}
     seen: set[str] = set()
+    filtered_before = set(log._filtered_message_ids)  # by the sections before
     layouts: dict[str, bool] = {}
     flat: dict[str, list[str]] = {}
     for i, kind in zip(others.tolist(), other_kinds, strict=True):
@@ -221,9 +226,15 @@ def _data(
             log._filtered_message_ids.add(msg_id)
         else:
             return None  # pyulog cannot make the topic's dtype: a corrupt file to it
-    # every data record follows its subscription (else pyulog: "no subscription found")
-    if len(data_at) and bool(np.any(subscribed_at[msg_ids] > data_at)):
-        return None
+    # every data record follows its subscription in the section, or is of a topic not read
+    # subscribed before (else pyulog: "no subscription found")
+    if len(data_at):
+        known = subscribed_at[msg_ids] < data_at
+        if not bool(np.all(known)):
+            earlier = np.zeros(1 << 16, dtype=bool)
+            earlier[list(filtered_before)] = True
+            if not bool(np.all(known | earlier[msg_ids])):
+                return None
 
     # each read topic's payloads; the timestamps of its records (pyulog's _last_timestamp)
     stamps = np.zeros(len(data_at), dtype=np.uint64)
@@ -232,6 +243,7 @@ def _data(
     for msg_id, sub in subs.items():
         lo, hi = np.searchsorted(sorted_ids, [msg_id, msg_id + 1])
         rows = order[lo:hi]
+        rows = rows[data_at[rows] > subscribed_at[msg_id]]  # before it: a topic not read then
         if not len(rows):
             continue
         item = sub.dtype.itemsize
@@ -245,9 +257,9 @@ def _data(
 
     # the other records in file order, each with pyulog's _last_timestamp at that point
     running = np.maximum.accumulate(stamps) if len(stamps) else stamps
-    start = log._start_timestamp
+    start = log._last_timestamp  # the file's start, or where the section before left it
     kinds_other = kinds[others]
-    log._sync_seq_cnt = int(np.count_nonzero(kinds_other == SYNC))
+    log._sync_seq_cnt += int(np.count_nonzero(kinds_other == SYNC))
     rest = others[(kinds_other != ADD) & (kinds_other != SYNC)]
     before = np.searchsorted(data_at, rest).tolist()  # data records before each record
     info, info_types = log._msg_info_dict, log._msg_info_dict_types
