@@ -29,6 +29,7 @@ section.
 
 from __future__ import annotations
 
+import copy
 import functools
 import struct
 from collections.abc import Callable, Collection
@@ -207,8 +208,9 @@ def _data(
     subs: dict[int, Any] = {}
     seen: set[str] = set()
     filtered_before = set(log._filtered_message_ids)  # by the sections before
-    layouts: dict[str, bool] = {}
     flat: dict[str, list[str]] = {}
+    simple: dict[str, bool] = {}
+    made: dict[str, Any] = {}
     for i, kind in zip(others.tolist(), other_kinds, strict=True):
         if kind != ADD:
             continue
@@ -221,8 +223,8 @@ def _data(
         subscribed_at[msg_id] = i
         seen.add(name)
         if names is None or name in names:
-            subs[msg_id] = ULog._MessageAddLogged(data, None, log._message_formats)
-        elif layouts.setdefault(name, _layout_ok(name, log._message_formats, flat)):
+            subs[msg_id] = _subscription(data, name, log._message_formats, made)
+        elif _layout_ok(name, log._message_formats, flat, simple):
             log._filtered_message_ids.add(msg_id)
         else:
             return None  # pyulog cannot make the topic's dtype: a corrupt file to it
@@ -238,6 +240,12 @@ def _data(
 
     # each read topic's payloads; the timestamps of its records (pyulog's _last_timestamp)
     stamps = np.zeros(len(data_at), dtype=np.uint64)
+    expect = np.zeros(1 << 16, dtype=np.int64)  # msg_id -> payload size of a topic read
+    for msg_id, sub in subs.items():
+        expect[msg_id] = 2 + sub.dtype.itemsize
+    taken = (expect[msg_ids] > 0) & (data_at > subscribed_at[msg_ids])
+    if bool(np.any(sizes[data_at[taken]] != expect[msg_ids[taken]])):
+        return None  # a payload of another size: pyulog's "corrupt data"
     order = np.argsort(msg_ids, kind="stable")
     sorted_ids = msg_ids[order]
     for msg_id, sub in subs.items():
@@ -247,8 +255,6 @@ def _data(
         if not len(rows):
             continue
         item = sub.dtype.itemsize
-        if bool(np.any(sizes[data_at[rows]] - 2 != item)):
-            return None  # a payload of another size: pyulog's "corrupt data"
         if sub.timestamp_offset + 8 > item:
             return None  # pyulog reads the stamp past the payload: the end of its parse
         at = d_offsets[rows]
@@ -366,10 +372,14 @@ def _flat(type_name: str, formats: dict[str, Any], memo: dict[str, list[str]]) -
     return out
 
 
-def _layout_ok(name: str, formats: dict[str, Any], memo: dict[str, list[str]]) -> bool:
+def _layout_ok(
+    name: str, formats: dict[str, Any], memo: dict[str, list[str]], simple: dict[str, bool]
+) -> bool:
     """Whether pyulog can make the dtype of a topic this parse does not read (its fields
     resolve and, trailing padding dropped, are unique: numpy's structured dtype refuses a name
     twice), without making it; KeyError for a missing format, as pyulog's."""
+    if _simple(name, formats, simple):
+        return True
     names = list(_flat(name, formats, memo))
     while names and names[-1].startswith("_padding"):
         names.pop()
@@ -382,3 +392,42 @@ def _layout_ok(name: str, formats: dict[str, Any], memo: dict[str, list[str]]) -
             return False
         return True
     return len(set(names)) == len(names)
+
+
+def _simple(type_name: str, formats: dict[str, Any], memo: dict[str, bool]) -> bool:
+    """A type whose flattened field names are unique by construction: its field names are
+    unique, not empty, hold none of ``.[]``, and its nested types are such types (each
+    flattened name then starts with its own field's name, ``field`` or ``field[i]``, up to its
+    first ``.``); KeyError for a type without a format, as pyulog's."""
+    from pyulog import ULog
+
+    if type_name in memo:
+        return memo[type_name]
+    fields = formats[type_name].fields
+    names = [f for _, _, f in fields]
+    ok = len(set(names)) == len(names) and all(
+        f and "." not in f and "[" not in f and "]" not in f for f in names
+    )
+    for kind, _, _ in fields:  # every nested type resolves (pyulog's KeyError otherwise)
+        if kind not in ULog._UNPACK_TYPES:
+            ok = _simple(kind, formats, memo) and ok
+    memo[type_name] = ok
+    return ok
+
+
+def _subscription(data: bytes, name: str, formats: dict[str, Any], made: dict[str, Any]) -> Any:
+    """pyulog's ``_MessageAddLogged`` of a subscription record; another instance of a topic
+    already made in this parse is a copy of it (the same fields and dtype: they depend on the
+    topic's format only) with its own ids, field list and buffer."""
+    from pyulog import ULog
+
+    first = made.get(name)
+    if first is None:
+        made[name] = sub = ULog._MessageAddLogged(data, None, formats)
+        return sub
+    sub = copy.copy(first)
+    (sub.multi_id,) = struct.unpack("<B", data[0:1])
+    (sub.msg_id,) = struct.unpack("<H", data[1:3])
+    sub.field_data = list(first.field_data)
+    sub.buffer = bytearray()
+    return sub
