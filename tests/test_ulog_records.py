@@ -276,3 +276,27 @@ def test_a_data_record_of_another_size_is_left_to_pyulog(tmp_path):
     assert records.parse(path, {"sensor_combined"}) is None
     # a topic not read is not checked by pyulog either: the own parse takes the file
     assert records.parse(path, {"vehicle_magnetometer"}) is not None
+
+
+def _with_topic(tmp_path: Path, fmt: bytes, name: bytes) -> Path:
+    """SMALL with one more format (before the first subscription) and its subscription."""
+    buf = SMALL.read_bytes()
+    offsets, _ = record_walk.ulog_walk(buf, 16, len(buf))
+    kinds = np.frombuffer(buf, np.uint8)[offsets + 2]
+    first = int(offsets[np.flatnonzero(kinds == ord("A"))[0]])
+    sub = _rec("A", struct.pack("<BH", 0, 3000) + name)
+    path = tmp_path / "topic.ulg"
+    path.write_bytes(buf[:first] + _rec("F", fmt) + sub + buf[first:])
+    return path
+
+
+def test_a_topic_not_read_is_checked_as_pyulog_makes_it(tmp_path):
+    """A topic not read: its fields are checked as pyulog's dtype checks them. Field names with
+    brackets that flatten to unique names: read; a name twice: left to pyulog (numpy refuses
+    the dtype, pyulog calls the file corrupt)."""
+    path = _with_topic(tmp_path, b"odd_topic:uint64_t timestamp;float a[0];float a;", b"odd_topic")
+    own, _ = _both(path)
+    assert 3000 in own._filtered_message_ids
+    path = _with_topic(tmp_path, b"dup_topic:uint64_t timestamp;float x;float x;", b"dup_topic")
+    assert records.parse(path, set(READ_TOPICS)) is None
+    assert UlogFile(path, READ_TOPICS).damage_warning() is not None
