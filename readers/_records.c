@@ -31,25 +31,30 @@ static PyObject *ulog_walk(PyObject *self, PyObject *args) {
     Py_ssize_t len = view.len;
     if (limit > len) limit = len;
     if (start < 0) start = 0;
-    /* at most one record per 3 bytes */
-    Py_ssize_t cap = limit > start ? (limit - start) / 3 + 1 : 1;
-    int64_t *out = (int64_t *)PyMem_Malloc((size_t)cap * sizeof(int64_t));
-    if (out == NULL) {
-        PyBuffer_Release(&view);
-        return PyErr_NoMemory();
-    }
+    /* two passes: count the records, then write their offsets into the bytes returned (no
+     * buffer sized for the worst case, one record per 3 bytes: 8/3 of the file) */
     Py_ssize_t n = 0, o = start;
     while (o + 3 <= limit) {
         Py_ssize_t size = (Py_ssize_t)buf[o] | ((Py_ssize_t)buf[o + 1] << 8);
         if (o + 3 + size > limit) break;
-        out[n++] = (int64_t)o;
+        n++;
         o += 3 + size;
     }
+    Py_ssize_t end = o;
+    PyObject *offsets = PyBytes_FromStringAndSize(NULL, n * (Py_ssize_t)sizeof(int64_t));
+    if (offsets == NULL) {
+        PyBuffer_Release(&view);
+        return NULL;
+    }
+    char *out = PyBytes_AS_STRING(offsets);
+    o = start;
+    for (Py_ssize_t i = 0; i < n; i++) {
+        int64_t at = (int64_t)o;
+        memcpy(out + i * (Py_ssize_t)sizeof(int64_t), &at, sizeof(int64_t));
+        o += 3 + ((Py_ssize_t)buf[o] | ((Py_ssize_t)buf[o + 1] << 8));
+    }
     PyBuffer_Release(&view);
-    PyObject *offsets = PyBytes_FromStringAndSize((const char *)out, n * (Py_ssize_t)sizeof(int64_t));
-    PyMem_Free(out);
-    if (offsets == NULL) return NULL;
-    return Py_BuildValue("Nn", offsets, o);
+    return Py_BuildValue("Nn", offsets, end);
 }
 
 /* gather(buf, offsets, skip, size) -> bytearray
