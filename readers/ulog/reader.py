@@ -1,4 +1,5 @@
-"""PX4 ULog files (``.ulg``) into the common table, with pyulog.
+"""PX4 ULog files (``.ulg``) into the common table: pyulog's parse, done by imupipe's own record
+walk (:mod:`imupipe.readers.ulog.records`) or, for a file it leaves out, by pyulog.
 
 A ULog (PX4's log format, https://docs.px4.io/main/en/dev_log/ulog_file_format.html) holds uORB
 topics, each possibly in several *instances* (``multi_id``: one per sensor of a kind), the
@@ -55,7 +56,9 @@ its ``struct.error`` is taken for the end of the file), and skips data records o
 by a subclass of pyulog's ``ULog`` that skips each damaged record and goes on (what pyulog
 does for the damage it knows), recording its offset, size and topic; one warning says how many
 records and bytes were skipped, between which offsets, and which topics' messages were among
-them (:meth:`UlogFile.damage_warning`). An undamaged file is parsed once, at pyulog's speed.
+them (:meth:`UlogFile.damage_warning`). An undamaged file is parsed once, by imupipe's own parse
+(:func:`imupipe.readers.ulog.records.parse`: pyulog's result, its record walk compiled), which
+leaves every file pyulog would call damaged or warn about to pyulog.
 
 **Not carried**: ULog topics other than the ones read have no ROS message type; they are not
 written to the corrected MCAP and one warning lists them.
