@@ -330,26 +330,26 @@ def _unpackers() -> dict[str, Callable[[bytes], tuple[Any, ...]]]:
 
 def _format(data: bytes) -> Any:
     """A format record (``'F'``): pyulog's ``MessageFormat`` (``name``; ``fields``: (type,
-    array size or 0, name) each), decoded as pyulog decodes it, without its calls per field."""
+    array size or 0, name) each), split as pyulog splits it, without its calls per field."""
     from pyulog import ULog
 
     parts = str(data, "utf-8", "ignore").split(":")
-    fmt = ULog.MessageFormat.__new__(ULog.MessageFormat)
-    fmt.name = parts[0]
     fields = []
-    for text in parts[1].split(";"):
-        if not text:
+    for entry in parts[1].split(";"):
+        if not entry:
             continue
-        words = text.split(" ")
-        kind, name = words[0], words[1]
+        words = entry.split(" ")
+        kind, field = words[0], words[1]
         a = kind.find("[")
         if a == -1:
-            fields.append((kind, 0, name))
+            fields.append((kind, 0, field))
             continue
         count = int(kind[a + 1 : kind.find("]")])
         if count < 0 or count > 0xFFFF:
             raise ValueError(f"invalid array size: {count}")
-        fields.append((kind[:a], count, name))
+        fields.append((kind[:a], count, field))
+    fmt = ULog.MessageFormat.__new__(ULog.MessageFormat)
+    fmt.name = parts[0]
     fmt.fields = fields
     return fmt
 
