@@ -99,10 +99,70 @@ static PyObject *gather(PyObject *self, PyObject *args) {
     return result;
 }
 
+/* dataflash_walk(buf, lengths, first_def) -> offsets: bytes of int64
+ *
+ * An ArduPilot DataFlash log's records as pymavlink's DFReader walks them: from the start, a
+ * record is 0xA3 0x95 <type> at p where the type is known (lengths[type] > 0: its FMT length,
+ * header included), defined before p (first_def[type] < p: the offset of its first FMT) and
+ * whole (p + lengths[type] <= len(buf)); the next record is searched from its end; any other
+ * byte is skipped. lengths and first_def: 256 native int64 each. */
+static PyObject *dataflash_walk(PyObject *self, PyObject *args) {
+    Py_buffer view, lens, defs;
+    if (!PyArg_ParseTuple(args, "y*y*y*", &view, &lens, &defs)) return NULL;
+    if (lens.len != 256 * (Py_ssize_t)sizeof(int64_t) ||
+        defs.len != 256 * (Py_ssize_t)sizeof(int64_t)) {
+        PyBuffer_Release(&view);
+        PyBuffer_Release(&lens);
+        PyBuffer_Release(&defs);
+        PyErr_SetString(PyExc_ValueError, "dataflash_walk: lengths and first_def: 256 int64");
+        return NULL;
+    }
+    const uint8_t *buf = (const uint8_t *)view.buf;
+    int64_t length[256], first[256];
+    memcpy(length, lens.buf, sizeof(length));
+    memcpy(first, defs.buf, sizeof(first));
+    PyBuffer_Release(&lens);
+    PyBuffer_Release(&defs);
+    Py_ssize_t len = view.len;
+    PyObject *offsets = NULL;
+    for (int pass = 0; pass < 2; pass++) { /* count, then write */
+        Py_ssize_t n = 0, p = 0;
+        char *out = offsets == NULL ? NULL : PyBytes_AS_STRING(offsets);
+        while (p + 2 < len) {
+            if (buf[p] == 0xA3 && buf[p + 1] == 0x95) {
+                uint8_t t = buf[p + 2];
+                int64_t size = length[t];
+                if (size > 0 && first[t] < (int64_t)p && (int64_t)p + size <= (int64_t)len) {
+                    if (out != NULL) {
+                        int64_t at = (int64_t)p;
+                        memcpy(out + n * (Py_ssize_t)sizeof(int64_t), &at, sizeof(int64_t));
+                    }
+                    n++;
+                    p += (Py_ssize_t)size;
+                    continue;
+                }
+            }
+            p++;
+        }
+        if (offsets == NULL) {
+            offsets = PyBytes_FromStringAndSize(NULL, n * (Py_ssize_t)sizeof(int64_t));
+            if (offsets == NULL) {
+                PyBuffer_Release(&view);
+                return NULL;
+            }
+        }
+    }
+    PyBuffer_Release(&view);
+    return offsets;
+}
+
 static PyMethodDef methods[] = {
     {"ulog_walk", ulog_walk, METH_VARARGS,
      "ulog_walk(buf, start, limit) -> (offsets as int64 bytes, end): the ULog records lying "
      "whole in buf[start:limit]."},
+    {"dataflash_walk", dataflash_walk, METH_VARARGS,
+     "dataflash_walk(buf, lengths, first_def) -> offsets as int64 bytes: a DataFlash log's "
+     "records, as pymavlink's DFReader walks them."},
     {"gather", gather, METH_VARARGS,
      "gather(buf, offsets, skip, size) -> bytearray: buf[o+skip:o+skip+size] of each int64 offset, "
      "concatenated."},

@@ -1,13 +1,16 @@
-"""The sequential record walks of the flight-log readers: compiled when built, else Python.
+"""The sequential record walks of the flight-log readers: compiled when built, else Python
+(or numpy).
 
 A PX4 ULog's records follow each other without an index (a 3-byte header: uint16 payload size,
 little-endian, and uint8 type; then the payload), so where a record starts is known only after
 the one before it is read: numpy cannot walk them without a Python step per record. The
 compiled helper ``imupipe.readers._records`` (``readers/_records.c``, built by ``setup.py`` as
 an optional extension: an install without a C compiler goes on without it) does the walk and the
-copy of fixed-size payloads; the functions here are the same in pure Python, used when the
-helper is not built or ``IMUPIPE_PURE_PYTHON=1`` is set (``tests/test_record_walk.py`` checks
-that both give the same bytes).
+copy of fixed-size payloads, and the walk of an ArduPilot DataFlash log's records; the ULog
+functions here are the same in pure Python and the DataFlash reader finds the same records with
+numpy (pointer doubling), used when the helper is not built or ``IMUPIPE_PURE_PYTHON=1`` is set
+(``tests/test_ulog_records.py`` and ``tests/test_dataflash_reader.py`` check that both give the
+same offsets and bytes).
 """
 
 from __future__ import annotations
@@ -15,6 +18,7 @@ from __future__ import annotations
 import mmap
 import os
 import struct
+from typing import Any
 
 import numpy as np
 
@@ -59,25 +63,48 @@ def py_gather(buf: Buffer, offsets: Buffer, skip: int, size: int) -> bytearray:
 
 def compiled() -> bool:
     """Whether the compiled helper is used (built, and not turned off by the environment)."""
-    return _impl()[0] is not py_ulog_walk
+    return _helper() is not None
 
 
-def _impl() -> tuple:
+def _helper() -> Any:
+    """The compiled module, or None (not built, or ``IMUPIPE_PURE_PYTHON`` set)."""
     if os.environ.get(PURE_PYTHON_ENV, "") not in ("", "0"):
-        return py_ulog_walk, py_gather
+        return None
     try:
         from imupipe.readers import _records  # type: ignore[attr-defined]
     except ImportError:
-        return py_ulog_walk, py_gather
-    return _records.ulog_walk, _records.gather
+        return None
+    return _records
 
 
 def ulog_walk(buf: Buffer, start: int, limit: int) -> tuple[np.ndarray, int]:
     """:func:`py_ulog_walk` (compiled when built): the record offsets as an int64 array."""
-    raw, end = _impl()[0](buf, start, limit)
+    helper = _helper()
+    raw, end = (py_ulog_walk if helper is None else helper.ulog_walk)(buf, start, limit)
     return np.frombuffer(raw, dtype=np.int64), int(end)
 
 
 def gather(buf: Buffer, offsets: np.ndarray, skip: int, size: int) -> bytearray:
     """:func:`py_gather` (compiled when built)."""
-    return _impl()[1](buf, np.ascontiguousarray(offsets, dtype=np.int64), skip, size)
+    helper = _helper()
+    offsets = np.ascontiguousarray(offsets, dtype=np.int64)
+    return (py_gather if helper is None else helper.gather)(buf, offsets, skip, size)
+
+
+def dataflash_walk(
+    buf: np.ndarray, lengths: np.ndarray, first_def: np.ndarray
+) -> np.ndarray | None:
+    """The offsets (int64) of a DataFlash log's records as pymavlink's ``DFReader`` walks them
+    (from the start: ``0xA3 0x95 <type>`` of a type with ``lengths[type] > 0``, defined before
+    it, ``first_def[type] < offset``, and whole; the next searched from its end; any other byte
+    skipped), in C; None without the compiled helper: the DataFlash reader then finds the same
+    chain with numpy (:func:`imupipe.readers.dataflash.reader.record_offsets`)."""
+    helper = _helper()
+    if helper is None:
+        return None
+    raw = helper.dataflash_walk(
+        np.ascontiguousarray(buf, dtype=np.uint8),
+        np.ascontiguousarray(lengths, dtype=np.int64),
+        np.ascontiguousarray(first_def, dtype=np.int64),
+    )
+    return np.frombuffer(raw, dtype=np.int64)

@@ -72,6 +72,7 @@ import pyarrow as pa
 from imupipe.readers.arrays import unique
 from imupipe.readers.decoded import Piece, repeat_string
 from imupipe.readers.errors import ReadError
+from imupipe.readers.record_walk import dataflash_walk
 from imupipe.readers.spec import InputSpec
 from imupipe.readers.table import (
     metadata,
@@ -283,6 +284,28 @@ def _fit_lengths(
     return out
 
 
+def _chain(
+    buf: np.ndarray,
+    cand: np.ndarray,
+    types: np.ndarray,
+    lengths: np.ndarray,
+    first_def: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """(offsets, types) of the records ``DFReader`` walks: from the first candidate that is a
+    record (a known type, defined before it, and whole), each next the first such candidate at
+    or after its end. In C when the compiled helper is built
+    (:func:`imupipe.readers.record_walk.dataflash_walk`: one pass over the bytes), else with
+    numpy (each candidate's successor, then the chain from the first by pointer doubling,
+    :func:`_reachable`); both give the same records (``tests/test_dataflash_reader.py``)."""
+    walked = dataflash_walk(buf, lengths, first_def)
+    if walked is not None:
+        return walked, buf[walked + 2].astype(np.int64)
+    ok = (lengths[types] > 0) & (first_def[types] < cand) & (cand + lengths[types] <= len(buf))
+    pos, typ = cand[ok], types[ok]
+    on = _reachable(np.searchsorted(pos, pos + lengths[typ]))
+    return pos[on], typ[on]
+
+
 def record_offsets(buf: np.ndarray) -> tuple[np.ndarray, np.ndarray, dict[int, Format], int]:
     """(offsets, types, formats, end) of the log's records, in file order, as ``DFReader`` walks
     them; ``end`` is the offset after the last whole record (bytes after it: a cut record or
@@ -302,12 +325,7 @@ def record_offsets(buf: np.ndarray) -> tuple[np.ndarray, np.ndarray, dict[int, F
         if len(defined):
             def_types = buf[defined + 3].astype(np.int64)
             np.minimum.at(first_def, def_types, defined)
-        # a record: a known type, defined before it, and whole
-        ok = (lengths[types] > 0) & (first_def[types] < cand) & (cand + lengths[types] <= len(buf))
-        pos, typ = cand[ok], types[ok]
-        nxt = np.searchsorted(pos, pos + lengths[typ])
-        on = _reachable(nxt)
-        pos, typ = pos[on], typ[on]
+        pos, typ = _chain(buf, cand, types, lengths, first_def)
         walked = _fit_lengths(cand, types, _formats_at(buf, pos[typ == FMT_TYPE]))
         if walked == formats or fmt_at.size == 0:
             break
