@@ -300,3 +300,41 @@ def test_a_topic_not_read_is_checked_as_pyulog_makes_it(tmp_path):
     path = _with_topic(tmp_path, b"dup_topic:uint64_t timestamp;float x;float x;", b"dup_topic")
     assert records.parse(path, set(READ_TOPICS)) is None
     assert UlogFile(path, READ_TOPICS).damage_warning() is not None
+
+
+def _in_definitions(tmp_path: Path, records_: bytes) -> Path:
+    """SMALL with ``records_`` put just before its first subscription (definitions section)."""
+    buf = SMALL.read_bytes()
+    offsets, _ = record_walk.ulog_walk(buf, 16, len(buf))
+    kinds = np.frombuffer(buf, np.uint8)[offsets + 2]
+    first = int(offsets[np.flatnonzero(kinds == ord("A"))[0]])
+    path = tmp_path / "definitions.ulg"
+    path.write_bytes(buf[:first] + records_ + buf[first:])
+    return path
+
+
+@pytest.mark.parametrize(
+    ("record", "plain"),
+    [
+        (_rec("P", _info("double", "ODD_DOUBLE", struct.pack("<d", 1.5))), False),
+        (_rec("P", _info("float", "CAL_\xe9", struct.pack("<f", 2.5))), False),
+        (_rec("P", _info("int32_t", "CAL_GYRO0_ID", struct.pack("<i", -7))), True),  # again
+        (_rec("P", _info("float", "A B", struct.pack("<f", 1.0))), False),  # pyulog keeps "A"
+    ],
+    ids=["double", "non-ascii", "twice", "space"],
+)
+def test_parameters_of_every_form_are_pyulogs(tmp_path, record, plain):
+    """The parameters at start are decoded at once when all are plain (float or int32_t, an
+    ASCII key without a space); one of another form sends them all the way pyulog's record
+    class goes. Either way: pyulog's parameters, in its order, the last of a name winning."""
+    path = _in_definitions(tmp_path, record)
+    buf = path.read_bytes()
+    raw = np.frombuffer(buf, np.uint8)
+    offsets, _ = record_walk.ulog_walk(buf, 16, len(buf))
+    kinds = raw[offsets + 2]
+    at = offsets[: np.flatnonzero(kinds == ord("A"))[0]]
+    at = at[raw[at + 2] == ord("P")]
+    sizes = raw[at].astype(np.int64) | (raw[at + 1].astype(np.int64) << 8)
+    assert (records._plain_parameters(raw, at, sizes) is not None) == plain
+    own, _ = _both(path)
+    assert len(own.initial_parameters) > 900

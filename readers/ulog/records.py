@@ -150,14 +150,26 @@ def _cut(buf: bytes, end: int) -> tuple[int, int, int] | None:
 
 def _definitions(log: Any, buf: bytes, offsets: np.ndarray, raw: np.ndarray) -> bool:
     """Decode the records of the definitions section as pyulog does; False when pyulog would
-    not take one as it is (a type it does not know there, flag bits not first)."""
+    not take one as it is (a type it does not know there, flag bits not first). The parameters
+    (``'P'``, a thousand in a PX4 log) are decoded at once when they all have the plain form
+    :func:`_plain_parameters` takes, else one by one as the other records."""
     from pyulog import ULog
 
-    sizes = (raw[offsets].astype(np.int64) | (raw[offsets + 1].astype(np.int64) << 8)).tolist()
-    kinds = raw[offsets + 2].tolist()
+    sizes_all = raw[offsets].astype(np.int64) | (raw[offsets + 1].astype(np.int64) << 8)
+    kinds_all = raw[offsets + 2]
+    params = log._initial_parameters
+    is_param = kinds_all == PARAM
+    plain = _plain_parameters(raw, offsets[is_param], sizes_all[is_param])
+    if plain is not None:
+        params.update(plain)
+        offsets, sizes_all, kinds_all = (
+            offsets[~is_param],
+            sizes_all[~is_param],
+            kinds_all[~is_param],
+        )
     info, info_types = log._msg_info_dict, log._msg_info_dict_types
-    params, formats = log._initial_parameters, log._message_formats
-    for o, n, kind in zip(offsets.tolist(), sizes, kinds, strict=True):
+    formats = log._message_formats
+    for o, n, kind in zip(offsets.tolist(), sizes_all.tolist(), kinds_all.tolist(), strict=True):
         data = buf[o + 3 : o + 3 + n]
         if kind == PARAM:
             _, key, value = _info(data)
@@ -176,6 +188,49 @@ def _definitions(log: Any, buf: bytes, offsets: np.ndarray, raw: np.ndarray) -> 
         else:  # flag bits are read above, only when first; any other type is not pyulog's
             return False
     return True
+
+
+PLAIN_PARAMETERS = ((b"float ", "<f4"), (b"int32_t ", "<i4"))
+"""The parameter types PX4 logs, as their key's prefix, and their 4-byte value."""
+
+
+def _plain_parameters(
+    raw: np.ndarray, offsets: np.ndarray, sizes: np.ndarray
+) -> list[tuple[str, float | int]] | None:
+    """(key, value) of the parameter records at ``offsets`` (payload sizes ``sizes``), in file
+    order, decoded at once; None unless every one is plain: ``float <key>`` or ``int32_t
+    <key>`` with a key of ASCII bytes without a space and a 4-byte value (pyulog's
+    ``_MessageInfo`` then gives the same key, and ``struct.unpack('<f'/'<i')`` the value
+    numpy's ``tolist`` gives)."""
+    if not len(offsets):
+        return []
+    n = raw[offsets + 3].astype(np.int64)  # the key's length ("type name")
+    head = offsets + 4
+    which = np.full(len(offsets), -1)
+    skip = np.zeros(len(offsets), dtype=np.int64)
+    for i, (prefix, _) in enumerate(PLAIN_PARAMETERS):
+        fits = (which < 0) & (n >= len(prefix)) & (head + len(prefix) <= len(raw))
+        at = head[fits][:, None] + np.arange(len(prefix))
+        same = np.zeros(len(offsets), dtype=bool)
+        same[fits] = np.all(raw[at] == np.frombuffer(prefix, np.uint8), axis=1)
+        which[same], skip[same] = i, len(prefix)
+    if bool(np.any(which < 0)) or bool(np.any(sizes != 1 + n + 4)):
+        return None
+    starts, lengths = head + skip, n - skip
+    total = int(lengths.sum())
+    index = np.arange(total) + np.repeat(starts - (np.cumsum(lengths) - lengths), lengths)
+    text = raw[index]
+    if bool(np.any((text <= 0x20) | (text >= 0x7F))):
+        return None  # a space, a control or a non-ASCII byte: pyulog's own decoding
+    joined = text.tobytes().decode("ascii")
+    ends = np.cumsum(lengths).tolist()
+    keys = [joined[a:b] for a, b in zip([0, *ends[:-1]], ends, strict=True)]
+    four = raw[(head + n)[:, None] + np.arange(4)].copy()
+    values: list[Any] = four.view("<f4").ravel().tolist()
+    ints = np.flatnonzero(which == 1)
+    for i, v in zip(ints.tolist(), four[ints].view("<i4").ravel().tolist(), strict=True):
+        values[i] = v
+    return list(zip(keys, values, strict=True))
 
 
 def _data(
