@@ -460,12 +460,17 @@ def _simple(type_name: str, formats: dict[str, Any], memo: dict[str, bool]) -> b
         return memo[type_name]
     fields = formats[type_name].fields
     names = [f for _, _, f in fields]
-    ok = len(set(names)) == len(names) and all(
-        f and "." not in f and "[" not in f and "]" not in f for f in names
+    joined = "\0".join(names)
+    ok = (
+        len(set(names)) == len(names)
+        and all(names)
+        and "." not in joined
+        and "[" not in joined
+        and "]" not in joined
     )
-    for kind, _, _ in fields:  # every nested type resolves (pyulog's KeyError otherwise)
-        if kind not in ULog._UNPACK_TYPES:
-            ok = _simple(kind, formats, memo) and ok
+    basic = ULog._UNPACK_TYPES
+    for kind in {k for k, _, _ in fields if k not in basic}:  # each resolves, else KeyError
+        ok = _simple(kind, formats, memo) and ok
     memo[type_name] = ok
     return ok
 
