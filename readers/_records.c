@@ -17,12 +17,14 @@
 #include <stdint.h>
 #include <string.h>
 
-/* ulog_walk(buf, start, limit) -> (offsets: bytes of int64, end: int)
+/* ulog_walk(buf, start, limit) -> (offsets, sizes, kinds, ids, end)
  *
- * The offsets of the records that lie whole in buf[start:limit] (limit clipped to len(buf)),
- * walking from start: a record at o is taken when o + 3 + size <= limit; the walk stops at the
- * first record that is not (or when fewer than 3 bytes are left). end is where the walk stopped
- * (the end of the last record taken). */
+ * The records that lie whole in buf[start:limit] (limit clipped to len(buf)), walking from
+ * start: a record at o is taken when o + 3 + size <= limit; the walk stops at the first record
+ * that is not (or when fewer than 3 bytes are left). Per record, as bytes for numpy.frombuffer:
+ * its offset (native int64), payload size (native uint16), type (uint8) and the payload's first
+ * two bytes as a little-endian uint16 (a data record's msg_id; 0 for a payload shorter than 2).
+ * end is where the walk stopped (the end of the last record taken). */
 static PyObject *ulog_walk(PyObject *self, PyObject *args) {
     Py_buffer view;
     Py_ssize_t start, limit;
@@ -31,8 +33,8 @@ static PyObject *ulog_walk(PyObject *self, PyObject *args) {
     Py_ssize_t len = view.len;
     if (limit > len) limit = len;
     if (start < 0) start = 0;
-    /* two passes: count the records, then write their offsets into the bytes returned (no
-     * buffer sized for the worst case, one record per 3 bytes: 8/3 of the file) */
+    /* two passes: count the records, then write them into the bytes returned (no buffer sized
+     * for the worst case, one record per 3 bytes) */
     Py_ssize_t n = 0, o = start;
     while (o + 3 <= limit) {
         Py_ssize_t size = (Py_ssize_t)buf[o] | ((Py_ssize_t)buf[o + 1] << 8);
@@ -42,19 +44,34 @@ static PyObject *ulog_walk(PyObject *self, PyObject *args) {
     }
     Py_ssize_t end = o;
     PyObject *offsets = PyBytes_FromStringAndSize(NULL, n * (Py_ssize_t)sizeof(int64_t));
-    if (offsets == NULL) {
+    PyObject *sizes = PyBytes_FromStringAndSize(NULL, n * (Py_ssize_t)sizeof(uint16_t));
+    PyObject *kinds = PyBytes_FromStringAndSize(NULL, n);
+    PyObject *ids = PyBytes_FromStringAndSize(NULL, n * (Py_ssize_t)sizeof(uint16_t));
+    if (offsets == NULL || sizes == NULL || kinds == NULL || ids == NULL) {
+        Py_XDECREF(offsets);
+        Py_XDECREF(sizes);
+        Py_XDECREF(kinds);
+        Py_XDECREF(ids);
         PyBuffer_Release(&view);
         return NULL;
     }
     char *out = PyBytes_AS_STRING(offsets);
+    char *out_size = PyBytes_AS_STRING(sizes);
+    char *out_kind = PyBytes_AS_STRING(kinds);
+    char *out_id = PyBytes_AS_STRING(ids);
     o = start;
     for (Py_ssize_t i = 0; i < n; i++) {
         int64_t at = (int64_t)o;
+        uint16_t size = (uint16_t)(buf[o] | (buf[o + 1] << 8));
+        uint16_t id = size >= 2 ? (uint16_t)(buf[o + 3] | (buf[o + 4] << 8)) : 0;
         memcpy(out + i * (Py_ssize_t)sizeof(int64_t), &at, sizeof(int64_t));
-        o += 3 + ((Py_ssize_t)buf[o] | ((Py_ssize_t)buf[o + 1] << 8));
+        memcpy(out_size + i * (Py_ssize_t)sizeof(uint16_t), &size, sizeof(uint16_t));
+        out_kind[i] = (char)buf[o + 2];
+        memcpy(out_id + i * (Py_ssize_t)sizeof(uint16_t), &id, sizeof(uint16_t));
+        o += 3 + (Py_ssize_t)size;
     }
     PyBuffer_Release(&view);
-    return Py_BuildValue("Nn", offsets, end);
+    return Py_BuildValue("NNNNn", offsets, sizes, kinds, ids, end);
 }
 
 /* gather(buf, offsets, skip, size) -> bytearray
@@ -158,8 +175,8 @@ static PyObject *dataflash_walk(PyObject *self, PyObject *args) {
 
 static PyMethodDef methods[] = {
     {"ulog_walk", ulog_walk, METH_VARARGS,
-     "ulog_walk(buf, start, limit) -> (offsets as int64 bytes, end): the ULog records lying "
-     "whole in buf[start:limit]."},
+     "ulog_walk(buf, start, limit) -> (offsets, sizes, kinds, ids, end): the ULog records "
+     "lying whole in buf[start:limit]."},
     {"dataflash_walk", dataflash_walk, METH_VARARGS,
      "dataflash_walk(buf, lengths, first_def) -> offsets as int64 bytes: a DataFlash log's "
      "records, as pymavlink's DFReader walks them."},

@@ -18,7 +18,7 @@ from __future__ import annotations
 import mmap
 import os
 import struct
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -29,24 +29,42 @@ PURE_PYTHON_ENV = "IMUPIPE_PURE_PYTHON"
 """Set to 1: use the pure-Python walks even when the compiled helper is built."""
 
 
-def py_ulog_walk(buf: Buffer, start: int, limit: int) -> tuple[bytes, int]:
-    """The offsets (int64 bytes) of the ULog records lying whole in ``buf[start:limit]``
-    (``limit`` clipped to the buffer), walking from ``start``: a record at ``o`` is taken when
-    ``o + 3 + size <= limit``; the walk stops at the first that is not, or with fewer than 3
-    bytes left. Returns the offsets and where the walk stopped (the end of the last record
-    taken)."""
+def py_ulog_walk(buf: Buffer, start: int, limit: int) -> tuple[bytes, bytes, bytes, bytes, int]:
+    """The ULog records lying whole in ``buf[start:limit]`` (``limit`` clipped to the buffer),
+    walking from ``start``: a record at ``o`` is taken when ``o + 3 + size <= limit``; the walk
+    stops at the first that is not, or with fewer than 3 bytes left. Returns, as bytes, each
+    record's offset (int64), payload size (uint16), type (uint8) and payload's first two bytes
+    as a little-endian uint16 (a data record's ``msg_id``; 0 for a payload shorter than 2), and
+    where the walk stopped (the end of the last record taken)."""
     view = memoryview(buf).cast("B")
     limit = min(limit, len(view))
+    head = struct.Struct("<HBH").unpack_from
     size_at = struct.Struct("<H").unpack_from
     offsets: list[int] = []
+    sizes: list[int] = []
+    kinds: list[int] = []
+    ids: list[int] = []
     o = max(start, 0)
     while o + 3 <= limit:
         (size,) = size_at(view, o)
         if o + 3 + size > limit:
             break
+        if size >= 2:
+            _, kind, msg_id = head(view, o)
+        else:
+            kind, msg_id = view[o + 2], 0
         offsets.append(o)
+        sizes.append(size)
+        kinds.append(kind)
+        ids.append(msg_id)
         o += 3 + size
-    return np.asarray(offsets, dtype=np.int64).tobytes(), o
+    return (
+        np.asarray(offsets, dtype=np.int64).tobytes(),
+        np.asarray(sizes, dtype=np.uint16).tobytes(),
+        bytes(kinds),
+        np.asarray(ids, dtype=np.uint16).tobytes(),
+        o,
+    )
 
 
 def py_gather(buf: Buffer, offsets: Buffer, skip: int, size: int) -> bytearray:
@@ -77,11 +95,34 @@ def _helper() -> Any:
     return _records
 
 
-def ulog_walk(buf: Buffer, start: int, limit: int) -> tuple[np.ndarray, int]:
-    """:func:`py_ulog_walk` (compiled when built): the record offsets as an int64 array."""
+class Walk(NamedTuple):
+    """The records a ULog walk took (:func:`py_ulog_walk`), as arrays."""
+
+    offsets: np.ndarray
+    """Each record's offset in the file (int64)."""
+    sizes: np.ndarray
+    """Its payload's size (uint16)."""
+    kinds: np.ndarray
+    """Its type (uint8: ``ord("D")``...)."""
+    ids: np.ndarray
+    """Its payload's first two bytes (uint16: a data record's ``msg_id``)."""
+    end: int
+    """Where the walk stopped."""
+
+
+def ulog_walk(buf: Buffer, start: int, limit: int) -> Walk:
+    """:func:`py_ulog_walk` (compiled when built), as arrays."""
     helper = _helper()
-    raw, end = (py_ulog_walk if helper is None else helper.ulog_walk)(buf, start, limit)
-    return np.frombuffer(raw, dtype=np.int64), int(end)
+    offsets, sizes, kinds, ids, end = (py_ulog_walk if helper is None else helper.ulog_walk)(
+        buf, start, limit
+    )
+    return Walk(
+        np.frombuffer(offsets, dtype=np.int64),
+        np.frombuffer(sizes, dtype=np.uint16),
+        np.frombuffer(kinds, dtype=np.uint8),
+        np.frombuffer(ids, dtype=np.uint16),
+        int(end),
+    )
 
 
 def gather(buf: Buffer, offsets: np.ndarray, skip: int, size: int) -> bytearray:

@@ -91,7 +91,10 @@ def test_pure_python_walk_is_the_compiled_walk(path, monkeypatch):
     buf = path.read_bytes()
     for start, limit in ((16, len(buf)), (16, len(buf) // 2), (16, len(buf) + 99), (0, 40)):
         assert compiled.ulog_walk(buf, start, limit) == record_walk.py_ulog_walk(buf, start, limit)
-    offsets, _ = record_walk.ulog_walk(buf, 16, len(buf))
+    odd = bytes(16) + _rec("D", b"") + _rec("X", b"\x01") + _rec("D", b"\x05\x00abc") + b"\x09"
+    for start, limit in ((16, len(odd)), (16, 25), (17, len(odd))):
+        assert compiled.ulog_walk(odd, start, limit) == record_walk.py_ulog_walk(odd, start, limit)
+    offsets = record_walk.ulog_walk(buf, 16, len(buf)).offsets
     for skip, size in ((0, 3), (5, 8), (3, 0)):
         assert bytes(compiled.gather(buf, offsets, skip, size)) == bytes(
             record_walk.py_gather(buf, offsets, skip, size)
@@ -122,7 +125,7 @@ def _info(kind: str, key: str, value: bytes) -> bytes:
 
 def _boundary(buf: bytes, kind: str = "D") -> int:
     """The offset of a record of ``kind`` in the middle of the data section."""
-    offsets, _ = record_walk.ulog_walk(buf, 16, len(buf))
+    offsets = record_walk.ulog_walk(buf, 16, len(buf)).offsets
     at = offsets[np.frombuffer(buf, np.uint8)[offsets + 2] == ord(kind)]
     return int(at[len(at) // 2])
 
@@ -281,7 +284,7 @@ def test_a_data_record_of_another_size_is_left_to_pyulog(tmp_path):
 def _with_topic(tmp_path: Path, fmt: bytes, name: bytes) -> Path:
     """SMALL with one more format (before the first subscription) and its subscription."""
     buf = SMALL.read_bytes()
-    offsets, _ = record_walk.ulog_walk(buf, 16, len(buf))
+    offsets = record_walk.ulog_walk(buf, 16, len(buf)).offsets
     kinds = np.frombuffer(buf, np.uint8)[offsets + 2]
     first = int(offsets[np.flatnonzero(kinds == ord("A"))[0]])
     sub = _rec("A", struct.pack("<BH", 0, 3000) + name)
@@ -305,7 +308,7 @@ def test_a_topic_not_read_is_checked_as_pyulog_makes_it(tmp_path):
 def _in_definitions(tmp_path: Path, records_: bytes) -> Path:
     """SMALL with ``records_`` put just before its first subscription (definitions section)."""
     buf = SMALL.read_bytes()
-    offsets, _ = record_walk.ulog_walk(buf, 16, len(buf))
+    offsets = record_walk.ulog_walk(buf, 16, len(buf)).offsets
     kinds = np.frombuffer(buf, np.uint8)[offsets + 2]
     first = int(offsets[np.flatnonzero(kinds == ord("A"))[0]])
     path = tmp_path / "definitions.ulg"
@@ -330,7 +333,7 @@ def test_parameters_of_every_form_are_pyulogs(tmp_path, record, plain):
     path = _in_definitions(tmp_path, record)
     buf = path.read_bytes()
     raw = np.frombuffer(buf, np.uint8)
-    offsets, _ = record_walk.ulog_walk(buf, 16, len(buf))
+    offsets = record_walk.ulog_walk(buf, 16, len(buf)).offsets
     kinds = raw[offsets + 2]
     at = offsets[: np.flatnonzero(kinds == ord("A"))[0]]
     at = at[raw[at + 2] == ord("P")]

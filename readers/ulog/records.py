@@ -37,7 +37,7 @@ from typing import Any
 
 import numpy as np
 
-from imupipe.readers.record_walk import gather, ulog_walk
+from imupipe.readers.record_walk import Walk, gather, ulog_walk
 
 HEADER = 16
 """The file header's bytes: magic (7), version (1), start timestamp (uint64, us)."""
@@ -112,27 +112,37 @@ def _parse(buf: bytes, names: Collection[str] | None) -> Parsed | None:
         return None
 
     # the first section: definitions, then the data up to the first appended offset
-    offsets, end = ulog_walk(buf, flags_at, appended[0] if appended else size)
+    walk = ulog_walk(buf, flags_at, appended[0] if appended else size)
     raw = np.frombuffer(buf, dtype=np.uint8)
-    kinds = raw[offsets + 2]
-    starts_data = np.flatnonzero(np.isin(kinds, list(DATA_SECTION)))
+    starts_data = np.flatnonzero(np.isin(walk.kinds, list(DATA_SECTION)))
     if not len(starts_data):
         return None
     first = int(starts_data[0])
-    if not _definitions(log, buf, offsets[:first], raw):
+    if not _definitions(log, buf, _part(walk, slice(None, first)), raw):
         return None
     # each data section as pyulog reads it (``_read_file_data``): its own subscriptions (pyulog
     # turns a section's subscriptions into data at its end and starts the next without them)
-    seen = _data(log, buf, raw, offsets[first:], names)
+    seen = _data(log, buf, _part(walk, slice(first, None)), names)
+    end = walk.end
     for i, at in enumerate(appended):
         if seen is None:
             return None
-        more, end = ulog_walk(buf, at, appended[i + 1] if i + 1 < len(appended) else size)
-        also = _data(log, buf, raw, more, names)
+        more = ulog_walk(buf, at, appended[i + 1] if i + 1 < len(appended) else size)
+        also, end = _data(log, buf, more, names), more.end
         seen = None if also is None else seen | also
     if seen is None:
         return None
-    return log, seen, _cut(buf, int(end))
+    return log, seen, _cut(buf, end)
+
+
+def _part(walk: Walk, rows: slice) -> Walk:
+    """The records ``rows`` of a walk."""
+    return walk._replace(
+        offsets=walk.offsets[rows],
+        sizes=walk.sizes[rows],
+        kinds=walk.kinds[rows],
+        ids=walk.ids[rows],
+    )
 
 
 def _cut(buf: bytes, end: int) -> tuple[int, int, int] | None:
@@ -148,15 +158,14 @@ def _cut(buf: bytes, end: int) -> tuple[int, int, int] | None:
     return end, 3 + claimed, left
 
 
-def _definitions(log: Any, buf: bytes, offsets: np.ndarray, raw: np.ndarray) -> bool:
+def _definitions(log: Any, buf: bytes, walk: Walk, raw: np.ndarray) -> bool:
     """Decode the records of the definitions section as pyulog does; False when pyulog would
     not take one as it is (a type it does not know there, flag bits not first). The parameters
     (``'P'``, a thousand in a PX4 log) are decoded at once when they all have the plain form
     :func:`_plain_parameters` takes, else one by one as the other records."""
     from pyulog import ULog
 
-    sizes_all = raw[offsets].astype(np.int64) | (raw[offsets + 1].astype(np.int64) << 8)
-    kinds_all = raw[offsets + 2]
+    offsets, sizes_all, kinds_all = walk.offsets, walk.sizes.astype(np.int64), walk.kinds
     params = log._initial_parameters
     is_param = kinds_all == PARAM
     plain = _plain_parameters(raw, offsets[is_param], sizes_all[is_param])
@@ -233,26 +242,19 @@ def _plain_parameters(
     return list(zip(keys, values, strict=True))
 
 
-def _data(
-    log: Any,
-    buf: bytes,
-    raw: np.ndarray,
-    offsets: np.ndarray,
-    names: Collection[str] | None,
-) -> set[str] | None:
-    """One data section's records (``offsets``, in file order) into ``log``, as one call of
+def _data(log: Any, buf: bytes, walk: Walk, names: Collection[str] | None) -> set[str] | None:
+    """One data section's records (``walk``, in file order) into ``log``, as one call of
     pyulog's ``_read_file_data`` reads them; the subscribed topic names, or None when pyulog
     would find the section damaged."""
     from pyulog import ULog
 
-    sizes = raw[offsets].astype(np.int64) | (raw[offsets + 1].astype(np.int64) << 8)
-    kinds = raw[offsets + 2]
+    offsets, sizes, kinds = walk.offsets, walk.sizes.astype(np.int64), walk.kinds
     is_data = kinds == DATA
     data_at = np.flatnonzero(is_data)
     if len(data_at) and int(sizes[data_at].min()) < 2:
         return None
     d_offsets = offsets[data_at]
-    msg_ids = raw[d_offsets + 3].astype(np.int64) | (raw[d_offsets + 4].astype(np.int64) << 8)
+    msg_ids = walk.ids[data_at].astype(np.int64)
 
     # the other records, in file order: subscriptions first (they decide what the data is)
     others = np.flatnonzero(~is_data)
