@@ -12,8 +12,10 @@ for value on every field of every record of the real logs).
 **Finding the records** (:func:`record_offsets`): every ``0xA3 0x95 <known type>`` is a
 candidate; each candidate's successor is the first candidate at or after its end (so garbage
 between records is skipped as ``DFReader`` skips it, byte by byte to the next header of a known
-type); the records are the candidates reachable from the first, found by pointer doubling
-(log2(n) vectorised steps). A record cut by the end of the file ends the log, as in ``DFReader``.
+type); the records are the candidates reachable from the first, walked in C when the compiled
+helper is built (:func:`imupipe.readers.record_walk.dataflash_walk`: one pass over the bytes),
+else found by pointer doubling (log2(n) vectorised steps; the same records, tested equal). A
+record cut by the end of the file ends the log, as in ``DFReader``.
 
 **Damaged ``FMT`` records** (:func:`_fit_lengths`, :meth:`DataFlashLog.undecodable`): a
 type whose ``FMT`` length disagrees with the sizes of its field formats is walked with the
