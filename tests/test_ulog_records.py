@@ -341,3 +341,30 @@ def test_parameters_of_every_form_are_pyulogs(tmp_path, record, plain):
     assert (records._plain_parameters(raw, at, sizes) is not None) == plain
     own, _ = _both(path)
     assert len(own.initial_parameters) > 900
+
+
+def test_damaged_copies_are_pyulogs_or_left_to_it(tmp_path, capsys):
+    """16 damaged copies of a log (bytes changed, half of them in the definitions and
+    subscriptions at its start; cut): the own parse gives pyulog's result exactly, with pyulog
+    finding nothing to say, or leaves the file to pyulog (None)."""
+    rng = np.random.default_rng(39)
+    data = SMALL.read_bytes()
+    path = tmp_path / "damaged.ulg"
+    taken = left = 0
+    for i in range(16):
+        damaged = bytearray(data)
+        reach = len(data) if i % 2 else len(data) // 10
+        for at in rng.integers(0, reach, rng.integers(1, 4)):
+            damaged[at] = int(rng.integers(0, 256))
+        path.write_bytes(bytes(damaged[: int(rng.integers(len(data) * 9 // 10, len(data) + 1))]))
+        got = records.parse(path, set(READ_TOPICS))
+        if got is None:
+            left += 1
+            continue
+        capsys.readouterr()
+        ref = ULog(str(path), message_name_filter_list=list(READ_TOPICS))
+        assert capsys.readouterr().out == "", "pyulog spoke about a file the own parse took"
+        assert not ref.file_corruption
+        assert_same(ref, got[0])
+        taken += 1
+    assert taken >= 4 and left >= 1, (taken, left)  # both ways are exercised
