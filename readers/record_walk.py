@@ -25,6 +25,8 @@ import numpy as np
 Buffer = bytes | bytearray | memoryview | mmap.mmap
 """What the walks read: any object with the buffer protocol."""
 
+GATHER_BYTES = 1 << 20
+"""Bytes :func:`py_gather` copies per numpy step (its index array: 8 x that)."""
 PURE_PYTHON_ENV = "IMUPIPE_PURE_PYTHON"
 """Set to 1: use the pure-Python walks even when the compiled helper is built."""
 
@@ -38,45 +40,46 @@ def py_ulog_walk(buf: Buffer, start: int, limit: int) -> tuple[bytes, bytes, byt
     where the walk stopped (the end of the last record taken)."""
     view = memoryview(buf).cast("B")
     limit = min(limit, len(view))
-    head = struct.Struct("<HBH").unpack_from
     size_at = struct.Struct("<H").unpack_from
     offsets: list[int] = []
-    sizes: list[int] = []
-    kinds: list[int] = []
-    ids: list[int] = []
     o = max(start, 0)
-    while o + 3 <= limit:
+    while o + 3 <= limit:  # the one step per record: where the next one starts
         (size,) = size_at(view, o)
         if o + 3 + size > limit:
             break
-        if size >= 2:
-            _, kind, msg_id = head(view, o)
-        else:
-            kind, msg_id = view[o + 2], 0
         offsets.append(o)
-        sizes.append(size)
-        kinds.append(kind)
-        ids.append(msg_id)
         o += 3 + size
+    at = np.asarray(offsets, dtype=np.int64)
+    raw = np.frombuffer(view, dtype=np.uint8)
+    sizes = (raw[at].astype(np.uint16) | (raw[at + 1].astype(np.uint16) << 8)) if len(at) else at
+    ids = np.zeros(len(at), dtype=np.uint16)
+    long = np.flatnonzero(sizes >= 2)
+    ids[long] = raw[at[long] + 3].astype(np.uint16) | (raw[at[long] + 4].astype(np.uint16) << 8)
     return (
-        np.asarray(offsets, dtype=np.int64).tobytes(),
+        at.tobytes(),
         np.asarray(sizes, dtype=np.uint16).tobytes(),
-        bytes(kinds),
-        np.asarray(ids, dtype=np.uint16).tobytes(),
+        raw[at + 2].tobytes() if len(at) else b"",
+        ids.tobytes(),
         o,
     )
 
 
 def py_gather(buf: Buffer, offsets: Buffer, skip: int, size: int) -> bytearray:
     """``buf[o + skip : o + skip + size]`` for each int64 ``o`` of ``offsets``, concatenated
-    (a bytearray: the arrays numpy makes of it are writable)."""
+    (a bytearray: the arrays numpy makes of it are writable), with numpy fancy indexing."""
     view = memoryview(buf).cast("B")
     starts = np.frombuffer(offsets, dtype=np.int64)
     if skip < 0 or size < 0:
         raise ValueError("gather: negative size or skip")
     if len(starts) and (starts.min() < 0 or starts.max() + skip + size > len(view)):
         raise IndexError("gather: offset out of the buffer")
-    return bytearray(b"".join([view[o + skip : o + skip + size] for o in starts.tolist()]))
+    raw = np.frombuffer(view, dtype=np.uint8)
+    out = bytearray(len(starts) * size)
+    rows = np.frombuffer(out, dtype=np.uint8).reshape(len(starts), size)
+    step = max(1, GATHER_BYTES // max(size, 1))  # records a slice: bounds the index array
+    for i in range(0, len(starts), step):  # slices of records, not one step per record
+        rows[i : i + step] = raw[starts[i : i + step, None] + skip + np.arange(size)]
+    return out
 
 
 def compiled() -> bool:
