@@ -7,7 +7,8 @@ the one before it is read: numpy cannot walk them without a Python step per reco
 compiled helper ``imupipe.readers._records`` (``readers/_records.c``, built by ``setup.py`` as
 an optional extension: an install without a C compiler goes on without it) does the walk and the
 copy of fixed-size payloads, and the walk of an ArduPilot DataFlash log's records; the ULog
-functions here are the same in pure Python and the DataFlash reader finds the same records with
+functions here are the same in Python and numpy (no compiled code of imupipe's), and the
+DataFlash reader finds the same records with
 numpy (pointer doubling), used when the helper is not built or ``IMUPIPE_PURE_PYTHON=1`` is set
 (``tests/test_ulog_records.py`` and ``tests/test_dataflash_reader.py`` check that both give the
 same offsets and bytes).
