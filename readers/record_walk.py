@@ -8,10 +8,9 @@ compiled helper ``imupipe.readers._records`` (``readers/_records.c``, built by `
 an optional extension: an install without a C compiler goes on without it) does the walk and the
 copy of fixed-size payloads, and the walk of an ArduPilot DataFlash log's records; the ULog
 functions here are the same in Python and numpy (no compiled code of imupipe's), and the
-DataFlash reader finds the same records with
-numpy (pointer doubling), used when the helper is not built or ``IMUPIPE_PURE_PYTHON=1`` is set
-(``tests/test_ulog_records.py`` and ``tests/test_dataflash_reader.py`` check that both give the
-same offsets and bytes).
+DataFlash reader finds the same records with numpy (pointer doubling); they are used when the
+helper is not built or ``IMUPIPE_PURE_PYTHON=1`` is set (``tests/test_ulog_records.py`` and
+``tests/test_dataflash_reader.py`` check that both ways give the same offsets and bytes).
 """
 
 from __future__ import annotations
