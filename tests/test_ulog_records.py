@@ -368,3 +368,21 @@ def test_damaged_copies_are_pyulogs_or_left_to_it(tmp_path, capsys):
         assert_same(ref, got[0])
         taken += 1
     assert taken >= 4 and left >= 1, (taken, left)  # both ways are exercised
+
+
+def test_a_read_without_the_compiled_walk_is_the_same_table(monkeypatch):
+    """imupipe's read of a ULog, with the compiled walk and without it: the same table."""
+    from imupipe.readers.dispatch import read_input
+    from imupipe.readers.spec import InputSpec
+
+    _compiled()
+    fast, warned = read_input(InputSpec(path=SMALL))
+    monkeypatch.setenv(record_walk.PURE_PYTHON_ENV, "1")
+    slow, said = read_input(InputSpec(path=SMALL))
+    assert fast.schema.equals(slow.schema, check_metadata=True) and warned == said
+    for name in fast.column_names:
+        a, b = fast.column(name).combine_chunks(), slow.column(name).combine_chunks()
+        assert a.type == b.type and a.null_count == b.null_count, name
+        assert [x and x.to_pybytes() for x in a.buffers()] == [
+            x and x.to_pybytes() for x in b.buffers()
+        ], name
