@@ -4,7 +4,9 @@ Measured in one run, on the same file: DFReader's parse of every message (``recv
 end: what a user of pymavlink pays to get a log's IMU records), imupipe's decode of every record
 of every type (``DataFlashLog`` + ``records`` of each type: the same work), and imupipe's whole
 read into the common table (``read_input``, one IMU instance, its temperature, a magnetometer).
-Prints best-of-N wall times and the ratios (DFReader / imupipe: above 1 is faster).
+Also the table read with the records found by numpy instead of the compiled walk
+(``IMUPIPE_PURE_PYTHON=1``: an install without a C compiler). Prints best-of-N wall times and
+the ratios (DFReader / imupipe: above 1 is faster).
 
     python benchmarks/bench_dataflash.py [LOG.bin ...] [--repeat 3] [--synthetic-mb 20]
 
@@ -15,6 +17,7 @@ Default logs: the largest of ``../shared/data/logs/ardupilot_flights`` (``erle_p
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import tempfile
 import time
@@ -61,16 +64,22 @@ def _imupipe_table(path: Path, imu: str) -> int:
 
 
 def measure(path: Path, repeat: int, imu: str = "IMU") -> None:
+    from imupipe.readers.record_walk import PURE_PYTHON_ENV, compiled
+
     size = path.stat().st_size / 1e6
     n_ref = _dfreader(path)
     n_ours = _imupipe_all(path)
     ref = _best(lambda: _dfreader(path), repeat)
     ours = _best(lambda: _imupipe_all(path), repeat)
     table = _best(lambda: _imupipe_table(path, imu), repeat)
+    os.environ[PURE_PYTHON_ENV] = "1"  # the records found with numpy, as without a compiler
+    pure = _best(lambda: _imupipe_table(path, imu), repeat)
+    del os.environ[PURE_PYTHON_ENV]
     print(
         f"{path.name} ({size:.1f} MB, {n_ref} messages; imupipe {n_ours}): DFReader {ref:.3f} s, "
         f"imupipe every record {ours:.3f} s ({ref / ours:.1f}x faster), "
-        f"imupipe read_input {table:.3f} s ({ref / table:.1f}x faster)"
+        f"imupipe read_input {table:.3f} s ({ref / table:.1f}x faster; compiled walk "
+        f"{compiled()}), without the compiled walk {pure:.3f} s ({ref / pure:.1f}x faster)"
     )
 
 

@@ -483,30 +483,44 @@ def with_flight_stream(
     """``table`` with the samples of flight stream ``stream`` (:data:`FLIGHT_COLUMNS`) added as
     rows of their own: ``values`` (n, k) at ``t_ns`` (int64 ns), every other column null; rows
     sorted stably by time (the table's rows first at equal stamps). The metadata is kept."""
-    cols = FLIGHT_COLUMNS[stream]
-    t_ns = np.asarray(t_ns, dtype=np.int64)
-    values = np.asarray(values, dtype=np.float64).reshape(len(t_ns), len(cols))
-    if len(t_ns) == 0:
+    return with_flight_streams(table, {stream: (t_ns, values)})
+
+
+def with_flight_streams(
+    table: pa.Table, streams: Mapping[str, tuple[np.ndarray, np.ndarray]]
+) -> pa.Table:
+    """``table`` with several flight streams added (stream -> (``t_ns``, ``values``)), one
+    merge and one stable sort by time: the same table as :func:`with_flight_stream` applied to
+    each stream in turn (the table's rows first at equal stamps, then each stream's in the
+    order given; the new columns appended in that order), without re-sorting the table once per
+    stream."""
+    given = []
+    for stream, (t_ns, values) in streams.items():
+        t_ns = np.asarray(t_ns, dtype=np.int64)
+        if len(t_ns):
+            cols = FLIGHT_COLUMNS[stream]
+            given.append((cols, t_ns, np.asarray(values, np.float64).reshape(len(t_ns), len(cols))))
+    if not given:
         return table
     meta = metadata(table)
-    names: list[str] = []
-    arrays: list[pa.Array] = []
-    for field in table.schema:
-        names.append(field.name)
-        if field.name == "t_ns":
-            arrays.append(arrow_array(t_ns, pa.int64()))
-        elif field.name in cols:
-            arrays.append(arrow_array(values[:, cols.index(field.name)], pa.float64()))
-        else:
-            arrays.append(pa.nulls(len(t_ns), field.type))
-    for i, name in enumerate(cols):
-        if name not in table.column_names:
-            field = OPTIONAL_FIELDS.field(name)
-            table = table.append_column(field, pa.nulls(len(table), field.type))
-            names.append(name)
-            arrays.append(arrow_array(values[:, i], pa.float64()))
-    added = pa.Table.from_arrays(arrays, schema=table.schema.remove_metadata())
-    merged = pa.concat_tables([table.replace_schema_metadata(None), added]).combine_chunks()
+    for cols, _, _ in given:
+        for name in cols:
+            if name not in table.column_names:
+                field = OPTIONAL_FIELDS.field(name)
+                table = table.append_column(field, pa.nulls(len(table), field.type))
+    schema = table.schema.remove_metadata()
+    parts = [table.replace_schema_metadata(None)]
+    for cols, t_ns, values in given:
+        arrays: list[pa.Array] = []
+        for field in schema:
+            if field.name == "t_ns":
+                arrays.append(arrow_array(t_ns, pa.int64()))
+            elif field.name in cols:
+                arrays.append(arrow_array(values[:, cols.index(field.name)], pa.float64()))
+            else:
+                arrays.append(pa.nulls(len(t_ns), field.type))
+        parts.append(pa.Table.from_arrays(arrays, schema=schema))
+    merged = pa.concat_tables(parts).combine_chunks()
     merged, _ = sort_by_time(merged)
     return with_metadata(merged, meta)
 

@@ -404,3 +404,45 @@ def test_header_scan_across_blocks(synthetic, monkeypatch):
     blocks = record_offsets(buf)
     assert np.array_equal(whole[0], blocks[0]) and np.array_equal(whole[1], blocks[1])
     assert whole[3] == blocks[3]
+
+
+def _both_walks(data: bytes, monkeypatch) -> None:
+    """record_offsets with the compiled walk and with numpy's pointer doubling: the same."""
+    from imupipe.readers.record_walk import PURE_PYTHON_ENV, compiled
+
+    buf = np.frombuffer(data, dtype=np.uint8)
+    monkeypatch.delenv(PURE_PYTHON_ENV, raising=False)
+    assert compiled()
+    fast = record_offsets(buf)
+    monkeypatch.setenv(PURE_PYTHON_ENV, "1")
+    assert not compiled()
+    slow = record_offsets(buf)
+    monkeypatch.delenv(PURE_PYTHON_ENV)
+    assert fast[0].tolist() == slow[0].tolist()
+    assert fast[1].tolist() == slow[1].tolist() and fast[1].dtype == slow[1].dtype
+    assert fast[2] == slow[2] and fast[3] == slow[3]
+
+
+def test_compiled_walk_is_the_numpy_walk(synthetic, monkeypatch):
+    """Issue 39: the DataFlash records walked in C (readers/_records.c) are the ones numpy's
+    pointer doubling finds, on the real logs, the synthetic log and 40 damaged copies of it
+    (bytes flipped, headers put inside payloads, cut)."""
+    pytest.importorskip("imupipe.readers._records", reason="the compiled helper is not built")
+    logs = [path for path in (shared_path_or_none(n) for n in FLIGHTS) if path is not None]
+    path, _ = synthetic
+    for log in [*logs, path]:
+        _both_walks(log.read_bytes(), monkeypatch)
+    rng = np.random.default_rng(39)
+    data = path.read_bytes()
+    for _ in range(40):
+        damaged = bytearray(data)
+        for at in rng.integers(0, len(data), rng.integers(1, 30)):
+            damaged[at] = int(rng.choice([0xA3, 0x95, 128, int(rng.integers(0, 256))]))
+        _both_walks(bytes(damaged[: int(rng.integers(len(data) // 2, len(data) + 1))]), monkeypatch)
+
+
+def shared_path_or_none(name: str) -> Path | None:
+    from conftest import SHARED
+
+    path = SHARED / "logs" / "ardupilot_flights" / name
+    return path if path.exists() else None

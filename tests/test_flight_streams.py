@@ -16,6 +16,7 @@ from imupipe.readers.table import (
     make_table,
     sensor,
     with_flight_stream,
+    with_flight_streams,
 )
 from imupipe.readers.ulog.reader import read_ulog
 
@@ -109,6 +110,29 @@ def test_with_flight_stream_keeps_sensors_and_order():
     assert np.array_equal(flight_stream(out, "current").values[:, 0], [1.0, 2.0, 3.0])
     assert np.array_equal(sensor(out, "mag").t_ns, t)
     assert counts(out) == {"mag": 10}
+
+
+def test_flight_streams_at_once_are_the_streams_one_by_one():
+    """One merge of several streams gives the table of adding them one by one (issue 39: the
+    table is sorted once): rows at equal stamps in the table's, then the streams' order, the
+    new columns in the order given, unsorted stamps sorted in."""
+    t = np.arange(0, 10, dtype=np.int64) * 10
+    table = make_table(t, mag=np.ones((10, 3)))
+    streams = {
+        "current": (np.array([5, 20, 200]), np.array([1.0, 2.0, 3.0])),
+        "attitude": (np.array([20, 3, 20]), np.arange(12.0).reshape(3, 4)),
+        "throttle": (np.array([], dtype=np.int64), np.array([])),
+        "position": (np.array([90, 20]), np.arange(6.0).reshape(2, 3)),
+    }
+    one_by_one = table
+    for stream, (t_ns, values) in streams.items():
+        one_by_one = with_flight_stream(one_by_one, stream, t_ns, values)
+    at_once = with_flight_streams(table, streams)
+    assert at_once.column_names == one_by_one.column_names
+    assert at_once.schema.equals(one_by_one.schema, check_metadata=True)
+    for name in at_once.column_names:
+        assert at_once.column(name).to_pylist() == one_by_one.column(name).to_pylist(), name
+    assert len(at_once) == 10 + 3 + 3 + 2 and not has_flight_stream(at_once, "throttle")
 
 
 def test_euler_quaternion_identity_and_yaw():

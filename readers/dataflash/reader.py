@@ -12,8 +12,10 @@ for value on every field of every record of the real logs).
 **Finding the records** (:func:`record_offsets`): every ``0xA3 0x95 <known type>`` is a
 candidate; each candidate's successor is the first candidate at or after its end (so garbage
 between records is skipped as ``DFReader`` skips it, byte by byte to the next header of a known
-type); the records are the candidates reachable from the first, found by pointer doubling
-(log2(n) vectorised steps). A record cut by the end of the file ends the log, as in ``DFReader``.
+type); the records are the candidates reachable from the first, walked in C when the compiled
+helper is built (:func:`imupipe.readers.record_walk.dataflash_walk`: one pass over the bytes),
+else found by pointer doubling (log2(n) vectorised steps; the same records, tested equal). A
+record cut by the end of the file ends the log, as in ``DFReader``.
 
 **Damaged ``FMT`` records** (:func:`_fit_lengths`, :meth:`DataFlashLog.undecodable`): a
 type whose ``FMT`` length disagrees with the sizes of its field formats is walked with the
@@ -72,10 +74,11 @@ import pyarrow as pa
 from imupipe.readers.arrays import unique
 from imupipe.readers.decoded import Piece, repeat_string
 from imupipe.readers.errors import ReadError
+from imupipe.readers.record_walk import dataflash_walk
 from imupipe.readers.spec import InputSpec
 from imupipe.readers.table import (
     metadata,
-    with_flight_stream,
+    with_flight_streams,
     with_metadata,
     with_stream_column,
 )
@@ -283,6 +286,28 @@ def _fit_lengths(
     return out
 
 
+def _chain(
+    buf: np.ndarray,
+    cand: np.ndarray,
+    types: np.ndarray,
+    lengths: np.ndarray,
+    first_def: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """(offsets, types) of the records ``DFReader`` walks: from the first candidate that is a
+    record (a known type, defined before it, and whole), each next the first such candidate at
+    or after its end. In C when the compiled helper is built
+    (:func:`imupipe.readers.record_walk.dataflash_walk`: one pass over the bytes), else with
+    numpy (each candidate's successor, then the chain from the first by pointer doubling,
+    :func:`_reachable`); both give the same records (``tests/test_dataflash_reader.py``)."""
+    walked = dataflash_walk(buf, lengths, first_def)
+    if walked is not None:
+        return walked, buf[walked + 2].astype(np.int64)
+    ok = (lengths[types] > 0) & (first_def[types] < cand) & (cand + lengths[types] <= len(buf))
+    pos, typ = cand[ok], types[ok]
+    on = _reachable(np.searchsorted(pos, pos + lengths[typ]))
+    return pos[on], typ[on]
+
+
 def record_offsets(buf: np.ndarray) -> tuple[np.ndarray, np.ndarray, dict[int, Format], int]:
     """(offsets, types, formats, end) of the log's records, in file order, as ``DFReader`` walks
     them; ``end`` is the offset after the last whole record (bytes after it: a cut record or
@@ -302,12 +327,7 @@ def record_offsets(buf: np.ndarray) -> tuple[np.ndarray, np.ndarray, dict[int, F
         if len(defined):
             def_types = buf[defined + 3].astype(np.int64)
             np.minimum.at(first_def, def_types, defined)
-        # a record: a known type, defined before it, and whole
-        ok = (lengths[types] > 0) & (first_def[types] < cand) & (cand + lengths[types] <= len(buf))
-        pos, typ = cand[ok], types[ok]
-        nxt = np.searchsorted(pos, pos + lengths[typ])
-        on = _reachable(nxt)
-        pos, typ = pos[on], typ[on]
+        pos, typ = _chain(buf, cand, types, lengths, first_def)
         walked = _fit_lengths(cand, types, _formats_at(buf, pos[typ == FMT_TYPE]))
         if walked == formats or fmt_at.size == 0:
             break
@@ -695,8 +715,7 @@ def read_dataflash(spec: InputSpec) -> tuple[pa.Table, list[str]]:
             pieces["temperature"].stamp,
             f.field(inst.name, "Press", inst.rows),  # Pa (LogStructure.h units: P)
         )
-    for stream, (t_ns, values) in flight_streams(f).items():
-        table = with_flight_stream(table, stream, t_ns, values)
+    table = with_flight_streams(table, flight_streams(f))
     meta = metadata(table)
     meta.pop("frame_id", None)  # a DataFlash log names no frames
     year = gps_year(f)

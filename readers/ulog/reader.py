@@ -1,4 +1,5 @@
-"""PX4 ULog files (``.ulg``) into the common table, with pyulog.
+"""PX4 ULog files (``.ulg``) into the common table: pyulog's parse, done by imupipe's own record
+walk (:mod:`imupipe.readers.ulog.records`) or, for a file it leaves out, by pyulog.
 
 A ULog (PX4's log format, https://docs.px4.io/main/en/dev_log/ulog_file_format.html) holds uORB
 topics, each possibly in several *instances* (``multi_id``: one per sensor of a kind), the
@@ -55,7 +56,9 @@ its ``struct.error`` is taken for the end of the file), and skips data records o
 by a subclass of pyulog's ``ULog`` that skips each damaged record and goes on (what pyulog
 does for the damage it knows), recording its offset, size and topic; one warning says how many
 records and bytes were skipped, between which offsets, and which topics' messages were among
-them (:meth:`UlogFile.damage_warning`). An undamaged file is parsed once, at pyulog's speed.
+them (:meth:`UlogFile.damage_warning`). An undamaged file is parsed once, by imupipe's own parse
+(:func:`imupipe.readers.ulog.records.parse`: pyulog's result, its record walk compiled), which
+leaves every file pyulog would call damaged or warn about to pyulog.
 
 **Not carried**: ULog topics other than the ones read have no ROS message type; they are not
 written to the corrected MCAP and one warning lists them.
@@ -82,12 +85,13 @@ from imupipe.readers.errors import ReadError
 from imupipe.readers.spec import InputSpec
 from imupipe.readers.table import (
     metadata,
-    with_flight_stream,
+    with_flight_streams,
     with_metadata,
     with_stream_column,
 )
 from imupipe.readers.table_buffer import assemble
 from imupipe.readers.topics import NOT_CARRIED, asked_topics, some_of
+from imupipe.readers.ulog import records
 from imupipe.readers.ulog.rotation import mag_rotation, mag_slot
 
 US_TO_NS = 1000
@@ -213,9 +217,11 @@ class UlogFile:
                 self.instances[inst.key] = inst
             else:
                 self.notices.append(f"topic {inst.key} has no timestamp field: not read")
+        self.imu_pairs: dict[int, int] | None = None
+        """:func:`_imu_pairs`, once made."""
         self.skipped: list[str] = [] if wanted is None else sorted(wanted.seen - wanted.names)
         """Topics the log holds that were not parsed (names, every instance)."""
-        self.damage: list[Damage] = list(self.ulog.damage)
+        self.damage: list[Damage] = list(getattr(self.ulog, "damage", ()))
         """The damaged records the parse skipped (offset, bytes, what), in file order."""
         if cut is not None:
             at, claimed, left = cut
@@ -335,12 +341,20 @@ which pyulog takes for the end of the file (``_read_file_data``'s ``except struc
 def _parse(path: Path, wanted: _TopicFilter | None) -> tuple[Any, tuple[int, int, int] | None]:
     """pyulog's parse of ``path``, and the last record cut by the end of the file when known.
 
-    A first parse is pyulog's own (its speed); when it met damage (``_file_corrupt``), ended
+    The parse is imupipe's own (:func:`imupipe.readers.ulog.records.parse`: pyulog's result,
+    the record walk compiled) for every file it handles; for the others (damage, records pyulog
+    warns about) a first parse is pyulog's own; when it met damage (``_file_corrupt``), ended
     before the end of the file (a record it could not unpack) or walked records that do not end
     at the end of the file (a record cut, or a damaged size field that sent the parse past the
     end: pyulog takes either for the end of the log), the file is parsed again by
     :func:`_ulog_classes`' tolerant class, which reads past the damaged records and says where
     they are."""
+    own = records.parse(path, None if wanted is None else wanted.names)
+    if own is not None:
+        ulog, seen, cut = own
+        if wanted is not None:
+            wanted.seen |= seen
+        return ulog, cut
     fast, tolerant = _ulog_classes()
     with _Ending(path) as handle:
         ulog = fast(handle, wanted)
@@ -521,7 +535,13 @@ def _old_combined(f: UlogFile, prefix: str) -> Instance | None:
 
 def _imu_pairs(f: UlogFile) -> dict[int, int]:
     """Gyro device id -> accel device id, as PX4 paired them in ``vehicle_imu`` (every
-    message of every instance; a pair with a zero id is no pair)."""
+    message of every instance; a pair with a zero id is no pair); made once per file."""
+    if f.imu_pairs is None:
+        f.imu_pairs = _pairs_of(f)
+    return f.imu_pairs
+
+
+def _pairs_of(f: UlogFile) -> dict[int, int]:
     pairs: dict[int, int] = {}
     for imu in f.named("vehicle_imu"):
         if not imu.has("gyro_device_id", "accel_device_id"):
@@ -1013,8 +1033,7 @@ def read_ulog(spec: InputSpec) -> tuple[pa.Table, list[str]]:
         piece = pieces["temperature"]
         t = piece.log if spec.time == "log" else piece.stamp  # the table's t_ns
         table = with_stream_column(table, "temperature", "pressure", t, baro_pascal(baro))
-    for stream, (t_ns, values) in flight_streams(f, spec.time).items():
-        table = with_flight_stream(table, stream, t_ns, values)
+    table = with_flight_streams(table, flight_streams(f, spec.time))
     meta = metadata(table)
     meta.pop("frame_id", None)  # a ULog names no frames
     year = gps_year(f)
