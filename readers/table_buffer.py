@@ -30,6 +30,7 @@ from collections.abc import Callable, Iterator, Mapping, Sequence
 import numpy as np
 import pyarrow as pa
 
+from imupipe.readers import chunk_fill
 from imupipe.readers.arrays import arrow_array, string_array
 from imupipe.readers.decoded import Piece, absent_sensors, repeat_string
 from imupipe.readers.prefault import Prefault
@@ -188,16 +189,28 @@ class _Stream:
             value = getattr(piece, TIME_COLUMNS[name])
             values[name] = piece.log if value is None else value
         first = _first_row(at)
-        for name, column in piece.columns.items():
-            if name in self.clean:
-                if _zeros_only(column):
-                    continue
+        records = getattr(piece, "records", None)
+        runs = None if records is None else _runs(at)
+        if runs is not None and all(isinstance(rows, slice) for _, rows in runs):
+            # the compiled pass: the chunk's values straight into the columns (chunk_fill)
+            written, nan = chunk_fill.fill(records, self.columns, self.clean, runs)  # type: ignore[arg-type]
+            for name in written:
                 self.clean.discard(name)
                 if self.prefault is not None:
                     self.prefault.add(self.columns[name], first)
-            values[name] = column
-        self.seen.update(piece.columns)
-        if self.stream == "imu":
+            self.seen.update(records.names)  # type: ignore[union-attr]
+        else:
+            nan = None
+            for name, column in piece.columns.items():
+                if name in self.clean:
+                    if _zeros_only(column):
+                        continue
+                    self.clean.discard(name)
+                    if self.prefault is not None:
+                        self.prefault.add(self.columns[name], first)
+                values[name] = column
+            self.seen.update(piece.columns)
+        if self.stream == "imu" and nan != set():  # no NaN in the vectors: nothing marked
             for name, marked in absent_sensors(piece).items():
                 if name not in self.flags:
                     self.flags[name] = np.zeros(self.capacity, bool)
