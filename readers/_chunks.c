@@ -46,7 +46,8 @@ static inline uint32_t rd32(const uint8_t *p) {
     return v;
 }
 
-/* cdr_walk(buf, offsets, channel, floats) -> None | (times: bytearray, skip: int, frame: bytes)
+/* cdr_walk(buf, offsets, channel, floats)
+ *     -> None | (times: bytearray, skip: int, frame: bytes, ordered: int)
  *
  * offsets: int64 byte offsets of channel's message records in buf (a decompressed chunk).
  * When every record is a message record of that channel lying whole in buf, every payload has
@@ -54,7 +55,8 @@ static inline uint32_t rd32(const uint8_t *p) {
  * frame_id bytes, and room for `floats` float64 fields after the header: times holds 3 * n
  * int64 (log times, publish times, header stamps sec * 1e9 + nanosec, each n long; the uint64
  * times read as int64), skip the bytes from a record's opcode to its first float field, frame
- * the frame_id's bytes (without the NUL). Else None (the numpy path reads the chunk). */
+ * the frame_id's bytes (without the NUL), ordered bit 0 set when the log times never decrease,
+ * bit 1 when the header stamps never do. Else None (the numpy path reads the chunk). */
 static PyObject *cdr_walk(PyObject *self, PyObject *args) {
     Py_buffer view, offs;
     unsigned int channel;
@@ -82,6 +84,7 @@ static PyObject *cdr_walk(PyObject *self, PyObject *args) {
     PyObject *times = PyByteArray_FromStringAndSize(NULL, 3 * n * (Py_ssize_t)sizeof(int64_t));
     if (times == NULL) goto fail;
     int64_t *out = (int64_t *)PyByteArray_AS_STRING(times);
+    int ordered = 3;
     for (Py_ssize_t i = 0; i < n; i++) {
         int64_t o;
         memcpy(&o, raw + i * (Py_ssize_t)sizeof(int64_t), sizeof(int64_t));
@@ -100,12 +103,17 @@ static PyObject *cdr_walk(PyObject *self, PyObject *args) {
         memcpy(&pub, r + 23, 8);
         int32_t sec;
         memcpy(&sec, p + 4, 4);
+        const int64_t stamp = (int64_t)sec * 1000000000LL + (int64_t)rd32(p + 8);
+        if (i) {
+            if (log < out[i - 1]) ordered &= ~1;
+            if (stamp < out[2 * n + i - 1]) ordered &= ~2;
+        }
         out[i] = log;
         out[n + i] = pub;
-        out[2 * n + i] = (int64_t)sec * 1000000000LL + (int64_t)rd32(p + 8);
+        out[2 * n + i] = stamp;
     }
-    result = Py_BuildValue("NnN", times, (Py_ssize_t)(MESSAGE_HEADER + first),
-                           PyBytes_FromStringAndSize((const char *)p0 + 16, frame_len));
+    result = Py_BuildValue("NnNi", times, (Py_ssize_t)(MESSAGE_HEADER + first),
+                           PyBytes_FromStringAndSize((const char *)p0 + 16, frame_len), ordered);
     goto done;
 drop:
     Py_DECREF(times);
@@ -228,8 +236,8 @@ done:
 
 static PyMethodDef methods[] = {
     {"cdr_walk", cdr_walk, METH_VARARGS,
-     "cdr_walk(buf, offsets, channel, floats) -> None | (times, skip, frame): one channel's "
-     "message records of one little-endian CDR layout, checked, and their times."},
+     "cdr_walk(buf, offsets, channel, floats) -> None | (times, skip, frame, ordered): one "
+     "channel's message records of one little-endian CDR layout, checked, and their times."},
     {"fill", fill, METH_VARARGS,
      "fill(buf, offsets, skip, slots, columns, clean, nan_check, runs) -> (dirty, nan): the "
      "float fields of the messages written into the table's columns."},

@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import os
 import sys
+from array import array
 from dataclasses import dataclass
 from types import ModuleType
 
@@ -73,6 +74,8 @@ class Records:
     skip: int
     slots: np.ndarray
     names: tuple[str, ...]
+    module: ModuleType
+    """The compiled helper that found them."""
 
     def columns(self) -> dict[str, np.ndarray]:
         """The value columns as the numpy path gives them: read-only views into ``buf`` when
@@ -85,7 +88,11 @@ class Records:
             if step is not None and n:
                 shape, strides = ((n,), (step,)) if count == 1 else ((n, count), (step, 8))
                 out[name] = np.ndarray(
-                    shape, "<f8", buffer=self.buf, offset=int(self.offsets[0]) + pos, strides=strides
+                    shape,
+                    "<f8",
+                    buffer=self.buf,
+                    offset=int(self.offsets[0]) + pos,
+                    strides=strides,
                 )
             elif count == 1:
                 out[name] = at(self.buf, self.offsets, pos, "<f8", None)
@@ -100,9 +107,21 @@ class RecordPiece(Piece):
     (:attr:`records`): the table fills its columns from there (:func:`fill`); ``columns`` gives
     them as the numpy path would, made on first use (by a reader of batches, for instance)."""
 
-    def __init__(self, stamp, log, frame, pub, one_frame: str, records: Records) -> None:  # noqa: ANN001
+    def __init__(
+        self,
+        stamp: np.ndarray,
+        log: np.ndarray,
+        frame: pa.Array,
+        pub: np.ndarray,
+        one_frame: str,
+        records: Records,
+        ordered: int,
+    ) -> None:
         self._columns: dict[str, np.ndarray] | None = None
         self.records: Records | None = records
+        self.ordered = ((log, bool(ordered & 1)), (stamp, bool(ordered & 2)))
+        """(times, whether they never decrease) for the log times and the header stamps, as
+        the compiled walk found them."""
         super().__init__(stamp, log, frame, None, pub, one_frame)  # type: ignore[arg-type]
 
     @property  # type: ignore[override]
@@ -119,6 +138,14 @@ class RecordPiece(Piece):
 
 
 _frames: dict[tuple[str, int], pa.Array] = {}
+_SLOTS = {
+    stream: (
+        tuple(name for name, _, _ in columns),
+        np.array([(first, count) for _, first, count in columns], np.int64),
+    )
+    for stream, columns in COLUMNS.items()
+}
+"""Per stream: its value columns' names and (first float, count)."""
 
 
 def _frame(one: str, n: int) -> pa.Array:
@@ -132,9 +159,7 @@ def _frame(one: str, n: int) -> pa.Array:
     return frame
 
 
-def walk(
-    buf: np.ndarray, offsets: np.ndarray, channel: int, stream: str
-) -> RecordPiece | None:
+def walk(buf: np.ndarray, offsets: np.ndarray, channel: int, stream: str) -> RecordPiece | None:
     """The messages of ``channel`` at the record ``offsets`` of the decompressed chunk ``buf``
     as a :class:`RecordPiece` of ``stream``, when the compiled pass takes them (one CDR layout,
     every record whole and of the channel); else None (the numpy path reads them)."""
@@ -145,17 +170,16 @@ def walk(
     found = module.cdr_walk(buf, offsets, channel, field_count(PIECE_TYPES[stream]))
     if found is None:
         return None
-    times, skip, frame = found
+    times, skip, frame, ordered = found
     try:
         one = frame.decode()
     except UnicodeDecodeError:
         return None
     n = len(offsets)
     log, pub, stamp = np.frombuffer(times, np.int64).reshape(3, n)
-    names = tuple(name for name, _, _ in COLUMNS[stream])
-    slots = np.array([(first, count) for _, first, count in COLUMNS[stream]], np.int64)
-    records = Records(buf, offsets, skip, slots, names)
-    return RecordPiece(stamp, log, _frame(one, n), pub, one, records)
+    names, slots = _SLOTS[stream]
+    records = Records(buf, offsets, skip, slots, names, module)
+    return RecordPiece(stamp, log, _frame(one, n), pub, one, records, ordered)
 
 
 def fill(
@@ -168,15 +192,11 @@ def fill(
     (values, rows). A column of ``clean`` (zeros so far) is written only from its first value
     that is not +0.0. Returns the clean columns written, and those of :data:`NAN_COLUMNS` that
     hold a NaN."""
-    module = _module()
-    assert module is not None, "fill: the compiled pass is not there"  # walk made the records
     names = records.names
-    clean_bits = sum(1 << i for i, name in enumerate(names) if name in clean)
+    clean_bits = sum(1 << i for i, name in enumerate(names) if name in clean) if clean else 0
     nan_bits = sum(1 << i for i, name in enumerate(names) if name in NAN_COLUMNS)
-    spans = np.array(
-        [(v.start, r.start, v.stop - v.start) for v, r in runs], np.int64
-    ).reshape(-1, 3)
-    dirty, nan = module.fill(
+    spans = array("q", [x for v, r in runs for x in (v.start, r.start, v.stop - v.start)])
+    dirty, nan = records.module.fill(
         records.buf,
         records.offsets,
         records.skip,

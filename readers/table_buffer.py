@@ -176,8 +176,8 @@ class _Stream:
             if self.end + k > self.capacity:
                 self.reserve(max(self.end + k, 2 * self.capacity, 1 << 12))
             at = slice(self.end, self.end + k)
-        self.t_sorted = self.t_sorted and _follows(self.last_t, t)
-        self.log_sorted = self.log_sorted and _follows(self.last_log, piece.log)
+        self.t_sorted = self.t_sorted and _follows(self.last_t, t, piece)
+        self.log_sorted = self.log_sorted and _follows(self.last_log, piece.log, piece)
         self.last_t, self.last_log = (
             max(self.last_t, int(t[-1])),
             max(self.last_log, int(piece.log[-1])),
@@ -270,10 +270,15 @@ def _runs(at: slice | np.ndarray | Runs) -> list[tuple[slice, slice | np.ndarray
     ]
 
 
-def _follows(last: int, new: np.ndarray) -> bool:
-    """``new`` is non-decreasing and starts at or after ``last``."""
+def _follows(last: int, new: np.ndarray, piece: Piece | None = None) -> bool:
+    """``new`` is non-decreasing and starts at or after ``last`` (whether ``new``, times of
+    ``piece``, never decreases is taken from the piece when it knows: the compiled walk,
+    :class:`~imupipe.readers.chunk_fill.RecordPiece`)."""
     if new[0] < last:
         return False
+    for times, ordered in getattr(piece, "ordered", ()):
+        if times is new:
+            return ordered
     return len(new) < 2 or bool(np.all(new[1:] >= new[:-1]))
 
 
@@ -412,7 +417,7 @@ class TableBuffer:
         big = self.streams[self.large]  # type: ignore[index]
         t = self._t(piece)
         k, m = len(t), big.m
-        if self.gapped and not _follows(big.last_t, t):
+        if self.gapped and not _follows(big.last_t, t, piece):
             self._ungap()
         if not self.gapped:
             big.add(piece, t)
