@@ -206,21 +206,32 @@ static PyObject *fill(PyObject *self, PyObject *args) {
                 const int64_t c = slots[2 * s + 1];
                 const uint8_t *src = f + 8 * slots[2 * s];
                 const unsigned long long bit = 1ULL << s;
+                uint64_t *out = (uint64_t *)dst[s].buf + row * c;
+                if (c == 1) { /* a scalar column: one word, no call to memcpy */
+                    const uint64_t v = rd64(src);
+                    if (clean & bit) {
+                        if (v == 0) continue; /* the column holds zeros there already */
+                        clean &= ~bit;
+                        dirty |= bit;
+                    }
+                    if ((nan_check & bit) && (v & 0x7fffffffffffffffULL) > 0x7ff0000000000000ULL)
+                        nan |= bit;
+                    memcpy(out, &v, 8);
+                    continue;
+                }
                 if (clean & bit) {
-                    int zero = 1;
-                    for (int64_t e = 0; e < c; e++) zero &= rd64(src + 8 * e) == 0;
-                    if (zero) continue; /* the column holds zeros there already */
+                    uint64_t any = 0;
+                    for (int64_t e = 0; e < c; e++) any |= rd64(src + 8 * e);
+                    if (any == 0) continue;
                     clean &= ~bit;
                     dirty |= bit;
                 }
                 if (nan_check & bit) {
-                    for (int64_t e = 0; e < c; e++) {
-                        double v;
-                        memcpy(&v, src + 8 * e, 8);
-                        if (v != v) nan |= bit;
-                    }
+                    for (int64_t e = 0; e < c; e++)
+                        if ((rd64(src + 8 * e) & 0x7fffffffffffffffULL) > 0x7ff0000000000000ULL)
+                            nan |= bit;
                 }
-                memcpy((char *)dst[s].buf + row * c * 8, src, (size_t)(8 * c));
+                memcpy(out, src, (size_t)(8 * c));
             }
         }
     }
