@@ -146,6 +146,8 @@ _SLOTS = {
     for stream, columns in COLUMNS.items()
 }
 """Per stream: its value columns' names and (first float, count)."""
+_BITS = {names: {name: 1 << i for i, name in enumerate(names)} for names, _ in _SLOTS.values()}
+"""Per tuple of names: each name's bit (the slot masks of ``_chunks.fill``)."""
 
 
 def _frame(one: str, n: int) -> pa.Array:
@@ -193,8 +195,9 @@ def fill(
     that is not +0.0. Returns the clean columns written, and those of :data:`NAN_COLUMNS` that
     hold a NaN."""
     names = records.names
-    clean_bits = sum(1 << i for i, name in enumerate(names) if name in clean) if clean else 0
-    nan_bits = sum(1 << i for i, name in enumerate(names) if name in NAN_COLUMNS)
+    bits = _BITS[names]
+    clean_bits = sum(bits.get(name, 0) for name in clean)
+    nan_bits = sum(bits.get(name, 0) for name in NAN_COLUMNS)
     spans = array("q", [x for v, r in runs for x in (v.start, r.start, v.stop - v.start)])
     dirty, nan = records.module.fill(
         records.buf,
