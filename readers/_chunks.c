@@ -46,6 +46,44 @@ static inline uint32_t rd32(const uint8_t *p) {
     return v;
 }
 
+/* The loop of cdr_walk (without the GIL): 1 when every record at offsets matches the first
+ * one's layout (its times written to out, ordered set), else 0. */
+static int walk_records(const uint8_t *buf, Py_ssize_t len, const int64_t *offsets, Py_ssize_t n,
+                        unsigned int channel, uint64_t reclen, Py_ssize_t size, const uint8_t *p0,
+                        Py_ssize_t frame_len, int64_t *out, int *ordered_out) {
+    const uint32_t encap = rd32(p0), strlen_ = rd32(p0 + 12);
+    int ordered = 3;
+    for (Py_ssize_t i = 0; i < n; i++) {
+        const int64_t o = offsets[i];
+        if (o < 0 || o > len - MESSAGE_HEADER - size) return 0;
+        const uint8_t *r = buf + o;
+        if (r[0] != OP_MESSAGE || rd64(r + 1) != reclen ||
+            (unsigned int)(r[9] | (r[10] << 8)) != channel)
+            return 0;
+        const uint8_t *p = r + MESSAGE_HEADER;
+        /* encapsulation, string length, then the frame_id's bytes (its NUL not compared: the
+         * numpy path does not either) */
+        if (rd32(p) != encap || rd32(p + 12) != strlen_ ||
+            (frame_len && memcmp(p + 16, p0 + 16, (size_t)frame_len) != 0))
+            return 0;
+        int64_t log, pub;
+        memcpy(&log, r + 15, 8);
+        memcpy(&pub, r + 23, 8);
+        int32_t sec;
+        memcpy(&sec, p + 4, 4);
+        const int64_t stamp = (int64_t)sec * 1000000000LL + (int64_t)rd32(p + 8);
+        if (i) {
+            if (log < out[i - 1]) ordered &= ~1;
+            if (stamp < out[2 * n + i - 1]) ordered &= ~2;
+        }
+        out[i] = log;
+        out[n + i] = pub;
+        out[2 * n + i] = stamp;
+    }
+    *ordered_out = ordered;
+    return 1;
+}
+
 /* cdr_walk(buf, offsets, channel, floats)
  *     -> None | (times: bytearray, skip: int, frame: bytes, ordered: int)
  *
@@ -84,34 +122,13 @@ static PyObject *cdr_walk(PyObject *self, PyObject *args) {
     PyObject *times = PyByteArray_FromStringAndSize(NULL, 3 * n * (Py_ssize_t)sizeof(int64_t));
     if (times == NULL) goto fail;
     int64_t *out = (int64_t *)PyByteArray_AS_STRING(times);
-    int ordered = 3;
-    for (Py_ssize_t i = 0; i < n; i++) {
-        int64_t o;
-        memcpy(&o, raw + i * (Py_ssize_t)sizeof(int64_t), sizeof(int64_t));
-        if (o < 0 || o > len - MESSAGE_HEADER - size) goto drop;
-        const uint8_t *r = buf + o;
-        if (r[0] != OP_MESSAGE || rd64(r + 1) != reclen || (unsigned int)(r[9] | (r[10] << 8)) != channel)
-            goto drop;
-        const uint8_t *p = r + MESSAGE_HEADER;
-        /* encapsulation, sec, nanosec, string length: the header's first 16 bytes; then the
-         * frame_id's bytes (its NUL not compared: the numpy path does not either) */
-        if (rd32(p) != encap || rd32(p + 12) != strlen_ ||
-            (frame_len && memcmp(p + 16, p0 + 16, (size_t)frame_len) != 0))
-            goto drop;
-        int64_t log, pub;
-        memcpy(&log, r + 15, 8);
-        memcpy(&pub, r + 23, 8);
-        int32_t sec;
-        memcpy(&sec, p + 4, 4);
-        const int64_t stamp = (int64_t)sec * 1000000000LL + (int64_t)rd32(p + 8);
-        if (i) {
-            if (log < out[i - 1]) ordered &= ~1;
-            if (stamp < out[2 * n + i - 1]) ordered &= ~2;
-        }
-        out[i] = log;
-        out[n + i] = pub;
-        out[2 * n + i] = stamp;
-    }
+    int ordered = 0;
+    int ok;
+    Py_BEGIN_ALLOW_THREADS /* the buffers are held: other threads may run meanwhile */
+    ok = walk_records(buf, len, (const int64_t *)raw, n, channel, reclen, size, p0, frame_len,
+                      out, &ordered);
+    Py_END_ALLOW_THREADS
+    if (!ok) goto drop;
     result = Py_BuildValue("NnNi", times, (Py_ssize_t)(MESSAGE_HEADER + first),
                            PyBytes_FromStringAndSize((const char *)p0 + 16, frame_len), ordered);
     goto done;
@@ -179,8 +196,8 @@ static PyObject *fill(PyObject *self, PyObject *args) {
     const char *raw = (const char *)offs.buf;
     const Py_ssize_t n_runs = run_buf.len / (Py_ssize_t)(3 * sizeof(int64_t));
     const int64_t *runs = (const int64_t *)run_buf.buf;
-    unsigned long long dirty = 0, nan = 0;
-    for (Py_ssize_t k = 0; k < n_runs; k++) {
+    const int64_t *at = (const int64_t *)raw; /* numpy's int64 array: aligned */
+    for (Py_ssize_t k = 0; k < n_runs; k++) { /* every run, row and offset checked first */
         const int64_t a = runs[3 * k], row0 = runs[3 * k + 1], count = runs[3 * k + 2];
         if (a < 0 || count < 0 || a + count > n || row0 < 0) {
             PyErr_SetString(PyExc_IndexError, "fill: run outside the messages");
@@ -192,15 +209,20 @@ static PyObject *fill(PyObject *self, PyObject *args) {
                 goto done;
             }
         }
-        for (int64_t j = 0; j < count; j++) {
-            int64_t o;
-            memcpy(&o, raw + (a + j) * (Py_ssize_t)sizeof(int64_t), sizeof(int64_t));
-            if (o < 0 || o + skip + span > len) {
+        for (int64_t j = a; j < a + count; j++) {
+            if (at[j] < 0 || at[j] + skip + span > len) {
                 PyErr_Format(PyExc_IndexError, "fill: offset %lld out of the buffer",
-                             (long long)o);
+                             (long long)at[j]);
                 goto done;
             }
-            const uint8_t *f = buf + o + skip;
+        }
+    }
+    unsigned long long dirty = 0, nan = 0;
+    Py_BEGIN_ALLOW_THREADS /* the buffers are held: other threads may run meanwhile */
+    for (Py_ssize_t k = 0; k < n_runs; k++) {
+        const int64_t a = runs[3 * k], row0 = runs[3 * k + 1], count = runs[3 * k + 2];
+        for (int64_t j = 0; j < count; j++) {
+            const uint8_t *f = buf + at[a + j] + skip;
             const int64_t row = row0 + j;
             for (Py_ssize_t s = 0; s < m; s++) {
                 const int64_t c = slots[2 * s + 1];
@@ -235,6 +257,7 @@ static PyObject *fill(PyObject *self, PyObject *args) {
             }
         }
     }
+    Py_END_ALLOW_THREADS
     result = Py_BuildValue("KK", dirty, nan);
 done:
     for (Py_ssize_t s = 0; s < n_dst; s++) PyBuffer_Release(&dst[s]);
