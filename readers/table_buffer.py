@@ -20,6 +20,11 @@ Columns are allocated zeroed by the kernel, page by page on first write: a value
 which every message so far carried zeros (unknown covariances, an Imu without orientation) is
 not written at all and costs neither a copy nor a page fault, until a message brings a value
 that is not zero.
+
+A piece the compiled MCAP pass made (:class:`~imupipe.readers.chunk_fill.RecordPiece`) still
+has its values in the decompressed chunk: they are written into the columns by one C call per
+piece (:func:`~imupipe.readers.chunk_fill.fill`, the zero check folded in), the same bytes as
+the copies of the numpy path.
 """
 
 from __future__ import annotations
