@@ -41,8 +41,6 @@ from imupipe.readers.decoded import Piece, repeat_string
 from imupipe.readers.record_walk import PURE_PYTHON_ENV
 from imupipe.readers.topics import COLUMNS, OTHER_VECTOR, PIECE_TYPES
 
-MESSAGE_HEADER = 31
-"""Bytes from an MCAP message record's opcode to its payload."""
 NAN_COLUMNS = ("gyro_x", "accel_x")
 """The columns whose NaN :func:`imupipe.readers.decoded.absent_sensors` looks for first."""
 
@@ -78,8 +76,8 @@ class Records:
     """The compiled helper that found them."""
 
     def columns(self) -> dict[str, np.ndarray]:
-        """The value columns as the numpy path gives them: read-only views into ``buf`` when
-        the records are evenly spaced, else gathered."""
+        """The value columns with the numpy path's values: strided views into ``buf`` when the
+        records are evenly spaced, else gathered."""
         n = len(self.offsets)
         step = even_step(self.offsets)
         out = {}
