@@ -17,6 +17,7 @@ setup(
             "imupipe.readers._records",
             sources=["readers/_records.c"],
             optional=True,
-        )
+        ),
+        Extension("imupipe.readers._chunks", sources=["readers/_chunks.c"], optional=True),
     ]
 )

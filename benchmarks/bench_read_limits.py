@@ -18,12 +18,17 @@ byte of the table is written.
 
 Each side runs ``--repeat`` times, interleaved (the 2-core machine is shared); the best wall time
 counts. CPU time is reported too: the whole process (all threads) and the reading thread alone.
+``--fallback`` times the numpy path too (``IMUPIPE_PURE_PYTHON=1``: what a read does without
+the compiled helper ``imupipe.readers._chunks``), interleaved with the others. Besides the best
+wall times, each repeat's ratios to the limit of the same repeat are printed as min / median:
+wall, process CPU (all threads: the work on one core) and the reading thread's CPU.
 The reading thread is the critical path when the helper threads (decompression, page mapping)
 find a free core; ``max(reading thread, process / 2)`` is what the read would take on two idle
 cores, printed as the "idle estimate". ``--load K`` starts K busy processes for the run, to
 measure on a loaded machine on purpose.
 
     python benchmarks/bench_read_limits.py [--n 1000000 5000000] [--repeat 3] [--load 0] [--dense]
+        [--fallback]
 """
 
 from __future__ import annotations
@@ -39,6 +44,8 @@ from pathlib import Path
 
 import numpy as np
 from bench_read_write import memory
+
+from imupipe.readers.record_walk import PURE_PYTHON_ENV
 
 RATE_HZ = 400.0
 
@@ -128,6 +135,15 @@ def ours(path: Path) -> int:
     return table.num_rows
 
 
+def numpy_path(path: Path) -> int:
+    """:func:`ours` on the numpy path (the fallback when the compiled helper is not built)."""
+    os.environ[PURE_PYTHON_ENV] = "1"
+    try:
+        return ours(path)
+    finally:
+        del os.environ[PURE_PYTHON_ENV]
+
+
 def timed(fn, path: Path) -> tuple[float, float, float]:
     """(wall, process CPU, this thread's CPU) seconds of ``fn(path)``."""
     wall, cpu, thread = time.perf_counter(), time.process_time(), time.thread_time()
@@ -148,6 +164,16 @@ def _fmt(runs: list[tuple[float, float, float]]) -> str:
     return ", ".join(f"{w:.2f}/{c:.2f}/{m:.2f}" for w, c, m in runs)
 
 
+def _ratios(runs: dict[str, list[tuple[float, float, float]]], key: str) -> str:
+    """Per repeat, ``key``'s wall, process CPU and reading-thread CPU over the limit's in the
+    same repeat (the limit has one thread: its CPU is its one core's work): min / median."""
+    out = []
+    for i, what in enumerate(("wall", "process CPU", "reading thread CPU")):
+        r = [a[i] / lim[1 if i else 0] for a, lim in zip(runs[key], runs["lim"], strict=True)]
+        out.append(f"{what} {min(r):.2f}x / {float(np.median(r)):.2f}x")
+    return ", ".join(out)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--n", type=int, nargs="+", default=[1_000_000, 5_000_000])
@@ -156,6 +182,11 @@ def main() -> None:
     parser.add_argument("--keep", type=Path, default=None)
     parser.add_argument(
         "--dense", action="store_true", help="random orientations and covariances (Imu only)"
+    )
+    parser.add_argument(
+        "--fallback",
+        action="store_true",
+        help=f"also time the numpy path ({PURE_PYTHON_ENV}=1: no compiled helper)",
     )
     args = parser.parse_args()
 
@@ -177,10 +208,14 @@ def main() -> None:
         for n in args.n:
             imu_only, multi = work / f"{kind}_{n}.mcap", work / f"imu_temp_{n}.mcap"
             runs: dict[str, list[tuple[float, float, float]]] = {"lim": [], "read": [], "multi": []}
+            if args.fallback:
+                runs["numpy"] = []
             for _ in range(args.repeat):  # interleaved: the load changes under us
                 runs["lim"].append(timed(limit, imu_only))
                 runs["read"].append(timed(ours, imu_only))
                 runs["multi"].append(timed(ours, imu_only if args.dense else multi))
+                if args.fallback:
+                    runs["numpy"].append(timed(numpy_path, imu_only))
             lim, read, mul = (min(r[0] for r in runs[k]) for k in ("lim", "read", "multi"))
             lim_cpu = min(r[1] for r in runs["lim"])
             idle = min(max(m, c / 2) for _, c, m in runs["read"])
@@ -195,10 +230,16 @@ def main() -> None:
                 f"{(mem['peak'] - mem['base']) / 1e6:.0f} MB = {growth:.2f}x the "
                 f"{mem['table'] / 1e6:.0f} MB table"
             )
-            for k, label in (("lim", "limit"), ("read", "read"), ("multi", "multi")):
-                print(
-                    f"          {label:5s} wall/process CPU/reading thread CPU (s): {_fmt(runs[k])}"
-                )
+            print(f"          read / limit per repeat, min / median: {_ratios(runs, 'read')}")
+            if args.fallback:
+                print(f"          numpy path / limit, min / median: {_ratios(runs, 'numpy')}")
+            labels = [("lim", "limit"), ("read", "read"), ("multi", "multi"), ("numpy", "numpy")]
+            for k, label in labels:
+                if k in runs:
+                    print(
+                        f"          {label:5s} wall/process CPU/reading thread CPU (s): "
+                        f"{_fmt(runs[k])}"
+                    )
         print(f"load average after: {os.getloadavg()[0]:.2f}")
     finally:
         for p in burners:

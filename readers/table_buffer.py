@@ -20,6 +20,11 @@ Columns are allocated zeroed by the kernel, page by page on first write: a value
 which every message so far carried zeros (unknown covariances, an Imu without orientation) is
 not written at all and costs neither a copy nor a page fault, until a message brings a value
 that is not zero.
+
+A piece the compiled MCAP pass made (:class:`~imupipe.readers.chunk_fill.RecordPiece`) still
+has its values in the decompressed chunk: they are written into the columns by one C call per
+piece (:func:`~imupipe.readers.chunk_fill.fill`, the zero check folded in), the same bytes as
+the copies of the numpy path.
 """
 
 from __future__ import annotations
@@ -30,6 +35,7 @@ from collections.abc import Callable, Iterator, Mapping, Sequence
 import numpy as np
 import pyarrow as pa
 
+from imupipe.readers import chunk_fill
 from imupipe.readers.arrays import arrow_array, string_array
 from imupipe.readers.decoded import Piece, absent_sensors, repeat_string
 from imupipe.readers.prefault import Prefault
@@ -175,8 +181,8 @@ class _Stream:
             if self.end + k > self.capacity:
                 self.reserve(max(self.end + k, 2 * self.capacity, 1 << 12))
             at = slice(self.end, self.end + k)
-        self.t_sorted = self.t_sorted and _follows(self.last_t, t)
-        self.log_sorted = self.log_sorted and _follows(self.last_log, piece.log)
+        self.t_sorted = self.t_sorted and _follows(self.last_t, t, piece)
+        self.log_sorted = self.log_sorted and _follows(self.last_log, piece.log, piece)
         self.last_t, self.last_log = (
             max(self.last_t, int(t[-1])),
             max(self.last_log, int(piece.log[-1])),
@@ -188,16 +194,28 @@ class _Stream:
             value = getattr(piece, TIME_COLUMNS[name])
             values[name] = piece.log if value is None else value
         first = _first_row(at)
-        for name, column in piece.columns.items():
-            if name in self.clean:
-                if _zeros_only(column):
-                    continue
+        records = getattr(piece, "records", None)
+        runs = None if records is None else _runs(at)
+        if runs is not None and all(isinstance(rows, slice) for _, rows in runs):
+            # the compiled pass: the chunk's values straight into the columns (chunk_fill)
+            written, nan = chunk_fill.fill(records, self.columns, self.clean, runs)  # type: ignore[arg-type]
+            for name in written:
                 self.clean.discard(name)
                 if self.prefault is not None:
                     self.prefault.add(self.columns[name], first)
-            values[name] = column
-        self.seen.update(piece.columns)
-        if self.stream == "imu":
+            self.seen.update(records.names)  # type: ignore[union-attr]
+        else:
+            nan = None
+            for name, column in piece.columns.items():
+                if name in self.clean:
+                    if _zeros_only(column):
+                        continue
+                    self.clean.discard(name)
+                    if self.prefault is not None:
+                        self.prefault.add(self.columns[name], first)
+                values[name] = column
+            self.seen.update(piece.columns)
+        if self.stream == "imu" and nan != set():  # no NaN in the vectors: nothing marked
             for name, marked in absent_sensors(piece).items():
                 if name not in self.flags:
                     self.flags[name] = np.zeros(self.capacity, bool)
@@ -257,10 +275,15 @@ def _runs(at: slice | np.ndarray | Runs) -> list[tuple[slice, slice | np.ndarray
     ]
 
 
-def _follows(last: int, new: np.ndarray) -> bool:
-    """``new`` is non-decreasing and starts at or after ``last``."""
+def _follows(last: int, new: np.ndarray, piece: Piece | None = None) -> bool:
+    """``new`` is non-decreasing and starts at or after ``last`` (whether ``new``, times of
+    ``piece``, never decreases is taken from the piece when it knows: the compiled walk,
+    :class:`~imupipe.readers.chunk_fill.RecordPiece`)."""
     if new[0] < last:
         return False
+    for times, ordered in getattr(piece, "ordered", ()):
+        if times is new:
+            return ordered
     return len(new) < 2 or bool(np.all(new[1:] >= new[:-1]))
 
 
@@ -399,7 +422,7 @@ class TableBuffer:
         big = self.streams[self.large]  # type: ignore[index]
         t = self._t(piece)
         k, m = len(t), big.m
-        if self.gapped and not _follows(big.last_t, t):
+        if self.gapped and not _follows(big.last_t, t, piece):
             self._ungap()
         if not self.gapped:
             big.add(piece, t)

@@ -1,7 +1,8 @@
 """MCAP logs (ROS 2 CDR or ROS 1 encoded) into the common table, chunk by chunk with numpy.
 
 ``sensor_msgs/Imu``, ``MagneticField`` and ``Temperature`` messages are decoded straight from
-the decompressed chunks (:mod:`imupipe.readers.mcap.fast`, :func:`imupipe.readers.cdr.decode`);
+the decompressed chunks (:mod:`imupipe.readers.mcap.fast`, :func:`imupipe.readers.cdr.decode`;
+one compiled pass per chunk when built, :mod:`imupipe.readers.chunk_fill`);
 big-endian CDR falls back to rosbags' deserializer. Messages of every other channel are carried
 over as they are (ROS 1 encoded ones converted to ROS 2 CDR the way ``rosbags-convert`` does).
 """
@@ -14,6 +15,7 @@ from pathlib import Path
 import numpy as np
 import pyarrow as pa
 
+from imupipe.readers.chunk_fill import walk
 from imupipe.readers.decoded import Piece, concat, decode_piece
 from imupipe.readers.errors import ReadError
 from imupipe.readers.mapped import Batch, Definition
@@ -124,6 +126,10 @@ class McapSource:
                 f"{where}: message encoding '{channel.message_encoding}' is not supported "
                 "(cdr or ros1)"
             )
+        if channel.message_encoding == "cdr" and isinstance(chunk, ChunkMessages):
+            piece = walk(chunk.buf, chunk.offsets[cid], cid, stream)  # the compiled pass
+            if piece is not None:
+                return piece
         log, pub, starts, lengths = chunk.records(cid, copy=False)
         return decode_piece(
             chunk.buf, starts, lengths, log, stream, channel.message_encoding, where, pub

@@ -1,0 +1,240 @@
+"""The compiled pass over MCAP chunks (``readers/_chunks.c``, :mod:`imupipe.readers.chunk_fill`)
+gives the numpy path's tables, byte for byte.
+
+Every file is read twice, with the compiled helper and with ``IMUPIPE_PURE_PYTHON=1`` (the numpy
+path, the fallback): ``read_input`` (what ``run`` reads) and ``iter_input``'s batches (what
+``convert`` reads) must be the same Arrow bytes, schema metadata included, with the same
+warnings. The files: the MCAP conformance suite's layouts written around ``sensor_msgs/msg/Imu``
+and ``Temperature`` messages (padded records, no summary, unchunked, two channels on one topic,
+log times out of order), ROS 2 bags in MCAP storage, and logs that reach each branch of the
+fill (a column of zeros that gets values mid-file, -0.0, the "no data" marks of a sensor
+absent, an Imu stream with a 1 Hz topic beside it, frame_ids of several lengths). The helper's
+own checks (a record of another channel, a damaged record, rows past a column) are tested on
+the functions.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.ipc  # noqa: F401
+import pytest
+
+from imupipe.pipeline.simulate import write_log
+from imupipe.readers import chunk_fill
+from imupipe.readers.dispatch import iter_input, read_input
+from imupipe.readers.mcap.fast import McapFile
+from imupipe.readers.record_walk import PURE_PYTHON_ENV
+from imupipe.readers.spec import InputSpec
+from imupipe.readers.table import make_table
+
+T0 = 1_700_000_000_000_000_000
+
+
+@pytest.fixture(autouse=True)
+def _built():
+    try:
+        from imupipe.readers import _chunks  # noqa: F401
+    except ImportError:
+        pytest.skip("the compiled helper is not built (python setup.py build_ext --inplace)")
+
+
+def raw(table: pa.Table) -> bytes:
+    """The table as Arrow IPC bytes, schema metadata included."""
+    sink = pa.BufferOutputStream()
+    with pa.ipc.new_stream(sink, table.schema) as w:
+        w.write_table(table.combine_chunks())
+    return sink.getvalue().to_pybytes()
+
+
+def reads(path, monkeypatch, compiled: bool, batches: bool = True) -> tuple:
+    """(table, warnings, batches, their warnings) of ``path`` on one path (``batches``: with
+    ``iter_input``'s, else the table's only)."""
+    if compiled:
+        monkeypatch.delenv(PURE_PYTHON_ENV, raising=False)
+    else:
+        monkeypatch.setenv(PURE_PYTHON_ENV, "1")
+    assert chunk_fill.compiled() == compiled
+    spec = InputSpec(path=path)
+    table, warnings = read_input(spec)
+    if not batches:
+        return raw(table), warnings
+    batch_warnings: list[str] = []
+    parts = [raw(t) for t, _ in iter_input(spec, batch_rows=3000, warnings=batch_warnings)]
+    return raw(table), warnings, parts, batch_warnings
+
+
+def assert_both_paths_equal(path, monkeypatch, batches: bool = True) -> None:
+    compiled = reads(path, monkeypatch, True, batches)
+    assert compiled == reads(path, monkeypatch, False, batches), path.name
+
+
+def imu_log(n: int = 12_000, seed: int = 0, **kw) -> pa.Table:
+    """n Imu messages at 400 Hz, one frame_id; what each branch of the fill needs:
+    ``cov_from``: the gyro covariances zeros before that row, values after (a clean column that
+    gets values mid-file), one accel covariance -0.0 (not a zero, bit for bit);
+    ``absent``: accel "no data" (NaN, covariance[0] = -1) in rows ``absent``;
+    ``temperature_hz``/``mag``: other streams beside the Imu (the gapped table)."""
+    rng = np.random.default_rng(seed)
+    t = T0 + np.round(np.arange(n) * 2.5e6).astype(np.int64)
+    extra: dict = {"frame_id": pa.array(np.full(n, kw.get("frame", "imu_link")))}
+    if "cov_from" in kw:
+        gyro_cov = rng.normal(size=(n, 9))
+        gyro_cov[: kw["cov_from"]] = 0.0
+        accel_cov = np.zeros((n, 9))
+        accel_cov[n // 3, 4] = -0.0
+        extra["gyro_cov"] = pa.FixedSizeListArray.from_arrays(pa.array(gyro_cov.ravel()), 9)
+        extra["accel_cov"] = pa.FixedSizeListArray.from_arrays(pa.array(accel_cov.ravel()), 9)
+    valid = {}
+    if "absent" in kw:
+        valid["accel"] = np.ones(n, bool)
+        valid["accel"][kw["absent"]] = False
+    gyro = rng.normal(0, 0.01, (n, 3))
+    accel = rng.normal(0, 0.1, (n, 3)) + [0, 0, 9.81]
+    topics = {"imu": "/imu/data"}
+    if not kw.get("temperature_hz") and not kw.get("mag"):
+        return make_table(t, gyro=gyro, accel=accel, valid=valid, extra=extra,
+                          metadata={"topics": topics})  # fmt: skip
+    # other streams at their own rows, merged in time order
+    parts = {"imu": t}
+    if kw.get("temperature_hz"):
+        m = int(n / 400 * kw["temperature_hz"])
+        parts["temperature"] = T0 + 1_234 + np.round(np.arange(m) * 1e9 / kw["temperature_hz"])
+        topics["temperature"] = "/imu/temperature"
+    if kw.get("mag"):
+        parts["mag"] = T0 + 7 + np.arange(n // 8, dtype=np.int64) * 20_000_000
+        topics["mag"] = "/imu/mag"
+    t_all = np.concatenate([p.astype(np.int64) for p in parts.values()])
+    order = np.argsort(t_all, kind="stable")
+    kind = np.repeat(np.arange(len(parts)), [len(p) for p in parts.values()])[order]
+    k = len(t_all)
+    masks = {s: kind == i for i, s in enumerate(parts)}
+    imu = masks["imu"]
+    g, a = np.zeros((k, 3)), np.zeros((k, 3))
+    g[imu], a[imu] = gyro, accel
+    if "accel" in valid:
+        masks["accel"] = np.zeros(k, bool)
+        masks["accel"][imu] = valid["accel"]
+    frames = np.full(k, kw.get("frame", "imu_link"))
+    return make_table(
+        t_all[order],
+        gyro=g,
+        accel=a,
+        mag=rng.normal(0, 3e-5, (k, 3)) if "mag" in parts else None,
+        temperature=25 + rng.normal(0, 0.1, k) if "temperature" in parts else None,
+        valid=masks,
+        extra={"frame_id": pa.array(frames)},
+        metadata={"topics": topics},
+    )
+
+
+LOGS = {
+    "imu_only": {},
+    "cov_mid_file": {"cov_from": 7_000},
+    "accel_absent": {"absent": slice(2_000, 2_600)},
+    "imu_temperature": {"temperature_hz": 1.0},
+    "imu_mag_temperature_absent": {"temperature_hz": 3.0, "mag": True, "absent": [5, 9000]},
+    "empty_frame_id": {"frame": ""},
+    "utf8_frame_id": {"frame": "imu_λ"},
+}
+
+
+@pytest.mark.parametrize("name", list(LOGS))
+@pytest.mark.parametrize("fmt", ["log.mcap", "log_mcap2"])
+def test_compiled_fill_gives_the_numpy_tables(tmp_path, monkeypatch, name, fmt):
+    path = tmp_path / fmt
+    if fmt == "log.mcap":
+        write_log(path, imu_log(**LOGS[name]))
+    else:  # a ROS 2 bag in MCAP storage
+        from imupipe.pipeline.writers.bag import write_ros2_bag
+
+        write_ros2_bag(path, imu_log(**LOGS[name]), storage="mcap")
+    assert_both_paths_equal(path, monkeypatch)
+    # the compiled pass did read it (one layout per channel and chunk)
+    monkeypatch.delenv(PURE_PYTHON_ENV, raising=False)
+    mcap = path if fmt == "log.mcap" else next(path.glob("*.mcap"))
+    file = McapFile(mcap)
+    chunk = next(iter(file.chunks()))
+    cid = next(c for c, info in file.channels.items() if info.topic == "/imu/data")
+    assert chunk_fill.walk(chunk.buf, chunk.offsets[cid], cid, "imu") is not None
+
+
+def test_conformance_layouts_of_imu_messages(tmp_path, monkeypatch):
+    """The suite's feature combinations around Imu and Temperature messages (the 154 layouts
+    of ``test_mcap_conformance``) read the same on both paths: every layout's table, and every
+    fourth layout's batches too (in the interest of time: each feature is in many)."""
+    import mcap_conformance as mc
+    from test_mcap_conformance import imu_records
+
+    layouts = list(mc.variants({"ImuMessages": imu_records()}))
+    assert len(layouts) == 154
+    for i, (fname, data) in enumerate(layouts):
+        path = tmp_path / fname
+        path.write_bytes(data)
+        assert_both_paths_equal(path, monkeypatch, batches=i % 4 == 0)
+
+
+def test_frame_ids_of_several_lengths_take_the_numpy_path(tmp_path, monkeypatch):
+    from test_readers import multi_stream_table
+
+    path = tmp_path / "log.mcap"
+    write_log(path, multi_stream_table())
+    assert_both_paths_equal(path, monkeypatch)
+
+
+# --- the helper's own checks ------------------------------------------------------------------
+
+
+def _chunk(tmp_path, n=500):
+    path = tmp_path / "log.mcap"
+    write_log(path, imu_log(n))
+    file = McapFile(path)
+    chunk = next(iter(file.chunks()))
+    cid = next(iter(chunk.offsets))
+    return chunk, cid
+
+
+def test_walk_takes_one_layout_and_leaves_the_rest(tmp_path, monkeypatch):
+    monkeypatch.delenv(PURE_PYTHON_ENV, raising=False)
+    chunk, cid = _chunk(tmp_path)
+    off = chunk.offsets[cid]
+    piece = chunk_fill.walk(chunk.buf, off, cid, "imu")
+    assert piece is not None
+    log, pub, _, _ = chunk.records(cid)
+    assert np.array_equal(piece.log, log) and np.array_equal(piece.pub, pub)
+    assert piece.one_frame == "imu_link" and len(piece) == len(off)
+    assert chunk_fill.walk(chunk.buf, off, cid + 1, "imu") is None  # another channel's
+    assert chunk_fill.walk(chunk.buf, off, cid, "gyro") is None  # a split stream: numpy
+    assert chunk_fill.walk(chunk.buf, off + 1, cid, "imu") is None  # not at a record
+    assert chunk_fill.walk(chunk.buf, off[:0], cid, "imu") is None
+    assert chunk_fill.walk(chunk.buf, np.array([len(chunk.buf) - 10]), cid, "imu") is None
+    for byte, value in ((1, 0), (0, 1)):  # big-endian CDR; not CDR
+        buf = chunk.buf.copy()
+        buf[int(off[7]) + 31 + byte] = value
+        assert chunk_fill.walk(buf, off, cid, "imu") is None
+    buf = chunk.buf.copy()
+    buf[int(off[3]) + 31 + 16] ^= 1  # another frame_id
+    assert chunk_fill.walk(buf, off, cid, "imu") is None
+    monkeypatch.setenv(PURE_PYTHON_ENV, "1")
+    assert chunk_fill.walk(chunk.buf, off, cid, "imu") is None  # the fallback asked for
+
+
+def test_fill_writes_from_the_first_value_not_zero_and_checks_its_bounds(tmp_path, monkeypatch):
+    monkeypatch.delenv(PURE_PYTHON_ENV, raising=False)
+    chunk, cid = _chunk(tmp_path)
+    piece = chunk_fill.walk(chunk.buf, chunk.offsets[cid], cid, "imu")
+    want = piece.records.columns()
+    n = len(piece)
+    columns = {name: np.zeros((n + 5,) + v.shape[1:]) for name, v in want.items()}
+    clean = {"orientation_x", "gyro_cov", "gyro_x"}
+    runs = [(slice(0, 10), slice(0, 10)), (slice(10, n), slice(15, n + 5))]
+    written, nan = chunk_fill.fill(piece.records, columns, clean, runs)
+    assert written == {"gyro_x"} and nan == set()  # orientation_x and gyro_cov are zeros
+    rows = np.r_[0:10, 15 : n + 5]
+    for name, column in columns.items():
+        assert np.array_equal(column[rows], want[name]), name
+        assert not column[10:15].any()
+    with pytest.raises(IndexError):
+        chunk_fill.fill(piece.records, columns, set(), [(slice(0, n), slice(6, n + 6))])
+    with pytest.raises(IndexError):
+        chunk_fill.fill(piece.records, columns, set(), [(slice(0, n + 1), slice(0, n + 1))])
