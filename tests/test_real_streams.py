@@ -32,12 +32,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from test_mapped_fields import PX4_MAPPING, SENSOR_COMBINED, TOPIC, _store, reference_rosbag2
 
 from imupipe.readers.dispatch import read_input
 from imupipe.readers.spec import FieldMapping, InputSpec
 from imupipe.readers.table import sensor
-
-from test_mapped_fields import PX4_MAPPING, SENSOR_COMBINED, TOPIC, _store, reference_rosbag2
 
 ULOG = Path(__file__).parent / "data" / "px4_ulog" / "pixhawk6c_bmi055.ulg"
 EPOCH_NS = 1_700_000_000 * 10**9
