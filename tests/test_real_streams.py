@@ -201,7 +201,12 @@ def test_two_imu_topics_of_real_values(tmp_path, ulog, ros):
     mapping = FieldMapping(
         gyro=f"{GYRO_TOPIC}.angular_velocity", accel=f"{ACCEL_TOPIC}.linear_acceleration"
     )
-    for table, _ in (read_input(spec), read_input(InputSpec(path=path, fields=mapping))):
+    # no topic named: two Imu topics named for the gyro and the accel are read apart, with a
+    # warning naming the choice
+    auto, warnings = read_input(InputSpec(path=path))
+    assert any(GYRO_TOPIC in w and ACCEL_TOPIC in w for w in warnings), warnings
+    assert read_input(spec)[0].equals(auto)
+    for table, _ in ((auto, None), read_input(InputSpec(path=path, fields=mapping))):
         assert table.num_rows == 2 * n  # a row per message, none merged, none dropped
         t_g, g = _rows(table, "gyro")
         t_a, a = _rows(table, "accel")
