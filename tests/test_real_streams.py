@@ -391,3 +391,38 @@ def test_written_layout_is_ulog2mcap(tmp_path, ulog):
     m = ref["/sensor_combined"][0][1]
     assert m.DESCRIPTOR.full_name == "ulog.sensor_combined"
     assert "timestamp" not in m.DESCRIPTOR.fields_by_name
+
+
+def _inspect_fields(path: Path) -> dict:
+    from conftest import run_cli
+
+    proc = run_cli("inspect", path, "--json")
+    assert proc.returncode == 0, proc.stderr
+    return json.loads(proc.stdout)["fields"]
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="imupipe inspect suggests no mapping for a protobuf repeated float (float32[], a "
+    "sequence) such as ulog2mcap's sensor_combined.gyro_rad, though [fields] reads it (the "
+    "same field as float32[3] in a px4_msgs bag is suggested)",
+)
+def test_inspect_suggests_ulog2mcap_sensor_combined(tmp_path, ulog):
+    path = tmp_path / "u.mcap"
+    write_ulog_protobuf_mcap(path, ulog)
+    info = _inspect_fields(path)["/sensor_combined"]
+    assert info["mapping"].get("gyro") == "/sensor_combined.gyro_rad"
+    assert info["mapping"].get("accel") == "/sensor_combined.accelerometer_m_s2"
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="imupipe inspect suggests only the temperature for a topic named for its sensor "
+    "with three scalar fields x, y, z (ulog2mcap's /sensor_gyro/1: ulog.sensor_gyro), not "
+    'gyro = ["/sensor_gyro/1.x", "/sensor_gyro/1.y", "/sensor_gyro/1.z"], which [fields] reads',
+)
+def test_inspect_suggests_xyz_scalars_of_sensor_gyro(tmp_path, ulog):
+    path = tmp_path / "u.mcap"
+    write_ulog_protobuf_mcap(path, ulog)
+    info = _inspect_fields(path)["/sensor_gyro/1"]
+    assert info["mapping"].get("gyro") == [f"/sensor_gyro/1.{k}" for k in "xyz"]
