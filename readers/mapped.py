@@ -571,10 +571,16 @@ KEYWORDS: dict[str, tuple[str, ...]] = {
 """Field names (parts) that suggest a sensor, in order of preference."""
 
 
-def suggest(topic: str, mtype: MessageType) -> dict[str, str]:
+TIME_NAMES = ("timestamp", "stamp", "time", "t", "timestamp_sample")
+"""Names of a message's own time field, in order of preference."""
+
+
+def suggest(topic: str, mtype: MessageType) -> dict[str, str | list[str]]:
     """The ``[inputs.NAME.fields]`` keys that would read this topic's sensors, by the field
     names (``gyro_rad``, ``angular_velocity``, ``accelerometer_m_s2``...): a Vector3-like
-    struct or 3-element array for gyro, accel and mag, a number for temperature; ``time`` is
+    struct, a 3-element array or a sequence for gyro, accel and mag (or, for a message that is
+    one sensor's ``x``, ``y``, ``z`` named by its topic or type, the three scalars), a number
+    for temperature; ``time`` is
     ``header`` when the message has a header stamp, else a time struct or a number named
     ``timestamp`` (its unit to be set), else absent (the log time)."""
     vectors: list[tuple[str, Node]] = []
@@ -588,19 +594,30 @@ def suggest(topic: str, mtype: MessageType) -> dict[str, str]:
                     vectors.append((path, c))
                 else:
                     visit(c, path + ".")
-            elif c.kind == "array" and c.count == 3 and c.item and c.item.kind == "number":
+            elif (c.kind == "array" and c.count == 3 or c.kind == "sequence") and (
+                c.item and c.item.kind == "number"
+            ):
                 vectors.append((path, c))
             elif c.kind == "number":
                 numbers.append((path, c))
 
     visit(mtype.root, "")
-    out: dict[str, str] = {}
+    out: dict[str, str | list[str]] = {}
     for sensor, words in KEYWORDS.items():
         pool = numbers if sensor == "temperature" else vectors
         for word in words:
             hit = next((p for p, _ in pool if word in p.lower().split(".")[-1]), None)
             if hit is not None:
                 out[sensor] = f"{topic}.{hit}"
+                break
+    xyz = _xyz(mtype.root)
+    if len(xyz) == 3:
+        # a message that is itself one sensor's x, y, z (PX4's sensor_gyro as ulog2mcap
+        # writes it): the sensor named by the topic or the type
+        names = f"{topic.lower()} {mtype.name.lower()}"
+        for sensor, words in KEYWORDS.items():
+            if sensor != "temperature" and sensor not in out and any(w in names for w in words):
+                out[sensor] = [f"{topic}.{c.name}" for c in xyz]
                 break
     if not out:
         return out
@@ -609,14 +626,16 @@ def suggest(topic: str, mtype: MessageType) -> dict[str, str]:
     if stamp is not None and _time_struct(stamp) is not None:
         out["time"] = "header"
     else:
-        for c in mtype.root.children:
-            if c.name.lower() in ("timestamp", "stamp", "time", "t") and (
-                c.kind == "number" or _time_struct(c) is not None
-            ):
-                out["time"] = f"{topic}.{c.name}"
-                if c.kind == "number":
-                    out["time_unit"] = "set: s, ms, us or ns"
-                break
+        timed = {
+            c.name.lower(): c
+            for c in mtype.root.children
+            if c.kind == "number" or _time_struct(c) is not None
+        }
+        name = next((n for n in TIME_NAMES if n in timed), None)
+        if name is not None:
+            out["time"] = f"{topic}.{timed[name].name}"
+            if timed[name].kind == "number":
+                out["time_unit"] = "set: s, ms, us or ns"
     return out
 
 

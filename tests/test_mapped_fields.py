@@ -615,8 +615,10 @@ def test_inspect_lists_fields_and_the_mapping(tmp_path):
     assert info["mapping"]["time"] == f"{TOPIC}.timestamp"
     pb = json.loads(run_cli("inspect", tmp_path / "pb.mcap", "--json").stdout)["fields"]["/imu_pb"]
     assert pb["encoding"] == "protobuf"
-    assert pb["mapping"] == {
+    assert pb["mapping"] == {  # repeated fields too: a 3-element sequence reads as a vector
         "gyro": "/imu_pb.gyro",
+        "accel": "/imu_pb.accel",
+        "mag": "/imu_pb.mag",
         "temperature": "/imu_pb.temp",
         "time": "/imu_pb.timestamp",
     }

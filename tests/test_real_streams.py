@@ -401,12 +401,6 @@ def _inspect_fields(path: Path) -> dict:
     return json.loads(proc.stdout)["fields"]
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="imupipe inspect suggests no mapping for a protobuf repeated float (float32[], a "
-    "sequence) such as ulog2mcap's sensor_combined.gyro_rad, though [fields] reads it (the "
-    "same field as float32[3] in a px4_msgs bag is suggested)",
-)
 def test_inspect_suggests_ulog2mcap_sensor_combined(tmp_path, ulog):
     path = tmp_path / "u.mcap"
     write_ulog_protobuf_mcap(path, ulog)
@@ -415,14 +409,9 @@ def test_inspect_suggests_ulog2mcap_sensor_combined(tmp_path, ulog):
     assert info["mapping"].get("accel") == "/sensor_combined.accelerometer_m_s2"
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="imupipe inspect suggests only the temperature for a topic named for its sensor "
-    "with three scalar fields x, y, z (ulog2mcap's /sensor_gyro/1: ulog.sensor_gyro), not "
-    'gyro = ["/sensor_gyro/1.x", "/sensor_gyro/1.y", "/sensor_gyro/1.z"], which [fields] reads',
-)
 def test_inspect_suggests_xyz_scalars_of_sensor_gyro(tmp_path, ulog):
     path = tmp_path / "u.mcap"
     write_ulog_protobuf_mcap(path, ulog)
     info = _inspect_fields(path)["/sensor_gyro/1"]
     assert info["mapping"].get("gyro") == [f"/sensor_gyro/1.{k}" for k in "xyz"]
+    assert info["mapping"].get("time") == "/sensor_gyro/1.timestamp_sample"
