@@ -193,9 +193,10 @@ class StagedOutputs:
     def path(self, final: str | os.PathLike[str]) -> Path:
         """A temporary path next to ``final``; it becomes ``final`` on commit."""
         final = Path(final) if self.guard is None else self.guard.check(final)
-        missing = [p for p in [final.parent, *final.parent.parents] if not p.exists()]
-        final.parent.mkdir(parents=True, exist_ok=True)
-        self._created_dirs.extend(missing)
+        if not final.parent.is_dir():  # the folders this makes, deepest first (one stat else)
+            missing = [p for p in [final.parent, *final.parent.parents] if not p.exists()]
+            final.parent.mkdir(parents=True, exist_ok=True)
+            self._created_dirs.extend(missing)
         fd, tmp = tempfile.mkstemp(
             prefix=f".{final.name}.{os.getpid()}@{HOST_KEY}.", suffix=".tmp", dir=final.parent
         )

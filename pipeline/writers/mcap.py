@@ -108,12 +108,16 @@ def msgdef(msgtype: str) -> str:
 
 def _column_or(table: pa.Table, name: str, rows: np.ndarray, default: np.ndarray) -> np.ndarray:
     """Column ``name`` at ``rows`` as numpy, ``default`` (same shape) where it is null or absent."""
-    if name not in table.column_names:
-        return default
-    column = table.column(name)
+    index = table.schema.get_field_index(name)  # -1: absent (or, never here, twice)
+    if index < 0:
+        if name not in table.schema.names:
+            return default
+        index = table.schema.names.index(name)
+    column = table.column(index)
     if len(rows) != len(column):
         column = column.take(arrow_array(rows))
-    column = column.combine_chunks()
+    # one chunk (a batch as read): that chunk, as combine_chunks gives it, at a third of the cost
+    column = column.chunk(0) if column.num_chunks == 1 else column.combine_chunks()
     valid = None if column.null_count == 0 else valid_mask(column)
     if isinstance(column.type, pa.FixedSizeListType):
         if valid is None or pa.types.is_floating(column.type.value_type):
@@ -221,7 +225,7 @@ def encode_stream(
                 covariance[absent, 0] = -1.0
             fields[f"{vector}_covariance"] = covariance
         quat = [f"orientation_{a}" for a in "xyzw"]
-        if any(c in table.column_names for c in quat):
+        if any(c in table.schema.names for c in quat):
             default_q = (0.0, 0.0, 0.0, 1.0)
             fields["orientation"] = np.column_stack(
                 [
@@ -238,7 +242,7 @@ def encode_stream(
     else:
         fields["temperature"] = sensor(table, "temperature").values[:, 0]
         fields["variance"] = _column_or(table, "temperature_var", rows, np.zeros(1))
-    if "frame_id" in table.column_names:
+    if "frame_id" in table.schema.names:
         names, codes = _frame_codes(table.column("frame_id"), rows, meta_frame)
     else:
         names, codes = [meta_frame], np.zeros(n, dtype=np.int64)
@@ -315,13 +319,13 @@ def message_times(table: pa.Table) -> tuple[np.ndarray, np.ndarray]:
     ns reads as negative); viewed as uint64 they are the log's own times again, so the whole
     uint64 range is written, ordered and indexed as the log had it."""
     t_ns = table.column("t_ns")
-    log = table.column("log_time_ns") if "log_time_ns" in table.column_names else t_ns
+    log = table.column("log_time_ns") if "log_time_ns" in table.schema.names else t_ns
     if log.null_count:
         import pyarrow.compute as pc  # nulls only: see _frame_codes
 
         log = pc.fill_null(log, t_ns)
     log_u = to_numpy(log).view(np.uint64)
-    if "publish_time_ns" not in table.column_names:
+    if "publish_time_ns" not in table.schema.names:
         return log_u, log_u
     pub = table.column("publish_time_ns")
     if pub.null_count:
@@ -357,7 +361,7 @@ def _conform(table: pa.Table, schema: pa.Schema) -> pa.Table:
     """``table`` with the columns of ``schema`` (a column it lacks: null, so the default)."""
     columns = [
         table.column(f.name).cast(f.type)
-        if f.name in table.column_names
+        if f.name in table.schema.names
         else pa.nulls(table.num_rows, f.type)
         for f in schema
     ]
@@ -368,7 +372,7 @@ def _where_to(table: pa.Table) -> tuple[Any, Any]:
     """The table metadata that the writer uses: topics, and the default frame_ids where rows have
     none of their own."""
     meta = metadata(table)
-    column = table.column("frame_id") if "frame_id" in table.column_names else None
+    column = table.column("frame_id") if "frame_id" in table.schema.names else None
     own = column is not None and column.null_count == 0
     return meta.get("topics"), None if own else meta.get("frame_id")
 
