@@ -481,7 +481,7 @@ class McapTableWriter:
         self, buf: np.ndarray, starts: np.ndarray, stop: int, channels: np.ndarray, log: np.ndarray
     ) -> None:
         base = int(starts[0])
-        raw = buf[base:stop].tobytes()
+        raw = memoryview(np.ascontiguousarray(buf[base:stop]))  # no copy: zstd and crc32 read it
         compressed = self._compressor.compress(raw)
         start_t, end_t = int(log.min()), int(log.max())
         self._start = start_t if self._start < 0 else min(self._start, start_t)
