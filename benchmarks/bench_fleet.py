@@ -247,6 +247,12 @@ def main() -> None:
         for i in range(args.logs):
             make_log(fleet / f"log{i:04d}.mcap", args.log_messages, seed=i)
         logs = sorted(fleet.iterdir())
+        one, five, _ = os.getloadavg()
+        print(
+            f"{args.logs:,} logs written; load average {one:.2f} (1 min), {five:.2f} (5 min) "
+            f"on {os.cpu_count()} cores",
+            flush=True,
+        )
         note = tmp / "peer.txt"
         # warm the bytecode caches (not measured)
         peer(logs[:1], note)
@@ -271,6 +277,8 @@ def main() -> None:
             alternate=True,
         )
         results |= per_log(results, args.logs)
+        one, five, _ = os.getloadavg()
+        print(f"load average at the end: {one:.2f} (1 min), {five:.2f} (5 min)", flush=True)
         print(json.dumps({k: round(v, 3) for k, v in results.items()}))
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
