@@ -8,14 +8,18 @@ pairs so that both see the same load:
 [1] one log of ``--log-messages`` (default 1,000) ``sensor_msgs/msg/Imu`` messages: ``imupipe
     convert`` against ``python peer.py LOG`` (rosbags' ``AnyReader`` reading and deserialising
     every message; the typestore built once).
-[2] ``--logs`` (default 100) such logs in one run: ``imupipe convert --jobs 1 FOLDER`` against the
-    same rosbags loop over all of them in one process. Goal (issue 39): >= 5x faster.
+[2] ``--logs`` (default 1,000) such logs in one run: ``imupipe convert --jobs 1 FOLDER`` against
+    the same rosbags loop over all of them in one process, ``--fleet-pairs`` times (default 1;
+    the peer first in odd pairs, imupipe first in even ones). Goal (issue 39): >= 5x faster.
+    1,000 logs take about 1.5 minutes on a 2-core machine at load 3 (the loop's 50 s CPU).
 
 Each pair prints both wall times, the ratio (peer / imupipe), both CPU times (user + system of
 the process and its children, from ``getrusage``: far less moved by the other sessions on a
 shared machine than the wall time) and their ratio, and both processes' peak RSS (their own
 ``VmHWM``); the summary gives each ratio's min and median over the pairs. Only ratios measured in
-the same pair count.
+the same pair count. Then each side's CPU a log (the fleet's CPU less the one log's median, over
+the other logs) and, with fewer than 1,000 logs, the 1,000-log ratio that those give, printed as
+a **projection** (not measured).
 
 Every child runs with Python's bytecode cache on (``PYTHONDONTWRITEBYTECODE`` dropped, the
 cache in a temporary ``PYTHONPYCACHEPREFIX``, warmed by a first unmeasured run), as an installed
@@ -24,8 +28,8 @@ module on each start (0.25-0.3 s CPU of a 1k-message convert, measured), which t
 installed package, never pays. With ``--baseline DIR`` (a checkout of the code before a change,
 with its ``.shim``) its convert runs in each pair too: before/after in the same pairs.
 
-Usage: ``python benchmarks/bench_fleet.py [--logs 100] [--log-messages 1000] [--pairs 2]
-[--baseline DIR]``
+Usage: ``python benchmarks/bench_fleet.py [--logs 1000] [--log-messages 1000] [--pairs 3]
+[--fleet-pairs 1] [--baseline DIR]``
 """
 
 from __future__ import annotations
@@ -117,14 +121,24 @@ def ours(
     return seconds, cpu, peak, sum(x["messages"] for x in lines)
 
 
-def pairs(label: str, n: int, run_peer, run_ours, run_base=None) -> dict[str, float]:
-    """``n`` pairs (peer first, then imupipe, then the baseline's imupipe when given); prints
-    each and the ratios' min and median."""
+def pairs(
+    label: str, n: int, run_peer, run_ours, run_base=None, alternate: bool = False
+) -> dict[str, float]:
+    """``n`` pairs (peer first, then imupipe, then the baseline's imupipe when given; with
+    ``alternate``, imupipe first in the even pairs); prints each and the ratios' min and
+    median."""
     ratios, cpu_ratios, best_peer, best_ours = [], [], float("inf"), float("inf")
     base_ratios, base_cpu_ratios = [], []
+    peer_cpu, ours_cpu = [], []
     for i in range(n):
-        tp, cp, mp, np_ = run_peer()
-        to, co, mo, no = run_ours()
+        if alternate and i % 2:
+            to, co, mo, no = run_ours()
+            tp, cp, mp, np_ = run_peer()
+        else:
+            tp, cp, mp, np_ = run_peer()
+            to, co, mo, no = run_ours()
+        peer_cpu.append(cp)
+        ours_cpu.append(co)
         assert np_ == no, (np_, no)
         ratios.append(tp / to)
         cpu_ratios.append(cp / co)
@@ -162,6 +176,8 @@ def pairs(label: str, n: int, run_peer, run_ours, run_base=None) -> dict[str, fl
         f"{label}_imupipe_best_s": best_ours,
         f"{label}_imupipe_peak_mb": mo,
         f"{label}_peer_peak_mb": mp,
+        f"{label}_peer_cpu_median_s": statistics.median(peer_cpu),
+        f"{label}_imupipe_cpu_median_s": statistics.median(ours_cpu),
     }
     if base_ratios:
         print(
@@ -177,11 +193,46 @@ def pairs(label: str, n: int, run_peer, run_ours, run_base=None) -> dict[str, fl
     return out
 
 
+def per_log(results: dict[str, float], n: int, target: int = 1000) -> dict[str, float]:
+    """Each side's CPU a log beyond the first (the fleet's median CPU less the one log's, over
+    ``n - 1`` logs), printed; with ``n < target``, the ratio at ``target`` logs those give,
+    printed as a projection (measured only when ``n >= target``)."""
+    out: dict[str, float] = {}
+    if n < 2:
+        return out
+    for side in ("peer", "imupipe"):
+        one, many = results[f"one_log_{side}_cpu_median_s"], results[f"fleet_{side}_cpu_median_s"]
+        out[f"{side}_cpu_per_log_ms"] = 1000 * (many - one) / (n - 1)
+    print(
+        f"CPU a log beyond the first ({n - 1} logs): rosbags loop "
+        f"{out['peer_cpu_per_log_ms']:.1f} ms, imupipe convert "
+        f"{out['imupipe_cpu_per_log_ms']:.1f} ms",
+        flush=True,
+    )
+    if min(out.values()) <= 0:  # a few logs: within the noise of one log's start
+        print("too few logs to project from (a log's CPU is within the noise)", flush=True)
+    elif n < target:
+        at = {
+            side: results[f"one_log_{side}_cpu_median_s"]
+            + (target - 1) * out[f"{side}_cpu_per_log_ms"] / 1000
+            for side in ("peer", "imupipe")
+        }
+        out["projected_cpu_ratio"] = at["peer"] / at["imupipe"]
+        print(
+            f"PROJECTION (not measured): {target:,} logs from these figures: rosbags loop "
+            f"{at['peer']:.1f} s CPU, imupipe {at['imupipe']:.1f} s CPU -> "
+            f"{out['projected_cpu_ratio']:.2f}x; run --logs {target} to measure it",
+            flush=True,
+        )
+    return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--logs", type=int, default=100)
+    ap.add_argument("--logs", type=int, default=1000)
     ap.add_argument("--log-messages", type=int, default=1000)
-    ap.add_argument("--pairs", type=int, default=2)
+    ap.add_argument("--pairs", type=int, default=3, help="pairs of one log")
+    ap.add_argument("--fleet-pairs", type=int, default=1, help="pairs of the whole fleet")
     ap.add_argument("--baseline", type=Path, help="a checkout of the code before, to compare")
     args = ap.parse_args()
     tmp = Path(tempfile.mkdtemp(prefix="bench_fleet_"))
@@ -198,6 +249,12 @@ def main() -> None:
         for i in range(args.logs):
             make_log(fleet / f"log{i:04d}.mcap", args.log_messages, seed=i)
         logs = sorted(fleet.iterdir())
+        one, five, _ = os.getloadavg()
+        print(
+            f"{args.logs:,} logs written; load average {one:.2f} (1 min), {five:.2f} (5 min) "
+            f"on {os.cpu_count()} cores",
+            flush=True,
+        )
         note = tmp / "peer.txt"
         # warm the bytecode caches (not measured)
         peer(logs[:1], note)
@@ -206,20 +263,24 @@ def main() -> None:
             ours(logs[0], cal, tmp / "out1", 1, base_env)
         results = pairs(
             "one_log",
-            args.pairs + 1,
+            args.pairs,
             lambda: peer(logs[:1], note),
             lambda: ours(logs[0], cal, tmp / "out1", 1),
             None if base_env is None else lambda: ours(logs[0], cal, tmp / "out1", 1, base_env),
         )
         results |= pairs(
             "fleet",
-            args.pairs,
+            args.fleet_pairs,
             lambda: peer(logs, note),
             lambda: ours(fleet, cal, tmp / "outn", args.logs),
             None
             if base_env is None
             else lambda: ours(fleet, cal, tmp / "outn", args.logs, base_env),
+            alternate=True,
         )
+        results |= per_log(results, args.logs)
+        one, five, _ = os.getloadavg()
+        print(f"load average at the end: {one:.2f} (1 min), {five:.2f} (5 min)", flush=True)
         print(json.dumps({k: round(v, 3) for k, v in results.items()}))
     finally:
         shutil.rmtree(tmp, ignore_errors=True)

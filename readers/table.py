@@ -282,8 +282,8 @@ def with_stream_column(
     valid[rows] = True
     field = OPTIONAL_FIELDS.field(name)
     column = arrow_array(full, pa.float64(), ~valid)
-    if name in table.column_names:
-        return table.set_column(table.column_names.index(name), field, column)
+    if name in table.schema.names:
+        return table.set_column(table.schema.names.index(name), field, column)
     return table.append_column(field, column)
 
 
@@ -505,7 +505,7 @@ def with_flight_streams(
     meta = metadata(table)
     for cols, _, _ in given:
         for name in cols:
-            if name not in table.column_names:
+            if name not in table.schema.names:
                 field = OPTIONAL_FIELDS.field(name)
                 table = table.append_column(field, pa.nulls(len(table), field.type))
     schema = table.schema.remove_metadata()
@@ -528,7 +528,7 @@ def with_flight_streams(
 def has_flight_stream(table: pa.Table, stream: str) -> bool:
     """Whether flight stream ``stream`` has at least one sample in ``table``."""
     first = FLIGHT_COLUMNS[stream][0]
-    return first in table.column_names and table.column(first).null_count < len(table)
+    return first in table.schema.names and table.column(first).null_count < len(table)
 
 
 def flight_stream(table: pa.Table, stream: str) -> SensorData:
@@ -584,7 +584,7 @@ def on_imu_rows(table: pa.Table) -> tuple[pa.Table, dict[str, int]]:
     out = table.take(arrow_array(rows))
     carried: list[str] = []
     for name in CARRIED_COLUMNS:
-        if name not in table.column_names:
+        if name not in table.schema.names:
             continue
         valid = _valid(table, name)
         source = np.ones(len(table), dtype=bool) if valid is None else valid
@@ -593,7 +593,7 @@ def on_imu_rows(table: pa.Table) -> tuple[pa.Table, dict[str, int]]:
         values = _column_f64(table, name, None)
         have = source[rows]
         filled = np.where(have, values[rows], interpolate(t_ns[source], values[source], t_ns[rows]))
-        index = out.column_names.index(name)
+        index = out.schema.names.index(name)
         out = out.set_column(index, out.schema.field(index), arrow_array(filled, pa.float64()))
         carried.append(name)
     meta = metadata(table)

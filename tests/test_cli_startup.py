@@ -26,3 +26,18 @@ def test_help_imports_nothing_heavy():
 
 def test_convert_help_imports_only_its_parser():
     assert not imported("convert", "--help") & set(HEAVY)
+
+
+def test_read_does_not_import_convert_or_run():
+    """Issue 39: ``imupipe.read`` loads the readers, not the fleet conversion (process pool,
+    MCAP writer) nor the run (0.05-0.08 s of CPU a process); ``imupipe.convert`` still works."""
+    code = (
+        "import sys, imupipe; imupipe.read; imupipe.inspect; imupipe.Calibration; "
+        "heavy = [m for m in ('imupipe.pipeline.convert.fleet', 'imupipe.pipeline.run', "
+        "'multiprocessing', 'zstandard') if m in sys.modules]; "
+        "assert not heavy, heavy; "
+        "assert imupipe.convert.__module__ == 'imupipe.pipeline.convert.fleet'; "
+        "assert imupipe.ConvertSummary.__name__ == 'ConvertSummary'"
+    )
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr[-2000:]

@@ -214,6 +214,20 @@ def test_every_message_corrected(fleet):
         assert attached["conversion"]["calibration_sha256"] == chain_sha256({"chain": CHAIN})
 
 
+def test_counts_read_without_the_attachments(fleet):
+    """The worker's count check reads an MCAP's summary without its attachments (half of a
+    short log's summary read, issue 39); the counts are the same, the attachment is left."""
+    from imupipe.pipeline.convert.verify import mcap_counts, mcap_summary
+
+    d, _, tables, _, _ = fleet
+    out = d / "out" / "a.mcap"
+    counts, attached = mcap_summary(out)
+    assert attached is not None and attached["chain"] == CHAIN
+    assert mcap_summary(out, attachments=False) == (counts, None)
+    assert mcap_counts(out) == counts
+    assert counts["/imu/data"] == tables["a"].num_rows
+
+
 def test_manifest_and_parquet(fleet):
     d, _, tables, _, _ = fleet
     lines = {Path(r["input"]).stem: r for r in read_manifest(d / "out")}

@@ -199,9 +199,11 @@ def convert(
     for prefix in planned.remote_folders():
         remote.remove_stale_temps(prefix)
     fatal: list[str] = []
+    converted_messages = 0  # the bar's running count (summary.messages sums every log: O(logs))
     with progress_bar("imupipe convert", total=len(tasks), quiet=quiet, unit="logs") as bar:
 
         def on_done(outcome: Outcome) -> None:
+            nonlocal converted_messages
             task: LogTask = outcome.task
             record: dict[str, Any] = {
                 "attempts": outcome.attempts,
@@ -214,6 +216,8 @@ def convert(
                     stats
                 )
                 record.update(dataclasses.asdict(stats), messages=stats.messages)
+                if stats.status == "converted":
+                    converted_messages += stats.messages
                 if not quiet:
                     for w in stats.warnings:
                         where = "" if w.startswith(f"{stats.input}: ") else f"{stats.input}: "
@@ -236,7 +240,7 @@ def convert(
                     fatal.append(f"{manifest.path}: {OUTPUT_FAULTS[exc.errno]}")
                     raise _Stop() from None
             bar.advance()
-            bar.describe(f"imupipe convert: {summary.messages:,} messages")
+            bar.describe(f"imupipe convert: {converted_messages:,} messages")
             if outcome.fatal:
                 fatal.append(outcome.error or "")
                 raise _Stop()

@@ -300,8 +300,7 @@ def plan_local(
     for path, rel in found:
         if rel.name in ("", ".", ".."):
             raise ConfigError(f"{path}: no file name to name its output after; name the log")
-        output = guard.check(out_dir / rel.with_name(rel.name + ".mcap"))
-        key = output.resolve()
+        output, key = guard.check_resolved(out_dir / rel.with_name(rel.name + ".mcap"))
         if key in owners and owners[key].resolve() == path.resolve():
             continue  # the same log named twice (a file and its folder)
         if key in owners:

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import collections
 import contextlib
+import copy
 import errno
 import os
 import resource
@@ -167,6 +168,21 @@ def _convert_local(task: LogTask) -> LogStats:
         raise fault from None
 
 
+_STEPS: list[tuple[list, list]] = []
+"""The last calibration chain and its steps: a fleet's logs share one chain, and rebuilding its
+steps took 0.16 ms a log (issue 39). Steps keep no state between logs (a streamed step's state
+lives in its ``apply_stream`` generator)."""
+
+
+def _steps(task: LogTask) -> list:
+    """The steps of ``task``'s calibration chain, each on its device (built again only for
+    another chain than the last)."""
+    chain = task.calibration["chain"]
+    if not _STEPS or _STEPS[0][0] != chain:
+        _STEPS[:] = [(copy.deepcopy(chain), on_device(steps_from_json(chain), chain, lenient=True))]
+    return _STEPS[0][1]
+
+
 def _convert_log(task: LogTask) -> LogStats:
     start, cpu_start = time.perf_counter(), time.process_time()
     spec = task.spec
@@ -179,8 +195,7 @@ def _convert_log(task: LogTask) -> LogStats:
     if found is not None:
         status, written = "skipped", found
     else:
-        chain = task.calibration["chain"]
-        steps = on_device(steps_from_json(chain), chain, lenient=True)  # each on its device
+        steps = _steps(task)
         mode = "streamed"
         expected = input_counts(src, fmt, warnings, spec.read_truncated)
         doc = {

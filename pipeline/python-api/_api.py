@@ -8,7 +8,10 @@ functions: ``imupipe run`` and :func:`run` both call :func:`imupipe.pipeline.run
 ``imupipe convert`` and :func:`convert` both call :func:`imupipe.pipeline.convert.fleet.convert`.
 
 This module is imported on first use of a public name (``import imupipe`` alone loads none of
-it: no numpy, no pyarrow).
+it: no numpy, no pyarrow). The fleet conversion and the run (:func:`convert`,
+:class:`ConvertSummary`, :func:`run`) are imported when first used, not here: they load the
+process pool, the MCAP writer and the run's outputs, 0.05-0.08 s of CPU that
+``imupipe.read`` of one log does not need (issue 39).
 """
 
 from __future__ import annotations
@@ -24,7 +27,7 @@ import warnings
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 import pyarrow as pa
 
@@ -36,7 +39,6 @@ from imupipe.pipeline.calibration_file import (
     load_calibration,
 )
 from imupipe.pipeline.config import Config, build_options, load_config, parse_config, parse_input
-from imupipe.pipeline.convert.fleet import ConvertSummary, convert
 from imupipe.pipeline.errors import ConfigError
 from imupipe.pipeline.inspect_log import inspect as inspect_log
 from imupipe.pipeline.inspect_log import render as render_inspection
@@ -46,8 +48,6 @@ from imupipe.pipeline.report.summary import (
     raw_count_sensors,
     summarise,
 )
-from imupipe.pipeline.run import RunSummary, calibration_document
-from imupipe.pipeline.run import run as run_config
 from imupipe.readers.dispatch import read_input
 from imupipe.readers.errors import ImupipeError
 from imupipe.readers.spec import InputSpec
@@ -55,6 +55,28 @@ from imupipe.readers.table import FLIGHT_COLUMNS, SENSOR_COLUMNS, metadata, on_i
 from imupipe.stages.base import StageContext
 from imupipe.stages.registry import stage_class
 from imupipe.stages.steps import Step, apply_chain
+
+if TYPE_CHECKING:
+    from imupipe.pipeline.convert.fleet import ConvertSummary, convert
+    from imupipe.pipeline.run import RunSummary
+
+LAZY = {
+    "convert": "imupipe.pipeline.convert.fleet",
+    "ConvertSummary": "imupipe.pipeline.convert.fleet",
+}
+"""Public names of other modules, imported on first use (:func:`__getattr__`)."""
+
+
+def __getattr__(name: str) -> Any:
+    """:data:`LAZY` names, their module imported on first use (PEP 562)."""
+    if name in LAZY:
+        import importlib
+
+        value = getattr(importlib.import_module(LAZY[name]), name)
+        globals()[name] = value
+        return value
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+
 
 __all__ = [
     "ArgumentError",
@@ -524,6 +546,8 @@ class Calibration:
                 )
         chain = [step for r in results for step in r.steps]
         fitted = [r.results.get("fitted_on") for r in results for _ in r.steps]
+        from imupipe.pipeline.run import calibration_document
+
         doc = calibration_document(chain, {r.name: r.results for r in results}, fitted)
         return cls(doc, chain, {r.name: r for r in results})
 
@@ -659,6 +683,8 @@ def run(
     no progress bar and no warnings on stderr (the stages' warnings are in the results either
     way); ``spawn``: also stream the recording to a Rerun viewer.
     """
+    from imupipe.pipeline.run import run as run_config
+
     cfg = load_run_config(config)
     summary: RunSummary = run_config(cfg, quiet=quiet, spawn=spawn)
     doc = summary.calibration

@@ -57,6 +57,7 @@ from imupipe.readers.arrays import arrow_array, arrow_scalar, to_numpy, unique, 
 from imupipe.readers.progress import report
 from imupipe.readers.spec import RawMessage
 from imupipe.readers.table import (
+    META_KEY,
     SENSOR_COLUMNS,
     metadata,
     sensor,
@@ -108,12 +109,16 @@ def msgdef(msgtype: str) -> str:
 
 def _column_or(table: pa.Table, name: str, rows: np.ndarray, default: np.ndarray) -> np.ndarray:
     """Column ``name`` at ``rows`` as numpy, ``default`` (same shape) where it is null or absent."""
-    if name not in table.column_names:
-        return default
-    column = table.column(name)
+    index = table.schema.get_field_index(name)  # -1: absent (or, never here, twice)
+    if index < 0:
+        if name not in table.schema.names:
+            return default
+        index = table.schema.names.index(name)
+    column = table.column(index)
     if len(rows) != len(column):
         column = column.take(arrow_array(rows))
-    column = column.combine_chunks()
+    # one chunk (a batch as read): that chunk, as combine_chunks gives it, at a third of the cost
+    column = column.chunk(0) if column.num_chunks == 1 else column.combine_chunks()
     valid = None if column.null_count == 0 else valid_mask(column)
     if isinstance(column.type, pa.FixedSizeListType):
         if valid is None or pa.types.is_floating(column.type.value_type):
@@ -156,11 +161,29 @@ IMU_VECTORS = (
 """sensor_msgs/Imu: (sensor, vector field, covariance column) of the two measured vectors."""
 
 
+_META: list[tuple[bytes, dict[str, Any]]] = []
+"""The last table metadata parsed by :func:`_meta`: (its raw JSON, the parsed dict)."""
+
+
+def _meta(table: pa.Table) -> dict[str, Any]:
+    """:func:`~imupipe.readers.table.metadata` of ``table``, parsed once for the batches that
+    share it (the writer asks it about ten times a batch; each parse of the JSON 5-15 us). The
+    dict is shared: the writer only reads it."""
+    raw = (table.schema.metadata or {}).get(META_KEY)
+    if not raw:
+        return {}
+    entry = _META[0] if _META else None  # one read: another thread may replace it
+    if entry is None or entry[0] != raw:
+        entry = (raw, metadata(table))
+        _META[:] = [entry]
+    return entry[1]
+
+
 def written_streams(table: pa.Table) -> tuple[str, ...]:
     """The streams a writer writes, each to its topic: ``imu``, ``mag``, ``temperature``, and
     for a table read from a gyro and an accelerometer topic (its metadata names ``gyro`` or
     ``accel`` topics) also ``gyro`` and ``accel`` (see :func:`stream_rows`)."""
-    topics = metadata(table).get("topics") or {}
+    topics = _meta(table).get("topics") or {}
     if any(s in topics for s in SPLIT):
         return ("imu", *SPLIT, "mag", "temperature")
     return ("imu", "mag", "temperature")
@@ -201,7 +224,7 @@ def encode_stream(
         return rows, []
     t_ns = to_numpy(table.column("t_ns"))[rows]
     stamp = _column_or(table, "header_stamp_ns", rows, t_ns)
-    meta_frame = metadata(table).get("frame_id", {}).get(stream, DEFAULT_FRAME)
+    meta_frame = _meta(table).get("frame_id", {}).get(stream, DEFAULT_FRAME)
     # defaults are one row, (1, k), broadcast by the encoder: no (n, 9) arrays of zeros
     zeros = np.zeros((1, 9))
     fields: dict[str, np.ndarray] = {}
@@ -221,7 +244,7 @@ def encode_stream(
                 covariance[absent, 0] = -1.0
             fields[f"{vector}_covariance"] = covariance
         quat = [f"orientation_{a}" for a in "xyzw"]
-        if any(c in table.column_names for c in quat):
+        if any(c in table.schema.names for c in quat):
             default_q = (0.0, 0.0, 0.0, 1.0)
             fields["orientation"] = np.column_stack(
                 [
@@ -238,7 +261,7 @@ def encode_stream(
     else:
         fields["temperature"] = sensor(table, "temperature").values[:, 0]
         fields["variance"] = _column_or(table, "temperature_var", rows, np.zeros(1))
-    if "frame_id" in table.column_names:
+    if "frame_id" in table.schema.names:
         names, codes = _frame_codes(table.column("frame_id"), rows, meta_frame)
     else:
         names, codes = [meta_frame], np.zeros(n, dtype=np.int64)
@@ -297,7 +320,7 @@ def _frame_codes(
     frames.take(rows), meta_frame))``. A column that is one frame_id repeated (the usual case)
     is seen without ``pyarrow.compute`` (``take`` imports it too), whose import costs 0.05-0.09 s
     CPU: a tenth of converting a short log (issue 39)."""
-    one = _one_string(frames.combine_chunks())
+    one = _one_string(frames.chunk(0) if frames.num_chunks == 1 else frames.combine_chunks())
     if one is not None:
         return [one], np.zeros(len(rows), dtype=np.int32)
     import pyarrow.compute as pc
@@ -315,13 +338,13 @@ def message_times(table: pa.Table) -> tuple[np.ndarray, np.ndarray]:
     ns reads as negative); viewed as uint64 they are the log's own times again, so the whole
     uint64 range is written, ordered and indexed as the log had it."""
     t_ns = table.column("t_ns")
-    log = table.column("log_time_ns") if "log_time_ns" in table.column_names else t_ns
+    log = table.column("log_time_ns") if "log_time_ns" in table.schema.names else t_ns
     if log.null_count:
         import pyarrow.compute as pc  # nulls only: see _frame_codes
 
         log = pc.fill_null(log, t_ns)
     log_u = to_numpy(log).view(np.uint64)
-    if "publish_time_ns" not in table.column_names:
+    if "publish_time_ns" not in table.schema.names:
         return log_u, log_u
     pub = table.column("publish_time_ns")
     if pub.null_count:
@@ -357,7 +380,7 @@ def _conform(table: pa.Table, schema: pa.Schema) -> pa.Table:
     """``table`` with the columns of ``schema`` (a column it lacks: null, so the default)."""
     columns = [
         table.column(f.name).cast(f.type)
-        if f.name in table.column_names
+        if f.name in table.schema.names
         else pa.nulls(table.num_rows, f.type)
         for f in schema
     ]
@@ -367,8 +390,8 @@ def _conform(table: pa.Table, schema: pa.Schema) -> pa.Table:
 def _where_to(table: pa.Table) -> tuple[Any, Any]:
     """The table metadata that the writer uses: topics, and the default frame_ids where rows have
     none of their own."""
-    meta = metadata(table)
-    column = table.column("frame_id") if "frame_id" in table.column_names else None
+    meta = _meta(table)
+    column = table.column("frame_id") if "frame_id" in table.schema.names else None
     own = column is not None and column.null_count == 0
     return meta.get("topics"), None if own else meta.get("frame_id")
 
@@ -477,7 +500,7 @@ class McapTableWriter:
         self, buf: np.ndarray, starts: np.ndarray, stop: int, channels: np.ndarray, log: np.ndarray
     ) -> None:
         base = int(starts[0])
-        raw = buf[base:stop].tobytes()
+        raw = memoryview(np.ascontiguousarray(buf[base:stop]))  # no copy: zstd and crc32 read it
         compressed = self._compressor.compress(raw)
         start_t, end_t = int(log.min()), int(log.max())
         self._start = start_t if self._start < 0 else min(self._start, start_t)
@@ -501,9 +524,10 @@ class McapTableWriter:
             uncompressed_size=len(raw),
         )
         index_start = self._fh.tell()
-        for cid in unique(channels).tolist():
-            sel = channels == cid
-            pairs = np.empty((int(sel.sum()), 2), dtype="<u8")
+        one = len(channels) and channels[0] == channels[-1] and (channels == channels[0]).all()
+        for cid in [int(channels[0])] if one else unique(channels).tolist():
+            sel = slice(None) if one else channels == cid
+            pairs = np.empty((len(channels) if one else int(sel.sum()), 2), dtype="<u8")
             pairs[:, 0] = log[sel]
             pairs[:, 1] = starts[sel] - base
             index.message_index_offsets[cid] = self._fh.tell()
@@ -587,7 +611,7 @@ class McapTableWriter:
         """Encode one slice; each (topic, frame_id) group of messages goes into its own chunks,
         in log-time order within the group; chunks are written in the order of their first log
         time (MCAP readers merge overlapping chunks by log time). Returns the log times."""
-        topics = {**DEFAULT_TOPICS, **metadata(table).get("topics", {}), **self.topics}
+        topics = {**DEFAULT_TOPICS, **_meta(table).get("topics", {}), **self.topics}
         log_all, pub_all = message_times(table)
         pending = []  # (first log time, order, channel, records, log times)
         for stream in written_streams(table):
