@@ -161,7 +161,15 @@ def main() -> None:
     ap.add_argument("--iter", type=int, default=300, help="MagFit's --iter")
     ap.add_argument("--cache", type=Path, help="keep MagFit's .param files here (and reuse them)")
     ap.add_argument("--real", action="store_true", help="the independent judge's tables only")
+    ap.add_argument("--px4", action="store_true", help="the PX4 flights' table only")
     args = ap.parse_args()
+    if args.px4:
+        sys.path.insert(0, str(Path(__file__).parent))
+        import magfit_judge as judge
+
+        with tempfile.TemporaryDirectory() as tmp:
+            print("\n".join(judge.judge_px4(Path(tmp) / "px4")))
+        return
     if args.real:
         sys.path.insert(0, str(Path(__file__).parent))
         import magfit_judge as judge

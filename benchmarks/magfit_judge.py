@@ -406,11 +406,19 @@ def markdown(rows: list[Row]) -> str:
 
 PX4 = Path(__file__).resolve().parents[2] / "shared" / "data" / "logs" / "px4_flights_flugdrohne"
 """Three real PX4 v1.14 flights of one multicopter, two compasses."""
+GSF_MAX_SD_DEG = 10.0
+"""A ``yaw_estimator_status`` sample is a heading reference when PX4 marks it valid and its
+``sqrt(yaw_variance)`` is below this."""
+GSF_MIN_SAMPLES = 30
+"""A flight is judged by the GSF yaw only when this many compass samples lie within it."""
 
 
 @dataclass
 class Px4Flight:
-    """One ``sensor_mag`` instance of a ULog with what it is scored against (gauss, A)."""
+    """One ``sensor_mag`` instance of a ULog with what it is scored against (gauss, A):
+    ``q`` the EKF attitude held at each compass sample (as :func:`read_flight` holds ``ATT``),
+    ``q_gsf`` the EKF attitude interpolated and its yaw replaced by PX4's EKF-GSF yaw (NaN
+    where the GSF had not converged: :func:`gsf_yaw_error`)."""
 
     path: Path
     key: str
@@ -421,14 +429,66 @@ class Px4Flight:
     current: np.ndarray
     earth: np.ndarray
     rotation: np.ndarray
+    q_gsf: np.ndarray
+
+
+def _yaw(q: np.ndarray) -> np.ndarray:
+    """The 3-2-1 yaw (rad) of quaternions (w, x, y, z; body FRD -> NED)."""
+    w, x, y, z = q.T
+    return np.arctan2(2 * (w * z + x * y), 1 - 2 * (y * y + z * z))
+
+
+def _q_interp(t: np.ndarray, q: np.ndarray, at: np.ndarray) -> np.ndarray:
+    """Quaternions ``q`` at stamps ``t`` interpolated to ``at`` (signs made continuous first)."""
+    flips = np.sign(np.einsum("ij,ij->i", q[1:], q[:-1]))
+    flips[flips == 0] = 1.0
+    qc = q * np.concatenate([[1.0], np.cumprod(flips)])[:, None]
+    out = np.column_stack([np.interp(at, t, qc[:, k]) for k in range(4)])
+    return out / np.linalg.norm(out, axis=1, keepdims=True)
+
+
+def _turn_yaw(q: np.ndarray, d: np.ndarray) -> np.ndarray:
+    """``q`` turned by ``-d`` (rad) about NED down: the attitude with its yaw less ``d``."""
+    c, s = np.cos(-d / 2), np.sin(-d / 2)
+    w, x, y, z = q.T
+    return np.column_stack([c * w - s * z, c * x - s * y, c * y + s * x, c * z + s * w])
+
+
+def gsf_yaw_error(
+    ta: np.ndarray, qa: np.ndarray, gsf: dict[str, np.ndarray], t: np.ndarray
+) -> np.ndarray:
+    """The EKF attitude's yaw error (rad) at stamps ``t`` as PX4's EKF-GSF yaw estimator sees
+    it (``yaw_estimator_status``: a bank of EKFs on the IMU and the GPS velocity, no compass;
+    Riseborough, PX4 ``EKFGSF_yaw``): at each GSF sample that is valid with ``sqrt(yaw_variance)``
+    below :data:`GSF_MAX_SD_DEG`, the attitude's yaw (``ta``/``qa`` interpolated) minus
+    ``yaw_composite``, interpolated (it varies slowly) onto ``t``; NaN outside the span of those
+    samples or farther than 1.5 s from one. Interpolating the error, not the yaw: the vehicles
+    turn at up to 100+ deg/s between the 1 Hz samples."""
+    tg = np.where(gsf["timestamp_sample"] == 0, gsf["timestamp"], gsf["timestamp_sample"])
+    tg = tg.astype(np.int64)
+    sd = np.degrees(np.sqrt(np.maximum(gsf["yaw_variance"], 0.0)))
+    ok = gsf["yaw_composite_valid"].astype(bool) & (sd < GSF_MAX_SD_DEG)
+    ok &= (tg >= ta[0]) & (tg <= ta[-1])
+    out = np.full(len(t), np.nan)
+    if ok.sum() < 2:
+        return out
+    tg = tg[ok]
+    d = _yaw(_q_interp(ta, qa, tg)) - gsf["yaw_composite"][ok]
+    d = np.unwrap((d + np.pi) % (2 * np.pi) - np.pi)
+    near = (t >= tg[0]) & (t <= tg[-1])
+    j = np.clip(np.searchsorted(tg, t), 1, len(tg) - 1)
+    near &= np.minimum(np.abs(t - tg[j - 1]), np.abs(tg[j] - t)) <= 1_500_000
+    out[near] = np.interp(t[near], tg, d)
+    return out
 
 
 def read_px4(path: Path, key: str) -> Px4Flight:
     """``key`` (``sensor_mag``, ``sensor_mag_1``) of the ULog at ``path``, read with pyulog;
     the attitude ``vehicle_attitude`` and the battery current held at each compass sample
     (MagFit's sample-and-hold), the field from ``mavextra.expected_earth_field_lat_lon`` at the
-    first 3D fix. The compass's turn into the body (``CAL_MAGn_ROT``, ``SENS_BOARD_*``) is
-    PX4's rotation table as imupipe's ULog reader reads it (a convention, not a fitted figure)."""
+    first 3D fix, and the GSF-corrected attitude (:func:`gsf_yaw_error`, GSF instance 0). The
+    compass's turn into the body (``CAL_MAGn_ROT``, ``SENS_BOARD_*``) is PX4's rotation table as
+    imupipe's ULog reader reads it (a convention, not a fitted figure)."""
     from pymavlink import mavextra
     from pyulog import ULog
 
@@ -437,7 +497,7 @@ def read_px4(path: Path, key: str) -> Px4Flight:
     from imupipe.readers.table import metadata
 
     names = ["sensor_mag", "vehicle_attitude", "vehicle_gps_position", "battery_status"]
-    log = ULog(str(path), names)
+    log = ULog(str(path), [*names, "yaw_estimator_status"])
     instance = 0 if key == "sensor_mag" else int(key.rsplit("_", 1)[1])
     data = {(d.name, d.multi_id): d.data for d in log.data_list}
     mag = data[("sensor_mag", instance)]
@@ -449,7 +509,8 @@ def read_px4(path: Path, key: str) -> Px4Flight:
 
     t = stamp(mag)
     att = data[("vehicle_attitude", 0)]
-    q = _hold(t, list(stamp(att)), np.column_stack([att[f"q[{i}]"] for i in range(4)]), 4)
+    ta, qa = stamp(att), np.column_stack([att[f"q[{i}]"] for i in range(4)])
+    q = _hold(t, list(ta), qa, 4)
     bat = data.get(("battery_status", 0))
     cur = np.zeros(len(t)) if bat is None else _hold(t, list(stamp(bat)), bat["current_a"], 1)[:, 0]
     gps = data[("vehicle_gps_position", 0)]
@@ -458,6 +519,12 @@ def read_px4(path: Path, key: str) -> Px4Flight:
     table, _ = read_input(InputSpec(path=path, mag_topic=key, imu_topic="sensor_combined"))
     turn = ((metadata(table)["px4"].get("rotation") or {}).get("mag") or {}).get("matrix")
     keep = np.isfinite(q).all(axis=1)
+    gsf = data.get(("yaw_estimator_status", 0))
+    q_gsf = np.full((len(t), 4), np.nan)
+    if gsf is not None:
+        inside = (t >= ta[0]) & (t <= ta[-1])
+        d = gsf_yaw_error(ta, qa, gsf, t[inside])
+        q_gsf[inside] = _turn_yaw(_q_interp(ta, qa, t[inside]), d)
     return Px4Flight(
         path,
         key,
@@ -468,6 +535,7 @@ def read_px4(path: Path, key: str) -> Px4Flight:
         np.nan_to_num(cur[keep]),
         np.array([e.x, e.y, e.z]) / 1000.0,
         np.eye(3) if turn is None else np.asarray(turn, dtype=float).reshape(3, 3),
+        q_gsf[keep],
     )
 
 
@@ -487,9 +555,21 @@ def px4_corrected(f: Px4Flight, p: dict[str, float]) -> np.ndarray:
     return body @ f.rotation.T
 
 
-def px4_score(f: Px4Flight, p: dict[str, float]) -> tuple[float, float]:
-    """(RMS |m_corr - R(q)^T B_earth| mG, RMS heading error deg) as :func:`score`."""
-    w, x, y, z = f.q.T
+def gsf_judged(f: Px4Flight) -> int:
+    """How many of ``f``'s compass samples the GSF yaw judges (0 below
+    :data:`GSF_MIN_SAMPLES`)."""
+    n = int(np.isfinite(f.q_gsf).all(axis=1).sum())
+    return n if n >= GSF_MIN_SAMPLES else 0
+
+
+def px4_score(f: Px4Flight, p: dict[str, float], gsf: bool = False) -> tuple[float, float]:
+    """(RMS |m_corr - R(q)^T B_earth| mG, RMS heading error deg) as :func:`score`; ``gsf``:
+    with the GSF-corrected attitude, over the samples it covers (:func:`gsf_judged`)."""
+    q, rows = f.q, np.ones(len(f.q), dtype=bool)
+    if gsf:
+        rows = np.isfinite(f.q_gsf).all(axis=1)
+        q = f.q_gsf[rows]
+    w, x, y, z = q.T
     dcm = np.stack(
         [
             np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
@@ -498,7 +578,7 @@ def px4_score(f: Px4Flight, p: dict[str, float]) -> tuple[float, float]:
         ],
         -2,
     )
-    m = px4_corrected(f, p) * 1000.0
+    m = px4_corrected(f, p)[rows] * 1000.0
     earth = f.earth * 1000.0
     res = np.linalg.norm(m - np.einsum("nji,j->ni", dcm, earth), axis=1)
     ned = np.einsum("nij,nj->ni", dcm, m)
@@ -507,16 +587,22 @@ def px4_score(f: Px4Flight, p: dict[str, float]) -> tuple[float, float]:
     return float(np.sqrt(np.mean(res**2))), float(np.sqrt(np.mean(h**2)))
 
 
-def run_imupipe_px4(log: Path, keys: list[str], work: Path) -> dict[str, float] | str:
-    """imupipe's ``px4_calibration.params`` (default options, every compass in ``keys``)."""
+def run_imupipe_px4(
+    log: Path, keys: list[str], work: Path, accept: bool = False
+) -> tuple[dict[str, float], dict[str, str]] | str:
+    """imupipe's ``px4_calibration.params`` (default options, every compass in ``keys``;
+    ``accept``: ``accept_failed_checks = true``, every fit written) and each refused compass's
+    first failed check (``results.<stage>.refused``, or ``failed_checks`` with ``accept``)."""
     work.mkdir(parents=True, exist_ok=True)
     listed = ", ".join(f'"{k}"' for k in keys)
     (work / "c.toml").write_text(
         f'[inputs.f]\npath = "{log}"\ninstances = [{listed}]\n'
-        '[[stages]]\ntype = "mag_inflight"\n[output]\ndir = "out"\n'
+        '[[stages]]\ntype = "mag_inflight"\n'
+        + ("accept_failed_checks = true\n" if accept else "")
+        + '[output]\ndir = "out"\nrerun = false\nreport = false\napply_to = []\n'
     )
     proc = subprocess.run(
-        [sys.executable, "-m", "imupipe.pipeline.cli", "run", "c.toml"],
+        [sys.executable, "-m", "imupipe.pipeline.cli", "run", "c.toml", "--quiet"],
         cwd=work,
         capture_output=True,
         text=True,
@@ -530,22 +616,45 @@ def run_imupipe_px4(log: Path, keys: list[str], work: Path) -> dict[str, float] 
         if line and not line.startswith("#"):
             _, _, name, value, _ = line.split("\t")
             params[name] = float(value)
-    return params
+    doc = json.loads((work / "out" / "calibration.json").read_text())
+    refused = {}
+    for key in keys:
+        r = doc["results"].get(f"mag_inflight_{key}", {})
+        why = r.get("refused") or r.get("failed_checks")
+        if why:
+            refused[key] = why[0]
+    return params, refused
 
 
 def judge_px4(work: Path, keys: tuple[str, ...] = ("sensor_mag", "sensor_mag_1")) -> list[str]:
-    """Each PX4 flight fitted by imupipe (both compasses) and scored on itself and on the other
-    two flights, against the vehicle's own calibration as flown: markdown rows."""
+    """Each PX4 flight's compasses fitted by imupipe (every fit, refused ones included:
+    ``accept_failed_checks``), each fit scored on the three flights against the vehicle's own
+    calibration as flown, by two judges: the EKF attitude (``vehicle_attitude``, whose yaw
+    fuses the compass judged) and the GSF-corrected attitude (its yaw from PX4's EKF-GSF, no
+    compass: :func:`gsf_yaw_error`; a flight where the GSF converged on fewer than
+    :data:`GSF_MIN_SAMPLES` compass samples is not judged by it): markdown rows ``EKF: mG, deg;
+    GSF: mG, deg``, a refused fit marked with its failed check."""
     logs = sorted(PX4.glob("*.ulg"))
-    fits = {p.name: run_imupipe_px4(p, list(keys), work / p.stem) for p in logs}
+    fits = {p.name: run_imupipe_px4(p, list(keys), work / p.stem, accept=True) for p in logs}
     rows = []
     for key in keys:
         flights = {p.name: read_px4(p, key) for p in logs}
-        for fitted, params in fits.items():
+        cells = []
+        for f in flights.values():
+            n = gsf_judged(f)
+            gsf = f"{fmt(px4_score(f, f.params, True))} ({n} samples)" if n else "not judged"
+            cells.append(f"{fmt(px4_score(f, f.params))}; GSF {gsf}")
+        rows.append(f"| {key}, as flown | " + " | ".join(cells) + " |")
+        for fitted, got in fits.items():
+            if isinstance(got, str):
+                rows.append(f"| {key}, fit of {fitted[:6]} | {got} | | |")
+                continue
+            params, refused = got
             cells = []
             for f in flights.values():
-                flown = px4_score(f, f.params)
-                ours = params if isinstance(params, str) else px4_score(f, f.params | params)
-                cells.append(f"{fmt(flown)} -> {fmt(ours)}")
-            rows.append(f"| {key} fitted on {fitted[:6]} | " + " | ".join(cells) + " |")
+                pp = f.params | params
+                gsf = fmt(px4_score(f, pp, True)) if gsf_judged(f) else "not judged"
+                cells.append(f"{fmt(px4_score(f, pp))}; GSF {gsf}")
+            note = f" (refused: {refused[key]})" if key in refused else ""
+            rows.append(f"| {key}, fit of {fitted[:6]}{note} | " + " | ".join(cells) + " |")
     return rows

@@ -61,8 +61,14 @@ class StageConfig:
     input: str
     options: Any
     index: int
-    accept_failed_checks: bool = False
-    """Keep a fit that fails its own quality check (with a warning) instead of stopping."""
+    accept_failed_checks: bool | list[str] = False
+    """Keep a fit that fails its own quality check (with a warning) instead of stopping; on an
+    input with ``instances``, a list keeps those instances' fits only (``["sensor_mag_1"]``)."""
+    instance_of: str | None = None
+    """The configured stage this one was expanded from, one per instance of its input's log
+    (:mod:`imupipe.pipeline.instances`); None: a stage as written."""
+    instance: str | None = None
+    """The instance (topic key: ``sensor_mag_1``) of an expanded stage."""
 
 
 @dataclass
@@ -451,8 +457,16 @@ def parse_config(raw: dict[str, Any], path: Path, base: Path) -> Config:
                 f"{where}.input: unknown input '{input_name}' (inputs: {', '.join(inputs)})"
             )
         accept = entry.pop("accept_failed_checks", False)
-        if not isinstance(accept, bool):
-            raise ConfigError(f"{where}.accept_failed_checks: must be true or false")
+        listed = isinstance(accept, list) and all(isinstance(k, str) for k in accept)
+        if not isinstance(accept, bool) and not (listed and input_name in instances):
+            raise ConfigError(
+                f"{where}.accept_failed_checks: must be true or false"
+                + (
+                    ', or a list of the input\'s instances (["sensor_mag_1"])'
+                    if input_name in instances
+                    else ""
+                )
+            )
         cls = stage_class(type_name)
         options = build_options(cls.Options, entry, f"{where} ({type_name})")
         stages.append(StageConfig(type_name, name or "", input_name, options, i, accept))

@@ -16,6 +16,14 @@ so that no step of another device meets a temperature that is not its own): an I
 ``pressure`` column; a magnetometer: ``mag_topic`` and its own temperature where logged), and each stage becomes
 ``<stage>_<instance>`` on it. ``apply_to`` names the expanded input for all of its instances.
 Every step records its device, so each goes to its own parameter slot.
+
+A fit of one instance that fails its quality check does not stop the run while another instance
+of the same stage is fitted: that fit is refused alone (left out of the chain, so out of
+``calibration.json``'s chain, the corrected logs and the parameter files: a vehicle keeps its
+own calibration of that sensor), with one warning naming it and the figure that failed and
+``refused`` in its results; the others' fits stand. When every instance is refused, the run stops
+on the first refusal, as a single stage does. ``accept_failed_checks`` takes a list of
+instances (``["sensor_mag_1"]``) to keep those fits anyway.
 """
 
 from __future__ import annotations
@@ -87,6 +95,13 @@ def expand_instances(cfg: Config) -> Config:
                 f"{KIND_NAMES[kind]} instance in the log"
                 + ("" if wanted == "all" else " among its instances")
             )
+        accept = st.accept_failed_checks
+        unknown = [k for k in accept if k not in keys] if isinstance(accept, list) else []
+        if unknown:
+            raise ConfigError(
+                f"{cfg.path}: stages[{st.index}].accept_failed_checks: {', '.join(unknown)} not "
+                f"among the instances this stage runs on ({', '.join(keys)})"
+            )
         for key in keys:
             name = f"{st.input}-{key}"
             if name not in inputs:
@@ -94,7 +109,16 @@ def expand_instances(cfg: Config) -> Config:
                     cfg.inputs[st.input], name, kind, key, listed[st.input]
                 )
                 derived.setdefault(st.input, []).append(name)
-            stages.append(dataclasses.replace(st, name=f"{st.name}_{key}", input=name))
+            stages.append(
+                dataclasses.replace(
+                    st,
+                    name=f"{st.name}_{key}",
+                    input=name,
+                    accept_failed_checks=key in accept if isinstance(accept, list) else accept,
+                    instance_of=st.name,
+                    instance=key,
+                )
+            )
     names = [st.name for st in stages]
     twice = sorted({n for n in names if names.count(n) > 1})
     if twice:

@@ -126,6 +126,13 @@ MEANINGS: list[tuple[str, str]] = [
         "are many.",
     ),
     (
+        r"refused: .*left out of the chain",
+        "that sensor's fit failed its own quality check, so it is not applied: the calibration "
+        "and the parameter files hold the other sensors' fits only, and the vehicle keeps its "
+        "present calibration of this one. Look at its plots; name it in accept_failed_checks "
+        "to use the fit anyway.",
+    ),
+    (
         r"accepted: accept_failed_checks",
         "the fit failed one of its quality checks and was kept only because the stage sets "
         "accept_failed_checks = true: check its plots before using it.",

@@ -40,7 +40,7 @@ from imupipe.pipeline.warm_imports import WarmImports
 from imupipe.readers.arrays import to_numpy
 from imupipe.readers.dispatch import read_input, reader_for
 from imupipe.readers.table_buffer import small_pages
-from imupipe.stages.base import StageContext
+from imupipe.stages.base import StageContext, StageOutput
 from imupipe.stages.registry import stage_class, stage_modules
 from imupipe.stages.steps import Step, apply_chain
 
@@ -167,6 +167,28 @@ def warm_modules(cfg: Config) -> list[str]:
     return modules + [f"imupipe.pipeline.exports.{n}" for n in exporters]
 
 
+def instance_groups(cfg: Config) -> dict[str, list[str]]:
+    """Configured stage -> the stages expanded from it over two or more instances of its
+    input's log (:mod:`imupipe.pipeline.instances`): a fit of one of them that fails its quality
+    check is refused alone (:func:`refused_line`)."""
+    groups: dict[str, list[str]] = {}
+    for st in cfg.stages:
+        if st.instance_of is not None:
+            groups.setdefault(st.instance_of, []).append(st.name)
+    return {k: v for k, v in groups.items() if len(v) > 1}
+
+
+def refused_line(instance: str, refused: list[str]) -> str:
+    """The warning of a fit of one instance refused by its quality check (``refused``: the
+    failed checks, the first named): left out of the chain and so of every file made from it."""
+    more = f" (and {len(refused) - 1} more failed checks)" if len(refused) > 1 else ""
+    return (
+        f"{instance} refused: {refused[0]}{more}; its fit is left out of the chain and the "
+        f"parameter files (the vehicle keeps its own calibration of {instance}); "
+        f'accept_failed_checks = ["{instance}"] in this stage to use it anyway'
+    )
+
+
 def run(
     config: Config | str | Path,
     *,
@@ -211,6 +233,8 @@ def run(
 
         tables = CorrectedTables(raw, list(cfg.inputs), read)
         results: dict[str, Any] = {}
+        groups = instance_groups(cfg)
+        refusals: dict[str, StageContext] = {}  # stage -> its refused fit's context
         fitted: list[dict[str, Any]] = []  # fitted_on of each chain entry
         owners: list[tuple[str, Step]] = []  # (stage, step): a step's warnings are its stage's
 
@@ -240,12 +264,20 @@ def run(
                     recorder=recorder,
                     tables=tables,
                     quiet=quiet,
-                    accept_failed_checks=st.accept_failed_checks,
+                    accept_failed_checks=bool(st.accept_failed_checks),
+                    refuse_alone=(st.instance_of or "") in groups,
                 )
                 sensors = stage.sensors_for(st.options)
                 mine = applying(tables.chain, table)  # the steps of this input's devices
                 recorder.sensors(st.name, table, sensors, input_name=st.input, chain=mine)
                 output = stage.fit(table, ctx)
+                if ctx.refused:  # one instance's fit refused: the others' stand
+                    refusals[st.name] = ctx
+                    group = groups[st.instance_of or ""]
+                    if all(n in refusals for n in group):  # every one: stop, as one stage does
+                        raise refusals[group[0]].refusal()
+                    ctx.warn(refused_line(st.instance or st.name, ctx.refused))
+                    output = StageOutput(results={**output.results, "refused": ctx.refused})
                 for w in ctx.warnings:
                     notices.add("warning", st.name, "stage", w)
                 owners.extend((st.name, step) for step in output.steps)

@@ -7,26 +7,31 @@ chunk) that way:
 
 1. Where every run of number characters (``0-9 . e E + -``) ends is found in the whole chunk in a
    few numpy passes (into work arrays kept per thread: a fresh megabyte temporary costs more in
-   page faults than the pass).
-2. The first undecoded message is the *template*: parsed once by Python's ``json`` (the
-   reference decoder of ``mcap``'s JSON channels), its numbers counted through ``parse_int`` /
-   ``parse_float`` in text order. Its runs that start with a digit or ``-`` outside its strings
-   (``"imu_1"`` is text) must be exactly its numbers, and every mapped leaf one of them: each leaf
-   is then "the j-th number", and the text between numbers is known.
-3. For every other message, number j starts where the template's text before it ends and ends
-   where its run of number characters does (the runs between two numbers are the template's:
-   counted, not searched). The message has the template's shape when its text between the numbers
-   is byte for byte the template's (compared 8 bytes at a time) and each number is one whole run;
-   it is then valid JSON with the template's structure, provided each number follows the JSON
-   grammar (RFC 8259, section 6; checked here: a digit after ``-``, no leading zero, a digit after
-   ``.``; Arrow's parser refuses the rest).
+   page faults than the pass; the same holds for every large temporary below).
+2. A *template* is a message parsed once by Python's ``json`` (the reference decoder of
+   ``mcap``'s JSON channels), its numbers counted through ``parse_int`` / ``parse_float`` in text
+   order. Its runs that start with a digit or ``-`` outside its strings (``"imu_1"`` is text)
+   must be exactly its numbers, and every mapped leaf one of them: each leaf is then "the j-th
+   number", and the text between numbers is known (a :class:`Shape`). The shapes of a channel's
+   previous chunk are tried first (kept by the caller); then the first message no shape fits.
+3. For every message, number j starts where the shape's text before it ends and ends where its
+   run of number characters does (the runs between two numbers are the shape's: counted, not
+   searched). The message has the shape when its text between the numbers is byte for byte the
+   shape's (gathered one byte position at a time over all messages: a gather of unaligned 8-byte
+   words costs about ten times one of bytes) and each number is one whole run; it is then valid
+   JSON with the template's structure, provided each number follows the JSON grammar (RFC 8259,
+   section 6). Checked here: a digit after a leading ``-``, no leading zero, no ``.`` at the end
+   or before ``e`` / ``E``; Arrow's parser refuses the rest of what JSON does not allow (``1..2``,
+   ``1e``, ``1e5e5``) in the numbers it parses, the mapped ones. An unmapped number is not
+   parsed: such a slip in it goes unseen (the message's mapped values are still ``json``'s).
 4. Messages of another shape (a pretty-printed one, a field that comes and goes) take the next
-   template, up to :data:`TEMPLATES` (of at most :data:`MAX_NUMBERS` numbers); the caller reads
-   what is left (``rest``: Arrow's JSON reader, and ``json`` for what Arrow refuses).
-5. The mapped numbers are parsed for all messages at once: integers digit by digit in numpy
-   (exact), other numbers by Arrow's cast of a ``string_view`` array over the chunk (no copy;
-   ``fast_float``, correctly rounded): Python's ``int(text)`` / ``float(text)``, which ``json``
-   gives, but for ``-0``: the integer 0 to ``json``, so 0.0 here too.
+   template, up to :data:`TEMPLATES` new ones a chunk (of at most :data:`MAX_NUMBERS` numbers);
+   a message no template can be made of (``NaN``, a mapped field absent) is left for the caller,
+   which reads what is left (``rest``: Arrow's JSON reader, and ``json`` for what Arrow refuses).
+5. The mapped numbers are parsed for all messages at once by Arrow's cast of a ``string_view``
+   array over the chunk (no copy; ``fast_float``, correctly rounded; one cast for the integer
+   leaves, one for the others): Python's ``int(text)`` / ``float(text)``, which ``json`` gives,
+   but for ``-0``: the integer 0 to ``json``, so 0.0 here too.
 
 Duplicate keys read as ``json`` reads them (the last one). A number Arrow will not cast: None,
 and the caller reads the whole batch its own way, naming the bad message.
@@ -40,8 +45,6 @@ import threading
 from collections.abc import Callable, Sequence
 
 import numpy as np
-
-from imupipe.readers.cdr import unaligned
 
 TEMPLATES = 8
 """Shapes tried per batch before the rest goes to Arrow's JSON reader."""
@@ -69,43 +72,52 @@ def _is_digit(values: np.ndarray) -> np.ndarray:
 
 class _Scratch(threading.local):
     """Work arrays kept from one chunk to the next (per thread): a fresh megabyte-sized numpy
-    temporary costs more in page faults than the pass that fills it."""
+    temporary costs more in page faults than the pass that fills it (the C library hands
+    memory over 128 kB back to the system when freed)."""
 
     def __init__(self) -> None:
-        self.pad = np.empty(0, np.uint8)
+        self.named: dict[str, np.ndarray] = {}
         self.u8 = np.empty(0, np.uint8)
         self.flag = np.empty(0, bool)
         self.e = np.empty(0, bool)
         self.tmp = np.empty(0, bool)
 
     def get(self, size: int) -> _Scratch:
-        if len(self.pad) < size + 16:
+        if len(self.u8) < size:
             grow = int(size * 1.25) + 16
-            self.pad = np.empty(grow + 16, np.uint8)
             self.u8 = np.empty(grow, np.uint8)
             self.flag = np.empty(grow + 1, bool)
-            self.e = np.empty(grow, bool)
+            self.e = np.empty(grow + 1, bool)
             self.tmp = np.empty(grow, bool)
         return self
+
+    def array(self, name: str, shape: tuple[int, ...], dtype: type) -> np.ndarray:
+        """The work array ``name`` (its contents: whatever its last user left)."""
+        size = int(np.prod(shape))
+        have = self.named.get(name)
+        if have is None or len(have) < size or have.dtype != dtype:
+            have = self.named[name] = np.empty(int(size * 1.25) + 64, dtype)
+        return have[:size].reshape(shape)
 
 
 _SCRATCH = _Scratch()
 
 
 def number_chars(region: np.ndarray, work: _Scratch | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """Per byte: is it one of ``0-9 . e E + - /`` (one more, False, at the end; ``/`` only to
-    save a pass: outside a string it is never next to a number); and is it ``e`` or ``E``."""
+    """Per byte: is it one of ``0-9 . e E + - /``; and is it ``e`` or ``E`` (both with one
+    more, False, at the end; ``/`` only to save a pass: outside a string it is never next to
+    a number)."""
     n = len(region)
     work = work or _Scratch().get(n)
-    flag, e, u8, tmp = work.flag[: n + 1], work.e[:n], work.u8[:n], work.tmp[:n]
-    flag[n] = False
+    flag, e, u8, tmp = work.flag[: n + 1], work.e[: n + 1], work.u8[:n], work.tmp[:n]
+    flag[n] = e[n] = False
     np.subtract(region, np.uint8(45), out=u8)
     np.less(u8, 13, out=flag[:n])  # - . / 0-9
     np.equal(region, 43, out=tmp)  # +
     np.logical_or(flag[:n], tmp, out=flag[:n])
     np.bitwise_or(region, np.uint8(32), out=u8)
-    np.equal(u8, 101, out=e)  # e E
-    np.logical_or(flag[:n], e, out=flag[:n])
+    np.equal(u8, 101, out=e[:n])  # e E
+    np.logical_or(flag[:n], e[:n], out=flag[:n])
     return flag, e
 
 
@@ -114,7 +126,17 @@ def run_ends(flag: np.ndarray, work: _Scratch | None = None) -> np.ndarray:
     n = len(flag) - 1
     tmp = work.tmp[:n] if work is not None else np.empty(n, bool)
     np.greater(flag[:-1], flag[1:], out=tmp)
-    return np.flatnonzero(tmp) + 1
+    ends = np.flatnonzero(tmp)
+    ends += 1
+    return ends
+
+
+def _dot_e(region: np.ndarray, e: np.ndarray, work: _Scratch) -> np.ndarray:
+    """Where ``.`` is followed by ``e`` or ``E`` (``1.e5``: Arrow takes it, JSON does not)."""
+    dot = work.tmp[: len(region)]
+    np.equal(region, 46, out=dot)
+    np.logical_and(dot, e[1:], out=dot)
+    return np.flatnonzero(dot) if dot.any() else np.zeros(0, np.int64)
 
 
 def _template(
@@ -162,99 +184,147 @@ def _template(
     return starts[runs], ends[runs], runs, which
 
 
-def _same_text(words: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
-    """Per row: the text ``lo[:, j]``..``hi[:, j]`` of every column is row 0's (the sizes are
-    row 0's), compared as little-endian 8-byte words."""
-    offsets, columns, masks = [], [], []
-    for j, size in enumerate((hi[0] - lo[0]).tolist()):
-        for w in range(0, size, 8):
-            offsets.append(w)
-            columns.append(j)
-            masks.append(0xFFFF_FFFF_FFFF_FFFF >> (8 * max(8 - (size - w), 0)))
-    if not offsets:
-        return np.ones(len(lo), bool)
-    got = words[lo[:, columns] + np.array(offsets)]
-    got ^= got[0]
-    got &= np.array(masks, np.uint64)
-    return ~got.any(axis=1)
+class Shape:
+    """What every message of one template's shape holds between its numbers: ``gaps[j]``
+    bytes before number ``j`` (from the message's start, or from number ``j - 1``'s end),
+    ``tail`` bytes after the last, together ``text``; ``steps[j]`` runs of number characters
+    from number ``j - 1``'s run to number ``j``'s (runs in strings counted); ``which``: the
+    number each leaf is."""
+
+    __slots__ = ("gaps", "pieces", "span", "steps", "tail", "text", "which")
+
+    def __init__(
+        self, text: bytes, starts: np.ndarray, ends: np.ndarray, runs: np.ndarray, which: list
+    ) -> None:
+        bases = [0, *ends.tolist()]
+        self.gaps = [s - b for s, b in zip(starts.tolist(), bases, strict=False)]
+        self.tail = len(text) - bases[-1]
+        self.steps = [0, *np.diff(runs).tolist()]
+        self.span = int(runs[-1] - runs[0])
+        self.which = which
+        sizes = [*self.gaps, self.tail]
+        self.text = np.frombuffer(
+            b"".join(text[b : b + n] for b, n in zip(bases, sizes, strict=True)), np.uint8
+        )[:, None]
+        at = np.cumsum([0, *sizes])
+        self.pieces = [(j, int(at[j]), int(at[j + 1])) for j in range(len(sizes)) if sizes[j]]
+        """(j, first, last): text[first:last] follows the message's start (j = 0) or number
+        ``j - 1``'s end."""
+
+    @classmethod
+    def of(cls, text: bytes, leaves: Sequence[tuple[str | int, ...]]) -> Shape | None:
+        """The shape of the template ``text`` (None: not a template, see :func:`_template`;
+        more than :data:`MAX_NUMBERS` numbers; a number at the very start)."""
+        got = _template(text, leaves)
+        if got is None or len(got[0]) > MAX_NUMBERS or got[0][0] == 0:
+            return None
+        return cls(text, *got)
+
+    def match(
+        self,
+        buf: np.ndarray,
+        run_end: np.ndarray,
+        starts: np.ndarray,
+        ends: np.ndarray,
+        work: _Scratch,
+        keep_in_work: bool,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """(which of the messages ``buf[starts:ends]`` have this shape; their numbers'
+        starts and ends, one row per number; ``head[i]``: each number's byte ``i``, 0 to 3,
+        past the end of ``buf`` its last). ``run_end``: where the runs of number characters
+        end. ``keep_in_work``: the arrays returned may be ``work``'s."""
+        k, m = len(self.gaps), len(starts)
+        mine = {"ts", "te", "head"} if keep_in_work else set()
+
+        def array(name: str, shape: tuple[int, ...], dtype: type) -> np.ndarray:
+            if name in mine or name not in ("ts", "te", "head"):
+                return work.array(name, shape, dtype)
+            return np.empty(shape, dtype)
+
+        ts = array("ts", (k, m), np.int64)
+        te = array("te", (k, m), np.int64)
+        np.add(starts, self.gaps[0], out=ts[0])
+        run = np.searchsorted(run_end, ts[0], "right")
+        np.take(run_end, run, out=te[0], mode="clip")
+        ok = te[0] > ts[0]
+        for j in range(1, k):
+            # number j is the run steps[j] runs on, when the text between is the template's
+            run += self.steps[j]
+            np.add(te[j - 1], self.gaps[j], out=ts[j])
+            np.take(run_end, run, out=te[j], mode="clip")
+            ok &= te[j] > ts[j]
+        ok &= ends - te[-1] == self.tail
+        ok &= run < len(run_end)  # the runs ran out (the takes clipped)
+        rows = np.flatnonzero(ok)
+        if not len(rows):
+            return rows, ts[:, :0], te[:, :0], np.zeros((4, k, 0), np.uint8)
+        if len(rows) < m:
+            ts, te, starts = ts.take(rows, axis=1), te.take(rows, axis=1), starts[rows]
+        # the text between the numbers is the template's, byte for byte (gathered a byte at a
+        # time: a gather of unaligned 8-byte words costs ten times as much a word)
+        got = work.array("text", (len(self.text), len(rows)), np.uint8)
+        for j, first, last in self.pieces:
+            base = te[j - 1] if j else starts
+            for i in range(first, last):
+                np.take(buf[i - first :], base, out=got[i])
+        keep = ~(got != self.text).any(axis=0)
+        # each number follows the JSON grammar where Arrow does not hold to it: a digit after
+        # "-", no leading zero, no "." at the end (the caller's: no ".e", see _dot_e)
+        head = array("head", (4, k, len(rows)), np.uint8)
+        for i in range(4):  # byte 3 may lie past the message's end (its last bracket)
+            np.take(buf[i:], ts, out=head[i], mode="clip")
+        minus = head[0] == 45
+        lead = np.where(minus, head[1], head[0]) - np.uint8(48)
+        after = np.where(minus, head[2], head[1]) - np.uint8(48)
+        bad = (lead > 9) | ((lead == 0) & (after < 10))
+        bad |= np.take(buf, np.subtract(te, 1, out=work.array("at", te.shape, np.int64))) == 46
+        keep &= ~bad.any(axis=0)
+        if keep.all():
+            return rows, ts, te, head
+        kept = np.flatnonzero(keep)
+        return rows[kept], ts.take(kept, axis=1), te.take(kept, axis=1), head.take(kept, axis=2)
 
 
-def _grammar(buf: np.ndarray, ts: np.ndarray, te: np.ndarray, bad_ends: np.ndarray) -> np.ndarray:
-    """Per row: every number ``buf[ts:te]`` has a digit after its ``-``, no leading zero, a
-    digit after its ``.`` (the parts of RFC 8259's grammar Arrow's parser does not hold to):
-    ``bad_ends`` are the ends of the runs with ``.e`` or ``.E``; Arrow refuses ``.`` before
-    ``+ - .``."""
-    p = ts + (buf[ts] == 45)
-    lead = buf[p]
-    ok = _is_digit(lead)
-    ok &= ~((lead == 48) & (p + 1 < te) & _is_digit(buf[p + 1]))
-    ok &= buf[te - 1] != 46
-    if len(bad_ends):
-        ok &= ~np.isin(te, bad_ends)
-    return ok.all(axis=1)
-
-
-_LOW = np.array([(1 << (8 * k)) - 1 for k in range(9)], np.uint64)
-"""``_LOW[k]``: the low ``k`` bytes of a little-endian word."""
-
-
-def _integers(pad: np.ndarray, ts: np.ndarray, te: np.ndarray) -> np.ndarray | None:
-    """The integers ``pad[ts:te]`` (an optional ``-``, 1 to 19 digits, within int64) exactly,
-    digit by digit; None when one is not such an integer."""
-    negative = pad[ts] == 45
-    first = ts + negative
-    count = te - first
-    if not len(ts) or count.min() < 1 or count.max() > 19:
-        return None
-    width = int(count.max())
-    at = te[:, None] - width + np.arange(width)  # right-aligned digits
-    digits = pad[np.maximum(at, 0)] - np.uint8(48)
-    here = at >= first[:, None]
-    if ((digits > 9) & here).any():
-        return None
-    digits[~here] = 0
-    value = digits.astype(np.uint64) @ (
-        np.uint64(10) ** np.arange(width - 1, -1, -1, dtype=np.uint64)
-    )
-    if (value > np.uint64(2**63 - 1) + negative.astype(np.uint64)).any():
-        return None
-    out = value.astype(np.int64)  # 2**63 (only when negative) wraps to -2**63
-    return np.where(negative & (value != np.uint64(2**63)), -out, out)
-
-
-def _parse(pad: np.ndarray, ts: np.ndarray, te: np.ndarray, integer: bool):  # noqa: ANN202
-    """The numbers ``pad[ts:te]`` parsed by Arrow: int64 or float64, or None when Arrow refuses
-    one. The text is a ``string_view`` array over ``pad`` (Arrow columnar format: 16 bytes a
-    value; its length, then up to 12 bytes inline, or a 4-byte prefix, buffer 0 and the
-    offset)."""
+def _parse(  # noqa: ANN202
+    buf: np.ndarray, ts: np.ndarray, te: np.ndarray, head: np.ndarray, integer: bool, work: _Scratch
+):
+    """The numbers ``buf[ts:te]`` (``head[i]``: their bytes ``i``, 0 to 3) parsed by Arrow: int64 or
+    float64, or None when Arrow refuses one. The text is a ``string_view`` array over ``buf``
+    (Arrow columnar format: 16 bytes a value: its length, then up to 12 bytes inline,
+    zero-padded, or a 4-byte prefix, buffer 0 and the offset)."""
     import pyarrow as pa
     import pyarrow.compute as pc
 
-    if integer:
-        exact = _integers(pad, ts, te)
-        if exact is not None:
-            return exact
     n = len(ts)
-    lengths = (te - ts).astype(np.uint64)
-    low = unaligned(pad, "<u8")[ts] & _LOW[np.minimum(lengths, 8)]
-    views = np.empty((n, 2), "<u8")
-    views[:, 0] = lengths | (low << np.uint64(32))
-    views[:, 1] = ts.astype(np.uint64) << np.uint64(32)
+    lengths = np.subtract(te, ts, out=work.array("lengths", (n,), np.int64))
+    views = work.array("views", (n, 4), np.dtype("<u4"))
+    views[:, 0] = lengths
+    prefix = views[:, 1:2].view(np.uint8)
+    for i in range(4):
+        prefix[:, i] = head[i]
+    views[:, 2] = 0
+    views[:, 3] = ts
     short = np.flatnonzero(lengths <= 12)
+    minus_zero = None
     if len(short):
-        ss, sl = ts[short], lengths[short]
-        high = unaligned(pad, "<u4")[ss + 8].astype(np.uint64) & _LOW[np.clip(sl, 8, 12) - 8]
-        views[short, 1] = (low[short] >> np.uint64(32)) | (high << np.uint64(32))
+        sl = lengths[short, None]
+        inline = np.take(buf, ts[short, None] + np.arange(12), mode="clip")
+        inline[np.arange(12) >= sl] = 0
+        views[short, 1:] = inline.view("<u4")
+        if not integer:  # "-0": the integer 0 to json, -0.0 to Arrow
+            minus_zero = short[(sl[:, 0] == 2) & (views[short, 1] == 0x302D)]
     array = pa.Array.from_buffers(
-        pa.string_view(), n, [None, pa.py_buffer(views), pa.py_buffer(pad)]
+        pa.string_view(), n, [None, pa.py_buffer(views), pa.py_buffer(buf)]
     )
     try:
         out = pc.cast(array, pa.int64() if integer else pa.float64())
     except (pa.ArrowInvalid, pa.ArrowNotImplementedError):
         return None
     values = out.to_numpy(zero_copy_only=False)
-    minus_zero = low == np.uint64(0x302D)  # "-0": the integer 0 to json, -0.0 to Arrow
-    return np.where(minus_zero, 0.0, values) if not integer and minus_zero.any() else values
+    if minus_zero is not None and len(minus_zero):
+        values = values.copy()
+        values[minus_zero] = 0.0
+    return values
 
 
 def decode_by_template(
@@ -264,84 +334,89 @@ def decode_by_template(
     leaves: Sequence[tuple[str | int, ...]],
     integer: Sequence[bool],
     rest: Callable[[np.ndarray], list[np.ndarray]],
+    shapes: list[Shape] | None = None,
 ) -> list[np.ndarray] | None:
     """The value of each leaf (a path of keys and list indices) in every payload
     ``buf[starts[i]:starts[i] + lengths[i]]`` (see the module docstring): int64 where
     ``integer``, else float64. ``rest(indices)`` reads the messages no template fits (Arrow's
-    JSON reader). None: read the whole batch another way."""
+    JSON reader). ``shapes``: the templates of the batches before (of the same ``leaves``),
+    tried first; updated to this batch's. None: read the whole batch another way."""
     n = len(starts)
     ends = starts + lengths
-    if len(buf) + 16 >= 1 << 31 or not n:  # string_view offsets are int32
+    if len(buf) >= 1 << 31 or not n:  # string_view offsets are int32
         return None
     work = _SCRATCH.get(len(buf))
-    pad = work.pad[: len(buf) + 16]
-    pad[: len(buf)] = buf
-    pad[len(buf) :] = 0
     lo, hi = int(starts.min()), int(ends.max())
-    region = pad[lo:hi]
+    region = buf[lo:hi]
     flag, e = number_chars(region, work)
-    run_end = run_ends(flag, work) + lo
-    dots = work.tmp[: hi - lo - 1]  # "1.e5": Arrow takes it, JSON does not
-    np.equal(region[:-1], 46, out=dots)
-    np.logical_and(dots, e[1:], out=dots)
-    at = np.flatnonzero(dots) + lo if dots.any() else np.zeros(0, np.int64)
-    bad_ends = run_end[np.minimum(np.searchsorted(run_end, at, "right"), len(run_end) - 1)]
-    words = unaligned(pad, "<u8")
-    found: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []  # (rows, ts, te) of the leaves
+    run_end = run_ends(flag, work)
+    run_end += lo
+    dot_e = _dot_e(region, e, work)
+    bad_ends = run_end[np.searchsorted(run_end, dot_e + lo, "right")] if len(dot_e) else None
+    known = [s for s in shapes or () if len(s.gaps) <= MAX_NUMBERS]
+    found: list[tuple[Shape, np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []
     left = np.arange(n)
-    for _ in range(TEMPLATES):
-        if not len(left):
-            break
-        t = int(left[0])
-        shape = _template(buf[starts[t] : ends[t]].tobytes(), leaves)
-        if shape is None:
-            break
-        rel_s, rel_e, runs, which = shape
-        if len(rel_s) > MAX_NUMBERS:
-            break
-        gaps = np.diff(np.concatenate([[0], np.column_stack([rel_s, rel_e]).ravel()]))[0::2]
-        k = len(rel_s)
-        ts = np.empty((len(left), k), np.int64)
-        te = np.empty((len(left), k), np.int64)
-        ok = np.ones(len(left), bool)
-        prev = starts[left]
-        run = np.searchsorted(run_end, prev + int(gaps[0]), "right")
-        for j in range(k):
-            # a number is one whole run: the run before it ends before it starts (the same
-            # runs between numbers as the template's, once the text there is checked equal)
-            if j:
-                run += int(runs[j] - runs[j - 1])
-            ts[:, j] = prev + int(gaps[j])
-            ok &= run < len(run_end)
-            np.minimum(run, len(run_end) - 1, out=run)
-            te[:, j] = prev = run_end[run]
-            ok &= (prev > ts[:, j]) & ((run == 0) | (run_end[np.maximum(run - 1, 0)] <= ts[:, j]))
-        stop = ends[left]
-        ok &= stop - prev == stop[0] - prev[0]
-        rows, ts, te = left[ok], ts[ok], te[ok]
-        keep = _same_text(
-            words,
-            np.column_stack([starts[rows], te]),
-            np.column_stack([ts, ends[rows]]),
+    new = refused = 0  # the messages no template can be made of: the first of left
+    while len(left) > refused and (known or new < TEMPLATES):
+        if known:
+            shape: Shape | None = known.pop(0)
+        else:
+            new += 1
+            t = int(left[refused])
+            shape = Shape.of(buf[starts[t] : ends[t]].tobytes(), leaves)
+            if shape is None:  # NaN, a mapped field absent...: the next message's text
+                refused += 1
+                continue
+        assert shape is not None
+        whole = len(left) == n
+        rows, ts, te, head = shape.match(
+            buf,
+            run_end,
+            starts if whole else starts[left],
+            ends if whole else ends[left],
+            work,
+            not found,
         )
-        keep &= _grammar(pad, ts, te, bad_ends)
-        found.append((rows[keep], ts[keep][:, which], te[keep][:, which]))
-        left = left[~np.isin(left, rows[keep], assume_unique=True)]
-    rows = np.concatenate([f[0] for f in found]) if found else np.zeros(0, np.int64)
+        fine = ~np.isin(te, bad_ends).any(axis=0) if bad_ends is not None else None
+        if fine is not None and not fine.all():
+            fine = np.flatnonzero(fine)
+            rows, ts, te = rows[fine], ts.take(fine, axis=1), te.take(fine, axis=1)
+            head = head.take(fine, axis=2)
+        if not len(rows):
+            continue
+        rows = rows if whole else left[rows]
+        found.append((shape, rows, ts, te, head))
+        left = np.delete(left, np.searchsorted(left, rows)) if len(rows) < len(left) else left[:0]
+    if shapes is not None:
+        shapes[:] = [f[0] for f in sorted(found, key=lambda f: -len(f[1]))]
     values = [np.empty(n, np.int64 if whole else np.float64) for whole in integer]
-    for whole in set(integer) if len(rows) else ():
+    for whole in set(integer) if found else ():
         # one parse for the float leaves, one for the integer ones
         cols = [j for j, w in enumerate(integer) if w == whole]
-        ts = np.concatenate([f[1][:, cols].T.ravel() for f in found])
-        te = np.concatenate([f[2][:, cols].T.ravel() for f in found])
-        parsed = _parse(pad, ts, te, whole)
+        size = sum(len(cols) * len(f[1]) for f in found)
+        ts = work.array("pick ts", (size,), np.int64)
+        te = work.array("pick te", (size,), np.int64)
+        head = work.array("pick head", (4, size), np.uint8)
+        at = 0
+        for f in found:
+            pick, m = [f[0].which[j] for j in cols], len(cols) * len(f[1])
+            np.take(f[2], pick, axis=0, out=ts[at : at + m].reshape(len(cols), -1))
+            np.take(f[3], pick, axis=0, out=te[at : at + m].reshape(len(cols), -1))
+            np.take(f[4], pick, axis=1, out=head[:, at : at + m].reshape(4, len(cols), -1))
+            at += m
+        parsed = _parse(buf, ts, te, head, whole, work)
         if parsed is None:
             return None
         at = 0
         for f in found:  # per template: its rows, leaf by leaf
+            rows = f[1]
+            every = len(rows) == n
             for j in cols:
-                values[j][f[0]] = parsed[at : at + len(f[0])]
-                at += len(f[0])
+                if every:
+                    values[j][:] = parsed[at : at + n]
+                else:
+                    values[j][rows] = parsed[at : at + len(rows)]
+                at += len(rows)
     if len(left):
         for column, got in zip(values, rest(left), strict=True):
             column[left] = got

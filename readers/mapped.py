@@ -495,7 +495,9 @@ def _table(
         lo, hi = int(edges[k]), int(edges[k + 1])
         first = 0
         for sensor, idx in tp.sensors.items():
-            block = np.empty((hi - lo, len(idx)))
+            # column-major (n, 3): each column one contiguous array, taken by the table as it
+            # is (row-major, the table copied every column out of it)
+            block = np.empty((len(idx), hi - lo)).T
             for c in range(len(idx)):
                 if got:
                     np.concatenate(
@@ -507,12 +509,12 @@ def _table(
             if len(plans) == 1:
                 full = block
             else:
-                full = np.zeros((n, len(idx)))
+                full = np.zeros((len(idx), n)).T
                 full[lo:hi] = block
                 mask = np.zeros(n, bool)
                 mask[lo:hi] = True
                 valid[sensor] = mask if order is None else mask[order]
-            full = full if order is None else full[order]
+            full = full if order is None else full.T[:, order].T
             given[sensor] = full if sensor != "temperature" else full[:, 0]
     if order is not None:
         t, log = t[order], log[order]

@@ -38,6 +38,7 @@ Every decoder is tested equal to its reference library (rosbags, ``mcap``'s JSON
 
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -143,6 +144,9 @@ class MessageType:
         self.root = root
         self._source = source
         """What the reference decoder needs (rosbags types, the protobuf descriptor)."""
+        self.json_shapes: dict[tuple, list] = {}
+        """JSON: the templates of the batches read so far, per set of leaves (see
+        :func:`imupipe.readers.json_numbers.decode_by_template`)."""
 
     # -- paths ------------------------------------------------------------------------------
     def node(self, path: tuple[str, ...]) -> Node | None:
@@ -536,7 +540,8 @@ def _decode_json(
             raise PayloadError(int(rows[exc.index]), exc.reason) from None
 
     paths = [leaf.path for leaf in leaves]
-    got = decode_by_template(buf, starts, lengths, paths, integer, rest)
+    shapes = mtype.json_shapes.setdefault(tuple(paths), [])
+    got = decode_by_template(buf, starts, lengths, paths, integer, rest, shapes)
     return got if got is not None else rest(np.arange(len(starts)))
 
 
@@ -718,6 +723,33 @@ def _proto_field(f: object, depth: int) -> Node:
     return node
 
 
+class _Pad(threading.local):
+    """A work array kept per thread: a fresh chunk-sized copy costs its page faults."""
+
+    def __init__(self) -> None:
+        self.buf = np.empty(0, np.uint8)
+
+
+_PAD = _Pad()
+
+
+def _padded(buf: np.ndarray) -> np.ndarray:
+    """``buf`` followed by 16 zero bytes, in this thread's work array (valid until the next
+    call in the thread)."""
+    need = len(buf) + 16
+    if len(_PAD.buf) < need:
+        _PAD.buf = np.empty(int(need * 1.25), np.uint8)
+    out = _PAD.buf[:need]
+    out[: len(buf)] = buf
+    out[len(buf) :] = 0
+    return out
+
+
+_WIRE_TYPES = np.array([True, True, True, False, False, True, False, False])
+"""The protobuf wire types read (varint, 64-bit, length-delimited, 32-bit), by the tag's low 3
+bits."""
+
+
 class _ProtoScan:
     """Protobuf messages scanned in lockstep (see the module docstring)."""
 
@@ -730,7 +762,7 @@ class _ProtoScan:
         leaves: list[Leaf],
     ) -> None:
         self.mtype = mtype
-        self.buf = np.concatenate([buf, np.zeros(16, np.uint8)])  # varints read 10 bytes
+        self.buf = _padded(buf)  # varints read 10 bytes
         self.starts, self.lengths, self.leaves = starts, lengths, leaves
         self.n = len(starts)
 
@@ -802,7 +834,7 @@ class _ProtoScan:
                 length, lsize = self.varint(p[sel])
                 body[sel] = p[sel] + lsize
                 step[sel] = lsize + length.astype(np.int64)
-            bad = np.flatnonzero(~np.isin(wire, (0, 1, 2, 5)))
+            bad = np.flatnonzero(~_WIRE_TYPES[wire])
             if len(bad):
                 raise PayloadError(int(active[bad[0]]), "unsupported protobuf wire type")
             end = p + step

@@ -66,6 +66,11 @@ class StageContext:
     - ``accept_failed_checks``: the stage's ``accept_failed_checks`` key: a fit that fails one of
       its quality checks (:meth:`check`) is kept, with a warning, instead of stopping the run.
     - ``failed_checks``: the checks that failed and were accepted (recorded in the results).
+    - ``refuse_alone``: a failed check (not accepted) refuses this fit without stopping the run:
+      it is listed under ``refused`` and the stage goes on to its results, which the run keeps
+      while leaving the fit out of the chain (one of several instances of a log's sensor: the
+      others' fits stand, :mod:`imupipe.pipeline.instances`).
+    - ``refused``: the checks that failed and refused the fit (with ``refuse_alone``).
     """
 
     name: str
@@ -76,6 +81,8 @@ class StageContext:
     quiet: bool = False
     accept_failed_checks: bool = False
     failed_checks: list[str] = field(default_factory=list)
+    refuse_alone: bool = False
+    refused: list[str] = field(default_factory=list)
 
     def warn(self, message: str) -> None:
         message = " ".join(message.split())
@@ -91,16 +98,26 @@ class StageContext:
         """A quality check of the fit. ``message`` names the check and the figure against its
         bound (``residual 4.2 mg > 3 x noise 0.9 mg``). A failed check stops the stage with one
         line (the fit is not applied) unless the stage sets ``accept_failed_checks = true``; then
-        it is a warning and is listed under ``failed_checks`` in the stage's results."""
+        it is a warning and is listed under ``failed_checks`` in the stage's results. With
+        ``refuse_alone`` it is listed under ``refused`` and the stage goes on."""
         if ok:
             return
         if not self.accept_failed_checks:
-            raise self.fail(
-                f"{message}; the fit is not applied (set accept_failed_checks = true in this "
-                "stage to use it anyway)"
-            )
+            if not self.refuse_alone:
+                raise self.refusal(message)
+            self.refused.append(" ".join(message.split()))
+            return
         self.failed_checks.append(" ".join(message.split()))
         self.warn(f"{message} (accepted: accept_failed_checks = true)")
+
+    def refusal(self, message: str | None = None) -> FitError:
+        """The error of a failed check (``message``; default: the first of :attr:`refused`):
+        what stops the run when a fit fails its quality check."""
+        text = message if message is not None else self.refused[0]
+        return self.fail(
+            f"{text}; the fit is not applied (set accept_failed_checks = true in this "
+            "stage to use it anyway)"
+        )
 
     def finite(
         self, data: SensorData, what: str, minimum: int = 1, axes: Sequence[str] | None = None

@@ -5,6 +5,9 @@ number outside JSON's grammar is a bad payload, named by its index."""
 from __future__ import annotations
 
 import json
+import math
+import random
+import struct
 
 import numpy as np
 import pytest
@@ -167,3 +170,149 @@ def test_a_long_template_is_left_to_arrow(monkeypatch):
     assert arrow_rows == [len(payloads)]
     for g, r in zip(got, ref, strict=True):
         assert np.array_equal(g, np.asarray(r, g.dtype))
+
+
+def random_number(rng: random.Random) -> str:
+    """A JSON number (RFC 8259, section 6) of any form: shortest reprs of any double
+    (subnormals, 17 digits, exponents both ways), float32 values, integers up to 25 digits,
+    every spelling of zero, long mantissas, upper- and lower-case exponents with and without
+    a sign."""
+    kind = rng.randrange(7)
+    if kind == 0:  # any finite double, from its bits
+        x = struct.unpack("<d", rng.getrandbits(64).to_bytes(8, "little"))[0]
+        return repr(x) if math.isfinite(x) else "1.7976931348623157e308"
+    if kind == 1:
+        return repr(float(np.float32(rng.gauss(0, 10.0 ** rng.randrange(-40, 39)))))
+    if kind == 2:
+        digits = str(rng.randrange(1, 10)) + "".join(rng.choices("0123456789", k=24))
+        return ("-" if rng.random() < 0.5 else "") + digits[: rng.randrange(1, 26)]
+    if kind == 3:
+        return rng.choice(["0", "-0", "0.0", "-0.0", "0e0", "-0E-0", "0.000", "1E0"])
+    mantissa = "".join(rng.choices("0123456789", k=rng.randrange(1, 30))).lstrip("0") or "0"
+    text = ("-" if rng.random() < 0.5 else "") + mantissa
+    if kind >= 5:
+        text += "." + "".join(rng.choices("0123456789", k=rng.randrange(1, 25)))
+    if kind != 5:
+        text += rng.choice("eE") + rng.choice(["", "+", "-"]) + str(rng.randrange(330))
+    return text
+
+
+def random_documents(n: int, seed: int) -> list[bytes]:
+    """Messages of a few shapes (so that templates repeat) with random numbers everywhere:
+    the mapped ones, unmapped ones beside them, numbers in strings and keys, whitespace."""
+    rng = random.Random(seed)
+    out = []
+    for _ in range(n):
+        num = [random_number(rng) for _ in range(10)]
+        t = str(rng.randrange(-(2**63), 2**63))
+        shape = rng.randrange(5)
+        if shape == 0:
+            text = (
+                f'{{"t": {t}, "g": {{"x": {num[0]}, "y": {num[1]}, "z": {num[2]}}}, '
+                f'"a": [{num[3]}, {num[4]}, {num[5]}]}}'
+            )
+        elif shape == 1:
+            text = (
+                f'{{"id": "e{num[6]}", "q": [{num[6]},{num[7]}], "t":{t},"a":[{num[3]},'
+                f'{num[4]},{num[5]}],"g":{{"z":{num[2]},"y":{num[1]},"x":{num[0]}}},"n":null}}'
+            )
+        elif shape == 2:
+            text = (
+                f'\n{{\r\n  "t" : {t} ,\t"g": {{"x":{num[0]},"y":{num[1]},"z":{num[2]},'
+                f'"w":{num[8]}}},\n  "a": [ {num[3]} , {num[4]} , {num[5]} ], "b": true }}\n'
+            )
+        elif shape == 3:  # more numbers than mapped, in a nested list
+            text = (
+                f'{{"cov": [[{num[6]}, {num[7]}], [{num[8]}, {num[9]}]], "t": {t}, '
+                f'"g": {{"x": {num[0]}, "y": {num[1]}, "z": {num[2]}}}, '
+                f'"a": [{num[3]}, {num[4]}, {num[5]}], "k1.e5": "1.e5 -01"}}'
+            )
+        else:
+            x = [float(v) if np.isfinite(float(v)) else 0.5 for v in num[:6]]
+            text = json.dumps({"t": int(t), "g": dict(zip("xyz", x, strict=False)), "a": x[3:]})
+        out.append(text.encode())
+    return out
+
+
+@pytest.mark.parametrize("seed", [11, 12, 13])
+def test_random_numbers_read_as_json_reads_them(seed, monkeypatch):
+    """Property test of the number scan: whatever the numbers' forms and the text around them,
+    every value is json's, bit for bit, and most messages are read by template."""
+    payloads = random_documents(1500, seed)
+    arrow_rows: list[int] = []
+    arrow = message_fields._decode_json_arrow
+
+    def counting(mtype, buf, starts, lengths, leaves):  # noqa: ANN001, ANN202
+        arrow_rows.append(len(starts))
+        return arrow(mtype, buf, starts, lengths, leaves)
+
+    monkeypatch.setattr(message_fields, "_decode_json_arrow", counting)
+    got, ref = decode_both(payloads, seed=seed)
+    for g, r, leaf in zip(got, ref, LEAVES, strict=True):
+        r = np.asarray(r, g.dtype)
+        assert np.array_equal(g.view(np.int64), r.view(np.int64)), leaf
+    # by template but the fifth of the messages whose "id" string is random
+    assert sum(arrow_rows) < 0.3 * len(payloads)
+
+
+@pytest.mark.parametrize("where", ["mapped", "unmapped"])
+@pytest.mark.parametrize("bad", ["01", "-01", "1.", "1.e5", "-", "+1", ".5", "-.5", "-0.E1"])
+def test_a_bad_number_mapped_or_not_names_its_message(bad, where):
+    """A number outside the grammar, mapped or not, makes its message a bad payload, named by
+    its index in the batch."""
+    payloads = [p for p in random_documents(60, 5) if b'"cov"' in p]
+    text = payloads[-3].decode()
+    key = '"a": [' if where == "mapped" else '"cov": [['
+    at = text.index(key) + len(key)
+    payloads[-3] = (text[:at] + bad + text[text.index(",", at) :]).encode()
+    with pytest.raises(ValueError):
+        json.loads(payloads[-3])
+    with pytest.raises(PayloadError) as err:
+        decode_both(payloads)
+    assert err.value.index == len(payloads) - 3
+
+
+def test_the_number_views_are_valid_arrow(monkeypatch):
+    """The string_view arrays handed to Arrow's cast pass Arrow's full validation (inline
+    numbers zero-padded, the prefix of the others their first 4 bytes)."""
+    import pyarrow.compute as pc
+
+    cast = pc.cast
+    checked = []
+
+    def validating(array, *args, **kwargs):  # noqa: ANN001, ANN002, ANN003, ANN202
+        array.validate(full=True)
+        checked.append(len(array))
+        return cast(array, *args, **kwargs)
+
+    monkeypatch.setattr(pc, "cast", validating)
+    got, ref = decode_both(random_documents(300, 21), seed=21)
+    assert sum(checked) > 300
+    for g, r in zip(got, ref, strict=True):
+        assert np.array_equal(g.view(np.int64), np.asarray(r, g.dtype).view(np.int64))
+
+
+def test_templates_carried_from_chunk_to_chunk(monkeypatch):
+    """A channel's templates are tried first on its next chunk: right where they fit, harmless
+    where none of that chunk's messages has their shape."""
+    from imupipe.readers import json_numbers
+
+    made = []
+    of = json_numbers.Shape.of
+    monkeypatch.setattr(json_numbers.Shape, "of", staticmethod(lambda *a: made.append(1) or of(*a)))
+    mtype = json_type("imu_json", json.dumps(SCHEMA).encode())
+    docs = documents(400, seed=4)
+    shape = [i % 9 if i % 2 else 0 for i in range(len(docs))]  # as documents() draws them
+    first = [p for p, s in zip(docs, shape, strict=True) if s == 1]  # one shape
+    second = [p for p, s in zip(docs, shape, strict=True) if s in (1, 3, 7)]  # it and two others
+    third = [p for p, s in zip(docs, shape, strict=True) if s == 5]  # none of those
+    for k, (payloads, shapes, new) in enumerate(((first, 1, 1), (second, 3, 2), (third, 1, 1))):
+        made.clear()
+        buf, starts, lengths = chunk(payloads, seed=k)
+        got = mtype.decode(buf, starts, lengths, LEAVES)
+        ref = mtype.decode_reference(buf, starts, lengths, LEAVES)
+        for g, r in zip(got, ref, strict=True):
+            assert np.array_equal(g.view(np.int64), np.asarray(r, g.dtype).view(np.int64))
+        # templates made from this chunk's messages, and the shapes kept for the next chunk
+        assert len(made) == new
+        assert len(mtype.json_shapes[tuple(leaf.path for leaf in LEAVES)]) == shapes

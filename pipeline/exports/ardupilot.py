@@ -402,6 +402,30 @@ def motor_rows(model: SensorModel, i: int, written: list[Row], out: Export) -> l
     return rows
 
 
+def stale_motor_terms(rows: list[Row], logged: dict[str, Any], out: Export) -> None:
+    """Noted: a compass of the log this file leaves alone (its fit refused, or not fitted) whose
+    ``COMPASS_MOTn`` the log holds for another ``COMPASS_MOTCT`` than the one the file writes:
+    the vehicle has one for every compass, so ArduPilot would read that compass's terms as the
+    other kind (per ampere against at full throttle)."""
+    kind = dict(rows).get("COMPASS_MOTCT")
+    old = motor_kind(logged)
+    if kind is None or old in (0, int(kind)):
+        return
+    source = {v: k for k, v in MOTCT.items()}
+    written = {r[0] for r in rows}
+    for i in range(3):
+        s = _s(i)
+        mot = _vector(logged, f"COMPASS_MOT{s}", 0.0)
+        if f"COMPASS_OFS{s}_X" not in written and np.any(mot):
+            out.note(
+                FNAME,
+                f"mag: compass {i + 1} is not in this file and keeps COMPASS_MOT{s}_* of "
+                f"COMPASS_MOTCT = {old} ({source[old]}); this file sets COMPASS_MOTCT = "
+                f"{kind:g}, under which ArduPilot reads them per {source[int(kind)]}: set them "
+                "to 0, or fit that compass too",
+            )
+
+
 def shared_ranges(
     placed: list[tuple[SensorModel, int]], out: Export
 ) -> dict[int, tuple[float, float]]:
@@ -468,6 +492,7 @@ def export(doc: dict[str, Any], complete: bool = False) -> Export:
             mine = imu_rows(model, i, out, shared.get(i), scaled)
         rows += mine
         alone += left_alone([r[0] for r in mine], families(model.sensor, i))
+    stale_motor_terms(rows, logged, out)
     for i, (lo, hi) in shared.items():
         rows += [(f"INS_TCAL{i + 1}_ENABLE", 1.0)]
         rows += [(f"INS_TCAL{i + 1}_TMIN", lo), (f"INS_TCAL{i + 1}_TMAX", hi)]

@@ -341,6 +341,29 @@ POWER_UNIT = {"throttle": 1.0, "current": 1e3}
 """PX4's power signal per imupipe's: the throttle 0..1 as it is, the current in kA (per A x 1e3)."""
 
 
+def stale_motor_terms(rows: list[Row], logged: dict[str, Any], out: Export) -> None:
+    """Noted: a compass of the log this file leaves alone (its fit refused, or not fitted) whose
+    ``CAL_MAGn_*COMP`` the log holds for another ``CAL_MAG_COMP_TYP`` than the one the file
+    writes: the vehicle has one type for every compass, so PX4 would read that compass's terms
+    as the other kind (per kA against at full throttle)."""
+    kind = next((int(r[1]) for r in rows if r[0] == "CAL_MAG_COMP_TYP"), None)
+    old = int(logged.get("CAL_MAG_COMP_TYP") or 0)
+    source = {1: "throttle", 2: "current", 3: "current"}
+    if kind is None or source.get(old) in (None, source.get(kind)):
+        return
+    written = {r[0] for r in rows}
+    for n in range(SLOTS):
+        comp = [float(logged.get(f"CAL_MAG{n}_{a}COMP") or 0.0) for a in "XYZ"]
+        if logged.get(f"CAL_MAG{n}_ID") and f"CAL_MAG{n}_XCOMP" not in written and any(comp):
+            out.note(
+                FNAME,
+                f"mag: CAL_MAG{n} (device {int(logged[f'CAL_MAG{n}_ID'])}) is not in this file "
+                f"and keeps CAL_MAG{n}_*COMP of CAL_MAG_COMP_TYP = {old} ({source[old]}); this "
+                f"file sets CAL_MAG_COMP_TYP = {kind}, under which PX4 reads them per "
+                f"{source[kind]}: set them to 0, or fit that compass too",
+            )
+
+
 def motor_rows(model: SensorModel, t: Target) -> list[Row]:
     """A magnetometer's motor compensation (``mag_inflight``): PX4 adds ``CAL_MAGn_{X,Y,Z}COMP``
     times its power signal to the raw field before the offsets (``Magnetometer::Correct``,
@@ -440,6 +463,7 @@ def export(doc: dict[str, Any], complete: bool = False) -> Export:
             rows += mine
             alone += left_alone([r[0] for r in mine], families(sensor, t))
             logged.update(t.params)
+    stale_motor_terms(rows, logged, out)
     baro, baro_alone, baro_logged = baro_rows(doc, out)
     rows += baro
     alone += baro_alone

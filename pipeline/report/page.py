@@ -104,7 +104,9 @@ def _input_id(name: str) -> str:
 
 
 def _status_class(s: StageSummary) -> str:
-    return "status-fail" if s.failed_checks else "status-warn" if s.warnings else "status-ok"
+    if s.failed_checks or s.refused:
+        return "status-fail"
+    return "status-warn" if s.warnings else "status-ok"
 
 
 def overview_html(summaries: Sequence[StageSummary]) -> str:
@@ -195,6 +197,8 @@ def stage_html(s: StageSummary, plots: Sequence[Plot] = ()) -> str:
         )
     for c in s.failed_checks:
         out.append(f'<p class="fail">failed check (accepted): {html.escape(c)}</p>')
+    for c in s.refused:
+        out.append(f'<p class="fail">failed check (refused, not applied): {html.escape(c)}</p>')
     if plots:
         out.append('<div class="plots">')
         # the stage's own figures first, then its signals over time

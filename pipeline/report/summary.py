@@ -48,6 +48,9 @@ class StageSummary:
     """(input, message): what the reader of an input this stage read warned about; listed under
     the input (``[inputs.NAME]``), not the stage, in every rendering."""
     failed_checks: list[str] = field(default_factory=list)
+    refused: list[str] = field(default_factory=list)
+    """The failed checks that refused this fit (one instance of several: the run went on
+    without it, :mod:`imupipe.pipeline.instances`)."""
     caveats: list[str] = field(default_factory=list)
     """What the status line says beside ``ok`` (``at rest not judged (5 s)``)."""
     look_at: str = ""
@@ -65,6 +68,8 @@ class StageSummary:
         n = len(self.warnings) + len(self.input_warnings)
         warned = f", {counted(n, 'warning')}" if n else ""
         said = "".join(f", {c}" for c in self.caveats)
+        if self.refused:
+            return f"refused ({counted(len(self.refused), 'failed check')}, not applied){warned}"
         if self.failed_checks:
             return f"{counted(len(self.failed_checks), 'failed check')} accepted{said}{warned}"
         return f"ok{said}{warned}"
@@ -638,6 +643,9 @@ def summarise(
         s.warnings = [w for w in warnings if w not in read]
         s.input_warnings = [(read[w], w) for w in warnings if w in read]
         s.failed_checks = [str(c) for c in r.get("failed_checks", [])]
+        s.refused = [str(c) for c in r.get("refused", [])]
+        if s.refused:
+            s.headline = f"refused: {s.refused[0]}"
         out.append(s)
     return out
 
@@ -666,6 +674,9 @@ def stage_markdown(s: StageSummary, heading: str = "#") -> str:
         lines += [f"- {_md_escape(k)}: {_md_escape(v)}" for k, v in s.quality]
     if s.failed_checks:
         lines += ["", "**Failed checks (accepted)**", ""] + [f"- {c}" for c in s.failed_checks]
+    if s.refused:
+        lines += ["", "**Failed checks (refused: not applied)**", ""]
+        lines += [f"- {_md_escape(c)}" for c in s.refused]
     if s.warnings:
         lines += ["", "**Warnings**", ""]
         lines += [f"- {_md_escape(w)}  \n  *What it means:* {meaning(w)}" for w in s.warnings]
@@ -777,6 +788,8 @@ def print_summary(summaries: Sequence[StageSummary], console: Any = None) -> Non
             console.print(f"  {key}: {value}", highlight=False)
         for check in s.failed_checks:
             console.print(f"  [red]failed check (accepted):[/red] {escape(check)}", highlight=False)
+        for check in s.refused:
+            console.print(f"  [red]failed check (refused):[/red] {escape(check)}", highlight=False)
         for warning in s.warnings:
             console.print(f"  [yellow]warning:[/yellow] {escape(warning)}", highlight=False)
         for name, messages in by_input(s.input_warnings).items():

@@ -58,6 +58,14 @@ must vary (``min_current_a``; the throttle ``min_throttle``) and not follow the 
 autocorrelation (the residual of a flight is slow: attitude and model errors). Heading error:
 the heading of the corrected field rotated into NED minus the model's (deg).
 
+Quality checks (a fit failing one is not applied unless ``accept_failed_checks``): offsets no
+larger than the Earth's field; the held-out residual below the flight's as flown; the heading
+error no larger than as flown; the residual below ``max_residual_ut``. The residual checks leave
+out samples beyond 5 medians on both sides, and the heading check compares over the samples the
+fit kept (not its outliers), as flown and after: a sample the fit rejects is most often one
+whose attitude is wrong (PX4 log_30: the primary EKF's yaw 35 deg off for 7 s after take-off),
+and the heading error there measures the reference, not the compass.
+
 The fit itself is :func:`fit_flight` (on :func:`flight_samples`): the stage calls it on its
 input (and the flights joined to it), ``imupipe survey`` on every compass of every flight log
 (:mod:`imupipe.pipeline.survey.compass`), so both give the same answer on the same flight.
@@ -807,6 +815,8 @@ def fit_flight(  # noqa: C901
         "held_out_rms_ut_as_flown": as_flown(r_flown) * ut,
         "residual_rms_ut_as_flown": float(np.sqrt(np.mean(r_flown**2)) * ut),
         "heading_rms_deg_as_flown": float(np.sqrt(np.mean(h_flown**2))),
+        "heading_rms_deg_after_inliers": float(np.sqrt(np.mean(h_after[fit.used] ** 2))),
+        "heading_rms_deg_as_flown_inliers": float(np.sqrt(np.mean(h_flown[fit.used] ** 2))),
         "held_out_on": "flights" if flights is not None and len(flights) > 1 else "time",
         **(
             {"held_out_rms_ut_motor_source": {k: v * ut for k, v in held_source.items()}}
@@ -1136,10 +1146,12 @@ class MagInflightStage(Stage):
             f"{metrics['held_out_rms_ut_as_flown']:.2f} uT (the fit does not help on data it "
             "did not see)",
         )
+        kept = f" (the {metrics['samples'] - metrics['outliers']} samples the fit kept)"
         ctx.check(
-            metrics["heading_rms_deg_after"] <= metrics["heading_rms_deg_as_flown"],
-            f"heading error {metrics['heading_rms_deg_after']:.2f} deg RMS after, above "
-            f"{metrics['heading_rms_deg_as_flown']:.2f} deg as flown",
+            metrics["heading_rms_deg_after_inliers"] <= metrics["heading_rms_deg_as_flown_inliers"],
+            f"heading error {metrics['heading_rms_deg_after_inliers']:.2f} deg RMS after, above "
+            f"{metrics['heading_rms_deg_as_flown_inliers']:.2f} deg as flown"
+            + (kept if metrics["outliers"] else ""),
         )
         ctx.check(
             metrics["residual_rms_ut_after"] <= o.max_residual_ut,
