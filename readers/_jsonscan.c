@@ -783,20 +783,60 @@ static inline int leading_zeros(uint64_t x) { /* x != 0 */
 /* One JSON number as scanned: the first (at most) 19 significant digits as an integer, the
  * power of ten that scales them, and how it was written. */
 typedef struct {
-    uint64_t man;  /* significant digits (leading zeros not counted) */
+    uint64_t man;  /* the digits (without the decimal point) as an integer, when !many */
     int64_t e10;   /* value = man * 10^e10 (when !many) */
-    int nsig;      /* significant digits in man */
-    int many;      /* more than 19 significant digits: man is not the whole significand */
+    int many;      /* more than 19 significant digits: man is not the significand */
     int neg;       /* a leading '-' */
     int intform;   /* no fraction and no exponent: an int to json */
 } number;
 
+#if defined(__BYTE_ORDER__) && __BYTE_ORDER__ == __ORDER_LITTLE_ENDIAN__
+#define SWAR 1
+static inline uint64_t load8(const uint8_t *p) {
+    uint64_t v;
+    memcpy(&v, p, 8);
+    return v;
+}
+
+/* Eight ASCII digits in one word (little-endian), and their value (the SWAR steps of Lemire's
+ * fast_float: pairs, then fours, then eight). */
+static inline int eight_digits(uint64_t v) {
+    return ((v & 0xF0F0F0F0F0F0F0F0ULL) |
+            (((v + 0x0606060606060606ULL) & 0xF0F0F0F0F0F0F0F0ULL) >> 4)) ==
+           0x3333333333333333ULL;
+}
+
+static inline uint64_t eight_value(uint64_t v) {
+    const uint64_t mask = 0x000000FF000000FFULL;
+    v -= 0x3030303030303030ULL;
+    v = (v * 10) + (v >> 8);
+    v = (((v & mask) * 0x000F424000000064ULL) + (((v >> 16) & mask) * 0x0000271000000001ULL)) >> 32;
+    return v;
+}
+#endif
+
+/* The digits from p on (not past e) into *man (wrapping past 19 digits: the caller counts
+ * them); where they end. */
+static inline const uint8_t *digits(const uint8_t *p, const uint8_t *e, uint64_t *man) {
+    uint64_t m = *man;
+#ifdef SWAR
+    while (e - p >= 8) {
+        const uint64_t v = load8(p);
+        if (!eight_digits(v)) break;
+        m = m * 100000000ULL + eight_value(v);
+        p += 8;
+    }
+#endif
+    while (p < e && is_digit(*p)) m = m * 10 + (uint64_t)(*p++ - '0');
+    *man = m;
+    return p;
+}
+
 /* The JSON number at p (RFC 8259, section 6), not past e: where it ends, or NULL when the
  * text there is not one. It ends at the first byte the grammar cannot take; the caller checks
  * that the template's text follows. */
-static const uint8_t *scan(const uint8_t *p, const uint8_t *e, number *n) {
+static inline const uint8_t *scan(const uint8_t *p, const uint8_t *e, number *n) {
     uint64_t man = 0;
-    int nsig = 0, many = 0;
     int64_t e10 = 0;
     n->neg = 0;
     if (p < e && *p == '-') {
@@ -804,38 +844,28 @@ static const uint8_t *scan(const uint8_t *p, const uint8_t *e, number *n) {
         p++;
     }
     if (p >= e) return NULL;
+    const uint8_t *first = p;
     if (*p == '0') {
         p++;
     } else if ((uint8_t)(*p - '1') < 9) {
-        while (p < e && is_digit(*p)) {
-            if (nsig < 19) {
-                man = man * 10 + (uint64_t)(*p - '0');
-                nsig++;
-            } else {
-                many = 1;
-            }
-            p++;
-        }
+        p = digits(p, e, &man);
     } else {
         return NULL;
     }
+    Py_ssize_t count = p - first; /* digits so far */
     n->intform = 1;
     if (p < e && *p == '.') {
         const uint8_t *q = ++p;
-        while (p < e && is_digit(*p)) {
-            if (man == 0 && *p == '0') {
-                e10--; /* a leading zero of the fraction */
-            } else if (nsig < 19) {
-                man = man * 10 + (uint64_t)(*p - '0');
-                nsig++;
-                e10--;
-            } else {
-                many = 1;
-            }
-            p++;
-        }
+        p = digits(p, e, &man);
         if (p == q) return NULL;
+        count += p - q;
+        e10 = -(int64_t)(p - q);
         n->intform = 0;
+    }
+    n->many = 0;
+    if (count > 19) { /* leading zeros are not significant ("0.000...") */
+        for (const uint8_t *z = first; z < p && (*z == '0' || *z == '.'); z++) count -= *z == '0';
+        n->many = count > 19;
     }
     if (p < e && (*p | 32) == 'e') {
         p++;
@@ -852,8 +882,6 @@ static const uint8_t *scan(const uint8_t *p, const uint8_t *e, number *n) {
         n->intform = 0;
     }
     n->man = man;
-    n->nsig = nsig;
-    n->many = many;
     n->e10 = e10;
     return p;
 }
