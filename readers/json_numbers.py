@@ -23,7 +23,9 @@ chunk) that way:
    section 6). Checked here: a digit after a leading ``-``, no leading zero, no ``.`` at the end
    or before ``e`` / ``E``; Arrow's parser refuses the rest of what JSON does not allow (``1..2``,
    ``1e``, ``1e5e5``) in the numbers it parses, the mapped ones. An unmapped number is not
-   parsed: such a slip in it goes unseen (the message's mapped values are still ``json``'s).
+   parsed: such a slip in it goes unseen here (the message's mapped values are still
+   ``json``'s); the compiled pass below checks every number and sends such a message to
+   ``rest``, which names it.
 4. Messages of another shape (a pretty-printed one, a field that comes and goes) take the next
    template, up to :data:`TEMPLATES` new ones a chunk (of at most :data:`MAX_NUMBERS` numbers);
    a message no template can be made of (``NaN``, a mapped field absent) is left for the caller,

@@ -181,3 +181,24 @@ def test_compiled_and_numpy_paths_give_the_same_columns(monkeypatch):
             assert np.array_equal(a.view(np.int64), b.view(np.int64))
         assert got["numpy shapes"] == got["compiled shapes"]
     assert sum(matched) > 1500  # the messages the compiled pass read
+
+
+@pytest.mark.parametrize("bad", ["1e5e5", "1..2", "1e5.5", "2-3"])
+def test_an_unmapped_number_the_numpy_path_lets_pass_is_a_bad_payload(bad, monkeypatch):
+    """A slip in an unmapped number that only a full parse sees (the numpy path does not parse
+    unmapped numbers) is seen by the compiled pass: its message goes to the reader that names
+    it, as json would."""
+    from imupipe.readers.cdr import PayloadError
+
+    monkeypatch.delenv(PURE_PYTHON_ENV, raising=False)
+    payloads = [p for p in random_documents(60, 5) if b'"cov"' in p]
+    text = payloads[-3].decode()
+    at = text.index('"cov": [[') + len('"cov": [[')
+    payloads[-3] = (text[:at] + bad + text[text.index(",", at) :]).encode()
+    with pytest.raises(ValueError):
+        json.loads(payloads[-3])
+    mtype = json_type("imu_json", json.dumps(SCHEMA).encode())
+    buf, starts, lengths = chunk(payloads)
+    with pytest.raises(PayloadError) as err:
+        mtype.decode(buf, starts, lengths, LEAVES)
+    assert err.value.index == len(payloads) - 3
