@@ -19,5 +19,6 @@ setup(
             optional=True,
         ),
         Extension("imupipe.readers._chunks", sources=["readers/_chunks.c"], optional=True),
+        Extension("imupipe.readers._jsonscan", sources=["readers/_jsonscan.c"], optional=True),
     ]
 )

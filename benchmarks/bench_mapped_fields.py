@@ -10,21 +10,28 @@ The same IMU samples (N messages, 200 Hz) written to MCAP files (zstd chunks, mc
 
 Prints the wall-clock and CPU seconds per read (min and median of ``--repeat`` runs,
 interleaved) and the ratio of the mins to the Imu path's (target: at most 2x). On a shared
-machine the CPU time (the process's, all threads) is the steadier of the two.
+machine the CPU time (the process's, all threads) is the steadier of the two. ``--fallback``
+adds the JSON read with the numpy decoding (``imupipe.readers.json_numbers`` without its
+compiled pass) to the same interleaved runs, and prints each case's ratio to the Imu read of
+the same repeat (min and median over the repeats).
 
     PYTHONPATH=.shim python benchmarks/bench_mapped_fields.py [--messages 200000] [--repeat 3]
+        [--fallback]
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import tempfile
 import time
+from collections.abc import Iterator
 from pathlib import Path
 
 import numpy as np
 
+from imupipe.readers import json_numbers
 from imupipe.readers.cdr import encode
 from imupipe.readers.dispatch import read_input
 from imupipe.readers.spec import FieldMapping, InputSpec
@@ -179,20 +186,41 @@ CASES = {
 }
 
 
+FALLBACK = "JSON, [fields], numpy decoding"
+
+
+@contextlib.contextmanager
+def _numpy_json(on: bool) -> Iterator[None]:
+    """The JSON decoding without its compiled pass while ``on``."""
+    module = json_numbers._module
+    if on:
+        json_numbers._module = lambda: None  # type: ignore[assignment]
+    try:
+        yield
+    finally:
+        json_numbers._module = module  # type: ignore[assignment]
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--messages", type=int, default=200_000)
     ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--fallback", action="store_true", help="also the numpy JSON decoding")
     args = ap.parse_args()
+    cases = dict(CASES)
+    if args.fallback:
+        cases[FALLBACK] = CASES["JSON, [fields]"]
+    print(f"JSON compiled pass: {'built' if json_numbers.compiled() else 'not used'}")
     with tempfile.TemporaryDirectory() as tmp:
         paths = write_all(Path(tmp), args.messages)
-        wall: dict[str, list[float]] = {name: [] for name in CASES}
-        cpu: dict[str, list[float]] = {name: [] for name in CASES}
+        wall: dict[str, list[float]] = {name: [] for name in cases}
+        cpu: dict[str, list[float]] = {name: [] for name in cases}
         for _ in range(args.repeat):  # interleaved, so that machine load hits every case
-            for name, (kind, mapping) in CASES.items():
+            for name, (kind, mapping) in cases.items():
                 spec = InputSpec(path=paths[kind], fields=mapping)
                 t0, c0 = time.perf_counter(), time.process_time()
-                table, _ = read_input(spec)
+                with _numpy_json(name == FALLBACK):
+                    table, _ = read_input(spec)
                 wall[name].append(time.perf_counter() - t0)
                 cpu[name].append(time.process_time() - c0)
                 assert table.num_rows == args.messages
@@ -201,7 +229,7 @@ def main() -> None:
         print(
             f"{'':32s} {'wall min':>9s} {'median':>7s} {'ratio':>6s}   {'CPU min':>8s} {'median':>7s} {'ratio':>6s}"
         )
-        for name in CASES:
+        for name in cases:
             w, c = np.array(wall[name]), np.array(cpu[name])
             rw = w.min() / min(wall[peer])
             rc = c.min() / min(cpu[peer])
@@ -212,6 +240,15 @@ def main() -> None:
         print(
             "ratio: min over runs against the Imu path's min (wall clock; CPU time of the process)"
         )
+        print(f"\nper repeat, against the Imu read of the same repeat ({args.repeat} repeats)")
+        print(f"{'':32s} {'wall min':>9s} {'median':>7s}   {'CPU min':>8s} {'median':>7s}")
+        for name in cases:
+            rw = np.array(wall[name]) / np.array(wall[peer])
+            rc = np.array(cpu[name]) / np.array(cpu[peer])
+            print(
+                f"{name:32s} {rw.min():8.2f}x {np.median(rw):6.2f}x   "
+                f"{rc.min():7.2f}x {np.median(rc):6.2f}x"
+            )
 
 
 if __name__ == "__main__":

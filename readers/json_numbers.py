@@ -23,7 +23,9 @@ chunk) that way:
    section 6). Checked here: a digit after a leading ``-``, no leading zero, no ``.`` at the end
    or before ``e`` / ``E``; Arrow's parser refuses the rest of what JSON does not allow (``1..2``,
    ``1e``, ``1e5e5``) in the numbers it parses, the mapped ones. An unmapped number is not
-   parsed: such a slip in it goes unseen (the message's mapped values are still ``json``'s).
+   parsed: such a slip in it goes unseen here (the message's mapped values are still
+   ``json``'s); the compiled pass below checks every number and sends such a message to
+   ``rest``, which names it.
 4. Messages of another shape (a pretty-printed one, a field that comes and goes) take the next
    template, up to :data:`TEMPLATES` new ones a chunk (of at most :data:`MAX_NUMBERS` numbers);
    a message no template can be made of (``NaN``, a mapped field absent) is left for the caller,
@@ -35,16 +37,30 @@ chunk) that way:
 
 Duplicate keys read as ``json`` reads them (the last one). A number Arrow will not cast: None,
 and the caller reads the whole batch its own way, naming the bad message.
+
+Steps 1, 3 and 5 in one compiled pass, when built: ``imupipe.readers._jsonscan``
+(``readers/_jsonscan.c``, an optional extension of ``setup.py``) walks each message once per
+template, compares the template's text piece by piece, checks every number (mapped or not)
+against the grammar and parses the mapped ones into the columns without the GIL: floats as
+``float(text)`` (Clinger's exact case, the Eisel-Lemire algorithm, else ``strtod_l`` in the "C"
+locale), integers as ``int(text)`` within int64, ``-0`` as 0.0; a message it does not take goes
+to ``rest``. The numpy steps above are the fallback, taken when it is not built or
+``IMUPIPE_PURE_PYTHON=1`` is set; ``tests/test_jsonscan.py`` checks both give the same columns,
+bit for bit. The numpy path takes about 5 ms a 1 MB chunk of 5,200 messages, the compiled pass 1.3 ms.
 """
 
 from __future__ import annotations
 
 import json
+import os
 import re
 import threading
 from collections.abc import Callable, Sequence
+from types import ModuleType
 
 import numpy as np
+
+from imupipe.readers.record_walk import PURE_PYTHON_ENV
 
 TEMPLATES = 8
 """Shapes tried per batch before the rest goes to Arrow's JSON reader."""
@@ -191,7 +207,7 @@ class Shape:
     from number ``j - 1``'s run to number ``j``'s (runs in strings counted); ``which``: the
     number each leaf is."""
 
-    __slots__ = ("gaps", "pieces", "span", "steps", "tail", "text", "which")
+    __slots__ = ("cuts", "gaps", "numbers", "pieces", "span", "steps", "tail", "text", "which")
 
     def __init__(
         self, text: bytes, starts: np.ndarray, ends: np.ndarray, runs: np.ndarray, which: list
@@ -207,6 +223,9 @@ class Shape:
             b"".join(text[b : b + n] for b, n in zip(bases, sizes, strict=True)), np.uint8
         )[:, None]
         at = np.cumsum([0, *sizes])
+        self.cuts = at.astype(np.int64)
+        """Where each piece of ``text`` starts (and the last ends): the compiled pass's."""
+        self.numbers = np.asarray(which, np.int64)
         self.pieces = [(j, int(at[j]), int(at[j + 1])) for j in range(len(sizes)) if sizes[j]]
         """(j, first, last): text[first:last] follows the message's start (j = 0) or number
         ``j - 1``'s end."""
@@ -327,6 +346,91 @@ def _parse(  # noqa: ANN202
     return values
 
 
+class _Templates:
+    """The shapes a batch is tried against, in turn: the caller's (a channel's previous chunk),
+    then one made of the first message left that no shape fits, up to :data:`TEMPLATES` new
+    ones (a message no template can be made of is skipped)."""
+
+    def __init__(
+        self,
+        buf: np.ndarray,
+        starts: np.ndarray,
+        ends: np.ndarray,
+        leaves: Sequence[tuple[str | int, ...]],
+        known: Sequence[Shape],
+    ) -> None:
+        self.buf, self.starts, self.ends, self.leaves = buf, starts, ends, leaves
+        self.known = [s for s in known if len(s.gaps) <= MAX_NUMBERS]
+        self.new = self.refused = 0  # refused: the messages no template can be made of
+
+    def next(self, left: np.ndarray) -> Shape | None:
+        """The next shape for the messages ``left`` (None: no more)."""
+        while len(left) > self.refused and (self.known or self.new < TEMPLATES):
+            if self.known:
+                return self.known.pop(0)
+            self.new += 1
+            t = int(left[self.refused])
+            shape = Shape.of(self.buf[self.starts[t] : self.ends[t]].tobytes(), self.leaves)
+            if shape is not None:
+                return shape
+            self.refused += 1  # NaN, a mapped field absent...: the next message's text
+        return None
+
+
+def _module() -> ModuleType | None:
+    if os.environ.get(PURE_PYTHON_ENV, "") not in ("", "0"):
+        return None
+    try:
+        from imupipe.readers import _jsonscan  # type: ignore[attr-defined]
+    except ImportError:
+        return None
+    return _jsonscan
+
+
+def compiled() -> bool:
+    """Whether the compiled pass (``imupipe.readers._jsonscan``) is used: built, and not turned
+    off by ``IMUPIPE_PURE_PYTHON``."""
+    return _module() is not None
+
+
+def _decode_compiled(
+    module: ModuleType,
+    buf: np.ndarray,
+    starts: np.ndarray,
+    lengths: np.ndarray,
+    leaves: Sequence[tuple[str | int, ...]],
+    integer: Sequence[bool],
+    rest: Callable[[np.ndarray], list[np.ndarray]],
+    shapes: list[Shape] | None,
+) -> list[np.ndarray]:
+    """:func:`decode_by_template` by the compiled pass: per shape, one call that checks every
+    message left against it (its text byte for byte, every number in JSON's grammar) and
+    parses the mapped numbers straight into the columns (``readers/_jsonscan.c``)."""
+    n = len(starts)
+    starts = np.ascontiguousarray(starts, np.int64)
+    lengths = np.ascontiguousarray(lengths, np.int64)
+    values = [np.empty(n, np.int64 if whole else np.float64) for whole in integer]
+    columns = tuple(values)
+    kinds = np.array(integer, np.uint8)
+    ok = np.zeros(n, np.uint8)
+    picker = _Templates(buf, starts, starts + lengths, leaves, shapes or ())
+    used: list[tuple[int, Shape]] = []
+    left = np.arange(n, dtype=np.int64)
+    while (shape := picker.next(left)) is not None:
+        got = module.match(
+            buf, starts, lengths, left, shape.text, shape.cuts, shape.numbers, kinds, columns, ok
+        )
+        if got:
+            used.append((got, shape))
+            left = left[ok[left] == 0]
+    if shapes is not None:
+        shapes[:] = [u[1] for u in sorted(used, key=lambda u: -u[0])]
+    if len(left):
+        for column, got in zip(values, rest(left), strict=True):
+            column[left] = got
+    return values
+
+
 def decode_by_template(
     buf: np.ndarray,
     starts: np.ndarray,
@@ -342,8 +446,13 @@ def decode_by_template(
     JSON reader). ``shapes``: the templates of the batches before (of the same ``leaves``),
     tried first; updated to this batch's. None: read the whole batch another way."""
     n = len(starts)
+    if not n:
+        return None
+    module = _module()
+    if module is not None and buf.dtype == np.uint8 and buf.flags.c_contiguous:
+        return _decode_compiled(module, buf, starts, lengths, leaves, integer, rest, shapes)
     ends = starts + lengths
-    if len(buf) >= 1 << 31 or not n:  # string_view offsets are int32
+    if len(buf) >= 1 << 31:  # string_view offsets are int32
         return None
     work = _SCRATCH.get(len(buf))
     lo, hi = int(starts.min()), int(ends.max())
@@ -353,21 +462,10 @@ def decode_by_template(
     run_end += lo
     dot_e = _dot_e(region, e, work)
     bad_ends = run_end[np.searchsorted(run_end, dot_e + lo, "right")] if len(dot_e) else None
-    known = [s for s in shapes or () if len(s.gaps) <= MAX_NUMBERS]
+    picker = _Templates(buf, starts, ends, leaves, shapes or ())
     found: list[tuple[Shape, np.ndarray, np.ndarray, np.ndarray, np.ndarray]] = []
     left = np.arange(n)
-    new = refused = 0  # the messages no template can be made of: the first of left
-    while len(left) > refused and (known or new < TEMPLATES):
-        if known:
-            shape: Shape | None = known.pop(0)
-        else:
-            new += 1
-            t = int(left[refused])
-            shape = Shape.of(buf[starts[t] : ends[t]].tobytes(), leaves)
-            if shape is None:  # NaN, a mapped field absent...: the next message's text
-                refused += 1
-                continue
-        assert shape is not None
+    while (shape := picker.next(left)) is not None:
         whole = len(left) == n
         rows, ts, te, head = shape.match(
             buf,

@@ -1,6 +1,8 @@
 """JSON messages read by template (``readers/json_numbers.py``): value for value Python's ``json``
 (``mcap``'s JSON decoder), whatever the shapes, number forms and bytes between the payloads; a
-number outside JSON's grammar is a bad payload, named by its index."""
+number outside JSON's grammar is a bad payload, named by its index. Every test runs twice: with
+the compiled pass (``readers/_jsonscan.c``) and with the numpy path (``IMUPIPE_PURE_PYTHON=1``);
+``tests/test_jsonscan.py`` compares the two directly."""
 
 from __future__ import annotations
 
@@ -12,9 +14,10 @@ import struct
 import numpy as np
 import pytest
 
-from imupipe.readers import message_fields
+from imupipe.readers import json_numbers, message_fields
 from imupipe.readers.cdr import PayloadError
 from imupipe.readers.message_fields import Leaf, json_type
+from imupipe.readers.record_walk import PURE_PYTHON_ENV
 
 SCHEMA = {
     "type": "object",
@@ -25,6 +28,18 @@ SCHEMA = {
     },
 }
 LEAVES = [Leaf(("t",)), *(Leaf(("g", k)) for k in "xyz"), *(Leaf(("a", i)) for i in range(3))]
+
+
+@pytest.fixture(autouse=True, params=["compiled", "numpy"])
+def path(request, monkeypatch) -> str:  # noqa: ANN001
+    """The compiled pass (skipped when it is not built) or the numpy path."""
+    if request.param == "compiled":
+        monkeypatch.delenv(PURE_PYTHON_ENV, raising=False)
+        if not json_numbers.compiled():
+            pytest.skip("imupipe.readers._jsonscan is not built (setup.py build_ext --inplace)")
+    else:
+        monkeypatch.setenv(PURE_PYTHON_ENV, "1")
+    return request.param
 
 
 def chunk(payloads: list[bytes], seed: int = 0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -154,8 +169,6 @@ def test_nan_and_infinity_read_as_json_reads_them():
 
 
 def test_a_long_template_is_left_to_arrow(monkeypatch):
-    from imupipe.readers import json_numbers
-
     payloads = [p for i, p in enumerate(documents(60)) if i % 2 == 0]
     monkeypatch.setattr(json_numbers, "MAX_NUMBERS", 6)  # the documents hold 7 numbers
     arrow_rows = []
@@ -272,10 +285,13 @@ def test_a_bad_number_mapped_or_not_names_its_message(bad, where):
     assert err.value.index == len(payloads) - 3
 
 
-def test_the_number_views_are_valid_arrow(monkeypatch):
+def test_the_number_views_are_valid_arrow(monkeypatch, path):
     """The string_view arrays handed to Arrow's cast pass Arrow's full validation (inline
     numbers zero-padded, the prefix of the others their first 4 bytes)."""
     import pyarrow.compute as pc
+
+    if path == "compiled":
+        pytest.skip("the compiled pass hands no number to Arrow")
 
     cast = pc.cast
     checked = []
@@ -295,8 +311,6 @@ def test_the_number_views_are_valid_arrow(monkeypatch):
 def test_templates_carried_from_chunk_to_chunk(monkeypatch):
     """A channel's templates are tried first on its next chunk: right where they fit, harmless
     where none of that chunk's messages has their shape."""
-    from imupipe.readers import json_numbers
-
     made = []
     of = json_numbers.Shape.of
     monkeypatch.setattr(json_numbers.Shape, "of", staticmethod(lambda *a: made.append(1) or of(*a)))
