@@ -1,11 +1,21 @@
-"""The optional compiled helper of the flight-log readers (everything else is in pyproject.toml).
+"""The optional compiled helpers of the readers (everything else is in pyproject.toml).
 
-``imupipe.readers._records`` (``readers/_records.c``: the sequential ULog record walk and the
-copy of fixed-size payloads, CPython API only) is built by ``pip install .`` / ``pip install -e
-.`` when a C compiler is there; ``optional=True`` lets the install go on without it (setuptools
-prints the compiler's error and skips the extension), and the readers then use the pure-Python
-walks of ``imupipe.readers.record_walk``, which give the same bytes. For a source checkout used
-in place: ``python setup.py build_ext --inplace`` puts the module next to the sources in
+Three C sources, CPython API and buffer protocol only, each the compiled twin of a numpy or
+pure-Python path that gives the same bytes:
+
+- ``imupipe.readers._records`` (``readers/_records.c``): the sequential ULog and DataFlash record
+  walks and the copy of fixed-size payloads; fallback ``imupipe.readers.record_walk``;
+- ``imupipe.readers._chunks`` (``readers/_chunks.c``): one MCAP chunk's CDR sensor messages
+  checked and copied into the table's columns; fallback ``imupipe.readers.chunk_fill``'s numpy
+  path;
+- ``imupipe.readers._jsonscan`` (``readers/_jsonscan.c``): a JSON channel's messages checked
+  against a template and their mapped numbers parsed as ``float()`` / ``int()`` parse them;
+  fallback ``imupipe.readers.json_numbers``'s numpy path.
+
+``pip install .`` / ``pip install -e .`` build them when a C compiler is there; ``optional=True``
+lets the install go on without one (setuptools prints the compiler's error and skips the
+extension). ``IMUPIPE_PURE_PYTHON=1`` forces the fallbacks. For a source checkout used in
+place: ``python setup.py build_ext --inplace`` puts the modules next to the sources in
 ``readers/``.
 """
 
@@ -13,11 +23,7 @@ from setuptools import Extension, setup
 
 setup(
     ext_modules=[
-        Extension(
-            "imupipe.readers._records",
-            sources=["readers/_records.c"],
-            optional=True,
-        ),
+        Extension("imupipe.readers._records", sources=["readers/_records.c"], optional=True),
         Extension("imupipe.readers._chunks", sources=["readers/_chunks.c"], optional=True),
         Extension("imupipe.readers._jsonscan", sources=["readers/_jsonscan.c"], optional=True),
     ]

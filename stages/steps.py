@@ -173,10 +173,11 @@ def axis_products(matrix: np.ndarray, values: np.ndarray) -> np.ndarray:
             col = m[i, used[0]] * d[:, used[0]]
             for j in used[1:]:
                 col = col + m[i, j] * d[:, j]
-            finite_in = np.isfinite(d[:, used]).all(axis=1)
-            blown = finite_in & ~np.isfinite(col)
-            if blown.any():  # finite inputs, a result past float64: held at the largest float
-                col[blown] = _saturated(m[i, used], d[blown][:, used])
+            bad = np.flatnonzero(~np.isfinite(col))
+            if len(bad):  # finite inputs, a result past float64: held at the largest float
+                blown = bad[np.isfinite(d[bad][:, used]).all(axis=1)]
+                if len(blown):
+                    col[blown] = _saturated(m[i, used], d[blown][:, used])
             out[:, i] = col
     return out
 
