@@ -771,19 +771,21 @@ def print_summary(summaries: Sequence[StageSummary], console: Any = None) -> Non
     if console is None:  # a pipe or a file gets the long lines whole
         import sys
 
-        console = Console(width=None if sys.stdout.isatty() else 160)
+        tty = sys.stdout.isatty()
+        console = Console(width=None if tty else 160, soft_wrap=not tty)
     for s in summaries:
-        title = f"[bold]{s.name}[/bold] ({s.type} on {s.input}): {s.status}"
+        # the title on its own line: as a table's title it wrapped to the table's width
+        console.print(
+            f"[bold]{escape(s.name)}[/bold] ({escape(s.type)} on {escape(s.input)}): {s.status}"
+        )
         if s.rows:
-            table = Table(title=title, title_justify="left", show_edge=False, pad_edge=False)
+            table = Table(show_edge=False, pad_edge=False)
             table.add_column("quantity")
             for axis in AXES:
                 table.add_column(axis, justify="right", no_wrap=True)
             for row in s.rows:
                 table.add_row(row.label, *(row.cells + ["", "", ""])[:3])
             console.print(table)
-        else:
-            console.print(title)
         for key, value in s.quality:
             console.print(f"  {key}: {value}", highlight=False)
         for check in s.failed_checks:
