@@ -1,6 +1,6 @@
 """The optional compiled helpers of the readers (everything else is in pyproject.toml).
 
-Three C sources, CPython API and buffer protocol only, each the compiled twin of a numpy or
+Four C sources, CPython API and buffer protocol only, each the compiled twin of a numpy or
 pure-Python path that gives the same bytes:
 
 - ``imupipe.readers._records`` (``readers/_records.c``): the sequential ULog and DataFlash record
@@ -10,7 +10,10 @@ pure-Python path that gives the same bytes:
   path;
 - ``imupipe.readers._jsonscan`` (``readers/_jsonscan.c``): a JSON channel's messages checked
   against a template and their mapped numbers parsed as ``float()`` / ``int()`` parse them;
-  fallback ``imupipe.readers.json_numbers``'s numpy path.
+  fallback ``imupipe.readers.json_numbers``'s numpy path;
+- ``imupipe.readers._protoscan`` (``readers/_protoscan.c``): a protobuf channel's messages walked
+  tag by tag, once each, and their mapped fields written into the columns; fallback
+  ``imupipe.readers.message_fields``' numpy scan.
 
 ``pip install .`` / ``pip install -e .`` build them when a C compiler is there; ``optional=True``
 lets the install go on without one (setuptools prints the compiler's error and skips the
@@ -26,5 +29,6 @@ setup(
         Extension("imupipe.readers._records", sources=["readers/_records.c"], optional=True),
         Extension("imupipe.readers._chunks", sources=["readers/_chunks.c"], optional=True),
         Extension("imupipe.readers._jsonscan", sources=["readers/_jsonscan.c"], optional=True),
+        Extension("imupipe.readers._protoscan", sources=["readers/_protoscan.c"], optional=True),
     ]
 )

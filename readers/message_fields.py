@@ -38,13 +38,16 @@ Every decoder is tested equal to its reference library (rosbags, ``mcap``'s JSON
 
 from __future__ import annotations
 
+import os
 import threading
 from dataclasses import dataclass, field
+from types import ModuleType
 
 import numpy as np
 
 from imupipe.readers.cdr import PayloadError, at, even_step, unaligned
 from imupipe.readers.errors import ReadError
+from imupipe.readers.record_walk import PURE_PYTHON_ENV
 
 ROS_BASE: dict[str, str] = {
     "bool": "u1",
@@ -147,6 +150,9 @@ class MessageType:
         self.json_shapes: dict[tuple, list] = {}
         """JSON: the templates of the batches read so far, per set of leaves (see
         :func:`imupipe.readers.json_numbers.decode_by_template`)."""
+        self.proto_plans: dict[tuple, _ProtoPlan | None] = {}
+        """Protobuf: the compiled pass's plan per set of leaves (None: the numpy scan reads
+        them)."""
 
     # -- paths ------------------------------------------------------------------------------
     def node(self, path: tuple[str, ...]) -> Node | None:
@@ -199,10 +205,7 @@ class MessageType:
         if self.encoding == "json":
             return _decode_json(self, buf, starts, lengths, leaves)
         if self.encoding == "protobuf":
-            try:
-                return _ProtoScan(self, buf, starts, lengths, leaves).run()
-            except NotFastPath:
-                return self.decode_reference(buf, starts, lengths, leaves)
+            return _decode_protobuf(self, buf, starts, lengths, leaves)
         raise ReadError(f"message encoding '{self.encoding}' is not supported")
 
     def decode_reference(
@@ -864,8 +867,12 @@ class _ProtoScan:
     ) -> None:
         if child.kind == "struct":
             lo, hi = np.zeros(n, np.int64), np.zeros(n, np.int64)
-            for rows, body, end, _ in hits:  # the last occurrence (a repeated message merges)
+            seen = np.zeros(n, np.int64)
+            for rows, body, end, _ in hits:
                 lo[rows], hi[rows] = body, end
+                seen[rows] += 1
+            if np.any(seen > 1):  # protobuf merges a message split over records
+                raise NotFastPath(f"field {'.'.join(map(str, cpath))}: a message in pieces")
             self.message(child, cpath, lo, hi, sub, out)
             return
         if child.kind == "number":
@@ -941,9 +948,172 @@ class _ProtoScan:
                 return ((raw >> np.uint64(1)).astype(np.int64)) ^ -(raw & np.uint64(1)).astype(
                     np.int64
                 )
+            if node.dtype == "u1":  # bool: any value but 0 is true
+                return (raw != 0).astype(np.uint8)
             return raw.astype(np.int64) if node.dtype[0] == "i" else raw
         return unaligned(self.buf, node.wire)[body]
 
 
 def _widen(values: np.ndarray) -> np.ndarray:
     return values.astype(np.int64 if values.dtype.kind in "iub" else np.float64)
+
+
+# --- Protobuf, compiled --------------------------------------------------------------------
+
+_PROTO_CODES = {
+    ("i8", "varint"): 0,
+    ("u8", "varint"): 1,
+    ("i4", "varint"): 2,
+    ("u4", "varint"): 3,
+    ("u1", "varint"): 4,
+    ("i4", "zigzag"): 5,
+    ("i8", "zigzag"): 6,
+    ("f8", "<f8"): 7,
+    ("f4", "<f4"): 8,
+    ("u8", "<u8"): 9,
+    ("u4", "<u4"): 10,
+    ("i4", "<i4"): 11,
+    ("i8", "<i8"): 12,
+}
+"""(dtype, wire) of a protobuf number -> its decoding in ``readers/_protoscan.c`` (CODE_*)."""
+
+
+@dataclass
+class _ProtoPlan:
+    """What ``readers/_protoscan.c`` reads (see its header): per nested message on a mapped
+    path, the wanted field numbers (``fields``), the wanted elements of repeated numbers
+    (``seqs``, ``slots``); one output column per distinct leaf path (``column`` of each leaf),
+    ``floats`` the columns holding doubles."""
+
+    fields: np.ndarray
+    seqs: np.ndarray
+    slots: np.ndarray
+    column: list[int]
+    floats: list[bool]
+
+
+def _proto_plan(root: Node, leaves: list[Leaf]) -> _ProtoPlan | None:
+    """The compiled pass's plan for ``leaves``, or None when one is not a number reachable
+    through singular nested messages (a name that is not there, a repeated message, an enum
+    or bytes: the numpy scan raises or falls back as it does)."""
+    structs: dict[tuple, int] = {(): 0}
+    rows: dict[tuple[int, int], list[int]] = {}
+    seqs: dict[tuple, dict[int, int]] = {}
+    columns: dict[tuple, int] = {}
+    floats: list[bool] = []
+    column = []
+    for leaf in leaves:
+        path = tuple(leaf.path)
+        if path not in columns:
+            columns[path] = len(columns)
+            floats.append(False)
+        col = columns[path]
+        column.append(col)
+        node, sid = root, 0
+        names = path[:-1] if path and isinstance(path[-1], int) else path
+        if not names or not all(isinstance(p, str) for p in names):
+            return None
+        for j, part in enumerate(names):
+            child = node.child(part) if node.kind == "struct" else None  # type: ignore[arg-type]
+            if child is None:
+                return None
+            last = j == len(names) - 1
+            if child.kind == "struct" and not last:
+                sub = structs.setdefault(names[: j + 1], len(structs))
+                rows[(sid, child.tag)] = [sid, child.tag, 1, 0, sub]
+                node, sid = child, sub
+                continue
+            item = child.item if child.kind == "sequence" else child
+            indexed = len(names) < len(path)
+            if not last or item is None or item.kind != "number" or indexed != (item is not child):
+                return None
+            code = _PROTO_CODES.get((item.dtype, item.wire))
+            if code is None:
+                return None
+            floats[col] = item.dtype[0] == "f"
+            if indexed:
+                seq = seqs.setdefault(names, {})
+                seq[int(path[-1])] = col  # type: ignore[arg-type]
+                rows[(sid, child.tag)] = [sid, child.tag, 2, code, list(seqs).index(names)]
+            else:
+                rows[(sid, child.tag)] = [sid, child.tag, 0, code, col]
+    seq_rows, slots = [], []
+    for wanted in seqs.values():
+        width = max(wanted) + 1
+        seq_rows.append([len(slots), width])
+        slots.extend(wanted.get(k, -1) for k in range(width))
+    return _ProtoPlan(
+        np.array(sorted(rows.values()), np.int64).reshape(-1, 5),
+        np.array(seq_rows, np.int64).reshape(-1, 2),
+        np.array(slots, np.int64),
+        column,
+        floats,
+    )
+
+
+def _protoscan() -> ModuleType | None:
+    """The compiled pass (``imupipe.readers._protoscan``), or None (not built, or
+    ``IMUPIPE_PURE_PYTHON`` set)."""
+    if os.environ.get(PURE_PYTHON_ENV, "") not in ("", "0"):
+        return None
+    try:
+        from imupipe.readers import _protoscan  # type: ignore[attr-defined]
+    except ImportError:
+        return None
+    return _protoscan
+
+
+def protoscan_compiled() -> bool:
+    """Whether protobuf channels are read by the compiled pass: built, and not turned off by
+    ``IMUPIPE_PURE_PYTHON``."""
+    return _protoscan() is not None
+
+
+def _decode_protobuf(
+    mtype: MessageType,
+    buf: np.ndarray,
+    starts: np.ndarray,
+    lengths: np.ndarray,
+    leaves: list[Leaf],
+) -> list[np.ndarray]:
+    """:meth:`MessageType.decode` of protobuf messages: the compiled pass
+    (``readers/_protoscan.c``) walks each message once and writes the mapped fields; the
+    messages it leaves (flagged), and every message when it is not built, go to the numpy scan
+    (:class:`_ProtoScan`), which gives the same columns and names a bad message."""
+    module = _protoscan()
+    key = tuple(tuple(leaf.path) for leaf in leaves)
+    if module is not None and key not in mtype.proto_plans:
+        mtype.proto_plans[key] = _proto_plan(mtype.root, leaves)
+    plan = mtype.proto_plans.get(key) if module is not None else None
+    if plan is None or buf.dtype != np.uint8 or not buf.flags.c_contiguous:
+        return _proto_numpy(mtype, buf, starts, lengths, leaves)
+    n = len(starts)
+    out = np.zeros((len(plan.floats), n), np.int64)
+    flags = np.empty(n, np.uint8)
+    starts = np.ascontiguousarray(starts, np.int64)
+    lengths = np.ascontiguousarray(lengths, np.int64)
+    flagged = module.scan(buf, starts, lengths, plan.fields, plan.seqs, plan.slots, out, flags)
+    columns = [row.view(np.float64) if f else row for row, f in zip(out, plan.floats, strict=True)]
+    if flagged:
+        rest = np.flatnonzero(flags)
+        try:
+            got = _proto_numpy(mtype, buf, starts[rest], lengths[rest], leaves)
+        except PayloadError as exc:
+            raise PayloadError(int(rest[exc.index]), exc.reason) from None
+        for col, values in zip(plan.column, got, strict=True):
+            columns[col][rest] = values
+    return [columns[col] for col in plan.column]
+
+
+def _proto_numpy(
+    mtype: MessageType,
+    buf: np.ndarray,
+    starts: np.ndarray,
+    lengths: np.ndarray,
+    leaves: list[Leaf],
+) -> list[np.ndarray]:
+    """The numpy scan (:class:`_ProtoScan`); protobuf's own parser where it cannot follow."""
+    try:
+        return _ProtoScan(mtype, buf, starts, lengths, leaves).run()
+    except NotFastPath:
+        return mtype.decode_reference(buf, starts, lengths, leaves)
