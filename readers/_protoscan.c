@@ -21,12 +21,12 @@
  *     to column slots[first + k] (-1: not wanted).
  * Per message: absent fields stay 0 (proto3's default; the columns come zeroed), a singular
  * number seen twice keeps its last value (as protobuf parsers do), repeated numbers count
- * their elements packed or not, in order.
+ * their elements packed or not, in order; a record of a mapped field number with another wire
+ * type than the field's is an unknown field (as upb, protobuf's parser, takes it).
  *
  * A message this pass does not take exactly as the numpy path would is flagged (flags[i] = 1)
  * and left to it, which reads it or names what is wrong: a varint past 10 bytes or past its
- * message, a record past its message, wire types 3, 4, 6, 7, a mapped field with another wire
- * type than its type's, a packed run not a whole number of items, a nested message in two
+ * message, a record past its message, wire types 3, 4, 6, 7, a packed run not a whole number of items, a nested message in two
  * records (protobuf merges them: the numpy path leaves it to protobuf's parser), fewer
  * elements than a mapped index, a payload outside the buffer. The loop runs without the GIL. Only the CPython C API
  * and the buffer protocol are used; tests/test_protoscan.py checks both paths give the same
@@ -198,14 +198,16 @@ static int walk(job *b, const uint8_t *p, const uint8_t *e, Py_ssize_t sid, int 
             const int64_t *row = b->fields + 5 * f;
             if (row[1] != number) continue;
             const int kind = (int)row[2], code = (int)row[3];
+            if (kind == 1 ? wire != 2 : wire != CODE_WIRE[code] && (kind == 0 || wire != 2))
+                break; /* another wire type than the field's: an unknown field to protobuf */
             if (kind == 1) {
-                if (wire != 2 || b->seen[row[4]]) return 0;
+                if (b->seen[row[4]]) return 0;
                 b->seen[row[4]] = 1;
                 if (!walk(b, body, end, (Py_ssize_t)row[4], depth + 1)) return 0;
             } else if (kind == 0) {
                 int64_t cell;
                 const uint8_t *q = body;
-                if (wire != CODE_WIRE[code] || !item(code, &q, end, &cell) || q != end) return 0;
+                if (!item(code, &q, end, &cell) || q != end) return 0;
                 b->out[row[4] * b->n + b->row] = cell;
             } else if (wire == 2) { /* a packed run */
                 const uint8_t *q = body;
@@ -218,7 +220,7 @@ static int walk(job *b, const uint8_t *p, const uint8_t *e, Py_ssize_t sid, int 
             } else {
                 int64_t cell;
                 const uint8_t *q = body;
-                if (wire != CODE_WIRE[code] || !item(code, &q, end, &cell) || q != end) return 0;
+                if (!item(code, &q, end, &cell) || q != end) return 0;
                 put(b, (Py_ssize_t)row[4], cell);
             }
             break;

@@ -234,6 +234,10 @@ class MessageType:
         out = []
         for values in rows:
             ints = all(isinstance(v, int | np.integer) for v in values)
+            if ints and any(v >= 1 << 63 for v in values):  # a uint64 past int64: its bits
+                out.append(np.array([int(v) & ((1 << 64) - 1) for v in values], np.uint64))
+                out[-1] = out[-1].view(np.int64)
+                continue
             out.append(np.asarray(values, np.int64 if ints else np.float64))
         return out
 
@@ -844,8 +848,8 @@ class _ProtoScan:
             over = np.flatnonzero(end > hi[active])
             if len(over):
                 raise PayloadError(int(active[over[0]]), "field runs past the message")
-            for t in by_tag:
-                sel = np.flatnonzero(number == t)
+            for t, child in by_tag.items():
+                sel = np.flatnonzero((number == t) & _wire_fits(child, wire))
                 if len(sel):
                     found.setdefault(t, []).append((active[sel], body[sel], end[sel], wire[sel]))
             pos[active] = end
@@ -923,7 +927,10 @@ class _ProtoScan:
         width = values.shape[1]
         if item.wire not in ("varint", "zigzag"):
             size = np.dtype(item.wire).itemsize
-            n_items = (end - body) // size
+            n_items, rest = np.divmod(end - body, size)
+            if np.any(rest):
+                bad = int(rows[np.flatnonzero(rest)[0]])
+                raise PayloadError(bad, "a packed field is not a whole number of items")
             for k in range(width):
                 slot = count[rows] + k
                 ok = (k < n_items) & (slot < width)
@@ -939,6 +946,9 @@ class _ProtoScan:
             values[r[ok], slot[ok]] = self.scalar(item, p[live][ok])
             count[r] += 1
             p[live] += self.varint(p[live])[1]
+            over = np.flatnonzero(p[live] > end[live])
+            if len(over):
+                raise PayloadError(int(rows[live[over[0]]]), "a packed varint runs past its field")
             live = live[p[live] < end[live]]
 
     def scalar(self, node: Node, body: np.ndarray) -> np.ndarray:
@@ -952,6 +962,23 @@ class _ProtoScan:
                 return (raw != 0).astype(np.uint8)
             return raw.astype(np.int64) if node.dtype[0] == "i" else raw
         return unaligned(self.buf, node.wire)[body]
+
+
+_WIRE_OF = {"varint": 0, "zigzag": 0, "<f8": 1, "<u8": 1, "<i8": 1, "<f4": 5, "<u4": 5, "<i4": 5}
+"""The wire type of a protobuf number's encoding."""
+
+
+def _wire_fits(node: Node, wire: np.ndarray) -> np.ndarray | bool:
+    """Where a record's wire type is the one of ``node``'s type (length-delimited for a
+    message, also for a packed run of a repeated number): a record of another wire type is an
+    unknown field to protobuf's parsers (upb), never a value."""
+    if node.kind == "struct":
+        return wire == 2
+    if node.kind == "number":
+        return wire == _WIRE_OF[node.wire]
+    if node.kind == "sequence" and node.item is not None and node.item.kind == "number":
+        return (wire == 2) | (wire == _WIRE_OF[node.item.wire])
+    return True
 
 
 def _widen(values: np.ndarray) -> np.ndarray:
