@@ -18,6 +18,7 @@ import numpy as np
 import pytest
 from test_mapped_fields import _proto_classes, write_protobuf_mcap
 
+from imupipe.readers import message_fields
 from imupipe.readers.cdr import PayloadError
 from imupipe.readers.message_fields import Leaf, protobuf_type, protoscan_compiled
 from imupipe.readers.record_walk import PURE_PYTHON_ENV
@@ -213,6 +214,16 @@ def _both(monkeypatch, mtype, buf, starts, lengths, leaves):  # noqa: ANN001, AN
     return got
 
 
+def _flags(mtype, buf, starts, lengths, leaves) -> np.ndarray:  # noqa: ANN001
+    """The messages the compiled pass leaves to the numpy scan."""
+    plan = message_fields._proto_plan(mtype.root, leaves)
+    out = np.zeros((len(plan.floats), len(starts)), np.int64)
+    flags = np.empty(len(starts), np.uint8)
+    module = message_fields._protoscan()
+    module.scan(buf, starts, lengths, plan.fields, plan.seqs, plan.slots, out, flags)
+    return flags
+
+
 def _same(a, b) -> bool:  # noqa: ANN001
     if isinstance(a, tuple) or isinstance(b, tuple):
         return a == b
@@ -232,6 +243,7 @@ def test_random_messages_equal_numpy_scan_and_mcap_protobuf(tmp_path, monkeypatc
     leaves = [Leaf(p) for p in LEAVES]
     compiled, numpy = _both(monkeypatch, mtype, *_batch(payloads), leaves)
     assert _same(compiled, numpy)
+    assert not _flags(mtype, *_batch(payloads), leaves).any()  # all read by the compiled pass
     with open(tmp_path / "all.mcap", "wb") as fh:
         w = Writer(fh)
         w.start()
@@ -285,6 +297,7 @@ def test_existing_protobuf_cases_equal(tmp_path, monkeypatch):
     ]
     compiled, numpy = _both(monkeypatch, mtype, *_batch(payloads), leaves)
     assert _same(compiled, numpy) and not isinstance(compiled, tuple)
+    assert not _flags(mtype, *_batch(payloads), leaves).any()
     ref = mtype.decode_reference(*_batch(payloads), leaves)
     assert all(np.array_equal(a, b) for a, b in zip(compiled, ref, strict=True))
     full = payloads[3]
@@ -322,6 +335,8 @@ def test_odd_encodings_go_to_the_numpy_scan(monkeypatch):
         batch = _batch([good[0], payload, good[5]])
         compiled, numpy = _both(monkeypatch, mtype, *batch, leaves)
         assert _same(compiled, numpy), what
+        left = what not in ("bool 2", "bool 2^32", "wire")
+        assert _flags(mtype, *batch, leaves).tolist() == [0, left, 0], what
         if what in ("merged", "bool 2", "bool 2^32", "wire"):  # valid: as protobuf reads it
             ref = mtype.decode_reference(*batch, leaves)
             assert all(np.array_equal(x, y) for x, y in zip(compiled, ref, strict=True)), what
