@@ -11,9 +11,10 @@ The same IMU samples (N messages, 200 Hz) written to MCAP files (zstd chunks, mc
 Prints the wall-clock and CPU seconds per read (min and median of ``--repeat`` runs,
 interleaved) and the ratio of the mins to the Imu path's (target: at most 2x). On a shared
 machine the CPU time (the process's, all threads) is the steadier of the two. ``--fallback``
-adds the JSON read with the numpy decoding (``imupipe.readers.json_numbers`` without its
-compiled pass) to the same interleaved runs, and prints each case's ratio to the Imu read of
-the same repeat (min and median over the repeats).
+adds the JSON and protobuf reads with their numpy decoding (``imupipe.readers.json_numbers``
+without ``_jsonscan``, ``imupipe.readers.message_fields`` without ``_protoscan``) to the same
+interleaved runs. Each case's ratio to the Imu read of the same repeat is printed too (min and
+median over the repeats).
 
     PYTHONPATH=.shim python benchmarks/bench_mapped_fields.py [--messages 200000] [--repeat 3]
         [--fallback]
@@ -31,7 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
-from imupipe.readers import json_numbers
+from imupipe.readers import json_numbers, message_fields
 from imupipe.readers.cdr import encode
 from imupipe.readers.dispatch import read_input
 from imupipe.readers.spec import FieldMapping, InputSpec
@@ -186,31 +187,43 @@ CASES = {
 }
 
 
-FALLBACK = "JSON, [fields], numpy decoding"
+FALLBACK = {
+    "JSON, [fields], numpy decoding": ("JSON, [fields]", json_numbers, "_module"),
+    "protobuf, [fields], numpy decoding": ("protobuf, [fields]", message_fields, "_protoscan"),
+}
+"""Case -> (the case it repeats, the module and the function that finds its compiled pass)."""
 
 
 @contextlib.contextmanager
-def _numpy_json(on: bool) -> Iterator[None]:
-    """The JSON decoding without its compiled pass while ``on``."""
-    module = json_numbers._module
-    if on:
-        json_numbers._module = lambda: None  # type: ignore[assignment]
+def _numpy_decoding(name: str) -> Iterator[None]:
+    """Case ``name`` without its compiled pass (a ``FALLBACK`` case)."""
+    if name not in FALLBACK:
+        yield
+        return
+    _, module, attr = FALLBACK[name]
+    found = getattr(module, attr)
+    setattr(module, attr, lambda: None)
     try:
         yield
     finally:
-        json_numbers._module = module  # type: ignore[assignment]
+        setattr(module, attr, found)
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--messages", type=int, default=200_000)
     ap.add_argument("--repeat", type=int, default=3)
-    ap.add_argument("--fallback", action="store_true", help="also the numpy JSON decoding")
+    ap.add_argument(
+        "--fallback", action="store_true", help="also the numpy JSON and protobuf decoding"
+    )
     args = ap.parse_args()
     cases = dict(CASES)
     if args.fallback:
-        cases[FALLBACK] = CASES["JSON, [fields]"]
+        cases.update({name: CASES[case] for name, (case, _, _) in FALLBACK.items()})
     print(f"JSON compiled pass: {'built' if json_numbers.compiled() else 'not used'}")
+    print(
+        f"protobuf compiled pass: {'built' if message_fields.protoscan_compiled() else 'not used'}"
+    )
     with tempfile.TemporaryDirectory() as tmp:
         paths = write_all(Path(tmp), args.messages)
         wall: dict[str, list[float]] = {name: [] for name in cases}
@@ -219,7 +232,7 @@ def main() -> None:
             for name, (kind, mapping) in cases.items():
                 spec = InputSpec(path=paths[kind], fields=mapping)
                 t0, c0 = time.perf_counter(), time.process_time()
-                with _numpy_json(name == FALLBACK):
+                with _numpy_decoding(name):
                     table, _ = read_input(spec)
                 wall[name].append(time.perf_counter() - t0)
                 cpu[name].append(time.process_time() - c0)
@@ -227,26 +240,26 @@ def main() -> None:
         peer = "Imu, imu_topic (peer)"
         print(f"{args.messages} messages per file, {args.repeat} runs each (interleaved)")
         print(
-            f"{'':32s} {'wall min':>9s} {'median':>7s} {'ratio':>6s}   {'CPU min':>8s} {'median':>7s} {'ratio':>6s}"
+            f"{'':36s} {'wall min':>9s} {'median':>7s} {'ratio':>6s}   {'CPU min':>8s} {'median':>7s} {'ratio':>6s}"
         )
         for name in cases:
             w, c = np.array(wall[name]), np.array(cpu[name])
             rw = w.min() / min(wall[peer])
             rc = c.min() / min(cpu[peer])
             print(
-                f"{name:32s} {w.min():8.3f}s {np.median(w):6.3f}s {rw:5.2f}x   "
+                f"{name:36s} {w.min():8.3f}s {np.median(w):6.3f}s {rw:5.2f}x   "
                 f"{c.min():7.3f}s {np.median(c):6.3f}s {rc:5.2f}x"
             )
         print(
             "ratio: min over runs against the Imu path's min (wall clock; CPU time of the process)"
         )
         print(f"\nper repeat, against the Imu read of the same repeat ({args.repeat} repeats)")
-        print(f"{'':32s} {'wall min':>9s} {'median':>7s}   {'CPU min':>8s} {'median':>7s}")
+        print(f"{'':36s} {'wall min':>9s} {'median':>7s}   {'CPU min':>8s} {'median':>7s}")
         for name in cases:
             rw = np.array(wall[name]) / np.array(wall[peer])
             rc = np.array(cpu[name]) / np.array(cpu[peer])
             print(
-                f"{name:32s} {rw.min():8.2f}x {np.median(rw):6.2f}x   "
+                f"{name:36s} {rw.min():8.2f}x {np.median(rw):6.2f}x   "
                 f"{rc.min():7.2f}x {np.median(rc):6.2f}x"
             )
 
