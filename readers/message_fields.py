@@ -28,9 +28,16 @@ start and length:
   Arrow cast per chunk; the others are joined as newline-delimited JSON and parsed by Arrow's
   JSON reader (``pyarrow.json``) with a schema holding only the wanted fields, and what Arrow
   refuses (``NaN``, ``Infinity``) by ``json``.
-- Protobuf: the wire format (protobuf encoding spec: varint tags, wire types 0/1/2/5) scanned in
-  lockstep over all messages, one tag per message per step, nested messages as sub-ranges, packed
-  and unpacked repeated fields, absent fields their proto3 default (0).
+- Protobuf: the wire format (protobuf encoding spec: varint tags, wire types 0/1/2/5), nested
+  messages as sub-ranges, packed and unpacked repeated fields, absent fields their proto3
+  default (0), a record of another wire type than its field's an unknown field (as upb has
+  it). With the optional extension ``imupipe.readers._protoscan`` (``readers/_protoscan.c``)
+  each message's records are walked once in one compiled pass per chunk that writes the mapped
+  fields into the columns (:func:`_decode_protobuf`); the messages it leaves, and all of them
+  when it is not built or ``IMUPIPE_PURE_PYTHON=1``, are scanned in lockstep in numpy
+  (:class:`_ProtoScan`), one tag per message per step, which gives the same columns and names a
+  bad message. A nested message split over two records (protobuf merges them) is read by
+  protobuf's parser.
 
 Every decoder is tested equal to its reference library (rosbags, ``mcap``'s JSON and
 ``mcap-protobuf-support`` decoders) in ``tests/test_mapped_fields.py``.
