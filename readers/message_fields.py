@@ -786,9 +786,10 @@ class _ProtoScan:
         self.message(self.mtype.root, (), self.starts, self.starts + self.lengths, wanted, out)
         return [out[w] for w in wanted]
 
-    def varint(self, pos: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(value uint64, size in bytes) of the varint at each position: one byte read where
-        it is below 0x80 (tags of fields 1-15, short lengths), ten where it is not."""
+    def varint(self, pos: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(value uint64, size in bytes) of the varint at each position (of message ``rows``,
+        which a varint past 10 bytes names): one byte read where it is below 0x80 (tags of
+        fields 1-15, short lengths), ten where it is not."""
         first = self.buf[pos]
         value = first.astype(np.uint64)
         size = np.ones(len(pos), np.int64)
@@ -805,7 +806,7 @@ class _ProtoScan:
                 if not len(live):
                     break
             else:
-                raise PayloadError(int(live[0]), "varint past 10 bytes")
+                raise PayloadError(int(rows[live[0]]), "varint past 10 bytes")
         return value, size
 
     def message(
@@ -831,7 +832,7 @@ class _ProtoScan:
         active = np.flatnonzero(pos < hi)
         while len(active):
             p = pos[active]
-            tag, size = self.varint(p)
+            tag, size = self.varint(p, active)
             number = (tag >> np.uint64(3)).astype(np.int64)
             wire = (tag & np.uint64(7)).astype(np.int64)
             p = p + size
@@ -841,11 +842,11 @@ class _ProtoScan:
             step[wire == 5] = 4
             if np.any(wire == 0):
                 sel = np.flatnonzero(wire == 0)
-                _, vsize = self.varint(p[sel])
+                _, vsize = self.varint(p[sel], active[sel])
                 step[sel] = vsize
             if np.any(wire == 2):
                 sel = np.flatnonzero(wire == 2)
-                length, lsize = self.varint(p[sel])
+                length, lsize = self.varint(p[sel], active[sel])
                 body[sel] = p[sel] + lsize
                 step[sel] = lsize + length.astype(np.int64)
             bad = np.flatnonzero(~_WIRE_TYPES[wire])
@@ -889,7 +890,7 @@ class _ProtoScan:
         if child.kind == "number":
             values = np.zeros(n, np.dtype(child.dtype))
             for rows, body, _, _ in hits:
-                values[rows] = self.scalar(child, body)
+                values[rows] = self.scalar(child, body, rows)
             out[cpath] = _widen(values)
             return
         if child.kind == "sequence" and child.item is not None and child.item.kind == "number":
@@ -903,7 +904,7 @@ class _ProtoScan:
                     r, b = rows[~packed], body[~packed]
                     slot = count[r]
                     ok = slot < values.shape[1]
-                    values[r[ok], slot[ok]] = self.scalar(item, b[ok])
+                    values[r[ok], slot[ok]] = self.scalar(item, b[ok], r[ok])
                     count[r] += 1
                 if np.any(packed):
                     self.packed(item, rows[packed], body[packed], end[packed], values, count)
@@ -941,7 +942,7 @@ class _ProtoScan:
             for k in range(width):
                 slot = count[rows] + k
                 ok = (k < n_items) & (slot < width)
-                values[rows[ok], slot[ok]] = self.scalar(item, body[ok] + k * size)
+                values[rows[ok], slot[ok]] = self.scalar(item, body[ok] + k * size, rows[ok])
             count[rows] += n_items
             return
         p = body.copy()
@@ -950,17 +951,17 @@ class _ProtoScan:
             r = rows[live]
             slot = count[r]
             ok = slot < width
-            values[r[ok], slot[ok]] = self.scalar(item, p[live][ok])
+            values[r[ok], slot[ok]] = self.scalar(item, p[live][ok], r[ok])
             count[r] += 1
-            p[live] += self.varint(p[live])[1]
+            p[live] += self.varint(p[live], r)[1]
             over = np.flatnonzero(p[live] > end[live])
             if len(over):
                 raise PayloadError(int(rows[live[over[0]]]), "a packed varint runs past its field")
             live = live[p[live] < end[live]]
 
-    def scalar(self, node: Node, body: np.ndarray) -> np.ndarray:
+    def scalar(self, node: Node, body: np.ndarray, rows: np.ndarray) -> np.ndarray:
         if node.wire in ("varint", "zigzag"):
-            raw, _ = self.varint(body)
+            raw, _ = self.varint(body, rows)
             if node.wire == "zigzag":
                 return ((raw >> np.uint64(1)).astype(np.int64)) ^ -(raw & np.uint64(1)).astype(
                     np.int64
