@@ -23,6 +23,7 @@ from imupipe.readers.cdr import unaligned
 from imupipe.readers.dispatch import read_input
 from imupipe.readers.errors import ReadError
 from imupipe.readers.message_fields import Leaf, json_type, protobuf_type, ros_type
+from imupipe.readers.record_walk import PURE_PYTHON_ENV
 from imupipe.readers.spec import FieldMapping, InputSpec
 from imupipe.readers.table import metadata, sensor, split_imu
 
@@ -447,7 +448,11 @@ def write_protobuf_mcap(path: Path, n: int = 500) -> None:
             w.write_message("/imu_pb", m, log_time=t + 10, publish_time=t + 10)
 
 
-def test_protobuf_mcap_equals_mcap_protobuf_decoder(tmp_path):
+@pytest.mark.parametrize("pure", ["", "1"], ids=["compiled", "numpy"])
+def test_protobuf_mcap_equals_mcap_protobuf_decoder(tmp_path, monkeypatch, pure):
+    """Both protobuf decodings (``readers/_protoscan.c`` when built, the numpy scan) against
+    ``mcap-protobuf-support``, through the whole read."""
+    monkeypatch.setenv(PURE_PYTHON_ENV, pure)
     path = tmp_path / "imu_pb.mcap"
     write_protobuf_mcap(path)
     from mcap.reader import make_reader
