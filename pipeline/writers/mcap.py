@@ -15,9 +15,12 @@ applied travels as the attachment ``calibration.json``. Messages of other topics
 :class:`McapTableWriter` streams with bounded memory: ``write_table`` queues rows and encodes
 :data:`SLICE_ROWS` at a time (counted from the first row written, so the bytes do not depend on
 how the rows were batched) with :func:`imupipe.readers.cdr.encode` (one structured array per
-frame_id); its message records are built as one numpy array (``opcode, length, channel,
-sequence, log_time, publish_time, payload``), cut into ~1 MiB chunks, zstd-compressed, and each
-chunk is followed by its ``MessageIndex`` records; the summary (schemas, channels, statistics,
+frame_id). A slice's message records (``opcode, length, channel, sequence, log_time,
+publish_time, payload``) are cut into ~1 MiB chunks planned from the record sizes (fixed per
+message type and frame_id), and each chunk's records are built as one numpy array only when
+the chunk is written (a slice's 22 MB of Imu records are never held at once; the bytes are
+those of encoding the whole slice and cutting it), zstd-compressed, and followed by the
+chunk's ``MessageIndex`` records; the summary (schemas, channels, statistics,
 chunk and attachment indexes) is written at :meth:`~McapTableWriter.close`. No Python loop runs
 per message except for carried-over messages, which arrive as Python objects anyway.
 """
@@ -88,7 +91,8 @@ CHUNK_BYTES = 1 << 20
 RECORD_HEADER = 31
 """Bytes of a message record before its payload (opcode, length, channel, seq, 2 times)."""
 SLICE_ROWS = 65_536
-"""Table rows encoded at once (the writer's memory: about 1 kB per row of a slice)."""
+"""Table rows encoded as one slice (the writer's memory: the slice's queued rows and their
+field arrays, and one chunk of records at a time)."""
 RAW_BUFFER_BYTES = 256 << 20
 """Carried-over payload bytes held back, at most, waiting for the table rows to pass them."""
 
