@@ -848,7 +848,9 @@ def test_csv_writer_keeps_nan_and_leaves_absent_sensors_out(tmp_path):
 
 def test_writer_memory_is_bounded_by_a_slice(tmp_path):
     """``write_table`` of a 200,000-row table encodes 10,000 rows at a time: the numpy memory it
-    allocates stays near a slice's (tracemalloc sees numpy's allocations)."""
+    allocates stays near a slice's (tracemalloc sees numpy's allocations). A slice's records are
+    encoded a chunk at a time (issue 39): even the whole table as one slice holds only its
+    field arrays (18 MB; 92 MB when the slice's records were all encoded at once)."""
     import tracemalloc
 
     n = 200_000
@@ -869,8 +871,9 @@ def test_writer_memory_is_bounded_by_a_slice(tmp_path):
         peaks[rows] = tracemalloc.get_traced_memory()[1]
         tracemalloc.stop()
     assert (tmp_path / "10000.mcap").stat().st_size > 0
-    assert peaks[10_000] < peaks[n] / 8, peaks
+    assert peaks[10_000] < peaks[n] / 4, peaks
     assert peaks[10_000] < 30e6, peaks
+    assert peaks[n] < 40e6, peaks
 
 
 @pytest.mark.parametrize("name", ["log.mcap", "log.bag", "log.db3", "log.csv"])

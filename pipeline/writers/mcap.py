@@ -15,9 +15,12 @@ applied travels as the attachment ``calibration.json``. Messages of other topics
 :class:`McapTableWriter` streams with bounded memory: ``write_table`` queues rows and encodes
 :data:`SLICE_ROWS` at a time (counted from the first row written, so the bytes do not depend on
 how the rows were batched) with :func:`imupipe.readers.cdr.encode` (one structured array per
-frame_id); its message records are built as one numpy array (``opcode, length, channel,
-sequence, log_time, publish_time, payload``), cut into ~1 MiB chunks, zstd-compressed, and each
-chunk is followed by its ``MessageIndex`` records; the summary (schemas, channels, statistics,
+frame_id). A slice's message records (``opcode, length, channel, sequence, log_time,
+publish_time, payload``) are cut into ~1 MiB chunks planned from the record sizes (fixed per
+message type and frame_id), and each chunk's records are built as one numpy array only when
+the chunk is written (a slice's 22 MB of Imu records are never held at once; the bytes are
+those of encoding the whole slice and cutting it), zstd-compressed, and followed by the
+chunk's ``MessageIndex`` records; the summary (schemas, channels, statistics,
 chunk and attachment indexes) is written at :meth:`~McapTableWriter.close`. No Python loop runs
 per message except for carried-over messages, which arrive as Python objects anyway.
 """
@@ -88,7 +91,8 @@ CHUNK_BYTES = 1 << 20
 RECORD_HEADER = 31
 """Bytes of a message record before its payload (opcode, length, channel, seq, 2 times)."""
 SLICE_ROWS = 65_536
-"""Table rows encoded at once (the writer's memory: about 1 kB per row of a slice)."""
+"""Table rows encoded as one slice (the writer's memory: the slice's queued rows and their
+field arrays, and one chunk of records at a time)."""
 RAW_BUFFER_BYTES = 256 << 20
 """Carried-over payload bytes held back, at most, waiting for the table rows to pass them."""
 
@@ -201,27 +205,48 @@ def stream_rows(table: pa.Table, stream: str) -> np.ndarray:
     return np.flatnonzero(stream_mask(table, stream))
 
 
-def encode_stream(
-    table: pa.Table, stream: str, encoding: str = "cdr", prefix: int = 0
-) -> tuple[np.ndarray, list[tuple[np.ndarray, np.ndarray]]]:
-    """Encode every row of ``stream`` (:func:`stream_rows`) as CDR (or ROS 1 with
-    ``encoding="ros1"``).
+class StreamRows:
+    """The rows of one stream of a table, ready to be encoded, any part at a time (see
+    :func:`stream_fields`): ``rows`` (the table rows), ``stamp`` (header stamps, ns),
+    ``fields`` (each message field's values, (m, k) or one row (1, k) every message gets) and
+    ``frames``: per frame_id, the positions into ``rows`` of its messages (in order)."""
 
-    Every field comes from the table: the header stamp is ``header_stamp_ns`` where the reader
-    kept it (``time = "log"``), else ``t_ns``; values are written as they are, NaN included. In
-    an Imu message whose gyro (or accel) is absent from the row (a CSV without those columns),
-    the vector is NaN and element 0 of its covariance is -1, sensor_msgs/Imu's mark for "no
-    data". A ``gyro`` (``accel``) message of split topics carries zeros in the vector it does
-    not measure, as the cameras that publish such topics do. Optional columns left out take
-    ROS defaults: orientation (0, 0, 0, 1) with covariance element 0 = -1 (no orientation
-    estimate), other covariances zero.
+    def __init__(
+        self,
+        msgtype: str,
+        rows: np.ndarray,
+        stamp: np.ndarray,
+        fields: dict[str, np.ndarray],
+        frames: list[tuple[bytes, np.ndarray]],
+    ) -> None:
+        self.msgtype = msgtype
+        self.rows = rows
+        self.stamp = stamp
+        self.fields = fields
+        self.frames = frames
 
-    Returns ``(rows, groups)``: the table rows of the stream, and per frame_id a pair
-    ``(positions into rows, payloads (m, prefix + L) uint8)`` (see :func:`cdr.encode`)."""
+    def record_size(self, frame_id: bytes, encoding: str = "cdr", prefix: int = 0) -> int:
+        """Bytes of each encoded message of ``frame_id`` (``prefix`` included)."""
+        return cdr.layout(self.msgtype, len(frame_id), encoding, prefix).itemsize
+
+    def encode(
+        self, frame_id: bytes, at: np.ndarray | slice, encoding: str = "cdr", prefix: int = 0
+    ) -> np.ndarray:
+        """The messages at positions ``at`` of :attr:`rows` (all of one frame_id), encoded
+        with :func:`cdr.encode`: (len(at), prefix + L) uint8. Each message's bytes depend on
+        its own row only, so any cut of the rows gives the same bytes."""
+        n = len(self.rows)
+        fields = {k: v if len(v) < n else v[at] for k, v in self.fields.items()}
+        return cdr.encode(self.msgtype, self.stamp[at], frame_id, fields, encoding, prefix)
+
+
+def stream_fields(table: pa.Table, stream: str) -> StreamRows:
+    """The rows of ``stream`` (:func:`stream_rows`) and every field of their messages, read
+    from the table (what :func:`encode_stream` writes; see there)."""
     rows = stream_rows(table, stream)
     n = len(rows)
     if n == 0:
-        return rows, []
+        return StreamRows(STREAM_TYPES[stream], rows, rows, {}, [])
     t_ns = to_numpy(table.column("t_ns"))[rows]
     stamp = _column_or(table, "header_stamp_ns", rows, t_ns)
     meta_frame = _meta(table).get("frame_id", {}).get(stream, DEFAULT_FRAME)
@@ -265,22 +290,38 @@ def encode_stream(
         names, codes = _frame_codes(table.column("frame_id"), rows, meta_frame)
     else:
         names, codes = [meta_frame], np.zeros(n, dtype=np.int64)
-    groups = []
+    frames = []
     for code, name in enumerate(names):
         sel = np.arange(n) if len(names) == 1 else np.flatnonzero(codes == code)
-        if len(sel) == 0:
-            continue
-        whole = len(sel) == n
-        payloads = cdr.encode(
-            STREAM_TYPES[stream],
-            stamp if whole else stamp[sel],
-            name.encode(),
-            fields if whole else {k: v if len(v) < n else v[sel] for k, v in fields.items()},
-            encoding,
-            prefix,
-        )
-        groups.append((sel, payloads))
-    return rows, groups
+        if len(sel):
+            frames.append((name.encode(), sel))
+    return StreamRows(STREAM_TYPES[stream], rows, stamp, fields, frames)
+
+
+def encode_stream(
+    table: pa.Table, stream: str, encoding: str = "cdr", prefix: int = 0
+) -> tuple[np.ndarray, list[tuple[np.ndarray, np.ndarray]]]:
+    """Encode every row of ``stream`` (:func:`stream_rows`) as CDR (or ROS 1 with
+    ``encoding="ros1"``).
+
+    Every field comes from the table: the header stamp is ``header_stamp_ns`` where the reader
+    kept it (``time = "log"``), else ``t_ns``; values are written as they are, NaN included. In
+    an Imu message whose gyro (or accel) is absent from the row (a CSV without those columns),
+    the vector is NaN and element 0 of its covariance is -1, sensor_msgs/Imu's mark for "no
+    data". A ``gyro`` (``accel``) message of split topics carries zeros in the vector it does
+    not measure, as the cameras that publish such topics do. Optional columns left out take
+    ROS defaults: orientation (0, 0, 0, 1) with covariance element 0 = -1 (no orientation
+    estimate), other covariances zero.
+
+    Returns ``(rows, groups)``: the table rows of the stream, and per frame_id a pair
+    ``(positions into rows, payloads (m, prefix + L) uint8)`` (see :func:`cdr.encode`)."""
+    prepared = stream_fields(table, stream)
+    n = len(prepared.rows)
+    groups = [
+        (sel, prepared.encode(name, slice(None) if len(sel) == n else sel, encoding, prefix))
+        for name, sel in prepared.frames
+    ]
+    return prepared.rows, groups
 
 
 def _one_string(column: pa.Array) -> str | None:
@@ -610,31 +651,44 @@ class McapTableWriter:
     def _encode_rows(self, table: pa.Table) -> np.ndarray:
         """Encode one slice; each (topic, frame_id) group of messages goes into its own chunks,
         in log-time order within the group; chunks are written in the order of their first log
-        time (MCAP readers merge overlapping chunks by log time). Returns the log times."""
+        time (MCAP readers merge overlapping chunks by log time). Returns the log times.
+
+        The chunks are planned from the record sizes (fixed per message type and frame_id)
+        and each is encoded only when it is written: the slice's records are never all held
+        at once (22 MB for a slice of Imu messages), and the bytes are those of encoding the
+        whole slice and cutting it (each message's bytes depend on its own row only)."""
         topics = {**DEFAULT_TOPICS, **_meta(table).get("topics", {}), **self.topics}
         log_all, pub_all = message_times(table)
-        pending = []  # (first log time, order, channel, records, log times)
+        pending = []  # (first log time, order, channel, stream rows, frame_id, positions, seq)
         for stream in written_streams(table):
-            rows, groups = encode_stream(table, stream, prefix=RECORD_HEADER)
-            if not len(rows):
+            prepared = stream_fields(table, stream)
+            n = len(prepared.rows)
+            if not n:
                 continue
             msgtype = STREAM_TYPES[stream]
             cid = self._channel(
                 topics[stream], "cdr", (msgtype, "ros2msg", msgdef(msgtype).encode())
             )
-            seq = self._sequence(cid, len(rows))
-            for sel, recs in groups:
-                log = log_all[rows[sel]]
-                _fill_record_headers(recs, cid, seq[sel], log, pub_all[rows[sel]])
+            seq = self._sequence(cid, n)
+            for name, sel in prepared.frames:
+                log = log_all[prepared.rows[sel]]
+                order = None
                 if np.any(log[1:] < log[:-1]):
                     order = np.argsort(log, kind="stable")
-                    recs, log = recs[order], log[order]
-                per_chunk = max(1, self.chunk_bytes // recs.shape[1])
+                    log = log[order]
+                whole = order is None and len(sel) == n  # positions a..b are rows a..b
+                size = prepared.record_size(name, "cdr", RECORD_HEADER)
+                per_chunk = max(1, self.chunk_bytes // size)
                 for a in range(0, len(log), per_chunk):
                     b = min(a + per_chunk, len(log))
-                    pending.append((int(log[a]), len(pending), cid, recs[a:b], log[a:b]))
+                    at = slice(a, b) if whole else sel[a:b] if order is None else sel[order[a:b]]
+                    pending.append((int(log[a]), len(pending), cid, prepared, name, at, seq))
         pending.sort(key=lambda p: (p[0], p[1]))
-        for _, _, cid, recs, log in pending:
+        for _, _, cid, prepared, name, at, seq in pending:
+            recs = prepared.encode(name, at, "cdr", RECORD_HEADER)
+            rows = prepared.rows[at]
+            log = log_all[rows]
+            _fill_record_headers(recs, cid, seq[at], log, pub_all[rows])
             m, size = recs.shape
             self._write_chunk(
                 recs.reshape(-1),

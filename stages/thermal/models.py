@@ -37,7 +37,6 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.optimize import minimize_scalar
 
 from imupipe.stages.thermal.track import first_order_lag
 
@@ -212,6 +211,8 @@ def fit_lag(
             r = bias[:, i] - x @ weighted_lstsq(x, bias[:, i], w)
             total += float(np.log(max(float(np.sum(w * r * r)), 1e-300)))
         return total
+
+    from scipy.optimize import minimize_scalar  # a fit only: applying a step needs no scipy
 
     grid = np.linspace(np.log(bounds[0]), np.log(bounds[1]), 41)
     costs = np.array([cost(g) for g in grid])
