@@ -62,15 +62,15 @@ HUGE_BYTES = 1 << 22
 _SCHEMA_FIELDS = list(SCHEMA)
 """The required fields, built once (iterating a schema builds each field: 8-13 us a table)."""
 _SCHEMA_NAMES = frozenset(SCHEMA.names)
-_FIELDS: dict[tuple[str, pa.DataType], pa.Field] = {}
-"""The optional fields the tables have had, by name and type (one ``pa.field`` each)."""
+_FIELDS: dict[str, pa.Field] = {}
+"""The optional fields the tables have had, by name (one ``pa.field`` each; hashing a
+``pa.DataType`` costs more than the field)."""
 
 
 def _field(name: str, typ: pa.DataType) -> pa.Field:
-    key = (name, typ)
-    found = _FIELDS.get(key)
-    if found is None:
-        found = _FIELDS[key] = pa.field(name, typ)
+    found = _FIELDS.get(name)
+    if found is None or not found.type.equals(typ):
+        found = _FIELDS[name] = pa.field(name, typ)
     return found
 
 
@@ -842,9 +842,8 @@ def _array(values: np.ndarray, valid: pa.Buffer | None) -> pa.Array:
     if values.ndim == 1:
         return pa.Array.from_buffers(pa.float64(), n, [valid, flat])
     child = pa.Array.from_buffers(pa.float64(), n * values.shape[1], [None, flat])
-    return pa.Array.from_buffers(
-        pa.list_(pa.float64(), values.shape[1]), n, [valid], children=[child]
-    )
+    typ = COV if values.shape[1] == 9 else pa.list_(pa.float64(), values.shape[1])
+    return pa.Array.from_buffers(typ, n, [valid], children=[child])
 
 
 def assemble(
