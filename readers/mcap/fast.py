@@ -6,6 +6,9 @@ message). A chunk is decompressed (zstd, lz4 or none; its CRC checked when set) 
 the decompressed chunk; a message record is ``opcode 0x05, uint64 length, uint16 channel,
 uint32 sequence, uint64 log_time, uint64 publish_time, payload`` so the payload of message ``i``
 starts at ``offset + 31`` and is ``length - 22`` bytes long. All of that is gathered with numpy.
+A small file (:data:`SMALL_FILE`, a fleet's short log) is read whole in one read instead, and
+its chunks decompressed in the reading thread; the Schema and Channel records, which a fleet's
+logs repeat, are parsed once per process (issue 39: the fixed cost of a file).
 
 Which messages exist is decided by the data section alone: every Message record in it, inside
 chunks or not, is read. The summary section (every record of it optional) gives what it has:
