@@ -87,6 +87,9 @@ SMALL_FILE = 1 << 20
 opening, its chunks when they are read), its chunks decompressed in the reading thread: a
 fleet's short logs cost one system call each instead of a seek and a read per record, and no
 hand-off to a decompression thread (issue 39)."""
+SUMMARY_BYTES = 16 << 20
+"""A summary section up to this size is read in one read (a larger one, or a footer pointing
+far back into a damaged file, record by record: memory bounded by its largest record)."""
 PARSED_BYTES = 4 << 20
 """Schema and Channel records parsed so far are kept (by their bytes) up to this many bytes:
 a fleet's logs repeat the same records, parsed once per process."""
@@ -330,6 +333,8 @@ class McapFile:
             return set()
         if self._whole is not None:
             section, base = io.BytesIO(self._whole), 0
+        elif self.size - summary_start > SUMMARY_BYTES:  # (a damaged footer's) record by record
+            section, base = fh, 0
         else:  # the summary section and the footer in one read
             fh.seek(summary_start)
             rest = fh.read(self.size - summary_start)
