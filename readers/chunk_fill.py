@@ -45,14 +45,21 @@ NAN_COLUMNS = ("gyro_x", "accel_x")
 """The columns whose NaN :func:`imupipe.readers.decoded.absent_sensors` looks for first."""
 
 
+_found: dict[str, ModuleType | None] = {}
+"""The compiled helper (None: not built), once looked for."""
+
+
 def _module() -> ModuleType | None:
     if os.environ.get(PURE_PYTHON_ENV, "") not in ("", "0") or sys.byteorder != "little":
         return None
-    try:
-        from imupipe.readers import _chunks  # type: ignore[attr-defined]
-    except ImportError:
-        return None
-    return _chunks
+    if "module" not in _found:
+        try:
+            from imupipe.readers import _chunks  # type: ignore[attr-defined]
+        except ImportError:
+            _found["module"] = None
+        else:
+            _found["module"] = _chunks
+    return _found["module"]
 
 
 def compiled() -> bool:

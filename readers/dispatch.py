@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
+import errno
 import importlib
+import os
+import stat
 from collections.abc import Callable, Iterable, Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -15,6 +18,9 @@ if TYPE_CHECKING:  # pyarrow is loaded by the reader a read imports, not by choo
 
     from imupipe.readers.sources import LogSource
 
+_NOT_THERE = {errno.ENOENT, errno.ENOTDIR, errno.EBADF, errno.ELOOP}
+"""The errors of ``stat`` that ``Path.exists`` takes for a path that is not there (and the
+Windows errors 21, 123, 1921: ``pathlib._ignore_error``)."""
 CSV_SUFFIXES = {".csv", ".txt", ".tsv", ".mat", ".dat"}
 
 READERS: dict[str, str] = {
@@ -81,13 +87,21 @@ def raw_instances(spec: InputSpec) -> dict[str, list[str]]:
 def detect_format(path: Path) -> str:
     """``csv``, ``mcap``, ``ros1``, ``ros2``, ``ulog`` or ``dataflash`` (ArduPilot ``.bin``) for
     a path; ReadError when unknown or missing."""
-    if not path.exists():
+    try:  # one stat (what exists, is_dir and is_file each ask)
+        mode = os.stat(path).st_mode
+    except ValueError:  # an embedded null byte: no such file, as Path.exists says
+        mode = None
+    except OSError as exc:
+        if exc.errno not in _NOT_THERE and getattr(exc, "winerror", None) not in (21, 123, 1921):
+            raise
+        mode = None
+    if mode is None:
         raise ReadError(f"{path}: no such file or folder")
-    if not path.is_dir() and not path.is_file():  # stat only: opening a FIFO would block
+    if not stat.S_ISDIR(mode) and not stat.S_ISREG(mode):  # stat only: opening a FIFO would block
         raise ReadError(
             f"{path}: not a regular file (a FIFO, socket or device); imupipe reads log files"
         )
-    if path.is_dir():
+    if stat.S_ISDIR(mode):
         if (path / "metadata.yaml").exists() or any(
             any(path.glob(p)) for p in ("*.db3", "*.mcap", "*.db3.zstd", "*.mcap.zstd")
         ):

@@ -227,10 +227,15 @@ def metadata(table: pa.Table) -> dict[str, Any]:
     return json.loads(raw) if raw else {}
 
 
+def metadata_bytes(meta: Mapping[str, Any]) -> bytes:
+    """``meta`` as the schema metadata's imupipe value (JSON, keys sorted)."""
+    return json.dumps(dict(meta), sort_keys=True).encode()
+
+
 def with_metadata(table: pa.Table, meta: Mapping[str, Any]) -> pa.Table:
     """A copy of ``table`` whose imupipe metadata is ``meta``."""
     old = dict(table.schema.metadata or {})
-    old[META_KEY] = json.dumps(dict(meta), sort_keys=True).encode()
+    old[META_KEY] = metadata_bytes(meta)
     return table.replace_schema_metadata(old)
 
 

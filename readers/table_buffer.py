@@ -39,7 +39,7 @@ from imupipe.readers import chunk_fill
 from imupipe.readers.arrays import arrow_array, string_array
 from imupipe.readers.decoded import Piece, absent_sensors, repeat_string
 from imupipe.readers.prefault import Prefault
-from imupipe.readers.table import COV, SCHEMA, null_floats, with_metadata
+from imupipe.readers.table import COV, META_KEY, SCHEMA, metadata_bytes, null_floats
 from imupipe.readers.topics import COLUMNS, PIECE_TYPES
 
 SPREAD_ROWS = 1 << 15
@@ -53,6 +53,25 @@ TIME_COLUMNS = {"log_time_ns": "log", "header_stamp_ns": "stamp", "publish_time_
 :class:`Piece` attribute. ``header_stamp_ns`` only with ``time = "log"`` (else it is ``t_ns``);
 ``publish_time_ns`` only when the log has publish times (MCAP; where a message has none, its log
 time stands in)."""
+
+
+HUGE_BYTES = 1 << 22
+"""numpy asks for transparent huge pages on allocations of at least this many bytes
+(``_npy_alloc_cache``, numpy/_core/src/multiarray/alloc.c): smaller ones need no
+:func:`small_pages`."""
+_SCHEMA_FIELDS = list(SCHEMA)
+"""The required fields, built once (iterating a schema builds each field: 8-13 us a table)."""
+_SCHEMA_NAMES = frozenset(SCHEMA.names)
+_FIELDS: dict[str, pa.Field] = {}
+"""The optional fields the tables have had, by name (one ``pa.field`` each; hashing a
+``pa.DataType`` costs more than the field)."""
+
+
+def _field(name: str, typ: pa.DataType) -> pa.Field:
+    found = _FIELDS.get(name)
+    if found is None or not found.type.equals(typ):
+        found = _FIELDS[name] = pa.field(name, typ)
+    return found
 
 
 @contextlib.contextmanager
@@ -78,9 +97,14 @@ def small_pages() -> Iterator[None]:
         setter(previous)
 
 
-def _zeros(n: int, count: int = 1) -> np.ndarray:
+def _zeros(n: int, count: int = 1, dtype: type = np.float64) -> np.ndarray:
+    """``np.zeros`` of ``n`` rows (of ``count`` values each) in small pages (see
+    :func:`small_pages`, only where numpy would ask for huge ones)."""
+    shape = n if count == 1 else (n, count)
+    if n * count * np.dtype(dtype).itemsize < HUGE_BYTES:
+        return np.zeros(shape, dtype)
     with small_pages():
-        return np.zeros(n) if count == 1 else np.zeros((n, count))
+        return np.zeros(shape, dtype)
 
 
 class _Stream:
@@ -119,8 +143,7 @@ class _Stream:
         if capacity <= self.capacity:
             return
         end = self.end
-        with small_pages():
-            times = {name: np.zeros(capacity, np.int64) for name in self.time_names}
+        times = {name: _zeros(capacity, dtype=np.int64) for name in self.time_names}
         columns = {name: _zeros(capacity, count) for name, _, count in COLUMNS[self.stream]}
         flags = {name: np.zeros(capacity, bool) for name in self.flags}
         if end:
@@ -142,8 +165,7 @@ class _Stream:
         """Start keeping ``name`` (publish times): the messages so far get their log time."""
         if name not in self.times:
             self.time_names.append(name)
-            with small_pages():
-                column = np.zeros(self.capacity, np.int64)
+            column = _zeros(self.capacity, dtype=np.int64)
             column[: self.end] = self.log[: self.end]
             self.times[name] = column
             if self.prefault is not None:
@@ -609,14 +631,14 @@ class TableBuffer:
         arrays: dict[str, pa.Array] = {"t_ns": arrow_array(times.pop("t_ns"), pa.int64())}
         extra: dict[str, pa.Array] = {}
         for name, array in columns.items():
-            (arrays if name in SCHEMA.names else extra)[name] = array
+            (arrays if name in _SCHEMA_NAMES else extra)[name] = array
         empty = null_floats(n)
-        fields = list(SCHEMA) + [pa.field(name, pa.int64()) for name in times]
-        fields.append(pa.field("frame_id", pa.string()))
-        values = [arrays.get(f.name, empty) for f in SCHEMA]
+        fields = _SCHEMA_FIELDS + [_field(name, pa.int64()) for name in times]
+        fields.append(_field("frame_id", pa.string()))
+        values = [arrays.get(f.name, empty) for f in _SCHEMA_FIELDS]
         values += [arrow_array(column, pa.int64()) for column in times.values()] + [frame]
         for name, array in extra.items():
-            fields.append(pa.field(name, COV if array.type == COV else pa.float64()))
+            fields.append(_field(name, COV if array.type == COV else pa.float64()))
             values.append(array)
         names = [st.stream for st in streams]
         meta = {
@@ -626,7 +648,8 @@ class TableBuffer:
             "types": {s: PIECE_TYPES[s] for s in names},
             "frame_id": frame_ids,
         }
-        return with_metadata(pa.Table.from_arrays(values, schema=pa.schema(fields)), meta)
+        schema = pa.schema(fields, metadata={META_KEY: metadata_bytes(meta)})
+        return pa.Table.from_arrays(values, schema=schema)
 
     # -- building the columns --------------------------------------------------------------
     def _gap_rows(self, streams: list[_Stream], large: int) -> list[np.ndarray | None] | None:
@@ -771,7 +794,7 @@ class TableBuffer:
                 if st.seen and name not in st.seen:
                     continue  # a column no message carried (a ULog's covariances)
                 sensor = name.split("_")[0]
-                own = marked.get(sensor) if name in SCHEMA.names else None
+                own = marked.get(sensor) if name in _SCHEMA_NAMES else None
                 out[name] = _array(values, valid if own is None else own)
         return out
 
@@ -819,9 +842,8 @@ def _array(values: np.ndarray, valid: pa.Buffer | None) -> pa.Array:
     if values.ndim == 1:
         return pa.Array.from_buffers(pa.float64(), n, [valid, flat])
     child = pa.Array.from_buffers(pa.float64(), n * values.shape[1], [None, flat])
-    return pa.Array.from_buffers(
-        pa.list_(pa.float64(), values.shape[1]), n, [valid], children=[child]
-    )
+    typ = COV if values.shape[1] == 9 else pa.list_(pa.float64(), values.shape[1])
+    return pa.Array.from_buffers(typ, n, [valid], children=[child])
 
 
 def assemble(

@@ -6,6 +6,9 @@ message). A chunk is decompressed (zstd, lz4 or none; its CRC checked when set) 
 the decompressed chunk; a message record is ``opcode 0x05, uint64 length, uint16 channel,
 uint32 sequence, uint64 log_time, uint64 publish_time, payload`` so the payload of message ``i``
 starts at ``offset + 31`` and is ``length - 22`` bytes long. All of that is gathered with numpy.
+A small file (:data:`SMALL_FILE`, a fleet's short log) is read whole in one read instead, and
+its chunks decompressed in the reading thread; the Schema and Channel records, which a fleet's
+logs repeat, are parsed once per process (issue 39: the fixed cost of a file).
 
 Which messages exist is decided by the data section alone: every Message record in it, inside
 chunks or not, is read. The summary section (every record of it optional) gives what it has:
@@ -28,12 +31,15 @@ file and the byte offset.
 
 from __future__ import annotations
 
+import bisect
 import collections
+import contextlib
+import functools
 import io
 import os
 import struct
 import zlib
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -49,7 +55,6 @@ from imupipe.readers.compression import (
     decompress_chunk,
     decompress_into,
     decompress_workers,
-    done,
 )
 from imupipe.readers.errors import READ_TO_CUT, ReadError
 from imupipe.readers.mcap.summary import complete, defined
@@ -71,8 +76,29 @@ PSEUDO_CHUNK_BYTES = 1 << 20
 CHUNK_HEAD = 64
 """Bytes of a chunk record the reading thread reads (the fields before the records, for
 compression names of up to 20 characters)."""
+STATS_HEAD = struct.Struct("<QHIIIIQQ")
+"""A Statistics record's fields before its message counts (MCAP specification)."""
+STATS_COUNT = struct.Struct("<HQ")
+"""One entry of its message counts: channel id, messages."""
 POOLED_BYTES = 64 << 20
 """Chunks up to this size are decompressed into buffers used again (:class:`BufferPool`)."""
+SMALL_FILE = 1 << 20
+"""A file up to this size is read whole, in one read, each time it is walked (its summary at
+opening, its chunks when they are read), its chunks decompressed in the reading thread: a
+fleet's short logs cost one system call each instead of a seek and a read per record, and no
+hand-off to a decompression thread (issue 39)."""
+SUMMARY_BYTES = 16 << 20
+"""A summary section up to this size is read in one read (a larger one, or a footer pointing
+far back into a damaged file, record by record: memory bounded by its largest record)."""
+PARSED_BYTES = 4 << 20
+"""Schema and Channel records parsed so far are kept (by their bytes) up to this many bytes:
+a fleet's logs repeat the same records, parsed once per process."""
+
+
+_PARSED: dict[tuple[int, bytes], Schema | Channel] = {}
+"""(opcode, record body) -> the record, for :meth:`McapFile._parsed`."""
+_parsed_bytes = 0
+"""Bytes of the record bodies :data:`_PARSED` holds."""
 
 
 @dataclass(frozen=True)
@@ -85,6 +111,31 @@ class ChannelInfo:
     schema_name: str
     schema_encoding: str
     schema_data: bytes
+
+
+_INFOS: dict[tuple[int, int], tuple[Channel, Schema | None, ChannelInfo]] = {}
+"""The :class:`ChannelInfo` of a Channel and Schema record (:data:`_PARSED`'s, shared by the
+files that hold the same records), by their ids; each entry holds the records it was made of."""
+
+
+def _channel_info(c: Channel, s: Schema | None) -> ChannelInfo:
+    """The channel ``c`` with its schema ``s`` (None: none), made once for the same records."""
+    key = (id(c), id(s))
+    hit = _INFOS.get(key)
+    if hit is not None and hit[0] is c and hit[1] is s:
+        return hit[2]
+    info = ChannelInfo(
+        c.id,
+        c.topic,
+        c.message_encoding,
+        s.name if s else "",
+        s.encoding if s else "",
+        bytes(s.data) if s else b"",
+    )
+    if len(_INFOS) >= 1024:
+        _INFOS.clear()
+    _INFOS[key] = (c, s, info)
+    return info
 
 
 @dataclass
@@ -175,17 +226,29 @@ class McapFile:
         self._channels: dict[int, Channel] = {}
         self._scanned = False
         """Whether the whole data section has been read for Schema and Channel records."""
+        self._whole: bytes | None = None
+        """The file's bytes while it is opened, when it is small (:data:`SMALL_FILE`)."""
+        self._bounds_cache: tuple[list[int], list[int]] | None = None
         try:
-            self.size = self.path.stat().st_size
             with open(self.path, "rb") as fh:
-                head = fh.read(8)
+                self.size = os.fstat(fh.fileno()).st_size
+                if self.size <= SMALL_FILE:
+                    self._whole = fh.read()
+                    self.size = len(self._whole)
+                    head = self._whole[:8]
+                else:
+                    head = fh.read(8)
+                if head == MAGIC:
+                    needed = self._read_summary(fh)
         except OSError as exc:
             raise ReadError(f"{self.path}: cannot read: {exc.strerror or exc}") from None
         if head != MAGIC:
             raise ReadError(f"{self.path}: not an MCAP file (bad magic bytes)")
-        needed = self._read_summary()
-        if needed is not None:
-            self._first_pass(needed)
+        try:
+            if needed is not None:
+                self._first_pass(needed)
+        finally:
+            self._whole = None
         if self.cut is not None and not any((self.counts or {}).values()):
             raise ReadError(
                 f"{self.path}: truncated MCAP (cut off at byte {self.cut}, before its first "
@@ -195,13 +258,15 @@ class McapFile:
 
     # -- records ---------------------------------------------------------------------------
     def _records(
-        self, fh: io.BufferedReader, start: int, end: int, lazy: bool = False
+        self, fh: io.BufferedIOBase, start: int, end: int, lazy: bool = False, base: int = 0
     ) -> Iterator[tuple[int, int, bytes]]:
         """Top-level records between ``start`` and ``end``: (opcode, offset, body). ``lazy``:
         a chunk's body is left unread but for its first :data:`CHUNK_HEAD` bytes (its start
-        time, sizes, CRC and compression); a worker reads the rest (:meth:`_load_chunk`)."""
+        time, sizes, CRC and compression); a worker reads the rest (:meth:`_load_chunk`).
+        ``base``: the file offset of ``fh``'s first byte (a part of the file read into
+        memory, up to its end)."""
         pos = start
-        fh.seek(pos)
+        fh.seek(pos - base)
         while pos < end:
             head = fh.read(9)
             if len(head) < 9:
@@ -217,7 +282,7 @@ class McapFile:
                 return
             if lazy and opcode == OP_CHUNK:
                 body = fh.read(min(length, CHUNK_HEAD))
-                fh.seek(pos + 9 + length)
+                fh.seek(pos + 9 + length - base)
             else:
                 body = fh.read(length)
             yield opcode, pos, body
@@ -239,30 +304,53 @@ class McapFile:
                 f"({self.size} bytes) are skipped with the messages in them"
             )
 
-    def _read_summary(self) -> set[int] | None:
-        """Channels, schemas, statistics and chunk indexes from the summary section. Returns
-        None when its channels are the file's (:func:`~imupipe.readers.mcap.summary.complete`),
-        else the ids of the channels it says have messages (empty: it names none), which the
-        data section must then define (:meth:`_first_pass`)."""
+    def _open(self) -> io.BufferedIOBase:
+        """The file, to read records from: its bytes in memory while :meth:`__post_init__`
+        holds them (a small file), else opened."""
+        if self._whole is not None:
+            return io.BytesIO(self._whole)
+        return open(self.path, "rb")  # noqa: SIM115 - closed by the caller's ``with``
+
+    def _read_summary(self, fh: io.BufferedIOBase) -> set[int] | None:
+        """Channels, schemas, statistics and chunk indexes from the summary section (``fh``:
+        the open file). Returns None when its channels are the file's
+        (:func:`~imupipe.readers.mcap.summary.complete`), else the ids of the channels it says
+        have messages (empty: it names none), which the data section must then define
+        (:meth:`_first_pass`)."""
         if self.size < 8 + 9 + 20 + 8:
             raise ReadError(f"{self.path}: truncated MCAP ({self.size} bytes)")
         stats: list[Statistics] = []
         indexed: list[list[int]] = []
-        with open(self.path, "rb") as fh:
+        if self._whole is not None:
+            tail = self._whole[self.size - 37 :]
+        else:
             fh.seek(self.size - 37)
             tail = fh.read(37)
-            if tail[-8:] != MAGIC or tail[0] != OP_FOOTER:
-                return set()
-            summary_start = int.from_bytes(tail[9:17], "little")
-            if summary_start == 0 or summary_start > self.size - 37:
-                return set()
-            for opcode, _pos, body in self._records(fh, summary_start, self.size - 37):
-                if opcode == OP_STATISTICS:
-                    stats.append(self._read_record(Statistics, opcode, body))
-                elif opcode == OP_CHUNK_INDEX:
-                    indexed.append(self._chunk_index(body))
-                else:
-                    self._collect(opcode, body)
+        if tail[-8:] != MAGIC or tail[0] != OP_FOOTER:
+            return set()
+        summary_start = int.from_bytes(tail[9:17], "little")
+        if summary_start == 0 or summary_start > self.size - 37:
+            return set()
+        if self._whole is not None:
+            section, base = io.BytesIO(self._whole), 0
+        elif self.size - summary_start > SUMMARY_BYTES:  # (a damaged footer's) record by record
+            section, base = fh, 0
+        else:  # the summary section and the footer in one read
+            fh.seek(summary_start)
+            rest = fh.read(self.size - summary_start)
+            section, base = (
+                (io.BytesIO(rest), summary_start)
+                if len(rest) == self.size - summary_start
+                else (fh, 0)
+            )
+        records = self._records(section, summary_start, self.size - 37, base=base)
+        for opcode, _pos, body in records:
+            if opcode == OP_STATISTICS:
+                stats.append(self._statistics(body))
+            elif opcode == OP_CHUNK_INDEX:
+                indexed.append(self._chunk_index(body))
+            else:
+                self._collect(opcode, body)
         if stats:
             self.counts = dict(stats[0].channel_message_counts)
         schema_of = {cid: c.schema_id for cid, c in self._channels.items()}
@@ -298,15 +386,52 @@ class McapFile:
                 f"{self.path}: corrupt MCAP record (opcode {opcode:#x}): {exc}"
             ) from None
 
+    def _parsed(self, kind: type, opcode: int, body: bytes):  # noqa: ANN202
+        """:meth:`_read_record` of a Schema or Channel record, parsed once per process for the
+        same bytes (:data:`PARSED_BYTES`; the records are never changed once read)."""
+        key = (opcode, body)
+        found = _PARSED.get(key)
+        if found is None:
+            found = self._read_record(kind, opcode, body)
+            global _parsed_bytes
+            _parsed_bytes += len(body)
+            if _parsed_bytes > PARSED_BYTES:
+                _PARSED.clear()
+                _parsed_bytes = len(body)
+            _PARSED[key] = found
+        return found
+
+    def _statistics(self, body: bytes) -> Statistics:
+        """The Statistics record of ``body``: its fields unpacked at once, or, when its counts
+        do not fill their length exactly, by the mcap library (which names a damaged one)."""
+        if len(body) >= STATS_HEAD.size + 4:
+            head = STATS_HEAD.unpack_from(body)
+            length = int.from_bytes(body[STATS_HEAD.size : STATS_HEAD.size + 4], "little")
+            end = STATS_HEAD.size + 4 + length
+            if length % 10 == 0 and end <= len(body):
+                counts = dict(STATS_COUNT.iter_unpack(body[STATS_HEAD.size + 4 : end]))
+                return Statistics(
+                    message_count=head[0],
+                    schema_count=head[1],
+                    channel_count=head[2],
+                    attachment_count=head[3],
+                    metadata_count=head[4],
+                    chunk_count=head[5],
+                    message_start_time=head[6],
+                    message_end_time=head[7],
+                    channel_message_counts=counts,
+                )
+        return self._read_record(Statistics, OP_STATISTICS, body)
+
     def _collect(self, opcode: int, body: bytes) -> bool:
         """Keep a Schema or Channel record (a schema of id 0 is invalid and ignored, as the
         specification says); True when it was one of them."""
         if opcode == OP_SCHEMA:
-            s = self._read_record(Schema, opcode, body)
+            s = self._parsed(Schema, opcode, body)
             if s.id:
                 self._schemas[s.id] = s
         elif opcode == OP_CHANNEL:
-            c = self._read_record(Channel, opcode, body)
+            c = self._parsed(Channel, opcode, body)
             self._channels[c.id] = c
         elif opcode == OP_HEADER:
             try:
@@ -322,15 +447,7 @@ class McapFile:
         """:attr:`channels` from the Schema and Channel records gathered so far."""
         out = {}
         for c in self._channels.values():
-            s = self._schemas.get(c.schema_id)
-            out[c.id] = ChannelInfo(
-                c.id,
-                c.topic,
-                c.message_encoding,
-                s.name if s else "",
-                s.encoding if s else "",
-                bytes(s.data) if s else b"",
-            )
+            out[c.id] = _channel_info(c, self._schemas.get(c.schema_id))
         self.channels = out
 
     def _defined(self, needed: set[int]) -> bool:
@@ -343,7 +460,7 @@ class McapFile:
         until every channel of ``needed`` is defined with its schema; with ``needed`` empty,
         from the whole data section, counting the messages of each channel too."""
         counts: dict[int, int] = {}
-        with open(self.path, "rb") as fh:
+        with self._open() as fh:
             for opcode, pos, body in self._records(fh, 8, self.size):
                 if opcode == OP_CHUNK:
                     buf = self._decompress(body, pos)
@@ -388,20 +505,23 @@ class McapFile:
             )
         return self.channels[cid]
 
-    def _load_chunk(self, fd: int, pos: int, head: bytes, out: np.ndarray | None) -> np.ndarray:
-        """Read the chunk record at ``pos`` and decompress it (thread-safe: ``pread``); into
-        ``out`` (of the chunk's uncompressed size, see :func:`_chunk_buffer`) when given."""
+    def _load_chunk(
+        self, pread: Callable[[int, int], bytes], pos: int, head: bytes, out: np.ndarray | None
+    ) -> np.ndarray:
+        """Read the chunk record at ``pos`` and decompress it (thread-safe: ``pread(length,
+        offset)`` reads the file, see :func:`_pread`); into ``out`` (of the chunk's uncompressed
+        size, see :func:`_chunk_buffer`) when given."""
         try:
-            length = int.from_bytes(os.pread(fd, 9, pos)[1:9], "little")
+            length = int.from_bytes(pread(9, pos)[1:9], "little")
             if out is None:
-                return self._decompress(os.pread(fd, length, pos + 9), pos)
+                return self._decompress(pread(length, pos + 9), pos)
             where = f"{self.path}: chunk at byte {pos}"
             f = ChunkFields.of(head, where)
             if f.data_start + f.data_length > length:
                 raise ReadError(f"{where}: {f.past_the_record}")
             if f.compression not in DECOMPRESSORS:
                 raise ReadError(f"{where}: unsupported chunk compression '{f.compression}'")
-            data = os.pread(fd, f.data_length, pos + 9 + f.data_start)
+            data = pread(f.data_length, pos + 9 + f.data_start)
         except OSError as exc:
             raise ReadError(f"{self.path}: cannot read: {exc.strerror or exc}") from None
         if len(data) != f.data_length:
@@ -417,26 +537,42 @@ class McapFile:
         return f.checked(decompress_chunk(data, f.compression, f.size, where), where)
 
     # -- chunks ----------------------------------------------------------------------------
-    def _bounds(self) -> tuple[np.ndarray, np.ndarray]:
+    def _bounds(self) -> tuple[list[int], list[int]]:
         """Chunk offsets (sorted) and the minimum start time of the chunks from each on."""
-        if not self.chunk_starts:
-            return np.zeros(0, np.int64), np.zeros(0, np.int64)
-        pairs = np.array(sorted(self.chunk_starts), dtype=np.uint64)
-        suffix = np.minimum.accumulate(pairs[::-1, 1])[::-1]
-        return pairs[:, 0].astype(np.int64), np.minimum(suffix, NEVER).astype(np.int64)
+        if self._bounds_cache is None:
+            pairs = sorted(self.chunk_starts)
+            suffix, low = [], NEVER
+            for _, start in reversed(pairs):
+                low = min(low, start)
+                suffix.append(low)
+            self._bounds_cache = [offset for offset, _ in pairs], suffix[::-1]
+        return self._bounds_cache
 
     def chunks(self) -> Iterator[ChunkMessages]:
         """Every chunk (and every run of un-chunked messages) in file order.
 
         Worker threads decompress (and CRC-check) the next :data:`PREFETCH` chunks while the
-        caller decodes the current one (zstd, lz4 and zlib release the GIL)."""
+        caller decodes the current one (zstd, lz4 and zlib release the GIL). A file of one
+        chunk, or a small one (:data:`SMALL_FILE`, read whole), has its chunks decompressed in
+        the reading thread, each when it is reached: nothing to overlap worth a hand-off."""
         offsets, suffix_min = self._bounds()
         pool = BufferPool()
         pending: ChunkMessages | None = None
         queue: collections.deque[ChunkMessages] = collections.deque()
         loose = bytearray()
         loose_off: dict[int, list[int]] = {}
-        with open(self.path, "rb") as fh, decompress_workers() as worker:
+        whole = None
+        if self.size <= SMALL_FILE:
+            with open(self.path, "rb") as fh:
+                whole = fh.read()
+            if len(whole) != self.size:  # changed since it was opened: read it as a large one
+                whole = None
+        inline = whole is not None or len(offsets) == 1
+        with (
+            open(self.path, "rb") if whole is None else io.BytesIO(whole) as fh,
+            contextlib.nullcontext() if inline else decompress_workers() as worker,
+        ):
+            pread = _pread(fh.fileno()) if whole is None else _pread(whole)
             for opcode, pos, body in self._records(fh, 8, self.size, lazy=True):
                 if opcode == OP_MESSAGE_INDEX and pending is not None:
                     if len(body) < 6:
@@ -476,16 +612,16 @@ class McapFile:
                         self._join()
                 elif opcode == OP_CHUNK:
                     report(pos, self.size)  # the chunks before this one are read
-                    k = int(np.searchsorted(offsets, pos, side="right"))
-                    if len(offsets):
-                        bound = int(suffix_min[k]) if k < len(offsets) else NEVER
+                    k = bisect.bisect_right(offsets, pos)
+                    if offsets:
+                        bound = suffix_min[k] if k < len(offsets) else NEVER
                     else:
                         bound = int.from_bytes(body[:8], "little") if len(body) >= 8 else 0
                     out = _chunk_buffer(body, pool)
-                    if len(offsets) == 1:  # one chunk: nothing to overlap, no thread hand-off
-                        future = done(self._load_chunk(fh.fileno(), pos, body, out))
+                    if inline:  # no thread hand-off
+                        future = _Later(self._load_chunk, pread, pos, body, out)
                     else:
-                        future = worker.submit(self._load_chunk, fh.fileno(), pos, body, out)
+                        future = worker.submit(self._load_chunk, pread, pos, body, out)
                     pending = ChunkMessages(future, {}, f"{self.path}: chunk at byte {pos}", bound)  # type: ignore[arg-type]
                 elif opcode == OP_DATA_END:
                     break
@@ -495,6 +631,28 @@ class McapFile:
                 yield _finished(queue.popleft(), pool)
             if loose:
                 yield _loose_chunk(loose, loose_off, f"{self.path}: messages at the end")
+
+
+def _pread(source: int | bytes) -> Callable[[int, int], bytes | memoryview]:
+    """``read(length, offset)`` of a file: ``os.pread`` of the descriptor ``source``, or a
+    view of the file's bytes ``source`` (as short as ``pread`` past the end)."""
+    if isinstance(source, int):
+        return functools.partial(os.pread, source)
+    view = memoryview(source)
+    return lambda length, offset: view[offset : offset + length]
+
+
+class _Later:
+    """Work done in the reading thread when its result is asked for: what a worker's future
+    gives (``result()``), at the same point of the read (an error included)."""
+
+    __slots__ = ("args", "fn")
+
+    def __init__(self, fn: Callable[..., np.ndarray], *args: object) -> None:
+        self.fn, self.args = fn, args
+
+    def result(self) -> np.ndarray:
+        return self.fn(*self.args)
 
 
 @dataclass(frozen=True)
@@ -515,7 +673,7 @@ class ChunkFields:
         try:
             size, crc = struct.unpack_from("<QI", body, 16)
             (clen,) = struct.unpack_from("<I", body, 28)
-            compression = body[32 : 32 + clen].decode()
+            compression = str(body[32 : 32 + clen], "utf-8")  # bytes or a memoryview
             (dlen,) = struct.unpack_from("<Q", body, 32 + clen)
         except (struct.error, UnicodeDecodeError):
             raise ReadError(f"{where}: corrupt chunk header") from None
