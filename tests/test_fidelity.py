@@ -447,17 +447,24 @@ def assert_same_messages(
         got = written[topic_map.get(topic, topic)]
         assert len(got) == len(messages), (topic, len(messages), len(got))
         fields = {f: s for f, s in CORRECTED.get(types.get(topic, ""), {}).items() if s in steps}
-        a = sorted(messages, key=lambda m: _key(m, set(fields)))
-        b = sorted(got, key=lambda m: _key(m, set(fields)))
-        for m_in, m_out in zip(a, b, strict=True):
-            assert _key(m_in, set(fields)) == _key(m_out, set(fields)), (topic, m_in, m_out)
-            for field, name in fields.items():
-                raw = _vector(m_in[2], field)
-                want = steps[name].apply_values(raw[None, :])[0]
-                np.testing.assert_allclose(_vector(m_out[2], field), want, rtol=1e-12, atol=1e-300)
+        key_in = [_key(m, set(fields)) for m in messages]  # each key once (repr is the cost)
+        key_out = [_key(m, set(fields)) for m in got]
+        a = [messages[i] for i in sorted(range(len(messages)), key=key_in.__getitem__)]
+        b = [got[i] for i in sorted(range(len(got)), key=key_out.__getitem__)]
+        key_in.sort()
+        key_out.sort()
+        for k_in, k_out, m_in, m_out in zip(key_in, key_out, a, b, strict=True):
+            assert k_in == k_out, (topic, m_in, m_out)
             if bytes_equal and not fields:
                 assert m_in[3] == m_out[3], topic
             assert (m_in[2] is None) == (m_out[2] is None), topic
+        for field, name in fields.items():  # the step on every input row at once (row-wise math)
+            raw = np.array([_vector(m[2], field) for m in a]).reshape(-1, 3)
+            out = np.array([_vector(m[2], field) for m in b]).reshape(-1, 3)
+            want = steps[name].apply_values(raw)
+            np.testing.assert_allclose(
+                out, want, rtol=1e-12, atol=1e-300, err_msg=f"{topic} {field}"
+            )
         counts[topic_map.get(topic, topic)] = len(got)
     return counts
 

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import collections
 import json
+import subprocess
 from pathlib import Path
 
 import pyarrow.parquet as pq
@@ -124,12 +125,30 @@ def test_reader_reads_every_complete_message_before_the_cut(logs, tmp_path, fmt,
         list(dispatch.iter_input(InputSpec(path=cut), batch_rows=500))
 
 
+@pytest.fixture(scope="module")
+def converted(logs, tmp_path_factory):
+    """fmt -> (the cut copies at CUTS, the output folder, the process) of one ``imupipe convert
+    --read-truncated`` of them, run once for the convert and the survey tests below."""
+    done = {}
+
+    def get(fmt: str) -> tuple[list[Path], Path, subprocess.CompletedProcess]:
+        if fmt not in done:
+            d = tmp_path_factory.mktemp(f"converted_{fmt}")
+            (d / "in").mkdir()
+            cuts = [_cut(logs[fmt], f, d / "in") for f in CUTS]
+            out = d / "out"
+            proc = run_cli(
+                "convert", "--read-truncated", "--calibration", logs["cal"], "--out", out, *cuts
+            )
+            done[fmt] = (cuts, out, proc)
+        return done[fmt]
+
+    return get
+
+
 @pytest.mark.parametrize("fmt", ["mcap", "bag"])
-def test_convert_reads_up_to_the_cut(logs, tmp_path, fmt):
-    (tmp_path / "in").mkdir()
-    cuts = [_cut(logs[fmt], f, tmp_path / "in") for f in CUTS]
-    out = tmp_path / "out"
-    proc = run_cli("convert", "--read-truncated", "--calibration", logs["cal"], "--out", out, *cuts)
+def test_convert_reads_up_to_the_cut(logs, converted, tmp_path, fmt):
+    cuts, out, proc = converted(fmt)
     assert proc.returncode == 0, proc.stderr
     assert "Traceback" not in proc.stderr
     records = {Path(r["input"]): r for r in read_manifest(out)}
@@ -156,18 +175,14 @@ def test_convert_reads_up_to_the_cut(logs, tmp_path, fmt):
 
 
 @pytest.mark.parametrize("fmt", ["mcap", "bag"])
-def test_survey_reads_up_to_the_cut(logs, tmp_path, fmt):
+def test_survey_reads_up_to_the_cut(logs, converted, tmp_path, fmt):
     """The survey of a cut copy reads what convert reads: its one still period (the log is
     static) ends within the messages recovered, and holds almost all of them."""
     from mcap.reader import make_reader
 
-    (tmp_path / "in").mkdir()
-    cuts = [_cut(logs[fmt], f, tmp_path / "in") for f in (0.6, 0.95)]
-    converted = tmp_path / "converted"
-    proc = run_cli(
-        "convert", "--read-truncated", "--calibration", logs["cal"], "--out", converted, *cuts
-    )
+    all_cuts, converted, proc = converted(fmt)  # convert's output of the same cut copies
     assert proc.returncode == 0, proc.stderr
+    cuts = [cut for cut, f in zip(all_cuts, CUTS, strict=True) if f in (0.6, 0.95)]
     out = tmp_path / "survey"
     proc = run_cli("survey", "--read-truncated", "--no-rerun", *cuts, "--out", out)
     assert proc.returncode == 0, proc.stderr
