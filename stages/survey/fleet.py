@@ -784,22 +784,39 @@ def _walk_scales(histories: Sequence[DeviceHistory], names: Sequence[str]) -> tu
     span = float(np.mean(np.concatenate([np.diff(t) for t, _, _ in series])))
     ref = float(np.nan_to_num(mad_sigma(diffs))) or 1e-12
 
+    # the devices with as many logs stacked: one batched call per length, not per device
+    by_length: dict[int, list[tuple[np.ndarray, np.ndarray, np.ndarray]]] = {}
+    for item in series:
+        by_length.setdefault(len(item[0]), []).append(item)
+    stacks = [
+        (
+            np.stack([t for t, _, _ in group]),
+            np.stack([y for _, y, _ in group]),
+            np.stack([b for _, _, b in group]),
+        )
+        for group in by_length.values()
+    ]
+
     def loglik(w: float, q: float) -> float:
         total = 0.0
-        for t, y, base in series:
-            cov = base + w**2 * np.eye(len(t)) + q**2 * np.minimum.outer(t, t)
+        for t, y, base in stacks:  # (k, n), (k, n), (k, n, n)
+            n = t.shape[1]
+            cov = base + w**2 * np.eye(n) + q**2 * np.minimum(t[:, :, None], t[:, None, :])
             sign, logdet = np.linalg.slogdet(cov)
-            if sign <= 0:
+            if np.any(sign <= 0):
                 return -np.inf
             ci = np.linalg.inv(cov)
-            x = np.column_stack([np.ones(len(t)), t])
-            info = x.T @ ci @ x
+            x = np.stack([np.ones_like(t), t], axis=2)  # (k, n, 2)
+            xt_ci = np.swapaxes(x, 1, 2) @ ci
+            info = xt_ci @ x
             sign2, logdet2 = np.linalg.slogdet(info)
-            if sign2 <= 0:
+            keep = sign2 > 0  # a device whose design is singular adds nothing
+            if not keep.any():
                 continue
-            beta = np.linalg.solve(info, x.T @ ci @ y)
-            r = y - x @ beta
-            total -= 0.5 * (logdet + logdet2 + float(r @ ci @ r))
+            beta = np.linalg.solve(info[keep], (xt_ci[keep] @ y[keep][:, :, None]))
+            r = y[keep] - (x[keep] @ beta)[:, :, 0]
+            quad = np.einsum("ki,kij,kj->k", r, ci[keep], r)
+            total -= 0.5 * float(np.sum(logdet[keep] + logdet2[keep] + quad))
         return total
 
     q_ref = ref / np.sqrt(max(span, 1e-6))
