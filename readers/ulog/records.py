@@ -158,12 +158,29 @@ def _cut(buf: bytes, end: int) -> tuple[int, int, int] | None:
     return end, 3 + claimed, left
 
 
+def _add_info(log: Any, kind: int, data: bytes) -> bool:
+    """Add an information (``'I'``), multi-information (``'M'``) or parameter-default (``'Q'``)
+    record to ``log`` as pyulog does, in either section; False for any other record type."""
+    from pyulog import ULog
+
+    if kind == INFO:
+        kind_name, key, value = _info(data)
+        log._msg_info_dict[key] = value
+        log._msg_info_dict_types[key] = kind_name
+    elif kind == MULTI:
+        log._add_message_info_multiple(ULog._MessageInfo(data, None, is_info_multiple=True))
+    elif kind == DEFAULT:
+        log._add_parameter_default(ULog._MessageParameterDefault(data, None))
+    else:
+        return False
+    return True
+
+
 def _definitions(log: Any, buf: bytes, walk: Walk, raw: np.ndarray) -> bool:
     """Decode the records of the definitions section as pyulog does; False when pyulog would
     not take one as it is (a type it does not know there, flag bits not first). The parameters
     (``'P'``, a thousand in a PX4 log) are decoded at once when they all have the plain form
     :func:`_plain_parameters` takes, else one by one as the other records."""
-    from pyulog import ULog
 
     offsets, sizes_all, kinds_all = walk.offsets, walk.sizes.astype(np.int64), walk.kinds
     params = log._initial_parameters
@@ -176,7 +193,6 @@ def _definitions(log: Any, buf: bytes, walk: Walk, raw: np.ndarray) -> bool:
             sizes_all[~is_param],
             kinds_all[~is_param],
         )
-    info, info_types = log._msg_info_dict, log._msg_info_dict_types
     formats = log._message_formats
     for o, n, kind in zip(offsets.tolist(), sizes_all.tolist(), kinds_all.tolist(), strict=True):
         data = buf[o + 3 : o + 3 + n]
@@ -186,16 +202,8 @@ def _definitions(log: Any, buf: bytes, walk: Walk, raw: np.ndarray) -> bool:
         elif kind == FORMAT:
             fmt = _format(data)
             formats[fmt.name] = fmt
-        elif kind == INFO:
-            kind_name, key, value = _info(data)
-            info[key] = value
-            info_types[key] = kind_name
-        elif kind == MULTI:
-            log._add_message_info_multiple(ULog._MessageInfo(data, None, is_info_multiple=True))
-        elif kind == DEFAULT:
-            log._add_parameter_default(ULog._MessageParameterDefault(data, None))
-        else:  # flag bits are read above, only when first; any other type is not pyulog's
-            return False
+        elif not _add_info(log, kind, data):
+            return False  # flag bits are read above, only when first; any other is not pyulog's
     return True
 
 
@@ -325,7 +333,6 @@ def _data(log: Any, buf: bytes, walk: Walk, names: Collection[str] | None) -> se
     log._sync_seq_cnt += int(np.count_nonzero(kinds_other == SYNC))
     rest = others[(kinds_other != ADD) & (kinds_other != SYNC)]
     before = np.searchsorted(data_at, rest).tolist()  # data records before each record
-    info, info_types = log._msg_info_dict, log._msg_info_dict_types
     for o, n, kind, k in zip(
         offsets[rest].tolist(), sizes[rest].tolist(), kinds[rest].tolist(), before, strict=True
     ):
@@ -337,14 +344,8 @@ def _data(log: Any, buf: bytes, walk: Walk, names: Collection[str] | None) -> se
                 log._changed_parameters.append((last, key, value))
             else:
                 log._dropouts.append(ULog.MessageDropout(data, None, last))
-        elif kind == INFO:
-            kind_name, key, value = _info(data)
-            info[key] = value
-            info_types[key] = kind_name
-        elif kind == MULTI:
-            log._add_message_info_multiple(ULog._MessageInfo(data, None, is_info_multiple=True))
-        elif kind == DEFAULT:
-            log._add_parameter_default(ULog._MessageParameterDefault(data, None))
+        elif _add_info(log, kind, data):
+            pass
         elif kind == LOGGED:
             log._logged_messages.append(ULog.MessageLogging(data, None))
         else:  # C
