@@ -113,16 +113,22 @@ def decode_both(payloads: list[bytes], seed: int = 0) -> tuple[list, list]:
     return got, ref
 
 
-def test_values_are_jsons_whatever_the_shape(monkeypatch):
-    payloads = documents(600)
-    arrow_rows = []
+@pytest.fixture
+def arrow_rows(monkeypatch) -> list[int]:
+    """The batch sizes handed to Arrow's JSON reader (the messages no template took)."""
+    rows: list[int] = []
     arrow = message_fields._decode_json_arrow
 
     def counting(mtype, buf, starts, lengths, leaves):  # noqa: ANN001, ANN202
-        arrow_rows.append(len(starts))
+        rows.append(len(starts))
         return arrow(mtype, buf, starts, lengths, leaves)
 
     monkeypatch.setattr(message_fields, "_decode_json_arrow", counting)
+    return rows
+
+
+def test_values_are_jsons_whatever_the_shape(arrow_rows):
+    payloads = documents(600)
     got, ref = decode_both(payloads)
     for g, r, leaf in zip(got, ref, LEAVES, strict=True):
         r = np.asarray(r, g.dtype)
@@ -168,17 +174,9 @@ def test_nan_and_infinity_read_as_json_reads_them():
         assert np.array_equal(g, np.asarray(r, g.dtype), equal_nan=True)
 
 
-def test_a_long_template_is_left_to_arrow(monkeypatch):
+def test_a_long_template_is_left_to_arrow(monkeypatch, arrow_rows):
     payloads = [p for i, p in enumerate(documents(60)) if i % 2 == 0]
     monkeypatch.setattr(json_numbers, "MAX_NUMBERS", 6)  # the documents hold 7 numbers
-    arrow_rows = []
-    arrow = message_fields._decode_json_arrow
-
-    def counting(mtype, buf, starts, lengths, leaves):  # noqa: ANN001, ANN202
-        arrow_rows.append(len(starts))
-        return arrow(mtype, buf, starts, lengths, leaves)
-
-    monkeypatch.setattr(message_fields, "_decode_json_arrow", counting)
     got, ref = decode_both(payloads)
     assert arrow_rows == [len(payloads)]
     for g, r in zip(got, ref, strict=True):
