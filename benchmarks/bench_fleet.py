@@ -8,6 +8,9 @@ pairs so that both see the same load:
 [1] one log of ``--log-messages`` (default 1,000) ``sensor_msgs/msg/Imu`` messages: ``imupipe
     convert`` against ``python peer.py LOG`` (rosbags' ``AnyReader`` reading and deserialising
     every message; the typestore built once).
+    In the same pairs, the floor any Python tool that writes Arrow pays before it reads a
+    message: ``python -c "import numpy, pyarrow"``; imupipe's own fixed cost per command is the
+    convert's CPU less this floor (issue 39's aim: below 0.1 s).
 [2] ``--logs`` (default 1,000) such logs in one run: ``imupipe convert --jobs 1 FOLDER`` against
     the same rosbags loop over all of them in one process, ``--fleet-pairs`` times (default 1;
     the peer first in odd pairs, imupipe first in even ones). Goal (issue 39): >= 5x faster.
@@ -121,15 +124,32 @@ def ours(
     return seconds, cpu, peak, sum(x["messages"] for x in lines)
 
 
+FLOOR = "import numpy, pyarrow"
+"""What the library floor's process runs: the imports of any tool that builds Arrow tables."""
+
+
+def floor() -> float:
+    """CPU seconds of a fresh process that imports numpy and pyarrow and stops."""
+    cpu = children_cpu()
+    subprocess.run([sys.executable, "-c", FLOOR], check=True, env=ENV)
+    return children_cpu() - cpu
+
+
 def pairs(
-    label: str, n: int, run_peer, run_ours, run_base=None, alternate: bool = False
+    label: str,
+    n: int,
+    run_peer,
+    run_ours,
+    run_base=None,
+    alternate: bool = False,
+    run_floor=None,
 ) -> dict[str, float]:
-    """``n`` pairs (peer first, then imupipe, then the baseline's imupipe when given; with
-    ``alternate``, imupipe first in the even pairs); prints each and the ratios' min and
-    median."""
+    """``n`` pairs (peer first, then imupipe, then the baseline's imupipe when given, then the
+    library floor when given; with ``alternate``, imupipe first in the even pairs); prints each
+    and the ratios' min and median, and imupipe's CPU beyond the floor."""
     ratios, cpu_ratios, best_peer, best_ours = [], [], float("inf"), float("inf")
     base_ratios, base_cpu_ratios = [], []
-    peer_cpu, ours_cpu = [], []
+    peer_cpu, ours_cpu, beyond = [], [], []
     for i in range(n):
         if alternate and i % 2:
             to, co, mo, no = run_ours()
@@ -160,6 +180,14 @@ def pairs(
                 f"loop; this code against the baseline: {cb / co:.2f}x CPU",
                 flush=True,
             )
+        if run_floor is not None:
+            cf = run_floor()
+            beyond.append(co - cf)
+            print(
+                f"{label} pair {i + 1}: floor ({FLOOR}) {cf:.2f} s CPU; imupipe beyond it "
+                f"{co - cf:.3f} s CPU",
+                flush=True,
+            )
     print(
         f"{label}: imupipe against the rosbags loop: wall min {min(ratios):.2f}x, median "
         f"{statistics.median(ratios):.2f}x; CPU min {min(cpu_ratios):.2f}x, median "
@@ -179,6 +207,14 @@ def pairs(
         f"{label}_peer_cpu_median_s": statistics.median(peer_cpu),
         f"{label}_imupipe_cpu_median_s": statistics.median(ours_cpu),
     }
+    if beyond:
+        print(
+            f"{label}: imupipe's own fixed cost (CPU beyond the floor): min {min(beyond):.3f} s, "
+            f"median {statistics.median(beyond):.3f} s",
+            flush=True,
+        )
+        out[f"{label}_beyond_floor_min_s"] = min(beyond)
+        out[f"{label}_beyond_floor_median_s"] = statistics.median(beyond)
     if base_ratios:
         print(
             f"{label}: the baseline against the rosbags loop: wall min {min(base_ratios):.2f}x, "
@@ -267,6 +303,7 @@ def main() -> None:
             lambda: peer(logs[:1], note),
             lambda: ours(logs[0], cal, tmp / "out1", 1),
             None if base_env is None else lambda: ours(logs[0], cal, tmp / "out1", 1, base_env),
+            run_floor=floor,
         )
         results |= pairs(
             "fleet",
