@@ -1090,7 +1090,8 @@ class MagInflightStage(Stage):
         compass parameters in force when logged) fitted together with this stage's input, one
         calibration for all; each flight at its own position and date. The model and the
         motor term are then chosen on held-out flights (each fitted on the others, scored on
-        itself), not on time segments."""
+        itself), not on time segments, and flights whose own offsets stepped between their
+        dates (the hard iron changed) are refused by name (:func:`offset_steps`)."""
 
     def _samples(self, table: pa.Table, name: str, ctx: StageContext) -> FlightSamples:
         """The :class:`FlightSamples` of input ``name`` (``table``); refused (one line naming
