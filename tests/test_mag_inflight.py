@@ -445,6 +445,26 @@ def test_flights_whose_offsets_stepped_are_named_not_fitted_together():
     assert flights["d"]["offset_ut"][1] - flights["a"]["offset_ut"][1] == pytest.approx(2, abs=0.3)
 
 
+def test_flights_whose_own_offsets_cannot_be_fitted_are_not_compared(monkeypatch):
+    """A flight left with no sample the grouped fit keeps makes its own offsets singular: the
+    joint fit stands, with a warning that the flights were not compared (no traceback)."""
+    import imupipe.stages.magnetometer.inflight as inflight
+
+    base = {"duration_s": 40.0, "mag_hz": 10.0}
+    a, _ = simulate("flight", base, seed=7)
+    b, _ = simulate("flight", {**base, "yaw_turns": 3.0, "current_a": 18.0}, seed=8)
+
+    def singular(*args, **kwargs):
+        raise np.linalg.LinAlgError("singular")
+
+    monkeypatch.setattr(inflight, "flight_offsets", singular)
+    stage = MagInflightStage(MagInflightStage.Options(flights=["b"]))
+    ctx = StageContext(name="compass", input_name="a", quiet=True, tables={"a": a, "b": b})
+    r = stage.fit(a, ctx).results
+    assert "offset_ut" not in r["metrics"]["flights"]["b"]
+    assert any("own offsets could not be fitted" in w for w in ctx.warnings), ctx.warnings
+
+
 @pytest.fixture(scope="module")
 def px4_flights():
     """The three real PX4 flights (../shared/data/logs/px4_flights_flugdrohne), each compass's

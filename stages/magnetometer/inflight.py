@@ -1199,7 +1199,11 @@ class MagInflightStage(Stage):
         residual)."""
         o: MagInflightStage.Options = self.options
         names = [ctx.input_name, *o.flights]
-        offsets, cov = flight_offsets(fs, flown, counts, o)
+        try:
+            offsets, cov = flight_offsets(fs, flown, counts, o)
+        except np.linalg.LinAlgError:  # a flight left with no sample the fit keeps
+            ctx.warn("flights: each flight's own offsets could not be fitted; not compared")
+            return
         se = np.sqrt(np.diag(cov)).reshape(-1, 3)
         flights = flown.metrics["flights"]
         for name, off, s in zip(names, offsets, se, strict=True):
