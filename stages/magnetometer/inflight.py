@@ -137,9 +137,10 @@ def _design(
 
 @dataclass
 class Fit:
-    """A fitted model: ``matrix`` M, ``offset`` (T), ``motor`` (T/A; zeros without); the
-    parameter vector ``theta`` (M terms, ``b = -M offset`` in uT, motor in uT/A: see
-    :func:`parameter_names`), its covariance, the samples used and the residual sigma (uT)."""
+    """A fitted model: ``matrix`` M, ``offset`` (T; (k, 3), one per group, when fitted with
+    ``groups``), ``motor`` (T/A; zeros without); the parameter vector ``theta`` (M terms, ``b =
+    -M offset`` in uT, motor in uT/A: see :func:`parameter_names`), its covariance, the samples
+    used and the residual sigma (uT)."""
 
     model: str
     motor_term: bool
