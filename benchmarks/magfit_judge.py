@@ -626,6 +626,48 @@ def run_imupipe_px4(
     return params, refused
 
 
+def run_imupipe_px4_joint(
+    logs: list[Path], key: str, work: Path
+) -> tuple[dict[str, float], dict[str, str]] | str:
+    """imupipe's ``px4_calibration.params`` for compass ``key`` (``mag_topic``) fitted on
+    ``logs`` together (the stage's ``flights``: one calibration for all; default options,
+    ``accept_failed_checks = true``) and its first failed check, as
+    :func:`run_imupipe_px4`."""
+    work.mkdir(parents=True, exist_ok=True)
+    inputs = "".join(
+        f'[inputs.f{i}]\npath = "{log}"\nmag_topic = "{key}"\n' for i, log in enumerate(logs)
+    )
+    others = ", ".join(f'"f{i}"' for i in range(1, len(logs)))
+    (work / "c.toml").write_text(
+        inputs + '[[stages]]\ntype = "mag_inflight"\ninput = "f0"\n'
+        f"flights = [{others}]\naccept_failed_checks = true\n"
+        '[output]\ndir = "out"\nrerun = false\nreport = false\napply_to = []\n'
+    )
+    proc = subprocess.run(
+        [sys.executable, "-m", "imupipe.pipeline.cli", "run", "c.toml", "--quiet"],
+        cwd=work,
+        capture_output=True,
+        text=True,
+        timeout=900,
+    )
+    out = work / "out" / "px4_calibration.params"
+    if proc.returncode != 0 or not out.exists():
+        return (proc.stderr.strip().splitlines() or ["no output"])[-1]
+    params = {}
+    for line in out.read_text().splitlines():
+        if line and not line.startswith("#"):
+            _, _, name, value, _ = line.split("\t")
+            params[name] = float(value)
+    doc = json.loads((work / "out" / "calibration.json").read_text())
+    why = doc["results"].get("mag_inflight", {}).get("failed_checks") or []
+    return params, ({key: why[0]} if why else {})
+
+
+JOINT = (("log_20", "log_30"), ("log_20", "log_30", "log_86"))
+"""The flights fitted together in :func:`judge_px4`: the two of 7 June, and all three (across
+the internal compass's step of 21 June)."""
+
+
 def judge_px4(work: Path, keys: tuple[str, ...] = ("sensor_mag", "sensor_mag_1")) -> list[str]:
     """Each PX4 flight's compasses fitted by imupipe (every fit, refused ones included:
     ``accept_failed_checks``), each fit scored on the three flights against the vehicle's own
@@ -657,4 +699,21 @@ def judge_px4(work: Path, keys: tuple[str, ...] = ("sensor_mag", "sensor_mag_1")
                 cells.append(f"{fmt(px4_score(f, pp))}; GSF {gsf}")
             note = f" (refused: {refused[key]})" if key in refused else ""
             rows.append(f"| {key}, fit of {fitted[:6]}{note} | " + " | ".join(cells) + " |")
+        for names in JOINT:
+            joined = [p for p in logs if p.name[:6] in names]
+            if len(joined) != len(names):
+                continue
+            got = run_imupipe_px4_joint(joined, key, work / ("joint-" + "-".join(names)) / key)
+            label = f"{key}, fit of {' + '.join(names)} together"
+            if isinstance(got, str):
+                rows.append(f"| {label} | {got} | | |")
+                continue
+            params, refused = got
+            cells = []
+            for f in flights.values():
+                pp = f.params | params
+                gsf = fmt(px4_score(f, pp, True)) if gsf_judged(f) else "not judged"
+                cells.append(f"{fmt(px4_score(f, pp))}; GSF {gsf}")
+            note = f" (refused: {refused[key]})" if key in refused else ""
+            rows.append(f"| {label}{note} | " + " | ".join(cells) + " |")
     return rows

@@ -400,6 +400,125 @@ def test_flights_of_one_vehicle_fitted_together():
         stage.fit(a, ctx)
 
 
+def test_flights_whose_offsets_stepped_are_named_not_fitted_together():
+    """Three flights of one vehicle; between the first and the second the compass's hard iron
+    moved by 15 uT (30 % of the field: a part or wiring moved near it). Fitted together they
+    are refused by a check naming the two flights, their dates and the step (uT and mG): one
+    calibration cannot serve both sides (before: refused as "residual 7.34 uT >
+    max_residual_ut", which blames the fit; with accept_failed_checks, applied silently). The
+    two flights after the step agree and are fitted together; a step of 2 uT (attitude and
+    model errors move a fitted offset as much between real flights) is not one."""
+    base = {"duration_s": 60.0, "mag_hz": 10.0, "year": 2024.40}
+    turns = {"yaw_turns": 3.0, "roll_deg": 25.0, "pitch_deg": 40.0, "current_a": 18.0}
+    a, truth = simulate("flight", base, seed=7)
+    moved = (np.asarray(truth["offset"]) + [0.0, 0.0, 1.5e-5]).tolist()
+    b, _ = simulate("flight", {**base, **turns, "year": 2024.45, "offset": moved}, seed=8)
+    c, _ = simulate("flight", {**base, "year": 2024.46, "offset": moved}, seed=9)
+    nudged = (np.asarray(truth["offset"]) + [0.0, 2e-6, 0.0]).tolist()
+    d, _ = simulate("flight", {**base, **turns, "year": 2024.45, "offset": nudged}, seed=8)
+    tables = {"a": a, "b": b, "c": c, "d": d}
+
+    def joint(first: str, *others: str, accept: bool = False):
+        stage = MagInflightStage(MagInflightStage.Options(flights=list(others)))
+        ctx = StageContext(
+            name="compass", input_name=first, quiet=True, tables=tables, accept_failed_checks=accept
+        )
+        return stage.fit(tables[first], ctx), ctx
+
+    with pytest.raises(FitError, match="offsets moved by") as err:
+        joint("c", "a", "b")  # in any order: the step is between consecutive dates
+    said = str(err.value)
+    assert "between 'a' (2024-05-26) and 'b' (2024-06-13)" in said, said
+    step = float(said.split("in the body axes (")[1].split(" uT")[0])
+    assert step == pytest.approx(15.0, abs=1.5)
+    assert f"{step * 10:.0f} mG" in said
+    out, ctx = joint("c", "a", "b", accept=True)
+    flights = out.results["metrics"]["flights"]
+    assert flights["b"]["offset_ut"][2] - flights["a"]["offset_ut"][2] == pytest.approx(15, abs=1.5)
+    assert [c for c in ctx.failed_checks if "offsets moved" in c]
+    out, ctx = joint("b", "c")
+    assert not ctx.failed_checks
+    assert np.abs(np.asarray(out.results["offset_t"]) - moved).max() < 0.3e-6
+    out, ctx = joint("a", "d")
+    assert not ctx.failed_checks
+    flights = out.results["metrics"]["flights"]
+    assert flights["d"]["offset_ut"][1] - flights["a"]["offset_ut"][1] == pytest.approx(2, abs=0.3)
+
+
+def test_flights_whose_own_offsets_cannot_be_fitted_are_not_compared(monkeypatch):
+    """A flight left with no sample the grouped fit keeps makes its own offsets singular: the
+    joint fit stands, with a warning that the flights were not compared (no traceback)."""
+    import imupipe.stages.magnetometer.inflight as inflight
+
+    base = {"duration_s": 40.0, "mag_hz": 10.0}
+    a, _ = simulate("flight", base, seed=7)
+    b, _ = simulate("flight", {**base, "yaw_turns": 3.0, "current_a": 18.0}, seed=8)
+
+    def singular(*args, **kwargs):
+        raise np.linalg.LinAlgError("singular")
+
+    monkeypatch.setattr(inflight, "flight_offsets", singular)
+    stage = MagInflightStage(MagInflightStage.Options(flights=["b"]))
+    ctx = StageContext(name="compass", input_name="a", quiet=True, tables={"a": a, "b": b})
+    r = stage.fit(a, ctx).results
+    assert "offset_ut" not in r["metrics"]["flights"]["b"]
+    assert any("own offsets could not be fitted" in w for w in ctx.warnings), ctx.warnings
+
+
+@pytest.fixture(scope="module")
+def px4_flights():
+    """The three real PX4 flights (../shared/data/logs/px4_flights_flugdrohne), each compass's
+    table per flight: {key: {"log_20": table, ...}}."""
+    from imupipe.readers.dispatch import read_input
+
+    folder = shared_path("logs", "px4_flights_flugdrohne")
+    return {
+        key: {
+            p.name[:6]: read_input(InputSpec(path=p, mag_topic=key, imu_topic=""))[0]
+            for p in sorted(folder.glob("*.ulg"))
+        }
+        for key in ("sensor_mag", "sensor_mag_1")
+    }
+
+
+def test_real_px4_flights_across_a_hard_iron_change_are_refused_by_name(px4_flights):
+    """px4_flights_flugdrohne: the internal compass (sensor_mag) reads 200-300 mG of hard iron
+    that moved between 7 June (log_20, log_30) and 21 June (log_86; the vehicle rewired: motors
+    moved from the MAIN to the AUX outputs, new AUX functions), at any current (the ground
+    samples before take-off, 0-3 A, show it too; its per-ampere term is 2-3 mG/A). Fitted
+    together the three are refused naming log_30 -> log_86 and a step near 24 uT (before:
+    "offsets 53.2 uT exceed the Earth's field", blaming the attitude or the GPS); the two of
+    7 June are fitted together. The external compass's offsets agree across the three flights
+    (steps under 4 uT): no such refusal."""
+
+    def joint(key: str, first: str, *others: str):
+        stage = MagInflightStage(MagInflightStage.Options(flights=list(others)))
+        ctx = StageContext(
+            name="compass",
+            input_name=first,
+            quiet=True,
+            tables=px4_flights[key],
+            accept_failed_checks=True,
+        )
+        return stage.fit(px4_flights[key][first], ctx), ctx
+
+    out, ctx = joint("sensor_mag", "log_20", "log_30", "log_86")
+    moved = [c for c in ctx.failed_checks if "offsets moved" in c]
+    assert len(moved) == 1 and ctx.failed_checks[0] == moved[0], ctx.failed_checks
+    assert "between 'log_30' (2023-06-07) and 'log_86' (2023-06-21)" in moved[0]
+    step = float(moved[0].split("in the body axes (")[1].split(" uT")[0])
+    assert 20.0 < step < 30.0
+    flights = out.results["metrics"]["flights"]
+    same_day = np.subtract(flights["log_30"]["offset_ut"], flights["log_20"]["offset_ut"])
+    assert np.linalg.norm(same_day) < 8.0
+    _, ctx = joint("sensor_mag", "log_20", "log_30")
+    assert not [c for c in ctx.failed_checks if "offsets moved" in c], ctx.failed_checks
+    out, ctx = joint("sensor_mag_1", "log_20", "log_30", "log_86")
+    assert not [c for c in ctx.failed_checks if "offsets moved" in c], ctx.failed_checks
+    off = np.array([f["offset_ut"] for f in out.results["metrics"]["flights"].values()])
+    assert np.linalg.norm(np.diff(off, axis=0), axis=1).max() < 5.0
+
+
 def simulated_ulog_run(tmp_path, *settings: str) -> tuple[dict, dict]:
     """``imupipe simulate flight --out flight.ulg --duration 120 --set S...`` then ``imupipe
     run`` of mag_inflight on it (CLI, in ``tmp_path``): (the truth, calibration.json)."""

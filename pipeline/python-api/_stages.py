@@ -450,7 +450,8 @@ def mag_inflight(
       the same compass parameters in force when logged) fitted together with this stage's input,
       one calibration for all; each flight at its own position and date. The model and the motor
       term are then chosen on held-out flights (each fitted on the others, scored on itself),
-      not on time segments. None: ``[]``.
+      not on time segments, and flights whose own offsets stepped between their dates (the hard
+      iron changed) are refused by name (:func:`offset_steps`). None: ``[]``.
     """
     return fit_stage(
         "mag_inflight",

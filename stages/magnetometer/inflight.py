@@ -89,7 +89,7 @@ from imupipe.readers.table import (
     sensor,
 )
 from imupipe.stages.base import Stage, StageContext, StageOutput
-from imupipe.stages.magnetometer.wmm import earth_field
+from imupipe.stages.magnetometer.wmm import date_of, earth_field
 from imupipe.stages.steps import EntryError, LinearStep, _numbers, _short
 
 MODELS = ("offsets", "scale", "soft_iron")
@@ -111,9 +111,12 @@ def rotate(q: np.ndarray, v: np.ndarray, inverse: bool = False) -> np.ndarray:
     return v + 2.0 * np.cross(u, np.cross(u, v) + w * v)
 
 
-def _design(raw: np.ndarray, current: np.ndarray | None, model: str) -> np.ndarray:
+def _design(
+    raw: np.ndarray, current: np.ndarray | None, model: str, groups: np.ndarray | None = None
+) -> np.ndarray:
     """(3n, p) design of the stacked body-axis equations ``target = A theta``; theta is
-    (M terms, b (3), motor (3) when current is given); ``M raw + b + motor I``."""
+    (M terms, b (3), motor (3) when current is given); ``M raw + b + motor I``. ``groups``
+    (n,) ints 0..k-1: one ``b`` per group (per flight: ``b`` (3k), ``b_0`` first)."""
     n = len(raw)
     x, y, z = raw[:, 0], raw[:, 1], raw[:, 2]
     zero = np.zeros(n)
@@ -124,7 +127,9 @@ def _design(raw: np.ndarray, current: np.ndarray | None, model: str) -> np.ndarr
     elif model == "soft_iron":
         cols += [[x, zero, zero], [zero, y, zero], [zero, zero, z]]
         cols += [[y, x, zero], [z, zero, x], [zero, z, y]]
-    cols += [[one, zero, zero], [zero, one, zero], [zero, zero, one]]
+    for g in range(1 if groups is None else int(groups.max()) + 1):
+        ind = one if groups is None else (groups == g).astype(np.float64)
+        cols += [[ind, zero, zero], [zero, ind, zero], [zero, zero, ind]]
     if current is not None:
         cols += [[current, zero, zero], [zero, current, zero], [zero, zero, current]]
     return np.column_stack([np.concatenate(c) for c in cols])
@@ -132,9 +137,10 @@ def _design(raw: np.ndarray, current: np.ndarray | None, model: str) -> np.ndarr
 
 @dataclass
 class Fit:
-    """A fitted model: ``matrix`` M, ``offset`` (T), ``motor`` (T/A; zeros without); the
-    parameter vector ``theta`` (M terms, ``b = -M offset`` in uT, motor in uT/A: see
-    :func:`parameter_names`), its covariance, the samples used and the residual sigma (uT)."""
+    """A fitted model: ``matrix`` M, ``offset`` (T; (k, 3), one per group, when fitted with
+    ``groups``), ``motor`` (T/A; zeros without); the parameter vector ``theta`` (M terms, ``b =
+    -M offset`` in uT, motor in uT/A: see :func:`parameter_names`), its covariance, the samples
+    used and the residual sigma (uT)."""
 
     model: str
     motor_term: bool
@@ -168,7 +174,11 @@ def parameter_names(model: str, motor_term: bool, source: str = "current") -> li
     return names
 
 
-def _unpack(theta: np.ndarray, model: str, motor_term: bool) -> tuple[np.ndarray, ...]:
+def _unpack(
+    theta: np.ndarray, model: str, motor_term: bool, groups: int = 1
+) -> tuple[np.ndarray, ...]:
+    """(M, offset, motor) of ``theta``; with ``groups`` > 1 (:func:`_design`'s) the offsets
+    (groups, 3)."""
     k = {"offsets": 0, "scale": 1, "soft_iron": 6}[model]
     if model == "offsets":
         m = np.eye(3)
@@ -177,10 +187,11 @@ def _unpack(theta: np.ndarray, model: str, motor_term: bool) -> tuple[np.ndarray
     else:
         d, o = theta[:3], theta[3:6]
         m = np.array([[d[0], o[0], o[1]], [o[0], d[1], o[2]], [o[1], o[2], d[2]]])
-    b = theta[k : k + 3]
-    motor = theta[k + 3 : k + 6] if motor_term else np.zeros(3)
-    offset = -np.linalg.solve(m, b)
-    return m, offset, motor
+    b = theta[k : k + 3 * groups].reshape(groups, 3)
+    end = k + 3 * groups
+    motor = theta[end : end + 3] if motor_term else np.zeros(3)
+    offset = -np.linalg.solve(m, b.T).T
+    return m, offset[0] if groups == 1 else offset, motor
 
 
 SCALE_RANGE = (1 / 1.5, 1.5)
@@ -291,14 +302,17 @@ def fit_model(
     outlier_k: float = 5.0,
     iterations: int = 20,
     ridge: float = 0.0,
+    groups: np.ndarray | None = None,
 ) -> Fit:
     """Robust (Huber IRLS, outliers beyond ``outlier_k`` robust sigmas rejected) linear fit of
     ``target ~ M raw + b + motor I`` (normal equations: fields in uT and current in A keep them
     well scaled), each step within the firmware's ranges (:func:`solve_bounded`) with the
-    ``ridge`` of :func:`toward_scale`; raises ``np.linalg.LinAlgError`` when singular."""
+    ``ridge`` of :func:`toward_scale`; raises ``np.linalg.LinAlgError`` when singular.
+    ``groups`` (:func:`_design`): one offset per group (``Fit.offset`` (k, 3)), M and the motor
+    term shared."""
     n = len(raw)
     raw, target = raw * UT, target * UT
-    a = _design(raw, current, model)
+    a = _design(raw, current, model, groups)
     rhs = target.T.reshape(-1) if model != "offsets" else (target - raw).T.reshape(-1)
     w = np.ones(n)
     keep = np.ones(n, dtype=bool)
@@ -332,7 +346,8 @@ def fit_model(
     inflate = (1 + rho) / (1 - rho)
     h = (a * ww[:, None]).T @ a
     cov = np.linalg.inv(h + toward_scale(h, model, ridge)) * s2 * inflate
-    m, offset, motor = _unpack(theta, model, current is not None)
+    k = 1 if groups is None else int(groups.max()) + 1
+    m, offset, motor = _unpack(theta, model, current is not None, k)
     return Fit(
         model, current is not None, m, offset / UT, motor / UT, theta, cov, keep, np.sqrt(s2)
     )
@@ -863,6 +878,67 @@ def offset_covariance(fit: Fit) -> np.ndarray:
     return jac @ fit.cov @ jac.T / UT**2
 
 
+OFFSET_STEP_K = 5.0
+"""Flights fitted together disagree when their offsets differ by more than this many standard
+errors on some axis (:func:`offset_steps`; the survey's default ``k``)..."""
+OFFSET_STEP_FRACTION = 0.2
+"""... and by more than this fraction of the earth field in all. Flights of one calibration
+differ by the attitude and model errors of each: the three real PX4 flights of
+``px4_flights_flugdrohne`` (48.8 uT), fitted in pairs (:func:`flight_offsets`), 1.7 to 5.0 uT
+(4 to 10 % of the field) between flights of one day and the external compass's 2.1 to 3.5 uT
+across two weeks, but 24 to 26 uT (49 to 53 %) across the internal compass's change between
+7 and 21 June. An offset error of a fifth of the field turns the heading by up to ``asin(0.2
+F / H)`` (28 deg at that site's 64 deg inclination): no calibration serves both sides."""
+
+
+def flight_offsets(
+    fs: FlightSamples, flown: FlownFit, counts: list[int], o: Any
+) -> tuple[np.ndarray, np.ndarray]:
+    """Each joined flight's own offset (T, (k, 3), body frame) and their covariance (T^2,
+    (3k, 3k)): the chosen model refitted (:func:`fit_model`, options ``o``, the motor term
+    of ``flown``) with one soft-iron matrix and motor term for all and one offset per flight
+    (``groups``), the covariance of the ``b`` terms carried through ``M^-1`` (the matrix
+    shared: its own uncertainty moves every flight's offset alike)."""
+    groups = np.repeat(np.arange(len(counts)), counts)
+    can_soft = flown.coverage["direction_spread"][0] >= o.min_spread
+    fit = fit_model(
+        fs.raw,
+        fs.target,
+        fs.power(flown.source),
+        flown.model,
+        o.huber_k,
+        o.outlier_k,
+        ridge=0.0 if can_soft else FEW_DIRECTIONS_RIDGE,
+        groups=groups,
+    )
+    k = {"offsets": 0, "scale": 1, "soft_iron": 6}[flown.model]
+    nb = 3 * len(counts)
+    m_inv = np.kron(np.eye(len(counts)), np.linalg.inv(fit.matrix))
+    cov = m_inv @ fit.cov[k : k + nb, k : k + nb] @ m_inv.T / UT**2
+    return fit.offset, cov
+
+
+def offset_steps(
+    offsets: np.ndarray, cov: np.ndarray, field_t: float, order: list[int]
+) -> list[tuple[int, int, np.ndarray, float]]:
+    """``(i, j, d, limit)`` for each pair of flights consecutive in ``order`` (their dates)
+    whose offsets (:func:`flight_offsets`, T) differ by ``d = o_j - o_i`` beyond what attitude
+    and model errors move a fitted offset: more than :data:`OFFSET_STEP_K` standard errors of
+    ``d`` on some axis and ``|d|`` above :data:`OFFSET_STEP_FRACTION` of the earth field
+    ``field_t`` (``limit``, T). A step in the compass's hard iron between them (a part, wiring
+    or payload moved near the compass, or magnetised)."""
+    limit = OFFSET_STEP_FRACTION * field_t
+    out = []
+    for i, j in zip(order[:-1], order[1:], strict=True):
+        d = offsets[j] - offsets[i]
+        si, sj = slice(3 * i, 3 * i + 3), slice(3 * j, 3 * j + 3)
+        var = np.diag(cov[si, si] + cov[sj, sj] - cov[si, sj] - cov[sj, si])
+        spread = OFFSET_STEP_K * np.sqrt(np.maximum(var, 0.0))
+        if np.any(np.abs(d) > spread) and float(np.linalg.norm(d)) > limit:
+            out.append((i, j, d, limit))
+    return out
+
+
 @dataclass
 class MagCurrentStep(LinearStep):
     """``corrected = matrix @ (raw - offset) + motor * I(t)``: a linear step plus a field per
@@ -1015,7 +1091,8 @@ class MagInflightStage(Stage):
         compass parameters in force when logged) fitted together with this stage's input, one
         calibration for all; each flight at its own position and date. The model and the
         motor term are then chosen on held-out flights (each fitted on the others, scored on
-        itself), not on time segments."""
+        itself), not on time segments, and flights whose own offsets stepped between their
+        dates (the hard iron changed) are refused by name (:func:`offset_steps`)."""
 
     def _samples(self, table: pa.Table, name: str, ctx: StageContext) -> FlightSamples:
         """The :class:`FlightSamples` of input ``name`` (``table``); refused (one line naming
@@ -1107,6 +1184,65 @@ class MagInflightStage(Stage):
         )
         return joined, counts
 
+    def _flights_agree(
+        self,
+        table: pa.Table,
+        ctx: StageContext,
+        fs: FlightSamples,
+        flown: FlownFit,
+        counts: list[int],
+    ) -> None:
+        """Each joined flight's own offsets under the joint calibration into
+        ``metrics.flights.<name>`` (``offset_ut``, ``offset_se_ut``: :func:`flight_offsets`),
+        and the quality check that they agree: flights whose offsets stepped between their dates
+        (:func:`offset_steps`) are named with the step (uT and mG), since one calibration
+        cannot serve both (the joint fit's other checks would blame its size or its held-out
+        residual)."""
+        o: MagInflightStage.Options = self.options
+        names = [ctx.input_name, *o.flights]
+        try:
+            offsets, cov = flight_offsets(fs, flown, counts, o)
+        except np.linalg.LinAlgError:  # a flight left with no sample the fit keeps
+            ctx.warn("flights: each flight's own offsets could not be fitted; not compared")
+            return
+        se = np.sqrt(np.diag(cov)).reshape(-1, 3)
+        flights = flown.metrics["flights"]
+        for name, off, s in zip(names, offsets, se, strict=True):
+            flights[name]["offset_ut"] = (off * UT).tolist()
+            flights[name]["offset_se_ut"] = (s * UT).tolist()
+        years = [
+            o.year
+            if o.year is not None
+            else metadata(table if n == ctx.input_name else ctx.tables[n]).get("gps_year")
+            for n in names
+        ]
+        order = sorted(range(len(names)), key=lambda i: (years[i] is None, years[i] or 0.0))
+        field_t = flown.metrics["field_ut"] / UT
+        said = []
+        for i, j, d, limit in offset_steps(offsets, cov, field_t, order):
+            when = [
+                f"'{names[k]}'" + ("" if years[k] is None else f" ({date_of(years[k])})")
+                for k in (i, j)
+            ]
+            size = float(np.linalg.norm(d))
+            said.append(
+                "("
+                + ", ".join(f"{v * UT:+.1f}" for v in d)
+                + f") uT in the body axes ({size * UT:.1f} uT = "
+                f"{size * 1e7:.0f} mG, {100 * size / field_t:.0f} % of the field) between "
+                f"{when[0]} and {when[1]}; limit {limit * UT:.1f} uT "
+                f"({100 * OFFSET_STEP_FRACTION:.0f} % of the field) and "
+                f"{OFFSET_STEP_K:g} standard errors"
+            )
+        ctx.check(
+            not said,
+            "flights: the compass's offsets moved by "
+            + "; by ".join(said)
+            + ": its hard iron changed (a part, wiring or payload moved near the compass, or "
+            "something magnetised), and one calibration cannot serve flights on both sides: "
+            "fit together only the flights since the change",
+        )
+
     def fit(self, table: pa.Table, ctx: StageContext) -> StageOutput:
         o: MagInflightStage.Options = self.options
         fs, counts = self._joint(table, ctx)
@@ -1132,6 +1268,7 @@ class MagInflightStage(Stage):
                 }
                 for name, a, b in zip(names, cuts[:-1], cuts[1:], strict=True)
             }
+            self._flights_agree(table, ctx, fs, flown, counts)
         field_ut = metrics["field_ut"]
         ctx.check(
             float(np.linalg.norm(fit.offset)) * ut <= field_ut,

@@ -28,6 +28,15 @@ def decimal_year(t_ns: np.ndarray) -> np.ndarray:
     return years
 
 
+def date_of(year: float) -> str:
+    """The UTC date (``YYYY-MM-DD``) of a decimal year in :func:`decimal_year`'s scale (the
+    readers' ``gps_year``)."""
+    seconds = (float(year) - 1970.0) * 365.2425 * 86400.0
+    return (dt.datetime(1970, 1, 1, tzinfo=dt.UTC) + dt.timedelta(seconds=seconds)).strftime(
+        "%Y-%m-%d"
+    )
+
+
 def _model(year: float):  # type: ignore[no-untyped-def]
     from pygeomag import GeoMag
 
