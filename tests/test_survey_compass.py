@@ -442,3 +442,42 @@ def test_px4_rotated_compass_fitted_in_the_body_and_reported_in_its_axes(tmp_pat
     assert np.allclose([row[f"vehicle_offset_{a}"] for a in "xyz"], s_off * 1e6, atol=1e-3)
     assert row["calibration_error_ut"] < 0.3 and row["residual_vehicle_ut"] < 0.5
     assert row["residual_before_ut"] > 5 * row["residual_after_ut"]
+
+
+def test_hard_iron_step_flagged_in_a_fleet_of_few_flights():
+    """Two compasses of one vehicle over three flights, offsets (uT) and standard errors as the
+    ``mag_inflight`` stage's joint fit of the real PX4 flights of ``px4_flights_flugdrohne``
+    gives them: the internal compass's hard iron stepped by 24 uT (half the field) between its
+    second and third flight. Among four flight-to-flight changes the step itself sets the
+    fleet's scale, which hid it; the stage's rule (20 % of the field, 5 standard errors) names
+    it, and leaves the external compass's 2-3 uT alone. (The survey's own one-flight fit of
+    log_86 is looser, 2.4 / 3.6 / 22 uT, and the real step stays under 5 of them: there the
+    survey reports the calibration in use as off by 29.9 uT instead.)"""
+    day = np.array([0.0, 0.1, 14.0]) * 86_400e9
+    se = np.array([[0.8, 0.8, 5.0]] * 3)
+    flights = {
+        "v:MAG0": [[11.2, 16.8, -44.3], [14.1, 20.4, -42.1], [22.0, 10.5, -21.6]],
+        "v:MAG1": [[-5.1, -4.4, -23.0], [-6.3, -4.5, -24.4], [-3.0, -4.2, -23.4]],
+    }
+    histories = [
+        compass_history(
+            name,
+            ["log_20", "log_30", "log_86"],
+            day,
+            np.array(offset),
+            se,
+            np.full((3, 3), np.nan),
+            np.full((3, 3), np.nan),
+            np.zeros(3),
+            np.full(3, 1.0),
+            np.full(3, 48.8),
+            0,
+        )  # fmt: skip
+        for name, offset in flights.items()
+    ]
+    compass_flags(histories, k=5.0)
+    internal, external = histories
+    assert [(f["kind"], f["log"]) for f in internal.flags] == [("step", "log_86")]
+    assert "20 % of the field" in internal.flags[0]["why"]
+    assert internal.flags[0]["value"] > internal.flags[0]["threshold"] > 9.7
+    assert external.flags == []

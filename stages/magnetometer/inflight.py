@@ -927,16 +927,24 @@ def offset_steps(
     ``d`` on some axis and ``|d|`` above :data:`OFFSET_STEP_FRACTION` of the earth field
     ``field_t`` (``limit``, T). A step in the compass's hard iron between them (a part, wiring
     or payload moved near the compass, or magnetised)."""
-    limit = OFFSET_STEP_FRACTION * field_t
     out = []
     for i, j in zip(order[:-1], order[1:], strict=True):
         d = offsets[j] - offsets[i]
         si, sj = slice(3 * i, 3 * i + 3), slice(3 * j, 3 * j + 3)
         var = np.diag(cov[si, si] + cov[sj, sj] - cov[si, sj] - cov[sj, si])
-        spread = OFFSET_STEP_K * np.sqrt(np.maximum(var, 0.0))
-        if np.any(np.abs(d) > spread) and float(np.linalg.norm(d)) > limit:
-            out.append((i, j, d, limit))
+        if hard_iron_stepped(d, np.sqrt(np.maximum(var, 0.0)), field_t):
+            out.append((i, j, d, OFFSET_STEP_FRACTION * field_t))
     return out
+
+
+def hard_iron_stepped(d: np.ndarray, se: np.ndarray, field: float) -> bool:
+    """Whether an offset change ``d`` (3,) with standard errors ``se`` (3,) is a step of the
+    hard iron no one calibration can serve across: beyond :data:`OFFSET_STEP_K` standard errors
+    on some axis and above :data:`OFFSET_STEP_FRACTION` of the earth field ``field`` in all
+    (any one unit for the three)."""
+    d, se = np.asarray(d, dtype=np.float64), np.asarray(se, dtype=np.float64)
+    beyond = np.abs(d) > OFFSET_STEP_K * se
+    return bool(np.any(beyond)) and float(np.linalg.norm(d)) > OFFSET_STEP_FRACTION * field
 
 
 @dataclass

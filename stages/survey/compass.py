@@ -11,7 +11,10 @@ Per compass device (its fitted flights in date order; vectors in uT):
    robust scale (1.4826 MAD, :func:`~imupipe.stages.survey.stats.mad_sigma`) of every
    consecutive difference of that axis in the fleet (the ordinary flight-to-flight change:
    attitude and model errors), ``se`` each flight's standard error. A new payload, a changed
-   frame or a magnetised part is a step.
+   frame or a magnetised part is a step. An offset step is also flagged when it exceeds
+   ``OFFSET_STEP_FRACTION`` (20 %) of the earth field and 5 standard errors on an axis, the
+   ``mag_inflight`` stage's rule for flights fitted together, whatever the fleet's scale: in a
+   fleet of a few flights the step itself inflates ``s_fleet``.
 2. **Outliers**: a flight whose step in and step out are both flagged, opposite and of similar
    size (the second within a factor two of the first), is one odd flight (a magnetised tool
    aboard, a bad attitude estimate), reported as an outlier instead of two steps.
@@ -42,6 +45,7 @@ from typing import Any
 
 import numpy as np
 
+from imupipe.stages.magnetometer.inflight import OFFSET_STEP_FRACTION, hard_iron_stepped
 from imupipe.stages.survey.fleet import add_flag
 from imupipe.stages.survey.stats import mad_sigma, theil_sen, weighted_mean
 
@@ -120,18 +124,40 @@ def compass_history(
     return h
 
 
-def _steps(h: CompassHistory, values: np.ndarray, se: np.ndarray, scale: np.ndarray, k: float):
-    """(j, d (3,), ratio, limit) of each flagged step into flight j: the axis with the largest
-    ``|d| / limit`` above 1."""
+def _steps(
+    h: CompassHistory,
+    values: np.ndarray,
+    se: np.ndarray,
+    scale: np.ndarray,
+    k: float,
+    field: np.ndarray | None = None,
+):
+    """(j, d (3,), ratio, limit, axis, whole) of each flagged step into flight j: the axis with
+    the largest ``|d| / limit`` above 1 (``whole`` False); or, given each flight's earth
+    ``field`` (offsets), a change the hard iron made beyond any one calibration
+    (:func:`~imupipe.stages.magnetometer.inflight.hard_iron_stepped`, the ``mag_inflight``
+    stage's rule for flights fitted together) where the fleet's scale hides it (a small fleet
+    whose few flight-to-flight changes include the step itself): ``limit`` that fraction of the
+    field, ``whole`` True."""
     out = []
     for j in range(1, len(values)):
         d = values[j] - values[j - 1]
-        limit = k * np.sqrt(np.nan_to_num(scale) ** 2 + se[j] ** 2 + se[j - 1] ** 2)
+        se_d = np.sqrt(se[j] ** 2 + se[j - 1] ** 2)
+        limit = k * np.sqrt(np.nan_to_num(scale) ** 2 + se_d**2)
         with np.errstate(invalid="ignore", divide="ignore"):
             ratio = np.abs(d) / limit
         if np.isfinite(ratio).any() and np.nanmax(ratio) > 1:
             axis = int(np.nanargmax(ratio))
-            out.append((j, d, float(ratio[axis]), float(limit[axis]), axis))
+            out.append((j, d, float(ratio[axis]), float(limit[axis]), axis, False))
+        elif (
+            field is not None
+            and np.isfinite(field[j])
+            and np.isfinite(d).all()
+            and hard_iron_stepped(d, se_d, float(field[j]))
+        ):
+            whole = OFFSET_STEP_FRACTION * float(field[j])
+            axis = int(np.argmax(np.abs(d)))
+            out.append((j, d, float(np.linalg.norm(d)) / whole, whole, axis, True))
     return out
 
 
@@ -143,10 +169,10 @@ def _step_flags(
     h: CompassHistory, name: str, values: np.ndarray, se: np.ndarray, scale: np.ndarray,
     k: float, unit: str,
 ) -> None:  # fmt: skip
-    steps = _steps(h, values, se, scale, k)
+    steps = _steps(h, values, se, scale, k, h.field if unit == "uT" else None)
     by_j = {s[0]: s for s in steps}
     skip: set[int] = set()
-    for j, d, _ratio, limit, axis in steps:
+    for j, d, _ratio, limit, axis, whole in steps:
         if j in skip:
             continue
         nxt = by_j.get(j + 1)
@@ -171,9 +197,14 @@ def _step_flags(
             else ""
         )
         add_flag(
-            h.flags, h.device_id, "step", name, h.logs[j], float(d[axis]), limit,
+            h.flags, h.device_id, "step", name, h.logs[j], norm if whole else float(d[axis]), limit,
             f"{name} stepped by {_vec(d, unit)}{share} between {h.logs[j - 1]} and {h.logs[j]} "
-            f"(limit {limit:.2g} {unit} on {'xyz'[axis]})",
+            + (
+                f"(limit {limit:.2g} {unit} in all, {100 * OFFSET_STEP_FRACTION:.0f} % of the "
+                "field: no one calibration serves both)"
+                if whole
+                else f"(limit {limit:.2g} {unit} on {'xyz'[axis]})"
+            ),
         )  # fmt: skip
 
 
