@@ -184,6 +184,15 @@ def test_dataset_report_and_resume(planted):
     assert n == table.num_rows
 
 
+def test_two_jobs_give_the_bytes_of_one(planted, tmp_path):
+    # issue 39: with --jobs 2 the driver surveys logs itself while the pool starts, then the
+    # pool the rest; the dataset, fleet view and report are those of one process, byte for byte
+    root, _, result = planted
+    survey([root / "logs"], tmp_path / "one", jobs=1, rerun=False)
+    for name in ("survey.parquet", "fleet.json", "report.html"):
+        assert (tmp_path / "one" / name).read_bytes() == (root / "out" / name).read_bytes(), name
+
+
 def test_bad_logs_named_and_skipped(tmp_path):
     logs, _ = _fleet(tmp_path, "logs", 5, vehicles=1, imus=1, logs=2, log_s=60.0, events=False)
     good = (logs / "veh01" / "log_00.mcap").read_bytes()
