@@ -83,6 +83,8 @@ class Outcome:
     host: str | None = None
     fatal: bool = False
     """The error concerns every task alike (e.g. the output folder is full): stop."""
+    pid: int | None = None
+    """The process that ran the task (``os.getpid()`` of the driver: run in the driver)."""
 
 
 @dataclass
@@ -92,6 +94,7 @@ class _Attempt:
     retryable: bool
     host: str
     fatal: bool = False
+    pid: int = 0
 
 
 class _WorkerState:
@@ -108,7 +111,7 @@ def attempt(fn: Callable[[Any], Any], task: Any) -> _Attempt:
     says so), any other exception is retryable."""
     host = socket.gethostname()
     try:
-        return _Attempt(True, fn(task), False, host)
+        return _Attempt(True, fn(task), False, host, pid=os.getpid())
     except ImupipeError as exc:
         return _Attempt(False, str(exc), False, host, bool(getattr(exc, "fatal", False)))
     except Exception as exc:  # noqa: BLE001 - a task reports every failure as data
@@ -235,7 +238,15 @@ class _Tracker:
     def finish(self, i: int, attempt: _Attempt) -> None:
         if attempt.ok:
             self.on_done(
-                Outcome(i, self.tasks[i], attempt.value, None, self.attempts[i], attempt.host)
+                Outcome(
+                    i,
+                    self.tasks[i],
+                    attempt.value,
+                    None,
+                    self.attempts[i],
+                    attempt.host,
+                    pid=attempt.pid,
+                )  # fmt: skip
             )
         else:
             self.failed(i, attempt.value, attempt.retryable, attempt.host, attempt.fatal)
