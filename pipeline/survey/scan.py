@@ -488,9 +488,10 @@ def survey(
             return
         manifest.append({**outcome.result, "attempts": outcome.attempts, "host": outcome.host})
         ok.append(task)
-        # read now, while the workers survey the next logs (at the end it was serial: 200 logs
-        # of the 20 s kind took 1.3 s to read back)
-        tables[task.log] = pq.read_table(task.part)
+        if outcome.pid != os.getpid():
+            # surveyed by a worker: read now, while the workers survey the next logs (at the end
+            # it was serial: 200 logs of the 20 s kind took 1.3 s to read back)
+            tables[task.log] = pq.read_table(task.part)
         counts = outcome.result.get("counts") or {}
         without_still.extend(f"{task.log} {topic}" for topic, n in counts.items() if n == 0)
         cut_off.extend(w for w in outcome.result.get("warnings", ()) if READ_TO_CUT in w)
