@@ -7,8 +7,13 @@ Retried: an unexpected exception and a worker process that dies; not retried: ba
 from __future__ import annotations
 
 import os
+import sys
+import time
 from pathlib import Path
 
+import pytest
+
+from imupipe.pipeline.convert import engines
 from imupipe.pipeline.convert.engines import run_tasks
 from imupipe.pipeline.errors import ReadError
 
@@ -83,8 +88,6 @@ def test_no_retries(tmp_path):
 
 def pid_after(task: float) -> int:
     """Module-level so the pool's workers can import it: the process that ran the task."""
-    import time
-
     time.sleep(task)
     return os.getpid()
 
@@ -111,3 +114,16 @@ def test_failures_while_the_driver_helps(tmp_path):
     assert out["bad"].attempts == 1 and out["bad"].error == f"{tmp_path / 'bad'}: not a log"
     assert out["broken"].attempts == 3
     assert out["broken"].error.startswith("RuntimeError: always fails")
+
+
+def test_the_probe_sees_an_idle_fork_server_before_its_deadline():
+    # the pool's workers start once the fork server has imported its modules; the probe must
+    # see that (Linux: the server asleep in epoll_wait), not wait for its time limit
+    if not sys.platform.startswith("linux"):
+        pytest.skip("the probe reads /proc (Linux); elsewhere it says ready at once")
+    engines.start_forkserver(pid_after)
+    probe = engines._ForkServerProbe()
+    start = time.monotonic()
+    while not probe.ready():
+        time.sleep(0.01)
+    assert time.monotonic() - start < engines.SERVER_WAIT_S - 0.5

@@ -382,32 +382,38 @@ def _start_pool(ctx: Any, jobs: int) -> cf.ProcessPoolExecutor:
     return pool
 
 
+SERVER_WAIT_S = 3.0
+"""The longest a pool waits for its fork server to look ready (:class:`_ForkServerProbe`; it
+takes about 0.6 s) before its workers are started anyway: a probe that cannot tell must not keep
+the pool from starting (its start then waits for the server, on a thread, as before)."""
+
+
 class _ForkServerProbe:
     """Whether the fork server has imported its preload modules and waits for requests.
 
-    Linux (/proc): its main thread then sleeps in ``epoll_wait`` (``wchan``); where the kernel
-    hides ``wchan``, it sleeps (state ``S``) with its CPU time unchanged between two looks. Where
-    neither can be read (not Linux), it counts as ready: the pool then starts at once and waits
-    for the server as before."""
+    Linux (/proc): its main thread then sleeps in ``epoll_wait`` (``wchan``: ``do_epoll_wait``,
+    ``ep_poll`` on older kernels), or, where the kernel hides ``wchan``, sleeps (state ``S``) with
+    its CPU time unchanged since the last look. Where /proc cannot be read (not Linux), and after
+    :data:`SERVER_WAIT_S`, it counts as ready. Only time depends on it: a server taken for ready
+    too soon makes the pool's start wait for it (on the starting thread, while the driver works)."""
 
     def __init__(self) -> None:
         from multiprocessing import forkserver
 
         self.pid = getattr(getattr(forkserver, "_forkserver", None), "_forkserver_pid", None)
         self.ticks: str | None = None
+        self.deadline = time.monotonic() + SERVER_WAIT_S
 
     def ready(self) -> bool:
-        if not self.pid:
+        if not self.pid or time.monotonic() > self.deadline:
             return True
         try:
             wchan = Path(f"/proc/{self.pid}/wchan").read_text()
             stat = Path(f"/proc/{self.pid}/stat").read_text().rsplit(")", 1)[1].split()
         except (OSError, IndexError):
             return True
-        if "epoll" in wchan:
+        if "epoll" in wchan or "ep_poll" in wchan:
             return True
-        if wchan.strip() not in ("", "0"):
-            return False  # asleep elsewhere (a file read during an import)
         ticks = " ".join(stat[11:13])  # utime, stime
         idle = stat[0] == "S" and ticks == self.ticks
         self.ticks = ticks
