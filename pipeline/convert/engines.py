@@ -24,6 +24,12 @@ One task's failure never stops the others (unless ``on_done`` raises).
 was a third of a one-log conversion). A crash of that process (SIGKILL, out of memory) ends the
 command instead of being retried.
 
+**The driver helps while its pool starts** (``driver_helps``, local engine; the survey uses it):
+the fork server imports its modules (about 0.6 s) while the driver runs tasks as
+:func:`run_inline` does; a thread of the driver starts the workers once the server is ready and
+hands them every task left (:func:`_start_pool_working`). A queue emptied first starts no worker.
+A task the driver ran is not isolated from it, as with ``jobs == 1``.
+
 **Start-up.** A pool's workers are all started and initialised before any task is sent, with
 SIGINT and SIGTERM held back meanwhile (:func:`_start_pool`): a worker still unpickling its
 queues when the driver ends found their semaphores gone and printed a ``SemLock._rebuild``
