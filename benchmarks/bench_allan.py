@@ -24,7 +24,8 @@
    folder put on the script's ``PYTHONPATH`` only (pandas, when it is not installed: imupipe
    never imports it). Goal (issue 39): ratio <= 0.5. Beside them, in each pair, the floor: a
    process that imports what every such run needs (numpy, pyarrow, Rerun for the recording,
-   ``scipy.special`` for the confidence bounds and the fit) and reads the file with
+   scipy.special's three functions for the confidence bounds and the fit, loaded as the run
+   loads them) and reads the file with
    ``pyarrow.csv.read_csv`` (:data:`SCRIPT_FLOOR`).
 
 Times are noisy on a shared machine: the load average is printed, and the ratios (both sides
@@ -190,10 +191,14 @@ for c in ("gyro_x", "gyro_y", "gyro_z", "accel_x", "accel_y", "accel_z"):
 
 SCRIPT_FLOOR = """
 import sys
-import numpy, pyarrow, pyarrow.csv, rerun, scipy.special
+import numpy, pyarrow, pyarrow.csv, rerun, rerun.blueprint
+import imupipe.stages.special  # scipy.special's three functions, without its __init__
 pyarrow.csv.read_csv(sys.argv[1])
 """
-"""What no Allan run with a recording avoids: its imports and pyarrow's parse of the file."""
+"""What no Allan run with a recording avoids: its imports (numpy, pyarrow, Rerun for the
+recording, the three scipy.special functions of the bounds and the fit, as the run loads them:
+:mod:`imupipe.stages.special`; ``import scipy.special`` whole cost 0.3 s more before issue 39's
+last pass) and pyarrow's parse of the file."""
 
 WRITE_CHILD = """
 import sys

@@ -42,6 +42,7 @@ class WarmImports:
         self.failed: list[str] = []
         """The modules whose import raised on the thread (the main thread's import re-raises)."""
         self._thread: threading.Thread | None = None
+        self._started = False
 
     def _run(self) -> None:
         paused = self.freeze and gc.isenabled()
@@ -59,16 +60,22 @@ class WarmImports:
             if paused:
                 gc.enable()
 
-    def __enter__(self) -> WarmImports:
-        if self.modules:
+    def start(self) -> None:
+        """Start the thread (once: later calls, and calls after :meth:`wait`, do nothing)."""
+        if self.modules and not self._started:
             self._thread = threading.Thread(
                 target=self._run, name="imupipe-warm-imports", daemon=True
             )
             self._thread.start()
+        self._started = True
+
+    def __enter__(self) -> WarmImports:
+        self.start()
         return self
 
     def wait(self) -> None:
         """Return once every module has been imported (or has failed to)."""
+        self._started = True
         if self._thread is not None:
             self._thread.join()
             self._thread = None

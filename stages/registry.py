@@ -20,7 +20,7 @@ STAGE_TYPES: dict[str, str] = {
 }
 
 
-FIRST_USE_IMPORTS: dict[str, tuple[str, ...]] = {"allan": ("scipy.special",)}
+FIRST_USE_IMPORTS: dict[str, tuple[str, ...]] = {"allan": ("imupipe.stages.special",)}
 """Stage type -> the heavy modules its stage imports on first use rather than at the top of its
 module (the ``allan`` stage loads scipy only when it fits)."""
 

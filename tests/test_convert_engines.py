@@ -7,8 +7,13 @@ Retried: an unexpected exception and a worker process that dies; not retried: ba
 from __future__ import annotations
 
 import os
+import sys
+import time
 from pathlib import Path
 
+import pytest
+
+from imupipe.pipeline.convert import engines
 from imupipe.pipeline.convert.engines import run_tasks
 from imupipe.pipeline.errors import ReadError
 
@@ -79,3 +84,46 @@ def test_exceptions_are_retried_exactly(tmp_path):
 def test_no_retries(tmp_path):
     out = _run([("flaky", tmp_path / "f")], engine="local", jobs=1, retries=0)
     assert out["flaky"].attempts == 1 and "OSError: disk hiccup" in out["flaky"].error
+
+
+def pid_after(task: float) -> int:
+    """Module-level so the pool's workers can import it: the process that ran the task."""
+    time.sleep(task)
+    return os.getpid()
+
+
+def test_driver_works_while_its_pool_starts(tmp_path):
+    # issue 39: the driver runs tasks itself until the pool is up, then the pool takes the rest;
+    # every task runs once and is reported once, whoever ran it
+    outcomes = []
+    run_tasks(pid_after, [0.05] * 40, outcomes.append, jobs=2, driver_helps=True)
+    assert sorted(o.index for o in outcomes) == list(range(40))
+    assert all(o.error is None and o.attempts == 1 for o in outcomes)
+    pids = [o.result for o in outcomes]
+    assert os.getpid() in pids  # the first task at least: no pool is up at once
+    assert set(pids) - {os.getpid()}  # and the pool took the rest (2 s of work inline else)
+
+
+def test_failures_while_the_driver_helps(tmp_path):
+    # the same outcomes for a task run by the driver or by a worker (a task that kills its
+    # process is not run here: in the driver it would end the command, as with --jobs 1)
+    tasks = [(k, tmp_path / k) for k in ("ok", "flaky", "bad", "broken", "ok2", "ok3")]
+    out = _run(tasks, engine="local", jobs=2, retries=2, driver_helps=True)
+    assert out["ok"].error is None and out["ok2"].error is None and out["ok3"].error is None
+    assert out["flaky"].error is None and out["flaky"].attempts == 2
+    assert out["bad"].attempts == 1 and out["bad"].error == f"{tmp_path / 'bad'}: not a log"
+    assert out["broken"].attempts == 3
+    assert out["broken"].error.startswith("RuntimeError: always fails")
+
+
+def test_the_probe_sees_an_idle_fork_server_before_its_deadline():
+    # the pool's workers start once the fork server has imported its modules; the probe must
+    # see that (Linux: the server asleep in epoll_wait), not wait for its time limit
+    if not sys.platform.startswith("linux"):
+        pytest.skip("the probe reads /proc (Linux); elsewhere it says ready at once")
+    engines.start_forkserver(pid_after)
+    probe = engines._ForkServerProbe()
+    start = time.monotonic()
+    while not probe.ready():
+        time.sleep(0.01)
+    assert time.monotonic() - start < engines.SERVER_WAIT_S - 0.5

@@ -184,6 +184,41 @@ def test_dataset_report_and_resume(planted):
     assert n == table.num_rows
 
 
+def test_two_jobs_give_the_bytes_of_one(planted, tmp_path):
+    # issue 39: with --jobs 2 the driver surveys logs itself while the pool starts, then the
+    # pool the rest; the dataset, fleet view and report are those of one process, byte for byte
+    root, _, result = planted
+    survey([root / "logs"], tmp_path / "one", jobs=1, rerun=False)
+    for name in ("survey.parquet", "fleet.json", "report.html"):
+        assert (tmp_path / "one" / name).read_bytes() == (root / "out" / name).read_bytes(), name
+
+
+@pytest.mark.parametrize("delay", [0.4, 0.9, 1.6])
+def test_sigterm_while_the_driver_surveys_and_the_pool_starts(planted, tmp_path, delay):
+    # SIGTERM while the driver surveys logs itself, while its pool starts, or after: 143 (or 0
+    # when done first) and at most one line, never a traceback, no temporary file left
+    import os
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    root, _, _ = planted
+    out = tmp_path / "out"
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)}
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "imupipe.pipeline.cli", "survey", "--quiet", "--no-rerun",
+         "--jobs", "2", "--out", str(out), str(root / "logs")],
+        stderr=subprocess.PIPE, text=True, env=env,
+    )  # fmt: skip
+    time.sleep(delay)
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode in (0, 143, -15), err  # -15: before the interpreter reached imupipe
+    assert "Traceback" not in err and len(err.strip().splitlines()) <= 1, err
+    assert not list(out.rglob(".*.tmp")) if out.exists() else True
+
+
 def test_bad_logs_named_and_skipped(tmp_path):
     logs, _ = _fleet(tmp_path, "logs", 5, vehicles=1, imus=1, logs=2, log_s=60.0, events=False)
     good = (logs / "veh01" / "log_00.mcap").read_bytes()

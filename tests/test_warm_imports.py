@@ -60,7 +60,7 @@ def test_a_run_warms_its_stages_recorder_report_and_exporters(tmp_path):
     )
     assert warm_modules(load_config(cfg)) == [
         "imupipe.stages.allan.stage",
-        "scipy.special",
+        "imupipe.stages.special",
         "imupipe.stages.average",
         "imupipe.pipeline.report.recording",
         "imupipe.pipeline.report.page",

@@ -24,6 +24,12 @@ One task's failure never stops the others (unless ``on_done`` raises).
 was a third of a one-log conversion). A crash of that process (SIGKILL, out of memory) ends the
 command instead of being retried.
 
+**The driver helps while its pool starts** (``driver_helps``, local engine; the survey uses it):
+the fork server imports its modules (about 0.6 s) while the driver runs tasks as
+:func:`run_inline` does; a thread of the driver starts the workers once the server is ready and
+hands them every task left (:func:`_start_pool_working`). A queue emptied first starts no worker.
+A task the driver ran is not isolated from it, as with ``jobs == 1``.
+
 **Start-up.** A pool's workers are all started and initialised before any task is sent, with
 SIGINT and SIGTERM held back meanwhile (:func:`_start_pool`): a worker still unpickling its
 queues when the driver ends found their semaphores gone and printed a ``SemLock._rebuild``
@@ -83,6 +89,8 @@ class Outcome:
     host: str | None = None
     fatal: bool = False
     """The error concerns every task alike (e.g. the output folder is full): stop."""
+    pid: int | None = None
+    """The process that ran the task (``os.getpid()`` of the driver: run in the driver)."""
 
 
 @dataclass
@@ -92,6 +100,7 @@ class _Attempt:
     retryable: bool
     host: str
     fatal: bool = False
+    pid: int = 0
 
 
 class _WorkerState:
@@ -108,7 +117,7 @@ def attempt(fn: Callable[[Any], Any], task: Any) -> _Attempt:
     says so), any other exception is retryable."""
     host = socket.gethostname()
     try:
-        return _Attempt(True, fn(task), False, host)
+        return _Attempt(True, fn(task), False, host, pid=os.getpid())
     except ImupipeError as exc:
         return _Attempt(False, str(exc), False, host, bool(getattr(exc, "fatal", False)))
     except Exception as exc:  # noqa: BLE001 - a task reports every failure as data
@@ -214,6 +223,13 @@ def _start_forkserver(ctx: Any, preload: list[str]) -> None:
                 os.environ[var] = value
 
 
+def start_forkserver(fn: Callable[[Any], Any], preload: Sequence[str] = ()) -> None:
+    """Start the local engine's fork server now, importing ``fn``'s module and ``preload`` (as
+    :func:`run_local` does; it then finds the server running): a caller that has more to do
+    before it runs its tasks lets the server import meanwhile."""
+    _start_forkserver(mp.get_context("forkserver"), [fn.__module__, *preload])
+
+
 class _Tracker:
     """Attempts per task and the decision to retry or give up."""
 
@@ -228,7 +244,15 @@ class _Tracker:
     def finish(self, i: int, attempt: _Attempt) -> None:
         if attempt.ok:
             self.on_done(
-                Outcome(i, self.tasks[i], attempt.value, None, self.attempts[i], attempt.host)
+                Outcome(
+                    i,
+                    self.tasks[i],
+                    attempt.value,
+                    None,
+                    self.attempts[i],
+                    attempt.host,
+                    pid=attempt.pid,
+                )  # fmt: skip
             )
         else:
             self.failed(i, attempt.value, attempt.retryable, attempt.host, attempt.fatal)
@@ -328,28 +352,165 @@ def run_inline(
         tracker.finish(i, attempt(fn, tasks[i]))
 
 
-def _start_pool(ctx: Any, jobs: int) -> cf.ProcessPoolExecutor:
+def _open_pool(ctx: Any, jobs: int) -> cf.ProcessPoolExecutor:
     """A pool of ``jobs`` workers, every one of them started and initialised before this
-    returns, with SIGINT and SIGTERM held back meanwhile: a worker still starting when the driver
-    ends would find the pool's semaphores gone (a ``SemLock._rebuild`` traceback on stderr), so
-    the pool starts no worker it cannot stop cleanly."""
+    returns (a pool that fails to start is stopped here)."""
     pool = None
     try:
-        with signals_deferred():  # a signal held here is raised when the block ends
-            pool = cf.ProcessPoolExecutor(
-                jobs, mp_context=ctx, initializer=_worker_init, initargs=(os.getpid(),)
-            )
-            seen: set[int] = set()
-            for _ in range(50):
-                seen.update(pool.map(_ready, range(jobs), timeout=START_TIMEOUT_S))
-                live = {p.pid for p in (getattr(pool, "_processes", None) or {}).values()}
-                if live <= seen:
-                    break
+        pool = cf.ProcessPoolExecutor(
+            jobs, mp_context=ctx, initializer=_worker_init, initargs=(os.getpid(),)
+        )
+        seen: set[int] = set()
+        for _ in range(50):
+            seen.update(pool.map(_ready, range(jobs), timeout=START_TIMEOUT_S))
+            live = {p.pid for p in (getattr(pool, "_processes", None) or {}).values()}
+            if live <= seen:
+                break
     except BaseException:
         if pool is not None:
             _stop_pool(pool)
         raise
     return pool
+
+
+def _start_pool(ctx: Any, jobs: int) -> cf.ProcessPoolExecutor:
+    """:func:`_open_pool` with SIGINT and SIGTERM held back meanwhile: a worker still starting
+    when the driver ends would find the pool's semaphores gone (a ``SemLock._rebuild`` traceback
+    on stderr), so the pool starts no worker it cannot stop cleanly."""
+    pool = None
+    try:
+        with signals_deferred():  # a signal held here is raised when the block ends
+            pool = _open_pool(ctx, jobs)
+    except BaseException:
+        if pool is not None:
+            _stop_pool(pool)
+        raise
+    return pool
+
+
+SERVER_WAIT_S = 3.0
+"""The longest a pool waits for its fork server to look ready (:class:`_ForkServerProbe`; it
+takes about 0.6 s) before its workers are started anyway: a probe that cannot tell must not keep
+the pool from starting (its start then waits for the server, on a thread, as before)."""
+
+
+class _ForkServerProbe:
+    """Whether the fork server has imported its preload modules and waits for requests.
+
+    Linux (/proc): its main thread then sleeps in ``epoll_wait`` (``wchan``: ``do_epoll_wait``,
+    ``ep_poll`` on older kernels), or, where the kernel hides ``wchan``, sleeps (state ``S``) with
+    its CPU time unchanged since the last look. Where /proc cannot be read (not Linux), and after
+    :data:`SERVER_WAIT_S`, it counts as ready. Only time depends on it: a server taken for ready
+    too soon makes the pool's start wait for it (on the starting thread, while the driver works)."""
+
+    def __init__(self) -> None:
+        from multiprocessing import forkserver
+
+        self.pid = getattr(getattr(forkserver, "_forkserver", None), "_forkserver_pid", None)
+        self.ticks: str | None = None
+        self.deadline = time.monotonic() + SERVER_WAIT_S
+
+    def ready(self) -> bool:
+        if not self.pid or time.monotonic() > self.deadline:
+            return True
+        try:
+            wchan = Path(f"/proc/{self.pid}/wchan").read_text()
+            stat = Path(f"/proc/{self.pid}/stat").read_text().rsplit(")", 1)[1].split()
+        except (OSError, IndexError):
+            return True
+        if "epoll" in wchan or "ep_poll" in wchan:
+            return True
+        ticks = " ".join(stat[11:13])  # utime, stime
+        idle = stat[0] == "S" and ticks == self.ticks
+        self.ticks = ticks
+        return idle
+
+
+class _Starter(threading.Thread):
+    """Starts a pool on a thread of the driver while the driver works through the queue itself
+    (:func:`_start_pool_working`), then hands the pool every task still queued."""
+
+    def __init__(
+        self,
+        ctx: Any,
+        jobs: int,
+        fn: Callable[[Any], Any],
+        tasks: Sequence[Any],
+        tracker: _Tracker,
+        running: dict[cf.Future, int],
+        lock: threading.Lock,
+    ) -> None:
+        super().__init__(name="imupipe-start-pool", daemon=True)
+        self.ctx, self.jobs, self.fn, self.tasks = ctx, jobs, fn, tasks
+        self.tracker, self.running, self.lock = tracker, running, lock
+        self.cancelled = threading.Event()
+        self.pool: cf.ProcessPoolExecutor | None = None
+        self.took_over = False
+        self.error: BaseException | None = None
+
+    def run(self) -> None:
+        probe = _ForkServerProbe()
+        while not probe.ready():  # no worker is forked before the server can fork it at once
+            if self.cancelled.wait(0.01):
+                return
+        if self.cancelled.is_set():
+            return
+        try:
+            self.pool = _open_pool(self.ctx, self.jobs)
+        except BaseException as exc:  # noqa: BLE001 - the driver goes on with the queue alone
+            self.error = exc
+            return
+        with self.lock:
+            queue = self.tracker.queue
+            while queue and _submit(
+                self.pool, self.running, self.fn, self.tasks, queue, self.tracker
+            ):
+                pass
+            self.took_over = True
+
+
+def _start_pool_working(
+    ctx: Any,
+    jobs: int,
+    fn: Callable[[Any], Any],
+    tasks: Sequence[Any],
+    tracker: _Tracker,
+    running: dict[cf.Future, int],
+) -> cf.ProcessPoolExecutor | None:
+    """Start a pool while the driver runs tasks itself, as :func:`run_inline` does: the fork
+    server imports its modules and the workers start (about 0.6 s) while the queue goes down.
+    Once the pool is up it takes every task still queued (``running``: their futures) and the
+    driver ends the task under way; a queue emptied first leaves no pool to start (None).
+
+    A pool that fails to start leaves the driver working alone. On an exception (SIGINT,
+    SIGTERM, ``on_done`` raising) the driver waits for a start under way, signals held back as
+    in :func:`_start_pool`, then stops the pool."""
+    lock = threading.Lock()
+    starter = _Starter(ctx, jobs, fn, tasks, tracker, running, lock)
+    starter.start()
+    ok = False
+    try:
+        while True:
+            with lock:
+                if starter.took_over or not tracker.queue:
+                    break
+                i = tracker.queue.popleft()
+                tracker.start(i)
+            done = attempt(fn, tasks[i])
+            with lock:
+                tracker.finish(i, done)
+        starter.cancelled.set()
+        with signals_deferred():
+            starter.join()
+        ok = True
+    finally:
+        if not ok:
+            starter.cancelled.set()
+            with signals_deferred():
+                starter.join()
+            if starter.pool is not None:
+                _stop_pool(starter.pool)
+    return starter.pool
 
 
 def run_local(
@@ -360,9 +521,15 @@ def run_local(
     jobs: int | None = None,
     retries: int = 2,
     preload: Sequence[str] = (),
+    driver_helps: bool = False,
 ) -> None:
     """Run every task in a pool of ``jobs`` worker processes (``forkserver`` start; the fork
     server imports ``fn``'s module and ``preload`` once, so workers start warm).
+
+    ``driver_helps``: while the first pool starts, the driver runs tasks itself
+    (:func:`_start_pool_working`), so that a pool's start-up never makes a run slower than one
+    process would be; a task run there is not isolated (a crash of the driver ends the command,
+    as with ``--jobs 1``).
 
     When a worker dies the pool breaks and every task in flight fails with it. If only one task
     was in flight it is to blame and is charged an attempt; otherwise the tasks in flight become
@@ -373,11 +540,19 @@ def run_local(
     ctx = mp.get_context("forkserver")
     _start_forkserver(ctx, [fn.__module__, *preload])
     suspects: deque[int] = deque()
+    first = driver_helps
     while tracker.queue or suspects:
         crashed: list[int] = []
         refused = False  # the pool broke before it took a task: the task stays queued
-        pool = _start_pool(ctx, jobs)
         running: dict[cf.Future, int] = {}
+        if first:
+            first = False
+            helped = _start_pool_working(ctx, jobs, fn, tasks, tracker, running)
+            if helped is None:
+                continue  # the driver has emptied the queue, or the pool could not start
+            pool = helped
+        else:
+            pool = _start_pool(ctx, jobs)
         clean = False
         try:
             while True:
@@ -651,17 +826,27 @@ def run_tasks(
     preload: Sequence[str] = (),
     dashboard: bool = False,
     engine_log: Path | None = None,
+    driver_helps: bool = False,
 ) -> None:
     """Run ``fn`` over ``tasks`` on ``engine`` (``local`` or ``ray``); see the module docstring.
     ``preload``: modules the local workers should have imported before they start;
     ``dashboard``: start Ray's dashboard (on 127.0.0.1) with a local Ray; ``engine_log``: the
-    file Ray's own output goes to instead of stderr."""
+    file Ray's own output goes to instead of stderr; ``driver_helps``: the local engine's driver
+    runs tasks while its pool starts (:func:`run_local`)."""
     if not tasks:
         return
     if engine == "local" and (len(tasks) == 1 or jobs == 1):
         run_inline(fn, tasks, on_done, retries=retries)
     elif engine == "local":
-        run_local(fn, tasks, on_done, jobs=jobs, retries=retries, preload=preload)
+        run_local(
+            fn,
+            tasks,
+            on_done,
+            jobs=jobs,
+            retries=retries,
+            preload=preload,
+            driver_helps=driver_helps,
+        )
     elif engine == "ray":
         run_ray(
             fn,

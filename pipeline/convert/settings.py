@@ -15,7 +15,6 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-from imupipe.pipeline.config import parse_input
 from imupipe.pipeline.errors import ConfigError
 from imupipe.readers.spec import InputSpec
 
@@ -41,6 +40,8 @@ def load_read_settings(path: Path | None) -> InputSpec:
     if "path" in raw:
         raise ConfigError(f"--config {path}: 'path' is not allowed (the logs are the arguments)")
     base = Path(path).resolve().parent
+    from imupipe.pipeline.config import parse_input  # numpy, pyarrow: not for the hashes above
+
     spec = parse_input("convert", {**raw, "path": str(base)}, base, f"--config {path}")
     return dataclasses.replace(spec, keys_in=f"{path} (--config)")
 

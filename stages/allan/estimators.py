@@ -640,7 +640,7 @@ def edf_of_curve(kind: str, m: np.ndarray, alpha: np.ndarray, n_phase: int) -> n
 
 def chi2_quantile(p: float, dof: np.ndarray) -> np.ndarray:
     """The chi-square quantile ``chi2.ppf(p, dof)`` as ``2 * gammaincinv(dof / 2, p)``."""
-    from scipy.special import gammaincinv  # scipy: loaded on first use (start-up)
+    from imupipe.stages.special import gammaincinv  # scipy: loaded on first use (start-up)
 
     return 2.0 * gammaincinv(0.5 * np.asarray(dof, dtype=np.float64), p)
 
@@ -692,7 +692,7 @@ def bends(dev: Deviation, conf: Confidence, bend: float = BEND) -> np.ndarray:
         return np.zeros(0, dtype=np.int64)
     lt = np.log(dev.taus)[:, None]
     ld = np.log(dev.dev)
-    from scipy.special import polygamma
+    from imupipe.stages.special import polygamma
 
     var = polygamma(1, 0.5 * conf.edf) / 4.0
     slope = np.diff(ld, axis=0) / np.diff(lt, axis=0)

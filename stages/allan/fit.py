@@ -100,7 +100,7 @@ def term_variance(term: str, value: float, taus: np.ndarray) -> np.ndarray:
 
 def log_variance_moments(edf: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(bias, variance) of ln(s^2 / sigma^2) for s^2 ~ sigma^2 chi2(edf) / edf."""
-    from scipy.special import digamma, polygamma  # scipy: loaded on first use (start-up)
+    from imupipe.stages.special import digamma, polygamma  # scipy: loaded on first use
 
     half = 0.5 * np.asarray(edf, dtype=np.float64)
     return digamma(half) - np.log(half), polygamma(1, half)
