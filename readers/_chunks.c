@@ -146,6 +146,54 @@ done:
     return result;
 }
 
+#define FILL_BLOCK 128 /* messages per block: their records stay in L1/L2 across the slots */
+
+static inline int is_nan(uint64_t v) {
+    return (v & 0x7fffffffffffffffULL) > 0x7ff0000000000000ULL;
+}
+
+/* One block of nb messages (record offsets at, first row row0) written slot by slot: a tight
+ * loop per column instead of every column per message (the same bytes: a clean slot is
+ * written from its first message whose values are not all +0.0, as message by message). */
+static void fill_block(const uint8_t *buf, const int64_t *at, int64_t nb, Py_ssize_t skip,
+                       const int64_t *slots, Py_ssize_t m, Py_buffer *dst, int64_t row0,
+                       unsigned long long *clean, unsigned long long *dirty,
+                       unsigned long long nan_check, unsigned long long *nan) {
+    for (Py_ssize_t s = 0; s < m; s++) {
+        const int64_t c = slots[2 * s + 1];
+        const Py_ssize_t off = skip + 8 * (Py_ssize_t)slots[2 * s];
+        const unsigned long long bit = 1ULL << s;
+        uint64_t *out = (uint64_t *)dst[s].buf + row0 * c;
+        int64_t j0 = 0;
+        if (*clean & bit) { /* zeros so far: the first message with a value not +0.0 */
+            for (; j0 < nb; j0++) {
+                const uint8_t *src = buf + at[j0] + off;
+                uint64_t any = 0;
+                for (int64_t e = 0; e < c; e++) any |= rd64(src + 8 * e);
+                if (any) break;
+            }
+            if (j0 == nb) continue; /* the column holds zeros there already */
+            *clean &= ~bit;
+            *dirty |= bit;
+        }
+        if (c == 1) {
+            for (int64_t j = j0; j < nb; j++) out[j] = rd64(buf + at[j] + off);
+        } else if (c == 9) { /* covariances: a constant size, copied inline */
+            for (int64_t j = j0; j < nb; j++) memcpy(out + 9 * j, buf + at[j] + off, 72);
+        } else {
+            for (int64_t j = j0; j < nb; j++)
+                memcpy(out + c * j, buf + at[j] + off, (size_t)(8 * c));
+        }
+        if ((nan_check & bit) && !(*nan & bit)) {
+            for (int64_t e = j0 * c; e < nb * c; e++)
+                if (is_nan(out[e])) {
+                    *nan |= bit;
+                    break;
+                }
+        }
+    }
+}
+
 /* fill(buf, offsets, skip, slots, columns, clean, nan_check, runs) -> (dirty, nan)
  *
  * For each message record at int64 offset o of offsets, its float fields start at o + skip.
@@ -221,40 +269,10 @@ static PyObject *fill(PyObject *self, PyObject *args) {
     Py_BEGIN_ALLOW_THREADS /* the buffers are held: other threads may run meanwhile */
     for (Py_ssize_t k = 0; k < n_runs; k++) {
         const int64_t a = runs[3 * k], row0 = runs[3 * k + 1], count = runs[3 * k + 2];
-        for (int64_t j = 0; j < count; j++) {
-            const uint8_t *f = buf + at[a + j] + skip;
-            const int64_t row = row0 + j;
-            for (Py_ssize_t s = 0; s < m; s++) {
-                const int64_t c = slots[2 * s + 1];
-                const uint8_t *src = f + 8 * slots[2 * s];
-                const unsigned long long bit = 1ULL << s;
-                uint64_t *out = (uint64_t *)dst[s].buf + row * c;
-                if (c == 1) { /* a scalar column: one word, no call to memcpy */
-                    const uint64_t v = rd64(src);
-                    if (clean & bit) {
-                        if (v == 0) continue; /* the column holds zeros there already */
-                        clean &= ~bit;
-                        dirty |= bit;
-                    }
-                    if ((nan_check & bit) && (v & 0x7fffffffffffffffULL) > 0x7ff0000000000000ULL)
-                        nan |= bit;
-                    memcpy(out, &v, 8);
-                    continue;
-                }
-                if (clean & bit) {
-                    uint64_t any = 0;
-                    for (int64_t e = 0; e < c; e++) any |= rd64(src + 8 * e);
-                    if (any == 0) continue;
-                    clean &= ~bit;
-                    dirty |= bit;
-                }
-                if (nan_check & bit) {
-                    for (int64_t e = 0; e < c; e++)
-                        if ((rd64(src + 8 * e) & 0x7fffffffffffffffULL) > 0x7ff0000000000000ULL)
-                            nan |= bit;
-                }
-                memcpy(out, src, (size_t)(8 * c));
-            }
+        for (int64_t b = 0; b < count; b += FILL_BLOCK) {
+            const int64_t nb = count - b < FILL_BLOCK ? count - b : FILL_BLOCK;
+            fill_block(buf, at + a + b, nb, skip, slots, m, dst, row0 + b, &clean, &dirty,
+                       nan_check, &nan);
         }
     }
     Py_END_ALLOW_THREADS
