@@ -85,7 +85,8 @@ static int walk_records(const uint8_t *buf, Py_ssize_t len, const int64_t *offse
 }
 
 /* cdr_walk(buf, offsets, channel, floats)
- *     -> None | (times: bytearray, skip: int, frame: bytes, ordered: int)
+ * cdr_walk(buf, offsets, channel, floats, out)
+ *     -> None | (times: bytearray or out, skip: int, frame: bytes, ordered: int)
  *
  * offsets: int64 byte offsets of channel's message records in buf (a decompressed chunk).
  * When every record is a message record of that channel lying whole in buf, every payload has
@@ -94,12 +95,16 @@ static int walk_records(const uint8_t *buf, Py_ssize_t len, const int64_t *offse
  * int64 (log times, publish times, header stamps sec * 1e9 + nanosec, each n long; the uint64
  * times read as int64), skip the bytes from a record's opcode to its first float field, frame
  * the frame_id's bytes (without the NUL), ordered bit 0 set when the log times never decrease,
- * bit 1 when the header stamps never do. Else None (the numpy path reads the chunk). */
+ * bit 1 when the header stamps never do. Else None (the numpy path reads the chunk). out
+ * (optional): a writable buffer of at least 3 * n int64 to write the times into instead of a
+ * new bytearray (returned as times). */
 static PyObject *cdr_walk(PyObject *self, PyObject *args) {
-    Py_buffer view, offs;
+    Py_buffer view, offs, given = {0};
     unsigned int channel;
     Py_ssize_t floats;
-    if (!PyArg_ParseTuple(args, "y*y*In", &view, &offs, &channel, &floats)) return NULL;
+    PyObject *dest = NULL;
+    if (!PyArg_ParseTuple(args, "y*y*In|O", &view, &offs, &channel, &floats, &dest)) return NULL;
+    if (dest == Py_None) dest = NULL;
     const uint8_t *buf = (const uint8_t *)view.buf;
     const Py_ssize_t len = view.len;
     const Py_ssize_t n = offs.len / (Py_ssize_t)sizeof(int64_t);
@@ -119,15 +124,30 @@ static PyObject *cdr_walk(PyObject *self, PyObject *args) {
     const Py_ssize_t first = 4 + body + ((8 - body % 8) % 8);
     if (first + 8 * floats > size) goto none;
     const Py_ssize_t frame_len = (Py_ssize_t)strlen_ - 1;
-    PyObject *times = PyByteArray_FromStringAndSize(NULL, 3 * n * (Py_ssize_t)sizeof(int64_t));
-    if (times == NULL) goto fail;
-    int64_t *out = (int64_t *)PyByteArray_AS_STRING(times);
+    PyObject *times;
+    int64_t *out;
+    if (dest != NULL) { /* the caller's buffer (used again from one call to the next) */
+        if (PyObject_GetBuffer(dest, &given, PyBUF_WRITABLE | PyBUF_C_CONTIGUOUS) < 0) goto fail;
+        if (given.len < 3 * n * (Py_ssize_t)sizeof(int64_t)) {
+            PyBuffer_Release(&given);
+            PyErr_SetString(PyExc_ValueError, "cdr_walk: out holds fewer than 3 * n int64");
+            goto fail;
+        }
+        times = dest;
+        Py_INCREF(times);
+        out = (int64_t *)given.buf;
+    } else {
+        times = PyByteArray_FromStringAndSize(NULL, 3 * n * (Py_ssize_t)sizeof(int64_t));
+        if (times == NULL) goto fail;
+        out = (int64_t *)PyByteArray_AS_STRING(times);
+    }
     int ordered = 0;
     int ok;
     Py_BEGIN_ALLOW_THREADS /* the buffers are held: other threads may run meanwhile */
     ok = walk_records(buf, len, (const int64_t *)raw, n, channel, reclen, size, p0, frame_len,
                       out, &ordered);
     Py_END_ALLOW_THREADS
+    if (dest != NULL) PyBuffer_Release(&given);
     if (!ok) goto drop;
     result = Py_BuildValue("NnNi", times, (Py_ssize_t)(MESSAGE_HEADER + first),
                            PyBytes_FromStringAndSize((const char *)p0 + 16, frame_len), ordered);
@@ -288,7 +308,7 @@ done:
 
 static PyMethodDef methods[] = {
     {"cdr_walk", cdr_walk, METH_VARARGS,
-     "cdr_walk(buf, offsets, channel, floats) -> None | (times, skip, frame, ordered): one "
+     "cdr_walk(buf, offsets, channel, floats, out=None) -> None | (times, skip, frame, ordered): one "
      "channel's message records of one little-endian CDR layout, checked, and their times."},
     {"fill", fill, METH_VARARGS,
      "fill(buf, offsets, skip, slots, columns, clean, nan_check, runs) -> (dirty, nan): the "

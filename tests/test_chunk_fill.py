@@ -238,3 +238,61 @@ def test_fill_writes_from_the_first_value_not_zero_and_checks_its_bounds(tmp_pat
         chunk_fill.fill(piece.records, columns, set(), [(slice(0, n), slice(6, n + 6))])
     with pytest.raises(IndexError):
         chunk_fill.fill(piece.records, columns, set(), [(slice(0, n + 1), slice(0, n + 1))])
+
+
+# --- chunks read as one group (issue 39) -------------------------------------------------------
+
+
+def test_chunks_read_as_groups_give_the_tables_of_chunks_one_by_one(tmp_path, monkeypatch):
+    """A whole-table read decodes chunks that lie back to back in one arena as one group: the
+    same table as chunk by chunk (GROUP_BYTES 0), and as decompressing in the reading thread
+    (a process on one CPU)."""
+    from imupipe.readers.mcap import fast
+    from imupipe.readers.mcap import reader as mcap_reader
+
+    monkeypatch.delenv(PURE_PYTHON_ENV, raising=False)
+    path = tmp_path / "log.mcap"
+    write_log(path, imu_log(**LOGS["imu_mag_temperature_absent"]))
+    source = mcap_reader.McapSource(path)
+    groups = [c for c in source.file.chunks(mcap_reader.GROUP_BYTES) if c.parts]
+    assert groups and len(groups[0].parts) >= 2
+    by_topic = {"/imu/data": "imu", "/imu/mag": "mag", "/imu/temperature": "temperature"}
+    stream_of = {cid: by_topic[c.topic] for cid, c in source.file.channels.items()}
+    pieces = source._decode_group(groups[0], stream_of)
+    assert pieces is not None and set(pieces) == {"imu", "mag", "temperature"}
+    imu = next(cid for cid, stream in stream_of.items() if stream == "imu")
+    assert len(pieces["imu"]) == sum(len(p.offsets.get(imu, ())) for p in groups[0].parts)
+    grouped = reads(path, monkeypatch, True, batches=False)
+    monkeypatch.setattr(mcap_reader, "GROUP_BYTES", 0)
+    assert reads(path, monkeypatch, True, batches=False) == grouped
+    monkeypatch.setattr(fast, "one_cpu", lambda: True)
+    monkeypatch.setattr(mcap_reader, "GROUP_BYTES", 4 << 20)
+    assert reads(path, monkeypatch, True, batches=False) == grouped
+
+
+def test_an_index_past_its_chunk_is_caught_inside_a_group(tmp_path, monkeypatch):
+    """A message index entry of the first chunk pointing past the chunk's end lands on the next
+    chunk's first record in the group's buffer: the group is not taken, and the chunk's error
+    is the one read chunk by chunk gives."""
+    from imupipe.readers.compression import BufferPool
+    from imupipe.readers.errors import ReadError
+    from imupipe.readers.mcap.fast import OP_CHUNK, OP_MESSAGE_INDEX, ChunkFields
+
+    monkeypatch.delenv(PURE_PYTHON_ENV, raising=False)
+    path = tmp_path / "log.mcap"
+    write_log(path, imu_log())
+    file = McapFile(path)
+    with open(path, "rb") as fh:
+        records = list(file._records(fh, 8, file.size))
+    k = next(i for i, r in enumerate(records) if r[0] == OP_CHUNK)
+    chunk_pos, body = records[k][1], records[k][2]
+    size = ChunkFields.of(body, "").size
+    op, index_pos, index = records[k + 1]
+    assert op == OP_MESSAGE_INDEX and records[k + 2][0] == OP_CHUNK  # a chunk follows
+    data = bytearray(path.read_bytes())
+    last = index_pos + 9 + len(index) - 8  # the last entry's offset
+    data[last : last + 8] = BufferPool.after(0, size).to_bytes(8, "little")
+    path.write_bytes(bytes(data))
+    for compiled in (True, False):
+        with pytest.raises(ReadError, match=f"chunk at byte {chunk_pos}: message index points"):
+            reads(path, monkeypatch, compiled, batches=False)
