@@ -40,9 +40,9 @@ class DecompressWorkers:
 
     def submit(self, fn: Callable, *args: object) -> concurrent.futures.Future:
         future = self.pool.submit(fn, *args)
+        if self.futures and self.futures[0].done():  # a done future holds its result (a
+            self.futures = [f for f in self.futures if not f.done()]  # pooled chunk buffer)
         self.futures.append(future)
-        if len(self.futures) > 4 * PREFETCH:
-            self.futures = [f for f in self.futures if not f.done()]
         return future
 
 
