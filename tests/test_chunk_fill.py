@@ -296,3 +296,21 @@ def test_an_index_past_its_chunk_is_caught_inside_a_group(tmp_path, monkeypatch)
     for compiled in (True, False):
         with pytest.raises(ReadError, match=f"chunk at byte {chunk_pos}: message index points"):
             reads(path, monkeypatch, compiled, batches=False)
+
+
+@pytest.mark.parametrize("length", [1, 7, 9, 16, 17, 30])
+def test_walk_compares_every_byte_of_a_frame_id(tmp_path, monkeypatch, length):
+    """frame_ids of 1 to 16 bytes are compared as words, longer ones with memcmp: a record whose
+    first or last frame_id byte differs takes the numpy path."""
+    monkeypatch.delenv(PURE_PYTHON_ENV, raising=False)
+    path = tmp_path / "log.mcap"
+    write_log(path, imu_log(300, frame="f" * length))
+    chunk = next(iter(McapFile(path).chunks()))
+    cid = next(iter(chunk.offsets))
+    off = chunk.offsets[cid]
+    piece = chunk_fill.walk(chunk.buf, off, cid, "imu")
+    assert piece is not None and piece.one_frame == "f" * length
+    for at in (0, length - 1):
+        buf = chunk.buf.copy()
+        buf[int(off[5]) + 31 + 16 + at] = ord("g")
+        assert chunk_fill.walk(buf, off, cid, "imu") is None, at
