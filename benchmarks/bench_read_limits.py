@@ -27,12 +27,13 @@ The reading thread is the critical path when the helper threads (decompression, 
 find a free core; ``max(reading thread, process / 2)`` is what the read would take on two idle
 cores, printed as the "idle estimate". ``--load K`` starts K busy processes for the run, to
 measure on a loaded machine on purpose. ``--cpus 0`` runs the whole benchmark on CPU 0 only
-(as ``taskset -c 0``; the reader then decompresses in its reading thread). The minor page faults
+(as ``taskset -c 0``; the reader then decompresses in its reading thread, as it does when the
+load average says no CPU is free; ``--threads on`` / ``off`` decides instead). The minor page faults
 of each side (``ru_minflt`` of the process) are printed too: the table's fresh pages are most of
 a read's.
 
     python benchmarks/bench_read_limits.py [--n 1000000 5000000] [--repeat 3] [--load 0] [--dense]
-        [--fallback] [--cpus 0]
+        [--fallback] [--cpus 0] [--threads auto|on|off]
 """
 
 from __future__ import annotations
@@ -204,6 +205,13 @@ def main() -> None:
         help="run on these CPUs only (as taskset -c; the reader then decompresses inline)",
     )
     parser.add_argument(
+        "--threads",
+        choices=("auto", "on", "off"),
+        default="auto",
+        help="decompression threads: as the reader decides (auto: none when no CPU is free, "
+        "compression.no_spare_cpu), always, or never",
+    )
+    parser.add_argument(
         "--fallback",
         action="store_true",
         help=f"also time the numpy path ({PURE_PYTHON_ENV}=1: no compiled helper)",
@@ -211,6 +219,11 @@ def main() -> None:
     args = parser.parse_args()
     if args.cpus:
         os.sched_setaffinity(0, args.cpus)  # before any thread starts; the probes inherit it
+    from imupipe.readers.compression import no_spare_cpu
+    from imupipe.readers.mcap import fast
+
+    if args.threads != "auto":
+        fast.no_spare_cpu = lambda: args.threads == "off"  # type: ignore[assignment]
 
     from imupipe.pipeline.writers.mcap import write_mcap
 
@@ -229,7 +242,8 @@ def main() -> None:
         cpus = sorted(os.sched_getaffinity(0))
         print(
             f"load average before: {os.getloadavg()[0]:.2f}; busy processes added: {args.load}; "
-            f"CPUs {cpus}"
+            f"CPUs {cpus}; decompression threads: {args.threads} (now: "
+            f"{'no' if fast.no_spare_cpu() else 'yes'}; no_spare_cpu() {no_spare_cpu()})"
         )
         for n in args.n:
             imu_only, multi = work / f"{kind}_{n}.mcap", work / f"imu_temp_{n}.mcap"

@@ -46,15 +46,30 @@ class DecompressWorkers:
         return future
 
 
-def one_cpu() -> bool:
-    """Whether this process may run on one CPU only (``taskset -c 0``, a container's cpuset):
-    a decompression thread then only adds hand-offs and thread switches to the same work on
-    the same core (a 1 M-message MCAP read: 0.05 s more process CPU than decompressing in the
-    reading thread, measured with ``taskset -c 0``), so the readers decompress inline."""
+LOADED = 0.5
+"""A decompression thread is started only while the machine's 1-minute load average is below
+its CPU count minus this (:func:`no_spare_cpu`)."""
+
+
+def no_spare_cpu() -> bool:
+    """Whether no CPU is free for a decompression thread: the process may run on one CPU only
+    (``taskset -c 0``, a container's cpuset), or the machine's load average says every CPU is
+    busy (``os.getloadavg()[0] >= os.cpu_count() - LOADED``: other processes, or a fleet's
+    other workers). A decompression thread then only adds hand-offs, GIL changes and chunks
+    read from another core's cache to the same work: a 1 M-message MCAP read cost 0.05 s more
+    process CPU with it on one core, and 0.1 s more (the same wall time) on two busy cores,
+    than decompressing in the reading thread (issue 39). With a core free, the thread
+    overlaps decompression with decoding (wall time)."""
     try:
-        return len(os.sched_getaffinity(0)) < 2
+        cpus = len(os.sched_getaffinity(0))
     except (AttributeError, OSError):  # not Linux
-        return (os.cpu_count() or 1) < 2
+        cpus = os.cpu_count() or 1
+    if cpus < 2:
+        return True
+    try:
+        return os.getloadavg()[0] >= (os.cpu_count() or cpus) - LOADED
+    except (AttributeError, OSError):  # no load average (Windows)
+        return False
 
 
 def done(result: object) -> concurrent.futures.Future:

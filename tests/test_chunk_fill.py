@@ -245,14 +245,16 @@ def test_fill_writes_from_the_first_value_not_zero_and_checks_its_bounds(tmp_pat
 
 def test_chunks_read_as_groups_give_the_tables_of_chunks_one_by_one(tmp_path, monkeypatch):
     """A whole-table read decodes chunks that lie back to back in one arena as one group: the
-    same table as chunk by chunk (GROUP_BYTES 0), and as decompressing in the reading thread
-    (a process on one CPU)."""
+    same table as chunk by chunk (GROUP_BYTES 0), with decompression threads or without (no
+    CPU free)."""
     from imupipe.readers.mcap import fast
     from imupipe.readers.mcap import reader as mcap_reader
 
     monkeypatch.delenv(PURE_PYTHON_ENV, raising=False)
-    path = tmp_path / "log.mcap"
-    write_log(path, imu_log(**LOGS["imu_mag_temperature_absent"]))
+    monkeypatch.setattr(fast, "no_spare_cpu", lambda: False)
+    path = tmp_path / "log.mcap"  # above SMALL_FILE: read by the decompression threads
+    write_log(path, imu_log(20_000, temperature_hz=3.0, mag=True, absent=[5, 9000]))
+    assert path.stat().st_size > fast.SMALL_FILE
     source = mcap_reader.McapSource(path)
     groups = [c for c in source.file.chunks(mcap_reader.GROUP_BYTES) if c.parts]
     assert groups and len(groups[0].parts) >= 2
@@ -265,7 +267,7 @@ def test_chunks_read_as_groups_give_the_tables_of_chunks_one_by_one(tmp_path, mo
     grouped = reads(path, monkeypatch, True, batches=False)
     monkeypatch.setattr(mcap_reader, "GROUP_BYTES", 0)
     assert reads(path, monkeypatch, True, batches=False) == grouped
-    monkeypatch.setattr(fast, "one_cpu", lambda: True)
+    monkeypatch.setattr(fast, "no_spare_cpu", lambda: True)
     monkeypatch.setattr(mcap_reader, "GROUP_BYTES", 4 << 20)
     assert reads(path, monkeypatch, True, batches=False) == grouped
 
@@ -314,3 +316,20 @@ def test_walk_compares_every_byte_of_a_frame_id(tmp_path, monkeypatch, length):
         buf = chunk.buf.copy()
         buf[int(off[5]) + 31 + 16 + at] = ord("g")
         assert chunk_fill.walk(buf, off, cid, "imu") is None, at
+
+
+def test_no_spare_cpu_when_one_cpu_is_allowed_or_all_are_busy(monkeypatch):
+    import os
+
+    from imupipe.readers.compression import no_spare_cpu
+
+    monkeypatch.setattr(os, "cpu_count", lambda: 2)
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {0}, raising=False)
+    monkeypatch.setattr(os, "getloadavg", lambda: (0.0, 0.0, 0.0))
+    assert no_spare_cpu()  # taskset -c 0
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {0, 1}, raising=False)
+    assert not no_spare_cpu()
+    monkeypatch.setattr(os, "getloadavg", lambda: (1.4, 0.0, 0.0))
+    assert not no_spare_cpu()  # one CPU free: the read itself is one of the load
+    monkeypatch.setattr(os, "getloadavg", lambda: (1.6, 0.0, 0.0))
+    assert no_spare_cpu()

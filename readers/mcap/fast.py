@@ -56,7 +56,7 @@ from imupipe.readers.compression import (
     decompress_chunk,
     decompress_into,
     decompress_workers,
-    one_cpu,
+    no_spare_cpu,
 )
 from imupipe.readers.errors import READ_TO_CUT, ReadError
 from imupipe.readers.mcap.summary import complete, defined
@@ -569,7 +569,8 @@ class McapFile:
         caller decodes the current one (zstd, lz4 and zlib release the GIL). A file of one
         chunk, or a small one (:data:`SMALL_FILE`, read whole), has its chunks decompressed in
         the reading thread, each when it is reached: nothing to overlap worth a hand-off; so
-        has every file when the process may use one CPU only (:func:`one_cpu`)."""
+        has every file when no CPU is free for a decompression thread (:func:`no_spare_cpu`:
+        one CPU allowed, or a busy machine)."""
         offsets, suffix_min = self._bounds()
         pool = BufferPool(group)
         merge = _Merge() if group else None
@@ -583,7 +584,7 @@ class McapFile:
                 whole = fh.read()
             if len(whole) != self.size:  # changed since it was opened: read it as a large one
                 whole = None
-        inline = whole is not None or len(offsets) == 1 or one_cpu()
+        inline = whole is not None or len(offsets) == 1 or no_spare_cpu()
         with (
             open(self.path, "rb") if whole is None else io.BytesIO(whole) as fh,
             contextlib.nullcontext() if inline else decompress_workers() as worker,
