@@ -259,8 +259,8 @@ def test_chunks_read_as_groups_give_the_tables_of_chunks_one_by_one(tmp_path, mo
     groups = [c for c in source.file.chunks(mcap_reader.GROUP_BYTES) if c.parts]
     assert groups and len(groups[0].parts) >= 2
     by_topic = {"/imu/data": "imu", "/imu/mag": "mag", "/imu/temperature": "temperature"}
-    stream_of = {cid: by_topic[c.topic] for cid, c in source.file.channels.items()}
-    pieces = source._decode_group(groups[0], stream_of)
+    stream_of: dict = {}
+    pieces = source._decode_group(groups[0], by_topic, stream_of)
     assert pieces is not None and set(pieces) == {"imu", "mag", "temperature"}
     imu = next(cid for cid, stream in stream_of.items() if stream == "imu")
     assert len(pieces["imu"]) == sum(len(p.offsets.get(imu, ())) for p in groups[0].parts)
