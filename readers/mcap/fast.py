@@ -38,7 +38,6 @@ import functools
 import io
 import os
 import struct
-import threading
 import zlib
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
@@ -659,33 +658,11 @@ class McapFile:
                 yield _loose_chunk(loose, loose_off, f"{self.path}: messages at the end")
 
 
-_scratch = threading.local()
-"""Per thread: the buffer :func:`_pread` reads large records into (``buf``, uint8)."""
-SCRATCH_BYTES = 1 << 16
-"""Reads of at least this many bytes go into the thread's reused buffer (:func:`_pread`)."""
-
-
-def _read_reused(fd: int, length: int, offset: int) -> bytes | memoryview:
-    """``os.pread(fd, length, offset)``, a large read into the calling thread's reused buffer:
-    a view valid until the thread's next read. A fresh ``bytes`` per compressed chunk is fresh
-    memory the kernel maps page by page (~16,000 page faults per million Imu messages, as many
-    as the decompressed chunks cost before :class:`~imupipe.readers.compression.BufferPool`);
-    the reused buffer is mapped once (issue 39)."""
-    if length < SCRATCH_BYTES:
-        return os.pread(fd, length, offset)
-    buf = getattr(_scratch, "buf", None)
-    if buf is None or len(buf) < length:
-        buf = _scratch.buf = np.empty(-(-length // SCRATCH_BYTES) * SCRATCH_BYTES, np.uint8)
-    view = memoryview(buf)[:length]
-    return view[: os.preadv(fd, [view], offset)]
-
-
 def _pread(source: int | bytes) -> Callable[[int, int], bytes | memoryview]:
-    """``read(length, offset)`` of a file, its result used before the calling thread reads
-    again: :func:`_read_reused` of the descriptor ``source``, or a view of the file's bytes
-    ``source`` (as short as ``pread`` past the end)."""
+    """``read(length, offset)`` of a file: ``os.pread`` of the descriptor ``source``, or a
+    view of the file's bytes ``source`` (as short as ``pread`` past the end)."""
     if isinstance(source, int):
-        return functools.partial(_read_reused, source)
+        return functools.partial(os.pread, source)
     view = memoryview(source)
     return lambda length, offset: view[offset : offset + length]
 
