@@ -46,6 +46,17 @@ static inline uint32_t rd32(const uint8_t *p) {
     return v;
 }
 
+/* Whether the frame_id bytes a and b (n of them, room: the payload's bytes from a on, at least
+ * n) are equal: a frame_id of 1 to 16 bytes (most are) compared with two 8-byte words, which
+ * may overlap, instead of a call to memcmp per message; a word never reads past the payload. */
+static inline int same_frame(const uint8_t *a, const uint8_t *b, Py_ssize_t n, Py_ssize_t room) {
+    if (n == 0) return 1;
+    if (n > 16 || (n < 8 && room < 8)) return memcmp(a, b, (size_t)n) == 0;
+    if (n >= 8) return rd64(a) == rd64(b) && rd64(a + n - 8) == rd64(b + n - 8);
+    const uint64_t mask = (1ULL << (8 * n)) - 1; /* n < 8: the first n bytes of a word */
+    return ((rd64(a) ^ rd64(b)) & mask) == 0;
+}
+
 /* The loop of cdr_walk (without the GIL): 1 when every record at offsets matches the first
  * one's layout (its times written to out, ordered set), else 0. */
 static int walk_records(const uint8_t *buf, Py_ssize_t len, const int64_t *offsets, Py_ssize_t n,
@@ -64,7 +75,7 @@ static int walk_records(const uint8_t *buf, Py_ssize_t len, const int64_t *offse
         /* encapsulation, string length, then the frame_id's bytes (its NUL not compared: the
          * numpy path does not either) */
         if (rd32(p) != encap || rd32(p + 12) != strlen_ ||
-            (frame_len && memcmp(p + 16, p0 + 16, (size_t)frame_len) != 0))
+            !same_frame(p + 16, p0 + 16, frame_len, size - 16))
             return 0;
         int64_t log, pub;
         memcpy(&log, r + 15, 8);
@@ -85,7 +96,8 @@ static int walk_records(const uint8_t *buf, Py_ssize_t len, const int64_t *offse
 }
 
 /* cdr_walk(buf, offsets, channel, floats)
- *     -> None | (times: bytearray, skip: int, frame: bytes, ordered: int)
+ * cdr_walk(buf, offsets, channel, floats, out)
+ *     -> None | (times: bytearray or out, skip: int, frame: bytes, ordered: int)
  *
  * offsets: int64 byte offsets of channel's message records in buf (a decompressed chunk).
  * When every record is a message record of that channel lying whole in buf, every payload has
@@ -94,12 +106,16 @@ static int walk_records(const uint8_t *buf, Py_ssize_t len, const int64_t *offse
  * int64 (log times, publish times, header stamps sec * 1e9 + nanosec, each n long; the uint64
  * times read as int64), skip the bytes from a record's opcode to its first float field, frame
  * the frame_id's bytes (without the NUL), ordered bit 0 set when the log times never decrease,
- * bit 1 when the header stamps never do. Else None (the numpy path reads the chunk). */
+ * bit 1 when the header stamps never do. Else None (the numpy path reads the chunk). out
+ * (optional): a writable buffer of at least 3 * n int64 to write the times into instead of a
+ * new bytearray (returned as times). */
 static PyObject *cdr_walk(PyObject *self, PyObject *args) {
-    Py_buffer view, offs;
+    Py_buffer view, offs, given = {0};
     unsigned int channel;
     Py_ssize_t floats;
-    if (!PyArg_ParseTuple(args, "y*y*In", &view, &offs, &channel, &floats)) return NULL;
+    PyObject *dest = NULL;
+    if (!PyArg_ParseTuple(args, "y*y*In|O", &view, &offs, &channel, &floats, &dest)) return NULL;
+    if (dest == Py_None) dest = NULL;
     const uint8_t *buf = (const uint8_t *)view.buf;
     const Py_ssize_t len = view.len;
     const Py_ssize_t n = offs.len / (Py_ssize_t)sizeof(int64_t);
@@ -119,15 +135,30 @@ static PyObject *cdr_walk(PyObject *self, PyObject *args) {
     const Py_ssize_t first = 4 + body + ((8 - body % 8) % 8);
     if (first + 8 * floats > size) goto none;
     const Py_ssize_t frame_len = (Py_ssize_t)strlen_ - 1;
-    PyObject *times = PyByteArray_FromStringAndSize(NULL, 3 * n * (Py_ssize_t)sizeof(int64_t));
-    if (times == NULL) goto fail;
-    int64_t *out = (int64_t *)PyByteArray_AS_STRING(times);
+    PyObject *times;
+    int64_t *out;
+    if (dest != NULL) { /* the caller's buffer (used again from one call to the next) */
+        if (PyObject_GetBuffer(dest, &given, PyBUF_WRITABLE | PyBUF_C_CONTIGUOUS) < 0) goto fail;
+        if (given.len < 3 * n * (Py_ssize_t)sizeof(int64_t)) {
+            PyBuffer_Release(&given);
+            PyErr_SetString(PyExc_ValueError, "cdr_walk: out holds fewer than 3 * n int64");
+            goto fail;
+        }
+        times = dest;
+        Py_INCREF(times);
+        out = (int64_t *)given.buf;
+    } else {
+        times = PyByteArray_FromStringAndSize(NULL, 3 * n * (Py_ssize_t)sizeof(int64_t));
+        if (times == NULL) goto fail;
+        out = (int64_t *)PyByteArray_AS_STRING(times);
+    }
     int ordered = 0;
     int ok;
     Py_BEGIN_ALLOW_THREADS /* the buffers are held: other threads may run meanwhile */
     ok = walk_records(buf, len, (const int64_t *)raw, n, channel, reclen, size, p0, frame_len,
                       out, &ordered);
     Py_END_ALLOW_THREADS
+    if (dest != NULL) PyBuffer_Release(&given);
     if (!ok) goto drop;
     result = Py_BuildValue("NnNi", times, (Py_ssize_t)(MESSAGE_HEADER + first),
                            PyBytes_FromStringAndSize((const char *)p0 + 16, frame_len), ordered);
@@ -144,6 +175,54 @@ done:
     PyBuffer_Release(&view);
     PyBuffer_Release(&offs);
     return result;
+}
+
+#define FILL_BLOCK 128 /* messages per block: their records stay in L1/L2 across the slots */
+
+static inline int is_nan(uint64_t v) {
+    return (v & 0x7fffffffffffffffULL) > 0x7ff0000000000000ULL;
+}
+
+/* One block of nb messages (record offsets at, first row row0) written slot by slot: a tight
+ * loop per column instead of every column per message (the same bytes: a clean slot is
+ * written from its first message whose values are not all +0.0, as message by message). */
+static void fill_block(const uint8_t *buf, const int64_t *at, int64_t nb, Py_ssize_t skip,
+                       const int64_t *slots, Py_ssize_t m, Py_buffer *dst, int64_t row0,
+                       unsigned long long *clean, unsigned long long *dirty,
+                       unsigned long long nan_check, unsigned long long *nan) {
+    for (Py_ssize_t s = 0; s < m; s++) {
+        const int64_t c = slots[2 * s + 1];
+        const Py_ssize_t off = skip + 8 * (Py_ssize_t)slots[2 * s];
+        const unsigned long long bit = 1ULL << s;
+        uint64_t *out = (uint64_t *)dst[s].buf + row0 * c;
+        int64_t j0 = 0;
+        if (*clean & bit) { /* zeros so far: the first message with a value not +0.0 */
+            for (; j0 < nb; j0++) {
+                const uint8_t *src = buf + at[j0] + off;
+                uint64_t any = 0;
+                for (int64_t e = 0; e < c; e++) any |= rd64(src + 8 * e);
+                if (any) break;
+            }
+            if (j0 == nb) continue; /* the column holds zeros there already */
+            *clean &= ~bit;
+            *dirty |= bit;
+        }
+        if (c == 1) {
+            for (int64_t j = j0; j < nb; j++) out[j] = rd64(buf + at[j] + off);
+        } else if (c == 9) { /* covariances: a constant size, copied inline */
+            for (int64_t j = j0; j < nb; j++) memcpy(out + 9 * j, buf + at[j] + off, 72);
+        } else {
+            for (int64_t j = j0; j < nb; j++)
+                memcpy(out + c * j, buf + at[j] + off, (size_t)(8 * c));
+        }
+        if ((nan_check & bit) && !(*nan & bit)) {
+            for (int64_t e = j0 * c; e < nb * c; e++)
+                if (is_nan(out[e])) {
+                    *nan |= bit;
+                    break;
+                }
+        }
+    }
 }
 
 /* fill(buf, offsets, skip, slots, columns, clean, nan_check, runs) -> (dirty, nan)
@@ -221,40 +300,10 @@ static PyObject *fill(PyObject *self, PyObject *args) {
     Py_BEGIN_ALLOW_THREADS /* the buffers are held: other threads may run meanwhile */
     for (Py_ssize_t k = 0; k < n_runs; k++) {
         const int64_t a = runs[3 * k], row0 = runs[3 * k + 1], count = runs[3 * k + 2];
-        for (int64_t j = 0; j < count; j++) {
-            const uint8_t *f = buf + at[a + j] + skip;
-            const int64_t row = row0 + j;
-            for (Py_ssize_t s = 0; s < m; s++) {
-                const int64_t c = slots[2 * s + 1];
-                const uint8_t *src = f + 8 * slots[2 * s];
-                const unsigned long long bit = 1ULL << s;
-                uint64_t *out = (uint64_t *)dst[s].buf + row * c;
-                if (c == 1) { /* a scalar column: one word, no call to memcpy */
-                    const uint64_t v = rd64(src);
-                    if (clean & bit) {
-                        if (v == 0) continue; /* the column holds zeros there already */
-                        clean &= ~bit;
-                        dirty |= bit;
-                    }
-                    if ((nan_check & bit) && (v & 0x7fffffffffffffffULL) > 0x7ff0000000000000ULL)
-                        nan |= bit;
-                    memcpy(out, &v, 8);
-                    continue;
-                }
-                if (clean & bit) {
-                    uint64_t any = 0;
-                    for (int64_t e = 0; e < c; e++) any |= rd64(src + 8 * e);
-                    if (any == 0) continue;
-                    clean &= ~bit;
-                    dirty |= bit;
-                }
-                if (nan_check & bit) {
-                    for (int64_t e = 0; e < c; e++)
-                        if ((rd64(src + 8 * e) & 0x7fffffffffffffffULL) > 0x7ff0000000000000ULL)
-                            nan |= bit;
-                }
-                memcpy(out, src, (size_t)(8 * c));
-            }
+        for (int64_t b = 0; b < count; b += FILL_BLOCK) {
+            const int64_t nb = count - b < FILL_BLOCK ? count - b : FILL_BLOCK;
+            fill_block(buf, at + a + b, nb, skip, slots, m, dst, row0 + b, &clean, &dirty,
+                       nan_check, &nan);
         }
     }
     Py_END_ALLOW_THREADS
@@ -270,7 +319,7 @@ done:
 
 static PyMethodDef methods[] = {
     {"cdr_walk", cdr_walk, METH_VARARGS,
-     "cdr_walk(buf, offsets, channel, floats) -> None | (times, skip, frame, ordered): one "
+     "cdr_walk(buf, offsets, channel, floats, out=None) -> None | (times, skip, frame, ordered): one "
      "channel's message records of one little-endian CDR layout, checked, and their times."},
     {"fill", fill, METH_VARARGS,
      "fill(buf, offsets, skip, slots, columns, clean, nan_check, runs) -> (dirty, nan): the "

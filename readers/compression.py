@@ -40,10 +40,36 @@ class DecompressWorkers:
 
     def submit(self, fn: Callable, *args: object) -> concurrent.futures.Future:
         future = self.pool.submit(fn, *args)
+        if self.futures and self.futures[0].done():  # a done future holds its result (a
+            self.futures = [f for f in self.futures if not f.done()]  # pooled chunk buffer)
         self.futures.append(future)
-        if len(self.futures) > 4 * PREFETCH:
-            self.futures = [f for f in self.futures if not f.done()]
         return future
+
+
+LOADED = 0.5
+"""A decompression thread is started only while the machine's 1-minute load average is below
+its CPU count minus this (:func:`no_spare_cpu`)."""
+
+
+def no_spare_cpu() -> bool:
+    """Whether no CPU is free for a decompression thread: the process may run on one CPU only
+    (``taskset -c 0``, a container's cpuset), or the machine's load average says every CPU is
+    busy (``os.getloadavg()[0] >= os.cpu_count() - LOADED``: other processes, or a fleet's
+    other workers). A decompression thread then only adds hand-offs, GIL changes and chunks
+    read from another core's cache to the same work: a 1 M-message MCAP read cost 0.05 s more
+    process CPU with it on one core, and 0.1 s more (the same wall time) on two busy cores,
+    than decompressing in the reading thread (issue 39). With a core free, the thread
+    overlaps decompression with decoding (wall time)."""
+    try:
+        cpus = len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):  # not Linux
+        cpus = os.cpu_count() or 1
+    if cpus < 2:
+        return True
+    try:
+        return os.getloadavg()[0] >= (os.cpu_count() or cpus) - LOADED
+    except (AttributeError, OSError):  # no load average (Windows)
+        return False
 
 
 def done(result: object) -> concurrent.futures.Future:
@@ -154,29 +180,67 @@ class BufferPool:
     already mapped costs no page faults (a fresh buffer per chunk cost the workers ~40,000 page
     faults per million Imu messages). A buffer is handed out again only when the pool holds the
     last reference to it (no chunk, no view into it left: a caller that keeps a chunk's views
-    keeps its buffer), checked with ``sys.getrefcount``."""
+    keeps its buffer), checked with ``sys.getrefcount``.
+
+    ``arena``: chunks are carved one after the other from buffers of that many bytes, so that
+    chunks taken in a row lie back to back in memory and a reader can take them as one
+    (:meth:`adjacent`); a chunk larger than an arena gets a buffer of its own."""
 
     KEEP = 16
     """Buffers kept at most (the oldest beyond that are left to the garbage collector)."""
     ROUND = 1 << 16
+    ALIGN = 64
+    """Chunks carved from an arena start at a multiple of this many bytes."""
 
-    def __init__(self) -> None:
+    def __init__(self, arena: int = 0) -> None:
         self.spent: list[np.ndarray] = []
+        self.arena = arena
+        self.current: np.ndarray | None = None
+        """The arena chunks are carved from (``arena``), and the first byte still free in it."""
+        self.free = 0
+        self.start = -1
+        """Where the buffer :meth:`take` handed out last starts in its arena (-1: a buffer of
+        its own)."""
+        self._kept: set[int] = set()
+
+    def _buffer(self, size: int) -> np.ndarray:
+        """A whole buffer of at least ``size`` bytes, pooled or new."""
+        for i in range(len(self.spent)):
+            if len(self.spent[i]) >= size and sys.getrefcount(self.spent[i]) == 2:
+                return self.spent.pop(i)  # only the list and the call held it
+        return np.empty(-(-max(size, 1) // self.ROUND) * self.ROUND, np.uint8)
 
     def take(self, size: int) -> np.ndarray:
         """A buffer of ``size`` bytes (a view of a pooled or new one)."""
-        for i in range(len(self.spent)):
-            if len(self.spent[i]) >= size and sys.getrefcount(self.spent[i]) == 2:
-                return self.spent.pop(i)[:size]  # only the list and the call held it
-        return np.empty(-(-max(size, 1) // self.ROUND) * self.ROUND, np.uint8)[:size]
+        self.start = -1
+        if not self.arena or size > self.arena:
+            return self._buffer(size)[:size]
+        if self.current is None or self.free + size > len(self.current):
+            if self.current is not None:
+                self._keep(self.current)
+            self.current, self.free = self._buffer(self.arena), 0
+        self.start = start = self.free
+        self.free = self.after(start, size)
+        return self.current[start : start + size]
+
+    @classmethod
+    def after(cls, start: int, size: int) -> int:
+        """Where the buffer after one of ``size`` bytes at ``start`` of an arena starts."""
+        return -(-(start + size) // cls.ALIGN) * cls.ALIGN
 
     def give(self, buf: np.ndarray) -> None:
         """``buf`` (from :meth:`take`) may be used again once nothing refers to it."""
         base = buf.base
-        if isinstance(base, np.ndarray) and base.base is None:
-            self.spent.append(base)
-            if len(self.spent) > self.KEEP:
-                del self.spent[0]
+        if isinstance(base, np.ndarray) and base.base is None and base is not self.current:
+            self._keep(base)
+
+    def _keep(self, base: np.ndarray) -> None:
+        if id(base) in self._kept:
+            return
+        self.spent.append(base)
+        if len(self.spent) > self.KEEP:
+            del self.spent[0]
+        self._kept = {id(b) for b in self.spent}
 
 
 def inflate_messages(

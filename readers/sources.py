@@ -50,11 +50,13 @@ class LogSource(Protocol):
         """Topic -> log times (int64 ns) of its messages, without decoding payloads."""
 
     def chunks(
-        self, streams: dict[str, str], carry: bool, decode: bool = True
+        self, streams: dict[str, str], carry: bool, decode: bool = True, whole: bool = False
     ) -> Iterator[tuple[dict[str, Piece], list[RawMessage], int]]:
         """Per chunk: stream -> Piece for the chosen ``streams`` (stream -> topic; none when not
         ``decode``), the messages of every other topic as RawMessage (when ``carry``), and a
-        lower bound of the log times of every message that comes later in the file."""
+        lower bound of the log times of every message that comes later in the file. ``whole``:
+        the caller reads the whole log into one table (:func:`read_sources`), so the source
+        may hand over several chunks as one (their pieces joined, bound the last one's)."""
 
 
 def _size(path: Path) -> int:
@@ -131,7 +133,7 @@ def read_sources(spec: InputSpec, sources: Sequence[LogSource]) -> tuple[pa.Tabl
     total = dict.fromkeys(streams, 0)
     other: dict[str, list[int]] = {}
     for src in _ordered(sources):
-        for pieces, _, _ in src.chunks(streams, carry=False):
+        for pieces, _, _ in src.chunks(streams, carry=False, whole=True):
             _tally_other(pieces, other)
             buffer.add(pieces)
             for stream, piece in pieces.items():

@@ -238,3 +238,98 @@ def test_fill_writes_from_the_first_value_not_zero_and_checks_its_bounds(tmp_pat
         chunk_fill.fill(piece.records, columns, set(), [(slice(0, n), slice(6, n + 6))])
     with pytest.raises(IndexError):
         chunk_fill.fill(piece.records, columns, set(), [(slice(0, n + 1), slice(0, n + 1))])
+
+
+# --- chunks read as one group (issue 39) -------------------------------------------------------
+
+
+def test_chunks_read_as_groups_give_the_tables_of_chunks_one_by_one(tmp_path, monkeypatch):
+    """A whole-table read decodes chunks that lie back to back in one arena as one group: the
+    same table as chunk by chunk (GROUP_BYTES 0), with decompression threads or without (no
+    CPU free)."""
+    from imupipe.readers.mcap import fast
+    from imupipe.readers.mcap import reader as mcap_reader
+
+    monkeypatch.delenv(PURE_PYTHON_ENV, raising=False)
+    monkeypatch.setattr(fast, "no_spare_cpu", lambda: False)
+    path = tmp_path / "log.mcap"  # above SMALL_FILE: read by the decompression threads
+    write_log(path, imu_log(20_000, temperature_hz=3.0, mag=True, absent=[5, 9000]))
+    assert path.stat().st_size > fast.SMALL_FILE
+    source = mcap_reader.McapSource(path)
+    groups = [c for c in source.file.chunks(mcap_reader.GROUP_BYTES) if c.parts]
+    assert groups and len(groups[0].parts) >= 2
+    by_topic = {"/imu/data": "imu", "/imu/mag": "mag", "/imu/temperature": "temperature"}
+    stream_of: dict = {}
+    pieces = source._decode_group(groups[0], by_topic, stream_of)
+    assert pieces is not None and set(pieces) == {"imu", "mag", "temperature"}
+    imu = next(cid for cid, stream in stream_of.items() if stream == "imu")
+    assert len(pieces["imu"]) == sum(len(p.offsets.get(imu, ())) for p in groups[0].parts)
+    grouped = reads(path, monkeypatch, True, batches=False)
+    monkeypatch.setattr(mcap_reader, "GROUP_BYTES", 0)
+    assert reads(path, monkeypatch, True, batches=False) == grouped
+    monkeypatch.setattr(fast, "no_spare_cpu", lambda: True)
+    monkeypatch.setattr(mcap_reader, "GROUP_BYTES", 4 << 20)
+    assert reads(path, monkeypatch, True, batches=False) == grouped
+
+
+def test_an_index_past_its_chunk_is_caught_inside_a_group(tmp_path, monkeypatch):
+    """A message index entry of the first chunk pointing past the chunk's end lands on the next
+    chunk's first record in the group's buffer: the group is not taken, and the chunk's error
+    is the one read chunk by chunk gives."""
+    from imupipe.readers.compression import BufferPool
+    from imupipe.readers.errors import ReadError
+    from imupipe.readers.mcap.fast import OP_CHUNK, OP_MESSAGE_INDEX, ChunkFields
+
+    monkeypatch.delenv(PURE_PYTHON_ENV, raising=False)
+    path = tmp_path / "log.mcap"
+    write_log(path, imu_log())
+    file = McapFile(path)
+    with open(path, "rb") as fh:
+        records = list(file._records(fh, 8, file.size))
+    k = next(i for i, r in enumerate(records) if r[0] == OP_CHUNK)
+    chunk_pos, body = records[k][1], records[k][2]
+    size = ChunkFields.of(body, "").size
+    op, index_pos, index = records[k + 1]
+    assert op == OP_MESSAGE_INDEX and records[k + 2][0] == OP_CHUNK  # a chunk follows
+    data = bytearray(path.read_bytes())
+    last = index_pos + 9 + len(index) - 8  # the last entry's offset
+    data[last : last + 8] = BufferPool.after(0, size).to_bytes(8, "little")
+    path.write_bytes(bytes(data))
+    for compiled in (True, False):
+        with pytest.raises(ReadError, match=f"chunk at byte {chunk_pos}: message index points"):
+            reads(path, monkeypatch, compiled, batches=False)
+
+
+@pytest.mark.parametrize("length", [1, 7, 9, 16, 17, 30])
+def test_walk_compares_every_byte_of_a_frame_id(tmp_path, monkeypatch, length):
+    """frame_ids of 1 to 16 bytes are compared as words, longer ones with memcmp: a record whose
+    first or last frame_id byte differs takes the numpy path."""
+    monkeypatch.delenv(PURE_PYTHON_ENV, raising=False)
+    path = tmp_path / "log.mcap"
+    write_log(path, imu_log(300, frame="f" * length))
+    chunk = next(iter(McapFile(path).chunks()))
+    cid = next(iter(chunk.offsets))
+    off = chunk.offsets[cid]
+    piece = chunk_fill.walk(chunk.buf, off, cid, "imu")
+    assert piece is not None and piece.one_frame == "f" * length
+    for at in (0, length - 1):
+        buf = chunk.buf.copy()
+        buf[int(off[5]) + 31 + 16 + at] = ord("g")
+        assert chunk_fill.walk(buf, off, cid, "imu") is None, at
+
+
+def test_no_spare_cpu_when_one_cpu_is_allowed_or_all_are_busy(monkeypatch):
+    import os
+
+    from imupipe.readers.compression import no_spare_cpu
+
+    monkeypatch.setattr(os, "cpu_count", lambda: 2)
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {0}, raising=False)
+    monkeypatch.setattr(os, "getloadavg", lambda: (0.0, 0.0, 0.0))
+    assert no_spare_cpu()  # taskset -c 0
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {0, 1}, raising=False)
+    assert not no_spare_cpu()
+    monkeypatch.setattr(os, "getloadavg", lambda: (1.4, 0.0, 0.0))
+    assert not no_spare_cpu()  # one CPU free: the read itself is one of the load
+    monkeypatch.setattr(os, "getloadavg", lambda: (1.6, 0.0, 0.0))
+    assert no_spare_cpu()

@@ -55,6 +55,7 @@ from imupipe.readers.compression import (
     decompress_chunk,
     decompress_into,
     decompress_workers,
+    no_spare_cpu,
 )
 from imupipe.readers.errors import READ_TO_CUT, ReadError
 from imupipe.readers.mcap.summary import complete, defined
@@ -150,6 +151,13 @@ class ChunkMessages:
     """No message after this chunk (in file order) has a log time below ``bound``: from the
     summary's chunk indexes, else assumed to be this chunk's start time (a log written in time
     order)."""
+    start: int = -1
+    """Where ``buf`` starts in the arena it was carved from (``buf.base``, see
+    :class:`~imupipe.readers.compression.BufferPool`); -1: a buffer of its own."""
+    parts: list[ChunkMessages] = field(default_factory=list)
+    """Chunks that lay back to back in memory, handed over as this one (:meth:`McapFile.chunks`
+    with ``group``): each as it would have been alone, its ``buf`` a view into this ``buf``;
+    empty for a single chunk."""
 
     def records(
         self, channel_id: int, copy: bool = True
@@ -548,15 +556,23 @@ class McapFile:
             self._bounds_cache = [offset for offset, _ in pairs], suffix[::-1]
         return self._bounds_cache
 
-    def chunks(self) -> Iterator[ChunkMessages]:
+    def chunks(self, group: int = 0) -> Iterator[ChunkMessages]:
         """Every chunk (and every run of un-chunked messages) in file order.
+
+        ``group`` (bytes, 0: none): chunks are decompressed back to back into buffers of that
+        size, and those that lie back to back are handed over as one :class:`ChunkMessages`
+        (its :attr:`~ChunkMessages.parts` the chunks as they would have come one by one), for
+        a caller whose work per chunk costs more than its work per message (issue 39).
 
         Worker threads decompress (and CRC-check) the next :data:`PREFETCH` chunks while the
         caller decodes the current one (zstd, lz4 and zlib release the GIL). A file of one
         chunk, or a small one (:data:`SMALL_FILE`, read whole), has its chunks decompressed in
-        the reading thread, each when it is reached: nothing to overlap worth a hand-off."""
+        the reading thread, each when it is reached: nothing to overlap worth a hand-off; so
+        has every file when no CPU is free for a decompression thread (:func:`no_spare_cpu`:
+        one CPU allowed, or a busy machine)."""
         offsets, suffix_min = self._bounds()
-        pool = BufferPool()
+        pool = BufferPool(group)
+        merge = _Merge() if group else None
         pending: ChunkMessages | None = None
         queue: collections.deque[ChunkMessages] = collections.deque()
         loose = bytearray()
@@ -567,7 +583,7 @@ class McapFile:
                 whole = fh.read()
             if len(whole) != self.size:  # changed since it was opened: read it as a large one
                 whole = None
-        inline = whole is not None or len(offsets) == 1
+        inline = whole is not None or len(offsets) == 1 or no_spare_cpu()
         with (
             open(self.path, "rb") if whole is None else io.BytesIO(whole) as fh,
             contextlib.nullcontext() if inline else decompress_workers() as worker,
@@ -582,7 +598,7 @@ class McapFile:
                         raise ReadError(f"{pending.where}: corrupt message index")
                     pairs = np.frombuffer(body, "<u8", count=rlen // 8, offset=6).reshape(-1, 2)
                     found = pairs[:, 1].astype(np.int64)
-                    if len(found) > 1 and np.any(found[1:] < found[:-1]):
+                    if len(found) > 1 and (found[1:] < found[:-1]).any():
                         found.sort()
                     pending.offsets[cid] = found
                     continue
@@ -590,7 +606,7 @@ class McapFile:
                     queue.append(pending)
                     pending = None
                 while len(queue) > PREFETCH or (queue and opcode != OP_CHUNK):
-                    yield _finished(queue.popleft(), pool)
+                    yield from _handed(_finished(queue.popleft(), pool), merge)
                 if opcode == OP_MESSAGE:
                     if len(body) < 22:
                         raise ReadError(f"{self.path}: corrupt message record at byte {pos}")
@@ -599,12 +615,14 @@ class McapFile:
                     loose += bytes([OP_MESSAGE]) + len(body).to_bytes(8, "little") + body
                     if len(loose) >= PSEUDO_CHUNK_BYTES:
                         report(pos, self.size)
+                        yield from _handed(None, merge)
                         yield _loose_chunk(
                             loose, loose_off, f"{self.path}: messages before byte {pos}"
                         )
                         loose, loose_off = bytearray(), {}
                     continue
                 if loose:
+                    yield from _handed(None, merge)
                     yield _loose_chunk(loose, loose_off, f"{self.path}: messages before byte {pos}")
                     loose, loose_off = bytearray(), {}
                 if opcode in (OP_SCHEMA, OP_CHANNEL):
@@ -622,13 +640,20 @@ class McapFile:
                         future = _Later(self._load_chunk, pread, pos, body, out)
                     else:
                         future = worker.submit(self._load_chunk, pread, pos, body, out)
-                    pending = ChunkMessages(future, {}, f"{self.path}: chunk at byte {pos}", bound)  # type: ignore[arg-type]
+                    pending = ChunkMessages(
+                        future,  # type: ignore[arg-type]
+                        {},
+                        f"{self.path}: chunk at byte {pos}",
+                        bound,
+                        -1 if out is None else pool.start,
+                    )
                 elif opcode == OP_DATA_END:
                     break
             if pending is not None:
                 queue.append(pending)
             while queue:
-                yield _finished(queue.popleft(), pool)
+                yield from _handed(_finished(queue.popleft(), pool), merge)
+            yield from _handed(None, merge)
             if loose:
                 yield _loose_chunk(loose, loose_off, f"{self.path}: messages at the end")
 
@@ -709,6 +734,49 @@ def _finished(chunk: ChunkMessages, pool: BufferPool) -> ChunkMessages:
     chunk.buf = chunk.buf.result()  # type: ignore[attr-defined]
     pool.give(chunk.buf)
     return _indexed_or_scanned(chunk)
+
+
+class _Merge:
+    """Chunks that lie back to back in one arena of a
+    :class:`~imupipe.readers.compression.BufferPool`, gathered to be handed over as one."""
+
+    def __init__(self) -> None:
+        self.parts: list[ChunkMessages] = []
+
+    def push(self, chunk: ChunkMessages | None) -> list[ChunkMessages]:
+        """Take ``chunk`` (None: no more to come here); returns what is ready to hand over."""
+        parts = self.parts
+        if chunk is not None and parts:
+            last = parts[-1]
+            if (
+                last.start >= 0
+                and chunk.start == BufferPool.after(last.start, len(last.buf))
+                and chunk.buf.base is last.buf.base
+            ):
+                parts.append(chunk)
+                return []
+        self.parts = [] if chunk is None else [chunk]
+        if len(parts) < 2:
+            return parts
+        first = parts[0]
+        by_channel: dict[int, list[np.ndarray]] = {}
+        for part in parts:
+            shift = part.start - first.start
+            for cid, off in part.offsets.items():
+                by_channel.setdefault(cid, []).append(off + shift if shift else off)
+        offsets = {
+            cid: found[0] if len(found) == 1 else np.concatenate(found)
+            for cid, found in by_channel.items()
+        }
+        buf = first.buf.base[first.start : parts[-1].start + len(parts[-1].buf)]
+        return [ChunkMessages(buf, offsets, first.where, parts[-1].bound, first.start, parts)]
+
+
+def _handed(chunk: ChunkMessages | None, merge: _Merge | None) -> list[ChunkMessages]:
+    """The chunks to hand over once ``chunk`` is done (None: flush what ``merge`` holds)."""
+    if merge is None:
+        return [] if chunk is None else [chunk]
+    return merge.push(chunk)
 
 
 def _loose_chunk(buf: bytearray, offsets: dict[int, list[int]], where: str) -> ChunkMessages:

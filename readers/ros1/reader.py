@@ -477,7 +477,7 @@ class Ros1Bag:
         return decompress_chunk(data, compression, size, where)
 
     def chunks(
-        self, streams: dict[str, str], carry: bool, decode: bool = True
+        self, streams: dict[str, str], carry: bool, decode: bool = True, whole: bool = False
     ) -> Iterator[tuple[dict[str, Piece], list[RawMessage], int]]:
         by_topic = {topic: stream for stream, topic in streams.items()}
         chosen = {

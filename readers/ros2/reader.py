@@ -134,7 +134,7 @@ class Sqlite3Bag:
         }
 
     def chunks(
-        self, streams: dict[str, str], carry: bool, decode: bool = True
+        self, streams: dict[str, str], carry: bool, decode: bool = True, whole: bool = False
     ) -> Iterator[tuple[dict[str, Piece], list[RawMessage], int]]:
         by_topic = {topic: stream for stream, topic in streams.items()}
         chosen = {tid: by_topic[t[0]] for tid, t in self.topics.items() if t[0] in by_topic}
@@ -306,10 +306,13 @@ class Bag2Mcap(McapSource):
             return super().topic_times()
 
     def chunks(
-        self, streams: dict[str, str], carry: bool, decode: bool = True
+        self, streams: dict[str, str], carry: bool, decode: bool = True, whole: bool = False
     ) -> Iterator[tuple[dict[str, Piece], list[RawMessage], int]]:
         with self._named():
-            yield from super().chunks(streams, carry, decode)
+            yield from super().chunks(streams, carry, decode, whole)
+
+    def _groups(self) -> bool:
+        return not self.zstd_messages  # each payload is inflated on its own
 
     def _view(self, chunk: ChunkMessages, cid: int) -> ChunkMessages:
         if self.zstd_messages:
