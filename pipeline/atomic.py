@@ -204,12 +204,13 @@ class StagedOutputs:
             missing = [p for p in [final.parent, *final.parent.parents] if not p.exists()]
             final.parent.mkdir(parents=True, exist_ok=True)
             self._created_dirs.extend(missing)
-        fd, tmp = tempfile.mkstemp(
-            prefix=f".{final.name}.{os.getpid()}@{HOST_KEY}.", suffix=".tmp", dir=final.parent
-        )
+        with signals_deferred():  # a SIGTERM or SIGINT right after the file is made: listed first
+            fd, tmp = tempfile.mkstemp(
+                prefix=f".{final.name}.{os.getpid()}@{HOST_KEY}.", suffix=".tmp", dir=final.parent
+            )
+            self._pending.append((Path(tmp), final))
         os.close(fd)
         os.chmod(tmp, 0o666 & ~_umask())
-        self._pending.append((Path(tmp), final))
         return Path(tmp)
 
     def folder(self) -> str | None:

@@ -127,3 +127,33 @@ def test_the_probe_sees_an_idle_fork_server_before_its_deadline():
     while not probe.ready():
         time.sleep(0.01)
     assert time.monotonic() - start < engines.SERVER_WAIT_S - 0.5
+
+
+def stage_and_wait(folder: str) -> str:
+    """A task that stages an output (a temporary file beside it) and stays busy."""
+    from imupipe.pipeline.atomic import staged_outputs
+
+    with staged_outputs() as out:
+        out.path(Path(folder) / "part.parquet").write_bytes(b"x")
+        (Path(folder) / "staged").write_text("")
+        time.sleep(30)
+    return "done"
+
+
+def test_a_stopped_pool_lets_busy_workers_remove_their_temporary_files(tmp_path):
+    """``_stop_pool`` gives a busy worker SIGTERM and time to unwind its task (its staged output
+    discarded). It read the pool's workers after ``shutdown()``, which empties that table, so
+    none got SIGTERM and the busy one was SIGKILLed, its temporary file left behind (seen as
+    ``survey --jobs 2`` stopped by SIGTERM)."""
+    import multiprocessing as mp
+
+    ctx = mp.get_context("forkserver")
+    engines._start_forkserver(ctx, [__name__])
+    pool = engines._start_pool(ctx, 1)
+    future = pool.submit(engines.guarded, stage_and_wait, str(tmp_path))
+    deadline = time.monotonic() + 60
+    while not (tmp_path / "staged").exists():
+        assert time.monotonic() < deadline and not future.done()
+        time.sleep(0.02)
+    engines._stop_pool(pool)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["staged"]

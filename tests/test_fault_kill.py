@@ -280,3 +280,30 @@ def test_a_signal_during_commit_waits_for_the_last_rename(tmp_path, monkeypatch)
     finally:
         signal.signal(signal.SIGTERM, old)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.json", "b.mcap", "c.rrd"]
+
+
+def test_a_signal_as_a_temporary_file_is_made_removes_it(tmp_path, monkeypatch):
+    """SIGTERM arriving just after ``mkstemp`` made the temporary file, before it was listed for
+    removal (seen as ``survey --jobs 2`` stopped by SIGTERM): the file is listed first, then the
+    signal raised, and nothing is left."""
+    import tempfile
+
+    from imupipe.pipeline import atomic
+    from imupipe.pipeline.signals import Terminated, terminate_on_sigterm
+
+    old = signal.getsignal(signal.SIGTERM)
+    terminate_on_sigterm()
+    real_mkstemp = tempfile.mkstemp
+
+    def mkstemp_then_signal(*args, **kwargs):
+        made = real_mkstemp(*args, **kwargs)
+        os.kill(os.getpid(), signal.SIGTERM)
+        return made
+
+    monkeypatch.setattr(atomic.tempfile, "mkstemp", mkstemp_then_signal)
+    try:
+        with pytest.raises(Terminated), atomic.staged_outputs() as staged:
+            staged.write_text(tmp_path / "a.json", "a")
+    finally:
+        signal.signal(signal.SIGTERM, old)
+    assert list(tmp_path.iterdir()) == []

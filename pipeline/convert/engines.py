@@ -278,8 +278,11 @@ def _stop_pool(pool: cf.ProcessPoolExecutor) -> None:
     this point), and wait for the pool's manager thread with a time limit, repeating until it
     has ended."""
     manager = getattr(pool, "_executor_manager_thread", None)
-    pool.shutdown(wait=False, cancel_futures=True)
+    # before shutdown(), which drops the pool's process table (``_processes = None``): read
+    # after it, no worker got SIGTERM and its grace, and a busy one was SIGKILLed below with its
+    # temporary files left behind
     processes = list((getattr(pool, "_processes", None) or {}).values())
+    pool.shutdown(wait=False, cancel_futures=True)
     for process in processes:
         with contextlib.suppress(OSError, AttributeError):
             process.terminate()
@@ -287,7 +290,7 @@ def _stop_pool(pool: cf.ProcessPoolExecutor) -> None:
     for process in processes:
         process.join(timeout=max(0.0, deadline - time.monotonic()))
     for _ in range(10):
-        for process in list((getattr(pool, "_processes", None) or {}).values()):
+        for process in processes:
             if process.is_alive():
                 process.kill()
         _kill_forkserver_children()
