@@ -601,6 +601,22 @@ def run_imupipe_px4(
         + ("accept_failed_checks = true\n" if accept else "")
         + '[output]\ndir = "out"\nrerun = false\nreport = false\napply_to = []\n'
     )
+    ran = _run_px4_config(work)
+    if isinstance(ran, str):
+        return ran
+    params, doc = ran
+    refused = {}
+    for key in keys:
+        r = doc["results"].get(f"mag_inflight_{key}", {})
+        why = r.get("refused") or r.get("failed_checks")
+        if why:
+            refused[key] = why[0]
+    return params, refused
+
+
+def _run_px4_config(work: Path) -> tuple[dict[str, float], dict] | str:
+    """``imupipe run c.toml`` in ``work``: its ``px4_calibration.params`` (name -> value) and
+    ``calibration.json``, or the last line of its error when it wrote no parameter file."""
     proc = subprocess.run(
         [sys.executable, "-m", "imupipe.pipeline.cli", "run", "c.toml", "--quiet"],
         cwd=work,
@@ -616,14 +632,7 @@ def run_imupipe_px4(
         if line and not line.startswith("#"):
             _, _, name, value, _ = line.split("\t")
             params[name] = float(value)
-    doc = json.loads((work / "out" / "calibration.json").read_text())
-    refused = {}
-    for key in keys:
-        r = doc["results"].get(f"mag_inflight_{key}", {})
-        why = r.get("refused") or r.get("failed_checks")
-        if why:
-            refused[key] = why[0]
-    return params, refused
+    return params, json.loads((work / "out" / "calibration.json").read_text())
 
 
 def run_imupipe_px4_joint(
@@ -643,22 +652,10 @@ def run_imupipe_px4_joint(
         f"flights = [{others}]\naccept_failed_checks = true\n"
         '[output]\ndir = "out"\nrerun = false\nreport = false\napply_to = []\n'
     )
-    proc = subprocess.run(
-        [sys.executable, "-m", "imupipe.pipeline.cli", "run", "c.toml", "--quiet"],
-        cwd=work,
-        capture_output=True,
-        text=True,
-        timeout=900,
-    )
-    out = work / "out" / "px4_calibration.params"
-    if proc.returncode != 0 or not out.exists():
-        return (proc.stderr.strip().splitlines() or ["no output"])[-1]
-    params = {}
-    for line in out.read_text().splitlines():
-        if line and not line.startswith("#"):
-            _, _, name, value, _ = line.split("\t")
-            params[name] = float(value)
-    doc = json.loads((work / "out" / "calibration.json").read_text())
+    ran = _run_px4_config(work)
+    if isinstance(ran, str):
+        return ran
+    params, doc = ran
     why = doc["results"].get("mag_inflight", {}).get("failed_checks") or []
     return params, ({key: why[0]} if why else {})
 
