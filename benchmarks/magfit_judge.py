@@ -665,6 +665,21 @@ JOINT = (("log_20", "log_30"), ("log_20", "log_30", "log_86"))
 the internal compass's step of 21 June)."""
 
 
+def _fit_row(label: str, got, flights: dict, key: str) -> str:
+    """One table row: compass ``key``'s parameters ``got`` (:func:`run_imupipe_px4`'s answer,
+    or the error line) scored on every flight, by the EKF and, where it judges, the GSF."""
+    if isinstance(got, str):
+        return f"| {label} | {got} | | |"
+    params, refused = got
+    cells = []
+    for f in flights.values():
+        pp = f.params | params
+        gsf = fmt(px4_score(f, pp, True)) if gsf_judged(f) else "not judged"
+        cells.append(f"{fmt(px4_score(f, pp))}; GSF {gsf}")
+    note = f" (refused: {refused[key]})" if key in refused else ""
+    return f"| {label}{note} | " + " | ".join(cells) + " |"
+
+
 def judge_px4(work: Path, keys: tuple[str, ...] = ("sensor_mag", "sensor_mag_1")) -> list[str]:
     """Each PX4 flight's compasses fitted by imupipe (every fit, refused ones included:
     ``accept_failed_checks``), each fit scored on the three flights against the vehicle's own
@@ -685,32 +700,11 @@ def judge_px4(work: Path, keys: tuple[str, ...] = ("sensor_mag", "sensor_mag_1")
             cells.append(f"{fmt(px4_score(f, f.params))}; GSF {gsf}")
         rows.append(f"| {key}, as flown | " + " | ".join(cells) + " |")
         for fitted, got in fits.items():
-            if isinstance(got, str):
-                rows.append(f"| {key}, fit of {fitted[:6]} | {got} | | |")
-                continue
-            params, refused = got
-            cells = []
-            for f in flights.values():
-                pp = f.params | params
-                gsf = fmt(px4_score(f, pp, True)) if gsf_judged(f) else "not judged"
-                cells.append(f"{fmt(px4_score(f, pp))}; GSF {gsf}")
-            note = f" (refused: {refused[key]})" if key in refused else ""
-            rows.append(f"| {key}, fit of {fitted[:6]}{note} | " + " | ".join(cells) + " |")
+            rows.append(_fit_row(f"{key}, fit of {fitted[:6]}", got, flights, key))
         for names in JOINT:
             joined = [p for p in logs if p.name[:6] in names]
             if len(joined) != len(names):
                 continue
             got = run_imupipe_px4_joint(joined, key, work / ("joint-" + "-".join(names)) / key)
-            label = f"{key}, fit of {' + '.join(names)} together"
-            if isinstance(got, str):
-                rows.append(f"| {label} | {got} | | |")
-                continue
-            params, refused = got
-            cells = []
-            for f in flights.values():
-                pp = f.params | params
-                gsf = fmt(px4_score(f, pp, True)) if gsf_judged(f) else "not judged"
-                cells.append(f"{fmt(px4_score(f, pp))}; GSF {gsf}")
-            note = f" (refused: {refused[key]})" if key in refused else ""
-            rows.append(f"| {label}{note} | " + " | ".join(cells) + " |")
+            rows.append(_fit_row(f"{key}, fit of {' + '.join(names)} together", got, flights, key))
     return rows
