@@ -301,11 +301,17 @@ def _stop_pool(pool: cf.ProcessPoolExecutor) -> None:
             return
 
 
-def _kill_forkserver_children() -> None:
-    """SIGKILL every process the fork server has forked and not yet reaped (Linux /proc)."""
+def _forkserver_pid() -> int | None:
+    """The running fork server's process id (None: not started), from multiprocessing's
+    module state (no public accessor)."""
     from multiprocessing import forkserver
 
-    pid = getattr(getattr(forkserver, "_forkserver", None), "_forkserver_pid", None)
+    return getattr(getattr(forkserver, "_forkserver", None), "_forkserver_pid", None)
+
+
+def _kill_forkserver_children() -> None:
+    """SIGKILL every process the fork server has forked and not yet reaped (Linux /proc)."""
+    pid = _forkserver_pid()
     if not pid:
         return
     try:
@@ -407,9 +413,7 @@ class _ForkServerProbe:
     too soon makes the pool's start wait for it (on the starting thread, while the driver works)."""
 
     def __init__(self) -> None:
-        from multiprocessing import forkserver
-
-        self.pid = getattr(getattr(forkserver, "_forkserver", None), "_forkserver_pid", None)
+        self.pid = _forkserver_pid()
         self.ticks: str | None = None
         self.deadline = time.monotonic() + SERVER_WAIT_S
 
@@ -449,7 +453,6 @@ class _Starter(threading.Thread):
         self.cancelled = threading.Event()
         self.pool: cf.ProcessPoolExecutor | None = None
         self.took_over = False
-        self.error: BaseException | None = None
 
     def run(self) -> None:
         probe = _ForkServerProbe()
@@ -460,8 +463,7 @@ class _Starter(threading.Thread):
             return
         try:
             self.pool = _open_pool(self.ctx, self.jobs)
-        except BaseException as exc:  # noqa: BLE001 - the driver goes on with the queue alone
-            self.error = exc
+        except BaseException:  # noqa: BLE001 - the driver goes on with the queue alone
             return
         with self.lock:
             queue = self.tracker.queue
