@@ -37,6 +37,7 @@ import numpy as np
 import pyarrow as pa
 
 from imupipe.readers.cdr import at, even_step, field_count, unaligned
+from imupipe.readers.compression import BufferPool
 from imupipe.readers.decoded import Piece, repeat_string
 from imupipe.readers.record_walk import PURE_PYTHON_ENV
 from imupipe.readers.topics import COLUMNS, OTHER_VECTOR, PIECE_TYPES
@@ -166,24 +167,10 @@ def _frame(one: str, n: int) -> pa.Array:
     return frame
 
 
-_TIMES: list[np.ndarray] = []
-"""Buffers :func:`walk` gathers times into, used again once no piece refers to them."""
-TIMES_ROUND = 1 << 13
-"""Times per buffer are rounded up to a multiple of this."""
-
-
-def _times_buffer(size: int) -> np.ndarray:
-    """An int64 buffer of at least ``size`` values that nothing else refers to (a piece's times
-    are views into it until the table has copied them): a new one per call cost a fresh
-    mapping of its pages (~6,000 page faults per million Imu messages)."""
-    for buf in _TIMES:
-        if len(buf) >= size and sys.getrefcount(buf) == 3:  # the list, the loop and the call
-            return buf
-    buf = np.empty(-(-max(size, 1) // TIMES_ROUND) * TIMES_ROUND, np.int64)
-    _TIMES.append(buf)
-    if len(_TIMES) > 4:
-        del _TIMES[0]
-    return buf
+_TIMES = BufferPool()
+"""Buffers :func:`walk` gathers times into, each used again once no piece's times refer to it
+(a new one per call cost a fresh mapping of its pages: ~6,000 page faults per million Imu
+messages)."""
 
 
 def walk(buf: np.ndarray, offsets: np.ndarray, channel: int, stream: str) -> RecordPiece | None:
@@ -195,7 +182,9 @@ def walk(buf: np.ndarray, offsets: np.ndarray, channel: int, stream: str) -> Rec
         return None
     offsets = np.ascontiguousarray(offsets, dtype=np.int64)
     n = len(offsets)
-    out = _times_buffer(3 * n)
+    raw = _TIMES.take(3 * n * 8)
+    _TIMES.give(raw)  # taken again only when the views below are gone
+    out = raw.view(np.int64)
     found = module.cdr_walk(buf, offsets, channel, field_count(PIECE_TYPES[stream]), out)
     if found is None:
         return None
