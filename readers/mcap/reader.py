@@ -86,10 +86,17 @@ class McapSource:
                     yield pieces, [], chunk.bound
                     continue
             for part in chunk.parts or (chunk,):
-                for cid in part.offsets:
-                    if cid not in stream_of:
-                        stream_of[cid] = by_topic.get(self.file.channel(cid, part).topic)
+                self._map_streams(part, by_topic, stream_of)
                 yield self._chunk(part, stream_of, converters, carry, decode)
+
+    def _map_streams(
+        self, chunk: ChunkMessages, by_topic: dict[str, str], stream_of: dict[int, str | None]
+    ) -> None:
+        """The stream of each channel of ``chunk`` not yet in ``stream_of`` (None: carried
+        over), from its topic; raises :class:`ReadError` for a channel the file never defines."""
+        for cid in chunk.offsets:
+            if cid not in stream_of:
+                stream_of[cid] = by_topic.get(self.file.channel(cid, chunk).topic)
 
     def _chunk(
         self,
@@ -129,9 +136,7 @@ class McapSource:
         errors named as they are, in their order."""
         try:
             for part in chunk.parts:
-                for cid in part.offsets:
-                    if cid not in stream_of:
-                        stream_of[cid] = by_topic.get(self.file.channel(cid, part).topic)
+                self._map_streams(part, by_topic, stream_of)
         except ReadError:  # a channel the file never defines: named when its chunk is reached
             return None
         pieces: dict[str, Piece] = {}
