@@ -19,7 +19,6 @@ with a free core the read is faster.
 from __future__ import annotations
 
 import ctypes
-import ctypes.util
 import errno
 import sys
 import threading
@@ -41,6 +40,8 @@ if sys.platform.startswith("linux"):
         try:  # glibc's name, loaded without find_library, which runs `ldconfig -p` (2 ms)
             _libc = ctypes.CDLL("libc.so.6", use_errno=True)
         except OSError:
+            import ctypes.util  # the fallback only: it imports subprocess (issue 39)
+
             _libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so", use_errno=True)
         _madvise = _libc.madvise
         _madvise.argtypes = [ctypes.c_void_p, ctypes.c_size_t, ctypes.c_int]

@@ -51,7 +51,6 @@ from __future__ import annotations
 
 import concurrent.futures as cf
 import contextlib
-import multiprocessing as mp
 import os
 import select
 import signal
@@ -227,6 +226,8 @@ def start_forkserver(fn: Callable[[Any], Any], preload: Sequence[str] = ()) -> N
     """Start the local engine's fork server now, importing ``fn``'s module and ``preload`` (as
     :func:`run_local` does; it then finds the server running): a caller that has more to do
     before it runs its tasks lets the server import meanwhile."""
+    import multiprocessing as mp  # a pool only: one log or --jobs 1 runs inline (issue 39)
+
     _start_forkserver(mp.get_context("forkserver"), [fn.__module__, *preload])
 
 
@@ -540,6 +541,8 @@ def run_local(
     was in flight it is to blame and is charged an attempt; otherwise the tasks in flight become
     suspects, uncharged, and are run again one at a time until the culprit is found.
     """
+    import multiprocessing as mp  # a pool only: one log or --jobs 1 runs inline (issue 39)
+
     tracker = _Tracker(tasks, retries, on_done)
     jobs = max(1, min(jobs or usable_cores(), len(tasks) or 1))
     ctx = mp.get_context("forkserver")

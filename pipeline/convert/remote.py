@@ -34,7 +34,6 @@ from __future__ import annotations
 import contextlib
 import os
 import re
-import secrets
 import time
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -244,6 +243,8 @@ def download(url: str, dest: Path) -> int:
 
 
 def _temp_key(url: str) -> str:
+    import secrets  # an object store's upload only: not on a local command's path (issue 39)
+
     parent, _, name = url.rpartition("/")
     rand = "".join(secrets.choice("abcdefghijklmnopqrstuvwxyz0123456789_") for _ in range(8))
     return f"{parent}/.{name}.{os.getpid()}@{HOST_KEY}.{rand}.tmp"

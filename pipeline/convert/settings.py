@@ -10,7 +10,6 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
-import tomllib
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -31,6 +30,8 @@ def load_read_settings(path: Path | None) -> InputSpec:
     ``time`` and a ``[csv]`` mapping)."""
     if path is None:  # the keys a log's reader may ask for go in a --config file
         return InputSpec(path=Path("."), keys_in="a --config TOML file (e.g. read.toml)")
+    import tomllib  # with --config only: not on a command's fixed cost (issue 39)
+
     try:
         raw = tomllib.loads(Path(path).read_text(encoding="utf-8"))
     except FileNotFoundError:
