@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import contextlib
 from collections.abc import Callable, Iterator, Mapping, Sequence
+from typing import TYPE_CHECKING
 
 import numpy as np
 import pyarrow as pa
@@ -38,9 +39,11 @@ import pyarrow as pa
 from imupipe.readers import chunk_fill
 from imupipe.readers.arrays import arrow_array, string_array
 from imupipe.readers.decoded import Piece, absent_sensors, repeat_string
-from imupipe.readers.prefault import Prefault
 from imupipe.readers.table import COV, META_KEY, SCHEMA, metadata_bytes, null_floats
 from imupipe.readers.topics import COLUMNS, PIECE_TYPES
+
+if TYPE_CHECKING:
+    from imupipe.readers.prefault import Prefault
 
 SPREAD_ROWS = 1 << 15
 """Rows moved per step when a column is spread to its rows in place."""
@@ -155,6 +158,8 @@ class _Stream:
         self.capacity = capacity
         self.close()
         if capacity >= PREFAULT_ROWS:
+            from imupipe.readers.prefault import Prefault  # large tables only (issue 39)
+
             self.prefault = Prefault([*times.values(), *self._written(columns)])
             self.prefault.advance(end)
 
@@ -409,6 +414,8 @@ class TableBuffer:
                 for name, _, count in COLUMNS[s]
             }
             if total >= PREFAULT_ROWS:  # each column once a message carries a value in it
+                from imupipe.readers.prefault import Prefault  # large tables only (issue 39)
+
                 self.full_prefault = Prefault([], rows=total)
         self.full_mapped: set[str] = set()
         """The columns of :attr:`full` given to the prefault thread."""

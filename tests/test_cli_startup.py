@@ -4,6 +4,7 @@ importtime``; the times themselves are in ``benchmarks/bench_startup.py``)."""
 
 from __future__ import annotations
 
+import json
 import subprocess
 import sys
 
@@ -41,3 +42,44 @@ def test_read_does_not_import_convert_or_run():
     )
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert proc.returncode == 0, proc.stderr[-2000:]
+
+
+ONE_LOG_UNNEEDED = (
+    "multiprocessing",  # the pool: one log runs in the driver's process
+    "tomllib",  # --config only
+    "secrets",  # uploads to an object store only
+    "ctypes.util",  # prefault's fallback only (it imports subprocess)
+    "imupipe.readers.mapped",  # [fields] mappings only
+    "imupipe.readers.message_fields",
+    "imupipe.readers.prefault",  # tables of 65,536 rows or more only
+    "imupipe.pipeline.convert.dataset",  # --parquet only
+)
+"""What a one-log ``imupipe convert`` of an MCAP never uses (issue 39: the fixed cost a command
+pays; each was imported eagerly before)."""
+
+
+def test_one_log_convert_imports_only_what_it_uses(tmp_path):
+    """Issue 39: ``imupipe convert`` of one MCAP log (no --config, --parquet, pool or object
+    store) imports none of :data:`ONE_LOG_UNNEEDED`, and converts the log."""
+    from imupipe.pipeline.simulate import simulate
+    from imupipe.pipeline.writers.mcap import write_mcap
+
+    table, _ = simulate("static", {"duration_s": 0.2, "rate_hz": 100.0, "temperature": None}, 0)
+    write_mcap(tmp_path / "log.mcap", table)
+    chain = [{"type": "gyro_calibration", "sensor": "gyro", "kind": "linear",
+              "matrix": [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]],
+              "offset": [0.01, -0.02, 0.005]}]  # fmt: skip
+    (tmp_path / "cal.json").write_text(json.dumps({"imupipe_version": "test", "chain": chain}))
+    code = (
+        "import sys; from imupipe.pipeline.cli import main; "
+        "code = main(sys.argv[1:]); "
+        f"loaded = [m for m in {ONE_LOG_UNNEEDED!r} if m in sys.modules]; "
+        "assert not loaded, loaded; sys.exit(code)"
+    )
+    argv = ["convert", "-q", "--calibration", str(tmp_path / "cal.json"), "--out"]
+    proc = subprocess.run(
+        [sys.executable, "-c", code, *argv, str(tmp_path / "out"), str(tmp_path / "log.mcap")],
+        capture_output=True, text=True, timeout=120,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert (tmp_path / "out" / "log.mcap").is_file()

@@ -33,7 +33,6 @@ import pyarrow as pa
 
 from imupipe.pipeline.atomic import HOST_KEY, staged_outputs
 from imupipe.pipeline.calibration_file import on_device
-from imupipe.pipeline.convert.dataset import dataset_table
 from imupipe.pipeline.convert.done import existing_output, input_size
 from imupipe.pipeline.convert.plan import LogTask
 from imupipe.pipeline.convert.provenance import ProvenanceCheck
@@ -213,6 +212,8 @@ def _convert_log(task: LogTask) -> LogStats:
             mcap_tmp = out.path(task.output)
             parquet_tmp = None if task.parquet is None else out.path(task.parquet)
             parquet = None
+            if parquet_tmp is not None:  # builds its schema at import: --parquet only (issue 39)
+                from imupipe.pipeline.convert.dataset import dataset_table
             try:
                 with McapTableWriter(mcap_tmp, calibration=doc) as writer:
                     carried: list[RawMessage] = []

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from collections.abc import Iterator
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import pyarrow as pa
@@ -18,11 +19,13 @@ import pyarrow as pa
 from imupipe.readers.chunk_fill import walk
 from imupipe.readers.decoded import Piece, concat, decode_piece
 from imupipe.readers.errors import ReadError
-from imupipe.readers.mapped import Batch, Definition
 from imupipe.readers.mcap.fast import MESSAGE_HEADER, ChunkMessages, McapFile
 from imupipe.readers.sources import carry_sources, iter_sources, read_sources
 from imupipe.readers.spec import InputSpec, RawMessage
 from imupipe.readers.topics import normalize_type
+
+if TYPE_CHECKING:
+    from imupipe.readers.mapped import Batch, Definition
 
 GROUP_BYTES = 4 << 20
 """Chunks read into one table are decompressed back to back into buffers of this size and
@@ -156,6 +159,8 @@ class McapSource:
 
     def definitions(self) -> dict[str, Definition]:
         """Topic -> its channel's message definition (the first channel of a topic)."""
+        from imupipe.readers.mapped import Definition  # field mappings only (issue 39)
+
         out: dict[str, Definition] = {}
         for c in sorted(self.file.channels.values(), key=lambda c: c.id):
             out.setdefault(
@@ -166,6 +171,8 @@ class McapSource:
 
     def payloads(self, topics: set[str]) -> Iterator[list[tuple[str, Batch]]]:
         """Per chunk: the messages of ``topics`` (field mappings, :mod:`imupipe.readers.mapped`)."""
+        from imupipe.readers.mapped import Batch  # field mappings only (issue 39)
+
         for chunk in self.file.chunks():
             out = []
             for cid in chunk.offsets:
