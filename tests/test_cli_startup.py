@@ -53,6 +53,8 @@ ONE_LOG_UNNEEDED = (
     "imupipe.readers.message_fields",
     "imupipe.readers.prefault",  # tables of 65,536 rows or more only
     "imupipe.pipeline.convert.dataset",  # --parquet only
+    "mcap",  # imupipe reads and writes the records it needs (readers/mcap/records.py)
+    "lz4",  # the mcap library's reader's
 )
 """What a one-log ``imupipe convert`` of an MCAP never uses (issue 39: the fixed cost a command
 pays; each was imported eagerly before)."""

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import collections
 import json
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any
 
@@ -43,26 +43,64 @@ def summary_of(
     fh: Any, attachments: bool = True
 ) -> tuple[dict[str, int], dict[str, Any] | None] | None:
     """:func:`mcap_summary` of an open, seekable binary file (a local file, or an object opened
-    for ranged reads by :mod:`imupipe.pipeline.convert.remote`)."""
+    for ranged reads by :mod:`imupipe.pipeline.convert.remote`). Read by
+    :func:`imupipe.readers.mcap.records.read_summary`; a file it cannot read so (a record that
+    does not fit its layout, or has no place in a summary) by the ``mcap`` library, as before
+    (issue 39: its modules cost a one-log ``convert`` about 5 ms to import)."""
+    from imupipe.readers.mcap import records
+
+    try:
+        summary = records.read_summary(fh)
+        if summary is None:
+            return None
+        topics = {cid: c.topic for cid, c in summary.channels.items()}
+        counts = _per_topic(summary.statistics, topics)
+        if counts is None or not attachments:
+            return None if counts is None else (counts, None)
+        found = [records.read_attachment(fh, offset) for offset in summary.attachments]
+        return counts, _calibration(found)
+    except records.RecordError:
+        return _library_summary(fh, attachments)
+
+
+def _library_summary(
+    fh: Any, attachments: bool
+) -> tuple[dict[str, int], dict[str, Any] | None] | None:
+    """:func:`summary_of` by the ``mcap`` library's reader (from the start of ``fh``)."""
     from mcap.reader import make_reader
 
-    from imupipe.readers.mcap.summary import complete
-
+    fh.seek(0)
     reader = make_reader(fh)
     summary = reader.get_summary()
-    if summary is None or summary.statistics is None:
+    if summary is None:
         return None
-    channels = {cid: 0 for cid in summary.channels}  # topics are all it takes: no schema
-    if not complete(summary.statistics, channels, ()):
+    counts = _per_topic(summary.statistics, {cid: c.topic for cid, c in summary.channels.items()})
+    if counts is None or not attachments:
+        return None if counts is None else (counts, None)
+    return counts, _calibration((att.name, att.data) for att in reader.iter_attachments())
+
+
+def _per_topic(stats: Any, topics: Mapping[int, str]) -> dict[str, int] | None:
+    """Messages per topic of a summary's Statistics record (``topics``: its channels' topics by
+    id); None without one, or when it counts messages on a channel the summary does not name
+    (:func:`imupipe.readers.mcap.summary.complete`: no schema needed here)."""
+    from imupipe.readers.mcap.summary import complete
+
+    if stats is None or not complete(stats, dict.fromkeys(topics, 0), ()):
         return None
     per_topic: collections.Counter[str] = collections.Counter()
-    for cid, n in summary.statistics.channel_message_counts.items():
-        per_topic[summary.channels[cid].topic] += n
-    attached = None
-    for att in reader.iter_attachments() if attachments else ():
-        if att.name == "calibration.json":
-            attached = json.loads(att.data)
-    return dict(per_topic), attached
+    for cid, n in stats.channel_message_counts.items():
+        per_topic[topics[cid]] += n
+    return dict(per_topic)
+
+
+def _calibration(attached: Iterable[tuple[str, bytes]]) -> dict[str, Any] | None:
+    """The (last) ``calibration.json`` of a file's (name, data) attachments; None without."""
+    found = None
+    for name, data in attached:
+        if name == "calibration.json":
+            found = json.loads(data)
+    return found
 
 
 def mcap_counts(path: Path) -> dict[str, int] | None:

@@ -39,24 +39,27 @@ from typing import Any
 import numpy as np
 import pyarrow as pa
 import zstandard
-from mcap.data_stream import RecordBuilder
-from mcap.opcode import Opcode
-from mcap.records import (
-    Attachment,
-    AttachmentIndex,
-    Channel,
-    ChunkIndex,
-    DataEnd,
-    Footer,
-    Header,
-    Schema,
-    Statistics,
-    SummaryOffset,
-)
 
 from imupipe.pipeline.calibration_file import calibration_json
 from imupipe.readers import cdr
 from imupipe.readers.arrays import arrow_array, arrow_scalar, to_numpy, unique, valid_mask
+from imupipe.readers.mcap.records import (
+    MAGIC,
+    OP_ATTACHMENT,
+    OP_ATTACHMENT_INDEX,
+    OP_CHANNEL,
+    OP_CHUNK,
+    OP_CHUNK_INDEX,
+    OP_DATA_END,
+    OP_FOOTER,
+    OP_HEADER,
+    OP_MESSAGE,
+    OP_MESSAGE_INDEX,
+    OP_SCHEMA,
+    OP_STATISTICS,
+    OP_SUMMARY_OFFSET,
+    pack,
+)
 from imupipe.readers.progress import report
 from imupipe.readers.spec import RawMessage
 from imupipe.readers.table import (
@@ -86,7 +89,6 @@ SPLIT = ("gyro", "accel")
 """The streams of an IMU read from a gyro and an accelerometer topic (``gyro_topic``,
 ``accel_topic``): written back to those topics, one vector each."""
 DEFAULT_FRAME = "imu"
-MAGIC = b"\x89MCAP0\r\n"
 CHUNK_BYTES = 1 << 20
 RECORD_HEADER = 31
 """Bytes of a message record before its payload (opcode, length, channel, seq, 2 times)."""
@@ -409,7 +411,7 @@ def _fill_record_headers(
         }
     )
     head = records.reshape(-1).view(dt)
-    head["op"] = Opcode.MESSAGE
+    head["op"] = OP_MESSAGE
     head["len"] = size - 9
     head["ch"] = channel
     head["seq"] = seq
@@ -471,50 +473,38 @@ class McapTableWriter:
         self._passed = -1  # the largest log time of the rows written so far
         self._fh = open(self.path, "wb")  # noqa: SIM115 - closed in close()
         self._compressor = zstandard.ZstdCompressor(level=1)
-        self._schemas: dict[tuple[str, str, bytes], Schema] = {}
-        self._channels: dict[tuple[str, str, int], Channel] = {}
+        self._schemas: dict[tuple[str, str, bytes], tuple[int, bytes]] = {}
+        """Schema -> its id and record, written again in the summary."""
+        self._channels: dict[tuple[str, str, int], tuple[int, bytes]] = {}
+        """(topic, encoding, schema id) -> the channel's id and record."""
         self._topic_of: dict[int, str] = {}
         self._seq: dict[int, int] = {}
         self._counts: dict[int, int] = {}
-        self._chunk_indexes: list[ChunkIndex] = []
-        self._attachment_indexes: list[AttachmentIndex] = []
+        self._chunk_indexes: list[list[Any]] = []
+        """The fields of each chunk's ChunkIndex record."""
+        self._attachment_indexes: list[bytes] = []
         self._start = -1
         self._end = 0
         self._closed = False
         self._fh.write(MAGIC)
-        self._write_record(Header(profile="ros2", library=library))
+        self._fh.write(pack(OP_HEADER, "ros2", library))
 
     # -- plumbing --------------------------------------------------------------------------
-    def _write_record(self, record: Any) -> int:
-        builder = RecordBuilder()
-        record.write(builder)
-        data = builder.end()
-        self._fh.write(data)
-        return len(data)
-
     def _channel(self, topic: str, encoding: str, schema: tuple[str, str, bytes]) -> int:
         if schema not in self._schemas:
-            s = Schema(
-                id=len(self._schemas) + 1, name=schema[0], encoding=schema[1], data=schema[2]
-            )
-            self._schemas[schema] = s
-            self._write_record(s)
-        sid = self._schemas[schema].id
+            sid = len(self._schemas) + 1
+            self._schemas[schema] = (sid, pack(OP_SCHEMA, sid, *schema))
+            self._fh.write(self._schemas[schema][1])
+        sid = self._schemas[schema][0]
         key = (topic, encoding, sid)
         if key not in self._channels:
-            c = Channel(
-                id=len(self._channels) + 1,
-                topic=topic,
-                message_encoding=encoding,
-                schema_id=sid,
-                metadata={},
-            )
-            self._channels[key] = c
-            self._topic_of[c.id] = topic
-            self._seq[c.id] = 0
-            self._counts[c.id] = 0
-            self._write_record(c)
-        return self._channels[key].id
+            cid = len(self._channels) + 1
+            self._channels[key] = (cid, pack(OP_CHANNEL, cid, sid, topic, encoding, {}))
+            self._topic_of[cid] = topic
+            self._seq[cid] = 0
+            self._counts[cid] = 0
+            self._fh.write(self._channels[key][1])
+        return self._channels[key][0]
 
     def _sequence(self, channel: int, m: int) -> np.ndarray:
         start = self._seq[channel]
@@ -549,21 +539,11 @@ class McapTableWriter:
         head = struct.pack("<QQQI", start_t, end_t, len(raw), zlib.crc32(raw))
         head += struct.pack("<I", 4) + b"zstd" + struct.pack("<Q", len(compressed))
         chunk_start = self._fh.tell()
-        self._fh.write(struct.pack("<BQ", Opcode.CHUNK, len(head) + len(compressed)))
+        self._fh.write(struct.pack("<BQ", OP_CHUNK, len(head) + len(compressed)))
         self._fh.write(head)
         self._fh.write(compressed)
         chunk_length = self._fh.tell() - chunk_start
-        index = ChunkIndex(
-            message_start_time=start_t,
-            message_end_time=end_t,
-            chunk_start_offset=chunk_start,
-            chunk_length=chunk_length,
-            message_index_offsets={},
-            message_index_length=0,
-            compression="zstd",
-            compressed_size=len(compressed),
-            uncompressed_size=len(raw),
-        )
+        offsets: dict[int, int] = {}  # the message index of each channel in the chunk
         index_start = self._fh.tell()
         one = len(channels) and channels[0] == channels[-1] and (channels == channels[0]).all()
         for cid in [int(channels[0])] if one else unique(channels).tolist():
@@ -571,13 +551,24 @@ class McapTableWriter:
             pairs = np.empty((len(channels) if one else int(sel.sum()), 2), dtype="<u8")
             pairs[:, 0] = log[sel]
             pairs[:, 1] = starts[sel] - base
-            index.message_index_offsets[cid] = self._fh.tell()
+            offsets[cid] = self._fh.tell()
             self._fh.write(
-                struct.pack("<BQHI", Opcode.MESSAGE_INDEX, 6 + pairs.nbytes, cid, pairs.nbytes)
+                struct.pack("<BQHI", OP_MESSAGE_INDEX, 6 + pairs.nbytes, cid, pairs.nbytes)
             )
             self._fh.write(pairs.tobytes())
-        index.message_index_length = self._fh.tell() - index_start
-        self._chunk_indexes.append(index)
+        self._chunk_indexes.append(
+            [
+                start_t,
+                end_t,
+                chunk_start,
+                chunk_length,
+                offsets,
+                self._fh.tell() - index_start,
+                "zstd",
+                len(compressed),
+                len(raw),
+            ]
+        )
 
     # -- public ----------------------------------------------------------------------------
     def write_table(self, table: pa.Table) -> None:
@@ -717,7 +708,7 @@ class McapTableWriter:
             self._counts[cid] += 1
             head = struct.pack(
                 "<BQHIQQ",
-                Opcode.MESSAGE,
+                OP_MESSAGE,
                 22 + len(msg.data),
                 cid,
                 seq,
@@ -755,62 +746,52 @@ class McapTableWriter:
         self._closed = True
         if self.calibration is not None:
             now = time.time_ns()
-            att = Attachment(
-                create_time=now,
-                log_time=now,
-                name="calibration.json",
-                media_type="application/json",
-                data=calibration_json(self.calibration).encode(),
-            )
+            name, media_type = "calibration.json", "application/json"
+            data = calibration_json(self.calibration).encode()
             offset = self._fh.tell()
-            length = self._write_record(att)
+            record = pack(OP_ATTACHMENT, now, now, name, media_type, data, 0)
+            self._fh.write(record)
             self._attachment_indexes.append(
-                AttachmentIndex(
-                    offset=offset,
-                    length=length,
-                    create_time=now,
-                    log_time=now,
-                    data_size=len(att.data),
-                    name=att.name,
-                    media_type=att.media_type,
+                pack(
+                    OP_ATTACHMENT_INDEX, offset, len(record), now, now, len(data), name, media_type
                 )
             )
-        self._write_record(DataEnd(0))
+        self._fh.write(pack(OP_DATA_END, 0))
         summary_start = self._fh.tell()
-        builder = RecordBuilder()
-        offsets: list[SummaryOffset] = []
-
-        def group(opcode: Opcode, records: Iterable[Any]) -> None:
-            begin = builder.count
-            for r in records:
-                r.write(builder)
-            if builder.count > begin:
-                offsets.append(SummaryOffset(opcode, summary_start + begin, builder.count - begin))
-
-        stats = Statistics(
-            message_count=sum(self._counts.values()),
-            schema_count=len(self._schemas),
-            channel_count=len(self._channels),
-            attachment_count=len(self._attachment_indexes),
-            metadata_count=0,
-            chunk_count=len(self._chunk_indexes),
-            message_start_time=max(self._start, 0),
-            message_end_time=self._end,
-            channel_message_counts=dict(self._counts),
+        stats = pack(
+            OP_STATISTICS,
+            sum(self._counts.values()),
+            len(self._schemas),
+            len(self._channels),
+            len(self._attachment_indexes),
+            0,  # metadata records
+            len(self._chunk_indexes),
+            max(self._start, 0),
+            self._end,
+            dict(self._counts),
         )
-        group(Opcode.SCHEMA, self._schemas.values())
-        group(Opcode.CHANNEL, self._channels.values())
-        group(Opcode.STATISTICS, [stats])
-        group(Opcode.CHUNK_INDEX, self._chunk_indexes)
-        group(Opcode.ATTACHMENT_INDEX, self._attachment_indexes)
-        offset_start = summary_start + builder.count
-        for o in offsets:
-            o.write(builder)
-        summary = builder.end()
+        groups = [
+            (OP_SCHEMA, [record for _, record in self._schemas.values()]),
+            (OP_CHANNEL, [record for _, record in self._channels.values()]),
+            (OP_STATISTICS, [stats]),
+            (OP_CHUNK_INDEX, [pack(OP_CHUNK_INDEX, *f) for f in self._chunk_indexes]),
+            (OP_ATTACHMENT_INDEX, self._attachment_indexes),
+        ]
+        parts: list[bytes] = []
+        offsets: list[bytes] = []  # a SummaryOffset record per group that has records
+        at = summary_start
+        for opcode, group in groups:
+            size = sum(map(len, group))
+            if size:
+                offsets.append(pack(OP_SUMMARY_OFFSET, opcode, at, size))
+                parts += group
+                at += size
+        summary = b"".join(parts + offsets)
+        offset_start = at
         crc = zlib.crc32(summary)
-        crc = zlib.crc32(struct.pack("<BQQQ", Opcode.FOOTER, 20, summary_start, offset_start), crc)
+        crc = zlib.crc32(struct.pack("<BQQQ", OP_FOOTER, 20, summary_start, offset_start), crc)
         self._fh.write(summary)
-        self._write_record(Footer(summary_start, offset_start, crc))
+        self._fh.write(pack(OP_FOOTER, summary_start, offset_start, crc))
         self._fh.write(MAGIC)
         self._fh.close()
         return self.counts()

@@ -44,8 +44,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
-from mcap.data_stream import ReadDataStream
-from mcap.records import Channel, Schema, Statistics
 
 from imupipe.readers.cdr import at, even_step
 from imupipe.readers.compression import (
@@ -58,18 +56,26 @@ from imupipe.readers.compression import (
     no_spare_cpu,
 )
 from imupipe.readers.errors import READ_TO_CUT, ReadError
+from imupipe.readers.mcap import records
+from imupipe.readers.mcap.records import (
+    MAGIC,
+    OP_CHANNEL,
+    OP_CHUNK,
+    OP_CHUNK_INDEX,
+    OP_DATA_END,
+    OP_FOOTER,
+    OP_HEADER,
+    OP_MESSAGE,
+    OP_MESSAGE_INDEX,
+    OP_SCHEMA,
+    OP_STATISTICS,
+    Channel,
+    Schema,
+    Statistics,
+)
 from imupipe.readers.mcap.summary import complete, defined
 from imupipe.readers.progress import report
 
-MAGIC = b"\x89MCAP0\r\n"
-OP_HEADER, OP_FOOTER, OP_SCHEMA, OP_CHANNEL, OP_MESSAGE = 0x01, 0x02, 0x03, 0x04, 0x05
-OP_CHUNK, OP_MESSAGE_INDEX, OP_CHUNK_INDEX, OP_STATISTICS, OP_DATA_END = (
-    0x06,
-    0x07,
-    0x08,
-    0x0B,
-    0x0F,
-)
 NEVER = 2**63 - 1
 MESSAGE_HEADER = 31
 """Bytes from a message record's opcode to its payload."""
@@ -77,10 +83,6 @@ PSEUDO_CHUNK_BYTES = 1 << 20
 CHUNK_HEAD = 64
 """Bytes of a chunk record the reading thread reads (the fields before the records, for
 compression names of up to 20 characters)."""
-STATS_HEAD = struct.Struct("<QHIIIIQQ")
-"""A Statistics record's fields before its message counts (MCAP specification)."""
-STATS_COUNT = struct.Struct("<HQ")
-"""One entry of its message counts: channel id, messages."""
 POOLED_BYTES = 64 << 20
 """Chunks up to this size are decompressed into buffers used again (:class:`BufferPool`)."""
 SMALL_FILE = 1 << 20
@@ -384,9 +386,27 @@ class McapFile:
         self.chunk_starts.append((offset, start))
         return ids.tolist()
 
-    def _read_record(self, kind: type, opcode: int, body: bytes):  # noqa: ANN202
-        """``kind.read`` of a record's body (the mcap library's record classes read the fields
-        they know and leave the rest); ReadError naming the file when it cannot."""
+    def _read_record(self, opcode: int, body: bytes):  # noqa: ANN202
+        """A Schema, Channel or Statistics record's body (:mod:`imupipe.readers.mcap.records`:
+        the fields the specification lists, the rest left); one whose fields do not fit it as
+        their lengths say is read by the mcap library's record class, which reads it its own
+        way or fails (imported then only: issue 39); ReadError naming the file when it
+        cannot be read."""
+        read = {
+            OP_SCHEMA: records.read_schema,
+            OP_CHANNEL: records.read_channel,
+            OP_STATISTICS: records.read_statistics,
+        }[opcode]
+        try:
+            return read(body)
+        except records.RecordError:
+            pass
+        from mcap import records as library
+        from mcap.data_stream import ReadDataStream
+
+        kind = {OP_SCHEMA: library.Schema, OP_CHANNEL: library.Channel}.get(
+            opcode, library.Statistics
+        )
         try:
             return kind.read(ReadDataStream(io.BytesIO(body)))
         except Exception as exc:  # noqa: BLE001 - any failure to parse is a corrupt record
@@ -394,13 +414,13 @@ class McapFile:
                 f"{self.path}: corrupt MCAP record (opcode {opcode:#x}): {exc}"
             ) from None
 
-    def _parsed(self, kind: type, opcode: int, body: bytes):  # noqa: ANN202
+    def _parsed(self, opcode: int, body: bytes):  # noqa: ANN202
         """:meth:`_read_record` of a Schema or Channel record, parsed once per process for the
         same bytes (:data:`PARSED_BYTES`; the records are never changed once read)."""
         key = (opcode, body)
         found = _PARSED.get(key)
         if found is None:
-            found = self._read_record(kind, opcode, body)
+            found = self._read_record(opcode, body)
             global _parsed_bytes
             _parsed_bytes += len(body)
             if _parsed_bytes > PARSED_BYTES:
@@ -410,41 +430,23 @@ class McapFile:
         return found
 
     def _statistics(self, body: bytes) -> Statistics:
-        """The Statistics record of ``body``: its fields unpacked at once, or, when its counts
-        do not fill their length exactly, by the mcap library (which names a damaged one)."""
-        if len(body) >= STATS_HEAD.size + 4:
-            head = STATS_HEAD.unpack_from(body)
-            length = int.from_bytes(body[STATS_HEAD.size : STATS_HEAD.size + 4], "little")
-            end = STATS_HEAD.size + 4 + length
-            if length % 10 == 0 and end <= len(body):
-                counts = dict(STATS_COUNT.iter_unpack(body[STATS_HEAD.size + 4 : end]))
-                return Statistics(
-                    message_count=head[0],
-                    schema_count=head[1],
-                    channel_count=head[2],
-                    attachment_count=head[3],
-                    metadata_count=head[4],
-                    chunk_count=head[5],
-                    message_start_time=head[6],
-                    message_end_time=head[7],
-                    channel_message_counts=counts,
-                )
-        return self._read_record(Statistics, OP_STATISTICS, body)
+        """The Statistics record of ``body`` (:meth:`_read_record`)."""
+        return self._read_record(OP_STATISTICS, body)
 
     def _collect(self, opcode: int, body: bytes) -> bool:
         """Keep a Schema or Channel record (a schema of id 0 is invalid and ignored, as the
         specification says); True when it was one of them."""
         if opcode == OP_SCHEMA:
-            s = self._parsed(Schema, opcode, body)
+            s = self._parsed(opcode, body)
             if s.id:
                 self._schemas[s.id] = s
         elif opcode == OP_CHANNEL:
-            c = self._parsed(Channel, opcode, body)
+            c = self._parsed(opcode, body)
             self._channels[c.id] = c
         elif opcode == OP_HEADER:
             try:
-                self.profile = ReadDataStream(io.BytesIO(body)).read_prefixed_string()
-            except Exception:  # noqa: BLE001 - the profile is informative only
+                self.profile = records.unpack(OP_HEADER, body)[0]
+            except records.RecordError:  # the profile is informative only
                 self.profile = ""
             return False
         else:

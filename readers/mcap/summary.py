@@ -30,7 +30,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, BinaryIO
 
 if TYPE_CHECKING:
-    from mcap.records import Statistics
+    from imupipe.readers.mcap.records import Statistics
 
 OP_MESSAGE_INDEX = 0x07
 
