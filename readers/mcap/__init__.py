@@ -1,4 +1,4 @@
-"""MCAP: the chunk-level parser, the summary section, the reader.
+"""MCAP: its records, the chunk-level parser, the summary section, the reader.
 
 May import: the readers' shared bottom (table, errors, spec, topics, decoded, sources, cdr,
 compression) and ``ros1`` (ROS 1 encoded MCAP).
