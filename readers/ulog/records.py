@@ -167,8 +167,17 @@ def _add_info(log: Any, kind: int, data: bytes) -> bool:
         kind_name, key, value = _info(data)
         log._msg_info_dict[key] = value
         log._msg_info_dict_types[key] = kind_name
-    elif kind == MULTI:
-        log._add_message_info_multiple(ULog._MessageInfo(data, None, is_info_multiple=True))
+    elif kind == MULTI:  # pyulog's _add_message_info_multiple of its _MessageInfo
+        continued = data[0]
+        kind_name, key, value = _info(data[1:])
+        multiple = log._msg_info_multiple_dict
+        if key not in multiple:
+            multiple[key] = [[value]]
+            log._msg_info_multiple_dict_types[key] = kind_name
+        elif continued:
+            multiple[key][-1].append(value)
+        else:
+            multiple[key].append([value])
     elif kind == DEFAULT:
         log._add_parameter_default(ULog._MessageParameterDefault(data, None))
     else:
@@ -262,7 +271,7 @@ def _data(log: Any, buf: bytes, walk: Walk, names: Collection[str] | None) -> se
     if len(data_at) and int(sizes[data_at].min()) < 2:
         return None
     d_offsets = offsets[data_at]
-    msg_ids = walk.ids[data_at].astype(np.int64)
+    msg_ids = walk.ids[data_at]  # uint16: numpy's stable sort of it is a radix sort
 
     # the other records, in file order: subscriptions first (they decide what the data is)
     others = np.flatnonzero(~is_data)
@@ -312,10 +321,10 @@ def _data(log: Any, buf: bytes, walk: Walk, names: Collection[str] | None) -> se
     if bool(np.any(sizes[data_at[taken]] != expect[msg_ids[taken]])):
         return None  # a payload of another size: pyulog's "corrupt data"
     order = np.argsort(msg_ids, kind="stable")
-    sorted_ids = msg_ids[order]
-    for msg_id, sub in subs.items():
-        lo, hi = np.searchsorted(sorted_ids, [msg_id, msg_id + 1])
-        rows = order[lo:hi]
+    keys = np.fromiter(subs, dtype=np.int64, count=len(subs))
+    bounds = np.searchsorted(msg_ids[order], np.concatenate([keys, keys + 1])).tolist()
+    for j, (msg_id, sub) in enumerate(subs.items()):
+        rows = order[bounds[j] : bounds[j + len(subs)]]
         rows = rows[data_at[rows] > subscribed_at[msg_id]]  # before it: a topic not read then
         if not len(rows):
             continue
