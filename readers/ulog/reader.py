@@ -79,7 +79,6 @@ from typing import Any
 import numpy as np
 import pyarrow as pa
 
-from imupipe.readers.arrays import unique
 from imupipe.readers.decoded import Piece, repeat_string
 from imupipe.readers.errors import ReadError
 from imupipe.readers.spec import InputSpec
@@ -268,11 +267,12 @@ class UlogFile:
     # -- what the log says about itself --------------------------------------------------------
     def parameters(self) -> dict[str, float | int]:
         """The calibration-related parameters at start (:data:`PARAMETER_PREFIXES`)."""
-        return {
-            str(k): v if isinstance(v, int) else float(v)
-            for k, v in sorted(self.ulog.initial_parameters.items())
+        kept = [
+            (str(k), v)
+            for k, v in self.ulog.initial_parameters.items()
             if str(k).startswith(PARAMETER_PREFIXES) and isinstance(v, int | float)
-        }
+        ]
+        return {k: v if isinstance(v, int) else float(v) for k, v in sorted(kept)}
 
     def info(self, key: str) -> str | None:
         value = self.ulog.msg_info_dict.get(key)
@@ -546,12 +546,17 @@ def _pairs_of(f: UlogFile) -> dict[int, int]:
     for imu in f.named("vehicle_imu"):
         if not imu.has("gyro_device_id", "accel_device_id"):
             continue
-        both = np.column_stack(
-            [imu.data["gyro_device_id"].astype(np.int64), imu.data["accel_device_id"]]
-        )
-        for gyro_id, accel_id in unique(both, axis=0):
+        # the distinct (gyro, accel) rows in ascending order, as np.unique(axis=0) gives them,
+        # by one lexsort (np.unique's row sort goes through a structured view: 100x slower)
+        gyro = imu.data["gyro_device_id"].astype(np.int64)
+        accel = imu.data["accel_device_id"].astype(np.int64)
+        order = np.lexsort((accel, gyro))
+        gyro, accel = gyro[order], accel[order]
+        first = np.ones(len(order), dtype=bool)
+        first[1:] = (gyro[1:] != gyro[:-1]) | (accel[1:] != accel[:-1])
+        for gyro_id, accel_id in zip(gyro[first].tolist(), accel[first].tolist(), strict=True):
             if gyro_id and accel_id:
-                pairs.setdefault(int(gyro_id), int(accel_id))
+                pairs.setdefault(gyro_id, accel_id)
     return pairs
 
 

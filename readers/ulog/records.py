@@ -160,14 +160,14 @@ def _cut(buf: bytes, end: int) -> tuple[int, int, int] | None:
 
 def _add_info(log: Any, kind: int, data: bytes) -> bool:
     """Add an information (``'I'``), multi-information (``'M'``) or parameter-default (``'Q'``)
-    record to ``log`` as pyulog does, in either section; False for any other record type."""
-    from pyulog import ULog
-
+    record to ``log`` as pyulog does (its ``_MessageInfo``, ``_add_message_info_multiple``,
+    ``_MessageParameterDefault`` and ``_add_parameter_default``, without an object per record),
+    in either section; False for any other record type."""
     if kind == INFO:
         kind_name, key, value = _info(data)
         log._msg_info_dict[key] = value
         log._msg_info_dict_types[key] = kind_name
-    elif kind == MULTI:  # pyulog's _add_message_info_multiple of its _MessageInfo
+    elif kind == MULTI:
         continued = data[0]
         kind_name, key, value = _info(data[1:])
         multiple = log._msg_info_multiple_dict
@@ -179,7 +179,12 @@ def _add_info(log: Any, kind: int, data: bytes) -> bool:
         else:
             multiple[key].append([value])
     elif kind == DEFAULT:
-        log._add_parameter_default(ULog._MessageParameterDefault(data, None))
+        bits = data[0]  # the default types, one bit each: pyulog keys bit b's by 2**b - 1
+        _, key, value = _info(data[1:])
+        while bits:
+            low = bits & -bits
+            bits ^= low
+            log._default_parameters.setdefault(low - 1, {})[key] = value
     else:
         return False
     return True
@@ -388,9 +393,18 @@ def _info(data: bytes) -> tuple[str, str, Any]:
 
 
 @functools.cache
+def _pyulog() -> Any:
+    """pyulog's ``ULog`` class (imported on first use; a ``from pyulog import ULog`` in a
+    function called per record costs a Python-level import step each call)."""
+    from pyulog import ULog
+
+    return ULog
+
+
+@functools.cache
 def _unpackers() -> dict[str, Callable[[bytes], tuple[Any, ...]]]:
     """pyulog's value types -> the unpacker of one little-endian value, as pyulog reads them."""
-    from pyulog import ULog
+    ULog = _pyulog()
 
     return {k: struct.Struct("<" + v[0]).unpack for k, v in ULog._UNPACK_TYPES.items()}
 
@@ -398,7 +412,7 @@ def _unpackers() -> dict[str, Callable[[bytes], tuple[Any, ...]]]:
 def _format(data: bytes) -> Any:
     """A format record (``'F'``): pyulog's ``MessageFormat`` (``name``; ``fields``: (type,
     array size or 0, name) each), split as pyulog splits it, without its calls per field."""
-    from pyulog import ULog
+    ULog = _pyulog()
 
     parts = str(data, "utf-8", "ignore").split(":")
     fields = []
@@ -425,7 +439,7 @@ def _flat(type_name: str, formats: dict[str, Any], memo: dict[str, list[str]]) -
     """The field names pyulog's ``_MessageAddLogged._parse_nested_type`` gives a type (nested
     types flattened: ``a.b``, arrays ``a[0]``), trailing padding kept; KeyError for a type
     without a format, as pyulog's."""
-    from pyulog import ULog
+    ULog = _pyulog()
 
     if type_name in memo:
         return memo[type_name]
@@ -451,7 +465,7 @@ def _layout_ok(
     while names and names[-1].startswith("_padding"):
         names.pop()
     if "" in names:  # numpy names such a field itself: ask pyulog's own class
-        from pyulog import ULog
+        ULog = _pyulog()
 
         try:
             ULog._MessageAddLogged(b"\0\0\0" + name.encode(), None, formats)
@@ -466,7 +480,7 @@ def _simple(type_name: str, formats: dict[str, Any], memo: dict[str, bool]) -> b
     unique, not empty, hold none of ``.[]``, and its nested types are such types (each
     flattened name then starts with its own field's name, ``field`` or ``field[i]``, up to its
     first ``.``); KeyError for a type without a format, as pyulog's."""
-    from pyulog import ULog
+    ULog = _pyulog()
 
     if type_name in memo:
         return memo[type_name]
@@ -491,7 +505,7 @@ def _subscription(data: bytes, name: str, formats: dict[str, Any], made: dict[st
     """pyulog's ``_MessageAddLogged`` of a subscription record; another instance of a topic
     already made in this parse is a copy of it (the same fields and dtype: they depend on the
     topic's format only) with its own ids, field list and buffer."""
-    from pyulog import ULog
+    ULog = _pyulog()
 
     first = made.get(name)
     if first is None:
