@@ -216,6 +216,8 @@ class UlogFile:
                 self.instances[inst.key] = inst
             else:
                 self.notices.append(f"topic {inst.key} has no timestamp field: not read")
+        self._named: dict[str, list[Instance]] | None = None
+        """Topic name -> its instances, once made (:meth:`named`)."""
         self.imu_pairs: dict[int, int] | None = None
         """:func:`_imu_pairs`, once made."""
         self.skipped: list[str] = [] if wanted is None else sorted(wanted.seen - wanted.names)
@@ -267,19 +269,24 @@ class UlogFile:
     # -- what the log says about itself --------------------------------------------------------
     def parameters(self) -> dict[str, float | int]:
         """The calibration-related parameters at start (:data:`PARAMETER_PREFIXES`)."""
-        kept = [
-            (str(k), v)
-            for k, v in self.ulog.initial_parameters.items()
-            if str(k).startswith(PARAMETER_PREFIXES) and isinstance(v, int | float)
-        ]
-        return {k: v if isinstance(v, int) else float(v) for k, v in sorted(kept)}
+        params = self.ulog.initial_parameters
+        kept = sorted(k for k in params if k.startswith(PARAMETER_PREFIXES))  # keys: str
+        return {
+            k: v if isinstance(v, int) else float(v)
+            for k in kept
+            if isinstance(v := params[k], int | float)
+        }
 
     def info(self, key: str) -> str | None:
         value = self.ulog.msg_info_dict.get(key)
         return None if value is None else str(value)
 
     def named(self, name: str) -> list[Instance]:
-        return [v for v in self.instances.values() if v.name == name]
+        if self._named is None:  # one pass over the instances, in their order
+            self._named = {}
+            for v in self.instances.values():
+                self._named.setdefault(v.name, []).append(v)
+        return list(self._named.get(name, ()))
 
     def dropouts(self) -> tuple[int, int]:
         """(count, total ms) of the logger's dropouts."""

@@ -37,7 +37,7 @@ from typing import Any
 
 import numpy as np
 
-from imupipe.readers.record_walk import Walk, gather, ulog_walk
+from imupipe.readers.record_walk import Walk, gather, ulog_formats, ulog_walk
 
 HEADER = 16
 """The file header's bytes: magic (7), version (1), start timestamp (uint64, us)."""
@@ -208,13 +208,16 @@ def _definitions(log: Any, buf: bytes, walk: Walk, raw: np.ndarray) -> bool:
             kinds_all[~is_param],
         )
     formats = log._message_formats
+    is_format = kinds_all == FORMAT
+    split = iter(ulog_formats(buf, offsets[is_format], sizes_all[is_format]) or ())
     for o, n, kind in zip(offsets.tolist(), sizes_all.tolist(), kinds_all.tolist(), strict=True):
         data = buf[o + 3 : o + 3 + n]
         if kind == PARAM:
             _, key, value = _info(data)
             params[key] = value
         elif kind == FORMAT:
-            fmt = _format(data)
+            plain = next(split, None)  # split in C (when built and plain), else here
+            fmt = _format(data) if plain is None else _format_of(*plain)
             formats[fmt.name] = fmt
         elif not _add_info(log, kind, data):
             return False  # flag bits are read above, only when first; any other is not pyulog's
@@ -417,8 +420,6 @@ def _unpackers() -> dict[str, Callable[[bytes], tuple[Any, ...]]]:
 def _format(data: bytes) -> Any:
     """A format record (``'F'``): pyulog's ``MessageFormat`` (``name``; ``fields``: (type,
     array size or 0, name) each), split as pyulog splits it, without its calls per field."""
-    ULog = _pyulog()
-
     parts = str(data, "utf-8", "ignore").split(":")
     fields = []
     for entry in parts[1].split(";"):
@@ -434,8 +435,14 @@ def _format(data: bytes) -> Any:
         if count < 0 or count > 0xFFFF:
             raise ValueError(f"invalid array size: {count}")
         fields.append((kind[:a], count, field))
+    return _format_of(parts[0], fields)
+
+
+def _format_of(name: str, fields: list[tuple[str, int, str]]) -> Any:
+    """pyulog's ``MessageFormat`` of a format record split into ``name`` and ``fields``."""
+    ULog = _pyulog()
     fmt = ULog.MessageFormat.__new__(ULog.MessageFormat)
-    fmt.name = parts[0]
+    fmt.name = name
     fmt.fields = fields
     return fmt
 
