@@ -74,7 +74,7 @@ from typing import Any
 import numpy as np
 import pyarrow as pa
 
-from imupipe.readers.arrays import arrow_array, to_numpy, valid_mask
+from imupipe.readers.arrays import arrow_array, take, take_rows, to_numpy, valid_mask
 
 SENSOR_COLUMNS: dict[str, tuple[str, ...]] = {
     "gyro": ("gyro_x", "gyro_y", "gyro_z"),
@@ -479,7 +479,7 @@ def sort_by_time(table: pa.Table) -> tuple[pa.Table, int]:
         return table, 0
     order = np.argsort(t, kind="stable")
     moved = int(np.count_nonzero(order != np.arange(len(t))))
-    return table.take(arrow_array(order)), moved
+    return take_rows(table, order), moved
 
 
 def with_flight_stream(
@@ -552,8 +552,7 @@ def _spread_rows(
     chunk = column.combine_chunks()
     dtype = _NUMERIC_DTYPES.get(chunk.type)
     if dtype is None:
-        index = np.where(elsewhere, 0, order)
-        return chunk.take(arrow_array(index, pa.int64(), mask=elsewhere))
+        return take(chunk, np.where(elsewhere, -1, order))
     raw = chunk.buffers()[1]
     out = np.zeros(total, dtype)
     if len(chunk) and raw is not None:
@@ -625,7 +624,7 @@ def on_imu_rows(table: pa.Table) -> tuple[pa.Table, dict[str, int]]:
             dropped[stream] = len(table) - int(table.column(FLIGHT_COLUMNS[stream][0]).null_count)
     rows = np.flatnonzero(imu)
     t_ns = to_numpy(table.column("t_ns"))
-    out = table.take(arrow_array(rows))
+    out = take_rows(table, rows)
     carried: list[str] = []
     for name in CARRIED_COLUMNS:
         if name not in table.schema.names:

@@ -631,7 +631,7 @@ def _piece(f: DataFlashLog, inst: Instance, columns: dict[str, np.ndarray]) -> P
     t = f.time_ns(inst.name, inst.rows)
     if t is None:
         raise ReadError(f"{f.path}: message {inst.name} has no TimeUS or TimeMS field")
-    return Piece(t, t, repeat_string("", len(t)), columns)
+    return Piece(t, t, repeat_string("", len(t)), columns, one_frame="")
 
 
 def _xyz(

@@ -689,7 +689,7 @@ def choose_topics(spec: InputSpec, f: UlogFile) -> tuple[dict[str, str], list[st
 
 
 def _piece(stamp: np.ndarray, log: np.ndarray, columns: dict[str, np.ndarray]) -> Piece:
-    return Piece(stamp, log, repeat_string("", len(stamp)), columns)
+    return Piece(stamp, log, repeat_string("", len(stamp)), columns, one_frame="")
 
 
 def _xyz(prefix: str, values: np.ndarray) -> dict[str, np.ndarray]:
