@@ -15,6 +15,7 @@ read and a convert never import pandas.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 import pyarrow as pa
@@ -148,52 +149,30 @@ def unique(values: np.ndarray, axis: int | None = None) -> np.ndarray:
     return np.unique(values, axis=axis, return_index=True)[0]
 
 
-def take(column: pa.Array | pa.ChunkedArray, index: np.ndarray) -> pa.Array:
-    """``column.take(index)`` (``index``: int64, -1 for a null row) for a fixed-width numeric or
-    a string column, with numpy: the values, validity and bytes pyarrow's take gives (the value
-    under a null copied, zero at a null index; a null string empty). pyarrow's ``take``
-    (``Table.take`` too) imports ``pyarrow.compute``, 0.06-0.09 s CPU in a fresh process that a
-    flight-log read otherwise never pays. Other types go to pyarrow's take."""
-    array = column.combine_chunks() if isinstance(column, pa.ChunkedArray) else column
+def take(data: pa.Array | pa.ChunkedArray | pa.Table, index: np.ndarray) -> Any:
+    """``data.take(index)`` (``index``: int64, -1 for a null row, as a null index gives):
+    pyarrow's own take kernel, called through ``pyarrow._compute.call_function`` as
+    ``pyarrow.compute.take`` calls it (the same options, result and bytes), without importing
+    ``pyarrow.compute``, whose Python wrappers of every kernel cost 0.05-0.1 s CPU in a fresh
+    process that a flight-log read otherwise never pays (``Table.take`` imports it)."""
     index = np.asarray(index, dtype=np.int64)
     missing = index < 0
-    dtype = _NUMERIC.get(array.type)
-    if (dtype is None and array.type != pa.string()) or (len(index) and not len(array)):
-        mask = missing if missing.any() else None
-        return array.take(arrow_array(np.where(missing, 0, index), pa.int64(), mask=mask))
-    at = np.where(missing, 0, index)
-    valid = valid_mask(array)[at] & ~missing if array.null_count or missing.any() else None
-    validity = None if valid is None else bitmap(valid)
-    if dtype is not None:
-        size = np.dtype(dtype).itemsize
-        data = array.buffers()[1]
-        raw = (
-            np.frombuffer(data, dtype, count=len(array), offset=array.offset * size)
-            if len(array) and data is not None
-            else np.zeros(len(array), dtype)
-        )
-        out = raw[at] if len(array) else np.zeros(len(index), dtype)
-        out[missing] = 0
-        return pa.Array.from_buffers(array.type, len(index), [validity, pa.py_buffer(out)])
-    _, offsets, data = array.buffers()
-    ends = np.frombuffer(offsets, np.int32, count=len(array) + 1, offset=array.offset * 4)
-    lengths = (ends[1:] - ends[:-1])[at] if len(array) else np.zeros(len(index), np.int32)
-    if valid is not None:
-        lengths = np.where(valid, lengths, 0)
-    new_ends = np.zeros(len(index) + 1, np.int64)
-    np.cumsum(lengths, out=new_ends[1:])
-    total = int(new_ends[-1])
-    if total >= 2**31:
-        return array.take(arrow_array(at, pa.int64(), mask=missing if missing.any() else None))
-    starts = ends[:-1][at] if len(array) else np.zeros(len(index), np.int32)
-    source = np.repeat(starts.astype(np.int64) - new_ends[:-1], lengths) + np.arange(total)
-    text = np.frombuffer(data, np.uint8)[source] if total else np.zeros(0, np.uint8)
-    return pa.StringArray.from_buffers(
-        len(index), pa.py_buffer(new_ends.astype(np.int32)), pa.py_buffer(text), validity
+    indices = arrow_array(
+        np.where(missing, 0, index), pa.int64(), mask=missing if missing.any() else None
     )
+    return _call_function()("take", [data, indices])
 
 
 def take_rows(table: pa.Table, rows: np.ndarray) -> pa.Table:
-    """``table.take(rows)`` column by column with :func:`take` (no ``pyarrow.compute``)."""
-    columns = [take(column, rows) for column in table.columns]
-    return pa.Table.from_arrays(columns, schema=table.schema)
+    """``table.take(rows)`` without importing ``pyarrow.compute`` (:func:`take`)."""
+    return take(table, rows)
+
+
+def _call_function() -> Any:
+    """pyarrow's ``call_function`` of its compute kernels (``pyarrow._compute``: the compiled
+    module ``pyarrow.compute`` wraps); ``pyarrow.compute``'s where a pyarrow lacks it."""
+    try:
+        from pyarrow._compute import call_function
+    except ImportError:  # pragma: no cover - every pyarrow imupipe supports has it
+        from pyarrow.compute import call_function
+    return call_function
