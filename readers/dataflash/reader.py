@@ -207,8 +207,8 @@ def _candidates(buf: np.ndarray) -> np.ndarray:
     found = [np.zeros(0, dtype=np.int64)]
     for start in range(0, max(n, 0), SCAN_BLOCK):  # blocks of the file, not records
         stop = min(start + SCAN_BLOCK, n)
-        hit = (buf[start:stop] == HEAD[0]) & (buf[start + 1 : stop + 1] == HEAD[1])
-        found.append(np.flatnonzero(hit).astype(np.int64) + start)
+        hit = np.flatnonzero(buf[start:stop] == HEAD[0]) + start  # then its next byte
+        found.append(hit[buf[hit + 1] == HEAD[1]].astype(np.int64))
     return np.concatenate(found)
 
 
@@ -263,9 +263,9 @@ def _reachable(nxt: np.ndarray) -> np.ndarray:
 def _format_size(fmt: Format) -> int | None:
     """The record length (header included) ``fmt``'s field formats add up to; None when a
     format character is unknown."""
-    if any(c not in FIELD_SIZES for c in fmt.format):
+    if not set(fmt.format) <= FIELD_SIZES.keys():
         return None
-    return 3 + sum(FIELD_SIZES[c] for c in fmt.format)
+    return 3 + sum(map(FIELD_SIZES.__getitem__, fmt.format))
 
 
 def _fit_lengths(
