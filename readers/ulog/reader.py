@@ -270,7 +270,7 @@ class UlogFile:
     def parameters(self) -> dict[str, float | int]:
         """The calibration-related parameters at start (:data:`PARAMETER_PREFIXES`)."""
         params = self.ulog.initial_parameters
-        kept = sorted(k for k in params if k.startswith(PARAMETER_PREFIXES))  # keys: str
+        kept = sorted([k for k in params if k.startswith(PARAMETER_PREFIXES)])  # keys: str
         return {
             k: v if isinstance(v, int) else float(v)
             for k in kept
