@@ -4,7 +4,8 @@ Four C sources, CPython API and buffer protocol only, each the compiled twin of 
 pure-Python path that gives the same bytes:
 
 - ``imupipe.readers._records`` (``readers/_records.c``): the sequential ULog and DataFlash record
-  walks and the copy of fixed-size payloads; fallback ``imupipe.readers.record_walk``;
+  walks, the copy of fixed-size payloads and the split of ULog format records; fallback
+  ``imupipe.readers.record_walk`` (the format split: ``imupipe.readers.ulog.records._format``);
 - ``imupipe.readers._chunks`` (``readers/_chunks.c``): one MCAP chunk's CDR sensor messages
   checked and copied into the table's columns; fallback ``imupipe.readers.chunk_fill``'s numpy
   path;

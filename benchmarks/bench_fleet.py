@@ -40,7 +40,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import resource
 import shutil
 import statistics
 import subprocess
@@ -51,7 +50,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_convert import CALIBRATION, make_log  # noqa: E402
-from proc_memory import run_measured  # noqa: E402
+from proc_memory import FLOOR, children_cpu, floor_cpu, run_measured  # noqa: E402
 
 PEER = """
 import sys
@@ -73,12 +72,6 @@ with open(sys.argv[1], "w") as fh:
     fh.write(f"{n} {hwm}")
 """
 """The peer: rosbags' read-and-deserialise loop over the logs given; writes ``messages VmHWM``."""
-
-
-def children_cpu() -> float:
-    """CPU seconds (user + system) of this process's finished children so far."""
-    use = resource.getrusage(resource.RUSAGE_CHILDREN)
-    return use.ru_utime + use.ru_stime
 
 
 def child_env(pycache: Path, shim: Path | None = None) -> dict[str, str]:
@@ -124,15 +117,9 @@ def ours(
     return seconds, cpu, peak, sum(x["messages"] for x in lines)
 
 
-FLOOR = "import numpy, pyarrow"
-"""What the library floor's process runs: the imports of any tool that builds Arrow tables."""
-
-
 def floor() -> float:
     """CPU seconds of a fresh process that imports numpy and pyarrow and stops."""
-    cpu = children_cpu()
-    subprocess.run([sys.executable, "-c", FLOOR], check=True, env=ENV)
-    return children_cpu() - cpu
+    return floor_cpu(ENV)
 
 
 def pairs(

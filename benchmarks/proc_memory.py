@@ -67,3 +67,28 @@ def run_measured(
     subprocess.run([sys.executable, "-c", PEAK_WRAPPER, str(peak_file), *argv], check=True, env=env)
     seconds = time.perf_counter() - start
     return seconds, int(peak_file.read_text()) / 1024
+
+
+def children_cpu() -> float:
+    """CPU seconds (user + system) of this process's finished children so far (``getrusage``:
+    far less moved by the other sessions of a shared machine than wall time)."""
+    import resource
+
+    use = resource.getrusage(resource.RUSAGE_CHILDREN)
+    return use.ru_utime + use.ru_stime
+
+
+FLOOR = "import numpy, pyarrow"
+"""What the library floor's process runs: the imports of any tool that builds Arrow tables."""
+
+
+def floor_cpu(env: dict[str, str] | None = None) -> float:
+    """CPU seconds of a fresh Python (environment ``env``, default this one's) that imports
+    numpy and pyarrow (:data:`FLOOR`) and stops: what any Python tool that builds Arrow tables
+    pays before it reads a byte."""
+    import subprocess
+    import sys
+
+    cpu = children_cpu()
+    subprocess.run([sys.executable, "-c", FLOOR], check=True, env=env)
+    return children_cpu() - cpu

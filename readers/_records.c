@@ -173,6 +173,110 @@ static PyObject *dataflash_walk(PyObject *self, PyObject *args) {
     return offsets;
 }
 
+/* ulog_formats(buf, offsets, sizes) -> list
+ *
+ * The ULog format records ('F') whose payloads are buf[o + 3 : o + 3 + size] (offsets and
+ * sizes: native int64 each), split as imupipe.readers.ulog.records._format splits them (pyulog's
+ * MessageFormat): per record (name, fields), the name the text before the first ':', fields a
+ * list of (type, array size or 0, field name) of each non-empty ';'-separated entry of the text
+ * between the first and the second ':' (the entry's text up to its first space the type, up to
+ * the next space the name; "type[n]" an array of n). Only for a payload of ASCII bytes whose
+ * every entry has a space and whose every array size is 1 to 4 decimal digits between the
+ * type's first '[' and its first ']'; None for any other record, which the caller splits in
+ * Python (where pyulog's own errors come from). */
+static PyObject *format_fields(const char *s, Py_ssize_t n) {
+    const char *end = s + n;
+    for (const char *c = s; c < end; c++)
+        if ((unsigned char)*c >= 0x80) Py_RETURN_NONE;
+    const char *colon = memchr(s, ':', (size_t)n);
+    if (colon == NULL) Py_RETURN_NONE;
+    const char *text = colon + 1;
+    const char *text_end = memchr(text, ':', (size_t)(end - text));
+    if (text_end == NULL) text_end = end;
+    PyObject *fields = PyList_New(0);
+    if (fields == NULL) return NULL;
+    const char *entry = text;
+    for (;;) {
+        const char *stop = memchr(entry, ';', (size_t)(text_end - entry));
+        if (stop == NULL) stop = text_end;
+        if (stop > entry) {
+            const char *space = memchr(entry, ' ', (size_t)(stop - entry));
+            if (space == NULL) {
+                Py_DECREF(fields);
+                Py_RETURN_NONE;
+            }
+            const char *name = space + 1;
+            const char *name_end = memchr(name, ' ', (size_t)(stop - name));
+            if (name_end == NULL) name_end = stop;
+            const char *open = memchr(entry, '[', (size_t)(space - entry));
+            const char *type_end = space;
+            long count = 0;
+            if (open != NULL) {
+                const char *close = memchr(entry, ']', (size_t)(space - entry));
+                Py_ssize_t digits = close == NULL ? 0 : close - open - 1;
+                if (digits < 1 || digits > 4) {
+                    Py_DECREF(fields);
+                    Py_RETURN_NONE;
+                }
+                for (const char *d = open + 1; d < close; d++) {
+                    if (*d < '0' || *d > '9') {
+                        Py_DECREF(fields);
+                        Py_RETURN_NONE;
+                    }
+                    count = count * 10 + (*d - '0');
+                }
+                type_end = open;
+            }
+            PyObject *field = Py_BuildValue("(s#ls#)", entry, (Py_ssize_t)(type_end - entry),
+                                            count, name, (Py_ssize_t)(name_end - name));
+            if (field == NULL || PyList_Append(fields, field) < 0) {
+                Py_XDECREF(field);
+                Py_DECREF(fields);
+                return NULL;
+            }
+            Py_DECREF(field);
+        }
+        if (stop == text_end) break;
+        entry = stop + 1;
+    }
+    return Py_BuildValue("(s#N)", s, (Py_ssize_t)(colon - s), fields);
+}
+
+static PyObject *ulog_formats(PyObject *self, PyObject *args) {
+    Py_buffer view, offs, lens;
+    if (!PyArg_ParseTuple(args, "y*y*y*", &view, &offs, &lens)) return NULL;
+    Py_ssize_t n = offs.len / (Py_ssize_t)sizeof(int64_t);
+    PyObject *result = NULL;
+    if (lens.len != offs.len) {
+        PyErr_SetString(PyExc_ValueError, "ulog_formats: one size per offset");
+        goto done;
+    }
+    result = PyList_New(n);
+    if (result == NULL) goto done;
+    for (Py_ssize_t i = 0; i < n; i++) {
+        int64_t o, size;
+        memcpy(&o, (const char *)offs.buf + i * (Py_ssize_t)sizeof(int64_t), sizeof(int64_t));
+        memcpy(&size, (const char *)lens.buf + i * (Py_ssize_t)sizeof(int64_t), sizeof(int64_t));
+        if (o < 0 || size < 0 || o + 3 + size > view.len) {
+            Py_CLEAR(result);
+            PyErr_Format(PyExc_IndexError, "ulog_formats: record at %lld out of the buffer",
+                         (long long)o);
+            goto done;
+        }
+        PyObject *item = format_fields((const char *)view.buf + o + 3, (Py_ssize_t)size);
+        if (item == NULL) {
+            Py_CLEAR(result);
+            goto done;
+        }
+        PyList_SET_ITEM(result, i, item);
+    }
+done:
+    PyBuffer_Release(&view);
+    PyBuffer_Release(&offs);
+    PyBuffer_Release(&lens);
+    return result;
+}
+
 static PyMethodDef methods[] = {
     {"ulog_walk", ulog_walk, METH_VARARGS,
      "ulog_walk(buf, start, limit) -> (offsets, sizes, kinds, ids, end): the ULog records "
@@ -180,6 +284,9 @@ static PyMethodDef methods[] = {
     {"dataflash_walk", dataflash_walk, METH_VARARGS,
      "dataflash_walk(buf, lengths, first_def) -> offsets as int64 bytes: a DataFlash log's "
      "records, as pymavlink's DFReader walks them."},
+    {"ulog_formats", ulog_formats, METH_VARARGS,
+     "ulog_formats(buf, offsets, sizes) -> [(name, [(type, n, field), ...]) or None]: ULog "
+     "format records split, the plain ones."},
     {"gather", gather, METH_VARARGS,
      "gather(buf, offsets, skip, size) -> bytearray: buf[o+skip:o+skip+size] of each int64 offset, "
      "concatenated."},

@@ -15,6 +15,7 @@ read and a convert never import pandas.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 import pyarrow as pa
@@ -146,3 +147,32 @@ def unique(values: np.ndarray, axis: int | None = None) -> np.ndarray:
     ``np.unique`` asks ``np.ma.is_masked``, which imports ``numpy.ma`` (25-70 ms) in a process
     that has not; with ``return_index`` it does not, and the values are the same."""
     return np.unique(values, axis=axis, return_index=True)[0]
+
+
+def take(data: pa.Array | pa.ChunkedArray | pa.Table, index: np.ndarray) -> Any:
+    """``data.take(index)`` (``index``: int64, -1 for a null row, as a null index gives):
+    pyarrow's own take kernel, called through ``pyarrow._compute.call_function`` as
+    ``pyarrow.compute.take`` calls it (the same options, result and bytes), without importing
+    ``pyarrow.compute``, whose Python wrappers of every kernel cost 0.05-0.1 s CPU in a fresh
+    process that a flight-log read otherwise never pays (``Table.take`` imports it)."""
+    index = np.asarray(index, dtype=np.int64)
+    missing = index < 0
+    indices = arrow_array(
+        np.where(missing, 0, index), pa.int64(), mask=missing if missing.any() else None
+    )
+    return _call_function()("take", [data, indices])
+
+
+def take_rows(table: pa.Table, rows: np.ndarray) -> pa.Table:
+    """``table.take(rows)`` without importing ``pyarrow.compute`` (:func:`take`)."""
+    return take(table, rows)
+
+
+def _call_function() -> Any:
+    """pyarrow's ``call_function`` of its compute kernels (``pyarrow._compute``: the compiled
+    module ``pyarrow.compute`` wraps); ``pyarrow.compute``'s where a pyarrow lacks it."""
+    try:
+        from pyarrow._compute import call_function
+    except ImportError:  # pragma: no cover - every pyarrow imupipe supports has it
+        from pyarrow.compute import call_function
+    return call_function

@@ -135,6 +135,22 @@ def gather(buf: Buffer, offsets: np.ndarray, skip: int, size: int) -> bytearray:
     return (py_gather if helper is None else helper.gather)(buf, offsets, skip, size)
 
 
+def ulog_formats(buf: Buffer, offsets: np.ndarray, sizes: np.ndarray) -> list[Any] | None:
+    """The ULog format records at ``offsets`` (payload sizes ``sizes``) split in C: per record
+    ``(name, [(type, array size or 0, field name), ...])`` as
+    :func:`imupipe.readers.ulog.records._format` splits it, or None where the payload is not in
+    the plain form the helper takes (ASCII, every entry with a space, array sizes of 1-4
+    digits: the caller splits those in Python); None without the compiled helper."""
+    helper = _helper()
+    if helper is None:
+        return None
+    return helper.ulog_formats(
+        buf,
+        np.ascontiguousarray(offsets, dtype=np.int64),
+        np.ascontiguousarray(sizes, dtype=np.int64),
+    )
+
+
 def dataflash_walk(
     buf: np.ndarray, lengths: np.ndarray, first_def: np.ndarray
 ) -> np.ndarray | None:

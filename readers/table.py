@@ -74,7 +74,7 @@ from typing import Any
 import numpy as np
 import pyarrow as pa
 
-from imupipe.readers.arrays import arrow_array, to_numpy, valid_mask
+from imupipe.readers.arrays import arrow_array, take, take_rows, to_numpy, valid_mask
 
 SENSOR_COLUMNS: dict[str, tuple[str, ...]] = {
     "gyro": ("gyro_x", "gyro_y", "gyro_z"),
@@ -479,7 +479,7 @@ def sort_by_time(table: pa.Table) -> tuple[pa.Table, int]:
         return table, 0
     order = np.argsort(t, kind="stable")
     moved = int(np.count_nonzero(order != np.arange(len(t))))
-    return table.take(arrow_array(order)), moved
+    return take_rows(table, order), moved
 
 
 def with_flight_stream(
@@ -508,25 +508,35 @@ def with_flight_streams(
     if not given:
         return table
     meta = metadata(table)
+    schema = table.schema.remove_metadata()
     for cols, _, _ in given:
         for name in cols:
-            if name not in table.schema.names:
-                field = OPTIONAL_FIELDS.field(name)
-                table = table.append_column(field, pa.nulls(len(table), field.type))
-    schema = table.schema.remove_metadata()
-    parts = [table.replace_schema_metadata(None)]
-    for cols, t_ns, values in given:
-        arrays: list[pa.Array] = []
-        for field in schema:
-            if field.name == "t_ns":
-                arrays.append(arrow_array(t_ns, pa.int64()))
-            elif field.name in cols:
-                arrays.append(arrow_array(values[:, cols.index(field.name)], pa.float64()))
+            if name not in schema.names:
+                schema = schema.append(OPTIONAL_FIELDS.field(name))
+    # the stable sort of the table's rows and then each stream's, by time: row ``order[i]`` of
+    # that concatenation is row i of the result; ``moved_to`` is the inverse
+    t_all = np.concatenate([to_numpy(table.column("t_ns")), *(t for _, t, _ in given)])
+    order = np.argsort(t_all, kind="stable")
+    moved_to = np.empty_like(order)
+    moved_to[order] = np.arange(len(order))
+    n = len(table)
+    taken = take(table.drop_columns(["t_ns"]), np.where(order < n, order, -1))  # null: a stream's
+    columns: dict[str, pa.Array | pa.ChunkedArray] = {
+        "t_ns": arrow_array(t_all[order], pa.int64()),
+        **dict(zip(taken.column_names, taken.columns, strict=True)),
+    }
+    start = n
+    for cols, t_ns, values in given:  # each stream's values at its rows' places
+        at = moved_to[start : start + len(t_ns)]
+        start += len(t_ns)
+        for j, name in enumerate(cols):
+            if name in columns:
+                filled, valid = to_numpy(columns[name]).copy(), valid_mask(columns[name])
             else:
-                arrays.append(pa.nulls(len(t_ns), field.type))
-        parts.append(pa.Table.from_arrays(arrays, schema=schema))
-    merged = pa.concat_tables(parts).combine_chunks()
-    merged, _ = sort_by_time(merged)
+                filled, valid = np.zeros(len(order)), np.zeros(len(order), dtype=bool)
+            filled[at], valid[at] = values[:, j], True
+            columns[name] = arrow_array(filled, pa.float64(), mask=~valid)
+    merged = pa.Table.from_arrays([columns[f.name] for f in schema], schema=schema)
     return with_metadata(merged, meta)
 
 
@@ -586,7 +596,7 @@ def on_imu_rows(table: pa.Table) -> tuple[pa.Table, dict[str, int]]:
             dropped[stream] = len(table) - int(table.column(FLIGHT_COLUMNS[stream][0]).null_count)
     rows = np.flatnonzero(imu)
     t_ns = to_numpy(table.column("t_ns"))
-    out = table.take(arrow_array(rows))
+    out = take_rows(table, rows)
     carried: list[str] = []
     for name in CARRIED_COLUMNS:
         if name not in table.schema.names:

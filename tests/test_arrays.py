@@ -7,7 +7,7 @@ import pyarrow as pa
 import pyarrow.compute as pc
 import pytest
 
-from imupipe.readers.arrays import arrow_array, string_array, to_numpy, valid_mask
+from imupipe.readers.arrays import arrow_array, string_array, take, to_numpy, valid_mask
 
 RNG = np.random.default_rng(7)
 VALUES = {
@@ -83,3 +83,42 @@ def test_unique_equals_numpy_and_imports_no_numpy_ma() -> None:
     )
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
     assert out.stdout.strip() == "False"
+
+
+def _ipc(array: pa.Array) -> bytes:
+    sink = pa.BufferOutputStream()
+    table = pa.table({"x": array})
+    with pa.ipc.new_stream(sink, table.schema) as writer:
+        writer.write_table(table)
+    return sink.getvalue().to_pybytes()
+
+
+TAKEN = [
+    pa.array([1.0, None, 3.0, float("nan"), 5.0]),
+    pa.array([1, 2, None, 4], pa.int64()),
+    pa.array(np.arange(10, dtype=np.float32)),
+    pa.array(["a", None, "ccc", "", "dd"]),
+    pa.array(["", "", ""]),
+    pa.chunked_array([pa.array([1.0, 2.0]), pa.array([None, 4.0])]),
+    pa.array([1.0, 2.0, 3.0, 4.0, 5.0]).slice(1, 3),
+    pa.array(["a", None, "ccc", "", "dd"]).slice(1, 3),
+    pa.array([True, None, False]),  # pyarrow's own take
+]
+
+
+@pytest.mark.parametrize("column", TAKEN, ids=lambda c: f"{c.type}-{len(c)}")
+def test_take_is_pyarrows_take(column: pa.Array) -> None:
+    """:func:`take` gives pyarrow's take, byte for byte (values under a null, a null index)."""
+    n = len(column)
+    whole = column.combine_chunks() if isinstance(column, pa.ChunkedArray) else column
+    for index in (
+        np.arange(n),
+        RNG.integers(0, n, 7),
+        np.array([-1, 0, -1, n - 1]),
+        np.zeros(0, np.int64),
+        np.full(3, -1),
+    ):
+        ref = whole.take(pa.array(np.where(index < 0, 0, index), mask=index < 0))
+        got = take(column, index)
+        assert got.type == ref.type and got.null_count == ref.null_count
+        assert _ipc(got) == _ipc(ref), (column, index)

@@ -111,6 +111,59 @@ def test_pure_python_walk_is_the_compiled_walk(path, monkeypatch):
     assert_same(fast, slow)
 
 
+ODD_FORMATS = (
+    b"a:float x;;int32_t[3] y;",  # an empty entry
+    b"a:float  x;",  # two spaces: an empty field name
+    b"a:float x y;",  # a third word, dropped
+    b"a:x[0] y;",
+    b"a:x[01] y;",
+    b"a:x[3]z y;",  # text after the ']'
+    b"a:x y",  # no ';' at the end
+    b"a:",
+    b":x y;",
+    b"a:x[12345] y;",  # five digits: Python's split
+    b"a:x[1 y;",
+    b"a:x]1[ y;",
+    b"a:x[] y;",
+    b"a:x[a] y;",
+    b"a:x;",  # no space
+    b"a:b:c",
+    b"ab",  # no ':'
+    "\u00e9:x y;".encode(),  # not ASCII
+)
+
+
+@pytest.mark.parametrize("path", OURS, ids=lambda p: p.name)
+def test_compiled_format_split_is_pythons(path):
+    """The compiled split of the format records (``ulog_formats``) gives what the Python split
+    (``records._format``, pyulog's) gives for every record it takes (every format of the logs),
+    and leaves to Python (None) the ones it does not: odd forms, where Python's own error or
+    result comes from."""
+    compiled = _compiled()
+
+    def both(buf, walk):
+        at = walk.kinds == ord("F")
+        offsets, sizes = walk.offsets[at], walk.sizes[at].astype(np.int64)
+        split = compiled.ulog_formats(buf, offsets, sizes)
+        for o, n, got in zip(offsets.tolist(), sizes.tolist(), split, strict=True):
+            try:
+                fmt = records._format(buf[o + 3 : o + 3 + n])
+                ref = (fmt.name, fmt.fields)
+            except (IndexError, ValueError) as exc:
+                ref = exc
+            yield ref, got
+
+    buf = path.read_bytes()
+    pairs = list(both(buf, record_walk.ulog_walk(buf, 16, len(buf))))
+    assert pairs and all(got == ref for ref, got in pairs)
+    odd = b"".join(_rec("F", d) for d in ODD_FORMATS)
+    pairs = list(both(odd, record_walk.ulog_walk(odd, 0, len(odd))))
+    assert len(pairs) == len(ODD_FORMATS)
+    assert all(got is None or got == ref for ref, got in pairs)
+    assert sum(got is not None for _, got in pairs) == 9  # the first nine: taken in C
+    assert all(got is None for _, got in pairs[9:])
+
+
 # -- records pyulog reads without a word, put into a real log -----------------------------------
 
 

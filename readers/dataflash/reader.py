@@ -64,6 +64,7 @@ names a vehicle, e.g. ``ArduCopter V3.3-dev``).
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -118,6 +119,8 @@ FIELD_DTYPES: dict[str, Any] = {
 }
 """DataFlash field format character -> numpy dtype (little-endian, as ``AP_Logger`` writes and
 ``DFReader.FORMAT_TO_STRUCT`` reads them)."""
+FIELD_SIZES = {c: np.dtype(v).itemsize for c, v in FIELD_DTYPES.items()}
+"""Bytes of each field format character."""
 FIELD_SCALES = {"c": 0.01, "C": 0.01, "e": 0.01, "E": 0.01, "L": 1e-7}
 """Format characters whose integer is scaled on reading: divided by ``1 / scale`` (100, or 1e7
 for degrees of latitude), as ``DFReader.DFMessage`` does, to the same float64."""
@@ -161,13 +164,20 @@ class Format:
     def dtype(self) -> np.dtype | None:
         """The payload's structured dtype; None when the format is unknown or does not add up
         to the record length (``DFReader`` cannot unpack such records either)."""
-        if len(self.format) != len(self.columns) or any(c not in FIELD_DTYPES for c in self.format):
-            return None
-        names = [c if c else f"field{i}" for i, c in enumerate(self.columns)]
-        if len(set(names)) != len(names):
-            return None
-        dtype = np.dtype([(n, FIELD_DTYPES[c]) for n, c in zip(names, self.format, strict=True)])
-        return dtype if dtype.itemsize == self.length - 3 else None
+        return _payload_dtype(self.format, self.columns, self.length)
+
+
+@functools.lru_cache(maxsize=4096)
+def _payload_dtype(format: str, columns: tuple[str, ...], length: int) -> np.dtype | None:
+    """:meth:`Format.dtype`, made once per (field formats, columns, length): a read asks for
+    each type's dtype about 100 times."""
+    if len(format) != len(columns) or any(c not in FIELD_DTYPES for c in format):
+        return None
+    names = [c if c else f"field{i}" for i, c in enumerate(columns)]
+    if len(set(names)) != len(names):
+        return None
+    dtype = np.dtype([(n, FIELD_DTYPES[c]) for n, c in zip(names, format, strict=True)])
+    return dtype if dtype.itemsize == length - 3 else None
 
 
 def _text(raw: bytes) -> str:
@@ -197,8 +207,8 @@ def _candidates(buf: np.ndarray) -> np.ndarray:
     found = [np.zeros(0, dtype=np.int64)]
     for start in range(0, max(n, 0), SCAN_BLOCK):  # blocks of the file, not records
         stop = min(start + SCAN_BLOCK, n)
-        hit = (buf[start:stop] == HEAD[0]) & (buf[start + 1 : stop + 1] == HEAD[1])
-        found.append(np.flatnonzero(hit).astype(np.int64) + start)
+        hit = np.flatnonzero(buf[start:stop] == HEAD[0]) + start  # then its next byte
+        found.append(hit[buf[hit + 1] == HEAD[1]].astype(np.int64))
     return np.concatenate(found)
 
 
@@ -219,18 +229,17 @@ def _formats_at(buf: np.ndarray, offsets: np.ndarray) -> dict[int, Format]:
     if not len(offsets):
         return formats
     recs = _payloads(buf, offsets, FMT_DTYPE.itemsize, FMT_DTYPE)
-    for at, rec in zip(offsets.tolist(), recs, strict=True):  # one per message type: tens
-        t = int(rec["type"])
-        if t in formats or int(rec["length"]) < 3:
+    fields = zip(
+        offsets.tolist(),
+        *(recs[k].tolist() for k in ("type", "length", "name", "format", "columns")),
+        strict=True,
+    )
+    for at, t, length, name, form, cols in fields:  # one per message type: tens
+        if t in formats or length < 3:
             continue
-        columns = tuple(_text(rec["columns"]).split(",")) if rec["columns"] else ()
+        columns = tuple(_text(cols).split(",")) if cols else ()
         formats[t] = Format(
-            t,
-            _text(rec["name"]),
-            int(rec["length"]),
-            _text(rec["format"]),
-            columns if columns != ("",) else (),
-            at,
+            t, _text(name), length, _text(form), columns if columns != ("",) else (), at
         )
     return formats
 
@@ -254,9 +263,9 @@ def _reachable(nxt: np.ndarray) -> np.ndarray:
 def _format_size(fmt: Format) -> int | None:
     """The record length (header included) ``fmt``'s field formats add up to; None when a
     format character is unknown."""
-    if any(c not in FIELD_DTYPES for c in fmt.format):
+    if not set(fmt.format) <= FIELD_SIZES.keys():
         return None
-    return 3 + int(sum(np.dtype(FIELD_DTYPES[c]).itemsize for c in fmt.format))
+    return 3 + sum(map(FIELD_SIZES.__getitem__, fmt.format))
 
 
 def _fit_lengths(
@@ -530,8 +539,10 @@ class DataFlashLog:
             return {}
         names = self.records("PARM")["Name"]
         values = self.field("PARM", "Value")
-        _, first = np.unique(names, return_index=True)
-        return {_text(names[i]): float(values[i]) for i in sorted(first, key=lambda i: names[i])}
+        _, first = np.unique(names, return_index=True)  # in the names' order
+        return {
+            _text(n): v for n, v in zip(names[first].tolist(), values[first].tolist(), strict=True)
+        }
 
     def firmware(self) -> str | None:
         """The first ``MSG`` text naming the vehicle firmware (``ArduCopter V3.3-dev``)."""
@@ -631,7 +642,7 @@ def _piece(f: DataFlashLog, inst: Instance, columns: dict[str, np.ndarray]) -> P
     t = f.time_ns(inst.name, inst.rows)
     if t is None:
         raise ReadError(f"{f.path}: message {inst.name} has no TimeUS or TimeMS field")
-    return Piece(t, t, repeat_string("", len(t)), columns)
+    return Piece(t, t, repeat_string("", len(t)), columns, one_frame="")
 
 
 def _xyz(

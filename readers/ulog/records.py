@@ -37,7 +37,7 @@ from typing import Any
 
 import numpy as np
 
-from imupipe.readers.record_walk import Walk, gather, ulog_walk
+from imupipe.readers.record_walk import Walk, gather, ulog_formats, ulog_walk
 
 HEADER = 16
 """The file header's bytes: magic (7), version (1), start timestamp (uint64, us)."""
@@ -160,17 +160,31 @@ def _cut(buf: bytes, end: int) -> tuple[int, int, int] | None:
 
 def _add_info(log: Any, kind: int, data: bytes) -> bool:
     """Add an information (``'I'``), multi-information (``'M'``) or parameter-default (``'Q'``)
-    record to ``log`` as pyulog does, in either section; False for any other record type."""
-    from pyulog import ULog
-
+    record to ``log`` as pyulog does (its ``_MessageInfo``, ``_add_message_info_multiple``,
+    ``_MessageParameterDefault`` and ``_add_parameter_default``, without an object per record),
+    in either section; False for any other record type."""
     if kind == INFO:
         kind_name, key, value = _info(data)
         log._msg_info_dict[key] = value
         log._msg_info_dict_types[key] = kind_name
     elif kind == MULTI:
-        log._add_message_info_multiple(ULog._MessageInfo(data, None, is_info_multiple=True))
+        continued = data[0]
+        kind_name, key, value = _info(data[1:])
+        multiple = log._msg_info_multiple_dict
+        if key not in multiple:
+            multiple[key] = [[value]]
+            log._msg_info_multiple_dict_types[key] = kind_name
+        elif continued:
+            multiple[key][-1].append(value)
+        else:
+            multiple[key].append([value])
     elif kind == DEFAULT:
-        log._add_parameter_default(ULog._MessageParameterDefault(data, None))
+        bits = data[0]  # the default types, one bit each: pyulog keys bit b's by 2**b - 1
+        _, key, value = _info(data[1:])
+        while bits:
+            low = bits & -bits
+            bits ^= low
+            log._default_parameters.setdefault(low - 1, {})[key] = value
     else:
         return False
     return True
@@ -194,13 +208,16 @@ def _definitions(log: Any, buf: bytes, walk: Walk, raw: np.ndarray) -> bool:
             kinds_all[~is_param],
         )
     formats = log._message_formats
+    is_format = kinds_all == FORMAT
+    split = iter(ulog_formats(buf, offsets[is_format], sizes_all[is_format]) or ())
     for o, n, kind in zip(offsets.tolist(), sizes_all.tolist(), kinds_all.tolist(), strict=True):
         data = buf[o + 3 : o + 3 + n]
         if kind == PARAM:
             _, key, value = _info(data)
             params[key] = value
         elif kind == FORMAT:
-            fmt = _format(data)
+            plain = next(split, None)  # split in C (when built and plain), else here
+            fmt = _format(data) if plain is None else _format_of(*plain)
             formats[fmt.name] = fmt
         elif not _add_info(log, kind, data):
             return False  # flag bits are read above, only when first; any other is not pyulog's
@@ -262,14 +279,16 @@ def _data(log: Any, buf: bytes, walk: Walk, names: Collection[str] | None) -> se
     if len(data_at) and int(sizes[data_at].min()) < 2:
         return None
     d_offsets = offsets[data_at]
-    msg_ids = walk.ids[data_at].astype(np.int64)
+    msg_ids = walk.ids[data_at]  # uint16: numpy's stable sort of it is a radix sort
 
     # the other records, in file order: subscriptions first (they decide what the data is)
     others = np.flatnonzero(~is_data)
     other_kinds = kinds[others].tolist()
     if not set(other_kinds) <= DATA_RECORDS:
         return None
-    subscribed_at = np.full(1 << 16, len(offsets), dtype=np.int64)
+    # msg_id -> 1 + the index of its subscription record (0: none); zeros, whose pages stay
+    # untouched but for the ids used (np.full's 512 kB cost 0.3 ms a read)
+    subscribed_plus = np.zeros(1 << 16, dtype=np.int64)
     subs: dict[int, Any] = {}
     seen: set[str] = set()
     filtered_before = set(log._filtered_message_ids)  # by the sections before
@@ -283,9 +302,9 @@ def _data(log: Any, buf: bytes, walk: Walk, names: Collection[str] | None) -> se
         data = buf[o + 3 : o + 3 + int(sizes[i])]
         (msg_id,) = struct.unpack("<H", data[1:3])
         name = str(data[3:], "utf-8", "ignore")
-        if subscribed_at[msg_id] < len(offsets):
+        if subscribed_plus[msg_id]:
             return None  # pyulog replaces the first subscription (and drops its data)
-        subscribed_at[msg_id] = i
+        subscribed_plus[msg_id] = i + 1
         seen.add(name)
         if names is None or name in names:
             subs[msg_id] = _subscription(data, name, log._message_formats, made)
@@ -293,10 +312,13 @@ def _data(log: Any, buf: bytes, walk: Walk, names: Collection[str] | None) -> se
             log._filtered_message_ids.add(msg_id)
         else:
             return None  # pyulog cannot make the topic's dtype: a corrupt file to it
-    # every data record follows its subscription in the section, or is of a topic not read
-    # subscribed before (else pyulog: "no subscription found")
+    # each data record's subscription index (len(offsets): none); every data record follows
+    # its subscription in the section, or is of a topic not read subscribed before (else
+    # pyulog: "no subscription found")
+    plus = subscribed_plus[msg_ids]
+    subscribed_at = np.where(plus > 0, plus - 1, len(offsets))
     if len(data_at):
-        known = subscribed_at[msg_ids] < data_at
+        known = subscribed_at < data_at
         if not bool(np.all(known)):
             earlier = np.zeros(1 << 16, dtype=bool)
             earlier[list(filtered_before)] = True
@@ -308,15 +330,15 @@ def _data(log: Any, buf: bytes, walk: Walk, names: Collection[str] | None) -> se
     expect = np.zeros(1 << 16, dtype=np.int64)  # msg_id -> payload size of a topic read
     for msg_id, sub in subs.items():
         expect[msg_id] = 2 + sub.dtype.itemsize
-    taken = (expect[msg_ids] > 0) & (data_at > subscribed_at[msg_ids])
+    taken = (expect[msg_ids] > 0) & (data_at > subscribed_at)
     if bool(np.any(sizes[data_at[taken]] != expect[msg_ids[taken]])):
         return None  # a payload of another size: pyulog's "corrupt data"
     order = np.argsort(msg_ids, kind="stable")
-    sorted_ids = msg_ids[order]
-    for msg_id, sub in subs.items():
-        lo, hi = np.searchsorted(sorted_ids, [msg_id, msg_id + 1])
-        rows = order[lo:hi]
-        rows = rows[data_at[rows] > subscribed_at[msg_id]]  # before it: a topic not read then
+    keys = np.fromiter(subs, dtype=np.int64, count=len(subs))
+    bounds = np.searchsorted(msg_ids[order], np.concatenate([keys, keys + 1])).tolist()
+    for j, (msg_id, sub) in enumerate(subs.items()):
+        rows = order[bounds[j] : bounds[j + len(subs)]]
+        rows = rows[data_at[rows] >= subscribed_plus[msg_id]]  # before it: a topic not read then
         if not len(rows):
             continue
         item = sub.dtype.itemsize
@@ -379,9 +401,18 @@ def _info(data: bytes) -> tuple[str, str, Any]:
 
 
 @functools.cache
+def _pyulog() -> Any:
+    """pyulog's ``ULog`` class (imported on first use; a ``from pyulog import ULog`` in a
+    function called per record costs a Python-level import step each call)."""
+    from pyulog import ULog
+
+    return ULog
+
+
+@functools.cache
 def _unpackers() -> dict[str, Callable[[bytes], tuple[Any, ...]]]:
     """pyulog's value types -> the unpacker of one little-endian value, as pyulog reads them."""
-    from pyulog import ULog
+    ULog = _pyulog()
 
     return {k: struct.Struct("<" + v[0]).unpack for k, v in ULog._UNPACK_TYPES.items()}
 
@@ -389,8 +420,6 @@ def _unpackers() -> dict[str, Callable[[bytes], tuple[Any, ...]]]:
 def _format(data: bytes) -> Any:
     """A format record (``'F'``): pyulog's ``MessageFormat`` (``name``; ``fields``: (type,
     array size or 0, name) each), split as pyulog splits it, without its calls per field."""
-    from pyulog import ULog
-
     parts = str(data, "utf-8", "ignore").split(":")
     fields = []
     for entry in parts[1].split(";"):
@@ -406,8 +435,14 @@ def _format(data: bytes) -> Any:
         if count < 0 or count > 0xFFFF:
             raise ValueError(f"invalid array size: {count}")
         fields.append((kind[:a], count, field))
+    return _format_of(parts[0], fields)
+
+
+def _format_of(name: str, fields: list[tuple[str, int, str]]) -> Any:
+    """pyulog's ``MessageFormat`` of a format record split into ``name`` and ``fields``."""
+    ULog = _pyulog()
     fmt = ULog.MessageFormat.__new__(ULog.MessageFormat)
-    fmt.name = parts[0]
+    fmt.name = name
     fmt.fields = fields
     return fmt
 
@@ -416,7 +451,7 @@ def _flat(type_name: str, formats: dict[str, Any], memo: dict[str, list[str]]) -
     """The field names pyulog's ``_MessageAddLogged._parse_nested_type`` gives a type (nested
     types flattened: ``a.b``, arrays ``a[0]``), trailing padding kept; KeyError for a type
     without a format, as pyulog's."""
-    from pyulog import ULog
+    ULog = _pyulog()
 
     if type_name in memo:
         return memo[type_name]
@@ -442,7 +477,7 @@ def _layout_ok(
     while names and names[-1].startswith("_padding"):
         names.pop()
     if "" in names:  # numpy names such a field itself: ask pyulog's own class
-        from pyulog import ULog
+        ULog = _pyulog()
 
         try:
             ULog._MessageAddLogged(b"\0\0\0" + name.encode(), None, formats)
@@ -457,7 +492,7 @@ def _simple(type_name: str, formats: dict[str, Any], memo: dict[str, bool]) -> b
     unique, not empty, hold none of ``.[]``, and its nested types are such types (each
     flattened name then starts with its own field's name, ``field`` or ``field[i]``, up to its
     first ``.``); KeyError for a type without a format, as pyulog's."""
-    from pyulog import ULog
+    ULog = _pyulog()
 
     if type_name in memo:
         return memo[type_name]
@@ -482,7 +517,7 @@ def _subscription(data: bytes, name: str, formats: dict[str, Any], made: dict[st
     """pyulog's ``_MessageAddLogged`` of a subscription record; another instance of a topic
     already made in this parse is a copy of it (the same fields and dtype: they depend on the
     topic's format only) with its own ids, field list and buffer."""
-    from pyulog import ULog
+    ULog = _pyulog()
 
     first = made.get(name)
     if first is None:
