@@ -26,13 +26,17 @@
    process that imports what every such run needs (numpy, pyarrow, Rerun for the recording,
    scipy.special's three functions for the confidence bounds and the fit, loaded as the run
    loads them) and reads the file with
-   ``pyarrow.csv.read_csv`` (:data:`SCRIPT_FLOOR`).
+   ``pyarrow.csv.read_csv`` (:data:`SCRIPT_FLOOR`). Every child runs with Python's bytecode
+   cache on (:func:`bytecode_env`), warmed by an untimed run of each side. ``--baseline DIR``:
+   the ``imupipe run`` of another checkout (the code before a change, with its ``.shim``) in
+   each pair too, with its ratio to the script and the new code's to it.
 
 Times are noisy on a shared machine: the load average is printed, and the ratios (both sides
 measured in the same run, interleaved) are what count.
 
 Usage: ``python benchmarks/bench_allan.py [--sizes 0.5e6 2.88e6 8e6] [--repeats 3]
-[--skip-run] [--skip-stage] [--parts] [--script [--minutes 120] [--pairs 2] [--peer-path DIR]]`` (``--parts``: the CPU time of the stage's parts, per call:
+[--skip-run] [--skip-stage] [--parts] [--script [--minutes 120] [--pairs 2] [--peer-path DIR]
+[--baseline DIR]]`` (``--parts``: the CPU time of the stage's parts, per call:
 sample clock, motion check, phase, deviations, noise identification + EDF + bounds, fit).
 """
 
@@ -227,7 +231,7 @@ def bytecode_env(pycache: Path) -> dict[str, str]:
     """This environment with Python's bytecode cache on, in ``pycache`` (``PYTHONPYCACHEPREFIX``;
     ``PYTHONDONTWRITEBYTECODE`` dropped), as an installed package runs: a source checkout run
     with ``PYTHONDONTWRITEBYTECODE=1`` compiles every imupipe module it imports on each start
-    (0.15-0.2 s of CPU of an Allan run, measured), which the script's pandas and allantools,
+    (64 modules: 0.20-0.26 s of CPU of an Allan run, measured), which pandas and allantools,
     installed with their bytecode, never pay. The cache is warmed by a first, untimed, run."""
     env = {k: v for k, v in os.environ.items() if k != "PYTHONDONTWRITEBYTECODE"}
     env["PYTHONPYCACHEPREFIX"] = str(pycache)
