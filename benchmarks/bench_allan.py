@@ -26,13 +26,17 @@
    process that imports what every such run needs (numpy, pyarrow, Rerun for the recording,
    scipy.special's three functions for the confidence bounds and the fit, loaded as the run
    loads them) and reads the file with
-   ``pyarrow.csv.read_csv`` (:data:`SCRIPT_FLOOR`).
+   ``pyarrow.csv.read_csv`` (:data:`SCRIPT_FLOOR`). Every child runs with Python's bytecode
+   cache on (:func:`bytecode_env`), warmed by an untimed run of each side. ``--baseline DIR``:
+   the ``imupipe run`` of another checkout (the code before a change, with its ``.shim``) in
+   each pair too, with its ratio to the script and the new code's to it.
 
 Times are noisy on a shared machine: the load average is printed, and the ratios (both sides
 measured in the same run, interleaved) are what count.
 
 Usage: ``python benchmarks/bench_allan.py [--sizes 0.5e6 2.88e6 8e6] [--repeats 3]
-[--skip-run] [--skip-stage] [--parts] [--script [--minutes 120] [--pairs 2] [--peer-path DIR]]`` (``--parts``: the CPU time of the stage's parts, per call:
+[--skip-run] [--skip-stage] [--parts] [--script [--minutes 120] [--pairs 2] [--peer-path DIR]
+[--baseline DIR]]`` (``--parts``: the CPU time of the stage's parts, per call:
 sample clock, motion check, phase, deviations, noise identification + EDF + bounds, fit).
 """
 
@@ -223,7 +227,20 @@ def timed_child(argv: list[str], env: dict[str, str] | None = None) -> tuple[flo
     return wall, usage.ru_utime + usage.ru_stime, usage.ru_maxrss * 1024
 
 
-def bench_script(minutes: float, pairs: int, peer_path: str | None) -> None:
+def bytecode_env(pycache: Path) -> dict[str, str]:
+    """This environment with Python's bytecode cache on, in ``pycache`` (``PYTHONPYCACHEPREFIX``;
+    ``PYTHONDONTWRITEBYTECODE`` dropped), as an installed package runs: a source checkout run
+    with ``PYTHONDONTWRITEBYTECODE=1`` compiles every imupipe module it imports on each start
+    (64 modules: 0.20-0.26 s of CPU of an Allan run, measured), which pandas and allantools,
+    installed with their bytecode, never pay. The cache is warmed by a first, untimed, run."""
+    env = {k: v for k, v in os.environ.items() if k != "PYTHONDONTWRITEBYTECODE"}
+    env["PYTHONPYCACHEPREFIX"] = str(pycache)
+    return env
+
+
+def bench_script(
+    minutes: float, pairs: int, peer_path: str | None, baseline: str | None = None
+) -> None:
     import statistics
 
     d = Path(tempfile.mkdtemp(prefix="bench_allan_script_"))
@@ -235,17 +252,26 @@ def bench_script(minutes: float, pairs: int, peer_path: str | None) -> None:
     )
     ours_cmd = [sys.executable, "-m", "imupipe.pipeline.cli", "run", str(d / "cfg.toml"), "--quiet"]
     peer_cmd = [sys.executable, "-c", USER_SCRIPT, str(csv)]
-    peer_env = dict(os.environ)
+    env = bytecode_env(d / "pycache")
+    peer_env = dict(env)
     if peer_path:
-        peer_env["PYTHONPATH"] = os.pathsep.join(
-            p for p in (peer_path, os.environ.get("PYTHONPATH")) if p
-        )
+        peer_env["PYTHONPATH"] = os.pathsep.join(p for p in (peer_path, env.get("PYTHONPATH")) if p)
     floor_cmd = [sys.executable, "-c", SCRIPT_FLOOR, str(csv)]
+    sides = [("ours", ours_cmd, env), ("peer", peer_cmd, peer_env), ("floor", floor_cmd, env)]
+    if baseline:  # the code before a change (a checkout with its .shim), in the same pairs
+        base_env = {**env, "PYTHONPATH": str(Path(baseline).resolve() / ".shim")}
+        base_cmd = [*ours_cmd[:-2], str(d / "cfg_base.toml"), "--quiet"]
+        (d / "cfg_base.toml").write_text(
+            (d / "cfg.toml").read_text().replace('"out"', '"out_base"')
+        )
+        sides.insert(1, ("base", base_cmd, base_env))
+    for _, cmd, side_env in sides:  # not timed: the bytecode caches, the file in the page cache
+        timed_child(cmd, side_env)
     rows = []
     for i in range(pairs):  # alternate which side goes first
-        sides = [("ours", ours_cmd, None), ("peer", peer_cmd, peer_env), ("floor", floor_cmd, None)]
         got = {
-            name: timed_child(cmd, env) for name, cmd, env in (sides if i % 2 == 0 else sides[::-1])
+            name: timed_child(cmd, side_env)
+            for name, cmd, side_env in (sides if i % 2 == 0 else sides[::-1])
         }
         rows.append(got)
     print(
@@ -266,6 +292,14 @@ def bench_script(minutes: float, pairs: int, peer_path: str | None) -> None:
             f"{statistics.median(floor):.2f}; imupipe/floor median "
             f"{statistics.median(r['ours'][k] / r['floor'][k] for r in rows):.2f}"
         )
+        if baseline:
+            base = [r["base"][k] / r["peer"][k] for r in rows]
+            each = ", ".join(f"{r['base'][k]:.2f}" for r in rows)
+            print(
+                f"     baseline/script min {min(base):.2f}, median {statistics.median(base):.2f} "
+                f"(baseline s: {each}); imupipe/baseline median "
+                f"{statistics.median(r['ours'][k] / r['base'][k] for r in rows):.3f}"
+            )
     peak = max(r["ours"][2] for r in rows), max(r["peer"][2] for r in rows)
     print(f"   peak RSS: imupipe {peak[0] / 1e6:.0f} MB, script {peak[1] / 1e6:.0f} MB")
 
@@ -382,9 +416,12 @@ def main() -> None:
     p.add_argument("--minutes", type=float, default=120.0, help="--script: the log's length")
     p.add_argument("--pairs", type=int, default=2, help="--script: pairs of runs")
     p.add_argument("--peer-path", help="--script: a folder on the script's PYTHONPATH (pandas)")
+    p.add_argument(
+        "--baseline", help="--script: a checkout of the code before a change (with its .shim)"
+    )
     args = p.parse_args()
     if args.script:
-        bench_script(args.minutes, args.pairs, args.peer_path)
+        bench_script(args.minutes, args.pairs, args.peer_path, args.baseline)
         return
     if not args.skip_stage:
         bench_stage(args.sizes, args.repeats, args.parts)
