@@ -27,7 +27,6 @@ from imupipe.pipeline.exports import export_all
 from imupipe.pipeline.instances import expand_instances
 from imupipe.pipeline.notices import Notice, Notices
 from imupipe.pipeline.progress import progress_bar, size_of
-from imupipe.pipeline.report.deferred import DeferredRecorder, recording_files
 from imupipe.pipeline.report.summary import (
     StageSummary,
     raw_count_sensors,
@@ -153,10 +152,6 @@ def output_guard(cfg: Config) -> OutputGuard:
     return guard
 
 
-RECORDING = "imupipe.pipeline.report.recording"
-"""The recorder's module (it imports Rerun): warmed after the stages' modules."""
-
-
 def warm_modules(cfg: Config) -> list[str]:
     """What a run imports after reading its inputs, imported while it reads them
     (:mod:`imupipe.pipeline.warm_imports`): each stage's modules, the recorder's (with Rerun:
@@ -165,7 +160,7 @@ def warm_modules(cfg: Config) -> list[str]:
     modules: list[str] = []
     for st in cfg.stages:
         modules += [m for m in stage_modules(st.type) if m not in modules]
-    modules.append(RECORDING)
+    modules.append("imupipe.pipeline.report.recording")
     if cfg.output.report:
         modules.append("imupipe.pipeline.report.page")
     exporters = chosen_exports({}, cfg.output.exports)  # the chain is not known yet
@@ -227,21 +222,13 @@ def run(
     with progress_bar("imupipe run", total=None, quiet=quiet) as bar:
         for name in used:  # the readers' modules, before a second thread imports alongside
             reader_for(cfg.inputs[name])
-        warm = WarmImports(warm_modules(cfg), freeze=one_shot)
-        warm.start()
-        try:
+        with WarmImports(warm_modules(cfg), freeze=one_shot):
             for name in used:  # inputs only written (apply_to) are never held: streamed below
                 path = Path(cfg.inputs[name].path)
                 size = size_of(path) or None
                 bar.phase(f"reading {name} ({path.name})", size, "bytes", when_reported=True)
                 with bar.listen():  # the chunked readers tell how far through the file
                     raw[name] = read(name)
-            stages_modules = warm.modules[: warm.modules.index(RECORDING)]
-            if stages_modules:  # imported; the recorder's (Rerun) may still be: see below
-                warm.wait_for(stages_modules[-1])
-        except BaseException:
-            warm.wait()
-            raise
         bar.phase("imupipe run", len(cfg.stages))
 
         tables = CorrectedTables(raw, list(cfg.inputs), read)
@@ -257,20 +244,11 @@ def run(
                 for w in getattr(step, "warnings", None) or []:
                     notices.add("warning", owner, "step", w)
 
-        with staged_outputs(guard) as out, warm:  # (the thread joined, also on an error)
+        with staged_outputs(guard) as out:
+            from imupipe.pipeline.report.recording import open_recorder  # rerun: loaded when run
 
-            def make_recorder() -> Any:
-                warm.wait()  # every module it imported: the main thread imports none meanwhile
-                from imupipe.pipeline.report.recording import open_recorder  # rerun
-
-                with signals_deferred():  # never a half-made recording stream
-                    return open_recorder(cfg, out, spawn=spawn, quiet=quiet)[0]
-
-            files = recording_files(cfg)
-            if spawn or not (cfg.output.rerun or cfg.output.report) or warm.ready(RECORDING):
-                recorder = make_recorder()
-            else:  # the stages run while Rerun imports; their drawing is made once it is done
-                recorder = DeferredRecorder(make_recorder, lambda: warm.ready(RECORDING))
+            with signals_deferred():  # never a half-made recording stream
+                recorder, files = open_recorder(cfg, out, spawn=spawn, quiet=quiet)
             recorder.start_at(first_sample(raw.values()))  # its time line: time since then
             for st in cfg.stages:
                 bar.describe(f"stage {st.name}")
@@ -333,8 +311,6 @@ def run(
                 bar.advance()
 
             running.clear()
-            if isinstance(recorder, DeferredRecorder):  # the drawing kept, made now, in order
-                recorder = recorder.real()
             doc = calibration_document(tables.chain, results, fitted)
             # staged (its place in the commit order: before the corrected logs) now, written
             # once correcting them has added its warnings

@@ -43,9 +43,6 @@ class WarmImports:
         """The modules whose import raised on the thread (the main thread's import re-raises)."""
         self._thread: threading.Thread | None = None
         self._started = False
-        self._passed = 0
-        """How many of ``modules``, in order, the thread is done with (imported or failed)."""
-        self._progress = threading.Condition()
 
     def _run(self) -> None:
         paused = self.freeze and gc.isenabled()
@@ -57,9 +54,6 @@ class WarmImports:
                     importlib.import_module(name)
                 except Exception:  # noqa: BLE001  (the main thread's own import reports it)
                     self.failed.append(name)
-                with self._progress:
-                    self._passed += 1
-                    self._progress.notify_all()
         finally:
             if self.freeze:
                 gc.freeze()
@@ -78,25 +72,6 @@ class WarmImports:
     def __enter__(self) -> WarmImports:
         self.start()
         return self
-
-    def ready(self, name: str) -> bool:
-        """Whether the thread is done with ``name`` and every module before it (never waits;
-        true for a module not in the list, and when the thread has ended or never started)."""
-        if name not in self.modules or self._thread is None:
-            return True
-        return self._passed > self.modules.index(name)
-
-    def wait_for(self, name: str) -> None:
-        """Return once ``name`` and every module before it have been imported (or have failed
-        to); the thread goes on with the modules after it."""
-        if name not in self.modules:
-            return
-        index = self.modules.index(name)
-        with self._progress:
-            while self._thread is not None and self._passed <= index:
-                self._progress.wait(0.5)  # (and the thread's end: a daemon may die at exit)
-                if self._thread is not None and not self._thread.is_alive():
-                    break
 
     def wait(self) -> None:
         """Return once every module has been imported (or has failed to)."""

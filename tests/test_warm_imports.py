@@ -106,29 +106,3 @@ def test_a_one_shot_process_freezes_what_it_imported_and_collects_again():
     with WarmImports(["json"]):
         pass
     assert gc.get_freeze_count() == 0
-
-
-def test_wait_for_returns_once_a_module_and_those_before_it_are_done(tmp_path, monkeypatch):
-    """The run waits for the stages' modules only; the recorder's may still be importing."""
-    gate = tmp_path / "imupipe_warm_gate.py"
-    gate.write_text("import threading\nopen_ = threading.Event()\n")
-    (tmp_path / "imupipe_warm_slow.py").write_text(
-        "import imupipe_warm_gate\nassert imupipe_warm_gate.open_.wait(30)\n"
-    )
-    monkeypatch.syspath_prepend(str(tmp_path))
-    import imupipe_warm_gate  # noqa: F401  (the gate, imported here first)
-
-    warm = WarmImports(["json", "imupipe_warm_slow", "imupipe_warm_gone"])
-    warm.start()
-    try:
-        warm.wait_for("json")
-        assert warm.ready("json")
-        assert not warm.ready("imupipe_warm_slow") and not warm.ready("imupipe_warm_gone")
-        assert warm.ready("not_in_the_list")
-    finally:
-        sys.modules["imupipe_warm_gate"].open_.set()
-        warm.wait()
-    assert warm.ready("imupipe_warm_slow") and warm.ready("imupipe_warm_gone")
-    assert warm.failed == ["imupipe_warm_gone"]
-    for name in ("imupipe_warm_gate", "imupipe_warm_slow"):
-        sys.modules.pop(name, None)

@@ -54,7 +54,6 @@ import rerun as rr
 import rerun.blueprint as rrb
 
 from imupipe.pipeline.report import plot2d
-from imupipe.pipeline.report.deferred import recording_files
 from imupipe.pipeline.report.figures import (
     AXIS_COLORS,
     NAMED_COLORS,
@@ -1050,7 +1049,7 @@ def open_recorder(
         warn=warn,
     )
     recorder.raw_counts = raw_count_sensors(cfg.inputs)
-    return recorder, recording_files(cfg)
+    return recorder, [rrd] if cfg.output.rerun else []
 
 
 # -- the viewer (--spawn) --------------------------------------------------------------------------
