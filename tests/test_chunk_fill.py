@@ -333,3 +333,49 @@ def test_no_spare_cpu_when_one_cpu_is_allowed_or_all_are_busy(monkeypatch):
     assert not no_spare_cpu()  # one CPU free: the read itself is one of the load
     monkeypatch.setattr(os, "getloadavg", lambda: (1.6, 0.0, 0.0))
     assert no_spare_cpu()
+
+
+def test_crc32_is_zlibs_at_every_length_and_alignment(monkeypatch):
+    """The compiled CRC (carry-less multiply, 64-byte folds) is ``zlib.crc32``: every length
+    from 0 to 300 bytes (the byte loop, one fold, the 16-byte folds, the tail) at 17
+    alignments, from a start value too, and large buffers; the numpy path is zlib itself."""
+    import zlib
+
+    from imupipe.readers import _chunks
+
+    if _chunks.crc32(b"") is None:
+        pytest.skip("this CPU has no carry-less multiply: zlib.crc32 is used")
+    rng = np.random.default_rng(5)
+    data = rng.integers(0, 256, 400, dtype=np.uint8).tobytes()
+    for n in range(301):
+        for at in range(17):
+            piece = data[at : at + n]
+            assert _chunks.crc32(piece) == zlib.crc32(piece), (n, at)
+            assert _chunks.crc32(piece, 0xDEADBEEF) == zlib.crc32(piece, 0xDEADBEEF), (n, at)
+    big = rng.integers(0, 256, (1 << 20) + 77, dtype=np.uint8)
+    assert _chunks.crc32(big[3:]) == zlib.crc32(big[3:])
+    assert _chunks.crc32(np.zeros(1 << 16, np.uint8)) == zlib.crc32(bytes(1 << 16))
+    for compiled in (True, False):
+        if compiled:
+            monkeypatch.delenv(PURE_PYTHON_ENV, raising=False)
+        else:
+            monkeypatch.setenv(PURE_PYTHON_ENV, "1")
+        assert chunk_fill.crc32(memoryview(big)) == zlib.crc32(big)
+
+
+def test_a_chunk_crc_mismatch_is_named_on_both_paths(tmp_path, monkeypatch):
+    """A chunk whose stated CRC differs from its decompressed bytes' by one bit is a
+    ReadError naming the chunk, with the compiled CRC and with zlib's."""
+    from imupipe.readers.errors import ReadError
+
+    path = tmp_path / "log.mcap"
+    write_log(path, imu_log(3000))
+    data = bytearray(path.read_bytes())
+    pos = 8
+    while data[pos] != 0x06:  # the first chunk record
+        pos += 9 + int.from_bytes(data[pos + 1 : pos + 9], "little")
+    data[pos + 9 + 24] ^= 0x10  # its uncompressed_crc field (after start, end, size)
+    path.write_bytes(bytes(data))
+    for compiled in (True, False):
+        with pytest.raises(ReadError, match=f"chunk at byte {pos}: chunk CRC mismatch"):
+            reads(path, monkeypatch, compiled, batches=False)

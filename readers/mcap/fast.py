@@ -38,7 +38,6 @@ import functools
 import io
 import os
 import struct
-import zlib
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -48,6 +47,7 @@ from mcap.data_stream import ReadDataStream
 from mcap.records import Channel, Schema, Statistics
 
 from imupipe.readers.cdr import at, even_step
+from imupipe.readers.chunk_fill import crc32
 from imupipe.readers.compression import (
     DECOMPRESSORS,
     PREFETCH,
@@ -710,7 +710,7 @@ class ChunkFields:
 
     def checked(self, raw: np.ndarray, where: str) -> np.ndarray:
         """``raw`` (the decompressed data), once its CRC is checked."""
-        if self.crc and zlib.crc32(raw) != self.crc:
+        if self.crc and crc32(raw) != self.crc:
             raise ReadError(f"{where}: chunk CRC mismatch (corrupt data)")
         return raw
 
