@@ -157,7 +157,7 @@ _BITS = {names: {name: 1 << i for i, name in enumerate(names)} for names, _ in _
 """Per tuple of names: each name's bit (the slot masks of ``_chunks.fill``)."""
 
 
-def _frame(one: str, n: int) -> pa.Array:
+def repeated_frame(one: str, n: int) -> pa.Array:
     """``repeat_string(one, n)``, the last few kept (most chunks have one size and frame_id)."""
     key = (one, n)
     frame = _frames.get(key)
@@ -197,7 +197,7 @@ def walk(buf: np.ndarray, offsets: np.ndarray, channel: int, stream: str) -> Rec
     log, pub, stamp = out[: 3 * n].reshape(3, n)
     names, slots = _SLOTS[stream]
     records = Records(buf, offsets, skip, slots, names, module)
-    return RecordPiece(stamp, log, _frame(one, n), pub, one, records, ordered)
+    return RecordPiece(stamp, log, repeated_frame(one, n), pub, one, records, ordered)
 
 
 def crc32(data: np.ndarray | bytes | memoryview) -> int:
