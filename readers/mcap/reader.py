@@ -322,9 +322,8 @@ def _joined(
         row += len(p)  # type: ignore[arg-type]
     times = [np.concatenate([getattr(p, name) for p in parts]) for name in ("log", "pub", "stamp")]
     ordered = 0
-    for bit, which in ((1, 0), (2, 1)):
-        t = times[2 * which]  # log times, header stamps
-        if all(p.ordered[which][1] for p in parts) and _edges_ordered(t, parts):  # type: ignore[union-attr]
+    for bit, which, name in ((1, 0, "log"), (2, 1, "stamp")):
+        if all(p.ordered[which][1] for p in parts) and _edges_ordered(parts, name):  # type: ignore[union-attr]
             ordered |= bit
     records = Records(group.buf, offsets, rec.skip, rec.slots, rec.names, rec.module)  # type: ignore[union-attr]
     one = first.one_frame  # type: ignore[union-attr]
@@ -335,11 +334,16 @@ def _joined(
     return piece
 
 
-def _edges_ordered(t: np.ndarray, parts: list) -> bool:
-    """Whether ``t`` (the parts' times one after the other) never decreases where one part
+def _edges_ordered(parts: list, name: str) -> bool:
+    """Whether the times ``name`` of ``parts`` (each in order) never decrease where one part
     ends and the next starts."""
-    at = np.cumsum([len(p) for p in parts])[:-1]
-    return bool(np.all(t[at - 1] <= t[at])) if len(at) else True
+    last = None
+    for p in parts:
+        t = getattr(p, name)
+        if last is not None and int(t[0]) < last:
+            return False
+        last = int(t[-1])
+    return True
 
 
 def _inside(chunk: ChunkMessages, cid: int) -> bool:
