@@ -7,8 +7,8 @@ pure-Python path that gives the same bytes:
   walks, the copy of fixed-size payloads and the split of ULog format records; fallback
   ``imupipe.readers.record_walk`` (the format split: ``imupipe.readers.ulog.records._format``);
 - ``imupipe.readers._chunks`` (``readers/_chunks.c``): one MCAP chunk's CDR sensor messages
-  checked and copied into the table's columns; fallback ``imupipe.readers.chunk_fill``'s numpy
-  path;
+  checked and copied into the table's columns, and its CRC-32 by carry-less multiplication;
+  fallback ``imupipe.readers.chunk_fill``'s numpy path and ``zlib.crc32``;
 - ``imupipe.readers._jsonscan`` (``readers/_jsonscan.c``): a JSON channel's messages checked
   against a template and their mapped numbers parsed as ``float()`` / ``int()`` parse them;
   fallback ``imupipe.readers.json_numbers``'s numpy path;

@@ -19,6 +19,9 @@
  *   fill:     the float fields of those messages written straight into the table's columns,
  *             a column that holds only zeros so far left unwritten unless a value is not zero.
  *
+ * and crc32, the CRC-32 a chunk record states over its decompressed bytes, by carry-less
+ * multiplication (below), 4x zlib 1.2's speed.
+ *
  * Anything else (another layout, a damaged record) makes cdr_walk return None and the numpy
  * path reads the chunk (and names what is wrong). imupipe.readers.chunk_fill holds the Python
  * side; tests/test_chunk_fill.py checks that both paths give the same tables, byte for byte.
@@ -317,6 +320,115 @@ done:
     return result;
 }
 
+/* crc32(data, crc=0) -> int | None: zlib.crc32(data, crc) (CRC-32 of IEEE 802.3 / ISO-HDLC,
+ * reflected polynomial 0xEDB88320, the CRC an MCAP chunk record states), or None when this
+ * CPU or build has no carry-less multiply (the caller then uses zlib.crc32).
+ *
+ * zlib 1.2's table-driven crc32 checks 2.4 GB/s here: 0.12-0.15 s of CPU for the 355 MB a
+ * million Imu messages decompress to, as long as their zstd decompression. With PCLMULQDQ the
+ * data is folded 64 bytes at a time into four 128-bit remainders (V. Gopal, E. Ozturk et al.,
+ * "Fast CRC Computation for Generic Polynomials Using PCLMULQDQ Instruction", Intel, 2009):
+ * a remainder r followed by d bits of data is replaced by r_hi * (x^(d+64) mod P) xor
+ * r_lo * (x^d mod P), in the bit-reflected domain; the folding constants are those of the
+ * Linux kernel's crc32-pclmul (arch/x86/crypto/crc32-pclmul_asm.S, R1-R4). The last 128-bit
+ * remainder, taken as 16 bytes of message, and the bytes after it are finished a byte at a time
+ * from a table: a CRC register of zero that reads those bytes ends where the register over the
+ * whole data would, since the fold keeps the remainder modulo P (tests/test_chunk_fill.py
+ * checks it against zlib.crc32 for every length from 0 to 300 bytes, at every alignment, and
+ * on large buffers). The GIL is released meanwhile. */
+static uint32_t crc_table[256];
+
+static void crc_table_init(void) {
+    for (uint32_t i = 0; i < 256; i++) {
+        uint32_t c = i;
+        for (int k = 0; k < 8; k++) c = c & 1 ? (c >> 1) ^ 0xEDB88320u : c >> 1;
+        crc_table[i] = c;
+    }
+}
+
+static inline uint32_t crc_bytes(uint32_t c, const uint8_t *p, size_t n) {
+    for (size_t i = 0; i < n; i++) c = crc_table[(c ^ p[i]) & 0xff] ^ (c >> 8);
+    return c;
+}
+
+#if (defined(__x86_64__) || defined(__i386__)) && (defined(__GNUC__) || defined(__clang__))
+#include <immintrin.h>
+#define HAVE_CLMUL 1
+
+__attribute__((target("pclmul,sse2"))) static inline __m128i fold(__m128i x, __m128i k,
+                                                                  __m128i data) {
+    return _mm_xor_si128(_mm_xor_si128(_mm_clmulepi64_si128(x, k, 0x00),
+                                       _mm_clmulepi64_si128(x, k, 0x11)),
+                         data);
+}
+
+/* The CRC register (not inverted) after reading p[0:n], n >= 64, from register c. */
+__attribute__((target("pclmul,sse2"))) static uint32_t crc_clmul(uint32_t c, const uint8_t *p,
+                                                                 size_t n) {
+    const __m128i k12 = _mm_set_epi64x(0x1c6e41596LL, 0x154442bd4LL); /* 4 x 128 bits on */
+    const __m128i k34 = _mm_set_epi64x(0x0ccaa009eLL, 0x1751997d0LL); /* 128 bits on */
+    __m128i x0 = _mm_loadu_si128((const __m128i *)p);
+    __m128i x1 = _mm_loadu_si128((const __m128i *)(p + 16));
+    __m128i x2 = _mm_loadu_si128((const __m128i *)(p + 32));
+    __m128i x3 = _mm_loadu_si128((const __m128i *)(p + 48));
+    x0 = _mm_xor_si128(x0, _mm_cvtsi32_si128((int)c)); /* the register enters with the data */
+    p += 64;
+    n -= 64;
+    for (; n >= 64; p += 64, n -= 64) {
+        x0 = fold(x0, k12, _mm_loadu_si128((const __m128i *)p));
+        x1 = fold(x1, k12, _mm_loadu_si128((const __m128i *)(p + 16)));
+        x2 = fold(x2, k12, _mm_loadu_si128((const __m128i *)(p + 32)));
+        x3 = fold(x3, k12, _mm_loadu_si128((const __m128i *)(p + 48)));
+    }
+    x0 = fold(x0, k34, x1);
+    x0 = fold(x0, k34, x2);
+    x0 = fold(x0, k34, x3);
+    for (; n >= 16; p += 16, n -= 16) x0 = fold(x0, k34, _mm_loadu_si128((const __m128i *)p));
+    uint8_t rest[16];
+    _mm_storeu_si128((__m128i *)rest, x0);
+    return crc_bytes(crc_bytes(0, rest, 16), p, n);
+}
+#else
+#define HAVE_CLMUL 0
+#endif
+
+static int clmul_ok(void) {
+#if HAVE_CLMUL
+    static int ok = -1;
+    if (ok < 0) {
+        __builtin_cpu_init();
+        ok = __builtin_cpu_supports("pclmul") && __builtin_cpu_supports("sse2");
+    }
+    return ok;
+#else
+    return 0;
+#endif
+}
+
+static PyObject *crc32(PyObject *self, PyObject *args) {
+    Py_buffer view;
+    unsigned int start = 0;
+    if (!PyArg_ParseTuple(args, "y*|I", &view, &start)) return NULL;
+    if (!clmul_ok()) {
+        PyBuffer_Release(&view);
+        Py_RETURN_NONE;
+    }
+    const uint8_t *p = (const uint8_t *)view.buf;
+    const size_t n = (size_t)view.len;
+    uint32_t c = ~(uint32_t)start;
+    if (n < 64) {
+        c = crc_bytes(c, p, n);
+    } else {
+        Py_BEGIN_ALLOW_THREADS
+#if HAVE_CLMUL
+        c = crc_clmul(c, p, n);
+#endif
+        Py_END_ALLOW_THREADS
+    }
+    PyBuffer_Release(&view);
+    return PyLong_FromUnsignedLong((unsigned long)~c);
+}
+
 static PyMethodDef methods[] = {
     {"cdr_walk", cdr_walk, METH_VARARGS,
      "cdr_walk(buf, offsets, channel, floats, out=None) -> None | (times, skip, frame, ordered): one "
@@ -324,6 +436,9 @@ static PyMethodDef methods[] = {
     {"fill", fill, METH_VARARGS,
      "fill(buf, offsets, skip, slots, columns, clean, nan_check, runs) -> (dirty, nan): the "
      "float fields of the messages written into the table's columns."},
+    {"crc32", crc32, METH_VARARGS,
+     "crc32(data, crc=0) -> int | None: zlib.crc32(data, crc) with carry-less multiplication, "
+     "or None when the CPU has none."},
     {NULL, NULL, 0, NULL},
 };
 
@@ -333,4 +448,7 @@ static struct PyModuleDef module = {
     -1, methods,
 };
 
-PyMODINIT_FUNC PyInit__chunks(void) { return PyModule_Create(&module); }
+PyMODINIT_FUNC PyInit__chunks(void) {
+    crc_table_init();
+    return PyModule_Create(&module);
+}

@@ -133,7 +133,8 @@ def read_sources(spec: InputSpec, sources: Sequence[LogSource]) -> tuple[pa.Tabl
     total = dict.fromkeys(streams, 0)
     other: dict[str, list[int]] = {}
     for src in _ordered(sources):
-        for pieces, _, _ in src.chunks(streams, carry=False, whole=True):
+        sink = {"sink": buffer} if getattr(src, "prefills", False) else {}
+        for pieces, _, _ in src.chunks(streams, carry=False, whole=True, **sink):
             _tally_other(pieces, other)
             buffer.add(pieces)
             for stream, piece in pieces.items():

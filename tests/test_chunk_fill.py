@@ -333,3 +333,114 @@ def test_no_spare_cpu_when_one_cpu_is_allowed_or_all_are_busy(monkeypatch):
     assert not no_spare_cpu()  # one CPU free: the read itself is one of the load
     monkeypatch.setattr(os, "getloadavg", lambda: (1.6, 0.0, 0.0))
     assert no_spare_cpu()
+
+
+def test_crc32_is_zlibs_at_every_length_and_alignment(monkeypatch):
+    """The compiled CRC (carry-less multiply, 64-byte folds) is ``zlib.crc32``: every length
+    from 0 to 300 bytes (the byte loop, one fold, the 16-byte folds, the tail) at 17
+    alignments, from a start value too, and large buffers; the numpy path is zlib itself."""
+    import zlib
+
+    from imupipe.readers import _chunks
+
+    if _chunks.crc32(b"") is None:
+        pytest.skip("this CPU has no carry-less multiply: zlib.crc32 is used")
+    rng = np.random.default_rng(5)
+    data = rng.integers(0, 256, 400, dtype=np.uint8).tobytes()
+    for n in range(301):
+        for at in range(17):
+            piece = data[at : at + n]
+            assert _chunks.crc32(piece) == zlib.crc32(piece), (n, at)
+            assert _chunks.crc32(piece, 0xDEADBEEF) == zlib.crc32(piece, 0xDEADBEEF), (n, at)
+    big = rng.integers(0, 256, (1 << 20) + 77, dtype=np.uint8)
+    assert _chunks.crc32(big[3:]) == zlib.crc32(big[3:])
+    assert _chunks.crc32(np.zeros(1 << 16, np.uint8)) == zlib.crc32(bytes(1 << 16))
+    for compiled in (True, False):
+        if compiled:
+            monkeypatch.delenv(PURE_PYTHON_ENV, raising=False)
+        else:
+            monkeypatch.setenv(PURE_PYTHON_ENV, "1")
+        assert chunk_fill.crc32(memoryview(big)) == zlib.crc32(big)
+
+
+def test_a_chunk_crc_mismatch_is_named_on_both_paths(tmp_path, monkeypatch):
+    """A chunk whose stated CRC differs from its decompressed bytes' by one bit is a
+    ReadError naming the chunk, with the compiled CRC and with zlib's."""
+    from imupipe.readers.errors import ReadError
+
+    path = tmp_path / "log.mcap"
+    write_log(path, imu_log(3000))
+    data = bytearray(path.read_bytes())
+    pos = 8
+    while data[pos] != 0x06:  # the first chunk record
+        pos += 9 + int.from_bytes(data[pos + 1 : pos + 9], "little")
+    data[pos + 9 + 24] ^= 0x10  # its uncompressed_crc field (after start, end, size)
+    path.write_bytes(bytes(data))
+    for compiled in (True, False):
+        with pytest.raises(ReadError, match=f"chunk at byte {pos}: chunk CRC mismatch"):
+            reads(path, monkeypatch, compiled, batches=False)
+
+
+@pytest.mark.parametrize("threads", [False, True])
+def test_chunks_prefilled_after_their_decompression_give_the_same_table(
+    tmp_path, monkeypatch, threads
+):
+    """A table of one stream gets each chunk's values right after the chunk's decompression
+    (``McapSource._prefill``): the same table as the chunks filled after the walk of their
+    group (``prefills`` off), with and without decompression threads; also when the frame_id
+    changes length mid-file (its chunks' pieces differ: the group is walked, or read chunk by
+    chunk with the prefilled pieces) and when covariances start mid-file."""
+    from imupipe.readers import table_buffer
+    from imupipe.readers.mcap import fast
+    from imupipe.readers.mcap import reader as mcap_reader
+
+    monkeypatch.setattr(fast, "no_spare_cpu", lambda: not threads)
+    whole = imu_log(20_000, cov_from=11_000)
+    frames = np.where(np.arange(20_000) < 9_500, "imu_link", "imu_link_2")
+    short = imu_log(20_000, cov_from=11_000).set_column(
+        whole.schema.get_field_index("frame_id"), "frame_id", pa.array(frames)
+    )
+    calls: list[bool] = []
+    prefill = table_buffer._Stream.prefill
+
+    def counted(st, piece) -> bool:
+        calls.append(prefill(st, piece))
+        return calls[-1]
+
+    monkeypatch.setattr(table_buffer._Stream, "prefill", counted)
+    for name, table in (("same", whole), ("frames", short)):
+        path = tmp_path / f"{name}.mcap"
+        write_log(path, table)
+        assert path.stat().st_size > fast.SMALL_FILE
+        calls.clear()
+        prefilled = reads(path, monkeypatch, True, batches=False)
+        assert calls and all(calls), name  # every chunk prefilled
+        monkeypatch.setattr(mcap_reader.McapSource, "prefills", False)
+        assert reads(path, monkeypatch, True, batches=False) == prefilled, name
+        monkeypatch.setattr(mcap_reader.McapSource, "prefills", True)
+        assert reads(path, monkeypatch, False, batches=False) == prefilled, name
+
+
+def test_a_prefilled_piece_added_at_other_rows_is_filled_again(tmp_path, monkeypatch):
+    """Pieces prefilled in one order and added in another are filled again at the rows they
+    are added at: the table of the pieces added without prefill."""
+    from imupipe.readers.table_buffer import TableBuffer
+
+    monkeypatch.delenv(PURE_PYTHON_ENV, raising=False)
+    chunk, cid = _chunk(tmp_path, 500)
+    off = chunk.offsets[cid]
+
+    def table(prefill: bool) -> bytes:
+        a = chunk_fill.walk(chunk.buf, off[:200], cid, "imu")
+        b = chunk_fill.walk(chunk.buf, off[200:], cid, "imu")
+        buffer = TableBuffer(["imu"], "header", {"imu": 500})
+        if prefill:
+            assert buffer.prefill("imu", b) and buffer.prefill("imu", a)
+            assert not buffer.prefill("imu", b)  # no room left
+        buffer.add({"imu": a})
+        buffer.add({"imu": b})
+        topics = {"imu": "/imu/data"}
+        kw = {"source": "x", "fmt": "mcap", "topics": topics, "where": "x", "warnings": []}
+        return raw(buffer.table(sort=True, **kw))
+
+    assert table(True) == table(False)

@@ -38,7 +38,6 @@ import functools
 import io
 import os
 import struct
-import zlib
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -46,6 +45,7 @@ from pathlib import Path
 import numpy as np
 
 from imupipe.readers.cdr import at, even_step
+from imupipe.readers.chunk_fill import crc32
 from imupipe.readers.compression import (
     DECOMPRESSORS,
     PREFETCH,
@@ -160,6 +160,9 @@ class ChunkMessages:
     """Chunks that lay back to back in memory, handed over as this one (:meth:`McapFile.chunks`
     with ``group``): each as it would have been alone, its ``buf`` a view into this ``buf``;
     empty for a single chunk."""
+    filled: dict[int, object] = field(default_factory=dict)
+    """Per channel id: the piece whose values the reader wrote into its table right after this
+    chunk's decompression (``ready`` of :meth:`McapFile.chunks`), if any."""
 
     def records(
         self, channel_id: int, copy: bool = True
@@ -558,13 +561,18 @@ class McapFile:
             self._bounds_cache = [offset for offset, _ in pairs], suffix[::-1]
         return self._bounds_cache
 
-    def chunks(self, group: int = 0) -> Iterator[ChunkMessages]:
+    def chunks(
+        self, group: int = 0, ready: Callable[[ChunkMessages], None] | None = None
+    ) -> Iterator[ChunkMessages]:
         """Every chunk (and every run of un-chunked messages) in file order.
 
         ``group`` (bytes, 0: none): chunks are decompressed back to back into buffers of that
         size, and those that lie back to back are handed over as one :class:`ChunkMessages`
         (its :attr:`~ChunkMessages.parts` the chunks as they would have come one by one), for
         a caller whose work per chunk costs more than its work per message (issue 39).
+        ``ready``: called with each chunk (not a group) once it is decompressed and indexed,
+        in the reading thread, before it is handed over: work on its bytes while they are in
+        the core's cache.
 
         Worker threads decompress (and CRC-check) the next :data:`PREFETCH` chunks while the
         caller decodes the current one (zstd, lz4 and zlib release the GIL). A file of one
@@ -608,7 +616,7 @@ class McapFile:
                     queue.append(pending)
                     pending = None
                 while len(queue) > PREFETCH or (queue and opcode != OP_CHUNK):
-                    yield from _handed(_finished(queue.popleft(), pool), merge)
+                    yield from _handed(_finished(queue.popleft(), pool, ready), merge)
                 if opcode == OP_MESSAGE:
                     if len(body) < 22:
                         raise ReadError(f"{self.path}: corrupt message record at byte {pos}")
@@ -654,7 +662,7 @@ class McapFile:
             if pending is not None:
                 queue.append(pending)
             while queue:
-                yield from _handed(_finished(queue.popleft(), pool), merge)
+                yield from _handed(_finished(queue.popleft(), pool, ready), merge)
             yield from _handed(None, merge)
             if loose:
                 yield _loose_chunk(loose, loose_off, f"{self.path}: messages at the end")
@@ -712,7 +720,7 @@ class ChunkFields:
 
     def checked(self, raw: np.ndarray, where: str) -> np.ndarray:
         """``raw`` (the decompressed data), once its CRC is checked."""
-        if self.crc and zlib.crc32(raw) != self.crc:
+        if self.crc and crc32(raw) != self.crc:
             raise ReadError(f"{where}: chunk CRC mismatch (corrupt data)")
         return raw
 
@@ -730,12 +738,18 @@ def _chunk_buffer(head: bytes, pool: BufferPool) -> np.ndarray | None:
     return pool.take(f.size)
 
 
-def _finished(chunk: ChunkMessages, pool: BufferPool) -> ChunkMessages:
-    """The chunk with its decompressed buffer (waiting for the worker) and its offsets; the
-    buffer goes back to ``pool`` (used again once nothing refers to it)."""
+def _finished(
+    chunk: ChunkMessages, pool: BufferPool, ready: Callable[[ChunkMessages], None] | None
+) -> ChunkMessages:
+    """The chunk with its decompressed buffer (waiting for the worker) and its offsets, given
+    to ``ready`` (if any); the buffer goes back to ``pool`` (used again once nothing refers to
+    it)."""
     chunk.buf = chunk.buf.result()  # type: ignore[attr-defined]
     pool.give(chunk.buf)
-    return _indexed_or_scanned(chunk)
+    chunk = _indexed_or_scanned(chunk)
+    if ready is not None:
+        ready(chunk)
+    return chunk
 
 
 class _Merge:

@@ -9,6 +9,7 @@ over as they are (ROS 1 encoded ones converted to ROS 2 CDR the way ``rosbags-co
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -16,12 +17,13 @@ from typing import TYPE_CHECKING
 import numpy as np
 import pyarrow as pa
 
-from imupipe.readers.chunk_fill import walk
+from imupipe.readers.chunk_fill import RecordPiece, Records, repeated_frame, walk
 from imupipe.readers.decoded import Piece, concat, decode_piece
 from imupipe.readers.errors import ReadError
 from imupipe.readers.mcap.fast import MESSAGE_HEADER, ChunkMessages, McapFile
 from imupipe.readers.sources import carry_sources, iter_sources, read_sources
 from imupipe.readers.spec import InputSpec, RawMessage
+from imupipe.readers.table_buffer import TableBuffer
 from imupipe.readers.topics import normalize_type
 
 if TYPE_CHECKING:
@@ -75,14 +77,27 @@ class McapSource:
                 times.setdefault(topic, []).append(chunk.records(cid)[0])
         return {t: np.concatenate(v) for t, v in times.items()}
 
+    prefills = True
+    """:meth:`chunks` takes a ``sink`` (see :func:`imupipe.readers.sources.read_sources`)."""
+
     def chunks(
-        self, streams: dict[str, str], carry: bool, decode: bool = True, whole: bool = False
+        self,
+        streams: dict[str, str],
+        carry: bool,
+        decode: bool = True,
+        whole: bool = False,
+        sink: TableBuffer | None = None,
     ) -> Iterator[tuple[dict[str, Piece], list[RawMessage], int]]:
+        """``sink``: the table the pieces go to, in the order given; a table of one stream
+        gets each chunk's values right after the chunk's decompression (:meth:`_prefill`)."""
         by_topic = {topic: stream for stream, topic in streams.items()}
         stream_of: dict[int, str | None] = {}  # channel id -> its stream (None: carried over)
         converters: dict[int, object] = {}
         group = GROUP_BYTES if whole and decode and not carry and self._groups() else 0
-        for chunk in self.file.chunks(group):
+        ready = None
+        if group and sink is not None and len(streams) == 1:
+            ready = functools.partial(self._prefill, by_topic, stream_of, sink, [True])
+        for chunk in self.file.chunks(group, ready):
             if chunk.parts:
                 pieces = self._decode_group(chunk, by_topic, stream_of)
                 if pieces is not None:
@@ -124,6 +139,41 @@ class McapSource:
             raw.sort(key=lambda m: m.log_time)
         return {s: concat(p, s) for s, p in pieces.items()}, raw, chunk.bound
 
+    def _prefill(
+        self,
+        by_topic: dict[str, str],
+        stream_of: dict[int, str | None],
+        sink: TableBuffer,
+        on: list[bool],
+        chunk: ChunkMessages,
+    ) -> None:
+        """Walk ``chunk`` (just decompressed, in the core's cache) and write its values into
+        ``sink`` at the rows they will take (:meth:`TableBuffer.prefill`), keeping the piece in
+        ``chunk.filled`` for :meth:`_decode` and :meth:`_decode_group`. The first chunk this
+        does not take (another layout, two channels of the stream, a channel the file does not
+        define: read as before, its errors named there) turns it off for the rest of the file
+        (``on``), so that the prefilled rows stay those the pieces are added at."""
+        if not on[0]:
+            return
+        try:
+            self._map_streams(chunk, by_topic, stream_of)
+        except ReadError:
+            on[0] = False
+            return
+        mine = [cid for cid in chunk.offsets if stream_of[cid] is not None]
+        if len(mine) > 1:
+            on[0] = False
+            return
+        for cid in mine:
+            stream = stream_of[cid]
+            piece = None
+            if self.file.channels[cid].message_encoding == "cdr" and _inside(chunk, cid):
+                piece = walk(chunk.buf, chunk.offsets[cid], cid, stream)  # type: ignore[arg-type]
+            if piece is None or not sink.prefill(stream, piece):  # type: ignore[arg-type]
+                on[0] = False
+                return
+            chunk.filled[cid] = piece
+
     def _groups(self) -> bool:
         """Whether chunks may be decoded as a group (:meth:`_decode_group`)."""
         return True
@@ -151,7 +201,9 @@ class McapSource:
                 return None
             if not all(_inside(part, cid) for part in chunk.parts):
                 return None
-            piece = walk(chunk.buf, offsets, cid, stream)
+            piece = _joined([part.filled.get(cid) for part in chunk.parts], chunk, offsets)
+            if piece is None:
+                piece = walk(chunk.buf, offsets, cid, stream)
             if piece is None:
                 return None
             pieces[stream] = piece
@@ -196,7 +248,9 @@ class McapSource:
                 "(cdr or ros1)"
             )
         if channel.message_encoding == "cdr" and isinstance(chunk, ChunkMessages):
-            piece = walk(chunk.buf, chunk.offsets[cid], cid, stream)  # the compiled pass
+            piece = chunk.filled.get(cid)  # type: ignore[assignment]
+            if piece is None:
+                piece = walk(chunk.buf, chunk.offsets[cid], cid, stream)  # the compiled pass
             if piece is not None:
                 return piece
         log, pub, starts, lengths = chunk.records(cid, copy=False)
@@ -247,6 +301,56 @@ class McapSource:
                 )
             )
         return out
+
+
+def _joined(
+    parts: list[RecordPiece | None], group: ChunkMessages, offsets: np.ndarray
+) -> RecordPiece | None:
+    """One piece of the group of chunks ``group`` (its channel's record ``offsets``) from the
+    pieces its chunks were prefilled with (:meth:`McapSource._prefill`), in rows one after the
+    other: the piece a walk of the group gives, its values already in the table. None when a
+    chunk was not prefilled or the pieces differ in layout or frame_id (the group is walked)."""
+    if not parts or any(p is None for p in parts):
+        return None
+    first = parts[0]
+    rec = first.records  # type: ignore[union-attr]
+    row, generation, _ = first.filled  # type: ignore[union-attr]
+    nan: set[str] = set()
+    for p in parts:
+        r = p.records  # type: ignore[union-attr]
+        if (
+            r is None
+            or r.skip != rec.skip  # type: ignore[union-attr]
+            or p.one_frame != first.one_frame  # type: ignore[union-attr]
+            or p.filled[:2] != (row, generation)  # type: ignore[union-attr]
+        ):
+            return None
+        nan |= p.filled[2]  # type: ignore[union-attr]
+        row += len(p)  # type: ignore[arg-type]
+    times = [np.concatenate([getattr(p, name) for p in parts]) for name in ("log", "pub", "stamp")]
+    ordered = 0
+    for bit, which, name in ((1, 0, "log"), (2, 1, "stamp")):
+        if all(p.ordered[which][1] for p in parts) and _edges_ordered(parts, name):  # type: ignore[union-attr]
+            ordered |= bit
+    records = Records(group.buf, offsets, rec.skip, rec.slots, rec.names, rec.module)  # type: ignore[union-attr]
+    one = first.one_frame  # type: ignore[union-attr]
+    piece = RecordPiece(
+        times[2], times[0], repeated_frame(one, len(times[0])), times[1], one, records, ordered
+    )  # type: ignore[arg-type]
+    piece.filled = (first.filled[0], generation, nan)  # type: ignore[union-attr,attr-defined]
+    return piece
+
+
+def _edges_ordered(parts: list, name: str) -> bool:
+    """Whether the times ``name`` of ``parts`` (each in order) never decrease where one part
+    ends and the next starts."""
+    last = None
+    for p in parts:
+        t = getattr(p, name)
+        if last is not None and int(t[0]) < last:
+            return False
+        last = int(t[-1])
+    return True
 
 
 def _inside(chunk: ChunkMessages, cid: int) -> bool:

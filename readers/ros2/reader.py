@@ -26,6 +26,7 @@ import tempfile
 from collections.abc import Iterator
 from dataclasses import dataclass, field
 from pathlib import Path, PurePath
+from typing import Any
 
 import numpy as np
 import pyarrow as pa
@@ -305,11 +306,12 @@ class Bag2Mcap(McapSource):
         with self._named():
             return super().topic_times()
 
-    def chunks(
-        self, streams: dict[str, str], carry: bool, decode: bool = True, whole: bool = False
+    def chunks(  # type: ignore[override]
+        self, *args: Any, **kwargs: Any
     ) -> Iterator[tuple[dict[str, Piece], list[RawMessage], int]]:
+        """:meth:`McapSource.chunks`, its errors naming the bag's own file."""
         with self._named():
-            yield from super().chunks(streams, carry, decode, whole)
+            yield from super().chunks(*args, **kwargs)
 
     def _groups(self) -> bool:
         return not self.zstd_messages  # each payload is inflated on its own
