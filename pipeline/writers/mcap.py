@@ -43,6 +43,7 @@ import zstandard
 from imupipe.pipeline.calibration_file import calibration_json
 from imupipe.readers import cdr
 from imupipe.readers.arrays import arrow_array, arrow_scalar, to_numpy, unique, valid_mask
+from imupipe.readers.chunk_fill import crc32
 from imupipe.readers.mcap.records import (
     MAGIC,
     OP_ATTACHMENT,
@@ -536,7 +537,7 @@ class McapTableWriter:
         start_t, end_t = int(log.min()), int(log.max())
         self._start = start_t if self._start < 0 else min(self._start, start_t)
         self._end = max(self._end, end_t)
-        head = struct.pack("<QQQI", start_t, end_t, len(raw), zlib.crc32(raw))
+        head = struct.pack("<QQQI", start_t, end_t, len(raw), crc32(raw))  # zlib.crc32's value
         head += struct.pack("<I", 4) + b"zstd" + struct.pack("<Q", len(compressed))
         chunk_start = self._fh.tell()
         self._fh.write(struct.pack("<BQ", OP_CHUNK, len(head) + len(compressed)))
