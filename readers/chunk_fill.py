@@ -129,6 +129,10 @@ class RecordPiece(Piece):
         self.ordered = ((log, bool(ordered & 1)), (stamp, bool(ordered & 2)))
         """(times, whether they never decrease) for the log times and the header stamps, as
         the compiled walk found them."""
+        self.filled: tuple[int, int, set[str]] | None = None
+        """Set when the table wrote this piece's values right after its chunk's decompression
+        (:meth:`imupipe.readers.table_buffer.TableBuffer.prefill`): the first row they took,
+        the columns' allocation they went to and the columns holding a NaN."""
         super().__init__(stamp, log, frame, None, pub, one_frame)  # type: ignore[arg-type]
 
     @property  # type: ignore[override]

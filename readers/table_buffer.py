@@ -34,7 +34,7 @@ piece's times only, or fills its values again where it lands elsewhere.
 from __future__ import annotations
 
 import contextlib
-from collections.abc import Callable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -190,13 +190,18 @@ class _Stream:
         written, nan = chunk_fill.fill(
             records, self.columns, self.clean, [(slice(0, k), slice(row, row + k))]
         )
-        for name in written:
-            self.clean.discard(name)
-            if self.prefault is not None:
-                self.prefault.add(self.columns[name], row)
+        self._now_written(written, row)
         piece.filled = (row, self.generation, nan)  # type: ignore[attr-defined]
         self.ahead += k
         return True
+
+    def _now_written(self, names: Iterable[str], row: int) -> None:
+        """Columns ``names`` hold a value from ``row`` on: no longer all zeros (:attr:`clean`),
+        and their pages mapped ahead from there (:attr:`prefault`)."""
+        for name in names:
+            self.clean.discard(name)
+            if self.prefault is not None:
+                self.prefault.add(self.columns[name], row)
 
     def _written(self, arrays: dict[str, np.ndarray]) -> list[np.ndarray]:
         return [column for name, column in arrays.items() if name not in self.clean]
@@ -269,10 +274,7 @@ class _Stream:
         elif runs is not None and all(isinstance(rows, slice) for _, rows in runs):
             # the compiled pass: the chunk's values straight into the columns (chunk_fill)
             written, nan = chunk_fill.fill(records, self.columns, self.clean, runs)  # type: ignore[arg-type]
-            for name in written:
-                self.clean.discard(name)
-                if self.prefault is not None:
-                    self.prefault.add(self.columns[name], first)
+            self._now_written(written, first)
             self.seen.update(records.names)  # type: ignore[union-attr]
         else:
             nan = None
@@ -280,9 +282,7 @@ class _Stream:
                 if name in self.clean:
                     if _zeros_only(column):
                         continue
-                    self.clean.discard(name)
-                    if self.prefault is not None:
-                        self.prefault.add(self.columns[name], first)
+                    self._now_written([name], first)
                 values[name] = column
             self.seen.update(piece.columns)
         if self.stream == "imu" and nan != set():  # no NaN in the vectors: nothing marked

@@ -9,7 +9,6 @@ over as they are (ROS 1 encoded ones converted to ROS 2 CDR the way ``rosbags-co
 
 from __future__ import annotations
 
-import functools
 from collections.abc import Iterator
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -96,7 +95,12 @@ class McapSource:
         group = GROUP_BYTES if whole and decode and not carry and self._groups() else 0
         ready = None
         if group and sink is not None and len(streams) == 1:
-            ready = functools.partial(self._prefill, by_topic, stream_of, sink, [True])
+            on = True  # until the first chunk :meth:`_prefill` does not take
+
+            def ready(chunk: ChunkMessages) -> None:
+                nonlocal on
+                on = on and self._prefill(by_topic, stream_of, sink, chunk)
+
         for chunk in self.file.chunks(group, ready):
             if chunk.parts:
                 pieces = self._decode_group(chunk, by_topic, stream_of)
@@ -144,35 +148,30 @@ class McapSource:
         by_topic: dict[str, str],
         stream_of: dict[int, str | None],
         sink: TableBuffer,
-        on: list[bool],
         chunk: ChunkMessages,
-    ) -> None:
+    ) -> bool:
         """Walk ``chunk`` (just decompressed, in the core's cache) and write its values into
         ``sink`` at the rows they will take (:meth:`TableBuffer.prefill`), keeping the piece in
-        ``chunk.filled`` for :meth:`_decode` and :meth:`_decode_group`. The first chunk this
+        ``chunk.filled`` for :meth:`_decode` and :meth:`_decode_group`. False for a chunk this
         does not take (another layout, two channels of the stream, a channel the file does not
-        define: read as before, its errors named there) turns it off for the rest of the file
-        (``on``), so that the prefilled rows stay those the pieces are added at."""
-        if not on[0]:
-            return
+        define: read as before, its errors named there): the caller then stops prefilling for
+        the rest of the file, so that the prefilled rows stay those the pieces are added at."""
         try:
             self._map_streams(chunk, by_topic, stream_of)
         except ReadError:
-            on[0] = False
-            return
+            return False
         mine = [cid for cid in chunk.offsets if stream_of[cid] is not None]
         if len(mine) > 1:
-            on[0] = False
-            return
+            return False
         for cid in mine:
             stream = stream_of[cid]
             piece = None
             if self.file.channels[cid].message_encoding == "cdr" and _inside(chunk, cid):
                 piece = walk(chunk.buf, chunk.offsets[cid], cid, stream)  # type: ignore[arg-type]
             if piece is None or not sink.prefill(stream, piece):  # type: ignore[arg-type]
-                on[0] = False
-                return
+                return False
             chunk.filled[cid] = piece
+        return True
 
     def _groups(self) -> bool:
         """Whether chunks may be decoded as a group (:meth:`_decode_group`)."""
@@ -310,34 +309,28 @@ def _joined(
     pieces its chunks were prefilled with (:meth:`McapSource._prefill`), in rows one after the
     other: the piece a walk of the group gives, its values already in the table. None when a
     chunk was not prefilled or the pieces differ in layout or frame_id (the group is walked)."""
-    if not parts or any(p is None for p in parts):
+    pieces = [p for p in parts if p is not None and p.records is not None and p.filled]
+    if not pieces or len(pieces) != len(parts):
         return None
-    first = parts[0]
-    rec = first.records  # type: ignore[union-attr]
-    row, generation, _ = first.filled  # type: ignore[union-attr]
+    first = pieces[0]
+    rec, one = first.records, first.one_frame
+    row, generation, _ = first.filled  # type: ignore[misc]
     nan: set[str] = set()
-    for p in parts:
-        r = p.records  # type: ignore[union-attr]
-        if (
-            r is None
-            or r.skip != rec.skip  # type: ignore[union-attr]
-            or p.one_frame != first.one_frame  # type: ignore[union-attr]
-            or p.filled[:2] != (row, generation)  # type: ignore[union-attr]
-        ):
+    for p in pieces:
+        if p.records.skip != rec.skip or p.one_frame != one or p.filled[:2] != (row, generation):  # type: ignore[union-attr,index]
             return None
-        nan |= p.filled[2]  # type: ignore[union-attr]
-        row += len(p)  # type: ignore[arg-type]
-    times = [np.concatenate([getattr(p, name) for p in parts]) for name in ("log", "pub", "stamp")]
+        nan |= p.filled[2]  # type: ignore[index]
+        row += len(p)
+    log, pub, stamp = (
+        np.concatenate([getattr(p, t) for p in pieces]) for t in ("log", "pub", "stamp")
+    )
     ordered = 0
     for bit, which, name in ((1, 0, "log"), (2, 1, "stamp")):
-        if all(p.ordered[which][1] for p in parts) and _edges_ordered(parts, name):  # type: ignore[union-attr]
+        if all(p.ordered[which][1] for p in pieces) and _edges_ordered(pieces, name):
             ordered |= bit
     records = Records(group.buf, offsets, rec.skip, rec.slots, rec.names, rec.module)  # type: ignore[union-attr]
-    one = first.one_frame  # type: ignore[union-attr]
-    piece = RecordPiece(
-        times[2], times[0], repeated_frame(one, len(times[0])), times[1], one, records, ordered
-    )  # type: ignore[arg-type]
-    piece.filled = (first.filled[0], generation, nan)  # type: ignore[union-attr,attr-defined]
+    piece = RecordPiece(stamp, log, repeated_frame(one, len(log)), pub, one, records, ordered)
+    piece.filled = (first.filled[0], generation, nan)  # type: ignore[index]
     return piece
 
 
