@@ -74,7 +74,7 @@ from typing import Any
 import numpy as np
 import pyarrow as pa
 
-from imupipe.readers.arrays import arrow_array, take, take_rows, to_numpy, valid_mask
+from imupipe.readers.arrays import arrow_array, take, to_numpy, valid_mask
 
 SENSOR_COLUMNS: dict[str, tuple[str, ...]] = {
     "gyro": ("gyro_x", "gyro_y", "gyro_z"),
@@ -479,7 +479,7 @@ def sort_by_time(table: pa.Table) -> tuple[pa.Table, int]:
         return table, 0
     order = np.argsort(t, kind="stable")
     moved = int(np.count_nonzero(order != np.arange(len(t))))
-    return take_rows(table, order), moved
+    return take(table, order), moved
 
 
 def with_flight_stream(
@@ -596,7 +596,7 @@ def on_imu_rows(table: pa.Table) -> tuple[pa.Table, dict[str, int]]:
             dropped[stream] = len(table) - int(table.column(FLIGHT_COLUMNS[stream][0]).null_count)
     rows = np.flatnonzero(imu)
     t_ns = to_numpy(table.column("t_ns"))
-    out = take_rows(table, rows)
+    out = take(table, rows)
     carried: list[str] = []
     for name in CARRIED_COLUMNS:
         if name not in table.schema.names:

@@ -77,6 +77,9 @@ def test_unique_equals_numpy_and_imports_no_numpy_ma() -> None:
     np.testing.assert_array_equal(unique(values), np.unique(values))
     rows = RNG.integers(0, 3, (40, 2))
     np.testing.assert_array_equal(unique(rows, axis=0), np.unique(rows, axis=0))
+    for wide in (RNG.integers(-5, 5, (300, 3)), RNG.integers(0, 2**40, (20, 2), dtype=np.uint64)):
+        np.testing.assert_array_equal(unique(wide, axis=0), np.unique(wide, axis=0))
+    assert unique(np.zeros((0, 2), np.int64), axis=0).shape == (0, 2)
     code = (
         "import sys, numpy as np; from imupipe.readers.arrays import unique; "
         "unique(np.arange(5)); unique(np.zeros((3, 2)), axis=0); print('numpy.ma' in sys.modules)"

@@ -10,6 +10,7 @@ carried-over messages and the warnings.
 
 from __future__ import annotations
 
+import functools
 import io
 from pathlib import Path
 
@@ -89,7 +90,7 @@ def test_statistics_unpacked_as_the_mcap_library_reads_them(logs):
             body = data[pos + 9 : pos + 9 + length]
             if opcode == fast.OP_STATISTICS:
                 want = Statistics.read(ReadDataStream(io.BytesIO(body)))
-                assert _fields(mcap._statistics(body)) == _fields(want)
+                assert _fields(mcap._read_record(fast.OP_STATISTICS, body)) == _fields(want)
                 seen += 1
             pos += 9 + length
     assert seen >= 3
@@ -100,7 +101,7 @@ def test_statistics_unpacked_as_the_mcap_library_reads_them(logs):
             want = _fields(Statistics.read(ReadDataStream(io.BytesIO(bytes(odd)))))
         except Exception as exc:  # noqa: BLE001 - the library's own error, named in ReadError
             want = f"{path}: corrupt MCAP record (opcode 0xb): {exc}"
-        got = _outcome(mcap._statistics, bytes(odd))
+        got = _outcome(functools.partial(mcap._read_record, fast.OP_STATISTICS), bytes(odd))
         assert (got if isinstance(got, str) else _fields(got)) == want
 
 

@@ -359,7 +359,7 @@ class McapFile:
         records = self._records(section, summary_start, self.size - 37, base=base)
         for opcode, _pos, body in records:
             if opcode == OP_STATISTICS:
-                stats.append(self._statistics(body))
+                stats.append(self._read_record(OP_STATISTICS, body))
             elif opcode == OP_CHUNK_INDEX:
                 indexed.append(self._chunk_index(body))
             else:
@@ -431,10 +431,6 @@ class McapFile:
                 _parsed_bytes = len(body)
             _PARSED[key] = found
         return found
-
-    def _statistics(self, body: bytes) -> Statistics:
-        """The Statistics record of ``body`` (:meth:`_read_record`)."""
-        return self._read_record(OP_STATISTICS, body)
 
     def _collect(self, opcode: int, body: bytes) -> bool:
         """Keep a Schema or Channel record (a schema of id 0 is invalid and ignored, as the
