@@ -78,10 +78,11 @@ def test_summary_that_cannot_tell_falls_back(tmp_path, kind):
 
 
 def test_inspect_mcap_imports_neither_numpy_nor_pyarrow(tmp_path):
+    """Nor the ``mcap`` library: the summary is read by :mod:`imupipe.readers.mcap.records`."""
     path = write(tmp_path / "log.mcap")
     code = (
         "import sys; from imupipe.pipeline.cli import main; main(['inspect', sys.argv[1]]); "
-        "print(sorted(m for m in ('numpy', 'pyarrow') if m in sys.modules))"
+        "print(sorted(m for m in ('numpy', 'pyarrow', 'mcap') if m in sys.modules))"
     )
     proc = subprocess.run(
         [sys.executable, "-c", code, str(path)], capture_output=True, text=True, timeout=60

@@ -181,9 +181,18 @@ def _written(tmp: Path) -> list[Path]:
     return paths
 
 
+def vars_of(record: object) -> dict:
+    """A record's fields by the names of the ``mcap`` library's (slots or dataclass fields)."""
+    names = getattr(type(record), "__slots__", None) or list(vars(record))
+    library = {"ChunkIndex", "Statistics"}
+    assert type(record).__name__ in library
+    return {name: getattr(record, name) for name in names}
+
+
 def test_summary_as_the_library_reads_it(tmp_path):
     """The count check's summary (messages per topic, the attached calibration) of every
-    conformance file and of files imupipe writes, read by imupipe and by the library."""
+    conformance file and of files imupipe writes, read by imupipe and by the library; and the
+    summary records ``inspect`` reads (schemas, statistics, chunk indexes) field by field."""
     paths = sorted(CONFORMANCE.glob("*.mcap")) + _written(tmp_path)
     own = 0
     for path in paths:
@@ -206,6 +215,14 @@ def test_summary_as_the_library_reads_it(tmp_path):
                 k: c.topic for k, c in summary.channels.items()
             }
             assert [a.offset for a in summary.attachment_indexes] == found.attachments
+            assert {k: (s.name, s.encoding, s.data) for k, s in found.schemas.items()} == {
+                k: (s.name, s.encoding, s.data) for k, s in summary.schemas.items()
+            }
+            assert [vars_of(c) for c in found.chunk_indexes] == [
+                vars_of(c) for c in summary.chunk_indexes
+            ], path
+            if found.statistics is not None:
+                assert vars_of(found.statistics) == vars_of(summary.statistics)
     assert own >= len(paths) // 2  # most read without the library
 
 

@@ -95,6 +95,26 @@ class Statistics:
             setattr(self, name, value)
 
 
+class ChunkIndex:
+    """A ChunkIndex record (the names of the ``mcap`` library's)."""
+
+    __slots__ = (
+        "message_start_time",
+        "message_end_time",
+        "chunk_start_offset",
+        "chunk_length",
+        "message_index_offsets",
+        "message_index_length",
+        "compression",
+        "compressed_size",
+        "uncompressed_size",
+    )
+
+    def __init__(self, *fields: Any) -> None:
+        for name, value in zip(self.__slots__, fields, strict=True):
+            setattr(self, name, value)
+
+
 def _string(body: bytes, pos: int) -> tuple[str, int]:
     data, pos = _bytes(body, pos, _INT["I"])
     try:
@@ -199,14 +219,17 @@ def read_statistics(body: bytes) -> Statistics:
 
 
 class Summary:
-    """What :func:`read_summary` finds: the summary's channels (by id), its Statistics record
-    (the last; None without) and the offsets of its attachments."""
+    """What :func:`read_summary` finds: the summary's schemas and channels (by id), its
+    Statistics record (the last; None without), its chunk indexes and the offsets of its
+    attachments."""
 
-    __slots__ = ("channels", "statistics", "attachments")
+    __slots__ = ("schemas", "channels", "statistics", "chunk_indexes", "attachments")
 
     def __init__(self) -> None:
+        self.schemas: dict[int, Schema] = {}
         self.channels: dict[int, Channel] = {}
         self.statistics: Statistics | None = None
+        self.chunk_indexes: list[ChunkIndex] = []
         self.attachments: list[int] = []
 
 
@@ -261,6 +284,10 @@ def read_summary(fh: BinaryIO) -> Summary | None:
         fields = unpack(opcode, body)
         if opcode == OP_CHANNEL:
             summary.channels[fields[0]] = Channel(*fields)
+        elif opcode == OP_SCHEMA:
+            summary.schemas[fields[0]] = Schema(*fields)
+        elif opcode == OP_CHUNK_INDEX:
+            summary.chunk_indexes.append(ChunkIndex(*fields))
         elif opcode == OP_STATISTICS:
             summary.statistics = Statistics(*fields)
         elif opcode == OP_ATTACHMENT_INDEX:

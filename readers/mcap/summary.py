@@ -19,6 +19,11 @@ what the specification asks for: the ``mcap`` library's own ``Writer(repeat_chan
 writes statistics without repeating the Channel records. :func:`complete` is the one rule, here
 and in :mod:`imupipe.readers.mcap.fast`, for when the summary's channels can be taken as the
 file's.
+
+The summary's records are read by :func:`imupipe.readers.mcap.records.read_summary`, as
+``convert``'s count check reads them (not by the ``mcap`` library: issue 39, its modules cost
+``inspect`` about 20 ms to import); a summary it cannot read (a record that does not fit its
+layout or has no place in a summary, a footer without the trailing magic) cannot tell either.
 """
 
 from __future__ import annotations
@@ -148,14 +153,13 @@ def _edge(f: BinaryIO, chunks: list, channel: int, last: bool) -> int | None:
 def topic_summary(path: Path) -> dict[str, TopicSummary] | None:
     """Topic -> :class:`TopicSummary` from the summary section, or None when the file does not
     hold what it takes (see the module docstring)."""
-    from mcap.exceptions import McapError
-    from mcap.reader import make_reader
+    from imupipe.readers.mcap.records import RecordError, read_summary
 
     with open(path, "rb") as f:
-        try:  # OSError: a file shorter than the footer, which the reader seeks back over
-            summary = make_reader(f).get_summary()
-        except (McapError, struct.error, ValueError, EOFError, KeyError, OSError):
-            return None
+        try:  # OSError: a file shorter than the footer, which the read seeks back over
+            summary = read_summary(f)
+        except (RecordError, OSError):
+            return None  # a damaged or odd summary: the caller reads the messages
         if summary is None or summary.statistics is None:
             return None
         stats = summary.statistics
