@@ -75,7 +75,17 @@ class Channel:
         self.message_encoding, self.metadata = message_encoding, metadata
 
 
-class Statistics:
+class _Fields:
+    """A record whose fields are set, in the order of its ``__slots__``, from its layout's."""
+
+    __slots__ = ()
+
+    def __init__(self, *fields: Any) -> None:
+        for name, value in zip(self.__slots__, fields, strict=True):
+            setattr(self, name, value)
+
+
+class Statistics(_Fields):
     """A Statistics record (the names of the ``mcap`` library's)."""
 
     __slots__ = (
@@ -90,12 +100,8 @@ class Statistics:
         "channel_message_counts",
     )
 
-    def __init__(self, *fields: Any) -> None:
-        for name, value in zip(self.__slots__, fields, strict=True):
-            setattr(self, name, value)
 
-
-class ChunkIndex:
+class ChunkIndex(_Fields):
     """A ChunkIndex record (the names of the ``mcap`` library's)."""
 
     __slots__ = (
@@ -109,10 +115,6 @@ class ChunkIndex:
         "compressed_size",
         "uncompressed_size",
     )
-
-    def __init__(self, *fields: Any) -> None:
-        for name, value in zip(self.__slots__, fields, strict=True):
-            setattr(self, name, value)
 
 
 def _string(body: bytes, pos: int) -> tuple[str, int]:
