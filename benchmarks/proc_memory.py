@@ -38,18 +38,25 @@ def run_probe(code: str, *args: str) -> dict:
 
 
 PEAK_WRAPPER = """
-import sys
-from imupipe.pipeline.cli import main
-try:
-    code = main(sys.argv[2:])
-finally:
+import atexit, sys
+
+def peak(path=sys.argv[1]):
     with open('/proc/self/status') as fh:
         hwm = next(line.split()[1] for line in fh if line.startswith('VmHWM:'))
-    with open(sys.argv[1], 'w') as fh:
+    with open(path, 'w') as fh:
         fh.write(hwm)
-sys.exit(code)
+
+atexit.register(peak)
+sys.argv = ['imupipe', *sys.argv[2:]]
+try:
+    from imupipe.pipeline.cli import console
+except ImportError:  # a checkout before the console entry (a --baseline)
+    from imupipe.pipeline.cli import main
+    sys.exit(main())
+console()
 """
-"""An ``imupipe`` command that writes its process's own peak RSS (``VmHWM``, kB) to ``argv[1]``."""
+"""An ``imupipe`` command run as the ``imupipe`` program runs it (:func:`imupipe.pipeline.cli.
+console`) that writes its process's own peak RSS (``VmHWM``, kB) to ``argv[1]`` at exit."""
 
 
 def run_measured(
