@@ -55,6 +55,9 @@ ONE_LOG_UNNEEDED = (
     "imupipe.pipeline.convert.dataset",  # --parquet only
     "mcap",  # imupipe reads and writes the records it needs (readers/mcap/records.py)
     "lz4",  # the mcap library's reader's
+    "hashlib",  # OpenSSL's libcrypto, 3.4-9 ms: imupipe.pipeline.digests
+    "_hashlib",
+    "imupipe.pipeline.convert.remote",  # --out or logs on an object store only
 )
 """What a one-log ``imupipe convert`` of an MCAP never uses (issue 39: the fixed cost a command
 pays; each was imported eagerly before)."""
@@ -85,3 +88,40 @@ def test_one_log_convert_imports_only_what_it_uses(tmp_path):
     )  # fmt: skip
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert (tmp_path / "out" / "log.mcap").is_file()
+
+
+def test_digests_are_hashlibs():
+    """:mod:`imupipe.pipeline.digests` (CPython's own SHA modules, not OpenSSL's) gives
+    ``hashlib``'s digests, on the empty input, every length across a block boundary, and 1 MiB."""
+    import hashlib
+    import os
+
+    from imupipe.pipeline.digests import sha1_hex, sha256_hex
+
+    for data in [b"", *(os.urandom(n) for n in range(1, 130)), os.urandom(1 << 20)]:
+        assert sha256_hex(data) == hashlib.sha256(data).hexdigest()
+        assert sha1_hex(data) == hashlib.sha1(data).hexdigest()
+
+
+def test_the_program_freezes_its_objects_at_exit_and_main_does_not(tmp_path):
+    """Issue 39: the ``imupipe`` program (:func:`imupipe.pipeline.cli.console`) exits with
+    :func:`main`'s status after freezing the objects alive (the interpreter's last collection
+    then skips them); ``main`` itself, also called in-process, leaves the collector alone."""
+    code = (
+        "import atexit, gc, sys\n"
+        "atexit.register(lambda: print('frozen', gc.get_freeze_count() > 0, flush=True))\n"
+        "from imupipe.pipeline.cli import console, main\n"
+        "sys.argv = ['imupipe', *sys.argv[1:]]\n"
+        "code = main(sys.argv[1:])\n"
+        "print('after main', gc.get_freeze_count(), gc.isenabled(), flush=True)\n"
+        "console()\n"
+    )
+    missing = str(tmp_path / "missing.json")
+    argv = ["convert", "-q", "--calibration", missing, "--out", str(tmp_path / "o"), missing]
+    proc = subprocess.run(
+        [sys.executable, "-c", code, *argv], capture_output=True, text=True, timeout=120
+    )
+    assert proc.returncode == 2, proc.stderr[-2000:]  # main's status: a missing calibration
+    assert "after main 0 True" in proc.stdout
+    assert proc.stdout.strip().splitlines()[-1] == "frozen True"
+    assert proc.stderr.count("imupipe: error:") == 2  # one line from each call
