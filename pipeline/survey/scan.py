@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import hashlib
 import json
 import math
 import os
@@ -32,6 +31,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from imupipe.pipeline.digests import sha256_hex
 from imupipe.pipeline.errors import ConfigError, one_line
 from imupipe.pipeline.progress import progress_bar
 from imupipe.pipeline.warm_imports import WarmImports
@@ -305,7 +305,7 @@ def column_unit(name: str) -> str | None:
 
 
 def _sha(value: Any) -> str:
-    return hashlib.sha256(json.dumps(value, sort_keys=True).encode()).hexdigest()
+    return sha256_hex(json.dumps(value, sort_keys=True).encode())
 
 
 FLIGHT_SUFFIXES = (".ulg", ".bin")
