@@ -201,21 +201,18 @@ def pairs(
         f"{label}_peer_cpu_median_s": statistics.median(peer_cpu),
         f"{label}_imupipe_cpu_median_s": statistics.median(ours_cpu),
     }
-    if beyond:
-        print(
-            f"{label}: imupipe's own fixed cost (CPU beyond the floor): min {min(beyond):.3f} s, "
-            f"median {statistics.median(beyond):.3f} s",
-            flush=True,
-        )
-        out[f"{label}_beyond_floor_min_s"] = min(beyond)
-        out[f"{label}_beyond_floor_median_s"] = statistics.median(beyond)
-        print(
-            f"{label}: imupipe's own fixed cost against the floor ending as imupipe does: min "
-            f"{min(beyond_frozen):.3f} s, median {statistics.median(beyond_frozen):.3f} s",
-            flush=True,
-        )
-        out[f"{label}_beyond_frozen_floor_min_s"] = min(beyond_frozen)
-        out[f"{label}_beyond_frozen_floor_median_s"] = statistics.median(beyond_frozen)
+    for key, what, values in (
+        ("beyond_floor", "(CPU beyond the floor)", beyond),
+        ("beyond_frozen_floor", "against the floor ending as imupipe does", beyond_frozen),
+    ):
+        if values:
+            print(
+                f"{label}: imupipe's own fixed cost {what}: min {min(values):.3f} s, "
+                f"median {statistics.median(values):.3f} s",
+                flush=True,
+            )
+            out[f"{label}_{key}_min_s"] = min(values)
+            out[f"{label}_{key}_median_s"] = statistics.median(values)
     if base_ratios:
         print(
             f"{label}: the baseline against the rosbags loop: wall min {min(base_ratios):.2f}x, "
