@@ -27,7 +27,6 @@ the command writes into, never below them, and only at names this module makes.
 from __future__ import annotations
 
 import contextlib
-import hashlib
 import os
 import re
 import socket
@@ -35,10 +34,11 @@ import tempfile
 from collections.abc import Iterable, Iterator
 from pathlib import Path
 
+from imupipe.pipeline.digests import sha1_hex
 from imupipe.pipeline.errors import ConfigError
 from imupipe.pipeline.signals import signals_deferred
 
-HOST_KEY = hashlib.sha1(socket.gethostname().encode()).hexdigest()[:8]
+HOST_KEY = sha1_hex(socket.gethostname().encode())[:8]
 """A short, file-name-safe key of this machine (temporary names carry it)."""
 
 TEMP_NAME = re.compile(r"^\.(?P<name>.+)\.(?P<pid>\d+)@(?P<host>[0-9a-f]{8})\.[a-z0-9_]{8}\.tmp$")

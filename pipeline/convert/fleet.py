@@ -28,13 +28,13 @@ import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from imupipe.pipeline.atomic import remove_stale_temps
 from imupipe.pipeline.calibration_file import load_calibration
 from imupipe.pipeline.convert.engines import Outcome, run_tasks
 from imupipe.pipeline.convert.manifest import Manifest
-from imupipe.pipeline.convert.options import DEFAULT_BATCH_ROWS, ON_MISMATCH
+from imupipe.pipeline.convert.options import DEFAULT_BATCH_ROWS, ON_MISMATCH, is_url, local_path
 from imupipe.pipeline.convert.plan import LogTask, plan
 from imupipe.pipeline.convert.provenance import fitted_on
 from imupipe.pipeline.convert.settings import load_read_settings
@@ -46,6 +46,9 @@ from imupipe.pipeline.convert.worker import (
 )
 from imupipe.pipeline.errors import ConfigError
 from imupipe.pipeline.progress import progress_bar
+
+if TYPE_CHECKING:
+    from imupipe.pipeline.convert.remote import RemoteManifest
 
 WORKER_PRELOAD = (
     "imupipe.readers.mcap.reader",
@@ -144,12 +147,13 @@ def convert(
     plan is wrong (no logs, an output over an input or outside ``out_dir``, an output folder
     that cannot be written), and :class:`OutputFolderError` when the output folder fails during
     the run (full, read-only): the other logs are stopped, the same command resumes."""
-    from imupipe.pipeline.convert import remote
-
     check_options(engine, jobs, retries, batch_rows, address, dashboard, on_mismatch)
     start = time.perf_counter()
-    out_url = remote.check_url(out_dir, "--out") if remote.is_url(out_dir) else None
-    out: Path | str = remote.local_path(out_dir) if out_url is None else out_url
+    remote = None  # --out on an object store only (issue 39: not on a local conversion's cost)
+    if is_url(out_dir):
+        from imupipe.pipeline.convert import remote
+    out_url = None if remote is None else remote.check_url(out_dir, "--out")
+    out: Path | str = local_path(out_dir) if out_url is None else out_url
     doc, _ = load_calibration(Path(calibration))
     settings = load_read_settings(None if config is None else Path(config))
     if read_truncated:  # an MCAP or ROS 1 log cut off is read up to the cut, with a warning
@@ -171,14 +175,14 @@ def convert(
         raise ConfigError(f"no logs found in {', '.join(map(str, logs))}")
     if on_mismatch not in ON_MISMATCH:
         raise ConfigError(f"--on-mismatch {on_mismatch}: not one of {', '.join(ON_MISMATCH)}")
-    manifest: Manifest | remote.RemoteManifest
+    manifest: Manifest | RemoteManifest
     engine_log: Path | None = None
     if guard is not None:
         manifest = Manifest(out, guard)  # checked by the path rule before anything is written
         engine_log = guard.check(ENGINE_LOG, in_place=True) if engine == "ray" else None
         guard.probe()
     else:  # --out on an object store: Ray's own output goes to a file of the driver's machine
-        assert out_url is not None
+        assert remote is not None and out_url is not None
         remote.probe(out_url)
         manifest = remote.RemoteManifest(out_url)
         if engine == "ray":
@@ -196,7 +200,7 @@ def convert(
     # the folders this run writes into only
     for folder in planned.folders():
         remove_stale_temps(folder, other_hosts=True)
-    for prefix in planned.remote_folders():
+    for prefix in planned.remote_folders() if remote is not None else ():
         remote.remove_stale_temps(prefix)
     fatal: list[str] = []
     converted_messages = 0  # the bar's running count (summary.messages sums every log: O(logs))
@@ -268,10 +272,11 @@ def convert(
         finally:  # also on SIGINT/SIGTERM: what stopped workers could not remove
             for folder in planned.folders():
                 remove_stale_temps(folder)
-            for prefix in planned.remote_folders():  # of workers killed while publishing
-                remote.remove_stale_temps(prefix)
-            if isinstance(manifest, remote.RemoteManifest):
-                manifest.flush()
+            if remote is not None:  # temporaries of workers killed while publishing
+                for prefix in planned.remote_folders():
+                    remote.remove_stale_temps(prefix)
+                if isinstance(manifest, remote.RemoteManifest):
+                    manifest.flush()
     summary.seconds = time.perf_counter() - start
     return summary
 

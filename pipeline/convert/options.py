@@ -1,7 +1,13 @@
 """The choices and defaults of ``imupipe convert`` shared by its command line and its Python API
-(a module that imports nothing, so that ``imupipe convert --help`` starts at once)."""
+(a module that imports nothing the interpreter has not loaded already, so that ``imupipe convert
+--help`` starts at once); and which arguments name objects on a store (``s3://...``), so that a
+local conversion never imports :mod:`imupipe.pipeline.convert.remote` (issue 39)."""
 
 from __future__ import annotations
+
+import os
+import re
+from pathlib import Path
 
 DEFAULT_BATCH_ROWS = 25_000
 """Rows per streamed batch: a worker's memory is bounded by this, not by the log. The written
@@ -14,3 +20,18 @@ ON_MISMATCH = ("warn", "refuse")
 
 ENGINES = ("local", "ray")
 """Where the logs are converted (``--engine``): a process pool on this machine, or Ray."""
+
+URL = re.compile(r"^(?P<scheme>[A-Za-z][A-Za-z0-9+.-]*)://(?P<rest>.*)$")
+"""A URL: ``scheme://...`` (``file://`` is a local path)."""
+
+
+def is_url(value: str | os.PathLike[str]) -> bool:
+    """Whether ``value`` names an object (``s3://...``), not a local path."""
+    m = URL.match(os.fspath(value))
+    return m is not None and m["scheme"].lower() != "file"
+
+
+def local_path(value: str | os.PathLike[str]) -> Path:
+    """A local path from an argument (``file:///x`` -> ``/x``)."""
+    text = os.fspath(value)
+    return Path(text[len("file://") :] if text.lower().startswith("file://") else text)

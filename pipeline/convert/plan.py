@@ -20,7 +20,7 @@ from pathlib import Path, PurePosixPath
 from typing import Any
 
 from imupipe.pipeline.atomic import OutputGuard
-from imupipe.pipeline.convert.options import DEFAULT_BATCH_ROWS
+from imupipe.pipeline.convert.options import DEFAULT_BATCH_ROWS, is_url, local_path
 from imupipe.pipeline.convert.settings import chain_sha256, settings_sha256
 from imupipe.pipeline.errors import ConfigError
 from imupipe.readers.spec import InputSpec
@@ -166,8 +166,6 @@ def plan(
 ) -> Plan:
     """One task per log found (see :func:`plan_local`); logs or ``out_dir`` given as URLs
     (``s3://bucket/prefix``) are planned by :func:`plan_remote`."""
-    from imupipe.pipeline.convert.remote import is_url, local_path
-
     keywords: dict[str, Any] = dict(
         parquet=parquet, force=force, batch_rows=batch_rows, csv=csv, on_mismatch=on_mismatch
     )

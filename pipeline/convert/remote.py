@@ -33,7 +33,6 @@ from __future__ import annotations
 
 import contextlib
 import os
-import re
 import time
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -42,11 +41,9 @@ from typing import Any
 from urllib.parse import urlsplit
 
 from imupipe.pipeline.atomic import HOST_KEY, TEMP_NAME
+from imupipe.pipeline.convert.options import URL, is_url, local_path  # noqa: F401 (remote.is_url)
 from imupipe.pipeline.errors import ConfigError, ImupipeError
 from imupipe.pipeline.signals import signals_deferred
-
-URL = re.compile(r"^(?P<scheme>[A-Za-z][A-Za-z0-9+.-]*)://(?P<rest>.*)$")
-"""A URL: ``scheme://...`` (``file://`` is a local path)."""
 
 CHUNK = 8 << 20
 """Bytes per read when copying an object (the memory a download or an upload holds)."""
@@ -63,12 +60,6 @@ class ObjectStoreError(ImupipeError):
     read-only output folder."""
 
     fatal = True
-
-
-def is_url(value: str | os.PathLike[str]) -> bool:
-    """Whether ``value`` names an object (``s3://...``), not a local path."""
-    m = URL.match(os.fspath(value))
-    return m is not None and m["scheme"].lower() != "file"
 
 
 SCHEMES = ("s3", "s3a", "gs", "gcs")
@@ -96,12 +87,6 @@ def check_url(value: str | os.PathLike[str], what: str = "") -> str:
     if not m["rest"].split("/", 1)[0]:
         raise ConfigError(f"{label}: names no bucket ({scheme}://BUCKET/PREFIX)")
     return text.rstrip("/")
-
-
-def local_path(value: str | os.PathLike[str]) -> Path:
-    """A local path from an argument (``file:///x`` -> ``/x``)."""
-    text = os.fspath(value)
-    return Path(text[len("file://") :] if text.lower().startswith("file://") else text)
 
 
 def _s3_endpoint() -> dict[str, Any]:

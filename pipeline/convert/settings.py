@@ -8,12 +8,12 @@ read settings' (topics, time source, CSV mapping: what decides which samples are
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import json
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+from imupipe.pipeline.digests import sha256_hex
 from imupipe.pipeline.errors import ConfigError
 from imupipe.readers.spec import InputSpec
 
@@ -21,7 +21,7 @@ from imupipe.readers.spec import InputSpec
 def chain_sha256(calibration: Mapping[str, Any]) -> str:
     """SHA-256 of the calibration chain in canonical JSON (what decides the corrected values)."""
     canonical = json.dumps(calibration.get("chain", []), sort_keys=True, separators=(",", ":"))
-    return hashlib.sha256(canonical.encode()).hexdigest()
+    return sha256_hex(canonical.encode())
 
 
 def load_read_settings(path: Path | None) -> InputSpec:
@@ -55,4 +55,4 @@ def settings_sha256(spec: InputSpec) -> str:
         if not settings.get(key):  # unset: the hash of the settings before the key existed
             settings.pop(key, None)
     canonical = json.dumps(settings, sort_keys=True, default=str, separators=(",", ":"))
-    return hashlib.sha256(canonical.encode()).hexdigest()
+    return sha256_hex(canonical.encode())

@@ -495,12 +495,21 @@ def rows_table(rows: list[dict[str, Any]]) -> pa.Table:
 # -- the driver: join, fleet view, summary, report --------------------------------------------------
 
 
+def read_part(path: Path) -> pa.Table:
+    """A survey's part file (one local Parquet file, no partition in its path) read whole:
+    ``pyarrow.parquet.read_table``'s table, read through ``ParquetFile`` because ``read_table``
+    goes through ``pyarrow.dataset``, whose import (with ``pyarrow.compute``) is 60-70 ms of a
+    survey's fixed cost (issue 39); ``tests/test_survey.py`` checks the two tables equal."""
+    import pyarrow.parquet as pq
+
+    with pq.ParquetFile(path) as part:
+        return part.read()
+
+
 def join_compass(parts: list[Path], meta: dict[str, str]) -> pa.Table | None:
     """The compass parts that exist (flight logs) joined in the given order, with the survey's
     schema metadata; None when there is none."""
-    import pyarrow.parquet as pq
-
-    tables = [pq.read_table(p) for p in parts if p.exists()]
+    tables = [read_part(p) for p in parts if p.exists()]
     if not tables:
         return None
     return pa.concat_tables(tables, promote_options="default").replace_schema_metadata(meta)

@@ -21,7 +21,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import hashlib
 import json
 import math
 import os
@@ -32,6 +31,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
+from imupipe.pipeline.digests import sha256_hex
 from imupipe.pipeline.errors import ConfigError, one_line
 from imupipe.pipeline.progress import progress_bar
 from imupipe.pipeline.warm_imports import WarmImports
@@ -238,8 +238,16 @@ def _rows(
     import numpy as np
     import pyarrow as pa
 
+    from imupipe.readers.arrays import arrow_array
+
     def col(name: str, values: Any, typ: pa.DataType) -> None:
-        arrays.append(pa.array(values, typ))
+        # numpy columns on their buffers: pa.array of an ndarray imports numpy.ma (9 ms, issue 39)
+        fixed = pa.types.is_integer(typ) or pa.types.is_floating(typ)
+        numeric = isinstance(values, np.ndarray) and (
+            (values.dtype.kind in "iuf" and fixed)
+            or (values.dtype == np.bool_ and pa.types.is_boolean(typ))
+        )
+        arrays.append(arrow_array(values, typ) if numeric else pa.array(values, typ))
         names.append(name)
 
     arrays: list[pa.Array] = []
@@ -258,7 +266,7 @@ def _rows(
     start_us = np.asarray(s.get("start_ns", z.astype(np.int64))) // 1000  # us: datetime-friendly
     col(
         "start",
-        pa.array(start_us, pa.int64()).cast(pa.timestamp("us", "UTC")),
+        arrow_array(start_us, pa.int64()).view(pa.timestamp("us", "UTC")),  # no compute: a cast
         pa.timestamp("us", "UTC"),
     )
     col("stop_ns", s.get("stop_ns", z.astype(np.int64)), pa.int64())
@@ -305,7 +313,7 @@ def column_unit(name: str) -> str | None:
 
 
 def _sha(value: Any) -> str:
-    return hashlib.sha256(json.dumps(value, sort_keys=True).encode()).hexdigest()
+    return sha256_hex(json.dumps(value, sort_keys=True).encode())
 
 
 FLIGHT_SUFFIXES = (".ulg", ".bin")
@@ -431,6 +439,7 @@ def survey(
     from imupipe.pipeline.calibration_file import load_calibration
     from imupipe.pipeline.convert.fleet import ENGINE_LOG
     from imupipe.pipeline.convert.manifest import Manifest
+    from imupipe.pipeline.survey.compass import read_part
 
     doc = None
     chambers = None
@@ -491,7 +500,7 @@ def survey(
         if outcome.pid != os.getpid():
             # surveyed by a worker: read now, while the workers survey the next logs (at the end
             # it was serial: 200 logs of the 20 s kind took 1.3 s to read back)
-            tables[task.log] = pq.read_table(task.part)
+            tables[task.log] = read_part(task.part)
         counts = outcome.result.get("counts") or {}
         without_still.extend(f"{task.log} {topic}" for topic, n in counts.items() if n == 0)
         cut_off.extend(w for w in outcome.result.get("warnings", ()) if READ_TO_CUT in w)
@@ -531,7 +540,7 @@ def survey(
     import pyarrow as pa
 
     parts = [
-        tables[t.log] if t.log in tables else pq.read_table(t.part)
+        tables[t.log] if t.log in tables else read_part(t.part)
         for t in sorted(ok, key=lambda t: t.log)
     ]
     table = pa.concat_tables(parts, promote_options="default") if parts else None
