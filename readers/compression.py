@@ -205,9 +205,11 @@ class BufferPool:
 
     def _buffer(self, size: int) -> np.ndarray:
         """A whole buffer of at least ``size`` bytes, pooled or new."""
-        for i in range(len(self.spent)):
+        for i in range(len(self.spent) - 1, -1, -1):  # the last given first: in the cache
             if len(self.spent[i]) >= size and sys.getrefcount(self.spent[i]) == 2:
-                return self.spent.pop(i)  # only the list and the call held it
+                found = self.spent.pop(i)  # only the list and the call held it
+                self._kept.discard(id(found))  # kept again when given back
+                return found
         return np.empty(-(-max(size, 1) // self.ROUND) * self.ROUND, np.uint8)
 
     def take(self, size: int) -> np.ndarray:

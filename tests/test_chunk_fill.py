@@ -444,3 +444,31 @@ def test_a_prefilled_piece_added_at_other_rows_is_filled_again(tmp_path, monkeyp
         return raw(buffer.table(sort=True, **kw))
 
     assert table(True) == table(False)
+
+
+def test_buffer_pool_takes_back_a_buffer_each_time_it_is_given(monkeypatch):
+    """An arena taken again from the pool and filled is given back again (the pool once kept
+    the ids of the buffers it had held, and refused an arena the second time: a new 4 MiB
+    arena for every other group of chunks, 27 of them for a million Imu messages instead of
+    2), and the buffer given back last is taken first (the one still in the cache)."""
+    import types
+
+    from imupipe.readers import compression
+
+    made = []
+    numpy = types.SimpleNamespace(**vars(np))
+    numpy.empty = lambda *a, **k: made.append(a) or np.empty(*a, **k)
+    monkeypatch.setattr(compression, "np", numpy)
+    pool = compression.BufferPool(1 << 16)
+    for _ in range(32):  # two chunks per arena; each chunk done before the next is taken
+        chunk = pool.take(1 << 15)
+        pool.give(chunk)
+        del chunk
+    assert len(made) == 2  # the arena being filled is still held while the next is taken
+    small = compression.BufferPool()
+    a, b = small.take(100), small.take(100)
+    base_b = id(b.base)
+    small.give(a)
+    small.give(b)
+    del a, b
+    assert id(small.take(100).base) == base_b
