@@ -240,9 +240,9 @@ class BufferPool:
         if id(base) in self._kept:
             return
         self.spent.append(base)
+        self._kept.add(id(base))
         if len(self.spent) > self.KEEP:
-            del self.spent[0]
-        self._kept = {id(b) for b in self.spent}
+            self._kept.discard(id(self.spent.pop(0)))
 
 
 def inflate_messages(
