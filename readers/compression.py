@@ -205,7 +205,7 @@ class BufferPool:
 
     def _buffer(self, size: int) -> np.ndarray:
         """A whole buffer of at least ``size`` bytes, pooled or new."""
-        for i in range(len(self.spent) - 1, -1, -1):  # the last given first: in the cache
+        for i in range(len(self.spent)):  # the oldest first: the most likely free
             if len(self.spent[i]) >= size and sys.getrefcount(self.spent[i]) == 2:
                 found = self.spent.pop(i)  # only the list and the call held it
                 self._kept.discard(id(found))  # kept again when given back
