@@ -363,8 +363,11 @@ Runs = list[tuple[slice, slice]]
 
 def _distinct(arrays: Iterable[np.ndarray]) -> list[np.ndarray]:
     """``arrays`` without repeats of one array (:attr:`_Stream.alias`)."""
-    seen: set[int] = set()
-    return [a for a in arrays if not (id(a) in seen or seen.add(id(a)))]  # type: ignore[func-returns-value]
+    out: list[np.ndarray] = []
+    for array in arrays:
+        if not any(array is kept for kept in out):
+            out.append(array)
+    return out
 
 
 def _same(a: np.ndarray, b: np.ndarray) -> bool:
