@@ -159,6 +159,8 @@ _SLOTS = {
 """Per stream: its value columns' names and (first float, count)."""
 _BITS = {names: {name: 1 << i for i, name in enumerate(names)} for names, _ in _SLOTS.values()}
 """Per tuple of names: each name's bit (the slot masks of ``_chunks.fill``)."""
+_NAN_BITS = {names: sum(bits.get(name, 0) for name in NAN_COLUMNS) for names, bits in _BITS.items()}
+"""Per tuple of names: the bits of :data:`NAN_COLUMNS`."""
 
 
 def repeated_frame(one: str, n: int) -> pa.Array:
@@ -172,6 +174,8 @@ def repeated_frame(one: str, n: int) -> pa.Array:
     return frame
 
 
+_FLOATS: dict[str, int] = {}
+"""Per stream: the float64 fields after its message's header (:func:`field_count`)."""
 _TIMES = BufferPool()
 """Buffers :func:`walk` gathers times into, each used again once no piece's times refer to it
 (a new one per call cost a fresh mapping of its pages: ~6,000 page faults per million Imu
@@ -190,7 +194,10 @@ def walk(buf: np.ndarray, offsets: np.ndarray, channel: int, stream: str) -> Rec
     raw = _TIMES.take(3 * n * 8)
     _TIMES.give(raw)  # taken again only when the views below are gone
     out = raw.view(np.int64)
-    found = module.cdr_walk(buf, offsets, channel, field_count(PIECE_TYPES[stream]), out)
+    floats = _FLOATS.get(stream)
+    if floats is None:
+        floats = _FLOATS[stream] = field_count(PIECE_TYPES[stream])
+    found = module.cdr_walk(buf, offsets, channel, floats, out)
     if found is None:
         return None
     _, skip, frame, ordered = found
@@ -231,7 +238,7 @@ def fill(
     names = records.names
     bits = _BITS[names]
     clean_bits = sum(bits.get(name, 0) for name in clean)
-    nan_bits = sum(bits.get(name, 0) for name in NAN_COLUMNS)
+    nan_bits = _NAN_BITS[names]
     spans = array("q", [x for v, r in runs for x in (v.start, r.start, v.stop - v.start)])
     dirty, nan = records.module.fill(
         records.buf,
@@ -243,6 +250,8 @@ def fill(
         nan_bits,
         spans,
     )
+    if not dirty and not nan:  # most chunks: no column starts holding values, no NaN
+        return set(), set()
     return (
         {name for i, name in enumerate(names) if dirty >> i & 1},
         {name for i, name in enumerate(names) if nan >> i & 1},

@@ -205,9 +205,11 @@ class BufferPool:
 
     def _buffer(self, size: int) -> np.ndarray:
         """A whole buffer of at least ``size`` bytes, pooled or new."""
-        for i in range(len(self.spent)):
+        for i in range(len(self.spent)):  # the oldest first: the most likely free
             if len(self.spent[i]) >= size and sys.getrefcount(self.spent[i]) == 2:
-                return self.spent.pop(i)  # only the list and the call held it
+                found = self.spent.pop(i)  # only the list and the call held it
+                self._kept.discard(id(found))  # kept again when given back
+                return found
         return np.empty(-(-max(size, 1) // self.ROUND) * self.ROUND, np.uint8)
 
     def take(self, size: int) -> np.ndarray:
@@ -238,9 +240,9 @@ class BufferPool:
         if id(base) in self._kept:
             return
         self.spent.append(base)
+        self._kept.add(id(base))
         if len(self.spent) > self.KEEP:
-            del self.spent[0]
-        self._kept = {id(b) for b in self.spent}
+            self._kept.discard(id(self.spent.pop(0)))
 
 
 def inflate_messages(

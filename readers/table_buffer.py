@@ -122,8 +122,16 @@ class _Stream:
         self.m = 0
         self.capacity = -1
         self.times: dict[str, np.ndarray] = {}
-        """``t_ns`` (the chosen time) and :data:`TIME_COLUMNS`, int64."""
+        """``t_ns`` (the chosen time) and :data:`TIME_COLUMNS`, int64; a column of
+        :attr:`alias` is the same array as the one it equals."""
         self.time_names = ["t_ns", "log_time_ns"] + (["header_stamp_ns"] if time == "log" else [])
+        self.alias = {name: "t_ns" for name in self.time_names[1:]}
+        """Time columns equal, row for row, to an earlier one so far (name -> that column, which
+        is in no alias itself): one array holds both, written once (an MCAP's log and publish
+        times, a writer's header stamps). The first message that differs gives the column an
+        array of its own (:meth:`_keep_aliases`); the table's Arrow columns of both then share
+        one buffer, the same values. Before any message every time column is taken as
+        ``t_ns``'s."""
         self.columns: dict[str, np.ndarray] = {}
         self.flags: dict[str, np.ndarray] = {}
         """Imu only: per sensor (gyro, accel), the messages that mark it "no data" (NaN with
@@ -155,13 +163,17 @@ class _Stream:
         if capacity <= self.capacity:
             return
         end = self.end
-        times = {name: _zeros(capacity, dtype=np.int64) for name in self.time_names}
+        times: dict[str, np.ndarray] = {}
+        for name in self.time_names:  # :attr:`alias` targets come first (earlier names)
+            src = self.alias.get(name)
+            times[name] = times[src] if src is not None else _zeros(capacity, dtype=np.int64)
         columns = {name: _zeros(capacity, count) for name, _, count in COLUMNS[self.stream]}
         flags = {name: np.zeros(capacity, bool) for name in self.flags}
         if end:
             for old, new in ((self.times, times), (self.columns, columns), (self.flags, flags)):
                 for name, column in new.items():
-                    if name not in self.clean:  # a clean column is zeros: so is the new one
+                    # a clean column is zeros: so is the new one; an alias is its target
+                    if name not in self.clean and name not in self.alias:
                         column[:end] = old[name][:end]
         self.times, self.columns, self.flags = times, columns, flags
         self.capacity = capacity
@@ -170,7 +182,7 @@ class _Stream:
         if capacity >= PREFAULT_ROWS:
             from imupipe.readers.prefault import Prefault  # large tables only (issue 39)
 
-            self.prefault = Prefault([*times.values(), *self._written(columns)])
+            self.prefault = Prefault([*_distinct(times.values()), *self._written(columns)])
             self.prefault.advance(end)
 
     def prefill(self, piece: Piece) -> bool:
@@ -207,14 +219,44 @@ class _Stream:
         return [column for name, column in arrays.items() if name not in self.clean]
 
     def add_time(self, name: str) -> None:
-        """Start keeping ``name`` (publish times): the messages so far get their log time."""
+        """Start keeping ``name`` (publish times): the messages so far get their log time (an
+        :attr:`alias` of the log times until a message brings other values)."""
         if name not in self.times:
             self.time_names.append(name)
+            src = self.alias.get("log_time_ns", "log_time_ns")
+            self.alias[name] = src
+            self.times[name] = self.times[src]
+
+    def _keep_aliases(self, values: dict[str, np.ndarray]) -> None:
+        """Keep the :attr:`alias` of each time column whose ``values`` (of the piece being
+        added) equal its target's; the others get an array of their own: the rows so far copied
+        from the target (none before the first message, when another equal column is taken
+        as the target instead, if any)."""
+        for i, name in enumerate(self.time_names):
+            src = self.alias.get(name)
+            if src is None or _same(values[name], values[src]):
+                continue
+            del self.alias[name]
+            if self.end == 0:
+                roots = [s for s in self.time_names[:i] if s not in self.alias]
+                src = next((s for s in roots if _same(values[name], values[s])), None)
+                if src is not None:
+                    self.alias[name] = src
+                    self.times[name] = self.times[src]
+                    continue
             column = _zeros(self.capacity, dtype=np.int64)
-            column[: self.end] = self.log[: self.end]
+            column[: self.end] = self.times[name][: self.end]
             self.times[name] = column
             if self.prefault is not None:
                 self.prefault.add(column, self.end)
+
+    def unalias(self, keep: Callable[[str, str], bool]) -> None:
+        """Give each time column of :attr:`alias` for which ``keep(name, target)`` is false an
+        array of its own (the same values)."""
+        for name, src in list(self.alias.items()):
+            if not keep(name, src):
+                del self.alias[name]
+                self.times[name] = self.times[src].copy()
 
     @property
     def t(self) -> np.ndarray:
@@ -231,9 +273,9 @@ class _Stream:
             self.prefault = None
 
     def arrays(self) -> list[np.ndarray]:
-        """Every per-row array that holds values (times, values, flags), for moving rows: the
-        clean columns are zeros wherever rows move."""
-        return [*self.times.values(), *self._written(self.columns), *self.flags.values()]
+        """Every per-row array that holds values (times, values, flags), each once, for moving
+        rows: the clean columns are zeros wherever rows move."""
+        return [*_distinct(self.times.values()), *self._written(self.columns), *self.flags.values()]
 
     def add(self, piece: Piece, t: np.ndarray, at: slice | np.ndarray | Runs | None = None) -> None:
         """Append ``piece`` (``t``: its chosen times) at rows ``at`` (default: the next rows).
@@ -260,6 +302,10 @@ class _Stream:
         for name in self.time_names[1:]:
             value = getattr(piece, TIME_COLUMNS[name])
             values[name] = piece.log if value is None else value
+        if self.alias:
+            self._keep_aliases(values)
+            for name in self.alias:
+                del values[name]  # its target's array, written once
         first = _first_row(at)
         records = getattr(piece, "records", None)
         runs = None if records is None else _runs(at)
@@ -313,6 +359,20 @@ class _Stream:
 
 Runs = list[tuple[slice, slice]]
 """(values, rows) slice pairs: where runs of consecutive values go."""
+
+
+def _distinct(arrays: Iterable[np.ndarray]) -> list[np.ndarray]:
+    """``arrays`` without repeats of one array (:attr:`_Stream.alias`)."""
+    out: list[np.ndarray] = []
+    for array in arrays:
+        if not any(array is kept for kept in out):
+            out.append(array)
+    return out
+
+
+def _same(a: np.ndarray, b: np.ndarray) -> bool:
+    """Whether the int64 times ``a`` and ``b`` are equal, value for value."""
+    return a is b or (len(a) == len(b) and bool((a == b).all()))
 
 
 def _zeros_only(column: np.ndarray) -> bool:
@@ -766,6 +826,14 @@ class TableBuffer:
             stale = _unclaimed(big.m, rows[large])  # type: ignore[arg-type]
             for column in own:
                 column[stale] = 0
+        if len(streams) > 1:  # the others' times go into the large one's: one array, equal
+            big.unalias(
+                lambda name, src: all(
+                    _same(st.times[name][: st.m], st.times[src][: st.m])
+                    for st in streams
+                    if st is not big
+                )
+            )
         times = {name: c[:n] for name, c in big.times.items()}
         columns: dict[str, np.ndarray] = {name: c[:n] for name, c in big.columns.items()}
         flags = {name: c[:n] for name, c in big.flags.items()}

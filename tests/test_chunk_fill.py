@@ -444,3 +444,69 @@ def test_a_prefilled_piece_added_at_other_rows_is_filled_again(tmp_path, monkeyp
         return raw(buffer.table(sort=True, **kw))
 
     assert table(True) == table(False)
+
+
+def test_buffer_pool_takes_back_a_buffer_each_time_it_is_given(monkeypatch):
+    """An arena taken again from the pool and filled is given back again (the pool once kept
+    the ids of the buffers it had held, and refused an arena the second time: a new 4 MiB
+    arena for every other group of chunks, 27 of them for a million Imu messages instead of
+    2)."""
+    import types
+
+    from imupipe.readers import compression
+
+    made = []
+    numpy = types.SimpleNamespace(**vars(np))
+    numpy.empty = lambda *a, **k: made.append(a) or np.empty(*a, **k)
+    monkeypatch.setattr(compression, "np", numpy)
+    pool = compression.BufferPool(1 << 16)
+    for _ in range(32):  # two chunks per arena; each chunk done before the next is taken
+        chunk = pool.take(1 << 15)
+        pool.give(chunk)
+        del chunk
+    assert len(made) == 2  # the arena being filled is still held while the next is taken
+
+
+@pytest.mark.parametrize("time", ["header", "log"])
+@pytest.mark.parametrize(
+    "case", ["equal", "pub_from_middle", "log_first_rows", "temperature_pub", "gapped_pub"]
+)
+def test_time_columns_equal_so_far_share_one_array(tmp_path, monkeypatch, time, case):
+    """Time columns equal row for row are one array while they are (an MCAP's log and publish
+    times, a writer's header stamps), their Arrow columns one buffer; a column that differs from
+    some message on, or from the first, has its own, the same values as written; with a 1 Hz
+    Temperature topic whose publish times differ (the large stream's shared column is split
+    before the other stream's rows go in). Both paths."""
+    table = imu_log(6_000, temperature_hz=1.0 if "pub" in case and case != "pub_from_middle" else 0)
+    t = table["t_ns"].to_numpy()
+    log, pub = t.copy(), t.copy()
+    if case == "pub_from_middle":
+        pub[len(t) // 2 :] += 7
+    elif case == "log_first_rows":
+        log[:3] += 1000
+        pub = log.copy()
+    elif case == "temperature_pub":
+        pub[table["temperature"].is_valid().to_numpy(zero_copy_only=False)] += 5
+    elif case == "gapped_pub":
+        pub[table["gyro_x"].is_valid().to_numpy(zero_copy_only=False)] += 5
+    table = table.append_column("log_time_ns", pa.array(log))
+    table = table.append_column("publish_time_ns", pa.array(pub))
+    path = tmp_path / "log.mcap"
+    write_log(path, table)
+    for compiled in (True, False):
+        if compiled:
+            monkeypatch.delenv(PURE_PYTHON_ENV, raising=False)
+        else:
+            monkeypatch.setenv(PURE_PYTHON_ENV, "1")
+        out, _ = read_input(InputSpec(path=path, time=time))
+        got = {c: out[c].to_numpy() for c in out.column_names if c.endswith("_ns")}
+        order = np.argsort(t if time == "header" else log, kind="stable")
+        assert np.array_equal(got["log_time_ns"], log[order])
+        assert np.array_equal(got["publish_time_ns"], pub[order])
+        assert np.array_equal(got["header_stamp_ns" if time == "log" else "t_ns"], t[order])
+        shared = {c: out[c].chunk(0).buffers()[1].address for c in got}
+        if case == "equal":
+            assert len(set(shared.values())) == 1
+        if case == "pub_from_middle":
+            assert shared["publish_time_ns"] != shared["log_time_ns"]
+            assert shared["log_time_ns"] == shared["t_ns"]
