@@ -124,7 +124,8 @@ print(json.dumps({"ours": ours, "peer": peer, "taus": taus, "table": table.nbyte
 """
 
 FLOOR_CHILD = """
-import sys, time
+import os, sys, time
+os.environ.setdefault("MIMALLOC_ARENA_EAGER_COMMIT", "0")  # as imupipe's command line starts
 t0 = time.perf_counter()
 import numpy, pyarrow
 t1 = time.perf_counter()
@@ -150,6 +151,8 @@ t0 = time.perf_counter()
 sys.path.insert(0, sys.argv[2])
 from proc_memory import status_bytes
 import imupipe.pipeline.cli as C
+import os
+os.environ.setdefault("MIMALLOC_ARENA_EAGER_COMMIT", C.EAGER_COMMIT)  # as main() does, first
 import imupipe.pipeline.run as R
 from imupipe.stages.allan.stage import AllanStage
 parts = {"imports": time.perf_counter() - t0}
@@ -194,7 +197,8 @@ for c in ("gyro_x", "gyro_y", "gyro_z", "accel_x", "accel_y", "accel_z"):
 """The user's script: the CSV into a DataFrame, then allantools on each axis (octave taus)."""
 
 SCRIPT_FLOOR = """
-import sys
+import os, sys
+os.environ.setdefault("MIMALLOC_ARENA_EAGER_COMMIT", "0")  # as imupipe's command line starts
 import numpy, pyarrow, pyarrow.csv, rerun, rerun.blueprint
 import imupipe.stages.special  # scipy.special's three functions, without its __init__
 pyarrow.csv.read_csv(sys.argv[1])
@@ -202,7 +206,8 @@ pyarrow.csv.read_csv(sys.argv[1])
 """What no Allan run with a recording avoids: its imports (numpy, pyarrow, Rerun for the
 recording, the three scipy.special functions of the bounds and the fit, as the run loads them:
 :mod:`imupipe.stages.special`; ``import scipy.special`` whole cost 0.3 s more before issue 39's
-last pass) and pyarrow's parse of the file."""
+last pass) and pyarrow's parse of the file, with the allocator setting imupipe's command line
+starts with (:data:`imupipe.pipeline.cli.EAGER_COMMIT`)."""
 
 WRITE_CHILD = """
 import sys

@@ -49,6 +49,7 @@ from itertools import chain as chained
 from pathlib import Path
 from typing import Any, ClassVar
 
+import numpy as np
 import pyarrow as pa
 
 from imupipe.readers.arrays import to_numpy
@@ -93,11 +94,20 @@ def fitted_on(input_name: str, spec: InputSpec, table: pa.Table) -> dict[str, An
     rates: dict[str, float] = {}
     apart = ("gyro", "accel") if len(t) and split_imu(table) else ()  # each sensor's own rate
     for stream in STREAMS + apart:
+        if len(t) < 2:
+            break
         mask = sensor_mask(table, stream) if stream in apart else stream_mask(table, stream)
-        stamps = t[mask] if len(t) else t
-        span = (int(stamps.max()) - int(stamps.min())) * 1e-9 if len(stamps) > 1 else 0.0
+        n = int(np.count_nonzero(mask))
+        if n == len(t):  # every row (an IMU-only log): the table's span, without a copy of t
+            first, last = out["t_start_ns"], out["t_end_ns"]
+        elif n > 1:
+            stamps = t[mask]
+            first, last = int(stamps.min()), int(stamps.max())
+        else:
+            continue
+        span = (last - first) * 1e-9
         if span > 0:
-            rates[stream] = (len(stamps) - 1) / span
+            rates[stream] = (n - 1) / span
     out["rate_hz"] = rates
     return out
 

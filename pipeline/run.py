@@ -22,8 +22,8 @@ import pyarrow as pa
 from imupipe.pipeline.atomic import OutputGuard, remove_stale_temps, staged_outputs
 from imupipe.pipeline.calibration_file import applying, calibration_json, fitted_on, on_device
 from imupipe.pipeline.config import Config, load_config
+from imupipe.pipeline.exports import YAML_WRITERS, export_all
 from imupipe.pipeline.exports import chosen as chosen_exports
-from imupipe.pipeline.exports import export_all
 from imupipe.pipeline.instances import expand_instances
 from imupipe.pipeline.notices import Notice, Notices
 from imupipe.pipeline.progress import progress_bar, size_of
@@ -156,7 +156,8 @@ def warm_modules(cfg: Config) -> list[str]:
     """What a run imports after reading its inputs, imported while it reads them
     (:mod:`imupipe.pipeline.warm_imports`): each stage's modules, the recorder's (with Rerun:
     imported also when nothing is recorded), the report's and the exporters' asked for (else the
-    default ones: PX4's, added for a ULog, loads when needed)."""
+    default ones: PX4's, added for a ULog, loads when needed), and PyYAML when one of them
+    writes YAML."""
     modules: list[str] = []
     for st in cfg.stages:
         modules += [m for m in stage_modules(st.type) if m not in modules]
@@ -164,7 +165,10 @@ def warm_modules(cfg: Config) -> list[str]:
     if cfg.output.report:
         modules.append("imupipe.pipeline.report.page")
     exporters = chosen_exports({}, cfg.output.exports)  # the chain is not known yet
-    return modules + [f"imupipe.pipeline.exports.{n}" for n in exporters]
+    modules += [f"imupipe.pipeline.exports.{n}" for n in exporters]
+    if any(n in YAML_WRITERS for n in exporters):  # PyYAML: 17-40 ms at the end of the run
+        modules.append("yaml")
+    return modules
 
 
 def instance_groups(cfg: Config) -> dict[str, list[str]]:

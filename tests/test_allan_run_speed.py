@@ -314,3 +314,31 @@ def test_stillness_with_the_stage_shortcuts_is_the_same():
     assert (a.excursion, a.accel_spread) == (b.excursion, b.accel_spread)
     for field in ("t_ns", "means", "counts", "starts"):
         np.testing.assert_array_equal(getattr(a.gyro_1s, field), getattr(b.gyro_1s, field))
+
+
+@pytest.mark.parametrize("given", [None, "2"])
+def test_the_command_line_sets_mimalloc_before_pyarrow_loads(given):
+    """``imupipe`` starts mimalloc (pyarrow's default pool, Rerun's allocator) without eager
+    arena commits (:data:`imupipe.pipeline.cli.EAGER_COMMIT`): set before any command's module,
+    and so pyarrow, is imported (mimalloc reads it once, when it starts); a value the user set
+    is kept."""
+    import os
+
+    code = (
+        "import os, sys\n"
+        "import imupipe.pipeline.cli as cli\n"
+        "before = 'pyarrow' in sys.modules\n"
+        "try:\n"
+        "    cli.main(['--version'])\n"
+        "except SystemExit:\n"
+        "    pass\n"
+        "print(before, os.environ.get('MIMALLOC_ARENA_EAGER_COMMIT'))\n"
+    )
+    env = {k: v for k, v in os.environ.items() if k != "MIMALLOC_ARENA_EAGER_COMMIT"}
+    if given is not None:
+        env["MIMALLOC_ARENA_EAGER_COMMIT"] = given
+    proc = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, timeout=60, env=env
+    )
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert proc.stdout.split() == ["False", given or "0"]

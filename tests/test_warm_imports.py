@@ -68,13 +68,27 @@ def test_a_run_warms_its_stages_recorder_report_and_exporters(tmp_path):
         "imupipe.pipeline.exports.imu_utils",
         "imupipe.pipeline.exports.vins",
         "imupipe.pipeline.exports.openvins",
+        "yaml",
     ]
     cfg.write_text(cfg.read_text() + 'report = false\nexports = ["px4"]\n')
-    assert warm_modules(load_config(cfg))[-3:] == [
+    assert warm_modules(load_config(cfg))[-4:] == [
         "imupipe.pipeline.report.recording",
         "imupipe.pipeline.exports.kalibr",
         "imupipe.pipeline.exports.px4",
+        "yaml",  # Kalibr's imu.yaml is written whenever an allan stage ran
     ]
+
+
+def test_the_yaml_writers_are_the_exporters_that_write_yaml():
+    """PyYAML is warmed for a run when one of its exporters writes YAML (``yaml_text``)."""
+    import importlib
+    import inspect
+
+    from imupipe.pipeline.exports import EXPORTERS, YAML_WRITERS
+
+    for name in EXPORTERS:
+        source = inspect.getsource(importlib.import_module(f"imupipe.pipeline.exports.{name}"))
+        assert ("yaml_text(" in source) == (name in YAML_WRITERS), name
 
 
 def test_a_module_that_fails_on_the_thread_fails_again_where_it_is_imported():

@@ -29,6 +29,11 @@ EXPORTERS: tuple[str, ...] = ("kalibr", "imu_utils", "vins", "openvins", "px4", 
 """The exporter modules, in the order their files are listed."""
 
 
+YAML_WRITERS: tuple[str, ...] = ("kalibr", "imu_utils", "vins", "openvins")
+"""The exporters whose files are YAML (:func:`~imupipe.pipeline.exports.common.yaml_text`,
+which imports PyYAML on first use)."""
+
+
 DEFAULT: tuple[str, ...] = ("kalibr", "imu_utils", "vins", "openvins")
 """Written unless ``[output] exports`` says otherwise: the ROS and VIO tools' files."""
 
