@@ -303,6 +303,8 @@ def main() -> None:
             None if base_env is None else lambda: ours(logs[0], cal, tmp / "out1", 1, base_env),
             run_floor=floor,
         )
+        if args.fleet_pairs < 1:  # the one log only
+            return
         results |= pairs(
             "fleet",
             args.fleet_pairs,
