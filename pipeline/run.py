@@ -174,26 +174,28 @@ def warm_modules(cfg: Config) -> list[str]:
 
 ONE_THREAD_CSV_BYTES = 150_000_000
 """Below this many bytes of CSV inputs, a run whose Rerun import is still to come parses them
-on one pyarrow thread (:func:`parse_threads`)."""
+leaving a core to that import (:func:`parse_threads`)."""
 
 
 def parse_threads(cfg: Config, used: Sequence[str]) -> int | None:
     """pyarrow's thread count for reading the inputs ``used`` while Rerun imports on the warm
     thread (:mod:`imupipe.pipeline.warm_imports`); None: pyarrow's own (one per core).
 
-    One thread when every input is a CSV, of under :data:`ONE_THREAD_CSV_BYTES` together, and
-    Rerun is not yet imported. The import (0.45-0.5 s of CPU, all of it holding the GIL) is
-    what the run waits for after reading a small CSV; with the parse's two threads beside it on
-    two cores it gets two thirds of a core. Parsed on one thread, the 30-min, 103 MB CSV of
-    issue 39's benchmark left the whole run 0.87x the wall time and 0.97x the CPU (10
-    alternated pairs, load 1.7); 206 MB: 0.98x and 0.96x (6 pairs); 412 MB: 1.07x the wall
-    time (4 pairs), so larger files keep every thread. The same values are parsed either way."""
-    if "rerun" in sys.modules or not used:
+    One thread fewer than pyarrow's own (one on two cores) when every input is a CSV, of under
+    :data:`ONE_THREAD_CSV_BYTES` together, and Rerun is not yet imported. The import (0.45-0.5 s
+    of CPU, all of it holding the GIL) is what the run waits for after reading a small CSV;
+    with the parse's two threads beside it on two cores it got two thirds of a core. Parsed on
+    one thread, the 30-min, 103 MB CSV of issue 39's benchmark left the whole run 0.87x-0.94x
+    the wall time and 0.97x-0.99x the CPU (8 and 10 alternated pairs, load 1.2 to 1.7);
+    206 MB: 0.98x and 0.96x (6 pairs); 412 MB: 1.07x the wall time (4 pairs), so larger files
+    keep every thread. The same values are parsed either way."""
+    cores = pa.cpu_count()
+    if cores < 2 or "rerun" in sys.modules or not used:
         return None
     paths = [Path(cfg.inputs[name].path) for name in used]
     if any(detect_format(p) != "csv" for p in paths):
         return None
-    return 1 if sum(size_of(p) for p in paths) < ONE_THREAD_CSV_BYTES else None
+    return cores - 1 if sum(size_of(p) for p in paths) < ONE_THREAD_CSV_BYTES else None
 
 
 @contextmanager

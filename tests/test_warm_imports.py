@@ -140,14 +140,22 @@ def _csv_config(tmp_path, rows=2_000, name="s.csv"):
 
 
 def test_a_small_csv_is_parsed_on_one_thread_while_rerun_imports(tmp_path, monkeypatch):
-    """Issue 39: one pyarrow thread for CSV inputs under ONE_THREAD_CSV_BYTES while Rerun's
-    import is still to come; pyarrow's own count otherwise."""
+    """Issue 39: CSV inputs under ONE_THREAD_CSV_BYTES, while Rerun's import is still to come,
+    leave it a core (one thread on two cores); pyarrow's own count otherwise."""
+    import pyarrow as pa
+
     import imupipe.pipeline.run as run_module
-    from imupipe.pipeline.run import parse_threads
+    from imupipe.pipeline.run import parse_threads, pyarrow_threads
 
     cfg = _csv_config(tmp_path)
     monkeypatch.delitem(sys.modules, "rerun", raising=False)
-    assert parse_threads(cfg, ["s"]) == 1
+    with pyarrow_threads(2):
+        assert parse_threads(cfg, ["s"]) == 1
+    with pyarrow_threads(8):
+        assert parse_threads(cfg, ["s"]) == 7
+    with pyarrow_threads(1):
+        assert parse_threads(cfg, ["s"]) is None
+    assert parse_threads(cfg, ["s"]) == (pa.cpu_count() - 1 or None)
     assert parse_threads(cfg, []) is None
     monkeypatch.setattr(run_module, "ONE_THREAD_CSV_BYTES", (tmp_path / "s.csv").stat().st_size)
     assert parse_threads(cfg, ["s"]) is None  # not under the limit
