@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import sys
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -38,7 +39,7 @@ from imupipe.pipeline.signals import signals_deferred
 from imupipe.pipeline.version import VERSION
 from imupipe.pipeline.warm_imports import WarmImports
 from imupipe.readers.arrays import to_numpy
-from imupipe.readers.dispatch import read_input, reader_for
+from imupipe.readers.dispatch import detect_format, read_input, reader_for
 from imupipe.readers.table_buffer import small_pages
 from imupipe.stages.base import StageContext, StageOutput
 from imupipe.stages.registry import stage_class, stage_modules
@@ -171,6 +172,46 @@ def warm_modules(cfg: Config) -> list[str]:
     return modules
 
 
+ONE_THREAD_CSV_BYTES = 150_000_000
+"""Below this many bytes of CSV inputs, a run whose Rerun import is still to come parses them
+leaving a core to that import (:func:`parse_threads`)."""
+
+
+def parse_threads(cfg: Config, used: Sequence[str]) -> int | None:
+    """pyarrow's thread count for reading the inputs ``used`` while Rerun imports on the warm
+    thread (:mod:`imupipe.pipeline.warm_imports`); None: pyarrow's own (one per core).
+
+    One thread fewer than pyarrow's own (one on two cores) when every input is a CSV, of under
+    :data:`ONE_THREAD_CSV_BYTES` together, and Rerun is not yet imported. The import (0.45-0.5 s
+    of CPU, all of it holding the GIL) is what the run waits for after reading a small CSV;
+    with the parse's two threads beside it on two cores it got two thirds of a core. Parsed on
+    one thread, the 30-min, 103 MB CSV of issue 39's benchmark left the whole run 0.87x-0.94x
+    the wall time and 0.97x-0.99x the CPU (8 and 10 alternated pairs, load 1.2 to 1.7);
+    206 MB: 0.98x and 0.96x (6 pairs); 412 MB: 1.07x the wall time (4 pairs), so larger files
+    keep every thread. The same values are parsed either way."""
+    cores = pa.cpu_count()
+    if cores < 2 or "rerun" in sys.modules or not used:
+        return None
+    paths = [Path(cfg.inputs[name].path) for name in used]
+    if any(detect_format(p) != "csv" for p in paths):
+        return None
+    return cores - 1 if sum(size_of(p) for p in paths) < ONE_THREAD_CSV_BYTES else None
+
+
+@contextmanager
+def pyarrow_threads(count: int | None) -> Iterator[None]:
+    """pyarrow's CPU thread pool at ``count`` threads inside the block (None: unchanged)."""
+    if count is None:
+        yield
+        return
+    before = pa.cpu_count()
+    pa.set_cpu_count(count)
+    try:
+        yield
+    finally:
+        pa.set_cpu_count(before)
+
+
 def instance_groups(cfg: Config) -> dict[str, list[str]]:
     """Configured stage -> the stages expanded from it over two or more instances of its
     input's log (:mod:`imupipe.pipeline.instances`): a fit of one of them that fails its quality
@@ -226,7 +267,8 @@ def run(
     with progress_bar("imupipe run", total=None, quiet=quiet) as bar:
         for name in used:  # the readers' modules, before a second thread imports alongside
             reader_for(cfg.inputs[name])
-        with WarmImports(warm_modules(cfg), freeze=one_shot):
+        threads = parse_threads(cfg, used)
+        with WarmImports(warm_modules(cfg), freeze=one_shot), pyarrow_threads(threads):
             for name in used:  # inputs only written (apply_to) are never held: streamed below
                 path = Path(cfg.inputs[name].path)
                 size = size_of(path) or None

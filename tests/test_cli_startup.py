@@ -195,3 +195,54 @@ def test_a_survey_part_reads_as_read_table_reads_it(tmp_path):
             assert ipc(got) == ipc(want)
         assert ipc(got.combine_chunks()) == ipc(want.combine_chunks())
         assert ipc(got) == ipc(table)
+
+
+EXIT_NOW = """
+import atexit, sys, threading, time
+from imupipe.pipeline.cli import exit_now
+
+class Torn:
+    def __del__(self):
+        sys.stderr.write("torn down\\n")
+
+kept = Torn()  # freed only by the interpreter's teardown of this module
+atexit.register(lambda: sys.stdout.write("atexit ran\\n"))
+threading.Thread(target=lambda: (time.sleep(0.2), sys.stdout.write("thread done\\n"))).start()
+sys.stdout.write("buffered, not flushed;")
+if sys.argv[1:] == ["broken"]:
+    class Broken:
+        def write(self, text):
+            return len(text)
+        def flush(self):
+            raise OSError("closed pipe")
+    sys.stdout.flush()
+    sys.stdout = Broken()
+exit_now(3)
+"""
+
+
+def test_the_program_ends_as_python_would_without_its_teardown():
+    """Issue 39: :func:`imupipe.pipeline.cli.exit_now` joins the threads not marked daemon,
+    runs the ``atexit`` handlers, flushes stdout and ends with the status given, without the
+    interpreter's teardown of modules and objects."""
+    proc = subprocess.run(
+        [sys.executable, "-c", EXIT_NOW], capture_output=True, text=True, timeout=60
+    )
+    assert proc.returncode == 3, proc.stderr[-2000:]
+    assert proc.stdout == "buffered, not flushed;thread done\natexit ran\n"
+    assert "torn down" not in proc.stderr
+
+
+def test_the_program_exits_the_ordinary_way_when_a_step_fails():
+    """A flush that fails (a closed pipe): the process takes Python's own exit, teardown
+    included, with Python's own report and status (120: stdout could not be flushed), as
+    ``sys.exit(3)`` gives."""
+    ordinary = EXIT_NOW.replace("exit_now(3)", "sys.exit(3)")
+    for code in (EXIT_NOW, ordinary):
+        proc = subprocess.run(
+            [sys.executable, "-c", code, "broken"], capture_output=True, text=True, timeout=60
+        )
+        assert proc.returncode == 120, proc.stderr[-2000:]
+        assert proc.stdout == "buffered, not flushed;"
+        assert "OSError: closed pipe" in proc.stderr
+        assert "torn down" in proc.stderr

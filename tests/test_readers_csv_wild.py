@@ -328,3 +328,27 @@ def test_hostile_csv_through_the_cli_is_one_line_and_exit_2(tmp_path, name):
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1 and needle in lines[0] and name in lines[0], proc.stderr
     assert not (tmp_path / "out").exists()
+
+
+def test_is_number_answers_as_its_two_expressions():
+    """Issue 39: ``is_number`` refuses cells by their commas before matching; the answer is the
+    expressions' own for every cell: numbers with either decimal mark, blanks, signs,
+    exponents, nan/inf in any case, whole lines as the sniff splits them by another delimiter,
+    and random strings over the characters that matter."""
+    import random
+
+    from imupipe.readers.csv.layout import COMMA_NUMBER, NUMBER, is_number
+
+    cells = [
+        "0.01117506322170389", "-1,5", "1,5e-3", ",25", "1,", "1,,5", "1,5,6", " 2 ", "\t3\t",
+        "NaN", "-INF", "Infinity", "+.5E+3", "1.", ".", ",", "", " ", "e5", "1e", "1_000",
+        "1700000000000000000,0.0111,-0.0148,0.0030,0.0689,-0.028,9.84",
+        "0,011;-0,014;9,8", "1.5,2.5", "1;5", "١٢٣", "1\u00a0",
+    ]  # fmt: skip
+    rng = random.Random(39)
+    alphabet = "0123456789,.;eE+- \tnaiftyNAIFTY"
+    cells += ["".join(rng.choices(alphabet, k=rng.randint(0, 12))) for _ in range(20_000)]
+    for cell in cells:
+        for decimal in (".", ","):
+            expected = bool(NUMBER.match(cell) or (decimal == "," and COMMA_NUMBER.match(cell)))
+            assert is_number(cell, decimal) == expected, (cell, decimal)

@@ -120,3 +120,70 @@ def test_a_one_shot_process_freezes_what_it_imported_and_collects_again():
     with WarmImports(["json"]):
         pass
     assert gc.get_freeze_count() == 0
+
+
+def _csv_config(tmp_path, rows=2_000, name="s.csv"):
+    import numpy as np
+    import pyarrow as pa
+    import pyarrow.csv as pacsv
+
+    values = np.random.default_rng(1).standard_normal((6, rows))
+    names = ["gyro_x", "gyro_y", "gyro_z", "accel_x", "accel_y", "accel_z"]
+    columns = {"t_ns": pa.array(np.arange(rows, dtype=np.int64) * 2_500_000)}
+    columns.update({n: pa.array(v) for n, v in zip(names, values, strict=True)})
+    pacsv.write_csv(pa.table(columns), tmp_path / name)
+    cfg = tmp_path / "cfg.toml"
+    cfg.write_text(
+        f'[inputs.s]\npath = "{name}"\n[[stages]]\ntype = "allan"\n[output]\ndir = "out"\n'
+    )
+    return load_config(cfg)
+
+
+def test_a_small_csv_is_parsed_on_one_thread_while_rerun_imports(tmp_path, monkeypatch):
+    """Issue 39: CSV inputs under ONE_THREAD_CSV_BYTES, while Rerun's import is still to come,
+    leave it a core (one thread on two cores); pyarrow's own count otherwise."""
+    import pyarrow as pa
+
+    import imupipe.pipeline.run as run_module
+    from imupipe.pipeline.run import parse_threads, pyarrow_threads
+
+    cfg = _csv_config(tmp_path)
+    monkeypatch.delitem(sys.modules, "rerun", raising=False)
+    with pyarrow_threads(2):
+        assert parse_threads(cfg, ["s"]) == 1
+    with pyarrow_threads(8):
+        assert parse_threads(cfg, ["s"]) == 7
+    with pyarrow_threads(1):
+        assert parse_threads(cfg, ["s"]) is None
+    assert parse_threads(cfg, ["s"]) == (pa.cpu_count() - 1 or None)
+    assert parse_threads(cfg, []) is None
+    monkeypatch.setattr(run_module, "ONE_THREAD_CSV_BYTES", (tmp_path / "s.csv").stat().st_size)
+    assert parse_threads(cfg, ["s"]) is None  # not under the limit
+    monkeypatch.undo()
+    monkeypatch.setitem(sys.modules, "rerun", sys)  # already imported: nothing to make room for
+    assert parse_threads(cfg, ["s"]) is None
+    monkeypatch.undo()
+    mcap = tmp_path / "s.mcap"
+    mcap.write_bytes(b"")
+    cfg.inputs["s"].path = mcap
+    monkeypatch.delitem(sys.modules, "rerun", raising=False)
+    assert parse_threads(cfg, ["s"]) is None  # not a CSV
+
+
+def test_one_parse_thread_reads_the_same_table_and_restores_the_pool(tmp_path):
+    import pyarrow as pa
+
+    from imupipe.pipeline.run import pyarrow_threads
+    from imupipe.readers.dispatch import read_input
+
+    cfg = _csv_config(tmp_path, rows=80_000)  # 11 MB: three of the reader's 4 MiB blocks
+    before = pa.cpu_count()
+    with pyarrow_threads(1):
+        assert pa.cpu_count() == 1
+        one, _ = read_input(cfg.inputs["s"])
+    assert pa.cpu_count() == before
+    every, _ = read_input(cfg.inputs["s"])
+    assert one.equals(every)
+    with pytest.raises(RuntimeError), pyarrow_threads(1):
+        raise RuntimeError("a read failed")
+    assert pa.cpu_count() == before

@@ -96,7 +96,16 @@ def cells(text: str, delimiter: str) -> list[str]:
 
 
 def is_number(cell: str, decimal: str = ".") -> bool:
-    return bool(NUMBER.match(cell) or (decimal == "," and COMMA_NUMBER.match(cell)))
+    """:data:`NUMBER`, or with ``decimal`` "," :data:`COMMA_NUMBER`, matches ``cell``.
+
+    Counted first: :data:`NUMBER` takes no comma and :data:`COMMA_NUMBER` exactly one, so a
+    cell with commas (a whole line, as the sniff splits it by another delimiter) is refused
+    without the expressions' backtracking over its digits (the sniff of a 7-column CSV's
+    64 KiB: 0.05 s -> 0.01 s, issue 39); the same answer for every cell."""
+    commas = cell.count(",")
+    if not commas:
+        return NUMBER.match(cell) is not None
+    return decimal == "," and commas == 1 and COMMA_NUMBER.match(cell) is not None
 
 
 def _head(path: Path) -> tuple[bytes, bool]:
