@@ -10,8 +10,7 @@ exits 130, SIGTERM 143; both remove the command's temporary files first.
 
 **Start-up.** Only the module of the command given is imported (``imupipe --help`` imports
 none), so the command line starts in a few tens of milliseconds. The ``imupipe`` program
-(:func:`console`) also spares the interpreter's exit a walk over every object and the
-teardown of every module (:func:`exit_now`, issue 39).
+(:func:`console`) also spares the interpreter's exit a walk over every object (issue 39).
 """
 
 from __future__ import annotations
@@ -168,50 +167,19 @@ def _error(line: str, code: int, debug: bool) -> int:
 
 
 def console() -> None:
-    """The ``imupipe`` program: :func:`main` on ``sys.argv``, then exit with its status
-    (:func:`exit_now`).
+    """The ``imupipe`` program: :func:`main` on ``sys.argv``, then exit with its status.
 
     Before the interpreter exits, the objects still alive are frozen (:func:`gc.freeze`), so
     that the last cyclic garbage collection of its exit does not walk every object of every
     module loaded (numpy's, pyarrow's, imupipe's): 20-25 ms of CPU, a third of a one-log
     ``convert``'s own cost (issue 39). The command is over by then: its outputs are written,
     closed and renamed, its temporary files removed; ``atexit`` handlers (and the
-    ``weakref.finalize`` callbacks they run) still run. :func:`main` itself leaves the
-    collector alone (it is also called in-process, by tests)."""
+    ``weakref.finalize`` callbacks they run) still run, and objects are still freed when their
+    last reference goes. :func:`main` itself leaves the collector alone (it is also called
+    in-process, by tests)."""
     code = main()
     gc.freeze()
-    exit_now(code)
-
-
-def exit_now(code: int) -> None:
-    """End the process with status ``code`` after what Python's exit does that a command's
-    caller can see, without the interpreter's teardown of every module and object.
-
-    Done, in Python's own order: the threads not marked daemon are joined (with the
-    ``concurrent.futures`` pools' shutdown, :func:`threading._shutdown`), the ``atexit``
-    handlers run (Rerun's, multiprocessing's, a coverage tool's), ``sys.stdout`` and
-    ``sys.stderr`` are flushed; then :func:`os._exit`. Left out: the clearing of every module's
-    names and the freeing of every object one by one, which the kernel's release of the
-    process's memory makes moot: from the end of :func:`main` to the parent's ``wait``, a
-    30-min Allan run (Rerun, numpy, pyarrow, scipy loaded) took 0.055 s, now 0.030 s (medians
-    of 10 alternated pairs; issue 39, sixth pass). Should any of these steps
-    fail (e.g. a closed pipe on stdout), the process exits the ordinary way
-    (:func:`sys.exit`), with Python's own report and status."""
-    threading = sys.modules.get("threading")  # not loaded: no thread was ever started
-    shutdown = getattr(threading, "_shutdown", None) if threading is not None else None
-    try:
-        if threading is not None and shutdown is None:  # another Python: its own exit
-            raise RuntimeError("threading._shutdown is not available")
-        if shutdown is not None:
-            shutdown()
-        import atexit
-
-        atexit._run_exitfuncs()
-        sys.stdout.flush()
-        sys.stderr.flush()
-    except Exception:  # noqa: BLE001 - the ordinary exit reports it as Python does
-        sys.exit(code)
-    os._exit(code)
+    sys.exit(code)
 
 
 if __name__ == "__main__":
