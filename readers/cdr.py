@@ -14,6 +14,8 @@ All messages of one frame_id length share one layout, so a batch is one numpy st
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 import pyarrow as pa
 
@@ -138,8 +140,9 @@ class NotFastPath(ValueError):
     """The batch is valid but not in a layout the numpy path decodes (e.g. big-endian CDR)."""
 
 
+@functools.cache
 def field_count(msgtype: str) -> int:
-    """Number of float64 values after the header of ``msgtype``."""
+    """Number of float64 values after the header of ``msgtype`` (looked up per chunk: cached)."""
     return sum(count for _, count in FIELDS[msgtype])
 
 

@@ -174,8 +174,6 @@ def repeated_frame(one: str, n: int) -> pa.Array:
     return frame
 
 
-_FLOATS: dict[str, int] = {}
-"""Per stream: the float64 fields after its message's header (:func:`field_count`)."""
 _TIMES = BufferPool()
 """Buffers :func:`walk` gathers times into, each used again once no piece's times refer to it
 (a new one per call cost a fresh mapping of its pages: ~6,000 page faults per million Imu
@@ -194,10 +192,7 @@ def walk(buf: np.ndarray, offsets: np.ndarray, channel: int, stream: str) -> Rec
     raw = _TIMES.take(3 * n * 8)
     _TIMES.give(raw)  # taken again only when the views below are gone
     out = raw.view(np.int64)
-    floats = _FLOATS.get(stream)
-    if floats is None:
-        floats = _FLOATS[stream] = field_count(PIECE_TYPES[stream])
-    found = module.cdr_walk(buf, offsets, channel, floats, out)
+    found = module.cdr_walk(buf, offsets, channel, field_count(PIECE_TYPES[stream]), out)
     if found is None:
         return None
     _, skip, frame, ordered = found

@@ -242,12 +242,8 @@ def _rows(
 
     def col(name: str, values: Any, typ: pa.DataType) -> None:
         # numpy columns on their buffers: pa.array of an ndarray imports numpy.ma (9 ms, issue 39)
-        fixed = pa.types.is_integer(typ) or pa.types.is_floating(typ)
-        numeric = isinstance(values, np.ndarray) and (
-            (values.dtype.kind in "iuf" and fixed)
-            or (values.dtype == np.bool_ and pa.types.is_boolean(typ))
-        )
-        arrays.append(arrow_array(values, typ) if numeric else pa.array(values, typ))
+        numpy = isinstance(values, np.ndarray)
+        arrays.append(arrow_array(values, typ) if numpy else pa.array(values, typ))
         names.append(name)
 
     arrays: list[pa.Array] = []
